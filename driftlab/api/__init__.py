@@ -1,0 +1,1 @@
+"""REST API over the campaign store and the model registry."""

@@ -1,0 +1,1 @@
+"""Campaign store, bundle import/export, plans and the resumable scheduler."""

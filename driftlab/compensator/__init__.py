@@ -1,0 +1,1 @@
+"""Streaming compensator: motion code in, corrected motion code out."""

@@ -1,0 +1,34 @@
+"""Configuration from the environment (DRIFTLAB_*), with an embedded SQLite default."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from platformdirs import user_data_dir
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+def default_db_url() -> str:
+    """Return the SQLite URL of the embedded default store under the user's data directory."""
+    path = Path(user_data_dir("driftlab", appauthor=False)) / "driftlab.sqlite"
+    return f"sqlite:///{path}"
+
+
+class Settings(BaseSettings):
+    """Settings read from DRIFTLAB_* environment variables."""
+
+    model_config = SettingsConfigDict(env_prefix="DRIFTLAB_", extra="ignore")
+
+    db_url: str = ""
+    api_token: str = ""
+    api_host: str = "127.0.0.1"
+    api_port: int = 8765
+
+    def resolved_db_url(self) -> str:
+        """Return the configured database URL, or the embedded SQLite default."""
+        return self.db_url or default_db_url()
+
+
+def get_settings() -> Settings:
+    """Return settings freshly read from the environment."""
+    return Settings()

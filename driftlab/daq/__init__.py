@@ -1,0 +1,1 @@
+"""Instrument drivers: real transports and simulated ones behind the same interfaces."""

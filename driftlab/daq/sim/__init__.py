@@ -1,0 +1,1 @@
+"""The virtual machine tool and its simulated instrument transports."""

@@ -1,0 +1,1 @@
+"""Pure physics and fitting: kinematics, thermal network, simulation, regression, diagnosis."""
