@@ -1,0 +1,285 @@
+"""Physically recast regression terms (ch. 6.4.2): dT, structure means, gradients, position x dT, lags."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+from scipy.signal import lfilter
+
+from driftlab.errors import ValidationError
+
+Kind = Literal["intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT"]
+KINDS: tuple[str, ...] = ("intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT")
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One regression term: how to compute a column from temperatures, position and direction."""
+
+    kind: str
+    channels: tuple[str, ...] = ()
+    power: int = 1
+    tau_s: float | None = None
+    label: str = ""
+
+    def __post_init__(self) -> None:
+        """Check the kind and the number of channels it needs."""
+        if self.kind not in KINDS:
+            raise ValidationError(f"unknown feature kind {self.kind!r}")
+        need = {"dT": 1, "lag": 1, "pos_dT": 1, "gradient": 2}
+        if self.kind in need and len(self.channels) != need[self.kind]:
+            raise ValidationError(f"feature {self.kind} needs {need[self.kind]} channel(s), got {self.channels}")
+        if self.kind == "mean" and len(self.channels) < 2:
+            raise ValidationError("a structure mean needs at least two channels")
+        if self.kind == "lag" and not (self.tau_s and self.tau_s > 0):
+            raise ValidationError("a lag feature needs tau_s > 0")
+
+    @property
+    def name(self) -> str:
+        """Return the term's display name, e.g. ``x*dT[T9]`` or ``grad[T34-T32]``."""
+        c = self.channels
+        if self.kind == "intercept":
+            return "const"
+        if self.kind == "position":
+            return "pos" if self.power == 1 else f"pos^{self.power}"
+        if self.kind == "direction":
+            return "dir"
+        if self.kind == "dT":
+            return f"dT[{c[0]}]"
+        if self.kind == "lag":
+            return f"lag{int(round(self.tau_s or 0))}[{c[0]}]"
+        if self.kind == "pos_dT":
+            return f"pos*dT[{c[0]}]"
+        if self.kind == "gradient":
+            return f"grad[{c[0]}-{c[1]}]"
+        return f"mean[{self.label or '+'.join(c)}]"
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form stored in a model document."""
+        out: dict[str, Any] = {"kind": self.kind, "name": self.name}
+        if self.channels:
+            out["channels"] = list(self.channels)
+        if self.kind == "position":
+            out["power"] = self.power
+        if self.tau_s is not None:
+            out["tau_s"] = float(self.tau_s)
+        if self.label:
+            out["label"] = self.label
+        return out
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "Feature":
+        """Rebuild a feature from its JSON form."""
+        return cls(
+            kind=str(d["kind"]),
+            channels=tuple(d.get("channels", ())),
+            power=int(d.get("power", 1)),
+            tau_s=None if d.get("tau_s") is None else float(d["tau_s"]),
+            label=str(d.get("label", "")),
+        )
+
+
+INTERCEPT = Feature("intercept")
+
+
+@dataclass
+class Inputs:
+    """Temperature-derived inputs at the error samples: dT per channel and first-order-lagged dT."""
+
+    dT: pd.DataFrame
+    lagged: dict[tuple[str, float], np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        """Return the number of samples."""
+        return len(self.dT)
+
+    def take(self, index: np.ndarray) -> "Inputs":
+        """Return the inputs restricted to the rows ``index`` (boolean mask or integer positions)."""
+        idx = np.flatnonzero(index) if np.asarray(index).dtype == bool else np.asarray(index)
+        return Inputs(
+            dT=self.dT.iloc[idx].reset_index(drop=True),
+            lagged={k: v[idx] for k, v in self.lagged.items()},
+        )
+
+
+def channel_columns(temperatures: pd.DataFrame) -> list[str]:
+    """Return the thermocouple columns of a temperatures frame (everything but ``time_s``)."""
+    return [c for c in temperatures.columns if c != "time_s"]
+
+
+def fill_gaps(temperatures: pd.DataFrame) -> pd.DataFrame:
+    """Return temperatures with missing readings interpolated in time (edges held)."""
+    out = temperatures.copy()
+    chans = channel_columns(out)
+    if not chans:
+        return out
+    t = out["time_s"].to_numpy(float)
+    for c in chans:
+        v = out[c].to_numpy(float)
+        ok = np.isfinite(v)
+        if ok.all() or not ok.any():
+            continue
+        out[c] = np.interp(t, t[ok], v[ok])
+    return out
+
+
+def first_order_lag(values: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """Return the first-order lag of ``values`` with time constant ``tau_s`` (exact step, starts settled)."""
+    v = np.asarray(values, float)
+    t = np.asarray(t_s, float)
+    if v.size == 0:
+        return v.copy()
+    dt = np.diff(t)
+    if dt.size and np.allclose(dt, dt.mean(), rtol=1e-3, atol=1e-9):
+        a = float(np.exp(-dt.mean() / tau_s))
+        # y[k] = a y[k-1] + (1-a) u[k], settled at u[0]
+        y, _ = lfilter([1.0 - a], [1.0, -a], v, zi=[a * v[0]])
+        return y
+    y = np.empty_like(v)
+    y[0] = v[0]
+    a = np.exp(-dt / tau_s)
+    for k in range(1, v.size):
+        y[k] = a[k - 1] * y[k - 1] + (1.0 - a[k - 1]) * v[k]
+    return y
+
+
+def build_inputs(
+    temperatures: pd.DataFrame,
+    at_times: np.ndarray,
+    reference: Mapping[str, float],
+    channels: Sequence[str] | None = None,
+    lags: Iterable[tuple[str, float]] = (),
+) -> Inputs:
+    """Return dT = T - T_ref (eq. 3.1) and lagged dT for ``channels``, interpolated to ``at_times``."""
+    chans = list(channels) if channels is not None else list(reference)
+    missing = [c for c in chans if c not in temperatures.columns]
+    if missing:
+        raise ValidationError(f"temperatures lack channel(s) {', '.join(missing)}")
+    temps = fill_gaps(temperatures[["time_s", *chans]])
+    t = temps["time_s"].to_numpy(float)
+    at = np.asarray(at_times, float)
+    dT = {}
+    series = {}
+    for c in chans:
+        d = temps[c].to_numpy(float) - float(reference[c])
+        series[c] = d
+        dT[c] = np.interp(at, t, d)
+    lagged = {}
+    for c, tau in lags:
+        if c not in series:
+            continue
+        lagged[(c, float(tau))] = np.interp(at, t, first_order_lag(series[c], t, float(tau)))
+    return Inputs(dT=pd.DataFrame(dT, columns=chans), lagged=lagged)
+
+
+def inputs_from_snapshot(temperatures: Mapping[str, float], reference: Mapping[str, float]) -> Inputs:
+    """Return single-sample inputs from one reading per channel (lags taken as settled: lag = dT)."""
+    dT = {c: [float(v) - float(reference[c])] for c, v in temperatures.items() if c in reference}
+    return Inputs(dT=pd.DataFrame(dT))
+
+
+def _dT(inputs: Inputs, channel: str) -> np.ndarray:
+    """Return dT of one channel, or raise a one-line error naming it."""
+    if channel not in inputs.dT.columns:
+        raise ValidationError(f"no temperature for channel {channel}")
+    return inputs.dT[channel].to_numpy(float)
+
+
+def evaluate(
+    feature: Feature,
+    inputs: Inputs,
+    position: np.ndarray | None = None,
+    direction: np.ndarray | None = None,
+) -> np.ndarray:
+    """Return the column of one feature for every sample."""
+    n = len(inputs) if len(inputs.dT.columns) else (len(position) if position is not None else 1)
+    pos = np.zeros(n) if position is None else np.broadcast_to(np.asarray(position, float), (n,))
+    k = feature.kind
+    if k == "intercept":
+        return np.ones(n)
+    if k == "position":
+        return pos**feature.power
+    if k == "direction":
+        return np.zeros(n) if direction is None else np.broadcast_to(np.asarray(direction, float), (n,)).copy()
+    if k == "dT":
+        return _dT(inputs, feature.channels[0])
+    if k == "lag":
+        key = (feature.channels[0], float(feature.tau_s or 0))
+        # a snapshot carries no history: a settled lag equals its input
+        return inputs.lagged[key] if key in inputs.lagged else _dT(inputs, feature.channels[0])
+    if k == "pos_dT":
+        return pos * _dT(inputs, feature.channels[0])  # eq. 3.2, first order in position
+    if k == "gradient":
+        return _dT(inputs, feature.channels[0]) - _dT(inputs, feature.channels[1])  # eqs. 3.4-3.5
+    return np.mean([_dT(inputs, c) for c in feature.channels], axis=0)  # eq. 3.3
+
+
+def design_matrix(
+    features: Sequence[Feature],
+    inputs: Inputs,
+    position: np.ndarray | None = None,
+    direction: np.ndarray | None = None,
+) -> pd.DataFrame:
+    """Return the (N, k) design matrix of ``features`` as a DataFrame named by term."""
+    cols = {f.name: evaluate(f, inputs, position, direction) for f in features}
+    return pd.DataFrame(cols, columns=[f.name for f in features])
+
+
+def required_channels(features: Iterable[Feature]) -> list[str]:
+    """Return the channels a list of features reads, in first-use order."""
+    out: list[str] = []
+    for f in features:
+        for c in f.channels:
+            if c not in out:
+                out.append(c)
+    return out
+
+
+def required_lags(features: Iterable[Feature]) -> list[tuple[str, float]]:
+    """Return the (channel, tau_s) lags a list of features needs."""
+    return [(f.channels[0], float(f.tau_s or 0)) for f in features if f.kind == "lag"]
+
+
+def candidate_features(
+    channels: Sequence[str],
+    structures: Mapping[str, str],
+    *,
+    joint: bool,
+    screw_channels: Sequence[str] = (),
+    lag_taus_s: Sequence[float] = (),
+    lag_channels: Sequence[str] | None = None,
+    room_channels: Sequence[str] = (),
+) -> list[Feature]:
+    """Return the candidate terms for one link or joint error (ch. 6.4.2).
+
+    Joints get position shape (pos, pos^2), direction (reversal) and position x dT of the
+    ballscrew channels (eq. 3.2); every element gets dT per channel, structure means (eq. 3.3),
+    gradients across structures with two or more channels (eqs. 3.4-3.5) and lagged dT.
+    """
+    out: list[Feature] = []
+    if joint:
+        out += [Feature("position", power=1), Feature("position", power=2), Feature("direction")]
+        out += [Feature("pos_dT", (c,)) for c in screw_channels if c in channels]
+    out += [Feature("dT", (c,)) for c in channels]
+    by_struct: dict[str, list[str]] = {}
+    for c in channels:
+        s = structures.get(c, "")
+        if s and c not in room_channels:
+            by_struct.setdefault(s, []).append(c)
+    for s, cs in by_struct.items():
+        if len(cs) >= 2:
+            out.append(Feature("mean", tuple(cs), label=s))
+            for i in range(len(cs)):
+                for j in range(i + 1, len(cs)):
+                    out.append(Feature("gradient", (cs[j], cs[i])))
+    if len(room_channels) >= 2 and all(c in channels for c in room_channels[:2]):
+        out.append(Feature("gradient", (room_channels[0], room_channels[1])))
+    for tau in lag_taus_s:
+        for c in lag_channels if lag_channels is not None else channels:
+            if c in channels:
+                out.append(Feature("lag", (c,), tau_s=float(tau)))
+    return out

@@ -1,0 +1,214 @@
+"""Stepwise multiple linear regression on statsmodels OLS (ch. 6.4.2, eqs. 6.8-6.9)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import statsmodels.api as sm
+from scipy import stats
+
+from driftlab.errors import ValidationError
+from driftlab.models.features import Feature, Inputs, design_matrix
+
+
+@dataclass
+class Step:
+    """One stepwise move: a term entered (with its partial F) or left (with its p-value)."""
+
+    action: str
+    term: str
+    statistic: float
+    p_value: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form."""
+        return {"action": self.action, "term": self.term, "statistic": self.statistic, "p_value": self.p_value}
+
+
+@dataclass
+class StepwiseResult:
+    """A stepwise fit: the chosen features, the statsmodels OLS results and the path taken."""
+
+    features: list[Feature]
+    ols: Any  # statsmodels RegressionResultsWrapper
+    steps: list[Step] = field(default_factory=list)
+    collinear: list[str] = field(default_factory=list)
+
+    @property
+    def names(self) -> list[str]:
+        """Return the term names in model order."""
+        return [f.name for f in self.features]
+
+    @property
+    def params(self) -> pd.Series:
+        """Return the coefficients by term name."""
+        return pd.Series(np.asarray(self.ols.params), index=self.names)
+
+    @property
+    def bse(self) -> pd.Series:
+        """Return the standard errors by term name."""
+        return pd.Series(np.asarray(self.ols.bse), index=self.names)
+
+    @property
+    def pvalues(self) -> pd.Series:
+        """Return the coefficient p-values by term name."""
+        return pd.Series(np.asarray(self.ols.pvalues), index=self.names)
+
+    @property
+    def rsquared(self) -> float:
+        """Return R^2 on the training data."""
+        return float(self.ols.rsquared) if len(self.features) > 1 else 0.0
+
+    @property
+    def fvalue(self) -> float:
+        """Return the regression F statistic (nan for an intercept-only model)."""
+        return float(self.ols.fvalue) if len(self.features) > 1 else float("nan")
+
+    @property
+    def rmse(self) -> float:
+        """Return the training RMSE of the residuals."""
+        return float(np.sqrt(np.mean(np.asarray(self.ols.resid) ** 2)))
+
+    @property
+    def nobs(self) -> int:
+        """Return the number of training samples."""
+        return int(self.ols.nobs)
+
+    @property
+    def condition_number(self) -> float:
+        """Return the condition number of the chosen design (the collinearity guard's figure)."""
+        return float(self.ols.condition_number)
+
+    def predict(self, X: pd.DataFrame) -> np.ndarray:
+        """Return predictions for a design matrix holding at least the chosen terms."""
+        return X[self.names].to_numpy(float) @ np.asarray(self.ols.params, float)
+
+
+def _ols(y: np.ndarray, X: np.ndarray) -> Any:
+    """Return a statsmodels OLS fit."""
+    return sm.OLS(y, X, hasconst=True).fit()
+
+
+def stepwise(
+    X: pd.DataFrame,
+    y: np.ndarray,
+    candidates: Sequence[Feature],
+    *,
+    forced: Sequence[Feature] = (),
+    p_enter: float = 1e-4,
+    p_remove: float = 1e-3,
+    min_gain: float = 0.01,
+    max_terms: int = 10,
+    vif_max: float = 30.0,
+) -> StepwiseResult:
+    """Return a forward/backward stepwise OLS fit of ``y`` on the columns of ``X``.
+
+    Forward steps add the candidate with the largest partial F (computed for all candidates at
+    once by projecting them off the current design) if its p-value is below ``p_enter`` and it
+    removes at least ``min_gain`` of the remaining sum of squares; candidates whose variance
+    inflation factor against the current terms exceeds ``vif_max`` are refused (correlated
+    inputs mask each other, ch. 6.4.2). Backward steps drop the least significant non-forced
+    term while its OLS p-value exceeds ``p_remove``.
+    """
+    y = np.asarray(y, float)
+    n = y.size
+    feats = list(forced) + [c for c in candidates if c not in forced]
+    names = [f.name for f in feats]
+    if len(set(names)) != len(names):
+        raise ValidationError("duplicate candidate terms")
+    A = X[names].to_numpy(float)
+    if not np.all(np.isfinite(A)) or not np.all(np.isfinite(y)):
+        raise ValidationError("non-finite values in the regression data")
+    n_forced = len(forced)
+    selected = list(range(n_forced))
+    steps: list[Step] = []
+    collinear: set[str] = set()
+    centred = A - A.mean(axis=0)
+    total2 = (centred**2).sum(axis=0)
+    tried_out: set[int] = set()
+    for _ in range(4 * max_terms + 4):
+        # forward step
+        pool = [j for j in range(n_forced, len(feats)) if j not in selected and j not in tried_out]
+        if not pool or len(selected) >= max_terms or n - len(selected) - 2 < 1:
+            break
+        if selected:
+            Q, _ = np.linalg.qr(A[:, selected])
+            r = y - Q @ (Q.T @ y)
+            C = A[:, pool]
+            Cr = C - Q @ (Q.T @ C)
+        else:
+            r = y.copy()
+            Cr = A[:, pool].copy()
+        sse = float(r @ r)
+        norm2 = (Cr**2).sum(axis=0)
+        ok = norm2 > np.maximum(total2[pool], 1e-300) / vif_max
+        ok &= norm2 > 1e-12 * max(1.0, float(np.max(norm2, initial=0.0)))
+        for j, good in zip(pool, ok):
+            if not good:
+                collinear.add(names[j])
+        if not ok.any() or sse <= 0:
+            break
+        gain = np.where(ok, (Cr.T @ r) ** 2 / np.where(ok, norm2, 1.0), -np.inf)
+        dof = n - len(selected) - 1
+        best = int(np.argmax(gain))
+        g = float(gain[best])
+        F = g / max((sse - g) / dof, 1e-300)
+        p = float(stats.f.sf(F, 1, dof))
+        if p >= p_enter or g < min_gain * sse:
+            break
+        j = pool[best]
+        selected.append(j)
+        steps.append(Step("add", names[j], F, p))
+        # backward steps
+        while len(selected) > n_forced + 1:
+            res = _ols(y, A[:, selected])
+            pv = np.asarray(res.pvalues)[n_forced:]
+            worst = int(np.argmax(pv))
+            if pv[worst] <= p_remove:
+                break
+            k = selected.pop(n_forced + worst)
+            tried_out.add(k)
+            steps.append(Step("remove", names[k], float(res.tvalues[n_forced + worst] ** 2), float(pv[worst])))
+    res = _ols(y, A[:, selected]) if selected else None
+    if res is None:
+        raise ValidationError("stepwise regression needs at least one forced term (the intercept)")
+    chosen = [feats[j] for j in selected]
+    return StepwiseResult(
+        features=chosen, ols=res, steps=steps, collinear=sorted(collinear - set(f.name for f in chosen))
+    )
+
+
+@dataclass
+class TermFit:
+    """The model of one error parameter of one link or joint (one row of tables 6.1/6.2)."""
+
+    element: str
+    param: str
+    result: StepwiseResult
+    rmse_holdout: float = float("nan")
+    n_holdout: int = 0
+
+    def predict(
+        self, inputs: Inputs, position: np.ndarray | None = None, direction: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Return this term's prediction for every sample of ``inputs``."""
+        X = design_matrix(self.result.features, inputs, position, direction)
+        return X.to_numpy(float) @ np.asarray(self.result.ols.params, float)
+
+
+def rmse(residual: np.ndarray) -> float:
+    """Return the root mean square of a residual (nan when empty)."""
+    r = np.asarray(residual, float)
+    r = r[np.isfinite(r)]
+    return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+
+
+def r_squared(y: np.ndarray, y_hat: np.ndarray) -> float:
+    """Return the coefficient of determination of a prediction."""
+    y = np.asarray(y, float)
+    ss_tot = float(np.sum((y - y.mean()) ** 2))
+    return float(1.0 - np.sum((y - y_hat) ** 2) / ss_tot) if ss_tot > 0 else float("nan")

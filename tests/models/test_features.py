@@ -1,0 +1,99 @@
+"""Recast regression terms: dT, lags, gradients, position x dT, JSON round trip."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from driftlab.errors import ValidationError
+from driftlab.models.features import (
+    Feature,
+    build_inputs,
+    candidate_features,
+    design_matrix,
+    first_order_lag,
+    inputs_from_snapshot,
+    required_lags,
+)
+
+
+def _temps():
+    t = np.arange(0.0, 36000.0, 60.0)
+    return pd.DataFrame(
+        {"time_s": t, "A": 20 + 5 * (1 - np.exp(-t / 7200)), "B": 20 + 0.0001 * t, "C": np.full(t.size, 21.0)}
+    )
+
+
+def test_first_order_lag_matches_closed_form_step_response():
+    t = np.arange(0.0, 20000.0, 30.0)
+    u = np.where(t > 0, 1.0, 0.0)
+    u[0] = 0.0
+    y = first_order_lag(u, t, 3000.0)
+    expected = 1 - np.exp(-(t) / 3000.0)
+    assert np.max(np.abs(y[1:] - expected[1:])) < 0.011  # one-step discretisation offset only
+    # non-uniform sampling takes the exact per-step path and agrees
+    t2 = np.concatenate([t[:300], t[301:]])
+    y2 = first_order_lag(np.where(t2 > 0, 1.0, 0.0), t2, 3000.0)
+    assert abs(y2[-1] - y[-1]) < 1e-6
+
+
+def test_build_inputs_interpolates_and_fills_gaps():
+    temps = _temps()
+    temps.loc[10:20, "B"] = np.nan
+    ref = {"A": 20.0, "B": 20.0, "C": 20.0}
+    inp = build_inputs(temps, np.array([90.0, 900.0]), ref, lags=[("A", 3600.0)])
+    assert inp.dT["C"].tolist() == [1.0, 1.0]
+    assert inp.dT["B"].iloc[1] == pytest.approx(0.09, abs=1e-9)
+    assert ("A", 3600.0) in inp.lagged
+    assert inp.lagged[("A", 3600.0)][1] < inp.dT["A"].iloc[1]
+    with pytest.raises(ValidationError):
+        build_inputs(temps, np.array([0.0]), {"Z": 20.0})
+
+
+def test_design_matrix_physical_terms():
+    temps = _temps()
+    ref = {"A": 20.0, "B": 20.0, "C": 20.0}
+    inp = build_inputs(temps, temps["time_s"].to_numpy(), ref)
+    pos = np.linspace(0, 200, len(temps))
+    feats = [
+        Feature("intercept"),
+        Feature("pos_dT", ("A",)),
+        Feature("gradient", ("A", "B")),
+        Feature("mean", ("A", "B"), label="s"),
+        Feature("direction"),
+        Feature("position", power=2),
+    ]
+    X = design_matrix(feats, inp, pos, np.ones(len(temps)))
+    assert list(X.columns) == ["const", "pos*dT[A]", "grad[A-B]", "mean[s]", "dir", "pos^2"]
+    np.testing.assert_allclose(X["pos*dT[A]"], pos * inp.dT["A"])
+    np.testing.assert_allclose(X["grad[A-B]"], inp.dT["A"] - inp.dT["B"])
+    np.testing.assert_allclose(X["mean[s]"], (inp.dT["A"] + inp.dT["B"]) / 2)
+    np.testing.assert_allclose(X["pos^2"], pos**2)
+
+
+def test_feature_json_round_trip_and_validation():
+    f = Feature("lag", ("T34",), tau_s=2900.0)
+    assert Feature.from_dict(f.to_dict()) == f
+    assert f.name == "lag2900[T34]"
+    with pytest.raises(ValidationError):
+        Feature("gradient", ("T34",))
+    with pytest.raises(ValidationError):
+        Feature("bogus")
+
+
+def test_snapshot_inputs_take_settled_lag():
+    inp = inputs_from_snapshot({"A": 23.0, "B": 21.0}, {"A": 20.0, "B": 20.0})
+    X = design_matrix([Feature("lag", ("A",), tau_s=100.0), Feature("dT", ("B",))], inp)
+    assert X.iloc[0].tolist() == [3.0, 1.0]
+
+
+def test_candidates_joint_vs_link():
+    structs = {"T9": "x_screw", "T10": "x_motor", "T32": "arm", "T34": "arm", "T49": "room", "T50": "room"}
+    chans = list(structs)
+    joint = candidate_features(chans, structs, joint=True, screw_channels=["T9"], lag_taus_s=[3600],
+                               room_channels=["T49", "T50"])
+    names = [f.name for f in joint]
+    assert "pos*dT[T9]" in names and "dir" in names and "grad[T34-T32]" in names
+    assert "grad[T49-T50]" in names and "lag3600[T9]" in names
+    link = candidate_features(chans, structs, joint=False)
+    assert not any(f.kind in ("position", "direction", "pos_dT") for f in link)
+    assert required_lags(joint) == [(c, 3600.0) for c in chans]
