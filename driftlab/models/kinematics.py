@@ -1,0 +1,620 @@
+"""HTM kinematic model of the five-axis machine (thesis ch. 4.2-4.4), vectorised over N poses.
+
+Conventions (docs/interfaces.md):
+
+* error vectors ``p`` are ``(alpha, beta, gamma, dx, dy, dz)`` (rad, mm), arrays ``(N, 6)``;
+* chain (eq. 4.12) ``T = T1 @ PhiZ @ T2 @ PhiY @ T3 @ PhiX @ T4 @ ThetaX @ T5 @ ThetaY @ T6``;
+  the left frame is the spindle (tool) frame, the right frame the part;
+* links ``T_i = Trans(a_i, b_i, c_i) @ E(p_i)`` (eqs. 4.9, 4.13), translational joints
+  ``Phi = Trans(q) @ E(p)`` (eqs. 4.14-4.16), rotary joints ``Theta = E(p) @ Rot(q)``
+  (eqs. 4.17-4.18), ``E(p)`` the small-angle HTM of eq. 4.8 (first order, so not exactly
+  orthonormal: every inverse of a real chain here is the exact affine inverse, not eq. 4.22);
+* work-space error ``W = T_real @ inv(T_ideal)``: its translation is the displacement of the part
+  point that should sit at the tool tip (the spindle origin), in the spindle frame.
+
+Speed: the chain is evaluated on the HTM structure (3x3 rotation + translation) with each matrix
+held as nine component vectors, in chunks that stay in cache, and elements without error skip
+their rotation product entirely.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from driftlab.errors import KinematicsError
+
+PARAMS: tuple[str, ...] = ("alpha", "beta", "gamma", "dx", "dy", "dz")
+ELEMENTS: tuple[str, ...] = (
+    "T1", "phi_z", "T2", "phi_y", "T3", "phi_x", "T4", "theta_x", "T5", "theta_y", "T6",
+)
+LINKS: tuple[str, ...] = ("T1", "T2", "T3", "T4", "T5", "T6")
+JOINTS: tuple[str, ...] = ("phi_z", "phi_y", "phi_x", "theta_x", "theta_y")
+#: columns of the joint array ``q``: X, Y, Z (mm), A = theta_x, B = theta_y (rad)
+AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
+#: joint element -> column of q that drives it
+JOINT_AXIS: Mapping[str, int] = MappingProxyType(
+    {"phi_x": 0, "phi_y": 1, "phi_z": 2, "theta_x": 3, "theta_y": 4}
+)
+
+#: Table A.1: fixed link dimensions (a, b, c) in mm of the simulated machine.
+TABLE_A1: Mapping[str, tuple[float, float, float]] = MappingProxyType(
+    {
+        "T1": (0.0, -400.0, -200.0),  # spindle head
+        "T2": (0.0, 400.0, 1200.0),  # vertical column
+        "T3": (0.0, 0.0, -200.0),  # Y-X carriage
+        "T4": (0.0, 0.0, -200.0),  # main table
+        "T5": (0.0, 0.0, -200.0),  # theta_x - theta_z support
+        "T6": (0.0, 0.0, -400.0),  # part table
+    }
+)
+
+#: A pose is flagged singular when the 2x2 Jacobian of (alpha, beta) with respect to (A, B)
+#: has |det| below this; to first order |det| = |cos A|, so the tolerance means A within
+#: 0.057 deg of +/-90 deg, where B turns within 1 mrad of the spindle axis and a beta error e
+#: would need a B correction e / cos A more than 1000 times larger than e.
+SINGULAR_TOL: float = 1e-3
+
+#: poses per chunk of the component-wise kernels (arrays of this length stay in cache)
+CHUNK: int = 8192
+
+ElementErrors = Mapping[str, np.ndarray]
+
+_Comp = Any  # a float or an (n,) array: one component of a stacked matrix or vector
+
+
+# --------------------------------------------------------------------------- single HTMs
+
+
+def _as_params(p: np.ndarray | Any) -> np.ndarray:
+    arr = np.asarray(p, dtype=float)
+    if arr.shape[-1:] != (6,):
+        raise KinematicsError(f"error parameters must have a last dimension of 6 {PARAMS}, got shape {arr.shape}")
+    return arr
+
+
+def error_htm(p: np.ndarray) -> np.ndarray:
+    """Return the small-angle error HTMs of eq. 4.8, shape ``p.shape[:-1] + (4, 4)``."""
+    p = _as_params(p)
+    a, b, g, dx, dy, dz = np.moveaxis(p, -1, 0)
+    one, zero = np.ones_like(a), np.zeros_like(a)
+    rows = [
+        [one, -g, b, dx],  # eq. 4.8
+        [g, one, -a, dy],
+        [-b, a, one, dz],
+        [zero, zero, zero, one],
+    ]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def trans_htm(v: np.ndarray) -> np.ndarray:
+    """Return pure translation HTMs (eqs. 4.3, 4.6) for vectors ``v`` of shape ``(..., 3)``."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (4, 4))
+    out[..., [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
+    out[..., :3, 3] = v
+    return out
+
+
+def rot_htm(axis: str, angle: np.ndarray) -> np.ndarray:
+    """Return pure rotation HTMs about ``axis`` ('x', 'y' or 'z') by ``angle`` rad (eq. 4.4)."""
+    th = np.asarray(angle, dtype=float)
+    c, s = np.cos(th), np.sin(th)
+    out = np.zeros(th.shape + (4, 4))
+    out[..., 3, 3] = 1.0
+    i, j, k = {"x": (0, 1, 2), "y": (1, 2, 0), "z": (2, 0, 1)}[axis.lower()]
+    # eq. 4.4: rotation by th in the (j, k) plane, axis i fixed
+    out[..., i, i] = 1.0
+    out[..., j, j] = c
+    out[..., k, k] = c
+    out[..., j, k] = -s
+    out[..., k, j] = s
+    return out
+
+
+def _dims_array(dims: Mapping[str, Any]) -> dict[str, tuple[float, float, float]]:
+    try:
+        out = {name: tuple(float(x) for x in dims[name]) for name in LINKS}
+    except KeyError as exc:
+        raise KinematicsError(f"link dimensions lack {exc.args[0]!r}: need {LINKS}") from None
+    except (TypeError, ValueError):
+        raise KinematicsError("link dimensions must map T1..T6 to three numbers (a, b, c) in mm") from None
+    for name, abc in out.items():
+        if len(abc) != 3 or not all(np.isfinite(abc)):
+            raise KinematicsError(f"link {name} dimensions must be three finite numbers, got {abc}")
+    return out  # type: ignore[return-value]
+
+
+def _as_q(q: np.ndarray) -> np.ndarray:
+    arr = np.asarray(q, dtype=float)
+    if arr.ndim == 1:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != 5:
+        raise KinematicsError(f"joint coordinates q must be (N, 5) {AXES}, got shape {np.shape(q)}")
+    if not np.all(np.isfinite(arr)):
+        raise KinematicsError("joint coordinates q contain NaN or infinity")
+    return arr
+
+
+def _as_errors(errors: ElementErrors | None, n: int) -> dict[str, np.ndarray]:
+    if not errors:
+        return {}
+    out: dict[str, np.ndarray] = {}
+    for name, value in errors.items():
+        if name not in ELEMENTS:
+            raise KinematicsError(f"unknown element {name!r}: expected one of {ELEMENTS}")
+        if value is None:
+            continue
+        arr = _as_params(value)
+        if arr.ndim == 2 and arr.shape[0] == 1:
+            arr = arr[0]
+        if arr.ndim == 2 and arr.shape[0] != n:
+            raise KinematicsError(f"errors of {name} have {arr.shape[0]} rows for {n} poses")
+        if arr.ndim > 2:
+            raise KinematicsError(f"errors of {name} must be (N, 6) or (6,), got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise KinematicsError(f"errors of {name} contain NaN or infinity")
+        if np.any(arr):
+            out[name] = arr
+    return out
+
+
+def element_htm(element: str, q: np.ndarray, p: np.ndarray | None = None, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+    """Return the (N, 4, 4) HTM of one chain element with error ``p`` (eqs. 4.13-4.18)."""
+    q = _as_q(q)
+    n = q.shape[0]
+    e = error_htm(np.zeros(6) if p is None else p)
+    e = np.broadcast_to(e, (n, 4, 4))
+    if element in LINKS:
+        return trans_htm(np.array(_dims_array(dims)[element])) @ e  # eqs. 4.9, 4.13
+    if element in ("phi_x", "phi_y", "phi_z"):
+        k = JOINT_AXIS[element]
+        v = np.zeros((n, 3))
+        v[:, k] = q[:, k]
+        return trans_htm(v) @ e  # eqs. 4.14-4.16
+    if element in ("theta_x", "theta_y"):
+        return e @ rot_htm(element[-1], q[:, JOINT_AXIS[element]])  # eqs. 4.17-4.18
+    raise KinematicsError(f"unknown element {element!r}: expected one of {ELEMENTS}")
+
+
+# --------------------------------------------------------- component-wise 3x3 kernels
+# A 3x3 matrix is a tuple of 9 components (row-major), a vector a tuple of 3; a component is a
+# float or an (n,) array, so elements without error stay scalars and cost nothing.
+
+
+def _is_zero(x: _Comp) -> bool:
+    return isinstance(x, float) and x == 0.0
+
+
+def _mul_e(m: tuple, a: _Comp, b: _Comp, g: _Comp) -> tuple:
+    """M @ E(alpha, beta, gamma), the rotation block of eq. 4.8."""
+    out = []
+    for i in range(3):
+        m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
+        out += [m0 + m1 * g - m2 * b, m1 + m2 * a - m0 * g, m2 + m0 * b - m1 * a]
+    return tuple(out)
+
+
+def _mul_rx(m: tuple, c: _Comp, s: _Comp) -> tuple:
+    """M @ Rx (eq. 4.4)."""
+    out = []
+    for i in range(3):
+        m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
+        out += [m0, m1 * c + m2 * s, m2 * c - m1 * s]
+    return tuple(out)
+
+
+def _mul_ry(m: tuple, c: _Comp, s: _Comp) -> tuple:
+    """M @ Ry (eq. 4.4)."""
+    out = []
+    for i in range(3):
+        m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
+        out += [m0 * c - m2 * s, m1, m0 * s + m2 * c]
+    return tuple(out)
+
+
+def _matvec(m: tuple, v: tuple) -> tuple:
+    out = []
+    for i in range(3):
+        acc: _Comp = 0.0
+        for j in range(3):
+            if not _is_zero(v[j]) and not _is_zero(m[3 * i + j]):
+                acc = acc + m[3 * i + j] * v[j]
+        out.append(acc)
+    return tuple(out)
+
+
+def _add3(u: tuple, v: tuple) -> tuple:
+    return tuple(x if _is_zero(y) else (y if _is_zero(x) else x + y) for x, y in zip(u, v))
+
+
+def _mul33(m: tuple, r: tuple) -> tuple:
+    return tuple(
+        m[3 * i] * r[j] + m[3 * i + 1] * r[3 + j] + m[3 * i + 2] * r[6 + j] for i in range(3) for j in range(3)
+    )
+
+
+def _mul33_t(m: tuple, r: tuple) -> tuple:
+    """M @ R^T."""
+    return tuple(
+        m[3 * i] * r[3 * j] + m[3 * i + 1] * r[3 * j + 1] + m[3 * i + 2] * r[3 * j + 2] for i in range(3) for j in range(3)
+    )
+
+
+def _cols(e: np.ndarray | None, s: int, t: int) -> tuple:
+    """Six components of an element's errors for poses s:t (floats when constant)."""
+    if e is None:
+        return (0.0,) * 6
+    if e.ndim == 1:
+        return tuple(float(x) for x in e)
+    return tuple(e[s:t, k] for k in range(6))
+
+
+_IDENTITY: tuple = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+@dataclass
+class _PreChain:
+    """T1 .. ThetaX's error matrix for a chunk: everything before Rx(A)."""
+
+    rot: tuple  # R_pre @ E_theta_x  (the 'A' of the compensation solve)
+    pos: tuple  # position accumulated so far (includes X, Y, Z)
+    jac_xyz: tuple  # columns d pos / dX, dY, dZ as a 3x3 (row-major)
+
+
+def _pre_chain(q: np.ndarray, errs: dict[str, np.ndarray], dims: dict, s: int, t: int) -> _PreChain:
+    """Accumulate T1 PhiZ T2 PhiY T3 PhiX T4 and ThetaX's error (eqs. 4.12-4.17)."""
+    m: tuple = _IDENTITY
+    p: tuple = (0.0, 0.0, 0.0)
+    jcol: dict[int, tuple] = {}
+    for name in ELEMENTS[:8]:
+        a, b, g, dx, dy, dz = _cols(errs.get(name), s, t)
+        if name in LINKS:
+            trans = _add3(dims[name], (dx, dy, dz))  # eq. 4.13: a_i + da_i, ...
+        elif name == "theta_x":
+            trans = (dx, dy, dz)  # eq. 4.17: E(p) @ Rx, the translation is the error only
+        else:
+            k = JOINT_AXIS[name]
+            jcol[k] = (m[k], m[3 + k], m[6 + k])  # d pos / d q_k = M e_k (pos is affine in X, Y, Z)
+            qk = q[s:t, k]
+            trans = tuple(qk + d if i == k else d for i, d in enumerate((dx, dy, dz)))  # eqs. 4.14-4.16
+        p = _add3(p, _matvec(m, trans))
+        if name in errs:
+            m = _mul_e(m, a, b, g)
+    jac = tuple(jcol[j][i] for i in range(3) for j in range(3))
+    return _PreChain(rot=m, pos=p, jac_xyz=jac)
+
+
+def _post_rot(pre_rot: tuple, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, errs: dict, s: int, t: int) -> tuple[tuple, tuple]:
+    """Return (rotation of the whole chain, A Rx(a) B column 1) given the pre-chain rotation."""
+    m = _mul_rx(pre_rot, ca, sa)
+    for name in ("T5", "theta_y"):
+        if name in errs:
+            a, b, g, *_ = _cols(errs[name], s, t)
+            m = _mul_e(m, a, b, g)
+    ub = (m[1], m[4], m[7])
+    m = _mul_ry(m, cb, sb)
+    if "T6" in errs:
+        a, b, g, *_ = _cols(errs["T6"], s, t)
+        m = _mul_e(m, a, b, g)
+    return m, ub
+
+
+def _post_pos(pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, errs: dict, dims: dict, s: int, t: int) -> tuple[tuple, tuple]:
+    """Return (rotation, position) of the full chain from the pre-chain (eqs. 4.12, 4.17, 4.18)."""
+    m = _mul_rx(pre.rot, ca, sa)
+    p = pre.pos
+    for name in ("T5", "theta_y", "T6"):
+        a, b, g, dx, dy, dz = _cols(errs.get(name), s, t)
+        trans = _add3(dims[name], (dx, dy, dz)) if name in LINKS else (dx, dy, dz)
+        if name == "theta_y":
+            m_e = _mul_e(m, a, b, g) if name in errs else m
+            p = _add3(p, _matvec(m, trans))
+            m = _mul_ry(m_e, cb, sb)
+            continue
+        p = _add3(p, _matvec(m, trans))
+        if name in errs:
+            m = _mul_e(m, a, b, g)
+    return m, p
+
+
+def _ideal_parts(q: np.ndarray, dims: dict, s: int, t: int) -> tuple[tuple, tuple]:
+    """Closed-form rotation and position of the error-free chain (eq. 4.19)."""
+    x, y, z = q[s:t, 0], q[s:t, 1], q[s:t, 2]
+    th_x, th_y = q[s:t, 3], q[s:t, 4]
+    cx, sx, cy, sy = np.cos(th_x), np.sin(th_x), np.cos(th_y), np.sin(th_y)
+    a = {k: v[0] for k, v in dims.items()}
+    b = {k: v[1] for k, v in dims.items()}
+    c = {k: v[2] for k, v in dims.items()}
+    a14 = a["T1"] + a["T2"] + a["T3"] + a["T4"]
+    b14 = b["T1"] + b["T2"] + b["T3"] + b["T4"]
+    c14 = c["T1"] + c["T2"] + c["T3"] + c["T4"]
+    sxsy, sxcy, cxsy, cxcy = sx * sy, sx * cy, cx * sy, cx * cy
+    # eq. 4.19: orientation Rx(theta_x) @ Ry(theta_y)
+    rot = (cy, 0.0 * cy, sy, sxsy, cx, -sxcy, -cxsy, sx, cxcy)
+    # eq. 4.19: position column as printed there
+    px = a["T6"] * cy + c["T6"] * sy + a["T5"] + a14 + x
+    py = a["T6"] * sxsy + b["T6"] * cx - c["T6"] * sxcy + b["T5"] * cx - c["T5"] * sx + b14 + y
+    pz = -a["T6"] * cxsy + b["T6"] * sx + c["T6"] * cxcy + b["T5"] * sx + c["T5"] * cx + c14 + z
+    return rot, (px, py, pz)
+
+
+def _write(out: np.ndarray, s: int, t: int, rot: tuple, pos: tuple) -> None:
+    for i in range(3):
+        for j in range(3):
+            out[s:t, i, j] = rot[3 * i + j]
+        out[s:t, i, 3] = pos[i]
+
+
+def _new_htm_stack(n: int) -> np.ndarray:
+    out = np.empty((n, 4, 4))
+    out[:, 3, :3] = 0.0
+    out[:, 3, 3] = 1.0
+    return out
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def machine_chain(q: np.ndarray, errors: ElementErrors | None = None, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+    """Return the (N, 4, 4) real machine HTMs of eq. 4.12 at joints q with element errors."""
+    q = _as_q(q)
+    n = q.shape[0]
+    errs = _as_errors(errors, n)
+    d = _dims_array(dims)
+    out = _new_htm_stack(n)
+    for s in range(0, n, CHUNK):
+        t = min(n, s + CHUNK)
+        pre = _pre_chain(q, errs, d, s, t)
+        ca, sa = np.cos(q[s:t, 3]), np.sin(q[s:t, 3])
+        cb, sb = np.cos(q[s:t, 4]), np.sin(q[s:t, 4])
+        rot, pos = _post_pos(pre, ca, sa, cb, sb, errs, d, s, t)
+        _write(out, s, t, rot, pos)
+    return out
+
+
+def ideal_chain(q: np.ndarray, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+    """Return the (N, 4, 4) error-free machine HTMs in the closed form of eq. 4.19."""
+    q = _as_q(q)
+    n = q.shape[0]
+    d = _dims_array(dims)
+    out = _new_htm_stack(n)
+    for s in range(0, n, CHUNK):
+        t = min(n, s + CHUNK)
+        rot, pos = _ideal_parts(q, d, s, t)
+        _write(out, s, t, rot, pos)
+    return out
+
+
+def htm_inverse(T: np.ndarray) -> np.ndarray:
+    """Return the inverse of rigid HTMs by eqs. 4.21-4.22: [O^T, -O^T P; 0, 1]."""
+    T = np.asarray(T, dtype=float)
+    if T.shape[-2:] != (4, 4):
+        raise KinematicsError(f"HTMs must be (..., 4, 4), got shape {T.shape}")
+    out = np.zeros_like(T)
+    ot = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = ot  # eq. 4.22
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", ot, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def affine_inverse(T: np.ndarray) -> np.ndarray:
+    """Return the exact inverse of affine HTMs whose 3x3 block need not be orthonormal."""
+    T = np.asarray(T, dtype=float)
+    if T.shape[-2:] != (4, 4):
+        raise KinematicsError(f"HTMs must be (..., 4, 4), got shape {T.shape}")
+    m = T[..., :3, :3]
+    # adjugate / determinant: exact for the eq. 4.8 products, which are only orthonormal to first order
+    adj = np.empty_like(m)
+    for i in range(3):
+        for j in range(3):
+            r0, r1 = [k for k in range(3) if k != j]
+            c0, c1 = [k for k in range(3) if k != i]
+            adj[..., i, j] = (-1) ** (i + j) * (m[..., r0, c0] * m[..., r1, c1] - m[..., r0, c1] * m[..., r1, c0])
+    det = np.einsum("...j,...j->...", m[..., 0, :], adj[..., :, 0])
+    if np.any(np.abs(det) < 1e-12):
+        raise KinematicsError("HTM rotation block is singular and cannot be inverted")
+    inv = adj / det[..., None, None]
+    out = np.zeros_like(T)
+    out[..., :3, :3] = inv
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", inv, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def htm_to_params(T: np.ndarray) -> np.ndarray:
+    """Return the (..., 6) small-angle parameters of HTMs (exact for eq. 4.8 matrices)."""
+    T = np.asarray(T, dtype=float)
+    if T.shape[-2:] != (4, 4):
+        raise KinematicsError(f"HTMs must be (..., 4, 4), got shape {T.shape}")
+    out = np.empty(T.shape[:-2] + (6,))
+    # eq. 4.8: the antisymmetric part of the rotation block holds alpha, beta, gamma
+    out[..., 0] = 0.5 * (T[..., 2, 1] - T[..., 1, 2])
+    out[..., 1] = 0.5 * (T[..., 0, 2] - T[..., 2, 0])
+    out[..., 2] = 0.5 * (T[..., 1, 0] - T[..., 0, 1])
+    out[..., 3:] = T[..., :3, 3]
+    return out
+
+
+def workspace_error_htm(q: np.ndarray, errors: ElementErrors | None, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+    """Return the (N, 4, 4) work-space error W = T_real @ inv(T_ideal) (eq. 4.12's E)."""
+    return machine_chain(q, errors, dims) @ htm_inverse(ideal_chain(q, dims))
+
+
+def workspace_error(q: np.ndarray, errors: ElementErrors | None, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+    """Return the (N, 6) work-space error parameters that a laser or probe would measure."""
+    return htm_to_params(workspace_error_htm(q, errors, dims))
+
+
+def _chain_product(q: np.ndarray, errs: dict[str, np.ndarray], dims: Mapping[str, Any], names: tuple[str, ...]) -> np.ndarray:
+    n = q.shape[0]
+    out = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+    for name in names:
+        out = out @ element_htm(name, q, errs.get(name), dims)
+    return out
+
+
+def allocate(W: np.ndarray, q: np.ndarray, known_errors: ElementErrors | None, element: str, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+    """Return the (N, 6) error of ``element`` that explains the work-space error W (eq. 4.20).
+
+    ``W`` is either the (N, 4, 4) matrix ``T_real @ inv(T_ideal)`` or its (N, 6) parameters
+    (then rebuilt with eq. 4.8, exact when one element carries all the error). Errors of the other
+    elements are taken as known; an entry for ``element`` itself is ignored (it is the unknown).
+    """
+    if element not in ELEMENTS:
+        raise KinematicsError(f"unknown element {element!r}: expected one of {ELEMENTS}")
+    q = _as_q(q)
+    n = q.shape[0]
+    W = np.asarray(W, dtype=float)
+    if W.shape[-1:] == (6,) and W.ndim <= 2:
+        W = error_htm(W)
+    if W.ndim == 2:
+        W = W[None]
+    if W.shape[-2:] != (4, 4) or W.shape[0] not in (1, n):
+        raise KinematicsError(f"W must be (N, 4, 4) or (N, 6) for {n} poses, got shape {W.shape}")
+    errs = {k: v for k, v in _as_errors(known_errors, n).items() if k != element}
+    k = ELEMENTS.index(element)
+    left = _chain_product(q, errs, dims, ELEMENTS[:k])
+    right = _chain_product(q, errs, dims, ELEMENTS[k + 1 :])
+    t_real = W @ ideal_chain(q, dims)
+    # eq. 4.20 with exact inverses: X = inv(left) @ T_real @ inv(right)
+    x = affine_inverse(left) @ t_real @ affine_inverse(right)
+    nominal = element_htm(element, q, None, dims)
+    if element in ("theta_x", "theta_y"):
+        e = x @ htm_inverse(nominal)  # eqs. 4.17-4.18: Theta = E @ Rot
+    else:
+        e = htm_inverse(nominal) @ x  # eqs. 4.13-4.16: T = Trans @ E
+    return htm_to_params(e)
+
+
+@dataclass(frozen=True)
+class CompensationResult:
+    """Axis commands that cancel the modelled work-space error, and what they cannot cancel."""
+
+    #: (N, 5) commanded joints X, Y, Z (mm), A, B (rad): nominal + compX..comp theta_Y (eqs. 4.23-4.24)
+    q_cmd: np.ndarray
+    #: (N, 6) parameters of W = T_real(q_cmd) @ inv(T_ideal(q)) left after compensation
+    residual: np.ndarray
+    #: (N,) True where |det d(alpha, beta)/d(A, B)| < SINGULAR_TOL (A near +/-90 deg): beta is not compensated
+    singular: np.ndarray
+    #: (N,) rad: roll gamma about the spindle Z that five axes cannot cancel (residual[:, 2])
+    uncompensable_roll: np.ndarray
+    #: (N, 5) nominal joints the compensation was solved for
+    q_nominal: np.ndarray | None = None
+    #: Newton iterations used for the angles (the most any chunk needed)
+    iterations: int = 0
+
+    @property
+    def comp(self) -> np.ndarray:
+        """Return the (N, 5) compensation values compX, compY, compZ, comp theta_X, comp theta_Y."""
+        if self.q_nominal is None:
+            raise KinematicsError("this result does not carry its nominal joints")
+        return self.q_cmd - self.q_nominal
+
+
+def _quantise(x: _Comp, step: float | None) -> _Comp:
+    return x if not step else np.round(x / step) * step
+
+
+def compensate(
+    q: np.ndarray,
+    errors: ElementErrors | None,
+    dims: Mapping[str, Any] = TABLE_A1,
+    *,
+    resolution_mm: float | None = None,
+    resolution_rad: float | None = None,
+    max_iter: int = 8,
+    tol_rad: float = 1e-14,
+) -> CompensationResult:
+    """Return the axis commands making the real chain reproduce the ideal one (eqs. 4.23-4.26).
+
+    Angles first (Newton on alpha, beta of W over A, B: the chain's orientation does not depend
+    on X, Y, Z), then translations (the position is exactly affine in X, Y, Z for fixed errors,
+    so one linear solve is exact). The target is ``W = Rz(c)``: the real orientation is
+    ``Rz(c) @ Rx(A) @ Ry(B)``, c the roll about the spindle that five axes cannot reach, and the
+    translation of W (tool tip versus part) is zero. With ``resolution_*`` the angles are
+    quantised before the translations are solved, then the translations are quantised: the
+    residual then shows what the machine's resolution leaves.
+    """
+    q = _as_q(q)
+    n = q.shape[0]
+    errs = _as_errors(errors, n)
+    d = _dims_array(dims)
+    q_cmd = q.copy()
+    residual = np.empty((n, 6))
+    singular = np.zeros(n, dtype=bool)
+    iters_used = 0
+    for s in range(0, n, CHUNK):
+        t = min(n, s + CHUNK)
+        pre = _pre_chain(q, errs, d, s, t)
+        rid, pid = _ideal_parts(q, d, s, t)
+        a0, b0 = q[s:t, 3], q[s:t, 4]
+        a, b = a0.copy(), b0.copy()
+        ua = (pre.rot[0], pre.rot[3], pre.rot[6])  # d omega / dA = A e_x (Rx keeps e_x)
+        for it in range(max_iter + 1):
+            ca, sa, cb, sb = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
+            rot, ub = _post_rot(pre.rot, ca, sa, cb, sb, errs, s, t)
+            w = _mul33_t(rot, rid)  # rotation block of W = T_real @ inv(T_ideal)
+            wx = 0.5 * (w[7] - w[5])
+            wy = 0.5 * (w[2] - w[6])
+            # Newton on (alpha, beta) of W: d omega = u_a dA + u_b dB (2x2, closed form)
+            j00, j10 = ua[0] + 0.0 * a, ua[1] + 0.0 * a
+            j01, j11 = ub[0], ub[1]
+            det = j00 * j11 - j01 * j10
+            sing = np.abs(det) < SINGULAR_TOL
+            if it == max_iter or (np.max(np.abs(wx)) <= tol_rad and np.max(np.abs(np.where(sing, 0.0, wy))) <= tol_rad):
+                break
+            safe = np.where(sing, 1.0, det)
+            # singular poses: B no longer turns beta, so only alpha is driven (by A)
+            a = a + np.where(sing, -wx / j00, -(j11 * wx - j01 * wy) / safe)
+            b = b + np.where(sing, 0.0, -(j00 * wy - j10 * wx) / safe)
+            iters_used = max(iters_used, it + 1)
+        a = _quantise(a, resolution_rad)
+        b = _quantise(b, resolution_rad)
+        ca, sa, cb, sb = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
+        rot, pos = _post_pos(pre, ca, sa, cb, sb, errs, d, s, t)
+        w = _mul33_t(rot, rid)
+        target = _matvec(w, pid)  # W's translation vanishes when p_real = R_W @ p_ideal
+        rhs = tuple(tg - p for tg, p in zip(target, pos))
+        dxyz = _solve3(pre.jac_xyz, rhs)
+        xyz = [_quantise(q[s:t, k] + dxyz[k], resolution_mm) for k in range(3)]
+        step = tuple(xyz[k] - q[s:t, k] for k in range(3))
+        pos = _add3(pos, _matvec(pre.jac_xyz, step))  # affine in X, Y, Z: exact update
+        pw = tuple(p - tg for p, tg in zip(pos, target))
+        q_cmd[s:t, 0], q_cmd[s:t, 1], q_cmd[s:t, 2] = xyz
+        q_cmd[s:t, 3], q_cmd[s:t, 4] = a, b
+        residual[s:t, 0] = 0.5 * (w[7] - w[5])
+        residual[s:t, 1] = 0.5 * (w[2] - w[6])
+        residual[s:t, 2] = 0.5 * (w[3] - w[1])
+        for k in range(3):
+            residual[s:t, 3 + k] = pw[k]
+        singular[s:t] = sing
+    return CompensationResult(
+        q_cmd=q_cmd,
+        residual=residual,
+        singular=singular,
+        uncompensable_roll=residual[:, 2].copy(),
+        q_nominal=q,
+        iterations=iters_used,
+    )
+
+
+def _solve3(m: tuple, v: tuple) -> tuple:
+    """Solve the stacked 3x3 systems M x = v by Cramer's rule."""
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
+    c00 = m11 * m22 - m12 * m21
+    c01 = m12 * m20 - m10 * m22
+    c02 = m10 * m21 - m11 * m20
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    inv = (
+        c00, m02 * m21 - m01 * m22, m01 * m12 - m02 * m11,
+        c01, m00 * m22 - m02 * m20, m02 * m10 - m00 * m12,
+        c02, m01 * m20 - m00 * m21, m00 * m11 - m01 * m10,
+    )
+    x = _matvec(inv, v)
+    return tuple(xi / det for xi in x)
