@@ -98,6 +98,17 @@ class Sweep(_Strict):
     interval_s: float = Field(gt=0, description="time from the start of one sweep to the next")
     point_s: float = Field(default=5.0, gt=0, description="move, settle and read time per point")
     samples: int = Field(default=10, ge=1, le=1000, description="laser readings averaged per point")
+    terms: list[Literal["dx", "dy", "dz", "alpha", "beta", "gamma"]] = Field(
+        default_factory=list, description="error terms measured at each point (default: the axis' own motion)"
+    )
+
+    @field_validator("terms")
+    @classmethod
+    def _terms_distinct(cls, v: list[str]) -> list[str]:
+        """Refuse a term listed twice."""
+        if len(set(v)) != len(v):
+            raise ValueError("a term is listed twice")
+        return v
 
     @field_validator("directions")
     @classmethod
@@ -139,6 +150,13 @@ class Stage(_Strict):
         if len(set(axes)) != len(axes):
             raise ValueError(f"an axis cannot both oscillate and hold in stage {self.name!r}")
         if self.sweep is not None:
+            allowed = LASER_TERMS[self.axis]
+            bad = [t for t in self.sweep.terms if t not in allowed]
+            if bad:
+                raise ValueError(
+                    f"the laser cannot measure {', '.join(bad)} of the {self.axis} axis "
+                    f"(table 5.3: {', '.join(allowed)})"
+                )
             length = self.sweep.length_s()
             if length > self.sweep.interval_s:
                 raise ValueError(
@@ -164,9 +182,27 @@ class Stage(_Strict):
         """Return the commanded spindle speed in this stage (0 when the spindle is off)."""
         return sum(h.rpm for h in self.heat if isinstance(h, SpindleSource))
 
+    def terms(self) -> list[str]:
+        """Return the error terms measured at each sweep point (the axis' own motion by default)."""
+        if self.sweep is None:
+            return []
+        return list(self.sweep.terms) or [DEFAULT_TERM[self.axis]]
+
     def feed_mm_min(self) -> float:
         """Return the oscillation feed of this stage (0 when no axis oscillates)."""
         return max((h.feed_mm_min for h in self.heat if isinstance(h, AxisSource)), default=0.0)
+
+
+# Table 5.3: the error terms a laser interferometer measures for each axis' motion (the others
+# need proximity sensors on reference surfaces).
+LASER_TERMS: dict[str, tuple[str, ...]] = {
+    "X": ("dx", "dy", "dz", "beta", "gamma"),
+    "Y": ("dx", "dy", "dz", "alpha", "gamma"),
+    "Z": ("dx", "dy", "dz", "alpha", "beta"),
+    "A": ("alpha",),
+    "B": ("beta",),
+}
+DEFAULT_TERM = {"X": "dx", "Y": "dy", "Z": "dz", "A": "alpha", "B": "beta"}
 
 
 class ChannelInfo(_Strict):

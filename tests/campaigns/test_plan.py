@@ -85,6 +85,7 @@ def test_bundle_stages_are_back_to_back() -> None:
         (lambda d: d["stages"][0]["sweep"].update(directions=[1, 1]), "stages[0].sweep.directions", "twice"),
         (lambda d: d["stages"][0]["sweep"].update(interval_s=10), "stages[0]", "longer than its interval_s"),
         (lambda d: d["stages"][0].update(axis="Q"), "stages[0].axis", "X"),
+        (lambda d: d["stages"][0]["sweep"].update(terms=["gamma"]), "stages[0]", "cannot measure gamma of the Z"),
         (lambda d: d["machine"].update(room_channels=["T50"]), "machine", "T50"),
         (lambda d: d["stages"].insert(0, d["stages"].pop(3)), "(top level)", "before it ran alone"),
         (lambda d: d["stages"].append(dict(d["stages"][1])), "(top level)", "used twice"),
