@@ -156,9 +156,9 @@ def _as_errors(errors: ElementErrors | None, n: int) -> dict[str, np.ndarray]:
             raise KinematicsError(f"errors of {name} have {arr.shape[0]} rows for {n} poses")
         if arr.ndim > 2:
             raise KinematicsError(f"errors of {name} must be (N, 6) or (6,), got shape {arr.shape}")
-        if not np.all(np.isfinite(arr)):
+        if not np.isfinite(np.sum(arr)):  # one pass: NaN and infinity propagate into the sum
             raise KinematicsError(f"errors of {name} contain NaN or infinity")
-        if np.any(arr):
+        if arr.ndim == 2 or np.any(arr):
             out[name] = arr
     return out
 
@@ -192,6 +192,8 @@ def _is_zero(x: _Comp) -> bool:
 
 def _mul_e(m: tuple, a: _Comp, b: _Comp, g: _Comp) -> tuple:
     """M @ E(alpha, beta, gamma), the rotation block of eq. 4.8."""
+    if m is _IDENTITY:
+        return (1.0, -g, b, g, 1.0, -a, -b, a, 1.0)  # eq. 4.8
     out = []
     for i in range(3):
         m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
@@ -251,7 +253,7 @@ def _cols(e: np.ndarray | None, s: int, t: int) -> tuple:
         return (0.0,) * 6
     if e.ndim == 1:
         return tuple(float(x) for x in e)
-    return tuple(e[s:t, k] for k in range(6))
+    return tuple(np.ascontiguousarray(e[s:t].T))  # contiguous rows run faster than strided columns
 
 
 _IDENTITY: tuple = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
