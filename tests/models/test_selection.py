@@ -1,0 +1,71 @@
+"""Correlation screening (ch. 5.4): redundant sites collapse, heat sources, gradients and room stay."""
+
+import numpy as np
+import pandas as pd
+
+from driftlab.models.selection import correlation_matrix, screen_channels
+
+
+def _campaign(seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 40 * 3600, 120.0)
+    room = 20 + 1.2 * np.sin(2 * np.pi * t / 86400)
+    on = ((t // 14400) % 2 == 0).astype(float)
+    spindle = np.convolve(on, np.exp(-np.arange(200) * 120 / 5400), mode="full")[: t.size] * 120 / 5400 * 8
+    xheat = np.convolve(1 - on, np.exp(-np.arange(200) * 120 / 7000), mode="full")[: t.size] * 120 / 7000 * 4
+    n = lambda: 0.02 * rng.standard_normal(t.size)  # noqa: E731
+    meta, cols = {}, {"time_s": t}
+
+    def add(name, loc, struct, v):
+        meta[name] = {"location": loc, "structure": struct}
+        cols[name] = v + n()
+
+    for i in range(1, 5):
+        add(f"T{i}", f"X axis corner {i}", "x_table", room + 0.5 * xheat)
+    for i in range(5, 9):
+        add(f"T{i}", f"X-Y carriage corner {i}", "xy_carriage", room + 0.5 * xheat)
+    add("T9", "X axis ballscrew nut", "x_screw", room + 1.6 * xheat)
+    add("T10", "X axis motor", "x_motor", room + 1.0 * xheat + 0.3 * np.gradient(xheat) * 3000)
+    add("T32", "Lower left spindle support arm", "spindle_arm", room + 0.3 * spindle)
+    add("T33", "Upper left spindle support arm", "spindle_arm", room + 0.6 * spindle)
+    add("T34", "Upper right spindle support arm", "spindle_arm", room + 0.9 * spindle)
+    add("T35", "Lower right spindle support arm", "spindle_arm", room + 0.6 * spindle + 0.3 * xheat)
+    add("T37", "Main spindle motor", "spindle", room + 1.5 * spindle)
+    add("T49", "Room temperature at top of machine", "room", room + 0.3)
+    add("T50", "Room temperature at floor", "room", room - 0.2)
+    return pd.DataFrame(cols), meta
+
+
+def test_screening_collapses_redundant_sites_and_keeps_physics():
+    temps, meta = _campaign()
+    res = screen_channels(temps, meta, ["T49", "T50"])
+    kept = set(res.kept)
+    assert {"T49", "T50"} <= kept  # room pair, though 0.99 correlated
+    assert {"T9", "T10", "T37"} <= kept  # one per heat source
+    assert len(kept & {f"T{i}" for i in range(1, 9)}) == 1  # table and carriage collapse to one
+    assert {"T32", "T34"} <= kept and "T33" not in kept  # arm corners span the gradient; T33 is inside it
+    assert "T35" in kept  # not explained by the corners: it sees the X heat too
+    for c, why in res.dropped.items():
+        assert c not in kept and why
+    t1_8 = [c for c in res.dropped if c in {f"T{i}" for i in range(1, 9)}]
+    assert len(t1_8) == 7 and all("no new information" in res.dropped[c] for c in t1_8)
+    assert "inside the gradient" in res.dropped["T33"]
+    tab = res.table()
+    assert list(tab.columns) == res.kept and (np.diag(tab) == 1).all()
+    assert set(res.to_dict()) == {"kept", "kept_reason", "dropped"}
+
+
+def test_correlation_matrix_is_eq_6_1():
+    temps, _ = _campaign()
+    R = correlation_matrix(temps)
+    a, b = temps["T9"], temps["T37"]
+    r = ((a - a.mean()) * (b - b.mean())).mean() / (a.std(ddof=0) * b.std(ddof=0))
+    assert abs(R.loc["T9", "T37"] - r) < 1e-12
+
+
+def test_dead_and_constant_channels_are_dropped_with_reason():
+    temps, meta = _campaign()
+    temps["T60"] = 21.0
+    temps["T61"] = np.nan
+    res = screen_channels(temps, meta, ["T49", "T50"])
+    assert "constant" in res.dropped["T60"] and res.dropped["T61"] == "no readings"
