@@ -1,0 +1,366 @@
+"""Versioned model documents: build, validate (pydantic), predict without the training data, store."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from datetime import datetime, timezone
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from driftlab.errors import NotFoundError, ValidationError
+from driftlab.models.features import Feature, Inputs, design_matrix, first_order_lag, required_lags
+from driftlab.models.kinematics import ELEMENTS, JOINT_AXIS, PARAMS, TABLE_A1, ElementErrors, workspace_error
+
+MODEL_FORMAT = "driftlab-model/1"
+#: the thermal expansion coefficient of the castings (ch. 3.5)
+ALPHA_C_PER_DEGC = 12.1e-6
+
+
+class _Doc(BaseModel):
+    """Base of document parts: unknown keys are an error, values are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class InputRange(_Doc):
+    """A model input: its reference temperature (dT = T - reference) and the range seen in training."""
+
+    reference: float
+    min: float
+    max: float
+
+
+class FeatureDoc(_Doc):
+    """A regression term as stored (see ``driftlab.models.features.Feature``)."""
+
+    kind: str
+    name: str
+    channels: list[str] = Field(default_factory=list)
+    power: int = 1
+    tau_s: float | None = None
+    label: str = ""
+
+    def feature(self) -> Feature:
+        """Return the live feature."""
+        return Feature.from_dict(self.model_dump())
+
+
+class TermStatistics(_Doc):
+    """The statistics of one term model (tables 6.1/6.2): training and held-out figures."""
+
+    rmse_train: float
+    rmse_holdout: float | None = None
+    r2: float | None = None
+    f: float | None = None
+    n_train: int = 0
+    n_holdout: int = 0
+    condition_number: float | None = None
+
+
+class TermDoc(_Doc):
+    """The model of one parameter of one link or joint: terms, coefficients and their statistics."""
+
+    element: str
+    param: str
+    axis: str | None = None
+    term: str | None = None
+    features: list[FeatureDoc]
+    coefficients: list[float]
+    std_errors: list[float] = Field(default_factory=list)
+    p_values: list[float] = Field(default_factory=list)
+    statistics: TermStatistics
+    steps: list[dict[str, Any]] = Field(default_factory=list)
+
+    @field_validator("element")
+    @classmethod
+    def _element(cls, v: str) -> str:
+        """Require a chain element name."""
+        if v not in ELEMENTS:
+            raise ValueError(f"unknown element {v!r}")
+        return v
+
+    @field_validator("param")
+    @classmethod
+    def _param(cls, v: str) -> str:
+        """Require an error-parameter name."""
+        if v not in PARAMS:
+            raise ValueError(f"unknown parameter {v!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _lengths(self) -> "TermDoc":
+        """Require one coefficient per feature."""
+        if len(self.coefficients) != len(self.features):
+            raise ValueError(f"{self.element}.{self.param}: {len(self.features)} features, {len(self.coefficients)} coefficients")
+        for f in self.features:
+            f.feature()
+        return self
+
+
+class ModelDocument(_Doc):
+    """A fitted thermal-error model of one machine: what the compensator consumes."""
+
+    format: Literal["driftlab-model/1"] = MODEL_FORMAT
+    machine: str = Field(min_length=1)
+    version: int | None = None
+    created_at: str = ""
+    source_campaigns: list[Any] = Field(default_factory=list)
+    kept_channels: list[str] = Field(default_factory=list)
+    inputs: dict[str, InputRange]
+    dims: dict[str, list[float]] = Field(default_factory=lambda: {k: list(v) for k, v in TABLE_A1.items()})
+    alpha_c_per_degC: float = ALPHA_C_PER_DEGC
+    terms: list[TermDoc]
+    screening: dict[str, Any] = Field(default_factory=dict)
+    validation: list[dict[str, Any]] = Field(default_factory=list)
+    physical: list[dict[str, Any]] = Field(default_factory=list)
+    virtual_sensors: list[dict[str, Any]] = Field(default_factory=list)
+    extrapolation: dict[str, Any] | None = None
+    allocation: list[dict[str, Any]] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "ModelDocument":
+        """Require every channel a term reads to be a declared input, and one model per element parameter."""
+        seen: set[tuple[str, str]] = set()
+        for t in self.terms:
+            key = (t.element, t.param)
+            if key in seen:
+                raise ValueError(f"two models for {t.element}.{t.param}")
+            seen.add(key)
+            for f in t.features:
+                for c in f.channels:
+                    if c not in self.inputs:
+                        raise ValueError(f"{t.element}.{t.param} reads {c}, which is not among the inputs")
+        for k, v in self.dims.items():
+            if len(v) != 3:
+                raise ValueError(f"dims[{k}] must be (a, b, c)")
+        return self
+
+
+def validate_document(doc: Mapping[str, Any] | ModelDocument) -> ModelDocument:
+    """Return the validated document, or raise ValidationError with a one-line reason."""
+    if isinstance(doc, ModelDocument):
+        return doc
+    try:
+        return ModelDocument.model_validate(dict(doc))
+    except Exception as exc:  # pydantic.ValidationError -> one line
+        first = str(exc).splitlines()
+        raise ValidationError(f"model document: {' '.join(first[:3])}") from None
+
+
+def document_json(doc: ModelDocument) -> dict[str, Any]:
+    """Return the JSON-ready form of a document (NaN statistics become null)."""
+    return _clean(doc.model_dump(mode="json"))
+
+
+def _clean(obj: Any) -> Any:
+    """Return ``obj`` with non-finite floats replaced by None (strict JSON)."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    return obj
+
+
+def now_iso() -> str:
+    """Return the current UTC time as ISO 8601."""
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+# ----------------------------------------------------------------------------- prediction
+
+
+def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame, n: int) -> Inputs:
+    """Return the dT inputs (and lags over a frame's history) for ``n`` poses."""
+    ref = {c: r.reference for c, r in doc.inputs.items()}
+    lags = sorted({lag for t in doc.terms for lag in required_lags(f.feature() for f in t.features)})
+    if isinstance(temperatures, pd.DataFrame):
+        missing = [c for c in ref if c not in temperatures.columns]
+        if missing:
+            raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
+        frame = temperatures
+        if len(frame) not in (1, n):
+            raise ValidationError(f"{len(frame)} temperature rows for {n} poses (give 1 or {n})")
+        dT = pd.DataFrame({c: frame[c].to_numpy(float) - ref[c] for c in ref})
+        lagged: dict[tuple[str, float], np.ndarray] = {}
+        if lags and "time_s" in frame.columns and len(frame) > 1:
+            t = frame["time_s"].to_numpy(float)
+            for c, tau in lags:
+                lagged[(c, tau)] = first_order_lag(dT[c].to_numpy(), t, tau)
+    else:
+        missing = [c for c in ref if c not in temperatures]
+        if missing:
+            raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
+        dT = pd.DataFrame({c: [float(temperatures[c]) - ref[c]] for c in ref})
+        lagged = {}
+    if not np.all(np.isfinite(dT.to_numpy(float))):
+        raise ValidationError("temperatures contain missing readings: substitute virtual-sensor estimates first")
+    if len(dT) == 1 and n > 1:
+        dT = pd.DataFrame({c: np.repeat(dT[c].to_numpy(), n) for c in dT.columns})
+        lagged = {k: np.repeat(v, n) for k, v in lagged.items()}
+    return Inputs(dT=dT, lagged=lagged)
+
+
+def _direction(direction: np.ndarray | None, element: str, n: int) -> np.ndarray:
+    """Return the approach direction (+1/-1; 0 = mean of both) of the joint ``element``."""
+    if direction is None:
+        return np.zeros(n)
+    d = np.asarray(direction, float)
+    if d.ndim == 2:
+        return d[:, JOINT_AXIS[element]] if element in JOINT_AXIS else np.zeros(n)
+    return np.broadcast_to(d, (n,)).astype(float)
+
+
+def predict_element_errors(
+    document: Mapping[str, Any] | ModelDocument,
+    temperatures: Mapping[str, float] | pd.DataFrame,
+    q: np.ndarray,
+    direction: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """Return the (N, 6) errors of every modelled link and joint at poses ``q`` (N, 5) and these temperatures.
+
+    ``temperatures`` is one reading per input channel (a mapping, or a one-row frame) or a frame of
+    N rows aligned with ``q`` (with ``time_s`` for lagged terms; without it lags are taken settled).
+    ``direction`` is +1/-1 per pose (N,) or per pose and axis (N, 5); None means the mean of both.
+    """
+    doc = validate_document(document)
+    q = np.atleast_2d(np.asarray(q, float))
+    if q.ndim != 2 or q.shape[1] != 5:
+        raise ValidationError(f"q must be (N, 5), got {q.shape}")
+    n = q.shape[0]
+    inp = _inputs(doc, temperatures, n)
+    out: dict[str, np.ndarray] = {}
+    for t in doc.terms:
+        feats = [f.feature() for f in t.features]
+        pos = q[:, JOINT_AXIS[t.element]] if t.element in JOINT_AXIS else np.zeros(n)
+        X = design_matrix(feats, inp, pos, _direction(direction, t.element, n))
+        arr = out.setdefault(t.element, np.zeros((n, 6)))
+        arr[:, PARAMS.index(t.param)] += X.to_numpy(float) @ np.asarray(t.coefficients, float)
+    return out
+
+
+def document_dims(doc: ModelDocument) -> dict[str, tuple[float, float, float]]:
+    """Return the kinematic link dimensions stored in a document."""
+    dims = {k: tuple(v) for k, v in TABLE_A1.items()}
+    dims.update({k: tuple(float(x) for x in v) for k, v in doc.dims.items()})
+    return dims  # type: ignore[return-value]
+
+
+def predict_workspace_errors(
+    document: Mapping[str, Any] | ModelDocument,
+    temperatures: Mapping[str, float] | pd.DataFrame,
+    q: np.ndarray,
+    direction: np.ndarray | None = None,
+) -> np.ndarray:
+    """Return the (N, 6) work-space errors the model predicts at poses ``q`` (through the HTM chain, eq. 4.12)."""
+    doc = validate_document(document)
+    errors: ElementErrors = predict_element_errors(doc, temperatures, q, direction)
+    return workspace_error(np.atleast_2d(np.asarray(q, float)), errors, document_dims(doc))
+
+
+def input_ranges(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame) -> list[str]:
+    """Return the channels whose readings lie outside the training range (the model extrapolates there)."""
+    out = []
+    for c, r in doc.inputs.items():
+        v = np.asarray(temperatures[c], float)
+        if np.any(v < r.min) or np.any(v > r.max):
+            out.append(c)
+    return out
+
+
+# ----------------------------------------------------------------------------- store
+
+
+def _session(store: Any) -> Any:
+    """Return a new ORM session from a store (anything with ``session()`` or a SQLAlchemy engine)."""
+    if hasattr(store, "session"):
+        return store.session()
+    from sqlalchemy.orm import Session
+
+    return Session(getattr(store, "engine", store))
+
+
+def register_model(store: Any, document: Mapping[str, Any] | ModelDocument, source_campaigns: Sequence[int] = ()) -> ModelDocument:
+    """Store a document as the machine's next version, make it current, retire the previous; return it."""
+    from sqlalchemy import func, select
+
+    from driftlab.campaigns.schema import Machine, ModelVersion
+
+    doc = validate_document(document)
+    with _session(store) as s, s.begin():
+        if s.get(Machine, doc.machine) is None:
+            s.add(Machine(id=doc.machine, name=""))
+            s.flush()
+        # lock the machine row so two fits do not take the same version number
+        s.execute(select(Machine).where(Machine.id == doc.machine).with_for_update())
+        last = s.execute(select(func.max(ModelVersion.version)).where(ModelVersion.machine_id == doc.machine)).scalar()
+        version = int(last or 0) + 1
+        now = datetime.now(timezone.utc)
+        for old in s.execute(
+            select(ModelVersion).where(ModelVersion.machine_id == doc.machine, ModelVersion.status == "current")
+        ).scalars():
+            old.status = "retired"
+            old.retired_at = now
+        s.flush()  # retire before insert: at most one current version per machine (partial unique index)
+        final = doc.model_copy(update={"version": version, "created_at": doc.created_at or now_iso()})
+        s.add(
+            ModelVersion(
+                machine_id=doc.machine,
+                version=version,
+                created_at=now,
+                source_campaigns=[int(c) for c in source_campaigns],
+                document=document_json(final),
+                status="current",
+            )
+        )
+    return final
+
+
+def list_models(store: Any, machine: str | None = None) -> list[dict[str, Any]]:
+    """Return one summary row per stored version (machine, version, status, created, campaigns, terms)."""
+    from sqlalchemy import select
+
+    from driftlab.campaigns.schema import ModelVersion
+
+    with _session(store) as s:
+        q = select(ModelVersion).order_by(ModelVersion.machine_id, ModelVersion.version)
+        if machine:
+            q = q.where(ModelVersion.machine_id == machine)
+        rows = s.execute(q).scalars().all()
+        return [
+            {
+                "machine": r.machine_id,
+                "version": r.version,
+                "status": r.status,
+                "created_at": r.created_at.isoformat() if r.created_at else None,
+                "source_campaigns": list(r.source_campaigns or []),
+                "terms": len((r.document or {}).get("terms", [])),
+                "kept_channels": len((r.document or {}).get("kept_channels", [])),
+            }
+            for r in rows
+        ]
+
+
+def get_model(store: Any, machine: str, version: int | str = "current") -> ModelDocument:
+    """Return a stored document: a version number or ``current``; NotFoundError when there is none."""
+    from sqlalchemy import select
+
+    from driftlab.campaigns.schema import ModelVersion
+
+    with _session(store) as s:
+        q = select(ModelVersion).where(ModelVersion.machine_id == machine)
+        if str(version) == "current":
+            q = q.where(ModelVersion.status == "current")
+        else:
+            try:
+                q = q.where(ModelVersion.version == int(version))
+            except ValueError:
+                raise ValidationError(f"model version must be a number or 'current', got {version!r}") from None
+        row = s.execute(q.order_by(ModelVersion.version.desc())).scalars().first()
+        if row is None:
+            raise NotFoundError(f"no model version {version} for machine {machine}")
+        return validate_document(row.document)
