@@ -1,0 +1,130 @@
+"""Engines and schema upgrades of the campaign store (SQLite embedded default, PostgreSQL production)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Connection, Engine, create_engine, event, text
+from sqlalchemy.engine import make_url
+
+from driftlab.errors import DriftlabError, ValidationError
+
+log = logging.getLogger(__name__)
+
+MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+
+
+class StoreError(DriftlabError):
+    """The store cannot be opened or brought to the current schema."""
+
+
+def normalise_url(url: str) -> str:
+    """Return the URL with PostgreSQL routed through psycopg 3; refuse unsupported databases."""
+    try:
+        parsed = make_url(url)
+    except Exception as exc:  # sqlalchemy.exc.ArgumentError
+        raise ValidationError(f"not a database URL: {url!r}") from exc
+    backend = parsed.get_backend_name()
+    if backend == "postgresql":
+        if parsed.drivername in ("postgresql", "postgres", "postgresql+psycopg2"):
+            parsed = parsed.set(drivername="postgresql+psycopg")
+        return parsed.render_as_string(hide_password=False)
+    if backend == "sqlite":
+        return url
+    raise ValidationError(f"unsupported database {backend!r}: use sqlite:///PATH or postgresql+psycopg://...")
+
+
+def _sqlite_events(engine: Engine) -> None:
+    """WAL, foreign keys and a busy timeout on every connection; BEGIN issued by SQLAlchemy."""
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_conn: Any, _record: Any) -> None:
+        # Take transaction control away from the sqlite3 module so that BEGIN is emitted exactly
+        # when SQLAlchemy begins (reads and writes of one transaction see one snapshot).
+        dbapi_conn.isolation_level = None
+        cur = dbapi_conn.cursor()
+        cur.execute("PRAGMA journal_mode=WAL")
+        cur.execute("PRAGMA foreign_keys=ON")
+        cur.execute("PRAGMA synchronous=NORMAL")
+        cur.execute("PRAGMA busy_timeout=60000")
+        cur.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn: Connection) -> None:
+        # Writers take the write lock up front (BEGIN IMMEDIATE): a deferred transaction that
+        # later writes could fail with SQLITE_BUSY after another writer committed.
+        immediate = conn.get_execution_options().get("driftlab_write", False)
+        conn.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
+
+
+def make_engine(url: str) -> Engine:
+    """Return an engine for ``url`` (SQLite: parent directories created, WAL, foreign keys on)."""
+    url = normalise_url(url)
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite":
+        database = parsed.database
+        if database and database != ":memory:" and not database.startswith("file:"):
+            Path(database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+        engine = create_engine(url, connect_args={"timeout": 60})
+        _sqlite_events(engine)
+        return engine
+    return create_engine(url, pool_pre_ping=True)
+
+
+@contextmanager
+def write_transaction(engine: Engine) -> Iterator[Connection]:
+    """Yield a connection in one write transaction: committed at the end, rolled back on any error."""
+    with engine.connect() as conn:
+        conn = conn.execution_options(driftlab_write=True)
+        with conn.begin():
+            yield conn
+
+
+def alembic_config(connection: Connection | None = None) -> Any:
+    """Return an Alembic Config pointing at the absolute migrations folder (no alembic.ini needed)."""
+    from alembic.config import Config
+
+    if not (MIGRATIONS_DIR / "env.py").is_file():
+        raise StoreError(f"migrations folder not found at {MIGRATIONS_DIR}")
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
+    cfg.attributes["configure_logger"] = False
+    if connection is not None:
+        cfg.attributes["connection"] = connection
+    return cfg
+
+
+def head_revision() -> str:
+    """Return the head revision of the migration scripts."""
+    from alembic.script import ScriptDirectory
+
+    head = ScriptDirectory.from_config(alembic_config()).get_current_head()
+    if head is None:  # pragma: no cover - the repository always has revisions
+        raise StoreError("no migration revisions found")
+    return head
+
+
+def current_revision(engine: Engine) -> str | None:
+    """Return the database's schema revision (None for an empty database)."""
+    from alembic.runtime.migration import MigrationContext
+
+    with engine.connect() as conn:
+        return MigrationContext.configure(conn).get_current_revision()
+
+
+def upgrade(engine: Engine, revision: str = "head") -> str:
+    """Bring the database to ``revision`` in one locked transaction; return the revision reached."""
+    from alembic import command
+
+    with write_transaction(engine) as conn:
+        if conn.dialect.name == "postgresql":
+            # Serialise concurrent upgraders of the same database (two workers starting at once).
+            conn.execute(text("SELECT pg_advisory_xact_lock(727271)"))
+        command.upgrade(alembic_config(conn), revision)
+    reached = current_revision(engine)
+    log.info("database at revision %s", reached)
+    return reached or ""

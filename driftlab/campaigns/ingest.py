@@ -1,0 +1,162 @@
+"""Bulk ingest of a validated bundle: one transaction, COPY on PostgreSQL, executemany on SQLite."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator, Sequence
+from itertools import repeat
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from sqlalchemy import Connection, insert, select
+
+from driftlab.campaigns import schema as sc
+from driftlab.campaigns.bundle import Bundle
+
+CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
+TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value")
+ERROR_COLUMNS = ("campaign_id", "seq", "time_s", "axis", "term", "position", "direction", "value", "sweep", "flags")
+
+
+def sweep_numbers(errors: pd.DataFrame) -> np.ndarray:
+    """Return a sweep number per error row: within (axis, term, direction), in time order, a new
+    sweep starts when the position repeats or stops moving the same way."""
+    out = np.zeros(len(errors), dtype=np.int64)
+    keys = errors["axis"].astype(str) + "|" + errors["term"].astype(str) + "|" + errors["direction"].astype(str)
+    positions = errors["position"].to_numpy(dtype="f8")
+    for idx in keys.groupby(keys, sort=False).indices.values():
+        p = positions[idx]
+        sweep, sign = 0, 0.0
+        numbers = np.empty(len(idx), dtype=np.int64)
+        numbers[0] = 0
+        for k in range(1, len(idx)):
+            d = p[k] - p[k - 1]
+            step = np.sign(d)
+            if d == 0 or (sign != 0 and step != sign):
+                sweep += 1
+                sign = 0.0
+            else:
+                sign = step
+            numbers[k] = sweep
+        out[idx] = numbers
+    return out
+
+
+def _copy_rows(conn: Connection, table: str, columns: Sequence[str], types: Sequence[str],
+               rows: Iterable[Sequence[Any]]) -> None:
+    """Stream rows into a PostgreSQL table with binary COPY inside the current transaction."""
+    raw = conn.connection.driver_connection
+    cols = ", ".join(columns)
+    with raw.cursor() as cur:  # type: ignore[union-attr]
+        with cur.copy(f"COPY {table} ({cols}) FROM STDIN (FORMAT BINARY)") as copy:
+            copy.set_types(list(types))
+            write = copy.write_row
+            for row in rows:
+                write(row)
+
+
+def bulk_insert(conn: Connection, table: str, columns: Sequence[str], pg_types: Sequence[str],
+                rows: Iterable[Sequence[Any]]) -> None:
+    """Insert many rows fast in the connection's transaction: binary COPY or sqlite3 executemany."""
+    if conn.dialect.name == "postgresql":
+        _copy_rows(conn, table, columns, pg_types, rows)
+        return
+    raw = conn.connection.driver_connection
+    marks = ", ".join("?" for _ in columns)
+    cur = raw.cursor()  # type: ignore[union-attr]
+    try:
+        cur.executemany(f"INSERT INTO {table} ({', '.join(columns)}) VALUES ({marks})", rows)
+    finally:
+        cur.close()
+
+
+def _nullable(values: np.ndarray, postgres: bool) -> list[Any]:
+    """Return floats as a list with NaN as None (SQLite stores a bound NaN as NULL by itself)."""
+    if not postgres or not np.isnan(values).any():
+        return values.tolist()
+    obj = values.astype(object)
+    obj[np.isnan(values)] = None
+    return obj.tolist()
+
+
+def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame,
+                     postgres: bool) -> Iterator[tuple[Any, ...]]:
+    """Yield (campaign, channel, time, value) channel by channel: primary-key order, so appends."""
+    times = temperatures["time_s"].to_numpy(dtype="f8").tolist()
+    n = len(times)
+    for channel_id, name in zip(channel_ids, [c for c in temperatures.columns if c != "time_s"], strict=True):
+        values = _nullable(temperatures[name].to_numpy(dtype="f8"), postgres)
+        yield from zip(repeat(campaign_id, n), repeat(channel_id, n), times, values)
+
+
+def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
+    """Write a validated bundle in the caller's transaction and return the new campaign id."""
+    meta = bundle.meta
+    postgres = conn.dialect.name == "postgresql"
+    machine = conn.execute(select(sc.Machine.id).where(sc.Machine.id == meta.machine.id)).first()
+    if machine is None:
+        conn.execute(
+            insert(sc.Machine).values(
+                id=meta.machine.id, name=meta.machine.name, resolution_mm=meta.machine.resolution_mm,
+                resolution_deg=meta.machine.resolution_deg, created_at=sc.utcnow(),
+            )
+        )
+    cond_cols = None if bundle.conditions is None else list(bundle.conditions.columns)
+    campaign_id = conn.execute(
+        insert(sc.Campaign)
+        .values(
+            machine_id=meta.machine.id, name=bundle.name, started_at=meta.started_at, status="done",
+            source="import", content_hash=content_hash, meta=meta.document(), conditions_columns=cond_cols,
+            created_at=sc.utcnow(),
+        )
+        .returning(sc.Campaign.id)
+    ).scalar_one()
+    if meta.stages:
+        conn.execute(
+            insert(sc.Stage),
+            [
+                {"campaign_id": campaign_id, "ordinal": k, "name": s.name, "heat_source": s.heat_source,
+                 "axis": s.axis, "spindle_rpm": s.spindle_rpm, "feed_mm_min": s.feed_mm_min,
+                 "start_s": s.start_s, "end_s": s.end_s, "status": "done"}
+                for k, s in enumerate(meta.stages)
+            ],
+        )
+    names = bundle.channels
+    room = set(meta.room_channels)
+    conn.execute(
+        insert(sc.Channel),
+        [
+            {"campaign_id": campaign_id, "ordinal": k, "name": name, "location": meta.channels[name].location,
+             "structure": meta.channels[name].structure, "is_room": name in room,
+             "calibration_slope": 1.0, "calibration_offset": 0.0}
+            for k, name in enumerate(names)
+        ],
+    )
+    ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == campaign_id)).all())
+    channel_ids = [ids[name] for name in names]
+
+    bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, ("int4", "int4", "float8", "float8"),
+                temperature_rows(campaign_id, channel_ids, bundle.temperatures, postgres))
+
+    if bundle.conditions is not None and len(bundle.conditions):
+        cond = bundle.conditions
+        n = len(cond)
+        columns = [cond[c].to_numpy(dtype="f8") if c in cond.columns else np.full(n, np.nan)
+                   for c in CONDITION_VALUE_COLUMNS]
+        rows = zip(repeat(campaign_id, n), cond["time_s"].to_numpy(dtype="f8").tolist(),
+                   *[_nullable(c, postgres) for c in columns])
+        bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS),
+                    ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS)), rows)
+
+    err = bundle.errors
+    n = len(err)
+    sweeps = sweep_numbers(err)
+    rows = zip(
+        repeat(campaign_id, n), range(n), err["time_s"].to_numpy(dtype="f8").tolist(),
+        err["axis"].astype(str).tolist(), err["term"].astype(str).tolist(),
+        err["position"].to_numpy(dtype="f8").tolist(), err["direction"].to_numpy(dtype="i8").tolist(),
+        err["value"].to_numpy(dtype="f8").tolist(), sweeps.tolist(), repeat(0, n),
+    )
+    bulk_insert(conn, "error_samples", ERROR_COLUMNS,
+                ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4"), rows)
+    return int(campaign_id)

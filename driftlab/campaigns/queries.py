@@ -1,0 +1,367 @@
+"""Read queries of the campaign store: export, campaign list, drift and downsampled histories.
+
+Every query's SQL lives here (callers such as the API and the CLI get DataFrames or dataclasses).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from sqlalchemy import Connection, func, select, text
+
+from driftlab.campaigns import schema as sc
+from driftlab.campaigns.bundle import AXES, TERMS, Bundle, CampaignMeta
+from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
+from driftlab.errors import NotFoundError, ValidationError
+
+
+@dataclass(frozen=True)
+class CampaignSummary:
+    """One line of the campaign list."""
+
+    id: int
+    machine_id: str
+    name: str
+    started_at: datetime
+    status: str
+    source: str
+    channels: int
+    scans: int
+    error_samples: int
+    stages: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """Return the summary as a JSON-ready dict."""
+        return {"id": self.id, "machine_id": self.machine_id, "name": self.name,
+                "started_at": self.started_at.isoformat().replace("+00:00", "Z"), "status": self.status,
+                "source": self.source, "channels": self.channels, "scans": self.scans,
+                "error_samples": self.error_samples, "stages": self.stages}
+
+
+def _campaign_row(conn: Connection, campaign_id: int) -> Any:
+    row = conn.execute(select(sc.Campaign.__table__).where(sc.Campaign.id == campaign_id)).first()
+    if row is None:
+        raise NotFoundError(f"no campaign {campaign_id}")
+    return row
+
+
+def list_campaigns(conn: Connection, machine_id: str | None = None) -> list[CampaignSummary]:
+    """Return every campaign (optionally of one machine) with its sizes, oldest first."""
+    q = select(sc.Campaign.__table__).order_by(sc.Campaign.started_at, sc.Campaign.id)
+    if machine_id is not None:
+        q = q.where(sc.Campaign.machine_id == machine_id)
+    out = []
+    for c in conn.execute(q).all():
+        channels = conn.execute(
+            select(sc.Channel.id).where(sc.Channel.campaign_id == c.id).order_by(sc.Channel.ordinal)
+        ).scalars().all()
+        scans = 0
+        if channels:
+            # one channel's key range (primary key prefix) counts the scans without a table scan
+            scans = conn.execute(
+                select(func.count()).select_from(sc.TemperatureSample).where(
+                    sc.TemperatureSample.campaign_id == c.id, sc.TemperatureSample.channel_id == channels[0])
+            ).scalar_one()
+        errors = conn.execute(
+            select(func.count()).select_from(sc.ErrorSample).where(sc.ErrorSample.campaign_id == c.id)
+        ).scalar_one()
+        stages = conn.execute(
+            select(func.count()).select_from(sc.Stage).where(sc.Stage.campaign_id == c.id)
+        ).scalar_one()
+        out.append(CampaignSummary(c.id, c.machine_id, c.name, c.started_at, c.status, c.source,
+                                   len(channels), int(scans), int(errors), int(stages)))
+    return out
+
+
+def _meta_from_tables(conn: Connection, campaign: Any) -> CampaignMeta:
+    """Return campaign.json rebuilt from the tables (for campaigns stored without a document)."""
+    machine = conn.execute(select(sc.Machine.__table__).where(sc.Machine.id == campaign.machine_id)).one()
+    channels = conn.execute(
+        select(sc.Channel.__table__).where(sc.Channel.campaign_id == campaign.id).order_by(sc.Channel.ordinal)
+    ).all()
+    stages = conn.execute(
+        select(sc.Stage.__table__).where(sc.Stage.campaign_id == campaign.id).order_by(sc.Stage.ordinal)
+    ).all()
+    doc = {
+        "format": "driftlab-bundle/1",
+        "machine": {"id": machine.id, "name": machine.name, "resolution_mm": machine.resolution_mm,
+                    "resolution_deg": machine.resolution_deg},
+        "started_at": campaign.started_at,
+        "channels": {c.name: {"location": c.location, "structure": c.structure} for c in channels},
+        "room_channels": [c.name for c in channels if c.is_room],
+        "stages": [{"name": s.name, "start_s": s.start_s, "end_s": s.end_s if s.end_s is not None else s.start_s,
+                    "heat_source": s.heat_source, "axis": s.axis, "spindle_rpm": s.spindle_rpm,
+                    "feed_mm_min": s.feed_mm_min} for s in stages],
+    }
+    doc["machine"] = {k: v for k, v in doc["machine"].items() if v is not None}
+    return CampaignMeta.model_validate(doc)
+
+
+def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
+    """Return a stored campaign as a Bundle (the exact values that were imported)."""
+    campaign = _campaign_row(conn, campaign_id)
+    meta = CampaignMeta.model_validate(campaign.meta) if campaign.meta else _meta_from_tables(conn, campaign)
+    channels = conn.execute(
+        select(sc.Channel.id, sc.Channel.name).where(sc.Channel.campaign_id == campaign_id).order_by(sc.Channel.ordinal)
+    ).all()
+    raw = conn.connection.driver_connection
+    placeholder = "%s" if conn.dialect.name == "postgresql" else "?"
+    cur = raw.cursor()  # type: ignore[union-attr]
+    try:
+        series: dict[str, pd.Series] = {}
+        for channel_id, name in channels:
+            cur.execute(
+                "SELECT time_s, value FROM temperature_samples WHERE campaign_id = "
+                f"{placeholder} AND channel_id = {placeholder} ORDER BY time_s",
+                (campaign_id, channel_id),
+            )
+            rows = cur.fetchall()
+            t = np.fromiter((r[0] for r in rows), dtype="f8", count=len(rows))
+            v = np.fromiter((np.nan if r[1] is None else r[1] for r in rows), dtype="f8", count=len(rows))
+            series[name] = pd.Series(v, index=t)
+    finally:
+        cur.close()
+    if series and all(s.index.equals(next(iter(series.values())).index) for s in series.values()):
+        times = next(iter(series.values())).index.to_numpy()
+        temps = pd.DataFrame({"time_s": times, **{k: s.to_numpy() for k, s in series.items()}})
+    else:
+        wide = pd.DataFrame(series).sort_index()
+        temps = pd.concat([pd.Series(wide.index.to_numpy(), name="time_s"), wide.reset_index(drop=True)], axis=1)
+    conditions = None
+    if campaign.conditions_columns is not None:
+        cols = [c for c in campaign.conditions_columns if c != "time_s"]
+        rows = conn.execute(
+            select(sc.ConditionSample.time_s, *[getattr(sc.ConditionSample, c) for c in cols])
+            .where(sc.ConditionSample.campaign_id == campaign_id).order_by(sc.ConditionSample.time_s)
+        ).all()
+        arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(len(rows), len(cols) + 1)
+        conditions = pd.DataFrame(arr, columns=["time_s", *cols])
+    rows = conn.execute(
+        select(sc.ErrorSample.time_s, sc.ErrorSample.axis, sc.ErrorSample.term, sc.ErrorSample.position,
+               sc.ErrorSample.direction, sc.ErrorSample.value)
+        .where(sc.ErrorSample.campaign_id == campaign_id).order_by(sc.ErrorSample.seq)
+    ).all()
+    errors = pd.DataFrame(
+        {
+            "time_s": np.array([r[0] for r in rows], dtype="f8"),
+            "axis": pd.array([r[1] for r in rows], dtype="str"),
+            "term": pd.array([r[2] for r in rows], dtype="str"),
+            "position": np.array([r[3] for r in rows], dtype="f8"),
+            "direction": np.array([r[4] for r in rows], dtype="i8"),
+            "value": np.array([r[5] for r in rows], dtype="f8"),
+        }
+    )
+    return Bundle(name=campaign.name, meta=meta, temperatures=temps, conditions=conditions, errors=errors)
+
+
+# ----------------------------------------------------------------------------- drift
+
+
+def _check_axis_term(axis: str, term: str) -> None:
+    if axis not in AXES:
+        raise ValidationError(f"unknown axis {axis!r}: expected one of {' '.join(AXES)}")
+    if term not in TERMS:
+        raise ValidationError(f"unknown term {term!r}: expected one of {' '.join(TERMS)}")
+
+
+def _seconds(delta: timedelta) -> float:
+    return delta.total_seconds()
+
+
+DRIFT_COLUMNS = ["campaign_id", "time", "time_s", "position", "direction", "sweep", "value"]
+
+_NEAREST_SQL = """
+SELECT position FROM error_samples
+WHERE campaign_id = :c AND axis = :axis AND term = :term {dir}
+ORDER BY abs(position - :p), position LIMIT 1
+"""
+
+_AT_POSITION_SQL = """
+SELECT time_s, position, direction, sweep, value FROM error_samples
+WHERE campaign_id = :c AND axis = :axis AND term = :term AND position = :pos {dir}
+  AND time_s >= :t0 AND time_s <= :t1
+ORDER BY time_s, direction
+"""
+
+_ALL_POSITIONS_SQL = """
+SELECT time_s, position, direction, sweep, value FROM error_samples
+WHERE campaign_id = :c AND axis = :axis AND term = :term {dir}
+  AND time_s >= :t0 AND time_s <= :t1
+ORDER BY time_s, position, direction
+"""
+
+# Linear interpolation along position inside each sweep: each point is paired with the next one
+# by position (LEAD over the sweep); the pair that brackets P gives the value and the time.
+_INTERPOLATED_SQL = """
+WITH pairs AS (
+  SELECT time_s, position, direction, sweep, value,
+         LEAD(position) OVER w AS p2, LEAD(value) OVER w AS v2, LEAD(time_s) OVER w AS t2
+  FROM error_samples
+  WHERE campaign_id = :c AND axis = :axis AND term = :term {dir}
+  WINDOW w AS (PARTITION BY direction, sweep ORDER BY position)
+)
+SELECT CASE WHEN position = :p THEN time_s
+            ELSE time_s + (t2 - time_s) * (:p - position) / (p2 - position) END AS t,
+       direction, sweep,
+       CASE WHEN position = :p THEN value
+            ELSE value + (v2 - value) * (:p - position) / (p2 - position) END AS v
+FROM pairs
+WHERE position = :p OR (position < :p AND p2 > :p)
+ORDER BY t, direction
+"""
+
+
+def drift(
+    conn: Connection,
+    machine_id: str,
+    axis: str,
+    term: str,
+    position: float | None = None,
+    direction: int | None = None,
+    start: datetime | None = None,
+    end: datetime | None = None,
+    interpolate: bool = False,
+) -> pd.DataFrame:
+    """Return the error history of (axis, term) on a machine across its campaigns, in wall-clock time.
+
+    With ``position`` the history is taken at the nearest measured position of each campaign, or
+    (``interpolate``) linearly interpolated along position within each sweep; without it every
+    measured position is returned. Columns: campaign_id, time (UTC), time_s, position, direction,
+    sweep, value.
+    """
+    _check_axis_term(axis, term)
+    if direction not in (None, 1, -1):
+        raise ValidationError(f"direction must be +1 or -1, not {direction}")
+    if interpolate and position is None:
+        raise ValidationError("interpolation needs a position")
+    if conn.execute(select(sc.Machine.id).where(sc.Machine.id == machine_id)).first() is None:
+        raise NotFoundError(f"no machine {machine_id!r}")
+    campaigns = conn.execute(
+        select(sc.Campaign.id, sc.Campaign.started_at).where(sc.Campaign.machine_id == machine_id)
+        .order_by(sc.Campaign.started_at, sc.Campaign.id)
+    ).all()
+    dir_sql = "" if direction is None else "AND direction = :d"
+    frames = []
+    for cid, started in campaigns:
+        t0 = -np.inf if start is None else _seconds(start - started)
+        t1 = np.inf if end is None else _seconds(end - started)
+        if t1 < 0:
+            continue
+        params: dict[str, Any] = {"c": cid, "axis": axis, "term": term, "d": direction,
+                                  "t0": max(t0, -1e300), "t1": min(t1, 1e300)}
+        if position is None:
+            rows = conn.execute(text(_ALL_POSITIONS_SQL.format(dir=dir_sql)), params).all()
+            data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
+        elif interpolate:
+            params["p"] = float(position)
+            rows = conn.execute(text(_INTERPOLATED_SQL.format(dir=dir_sql)), params).all()
+            data = [(cid, t, float(position), d, s, v) for t, d, s, v in rows if t0 <= t <= t1]
+        else:
+            params["p"] = float(position)
+            nearest = conn.execute(text(_NEAREST_SQL.format(dir=dir_sql)), params).scalar()
+            if nearest is None:
+                continue
+            params["pos"] = nearest
+            rows = conn.execute(text(_AT_POSITION_SQL.format(dir=dir_sql)), params).all()
+            data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
+        if data:
+            frame = pd.DataFrame(data, columns=["campaign_id", "time_s", "position", "direction", "sweep", "value"])
+            frame.insert(1, "time", pd.Timestamp(started) + pd.to_timedelta(frame["time_s"], unit="s"))
+            frames.append(frame)
+    if not frames:
+        out = pd.DataFrame({c: pd.Series(dtype="f8") for c in DRIFT_COLUMNS})
+        out["time"] = pd.Series(dtype="datetime64[us, UTC]")
+        return out[DRIFT_COLUMNS]
+    out = pd.concat(frames, ignore_index=True)
+    out["direction"] = out["direction"].astype("i8")
+    return out[DRIFT_COLUMNS]
+
+
+# ----------------------------------------------------------------------------- histories
+
+
+def _channel_id(conn: Connection, campaign_id: int, channel: str) -> int:
+    cid = conn.execute(
+        select(sc.Channel.id).where(sc.Channel.campaign_id == campaign_id, sc.Channel.name == channel)
+    ).scalar()
+    if cid is None:
+        _campaign_row(conn, campaign_id)
+        raise NotFoundError(f"campaign {campaign_id} has no channel {channel!r}")
+    return int(cid)
+
+
+def _bucket_expr(dialect: str) -> str:
+    # bucket index of a sample, the last sample (time = t1) folded into the last bucket
+    # (time_s >= t0, so truncation is floor on SQLite; PostgreSQL's cast would round)
+    raw = "CAST(FLOOR((time_s - :t0) / :w) AS INTEGER)" if dialect == "postgresql" else "CAST((time_s - :t0) / :w AS INTEGER)"
+    return f"CASE WHEN time_s >= :t1 THEN :nb - 1 ELSE {raw} END"
+
+
+def _range(conn: Connection, table: str, where: str, params: dict[str, Any]) -> tuple[float, float] | None:
+    row = conn.execute(text(f"SELECT MIN(time_s), MAX(time_s) FROM {table} WHERE {where}"), params).first()
+    if row is None or row[0] is None:
+        return None
+    return float(row[0]), float(row[1])
+
+
+def _history(conn: Connection, table: str, where: str, params: dict[str, Any], columns: list[str],
+             start_s: float | None, end_s: float | None, buckets: int | None) -> pd.DataFrame:
+    """Return raw samples, or min/mean/max per equal-width time bucket computed in SQL."""
+    span = _range(conn, table, where, params)
+    if span is None:
+        cols = ["time_s", *columns] if not buckets else ["time_s", "t_end_s", "n"] + [
+            f"{c}_{s}" for c in columns for s in ("min", "mean", "max")]
+        return pd.DataFrame({c: pd.Series(dtype="f8") for c in cols})
+    t0 = span[0] if start_s is None else float(start_s)
+    t1 = span[1] if end_s is None else float(end_s)
+    if t1 < t0:
+        raise ValidationError(f"time range ends ({t1}) before it starts ({t0})")
+    params = {**params, "t0": t0, "t1": t1}
+    if not buckets:
+        sql = (f"SELECT time_s, {', '.join(columns)} FROM {table} WHERE {where} "
+               "AND time_s >= :t0 AND time_s <= :t1 ORDER BY time_s")
+        rows = conn.execute(text(sql), params).all()
+        arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(
+            len(rows), len(columns) + 1)
+        return pd.DataFrame(arr, columns=["time_s", *columns])
+    if buckets < 1:
+        raise ValidationError("buckets must be at least 1")
+    width = (t1 - t0) / buckets if t1 > t0 else 1.0
+    params.update(w=width, nb=buckets)
+    aggs = ", ".join(f"MIN({c}), AVG({c}), MAX({c})" for c in columns)
+    sql = (f"SELECT b, COUNT(*), {aggs} FROM (SELECT {_bucket_expr(conn.dialect.name)} AS b, "
+           f"{', '.join(columns)} FROM {table} WHERE {where} AND time_s >= :t0 AND time_s <= :t1) AS s "
+           "GROUP BY b ORDER BY b")
+    rows = conn.execute(text(sql), params).all()
+    data = np.array([[np.nan if v is None else float(v) for v in r] for r in rows], dtype="f8").reshape(
+        len(rows), 2 + 3 * len(columns))
+    b = data[:, 0]
+    out = {"time_s": t0 + b * width, "t_end_s": t0 + (b + 1) * width, "n": data[:, 1].astype("i8")}
+    for k, c in enumerate(columns):
+        out[f"{c}_min"], out[f"{c}_mean"], out[f"{c}_max"] = data[:, 2 + 3 * k], data[:, 3 + 3 * k], data[:, 4 + 3 * k]
+    return pd.DataFrame(out)
+
+
+def temperature_history(conn: Connection, campaign_id: int, channel: str, start_s: float | None = None,
+                        end_s: float | None = None, buckets: int | None = None) -> pd.DataFrame:
+    """Return a channel's readings (time_s, value) in a time range, or per bucket
+    (time_s, t_end_s, n, value_min, value_mean, value_max) when ``buckets`` is given."""
+    channel_id = _channel_id(conn, campaign_id, channel)
+    return _history(conn, "temperature_samples", "campaign_id = :c AND channel_id = :ch",
+                    {"c": campaign_id, "ch": channel_id}, ["value"], start_s, end_s, buckets)
+
+
+def condition_history(conn: Connection, campaign_id: int, columns: list[str] | None = None,
+                      start_s: float | None = None, end_s: float | None = None,
+                      buckets: int | None = None) -> pd.DataFrame:
+    """Return machine-state values in a time range, raw or min/mean/max per bucket."""
+    _campaign_row(conn, campaign_id)
+    cols = list(columns or CONDITION_VALUE_COLUMNS)
+    for c in cols:
+        if c not in CONDITION_VALUE_COLUMNS:
+            raise ValidationError(f"unknown condition {c!r}: expected some of {', '.join(CONDITION_VALUE_COLUMNS)}")
+    return _history(conn, "condition_samples", "campaign_id = :c", {"c": campaign_id}, cols, start_s, end_s, buckets)

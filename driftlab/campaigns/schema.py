@@ -1,0 +1,333 @@
+"""The campaign store's tables (SQLAlchemy 2.0 typed declarative), the same on SQLite and PostgreSQL.
+
+Shape of the sample tables (why long and narrow for temperatures):
+a campaign has 16..50 thermocouples whose set differs between campaigns and machines, and the
+drift/history queries read one channel over a time range. A long narrow table keyed by
+(campaign_id, channel_id, time_s) makes that a single range scan of the primary key (clustered on
+SQLite by WITHOUT ROWID; on PostgreSQL the rows arrive in key order from a bulk ingest, so the
+index scan is near-sequential), needs no schema change when a channel is added, and makes a
+re-inserted reading impossible by the key itself. A wide table (one column per channel) would be
+faster to write but needs DDL per channel map and reads every channel to answer a one-channel
+query. Conditions (a fixed set of seven machine-state values, always read together) stay wide.
+
+No foreign keys on the three sample tables: a per-row referential check (a trigger per row on
+PostgreSQL) would halve bulk COPY speed. The store writes samples only inside the transaction that
+creates or locks their campaign and channels, and deletes them with the campaign.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    CheckConstraint,
+    DateTime,
+    Double,
+    ForeignKey,
+    Index,
+    Integer,
+    MetaData,
+    SmallInteger,
+    String,
+    Text,
+    UniqueConstraint,
+    text,
+)
+from sqlalchemy.dialects.postgresql import JSONB
+from sqlalchemy.engine import Dialect
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy.types import TypeDecorator
+
+NAMING = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+JSONDoc = JSON().with_variant(JSONB(), "postgresql")
+
+JOB_STATES = ("queued", "running", "done", "failed")
+MODEL_STATUSES = ("current", "retired")
+CAMPAIGN_STATUSES = ("planned", "running", "done", "aborted")
+STAGE_STATUSES = ("planned", "running", "done", "aborted", "skipped")
+
+# error_samples.flags bits
+FLAG_BEAM_BREAK = 1  # the laser beam was interrupted during the reading
+FLAG_REPEATED = 2  # the point was re-measured after a failed reading
+FLAG_OUTLIER = 4  # marked by the operator or a screening step as not to be fitted
+
+
+def utcnow() -> datetime:
+    """Return the current time, timezone-aware in UTC."""
+    return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """A timestamp stored in UTC and always returned timezone-aware (SQLite has no time zones)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        """Convert an aware datetime to UTC (naive on SQLite); refuse naive ones."""
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError("timestamps must be timezone-aware")
+        value = value.astimezone(UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        """Return the stored timestamp as an aware UTC datetime."""
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+class Base(DeclarativeBase):
+    """Declarative base with a constraint naming convention (needed by Alembic batch mode)."""
+
+    metadata = MetaData(naming_convention=NAMING)
+
+
+class Machine(Base):
+    """A machine tool; its id is the bundle's machine.id (e.g. vmc-5ax-01)."""
+
+    __tablename__ = "machines"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), default="")
+    resolution_mm: Mapped[float | None] = mapped_column(Double)
+    resolution_deg: Mapped[float | None] = mapped_column(Double)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class Campaign(Base):
+    """A characterisation campaign: one run of a staged plan on one machine."""
+
+    __tablename__ = "campaigns"
+    __table_args__ = (
+        CheckConstraint(f"status IN {CAMPAIGN_STATUSES}", name="status"),
+        # drift queries: all campaigns of a machine, in time order
+        Index("ix_campaigns_machine_started", "machine_id", "started_at"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id", ondelete="RESTRICT"))
+    name: Mapped[str] = mapped_column(String(200))
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    status: Mapped[str] = mapped_column(String(16), default="done")
+    source: Mapped[str] = mapped_column(String(16), default="import")
+    # SHA-256 of the bundle's values: importing the same data twice is refused by this constraint
+    content_hash: Mapped[str | None] = mapped_column(String(64), unique=True)
+    meta: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
+    conditions_columns: Mapped[list[str] | None] = mapped_column(JSONDoc)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class Stage(Base):
+    """One stage of a campaign's plan as run (heat source, spindle, feed, axis, start/end, status)."""
+
+    __tablename__ = "stages"
+    __table_args__ = (
+        UniqueConstraint("campaign_id", "ordinal"),
+        CheckConstraint(f"status IN {STAGE_STATUSES}", name="status"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    campaign_id: Mapped[int] = mapped_column(ForeignKey("campaigns.id", ondelete="CASCADE"))
+    ordinal: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str] = mapped_column(String(200))
+    heat_source: Mapped[str] = mapped_column(String(64))
+    axis: Mapped[str | None] = mapped_column(String(1))
+    spindle_rpm: Mapped[float] = mapped_column(Double, default=0.0)
+    feed_mm_min: Mapped[float] = mapped_column(Double, default=0.0)
+    start_s: Mapped[float] = mapped_column(Double)
+    end_s: Mapped[float | None] = mapped_column(Double)
+    status: Mapped[str] = mapped_column(String(16), default="done")
+
+
+class Channel(Base):
+    """A thermocouple site of a campaign: location, structure, calibration (T = slope * raw + offset)."""
+
+    __tablename__ = "channels"
+    __table_args__ = (
+        # channel lookup by name within a campaign (history queries, import)
+        UniqueConstraint("campaign_id", "name"),
+        UniqueConstraint("campaign_id", "ordinal"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    campaign_id: Mapped[int] = mapped_column(ForeignKey("campaigns.id", ondelete="CASCADE"))
+    ordinal: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str] = mapped_column(String(64))
+    location: Mapped[str] = mapped_column(String(200), default="")
+    structure: Mapped[str] = mapped_column(String(64), default="")
+    is_room: Mapped[bool] = mapped_column(Boolean, default=False)
+    calibration_slope: Mapped[float] = mapped_column(Double, default=1.0)
+    calibration_offset: Mapped[float] = mapped_column(Double, default=0.0)
+
+
+class TemperatureSample(Base):
+    """One thermocouple reading (degC); value NULL = a missing reading (an empty bundle cell)."""
+
+    __tablename__ = "temperature_samples"
+    # The primary key serves the temperature history query
+    # (WHERE campaign_id = ? AND channel_id = ? AND time_s BETWEEN ? AND ?) as one range scan,
+    # and makes re-inserting the same reading impossible.
+    __table_args__ = {"sqlite_with_rowid": False}
+
+    campaign_id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    channel_id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    time_s: Mapped[float] = mapped_column(Double, primary_key=True)
+    value: Mapped[float | None] = mapped_column(Double)
+
+
+class ConditionSample(Base):
+    """One line of the machine state log (wide: the seven values are always read together)."""
+
+    __tablename__ = "condition_samples"
+    # The primary key serves condition histories (WHERE campaign_id = ? AND time_s BETWEEN ? AND ?)
+    # and refuses a second state record at the same time.
+    __table_args__ = {"sqlite_with_rowid": False}
+
+    campaign_id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    time_s: Mapped[float] = mapped_column(Double, primary_key=True)
+    spindle_rpm: Mapped[float | None] = mapped_column(Double)
+    feed_mm_min: Mapped[float | None] = mapped_column(Double)
+    x: Mapped[float | None] = mapped_column(Double)
+    y: Mapped[float | None] = mapped_column(Double)
+    z: Mapped[float | None] = mapped_column(Double)
+    a: Mapped[float | None] = mapped_column(Double)
+    b: Mapped[float | None] = mapped_column(Double)
+
+
+class ErrorSample(Base):
+    """One measured work-space error: axis moved, error term, position, approach direction, value."""
+
+    __tablename__ = "error_samples"
+    __table_args__ = (
+        # The unique key refuses a re-inserted reading and serves the drift query
+        # (WHERE campaign_id = ? AND axis = ? AND term = ? [AND direction = ?] ORDER BY position/time).
+        UniqueConstraint("campaign_id", "axis", "term", "direction", "position", "time_s"),
+        CheckConstraint("axis IN ('X', 'Y', 'Z', 'A', 'B')", name="axis"),
+        CheckConstraint("term IN ('alpha', 'beta', 'gamma', 'dx', 'dy', 'dz')", name="term"),
+        CheckConstraint("direction IN (-1, 1)", name="direction"),
+        {"sqlite_with_rowid": False},
+    )
+
+    # (campaign_id, seq) keeps the bundle's row order for an exact export.
+    campaign_id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    seq: Mapped[int] = mapped_column(Integer, primary_key=True)
+    time_s: Mapped[float] = mapped_column(Double)
+    axis: Mapped[str] = mapped_column(String(1))
+    term: Mapped[str] = mapped_column(String(5))
+    position: Mapped[float] = mapped_column(Double)
+    direction: Mapped[int] = mapped_column(SmallInteger)
+    value: Mapped[float] = mapped_column(Double)
+    # sweep number within (axis, term, direction): a new sweep starts when the positions stop moving
+    # one way; the interpolating drift query interpolates along position within one sweep.
+    sweep: Mapped[int] = mapped_column(Integer, default=0)
+    flags: Mapped[int] = mapped_column(Integer, default=0)
+
+
+class ProbeMeasurement(Base):
+    """A touch-probe sphere-centre measurement at a pose, for the on-line model update (RLS)."""
+
+    __tablename__ = "probe_measurements"
+    # (machine_id, measured_at) unique: the on-line update reads a machine's probe history in time
+    # order, and the same probing cannot be stored twice.
+    __table_args__ = (UniqueConstraint("machine_id", "measured_at"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id", ondelete="CASCADE"))
+    campaign_id: Mapped[int | None] = mapped_column(ForeignKey("campaigns.id", ondelete="SET NULL"))
+    measured_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    x: Mapped[float] = mapped_column(Double)
+    y: Mapped[float] = mapped_column(Double)
+    z: Mapped[float] = mapped_column(Double)
+    a_deg: Mapped[float] = mapped_column(Double, default=0.0)
+    b_deg: Mapped[float] = mapped_column(Double, default=0.0)
+    dx: Mapped[float] = mapped_column(Double)
+    dy: Mapped[float] = mapped_column(Double)
+    dz: Mapped[float] = mapped_column(Double)
+    model_version_id: Mapped[int | None] = mapped_column(ForeignKey("model_versions.id", ondelete="SET NULL"))
+
+
+class ModelVersion(Base):
+    """A versioned model document of a machine (the registry); exactly one current per machine."""
+
+    __tablename__ = "model_versions"
+    __table_args__ = (
+        # version lookup (GET /models/{machine}/{version}) and monotonic numbering per machine
+        UniqueConstraint("machine_id", "version"),
+        CheckConstraint(f"status IN {MODEL_STATUSES}", name="status"),
+        # at most one current version per machine (the store retires the old one in the same
+        # transaction that registers the new one); also serves "current model of machine M"
+        Index(
+            "uq_model_versions_current",
+            "machine_id",
+            unique=True,
+            sqlite_where=text("status = 'current'"),
+            postgresql_where=text("status = 'current'"),
+        ),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id", ondelete="CASCADE"))
+    version: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    source_campaigns: Mapped[list[int]] = mapped_column(JSONDoc, default=list)
+    document: Mapped[dict[str, Any]] = mapped_column(JSONDoc)
+    status: Mapped[str] = mapped_column(String(16), default="current")
+    retired_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class Job(Base):
+    """A fitting or diagnosis run, claimed by one worker at a time."""
+
+    __tablename__ = "jobs"
+    __table_args__ = (
+        CheckConstraint(f"state IN {JOB_STATES}", name="state"),
+        # the claim query: oldest queued job first (WHERE state = 'queued' ORDER BY id LIMIT 1),
+        # and the stale-worker sweep (WHERE state = 'running' AND heartbeat_at < ?)
+        Index("ix_jobs_state_id", "state", "id"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    state: Mapped[str] = mapped_column(String(16), default="queued")
+    params: Mapped[dict[str, Any]] = mapped_column(JSONDoc, default=dict)
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
+    error: Mapped[str | None] = mapped_column(Text)
+    worker: Mapped[str | None] = mapped_column(String(128))
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    machine_id: Mapped[str | None] = mapped_column(ForeignKey("machines.id", ondelete="SET NULL"))
+    campaign_id: Mapped[int | None] = mapped_column(ForeignKey("campaigns.id", ondelete="SET NULL"))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class AcquisitionProgress(Base):
+    """Where the acquisition scheduler of a campaign has got to, so a daemon resumes idempotently."""
+
+    __tablename__ = "acquisition_progress"
+
+    campaign_id: Mapped[int] = mapped_column(ForeignKey("campaigns.id", ondelete="CASCADE"), primary_key=True)
+    stage_ordinal: Mapped[int] = mapped_column(Integer, default=0)
+    sweep: Mapped[int] = mapped_column(Integer, default=0)
+    # last sample time (s since started_at) committed for this campaign; samples at or before it
+    # are already stored and are skipped on resume
+    last_sample_time_s: Mapped[float | None] = mapped_column(Double)
+    cursor: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
+
+
+metadata = Base.metadata

@@ -1,0 +1,60 @@
+"""Shared database fixtures: a throwaway PostgreSQL cluster and fresh database URLs on both engines.
+
+- ``pg_url``: session-scoped URL of a throwaway PostgreSQL cluster (one per xdist worker).
+- ``pg_cluster``: the cluster object itself (``create_database()`` gives a fresh empty database).
+- ``db_url``: parametrised over sqlite and postgresql, a fresh empty database URL per test.
+
+With DRIFTLAB_REQUIRE_PG=1 a missing PostgreSQL is a failure, otherwise the postgresql cases skip.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from driftlab.campaigns.pgcluster import PgCluster, PgClusterError, pg_binaries_available
+
+
+def _require_pg() -> bool:
+    return os.environ.get("DRIFTLAB_REQUIRE_PG", "") not in ("", "0")
+
+
+def _unavailable(reason: str) -> None:
+    if _require_pg():
+        pytest.fail(f"PostgreSQL required (DRIFTLAB_REQUIRE_PG=1) but unavailable: {reason}")
+    pytest.skip(f"PostgreSQL unavailable: {reason}")
+
+
+@pytest.fixture(scope="session")
+def pg_cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[PgCluster]:
+    """A throwaway PostgreSQL cluster on 127.0.0.1 (trust auth), stopped at the end of the session."""
+    if not pg_binaries_available():
+        _unavailable("initdb/pg_ctl not on PATH")
+    cluster = PgCluster(base_dir=None)
+    try:
+        cluster.start()
+    except PgClusterError as exc:
+        cluster.stop()
+        _unavailable(str(exc))
+    try:
+        yield cluster
+    finally:
+        cluster.stop()
+
+
+@pytest.fixture(scope="session")
+def pg_url(pg_cluster: PgCluster) -> str:
+    """URL (postgresql+psycopg://) of the throwaway cluster's ``postgres`` database."""
+    return pg_cluster.url()
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """A fresh, empty database URL: a SQLite file, or a new database on the throwaway cluster."""
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path / 'driftlab.sqlite'}"
+    cluster: PgCluster = request.getfixturevalue("pg_cluster")
+    return cluster.create_database()
