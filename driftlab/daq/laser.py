@@ -1,0 +1,308 @@
+"""Laser interferometer over GPIB via pyvisa (thesis ch. 5.5, table 5.3, ch. 5.6 beam breaks).
+
+Physics
+-------
+* Air refractive index: Edlen's equation in the revised form of Birch & Downs,
+  Metrologia 30 (1993) 155 and the correction Metrologia 31 (1994) 315 (eqs. in
+  :func:`air_refractive_index`); water-vapour saturation pressure from Davis,
+  Metrologia 29 (1992) 67 (CIPM-81/91).
+* The head counts fringes of the vacuum wavelength; a double-pass optic changes the
+  optical path by 2 n d, so d = N lambda_vac / (2 n).  Straightness optics divide
+  the lateral motion by the optics factor, angle optics turn a path difference over
+  the reflector spacing into an angle (asin).  Each point is the mean of ten readings
+  taken after the axis has settled (ch. 5.5).
+* A broken beam (low signal or an error reply) flags the sample and marks the
+  reference lost: the head's count is no longer tied to the datum, so no later
+  reading is returned until the reference is re-established (ch. 5.5, 5.6).
+
+Instrument protocol (ASCII over GPIB, ``\\n`` terminated, every command answered):
+
+=====================  =========================================================
+``*IDN?``              ``<maker>,<model>,<serial>,<firmware>``
+``MODE LIN|STR|ANG``   select linear, straightness or angle optics -> ``OK``
+``AXIS X|Y|Z|A|B``     axis whose motion is measured -> ``OK``
+``TERM <term>``        error term the optics are set up for -> ``OK``
+``REF``                zero the count at the present position -> ``OK``
+``ENV?``               weather station: ``<air degC>,<pressure Pa>,<RH %>``
+``MEAS?``              ``<fringes>,<signal %>``; ``ERR BEAM`` while the beam is broken
+=====================  =========================================================
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, Reading
+from driftlab.daq.transport import LineChannel
+from driftlab.errors import InstrumentError, ValidationError
+
+HENE_VACUUM_WAVELENGTH_NM = 632.991  # stabilised He-Ne laser, vacuum wavelength
+
+# Table 5.3: which error terms the laser measures for each axis, and with which optics.
+# The rest (roll of linear axes, translations of rotary axes) use proximity sensors on
+# reference surfaces (driftlab.daq.proximity).
+LASER_TERMS: dict[str, dict[str, str]] = {
+    "X": {"dx": "LIN", "dy": "STR", "dz": "STR", "beta": "ANG", "gamma": "ANG"},
+    "Y": {"dx": "STR", "dy": "LIN", "dz": "STR", "alpha": "ANG", "gamma": "ANG"},
+    "Z": {"dx": "STR", "dy": "STR", "dz": "LIN", "alpha": "ANG", "beta": "ANG"},
+    "A": {"alpha": "ANG"},
+    "B": {"beta": "ANG"},
+}
+MODES = ("LIN", "STR", "ANG")
+
+
+def water_vapour_saturation_pa(t_c: float | np.ndarray) -> np.ndarray:
+    """Return the saturation vapour pressure of water (Pa) at ``t_c`` degC (Davis 1992, CIPM-81/91)."""
+    t_k = np.asarray(t_c, dtype=float) + 273.15
+    a, b, c, d = 1.2378847e-5, -1.9121316e-2, 33.93711047, -6.3431645e3
+    return np.exp(a * t_k**2 + b * t_k + c + d / t_k)
+
+
+def air_refractive_index(
+    t_c: float | np.ndarray,
+    pressure_pa: float | np.ndarray,
+    rh_percent: float | np.ndarray,
+    wavelength_nm: float = HENE_VACUUM_WAVELENGTH_NM,
+) -> np.ndarray:
+    """Return n of moist air by Edlen's equation, revised by Birch & Downs (1993, 1994)."""
+    t = np.asarray(t_c, dtype=float)
+    p = np.asarray(pressure_pa, dtype=float)
+    sigma2 = (1e3 / wavelength_nm) ** 2  # (vacuum wavenumber in um^-1)^2
+    # Dispersion of standard air (15 degC, 101325 Pa, dry, 450 ppm CO2).
+    n_s = (8342.54 + 2406147.0 / (130.0 - sigma2) + 15998.0 / (38.9 - sigma2)) * 1e-8
+    # Density correction for temperature and pressure.
+    n_tp = p * n_s / 96095.43 * (1.0 + 1e-8 * (0.601 - 0.00972 * t) * p) / (1.0 + 0.0036610 * t)
+    # Water vapour, partial pressure f (Pa).
+    f = np.asarray(rh_percent, dtype=float) / 100.0 * water_vapour_saturation_pa(t)
+    return 1.0 + n_tp - f * (3.7345 - 0.0401 * sigma2) * 1e-10
+
+
+@dataclass(frozen=True)
+class Environment:
+    """Air conditions along the beam."""
+
+    t_c: float = 20.0
+    pressure_pa: float = 101325.0
+    rh_percent: float = 50.0
+
+    def refractive_index(self, wavelength_nm: float = HENE_VACUUM_WAVELENGTH_NM) -> float:
+        """Return n of air for these conditions."""
+        return float(air_refractive_index(self.t_c, self.pressure_pa, self.rh_percent, wavelength_nm))
+
+
+@dataclass(frozen=True)
+class Optics:
+    """Instrument constants of the optics in use."""
+
+    wavelength_nm: float = HENE_VACUUM_WAVELENGTH_NM
+    straightness_factor: float = 10.0  # lateral motion -> path change ratio of the straightness optics
+    angle_spacing_mm: float = 32.0  # distance between the two retro-reflectors of the angle optics
+
+
+def fringes_to_value(mode: str, fringes: np.ndarray, n_air: float, optics: Optics = Optics()) -> np.ndarray:
+    """Return the measured quantity (mm for LIN/STR, rad for ANG) from fringe counts."""
+    path_mm = np.asarray(fringes, dtype=float) * optics.wavelength_nm * 1e-6 / (2.0 * n_air)
+    if mode == "LIN":
+        return path_mm
+    if mode == "STR":
+        return path_mm / optics.straightness_factor
+    if mode == "ANG":
+        return np.arcsin(path_mm / optics.angle_spacing_mm)
+    raise ValidationError(f"unknown laser mode {mode!r}")
+
+
+def value_to_fringes(mode: str, value: float | np.ndarray, n_air: float, optics: Optics = Optics()) -> np.ndarray:
+    """Return the fringe count the head shows for a measured quantity (inverse of fringes_to_value)."""
+    v = np.asarray(value, dtype=float)
+    if mode == "LIN":
+        path_mm = v
+    elif mode == "STR":
+        path_mm = v * optics.straightness_factor
+    elif mode == "ANG":
+        path_mm = np.sin(v) * optics.angle_spacing_mm
+    else:
+        raise ValidationError(f"unknown laser mode {mode!r}")
+    return path_mm * 2.0 * n_air / (optics.wavelength_nm * 1e-6)
+
+
+def remove_linear_trend(positions: Sequence[float], values: Sequence[float]) -> np.ndarray:
+    """Return straightness values with their least-squares line over the travel removed (ch. 5.5)."""
+    x = np.asarray(positions, dtype=float)
+    y = np.asarray(values, dtype=float)
+    ok = np.isfinite(y)
+    if ok.sum() < 2:
+        return y.copy()
+    slope, intercept = np.polyfit(x[ok], y[ok], 1)
+    return y - (slope * x + intercept)
+
+
+_BEAM = object()  # parse result of an ``ERR BEAM`` reply
+
+
+def _parse_meas(text: str) -> tuple[float, float] | object:
+    if text == "ERR BEAM":
+        return _BEAM
+    fringes_s, signal_s = text.split(",")
+    fringes, signal = float(fringes_s), float(signal_s)
+    if not (math.isfinite(fringes) and 0.0 <= signal <= 100.0):
+        raise ValueError("reading out of range")
+    return fringes, signal
+
+
+def _parse_env(text: str) -> Environment:
+    t_s, p_s, h_s = text.split(",")
+    env = Environment(float(t_s), float(p_s), float(h_s))
+    if not (-10 <= env.t_c <= 50 and 60e3 <= env.pressure_pa <= 115e3 and 0 <= env.rh_percent <= 100):
+        raise ValueError("environment out of range")
+    return env
+
+
+@dataclass(frozen=True)
+class ErrorSample:
+    """One measured point of an error sweep (a row of errors.csv)."""
+
+    axis: str
+    term: str
+    position: float
+    direction: int
+    value: float
+    flag: str | None = None
+
+
+class LaserInterferometer:
+    """A GPIB laser interferometer on a line channel; an AngleMeter or DisplacementMeter by mode."""
+
+    def __init__(
+        self,
+        channel: LineChannel,
+        optics: Optics = Optics(),
+        readings_per_point: int = 10,
+        min_signal_percent: float = 25.0,
+        settle_tolerance_mm: float = 0.0005,
+        settle_tolerance_rad: float = 5e-7,
+        settle_poll_s: float = 0.5,
+        max_settle_polls: int = 120,
+        environment: Environment | None = None,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self._io = channel
+        self.optics = optics
+        self.readings_per_point = readings_per_point
+        self.min_signal_percent = min_signal_percent
+        self.settle_tolerance_mm = settle_tolerance_mm
+        self.settle_tolerance_rad = settle_tolerance_rad
+        self.settle_poll_s = settle_poll_s
+        self.max_settle_polls = max_settle_polls
+        self.manual_environment = environment
+        self.sleep = sleep
+        self.mode: str | None = None
+        self.axis: str | None = None
+        self.term: str | None = None
+        self.reference_lost = True  # no reference until reference() is called
+        self.reference_epoch = 0
+        self.reference_position: float = 0.0
+
+    def identify(self) -> str:
+        """Return the instrument's identification string."""
+        return self._io.query("*IDN?", lambda s: s if s.count(",") == 3 else _raise("bad *IDN? reply"))
+
+    def configure(self, axis: str, term: str) -> str:
+        """Set optics, axis and term for a table 5.3 measurement; return the optics mode used."""
+        mode = LASER_TERMS.get(axis, {}).get(term)
+        if mode is None:
+            raise ValidationError(f"the laser does not measure {term} of the {axis} axis (table 5.3)")
+        if mode != self.mode:
+            self._io.command(f"MODE {mode}")
+            self.mode = mode
+            self.reference_lost = True
+        if axis != self.axis:
+            self._io.command(f"AXIS {axis}")
+            self.axis = axis
+            self.reference_lost = True
+        if term != self.term:
+            self._io.command(f"TERM {term}")
+            self.term = term
+            # New optics set-up: the count no longer refers to the old datum.
+            self.reference_lost = True
+        return mode
+
+    def environment(self) -> Environment:
+        """Return the air conditions used for compensation (manual, or the head's weather station)."""
+        if self.manual_environment is not None:
+            return self.manual_environment
+        return self._io.query("ENV?", _parse_env)
+
+    def reference(self, position: float = 0.0) -> None:
+        """Zero the head at the present axis ``position``; a new reference epoch starts."""
+        self._io.command("REF")
+        self.reference_position = float(position)
+        self.reference_lost = False
+        self.reference_epoch += 1
+
+    def _raw(self) -> tuple[float, float] | object:
+        return self._io.query("MEAS?", _parse_meas)
+
+    def _beam_ok(self, raw: tuple[float, float] | object) -> bool:
+        return raw is not _BEAM and raw[1] >= self.min_signal_percent  # type: ignore[index]
+
+    def _lose_reference(self) -> Reading:
+        self.reference_lost = True
+        return Reading.missing(FLAG_BEAM_BREAK)
+
+    def read(self) -> Reading:
+        """Return the settled mean of ten readings in mm or rad; flagged missing on a beam break."""
+        if self.mode is None:
+            raise ValidationError("laser not configured: call configure(axis, term) first")
+        if self.reference_lost:
+            return Reading.missing(FLAG_REFERENCE_LOST)
+        n_air = self.environment().refractive_index(self.optics.wavelength_nm)
+        tol = self.settle_tolerance_rad if self.mode == "ANG" else self.settle_tolerance_mm
+        previous: float | None = None
+        for _ in range(self.max_settle_polls):
+            raw = self._raw()
+            if not self._beam_ok(raw):
+                return self._lose_reference()
+            value = float(fringes_to_value(self.mode, raw[0], n_air, self.optics))  # type: ignore[index]
+            if previous is not None and abs(value - previous) <= tol:
+                break
+            previous = value
+            self.sleep(self.settle_poll_s)
+        else:
+            raise InstrumentError(f"laser: axis did not settle within {self.max_settle_polls} polls")
+        counts = []
+        for _ in range(self.readings_per_point):
+            raw = self._raw()
+            if not self._beam_ok(raw):
+                return self._lose_reference()
+            counts.append(raw[0])  # type: ignore[index]
+        return Reading(float(fringes_to_value(self.mode, np.mean(counts), n_air, self.optics)))
+
+    def read_displacement(self) -> Reading:
+        """Return the displacement (mm) in LIN or STR mode (DisplacementMeter)."""
+        if self.mode not in ("LIN", "STR"):
+            raise ValidationError("read_displacement needs linear or straightness optics")
+        return self.read()
+
+    def read_angle(self) -> Reading:
+        """Return the angle (rad) in ANG mode (AngleMeter)."""
+        if self.mode != "ANG":
+            raise ValidationError("read_angle needs angle optics")
+        return self.read()
+
+    def measure_error(self, axis: str, term: str, position: float, direction: int) -> ErrorSample:
+        """Return the error at a commanded position: measured minus commanded motion for LIN, else the reading."""
+        mode = self.configure(axis, term)
+        reading = self.read()
+        value = reading.value
+        if reading.ok and mode == "LIN":
+            value -= position - self.reference_position
+        return ErrorSample(axis, term, float(position), int(direction), value, reading.flag)
+
+
+def _raise(message: str) -> str:
+    raise ValueError(message)
