@@ -156,10 +156,12 @@ def _as_errors(errors: ElementErrors | None, n: int) -> dict[str, np.ndarray]:
             raise KinematicsError(f"errors of {name} have {arr.shape[0]} rows for {n} poses")
         if arr.ndim > 2:
             raise KinematicsError(f"errors of {name} must be (N, 6) or (6,), got shape {arr.shape}")
-        if not np.isfinite(np.sum(arr)):  # one pass: NaN and infinity propagate into the sum
-            raise KinematicsError(f"errors of {name} contain NaN or infinity")
-        if arr.ndim == 2 or np.any(arr):
-            out[name] = arr
+        if arr.ndim == 1:
+            if not np.all(np.isfinite(arr)):
+                raise KinematicsError(f"errors of {name} contain NaN or infinity")
+            if not np.any(arr):
+                continue
+        out[name] = arr  # (N, 6) rows are checked chunk by chunk, while they are in cache
     return out
 
 
@@ -197,7 +199,17 @@ def _mul_e(m: tuple, a: _Comp, b: _Comp, g: _Comp) -> tuple:
     out = []
     for i in range(3):
         m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
-        out += [m0 + m1 * g - m2 * b, m1 + m2 * a - m0 * g, m2 + m0 * b - m1 * a]
+        # each product is a fresh array, so accumulating in place never touches an input
+        c0 = m1 * g
+        c0 -= m2 * b
+        c0 += m0
+        c1 = m2 * a
+        c1 -= m0 * g
+        c1 += m1
+        c2 = m0 * b
+        c2 -= m1 * a
+        c2 += m2
+        out += [c0, c1, c2]
     return tuple(out)
 
 
@@ -206,7 +218,11 @@ def _mul_rx(m: tuple, c: _Comp, s: _Comp) -> tuple:
     out = []
     for i in range(3):
         m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
-        out += [m0, m1 * c + m2 * s, m2 * c - m1 * s]
+        c1 = m1 * c
+        c1 += m2 * s
+        c2 = m2 * c
+        c2 -= m1 * s
+        out += [m0, c1, c2]
     return tuple(out)
 
 
@@ -215,23 +231,51 @@ def _mul_ry(m: tuple, c: _Comp, s: _Comp) -> tuple:
     out = []
     for i in range(3):
         m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
-        out += [m0 * c - m2 * s, m1, m0 * s + m2 * c]
+        c0 = m0 * c
+        c0 -= m2 * s
+        c2 = m0 * s
+        c2 += m2 * c
+        out += [c0, m1, c2]
     return tuple(out)
 
 
 def _matvec(m: tuple, v: tuple) -> tuple:
+    """M @ v with fresh (or float) components, skipping terms that are exactly zero."""
     out = []
     for i in range(3):
         acc: _Comp = 0.0
+        fresh = False
         for j in range(3):
-            if not _is_zero(v[j]) and not _is_zero(m[3 * i + j]):
-                acc = acc + m[3 * i + j] * v[j]
+            if _is_zero(v[j]) or _is_zero(m[3 * i + j]):
+                continue
+            term = m[3 * i + j] * v[j]
+            if fresh and isinstance(acc, np.ndarray):
+                acc += term
+            else:
+                acc = acc + term
+                fresh = True
         out.append(acc)
     return tuple(out)
 
 
 def _add3(u: tuple, v: tuple) -> tuple:
     return tuple(x if _is_zero(y) else (y if _is_zero(x) else x + y) for x, y in zip(u, v))
+
+
+def _accumulate(p: tuple, mv: tuple) -> tuple:
+    """p + mv where mv comes fresh from _matvec (added in place)."""
+    out = []
+    for x, y in zip(p, mv):
+        if _is_zero(y):
+            out.append(x)
+        elif _is_zero(x):
+            out.append(y)
+        elif isinstance(y, np.ndarray) and (np.ndim(x) == 0 or np.shape(x) == y.shape):
+            y += x
+            out.append(y)
+        else:
+            out.append(x + y)
+    return tuple(out)
 
 
 def _mul33(m: tuple, r: tuple) -> tuple:
@@ -247,15 +291,26 @@ def _mul33_t(m: tuple, r: tuple) -> tuple:
     )
 
 
-def _cols(e: np.ndarray | None, s: int, t: int) -> tuple:
-    """Six components of an element's errors for poses s:t (floats when constant)."""
-    if e is None:
-        return (0.0,) * 6
-    if e.ndim == 1:
-        return tuple(float(x) for x in e)
-    return tuple(np.ascontiguousarray(e[s:t].T))  # contiguous rows run faster than strided columns
+_Cols = dict[str, tuple]  # element -> its six error components for one chunk
 
 
+def _chunk_cols(errs: dict[str, np.ndarray], s: int, t: int) -> _Cols:
+    """Six error components per element for poses s:t (floats when constant), validated."""
+    out: _Cols = {}
+    for name, e in errs.items():
+        if e.ndim == 1:
+            out[name] = tuple(float(x) for x in e)
+            continue
+        rows = e[s:t].T
+        if not rows.flags.c_contiguous:  # (N, 6) in C order: one cheap in-cache copy per chunk
+            rows = np.ascontiguousarray(rows)
+        if not np.isfinite(rows.sum()):  # NaN and infinity propagate into the sum
+            raise KinematicsError(f"errors of {name} contain NaN or infinity")
+        out[name] = tuple(rows)
+    return out
+
+
+_ZERO6: tuple = (0.0,) * 6
 _IDENTITY: tuple = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
@@ -268,13 +323,13 @@ class _PreChain:
     jac_xyz: tuple  # columns d pos / dX, dY, dZ as a 3x3 (row-major)
 
 
-def _pre_chain(q: np.ndarray, errs: dict[str, np.ndarray], dims: dict, s: int, t: int) -> _PreChain:
+def _pre_chain(q: np.ndarray, cols: _Cols, dims: dict, s: int, t: int) -> _PreChain:
     """Accumulate T1 PhiZ T2 PhiY T3 PhiX T4 and ThetaX's error (eqs. 4.12-4.17)."""
     m: tuple = _IDENTITY
     p: tuple = (0.0, 0.0, 0.0)
     jcol: dict[int, tuple] = {}
     for name in ELEMENTS[:8]:
-        a, b, g, dx, dy, dz = _cols(errs.get(name), s, t)
+        a, b, g, dx, dy, dz = cols.get(name, _ZERO6)
         if name in LINKS:
             trans = _add3(dims[name], (dx, dy, dz))  # eq. 4.13: a_i + da_i, ...
         elif name == "theta_x":
@@ -284,43 +339,40 @@ def _pre_chain(q: np.ndarray, errs: dict[str, np.ndarray], dims: dict, s: int, t
             jcol[k] = (m[k], m[3 + k], m[6 + k])  # d pos / d q_k = M e_k (pos is affine in X, Y, Z)
             qk = q[s:t, k]
             trans = tuple(qk + d if i == k else d for i, d in enumerate((dx, dy, dz)))  # eqs. 4.14-4.16
-        p = _add3(p, _matvec(m, trans))
-        if name in errs:
+        p = _accumulate(p, _matvec(m, trans))
+        if name in cols:
             m = _mul_e(m, a, b, g)
     jac = tuple(jcol[j][i] for i in range(3) for j in range(3))
     return _PreChain(rot=m, pos=p, jac_xyz=jac)
 
 
-def _post_rot(pre_rot: tuple, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, errs: dict, s: int, t: int) -> tuple[tuple, tuple]:
-    """Return (rotation of the whole chain, A Rx(a) B column 1) given the pre-chain rotation."""
+def _post_rot(pre_rot: tuple, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols) -> tuple[tuple, tuple]:
+    """Return (rotation of the whole chain, column 1 of A Rx(a) E5 E_theta_y) from the pre-chain."""
     m = _mul_rx(pre_rot, ca, sa)
     for name in ("T5", "theta_y"):
-        if name in errs:
-            a, b, g, *_ = _cols(errs[name], s, t)
+        if name in cols:
+            a, b, g, *_ = cols[name]
             m = _mul_e(m, a, b, g)
     ub = (m[1], m[4], m[7])
     m = _mul_ry(m, cb, sb)
-    if "T6" in errs:
-        a, b, g, *_ = _cols(errs["T6"], s, t)
+    if "T6" in cols:
+        a, b, g, *_ = cols["T6"]
         m = _mul_e(m, a, b, g)
     return m, ub
 
 
-def _post_pos(pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, errs: dict, dims: dict, s: int, t: int) -> tuple[tuple, tuple]:
+def _post_pos(pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols, dims: dict) -> tuple[tuple, tuple]:
     """Return (rotation, position) of the full chain from the pre-chain (eqs. 4.12, 4.17, 4.18)."""
     m = _mul_rx(pre.rot, ca, sa)
     p = pre.pos
     for name in ("T5", "theta_y", "T6"):
-        a, b, g, dx, dy, dz = _cols(errs.get(name), s, t)
+        a, b, g, dx, dy, dz = cols.get(name, _ZERO6)
         trans = _add3(dims[name], (dx, dy, dz)) if name in LINKS else (dx, dy, dz)
-        if name == "theta_y":
-            m_e = _mul_e(m, a, b, g) if name in errs else m
-            p = _add3(p, _matvec(m, trans))
-            m = _mul_ry(m_e, cb, sb)
-            continue
-        p = _add3(p, _matvec(m, trans))
-        if name in errs:
+        p = _accumulate(p, _matvec(m, trans))
+        if name in cols:
             m = _mul_e(m, a, b, g)
+        if name == "theta_y":
+            m = _mul_ry(m, cb, sb)  # eq. 4.18: E(p) @ Ry, the translation applied before the turn
     return m, p
 
 
@@ -371,10 +423,11 @@ def machine_chain(q: np.ndarray, errors: ElementErrors | None = None, dims: Mapp
     out = _new_htm_stack(n)
     for s in range(0, n, CHUNK):
         t = min(n, s + CHUNK)
-        pre = _pre_chain(q, errs, d, s, t)
+        cols = _chunk_cols(errs, s, t)
+        pre = _pre_chain(q, cols, d, s, t)
         ca, sa = np.cos(q[s:t, 3]), np.sin(q[s:t, 3])
         cb, sb = np.cos(q[s:t, 4]), np.sin(q[s:t, 4])
-        rot, pos = _post_pos(pre, ca, sa, cb, sb, errs, d, s, t)
+        rot, pos = _post_pos(pre, ca, sa, cb, sb, cols, d)
         _write(out, s, t, rot, pos)
     return out
 
@@ -553,14 +606,15 @@ def compensate(
     iters_used = 0
     for s in range(0, n, CHUNK):
         t = min(n, s + CHUNK)
-        pre = _pre_chain(q, errs, d, s, t)
+        cols = _chunk_cols(errs, s, t)
+        pre = _pre_chain(q, cols, d, s, t)
         rid, pid = _ideal_parts(q, d, s, t)
         a0, b0 = q[s:t, 3], q[s:t, 4]
         a, b = a0.copy(), b0.copy()
         ua = (pre.rot[0], pre.rot[3], pre.rot[6])  # d omega / dA = A e_x (Rx keeps e_x)
         for it in range(max_iter + 1):
             ca, sa, cb, sb = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
-            rot, ub = _post_rot(pre.rot, ca, sa, cb, sb, errs, s, t)
+            rot, ub = _post_rot(pre.rot, ca, sa, cb, sb, cols)
             w = _mul33_t(rot, rid)  # rotation block of W = T_real @ inv(T_ideal)
             wx = 0.5 * (w[7] - w[5])
             wy = 0.5 * (w[2] - w[6])
@@ -579,14 +633,14 @@ def compensate(
         a = _quantise(a, resolution_rad)
         b = _quantise(b, resolution_rad)
         ca, sa, cb, sb = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
-        rot, pos = _post_pos(pre, ca, sa, cb, sb, errs, d, s, t)
+        rot, pos = _post_pos(pre, ca, sa, cb, sb, cols, d)
         w = _mul33_t(rot, rid)
         target = _matvec(w, pid)  # W's translation vanishes when p_real = R_W @ p_ideal
         rhs = tuple(tg - p for tg, p in zip(target, pos))
         dxyz = _solve3(pre.jac_xyz, rhs)
         xyz = [_quantise(q[s:t, k] + dxyz[k], resolution_mm) for k in range(3)]
         step = tuple(xyz[k] - q[s:t, k] for k in range(3))
-        pos = _add3(pos, _matvec(pre.jac_xyz, step))  # affine in X, Y, Z: exact update
+        pos = _accumulate(pos, _matvec(pre.jac_xyz, step))  # affine in X, Y, Z: exact update
         pw = tuple(p - tg for p, tg in zip(pos, target))
         q_cmd[s:t, 0], q_cmd[s:t, 1], q_cmd[s:t, 2] = xyz
         q_cmd[s:t, 3], q_cmd[s:t, 4] = a, b

@@ -126,6 +126,9 @@ def appendix_a_errors(
 ) -> dict[str, np.ndarray]:
     """Return the (N, 6) errors of all 11 elements at times ``t_s`` and joints ``q`` (laws A1-A3).
 
+    The arrays are column-major (each parameter contiguous), which the kinematics kernels read
+    without copying.
+
     ``direction`` (N, 5) holds the sign of each axis's motion (0 = at rest, no backlash term).
     ``gain`` and ``tau_scale`` scale the K constants and the time constants, either one number for
     all or a mapping keyed by law ("A1", "A2", "A3") or by element name (element wins); the
@@ -144,14 +147,14 @@ def appendix_a_errors(
     out: dict[str, np.ndarray] = {}
     for name, (k, tau) in TABLE_A2.items():
         level = 0.3 + 0.7 * warmup(t, tau * _factor(tau_scale, name))  # eq. A1
-        out[name] = _factor(gain, name) * level[:, None] * k[None, :]
+        out[name] = (_factor(gain, name) * k[:, None] * level[None, :]).T
     for name, (col, x_max, k_ang, k_dx, tau) in TABLE_A3.items():
         x = q[:, col]
         w = warmup(t, tau * _factor(tau_scale, name))
         g_lin = 0.3 * x + 0.7 * x_max * w  # eq. A2
         g_int = 0.15 * x * x + 0.7 * x_max * w * x  # integral of eq. A2 over the travel 0..x
         ka, kb, kg = k_ang
-        p = np.empty((n, 6))
+        p = np.empty((n, 6), order="F")
         p[:, 0], p[:, 1], p[:, 2] = ka * g_lin, kb * g_lin, kg * g_lin
         if name == "phi_x":  # eq. 4.14: dy = int gamma dx, dz = -int beta dx
             p[:, 3], p[:, 4], p[:, 5] = k_dx * g_lin, kg * g_int, -kb * g_int
@@ -162,7 +165,7 @@ def appendix_a_errors(
         out[name] = _factor(gain, name) * p
     for name, (col, th_max, k, tau) in TABLE_A4.items():
         g = 0.3 * q[:, col] + 0.7 * th_max * warmup(t, tau * _factor(tau_scale, name))  # eq. A3
-        out[name] = _factor(gain, name) * g[:, None] * k[None, :]
+        out[name] = (_factor(gain, name) * k[:, None] * g[None, :]).T
     if backlash:
         for name, slot in _POSITIONING_SLOT.items():
             col = kin.JOINT_AXIS[name]

@@ -91,6 +91,15 @@ def test_chunked_kernel_matches_across_chunk_boundaries(monkeypatch):
     whole = k.machine_chain(q, errs)
     monkeypatch.setattr(k, "CHUNK", 97)
     np.testing.assert_allclose(k.machine_chain(q, errs), whole, atol=1e-12)
+    # column-major errors (read without copying) give the same chain
+    fortran = {n: np.asfortranarray(v) for n, v in errs.items()}
+    np.testing.assert_allclose(k.machine_chain(q, fortran), whole, atol=1e-12)
+    # a NaN in the last chunk is found
+    errs["T4"][-1, 2] = np.nan
+    with pytest.raises(KinematicsError, match="T4"):
+        k.machine_chain(q, errs)
+    with pytest.raises(KinematicsError, match="NaN"):
+        k.compensate(q, {"T1": np.array([0, 0, np.inf, 0, 0, 0])})
 
 
 def test_single_axis_errors_show_up_where_physics_says():
