@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from driftlab.models import kinematics as kin
 from driftlab.models import simulation as sim
 
 H = sim.HOUR_S
+REPO = Path(__file__).resolve().parents[2]  # run the CLI from the work tree, as `make test` does
 LONG = 1e9  # s: the warm-up is over
 
 
@@ -182,6 +184,7 @@ def test_cli_sim_thesis_writes_json(tmp_path):
         capture_output=True,
         text=True,
         timeout=120,
+        cwd=REPO,
     )
     assert proc.returncode == 0, proc.stderr
     doc = json.loads(out.read_text())
@@ -199,6 +202,7 @@ def test_cli_sim_thesis_bad_hours_is_one_line():
         capture_output=True,
         text=True,
         timeout=120,
+        cwd=REPO,
     )
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("driftlab: error:")
