@@ -1,0 +1,759 @@
+"""Simulated instruments: line-protocol servers on loopback TCP that answer like the real ones.
+
+Each server reads the state of a :class:`World` (the VirtualMachine, or the small
+deterministic :class:`TinyWorld` of the unit tests) at the time of a shared
+:class:`Clock`, and speaks exactly the protocol documented in its driver module, so the
+real drivers open them through the real libraries:
+
+* thermocouple card and A/D card: any RawPort (pyvisa ``TCPIP0::127.0.0.1::PORT::SOCKET``
+  or pyserial ``socket://127.0.0.1:PORT``);
+* laser interferometer: pyvisa-py, ``TCPIP0::127.0.0.1::PORT::SOCKET`` (:func:`visa_address`);
+* machine controller (motion code, positions, probe): pyserial, ``socket://127.0.0.1:PORT``
+  (:func:`serial_url`).
+
+Faults are injected per server with :meth:`LineServer.inject` (``"timeout"``: the reply is
+swallowed; ``"garble"``: the reply is corrupted), applied after the command took effect,
+as a real line fault would be.  Every server stops its threads in :meth:`LineServer.close`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from driftlab.daq.laser import air_refractive_index, value_to_fringes
+from driftlab.daq.probe import LobingMap
+from driftlab.daq.proximity import ReferenceSurfaceArray
+from driftlab.daq.thermocouple import type_e_emf_mv
+
+log = logging.getLogger(__name__)
+
+AXES = ("X", "Y", "Z", "A", "B")
+TRANSLATIONS = ("dx", "dy", "dz")
+
+
+# --------------------------------------------------------------------------- world and clock
+
+
+@runtime_checkable
+class World(Protocol):
+    """What the simulated instruments read: VirtualMachine satisfies it (docs/interfaces.md)."""
+
+    def temperatures(self, t_s: float) -> Mapping[str, float]:
+        """Return degC per thermocouple channel at ``t_s`` (NaN where the junction is open)."""
+
+    def state(self, t_s: float) -> Any:
+        """Return the machine state at ``t_s`` (spindle rpm, feed, positions)."""
+
+    def measure_error(self, t_s: float, axis: str, position: float, direction: int) -> Mapping[str, float]:
+        """Return the error terms (dx, dy, dz mm; alpha, beta, gamma rad) of ``axis`` at ``position``."""
+
+
+@runtime_checkable
+class Clock(Protocol):
+    """Simulation time shared by the servers and the drivers' waits."""
+
+    def now(self) -> float:
+        """Return the simulation time (s)."""
+
+    def sleep(self, dt_s: float) -> None:
+        """Let ``dt_s`` seconds of simulation time pass."""
+
+
+class ManualClock:
+    """A clock that moves only when slept on: deterministic tests, no wall-clock waits."""
+
+    def __init__(self, t0_s: float = 0.0) -> None:
+        self._t = float(t0_s)
+        self._lock = threading.Lock()
+
+    def now(self) -> float:
+        """Return the simulation time (s)."""
+        with self._lock:
+            return self._t
+
+    def sleep(self, dt_s: float) -> None:
+        """Advance the simulation time by ``dt_s`` immediately."""
+        with self._lock:
+            self._t += max(float(dt_s), 0.0)
+
+    def advance_to(self, t_s: float) -> None:
+        """Move the clock forward to ``t_s`` (never backwards)."""
+        with self._lock:
+            self._t = max(self._t, float(t_s))
+
+
+class WallClock:
+    """Simulation time running ``acceleration`` times faster than the wall clock (demos)."""
+
+    def __init__(self, acceleration: float = 60.0, t0_s: float = 0.0) -> None:
+        self.acceleration = acceleration
+        self._t0 = t0_s
+        self._start = time.monotonic()
+
+    def now(self) -> float:
+        """Return the accelerated simulation time (s)."""
+        return self._t0 + (time.monotonic() - self._start) * self.acceleration
+
+    def sleep(self, dt_s: float) -> None:
+        """Wait ``dt_s`` simulation seconds (dt_s / acceleration real seconds)."""
+        time.sleep(max(dt_s, 0.0) / self.acceleration)
+
+
+class TinyWorld:
+    """A small deterministic world for unit tests: smooth warm-up, a reversal, open channels."""
+
+    def __init__(
+        self,
+        channels: int = 8,
+        tau_s: float = 1800.0,
+        open_channels: Mapping[str, float] | None = None,
+        reversal_mm: float = 0.002,
+    ) -> None:
+        self.names = [f"T{k}" for k in range(1, channels + 1)]
+        self.tau_s = tau_s
+        self.open_channels = dict(open_channels or {})  # channel -> time it broke
+        self.reversal_mm = reversal_mm
+        self.positions = {a: 0.0 for a in AXES}
+
+    def warmup(self, t_s: float) -> float:
+        """Return the 0..1 warm-up fraction at ``t_s``."""
+        return 1.0 - math.exp(-max(t_s, 0.0) / self.tau_s)
+
+    def true_temperatures(self, t_s: float) -> dict[str, float]:
+        """Return the noiseless temperatures (degC)."""
+        w = self.warmup(t_s)
+        return {name: 20.0 + 0.25 * k + (1.0 + 0.5 * k) * w for k, name in enumerate(self.names)}
+
+    def temperatures(self, t_s: float) -> dict[str, float]:
+        """Return temperatures (degC) with broken channels as NaN."""
+        temps = self.true_temperatures(t_s)
+        for name, t_break in self.open_channels.items():
+            if t_s >= t_break:
+                temps[name] = float("nan")
+        return temps
+
+    def state(self, t_s: float) -> dict[str, float]:
+        """Return a machine state (idle spindle, positions as set on the world)."""
+        return {"spindle_rpm": 0.0, "feed_mm_min": 0.0, **{a.lower(): p for a, p in self.positions.items()}}
+
+    def measure_error(self, t_s: float, axis: str, position: float, direction: int) -> dict[str, float]:
+        """Return smooth, position- and time-dependent error terms plus a reversal on the axial term."""
+        w = self.warmup(t_s)
+        k = AXES.index(axis) + 1
+        s = position / 500.0
+        err = {
+            "dx": (0.004 * s + 0.001 * k) * w,
+            "dy": (-0.003 * s * s + 0.0005 * k) * w,
+            "dz": (0.002 * s - 0.0008) * w * k,
+            "alpha": (4e-6 * s + 1e-6 * k) * w,
+            "beta": (-3e-6 * s + 2e-6) * w,
+            "gamma": (2e-6 * s * s - 1e-6 * k) * w,
+        }
+        axial = {"X": "dx", "Y": "dy", "Z": "dz", "A": "alpha", "B": "beta"}[axis]
+        # backlash: half the span either side; rotary axes see it over a 500 mm lever (rad)
+        span = self.reversal_mm if axial in TRANSLATIONS else self.reversal_mm / 500.0
+        err[axial] += 0.5 * direction * span
+        return err
+
+
+def room_air_c(world: World, t_s: float, channels: tuple[str, ...] = ("T49", "T50")) -> float:
+    """Return the mean of the world's room thermocouples (20 degC if it has none)."""
+    temps = world.temperatures(t_s)
+    vals = [temps[c] for c in channels if c in temps and math.isfinite(temps[c])]
+    return float(np.mean(vals)) if vals else 20.0
+
+
+# --------------------------------------------------------------------------- stages (where the axes are)
+
+
+class Stage(Protocol):
+    """Where an axis is at a time, and from which direction it arrived."""
+
+    def where(self, axis: str, t_s: float) -> tuple[float, int]:
+        """Return (position, approach direction +1/-1) of ``axis`` at ``t_s``."""
+
+
+class FixedStage:
+    """A stage whose positions are set by hand (unit tests)."""
+
+    def __init__(self) -> None:
+        self.positions = {a: (0.0, 1) for a in AXES}
+
+    def move(self, axis: str, position: float, direction: int = 1) -> None:
+        """Place ``axis`` at ``position`` arriving from ``direction``."""
+        self.positions[axis] = (float(position), int(direction))
+
+    def where(self, axis: str, t_s: float) -> tuple[float, int]:
+        """Return the position set for ``axis``."""
+        return self.positions[axis]
+
+
+# --------------------------------------------------------------------------- the TCP line server
+
+
+class LineServer:
+    """A threaded ``\\n``-line server on 127.0.0.1 (ephemeral port); subclasses implement handle()."""
+
+    name = "instrument"
+
+    def __init__(self) -> None:
+        self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._listener.bind(("127.0.0.1", 0))
+        self._listener.listen(4)
+        self._listener.settimeout(0.05)
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._conns: list[socket.socket] = []
+        self._lock = threading.RLock()
+        self._faults: deque[str] = deque()
+        self.received: list[str] = []
+        self._started = False
+
+    @property
+    def port(self) -> int:
+        """Return the TCP port the server listens on."""
+        return int(self._listener.getsockname()[1])
+
+    def start(self) -> LineServer:
+        """Start accepting connections; return self."""
+        if not self._started:
+            t = threading.Thread(target=self._accept_loop, name=f"sim-{self.name}-accept", daemon=True)
+            t.start()
+            self._threads.append(t)
+            self._started = True
+        return self
+
+    def __enter__(self) -> LineServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def inject(self, *faults: str) -> None:
+        """Queue faults for the next replies: ``"timeout"`` (no reply) or ``"garble"`` (corrupt reply)."""
+        for f in faults:
+            if f not in ("timeout", "garble"):
+                raise ValueError(f"unknown fault {f!r}")
+            self._faults.append(f)
+
+    def handle(self, line: str) -> str | None:
+        """Return the reply to one command line (None: no reply)."""
+        raise NotImplementedError
+
+    def _reply(self, line: bytes) -> bytes | None:
+        try:
+            text = line.decode("ascii").strip()
+        except UnicodeDecodeError:
+            return b"ERR SYNTAX\n"
+        with self._lock:
+            self.received.append(text)
+            try:
+                reply = self.handle(text)
+            except Exception as exc:  # a simulator bug must not kill the server thread
+                log.exception("%s: handling %r failed", self.name, text)
+                reply = f"ERR INTERNAL {type(exc).__name__}"
+            fault = self._faults.popleft() if self._faults else None
+        if reply is None or fault == "timeout":
+            return None
+        if fault == "garble":
+            return b"\xfe" + reply[::-1].encode("ascii")[:7] + b"#?\n"
+        return reply.encode("ascii") + b"\n"
+
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._listener.accept()
+            except (TimeoutError, socket.timeout):
+                continue
+            except OSError:
+                break
+            conn.settimeout(0.05)
+            self._conns.append(conn)
+            t = threading.Thread(target=self._serve, args=(conn,), name=f"sim-{self.name}-conn", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def _serve(self, conn: socket.socket) -> None:
+        buf = b""
+        with conn:
+            while not self._stop.is_set():
+                try:
+                    data = conn.recv(4096)
+                except (TimeoutError, socket.timeout):
+                    continue
+                except OSError:
+                    break
+                if not data:
+                    break
+                buf += data
+                while b"\n" in buf:
+                    line, buf = buf.split(b"\n", 1)
+                    reply = self._reply(line)
+                    if reply is not None:
+                        try:
+                            conn.sendall(reply)
+                        except OSError:
+                            return
+
+    def close(self) -> None:
+        """Stop the server and join its threads."""
+        self._stop.set()
+        try:
+            self._listener.close()
+        except OSError:
+            pass
+        for t in self._threads:
+            t.join(timeout=5.0)
+        for c in self._conns:
+            try:
+                c.close()
+            except OSError:
+                pass
+
+
+def visa_address(server: LineServer) -> str:
+    """Return the pyvisa resource name of a simulated instrument."""
+    return f"TCPIP0::127.0.0.1::{server.port}::SOCKET"
+
+
+def serial_url(server: LineServer) -> str:
+    """Return the pyserial URL of a simulated instrument."""
+    return f"socket://127.0.0.1:{server.port}"
+
+
+# --------------------------------------------------------------------------- thermocouple card
+
+OPEN_CIRCUIT_CODE = "+9.9E37"
+
+
+class SimThermocoupleCard(LineServer):
+    """A DAS-TC style type E card: EMF = E(T_world) - E(T_cj); open junctions read over-range."""
+
+    name = "tc-card"
+
+    def __init__(
+        self,
+        world: World,
+        clock: Clock,
+        channel_map: Mapping[int, str],
+        cold_junction_c: float = 24.0,
+        noise_uv: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        self.world, self.clock = world, clock
+        self.channel_map = dict(channel_map)
+        self.cold_junction_c = cold_junction_c
+        self.noise_uv = noise_uv
+        self._rng = np.random.default_rng(seed)
+
+    def handle(self, line: str) -> str | None:
+        """Answer *IDN?, CJC? and SCAN? first,last."""
+        if line == "*IDN?":
+            return "DRIFTLAB,SIM-DASTC,0,1.0"
+        if line == "CJC?":
+            return f"{self.cold_junction_c:.4f}"
+        m = re.fullmatch(r"SCAN\? (\d+),(\d+)", line)
+        if m:
+            first, last = int(m.group(1)), int(m.group(2))
+            if not 0 <= first <= last < 64:
+                return "ERR RANGE"
+            temps = self.world.temperatures(self.clock.now())
+            e_cj = float(type_e_emf_mv(self.cold_junction_c))
+            out = []
+            for ch in range(first, last + 1):
+                name = self.channel_map.get(ch)
+                t = temps.get(name, float("nan")) if name else float("nan")
+                if not math.isfinite(t):
+                    out.append(OPEN_CIRCUIT_CODE)
+                    continue
+                volts = (float(type_e_emf_mv(t)) - e_cj) * 1e-3
+                volts += self.noise_uv * 1e-6 * self._rng.standard_normal() if self.noise_uv else 0.0
+                out.append(f"{volts:.9e}")
+            return ",".join(out)
+        return "ERR SYNTAX"
+
+
+# --------------------------------------------------------------------------- laser interferometer
+
+
+@dataclass
+class _LaserRef:
+    t_s: float
+    position: float
+    error: float
+
+
+class SimLaser(LineServer):
+    """A laser head measuring the world's error field at the stage position (protocol: driftlab.daq.laser)."""
+
+    name = "laser"
+
+    def __init__(
+        self,
+        world: World,
+        clock: Clock,
+        stage: Stage,
+        pressure_pa: float = 101325.0,
+        rh_percent: float = 50.0,
+        signal_percent: float = 88.0,
+    ) -> None:
+        super().__init__()
+        self.world, self.clock, self.stage = world, clock, stage
+        self.pressure_pa, self.rh_percent = pressure_pa, rh_percent
+        self.signal_percent = signal_percent
+        self.mode, self.axis, self.term = "LIN", "X", "dx"
+        self._ref: _LaserRef | None = None
+        self.beam: str = "ok"  # "ok", "weak" (low signal), "broken" (ERR BEAM)
+
+    def break_beam(self, how: str = "broken") -> None:
+        """Interrupt the beam: ``"weak"`` reports a low signal, ``"broken"`` an error reply."""
+        with self._lock:
+            self.beam = how
+
+    def restore_beam(self) -> None:
+        """Realign the optics (the count still needs a new REF)."""
+        with self._lock:
+            self.beam = "ok"
+
+    def _air_c(self, t: float) -> float:
+        return room_air_c(self.world, t)
+
+    def _true_value(self, t: float) -> tuple[float, float]:
+        position, direction = self.stage.where(self.axis, t)
+        err = float(self.world.measure_error(t, self.axis, position, direction).get(self.term, 0.0))
+        return position, err
+
+    def handle(self, line: str) -> str | None:
+        """Answer the laser protocol."""
+        t = self.clock.now()
+        word, _, arg = line.partition(" ")
+        if line == "*IDN?":
+            return "DRIFTLAB,SIM-LASER,0,1.0"
+        if word in ("MODE", "AXIS", "TERM"):
+            valid = {"MODE": ("LIN", "STR", "ANG"), "AXIS": AXES,
+                     "TERM": ("dx", "dy", "dz", "alpha", "beta", "gamma")}[word]  # fmt: skip
+            if arg not in valid:
+                return "ERR PARAM"
+            setattr(self, word.lower(), arg)
+            self._ref = None
+            return "OK"
+        if line == "REF":
+            if self.beam != "ok":
+                return "ERR BEAM"
+            position, err = self._true_value(t)
+            self._ref = _LaserRef(t, position, err)
+            return "OK"
+        if line == "ENV?":
+            return f"{self._air_c(t):.3f},{self.pressure_pa:.1f},{self.rh_percent:.1f}"
+        if line == "MEAS?":
+            if self.beam == "broken":
+                return "ERR BEAM"
+            position, err = self._true_value(t)
+            if self._ref is None:  # power-on: the count starts from wherever the axis is
+                self._ref = _LaserRef(t, position, err)
+            value = err - self._ref.error
+            if self.mode == "LIN":
+                value += position - self._ref.position
+            n_air = float(air_refractive_index(self._air_c(t), self.pressure_pa, self.rh_percent))
+            fringes = float(value_to_fringes(self.mode, value, n_air))
+            signal = 4.0 if self.beam == "weak" else self.signal_percent
+            return f"{fringes:.5f},{signal:.1f}"
+        return "ERR SYNTAX"
+
+
+# --------------------------------------------------------------------------- A/D card (proximity sensors)
+
+
+class SimADCard(LineServer):
+    """A DT2801 style A/D card; ``sources`` give each wired channel's voltage at a time."""
+
+    name = "ad-card"
+
+    def __init__(self, clock: Clock, n_channels: int = 16) -> None:
+        super().__init__()
+        self.clock = clock
+        self.n_channels = n_channels
+        self._sources: list[tuple[list[int], Callable[[float], np.ndarray]]] = []
+
+    def wire(self, channels: list[int], source: Callable[[float], np.ndarray]) -> None:
+        """Connect sensors on ``channels``; ``source(t)`` returns their voltages in that order."""
+        self._sources.append((list(channels), source))
+
+    def voltages(self, t: float) -> np.ndarray:
+        """Return every channel's voltage (unwired channels sit at 0 V)."""
+        v = np.zeros(self.n_channels)
+        for chans, source in self._sources:
+            v[chans] = np.clip(source(t), 0.0, 10.0)
+        return v
+
+    def handle(self, line: str) -> str | None:
+        """Answer *IDN? and VOLT? first,last."""
+        if line == "*IDN?":
+            return "DRIFTLAB,SIM-DT2801,0,1.0"
+        m = re.fullmatch(r"VOLT\? (\d+),(\d+)", line)
+        if m:
+            first, last = int(m.group(1)), int(m.group(2))
+            if not 0 <= first <= last < self.n_channels:
+                return "ERR RANGE"
+            v = self.voltages(self.clock.now())
+            return ",".join(f"{x:.6f}" for x in v[first : last + 1])
+        return "ERR SYNTAX"
+
+
+def reference_surface_source(
+    world: World, stage: Stage, axis: str, array: ReferenceSurfaceArray
+) -> Callable[[float], np.ndarray]:
+    """Return a voltage source for a reference-surface array reading the world's errors of ``axis``."""
+
+    def source(t: float) -> np.ndarray:
+        position, direction = stage.where(axis, t)
+        err = world.measure_error(t, axis, position, direction)
+        values = np.array([float(err.get(term, 0.0)) for term in array.terms()])
+        return array.forward(values)
+
+    return source
+
+
+def roll_pair_source(
+    world: World,
+    stage: Stage,
+    axis: str,
+    gap_term: str,
+    roll_term: str,
+    separation_mm: float,
+    calibrations: tuple[tuple[float, float], tuple[float, float]],
+) -> Callable[[float], np.ndarray]:
+    """Return a voltage source for two sensors on parallel reference lines (fig. 5.11)."""
+    (c_a, s_a), (c_b, s_b) = calibrations
+
+    def source(t: float) -> np.ndarray:
+        position, direction = stage.where(axis, t)
+        err = world.measure_error(t, axis, position, direction)
+        gap, roll = float(err.get(gap_term, 0.0)), float(err.get(roll_term, 0.0))
+        lift = 0.5 * separation_mm * math.tan(roll)
+        return np.array([c_a + s_a * (gap + lift), c_b + s_b * (gap - lift)])
+
+    return source
+
+
+# --------------------------------------------------------------------------- machine controller
+
+
+_WORD = re.compile(r"([A-Z])\s*([-+]?\d*\.?\d+(?:[eE][-+]?\d+)?)")
+
+
+@dataclass
+class _Block:
+    seq: int
+    target: dict[str, float]
+    feed: float  # mm/min (deg/min for rotary-only moves)
+    dwell_s: float
+
+
+@dataclass(frozen=True)
+class SimSphere:
+    """A reference sphere in the work space."""
+
+    centre: tuple[float, float, float]
+    radius_mm: float
+
+
+def world_sphere_offset(world: World) -> Callable[[float, np.ndarray], np.ndarray]:
+    """Return offset(t, centre): first-order sum of the linear axes' translation errors at the sphere."""
+
+    def offset(t: float, centre: np.ndarray) -> np.ndarray:
+        out = np.zeros(3)
+        for i, axis in enumerate(("X", "Y", "Z")):
+            err = world.measure_error(t, axis, float(centre[i]), 1)
+            out += [float(err.get(term, 0.0)) for term in TRANSLATIONS]
+        return out
+
+    return offset
+
+
+class SimController(LineServer):
+    """A CNC controller: a block buffer executed at the programmed feed, positions, probing."""
+
+    name = "controller"
+
+    def __init__(
+        self,
+        world: World,
+        clock: Clock,
+        capacity: int = 16,
+        rapid_mm_min: float = 10000.0,
+        spheres: Mapping[str, SimSphere] | None = None,
+        stylus_radius_mm: float = 1.0,
+        lobing: LobingMap | None = None,
+        sphere_offset: Callable[[float, np.ndarray], np.ndarray] | None = None,
+    ) -> None:
+        super().__init__()
+        self.world, self.clock = world, clock
+        self.capacity = capacity
+        self.rapid_mm_min = rapid_mm_min
+        self.spheres = dict(spheres or {})
+        self.stylus_radius_mm = stylus_radius_mm
+        self.lobing = lobing or LobingMap()
+        self.sphere_offset = sphere_offset or world_sphere_offset(world)
+        self.pos = {a: 0.0 for a in AXES}
+        self.direction = {a: 1 for a in AXES}
+        self._queue: deque[_Block] = deque()
+        self._current: tuple[_Block, dict[str, float], float, float] | None = None  # block, start, t0, duration
+        self._t_exec = clock.now()
+        self._feed = 1000.0
+        self._modal_g = 1
+        self.accepted_seq = 0
+        self.done_seq = 0
+        self.executed: list[str] = []
+        self.max_queued = 0
+
+    # -- motion
+    def _duration(self, start: dict[str, float], blk: _Block) -> float:
+        lin = math.dist([start[a] for a in "XYZ"], [blk.target[a] for a in "XYZ"])
+        rot = math.dist([start[a] for a in "AB"], [blk.target[a] for a in "AB"])
+        length = lin if lin > 0 else rot
+        return blk.dwell_s + (60.0 * length / blk.feed if length > 0 else 0.0)
+
+    def _advance(self, now: float) -> None:
+        while True:
+            if self._current is None:
+                if not self._queue:
+                    self._t_exec = max(self._t_exec, now)
+                    return
+                blk = self._queue.popleft()
+                start = dict(self.pos)
+                self._current = (blk, start, self._t_exec, self._duration(start, blk))
+            blk, start, t0, dur = self._current
+            for a in AXES:
+                if blk.target[a] != start[a]:
+                    self.direction[a] = 1 if blk.target[a] > start[a] else -1
+            if t0 + dur <= now:
+                self.pos = dict(blk.target)
+                self.done_seq = blk.seq
+                self._t_exec = t0 + dur
+                self._current = None
+                continue
+            frac = min(max((now - t0) / dur, 0.0), 1.0) if dur > 0 else 1.0
+            self.pos = {a: start[a] + frac * (blk.target[a] - start[a]) for a in AXES}
+            return
+
+    def where(self, axis: str, t_s: float) -> tuple[float, int]:
+        """Return (position, approach direction) of ``axis`` at ``t_s`` (a Stage for the laser)."""
+        with self._lock:
+            self._advance(t_s)
+            return self.pos[axis], self.direction[axis]
+
+    def _queued(self) -> int:
+        return len(self._queue) + (1 if self._current is not None else 0)
+
+    def _parse_block(self, seq: int, code: str) -> _Block:
+        code = re.sub(r"\(.*?\)|;.*$", "", code.upper()).strip()
+        target = {a: (self._queue[-1].target[a] if self._queue else
+                      self._current[0].target[a] if self._current else self.pos[a]) for a in AXES}  # fmt: skip
+        dwell = 0.0
+        g = self._modal_g
+        if _WORD.sub("", code).strip():
+            raise ValueError("unparsed characters")
+        for m in _WORD.finditer(code):
+            letter, value = m.group(1), float(m.group(2))
+            if letter == "G":
+                if value not in (0, 1, 4, 90):
+                    raise ValueError(f"unsupported G{value:g}")
+                if value in (0, 1):
+                    g = int(value)
+                elif value == 4:
+                    g = 4
+            elif letter in AXES:
+                target[letter] = value
+            elif letter == "F":
+                if value <= 0:
+                    raise ValueError("feed must be positive")
+                self._feed = value
+            elif letter == "P":
+                dwell = value
+            elif letter not in ("N", "M", "S", "T"):
+                raise ValueError(f"unknown word {letter}")
+        if g in (0, 1):
+            self._modal_g = g
+        feed = self.rapid_mm_min if g == 0 else self._feed
+        return _Block(seq, target, feed, dwell if g == 4 else 0.0)
+
+    # -- probing
+    def _probe(self, start: np.ndarray, u: np.ndarray, dist: float, t: float) -> np.ndarray | None:
+        best: float | None = None
+        for sphere in self.spheres.values():
+            c = np.array(sphere.centre) + self.sphere_offset(t, np.array(sphere.centre))
+            reach = sphere.radius_mm + self.stylus_radius_mm
+            w = start - c
+            b = float(w @ u)
+            disc = b * b - (float(w @ w) - reach * reach)
+            if disc < 0:
+                continue
+            lam = -b - math.sqrt(disc)
+            if lam >= 0 and (best is None or lam < best):
+                best = lam
+        if best is None:
+            return None
+        lam = best + float(self.lobing.pretravel(u[None, :])[0])
+        if lam > dist:
+            return None
+        return start + lam * u
+
+    def handle(self, line: str) -> str | None:
+        """Answer the controller protocol (see driftlab.daq.machine_link)."""
+        now = self.clock.now()
+        self._advance(now)
+        word, _, arg = line.partition(" ")
+        if line == "STAT?":
+            return f"STAT {self.capacity - self._queued()} {self.capacity} {self.done_seq}"
+        if line == "POS?":
+            return "POS " + " ".join(f"{a}{self.pos[a]:.4f}" for a in AXES)
+        if word == "BLK":
+            seq_s, _, code = arg.partition(" ")
+            try:
+                seq = int(seq_s)
+            except ValueError:
+                return "ERR SYNTAX"
+            if seq <= self.accepted_seq:
+                return f"ACK {seq}"  # a resent block: acknowledged once more, not queued twice
+            if seq != self.accepted_seq + 1:
+                return f"ERR SEQ {self.accepted_seq}"
+            if self._queued() >= self.capacity:
+                return "ERR FULL"
+            try:
+                blk = self._parse_block(seq, code)
+            except ValueError as exc:
+                return f"ERR SYNTAX {exc}"
+            self._queue.append(blk)
+            self.executed.append(code)
+            self.accepted_seq = seq
+            self.max_queued = max(self.max_queued, self._queued())
+            self._advance(now)
+            return f"ACK {seq}"
+        if word == "PRB":
+            try:
+                vals = [float(v) for v in arg.split(",")]
+                start, u, dist = np.array(vals[:3]), np.array(vals[3:6]), vals[6]
+            except (ValueError, IndexError):
+                return "ERR SYNTAX"
+            if self._queued():
+                return "ERR BUSY"
+            u = u / np.linalg.norm(u)
+            hit = self._probe(start, u, dist, now)
+            if hit is None:
+                return "MISS"
+            return "HIT " + ",".join(f"{v:.6f}" for v in hit)
+        return "ERR SYNTAX"

@@ -1,0 +1,259 @@
+"""End to end on the simulated backends: world -> loopback servers -> pyvisa / pyserial -> drivers."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+
+from driftlab.daq.laser import LaserInterferometer
+from driftlab.daq.machine_link import SerialMachineLink
+from driftlab.daq.probe import LobingMap, TouchProbe
+from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_OPEN, FLAG_REFERENCE_LOST
+from driftlab.daq.proximity import ADCard, ReferenceSurfaceMeter, RollPair, ProximitySensor, a_axis_array
+from driftlab.daq.retry import RetryPolicy
+from driftlab.daq.sim.instruments import (
+    Clock,
+    FixedStage,
+    ManualClock,
+    SimADCard,
+    SimController,
+    SimLaser,
+    SimSphere,
+    SimThermocoupleCard,
+    TinyWorld,
+    World,
+    reference_surface_source,
+    roll_pair_source,
+    serial_url,
+    visa_address,
+)
+from driftlab.daq.thermocouple import ThermocoupleCard
+from driftlab.daq.transport import LineChannel, SerialPort, VisaPort
+from driftlab.errors import InstrumentError
+
+FAST = RetryPolicy(attempts=3, base_delay_s=0.0)
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_server_threads():
+    yield
+    alive = [t.name for t in threading.enumerate() if t.name.startswith("sim-")]
+    assert not alive, f"simulated servers left running: {alive}"
+
+
+@pytest.fixture(scope="module")
+def rm():
+    pyvisa = pytest.importorskip("pyvisa")
+    manager = pyvisa.ResourceManager("@py")
+    yield manager
+    manager.close()
+
+
+@pytest.fixture
+def clock():
+    return ManualClock()
+
+
+@pytest.fixture
+def world():
+    return TinyWorld(channels=6, open_channels={"T3": 100.0})
+
+
+def _visa_channel(rm, server, timeout_s=0.3):
+    return LineChannel(VisaPort.open(visa_address(server), timeout_s, resource_manager=rm), server.name, FAST)
+
+
+def _serial_channel(server, timeout_s=0.3):
+    return LineChannel(SerialPort.open(serial_url(server), timeout_s), server.name, FAST)
+
+
+def test_tiny_world_and_manual_clock_satisfy_protocols(world, clock):
+    assert isinstance(world, World) and isinstance(clock, Clock)
+    clock.sleep(5.0)
+    clock.advance_to(3.0)
+    assert clock.now() == 5.0
+
+
+@pytest.mark.parametrize("transport", ["visa", "serial"])
+def test_thermocouple_card_end_to_end(rm, world, clock, transport):
+    cmap = {k: f"T{k + 1}" for k in range(6)}
+    with SimThermocoupleCard(world, clock, cmap, cold_junction_c=23.0) as sim:
+        ch = _visa_channel(rm, sim) if transport == "visa" else _serial_channel(sim)
+        card = ThermocoupleCard(ch, cmap, clock=clock.now)
+        try:
+            clock.advance_to(50.0)
+            scan = card.scan()
+            truth = world.true_temperatures(50.0)
+            assert not scan.flags
+            for name in cmap.values():
+                assert scan.values[name] == pytest.approx(truth[name], abs=1e-5)
+            clock.advance_to(150.0)  # T3 breaks at t = 100 s
+            scan = card.scan()
+            assert scan.flags == {"T3": FLAG_OPEN} and math.isnan(scan.values["T3"])
+            assert scan.values["T4"] == pytest.approx(world.true_temperatures(150.0)["T4"], abs=1e-5)
+        finally:
+            card._io.close()
+
+
+def test_garbled_reply_over_visa_is_retried(rm, world, clock):
+    with SimThermocoupleCard(world, clock, {0: "T1"}) as sim:
+        ch = _visa_channel(rm, sim)
+        try:
+            card = ThermocoupleCard(ch, {0: "T1"}, clock=clock.now)
+            sim.inject("garble")
+            assert card.scan().values["T1"] == pytest.approx(20.0, abs=1e-5)
+            assert sim.received.count("CJC?") == 2  # the garbled reply was asked again
+        finally:
+            ch.close()
+
+
+def test_timeouts_over_visa_raise_one_line_error(rm, world, clock):
+    with SimThermocoupleCard(world, clock, {0: "T1"}) as sim:
+        ch = _visa_channel(rm, sim, timeout_s=0.15)
+        try:
+            card = ThermocoupleCard(ch, {0: "T1"}, clock=clock.now)
+            sim.inject("timeout", "timeout", "timeout")
+            with pytest.raises(InstrumentError) as info:
+                card.scan()
+            assert "timeout" in str(info.value) and "\n" not in str(info.value)
+            assert card.scan().values["T1"] == pytest.approx(20.0, abs=1e-5)  # link recovers
+        finally:
+            ch.close()
+
+
+def test_laser_end_to_end_over_pyvisa(rm, world, clock):
+    stage = FixedStage()
+    clock.advance_to(900.0)
+    with SimLaser(world, clock, stage) as sim:
+        ch = _visa_channel(rm, sim)
+        laser = LaserInterferometer(ch, sleep=clock.sleep)
+        try:
+            assert laser.identify().startswith("DRIFTLAB,SIM-LASER")
+            laser.configure("X", "dx")
+            stage.move("X", 0.0, 1)
+            laser.reference(0.0)
+            ref = world.measure_error(clock.now(), "X", 0.0, 1)
+            for pos, direction in [(250.0, 1), (250.0, -1), (480.0, -1)]:
+                stage.move("X", pos, direction)
+                s = laser.measure_error("X", "dx", pos, direction)
+                # the ten readings follow the settle wait: the world is read at the clock's time
+                expected = world.measure_error(clock.now(), "X", pos, direction)["dx"] - ref["dx"]
+                assert s.flag is None and s.value == pytest.approx(expected, abs=5e-8)
+            for term in ("dy", "gamma"):
+                laser.configure("X", term)
+                stage.move("X", 0.0, 1)
+                laser.reference(0.0)
+                ref = world.measure_error(clock.now(), "X", 0.0, 1)
+                stage.move("X", 300.0, 1)
+                s = laser.measure_error("X", term, 300.0, 1)
+                truth = world.measure_error(clock.now(), "X", 300.0, 1)[term] - ref[term]
+                assert s.value == pytest.approx(truth, abs=5e-8 if term == "dy" else 5e-10)
+            # a beam break: flagged, reference lost; REF refused until the optics are realigned
+            sim.break_beam("weak")
+            assert laser.measure_error("X", "gamma", 300.0, 1).flag == FLAG_BEAM_BREAK
+            assert laser.read().flag == FLAG_REFERENCE_LOST
+            sim.break_beam("broken")
+            with pytest.raises(InstrumentError):
+                laser.reference(300.0)
+            sim.restore_beam()
+            laser.reference(300.0)
+            assert laser.read().value == pytest.approx(0.0, abs=1e-9)
+        finally:
+            ch.close()
+
+
+def test_proximity_arrays_end_to_end(rm, world, clock):
+    stage = FixedStage()
+    stage.move("A", 5.0, 1)
+    clock.advance_to(1200.0)
+    array = a_axis_array(150.0)
+    with SimADCard(clock) as sim:
+        sim.wire([0, 1, 2, 3, 4], reference_surface_source(world, stage, "A", array))
+        sim.wire([6, 7], roll_pair_source(world, stage, "X", "dz", "alpha", 200.0, ((5.0, 8.6), (5.1, 8.4))))
+        ch = _visa_channel(rm, sim)
+        try:
+            card = ADCard(ch)
+            out = ReferenceSurfaceMeter(card, [0, 1, 2, 3, 4], array).read()
+            err = world.measure_error(1200.0, "A", 5.0, 1)
+            for term in array.terms():
+                assert out[term].value == pytest.approx(err[term], abs=3e-7 if term[0] == "d" else 3e-9)
+            roll = RollPair(ProximitySensor(card, 6, 5.0, 8.6), ProximitySensor(card, 7, 5.1, 8.4), 200.0)
+            assert roll.read_angle().value == pytest.approx(world.measure_error(1200.0, "X", 0.0, 1)["alpha"], abs=2e-9)
+        finally:
+            ch.close()
+
+
+def test_controller_streams_executes_and_reports_positions(world, clock):
+    program = [f"G1 X{10 * k} Y{-k} F600" for k in range(1, 31)] + ["G0 Z50", "G1 A5 B-10 F1200"]
+    with SimController(world, clock, capacity=8) as sim:
+        link = SerialMachineLink(_serial_channel(sim), poll_s=0.5, sleep=clock.sleep)
+        try:
+            assert link.buffer_free() == 8
+            sim.inject("garble", "timeout")  # hits STAT? and then a BLK: both retried safely
+            report = link.send_program(program, low_water=2, high_water=6)
+            assert report.blocks_sent == len(program)
+            assert sim.executed == program  # every block exactly once, in order
+            assert sim.max_queued <= 6
+            pos = link.position()
+            assert pos == {"X": 300.0, "Y": -30.0, "Z": 50.0, "A": 5.0, "B": -10.0}
+            # 30 moves of sqrt(100 + 1) mm at 600 mm/min, a 50 mm rapid, a 11.18 deg rotary move
+            expected_s = 30 * 60 * math.sqrt(101) / 600 + 60 * 50 / 10000 + 60 * math.hypot(5, 10) / 1200
+            assert clock.now() == pytest.approx(expected_s, abs=1.0)
+        finally:
+            link.close()
+
+
+def test_laser_waits_for_the_moving_axis(rm, world, clock):
+    with SimController(world, clock) as ctl, SimLaser(world, clock, ctl) as sim:
+        link = SerialMachineLink(_serial_channel(ctl), poll_s=0.5, sleep=clock.sleep)
+        laser = LaserInterferometer(_visa_channel(rm, sim), sleep=clock.sleep, settle_poll_s=0.5)
+        try:
+            laser.configure("X", "dx")
+            laser.reference(0.0)
+            link.send_program(["G1 X200 F1200"], wait=False)  # 10 s of motion
+            sample = laser.measure_error("X", "dx", 200.0, 1)
+            assert clock.now() >= 10.0  # the reading waited for the axis to stop
+            t = clock.now()
+            expected = world.measure_error(t, "X", 200.0, 1)["dx"] - world.measure_error(0.0, "X", 0.0, 1)["dx"]
+            assert sample.value == pytest.approx(expected, abs=1e-6)
+        finally:
+            link.close()
+            laser._io.close()
+
+
+def test_probe_through_the_controller_finds_displaced_spheres(world, clock):
+    clock.advance_to(3600.0)
+    spheres = {"S1": SimSphere((400.0, 50.0, 20.0), 12.7), "S2": SimSphere((-50.0, 300.0, 25.0), 12.7)}
+    with SimController(world, clock, spheres=spheres, stylus_radius_mm=1.5) as sim:
+        probe = TouchProbe(_serial_channel(sim), stylus_radius_mm=1.5)
+        try:
+            for name, s in spheres.items():
+                m = probe.probe_sphere(name, s.centre, s.radius_mm)
+                offset = sim.sphere_offset(3600.0, np.array(s.centre))
+                assert np.linalg.norm(offset) > 1e-3  # the world really moved it
+                assert m.centre == pytest.approx(np.array(s.centre) + offset, abs=1e-5)
+                assert m.radius_mm == pytest.approx(12.7, abs=1e-5)
+        finally:
+            probe._io.close()
+
+
+def test_lobing_calibration_improves_the_sphere_centre(world, clock):
+    lobing = LobingMap(0.003, (3,), (0.004,), (0.001,))
+    spheres = {"cal": SimSphere((0.0, 0.0, 0.0), 10.0), "S1": SimSphere((200.0, 0.0, 0.0), 10.0)}
+    no_drift = lambda t, c: np.zeros(3)  # noqa: E731
+    with SimController(world, clock, spheres=spheres, lobing=lobing, sphere_offset=no_drift) as sim:
+        probe = TouchProbe(_serial_channel(sim))
+        try:
+            raw = probe.probe_sphere("S1", (200.0, 0.0, 0.0), 10.0)
+            fitted = probe.calibrate_lobing(0.0, (0.0, 0.0), 10.0)
+            assert fitted.cos[0] == pytest.approx(0.004, abs=1e-6)
+            comp = probe.probe_sphere("S1", (200.0, 0.0, 0.0), 10.0)
+            raw_err = np.linalg.norm(raw.centre - [200.0, 0.0, 0.0])
+            comp_err = np.linalg.norm(comp.centre - [200.0, 0.0, 0.0])
+            assert raw_err > 1e-3 and comp_err < 1e-5
+            assert comp.radius_mm == pytest.approx(10.0, abs=1e-5)
+        finally:
+            probe._io.close()
