@@ -34,11 +34,13 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, Reading
-from driftlab.daq.transport import LineChannel
+from driftlab.daq.retry import RetryPolicy
+from driftlab.daq.transport import LineChannel, VisaPort
 from driftlab.errors import InstrumentError, ValidationError
 
 HENE_VACUUM_WAVELENGTH_NM = 632.991  # stabilised He-Ne laser, vacuum wavelength
@@ -206,6 +208,17 @@ class LaserInterferometer:
         self.reference_lost = True  # no reference until reference() is called
         self.reference_epoch = 0
         self.reference_position: float = 0.0
+
+    @classmethod
+    def open(
+        cls, address: str, timeout_s: float = 5.0, policy: RetryPolicy | None = None, **kwargs: Any
+    ) -> LaserInterferometer:
+        """Return a laser on a VISA resource (``GPIB0::3::INSTR``; ``TCPIP0::..::SOCKET`` for the simulator)."""
+        return cls(LineChannel(VisaPort.open(address, timeout_s), "laser", policy), **kwargs)
+
+    def close(self) -> None:
+        """Release the GPIB session."""
+        self._io.close()
 
     def identify(self) -> str:
         """Return the instrument's identification string."""

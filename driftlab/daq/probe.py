@@ -23,11 +23,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from driftlab.daq.protocols import SphereMeasurement
+from driftlab.daq.protocols import Reading, SphereMeasurement
+from driftlab.daq.proximity import FLAG_OUT_OF_RANGE, ProximitySensor
 from driftlab.daq.transport import LineChannel
 from driftlab.errors import InstrumentError, ValidationError
 
@@ -141,6 +143,15 @@ class TouchProbe:
         self.clearance_mm = clearance_mm
         self.overtravel_mm = overtravel_mm
 
+    @classmethod
+    def on_link(cls, link: Any, **kwargs: Any) -> TouchProbe:
+        """Return a probe reporting through a SerialMachineLink's channel (the controller latches the hits)."""
+        return cls(link.channel, **kwargs)
+
+    def close(self) -> None:
+        """Release the channel (only when the probe owns it)."""
+        self._io.close()
+
     def probe_point(self, start: Sequence[float], direction: Sequence[float], distance_mm: float) -> np.ndarray:
         """Return the stylus centre (mm) latched at trigger; InstrumentError if nothing is touched."""
         u = np.asarray(direction, dtype=float)
@@ -223,3 +234,21 @@ def table_tilt(centre_a: Sequence[float], centre_b: Sequence[float], ref_a: Sequ
     if run <= 0:
         raise ValidationError("the two spheres must be apart in X-Y")
     return math.atan2((b[2] - rb[2]) - (a[2] - ra[2]), run)
+
+
+class SpindleBarMeter:
+    """Four proximity sensors on a reference bar in the spindle (fig. 5.18)."""
+
+    def __init__(self, sensors: Sequence[ProximitySensor], spacing_mm: float) -> None:
+        if len(sensors) != 4:
+            raise ValidationError("the spindle bar array has four sensors: X lower, X upper, Y lower, Y upper")
+        self.sensors = list(sensors)
+        self.spacing_mm = spacing_mm
+
+    def read(self) -> dict[str, Reading]:
+        """Return alpha, beta (rad) and dx, dy (mm); all flagged missing if a sensor is out of range."""
+        readings = [s.read_displacement() for s in self.sensors]
+        if not all(r.ok for r in readings):
+            return {k: Reading.missing(FLAG_OUT_OF_RANGE) for k in ("alpha", "beta", "dx", "dy")}
+        out = spindle_angles(np.array([r.value for r in readings]), self.spacing_mm)
+        return {k: Reading(float(v)) for k, v in out.items()}

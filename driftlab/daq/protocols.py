@@ -20,7 +20,6 @@ import numpy as np
 FLAG_OPEN = "open_thermocouple"
 FLAG_BEAM_BREAK = "beam_break"
 FLAG_REFERENCE_LOST = "reference_lost"
-FLAG_MISS = "probe_miss"
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from driftlab.daq.protocols import Reading
-from driftlab.daq.transport import LineChannel
+from driftlab.daq.retry import RetryPolicy
+from driftlab.daq.transport import LineChannel, open_port
 from driftlab.errors import ValidationError
 
 FLAG_OUT_OF_RANGE = "sensor_out_of_range"
@@ -168,6 +169,15 @@ class ADCard:
     def __init__(self, channel: LineChannel, n_channels: int = 16) -> None:
         self._io = channel
         self.n_channels = n_channels
+
+    @classmethod
+    def open(cls, address: str, n_channels: int = 16, timeout_s: float = 2.0, policy: RetryPolicy | None = None) -> ADCard:
+        """Return a card on a VISA resource name or a serial device/URL."""
+        return cls(LineChannel(open_port(address, timeout_s), "A/D card", policy), n_channels)
+
+    def close(self) -> None:
+        """Release the card's port."""
+        self._io.close()
 
     def read_volts(self, channels: Sequence[int]) -> np.ndarray:
         """Return the voltages (V) of ``channels`` in the order given."""

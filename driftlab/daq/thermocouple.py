@@ -35,7 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from driftlab.daq.protocols import FLAG_OPEN, TemperatureScan
-from driftlab.daq.transport import LineChannel
+from driftlab.daq.retry import RetryPolicy
+from driftlab.daq.transport import LineChannel, open_port
 from driftlab.errors import ValidationError
 
 MAX_CHANNELS = 64
@@ -195,6 +196,23 @@ class ThermocoupleCard:
         self._clock = clock
         self._first = min(self._map)
         self._last = max(self._map)
+
+    @classmethod
+    def open(
+        cls,
+        address: str,
+        channel_map: Mapping[int, str],
+        calibrations: Mapping[str, ChannelCalibration] | None = None,
+        timeout_s: float = 2.0,
+        policy: RetryPolicy | None = None,
+    ) -> ThermocoupleCard:
+        """Return a card on a VISA resource name or a serial device/URL."""
+        channel = LineChannel(open_port(address, timeout_s), "thermocouple card", policy)
+        return cls(channel, channel_map, calibrations)
+
+    def close(self) -> None:
+        """Release the card's port."""
+        self._io.close()
 
     @property
     def channels(self) -> Sequence[str]:

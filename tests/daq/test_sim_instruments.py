@@ -10,7 +10,7 @@ import pytest
 
 from driftlab.daq.laser import LaserInterferometer
 from driftlab.daq.machine_link import SerialMachineLink
-from driftlab.daq.probe import LobingMap, TouchProbe
+from driftlab.daq.probe import LobingMap, SpindleBarMeter, TouchProbe
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_OPEN, FLAG_REFERENCE_LOST
 from driftlab.daq.proximity import ADCard, ReferenceSurfaceMeter, RollPair, ProximitySensor, a_axis_array
 from driftlab.daq.retry import RetryPolicy
@@ -25,8 +25,10 @@ from driftlab.daq.sim.instruments import (
     SimThermocoupleCard,
     TinyWorld,
     World,
+    WorldStage,
     reference_surface_source,
     roll_pair_source,
+    spindle_bar_source,
     serial_url,
     visa_address,
 )
@@ -257,3 +259,46 @@ def test_lobing_calibration_improves_the_sphere_centre(world, clock):
             assert comp.radius_mm == pytest.approx(10.0, abs=1e-5)
         finally:
             probe._io.close()
+
+
+def test_drivers_open_by_address(world, clock):
+    with SimThermocoupleCard(world, clock, {0: "T1", 1: "T2"}) as tc, SimLaser(world, clock, FixedStage()) as las:
+        card = ThermocoupleCard.open(visa_address(tc), {0: "T1", 1: "T2"}, timeout_s=0.5)
+        laser = LaserInterferometer.open(visa_address(las), timeout_s=0.5)
+        also = ThermocoupleCard.open(serial_url(tc), {1: "T2"}, timeout_s=0.5)
+        try:
+            assert card.scan().values["T2"] == pytest.approx(20.25, abs=1e-5)
+            assert also.scan().values["T2"] == pytest.approx(20.25, abs=1e-5)
+            assert laser.identify() == "DRIFTLAB,SIM-LASER,0,1.0"
+        finally:
+            card.close()
+            also.close()
+            laser.close()
+
+
+def test_open_failure_is_one_line_instrument_error():
+    with pytest.raises(InstrumentError, match="cannot open serial port"):
+        ThermocoupleCard.open("socket://127.0.0.1:1", {0: "T1"}, timeout_s=0.2)
+
+
+def test_spindle_bar_array_follows_the_world(rm, world, clock):
+    world.positions["Z"] = -150.0
+    stage = WorldStage(world)
+    assert stage.where("Z", 10.0) == (-150.0, 1)
+    clock.advance_to(2000.0)
+    cals = ((5.0, 8.5), (5.1, 8.6), (4.9, 8.4), (5.2, 8.7))
+    with SimADCard(clock) as sim:
+        sim.wire([8, 9, 10, 11], spindle_bar_source(world, stage, 120.0, cals))
+        ch = _visa_channel(rm, sim)
+        try:
+            card = ADCard(ch)
+            meter = SpindleBarMeter([ProximitySensor(card, 8 + i, c, k) for i, (c, k) in enumerate(cals)], 120.0)
+            out = meter.read()
+            err = world.measure_error(2000.0, "Z", -150.0, 1)
+            assert abs(err["alpha"]) > 1e-6 and abs(err["beta"]) > 1e-7
+            for term in ("alpha", "beta"):
+                assert out[term].value == pytest.approx(err[term], abs=2e-9)
+            for term in ("dx", "dy"):
+                assert out[term].value == pytest.approx(err[term], abs=2e-7)
+        finally:
+            ch.close()

@@ -19,6 +19,7 @@ as a real line fault would be.  Every server stops its threads in :meth:`LineSer
 from __future__ import annotations
 
 import logging
+from abc import ABC, abstractmethod
 import math
 import re
 import socket
@@ -199,10 +200,28 @@ class FixedStage:
         return self.positions[axis]
 
 
+class WorldStage:
+    """A stage that follows the world's own machine state (``state(t)`` keys x, y, z, a, b)."""
+
+    def __init__(self, world: World, lookback_s: float = 1.0) -> None:
+        self.world = world
+        self.lookback_s = lookback_s
+
+    def _pos(self, axis: str, t_s: float) -> float:
+        state = self.world.state(t_s)
+        value = state.get(axis.lower()) if isinstance(state, Mapping) else getattr(state, axis.lower(), None)
+        return float(value) if value is not None else 0.0
+
+    def where(self, axis: str, t_s: float) -> tuple[float, int]:
+        """Return the world's position of ``axis`` and the direction it was last moving in."""
+        now, before = self._pos(axis, t_s), self._pos(axis, t_s - self.lookback_s)
+        return now, (1 if now >= before else -1)
+
+
 # --------------------------------------------------------------------------- the TCP line server
 
 
-class LineServer:
+class LineServer(ABC):
     """A threaded ``\\n``-line server on 127.0.0.1 (ephemeral port); subclasses implement handle()."""
 
     name = "instrument"
@@ -248,9 +267,9 @@ class LineServer:
                 raise ValueError(f"unknown fault {f!r}")
             self._faults.append(f)
 
+    @abstractmethod
     def handle(self, line: str) -> str | None:
         """Return the reply to one command line (None: no reply)."""
-        raise NotImplementedError
 
     def _reply(self, line: bytes) -> bytes | None:
         try:
@@ -376,7 +395,7 @@ class SimThermocoupleCard(LineServer):
             for ch in range(first, last + 1):
                 name = self.channel_map.get(ch)
                 t = temps.get(name, float("nan")) if name else float("nan")
-                if not math.isfinite(t):
+                if not (math.isfinite(t) and -270.0 <= t <= 1000.0):  # open lead, or pinned at a rail
                     out.append(OPEN_CIRCUIT_CODE)
                     continue
                 volts = (float(type_e_emf_mv(t)) - e_cj) * 1e-3
@@ -545,6 +564,33 @@ def roll_pair_source(
         gap, roll = float(err.get(gap_term, 0.0)), float(err.get(roll_term, 0.0))
         lift = 0.5 * separation_mm * math.tan(roll)
         return np.array([c_a + s_a * (gap + lift), c_b + s_b * (gap - lift)])
+
+    return source
+
+
+def spindle_bar_source(
+    world: World,
+    stage: Stage,
+    spacing_mm: float,
+    calibrations: tuple[tuple[float, float], ...],
+    axis: str = "Z",
+) -> Callable[[float], np.ndarray]:
+    """Return a voltage source for the four-sensor spindle bar array (fig. 5.18).
+
+    The bar follows the world's work-space error of ``axis`` at its present position:
+    X sensors at the lower and upper level read dx and dx + L tan(beta), Y sensors dy and
+    dy - L tan(alpha) (the geometry of driftlab.daq.probe.spindle_angles).
+    """
+    consts = np.array([c for c, _ in calibrations])
+    slopes = np.array([s for _, s in calibrations])
+
+    def source(t: float) -> np.ndarray:
+        position, direction = stage.where(axis, t)
+        e = world.measure_error(t, axis, position, direction)
+        dx, dy = float(e.get("dx", 0.0)), float(e.get("dy", 0.0))
+        alpha, beta = float(e.get("alpha", 0.0)), float(e.get("beta", 0.0))
+        gaps = np.array([dx, dx + spacing_mm * math.tan(beta), dy, dy - spacing_mm * math.tan(alpha)])
+        return consts + slopes * gaps
 
     return source
 
