@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -184,20 +184,66 @@ def stepwise(
 
 @dataclass
 class TermFit:
-    """The model of one error parameter of one link or joint (one row of tables 6.1/6.2)."""
+    """The model of one error parameter of one link or joint (one row of tables 6.1/6.2).
+
+    ``features``/``coef`` default to the whole stepwise result; they hold a part of it when one
+    regression was split between a link and the joint measured with it (see ``split``).
+    """
 
     element: str
     param: str
     result: StepwiseResult
     rmse_holdout: float = float("nan")
     n_holdout: int = 0
+    features: list[Feature] | None = None
+    coef: np.ndarray | None = None
+    seeded_by: str | None = None
+
+    @property
+    def terms(self) -> list[Feature]:
+        """Return the features this model evaluates."""
+        return self.result.features if self.features is None else self.features
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """Return the coefficients matching ``terms``."""
+        return np.asarray(self.result.ols.params, float) if self.coef is None else self.coef
+
+    @property
+    def std_errors(self) -> np.ndarray:
+        """Return the standard errors matching ``terms``."""
+        se = self.result.bse
+        return np.asarray([se[f.name] for f in self.terms], float)
+
+    @property
+    def p_values(self) -> np.ndarray:
+        """Return the p-values matching ``terms``."""
+        pv = self.result.pvalues
+        return np.asarray([pv[f.name] for f in self.terms], float)
+
+    def coefficient(self, name: str) -> float:
+        """Return the coefficient of the term called ``name`` (KeyError when it was not chosen)."""
+        return float(dict(zip([f.name for f in self.terms], self.coefficients))[name])
 
     def predict(
         self, inputs: Inputs, position: np.ndarray | None = None, direction: np.ndarray | None = None
     ) -> np.ndarray:
         """Return this term's prediction for every sample of ``inputs``."""
-        X = design_matrix(self.result.features, inputs, position, direction)
-        return X.to_numpy(float) @ np.asarray(self.result.ols.params, float)
+        X = design_matrix(self.terms, inputs, position, direction)
+        return X.to_numpy(float) @ self.coefficients
+
+    def split(self, belongs: Callable[[Feature], bool], other_element: str) -> tuple["TermFit", "TermFit | None"]:
+        """Return (this model without the features ``belongs`` picks, a model of ``other_element`` with them)."""
+        feats, coef = self.terms, self.coefficients
+        mine = [i for i, f in enumerate(feats) if not belongs(f)]
+        theirs = [i for i, f in enumerate(feats) if belongs(f)]
+        keep = TermFit(self.element, self.param, self.result, self.rmse_holdout, self.n_holdout,
+                       [feats[i] for i in mine], coef[mine], self.seeded_by)
+        if not theirs:
+            return keep, None
+        other = TermFit(other_element, self.param, self.result, float("nan"), 0,
+                        [feats[i] for i in theirs], coef[theirs], seeded_by=self.element)
+        return keep, other
 
 
 def rmse(residual: np.ndarray) -> float:

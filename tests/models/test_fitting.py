@@ -1,0 +1,179 @@
+"""The fitting pipeline end to end on campaigns with known truth (element errors through the HTM chain)."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from driftlab.campaigns.bundle import Bundle, CampaignMeta
+from driftlab.models.fitting import FitOptions, fit_bundles, stage_elements
+from driftlab.models.kinematics import workspace_error
+from driftlab.models.registry import predict_workspace_errors
+
+NOISE_MM = 0.0005
+ALPHA = 12.1e-6
+ARM = 0.0103  # mm/degC of T34-T32 on the spindle arm (table 6.3)
+
+STAGES = [  # (name, start h, end h, heat, axis)
+    ("spindle-10k", 0, 6, "spindle", "Z"),
+    ("cool-1", 6, 9, "idle", None),
+    ("feed-x", 9, 14, "feed", "X"),
+    ("cool-2", 14, 17, "idle", None),
+    ("feed-z", 17, 22, "feed", "Z"),
+    ("cool-3", 22, 25, "idle", None),
+    ("spindle+z", 25, 29, "combined", "Z"),
+    ("cool-4", 29, 32, "idle", None),
+]
+
+
+def _lag(u, t, tau):
+    y = np.zeros_like(u)
+    a = np.exp(-np.diff(t) / tau)
+    for k in range(1, u.size):
+        y[k] = a[k - 1] * y[k - 1] + (1 - a[k - 1]) * u[k]
+    return y
+
+
+def synthetic_bundle(seed=0, room_offset=0.0, hours=32.0):
+    """A small campaign: truth on T1 (arm gradient), phi_z and phi_x (ballscrews, reversal)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, hours * 3600 + 1, 60.0)
+    h = t / 3600
+    sp = np.zeros_like(t)
+    fx = np.zeros_like(t)
+    fz = np.zeros_like(t)
+    axis_at = np.full(t.size, "", object)
+    for name, a, b, heat, axis in STAGES:
+        m = (h >= a) & (h < b)
+        if heat in ("spindle", "combined"):
+            sp[m] = 1.0
+        if heat in ("feed", "combined") and axis == "X":
+            fx[m] = 1.0
+        if heat in ("feed", "combined") and axis == "Z":
+            fz[m] = 1.0
+    room = 20 + room_offset + 1.0 * np.sin(2 * np.pi * (h - 9) / 24)
+    true = {
+        "T49": room + 0.4, "T50": room - 0.6,
+        "T32": room + _lag(2.5 * sp, t, 2100), "T34": room + _lag(6.5 * sp, t, 1800),
+        "T37": room + _lag(20 * sp, t, 1200),
+        "T9": room + _lag(5 * fx, t, 1500), "T10": room + _lag(8 * fx, t, 720),
+        "T30": room + _lag(5 * fz + 0.5 * sp, t, 1500), "T31": room + _lag(7 * fz + 0.3 * sp, t, 720),
+        "T24": room + _lag(0.6 * sp + 0.4 * fz, t, 11000), "T26": room + _lag(0.2 * sp + 1.5, t, 13000),
+        "T7": room + _lag(1.1 * fx, t, 5000),
+    }
+    for i in (1, 2, 3, 4):
+        true[f"T{i}"] = true["T7"] + 0.02 * i
+    temps = pd.DataFrame({"time_s": t, **{c: v + 0.01 * rng.standard_normal(t.size) for c, v in true.items()}})
+    d = {c: v - v[0] for c, v in true.items()}
+
+    # error sweeps every 10 min on the stage's axis (cool-downs keep the previous axis)
+    rows = []
+    axis = "Z"
+    for name, a, b, heat, ax in STAGES:
+        axis = ax or axis
+        for ts in np.arange(a * 3600, b * 3600, 600.0):
+            k = int(ts // 60)
+            for pos in np.linspace(0, 400, 5):
+                for direction in (1, -1):
+                    rows.append((ts, k, axis, pos, direction))
+    ts, k, ax, pos, dr = (np.array(v) for v in zip(*rows))
+    n = ts.size
+    q = np.zeros((n, 5))
+    q[ax == "X", 0] = pos[ax == "X"]
+    q[ax == "Z", 2] = pos[ax == "Z"]
+    grad = d["T34"][k] - d["T32"][k]
+    e_t1 = np.zeros((n, 6))
+    e_t1[:, 5] = ARM * grad
+    e_t1[:, 0] = 2e-5 * grad  # alpha of the arm (rad/degC)
+    e_z = np.zeros((n, 6))
+    e_z[:, 5] = ALPHA * q[:, 2] * d["T30"][k] + 3e-6 * q[:, 2]
+    e_x = np.zeros((n, 6))
+    e_x[:, 3] = ALPHA * q[:, 0] * d["T9"][k] + np.where(ax == "X", 0.001 * dr, 0.0)
+    e_x[:, 4] = 2e-6 * q[:, 0] + 0.0004 * d["T7"][k]
+    W = workspace_error(q, {"T1": e_t1, "phi_z": e_z, "phi_x": e_x})
+    W[:, 3:] += NOISE_MM * rng.standard_normal((n, 3))
+    W[:, :3] += 5e-7 * rng.standard_normal((n, 3))
+    terms = {"Z": ("dz", "alpha"), "X": ("dx", "dy")}
+    err = []
+    for term_axis, names in terms.items():
+        m = ax == term_axis
+        for name in names:
+            j = ("alpha", "beta", "gamma", "dx", "dy", "dz").index(name)
+            err.append(pd.DataFrame({"time_s": ts[m], "axis": term_axis, "term": name, "position": pos[m],
+                                     "direction": dr[m], "value": W[m, j]}))
+    errors = pd.concat(err).sort_values(["time_s", "axis", "term", "position"], kind="stable").reset_index(drop=True)
+    structures = {"T49": "room", "T50": "room", "T32": "spindle_arm", "T34": "spindle_arm", "T37": "spindle",
+                  "T9": "x_screw", "T10": "x_motor", "T30": "z_screw", "T31": "z_motor", "T24": "z_column",
+                  "T26": "z_column", "T7": "xy_carriage", "T1": "x_table", "T2": "x_table", "T3": "x_table",
+                  "T4": "x_table"}
+    locs = {"T9": "X axis ballscrew nut", "T10": "X axis motor", "T30": "Z axis ballscrew", "T31": "Z axis motor",
+            "T37": "Main spindle motor"}
+    meta = CampaignMeta.model_validate({
+        "format": "driftlab-bundle/1",
+        "machine": {"id": "vmc-test"},
+        "started_at": "2026-03-02T08:00:00Z",
+        "channels": {c: {"location": locs.get(c, c), "structure": s} for c, s in structures.items()},
+        "room_channels": ["T49", "T50"],
+        "stages": [{"name": nm, "start_s": a * 3600, "end_s": b * 3600, "heat_source": hs, "axis": ax_}
+                   for nm, a, b, hs, ax_ in STAGES],
+        "noise": {"length_mm": NOISE_MM},
+    })
+    return Bundle(name=f"synthetic-{seed}", meta=meta, temperatures=temps, conditions=None, errors=errors)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    return fit_bundles([synthetic_bundle(0)], FitOptions(network=False))
+
+
+def test_stage_elements_follow_the_heat_source_order():
+    meta = synthetic_bundle(0).meta
+    got = [(s.name, e, r) for s, e, r in stage_elements(meta.stages)]
+    assert got[:4] == [("spindle-10k", "T1", "train"), ("cool-1", "T1", "train"),
+                       ("feed-x", "phi_x", "train"), ("cool-2", "phi_x", "train")]
+    assert got[6] == ("spindle+z", None, "validation")
+
+
+def test_physical_coefficients_within_ten_percent(fitted):
+    p = fitted.term_fits
+    assert p[("T1", "dz")].coefficient("grad[T34-T32]") == pytest.approx(ARM, rel=0.1)
+    assert p[("phi_x", "dx")].result.params["pos*dT[T9]"] == pytest.approx(ALPHA, rel=0.1)
+    assert p[("phi_z", "dz")].result.params["pos*dT[T30]"] == pytest.approx(ALPHA, rel=0.1)
+    assert p[("phi_x", "dx")].result.params["dir"] == pytest.approx(0.001, rel=0.1)
+    phys = fitted.physical.set_index("term")
+    row = phys.loc["phi_x.dx pos*dT[T9]"]
+    assert row["physical"] == ALPHA and 0.9 < row["ratio"] < 1.1
+
+
+def test_holdout_rmse_near_laser_noise(fitted):
+    v = fitted.validation
+    lin = v[(v["unit"] == "mm") & (v["link"] != "combined")]
+    assert len(lin) >= 3
+    assert (lin["rmse_holdout"] < 1.5 * NOISE_MM).all(), lin[["axis", "term", "link", "rmse_holdout"]]
+    assert (lin.loc[lin["term"] != "dy", "r2"] > 0.9).all()  # dy: a signal at the noise level
+    comb = v[(v["link"] == "combined") & (v["term"] == "dz")]
+    assert comb["rmse_holdout"].iloc[0] < 2 * NOISE_MM
+
+
+def test_document_predicts_like_the_fit_without_training_data(fitted):
+    doc = json.loads(json.dumps(fitted.report()))
+    assert doc["machine"] == "vmc-test" and {"T9", "T30", "T32", "T34"} <= set(doc["kept_channels"])
+    assert {r["link"] for r in doc["terms"]} >= {"T1", "phi_x", "phi_z"}
+    b = synthetic_bundle(1)
+    row = b.temperatures.iloc[13 * 60]  # late in the X feed stage: the X screw is warm
+    q = np.zeros((3, 5))
+    q[:, 0] = [0, 200, 400]
+    W = predict_workspace_errors(fitted.document, row.to_dict(), q, direction=np.ones(3))
+    dT9 = row["T9"] - b.temperatures["T9"].iloc[0]
+    assert np.all(np.isfinite(W)) and dT9 > 3
+    assert W[2, 3] - W[0, 3] == pytest.approx(ALPHA * 400 * dT9, rel=0.1)
+
+
+def test_model_channels_of_the_bundle_are_honoured():
+    b = synthetic_bundle(0)
+    meta = b.meta.model_copy(update={"model_channels": {"X": ["T10", "T49", "T50"]}})
+    res = fit_bundles([Bundle(b.name, meta, b.temperatures, None, b.errors)], FitOptions(network=False,
+                                                                                         virtual_sensors=False))
+    used = {c for f in res.term_fits[("phi_x", "dx")].result.features for c in f.channels}
+    assert used <= {"T10", "T49", "T50"} and "T10" in used
