@@ -1,0 +1,680 @@
+"""Five-axis motion code: vectorised parse, subdivision of long segments, byte-exact emission.
+
+Accepted language (one block per line, ISO 6983 style, as the thesis' controller took it):
+
+* words ``X Y Z`` (mm) and ``A B`` (deg) on ``G0``/``G1`` (modal), ``G90``/``G91`` (modal,
+  absolute by default), ``G21``; ``G4`` dwell (with ``P``); harmless modal codes
+  ``G17 G18 G19 G40 G43 G49 G54 G61 G64 G80 G94`` pass through;
+* pass-through words ``N`` (line number), ``M``, ``F``, ``S``, ``T``, ``P``, ``O``, ``H``, ``D``;
+* comments ``( ... )`` and ``; ...``, a ``%`` line as program start/end; a comment ``(T=123.0)``
+  stamps the block with a time (s) used to pick its temperatures.
+
+Refused with a one-line ``PROGRAM:LINE: problem``: ``G20`` (inch), ``G2``/``G3`` arcs (and their
+``I J K R`` words), other G-codes, axes the machine does not have, malformed numbers.
+
+Program coordinates are taken as the joint coordinates ``q`` of the kinematic chain.
+Positions are held as exact integers in units of ``10**-decimals`` (mm for X, Y, Z; deg for A, B),
+so words that receive no correction are written back byte for byte.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from driftlab.errors import ValidationError
+
+AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
+ROTARY: np.ndarray = np.array([False, False, False, True, True])
+MAX_DECIMALS = 9
+_W = 16  # widest number word accepted (characters after the letter)
+
+# byte classes
+_OTHER, _LETTER, _NUM, _WS, _SPECIAL = 0, 1, 2, 3, 4
+_CLS = np.zeros(256, dtype=np.uint8)
+_CLS[ord("A") : ord("Z") + 1] = _LETTER
+_CLS[ord("a") : ord("z") + 1] = _LETTER
+_CLS[ord("0") : ord("9") + 1] = _NUM
+for _c in b".+-":
+    _CLS[_c] = _NUM
+for _c in b" \t\r\n":
+    _CLS[_c] = _WS
+for _c in b"();%":
+    _CLS[_c] = _SPECIAL
+
+# word kinds: 0..4 axes, then G, passthrough, arc words, foreign axes, unknown
+_K_G, _K_PASS, _K_ARC, _K_FOREIGN, _K_UNKNOWN = 5, 6, 7, 8, 9
+_KIND = np.full(256, _K_UNKNOWN, dtype=np.int8)
+for _i, _a in enumerate("XYZAB"):
+    _KIND[ord(_a)] = _i
+_KIND[ord("G")] = _K_G
+for _c in "NMFSTPOHD":
+    _KIND[ord(_c)] = _K_PASS
+for _c in "IJKR":
+    _KIND[ord(_c)] = _K_ARC
+for _c in "CUVW":
+    _KIND[ord(_c)] = _K_FOREIGN
+
+# G codes times ten
+_G_MOTION = {0: 0, 10: 1}
+_G_DIST = {900: 0, 910: 1}
+_G_OK = {40, 170, 180, 190, 210, 400, 430, 490, 540, 610, 640, 800, 940}
+
+
+@dataclass(frozen=True)
+class Program:
+    """A parsed program: the original bytes plus vectorised blocks (one per line that moves)."""
+
+    data: bytes
+    name: str
+    #: decimals of the integer position units, (linear, rotary)
+    decimals: tuple[int, int]
+    #: (L,) byte offset where each line starts; (L,) offset after its content (before ``\\n``)
+    line_start: np.ndarray
+    line_end: np.ndarray
+    #: (L,) True where the line carries its ``\\n``; the file's line terminator
+    has_newline: np.ndarray
+    eol: bytes
+    #: (L,) time stamp (s) in effect on each line, NaN when the program carries no times
+    line_time_s: np.ndarray
+    #: (B,) line index of each block (0-based)
+    block_line: np.ndarray
+    #: (B, 5) exact target of each block in units of 10**-decimals (mm / deg)
+    target_int: np.ndarray
+    #: (5,) start pose in the same units (the machine's position before the program)
+    start_int: np.ndarray
+    #: (B, 5) word present on the block; (B, 5) its value as written, in the same units
+    present: np.ndarray
+    word_int: np.ndarray
+    #: (B, 5) byte span of each present word's number (start, end), -1 where absent
+    num_start: np.ndarray
+    num_end: np.ndarray
+    #: (B,) G91 in effect; G0 in effect; where new words go; whether the line separates words
+    incremental: np.ndarray
+    rapid: np.ndarray
+    insert_at: np.ndarray
+    spaced: np.ndarray
+
+    @property
+    def n_lines(self) -> int:
+        """Return the number of lines."""
+        return int(self.line_start.shape[0])
+
+    @property
+    def n_blocks(self) -> int:
+        """Return the number of motion blocks."""
+        return int(self.block_line.shape[0])
+
+    @property
+    def scale(self) -> np.ndarray:
+        """Return (5,) size of one integer unit per axis (mm for X, Y, Z; deg for A, B)."""
+        lin, rot = self.decimals
+        return np.where(ROTARY, 10.0 ** -rot, 10.0 ** -lin)
+
+    @property
+    def start_int_blocks(self) -> np.ndarray:
+        """Return (B, 5) pose at the start of each block (the previous target)."""
+        out = np.empty_like(self.target_int)
+        out[0:1] = self.start_int
+        out[1:] = self.target_int[:-1]
+        return out
+
+    def to_q(self, pose_int: np.ndarray) -> np.ndarray:
+        """Return joint coordinates (N, 5) in mm and rad for integer poses (N, 5)."""
+        q = pose_int * self.scale
+        q[:, 3:] = np.deg2rad(q[:, 3:])
+        return q
+
+    def block_time_s(self) -> np.ndarray:
+        """Return (B,) time stamp of each block (NaN when the program carries none)."""
+        return self.line_time_s[self.block_line]
+
+
+def _fail(name: str, errors: list[tuple[int, str]]) -> None:
+    """Raise the first error (by line; on a line, G-code problems first) as one line ``NAME:LINE: problem``."""
+    if errors:
+        line, msg = min(errors, key=lambda e: (e[0], not e[1].startswith(("G", "unsupported G"))))
+        raise ValidationError(f"{name}:{line + 1}: {msg}; program not accepted")
+
+
+def _show(byte: int) -> str:
+    """Return a printable rendering of one byte for an error message."""
+    ch = chr(byte)
+    return repr(ch) if ch.isprintable() and byte < 128 else f"byte 0x{byte:02x}"
+
+
+def _strip_comments(
+    data: bytes, work: bytearray, lines: np.ndarray, line_start: np.ndarray, line_end: np.ndarray,
+    errors: list[tuple[int, str]], times: dict[int, float],
+) -> None:
+    """Blank comments and ``%`` markers of the given lines in ``work``; collect times and errors."""
+    for li in lines.tolist():
+        a, b = int(line_start[li]), int(line_end[li])
+        text = data[a:b]
+        i, n = 0, len(text)
+        code_chars = []
+        while i < n:
+            ch = text[i]
+            if ch == 0x28:  # (
+                j = text.find(b")", i + 1)
+                if j < 0:
+                    errors.append((li, "unterminated comment '('"))
+                    break
+                if text.find(b"(", i + 1, j) >= 0:
+                    errors.append((li, "nested comment '('"))
+                    break
+                body = text[i + 1 : j].strip()
+                if body[:1] in (b"T", b"t") and body[1:].lstrip().startswith(b"="):
+                    value = body[1:].lstrip()[1:].strip()
+                    try:
+                        t = float(value)
+                    except ValueError:
+                        t = math.nan
+                    if not math.isfinite(t):
+                        errors.append((li, f"bad time comment ({body.decode('ascii', 'replace')})"))
+                    else:
+                        times[li] = t
+                work[a + i : a + j + 1] = b" " * (j + 1 - i)
+                i = j + 1
+            elif ch == 0x29:  # )
+                errors.append((li, "')' without '('"))
+                break
+            elif ch == 0x3B:  # ;
+                work[a + i : b] = b" " * (n - i)
+                break
+            else:
+                if ch not in b" \t\r":
+                    code_chars.append(i)
+                i += 1
+        pct = [k for k in code_chars if text[k] == 0x25]
+        if pct:
+            if len(code_chars) != 1:
+                errors.append((li, "'%' must stand alone on its line"))
+            else:
+                work[a + pct[0]] = 0x20
+
+
+def parse_program(
+    data: bytes | str,
+    name: str = "<program>",
+    start: tuple[float, ...] | np.ndarray | None = None,
+    min_decimals: tuple[int, int] = (4, 3),
+) -> Program:
+    """Return the parsed program; raise ValidationError naming the first bad line otherwise.
+
+    ``start`` is the machine's pose before the first block (X, Y, Z mm; A, B deg; default home).
+    ``min_decimals`` sets the finest position unit (linear, rotary); it grows to the program's.
+    """
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    buf = np.frombuffer(data, dtype=np.uint8)
+    n = buf.shape[0]
+    nl = np.flatnonzero(buf == 10)
+    line_start = np.concatenate(([0], nl + 1)).astype(np.int64)
+    if line_start[-1] >= n:
+        line_start = line_start[:-1]
+    n_lines = line_start.shape[0]
+    line_end = np.empty(n_lines, dtype=np.int64)
+    line_end[: nl.shape[0]] = nl[:n_lines]
+    if nl.shape[0] < n_lines:
+        line_end[-1] = n
+    has_newline = np.zeros(n_lines, dtype=bool)
+    has_newline[: nl.shape[0]] = True
+    eol = b"\r\n" if nl.shape[0] and nl[0] > 0 and buf[nl[0] - 1] == 13 else b"\n"
+
+    errors: list[tuple[int, str]] = []
+    times: dict[int, float] = {}
+    cls = _CLS[buf]
+    special = np.flatnonzero(cls == _SPECIAL)
+    if special.shape[0]:
+        work = bytearray(data)
+        lines = np.unique(np.searchsorted(nl, special))
+        _strip_comments(data, work, lines, line_start, line_end, errors, times)
+        buf = np.frombuffer(bytes(work), dtype=np.uint8)
+        cls = _CLS[buf]
+    other = np.flatnonzero((cls == _OTHER) | (cls == _SPECIAL))
+    for pos in other[:1000].tolist():
+        errors.append((int(np.searchsorted(nl, pos)), f"unexpected character {_show(int(buf[pos]))}"))
+
+    # words: a letter and the run of number characters right after it
+    pos = np.flatnonzero(cls == _LETTER)
+    lid = np.searchsorted(nl, pos)
+    letter = buf[pos] & 0xDF
+    kind = _KIND[letter]
+    padded = np.concatenate((buf, np.zeros(_W + 1, dtype=np.uint8)))
+    win = np.lib.stride_tricks.sliding_window_view(padded, _W + 1)
+    n_words = pos.shape[0]
+    runlen = np.empty(n_words, dtype=np.int64)
+    decimals = np.empty(n_words, dtype=np.int64)
+    valid = np.ones(n_words, dtype=bool)
+    value = np.empty(n_words)
+    cols = np.arange(_W + 1, dtype=np.int8)
+    step = 1 << 18
+    for s in range(0, n_words, step):
+        m = win[pos[s : s + step] + 1]
+        ln = np.argmax(_CLS[m] != _NUM, axis=1).astype(np.int8)
+        outside = cols[None, :] >= ln[:, None]
+        m[outside] = 0  # the window is a copy: blank what follows the number
+        is_dot = m == 46
+        dp = np.where(is_dot.any(axis=1), np.argmax(is_dot, axis=1), ln)
+        runlen[s : s + step] = ln
+        decimals[s : s + step] = np.maximum(ln - dp - 1, 0)
+        strings = np.ascontiguousarray(m[:, :_W]).view(f"S{_W}").ravel()
+        try:
+            value[s : s + step] = strings.astype(np.float64)
+        except ValueError:  # numpy's parser takes exactly [+-]digits[.digits]: find the bad ones
+            for k, txt in enumerate(strings.tolist()):
+                try:
+                    value[s + k] = float(txt)
+                except ValueError:
+                    value[s + k] = np.nan
+                    valid[s + k] = False
+    valid &= runlen < _W
+
+    for i in np.flatnonzero(~valid)[:1000].tolist():
+        ltr = chr(letter[i])
+        if runlen[i] == 0:
+            errors.append((int(lid[i]), f"word '{ltr}' has no value"))
+        elif runlen[i] >= _W:
+            errors.append((int(lid[i]), f"number after '{ltr}' is too long"))
+        else:
+            txt = bytes(buf[pos[i] + 1 : pos[i] + 1 + runlen[i]]).decode("ascii")
+            errors.append((int(lid[i]), f"malformed number '{ltr}{txt}'"))
+    total_num = int(np.count_nonzero(cls == _NUM))
+    if int(runlen.sum()) != total_num:
+        per_line = np.bincount(np.searchsorted(nl, np.flatnonzero(cls == _NUM)), minlength=n_lines)
+        covered = np.bincount(lid, weights=runlen, minlength=n_lines)
+        for li in np.flatnonzero(per_line != covered)[:1000].tolist():
+            errors.append((int(li), "number without a letter"))
+    for i in np.flatnonzero(kind >= _K_ARC)[:1000].tolist():
+        ltr = chr(letter[i])
+        if kind[i] == _K_ARC:
+            msg = f"word '{ltr}' belongs to arcs, which are not supported (linearise G2/G3 first)"
+        elif kind[i] == _K_FOREIGN:
+            msg = f"axis '{ltr}' is not on this machine (X Y Z A B)"
+        else:
+            msg = f"unsupported word '{ltr}'"
+        errors.append((int(lid[i]), msg))
+
+    # G codes
+    gi = np.flatnonzero((kind == _K_G) & valid)
+    g10 = np.rint(value[gi] * 10.0)
+    g_exact = np.abs(value[gi] * 10.0 - g10) < 1e-6
+    g10 = g10.astype(np.int64)
+    motion_line = np.full(n_lines, -1, dtype=np.int8)
+    dist_line = np.full(n_lines, -1, dtype=np.int8)
+    dwell_line = np.zeros(n_lines, dtype=bool)
+    for code, mode in _G_MOTION.items():
+        sel = gi[(g10 == code) & g_exact]
+        motion_line[lid[sel]] = mode
+    for code, mode in _G_DIST.items():
+        sel = gi[(g10 == code) & g_exact]
+        dist_line[lid[sel]] = mode
+    dwell_line[lid[gi[(g10 == 40) & g_exact]]] = True
+    known = np.isin(g10, list(_G_MOTION) + list(_G_DIST) + list(_G_OK)) & g_exact
+    for j in np.flatnonzero(~known)[:1000].tolist():
+        code = value[gi[j]]
+        text = f"G{code:g}"
+        if g_exact[j] and g10[j] in (20, 30):
+            msg = f"{text}: circular interpolation is not supported (linearise arcs into G1 first)"
+        elif g_exact[j] and g10[j] == 200:
+            msg = "G20: inch units are not supported (the program must be in mm, G21)"
+        else:
+            msg = f"unsupported G-code {text}"
+        errors.append((int(lid[gi[j]]), msg))
+    for codes, what in ((_G_MOTION, "motion codes G0/G1"), (_G_DIST, "distance modes G90/G91")):
+        kinds = [np.bincount(lid[gi[(g10 == c) & g_exact]], minlength=n_lines) > 0 for c in codes]
+        for li in np.flatnonzero(np.sum(kinds, axis=0) > 1)[:1000].tolist():
+            errors.append((int(li), f"conflicting {what} on one block"))
+
+    # axis words
+    ai = np.flatnonzero((kind < 5) & valid)
+    a_axis = kind[ai].astype(np.int64)
+    a_lid = lid[ai]
+    key = a_lid * 5 + a_axis
+    skey = np.sort(key)
+    for k in skey[1:][np.diff(skey) == 0][:1000].tolist():
+        errors.append((int(k // 5), f"repeated word '{AXES[k % 5]}'"))
+    rot = ROTARY[a_axis]
+    dec_lin = max(min_decimals[0], int(decimals[ai[~rot]].max(initial=0)))
+    dec_rot = max(min_decimals[1], int(decimals[ai[rot]].max(initial=0)))
+    if max(dec_lin, dec_rot) > MAX_DECIMALS:
+        bad = ai[decimals[ai] > MAX_DECIMALS][0]
+        errors.append((int(lid[bad]), f"more than {MAX_DECIMALS} decimals"))
+        dec_lin, dec_rot = min(dec_lin, MAX_DECIMALS), min(dec_rot, MAX_DECIMALS)
+    unit = np.where(rot, 10.0**dec_rot, 10.0**dec_lin)
+    a_val = value[ai] * unit
+    big = ~(np.abs(a_val) < 2.0**52)
+    for j in np.flatnonzero(big)[:1000].tolist():
+        errors.append((int(a_lid[j]), f"value of '{AXES[a_axis[j]]}' out of range"))
+    a_int = np.rint(np.where(big, 0.0, a_val)).astype(np.int64)
+
+    # modal state, line by line
+    idx = np.arange(n_lines)
+    last = np.maximum.accumulate(np.where(motion_line >= 0, idx, -1))
+    motion = np.where(last >= 0, motion_line[np.maximum(last, 0)], -1)
+    last = np.maximum.accumulate(np.where(dist_line >= 0, idx, -1))
+    dist = np.where(last >= 0, dist_line[np.maximum(last, 0)], 0)
+
+    # words are in byte order, so lines of axis words are sorted
+    block_line = a_lid[np.flatnonzero(np.diff(a_lid, prepend=-1))]
+    for li in block_line[dwell_line[block_line]][:1000].tolist():
+        errors.append((int(li), "G4 dwell with axis words"))
+    for li in block_line[motion[block_line] < 0][:1000].tolist():
+        errors.append((int(li), "axis words before any G0/G1"))
+    _fail(name, errors)
+
+    n_blocks = block_line.shape[0]
+    bidx = np.searchsorted(block_line, a_lid)
+    present = np.zeros((n_blocks, 5), dtype=bool)
+    word_int = np.zeros((n_blocks, 5), dtype=np.int64)
+    num_start = np.full((n_blocks, 5), -1, dtype=np.int64)
+    num_end = np.full((n_blocks, 5), -1, dtype=np.int64)
+    present[bidx, a_axis] = True
+    word_int[bidx, a_axis] = a_int
+    num_start[bidx, a_axis] = pos[ai] + 1
+    num_end[bidx, a_axis] = pos[ai] + 1 + runlen[ai]
+    insert_at = num_end.max(axis=1)
+    last_word = pos[ai][np.searchsorted(bidx, np.arange(n_blocks), side="right") - 1] if n_blocks else pos[:0]
+    spaced = buf[np.maximum(last_word - 1, 0)] == 32
+
+    incremental = dist[block_line] == 1
+    rapid = motion[block_line] == 0
+    start_int = _start_int(start, dec_lin, dec_rot)
+    target = np.empty((n_blocks, 5), dtype=np.int64)
+    ar = np.arange(n_blocks)
+    for k in range(5):
+        reset = present[:, k] & ~incremental
+        inc = np.where(present[:, k] & incremental, word_int[:, k], 0)
+        csum = np.cumsum(inc)
+        r = np.maximum.accumulate(np.where(reset, ar, -1))
+        base = np.where(r >= 0, word_int[np.maximum(r, 0), k] - csum[np.maximum(r, 0)], start_int[k])
+        target[:, k] = base + csum
+
+    line_time = np.full(n_lines, np.nan)
+    if times:
+        tl = np.array(sorted(times))
+        line_time[tl] = [times[t] for t in tl.tolist()]
+        last = np.maximum.accumulate(np.where(np.isfinite(line_time), idx, -1))
+        line_time = np.where(last >= 0, line_time[np.maximum(last, 0)], line_time[tl[0]])
+
+    return Program(
+        data=data, name=name, decimals=(dec_lin, dec_rot),
+        line_start=line_start, line_end=line_end, has_newline=has_newline, eol=eol,
+        line_time_s=line_time, block_line=block_line, target_int=target, start_int=start_int,
+        present=present, word_int=word_int, num_start=num_start, num_end=num_end,
+        incremental=incremental, rapid=rapid, insert_at=insert_at, spaced=spaced,
+    )
+
+
+def _start_int(start: tuple[float, ...] | np.ndarray | None, dec_lin: int, dec_rot: int) -> np.ndarray:
+    """Return the start pose (X, Y, Z mm; A, B deg) in integer units."""
+    if start is None:
+        return np.zeros(5, dtype=np.int64)
+    s = np.asarray(start, dtype=float).reshape(-1)
+    if s.shape != (5,) or not np.all(np.isfinite(s)):
+        raise ValidationError("start pose must be five finite numbers X, Y, Z (mm), A, B (deg)")
+    return np.rint(s * np.where(ROTARY, 10.0**dec_rot, 10.0**dec_lin)).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class Points:
+    """The poses a program visits after subdivision: one or more points per block, in order."""
+
+    #: (P,) block of each point (non-decreasing; a block's last point is its target)
+    block: np.ndarray
+    #: (P, 5) nominal pose in the program's integer units
+    nominal_int: np.ndarray
+
+    @property
+    def n(self) -> int:
+        """Return the number of points."""
+        return int(self.block.shape[0])
+
+
+def subdivide(
+    program: Program, max_mm: float = 5.0, max_deg: float = 5.0,
+    blocks: slice = slice(None),
+) -> Points:
+    """Return the points of ``blocks``: G1 segments longer than max_mm / max_deg split evenly (ch. 7.2).
+
+    Rapid (G0) moves are not cut: they are not cutting moves. Points follow the controller's
+    joint-space linear interpolation, so the correction tracks the kinematic error along the
+    segment rather than only at its ends.
+    """
+    if not (max_mm > 0 and max_deg > 0):
+        raise ValidationError("subdivision lengths must be positive")
+    b0, b1, _ = blocks.indices(program.n_blocks)
+    end = program.target_int[b0:b1]
+    start = np.empty_like(end)
+    if b1 > b0:
+        start[0] = program.start_int if b0 == 0 else program.target_int[b0 - 1]
+        start[1:] = end[:-1]
+    delta = (end - start) * program.scale
+    lin = np.sqrt((delta[:, :3] ** 2).sum(axis=1))
+    rot = np.abs(delta[:, 3:]).max(axis=1) if delta.shape[0] else np.zeros(0)
+    pieces = np.maximum(np.ceil(np.maximum(lin / max_mm, rot / max_deg) - 1e-9), 1).astype(np.int64)
+    pieces[program.rapid[b0:b1]] = 1
+    block = np.repeat(np.arange(b0, b1), pieces)
+    if block.shape[0] == end.shape[0]:
+        return Points(block=block, nominal_int=end.copy())
+    first = np.cumsum(pieces) - pieces
+    j = np.arange(block.shape[0]) - np.repeat(first, pieces) + 1
+    frac = (j / np.repeat(pieces, pieces))[:, None]
+    rel = block - b0
+    nominal = start[rel] + np.rint((end[rel] - start[rel]) * frac).astype(np.int64)
+    return Points(block=block, nominal_int=nominal)
+
+
+def format_fixed(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return (bytes, lengths) of integers ``values`` (units 10**-decimals) written as decimals.
+
+    Always one digit before and at least one after the point (``-0.5``, ``12.0``): a bare
+    integer means a count of least increments on some controllers.
+    """
+    v = np.asarray(values, dtype=np.int64)
+    m = v.shape[0]
+    neg = v < 0
+    a = np.abs(v)
+    scale = 10**decimals
+    ip, fp = a // scale, a % scale
+    n_int = len(str(int(ip.max(initial=0))))
+    ipow = 10 ** np.arange(n_int - 1, -1, -1, dtype=np.int64)
+    idig = (ip[:, None] // ipow[None, :]) % 10
+    nz = idig != 0
+    first = np.where(nz.any(axis=1), np.argmax(nz, axis=1), n_int - 1)
+    fd = max(decimals, 1)
+    fpow = 10 ** np.arange(fd - 1, -1, -1, dtype=np.int64)
+    fdig = (fp[:, None] // fpow[None, :]) % 10 if decimals else np.zeros((m, 1), dtype=np.int64)
+    fnz = fdig != 0
+    keep_f = np.where(fnz.any(axis=1), fd - np.argmax(fnz[:, ::-1], axis=1), 1)
+    width = 1 + n_int + 1 + fd
+    chars = np.empty((m, width), dtype=np.uint8)
+    chars[:, 0] = 45
+    chars[:, 1 : 1 + n_int] = idig + 48
+    chars[:, 1 + n_int] = 46
+    chars[:, 2 + n_int :] = fdig + 48
+    cols = np.arange(width)[None, :]
+    mask = np.empty((m, width), dtype=bool)
+    mask[:, 0] = neg
+    mask[:, 1 : 1 + n_int] = cols[:, 1 : 1 + n_int] - 1 >= first[:, None]
+    mask[:, 1 + n_int] = True
+    mask[:, 2 + n_int :] = cols[:, 2 + n_int :] - (2 + n_int) < keep_f[:, None]
+    return chars[mask], mask.sum(axis=1)
+
+
+def _concat_pieces(sources: np.ndarray, start: np.ndarray, length: np.ndarray) -> bytes:
+    """Return the concatenation of slices ``sources[start:start+length]`` in order."""
+    keep = length > 0
+    start, length = start[keep], length[keep]
+    total = int(length.sum())
+    if total == 0:
+        return b""
+    off = np.cumsum(length) - length
+    # index = running count of ones, jumping at each piece to the piece's source offset
+    itype = np.int32 if sources.shape[0] < 2**31 - 1 else np.int64
+    step = np.ones(total, dtype=itype)
+    step[off] = start - np.concatenate(([0], start[:-1] + length[:-1] - 1))
+    return sources[np.cumsum(step, dtype=itype)].tobytes()
+
+
+def emit(
+    program: Program,
+    points: Points | None = None,
+    sent_int: np.ndarray | None = None,
+    prev_sent: np.ndarray | None = None,
+    lines: slice = slice(None),
+) -> bytes:
+    """Return the program text of ``lines`` with ``points`` commanded at ``sent_int`` (integer units).
+
+    Words whose commanded value equals the value written are kept byte for byte; changed
+    words get new numbers; axes that must move but have no word get one (after the block's
+    last axis word); points after a block's first go on new lines after it. In G91 blocks
+    the written value is the increment from the previous commanded pose. ``prev_sent`` is
+    the commanded pose before the first point (default: the program's start pose). With no
+    points, the lines come back unchanged. ``points`` must cover exactly the blocks of ``lines``.
+    """
+    l0, l1, _ = lines.indices(program.n_lines)
+    data = np.frombuffer(program.data, dtype=np.uint8)
+    lo = int(program.line_start[l0]) if l0 < program.n_lines else len(program.data)
+    hi = int(program.line_start[l1]) if l1 < program.n_lines else len(program.data)
+    if points is None or points.n == 0:
+        return program.data[lo:hi]
+    if sent_int is None:
+        sent_int = points.nominal_int
+    sent_int = np.asarray(sent_int, dtype=np.int64)
+    blk = points.block
+    lines_of = program.block_line[blk]
+    if lines_of[0] < l0 or lines_of[-1] >= l1:
+        raise ValueError("points outside the emitted lines")
+    first = np.ones(points.n, dtype=bool)
+    first[1:] = blk[1:] != blk[:-1]
+    prev = np.empty_like(sent_int)
+    prev[0] = program.start_int if prev_sent is None else prev_sent
+    prev[1:] = sent_int[:-1]
+    inc = program.incremental[blk]
+    value = np.where(inc[:, None], sent_int - prev, sent_int)
+    moved = sent_int != prev
+
+    fb = blk[first]
+    fval = value[first]
+    present = program.present[fb]
+    replace = present & (fval != program.word_int[fb])
+    insert = ~present & moved[first]
+    gen = moved & ~first[:, None]
+
+    # sub-point number within its block (0 = the original line)
+    fidx = np.flatnonzero(first)
+    sub = np.arange(points.n) - np.repeat(fidx, np.diff(np.append(fidx, points.n)))
+
+    pos_l, key_l, pre_l, val_l, ax_l = [], [], [], [], []
+    # prefixes: 0 none, 1..5 'X'..'B', 6..10 ' X'..' B', 11 eol
+    r_b, r_a = np.nonzero(replace)
+    pos_l.append(program.num_start[fb[r_b], r_a])
+    key_l.append(np.zeros(r_b.shape[0], dtype=np.int64))
+    pre_l.append(np.zeros(r_b.shape[0], dtype=np.int64))
+    val_l.append(fval[r_b, r_a])
+    ax_l.append(r_a)
+    i_b, i_a = np.nonzero(insert)
+    pos_l.append(program.insert_at[fb[i_b]])
+    key_l.append(1 + i_a)
+    pre_l.append(1 + i_a + 5 * program.spaced[fb[i_b]])
+    val_l.append(fval[i_b, i_a])
+    ax_l.append(i_a)
+    g_p, g_a = np.nonzero(gen)
+    gl = program.block_line[blk[g_p]]
+    next_start = np.append(program.line_start[1:], len(program.data))[gl]
+    lead = np.ones(g_p.shape[0], dtype=bool)
+    lead[1:] = g_p[1:] != g_p[:-1]
+    pos_l.append(next_start)
+    key_l.append(sub[g_p] * 8 + g_a)
+    pre_l.append(1 + g_a + 5 * ~lead)
+    val_l.append(value[g_p, g_a])
+    ax_l.append(g_a)
+    # line ends of generated lines (one per point that got words), and a newline before them
+    # when the block's line is the last of a file without a final newline
+    gp = np.unique(g_p)
+    gpl = program.block_line[blk[gp]]
+    pos_l.append(np.append(program.line_start[1:], len(program.data))[gpl])
+    key_l.append(sub[gp] * 8 + 6)
+    pre_l.append(np.full(gp.shape[0], 11))
+    val_l.append(np.zeros(gp.shape[0], dtype=np.int64))
+    ax_l.append(np.full(gp.shape[0], -1))
+    bare = np.unique(gpl[~program.has_newline[gpl]])
+    pos_l.append(program.line_end[bare])
+    key_l.append(np.full(bare.shape[0], 7))
+    pre_l.append(np.full(bare.shape[0], 11))
+    val_l.append(np.zeros(bare.shape[0], dtype=np.int64))
+    ax_l.append(np.full(bare.shape[0], -1))
+
+    pos = np.concatenate(pos_l).astype(np.int64)
+    key = np.concatenate(key_l).astype(np.int64)
+    order = np.lexsort((key, pos))
+    pos = pos[order]
+    pre = np.concatenate(pre_l).astype(np.int64)[order]
+    val = np.concatenate(val_l)[order]
+    ax = np.concatenate(ax_l).astype(np.int64)[order]
+    # replacements cover their old number; everything else is a pure insertion
+    endp = np.concatenate([program.num_end[fb[r_b], r_a]] + pos_l[1:]).astype(np.int64)[order]
+    if pos.shape[0] == 0:
+        return program.data[lo:hi]
+
+    # number pool
+    num_start = np.zeros(pos.shape[0], dtype=np.int64)
+    num_len = np.zeros(pos.shape[0], dtype=np.int64)
+    pools = []
+    pool_off = 0
+    for axes_sel, dec in (((ax >= 0) & (ax < 3), program.decimals[0]), (ax >= 3, program.decimals[1])):
+        sel = np.flatnonzero(axes_sel)
+        if sel.shape[0]:
+            chars, lens = format_fixed(val[sel], dec)
+            num_len[sel] = lens
+            num_start[sel] = pool_off + np.cumsum(lens) - lens
+            pools.append(chars)
+            pool_off += chars.shape[0]
+    prefix_text = [b""] + [a.encode() for a in AXES] + [b" " + a.encode() for a in AXES] + [program.eol]
+    ptab = np.frombuffer(b"".join(prefix_text), dtype=np.uint8)
+    plen = np.array([len(p) for p in prefix_text], dtype=np.int64)
+    poff = np.cumsum(plen) - plen
+
+    base_pool = data.shape[0] + ptab.shape[0]
+    sources = np.concatenate([data, ptab] + pools)
+    kept_from = np.empty(pos.shape[0], dtype=np.int64)
+    kept_from[0] = lo
+    kept_from[1:] = endp[:-1]
+    e = pos.shape[0]
+    starts = np.empty((e, 3), dtype=np.int64)
+    lens = np.empty((e, 3), dtype=np.int64)
+    starts[:, 0], lens[:, 0] = kept_from, pos - kept_from
+    starts[:, 1], lens[:, 1] = data.shape[0] + poff[pre], plen[pre]
+    starts[:, 2], lens[:, 2] = base_pool + num_start, num_len
+    starts = np.append(starts.ravel(), endp[-1])
+    lens = np.append(lens.ravel(), hi - endp[-1])
+    return _concat_pieces(sources, starts, lens)
+
+
+def emit_program(
+    program: Program,
+    points: Points | None = None,
+    sent_int: np.ndarray | None = None,
+    chunk_lines: int = 1 << 15,
+) -> bytes:
+    """Return the whole program with ``points`` commanded at ``sent_int`` (see ``emit``).
+
+    Works through the program in runs of lines so that the working arrays stay small.
+    """
+    if points is None or points.n == 0:
+        return program.data
+    if sent_int is None:
+        sent_int = points.nominal_int
+    point_line = program.block_line[points.block]
+    out = []
+    for l0 in range(0, program.n_lines, chunk_lines):
+        l1 = min(program.n_lines, l0 + chunk_lines)
+        p0, p1 = np.searchsorted(point_line, [l0, l1])
+        prev = program.start_int if p0 == 0 else sent_int[p0 - 1]
+        sub = Points(block=points.block[p0:p1], nominal_int=points.nominal_int[p0:p1])
+        out.append(emit(program, sub, sent_int[p0:p1], prev_sent=prev, lines=slice(l0, l1)))
+    return b"".join(out)
