@@ -1,0 +1,395 @@
+"""The campaign store on SQLite and PostgreSQL: exact round trips, atomic imports, queries, registry, jobs."""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from sqlalchemy import insert
+from sqlalchemy.exc import IntegrityError
+
+from driftlab.campaigns import ingest
+from driftlab.campaigns import schema as sc
+from driftlab.campaigns.bundle import load_bundle, write_bundle
+from driftlab.campaigns.store import Store, connect
+from driftlab.cli import main
+from driftlab.errors import ConflictError, NotFoundError, ValidationError
+
+
+@pytest.fixture
+def store(db_url: str):
+    s = connect(db_url)
+    yield s
+    s.close()
+
+
+def _assert_same_bundle(a, b) -> None:
+    pd.testing.assert_frame_equal(a.temperatures, b.temperatures, check_exact=True)
+    pd.testing.assert_frame_equal(a.errors, b.errors, check_exact=True)
+    if a.conditions is None:
+        assert b.conditions is None
+    else:
+        pd.testing.assert_frame_equal(a.conditions, b.conditions, check_exact=True)
+    assert a.meta == b.meta
+    assert a.content_hash() == b.content_hash()
+
+
+def test_import_export_import_round_trips_exactly(store: Store, bundle_dir: Path, tmp_path: Path, db_url: str) -> None:
+    original = load_bundle(bundle_dir)
+    cid = store.import_bundle(original)
+    stored = store.load_campaign(cid)
+    _assert_same_bundle(original, stored)
+    out = write_bundle(tmp_path / "exported", stored.meta, stored.temperatures, stored.conditions, stored.errors)
+    again = load_bundle(out)
+    _assert_same_bundle(original, again)
+    # the same content is the same campaign: re-importing the export is refused
+    with pytest.raises(ConflictError, match=f"already stored as campaign {cid}"):
+        store.import_bundle(again)
+    # into another database it lands and reads back identically
+    other = connect(f"sqlite:///{tmp_path / 'other.sqlite'}")
+    try:
+        _assert_same_bundle(original, other.load_campaign(other.import_bundle(again)))
+    finally:
+        other.close()
+
+
+def test_missing_cells_stay_missing(store: Store, bundle_dir: Path) -> None:
+    b = load_bundle(bundle_dir)
+    stored = store.load_campaign(store.import_bundle(b))
+    assert np.isnan(stored.temperatures.loc[3, "T2"])
+    assert stored.conditions is not None and stored.conditions["z"].isna().all()
+    raw = store.temperature_history(1, "T2")
+    assert np.isnan(raw.loc[3, "value"]) and raw["value"].notna().sum() == len(raw) - 1
+
+
+def test_real_bundle_round_trips(store: Store, fl_thermal: Path) -> None:
+    b = load_bundle(fl_thermal)
+    cid = store.import_bundle(b)
+    _assert_same_bundle(b, store.load_campaign(cid))
+    [summary] = store.list_campaigns()
+    assert (summary.id, summary.channels, summary.scans, summary.error_samples, summary.stages) == (
+        cid, 16, 11115, 33345, 16)
+    counts = store.table_counts()
+    assert counts["temperature_samples"] == 11115 * 16
+    assert counts["condition_samples"] == 11115
+
+
+def test_duplicate_import_refused_and_changes_nothing(store: Store, bundle_dir: Path) -> None:
+    b = load_bundle(bundle_dir)
+    store.import_bundle(b)
+    before = store.table_counts()
+    with pytest.raises(ConflictError) as info:
+        store.import_bundle(load_bundle(bundle_dir))
+    assert "\n" not in str(info.value)
+    assert store.table_counts() == before
+
+
+@pytest.mark.parametrize("boom", [RuntimeError("disk on fire"), KeyboardInterrupt()], ids=["error", "ctrl-c"])
+def test_failure_mid_write_leaves_database_as_it_was(store: Store, bundle_factory, monkeypatch, boom) -> None:
+    store.import_bundle(load_bundle(bundle_factory(seed=1)))
+    before = store.table_counts()
+    real = ingest.bulk_insert
+    calls = []
+
+    def failing(conn, table, *args, **kwargs):
+        calls.append(table)
+        if table == "error_samples":  # temperatures and conditions are already written by now
+            raise boom
+        return real(conn, table, *args, **kwargs)
+
+    monkeypatch.setattr(ingest, "bulk_insert", failing)
+    b = load_bundle(bundle_factory(seed=2))
+    with pytest.raises(type(boom)):
+        store.import_bundle(b)
+    assert calls == ["temperature_samples", "condition_samples", "error_samples"]
+    assert store.table_counts() == before
+    monkeypatch.setattr(ingest, "bulk_insert", real)
+    store.import_bundle(b)  # nothing was left behind that would block a clean retry
+    assert store.table_counts()["campaigns"] == before["campaigns"] + 1
+
+
+def test_unique_keys_refuse_a_reinserted_reading(store: Store, bundle_dir: Path) -> None:
+    cid = store.import_bundle(load_bundle(bundle_dir))
+    with store.engine.connect() as conn:
+        ch = conn.execute(sc.Channel.__table__.select().where(sc.Channel.campaign_id == cid)).first()
+    for table, row in [
+        (sc.TemperatureSample, {"campaign_id": cid, "channel_id": ch.id, "time_s": 0.0, "value": 1.0}),
+        (sc.ConditionSample, {"campaign_id": cid, "time_s": 0.0}),
+        (sc.ErrorSample, {"campaign_id": cid, "seq": 10_000, "time_s": 0.0, "axis": "Z", "term": "dx",
+                          "position": 0.0, "direction": 1, "value": 0.0, "sweep": 0, "flags": 0}),
+    ]:
+        with pytest.raises(IntegrityError), store.engine.begin() as conn:
+            conn.execute(insert(table), row)
+
+
+def test_corrupted_bundle_via_cli_changes_nothing(db_url: str, bundle_factory, corruption, capsys) -> None:
+    store = connect(db_url)
+    try:
+        store.import_bundle(load_bundle(bundle_factory(seed=5)))
+        before = store.table_counts()
+        _, file, mutate, expected = corruption
+        bad = bundle_factory(seed=6)
+        mutate(bad / file)
+        capsys.readouterr()
+        assert main(["import", str(bad), "--db", db_url]) != 0
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("driftlab: error:")
+        assert expected in err[0]
+        assert store.table_counts() == before
+    finally:
+        store.close()
+
+
+def test_cli_import_prints_id_and_refuses_twice(db_url: str, bundle_dir: Path, tmp_path: Path, capsys) -> None:
+    assert main(["import", str(bundle_dir), "--db", db_url]) == 0
+    assert capsys.readouterr().out.strip() == "1"
+    assert main(["import", str(bundle_dir), "--db", db_url]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "already stored as campaign 1" in err[0]
+    assert main(["export", "1", str(tmp_path / "out"), "--db", db_url]) == 0
+    _assert_same_bundle(load_bundle(bundle_dir), load_bundle(tmp_path / "out"))
+    assert main(["campaign", "list", "--json", "--db", db_url]) == 0
+    [row] = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert row["id"] == 1 and row["machine_id"] == "vmc-test-01" and row["scans"] == 40
+    assert main(["export", "7", str(tmp_path / "none"), "--db", db_url]) != 0
+    assert "no campaign 7" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- drift
+
+
+def _two_campaigns(store: Store, bundle_factory) -> tuple[int, int]:
+    a = store.import_bundle(load_bundle(bundle_factory(seed=1, started_at="2026-03-02T08:00:00Z")))
+    b = store.import_bundle(load_bundle(bundle_factory(seed=2, started_at="2026-03-05T09:30:00+01:00")))
+    return a, b
+
+
+def test_drift_nearest_position_across_campaigns_in_wall_clock(store: Store, bundle_factory) -> None:
+    a, b = _two_campaigns(store, bundle_factory)
+    d = store.drift("vmc-test-01", "Z", "dz", position=130.0, direction=1)
+    # measured positions are 0, 100, 200, 300, 400: nearest to 130 is 100
+    assert set(d["position"]) == {100.0}
+    assert list(d["campaign_id"]) == [a] * 4 + [b] * 4
+    assert (d["direction"] == 1).all()
+    errors_a = load_bundle(bundle_factory(seed=1)).errors
+    want = errors_a[(errors_a.term == "dz") & (errors_a.position == 100.0) & (errors_a.direction == 1)]
+    assert d["value"].iloc[:4].tolist() == want["value"].tolist()
+    assert d["time"].iloc[0] == pd.Timestamp("2026-03-02T08:00:00Z") + pd.Timedelta(seconds=want["time_s"].iloc[0])
+    assert d["time"].iloc[4] == pd.Timestamp("2026-03-05T08:30:00Z") + pd.Timedelta(seconds=want["time_s"].iloc[0])
+    assert d["time"].is_monotonic_increasing
+    both = store.drift("vmc-test-01", "Z", "dz", position=100.0)
+    assert set(both["direction"]) == {1, -1} and len(both) == 16
+
+
+def test_drift_time_window_and_all_positions(store: Store, bundle_factory) -> None:
+    a, b = _two_campaigns(store, bundle_factory)
+    start = datetime(2026, 3, 2, 8, 5, tzinfo=UTC)
+    end = datetime(2026, 3, 2, 8, 10, tzinfo=UTC)
+    d = store.drift("vmc-test-01", "Z", "dx", start=start, end=end)
+    assert set(d["campaign_id"]) == {a}
+    assert d["time_s"].between(300.0, 600.0).all() and len(d) == 11  # sweep at 300 s (10 points) + 600 s start
+    assert set(d["position"]) == {0.0, 100.0, 200.0, 300.0, 400.0}
+    late = store.drift("vmc-test-01", "Z", "dx", start=datetime(2026, 3, 4, tzinfo=UTC))
+    assert set(late["campaign_id"]) == {b}
+    empty = store.drift("vmc-test-01", "Z", "dy")
+    assert empty.empty and list(empty.columns) == ["campaign_id", "time", "time_s", "position", "direction",
+                                                   "sweep", "value"]
+
+
+def test_drift_interpolates_along_position_within_each_sweep(store: Store, bundle_factory) -> None:
+    cid = store.import_bundle(load_bundle(bundle_factory(seed=3)))
+    errors = store.load_campaign(cid).errors
+    d = store.drift("vmc-test-01", "Z", "dx", position=250.0, direction=-1, interpolate=True)
+    assert len(d) == 4 and (d["position"] == 250.0).all()
+    sel = errors[(errors.term == "dx") & (errors.direction == -1)]
+    for k, (_, row) in enumerate(d.iterrows()):
+        sweep = sel.iloc[5 * k:5 * k + 5].sort_values("position")
+        lo, hi = sweep[sweep.position == 200.0].iloc[0], sweep[sweep.position == 300.0].iloc[0]
+        assert row["value"] == pytest.approx(lo.value + 0.5 * (hi.value - lo.value), rel=1e-12, abs=1e-18)
+        assert row["time_s"] == pytest.approx(lo.time_s + 0.5 * (hi.time_s - lo.time_s))
+    exact = store.drift("vmc-test-01", "Z", "dx", position=400.0, direction=1, interpolate=True)
+    want = errors[(errors.term == "dx") & (errors.direction == 1) & (errors.position == 400.0)]
+    assert exact["value"].tolist() == want["value"].tolist()
+    assert store.drift("vmc-test-01", "Z", "dx", position=900.0, interpolate=True).empty
+
+
+def test_drift_refuses_bad_requests(store: Store, bundle_dir: Path) -> None:
+    store.import_bundle(load_bundle(bundle_dir))
+    with pytest.raises(ValidationError, match="unknown axis"):
+        store.drift("vmc-test-01", "W", "dz")
+    with pytest.raises(ValidationError, match="unknown term"):
+        store.drift("vmc-test-01", "Z", "dw")
+    with pytest.raises(NotFoundError, match="no machine"):
+        store.drift("nope", "Z", "dz")
+    with pytest.raises(ValidationError, match="needs a position"):
+        store.drift("vmc-test-01", "Z", "dz", interpolate=True)
+
+
+def test_drift_cli_csv_is_exact(db_url: str, bundle_dir: Path, capsys) -> None:
+    assert main(["import", str(bundle_dir), "--db", db_url]) == 0
+    capsys.readouterr()
+    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "gamma", "--position", "0",
+                 "--direction", "+1", "--csv", "--db", db_url]) == 0
+    got = pd.read_csv(io.StringIO(capsys.readouterr().out))
+    errors = load_bundle(bundle_dir).errors
+    want = errors[(errors.term == "gamma") & (errors.position == 0.0) & (errors.direction == 1)]
+    assert got["value"].tolist() == want["value"].tolist()
+    assert got["time"].iloc[0] == "2026-03-02T08:00:00Z"
+    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dz", "--db", db_url]) == 0
+    assert "campaign_id" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------- histories
+
+
+def test_temperature_history_buckets_match_numpy(store: Store, bundle_dir: Path) -> None:
+    b = load_bundle(bundle_dir)
+    cid = store.import_bundle(b)
+    t = b.temperatures["time_s"].to_numpy()
+    v = b.temperatures["T2"].to_numpy()
+    h = store.temperature_history(cid, "T2", buckets=6)
+    edges = np.linspace(t[0], t[-1], 7)
+    idx = np.minimum(((t - t[0]) // (edges[1] - edges[0])).astype(int), 5)
+    assert len(h) == 6
+    for k in range(6):
+        sel = v[idx == k]
+        sel = sel[~np.isnan(sel)]
+        assert h["value_min"][k] == sel.min() and h["value_max"][k] == sel.max()
+        assert h["value_mean"][k] == pytest.approx(sel.mean(), rel=1e-12)
+        assert h["time_s"][k] == pytest.approx(edges[k])
+    assert h["n"].sum() == len(t)
+    window = store.temperature_history(cid, "T2", start_s=300.0, end_s=600.0)
+    assert window["time_s"].tolist() == [float(x) for x in range(300, 601, 30)]
+    with pytest.raises(NotFoundError, match="no channel 'T9'"):
+        store.temperature_history(cid, "T9")
+
+
+def test_condition_history(store: Store, bundle_dir: Path) -> None:
+    cid = store.import_bundle(load_bundle(bundle_dir))
+    h = store.condition_history(cid, ["spindle_rpm", "z"], buckets=2)
+    assert h["spindle_rpm_max"].tolist() == [8000.0, 0.0]
+    assert h["spindle_rpm_min"].tolist() == [8000.0, 0.0]
+    assert h["z_mean"].isna().all()
+    raw = store.condition_history(cid, ["feed_mm_min"], end_s=60.0)
+    assert raw.shape == (3, 2)
+    with pytest.raises(ValidationError, match="unknown condition"):
+        store.condition_history(cid, ["torque"])
+
+
+# ----------------------------------------------------------------------------- registry, jobs, progress
+
+
+def test_model_registry_keeps_exactly_one_current(store: Store, bundle_dir: Path) -> None:
+    cid = store.import_bundle(load_bundle(bundle_dir))
+    assert store.current_model("vmc-test-01") is None
+    v1 = store.register_model("vmc-test-01", {"kind": "standard", "coef": [1.5, 2.0]}, [cid])
+    v2 = store.register_model("vmc-test-01", {"kind": "extended", "nested": {"a": [1, None]}}, [cid])
+    assert (v1.version, v2.version) == (1, 2)
+    current = store.current_model("vmc-test-01")
+    assert current is not None and current.version == 2 and current.document["nested"] == {"a": [1, None]}
+    assert [m.status for m in store.model_versions("vmc-test-01")] == ["retired", "current"]
+    with pytest.raises(IntegrityError), store.engine.begin() as conn:
+        conn.execute(insert(sc.ModelVersion), {"machine_id": "vmc-test-01", "version": 9, "document": {},
+                                               "source_campaigns": [], "status": "current",
+                                               "created_at": datetime.now(UTC)})
+    with pytest.raises(NotFoundError):
+        store.register_model("nope", {})
+
+
+def test_jobs_are_claimed_once_by_concurrent_workers(db_url: str) -> None:
+    first = connect(db_url)
+    ids = [first.submit_job("fit", {"n": k}) for k in range(40)]
+    claimed: dict[str, list[int]] = {}
+
+    def work(name: str) -> None:
+        s = connect(db_url)
+        mine = claimed.setdefault(name, [])
+        try:
+            while (job := s.claim_job(name)) is not None:
+                mine.append(job.id)
+                s.finish_job(job.id, name, {"ok": job.params["n"]})
+        finally:
+            s.close()
+
+    threads = [threading.Thread(target=work, args=(f"w{k}",)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    taken = [j for jobs in claimed.values() for j in jobs]
+    assert sorted(taken) == ids  # every job once, none twice
+    assert all(first.get_job(j).state == "done" for j in ids)
+    assert first.get_job(ids[3]).result == {"ok": 3}
+    first.close()
+
+
+def test_job_lifecycle(store: Store) -> None:
+    a = store.submit_job("diagnose", {"bundle": "x"})
+    b = store.submit_job("fit", {})
+    job = store.claim_job("w1", kinds=["fit"])
+    assert job is not None and job.id == b and job.state == "running" and job.attempts == 1
+    assert store.heartbeat(b, "w1") and not store.heartbeat(b, "w2")
+    with pytest.raises(ConflictError):
+        store.finish_job(b, "w2", {})
+    store.fail_job(b, "w1", "singular\nmatrix")
+    assert store.get_job(b).state == "failed" and store.get_job(b).error == "singular matrix"
+    job = store.claim_job("w2")
+    assert job is not None and job.id == a
+    assert store.claim_job("w3") is None
+    assert store.requeue_stale(-1.0) == 1  # heartbeat older than "1 s in the future": stale
+    again = store.claim_job("w3")
+    assert again is not None and again.id == a and again.attempts == 2
+    with pytest.raises(NotFoundError):
+        store.get_job(999)
+
+
+def test_acquisition_progress_upsert(store: Store, bundle_dir: Path) -> None:
+    cid = store.import_bundle(load_bundle(bundle_dir))
+    assert store.progress(cid) is None
+    store.save_progress(cid, 0, 1, 30.0, {"next_scan": 2})
+    store.save_progress(cid, 1, 4, 90.0, {"next_scan": 4})
+    p = store.progress(cid)
+    assert p is not None and (p.stage_ordinal, p.sweep, p.last_sample_time_s, p.cursor) == (1, 4, 90.0,
+                                                                                             {"next_scan": 4})
+    assert p.updated_at.tzinfo is not None
+
+
+def test_delete_campaign_removes_everything(store: Store, bundle_factory) -> None:
+    empty = store.table_counts()
+    cid = store.import_bundle(load_bundle(bundle_factory(seed=1)))
+    store.save_progress(cid, 0, 0, None)
+    store.delete_campaign(cid)
+    after = store.table_counts()
+    assert {k: v for k, v in after.items() if k != "machines"} == {k: v for k, v in empty.items() if k != "machines"}
+    with pytest.raises(NotFoundError):
+        store.delete_campaign(cid)
+
+
+def test_default_url_comes_from_environment(tmp_path: Path, monkeypatch, bundle_dir: Path) -> None:
+    path = tmp_path / "env" / "store.sqlite"
+    monkeypatch.setenv("DRIFTLAB_DB_URL", f"sqlite:///{path}")
+    assert main(["import", str(bundle_dir)]) == 0
+    assert path.exists()
+    s = connect()
+    try:
+        assert [c.id for c in s.list_campaigns()] == [1]
+    finally:
+        s.close()
+
+
+def test_unsupported_url_is_a_user_error() -> None:
+    with pytest.raises(ValidationError, match="unsupported database"):
+        connect("mysql://x@localhost/db")
+
+
+def test_timestamps_are_utc_aware(store: Store, bundle_factory) -> None:
+    cid = store.import_bundle(load_bundle(bundle_factory(started_at="2026-03-05T09:30:00+01:00")))
+    [c] = store.list_campaigns()
+    assert c.id == cid and c.started_at == datetime(2026, 3, 5, 8, 30, tzinfo=UTC)
+    assert c.started_at.utcoffset() == timedelta(0)
