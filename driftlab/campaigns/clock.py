@@ -74,6 +74,11 @@ class SimClock:
             self._now = max(self._now, float(t_s))
             return self._now
 
+    def sleep(self, dt_s: float) -> None:
+        """Let `dt_s` simulated seconds pass at once (the simulated servers' Clock protocol)."""
+        with self._lock:
+            self._now += max(float(dt_s), 0.0)
+
     def set(self, t_s: float) -> None:
         """Set simulated time to `t_s` without pacing (for reads inside one step, e.g. laser averaging)."""
         with self._lock:

@@ -98,17 +98,12 @@ class Sweep(_Strict):
     interval_s: float = Field(gt=0, description="time from the start of one sweep to the next")
     point_s: float = Field(default=5.0, gt=0, description="move, settle and read time per point")
     samples: int = Field(default=10, ge=1, le=1000, description="laser readings averaged per point")
-    terms: list[Literal["dx", "dy", "dz", "alpha", "beta", "gamma"]] = Field(
-        default_factory=list, description="error terms measured at each point (default: the axis' own motion)"
+    term: Literal["dx", "dy", "dz", "alpha", "beta", "gamma"] | None = Field(
+        default=None, description="error term the laser is set up for (default: the axis' own motion)"
     )
-
-    @field_validator("terms")
-    @classmethod
-    def _terms_distinct(cls, v: list[str]) -> list[str]:
-        """Refuse a term listed twice."""
-        if len(set(v)) != len(v):
-            raise ValueError("a term is listed twice")
-        return v
+    lead_s: float | None = Field(
+        default=None, gt=0, description="the move to a point starts this long before it is read (default 0.8 point_s)"
+    )
 
     @field_validator("directions")
     @classmethod
@@ -117,6 +112,10 @@ class Sweep(_Strict):
         if len(set(v)) != len(v):
             raise ValueError("a direction is listed twice")
         return v
+
+    def move_lead_s(self) -> float:
+        """Return how long before its reading the move to a point is commanded."""
+        return self.lead_s if self.lead_s is not None else 0.8 * self.point_s
 
     def points(self) -> list[tuple[float, int]]:
         """Return (position, direction) in visiting order: ascending for +1, then descending for -1."""
@@ -151,12 +150,13 @@ class Stage(_Strict):
             raise ValueError(f"an axis cannot both oscillate and hold in stage {self.name!r}")
         if self.sweep is not None:
             allowed = LASER_TERMS[self.axis]
-            bad = [t for t in self.sweep.terms if t not in allowed]
-            if bad:
+            if self.sweep.term is not None and self.sweep.term not in allowed:
                 raise ValueError(
-                    f"the laser cannot measure {', '.join(bad)} of the {self.axis} axis "
+                    f"the laser cannot measure {self.sweep.term} of the {self.axis} axis "
                     f"(table 5.3: {', '.join(allowed)})"
                 )
+            if self.sweep.move_lead_s() > self.sweep.point_s:
+                raise ValueError(f"sweep lead_s {self.sweep.lead_s:g} is longer than point_s {self.sweep.point_s:g}")
             length = self.sweep.length_s()
             if length > self.sweep.interval_s:
                 raise ValueError(
@@ -182,11 +182,11 @@ class Stage(_Strict):
         """Return the commanded spindle speed in this stage (0 when the spindle is off)."""
         return sum(h.rpm for h in self.heat if isinstance(h, SpindleSource))
 
-    def terms(self) -> list[str]:
-        """Return the error terms measured at each sweep point (the axis' own motion by default)."""
-        if self.sweep is None:
-            return []
-        return list(self.sweep.terms) or [DEFAULT_TERM[self.axis]]
+    def term(self) -> str:
+        """Return the error term the laser measures in this stage (the axis' own motion by default)."""
+        if self.sweep is not None and self.sweep.term is not None:
+            return self.sweep.term
+        return DEFAULT_TERM[self.axis]
 
     def feed_mm_min(self) -> float:
         """Return the oscillation feed of this stage (0 when no axis oscillates)."""
@@ -324,7 +324,8 @@ class Plan(_Strict):
                     out.append(
                         SweepPoint(
                             index=len(out), t_s=t0 + n * stage.sweep.point_s, stage=i, sweep=m, axis=stage.axis,
-                            position=pos, direction=d, samples=stage.sweep.samples,
+                            position=pos, direction=d, samples=stage.sweep.samples, term=stage.term(),
+                            move_s=t0 + n * stage.sweep.point_s - stage.sweep.move_lead_s(),
                         )
                     )
                 m += 1
@@ -370,6 +371,16 @@ class SweepPoint:
     position: float
     direction: int
     samples: int
+    term: str = "dz"
+    move_s: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Move:
+    """Step: command the move to sweep point `point` (read at its own time), from its approach side."""
+
+    point: int
+    t_s: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -380,7 +391,7 @@ class StageStart:
     t_s: float
 
 
-Step = Union[StageStart, Scan, SweepPoint]
+Step = Union[StageStart, Scan, SweepPoint, Move]
 
 
 @dataclass(frozen=True, slots=True)
@@ -411,16 +422,26 @@ def stage_starts(plan: Plan, after_s: float) -> Iterator[StageStart]:
         yield StageStart(i, bounds[i][0])
 
 
-_ORDER = {StageStart: 0, Scan: 1, SweepPoint: 2}
+def moves(points: list[SweepPoint], start: int, after_s: float) -> Iterator[Move]:
+    """Yield the moves to the sweep points from point `start` on (none earlier than `after_s`)."""
+    for p in points[start:]:
+        yield Move(p.index, max(p.move_s, after_s))
+
+
+_ORDER = {StageStart: 0, Scan: 1, Move: 2, SweepPoint: 3}
 
 
 def cursor_time(plan: Plan, points: list[SweepPoint], cursor: Cursor) -> float:
-    """Return the time of the first step still to be done at `cursor` (the campaign's end if none)."""
+    """Return the time of the first step still to be done at `cursor` (the campaign's end if none).
+
+    That is the earliest of the next scan and the move towards the next sweep point: a resumed run
+    commands that move at the time the uninterrupted run did, so the axis is in place when read.
+    """
     times = []
     if cursor.next_scan < plan.n_scans:
         times.append(plan.scan_time(cursor.next_scan))
     if cursor.next_point < len(points):
-        times.append(points[cursor.next_point].t_s)
+        times.append(points[cursor.next_point].move_s)
     return min(times) if times else plan.total_s
 
 
@@ -432,6 +453,7 @@ def steps(plan: Plan, cursor: Cursor = Cursor(), points: list[SweepPoint] | None
     t0 = cursor_time(plan, pts, cursor)
     streams: list[Iterator[Step]] = [
         stage_starts(plan, t0), scans(plan, cursor.next_scan), sweep_points(pts, cursor.next_point),
+        moves(pts, cursor.next_point, t0),
     ]
     return heapq.merge(*streams, key=_step_key)
 
@@ -443,7 +465,9 @@ def _step_key(s: Step) -> tuple[float, int, int]:
 
 def _seq(s: Step) -> int:
     """Return the step's number within its own stream (for a total order at equal times)."""
-    return s.stage if isinstance(s, StageStart) else s.index
+    if isinstance(s, StageStart):
+        return s.stage
+    return s.point if isinstance(s, Move) else s.index
 
 
 # -- loading ---------------------------------------------------------------------------------------

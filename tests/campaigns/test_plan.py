@@ -13,6 +13,7 @@ import yaml
 from driftlab.campaigns.clock import SimClock, WallClock
 from driftlab.campaigns.plan import (
     Cursor,
+    Move,
     Scan,
     StageStart,
     SweepPoint,
@@ -85,7 +86,7 @@ def test_bundle_stages_are_back_to_back() -> None:
         (lambda d: d["stages"][0]["sweep"].update(directions=[1, 1]), "stages[0].sweep.directions", "twice"),
         (lambda d: d["stages"][0]["sweep"].update(interval_s=10), "stages[0]", "longer than its interval_s"),
         (lambda d: d["stages"][0].update(axis="Q"), "stages[0].axis", "X"),
-        (lambda d: d["stages"][0]["sweep"].update(terms=["gamma"]), "stages[0]", "cannot measure gamma of the Z"),
+        (lambda d: d["stages"][0]["sweep"].update(term="gamma"), "stages[0]", "cannot measure gamma of the Z"),
         (lambda d: d["machine"].update(room_channels=["T50"]), "machine", "T50"),
         (lambda d: d["stages"].insert(0, d["stages"].pop(3)), "(top level)", "before it ran alone"),
         (lambda d: d["stages"].append(dict(d["stages"][1])), "(top level)", "used twice"),
@@ -148,18 +149,23 @@ def test_steps_are_in_time_order_and_cover_everything() -> None:
     plan = parse_plan(_doc())
     all_steps = list(steps(plan))
     assert [s.t_s for s in all_steps] == sorted(s.t_s for s in all_steps)
+    moves = [s for s in all_steps if isinstance(s, Move)]
+    pts = plan.sweep_points()
+    assert [m.point for m in moves] == [p.index for p in pts]
+    assert all(pts[m.point].t_s - m.t_s == pytest.approx(4.0) for m in moves)  # 0.8 x point_s
     assert [s.index for s in all_steps if isinstance(s, Scan)] == list(range(plan.n_scans)) == list(range(36))
     assert len([s for s in all_steps if isinstance(s, SweepPoint)]) == len(plan.sweep_points())
     assert [(s.stage, s.t_s) for s in all_steps if isinstance(s, StageStart)] == [
         (0, 0), (1, 100), (2, 160), (3, 260)]
     at_100 = [type(s).__name__ for s in all_steps if s.t_s == 100]
     assert at_100 == ["StageStart", "Scan"]
+    assert {p.term for p in pts} == {"dz"}
 
 
 def test_resuming_from_any_cursor_gives_the_rest_of_the_timeline() -> None:
     """From the cursor after any prefix, steps() yields exactly the remaining scans and points."""
     plan = load_plan(Z_DEMO)
-    full = [s for s in steps(plan) if not isinstance(s, StageStart)]
+    full = [s for s in steps(plan) if not isinstance(s, (StageStart, Move))]
     rng = random.Random(4)
     for cut in [0, 1, len(full) - 1, len(full)] + rng.sample(range(len(full)), 25):
         done = full[:cut]
@@ -167,11 +173,21 @@ def test_resuming_from_any_cursor_gives_the_rest_of_the_timeline() -> None:
             next_scan=sum(isinstance(s, Scan) for s in done), next_point=sum(isinstance(s, SweepPoint) for s in done)
         )
         rest = list(steps(plan, cur))
-        assert [s for s in rest if not isinstance(s, StageStart)] == full[cut:]
+        assert [s for s in rest if not isinstance(s, (StageStart, Move))] == full[cut:]
         if rest:
-            # the first step re-establishes the stage running at the resume time
-            assert isinstance(rest[0], StageStart)
-            assert rest[0].stage == plan.stage_at(rest[1].t_s)
+            # a stage change re-establishes the stage running at the resume time before any reading
+            first = next(i for i, s in enumerate(rest) if isinstance(s, StageStart))
+            assert all(isinstance(s, Move) for s in rest[:first])
+            nxt = next(s for s in rest[first:] if isinstance(s, (Scan, SweepPoint)))
+            assert rest[first].stage == plan.stage_at(nxt.t_s)
+            # every remaining point is preceded by its move, never earlier than the resume time
+            order = [(type(s).__name__, getattr(s, "point", getattr(s, "index", None))) for s in rest]
+            for s in rest:
+                if isinstance(s, SweepPoint):
+                    assert order.index(("Move", s.index)) < order.index(("SweepPoint", s.index))
+            # moves happen exactly when they did in the run that was never interrupted
+            full_moves = {s.point: s.t_s for s in steps(plan) if isinstance(s, Move)}
+            assert all(s.t_s == full_moves[s.point] for s in rest if isinstance(s, Move))
 
 
 def test_fingerprint_tracks_the_timeline_only() -> None:
