@@ -169,8 +169,13 @@ class TinyWorld:
 
 
 def room_air_c(world: World, t_s: float, channels: tuple[str, ...] = ("T49", "T50")) -> float:
-    """Return the mean of the world's room thermocouples (20 degC if it has none)."""
-    temps = world.temperatures(t_s)
+    """Return the air temperature along the beam: mean of the room channels (20 degC if none).
+
+    The laser's weather station is its own sensor, so the world's true temperatures are
+    used where it has them (not the thermocouple scan with its noise and faults).
+    """
+    true = getattr(world, "true_temperatures", None)
+    temps = true(t_s) if callable(true) else world.temperatures(t_s)
     vals = [temps[c] for c in channels if c in temps and math.isfinite(temps[c])]
     return float(np.mean(vals)) if vals else 20.0
 
