@@ -1,0 +1,368 @@
+"""Per-block correction: model + latest temperatures -> link errors -> axis offsets (ch. 4.4, 7.2).
+
+For every point of the program (block targets, and points inside long segments) the model
+predicts the errors of the links and joints, ``models.kinematics.compensate`` solves the axis
+commands that cancel them (angles first, then translations: eqs. 4.23-4.26), and the correction
+is quantised to the machine's resolution with the remainder carried over (ch. 7.2: small
+corrections are accumulated until they reach the positioning resolution instead of being sent).
+Rotary corrections are put on the angular grid inside the solve, before the translations are
+solved, so that X, Y, Z also take up what the rounded angles leave (the order of eqs. 4.25-4.26).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from decimal import Decimal
+from pathlib import Path
+from typing import Any, Union
+
+import numpy as np
+import pandas as pd
+
+from driftlab.compensator.gcode import ROTARY, Points, Program, emit_program, parse_program, subdivide
+from driftlab.errors import ValidationError
+from driftlab.models import kinematics
+
+log = logging.getLogger(__name__)
+
+#: positioning resolution of the thesis machine (ch. 7.2; bundle v1 ``machine.resolution_*``)
+RESOLUTION_MM = 0.0025
+RESOLUTION_DEG = 0.001
+
+#: one reading per channel (degC), or a frame of N rows aligned with the poses (with ``time_s``)
+Temperatures = Union[Mapping[str, float], pd.DataFrame]
+#: (q (N, 5) mm/rad, temperatures, direction (N, 5) +1/-1) -> link and joint errors
+Predict = Callable[[np.ndarray, Temperatures, np.ndarray], kinematics.ElementErrors]
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """What the compensator needs from a model: a prediction of element errors and the chain's dims."""
+
+    predict: Predict
+    dims: Mapping[str, Any] = field(default_factory=lambda: dict(kinematics.TABLE_A1))
+    label: str = "model"
+    channels: tuple[str, ...] = ()
+
+    @classmethod
+    def from_document(cls, document: Mapping[str, Any] | Any, label: str | None = None) -> ErrorModel:
+        """Return the model of a registry document (the JSON of ``driftlab models show``)."""
+        from driftlab.models import registry
+
+        doc = registry.validate_document(document)
+
+        def predict(q: np.ndarray, temps: Temperatures, direction: np.ndarray) -> kinematics.ElementErrors:
+            """Return the document's element errors at ``q``."""
+            return registry.predict_element_errors(doc, temps, q, direction)
+
+        name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
+        return cls(predict=predict, dims=registry.document_dims(doc), label=name, channels=tuple(doc.inputs))
+
+
+def resolution_units(program: Program, resolution_mm: float, resolution_deg: float) -> np.ndarray:
+    """Return (5,) resolution per axis in the program's integer units; refuse a non-integral step."""
+    steps = np.where(ROTARY, resolution_deg / program.scale, resolution_mm / program.scale)
+    out = np.rint(steps).astype(np.int64)
+    if np.any(out <= 0) or np.any(np.abs(steps - out) > 1e-6):
+        raise ValidationError(
+            f"resolution {resolution_mm} mm / {resolution_deg} deg is not a whole number of the "
+            f"program's units (10^-{program.decimals[0]} mm, 10^-{program.decimals[1]} deg)"
+        )
+    return out
+
+
+def decimals_for(resolution_mm: float, resolution_deg: float) -> tuple[int, int]:
+    """Return the decimals needed to write positions at these resolutions (linear, rotary)."""
+    def dec(x: float) -> int:
+        e = Decimal(repr(float(x))).normalize().as_tuple().exponent
+        return max(0, -int(e))
+
+    return max(4, dec(resolution_mm)), max(3, dec(resolution_deg))
+
+
+def quantise_carry(units: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
+    """Return the whole steps (P, 5) sent for desired corrections ``units`` (P, 5) in resolution steps.
+
+    A step is sent only once the correction has moved a full resolution step away from what was
+    sent before; the remainder carries over (ch. 7.2). Per point: ``s = s_prev + trunc(u - s_prev)``,
+    i.e. ``s = clip(s_prev, floor(u), ceil(u))``, so ``|u - s| < 1`` always and a correction that
+    creeps up by less than a step sends nothing until it has accumulated one. ``state`` is the
+    step count sent before the first point (default 0). The recursion is a composition of clamps,
+    evaluated with a doubling scan over runs of equal (floor, ceil).
+    """
+    u = np.asarray(units, dtype=float)
+    n = u.shape[0]
+    s0 = np.zeros(u.shape[1], dtype=np.int64) if state is None else np.asarray(state, dtype=np.int64)
+    out = np.empty(u.shape, dtype=np.int64)
+    if n == 0:
+        return out
+    lo = np.floor(u).astype(np.int64)
+    hi = np.ceil(u).astype(np.int64)
+    for k in range(u.shape[1]):
+        a, b = lo[:, k], hi[:, k]
+        change = np.ones(n, dtype=bool)
+        change[1:] = (a[1:] != a[:-1]) | (b[1:] != b[:-1])
+        starts = np.flatnonzero(change)
+        A, B = a[starts].copy(), b[starts].copy()
+        d = 1
+        while d < A.shape[0]:
+            # clamp to [A_i, B_i] after clamping to [A_{i-d}, B_{i-d}]: still a clamp
+            pa = np.clip(A[:-d], A[d:], B[d:])
+            pb = np.clip(B[:-d], A[d:], B[d:])
+            A[d:], B[d:] = pa, pb
+            d *= 2
+        runs = np.clip(s0[k], A, B)
+        out[:, k] = np.repeat(runs, np.diff(np.append(starts, n)))
+    return out
+
+
+def directions(nominal_int: np.ndarray, start_int: np.ndarray, initial: np.ndarray | None = None) -> np.ndarray:
+    """Return (P, 5) approach direction +1/-1 of each point per axis (the last move's sign, carried)."""
+    prev = np.vstack([start_int[None, :], nominal_int[:-1]])
+    sgn = np.sign(nominal_int - prev).astype(np.int8)
+    out = np.empty(sgn.shape, dtype=float)
+    idx = np.arange(sgn.shape[0])
+    init = np.ones(sgn.shape[1]) if initial is None else np.asarray(initial, dtype=float)
+    for k in range(sgn.shape[1]):
+        last = np.maximum.accumulate(np.where(sgn[:, k] != 0, idx, -1))
+        out[:, k] = np.where(last >= 0, sgn[np.maximum(last, 0), k], init[k])
+    return out
+
+
+@dataclass(frozen=True)
+class Correction:
+    """The corrections of a run of points: desired (mm / rad), sent (integer units), diagnostics."""
+
+    points: Points
+    #: (P, 5) comp X, Y, Z (mm), comp theta_X, theta_Y (rad) from eqs. 4.23-4.26
+    desired: np.ndarray
+    #: (P, 5) whole resolution steps sent per axis
+    steps: np.ndarray
+    #: (P, 5) commanded pose in the program's integer units
+    sent_int: np.ndarray
+    #: (P,) poses near the A = 90 deg singularity (beta not compensated there)
+    singular: np.ndarray
+    #: (P,) roll about the spindle that five axes cannot cancel (rad)
+    roll: np.ndarray
+    #: (P, 5) approach direction +1/-1 per axis, as given to the model
+    direction: np.ndarray
+
+
+def correct_points(
+    program: Program,
+    points: Points,
+    model: ErrorModel,
+    temperatures: Temperatures,
+    *,
+    resolution_mm: float = RESOLUTION_MM,
+    resolution_deg: float = RESOLUTION_DEG,
+    state: np.ndarray | None = None,
+    prev_nominal: np.ndarray | None = None,
+    prev_direction: np.ndarray | None = None,
+) -> Correction:
+    """Return the quantised corrections of ``points`` for these temperatures.
+
+    ``state`` carries the steps already sent (see ``quantise_carry``), ``prev_nominal`` and
+    ``prev_direction`` the pose and approach directions before the first point, so a program can
+    be corrected in pieces (streaming) with the same result as in one go.
+    """
+    q = program.to_q(points.nominal_int)
+    start = program.start_int if prev_nominal is None else prev_nominal
+    direction = directions(points.nominal_int, start, prev_direction)
+    errors = model.predict(q, temperatures, direction)
+    # angles are put on the machine's grid before the translations are solved, so the
+    # translation offsets include what the rounded angles do (ch. 4.4, eqs. 4.25 then 4.26)
+    result = kinematics.compensate(q, errors, model.dims, resolution_rad=float(np.deg2rad(resolution_deg)))
+    desired = result.q_cmd - q
+    if not np.all(np.isfinite(desired)):
+        raise ValidationError("the model predicts non-finite errors for these temperatures")
+    units = desired / np.where(ROTARY, np.deg2rad(resolution_deg), resolution_mm)
+    whole = np.rint(units)
+    units = np.where(np.abs(units - whole) < 1e-6, whole, units)
+    steps = quantise_carry(units, state)
+    step_int = resolution_units(program, resolution_mm, resolution_deg)
+    sent = points.nominal_int + steps * step_int
+    return Correction(points, desired, steps, sent, result.singular, result.uncompensable_roll, direction)
+
+
+# ----------------------------------------------------------------------------- temperatures
+
+
+@dataclass(frozen=True)
+class TemperatureTable:
+    """Thermocouple scans (bundle v1 temperatures.csv): times and one column per channel, gaps filled."""
+
+    time_s: np.ndarray
+    values: pd.DataFrame  # columns = channels, missing readings carried forward from the last scan
+
+    @classmethod
+    def read_csv(cls, path: str | Path) -> TemperatureTable:
+        """Return the table of a temperatures.csv; ValidationError ``FILE:ROW: problem`` otherwise."""
+        path = Path(path)
+        try:
+            frame = pd.read_csv(path)
+        except FileNotFoundError:
+            raise ValidationError(f"{path}: no such file") from None
+        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+            raise ValidationError(f"{path}: not a temperatures CSV ({' '.join(str(exc).split())})") from None
+        return cls.from_frame(frame, str(path))
+
+    @classmethod
+    def from_frame(cls, frame: pd.DataFrame, name: str = "temperatures") -> TemperatureTable:
+        """Return the table of a frame with ``time_s`` and one column per channel."""
+        if "time_s" not in frame.columns:
+            raise ValidationError(f"{name}:1: no time_s column")
+        if len(frame) == 0:
+            raise ValidationError(f"{name}: no temperature rows")
+        numeric = frame.apply(pd.to_numeric, errors="coerce")
+        bad = numeric.isna() & frame.notna()
+        if bad.to_numpy().any():
+            row, col = np.argwhere(bad.to_numpy())[0]
+            raise ValidationError(f"{name}:{row + 2}: {frame.columns[col]} is not a number ({frame.iat[row, col]!r})")
+        t = numeric["time_s"].to_numpy(float)
+        if not np.all(np.isfinite(t)):
+            raise ValidationError(f"{name}:{int(np.flatnonzero(~np.isfinite(t))[0]) + 2}: time_s missing")
+        back = np.flatnonzero(np.diff(t) < 0)
+        if back.shape[0]:
+            raise ValidationError(f"{name}:{int(back[0]) + 3}: time_s goes backwards")
+        values = numeric.drop(columns=["time_s"]).ffill().reset_index(drop=True)
+        return cls(time_s=t, values=values)
+
+    def latest(self, channels: tuple[str, ...] = ()) -> dict[str, float]:
+        """Return the latest reading of every channel (the last valid one where the last scan lacks it)."""
+        row = self.values.iloc[-1]
+        self._require(channels, row)
+        return {c: float(v) for c, v in row.items()}
+
+    def nearest(self, times_s: np.ndarray, channels: tuple[str, ...] = ()) -> pd.DataFrame:
+        """Return one row per time (the scan nearest to it), with ``time_s`` set to those times."""
+        t = self.time_s
+        i = np.clip(np.searchsorted(t, times_s), 1, max(len(t) - 1, 1))
+        if len(t) > 1:
+            i = np.where(np.abs(t[i - 1] - times_s) <= np.abs(t[i] - times_s), i - 1, i)
+        else:
+            i = np.zeros(len(times_s), dtype=np.int64)
+        rows = self.values.iloc[i].reset_index(drop=True)
+        self._require(channels, rows.iloc[-1] if len(rows) else self.values.iloc[-1])
+        rows.insert(0, "time_s", np.asarray(times_s, dtype=float))
+        return rows
+
+    @staticmethod
+    def _require(channels: tuple[str, ...], row: pd.Series) -> None:
+        """Raise when a channel the model reads has no valid reading."""
+        missing = [c for c in channels if c not in row.index]
+        if missing:
+            raise ValidationError(f"temperatures lack the model's channel(s) {', '.join(missing)}")
+        empty = [c for c in channels if not np.isfinite(row[c])]
+        if empty:
+            raise ValidationError(f"no valid reading yet for channel(s) {', '.join(empty)}")
+
+
+# ----------------------------------------------------------------------------- offline
+
+
+@dataclass(frozen=True)
+class OfflineResult:
+    """A compensated program and what was done to it."""
+
+    text: bytes
+    blocks: int
+    points: int
+    max_correction: dict[str, float]  # per axis, mm or deg, of what was sent
+    singular: int
+    model: str
+    temperatures: str
+
+    def summary(self) -> dict[str, Any]:
+        """Return a JSON-ready summary."""
+        return {
+            "blocks": self.blocks, "points": self.points, "max_correction": self.max_correction,
+            "singular_points": self.singular, "model": self.model, "temperatures": self.temperatures,
+        }
+
+
+def compensate_program(
+    program: Program,
+    model: ErrorModel,
+    temperatures: TemperatureTable | Temperatures,
+    *,
+    resolution_mm: float = RESOLUTION_MM,
+    resolution_deg: float = RESOLUTION_DEG,
+    max_segment_mm: float = 5.0,
+    max_segment_deg: float = 5.0,
+    chunk_points: int = 1 << 17,
+) -> OfflineResult:
+    """Return the program with every block corrected (long G1 segments subdivided first).
+
+    With a ``TemperatureTable``: where the program carries times (``(T=...)`` comments) each
+    point takes the scan nearest its block's time, otherwise the latest scan is used.
+    """
+    points = subdivide(program, max_segment_mm, max_segment_deg)
+    times = program.line_time_s[program.block_line[points.block]]
+    per_point = isinstance(temperatures, TemperatureTable) and points.n > 0 and bool(np.isfinite(times).all())
+    if isinstance(temperatures, TemperatureTable):
+        how = "nearest scan to each block's time" if per_point else "latest scan"
+        fixed = None if per_point else temperatures.latest(model.channels)
+    else:
+        how, fixed = "given", temperatures
+    sent = np.empty_like(points.nominal_int)
+    singular = 0
+    state = None
+    prev_nom = None
+    prev_dir = None
+    for s in range(0, points.n, chunk_points):
+        sub = Points(points.block[s : s + chunk_points], points.nominal_int[s : s + chunk_points])
+        temps = temperatures.nearest(times[s : s + chunk_points], model.channels) if per_point else fixed
+        corr = correct_points(
+            program, sub, model, temps, resolution_mm=resolution_mm, resolution_deg=resolution_deg,
+            state=state, prev_nominal=prev_nom, prev_direction=prev_dir,
+        )
+        sent[s : s + chunk_points] = corr.sent_int
+        singular += int(corr.singular.sum())
+        state = corr.steps[-1]
+        prev_nom = sub.nominal_int[-1]
+        prev_dir = corr.direction[-1]
+    if singular:
+        log.warning("%d point(s) near A = +/-90 deg: beta cannot be compensated there", singular)
+    text = emit_program(program, points, sent)
+    diff = np.abs(sent - points.nominal_int) * program.scale if points.n else np.zeros((1, 5))
+    mx = diff.max(axis=0) if points.n else np.zeros(5)
+    return OfflineResult(
+        text=text, blocks=program.n_blocks, points=points.n,
+        max_correction={a: float(round(v, 6)) for a, v in zip("XYZAB", mx)},
+        singular=singular, model=model.label, temperatures=how,
+    )
+
+
+def compensate_file(
+    program_path: str | Path,
+    model: ErrorModel,
+    temperatures: TemperatureTable | Temperatures,
+    out_path: str | Path,
+    *,
+    start: tuple[float, ...] | None = None,
+    resolution_mm: float = RESOLUTION_MM,
+    resolution_deg: float = RESOLUTION_DEG,
+    max_segment_mm: float = 5.0,
+    max_segment_deg: float = 5.0,
+) -> OfflineResult:
+    """Parse, correct and write a program; nothing is written when the program does not parse."""
+    program_path = Path(program_path)
+    try:
+        data = program_path.read_bytes()
+    except OSError as exc:
+        raise ValidationError(f"{program_path}: {exc.strerror or exc}") from None
+    program = parse_program(
+        data, name=str(program_path), start=start, min_decimals=decimals_for(resolution_mm, resolution_deg)
+    )
+    result = compensate_program(
+        program, model, temperatures, resolution_mm=resolution_mm, resolution_deg=resolution_deg,
+        max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
+    )
+    out_path = Path(out_path)
+    tmp = out_path.with_name(out_path.name + ".part")
+    tmp.write_bytes(result.text)
+    tmp.replace(out_path)
+    return result

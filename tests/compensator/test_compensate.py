@@ -1,0 +1,227 @@
+"""Correction engine: planted errors cancelled, sub-resolution carry, temperatures per block, files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from driftlab.compensator.compensate import (
+    ErrorModel,
+    TemperatureTable,
+    compensate_file,
+    compensate_program,
+    correct_points,
+    quantise_carry,
+)
+from driftlab.compensator.gcode import Points, parse_program, subdivide
+from driftlab.errors import ValidationError
+from driftlab.models import kinematics as k
+
+RES_MM, RES_DEG = 0.0025, 0.001
+
+#: a constant error field on the links and joints ahead of the rotary table (mm, rad)
+PLANTED = {
+    "T1": np.array([2e-5, -3e-5, 0.0, 0.021, -0.016, 0.034]),
+    "phi_y": np.array([0.0, 1e-5, 0.0, 0.0, 0.011, 0.0]),
+    "phi_x": np.array([-1e-5, 0.0, 0.0, 0.013, 0.0, -0.007]),
+    "T3": np.array([0.0, 0.0, 0.0, 0.0, 0.0, -0.019]),
+}
+
+
+def constant_model(errors=PLANTED) -> ErrorModel:
+    """Return a model that predicts the same element errors everywhere."""
+
+    def predict(q, temps, direction):
+        return {e: np.tile(v, (q.shape[0], 1)) for e, v in errors.items()}
+
+    return ErrorModel(predict)
+
+
+PROGRAM = (
+    "%\n(five-axis test path)\nG90 G21 G1 F2000\n"
+    "X-120.0 Y80.0 Z-150.0 A0.0 B0.0\n"
+    "X-60.5 Y40.25 Z-120.0 A12.5 B-30.0\n"
+    "X0 Y0 Z-100 A25.0 B15.0\n"
+    "X75.125 Y-50 Z-130 A-20.0 B45.0\n"
+    "G91 X10 Y10 A5 B-5\n"
+    "G90 G0 Z0\nM30\n%\n"
+)
+
+
+def _workspace_translation(q_cmd: np.ndarray, q_nom: np.ndarray, errors) -> np.ndarray:
+    """Return the (N, 3) tool-versus-part offset: real chain at q_cmd against ideal chain at q_nom."""
+    T_real = k.machine_chain(q_cmd, errors)
+    T_ideal = k.ideal_chain(q_nom)
+    W = T_real @ k.affine_inverse(T_ideal)
+    return W[:, :3, 3]
+
+
+def test_planted_error_field_is_cancelled_within_resolution():
+    p = parse_program(PROGRAM, "t.nc")
+    result = compensate_program(p, constant_model(), {}, max_segment_mm=20.0, max_segment_deg=10.0)
+    back = parse_program(result.text, "out.nc")
+    pts = subdivide(p, 20.0, 10.0)
+    assert back.n_blocks == pts.n > p.n_blocks  # long segments were cut
+    n = pts.n
+    errors = {e: np.tile(v, (n, 1)) for e, v in PLANTED.items()}
+    q_nom = p.to_q(pts.nominal_int)
+    before = _workspace_translation(q_nom, q_nom, errors)
+    after = _workspace_translation(back.to_q(back.target_int), q_nom, errors)
+    assert np.abs(before).max() > 5 * RES_MM  # the planted field matters
+    assert np.abs(after).max() <= RES_MM * 1.001
+    # orientation: alpha, beta of the work-space error within half an angular step
+    T_real = k.machine_chain(back.to_q(back.target_int), errors)
+    W = T_real @ k.affine_inverse(k.ideal_chain(q_nom))
+    ab = k.htm_to_params(W)[:, :2]
+    assert np.abs(ab).max() <= 0.5 * np.deg2rad(RES_DEG) * 1.001
+    assert result.max_correction["X"] > 0.01
+
+
+def test_sub_resolution_corrections_accumulate_and_then_step():
+    # a scale error of 1e-4 mm per mm on X: the correction creeps by 0.0001 mm per 1 mm block
+    def predict(q, temps, direction):
+        e = np.zeros((q.shape[0], 6))
+        e[:, 3] = 1e-4 * q[:, 0]
+        return {"phi_x": e}
+
+    lines = ["G1 X0.0"] + [f"X{i}.0" for i in range(1, 61)]
+    text = "\n".join(lines) + "\n"
+    p = parse_program(text)
+    out = compensate_program(p, ErrorModel(predict), {}).text.decode().splitlines()
+    # nothing sent while the accumulated correction is below 0.0025 mm ...
+    assert out[:25] == lines[:25]
+    # ... then whole steps, the remainder carried over
+    assert out[25] == "X24.9975"
+    assert out[49] == "X48.9975"
+    assert out[50] == "X49.995"
+    back = parse_program("\n".join(out) + "\n")
+    sent = back.target_int[:, 0] * back.scale[0]
+    desired = -1e-4 * np.arange(61) / (1 + 1e-4)
+    assert np.all(np.abs(sent - np.arange(61) - desired) < RES_MM)
+
+
+def _reference_carry(u: np.ndarray, s0: np.ndarray) -> np.ndarray:
+    """Return the sequential definition: s = s_prev + trunc(u - s_prev)."""
+    out = np.empty(u.shape, dtype=np.int64)
+    prev = s0.copy()
+    for i in range(u.shape[0]):
+        prev = prev + np.trunc(u[i] - prev).astype(np.int64)
+        out[i] = prev
+    return out
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 300), st.floats(0.01, 3.0), st.integers(1, 300))
+def test_carry_quantiser_matches_sequential_definition_in_pieces(seed, n, sigma, cut):
+    rng = np.random.default_rng(seed)
+    u = np.cumsum(rng.normal(0, sigma, (n, 5)), axis=0)
+    exact = rng.random(n) < 0.1
+    u[exact] = np.round(u[exact])  # on the grid exactly: floor == ceil
+    s0 = rng.integers(-3, 4, 5)
+    ref = _reference_carry(u, s0)
+    np.testing.assert_array_equal(quantise_carry(u, s0), ref)
+    assert np.all(np.abs(u - ref) < 1)
+    cut = min(cut, n)
+    first = quantise_carry(u[:cut], s0)
+    second = quantise_carry(u[cut:], first[-1])
+    np.testing.assert_array_equal(np.vstack([first, second]), ref)
+
+
+def test_streaming_in_pieces_equals_one_go():
+    p = parse_program(PROGRAM)
+    pts = subdivide(p, 7.0, 3.0)
+    model = constant_model()
+    whole = correct_points(p, pts, model, {})
+    cut = pts.n // 2
+    a = correct_points(p, Points(pts.block[:cut], pts.nominal_int[:cut]), model, {})
+    b = correct_points(
+        p, Points(pts.block[cut:], pts.nominal_int[cut:]), model, {},
+        state=a.steps[-1], prev_nominal=pts.nominal_int[cut - 1], prev_direction=a.direction[-1],
+    )
+    np.testing.assert_array_equal(np.vstack([a.sent_int, b.sent_int]), whole.sent_int)
+    np.testing.assert_array_equal(np.vstack([a.direction, b.direction]), whole.direction)
+
+
+def _temperature_model() -> ErrorModel:
+    """Return a model whose spindle-head growth follows channel T9: dz = 0.01 mm/degC above 20 degC."""
+
+    def predict(q, temps, direction):
+        t9 = np.asarray(temps["T9"], dtype=float)
+        e = np.zeros((q.shape[0], 6))
+        e[:, 5] = 0.01 * (np.broadcast_to(t9, (q.shape[0],)) - 20.0)
+        return {"T1": e}
+
+    return ErrorModel(predict, channels=("T9",))
+
+
+def test_latest_scan_or_nearest_scan_per_block_time(tmp_path):
+    csv = tmp_path / "temperatures.csv"
+    pd.DataFrame({"time_s": [0.0, 100.0, 200.0], "T9": [20.0, 22.0, np.nan], "T49": [19.0, 19.5, 19.7]}).to_csv(
+        csv, index=False
+    )
+    table = TemperatureTable.read_csv(csv)
+    assert table.latest() == {"T9": 22.0, "T49": 19.7}  # missing reading carried forward
+    timed = "(T=0)\nG1 X0 Z0\n(T=90)\nZ-10\n(T=190)\nZ-20\n"
+    p = parse_program(timed)
+    out = compensate_program(p, _temperature_model(), table, max_segment_mm=50).text.decode().splitlines()
+    # T1 dz grows the head by +dz: the compensation lowers Z by the same amount
+    assert out[1] == "G1 X0 Z0"  # 20 degC at t = 0: no error
+    assert out[3] == "Z-10.02"  # nearest scan to t = 90 s: 22 degC
+    assert out[5] == "Z-20.02"
+    plain = parse_program("G1 X0 Z0\nZ-10\n")
+    out = compensate_program(plain, _temperature_model(), table, max_segment_mm=50)
+    assert out.text.decode().splitlines() == ["G1 X0 Z-0.02", "Z-10.02"]
+    assert out.temperatures == "latest scan"
+
+
+@pytest.mark.parametrize(
+    "content,needle",
+    [
+        ("time_s,T9\n0,20\n-5,21\n", ":3: time_s goes backwards"),
+        ("time_s,T9\n0,abc\n", ":2: T9 is not a number"),
+        ("T9\n20\n", ":1: no time_s column"),
+    ],
+)
+def test_bad_temperature_file(tmp_path, content, needle):
+    path = tmp_path / "t.csv"
+    path.write_text(content)
+    with pytest.raises(ValidationError, match=needle):
+        TemperatureTable.read_csv(path)
+
+
+def test_model_channel_without_reading_is_refused(tmp_path):
+    table = TemperatureTable.from_frame(pd.DataFrame({"time_s": [0.0], "T49": [20.0]}))
+    with pytest.raises(ValidationError, match="T9"):
+        compensate_program(parse_program("G1 X1\n"), _temperature_model(), table)
+
+
+def test_bad_program_writes_nothing(tmp_path):
+    src = tmp_path / "bad.nc"
+    src.write_text("G1 X1\nG1 X2\nG3 X1 Y1 R5\n")
+    out = tmp_path / "out.nc"
+    with pytest.raises(ValidationError) as exc:
+        compensate_file(src, constant_model(), {}, out)
+    assert f"{src}:3:" in str(exc.value)
+    assert not out.exists() and not list(tmp_path.glob("out.nc*"))
+
+
+def test_registry_document_drives_the_correction(tmp_path):
+    doc = {
+        "machine": "vmc-5ax-01",
+        "version": 3,
+        "inputs": {"T9": {"reference": 20.0, "min": 15.0, "max": 40.0}},
+        "terms": [
+            {"element": "T1", "param": "dz", "features": [{"kind": "dT", "name": "dT[T9]", "channels": ["T9"]}],
+             "coefficients": [0.01], "statistics": {"rmse_train": 0.001}},
+        ],
+    }
+    model = ErrorModel.from_document(doc)
+    assert model.label == "vmc-5ax-01 v3" and model.channels == ("T9",)
+    src = tmp_path / "p.nc"
+    src.write_text("G1 X0 Z0\nZ-4\n")
+    result = compensate_file(src, model, {"T9": 25.0}, tmp_path / "o.nc")
+    assert (tmp_path / "o.nc").read_text().splitlines() == ["G1 X0 Z-0.05", "Z-4.05"]
+    assert result.max_correction["Z"] == pytest.approx(0.05)
