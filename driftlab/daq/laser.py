@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, Reading
+from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, ErrorSample, Reading
 from driftlab.daq.retry import RetryPolicy
 from driftlab.daq.transport import LineChannel, VisaPort
 from driftlab.errors import InstrumentError, ValidationError
@@ -162,18 +162,6 @@ def _parse_env(text: str) -> Environment:
     if not (-10 <= env.t_c <= 50 and 60e3 <= env.pressure_pa <= 115e3 and 0 <= env.rh_percent <= 100):
         raise ValueError("environment out of range")
     return env
-
-
-@dataclass(frozen=True)
-class ErrorSample:
-    """One measured point of an error sweep (a row of errors.csv)."""
-
-    axis: str
-    term: str
-    position: float
-    direction: int
-    value: float
-    flag: str | None = None
 
 
 class LaserInterferometer:

@@ -54,6 +54,23 @@ class TemperatureScan:
 
 
 @dataclass(frozen=True)
+class ErrorSample:
+    """One measured point of an error sweep (a row of errors.csv); NaN plus a flag when missing."""
+
+    axis: str
+    term: str
+    position: float
+    direction: int
+    value: float
+    flag: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        """Return True when the sample is a valid measurement."""
+        return self.flag is None and math.isfinite(self.value)
+
+
+@dataclass(frozen=True)
 class SphereMeasurement:
     """A probed sphere: centre (mm, machine coordinates), fitted radius and fit residual."""
 
@@ -100,6 +117,14 @@ class AngleMeter(Protocol):
 
     def read_angle(self) -> Reading:
         """Return the angle in rad (NaN plus flag when it could not be measured)."""
+
+
+@runtime_checkable
+class ErrorMeter(Protocol):
+    """Measures one work-space error term of an axis at a commanded position (the laser, table 5.3)."""
+
+    def measure_error(self, axis: str, term: str, position: float, direction: int) -> ErrorSample:
+        """Return the error (mm or rad) at ``position`` approached from ``direction``."""
 
 
 @runtime_checkable

@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from driftlab.daq.laser import LaserInterferometer
+from driftlab.daq.laser import LaserInterferometer, air_refractive_index, fringes_to_value
 from driftlab.daq.machine_link import SerialMachineLink
 from driftlab.daq.probe import LobingMap, SpindleBarMeter, TouchProbe
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_OPEN, FLAG_REFERENCE_LOST
@@ -300,5 +300,31 @@ def test_spindle_bar_array_follows_the_world(rm, world, clock):
                 assert out[term].value == pytest.approx(err[term], abs=2e-9)
             for term in ("dx", "dy"):
                 assert out[term].value == pytest.approx(err[term], abs=2e-7)
+        finally:
+            ch.close()
+
+
+def test_laser_datum_survives_a_pc_restart(rm, world, clock):
+    stage = FixedStage()
+    clock.advance_to(600.0)
+    with SimLaser(world, clock, stage) as sim:
+        ch = _visa_channel(rm, sim)
+        try:
+            laser = LaserInterferometer(ch, sleep=clock.sleep)
+            laser.configure("Y", "dy")
+            assert sim.datum() is None
+            laser.reference(0.0)
+            saved = sim.datum()
+            assert saved == {"t_s": 600.0, "position": 0.0, "error": world.measure_error(600.0, "Y", 0.0, 1)["dy"]}
+            # a new PC session re-sends the set-up, which clears the head; the saved datum is put back
+            again = LaserInterferometer(ch, sleep=clock.sleep)
+            again.configure("Y", "dy")
+            sim.restore_datum(**saved)
+            stage.move("Y", 100.0, 1)
+            raw = again._io.query("MEAS?", lambda s: float(s.split(",")[0]))
+            n_air = float(air_refractive_index(20.0, 101325.0, 50.0))
+            expected = 100.0 + world.measure_error(clock.now(), "Y", 100.0, 1)["dy"] - saved["error"]
+            assert float(fringes_to_value("LIN", raw, n_air)) == pytest.approx(expected, abs=1e-7)
+            assert sim.datum() == saved
         finally:
             ch.close()

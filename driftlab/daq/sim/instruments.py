@@ -452,6 +452,17 @@ class SimLaser(LineServer):
         with self._lock:
             self.beam = "ok"
 
+    def datum(self) -> dict[str, float] | None:
+        """Return the head's present datum (time, position and error at REF), or None before any."""
+        with self._lock:
+            ref = self._ref
+            return None if ref is None else {"t_s": ref.t_s, "position": ref.position, "error": ref.error}
+
+    def restore_datum(self, t_s: float, position: float, error: float) -> None:
+        """Put a saved datum back (a head that kept its count while the PC restarted)."""
+        with self._lock:
+            self._ref = _LaserRef(float(t_s), float(position), float(error))
+
     def _air_c(self, t: float) -> float:
         return room_air_c(self.world, t)
 
