@@ -1,0 +1,629 @@
+"""Diagnosis: where the simulation departs from the data, which catalogued effect causes it, and the gain.
+
+``diagnose_bundle(bundle)`` runs, per (axis, term) of the bundle:
+
+1. simulation vs data: the time-driven laws of Appendix A (eqs. A1-A3: a
+   function of time and position only) calibrated to the measured errors, and
+   computed sentences on where they depart from them;
+2. the standard model of spec section 2 (``standard_model``);
+3. a forward search over the effect catalogue (``effects``): every candidate
+   of every kind, channel and term screened by a nested-model F test on the
+   training rows with Bonferroni control over the whole family at
+   ``alpha`` (0.01), confirmed by a cluster-robust Wald test (clusters = blocks
+   of whole sweeps in time: residuals of a sweep and its neighbours are
+   correlated), and accepted only if it also lowers the held-out RMSE by at
+   least ``min_gain`` (10 %); the best accepted effect is added, the model
+   refitted and the search repeated;
+4. the extended model and its held-out gain.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import statsmodels.api as sm
+from scipy import optimize
+
+from driftlab.models.effects import (
+    N_TAU,
+    Candidate,
+    FaultScan,
+    Scored,
+    TermContext,
+    build_candidates,
+    build_context,
+    lag_bank_for,
+    refine_tau,
+    scan_sensor_faults,
+    screen,
+    tau_bounds,
+)
+from driftlab.models.standard_model import (
+    LinearFit,
+    OutlierFlags,
+    PreparedBundle,
+    StandardModel,
+    TermData,
+    fit_columns,
+    fit_standard_model,
+    lstsq,
+    meta_get,
+    prepare_bundle,
+    rmse,
+    robust_sigma,
+)
+
+log = logging.getLogger(__name__)
+
+FORMAT = "driftlab-diagnosis/1"
+
+THESIS = {
+    "reversal": "3.3, 5.5, 5.8",
+    "screw_expansion": "3.5 eq. 3.2, Fig. 5.14",
+    "unmapped_channel": "4.3",
+    "thermal_lag": "2.4.2, 8.3",
+    "sensor_fault": "6.4.2, 6.6",
+    "drift": "3.2, 6.4.3",
+    "quadratic": "6.4.2",
+}
+
+
+def _fmt(value: float, unit: str) -> str:
+    """Return a value in display units: um for mm, urad for rad."""
+    if unit == "rad":
+        return f"{value * 1e6:.3g} urad"
+    return f"{value * 1e3:.3g} um"
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. simulation vs data
+
+
+@dataclass
+class SimulationComparison:
+    """The Appendix A time-driven law calibrated to one (axis, term) and what it gets wrong."""
+
+    axis: str
+    term: str
+    unit: str
+    rmse: float
+    tau_s: float
+    gains: dict[str, float]
+    gets_wrong: str
+    predicted: np.ndarray
+    residual: np.ndarray
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the spec's ``simulation[]`` entry (angles: rad under the same key)."""
+        return {"axis": self.axis, "term": self.term, "rmse_mm": self.rmse, "gets_wrong": self.gets_wrong,
+                "unit": self.unit, "tau_s": self.tau_s}
+
+
+def _law_design(t: np.ndarray, x: np.ndarray, tau_s: float, with_position: bool) -> np.ndarray:
+    """Return the A1-A3 law shape with free gains: [1, x, g(t), x g(t)], g = 1 - exp(-t/tau)."""
+    g = 1.0 - np.exp(-t / tau_s)  # eqs. A1-A3: 0.3 (static) + 0.7 (1 - e^{-t/tau}) (thermal)
+    cols = [np.ones_like(t), g]
+    if with_position:
+        cols += [x, x * g]
+    return np.column_stack(cols)
+
+
+def calibrate_time_law(td: TermData) -> tuple[float, np.ndarray, np.ndarray]:
+    """Return (tau_s, coefficients, prediction) of the Appendix A law calibrated to the term's errors.
+
+    The law is the shape of eqs. A1 (links: K_L [0.3 + 0.7 (1 - e^{-t/tau})]), A2
+    (translational joints: K_T [0.3 x + 0.7 x_max (1 - e^{-t/tau})]) and A3 (rotary
+    joints, same with theta): linear in the gains, which are fitted by least
+    squares, and in tau, found by a bounded 1-D search on log tau. It uses time
+    and position only: no temperatures.
+    """
+    t = td.t
+    x = td.pos
+    with_pos = np.unique(np.round(x, 9)).size > 1
+    span = max(float(t[-1]), 600.0)
+
+    def rss(log_tau: float) -> float:
+        A = _law_design(t, x, float(np.exp(log_tau)), with_pos)
+        b = lstsq(A, td.y)
+        r = td.y - A @ b
+        return float(r @ r)
+
+    grid = np.linspace(np.log(60.0), np.log(10 * span), 25)
+    vals = [rss(v) for v in grid]
+    i = int(np.argmin(vals))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded")
+    log_tau = float(res.x) if res.fun <= vals[i] else float(grid[i])
+    tau = float(np.exp(log_tau))
+    A = _law_design(t, x, tau, with_pos)
+    b = lstsq(A, td.y)
+    return tau, b, A @ b
+
+
+def _stage_rows(stages: list[dict[str, Any]], t: np.ndarray) -> list[tuple[dict[str, Any], np.ndarray]]:
+    """Return (stage, row indices) for every stage with at least 5 rows."""
+    out = []
+    for st in stages:
+        idx = np.flatnonzero((t >= float(st.get("start_s", 0))) & (t <= float(st.get("end_s", 0))))
+        if idx.size >= 5:
+            out.append((st, idx))
+    return out
+
+
+def _change(y: np.ndarray) -> float:
+    """Return the change over a stretch: median of its last tenth minus median of its first tenth."""
+    k = max(1, y.size // 10)
+    return float(np.median(y[-k:]) - np.median(y[:k]))
+
+
+def simulation_sentences(td: TermData, prep: PreparedBundle, pred: np.ndarray, noise: float) -> str:
+    """Return computed sentences saying where the calibrated time-driven law departs from the data."""
+    u = td.unit
+    r = td.y - pred
+    parts: list[str] = []
+    stage_rows = _stage_rows(prep.stages, td.t)
+    if stage_rows:
+        worst = max(stage_rows, key=lambda sr: rmse(r[sr[1]]))
+        parts.append(f"residual RMS {_fmt(rmse(r), u)}, largest during stage {worst[0].get('name')} "
+                     f"({_fmt(rmse(r[worst[1]]), u)})")
+        # stages where the data and the law move in opposite directions (a cooling the law cannot show)
+        best = None
+        for st, idx in stage_rows:
+            dy, ds = _change(td.y[idx]), _change(pred[idx])
+            miss = abs(dy - ds)
+            if miss > max(3 * noise, 0.2 * np.ptp(td.y)) and (best is None or miss > best[0]):
+                best = (miss, st, dy, ds)
+        if best is not None:
+            _, st, dy, ds = best
+            verb = "falls" if dy < 0 else "rises"
+            law = "stays flat" if abs(ds) < 0.25 * abs(dy) else ("keeps rising" if ds > 0 else "keeps falling")
+            source = st.get("heat_source", "?")
+            when = "when the heat sources stop" if source in ("none", "off", "") else f"under {source} heating"
+            parts.append(f"the error {verb} by {_fmt(abs(dy), u)} {when} (stage {st.get('name')}) "
+                         f"but the time-driven law {law} ({_fmt(ds, u)})")
+    else:
+        parts.append(f"residual RMS {_fmt(rmse(r), u)}")
+    dirs = np.unique(td.direction)
+    if dirs.size > 1:
+        a, b = r[td.direction > 0], r[td.direction < 0]
+        diff = float(np.mean(a) - np.mean(b))
+        se = float(np.sqrt(np.var(a) / a.size + np.var(b) / b.size))
+        if abs(diff) > max(3 * noise / np.sqrt(min(a.size, b.size)), 5 * se) and abs(diff) > noise:
+            parts.append(f"the two approach directions disagree by {_fmt(abs(diff), u)}")
+    if np.unique(np.round(td.pos, 9)).size >= 3:
+        slopes, temps = [], []
+        for s in np.unique(td.sweep):
+            idx = np.flatnonzero(td.sweep == s)
+            if np.unique(td.pos[idx]).size >= 3:
+                A = np.column_stack([np.ones(idx.size), td.pos[idx]])
+                slopes.append(lstsq(A, r[idx])[1])
+                temps.append(np.nanmean(td.temps[idx] - td.temps[0], axis=0))
+        if len(slopes) >= 8:
+            S, Tm = np.array(slopes), np.array(temps)
+            ok = np.all(np.isfinite(Tm), axis=0) & (np.ptp(Tm, axis=0) > 0)
+            if ok.any() and np.ptp(S) > 0:
+                cors = np.array([abs(np.corrcoef(S, Tm[:, j])[0, 1]) if ok[j] else 0.0 for j in range(Tm.shape[1])])
+                j = int(np.argmax(cors))
+                if cors[j] > 0.7:
+                    k = lstsq(np.column_stack([np.ones(S.size), Tm[:, j]]), S)[1]
+                    parts.append(f"the slope along the axis changes with temperature "
+                                 f"({_fmt(k * 1000, u)}/m per degC of {prep.channels[j]}, r = {cors[j]:.2f})")
+    D = td.temps - td.temps[0]
+    okc = np.all(np.isfinite(D), axis=0) & (np.ptp(np.nan_to_num(D), axis=0) > 0)
+    if okc.any() and np.ptp(r) > 0:
+        cors = np.array([abs(np.corrcoef(r, D[:, j])[0, 1]) if okc[j] else 0.0 for j in range(D.shape[1])])
+        j = int(np.argmax(cors))
+        if cors[j] > 0.5:
+            parts.append(f"what it misses follows the temperature of {prep.channels[j]} (r = {cors[j]:.2f}), "
+                         f"which a law in time alone cannot")
+    text = "; ".join(parts)
+    return text[0].upper() + text[1:] + "."
+
+
+def compare_simulation(td: TermData, prep: PreparedBundle, noise: float) -> SimulationComparison:
+    """Return the calibrated Appendix A law of one (axis, term) compared with its measured errors."""
+    tau, b, pred = calibrate_time_law(td)
+    names = ["offset", "thermal_gain", "slope", "slope_thermal_gain"][: b.size]
+    return SimulationComparison(td.axis, td.term, td.unit, rmse(td.y - pred), tau,
+                                dict(zip(names, (float(v) for v in b))),
+                                simulation_sentences(td, prep, pred, noise), pred, td.y - pred)
+
+
+# ---------------------------------------------------------------------------------------------
+# effects
+
+
+@dataclass
+class Effect:
+    """An accepted effect: what it is, its statistics, its held-out gain and the regressor it adds."""
+
+    kind: str
+    axis: str
+    term: str
+    channels: list[str]
+    params: dict[str, Any]
+    p_value: float
+    cause: str
+    rmse_holdout_before: float
+    rmse_holdout_after: float
+    F: float
+    p_naive: float
+    p_robust: float
+    names: list[str]
+    columns: np.ndarray  # (n, k): the regressor(s) the effect adds, at the term's error times
+    time_s: np.ndarray
+    residual_before: np.ndarray
+    contribution: np.ndarray  # the fitted effect at the error times
+    position: np.ndarray
+    direction: np.ndarray
+    train: np.ndarray
+    replaces: str | None = None  # sensor_fault: the dT column it replaces
+
+    @property
+    def gain(self) -> float:
+        """Return the relative held-out RMSE reduction of this effect."""
+        return 1.0 - self.rmse_holdout_after / self.rmse_holdout_before
+
+    def regressor_frame(self) -> pd.DataFrame:
+        """Return the regressor(s) this effect adds, by error sample, for folding into the next fit."""
+        frame = pd.DataFrame({"time_s": self.time_s, "position": self.position, "direction": self.direction})
+        for i, name in enumerate(self.names):
+            frame[name] = self.columns[:, i]
+        return frame
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the spec's ``effects[]`` entry."""
+        return {"kind": self.kind, "axis": self.axis, "term": self.term, "channels": list(self.channels),
+                "params": self.params, "p_value": self.p_value, "cause": self.cause,
+                "rmse_holdout_before": self.rmse_holdout_before, "rmse_holdout_after": self.rmse_holdout_after}
+
+
+@dataclass
+class TermDiagnosis:
+    """Everything the diagnosis found for one (axis, term)."""
+
+    td: TermData
+    standard: StandardModel
+    simulation: SimulationComparison
+    effects: list[Effect]
+    extended: LinearFit
+    extended_names: list[str]
+    extended_X: np.ndarray
+
+    def baseline_dict(self) -> dict[str, Any]:
+        """Return the spec's ``baseline[]`` entry."""
+        f = self.standard.fit
+        return {"axis": self.td.axis, "term": self.td.term, "rmse_train": f.rmse_train,
+                "rmse_holdout": f.rmse_holdout, "unit": self.td.unit, "channels": self.standard.channels,
+                "channel_source": self.standard.selection.source}
+
+    def extended_dict(self) -> dict[str, Any]:
+        """Return the spec's ``extended[]`` entry."""
+        f = self.extended
+        return {"axis": self.td.axis, "term": self.td.term, "rmse_train": f.rmse_train,
+                "rmse_holdout": f.rmse_holdout, "unit": self.td.unit}
+
+
+@dataclass
+class DiagnosisResult:
+    """The diagnosis of one bundle: simulation, baseline, effects, extended models, flags and timings."""
+
+    bundle: str
+    holdout_fraction: float
+    holdout_start_s: float
+    terms: list[TermDiagnosis]
+    flags: list[OutlierFlags]
+    alpha_family: float
+    n_hypotheses: int
+    min_gain: float
+    timings_s: dict[str, float] = field(default_factory=dict)
+    faults: dict[str, FaultScan] = field(default_factory=dict)
+
+    @property
+    def effects(self) -> list[Effect]:
+        """Return every accepted effect, in (axis, term, acceptance) order."""
+        return [e for td in self.terms for e in td.effects]
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """Return the diagnosis report v1 (spec section 4) as a JSON-ready dict."""
+        from driftlab.models.diagnosis_report import to_json_dict
+
+        return to_json_dict(self)
+
+    def to_html(self) -> str:
+        """Return a self-contained HTML page with the residual plot and cause of every finding."""
+        from driftlab.models.diagnosis_report import to_html
+
+        return to_html(self)
+
+
+def _noise_level(prep: PreparedBundle, td: TermData, std: StandardModel) -> float:
+    """Return the measurement noise of a term: the bundle's stated repeatability, else a robust estimate."""
+    stated = prep.noise.get("angle_rad" if td.unit == "rad" else "length_mm")
+    if stated:
+        return float(stated)
+    return robust_sigma(np.diff(std.fit.residual[td.train])) / np.sqrt(2.0)
+
+
+def _clusters(td: TermData, n_blocks: int = 40) -> np.ndarray:
+    """Return cluster labels for the training rows: ~``n_blocks`` blocks of whole sweeps in time."""
+    tr = td.train
+    t = td.t[tr]
+    sw = td.sweep[tr]
+    _, first, inverse = np.unique(sw, return_index=True, return_inverse=True)
+    starts = t[first][inverse]
+    span = max(float(t[-1] - t[0]), 1e-9)
+    return np.minimum((starts - t[0]) / span * n_blocks, n_blocks - 1).astype(int)
+
+
+def robust_pvalue(X: np.ndarray, y: np.ndarray, td: TermData, new_cols: list[int]) -> float:
+    """Return the cluster-robust (blocks of sweeps) Wald-test p-value of ``new_cols`` on the training rows."""
+    tr = td.train
+    Xt = X[tr]
+    s = np.sqrt(np.mean(Xt * Xt, axis=0))
+    s = np.where(s > 0, s, 1.0)
+    groups = _clusters(td)
+    if np.unique(groups).size < 5:
+        res = sm.OLS(y[tr], Xt / s).fit()
+    else:
+        res = sm.OLS(y[tr], Xt / s).fit(cov_type="cluster", cov_kwds={"groups": groups}, use_t=True)
+    R = np.zeros((len(new_cols), X.shape[1]))
+    for i, c in enumerate(new_cols):
+        R[i, c] = 1.0
+    test = res.wald_test(R, use_f=True, scalar=True)
+    p = float(np.squeeze(test.pvalue))
+    return p if np.isfinite(p) else 1.0
+
+
+def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], params: dict[str, Any],
+           coef: float, fault: FaultScan | None) -> str:
+    """Return the plain-language cause of an effect, with its numbers and thesis section."""
+    u = td.unit
+    where = ""
+    if channels:
+        ch = channels[0]
+        loc = _channel_location(prep, ch)
+        where = f"{ch}" + (f" ({loc})" if loc else "")
+    sec = THESIS[kind]
+    if kind == "reversal":
+        return (f"Backlash / reversal error: the {td.axis}-axis {td.term} reads "
+                f"{_fmt(abs(params['magnitude_' + u]), u)} differently depending on the approach direction: "
+                f"play in the ballscrew nut or drive train (thesis {sec}).")
+    if kind == "screw_expansion":
+        return (f"Ballscrew expansion: the {td.axis}-axis {td.term} grows along the axis in proportion to "
+                f"position x the temperature rise at {where} ({_fmt(coef, u)} per mm per degC): the screw "
+                f"pitch lengthens as the screw warms (thesis {sec}).")
+    if kind == "unmapped_channel":
+        return (f"A heat source outside the model reaches this link: {td.axis}/{td.term} follows {where}, "
+                f"which is not among the model channels ({_fmt(coef, u)} per degC) (thesis {sec}).")
+    if kind == "thermal_lag":
+        return (f"Thermal lag: the deforming structure follows {where} with a first-order delay of "
+                f"{params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {sec}).")
+    if kind == "sensor_fault":
+        nb = ", ".join(fault.neighbours[:4]) if fault else "its neighbours"
+        how = "its lead broke (open circuit)" if params["mode"] == "open" else "it came loose from the structure"
+        return (f"Sensor fault: thermocouple {where} departs from its virtual sensor (predicted from {nb}) "
+                f"from t = {params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
+                f"the structure and the virtual-sensor estimate restores the model (thesis {sec}).")
+    if kind == "drift":
+        return (f"A slow drift not explained by temperature of {_fmt(params['rate_per_day'], u)} per day: "
+                f"wear, settling or material instability (thesis {sec}).")
+    return (f"Nonlinear thermal response: {td.axis}/{td.term} grows with the square of the temperature rise at "
+            f"{where} ({_fmt(coef, u)} per degC^2) (thesis {sec}).")
+
+
+def _channel_location(prep: PreparedBundle, ch: str) -> str:
+    """Return the channel's stated location, '' when unspecified."""
+    return prep.channel_locations.get(ch, "") if hasattr(prep, "channel_locations") else ""
+
+
+@dataclass
+class _State:
+    """The current model of one (axis, term) during forward selection."""
+
+    X: np.ndarray
+    names: list[str]
+    fit: LinearFit
+    effects: list[Effect]
+
+
+def _materialise(sc: Scored, ctx: TermContext, state: _State) -> tuple[Candidate, np.ndarray, dict[str, Any]]:
+    """Return the candidate with its final columns (refined tau for lags) and parameter hints."""
+    cand = sc.cand
+    hint = dict(cand.hint)
+    if cand.kind == "thermal_lag":
+        tau, col = refine_tau(ctx, cand.channels[0], sc.col_index, state.X)
+        hint["tau_s"] = tau
+        return cand, col[:, None], hint
+    return cand, cand.cols, hint
+
+
+def _extension(cand: Candidate, cols: np.ndarray, state: _State) -> tuple[np.ndarray, list[str], list[int]]:
+    """Return the design with the candidate in (sensor_fault: the faulty dT replaced) and its new columns."""
+    if cand.replace is not None:
+        ch, rep = cand.replace
+        name = f"dT_{ch}"
+        X = state.X.copy()
+        if name in state.names:
+            k = state.names.index(name)
+            X[:, k] = rep
+            return X, list(state.names), [k]
+    X = np.column_stack([state.X, cols])
+    names = list(state.names) + list(cand.names)
+    return X, names, list(range(state.X.shape[1], X.shape[1]))
+
+
+def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermData) -> tuple[dict[str, Any], float]:
+    """Return the catalogue parameters of an accepted candidate from its fitted coefficient(s)."""
+    u = td.unit
+    c = float(coef[0]) if coef.size else float("nan")
+    k = cand.kind
+    if k == "reversal":
+        return {f"magnitude_{u}": 2.0 * c}, c  # full span between the two directions
+    if k == "screw_expansion":
+        return {"coef_per_mm_degC": c}, c
+    if k == "unmapped_channel":
+        return {"coef_per_degC": c}, c
+    if k == "thermal_lag":
+        return {"tau_s": float(hint["tau_s"]), "coef_per_degC": c}, c
+    if k == "sensor_fault":
+        return {"start_s": float(hint["start_s"]), "mode": hint["mode"]}, c
+    if k == "drift":
+        return {"rate_per_day": c}, c
+    return {"coef_per_degC2": c}, c
+
+
+def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_gain: float,
+                 max_effects: int, first: list[Scored] | None, top_k: int = 6) -> tuple[list[Effect], _State]:
+    """Return the effects accepted for one (axis, term) by forward selection, and the final model."""
+    td, prep = ctx.td, ctx.prep
+    state = _State(std.X, list(std.names), std.fit, [])
+    hold_start = td.holdout_start_s
+    for round_ in range(max_effects):
+        if round_ == 0 and first is not None:
+            scored = first
+        else:
+            scored = screen(state.X, td.y, td.train, build_candidates(ctx))
+        # faults that start in the held-out part cannot be tested on training errors: their
+        # significance comes from the temperatures alone (the virtual-sensor departure test)
+        for cand in build_candidates(ctx):
+            if cand.kind == "sensor_fault" and not np.any(cand.cols[td.train, 0] != 0):
+                scored.append(Scored(cand, float("nan"), float(cand.hint.get("p_temp", 1.0)), 1, 0, 0.0))
+        scored = [s for s in scored if s.p_value < alpha_each and s.cand.key not in ctx.taken]
+        scored.sort(key=lambda s: (s.p_value, -np.nan_to_num(s.F)))
+        accepted = None
+        for sc in scored[:top_k]:
+            cand, cols, hint = _materialise(sc, ctx, state)
+            X_new, names_new, new_idx = _extension(cand, cols, state)
+            if cand.kind == "sensor_fault" and hint["start_s"] < hold_start:
+                X_nested = np.column_stack([state.X, cand.cols])
+                p_rob = robust_pvalue(X_nested, td.y, td, [state.X.shape[1]])
+            elif cand.kind == "sensor_fault":
+                p_rob = sc.p_value
+            else:
+                p_rob = robust_pvalue(X_new, td.y, td, new_idx)
+            p = max(sc.p_value, p_rob)
+            if p >= alpha_each:
+                continue
+            fit = fit_columns(X_new, td.y, td.train, names_new)
+            if not np.isfinite(fit.rmse_holdout) or fit.rmse_holdout > (1.0 - min_gain) * state.fit.rmse_holdout:
+                continue
+            coef = fit.coef[new_idx]
+            params, c = _params(cand, hint, coef, td)
+            fault = ctx.faults.get(cand.channels[0]) if cand.kind == "sensor_fault" else None
+            before = state.fit.residual
+            contribution = before - fit.residual
+            eff = Effect(cand.kind, td.axis, td.term, list(cand.channels), params, p,
+                         _cause(cand.kind, td, prep, cand.channels, params, c, fault),
+                         state.fit.rmse_holdout, fit.rmse_holdout, sc.F, sc.p_value, p_rob,
+                         [names_new[i] for i in new_idx], X_new[:, new_idx], td.t, before, contribution,
+                         td.pos, td.direction, td.train,
+                         replaces=f"dT_{cand.channels[0]}" if cand.replace is not None else None)
+            accepted = (eff, X_new, names_new, fit, cand)
+            break
+        if accepted is None:
+            break
+        eff, X_new, names_new, fit, cand = accepted
+        state = _State(X_new, names_new, fit, state.effects + [eff])
+        ctx.taken.add(cand.key)
+        if cand.kind in ("unmapped_channel",) or (cand.kind == "screw_expansion" and cand.channels[0] not in ctx.model_channels):
+            ctx.model_channels.append(cand.channels[0])
+        if cand.kind == "sensor_fault":
+            ch, rep = cand.replace  # type: ignore[misc]
+            ctx.chan_cols[ch] = rep
+            ctx.lag_cache.pop(ch, None)
+        log.info("accepted %s on %s/%s %s", cand.kind, td.axis, td.term, eff.params)
+    return state.effects, state
+
+
+def _tau_grid(prep: PreparedBundle) -> np.ndarray:
+    """Return the log grid of lag time constants covering every term's resolvable range."""
+    bounds = [tau_bounds(prep, td) for td in prep.terms]
+    lo = min(b[0] for b in bounds)
+    hi = max(b[1] for b in bounds)
+    return np.exp(np.linspace(np.log(lo), np.log(hi), N_TAU)) if hi > lo else np.array([])
+
+
+def diagnose_bundle(bundle: Any, holdout_fraction: float = 0.25, alpha: float = 0.01, min_gain: float = 0.10,
+                    max_effects: int = 4) -> DiagnosisResult:
+    """Return the :class:`DiagnosisResult` of a bundle (a ``Bundle`` from a directory or from the store)."""
+    # the matrices here are tall and thin: one BLAS thread is faster, and far faster on a busy machine
+    with _single_blas_thread():
+        return _diagnose(bundle, holdout_fraction, alpha, min_gain, max_effects)
+
+
+@contextmanager
+def _single_blas_thread() -> Iterator[None]:
+    """Limit BLAS to one thread while the context is open (no-op without threadpoolctl)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: float,
+              max_effects: int) -> DiagnosisResult:
+    """Run the diagnosis phases and time them (see :func:`diagnose_bundle`)."""
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    prep = prepare_bundle(bundle, holdout_fraction)
+    prep.channel_locations = {  # type: ignore[attr-defined]
+        ch: (str(meta_get(info, "location", "")) if info is not None else "")
+        for ch, info in (meta_get(bundle.meta, "channels", {}) or {}).items()
+    }
+    for ch, loc in list(prep.channel_locations.items()):  # type: ignore[attr-defined]
+        if loc.lower() in ("unspecified", "unknown"):
+            prep.channel_locations[ch] = ""  # type: ignore[attr-defined]
+    timings["prepare"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    standards = [fit_standard_model(td, prep) for td in prep.terms]
+    timings["standard_model"] = time.perf_counter() - t1
+
+    t1 = time.perf_counter()
+    noises = [_noise_level(prep, td, std) for td, std in zip(prep.terms, standards)]
+    sims = [compare_simulation(td, prep, nz) for td, nz in zip(prep.terms, noises)]
+    timings["simulation"] = time.perf_counter() - t1
+
+    t1 = time.perf_counter()
+    faults = scan_sensor_faults(prep)
+    taus = _tau_grid(prep)
+    usable = [c for j, c in enumerate(prep.channels)
+              if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0]
+    bank = lag_bank_for(prep, usable, taus)
+    timings["features"] = time.perf_counter() - t1
+
+    t1 = time.perf_counter()
+    contexts: list[TermContext] = []
+    firsts: list[list[Scored]] = []
+    n_hyp = 0
+    for td, std in zip(prep.terms, standards):
+        lo, hi = tau_bounds(prep, td)
+        keep = (taus >= lo * 0.999) & (taus <= hi * 1.001)
+        sub_bank = {c: b[:, keep] for c, b in bank.items()}
+        ctx = build_context(prep, td, std.channels, faults, sub_bank, taus[keep])
+        cands = build_candidates(ctx)
+        n_hyp += sum(c.family_size for c in cands)
+        firsts.append(screen(std.X, td.y, td.train, cands))
+        contexts.append(ctx)
+    n_hyp = max(n_hyp, 1)
+    alpha_each = alpha / n_hyp
+    terms: list[TermDiagnosis] = []
+    for ctx, std, sim, first in zip(contexts, standards, sims, firsts):
+        effects, state = _search_term(ctx, std, alpha_each, min_gain, max_effects, first)
+        terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
+    timings["search"] = time.perf_counter() - t1
+    timings["total"] = time.perf_counter() - t0
+    hold = min((td.holdout_start_s for td in prep.terms if np.isfinite(td.holdout_start_s)), default=float("nan"))
+    return DiagnosisResult(prep.name, holdout_fraction, hold, terms, prep.flags, alpha, n_hyp, min_gain,
+                           timings, faults)

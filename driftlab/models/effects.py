@@ -1,0 +1,470 @@
+"""The effect catalogue of spec section 3: candidate regressors, their screening and parameters.
+
+Each catalogue kind becomes one or more candidate regressors (columns added to
+the current model of an (axis, term)):
+
+- ``reversal``: the approach direction (+1/-1); magnitude = full span = 2 x coefficient (3.3, 5.5).
+- ``screw_expansion``: position x dT_k (eq. 3.2 with a uniform shaft temperature; Fig. 5.14),
+  plus dT_k itself when k is not in the model (so the candidate nests the model).
+- ``unmapped_channel``: dT_k for a channel outside the model (4.3).
+- ``thermal_lag``: a first-order lag of dT_k, L' = (dT_k - L) / tau, on a log grid of tau
+  within the resolvable range; the best tau is refined by a bounded 1-D search (2.4.2, 8.3).
+- ``sensor_fault``: the channel's departure from its virtual sensor (a regression on the
+  other thermocouples, ch. 6.4.2/6.6) after a change point found on the temperatures alone.
+- ``drift``: time in days (3.2, 6.4.3).
+- ``quadratic``: dT_k^2 (6.4.2).
+
+Screening is one QR of the current training design and a projection of all
+candidate columns at once (numpy); statsmodels is used only for the final
+statistics of the candidates that pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import optimize, signal, stats
+
+from driftlab.models.standard_model import PreparedBundle, TermData, lstsq, robust_sigma
+
+KINDS = ("reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift",
+         "quadratic")
+
+#: number of log-spaced time constants screened per channel for thermal_lag
+N_TAU = 16
+
+
+# ---------------------------------------------------------------------------------------------
+# first-order lag (the thermal network's own element: dL/dt = (T - L) / tau)
+
+
+def lag_filter(x: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
+    """Return the first-order lag of ``x`` (samples along axis 0, step ``dt_s``), starting at rest.
+
+    Exact zero-order-hold discretisation: L[n] = a L[n-1] + (1 - a) x[n], a = exp(-dt/tau).
+    """
+    a = float(np.exp(-dt_s / tau_s))
+    b, den = [1.0 - a], [1.0, -a]
+    zi = signal.lfilter_zi(b, den)[0] * x[:1]
+    y, _ = signal.lfilter(b, den, x, axis=0, zi=zi)
+    return y
+
+
+def tau_bounds(prep: PreparedBundle, td: TermData) -> tuple[float, float]:
+    """Return the resolvable range of a lag time constant for ``td`` (seconds).
+
+    Lower: a lag shorter than half the spacing of error sweeps (or 3 scans)
+    cannot be told from no lag; upper: a third of the training span, beyond
+    which a lag cannot be told from a drift.
+    """
+    dt_scan = float(prep.grid_t[1] - prep.grid_t[0]) if prep.grid_t.size > 1 else 60.0
+    st = np.unique(td.t[td.train])
+    spacing = float(np.median(np.diff(st))) if st.size > 2 else dt_scan
+    sweeps = td.sweep[td.train]
+    if sweeps.max() > 2:
+        starts = np.array([td.t[td.train][sweeps == s][0] for s in np.unique(sweeps)])
+        spacing = max(spacing, float(np.median(np.diff(starts))))
+    lo = max(3.0 * dt_scan, 0.5 * spacing)
+    span = float(td.t[td.train][-1] - td.t[0])
+    return lo, max(lo * 1.5, span / 3.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# sensor faults: virtual sensor + change point on the temperatures alone
+
+
+@dataclass
+class FaultScan:
+    """One channel compared with its virtual sensor (the channel predicted from the others)."""
+
+    channel: str
+    start_s: float
+    strength: float  # RMS departure after start_s in units of the pre-fault sigma
+    persistence: float  # fraction of post-start samples beyond 3 sigma
+    mode: str  # "detached" or "open"
+    p_value: float  # block-mean Welch test of the departure (temperatures only)
+    replaced: np.ndarray  # the channel on the grid: readings before start_s, virtual sensor after
+    plausible: bool
+    neighbours: list[str] = field(default_factory=list)
+    break_ratio: float = float("nan")  # RSS of one virtual-sensor fit / RSS of the fits split at start_s
+
+
+def _trimmed_fit(A: np.ndarray, y: np.ndarray, rows: np.ndarray, rounds: int = 3) -> np.ndarray:
+    """Return least-squares coefficients refitted after trimming >4-sigma residuals (``rounds`` times)."""
+    use = rows.copy()
+    beta = lstsq(A[use], y[use])
+    for _ in range(rounds):
+        r = y - A @ beta
+        s = robust_sigma(r[use])
+        if s == 0:
+            break
+        new = rows & (np.abs(r - np.median(r[use])) < 4.0 * s)
+        if new.sum() < max(20, A.shape[1] * 3) or np.array_equal(new, use):
+            break
+        use = new
+        beta = lstsq(A[use], y[use])
+    return beta
+
+
+def _cusum_start(r: np.ndarray, sigma: float, kappa: float = 4.0) -> int:
+    """Return the change point of a departure from zero: argmin of cumsum(r^2 - kappa sigma^2)."""
+    c = np.cumsum(r * r - kappa * sigma * sigma)
+    return int(np.argmin(np.concatenate([[0.0], c])))
+
+
+def _dead_tail(raw: np.ndarray, min_len: int) -> int | None:
+    """Return the first index of a missing or stuck run of readings that lasts to the end, if long enough."""
+    n = raw.size
+    ok = np.isfinite(raw)
+    if not ok.any():
+        return None
+    last = int(np.flatnonzero(ok)[-1])
+    if n - 1 - last >= min_len:
+        return last + 1
+    d = np.diff(raw[ok])
+    if d.size and d[-1] == 0:
+        changed = np.flatnonzero(d != 0)
+        first_flat = int(np.flatnonzero(ok)[changed[-1] + 1]) if changed.size else 0
+        if n - first_flat >= min_len and first_flat > 0:
+            return first_flat
+    return None
+
+
+def best_break(A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int) -> tuple[int, float]:
+    """Return the cut k in [lo, hi] minimising RSS([0, k)) + RSS([k, n)) of ``y ~ A``, and the ratio
+    RSS(one fit) / that minimum (a least-squares structural-break estimate).
+
+    Sums of outer products are accumulated per block of ``step`` rows, so the
+    coarse search over block boundaries costs one pass; the best boundary is then
+    refined row by row within one block on either side.
+    """
+    s = np.sqrt(np.mean(A * A, axis=0))
+    A = A / np.where(s > 0, s, 1.0)
+    n, p = A.shape
+    ridge = 1e-9 * n * np.eye(p)
+    nblk = n // step
+    Ab = A[: nblk * step].reshape(nblk, step, p)
+    yb = y[: nblk * step].reshape(nblk, step)
+    bxx = np.concatenate([np.zeros((1, p, p)), np.cumsum(np.einsum("bsi,bsj->bij", Ab, Ab), axis=0)])
+    bxy = np.concatenate([np.zeros((1, p)), np.cumsum(np.einsum("bsi,bs->bi", Ab, yb), axis=0)])
+    byy = np.concatenate([[0.0], np.cumsum(np.einsum("bs,bs->b", yb, yb))])
+    txx, txy, tyy = A.T @ A, A.T @ y, float(y @ y)
+
+    def rss(xx: np.ndarray, xy: np.ndarray, yy: np.ndarray) -> np.ndarray:
+        beta = np.linalg.solve(xx + ridge, xy[..., None])[..., 0]
+        return np.maximum(yy - np.einsum("ki,ki->k", beta, xy), 0.0)
+
+    def total(xx: np.ndarray, xy: np.ndarray, yy: np.ndarray) -> np.ndarray:
+        return rss(xx, xy, yy) + rss(txx - xx, txy - xy, tyy - yy)
+
+    kb = np.arange(1, nblk + 1)
+    cuts = kb * step
+    ok = (cuts >= lo) & (cuts <= hi)
+    if not ok.any():
+        return lo, 1.0
+    costs = total(bxx[kb[ok]], bxy[kb[ok]], byy[kb[ok]])
+    k0 = int(cuts[ok][int(np.argmin(costs))])
+    a0 = max(lo, k0 - step)
+    b0 = min(hi, k0 + step)
+    base_b = a0 // step  # prefix sums up to the block boundary at or below a0, then row by row
+    rows = A[base_b * step: b0]
+    outer = np.cumsum(np.einsum("ni,nj->nij", rows, rows), axis=0)
+    xy = np.cumsum(rows * y[base_b * step: b0, None], axis=0)
+    yy = np.cumsum(y[base_b * step: b0] ** 2)
+    ks = np.arange(a0, b0 + 1)
+    off = ks - base_b * step  # number of rows past the block boundary
+    pre_xx = bxx[base_b] + np.where(off[:, None, None] > 0, outer[np.maximum(off - 1, 0)], 0.0)
+    pre_xy = bxy[base_b] + np.where(off[:, None] > 0, xy[np.maximum(off - 1, 0)], 0.0)
+    pre_yy = byy[base_b] + np.where(off > 0, yy[np.maximum(off - 1, 0)], 0.0)
+    fine = total(pre_xx, pre_xy, pre_yy)
+    i = int(np.argmin(fine))
+    one = float(rss(txx[None], txy[None], np.array([tyy]))[0])
+    return int(ks[i]), one / max(float(fine[i]), 1e-300)
+
+
+def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str, FaultScan]:
+    """Return a :class:`FaultScan` for every channel (two passes: faulty channels leave the neighbourhoods).
+
+    The virtual sensor of channel j is a least-squares fit of its dT on the dT of
+    its ``n_neighbours`` most correlated channels (ch. 6.6). A loose or broken
+    thermocouple is a structural break in that relation, so the change point is
+    the cut that minimises the summed RSS of separate fits before and after it
+    (a least-squares break estimate, evaluated for every cut at once with prefix
+    sums). A run of missing or stuck readings to the end fixes the start
+    exactly (mode ``open``: a broken lead); otherwise the mode is ``detached``.
+    The virtual sensor is then learnt on the readings before the start and
+    replaces the channel after it. Plausible faults last at least 30 min, split
+    the relation decisively (single-fit RSS > 10x the split RSS), and depart from
+    the virtual sensor by more than 5 sigma RMS, beyond 3 sigma for 60 % of the
+    time after the start.
+    """
+    T = prep.grid_T
+    t = prep.grid_t
+    n, m = T.shape
+    finite = np.all(np.isfinite(T), axis=0) & (np.ptp(np.nan_to_num(T), axis=0) > 0)
+    if m < 3 or n < 60:
+        return {}
+    dt = float(t[1] - t[0])
+    min_len = max(10, int(1800.0 / dt))
+    min_pre = max(30, int(0.05 * n))
+    step = max(1, int(300.0 / dt))  # candidate cuts every 5 min, then refined to the scan
+    D = T - T[0]
+    corr = np.nan_to_num(np.corrcoef(np.where(finite, D, 0.0).T))
+    excluded: set[int] = set()
+    out: dict[str, FaultScan] = {}
+    for _pass in range(2):
+        for j in range(m):
+            if not finite[j]:
+                continue
+            order = [k for k in np.argsort(-np.abs(corr[j])) if k != j and finite[k] and k not in excluded]
+            nb = order[:n_neighbours]
+            if not nb or n - min_len <= min_pre:
+                continue
+            A = np.column_stack([np.ones(n), D[:, nb]])
+            y = D[:, j]
+            raw = prep.raw_grid_T[:, j]
+            dead = _dead_tail(raw, min_len)
+            ratio = float("inf")
+            if dead is not None:
+                start = dead
+            else:
+                start, ratio = best_break(A, y, min_pre, n - min_len, step)
+            rows = np.arange(n) < start
+            beta = _trimmed_fit(A, y, rows)
+            r = y - A @ beta
+            sigma = max(robust_sigma(r[:start]), 1e-6)
+            rpost = r[start:]
+            strength = float(np.sqrt(np.mean(rpost * rpost)) / sigma) if rpost.size else 0.0
+            persistence = float(np.mean(np.abs(rpost) > 3 * sigma)) if rpost.size else 0.0
+            plausible = rpost.size >= min_len and start >= min_pre and (
+                dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6))
+            virtual = T[0, j] + A @ beta
+            replaced = T[:, j].copy()
+            replaced[start:] = virtual[start:]
+            mode = "open" if dead is not None else "detached"
+            # Welch test on block means (30-min blocks tame the autocorrelation of temperatures)
+            blk = max(1, int(1800.0 / dt))
+            pre_b = _block_means(r[:start], blk)
+            post_b = _block_means(r[start:], blk)
+            if pre_b.size >= 2 and post_b.size >= 2 and np.ptp(np.concatenate([pre_b, post_b])) > 0:
+                p_temp = float(stats.ttest_ind(pre_b, post_b, equal_var=False).pvalue)
+            else:
+                p_temp = 1.0
+            out[prep.channels[j]] = FaultScan(prep.channels[j], float(t[min(start, n - 1)]), strength,
+                                              persistence, mode, p_temp if np.isfinite(p_temp) else 1.0,
+                                              replaced, bool(plausible),
+                                              [prep.channels[k] for k in nb], ratio)
+        excluded = {prep.channel_index(c) for c, f in out.items() if f.plausible}
+        if not excluded:
+            break
+    return out
+
+
+def _block_means(x: np.ndarray, blk: int) -> np.ndarray:
+    """Return the means of consecutive blocks of ``blk`` samples (last partial block dropped)."""
+    nb = x.size // blk
+    return x[: nb * blk].reshape(nb, blk).mean(axis=1) if nb else np.empty(0)
+
+
+# ---------------------------------------------------------------------------------------------
+# candidates
+
+
+@dataclass
+class Candidate:
+    """One regressor set that an effect of the catalogue would add to an (axis, term) model."""
+
+    kind: str
+    channels: list[str]
+    cols: np.ndarray  # (n, k) added columns in physical units
+    names: list[str]
+    hint: dict[str, Any] = field(default_factory=dict)  # tau_s, start_s, mode ...
+    replace: tuple[str, np.ndarray] | None = None  # sensor_fault: channel -> replacement dT column
+    family_size: int = 1  # hypotheses this candidate stands for (tau grid points)
+
+    @property
+    def key(self) -> tuple[str, tuple[str, ...]]:
+        """Return (kind, channels): what makes two candidates the same effect."""
+        return self.kind, tuple(self.channels)
+
+
+@dataclass
+class TermContext:
+    """What the candidate builders need about one (axis, term): data, lags and the current model."""
+
+    prep: PreparedBundle
+    td: TermData
+    model_channels: list[str]  # channels whose dT is in the current design
+    chan_cols: dict[str, np.ndarray]  # dT column of every usable channel at the error times
+    lag_cache: dict[str, tuple[np.ndarray, np.ndarray]]  # channel -> (taus, (n, n_tau) lagged dT)
+    faults: dict[str, FaultScan]
+    taken: set[tuple[str, tuple[str, ...]]]
+
+
+def build_context(prep: PreparedBundle, td: TermData, model_channels: list[str],
+                  faults: dict[str, FaultScan], lag_bank: dict[str, np.ndarray] | None,
+                  taus: np.ndarray | None) -> TermContext:
+    """Return the :class:`TermContext` of ``td`` with dT columns and lag banks at its error times."""
+    chan_cols: dict[str, np.ndarray] = {}
+    for j, ch in enumerate(prep.channels):
+        col = td.temps[:, j]
+        if np.all(np.isfinite(col)) and np.ptp(col) > 0:
+            chan_cols[ch] = col - col[0]
+    lag_cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    if lag_bank is not None and taus is not None and taus.size:
+        for ch, bank in lag_bank.items():
+            if ch not in chan_cols:
+                continue
+            at = np.empty((td.n, taus.size))
+            for i in range(taus.size):
+                at[:, i] = np.interp(td.t, prep.grid_t, bank[:, i])
+            lag_cache[ch] = (taus, at - at[0])
+    return TermContext(prep, td, list(model_channels), chan_cols, lag_cache, faults, set())
+
+
+def lag_bank_for(prep: PreparedBundle, channels: list[str], taus: np.ndarray) -> dict[str, np.ndarray]:
+    """Return, per channel, the (n_grid, n_tau) lagged temperatures on the uniform grid (one pass per tau)."""
+    if not channels or taus.size == 0:
+        return {}
+    dt = float(prep.grid_t[1] - prep.grid_t[0])
+    idx = [prep.channel_index(c) for c in channels]
+    X = prep.grid_T[:, idx]
+    bank = np.empty((X.shape[0], len(idx), taus.size))
+    for i, tau in enumerate(taus):
+        bank[:, :, i] = lag_filter(X, dt, float(tau))
+    return {c: bank[:, k, :] for k, c in enumerate(channels)}
+
+
+def build_candidates(ctx: TermContext) -> list[Candidate]:
+    """Return every catalogue candidate for the current model of ``ctx`` (kinds not yet taken)."""
+    td = ctx.td
+    out: list[Candidate] = []
+    n_dirs = np.unique(td.direction[td.train]).size
+    n_pos = np.unique(np.round(td.pos[td.train], 9)).size
+
+    if n_dirs > 1 and ("reversal", ()) not in ctx.taken:
+        out.append(Candidate("reversal", [], td.direction[:, None].astype(float), ["direction"]))
+    if ("drift", ()) not in ctx.taken:
+        days = (td.t - td.t[0]) / 86400.0
+        out.append(Candidate("drift", [], days[:, None], ["time_days"]))
+    for ch, col in ctx.chan_cols.items():
+        in_model = ch in ctx.model_channels
+        if n_pos > 1 and ("screw_expansion", (ch,)) not in ctx.taken:
+            cols = [td.pos * col] + ([] if in_model else [col])
+            names = [f"position*dT_{ch}"] + ([] if in_model else [f"dT_{ch}"])
+            out.append(Candidate("screw_expansion", [ch], np.column_stack(cols), names))
+        if not in_model and ("unmapped_channel", (ch,)) not in ctx.taken:
+            out.append(Candidate("unmapped_channel", [ch], col[:, None], [f"dT_{ch}"]))
+        if in_model and ("quadratic", (ch,)) not in ctx.taken:
+            out.append(Candidate("quadratic", [ch], (col * col)[:, None], [f"dT_{ch}^2"]))
+        if in_model and ("sensor_fault", (ch,)) not in ctx.taken:
+            fs = ctx.faults.get(ch)
+            if fs is not None and fs.plausible:
+                rep = np.interp(td.t, ctx.prep.grid_t, fs.replaced)
+                rep = rep - rep[0]
+                delta = rep - col
+                out.append(Candidate("sensor_fault", [ch], delta[:, None], [f"fault_{ch}"],
+                                     {"start_s": fs.start_s, "mode": fs.mode, "p_temp": fs.p_value},
+                                     replace=(ch, rep)))
+    for ch, (taus, at) in ctx.lag_cache.items():
+        if ("thermal_lag", (ch,)) in ctx.taken:
+            continue
+        out.append(Candidate("thermal_lag", [ch], at, [f"lag_{ch}"], {"taus": taus},
+                             family_size=int(taus.size)))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# screening
+
+
+@dataclass
+class Scored:
+    """A candidate with its naive nested-model F test on the training rows."""
+
+    cand: Candidate
+    F: float
+    p_value: float
+    df_num: int
+    df_den: int
+    rss_drop: float
+    col_index: int = 0  # which column of a bank (thermal_lag: the best tau on the grid)
+
+
+def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidate]) -> list[Scored]:
+    """Return the nested F test of every candidate against ``y ~ X`` on the training rows (one QR)."""
+    Xt = X[train]
+    s = np.sqrt(np.mean(Xt * Xt, axis=0))
+    s = np.where(s > 0, s, 1.0)
+    Q, R = np.linalg.qr(Xt / s)
+    keep = np.abs(np.diag(R)) > 1e-10 * np.abs(np.diag(R)).max()
+    Q = Q[:, keep]
+    yt = y[train]
+    ry = yt - Q @ (Q.T @ yt)
+    rss = float(ry @ ry)
+    n, p = yt.size, Q.shape[1]
+    out: list[Scored] = []
+    for c in cands:
+        C = c.cols[train]
+        if not np.all(np.isfinite(C)):
+            continue
+        C = C / np.maximum(np.sqrt(np.mean(C * C, axis=0)), 1e-300)
+        RC = C - Q @ (Q.T @ C)
+        norm2 = np.sum(RC * RC, axis=0)
+        if c.kind == "thermal_lag":  # a bank: one column per tau, score each, keep the best
+            ok = norm2 > 1e-10 * C.shape[0]
+            drops = np.where(ok, (RC.T @ ry) ** 2 / np.maximum(norm2, 1e-300), -1.0)
+            i = int(np.argmax(drops))
+            if drops[i] <= 0:
+                continue
+            drop, k, col_index = float(drops[i]), 1, i
+        else:
+            if np.any(norm2 <= 1e-10 * C.shape[0]):
+                continue  # collinear with the model: nothing new
+            if RC.shape[1] == 1:
+                drop = float((RC[:, 0] @ ry) ** 2 / norm2[0])
+            else:
+                b, *_ = np.linalg.lstsq(RC, ry, rcond=None)
+                fitted = RC @ b
+                drop = float(fitted @ fitted)
+            k, col_index = RC.shape[1], 0
+        dof = n - p - k
+        if dof <= 0 or rss <= 0:
+            continue
+        F = (drop / k) / max((rss - drop) / dof, 1e-300)
+        out.append(Scored(c, float(F), float(stats.f.sf(F, k, dof)), k, dof, drop, col_index))
+    return out
+
+
+def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray) -> tuple[float, np.ndarray]:
+    """Return the tau (s) minimising the training RSS of ``X`` + lag(dT_channel, tau) and its column.
+
+    A bounded 1-D search (scipy) on log tau between the grid neighbours of the best grid point.
+    """
+    td, prep = ctx.td, ctx.prep
+    taus, _ = ctx.lag_cache[channel]
+    j = prep.channel_index(channel)
+    dt = float(prep.grid_t[1] - prep.grid_t[0])
+    x = prep.grid_T[:, j]
+    tr = td.train
+
+    def column(log_tau: float) -> np.ndarray:
+        g = lag_filter(x, dt, float(np.exp(log_tau)))
+        at = np.interp(td.t, prep.grid_t, g)
+        return at - at[0]
+
+    def rss(log_tau: float) -> float:
+        A = np.column_stack([X, column(log_tau)])
+        b = lstsq(A[tr], td.y[tr])
+        r = td.y[tr] - A[tr] @ b
+        return float(r @ r)
+
+    lo = np.log(taus[max(i_best - 1, 0)])
+    hi = np.log(taus[min(i_best + 1, taus.size - 1)])
+    if hi <= lo:
+        return float(taus[i_best]), column(np.log(taus[i_best]))
+    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
+    best = float(res.x) if rss(float(res.x)) <= rss(np.log(taus[i_best])) else float(np.log(taus[i_best]))
+    return float(np.exp(best)), column(best)

@@ -1,0 +1,534 @@
+"""The standard model of bundle v1 (spec section 2) and the metrology-grade data preparation under it.
+
+Data preparation (done once per bundle, shared by every (axis, term)):
+
+- temperatures: readings outside a physical range are treated as missing
+  (an open thermocouple card reports a rail value); isolated spikes are
+  rejected with a rolling-median / MAD test; gaps up to ``max_gap_s`` are
+  interpolated linearly; longer gaps hold the last valid reading (what a
+  controller does with a dead channel) and are counted in the flags;
+  everything is put once on a uniform scan grid;
+- errors: NaN rows are dropped; spikes are rejected per (axis, term,
+  position, direction) series with the same rolling-median / MAD test;
+- the temperature matrix is interpolated once to every error sample time.
+
+The standard model itself (spec section 2) is OLS per (axis, term) on
+intercept, position, position^2, position^3 and dT_k = T_k(t) - T_k(t_first)
+for the model channels of the axis, with regressors centred and scaled
+(position^3 of 254 mm is 1.6e7) and coefficients reported in physical units.
+Train = first ``1 - holdout_fraction`` of the rows in time, score = the rest.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from driftlab.errors import ValidationError
+
+TRANSLATIONS = ("dx", "dy", "dz")
+ROTATIONS = ("alpha", "beta", "gamma")
+AXES = ("X", "Y", "Z", "A", "B")
+
+#: physically possible thermocouple readings on a machine tool (degC); outside = card error value
+TEMP_RANGE_C = (-40.0, 250.0)
+#: robust z beyond which an isolated sample is a spike (8 MAD-sigma: ~1e-15 for Gaussian noise)
+SPIKE_Z = 8.0
+
+
+def term_unit(term: str) -> str:
+    """Return ``"mm"`` for translations and ``"rad"`` for rotations."""
+    return "rad" if term in ROTATIONS else "mm"
+
+
+def meta_get(meta: Any, key: str, default: Any = None) -> Any:
+    """Return ``meta[key]`` whether the campaign metadata is a dict or a pydantic model."""
+    if meta is None:
+        return default
+    if isinstance(meta, dict):
+        return meta.get(key, default)
+    value = getattr(meta, key, default)
+    return default if value is None else value
+
+
+def _as_plain(obj: Any) -> Any:
+    """Return pydantic models / nested objects as plain dicts and lists."""
+    if hasattr(obj, "model_dump"):
+        return obj.model_dump()
+    if isinstance(obj, dict):
+        return {k: _as_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_as_plain(v) for v in obj]
+    return obj
+
+
+@dataclass(frozen=True)
+class OutlierFlags:
+    """What the cleaning did to one series (a channel or an (axis, term))."""
+
+    series: str
+    spikes: int
+    out_of_range: int = 0
+    held_scans: int = 0
+    first_times_s: tuple[float, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form of the flags."""
+        return {"series": self.series, "spikes": self.spikes, "out_of_range": self.out_of_range,
+                "held_scans": self.held_scans, "first_times_s": list(self.first_times_s)}
+
+
+def robust_sigma(x: np.ndarray) -> float:
+    """Return 1.4826 MAD of ``x`` (falls back to the nonzero deviations for quantised data)."""
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return 0.0
+    dev = np.abs(x - np.median(x))
+    s = 1.4826 * float(np.median(dev))
+    if s == 0.0:
+        nz = dev[dev > 0]
+        s = 1.4826 * float(np.median(nz)) if nz.size else 0.0
+    return s
+
+
+def spike_mask(x: np.ndarray, window: int = 5, z: float = SPIKE_Z) -> np.ndarray:
+    """Return True where a sample departs from its rolling median by more than ``z`` robust sigmas."""
+    x = np.asarray(x, dtype=float)
+    if np.isfinite(x).sum() < 2 * window:
+        return np.zeros(x.shape, dtype=bool)
+    med = pd.Series(x).rolling(window, center=True, min_periods=1).median().to_numpy()
+    dev = x - med
+    # noise scale from first differences: the deviation from a rolling median is often exactly
+    # zero (the median is one of the samples), which makes its own MAD far too small
+    d = np.diff(x[np.isfinite(x)])
+    s = robust_sigma(d) / np.sqrt(2.0)
+    if s == 0.0:
+        return np.zeros(x.shape, dtype=bool)
+    return np.isfinite(dev) & (np.abs(dev) > z * s)
+
+
+def _fill_gaps(t: np.ndarray, x: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, int]:
+    """Interpolate gaps up to ``max_gap_s`` linearly, hold the last reading across longer ones."""
+    ok = np.isfinite(x)
+    if ok.all():
+        return x, 0
+    if not ok.any():
+        return x, 0
+    tv, xv = t[ok], x[ok]
+    lin = np.interp(t, tv, xv)
+    idx = np.searchsorted(tv, t, side="right")
+    prev_i = np.clip(idx - 1, 0, tv.size - 1)
+    next_i = np.clip(idx, 0, tv.size - 1)
+    span = tv[next_i] - tv[prev_i]
+    inside = (idx > 0) & (idx < tv.size)
+    short = inside & (span <= max_gap_s)
+    held = np.where(idx > 0, xv[prev_i], xv[0])  # leading gap: first valid reading
+    out = np.where(ok, x, np.where(short, lin, held))
+    return out, int((~ok & ~short).sum())
+
+
+@dataclass
+class TermData:
+    """The rows of one (axis, term), sorted by time, with temperatures at the error times."""
+
+    axis: str
+    term: str
+    t: np.ndarray
+    pos: np.ndarray
+    direction: np.ndarray
+    y: np.ndarray
+    temps: np.ndarray  # (n, n_channels) at the error times
+    n_train: int
+    sweep: np.ndarray  # sweep index of each row (consecutive rows closer than the sweep gap)
+    flags: OutlierFlags
+
+    @property
+    def unit(self) -> str:
+        """Return the unit of the term's values."""
+        return term_unit(self.term)
+
+    @property
+    def n(self) -> int:
+        """Return the number of usable rows."""
+        return int(self.t.size)
+
+    @property
+    def train(self) -> np.ndarray:
+        """Return the boolean mask of the training rows (first part in time)."""
+        m = np.zeros(self.n, dtype=bool)
+        m[: self.n_train] = True
+        return m
+
+    @property
+    def holdout_start_s(self) -> float:
+        """Return the time of the first held-out row."""
+        return float(self.t[self.n_train]) if self.n_train < self.n else float("nan")
+
+    def dT(self, col: np.ndarray) -> np.ndarray:
+        """Return ``col - col[first row]`` (dT relative to the first error sample, spec section 2)."""
+        return col - col[0]
+
+
+@dataclass
+class PreparedBundle:
+    """A bundle after cleaning: uniform temperature grid, per-term rows, flags and metadata."""
+
+    name: str
+    channels: list[str]
+    room_channels: list[str]
+    model_channels: dict[str, list[str]]
+    stages: list[dict[str, Any]]
+    noise: dict[str, float]
+    grid_t: np.ndarray
+    grid_T: np.ndarray  # (n_grid, n_channels) cleaned temperatures on the uniform grid
+    raw_grid_T: np.ndarray  # readings before cleaning, nearest scan on the grid (NaN = missing)
+    terms: list[TermData]
+    flags: list[OutlierFlags] = field(default_factory=list)
+    holdout_fraction: float = 0.25
+
+    def channel_index(self, name: str) -> int:
+        """Return the column of channel ``name``."""
+        return self.channels.index(name)
+
+
+def _sweep_ids(t: np.ndarray) -> np.ndarray:
+    """Return sweep indices: a new sweep starts where the time gap exceeds 3x the median positive gap."""
+    if t.size < 2:
+        return np.zeros(t.size, dtype=int)
+    d = np.diff(t)
+    pos = d[d > 0]
+    if pos.size == 0:
+        return np.zeros(t.size, dtype=int)
+    gap = 3.0 * float(np.median(pos))
+    return np.concatenate([[0], np.cumsum(d > gap)]).astype(int)
+
+
+def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float | None = None) -> PreparedBundle:
+    """Return the cleaned, grid-aligned :class:`PreparedBundle` of a bundle (one pass, vectorised)."""
+    if not 0.0 < holdout_fraction < 0.9:
+        raise ValidationError(f"--holdout-fraction must be in (0, 0.9), got {holdout_fraction}")
+    meta = bundle.meta
+    temps: pd.DataFrame = bundle.temperatures
+    errors: pd.DataFrame = bundle.errors
+    channels = [c for c in temps.columns if c != "time_s"]
+    if not channels:
+        raise ValidationError("temperatures.csv: no thermocouple channels")
+    if errors is None or len(errors) == 0:
+        raise ValidationError("errors.csv: no error samples")
+
+    ts = temps["time_s"].to_numpy(dtype=float)
+    order = np.argsort(ts, kind="stable")
+    ts = ts[order]
+    raw = temps[channels].to_numpy(dtype=float)[order]
+    dts = np.diff(ts)
+    dt = float(np.median(dts[dts > 0])) if (dts > 0).any() else 1.0
+    if max_gap_s is None:
+        max_gap_s = max(5.0 * dt, 600.0)
+
+    grid_t = np.arange(ts[0], ts[-1] + 0.5 * dt, dt)
+    grid_T = np.empty((grid_t.size, len(channels)))
+    raw_grid = np.empty_like(grid_T)
+    nearest = np.clip(np.searchsorted(ts, grid_t), 0, ts.size - 1)
+    flags: list[OutlierFlags] = []
+    lo, hi = TEMP_RANGE_C
+    for j, ch in enumerate(channels):
+        x = raw[:, j].copy()
+        raw_grid[:, j] = x[nearest]
+        oor = np.isfinite(x) & ((x < lo) | (x > hi))
+        x[oor] = np.nan
+        sp = spike_mask(x)
+        x[sp] = np.nan
+        x, held = _fill_gaps(ts, x, max_gap_s)
+        if np.isfinite(x).any():
+            xv = np.isfinite(x)
+            grid_T[:, j] = np.interp(grid_t, ts[xv], x[xv])
+        else:
+            grid_T[:, j] = np.nan
+        if sp.any() or oor.any() or held:
+            bad = ts[sp | oor]
+            flags.append(OutlierFlags(ch, int(sp.sum()), int(oor.sum()), held,
+                                      tuple(float(v) for v in bad[:5])))
+
+    errs = errors.dropna(subset=["value", "time_s", "position"])
+    terms: list[TermData] = []
+    for (axis, term), g in errs.groupby(["axis", "term"], sort=True):
+        g = g.sort_values("time_s", kind="stable")
+        y = g["value"].to_numpy(dtype=float)
+        t = g["time_s"].to_numpy(dtype=float)
+        pos = g["position"].to_numpy(dtype=float)
+        direction = g["direction"].to_numpy(dtype=float) if "direction" in g else np.ones_like(y)
+        direction = np.where(np.isfinite(direction), direction, 1.0)
+        bad = np.zeros(y.size, dtype=bool)
+        keys = np.round(pos, 9) * 10 + direction
+        for key in np.unique(keys):
+            idx = np.flatnonzero(keys == key)
+            if idx.size >= 10:
+                bad[idx] = spike_mask(y[idx])
+        fl = OutlierFlags(f"{axis}/{term}", int(bad.sum()), 0, 0, tuple(float(v) for v in t[bad][:5]))
+        if bad.any():
+            flags.append(fl)
+        keep = ~bad
+        t, pos, direction, y = t[keep], pos[keep], direction[keep], y[keep]
+        if y.size < 12:
+            continue
+        T_at = np.empty((t.size, len(channels)))
+        for j in range(len(channels)):
+            T_at[:, j] = np.interp(t, grid_t, grid_T[:, j])
+        n_train = int(math.floor((1.0 - holdout_fraction) * y.size))
+        terms.append(TermData(str(axis), str(term), t, pos, direction, y, T_at, n_train,
+                              _sweep_ids(t), fl))
+    if not terms:
+        raise ValidationError("errors.csv: no (axis, term) with enough samples to fit (need 12)")
+
+    mc_raw = _as_plain(meta_get(meta, "model_channels", None)) or {}
+    model_channels = {str(a): [c for c in v if c in channels] for a, v in mc_raw.items()}
+    stages = [_as_plain(s) for s in (meta_get(meta, "stages", []) or [])]
+    noise = _as_plain(meta_get(meta, "noise", None)) or {}
+    room = [c for c in (meta_get(meta, "room_channels", []) or []) if c in channels]
+    return PreparedBundle(str(getattr(bundle, "name", "bundle")), channels, room, model_channels, stages,
+                          {k: float(v) for k, v in noise.items() if v is not None}, grid_t, grid_T,
+                          raw_grid, terms, flags, holdout_fraction)
+
+
+# ---------------------------------------------------------------------------------------------
+# least squares core
+
+
+def _normalise(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``X`` with unit-RMS columns and the scales used (zero columns keep scale 1)."""
+    s = np.sqrt(np.mean(X * X, axis=0))
+    s = np.where(s > 0, s, 1.0)
+    return X / s, s
+
+
+def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Return the least-squares coefficients of ``y ~ X`` with column scaling for conditioning."""
+    Xn, s = _normalise(X)
+    beta, *_ = np.linalg.lstsq(Xn, y, rcond=None)
+    return beta / s
+
+
+def rmse(r: np.ndarray) -> float:
+    """Return the root mean square of a residual vector (NaN when empty)."""
+    r = np.asarray(r, dtype=float)
+    return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
+
+
+def position_basis(pos: np.ndarray, ref: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+    """Return the centred/scaled cubic position basis (intercept, u, u^2, u^3) and its names.
+
+    ``ref`` (the training positions) fixes the centre, scale and the number of
+    identifiable powers (at most unique positions - 1).
+    """
+    ref = pos if ref is None else ref
+    lo, hi = float(np.min(ref)), float(np.max(ref))
+    c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    n_unique = np.unique(np.round(ref, 9)).size
+    degree = min(3, n_unique - 1)
+    u = (pos - c) / h if h > 0 else np.zeros_like(pos)
+    cols = [np.ones_like(pos)] + [u**k for k in range(1, degree + 1)]
+    names = ["intercept", "position", "position^2", "position^3"][: degree + 1]
+    return np.column_stack(cols), names
+
+
+@dataclass
+class LinearFit:
+    """An OLS fit on the training rows scored on the held-out rows (coefficients in physical units)."""
+
+    names: list[str]
+    coef: np.ndarray
+    rmse_train: float
+    rmse_holdout: float
+    residual: np.ndarray  # y - X beta on every row
+    n_train: int
+    n_holdout: int
+
+    @property
+    def params(self) -> dict[str, float]:
+        """Return the coefficients by regressor name."""
+        return dict(zip(self.names, (float(v) for v in self.coef)))
+
+
+def fit_columns(X: np.ndarray, y: np.ndarray, train: np.ndarray, names: list[str]) -> LinearFit:
+    """Return the :class:`LinearFit` of ``y ~ X`` trained on ``train`` and scored on the rest."""
+    beta = lstsq(X[train], y[train])
+    r = y - X @ beta
+    return LinearFit(list(names), beta, rmse(r[train]), rmse(r[~train]), r, int(train.sum()),
+                     int((~train).sum()))
+
+
+# ---------------------------------------------------------------------------------------------
+# channel selection (when model_channels is absent for an axis)
+
+
+@dataclass
+class ChannelSelection:
+    """The outcome of the correlation screening of one (axis, term)'s training data."""
+
+    channels: list[str]
+    partial_corr: list[float]
+    source: str  # "model_channels" or "screening"
+    max_channels: int = 0
+    skipped_collinear: list[str] = field(default_factory=list)
+
+
+def select_channels(td: TermData, prep: PreparedBundle, max_channels: int = 8, alpha_in: float = 1e-2,
+                    alpha_out: float = 1e-6) -> ChannelSelection:
+    """Return a deterministic stepwise selection of channels for ``td`` by partial correlation (ch. 5.4, 6.4.2).
+
+    Forward: from the position basis, add the channel whose dT has the largest
+    partial correlation with the training errors given what is in (the largest
+    drop of RSS), while its F test is significant at ``alpha_in`` (Bonferroni
+    over the remaining channels), up to ``max_channels`` + 4. Backward: remove
+    the channel whose F test for removal is least significant while it is not
+    significant at ``alpha_out`` or more than ``max_channels`` are in (a proxy
+    picked early that later channels explain, the masking the thesis warns
+    about in 6.4.2), then go forward again; at most four cycles. Exact
+    duplicates (a channel the others explain to R^2 > 1 - 1e-5) are skipped.
+    Ties break on channel order. All subset fits come from one Gram matrix of
+    the centred, scaled training columns, so the search costs no refits.
+    """
+    tr = td.train
+    y = td.y[tr]
+    B, _ = position_basis(td.pos[tr])
+    D = td.temps[tr] - td.temps[0]
+    usable = [j for j in range(D.shape[1]) if np.all(np.isfinite(D[:, j])) and np.ptp(D[:, j]) > 0]
+    n = y.size
+    nb = B.shape[1]
+    Z = np.column_stack([B] + [D[:, [j]] for j in usable] + [y[:, None]])
+    Z = Z / np.maximum(np.sqrt(np.mean(Z * Z, axis=0)), 1e-300)
+    G = Z.T @ Z
+    iy = G.shape[0] - 1
+    ridge = 1e-12 * n
+
+    def rss(cols: list[int]) -> float:
+        idx = list(range(nb)) + [nb + c for c in cols]
+        Gs = G[np.ix_(idx, idx)] + ridge * np.eye(len(idx))
+        b = np.linalg.solve(Gs, G[idx, iy])
+        return max(float(G[iy, iy] - b @ G[idx, iy]), 1e-300)
+
+    def explained(c: int, cols: list[int]) -> float:
+        idx = list(range(nb)) + [nb + k for k in cols]
+        Gs = G[np.ix_(idx, idx)] + ridge * np.eye(len(idx))
+        b = np.linalg.solve(Gs, G[idx, nb + c])
+        return 1.0 - max(float(G[nb + c, nb + c] - b @ G[idx, nb + c]), 0.0) / max(
+            float(G[nb + c, nb + c] - G[0, nb + c] ** 2 / G[0, 0]), 1e-300)
+
+    chosen: list[int] = []  # indices into ``usable``
+    skipped: list[str] = []
+
+    def forward() -> bool:
+        added = False
+        while len(chosen) < max_channels + 4:  # room to overshoot: backward() prunes the proxies
+            rest = [c for c in range(len(usable)) if c not in chosen]
+            if not rest:
+                break
+            base = rss(chosen)
+            best, best_rss = None, base
+            for c in rest:
+                if explained(c, chosen) > 1.0 - 1e-5:
+                    name = prep.channels[usable[c]]
+                    if name not in skipped:
+                        skipped.append(name)
+                    continue
+                r = rss(chosen + [c])
+                if r < best_rss * (1.0 - 1e-12):
+                    best, best_rss = c, r
+            dof = n - nb - len(chosen) - 1
+            if best is None or dof <= 0:
+                break
+            p = float(stats.f.sf((base - best_rss) / (best_rss / dof), 1, dof))
+            if p > alpha_in / len(rest):
+                break
+            chosen.append(best)
+            added = True
+        return added
+
+    def backward() -> bool:
+        removed = False
+        while chosen:
+            full = rss(chosen)
+            dof = n - nb - len(chosen)
+            worst, worst_p = None, -1.0
+            for c in chosen:
+                p = float(stats.f.sf((rss([k for k in chosen if k != c]) - full) / (full / dof), 1, dof))
+                if p > worst_p:
+                    worst, worst_p = c, p
+            if worst is None or (worst_p <= alpha_out and len(chosen) <= max_channels):
+                break
+            chosen.remove(worst)
+            removed = True
+        return removed
+
+    forward()
+    for _ in range(4):
+        if not backward():
+            break
+        if not forward():
+            break
+    backward()
+    pcs = []  # partial correlation of each kept channel given all the others
+    full = rss(chosen)
+    for c in chosen:
+        without = rss([k for k in chosen if k != c])
+        idx = list(range(nb)) + [nb + k for k in chosen if k != c]
+        Gs = G[np.ix_(idx, idx)] + ridge * np.eye(len(idx))
+        bxy = np.linalg.solve(Gs, G[idx, iy])
+        bxc = np.linalg.solve(Gs, G[idx, nb + c])
+        cov = G[nb + c, iy] - bxc @ G[idx, iy]
+        pcs.append(float(np.sign(cov) * np.sqrt(max(0.0, 1.0 - full / without))))
+        del bxy
+    return ChannelSelection([prep.channels[usable[c]] for c in chosen], pcs, "screening", max_channels, skipped)
+
+
+def model_channels_for(td: TermData, prep: PreparedBundle) -> ChannelSelection:
+    """Return the user's ``model_channels`` for the axis, or driftlab's own screening when absent."""
+    if td.axis in prep.model_channels:
+        return ChannelSelection(list(prep.model_channels[td.axis]), [], "model_channels")
+    return select_channels(td, prep)
+
+
+@dataclass
+class StandardModel:
+    """The spec section 2 model of one (axis, term): design, fit and channel selection."""
+
+    td: TermData
+    selection: ChannelSelection
+    X: np.ndarray
+    names: list[str]
+    fit: LinearFit
+
+    @property
+    def channels(self) -> list[str]:
+        """Return the channels the model uses."""
+        return self.selection.channels
+
+
+def standard_design(td: TermData, prep: PreparedBundle, channels: list[str]) -> tuple[np.ndarray, list[str]]:
+    """Return the spec section 2 design matrix (position cubic + dT of ``channels``) and its names."""
+    B, names = position_basis(td.pos, td.pos[td.train])
+    cols = [B]
+    for ch in channels:
+        j = prep.channel_index(ch)
+        cols.append(td.dT(td.temps[:, j])[:, None])
+        names.append(f"dT_{ch}")
+    return np.column_stack(cols), names
+
+
+def fit_standard_model(td: TermData, prep: PreparedBundle) -> StandardModel:
+    """Return the standard model of ``td`` fitted on its training rows and scored on the held-out rows."""
+    sel = model_channels_for(td, prep)
+    X, names = standard_design(td, prep, sel.channels)
+    ok = np.all(np.isfinite(X), axis=0)
+    if not ok.all():  # a channel with no reading at all cannot enter the model
+        dropped = [n for n, good in zip(names, ok) if not good]
+        sel = ChannelSelection([c for c in sel.channels if f"dT_{c}" not in dropped], sel.partial_corr,
+                               sel.source, sel.max_channels, sel.skipped_collinear)
+        X, names = standard_design(td, prep, sel.channels)
+    return StandardModel(td, sel, X, names, fit_columns(X, td.y, td.train, names))
