@@ -135,7 +135,7 @@ def _as_q(q: np.ndarray) -> np.ndarray:
         arr = arr[None, :]
     if arr.ndim != 2 or arr.shape[1] != 5:
         raise KinematicsError(f"joint coordinates q must be (N, 5) {AXES}, got shape {np.shape(q)}")
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr.sum()) and not np.all(np.isfinite(arr)):  # one pass in the common case
         raise KinematicsError("joint coordinates q contain NaN or infinity")
     return arr
 
@@ -183,177 +183,163 @@ def element_htm(element: str, q: np.ndarray, p: np.ndarray | None = None, dims: 
     raise KinematicsError(f"unknown element {element!r}: expected one of {ELEMENTS}")
 
 
-# --------------------------------------------------------- component-wise 3x3 kernels
-# A 3x3 matrix is a tuple of 9 components (row-major), a vector a tuple of 3; a component is a
-# float or an (n,) array, so elements without error stay scalars and cost nothing.
+# ------------------------------------------------------------------- column-wise kernels
+# A rotation block is held as its three columns, each a (3, n) array (n poses of a chunk) or a
+# (3, 1) constant; a vector is (3, n) or (3, 1). Error components are (n,) rows or floats (for
+# constant errors), and elements without error skip their rotation product entirely.
 
 
 def _is_zero(x: _Comp) -> bool:
     return isinstance(x, float) and x == 0.0
 
 
+def _vec3(x: _Comp, y: _Comp, z: _Comp) -> np.ndarray:
+    """Stack three components (floats or (n,) rows) into a (3, n) or (3, 1) array."""
+    out = np.empty((3, max(np.size(x), np.size(y), np.size(z))))
+    out[0], out[1], out[2] = x, y, z
+    return out
+
+
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
+_ID_COLS: tuple = (_EYE3[:, 0:1], _EYE3[:, 1:2], _EYE3[:, 2:3])
+_ZERO6: tuple = (0.0,) * 6
+
+
 def _mul_e(m: tuple, a: _Comp, b: _Comp, g: _Comp) -> tuple:
-    """M @ E(alpha, beta, gamma), the rotation block of eq. 4.8."""
-    if m is _IDENTITY:
-        return (1.0, -g, b, g, 1.0, -a, -b, a, 1.0)  # eq. 4.8
-    out = []
-    for i in range(3):
-        m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
-        # each product is a fresh array, so accumulating in place never touches an input
-        c0 = m1 * g
-        c0 -= m2 * b
-        c0 += m0
-        c1 = m2 * a
-        c1 -= m0 * g
-        c1 += m1
-        c2 = m0 * b
-        c2 -= m1 * a
-        c2 += m2
-        out += [c0, c1, c2]
-    return tuple(out)
+    """M @ E(alpha, beta, gamma), the rotation block of eq. 4.8, on columns."""
+    if m is _ID_COLS:
+        return (_vec3(1.0, g, -b), _vec3(-g, 1.0, a), _vec3(b, -a, 1.0))  # eq. 4.8 columns
+    c0, c1, c2 = m
+    # the three columns always share one shape, so each first product already has the result's
+    # shape and is a fresh array: accumulating into it in place is safe and saves temporaries
+    n0 = c1 * g
+    n0 -= c2 * b
+    n0 += c0
+    n1 = c2 * a
+    n1 -= c0 * g
+    n1 += c1
+    n2 = c0 * b
+    n2 -= c1 * a
+    n2 += c2
+    return (n0, n1, n2)
 
 
 def _mul_rx(m: tuple, c: _Comp, s: _Comp) -> tuple:
-    """M @ Rx (eq. 4.4)."""
-    out = []
-    for i in range(3):
-        m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
-        c1 = m1 * c
-        c1 += m2 * s
-        c2 = m2 * c
-        c2 -= m1 * s
-        out += [m0, c1, c2]
-    return tuple(out)
+    """M @ Rx (eq. 4.4) on columns."""
+    c0, c1, c2 = m
+    n1 = c1 * c
+    n1 += c2 * s
+    n2 = c2 * c
+    n2 -= c1 * s
+    return (np.broadcast_to(c0, n1.shape), n1, n2)
 
 
 def _mul_ry(m: tuple, c: _Comp, s: _Comp) -> tuple:
-    """M @ Ry (eq. 4.4)."""
-    out = []
-    for i in range(3):
-        m0, m1, m2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
-        c0 = m0 * c
-        c0 -= m2 * s
-        c2 = m0 * s
-        c2 += m2 * c
-        out += [c0, m1, c2]
-    return tuple(out)
+    """M @ Ry (eq. 4.4) on columns."""
+    c0, c1, c2 = m
+    n0 = c0 * c
+    n0 -= c2 * s
+    n2 = c0 * s
+    n2 += c2 * c
+    return (n0, np.broadcast_to(c1, n0.shape), n2)
 
 
-def _matvec(m: tuple, v: tuple) -> tuple:
-    """M @ v with fresh (or float) components, skipping terms that are exactly zero."""
-    out = []
-    for i in range(3):
-        acc: _Comp = 0.0
-        fresh = False
-        for j in range(3):
-            if _is_zero(v[j]) or _is_zero(m[3 * i + j]):
-                continue
-            term = m[3 * i + j] * v[j]
-            if fresh and isinstance(acc, np.ndarray):
-                acc += term
-            else:
-                acc = acc + term
-                fresh = True
-        out.append(acc)
-    return tuple(out)
+def _plus(p: np.ndarray | float, r: np.ndarray | float) -> np.ndarray | float:
+    """p + r, in place when p is an array of the result's shape.
+
+    Callers own p: it is always a fresh product or sum (never an input or a shared constant).
+    """
+    if _is_zero(r):
+        return p
+    if _is_zero(p):
+        return r
+    if type(p) is np.ndarray and (type(r) is float or p.shape == r.shape):  # type: ignore[union-attr]
+        p += r
+        return p
+    return p + r
 
 
-def _add3(u: tuple, v: tuple) -> tuple:
-    return tuple(x if _is_zero(y) else (y if _is_zero(x) else x + y) for x, y in zip(u, v))
-
-
-def _accumulate(p: tuple, mv: tuple) -> tuple:
-    """p + mv where mv comes fresh from _matvec (added in place)."""
-    out = []
-    for x, y in zip(p, mv):
-        if _is_zero(y):
-            out.append(x)
-        elif _is_zero(x):
-            out.append(y)
-        elif isinstance(y, np.ndarray) and (np.ndim(x) == 0 or np.shape(x) == y.shape):
-            y += x
-            out.append(y)
-        else:
-            out.append(x + y)
-    return tuple(out)
-
-
-def _mul33(m: tuple, r: tuple) -> tuple:
-    return tuple(
-        m[3 * i] * r[j] + m[3 * i + 1] * r[3 + j] + m[3 * i + 2] * r[6 + j] for i in range(3) for j in range(3)
-    )
-
-
-def _mul33_t(m: tuple, r: tuple) -> tuple:
-    """M @ R^T."""
-    return tuple(
-        m[3 * i] * r[3 * j] + m[3 * i + 1] * r[3 * j + 1] + m[3 * i + 2] * r[3 * j + 2] for i in range(3) for j in range(3)
-    )
+def _matvec(m: tuple, v: tuple) -> np.ndarray | float:
+    """M @ v (a fresh array) for column-held M and components v, skipping exact zeros."""
+    acc: np.ndarray | float = 0.0
+    for col, x in zip(m, v):
+        if not _is_zero(x):
+            acc = _plus(acc, col * x)
+    return acc
 
 
 _Cols = dict[str, tuple]  # element -> its six error components for one chunk
 
 
 def _chunk_cols(errs: dict[str, np.ndarray], s: int, t: int) -> _Cols:
-    """Six error components per element for poses s:t (floats when constant), validated."""
+    """Six error components per element for poses s:t (floats when constant)."""
     out: _Cols = {}
     for name, e in errs.items():
         if e.ndim == 1:
             out[name] = tuple(float(x) for x in e)
             continue
         rows = e[s:t].T
-        if not rows.flags.c_contiguous:  # (N, 6) in C order: one cheap in-cache copy per chunk
-            rows = np.ascontiguousarray(rows)
-        if not np.isfinite(rows.sum()):  # NaN and infinity propagate into the sum
-            raise KinematicsError(f"errors of {name} contain NaN or infinity")
+        if rows.strides[1] != rows.itemsize:  # (N, 6) in C order: one in-cache copy per chunk
+            rows = np.ascontiguousarray(rows)  # (column-major errors are read as they are)
         out[name] = tuple(rows)
     return out
 
 
-_ZERO6: tuple = (0.0,) * 6
-_IDENTITY: tuple = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+def _check_finite(cols: _Cols, *results: np.ndarray) -> None:
+    """Raise KinematicsError naming the element when a chunk's results are not finite.
+
+    NaN and infinity in any error reach the chain's rotation or position (NaN * 0 is NaN), so
+    checking the few result arrays replaces a pass over all eleven error arrays.
+    """
+    if all(np.isfinite(np.sum(r)) for r in results):
+        return
+    for name, comps in cols.items():
+        if not all(np.all(np.isfinite(c)) for c in comps):
+            raise KinematicsError(f"errors of {name} contain NaN or infinity")
+    raise KinematicsError("the chain overflowed: errors or joints far too large")
 
 
 @dataclass
 class _PreChain:
     """T1 .. ThetaX's error matrix for a chunk: everything before Rx(A)."""
 
-    rot: tuple  # R_pre @ E_theta_x  (the 'A' of the compensation solve)
-    pos: tuple  # position accumulated so far (includes X, Y, Z)
-    jac_xyz: tuple  # columns d pos / dX, dY, dZ as a 3x3 (row-major)
+    rot: tuple  # columns of R_pre @ E_theta_x (the 'A' of the compensation solve)
+    pos: np.ndarray  # (3, n) position accumulated so far (includes X, Y, Z)
+    jac: tuple  # columns d pos / dX, dY, dZ
 
 
 def _pre_chain(q: np.ndarray, cols: _Cols, dims: dict, s: int, t: int) -> _PreChain:
     """Accumulate T1 PhiZ T2 PhiY T3 PhiX T4 and ThetaX's error (eqs. 4.12-4.17)."""
-    m: tuple = _IDENTITY
-    p: tuple = (0.0, 0.0, 0.0)
-    jcol: dict[int, tuple] = {}
+    m: tuple = _ID_COLS
+    p: np.ndarray | float = 0.0
+    jac: dict[int, np.ndarray] = {}
     for name in ELEMENTS[:8]:
         a, b, g, dx, dy, dz = cols.get(name, _ZERO6)
         if name in LINKS:
-            trans = _add3(dims[name], (dx, dy, dz))  # eq. 4.13: a_i + da_i, ...
+            da, db, dc = dims[name]
+            trans = (da + dx, db + dy, dc + dz)  # eq. 4.13: a_i + da_i, ...
         elif name == "theta_x":
             trans = (dx, dy, dz)  # eq. 4.17: E(p) @ Rx, the translation is the error only
         else:
             k = JOINT_AXIS[name]
-            jcol[k] = (m[k], m[3 + k], m[6 + k])  # d pos / d q_k = M e_k (pos is affine in X, Y, Z)
+            jac[k] = m[k]  # d pos / d q_k = M e_k: the position is affine in X, Y, Z
             qk = q[s:t, k]
             trans = tuple(qk + d if i == k else d for i, d in enumerate((dx, dy, dz)))  # eqs. 4.14-4.16
-        p = _accumulate(p, _matvec(m, trans))
+        p = _plus(p, _matvec(m, trans))
         if name in cols:
             m = _mul_e(m, a, b, g)
-    jac = tuple(jcol[j][i] for i in range(3) for j in range(3))
-    return _PreChain(rot=m, pos=p, jac_xyz=jac)
+    return _PreChain(rot=m, pos=p, jac=(jac[0], jac[1], jac[2]))  # type: ignore[arg-type]
 
 
-def _post_rot(pre_rot: tuple, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols) -> tuple[tuple, tuple]:
+def _post_rot(pre_rot: tuple, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols) -> tuple[tuple, np.ndarray]:
     """Return (rotation of the whole chain, column 1 of A Rx(a) E5 E_theta_y) from the pre-chain."""
     m = _mul_rx(pre_rot, ca, sa)
     for name in ("T5", "theta_y"):
         if name in cols:
             a, b, g, *_ = cols[name]
             m = _mul_e(m, a, b, g)
-    ub = (m[1], m[4], m[7])
+    ub = m[1]
     m = _mul_ry(m, cb, sb)
     if "T6" in cols:
         a, b, g, *_ = cols["T6"]
@@ -361,19 +347,23 @@ def _post_rot(pre_rot: tuple, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: 
     return m, ub
 
 
-def _post_pos(pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols, dims: dict) -> tuple[tuple, tuple]:
+def _post_pos(pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols, dims: dict) -> tuple[tuple, np.ndarray]:
     """Return (rotation, position) of the full chain from the pre-chain (eqs. 4.12, 4.17, 4.18)."""
     m = _mul_rx(pre.rot, ca, sa)
-    p = pre.pos
+    p = pre.pos.copy()  # accumulated in place below; the pre-chain is reused by the caller
     for name in ("T5", "theta_y", "T6"):
         a, b, g, dx, dy, dz = cols.get(name, _ZERO6)
-        trans = _add3(dims[name], (dx, dy, dz)) if name in LINKS else (dx, dy, dz)
-        p = _accumulate(p, _matvec(m, trans))
+        if name in LINKS:
+            da, db, dc = dims[name]
+            trans = (da + dx, db + dy, dc + dz)
+        else:
+            trans = (dx, dy, dz)
+        p = _plus(p, _matvec(m, trans))
         if name in cols:
             m = _mul_e(m, a, b, g)
         if name == "theta_y":
             m = _mul_ry(m, cb, sb)  # eq. 4.18: E(p) @ Ry, the translation applied before the turn
-    return m, p
+    return m, p  # type: ignore[return-value]
 
 
 def _ideal_parts(q: np.ndarray, dims: dict, s: int, t: int) -> tuple[tuple, tuple]:
@@ -398,10 +388,18 @@ def _ideal_parts(q: np.ndarray, dims: dict, s: int, t: int) -> tuple[tuple, tupl
 
 
 def _write(out: np.ndarray, s: int, t: int, rot: tuple, pos: tuple) -> None:
+    """Write a rotation held as 9 components and a position as 3 into out[s:t]."""
     for i in range(3):
         for j in range(3):
             out[s:t, i, j] = rot[3 * i + j]
         out[s:t, i, 3] = pos[i]
+
+
+def _write_cols(out: np.ndarray, s: int, t: int, rot: tuple, pos: np.ndarray) -> None:
+    """Write a rotation held as columns and a (3, n) position into out[s:t]."""
+    for j in range(3):
+        out[s:t, :3, j] = rot[j].T
+    out[s:t, :3, 3] = pos.T
 
 
 def _new_htm_stack(n: int) -> np.ndarray:
@@ -428,7 +426,8 @@ def machine_chain(q: np.ndarray, errors: ElementErrors | None = None, dims: Mapp
         ca, sa = np.cos(q[s:t, 3]), np.sin(q[s:t, 3])
         cb, sb = np.cos(q[s:t, 4]), np.sin(q[s:t, 4])
         rot, pos = _post_pos(pre, ca, sa, cb, sb, cols, d)
-        _write(out, s, t, rot, pos)
+        _check_finite(cols, pos, *rot)
+        _write_cols(out, s, t, rot, pos)
     return out
 
 
@@ -611,13 +610,11 @@ def compensate(
         rid, pid = _ideal_parts(q, d, s, t)
         a0, b0 = q[s:t, 3], q[s:t, 4]
         a, b = a0.copy(), b0.copy()
-        ua = (pre.rot[0], pre.rot[3], pre.rot[6])  # d omega / dA = A e_x (Rx keeps e_x)
+        ua = pre.rot[0]  # d omega / dA = A e_x (Rx keeps e_x)
         for it in range(max_iter + 1):
             ca, sa, cb, sb = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
             rot, ub = _post_rot(pre.rot, ca, sa, cb, sb, cols)
-            w = _mul33_t(rot, rid)  # rotation block of W = T_real @ inv(T_ideal)
-            wx = 0.5 * (w[7] - w[5])
-            wy = 0.5 * (w[2] - w[6])
+            wx, wy, _ = _omega(rot, rid)  # alpha, beta of W = T_real @ inv(T_ideal)
             # Newton on (alpha, beta) of W: d omega = u_a dA + u_b dB (2x2, closed form)
             j00, j10 = ua[0] + 0.0 * a, ua[1] + 0.0 * a
             j01, j11 = ub[0], ub[1]
@@ -634,21 +631,17 @@ def compensate(
         b = _quantise(b, resolution_rad)
         ca, sa, cb, sb = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
         rot, pos = _post_pos(pre, ca, sa, cb, sb, cols, d)
-        w = _mul33_t(rot, rid)
-        target = _matvec(w, pid)  # W's translation vanishes when p_real = R_W @ p_ideal
-        rhs = tuple(tg - p for tg, p in zip(target, pos))
-        dxyz = _solve3(pre.jac_xyz, rhs)
+        # W's translation vanishes when p_real = R_W @ p_ideal = R_real @ (R_ideal^T @ p_ideal)
+        u = [rid[k] * pid[0] + rid[3 + k] * pid[1] + rid[6 + k] * pid[2] for k in range(3)]
+        target = _matvec(rot, u)
+        dxyz = _solve3(pre.jac, target - pos)
         xyz = [_quantise(q[s:t, k] + dxyz[k], resolution_mm) for k in range(3)]
-        step = tuple(xyz[k] - q[s:t, k] for k in range(3))
-        pos = _accumulate(pos, _matvec(pre.jac_xyz, step))  # affine in X, Y, Z: exact update
-        pw = tuple(p - tg for p, tg in zip(pos, target))
+        pos = pos + _matvec(pre.jac, [xyz[k] - q[s:t, k] for k in range(3)])  # affine in X, Y, Z: exact
         q_cmd[s:t, 0], q_cmd[s:t, 1], q_cmd[s:t, 2] = xyz
         q_cmd[s:t, 3], q_cmd[s:t, 4] = a, b
-        residual[s:t, 0] = 0.5 * (w[7] - w[5])
-        residual[s:t, 1] = 0.5 * (w[2] - w[6])
-        residual[s:t, 2] = 0.5 * (w[3] - w[1])
-        for k in range(3):
-            residual[s:t, 3 + k] = pw[k]
+        residual[s:t, :3] = np.array(_omega(rot, rid)).T
+        residual[s:t, 3:] = (pos - target).T
+        _check_finite(cols, residual[s:t], *rot)
         singular[s:t] = sing
     return CompensationResult(
         q_cmd=q_cmd,
@@ -660,17 +653,25 @@ def compensate(
     )
 
 
-def _solve3(m: tuple, v: tuple) -> tuple:
-    """Solve the stacked 3x3 systems M x = v by Cramer's rule."""
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
+def _omega(rot: tuple, rid: tuple) -> tuple:
+    """alpha, beta, gamma (eq. 4.8 extraction) of R_real @ R_ideal^T, R_real held as columns."""
+
+    def w(i: int, j: int) -> np.ndarray:
+        return rot[0][i] * rid[3 * j] + rot[1][i] * rid[3 * j + 1] + rot[2][i] * rid[3 * j + 2]
+
+    return 0.5 * (w(2, 1) - w(1, 2)), 0.5 * (w(0, 2) - w(2, 0)), 0.5 * (w(1, 0) - w(0, 1))
+
+
+def _solve3(cols: tuple, v: np.ndarray) -> np.ndarray:
+    """Solve the stacked 3x3 systems M x = v by Cramer's rule, M given by its columns."""
+    (m00, m10, m20), (m01, m11, m21), (m02, m12, m22) = cols
     c00 = m11 * m22 - m12 * m21
     c01 = m12 * m20 - m10 * m22
     c02 = m10 * m21 - m11 * m20
     det = m00 * c00 + m01 * c01 + m02 * c02
-    inv = (
-        c00, m02 * m21 - m01 * m22, m01 * m12 - m02 * m11,
-        c01, m00 * m22 - m02 * m20, m02 * m10 - m00 * m12,
-        c02, m01 * m20 - m00 * m21, m00 * m11 - m01 * m10,
+    inv_cols = (
+        _vec3(c00, c01, c02),
+        _vec3(m02 * m21 - m01 * m22, m00 * m22 - m02 * m20, m01 * m20 - m00 * m21),
+        _vec3(m01 * m12 - m02 * m11, m02 * m10 - m00 * m12, m00 * m11 - m01 * m10),
     )
-    x = _matvec(inv, v)
-    return tuple(xi / det for xi in x)
+    return _matvec(inv_cols, tuple(v)) / det  # type: ignore[operator]

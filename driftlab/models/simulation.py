@@ -225,8 +225,12 @@ def _workspace(q_nominal: np.ndarray, q_cmd: np.ndarray, errors: ElementErrors) 
 
 
 def thesis_study(hours: float = 8.0, dt_s: float = 10.0, seed: int = 0) -> dict[str, Any]:
-    """Return the ch. 4.5 figures: work-space error of a sinusoidal 5-axis program without and
-    with compensation (quantised to the machine resolution), as a JSON-ready dict."""
+    """Return the ch. 4.5 figures (work-space error without and with compensation) as a JSON dict.
+
+    The program is ``sinusoidal_program``; errors follow ``appendix_a_errors``. Position figures
+    are the norm of W's translation (tool tip versus part), angle figures the norm of the
+    reachable rotations alpha, beta; the roll about the spindle is reported on its own.
+    """
     if not (np.isfinite(hours) and hours > 0):
         raise ValidationError(f"hours must be > 0, got {hours}")
     if not (np.isfinite(dt_s) and 0 < dt_s <= hours * HOUR_S):
