@@ -12,9 +12,9 @@ Conventions (docs/interfaces.md):
 * work-space error ``W = T_real @ inv(T_ideal)``: its translation is the displacement of the part
   point that should sit at the tool tip (the spindle origin), in the spindle frame.
 
-Speed: the chain is evaluated on the HTM structure (3x3 rotation + translation) with each matrix
-held as nine component vectors, in chunks that stay in cache, and elements without error skip
-their rotation product entirely.
+Speed: the chain is evaluated on the HTM structure (3x3 rotation + translation, never a generic
+4x4 product), the rotation held as three (3, n) column arrays, in chunks of poses that stay in
+cache; elements without error skip their rotation product entirely.
 """
 
 from __future__ import annotations
@@ -59,12 +59,12 @@ TABLE_A1: Mapping[str, tuple[float, float, float]] = MappingProxyType(
 #: would need a B correction e / cos A more than 1000 times larger than e.
 SINGULAR_TOL: float = 1e-3
 
-#: poses per chunk of the component-wise kernels (arrays of this length stay in cache)
+#: poses per chunk of the column-wise kernels (arrays of this length stay in cache)
 CHUNK: int = 8192
 
 ElementErrors = Mapping[str, np.ndarray]
 
-_Comp = Any  # a float or an (n,) array: one component of a stacked matrix or vector
+_Comp = Any  # a float or an (n,) array: one component of a stacked vector
 
 
 # --------------------------------------------------------------------------- single HTMs
