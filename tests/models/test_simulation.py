@@ -138,6 +138,18 @@ def test_contract_signature_with_dims():
     np.testing.assert_allclose(sim.appendix_a_errors(0.0, q, dims=kin.TABLE_A1)["T2"], sim.appendix_a_errors(0.0, q)["T2"])
 
 
+def test_compensation_of_the_appendix_a_errors_themselves():
+    t = np.linspace(0, 8 * H, 500)
+    q, direction = sim.sinusoidal_program(t, seed=4)
+    errs = sim.appendix_a_errors(t, q, direction)
+    before = kin.workspace_error(q, errs)
+    assert np.abs(before[:, 3:]).max() > 0.05
+    res = kin.compensate(q, errs)
+    assert np.abs(res.residual[:, 3:]).max() < 1e-6
+    assert np.abs(res.residual[:, :2]).max() < 1e-9
+    np.testing.assert_allclose(res.uncompensable_roll, res.residual[:, 2])
+
+
 def test_program_is_a_sinusoid_within_the_travels():
     t = np.arange(0, 8 * H, 10.0)
     q, direction = sim.sinusoidal_program(t, seed=3)
