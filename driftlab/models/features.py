@@ -14,6 +14,10 @@ from driftlab.errors import ValidationError
 
 Kind = Literal["intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT"]
 KINDS: tuple[str, ...] = ("intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT")
+#: kinds that read a joint coordinate or approach direction; their ``label`` names the axis
+AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT"})
+#: columns of a (N, 5) joint array
+AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
 
 
 @dataclass(frozen=True)
@@ -40,20 +44,21 @@ class Feature:
 
     @property
     def name(self) -> str:
-        """Return the term's display name, e.g. ``x*dT[T9]`` or ``grad[T34-T32]``."""
+        """Return the term's display name, e.g. ``pos[X]*dT[T9]`` or ``grad[T34-T32]``."""
         c = self.channels
+        ax = f"[{self.label}]" if self.label and self.kind in AXIS_KINDS else ""
         if self.kind == "intercept":
             return "const"
         if self.kind == "position":
-            return "pos" if self.power == 1 else f"pos^{self.power}"
+            return f"pos{ax}" if self.power == 1 else f"pos{ax}^{self.power}"
         if self.kind == "direction":
-            return "dir"
+            return f"dir{ax}"
         if self.kind == "dT":
             return f"dT[{c[0]}]"
         if self.kind == "lag":
             return f"lag{int(round(self.tau_s or 0))}[{c[0]}]"
         if self.kind == "pos_dT":
-            return f"pos*dT[{c[0]}]"
+            return f"pos{ax}*dT[{c[0]}]"
         if self.kind == "gradient":
             return f"grad[{c[0]}-{c[1]}]"
         return f"mean[{self.label or '+'.join(c)}]"
@@ -189,22 +194,42 @@ def _dT(inputs: Inputs, channel: str) -> np.ndarray:
     return inputs.dT[channel].to_numpy(float)
 
 
+def _axis_column(feature: Feature, values: np.ndarray | None, n: int) -> np.ndarray:
+    """Return the per-sample coordinate (or direction) a feature reads: a (N,) array, or the column of its axis label in (N, 5)."""
+    if values is None:
+        return np.zeros(n)
+    v = np.asarray(values, float)
+    if v.ndim == 2:
+        if feature.label not in AXES:
+            raise ValidationError(f"feature {feature.name} names no axis, so it cannot read a (N, 5) array")
+        return v[:, AXES.index(feature.label)]
+    return np.broadcast_to(v, (n,)).astype(float)
+
+
 def evaluate(
     feature: Feature,
     inputs: Inputs,
     position: np.ndarray | None = None,
     direction: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Return the column of one feature for every sample."""
-    n = len(inputs) if len(inputs.dT.columns) else (len(position) if position is not None else 1)
-    pos = np.zeros(n) if position is None else np.broadcast_to(np.asarray(position, float), (n,))
+    """Return the column of one feature for every sample.
+
+    ``position``/``direction`` are (N,) for the feature's own joint, or (N, 5) joint coordinates and
+    approach directions from which a feature labelled with an axis takes its column.
+    """
+    if len(inputs.dT.columns):
+        n = len(inputs)
+    elif position is not None:
+        n = np.asarray(position).shape[0] if np.ndim(position) else 1
+    else:
+        n = 1
     k = feature.kind
     if k == "intercept":
         return np.ones(n)
     if k == "position":
-        return pos**feature.power
+        return _axis_column(feature, position, n) ** feature.power
     if k == "direction":
-        return np.zeros(n) if direction is None else np.broadcast_to(np.asarray(direction, float), (n,)).copy()
+        return _axis_column(feature, direction, n).copy()
     if k == "dT":
         return _dT(inputs, feature.channels[0])
     if k == "lag":
@@ -212,7 +237,7 @@ def evaluate(
         # a snapshot carries no history: a settled lag equals its input
         return inputs.lagged[key] if key in inputs.lagged else _dT(inputs, feature.channels[0])
     if k == "pos_dT":
-        return pos * _dT(inputs, feature.channels[0])  # eq. 3.2, first order in position
+        return _axis_column(feature, position, n) * _dT(inputs, feature.channels[0])  # eq. 3.2
     if k == "gradient":
         return _dT(inputs, feature.channels[0]) - _dT(inputs, feature.channels[1])  # eqs. 3.4-3.5
     return np.mean([_dT(inputs, c) for c in feature.channels], axis=0)  # eq. 3.3
@@ -248,34 +273,41 @@ def candidate_features(
     channels: Sequence[str],
     structures: Mapping[str, str],
     *,
-    joint: bool,
-    screw_channels: Sequence[str] = (),
+    axes: Sequence[str] = (),
+    screw_channels: Mapping[str, Sequence[str]] | None = None,
     lag_taus_s: Sequence[float] = (),
     lag_channels: Sequence[str] | None = None,
     room_channels: Sequence[str] = (),
+    structure_members: Mapping[str, Sequence[str]] | None = None,
+    max_power: int = 3,
 ) -> list[Feature]:
-    """Return the candidate terms for one link or joint error (ch. 6.4.2).
+    """Return the candidate terms of a link or joint error (ch. 6.4.2).
 
-    Joints get position shape (pos, pos^2), direction (reversal) and position x dT of the
-    ballscrew channels (eq. 3.2); every element gets dT per channel, structure means (eq. 3.3),
-    gradients across structures with two or more channels (eqs. 3.4-3.5) and lagged dT.
+    For each moving axis in ``axes``: its position shape (pos, pos^2, pos^3), approach direction
+    (reversal) and position x dT of its ballscrew channels (eq. 3.2). For the temperatures: dT per
+    channel, the mean of each structure over all its sites (eq. 3.3, from ``structure_members``),
+    gradients between the kept sites of a structure (eqs. 3.4-3.5), the room's ceiling-floor
+    difference, and first-order lags of dT.
     """
     out: list[Feature] = []
-    if joint:
-        out += [Feature("position", power=1), Feature("position", power=2), Feature("direction")]
-        out += [Feature("pos_dT", (c,)) for c in screw_channels if c in channels]
+    for ax in axes:
+        out += [Feature("position", power=p, label=ax) for p in range(1, max_power + 1)]
+        out.append(Feature("direction", label=ax))
+        out += [Feature("pos_dT", (c,), label=ax) for c in (screw_channels or {}).get(ax, ()) if c in channels]
     out += [Feature("dT", (c,)) for c in channels]
     by_struct: dict[str, list[str]] = {}
     for c in channels:
         s = structures.get(c, "")
         if s and c not in room_channels:
             by_struct.setdefault(s, []).append(c)
+    members = dict(structure_members or {})
     for s, cs in by_struct.items():
-        if len(cs) >= 2:
-            out.append(Feature("mean", tuple(cs), label=s))
-            for i in range(len(cs)):
-                for j in range(i + 1, len(cs)):
-                    out.append(Feature("gradient", (cs[j], cs[i])))
+        group = [c for c in members.get(s, cs)]
+        if len(group) >= 2:
+            out.append(Feature("mean", tuple(group), label=s))
+        for i in range(len(cs)):
+            for j in range(i + 1, len(cs)):
+                out.append(Feature("gradient", (cs[j], cs[i])))
     if len(room_channels) >= 2 and all(c in channels for c in room_channels[:2]):
         out.append(Feature("gradient", (room_channels[0], room_channels[1])))
     for tau in lag_taus_s:

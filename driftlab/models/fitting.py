@@ -39,26 +39,18 @@ AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
 ROTARY = ("A", "B")
 #: the joint each axis drives
 AXIS_JOINT: Mapping[str, str] = {"X": "phi_x", "Y": "phi_y", "Z": "phi_z", "A": "theta_x", "B": "theta_y"}
+#: the axis of each joint
+JOINT_OF: Mapping[str, str] = {j: a for a, j in AXIS_JOINT.items()}
 #: names of the error measurements of tables 6.1/6.2, by (axis, term)
 MEASUREMENT_NAMES: Mapping[str, str] = {"alpha": "Roll", "beta": "Pitch", "gamma": "Yaw"}
-#: structures whose thermocouples may explain each element (ch. 4.3: only thermocouples close to
-#: the source of the error); room and base channels are candidates everywhere
-ELEMENT_STRUCTURES: Mapping[str, tuple[str, ...]] = {
-    "T1": ("spindle", "spindle_arm"),
-    "phi_z": ("z_screw", "z_motor", "spindle_arm", "z_column"),
-    "T2": ("z_column",),
-    "phi_y": ("y_screw", "y_motor", "z_column"),
-    "T3": ("xy_carriage",),
-    "phi_x": ("x_screw", "x_motor", "x_table", "xy_carriage"),
-    "T4": ("x_table", "xy_carriage"),
-    "theta_x": ("a_drive", "rotary_base"),
-    "T5": ("rotary_base",),
-    "theta_y": ("b_drive", "b_table"),
-    "T6": ("b_table",),
-}
-EVERYWHERE = ("room", "base")
 #: feature kinds that belong to a joint (position shape, reversal, ballscrew)
 SEED_KINDS = frozenset({"position", "direction", "pos_dT"})
+#: the element whose structure a thermocouple's structure belongs to (allocation of a chosen term)
+STRUCTURE_ELEMENT: Mapping[str, str] = {
+    "spindle": "T1", "spindle_arm": "T1", "z_column": "T2", "base": "T2", "z_screw": "phi_z", "z_motor": "phi_z",
+    "y_screw": "phi_y", "y_motor": "phi_y", "xy_carriage": "T3", "x_screw": "phi_x", "x_motor": "phi_x",
+    "x_table": "T4", "rotary_base": "theta_x", "a_drive": "theta_x", "b_table": "theta_y", "b_drive": "theta_y",
+}
 #: ballscrew sites of each translational joint (eq. 3.2: error ~ position x dT of the screw)
 SCREW_STRUCTURES: Mapping[str, tuple[str, ...]] = {
     "phi_x": ("x_screw", "x_motor"), "phi_y": ("y_screw", "y_motor"), "phi_z": ("z_screw", "z_motor"),
@@ -102,7 +94,7 @@ class FitResult:
 
     document: ModelDocument
     screening: ScreeningResult
-    term_fits: dict[tuple[str, str], TermFit]
+    models: dict[tuple[str, str], "ElementModel"]
     validation: pd.DataFrame  # tables 6.1/6.2 layout
     physical: pd.DataFrame  # table 6.3 layout
     extrapolation: ExtrapolationResult | None
@@ -148,39 +140,26 @@ def stage_elements(stages: Sequence[Any]) -> list[tuple[Any, str | None, str]]:
     """Return (stage, element, role) in plan order: the element the stage's errors are allocated to (ch. 4.3).
 
     A single heat source names the element: the spindle its support structure (T1), an axis feed
-    or motor hold that axis' joint. Cool-downs belong to the heat source before them (a baseline
-    to the first one); combined sources are kept for validation; power-off stages are skipped.
+    or motor hold that axis' joint. Cool-downs and power-off belong to the stage before them (a
+    leading baseline to the first heat source); combined sources are kept for validation.
     """
     out: list[tuple[Any, str | None, str]] = []
-    last: str | None = None
-    pending: list[Any] = []
+    last: tuple[str | None, str] | None = None
     for st in stages:
         hs = str(getattr(st, "heat_source", "")).lower()
         axis = getattr(st, "axis", None)
-        if hs == "off":
-            out.append((st, None, "skip"))
-            continue
         if "+" in hs or hs == "combined":
-            out.append((st, None, "validation"))
-            continue
-        element = None
-        if hs == "spindle":
-            element = "T1"
+            last = (None, "validation")
+        elif hs == "spindle":
+            last = ("T1", "train")
         elif hs in ("feed", "axis", "motor_hold") and axis in AXIS_JOINT:
-            element = AXIS_JOINT[axis]
-        if element is None:  # idle / none / cool-down
-            if last is None:
-                pending.append(st)
-                out.append((st, None, "pending"))
-            else:
-                out.append((st, last, "train"))
+            last = (AXIS_JOINT[axis], "train")
+        elif last is None:
+            out.append((st, None, "pending"))
             continue
-        last = element
-        out.append((st, element, "train"))
-        if pending:
-            out = [(s, element, "train") if r == "pending" else (s, e, r) for s, e, r in out]
-            pending = []
-    return [(s, e, "skip" if r == "pending" else r) for s, e, r in out]
+        out.append((st, *last))
+    first = next(((e, r) for _, e, r in out if r == "train"), (None, "skip"))
+    return [(st, *first) if r == "pending" else (st, e, r) for st, e, r in out]
 
 
 # ----------------------------------------------------------------------------- samples
@@ -257,54 +236,80 @@ def build_samples(
 # ----------------------------------------------------------------------------- per-element fits
 
 
-def _element_candidates(
-    element: str,
-    kept: Sequence[str],
-    structures: Mapping[str, str],
-    locations: Mapping[str, str],
-    room: Sequence[str],
-    lag_taus: Sequence[float],
-    override: Sequence[str] | None,
-) -> list[Feature]:
-    """Return the candidate terms of one element: near-by channels, recast physically (ch. 6.4.2)."""
-    if override:
-        chans = list(override)
-    else:
-        near = set(ELEMENT_STRUCTURES.get(element, ())) | set(EVERYWHERE)
-        chans = [c for c in kept if structures.get(c, "") in near or c in room]
-        if len([c for c in chans if c not in room]) == 0:
-            chans = list(kept)  # unknown structure names (a real machine): let stepwise choose
-    joint = element in JOINTS
-    screw: list[str] = []
-    if joint:
-        ss = SCREW_STRUCTURES.get(element, ())
-        screw = [c for c in chans if structures.get(c, "") in ss or "ballscrew" in locations.get(c, "").lower()]
-        if element in SCREW_STRUCTURES and not screw and not any(structures.get(c) in ss for c in kept):
-            screw = [c for c in chans if c not in room]
-    lag_chans = [c for c in chans if c not in room]
-    return candidate_features(
-        chans, structures, joint=joint, screw_channels=screw, lag_taus_s=lag_taus, lag_channels=lag_chans,
-        room_channels=[c for c in room if c in chans],
-    )
+@dataclass
+class ElementModel:
+    """The model of one parameter of one link or joint, built up stage by stage (ch. 4.3)."""
+
+    element: str
+    param: str
+    features: list[Feature] = field(default_factory=list)
+    coef: list[float] = field(default_factory=list)
+    std_errors: list[float] = field(default_factory=list)
+    p_values: list[float] = field(default_factory=list)
+    fits: list[TermFit] = field(default_factory=list)
+
+    def add(self, fit: TermFit, features: Sequence[Feature]) -> None:
+        """Add the chosen ``features`` of a stage fit (coefficients of a repeated term are summed)."""
+        res = fit.result
+        for f in features:
+            c, se, pv = float(res.params[f.name]), float(res.bse[f.name]), float(res.pvalues[f.name])
+            if f in self.features:
+                i = self.features.index(f)
+                self.coef[i] += c
+                self.std_errors[i] = float(np.hypot(self.std_errors[i], se))
+                self.p_values[i] = min(self.p_values[i], pv)
+            else:
+                self.features.append(f)
+                self.coef.append(c)
+                self.std_errors.append(se)
+                self.p_values.append(pv)
+        if fit not in self.fits:
+            self.fits.append(fit)
+
+    def coefficient(self, name: str) -> float:
+        """Return the coefficient of the term called ``name`` (KeyError when absent)."""
+        return float(dict(zip([f.name for f in self.features], self.coef))[name])
+
+    def predict(self, inputs: Inputs, q: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Return this parameter's error for every sample ((N, 5) coordinates and directions)."""
+        if not self.features:
+            return np.zeros(q.shape[0])
+        return design_matrix(self.features, inputs, q, direction).to_numpy(float) @ np.asarray(self.coef)
+
+    @property
+    def primary(self) -> TermFit:
+        """Return the stage fit of this element's own heat source (else the first contributing one)."""
+        own = [f for f in self.fits if f.element == self.element]
+        return own[0] if own else self.fits[0]
 
 
-def _joint_position(element: str, q: np.ndarray) -> np.ndarray:
-    """Return the coordinate that drives a joint (zeros for a link)."""
-    return q[:, JOINT_AXIS[element]] if element in JOINT_AXIS else np.zeros(q.shape[0])
+def _directions(sample: Sample) -> np.ndarray:
+    """Return (N, 5) approach directions: each point's direction in the column of its moved axis."""
+    d = np.zeros_like(sample.q)
+    ax = sample.frame["axis"].to_numpy(str)
+    dr = sample.frame["direction"].to_numpy(float)
+    for k, a in enumerate(AXES):
+        m = ax == a
+        d[m, k] = dr[m]
+    return d
 
 
-def predict_fits(
-    fits: Mapping[tuple[str, str], TermFit], sample: Sample, direction: np.ndarray | None = None
-) -> dict[str, np.ndarray]:
-    """Return element errors (N, 6) predicted by the fitted term models at the sample poses."""
+def feature_element(f: Feature, structures: Mapping[str, str], default: str) -> str:
+    """Return the element a chosen term belongs to: a joint for its axis' shape, else where its thermocouples sit."""
+    if f.kind in SEED_KINDS and f.label in AXIS_JOINT:
+        return AXIS_JOINT[f.label]
+    owners = {STRUCTURE_ELEMENT.get(structures.get(c, ""), default) for c in f.channels}
+    return owners.pop() if len(owners) == 1 else default
+
+
+def predict_models(models: Mapping[tuple[str, str], ElementModel], sample: Sample) -> dict[str, np.ndarray]:
+    """Return element errors (N, 6) predicted by the models at the sample poses."""
     n = sample.q.shape[0]
-    d = sample.frame["direction"].to_numpy(float) if direction is None else direction
+    d = _directions(sample)
     out: dict[str, np.ndarray] = {}
-    for (element, param), fit in fits.items():
-        pos = _joint_position(element, sample.q)
-        dd = d * (sample.frame["axis"].map(AXIS_JOINT).to_numpy(object) == element)
+    for (element, param), m in models.items():
         arr = out.setdefault(element, np.zeros((n, 6)))
-        arr[:, PARAMS.index(param)] += fit.predict(sample.inputs, pos, dd)
+        arr[:, PARAMS.index(param)] += m.predict(sample.inputs, sample.q, d)
     return out
 
 
@@ -318,76 +323,101 @@ def _measured_w(sample: Sample, known: Mapping[str, np.ndarray], dims: Mapping[s
     return W, mask
 
 
+@dataclass
+class Candidates:
+    """What a stage fit may choose from: channels, structure members, screws per axis, lags."""
+
+    channels: list[str]
+    structures: dict[str, str]
+    members: dict[str, list[str]]
+    screws: dict[str, list[str]]
+    room: list[str]
+    lag_taus_s: tuple[float, ...]
+
+    def for_axes(self, axes: Sequence[str], allowed: Sequence[str] | None) -> list[Feature]:
+        """Return the candidate terms for rows moving ``axes``, limited to ``allowed`` channels."""
+        chans = [c for c in self.channels if allowed is None or c in allowed]
+        members = {s: [c for c in cs if allowed is None or c in allowed] for s, cs in self.members.items()}
+        return candidate_features(
+            chans, self.structures, axes=axes, screw_channels=self.screws, lag_taus_s=self.lag_taus_s,
+            lag_channels=[c for c in chans if c not in self.room], room_channels=[c for c in self.room if c in chans],
+            structure_members=members,
+        )
+
+
 def fit_elements(
     sample: Sample,
-    kept: Sequence[str],
-    structures: Mapping[str, str],
-    locations: Mapping[str, str],
-    room: Sequence[str],
+    cands: Candidates,
     model_channels: Mapping[str, Sequence[str]],
     options: FitOptions,
     dims: Mapping[str, Any] = TABLE_A1,
     on_element: Callable[[str], None] | None = None,
-) -> tuple[dict[tuple[str, str], TermFit], list[dict[str, Any]]]:
-    """Return the term models of every element, allocated in chain order from the spindle (eq. 4.20)."""
-    fits: dict[tuple[str, str], TermFit] = {}
-    allocation_log: list[dict[str, Any]] = []
+) -> tuple[dict[tuple[str, str], ElementModel], list[dict[str, Any]]]:
+    """Return the model of every link and joint parameter, allocating stage by stage in chain order (eq. 4.20).
+
+    For each heat source in turn (spindle structure first, then Z, Y, X, A, B), the errors of its
+    stages less what the elements modelled so far predict are allocated to its element through
+    the HTM chain; a stepwise regression explains them, and each chosen term goes to the element
+    where it physically arises (a joint for its axis' shape, else where its thermocouples sit).
+    """
+    models: dict[tuple[str, str], ElementModel] = {}
+    log_rows: list[dict[str, Any]] = []
     elements = [e for e in ELEMENTS if (sample.frame["element"] == e).any()]
+    solved: list[str] = []
     for element in elements:
+        # terms handed to this element by earlier stages are re-estimated from its own test
+        for (e, _p), m in list(models.items()):
+            if e == element:
+                del models[(e, _p)]
         rows = (sample.frame["element"] == element).to_numpy()
         sub = sample.take(rows)
-        known = {k: v for k, v in predict_fits(fits, sub).items() if k != element}
+        known = predict_models(models, sub)
         W, mask = _measured_w(sub, known, dims)
         E = allocate(W, sub.q, known, element, dims)  # eq. 4.20
         train = (sub.frame["role"] == "train").to_numpy()
-        axes = sorted(set(sub.frame["axis"]))
-        override = None
-        for ax in axes:
-            if AXIS_JOINT.get(ax) == element and model_channels.get(ax):
-                override = list(model_channels[ax])
-        if override is None and len(axes) == 1 and model_channels.get(axes[0]):
-            override = list(model_channels[axes[0]])
-        cands = _element_candidates(element, kept, structures, locations, room, options.lag_taus_s, override)
-        pos = _joint_position(element, sub.q)
-        d = sub.frame["direction"].to_numpy(float)
-        seed_joint = None
-        if element not in JOINTS:
-            # a link is measured through a moving axis: that joint's shape (position, reversal,
-            # ballscrew) is fitted alongside and handed to the joint, not left in the link's residual
-            main_axis = sub.frame["axis"].mode().iloc[0]
-            seed_joint = AXIS_JOINT[main_axis]
-            pos = _joint_position(seed_joint, sub.q)
-            d = d * (sub.frame["axis"] == main_axis).to_numpy()
-            joint_cands = _element_candidates(seed_joint, kept, structures, locations, room, (), None)
-            cands = cands + [f for f in joint_cands if f.kind in SEED_KINDS and f not in cands]
-        X = design_matrix([INTERCEPT, *cands], sub.inputs, pos, d)
+        hold = (sub.frame["role"] == "holdout").to_numpy()
+        axes = [a for a in AXES if (sub.frame["axis"] == a).any()]
+        allowed = None
+        own_axis = JOINT_OF.get(element)
+        if own_axis in model_channels:
+            allowed = list(model_channels[own_axis])
+        elif model_channels and all(a in model_channels for a in axes):
+            allowed = sorted({c for a in axes for c in model_channels[a]})
+        feats = cands.for_axes(axes, allowed)
+        X = design_matrix([INTERCEPT, *feats], sub.inputs, sub.q, _directions(sub))
         for k, param in enumerate(PARAMS):
             m_train = train & mask[:, k]
             if m_train.sum() < 12:
                 continue
             y = E[:, k]
+            # a known relationship is not learnt again: refitting it on the residual would only
+            # fit the sensor noise it was evaluated with (errors in variables)
+            used = {f for (e, pp), m in models.items() if pp == param for f in m.features}
+            pool = [f for f in feats if f not in used and feature_element(f, cands.structures, element) not in solved]
             res = stepwise(
-                X[m_train].reset_index(drop=True), y[m_train], cands, forced=[INTERCEPT],
+                X[m_train].reset_index(drop=True), y[m_train], pool, forced=[INTERCEPT],
                 p_enter=options.p_enter, p_remove=options.p_remove, min_gain=options.min_gain,
                 max_terms=options.max_terms, vif_max=options.vif_max,
             )
             fit = TermFit(element, param, res)
-            m_hold = (~train) & mask[:, k] & (sub.frame["role"] == "holdout").to_numpy()
+            m_hold = hold & mask[:, k]
             if m_hold.any():
                 fit.rmse_holdout = rmse(y[m_hold] - res.predict(X[m_hold]))
                 fit.n_holdout = int(m_hold.sum())
-            if seed_joint is not None:
-                fit, seed = fit.split(lambda f: f.kind in SEED_KINDS, seed_joint)
-                if seed is not None and (seed_joint, param) not in fits:
-                    fits[(seed_joint, param)] = seed  # replaced when the joint's own stage is fitted
-            fits[(element, param)] = fit
-        allocation_log.append(
-            {"element": element, "axes": axes, "stages": sorted({int(s) for s in sub.frame["stage"]}),
-             "n": int(rows.sum()), "channels": override or "screened"}
-        )
+            owners: dict[str, list[Feature]] = {}
+            for f in res.features:
+                owners.setdefault(feature_element(f, cands.structures, element), []).append(f)
+            for owner, fs in owners.items():
+                models.setdefault((owner, param), ElementModel(owner, param)).add(fit, fs)
+        solved.append(element)
+        log_rows.append({
+            "element": element, "axes": axes, "n": int(rows.sum()), "n_train": int(train.sum()),
+            "stages": sorted({int(s) for s in sub.frame["stage"]}),
+            "channels": "model_channels" if allowed is not None else "screened",
+        })
         if on_element is not None:
             on_element(element)
-    return fits, allocation_log
+    return models, log_rows
 
 
 # ----------------------------------------------------------------------------- validation tables
@@ -404,92 +434,103 @@ def _measurement_name(axis: str, term: str) -> str:
 
 
 def validation_table(
-    sample: Sample, fits: Mapping[tuple[str, str], TermFit], dims: Mapping[str, Any]
+    sample: Sample, models: Mapping[tuple[str, str], ElementModel], dims: Mapping[str, Any]
 ) -> tuple[pd.DataFrame, np.ndarray]:
-    """Return tables 6.1/6.2: per (axis, term, link) the work-space RMSE on training and held-out data, R^2, F."""
-    W_hat = workspace_error(sample.q, predict_fits(fits, sample), dims)
+    """Return tables 6.1/6.2: per (axis, term) the work-space RMSE on training and held-out data, R^2 and F.
+
+    ``link`` names the elements whose models carry that term (largest contribution first); R^2 and
+    F are those of the full chain's prediction on the training points (F with as many regressors
+    as the contributing terms).
+    """
+    el = predict_models(models, sample)
+    W_hat = workspace_error(sample.q, el, dims)
     W = sample.frame[list(PARAMS)].to_numpy(float)
-    rows = []
     role = sample.frame["role"].to_numpy(object)
-    for (axis, element), idx in sample.frame.groupby(["axis", "element"]).groups.items():
-        idx = np.asarray(list(idx))
+    axis_col = sample.frame["axis"].to_numpy(str)
+    rows = []
+    for axis in AXES:
+        on = axis_col == axis
+        if not on.any():
+            continue
         for k, term in enumerate(PARAMS):
-            col = W[idx, k]
-            ok = np.isfinite(col)
-            if not ok.any() or (element, term) not in fits:
+            col = W[:, k]
+            ok = on & np.isfinite(col)
+            tr, ho, va = ok & (role == "train"), ok & (role == "holdout"), ok & (role == "validation")
+            if tr.sum() < 3:
                 continue
-            fit = fits[(element, term)]
-            r = col - W_hat[idx, k]
-            tr = ok & (role[idx] == "train")
-            ho = ok & (role[idx] == "holdout")
+            contrib = {e: float(np.std(v[tr, k])) for e, v in el.items()}
+            top = max(contrib.values(), default=0.0)
+            links = [e for e, c in sorted(contrib.items(), key=lambda kv: -kv[1]) if top > 0 and c >= 0.05 * top]
+            n_terms = sum(len(models[(e, term)].features) for e in links if (e, term) in models)
+            r2 = r_squared(col[tr], W_hat[tr, k])
+            n = int(tr.sum())
+            dof = n - n_terms - 1
+            f = (r2 / max(n_terms, 1)) / ((1 - r2) / dof) if dof > 0 and n_terms and r2 < 1 else float("nan")
             rows.append({
-                "axis": axis, "term": term, "link": element, "measurement": _measurement_name(axis, term),
-                "unit": "rad" if term in MEASUREMENT_NAMES else "mm",
-                "rmse_train": rmse(r[tr]), "rmse_holdout": rmse(r[ho]),
-                "r2": fit.result.rsquared, "f": fit.result.fvalue,
-                "r2_holdout": r_squared(col[ho], W_hat[idx, k][ho]) if ho.sum() > 2 else float("nan"),
-                "n_train": int(tr.sum()), "n_holdout": int(ho.sum()),
-                "terms": ", ".join(f.name for f in fit.terms if f.kind != "intercept"),
+                "axis": axis, "term": term, "link": "+".join(links) or "-",
+                "measurement": _measurement_name(axis, term), "unit": "rad" if term in MEASUREMENT_NAMES else "mm",
+                "rmse_train": rmse(col[tr] - W_hat[tr, k]), "rmse_holdout": rmse(col[ho] - W_hat[ho, k]),
+                "rmse_validation": rmse(col[va] - W_hat[va, k]), "r2": r2, "f": f,
+                "r2_holdout": r_squared(col[ho], W_hat[ho, k]) if ho.sum() > 2 else float("nan"),
+                "n_train": n, "n_holdout": int(ho.sum()), "n_validation": int(va.sum()),
             })
-    # combined-source stages: never trained on, the sternest hold-out
-    val = role == "validation"
-    for axis in sorted(set(sample.frame.loc[val, "axis"])):
-        m = val & (sample.frame["axis"] == axis).to_numpy()
-        for k, term in enumerate(PARAMS):
-            col = W[m, k]
-            ok = np.isfinite(col)
-            if ok.sum() > 2:
-                rows.append({
-                    "axis": axis, "term": term, "link": "combined", "measurement": _measurement_name(axis, term),
-                    "unit": "rad" if term in MEASUREMENT_NAMES else "mm", "rmse_train": float("nan"),
-                    "rmse_holdout": rmse(col[ok] - W_hat[m, k][ok]), "r2": float("nan"), "f": float("nan"),
-                    "r2_holdout": r_squared(col[ok], W_hat[m, k][ok]), "n_train": 0, "n_holdout": int(ok.sum()),
-                    "terms": "",
-                })
-    table = pd.DataFrame(rows)
-    if not table.empty:
-        table["_a"] = table["axis"].map({a: i for i, a in enumerate(AXES)})
-        table = table.sort_values(["_a", "term", "link"]).drop(columns="_a").reset_index(drop=True)
-    return table, W_hat
+    return pd.DataFrame(rows), W_hat
 
 
 def physical_table(
-    fits: Mapping[tuple[str, str], TermFit],
+    models: Mapping[tuple[str, str], ElementModel],
     dims: Mapping[str, Any],
+    structures: Mapping[str, str],
     geometry: Mapping[str, float] | None = None,
     alpha_c: float = ALPHA_C_PER_DEGC,
 ) -> pd.DataFrame:
     """Return table 6.3: each physically recast coefficient beside its physical value (ch. 3.5).
 
-    position x dT of a ballscrew: alpha_c per mm of travel (eq. 3.1/3.2, L = position);
-    dT or a structure mean on a link's length term: alpha_c L (eq. 3.1/3.3, L from the link dims);
-    a gradient on a translation: alpha_c L^2 / 2H (eq. 3.5); on an angle: alpha_c L / H (eq. 3.4).
+    position x dT of a ballscrew: alpha_c per mm of travel (eq. 3.2, L = position); the dT terms
+    of a joint's ballscrew sites together: alpha_c l, l its non-travelled length (eq. 3.2);
+    a structure mean on a link: alpha_c L (eqs. 3.1, 3.3, L from the link dims); a gradient across
+    a structure: alpha_c L^2/2H on a translation (eq. 3.5), alpha_c L/H on an angle (eq. 3.4).
     """
-    g = {"arm_length_mm": 400.0, "arm_height_mm": 200.0}
+    g = {"arm_length_mm": 400.0, "arm_height_mm": 200.0, "screw_fixed_mm": 150.0, "column_mm": 1200.0}
     g.update(geometry or {})
     rows = []
-    for (element, param), fit in fits.items():
-        for f, coef, se in zip(fit.terms, fit.coefficients, fit.std_errors):
-            phys = rel = None
-            if f.kind == "pos_dT" and param in ("dx", "dy", "dz"):
-                phys, rel = alpha_c, "alpha_c dT L, L = position (eq. 3.2), per mm of travel"
-            elif f.kind in ("dT", "mean") and element in dims and param in ("dx", "dy", "dz"):
+
+    def row(term: str, m: ElementModel, feature: str, reg: float, se: float, phys: float, rel: str) -> None:
+        rows.append({"term": term, "element": m.element, "param": m.param, "feature": feature,
+                     "regression": reg, "std_error": se, "physical": phys, "relationship": rel,
+                     "ratio": abs(reg) / phys if phys else float("nan")})
+
+    for (element, param), m in models.items():
+        screw_sum, screw_se, screw_names = 0.0, 0.0, []
+        for f, coef, se in zip(m.features, m.coef, m.std_errors):
+            translation = param in ("dx", "dy", "dz")
+            if f.kind == "pos_dT" and translation:
+                row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c,
+                    "alpha_c dT L, L = position (eq. 3.2), mm/mm/degC")
+            elif f.kind == "dT" and translation and element in SCREW_STRUCTURES and \
+                    structures.get(f.channels[0], "") in SCREW_STRUCTURES[element]:
+                screw_sum += coef
+                screw_se = float(np.hypot(screw_se, se))
+                screw_names.append(f.channels[0])
+            elif f.kind == "mean" and translation and element in dims:
                 L = abs(float(tuple(dims[element])[("dx", "dy", "dz").index(param)]))
+                if element == "T2" and param == "dz":
+                    L = g["column_mm"]
                 if L > 0:
-                    phys, rel = alpha_c * L, f"alpha_c dT L, L = {L:.0f} mm (eq. 3.1/3.3)"
+                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L,
+                        f"alpha_c dT L, L = {L:.0f} mm (eqs. 3.1, 3.3), mm/degC")
             elif f.kind == "gradient" and not _room_pair(f):
                 L, H = g["arm_length_mm"], g["arm_height_mm"]
-                if param in ("dx", "dy", "dz"):
-                    phys, rel = alpha_c * L**2 / (2 * H), f"alpha_c dT L^2/2H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.5)"
+                if translation:
+                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L**2 / (2 * H),
+                        f"alpha_c dT L^2/2H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.5), mm/degC")
                 else:
-                    phys, rel = alpha_c * L / H, f"alpha_c dT L/H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.4), rad"
-            if phys is None:
-                continue
-            rows.append({
-                "term": f"{element}.{param} {f.name}", "element": element, "param": param, "feature": f.name,
-                "regression": float(coef), "std_error": float(se), "physical": float(phys), "relationship": rel,
-                "ratio": float(coef / phys) if phys else float("nan"),
-            })
+                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L / H,
+                        f"alpha_c dT L/H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.4), rad/degC")
+        if screw_names:
+            name = "+".join(f"dT[{c}]" for c in screw_names)
+            row(f"{element}.{param} {name}", m, name, screw_sum, screw_se, alpha_c * g["screw_fixed_mm"],
+                f"alpha_c dT l, l = {g['screw_fixed_mm']:.0f} mm non-travelled screw (eq. 3.2), mm/degC")
     return pd.DataFrame(rows, columns=["term", "element", "param", "feature", "regression", "std_error",
                                        "physical", "relationship", "ratio"])
 
@@ -593,29 +634,38 @@ def fit_bundles(
     # 1. screening (ch. 5.4)
     common = [c for c in channel_columns(train_bundles[0].temperatures) if all(c in b.temperatures for b in train_bundles)]
     temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in train_bundles], ignore_index=True)
-    forced = sorted({c for cs in model_channels.values() for c in cs})
-    screening = screen_channels(temps, chan_meta, room, always_keep=forced)
+    screening = screen_channels(temps, chan_meta, room)
     kept = screening.kept
     lap("screening")
 
     # 2. samples at the error points, with dT and lags of every channel a model may read
-    channels = list(dict.fromkeys([*kept, *forced]))
+    # a structure's mean (eq. 3.3) is over all its sites that read, kept or not
+    members: dict[str, list[str]] = {}
+    dead = {c for c, why in screening.dropped.items() if why == "no readings" or why.startswith("constant")}
+    for c in common:
+        st = structures.get(c, "")
+        if st and st != "unspecified" and c not in room and c not in dead:
+            members.setdefault(st, []).append(c)
+    members = {st: cs for st, cs in members.items() if len(cs) >= 2 and any(c in kept for c in cs)}
+    screws = {ax: [c for c in kept if structures.get(c, "") in SCREW_STRUCTURES.get(AXIS_JOINT[ax], ())] for ax in AXES}
+    cands = Candidates(list(kept), structures, members, screws, list(room), tuple(opts.lag_taus_s))
+    channels = list(dict.fromkeys([*kept, *(c for cs in members.values() for c in cs)]))
     reference = _reference(bundles, channels)
-    lag_chans = [c for c in channels if c not in room]
+    lag_chans = [c for c in kept if c not in room]
     lags = [(c, t) for t in opts.lag_taus_s for c in lag_chans]
     sample = build_samples(train_bundles, channels, reference, lags, opts.holdout_fraction)
     lap("samples")
 
     # 3-4. allocation through the chain and per-link stepwise models
     dims = TABLE_A1
-    fits, alloc = fit_elements(sample, kept, structures, locations, room, model_channels, opts, dims)
-    if not fits:
+    models, alloc = fit_elements(sample, cands, model_channels, opts, dims)
+    if not models:
         raise ValidationError("no error term had enough training samples to fit")
     lap("allocation_and_regression")
 
     # 5. validation tables
-    validation, W_hat = validation_table(sample, fits, dims)
-    physical = physical_table(fits, dims)
+    validation, W_hat = validation_table(sample, models, dims)
+    physical = physical_table(models, dims, structures)
     lap("validation")
 
     # 6. neural comparison and extrapolation (ch. 6.6)
@@ -623,7 +673,7 @@ def fit_bundles(
     net_summary: dict[str, Any] | None = None
     if opts.network:
         extrapolation, net_summary = _network_comparison(
-            sample, W_hat, fits, bundles[ext_i] if ext_i is not None else None, channels, reference, lags, dims, opts,
+            sample, W_hat, models, bundles[ext_i] if ext_i is not None else None, channels, reference, lags, dims, opts,
             _room_shift(bundles, ext_i, room),
         )
         lap("network")
@@ -639,21 +689,22 @@ def fit_bundles(
     lo = temps[channels].min()
     hi = temps[channels].max()
     terms = []
-    for (element, param), fit in fits.items():
-        sub = validation[(validation["link"] == element) & (validation["term"] == param)] if not validation.empty else validation
-        axis = str(sub["axis"].iloc[0]) if len(sub) else None
+    for (element, param), m in models.items():
+        if not m.features:
+            continue
+        fit = m.primary
         res = fit.result
         terms.append({
-            "element": element, "param": param, "axis": axis, "term": param,
-            "features": [f.to_dict() for f in fit.terms],
-            "coefficients": [float(v) for v in fit.coefficients],
-            "std_errors": [float(v) for v in fit.std_errors],
-            "p_values": [float(v) for v in fit.p_values],
+            "element": element, "param": param, "axis": _axes_of(fit), "term": param,
+            "features": [f.to_dict() for f in m.features],
+            "coefficients": [float(v) for v in m.coef],
+            "std_errors": [float(v) for v in m.std_errors],
+            "p_values": [float(v) for v in m.p_values],
             "statistics": {
                 "rmse_train": res.rmse, "rmse_holdout": fit.rmse_holdout, "r2": res.rsquared, "f": res.fvalue,
                 "n_train": res.nobs, "n_holdout": fit.n_holdout, "condition_number": res.condition_number,
             },
-            "steps": [s.to_dict() for s in res.steps],
+            "steps": [{"stage_element": f.element, **st.to_dict()} for f in m.fits for st in f.result.steps],
         })
     used = sorted({c for t in terms for f in t["features"] for c in f.get("channels", [])})
     inputs = {c: {"reference": reference[c], "min": float(lo[c]), "max": float(hi[c])} for c in channels if c in used or c in kept}
@@ -676,13 +727,18 @@ def fit_bundles(
     }
     document = validate_document(_strict_json(doc))
     lap("document")
-    return FitResult(document, screening, fits, validation, physical, extrapolation, timings)
+    return FitResult(document, screening, models, validation, physical, extrapolation, timings)
+
+
+def _axes_of(fit: TermFit) -> str | None:
+    """Return the element's own axis for a joint (None for a link, measured through every axis)."""
+    return JOINT_OF.get(fit.element)
 
 
 def _network_comparison(
     sample: Sample,
     W_hat: np.ndarray,
-    fits: Mapping[tuple[str, str], TermFit],
+    models: Mapping[tuple[str, str], "ElementModel"],
     ext_bundle: Any | None,
     channels: Sequence[str],
     reference: Mapping[str, float],
@@ -729,7 +785,7 @@ def _network_comparison(
     if me.sum() < 5:
         return None, summary
     ext = ext.take(me)
-    reg_out = workspace_error(ext.q, predict_fits(fits, ext), dims)[:, k]
+    reg_out = workspace_error(ext.q, predict_models(models, ext), dims)[:, k]
     net_out = net.predict(net_inputs(ext))
     res = extrapolation_errors(W[ho, k], W_hat[ho, k], net_ho, We[me, k], reg_out, net_out, shift_degC)
     return res, summary

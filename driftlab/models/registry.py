@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from driftlab.errors import NotFoundError, ValidationError
 from driftlab.models.features import Feature, Inputs, design_matrix, first_order_lag, required_lags
-from driftlab.models.kinematics import ELEMENTS, JOINT_AXIS, PARAMS, TABLE_A1, ElementErrors, workspace_error
+from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
 
 MODEL_FORMAT = "driftlab-model/1"
 #: the thermal expansion coefficient of the castings (ch. 3.5)
@@ -205,14 +205,16 @@ def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame
     return Inputs(dT=dT, lagged=lagged)
 
 
-def _direction(direction: np.ndarray | None, element: str, n: int) -> np.ndarray:
-    """Return the approach direction (+1/-1; 0 = mean of both) of the joint ``element``."""
+def _directions(direction: np.ndarray | None, n: int) -> np.ndarray:
+    """Return (N, 5) approach directions (+1/-1; 0 = mean of both) from None, (N,) or (N, 5)."""
     if direction is None:
-        return np.zeros(n)
+        return np.zeros((n, 5))
     d = np.asarray(direction, float)
     if d.ndim == 2:
-        return d[:, JOINT_AXIS[element]] if element in JOINT_AXIS else np.zeros(n)
-    return np.broadcast_to(d, (n,)).astype(float)
+        if d.shape != (n, 5):
+            raise ValidationError(f"direction must be (N,) or (N, 5), got {d.shape}")
+        return d
+    return np.repeat(np.broadcast_to(d, (n,))[:, None], 5, axis=1)
 
 
 def predict_element_errors(
@@ -233,11 +235,11 @@ def predict_element_errors(
         raise ValidationError(f"q must be (N, 5), got {q.shape}")
     n = q.shape[0]
     inp = _inputs(doc, temperatures, n)
+    d = _directions(direction, n)
     out: dict[str, np.ndarray] = {}
     for t in doc.terms:
         feats = [f.feature() for f in t.features]
-        pos = q[:, JOINT_AXIS[t.element]] if t.element in JOINT_AXIS else np.zeros(n)
-        X = design_matrix(feats, inp, pos, _direction(direction, t.element, n))
+        X = design_matrix(feats, inp, q, d)
         arr = out.setdefault(t.element, np.zeros((n, 6)))
         arr[:, PARAMS.index(t.param)] += X.to_numpy(float) @ np.asarray(t.coefficients, float)
     return out

@@ -145,8 +145,8 @@ def stepwise(
             Cr = A[:, pool].copy()
         sse = float(r @ r)
         norm2 = (Cr**2).sum(axis=0)
-        ok = norm2 > np.maximum(total2[pool], 1e-300) / vif_max
-        ok &= norm2 > 1e-12 * max(1.0, float(np.max(norm2, initial=0.0)))
+        # VIF of each candidate against the chosen terms = total2 / norm2 (scale-free per column)
+        ok = (norm2 > total2[pool] / vif_max) & (total2[pool] > 0)
         for j, good in zip(pool, ok):
             if not good:
                 collinear.add(names[j])

@@ -7,6 +7,7 @@ import pytest
 from driftlab.errors import ValidationError
 from driftlab.models.features import (
     Feature,
+    Inputs,
     build_inputs,
     candidate_features,
     design_matrix,
@@ -89,11 +90,22 @@ def test_snapshot_inputs_take_settled_lag():
 def test_candidates_joint_vs_link():
     structs = {"T9": "x_screw", "T10": "x_motor", "T32": "arm", "T34": "arm", "T49": "room", "T50": "room"}
     chans = list(structs)
-    joint = candidate_features(chans, structs, joint=True, screw_channels=["T9"], lag_taus_s=[3600],
-                               room_channels=["T49", "T50"])
+    joint = candidate_features(chans, structs, axes=["X"], screw_channels={"X": ["T9"]}, lag_taus_s=[3600],
+                               room_channels=["T49", "T50"], structure_members={"arm": ["T32", "T33", "T34"]})
     names = [f.name for f in joint]
-    assert "pos*dT[T9]" in names and "dir" in names and "grad[T34-T32]" in names
-    assert "grad[T49-T50]" in names and "lag3600[T9]" in names
-    link = candidate_features(chans, structs, joint=False)
+    assert {"pos[X]*dT[T9]", "dir[X]", "pos[X]^3", "grad[T34-T32]", "grad[T49-T50]", "lag3600[T9]"} <= set(names)
+    assert "mean[arm]" in names and next(f for f in joint if f.kind == "mean").channels == ("T32", "T33", "T34")
+    link = candidate_features(chans, structs)
     assert not any(f.kind in ("position", "direction", "pos_dT") for f in link)
     assert required_lags(joint) == [(c, 3600.0) for c in chans]
+
+
+def test_axis_labelled_features_read_their_column_of_q():
+    inp = Inputs(dT=pd.DataFrame({"T9": [1.0, 2.0]}))
+    q = np.array([[100.0, 0, 0, 0, 0], [0, 0, -50.0, 0, 0]])
+    d = np.array([[1.0, 0, 0, 0, 0], [0, 0, -1.0, 0, 0]])
+    X = design_matrix([Feature("pos_dT", ("T9",), label="X"), Feature("position", power=2, label="Z"),
+                       Feature("direction", label="Z")], inp, q, d)
+    assert X.to_numpy().tolist() == [[100.0, 0.0, 0.0], [0.0, 2500.0, -1.0]]
+    with pytest.raises(ValidationError):
+        design_matrix([Feature("position")], inp, q)
