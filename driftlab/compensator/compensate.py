@@ -48,17 +48,101 @@ class ErrorModel:
 
     @classmethod
     def from_document(cls, document: Mapping[str, Any] | Any, label: str | None = None) -> ErrorModel:
-        """Return the model of a registry document (the JSON of ``driftlab models show``)."""
+        """Return the model of a registry document (the JSON of ``driftlab models show``).
+
+        The document's terms are linear in dT, position and direction, so they are evaluated
+        here directly over numpy arrays (``fast_predict``); temperature frames with a history
+        and lagged terms go through ``registry.predict_element_errors``, which owns the lags.
+        """
         from driftlab.models import registry
 
         doc = registry.validate_document(document)
-
-        def predict(q: np.ndarray, temps: Temperatures, direction: np.ndarray) -> kinematics.ElementErrors:
-            """Return the document's element errors at ``q``."""
-            return registry.predict_element_errors(doc, temps, q, direction)
-
         name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
-        return cls(predict=predict, dims=registry.document_dims(doc), label=name, channels=tuple(doc.inputs))
+        return cls(predict=fast_predict(doc), dims=registry.document_dims(doc), label=name, channels=tuple(doc.inputs))
+
+
+def fast_predict(doc: Any) -> Predict:
+    """Return a predict callable equal to ``registry.predict_element_errors`` for ``doc``, without pandas.
+
+    Every feature kind of ``models.features`` is a product of at most one position power and
+    one linear combination of dT (``pos*dT``), so a snapshot of temperatures collapses each term
+    to a polynomial in the joint position (ch. 6.4.2 recast terms).
+    """
+    from driftlab.models import registry
+    from driftlab.models.kinematics import JOINT_AXIS, PARAMS
+
+    refs = {c: r.reference for c, r in doc.inputs.items()}
+    terms = []
+    has_lag = False
+    for t in doc.terms:
+        feats = [(f.kind, tuple(f.channels), int(f.power)) for f in t.features]
+        has_lag |= any(k == "lag" for k, _, _ in feats)
+        terms.append((t.element, PARAMS.index(t.param), JOINT_AXIS.get(t.element), feats,
+                      [float(c) for c in t.coefficients]))
+
+    def predict(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None) -> kinematics.ElementErrors:
+        """Return the (N, 6) errors of every modelled element at poses ``q``."""
+        n = q.shape[0]
+        if isinstance(temps, pd.DataFrame):
+            if has_lag and len(temps) > 1 and "time_s" in temps.columns:
+                return registry.predict_element_errors(doc, temps, q, direction)
+            missing = [c for c in refs if c not in temps.columns]
+            if missing:
+                raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
+            if len(temps) not in (1, n):
+                raise ValidationError(f"{len(temps)} temperature rows for {n} poses (give 1 or {n})")
+            dT = {c: temps[c].to_numpy(float) - r for c, r in refs.items()}
+            if len(temps) == 1:
+                dT = {c: float(v[0]) for c, v in dT.items()}
+        else:
+            missing = [c for c in refs if c not in temps]
+            if missing:
+                raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
+            dT = {c: float(temps[c]) - r for c, r in refs.items()}
+        if not all(np.all(np.isfinite(v)) for v in dT.values()):
+            raise ValidationError("temperatures contain missing readings: substitute virtual-sensor estimates first")
+        out: dict[str, np.ndarray] = {}
+        for element, col, joint, feats, coefs in terms:
+            pos = q[:, joint] if joint is not None else None
+            if direction is None or joint is None:
+                d = None
+            else:
+                dd = np.asarray(direction, dtype=float)
+                d = dd[:, joint] if dd.ndim == 2 else dd
+            const: Any = 0.0  # terms without position (scalars for a snapshot)
+            lin: Any = 0.0  # coefficient of pos
+            acc: Any = 0.0  # everything else, (N,) arrays
+            for (kind, ch, power), c in zip(feats, coefs):
+                if kind == "intercept":
+                    const = const + c
+                elif kind == "position":
+                    if pos is not None:
+                        if power == 1:
+                            lin = lin + c
+                        else:
+                            acc = acc + c * pos**power
+                    elif power == 0:
+                        const = const + c
+                elif kind == "direction":
+                    if d is not None:
+                        acc = acc + c * d
+                elif kind in ("dT", "lag"):  # a snapshot carries no history: a settled lag equals dT
+                    const = const + c * dT[ch[0]]
+                elif kind == "pos_dT":
+                    if pos is not None:
+                        lin = lin + c * dT[ch[0]]
+                elif kind == "gradient":
+                    const = const + c * (dT[ch[0]] - dT[ch[1]])
+                else:  # structure mean (eq. 3.3)
+                    const = const + c * (sum(dT[x] for x in ch) / len(ch))
+            value = acc + const
+            if pos is not None:
+                value = value + lin * pos
+            arr = out.setdefault(element, np.zeros((n, 6)))
+            arr[:, col] += value
+        return out
+
+    return predict
 
 
 def resolution_units(program: Program, resolution_mm: float, resolution_deg: float) -> np.ndarray:

@@ -526,6 +526,7 @@ def emit(
     sent_int: np.ndarray | None = None,
     prev_sent: np.ndarray | None = None,
     lines: slice = slice(None),
+    resume: bool = False,
 ) -> bytes:
     """Return the program text of ``lines`` with ``points`` commanded at ``sent_int`` (integer units).
 
@@ -534,7 +535,9 @@ def emit(
     last axis word); points after a block's first go on new lines after it. In G91 blocks
     the written value is the increment from the previous commanded pose. ``prev_sent`` is
     the commanded pose before the first point (default: the program's start pose). With no
-    points, the lines come back unchanged. ``points`` must cover exactly the blocks of ``lines``.
+    points, the lines come back unchanged. ``points`` must cover exactly the blocks of ``lines``;
+    with ``resume`` the first point continues a block whose line was emitted before (``lines``
+    then starts right after that block's line) and only gets a new line of its own.
     """
     l0, l1, _ = lines.indices(program.n_lines)
     data = np.frombuffer(program.data, dtype=np.uint8)
@@ -547,10 +550,12 @@ def emit(
     sent_int = np.asarray(sent_int, dtype=np.int64)
     blk = points.block
     lines_of = program.block_line[blk]
-    if lines_of[0] < l0 or lines_of[-1] >= l1:
+    first_line = l0 - 1 if resume else l0
+    if lines_of[0] < first_line or lines_of[-1] >= max(l1, first_line + 1):
         raise ValueError("points outside the emitted lines")
     first = np.ones(points.n, dtype=bool)
     first[1:] = blk[1:] != blk[:-1]
+    first[0] = not resume
     prev = np.empty_like(sent_int)
     prev[0] = program.start_int if prev_sent is None else prev_sent
     prev[1:] = sent_int[:-1]
@@ -566,8 +571,10 @@ def emit(
     gen = moved & ~first[:, None]
 
     # sub-point number within its block (0 = the original line)
-    fidx = np.flatnonzero(first)
-    sub = np.arange(points.n) - np.repeat(fidx, np.diff(np.append(fidx, points.n)))
+    starts = first.copy()
+    starts[0] = True  # a resumed block counts its points from the first one given
+    fidx = np.flatnonzero(starts)
+    sub = np.arange(points.n) - np.repeat(fidx, np.diff(np.append(fidx, points.n))) + int(resume)
 
     pos_l, key_l, pre_l, val_l, ax_l = [], [], [], [], []
     # prefixes: 0 none, 1..5 'X'..'B', 6..10 ' X'..' B', 11 eol

@@ -1,0 +1,467 @@
+"""Streaming compensation: corrected blocks fed to the controller as it asks for them (ch. 7.2).
+
+The program is parsed completely before anything is sent (a bad block stops it there). Blocks
+are corrected lazily: ``Streamer.lines()`` is the iterable the machine link pulls from whenever
+the controller's buffer has drained to the low-water mark, so every block leaves with the
+latest model and temperatures. The waiting time of the link (``Streamer.idle``, given to the
+link as its sleep) is used to refresh the model and temperatures and to correct the next
+blocks ahead, so a pull returns at once. A prepared block is never sent once its correction is
+older than ``max_age_s`` (two minutes, ch. 7.2): it is corrected again first. When the model's
+ETag changes (``GET {api}/machines/{id}/model/current`` with ``If-None-Match``), the blocks
+prepared with the old model are corrected again with the new one. If the API goes away, the
+last good model and temperatures stay in use and a warning is logged.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import httpx
+import numpy as np
+
+from driftlab.compensator.compensate import (
+    RESOLUTION_DEG,
+    RESOLUTION_MM,
+    ErrorModel,
+    TemperatureTable,
+    correct_points,
+)
+from driftlab.compensator.gcode import Points, Program, emit, subdivide
+from driftlab.errors import InstrumentError, NotFoundError, ValidationError
+
+log = logging.getLogger(__name__)
+
+#: ch. 7.2: "the code should never be allowed to wait more than two minutes before being updated"
+MAX_AGE_S = 120.0
+
+
+# ----------------------------------------------------------------------------- sources
+
+
+class ModelSource(Protocol):
+    """Where the current model comes from."""
+
+    model: ErrorModel | None
+
+    def refresh(self) -> bool:
+        """Fetch the model if it changed; return True when it did."""
+
+
+class TemperatureSource(Protocol):
+    """Where the latest temperatures come from."""
+
+    def read(self) -> dict[str, float]:
+        """Return the latest reading of every channel (degC)."""
+
+
+@dataclass
+class StaticModel:
+    """A model that never changes (``--model FILE``)."""
+
+    model: ErrorModel | None
+
+    def refresh(self) -> bool:
+        """Return False: nothing to reload."""
+        return False
+
+
+@dataclass
+class FixedTemperatures:
+    """A fixed set of readings."""
+
+    values: Mapping[str, float]
+
+    def read(self) -> dict[str, float]:
+        """Return the readings."""
+        return dict(self.values)
+
+
+@dataclass
+class CsvTemperatures:
+    """The latest row of a temperatures.csv that a logger keeps appending to (re-read on each call)."""
+
+    path: Path
+
+    def read(self) -> dict[str, float]:
+        """Return the latest valid reading of every channel."""
+        return TemperatureTable.read_csv(self.path).latest()
+
+
+def _client(client: httpx.Client | None, timeout_s: float, token: str | None) -> httpx.Client:
+    """Return the given client, or a new one with the timeout and bearer token."""
+    if client is not None:
+        return client
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    return httpx.Client(timeout=timeout_s, headers=headers)
+
+
+class ApiModel:
+    """The machine's current model from the driftlab API, reloaded when its ETag changes."""
+
+    def __init__(
+        self, api: str, machine: str, client: httpx.Client | None = None,
+        timeout_s: float = 5.0, token: str | None = None,
+    ) -> None:
+        self.url = f"{api.rstrip('/')}/machines/{machine}/model/current"
+        self.machine = machine
+        self.client = _client(client, timeout_s, token)
+        self.model: ErrorModel | None = None
+        self.etag: str | None = None
+        self.document: dict[str, Any] | None = None
+        self.reachable = True
+        self.reloads = 0
+
+    def refresh(self) -> bool:
+        """Fetch the model unless unchanged (304); keep the last good one when the API fails."""
+        headers = {"If-None-Match": self.etag} if self.etag and self.model is not None else {}
+        try:
+            reply = self.client.get(self.url, headers=headers)
+        except httpx.HTTPError as exc:
+            return self._outage(f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)
+        if reply.status_code == 304:
+            self._back()
+            return False
+        if reply.status_code == 404 and self.model is None:
+            raise NotFoundError(f"no current model for machine {self.machine} at {self.url}")
+        if reply.status_code != 200:
+            return self._outage(f"HTTP {reply.status_code}")
+        try:
+            body = reply.json()
+            doc = body.get("document", body) if isinstance(body, dict) else body
+            model = ErrorModel.from_document(doc)
+        except (ValueError, ValidationError) as exc:
+            return self._outage(f"unusable model document ({' '.join(str(exc).split())[:120]})")
+        self._back()
+        etag = reply.headers.get("ETag")
+        changed = self.model is None or etag is None or etag != self.etag
+        self.model, self.etag, self.document = model, etag, doc
+        if changed:
+            self.reloads += 1
+            log.info("model %s loaded (ETag %s)", model.label, etag)
+        return changed
+
+    def _outage(self, reason: str) -> bool:
+        """Keep the last model (warn once per outage); fail when there has never been one."""
+        if self.model is None:
+            raise InstrumentError(f"cannot get the model from {self.url}: {reason}")
+        if self.reachable:
+            log.warning("model API unavailable (%s): keeping model %s", reason, self.model.label)
+        self.reachable = False
+        return False
+
+    def _back(self) -> None:
+        """Note that the API answers again."""
+        if not self.reachable:
+            log.warning("model API reachable again")
+        self.reachable = True
+
+
+class ApiTemperatures:
+    """The machine's latest scan from the driftlab API: ``GET {api}/machines/{id}/temperatures/latest``.
+
+    Accepted replies: ``{"time_s": .., "temperatures": {channel: degC}}`` (also under ``values``
+    or ``channels``), or a plain ``{channel: degC}`` object.
+    """
+
+    def __init__(
+        self, api: str, machine: str, client: httpx.Client | None = None,
+        timeout_s: float = 5.0, token: str | None = None,
+    ) -> None:
+        self.url = f"{api.rstrip('/')}/machines/{machine}/temperatures/latest"
+        self.client = _client(client, timeout_s, token)
+
+    def read(self) -> dict[str, float]:
+        """Return the latest reading per channel; InstrumentError when the API cannot give one."""
+        try:
+            reply = self.client.get(self.url)
+            reply.raise_for_status()
+            body = reply.json()
+        except (httpx.HTTPError, ValueError) as exc:
+            raise InstrumentError(f"cannot read temperatures from {self.url}: {exc}") from None
+        for key in ("temperatures", "values", "channels"):
+            if isinstance(body, dict) and isinstance(body.get(key), dict):
+                body = body[key]
+                break
+        try:
+            return {str(c): float("nan") if v is None else float(v) for c, v in body.items() if c != "time_s"}
+        except (AttributeError, TypeError, ValueError):
+            raise InstrumentError(f"unexpected temperatures reply from {self.url}") from None
+
+
+# ----------------------------------------------------------------------------- streamer
+
+
+@dataclass(frozen=True)
+class _Cursor:
+    """Where preparation resumes: a program line, the next point of its block, the carried state."""
+
+    line: int
+    sub: int  # points of this line's block already prepared (0: the line itself is next)
+    steps: np.ndarray
+    sent: np.ndarray
+    nominal: np.ndarray
+    direction: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class _Ready:
+    """A prepared line for the controller and the cursor just after it."""
+
+    text: str
+    after: _Cursor
+    made_at: float
+    model: str
+
+
+@dataclass
+class StreamResult:
+    """What a streaming run did."""
+
+    blocks_sent: int = 0
+    recomputed: int = 0
+    reloads: int = 0
+    latency_s: list[float] = field(default_factory=list)
+    link_report: Any = None
+    warnings: list[str] = field(default_factory=list)
+
+    def latency_ms(self, pct: float) -> float:
+        """Return a percentile of the per-block latency (ms), 0 when nothing was sent."""
+        return float(np.percentile(self.latency_s, pct) * 1e3) if self.latency_s else 0.0
+
+    def summary(self) -> dict[str, Any]:
+        """Return a JSON-ready summary."""
+        return {
+            "blocks_sent": self.blocks_sent, "recomputed": self.recomputed, "model_reloads": self.reloads,
+            "latency_ms_p50": round(self.latency_ms(50), 4), "latency_ms_p99": round(self.latency_ms(99), 4),
+            "latency_ms_max": round(self.latency_ms(100), 4),
+        }
+
+
+def _rows(text: bytes) -> list[bytes]:
+    """Return the lines of ``text`` without their terminators."""
+    rows = text.split(b"\n")
+    if rows and rows[-1] == b"":
+        rows.pop()
+    return [r[:-1] if r.endswith(b"\r") else r for r in rows]
+
+
+def _sendable(text: str) -> bool:
+    """Return True for a line that is a block for the controller (not blank, a comment or ``%``)."""
+    s = text.strip()
+    return bool(s) and s != "%" and not s.startswith(("(", ";"))
+
+
+class Streamer:
+    """Prepares corrected blocks just in time for the machine link (see module docstring)."""
+
+    def __init__(
+        self,
+        program: Program,
+        models: ModelSource,
+        temperatures: TemperatureSource,
+        *,
+        resolution_mm: float = RESOLUTION_MM,
+        resolution_deg: float = RESOLUTION_DEG,
+        max_segment_mm: float = 5.0,
+        max_segment_deg: float = 5.0,
+        max_age_s: float = MAX_AGE_S,
+        refresh_s: float = 30.0,
+        lookahead: int = 64,
+        batch_lines: int = 32,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        timer: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        if not 0 < refresh_s <= max_age_s:
+            raise ValidationError("refresh interval must be positive and no longer than the maximum age")
+        self.program = program
+        self.models = models
+        self.temperature_source = temperatures
+        self.resolution = (resolution_mm, resolution_deg)
+        self.segment = (max_segment_mm, max_segment_deg)
+        self.max_age_s = max_age_s
+        self.refresh_s = refresh_s
+        self.lookahead = max(1, lookahead)
+        self.batch_lines = max(1, batch_lines)
+        self.clock, self.sleep, self.timer = clock, sleep, timer
+        zero = np.zeros(5, dtype=np.int64)
+        start = _Cursor(0, 0, zero, program.start_int.copy(), program.start_int.copy(), None)
+        self._taken = start  # just after the last line handed to the link
+        self._made = start  # just after the last line prepared
+        self._ready: deque[_Ready] = deque()
+        self._temps: dict[str, float] | None = None
+        self._temps_at = -np.inf
+        self._temps_ok = True
+        self._model_at = -np.inf
+        self.result = StreamResult()
+
+    # -- sources
+    def refresh(self, due_s: float | None = None) -> None:
+        """Refresh model and temperatures when older than ``due_s`` (default: the refresh interval)."""
+        due = self.refresh_s if due_s is None else due_s
+        now = self.clock()
+        if now - self._model_at >= due:
+            changed = self.models.refresh()
+            self._model_at = now
+            if self.models.model is None:
+                raise ValidationError("no model to compensate with")
+            if changed and self._ready:
+                self._discard()  # prepared with the old model: prepare them again
+            if changed:
+                self.result.reloads += 1
+        if now - self._temps_at >= due:
+            try:
+                self._temps = self.temperature_source.read()
+                self._temps_at = now
+                if not self._temps_ok:
+                    log.warning("temperatures available again")
+                self._temps_ok = True
+            except (InstrumentError, ValidationError) as exc:
+                if self._temps is None:
+                    raise
+                if self._temps_ok:  # once per outage
+                    msg = f"temperatures unavailable ({exc.one_line()}): keeping the last reading"
+                    log.warning(msg)
+                    self.result.warnings.append(msg)
+                self._temps_ok = False
+                self._temps_at = now
+
+    def _discard(self) -> None:
+        """Drop the prepared lines; preparation restarts after the last line sent."""
+        self.result.recomputed += len(self._ready)
+        self._ready.clear()
+        self._made = self._taken
+
+    # -- preparation
+    def _prepare(self) -> bool:
+        """Prepare the lines of the next run of program lines; return False at the end of the program."""
+        p = self.program
+        cur = self._made
+        if cur.line >= p.n_lines:
+            return False
+        model = self.models.model
+        assert model is not None and self._temps is not None
+        l0 = cur.line
+        l1 = min(p.n_lines, l0 + self.batch_lines)
+        b0, b1 = (int(x) for x in np.searchsorted(p.block_line, [l0, l1]))
+        pts = subdivide(p, *self.segment, blocks=slice(b0, b1))
+        skip = cur.sub if (b0 < b1 and p.block_line[b0] == l0) else 0
+        pts = Points(pts.block[skip:], pts.nominal_int[skip:])
+        made_at = self.clock()
+        # rows in output order: (text, point carried or -1, program line)
+        rows: list[tuple[bytes, int, int]] = []
+        if pts.n:
+            corr = correct_points(
+                p, pts, model, self._temps, resolution_mm=self.resolution[0], resolution_deg=self.resolution[1],
+                state=cur.steps, prev_nominal=cur.nominal, prev_direction=cur.direction,
+            )
+            sent = corr.sent_int
+            prev = np.vstack([cur.sent[None, :], sent[:-1]])
+            first = np.ones(pts.n, dtype=bool)
+            first[1:] = pts.block[1:] != pts.block[:-1]
+            first[0] = not skip
+            extra = ~first & (sent != prev).any(axis=1)  # later points of a block that get a line
+            point_line = p.block_line[pts.block]
+        base, start_line = 0, l0
+        if skip and pts.n:
+            # the rest of a block whose line was already sent: only its new lines
+            base = int(np.searchsorted(pts.block, pts.block[0], side="right"))
+            text = emit(p, Points(pts.block[:base], pts.nominal_int[:base]), sent[:base],
+                        prev_sent=cur.sent, lines=slice(l0 + 1, l0 + 1), resume=True)
+            rows.extend(zip(_rows(text), np.flatnonzero(extra[:base]).tolist(), [l0] * base))
+            start_line = l0 + 1
+        elif skip:
+            start_line = l0 + 1
+        if start_line < l1:
+            if pts.n > base:
+                part = Points(pts.block[base:], pts.nominal_int[base:])
+                prev_sent = cur.sent if base == 0 else sent[base - 1]
+                text = emit(p, part, sent[base:], prev_sent=prev_sent, lines=slice(start_line, l1))
+                carriers: dict[int, list[int]] = {}
+                for k in np.flatnonzero(first[base:] | extra[base:]).tolist():
+                    carriers.setdefault(int(point_line[base + k]), []).append(base + k)
+            else:
+                text = emit(p, None, lines=slice(start_line, l1))
+                carriers = {}
+            order = [(k, li) for li in range(start_line, l1) for k in carriers.get(li, [-1])]
+            texts = _rows(text)
+            if len(texts) != len(order):
+                raise RuntimeError("emitted lines do not match the program lines")
+            rows.extend((t, k, li) for t, (k, li) in zip(texts, order))
+        # the cursor after each row: where to resume, with the state of the last point before it
+        state = cur
+        for text, k, li in rows:
+            if k >= 0:
+                blk = pts.block[k]
+                last = k + 1 >= pts.n or pts.block[k + 1] != blk
+                done = k + 1 - int(np.searchsorted(pts.block, blk)) + (skip if blk == b0 else 0)
+                state = _Cursor(li + 1 if last else li, 0 if last else done,
+                                corr.steps[k], sent[k], pts.nominal_int[k], corr.direction[k])
+            else:
+                j = int(np.searchsorted(point_line, li)) - 1 if pts.n else -1
+                state = (_Cursor(li + 1, 0, corr.steps[j], sent[j], pts.nominal_int[j], corr.direction[j])
+                         if j >= 0 else _Cursor(li + 1, 0, cur.steps, cur.sent, cur.nominal, cur.direction))
+            self._ready.append(_Ready(text.decode("utf-8", "replace"), state, made_at, model.label))
+        if pts.n:
+            self._made = _Cursor(l1, 0, corr.steps[-1], sent[-1], pts.nominal_int[-1], corr.direction[-1])
+        else:
+            self._made = _Cursor(l1, 0, cur.steps, cur.sent, cur.nominal, cur.direction)
+        return True
+
+    def _fill(self) -> None:
+        """Prepare lines until the look-ahead is full or the program ends."""
+        while len(self._ready) < self.lookahead and self._prepare():
+            pass
+
+    def prime(self) -> None:
+        """Fetch model and temperatures and prepare the first lines (before streaming starts)."""
+        self.refresh(due_s=0.0)
+        self._fill()
+
+    def idle(self, seconds: float) -> None:
+        """Use the link's waiting time: refresh when due, renew stale lines, prepare ahead; then sleep."""
+        t_end = self.clock() + seconds
+        self.refresh()
+        if self._ready and self.clock() - self._ready[0].made_at > self.max_age_s - self.refresh_s:
+            self._discard()
+        self._fill()
+        rest = t_end - self.clock()
+        if rest > 0:
+            self.sleep(rest)
+
+    def lines(self) -> Iterator[str]:
+        """Yield corrected blocks for the machine link, each prepared at most ``max_age_s`` ago."""
+        while True:
+            t0 = self.timer()
+            if self.clock() - min(self._model_at, self._temps_at) > self.max_age_s:
+                self.refresh(due_s=self.max_age_s)
+            while True:
+                if not self._ready:
+                    self._fill()
+                    if not self._ready:
+                        return
+                item = self._ready[0]
+                if self.clock() - item.made_at > self.max_age_s:
+                    self._discard()
+                    continue
+                self._ready.popleft()
+                self._taken = item.after
+                if _sendable(item.text):
+                    break
+            self.result.latency_s.append(self.timer() - t0)
+            self.result.blocks_sent += 1
+            yield item.text
+
+    def run(self, link: Any, low_water: int = 4, high_water: int | None = None, wait: bool = True) -> StreamResult:
+        """Stream the whole program over ``link`` (a ``daq.protocols.MachineLink``); return what happened."""
+        if hasattr(link, "sleep"):
+            link.sleep = self.idle
+        self.prime()
+        self.result.link_report = link.send_program(self.lines(), low_water=low_water, high_water=high_water, wait=wait)
+        return self.result
