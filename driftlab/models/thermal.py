@@ -135,13 +135,16 @@ class ThermalNetwork:
         return out
 
     def simulate(self, t0_s: float, h_s: float, sources: np.ndarray, exogenous: np.ndarray,
-                 y0: np.ndarray | None = None) -> ThermalSolution:
-        """Return the exact solution on the grid t0 + k h for held sources (N, m) and exogenous ramps (N, e)."""
+                 y0: np.ndarray | None = None, local: np.ndarray | None = None) -> ThermalSolution:
+        """Return the exact solution on the grid t0 + k h for held sources (N, m), exogenous ramps (N, e)
+        and optional per-node ramped disturbances ``local`` (N, n)."""
         sources = np.asarray(sources, dtype=float)
         exogenous = np.asarray(exogenous, dtype=float)
         n_t, n = len(exogenous), len(self.names)
         hold = sources @ self.source_gain.T
         ramp = exogenous @ self.exo_gain.T
+        if local is not None:
+            ramp = ramp + np.asarray(local, dtype=float)
         y = np.empty((n_t, n))
         for lev in self.levels():
             up = self.coupling[lev]
