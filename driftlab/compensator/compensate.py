@@ -58,27 +58,33 @@ class ErrorModel:
 
         doc = registry.validate_document(document)
         name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
-        return cls(predict=fast_predict(doc), dims=registry.document_dims(doc), label=name, channels=tuple(doc.inputs))
+        return cls(predict=_checked_predict(doc), dims=registry.document_dims(doc), label=name, channels=tuple(doc.inputs))
 
 
 def fast_predict(doc: Any) -> Predict:
     """Return a predict callable equal to ``registry.predict_element_errors`` for ``doc``, without pandas.
 
-    Every feature kind of ``models.features`` is a product of at most one position power and
-    one linear combination of dT (``pos*dT``), so a snapshot of temperatures collapses each term
-    to a polynomial in the joint position (ch. 6.4.2 recast terms).
+    Every feature kind of ``models.features`` is a product of at most one joint coordinate (or
+    approach direction, of the axis its label names) and one linear combination of dT, so for a
+    snapshot of temperatures each term is a short polynomial in the joint coordinates (the recast
+    terms of ch. 6.4.2). Frames with a history and lagged terms go to the registry, which owns lags.
     """
     from driftlab.models import registry
-    from driftlab.models.kinematics import JOINT_AXIS, PARAMS
+    from driftlab.models.kinematics import AXES, PARAMS
 
     refs = {c: r.reference for c, r in doc.inputs.items()}
+    axis_kinds = {"position", "direction", "pos_dT"}
     terms = []
     has_lag = False
     for t in doc.terms:
-        feats = [(f.kind, tuple(f.channels), int(f.power)) for f in t.features]
-        has_lag |= any(k == "lag" for k, _, _ in feats)
-        terms.append((t.element, PARAMS.index(t.param), JOINT_AXIS.get(t.element), feats,
-                      [float(c) for c in t.coefficients]))
+        feats = []
+        for f in t.features:
+            col = AXES.index(f.label) if f.label in AXES else None
+            if f.kind in axis_kinds and col is None:
+                raise ValidationError(f"{t.element}.{t.param}: feature {f.name} names no axis")
+            feats.append((f.kind, tuple(f.channels), int(f.power), col))
+            has_lag |= f.kind == "lag"
+        terms.append((t.element, PARAMS.index(t.param), feats, [float(c) for c in t.coefficients]))
 
     def predict(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None) -> kinematics.ElementErrors:
         """Return the (N, 6) errors of every modelled element at poses ``q``."""
@@ -91,7 +97,7 @@ def fast_predict(doc: Any) -> Predict:
                 raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
             if len(temps) not in (1, n):
                 raise ValidationError(f"{len(temps)} temperature rows for {n} poses (give 1 or {n})")
-            dT = {c: temps[c].to_numpy(float) - r for c, r in refs.items()}
+            dT: dict[str, Any] = {c: temps[c].to_numpy(float) - r for c, r in refs.items()}
             if len(temps) == 1:
                 dT = {c: float(v[0]) for c, v in dT.items()}
         else:
@@ -101,48 +107,71 @@ def fast_predict(doc: Any) -> Predict:
             dT = {c: float(temps[c]) - r for c, r in refs.items()}
         if not all(np.all(np.isfinite(v)) for v in dT.values()):
             raise ValidationError("temperatures contain missing readings: substitute virtual-sensor estimates first")
+        d = None if direction is None else np.asarray(direction, dtype=float)
         out: dict[str, np.ndarray] = {}
-        for element, col, joint, feats, coefs in terms:
-            pos = q[:, joint] if joint is not None else None
-            if direction is None or joint is None:
-                d = None
-            else:
-                dd = np.asarray(direction, dtype=float)
-                d = dd[:, joint] if dd.ndim == 2 else dd
-            const: Any = 0.0  # terms without position (scalars for a snapshot)
-            lin: Any = 0.0  # coefficient of pos
-            acc: Any = 0.0  # everything else, (N,) arrays
-            for (kind, ch, power), c in zip(feats, coefs):
+        for element, param, feats, coefs in terms:
+            const: Any = 0.0  # everything that does not vary along the path (scalars for a snapshot)
+            lin: dict[int, Any] = {}  # axis -> coefficient of its coordinate
+            acc: Any = 0.0  # remaining (N,) columns
+            for (kind, ch, power, col), c in zip(feats, coefs):
                 if kind == "intercept":
                     const = const + c
                 elif kind == "position":
-                    if pos is not None:
-                        if power == 1:
-                            lin = lin + c
-                        else:
-                            acc = acc + c * pos**power
-                    elif power == 0:
-                        const = const + c
+                    if power == 1:
+                        lin[col] = lin.get(col, 0.0) + c
+                    else:
+                        acc = acc + c * q[:, col] ** power
                 elif kind == "direction":
                     if d is not None:
-                        acc = acc + c * d
+                        acc = acc + c * (d[:, col] if d.ndim == 2 else d)
                 elif kind in ("dT", "lag"):  # a snapshot carries no history: a settled lag equals dT
                     const = const + c * dT[ch[0]]
                 elif kind == "pos_dT":
-                    if pos is not None:
-                        lin = lin + c * dT[ch[0]]
+                    lin[col] = lin.get(col, 0.0) + c * dT[ch[0]]
                 elif kind == "gradient":
                     const = const + c * (dT[ch[0]] - dT[ch[1]])
                 else:  # structure mean (eq. 3.3)
                     const = const + c * (sum(dT[x] for x in ch) / len(ch))
             value = acc + const
-            if pos is not None:
-                value = value + lin * pos
+            for col, c in lin.items():
+                value = value + c * q[:, col]
             arr = out.setdefault(element, np.zeros((n, 6)))
-            arr[:, col] += value
+            arr[:, param] += value
         return out
 
     return predict
+
+
+def _checked_predict(doc: Any) -> Predict:
+    """Return ``fast_predict(doc)`` if it reproduces the registry on probe poses, else the registry itself."""
+    from driftlab.models import registry
+
+    try:
+        fast = fast_predict(doc)
+    except ValidationError:
+        fast = None
+    rng = np.random.default_rng(0)
+    q = np.column_stack([rng.uniform(-300, 300, (6, 3)), rng.uniform(-1.2, 1.2, (6, 2))])
+    direction = rng.choice([-1.0, 1.0], size=(6, 5))
+    temps = {c: r.reference + 3.0 * (k % 3) - 2.0 for k, (c, r) in enumerate(doc.inputs.items())}
+
+    def slow(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None) -> kinematics.ElementErrors:
+        """Return the registry's prediction."""
+        return registry.predict_element_errors(doc, temps, q, direction)
+
+    if fast is not None:
+        try:
+            want = slow(q, temps, direction)
+            got = fast(q, temps, direction)
+            same = set(want) == set(got) and all(
+                np.allclose(got[e], want[e], rtol=1e-9, atol=1e-12) for e in want
+            )
+        except ValidationError:
+            same = False
+        if same:
+            return fast
+    log.warning("model %s: using the registry's (slower) prediction", getattr(doc, "version", "?"))
+    return slow
 
 
 def resolution_units(program: Program, resolution_mm: float, resolution_deg: float) -> np.ndarray:

@@ -225,3 +225,64 @@ def test_registry_document_drives_the_correction(tmp_path):
     result = compensate_file(src, model, {"T9": 25.0}, tmp_path / "o.nc")
     assert (tmp_path / "o.nc").read_text().splitlines() == ["G1 X0 Z-0.05", "Z-4.05"]
     assert result.max_correction["Z"] == pytest.approx(0.05)
+
+
+def _all_kinds_doc() -> dict:
+    """Return a document using every feature kind of models.features."""
+    f = lambda kind, name, **kw: {"kind": kind, "name": name, **kw}  # noqa: E731
+    feats = [
+        f("intercept", "const"),
+        f("position", "pos", label="X", power=1),
+        f("position", "pos^2", label="X", power=2),
+        f("position", "pos^3", label="Y", power=3),
+        f("direction", "dir", label="X"),
+        f("dT", "dT[T9]", channels=["T9"]),
+        f("lag", "lag900[T10]", channels=["T10"], tau_s=900.0),
+        f("mean", "mean[col]", channels=["T9", "T10", "T11"], label="col"),
+        f("gradient", "grad[T9-T11]", channels=["T9", "T11"]),
+        f("pos_dT", "pos*dT[T10]", channels=["T10"], label="A"),
+    ]
+    coefs = [0.003, 1e-5, -2e-8, 3e-11, 0.0012, 0.004, -0.002, 0.001, 0.0007, 1.5e-3]
+    inputs = {c: {"reference": 20.0 + i, "min": 10.0, "max": 40.0} for i, c in enumerate(["T9", "T10", "T11"])}
+    terms = [
+        {"element": "phi_x", "param": "dx", "features": feats, "coefficients": coefs, "statistics": {"rmse_train": 0.0}},
+        {"element": "T2", "param": "beta", "features": feats[5:9], "coefficients": [1e-6, 2e-6, -1e-6, 5e-7],
+         "statistics": {"rmse_train": 0.0}},
+    ]
+    return {"machine": "m", "version": 1, "inputs": inputs, "terms": terms}
+
+
+def test_fast_prediction_equals_the_registry_for_every_feature_kind():
+    from driftlab.compensator.compensate import fast_predict
+    from driftlab.models import registry
+
+    doc = registry.validate_document(_all_kinds_doc())
+    rng = np.random.default_rng(3)
+    n = 50
+    q = np.column_stack([rng.uniform(-300, 300, (n, 3)), rng.uniform(-1, 1, (n, 2))])
+    direction = rng.choice([-1.0, 1.0], size=(n, 5))
+    snapshot = {"T9": 24.0, "T10": 19.5, "T11": 23.25, "T49": 18.0}
+    frame = pd.DataFrame({"T9": rng.uniform(18, 30, n), "T10": rng.uniform(18, 30, n), "T11": rng.uniform(18, 30, n)})
+    fast = fast_predict(doc)
+    for temps in (snapshot, frame, frame.iloc[:1]):
+        want = registry.predict_element_errors(doc, temps, q, direction)
+        got = fast(q, temps, direction)
+        assert set(got) == set(want)
+        for e in want:
+            np.testing.assert_allclose(got[e], want[e], rtol=1e-12, atol=1e-15)
+    assert ErrorModel.from_document(doc).predict.__name__ == "predict"  # the fast path was accepted
+
+
+def test_model_falls_back_to_the_registry_when_the_fast_path_disagrees(monkeypatch, caplog):
+    from driftlab.models import registry
+
+    real = registry.predict_element_errors
+
+    def changed(doc, temps, q, direction=None):
+        out = real(doc, temps, q, direction)
+        return {e: v * 1.5 for e, v in out.items()}
+
+    monkeypatch.setattr(registry, "predict_element_errors", changed)
+    model = ErrorModel.from_document(_all_kinds_doc())
+    assert model.predict.__name__ == "slow"
+    assert "registry" in caplog.text
