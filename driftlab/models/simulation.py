@@ -144,6 +144,8 @@ def appendix_a_errors(
     if not np.all(np.isfinite(t)) or np.any(t < 0):
         raise ValidationError("times t_s must be finite and >= 0 (s since the start of the warm-up)")
     sgn = _direction(direction, n)
+    if any(_factor(tau_scale, name) <= 0 for name in kin.ELEMENTS):
+        raise ValidationError("tau_scale must be > 0 (it scales the time constants of laws A1-A3)")
     out: dict[str, np.ndarray] = {}
     for name, (k, tau) in TABLE_A2.items():
         level = 0.3 + 0.7 * warmup(t, tau * _factor(tau_scale, name))  # eq. A1

@@ -126,6 +126,8 @@ def test_gain_and_tau_scale_for_calibration():
     np.testing.assert_allclose(slow["T1"], half["T1"])
     with pytest.raises(ValidationError, match="unknown"):
         sim.appendix_a_errors(H, q, gain={"A9": 1.0})
+    with pytest.raises(ValidationError, match="tau_scale"):
+        sim.appendix_a_errors(H, q, tau_scale={"A3": 0.0})
     with pytest.raises(ValidationError):
         sim.appendix_a_errors(-1.0, q)
     with pytest.raises(ValidationError):
