@@ -145,7 +145,7 @@ class ThermalNetwork:
         ramp = exogenous @ self.exo_gain.T
         if local is not None:
             ramp = ramp + np.asarray(local, dtype=float)
-        y = np.empty((n_t, n))
+        y = np.zeros((n_t, n))  # unsolved levels must read as 0, not garbage, in y @ up.T
         for lev in self.levels():
             up = self.coupling[lev]
             if up.any():
