@@ -45,6 +45,7 @@ class ErrorModel:
     dims: Mapping[str, Any] = field(default_factory=lambda: dict(kinematics.TABLE_A1))
     label: str = "model"
     channels: tuple[str, ...] = ()
+    machine: str = ""
 
     @classmethod
     def from_document(cls, document: Mapping[str, Any] | Any, label: str | None = None) -> ErrorModel:
@@ -58,7 +59,10 @@ class ErrorModel:
 
         doc = registry.validate_document(document)
         name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
-        return cls(predict=_checked_predict(doc), dims=registry.document_dims(doc), label=name, channels=tuple(doc.inputs))
+        return cls(
+            predict=_checked_predict(doc), dims=registry.document_dims(doc), label=name,
+            channels=tuple(doc.inputs), machine=doc.machine,
+        )
 
 
 def fast_predict(doc: Any) -> Predict:

@@ -1,0 +1,180 @@
+"""`driftlab compensate`: correct a motion-code program offline, or stream it to the machine (ch. 7.2)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from driftlab.errors import ValidationError
+
+log = logging.getLogger(__name__)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Register `compensate`."""
+    p = sub.add_parser(
+        "compensate",
+        help="correct a five-axis program for thermal drift (offline to a file, or streamed to the controller)",
+        description=(
+            "Offline: driftlab compensate PROGRAM.nc --model FILE|--api URL --machine ID --temps CSV -o OUT.nc. "
+            "Streaming: driftlab compensate PROGRAM.nc --api URL --machine ID --port SERIAL_URL."
+        ),
+    )
+    p.add_argument("program", type=Path, help="motion-code program (G0/G1, G90/G91, G21; X Y Z mm, A B deg)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--model", type=Path, help="model document JSON (as printed by `driftlab models show`)")
+    src.add_argument("--api", help="driftlab API base URL: the machine's current model (hot-reloaded when streaming)")
+    p.add_argument("--machine", help="machine id (required with --api)")
+    p.add_argument("--temps", type=Path, help="temperatures.csv (bundle v1 layout); default with --api: its latest scan")
+    p.add_argument("-o", "--out", type=Path, help="write the corrected program here (offline)")
+    p.add_argument("--port", help="stream to the controller on this serial device or pyserial URL (socket://...)")
+    p.add_argument("--start", help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or "
+                   "the controller's position when streaming)")
+    p.add_argument("--resolution-mm", type=float, default=0.0025, help="linear positioning resolution (0.0025)")
+    p.add_argument("--resolution-deg", type=float, default=0.001, help="rotary positioning resolution (0.001)")
+    p.add_argument("--max-segment-mm", type=float, default=5.0, help="split G1 moves longer than this (5 mm)")
+    p.add_argument("--max-segment-deg", type=float, default=5.0, help="split G1 rotations larger than this (5 deg)")
+    p.add_argument("--low-water", type=int, default=4, help="refill the controller's buffer at this many blocks")
+    p.add_argument("--high-water", type=int, default=None, help="fill the buffer up to this many blocks")
+    p.add_argument("--refresh-s", type=float, default=30.0, help="poll model and temperatures this often (s)")
+    p.add_argument("--max-age-s", type=float, default=120.0, help="correct a waiting block again after this (s)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    p.set_defaults(func=_run)
+
+
+def _start(text: str | None) -> tuple[float, ...] | None:
+    """Return the start pose from ``X,Y,Z,A,B``."""
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 5:
+        raise ValidationError(f"--start must be five numbers X,Y,Z,A,B, got {text!r}")
+    return values
+
+
+def _model_file(path: Path, machine: str | None) -> Any:
+    """Return the ErrorModel of a model document file."""
+    from driftlab.compensator.compensate import ErrorModel
+
+    try:
+        body = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValidationError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValidationError(f"{path}: not a model document ({' '.join(str(exc).split())})") from None
+    if isinstance(body, dict) and isinstance(body.get("document"), dict):
+        body = body["document"]
+    if not isinstance(body, dict):
+        raise ValidationError(f"{path}: not a model document (expected a JSON object)")
+    model = ErrorModel.from_document(body)
+    if machine and model.machine and model.machine != machine:
+        raise ValidationError(f"{path}: model of machine {model.machine}, not {machine}")
+    return model
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Run the offline or streaming compensation."""
+    from driftlab.compensator.compensate import TemperatureTable, compensate_file, decimals_for
+    from driftlab.compensator.gcode import parse_program
+    from driftlab.config import get_settings
+
+    if args.api and not args.machine:
+        raise ValidationError("--api needs --machine ID")
+    start = _start(args.start)
+    token = get_settings().api_token or None
+    decimals = decimals_for(args.resolution_mm, args.resolution_deg)
+    if not args.program.is_file():
+        raise ValidationError(f"{args.program}: no such file")
+    data = args.program.read_bytes()
+    # the whole program is checked before any output is written or any block is sent
+    parse_program(data, name=str(args.program), start=start, min_decimals=decimals)
+
+    if args.port is None:
+        if args.out is None:
+            raise ValidationError("offline compensation needs -o OUT.nc (or --port to stream)")
+        if args.model:
+            model = _model_file(args.model, args.machine)
+        else:
+            from driftlab.compensator.stream import ApiModel
+
+            source = ApiModel(args.api, args.machine, token=token)
+            source.refresh()
+            model = source.model
+        if args.temps:
+            temps: Any = TemperatureTable.read_csv(args.temps)
+        elif args.api:
+            from driftlab.compensator.stream import ApiTemperatures
+
+            temps = ApiTemperatures(args.api, args.machine, token=token).read()
+        else:
+            raise ValidationError("offline compensation needs --temps CSV (or --api for the latest scan)")
+        result = compensate_file(
+            args.program, model, temps, args.out, start=start,
+            resolution_mm=args.resolution_mm, resolution_deg=args.resolution_deg,
+            max_segment_mm=args.max_segment_mm, max_segment_deg=args.max_segment_deg,
+        )
+        summary = {"out": str(args.out), **result.summary()}
+        if args.json:
+            print(json.dumps(summary))
+        else:
+            mc = result.max_correction
+            print(
+                f"wrote {args.out}: {result.blocks} blocks, {result.points} points, model {result.model}, "
+                f"temperatures {result.temperatures}; largest correction X {mc['X']} Y {mc['Y']} Z {mc['Z']} mm, "
+                f"A {mc['A']} B {mc['B']} deg"
+            )
+        return 0
+    return _stream(args, data, start, decimals, token)
+
+
+def _stream(args: argparse.Namespace, data: bytes, start: tuple[float, ...] | None,
+            decimals: tuple[int, int], token: str | None) -> int:
+    """Stream the corrected program to the controller."""
+    from driftlab.compensator.compensate import ErrorModel
+    from driftlab.compensator.gcode import parse_program
+    from driftlab.compensator.stream import ApiModel, ApiTemperatures, CsvTemperatures, StaticModel, Streamer
+    from driftlab.daq.machine_link import SerialMachineLink
+
+    if args.out is not None:
+        raise ValidationError("-o is for offline compensation; with --port the program is streamed")
+    models: Any
+    if args.model:
+        model: ErrorModel = _model_file(args.model, args.machine)
+        models = StaticModel(model)
+    else:
+        models = ApiModel(args.api, args.machine, token=token)
+    if args.temps:
+        temps: Any = CsvTemperatures(args.temps)
+    elif args.api:
+        temps = ApiTemperatures(args.api, args.machine, token=token)
+    else:
+        raise ValidationError("streaming needs --temps CSV or --api for the temperatures")
+    link = SerialMachineLink.open(args.port)
+    try:
+        if start is None:
+            pos = link.position()
+            start = tuple(pos[a] for a in ("X", "Y", "Z", "A", "B"))
+        program = parse_program(data, name=str(args.program), start=start, min_decimals=decimals)
+        streamer = Streamer(
+            program, models, temps, resolution_mm=args.resolution_mm, resolution_deg=args.resolution_deg,
+            max_segment_mm=args.max_segment_mm, max_segment_deg=args.max_segment_deg,
+            max_age_s=args.max_age_s, refresh_s=min(args.refresh_s, args.max_age_s),
+        )
+        result = streamer.run(link, low_water=args.low_water, high_water=args.high_water)
+    finally:
+        link.close()
+    summary = result.summary()
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"streamed {summary['blocks_sent']} blocks to {args.port}: {summary['model_reloads']} model load(s), "
+            f"{summary['recomputed']} block(s) corrected again, latency p99 {summary['latency_ms_p99']} ms"
+        )
+    return 0
