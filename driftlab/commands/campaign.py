@@ -17,6 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     lst.add_argument("--json", action="store_true", help="one JSON array instead of a table")
     add_db_option(lst)
     lst.set_defaults(func=_list)
+    from driftlab.commands.daemon import register_status
+
+    register_status(campsub)
 
 
 def _list(args: argparse.Namespace) -> int:

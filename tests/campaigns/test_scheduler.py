@@ -1,0 +1,152 @@
+"""The scheduler's store side and engine: atomic batches with their cursor, resume, status, sim runs."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from sqlalchemy import func, select
+
+from driftlab.campaigns import schema as sc
+from driftlab.campaigns.plan import Cursor, SweepPoint, load_plan, parse_plan
+from driftlab.campaigns.scheduler import (
+    Batch,
+    Fault,
+    StoreSink,
+    campaign_status,
+    format_status,
+    open_campaign,
+    plan_scenario,
+    scenario_stages,
+    skip_missed,
+    store_engine,
+)
+from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_OPEN, Reading, TemperatureScan
+from driftlab.errors import ConflictError, ValidationError
+
+ROOT = Path(__file__).resolve().parents[2]
+DEMO = ROOT / "examples" / "plans" / "z-axis-demo.yaml"
+CHANNELS = {"T1": {"location": "X axis front left corner", "structure": "x_table"},
+            "T49": {"location": "room top", "structure": "room"}}
+
+
+def _plan():
+    """Return a small plan with a sweep in its first stage."""
+    return parse_plan({
+        "name": "unit", "machine": {"id": "m-unit", "channels": {k: dict(v) for k, v in CHANNELS.items()}},
+        "scan_interval_s": 10,
+        "stages": [
+            {"name": "sp", "axis": "Z", "duration_s": 100, "heat": [{"kind": "spindle", "rpm": 8000}],
+             "sweep": {"positions": [0, 50], "interval_s": 50, "point_s": 5}},
+            {"name": "cool", "axis": "Z", "duration_s": 50},
+        ],
+    })
+
+
+def _scan(t: float, base: float = 20.0) -> TemperatureScan:
+    return TemperatureScan(t_s=t, values={"T1": base + t / 100, "T49": base})
+
+
+def _count(engine, table) -> int:
+    with engine.connect() as conn:
+        return conn.execute(select(func.count()).select_from(table)).scalar_one()
+
+
+def test_batches_commit_with_their_cursor_and_resume_from_it(db_url: str) -> None:
+    """Readings and cursor land together; a resumed open returns that cursor; stages and status follow."""
+    engine = store_engine(db_url)
+    plan = _plan()
+    h = open_campaign(engine, plan, CHANNELS, ["T49"], resume=False, origin={"mode": "test"})
+    assert h.cursor == Cursor() and not h.resumed and set(h.channel_ids) == {"T1", "T49"}
+    sink = StoreSink(engine, plan, h)
+    pts = plan.sweep_points()
+    b = Batch(scans=[(0, _scan(0.0)), (1, _scan(10.0))], states=[(0.0, {"spindle_rpm": 8000.0, "z": 0.0})],
+              points=[(pts[0], 0.0, {"dz": Reading(0.001)}), (pts[1], 5.0, {"dz": Reading.missing(FLAG_BEAM_BREAK)})],
+              cursor=Cursor(2, 2), stage=0, t_s=10.0)
+    sink.commit(b)
+    assert _count(engine, sc.TemperatureSample.__table__) == 4
+    assert _count(engine, sc.ErrorSample.__table__) == 1  # the broken-beam term is a fault, not a row
+    with pytest.raises(ConflictError, match="--resume"):
+        open_campaign(engine, plan, CHANNELS, ["T49"], resume=False, origin={})
+    again = open_campaign(engine, plan, CHANNELS, ["T49"], resume=True, origin={})
+    assert again.resumed and again.campaign_id == h.campaign_id and again.cursor == Cursor(2, 2)
+    (st,) = campaign_status(engine, "unit")
+    assert st["status"] == "running" and st["stage"]["name"] == "sp" and st["stage"]["status"] == "running"
+    assert st["progress"]["scans"] == 2 and st["progress"]["n_scans"] == 15
+    assert st["faults"]["count"] == 1 and FLAG_BEAM_BREAK in st["faults"]["recent"][0]["message"]
+    assert st["last_point"]["values"] == {"dz": None} and st["last_point"]["position"] == 50
+    assert "unit" in format_status([st]) and "faults 1" in format_status([st])
+
+
+def test_a_failing_batch_stores_nothing_and_keeps_the_cursor(db_url: str) -> None:
+    """A batch whose insert fails (a reading already stored) rolls back whole: no row, no cursor move."""
+    engine = store_engine(db_url)
+    plan = _plan()
+    h = open_campaign(engine, plan, CHANNELS, [], resume=False, origin={})
+    sink = StoreSink(engine, plan, h)
+    sink.commit(Batch(scans=[(0, _scan(0.0))], cursor=Cursor(1, 0)))
+    before = _count(engine, sc.TemperatureSample.__table__)
+    dup = Batch(scans=[(1, _scan(10.0)), (0, _scan(0.0, base=99.0))], cursor=Cursor(2, 0), t_s=10.0)
+    with pytest.raises(Exception):
+        sink.commit(dup)
+    assert _count(engine, sc.TemperatureSample.__table__) == before == 2
+    assert open_campaign(engine, plan, CHANNELS, [], resume=True, origin={}).cursor == Cursor(1, 0)
+
+
+def test_open_thermocouple_is_stored_as_missing_and_the_last_batch_closes_the_campaign(db_url: str) -> None:
+    """A flagged channel becomes NULL; the batch reaching the end marks stages and campaign done."""
+    engine = store_engine(db_url)
+    plan = _plan()
+    h = open_campaign(engine, plan, CHANNELS, [], resume=False, origin={})
+    sink = StoreSink(engine, plan, h)
+    scan = TemperatureScan(0.0, {"T1": math.nan, "T49": 20.0}, {"T1": FLAG_OPEN})
+    sink.commit(Batch(scans=[(0, scan)], faults=[Fault(0.0, "scan 0", "thermocouple", "x")],
+                      cursor=Cursor(plan.n_scans, len(plan.sweep_points())), stage=1, t_s=140.0))
+    with engine.connect() as conn:
+        vals = dict(conn.execute(
+            select(sc.Channel.name, sc.TemperatureSample.value)
+            .join(sc.Channel, sc.Channel.id == sc.TemperatureSample.channel_id)).all())
+        statuses = conn.execute(select(sc.Stage.status).order_by(sc.Stage.ordinal)).scalars().all()
+        camp = conn.execute(select(sc.Campaign.status)).scalar_one()
+    assert vals == {"T1": None, "T49": 20.0}
+    assert statuses == ["done", "done"] and camp == "done"
+    # resuming a complete campaign finds nothing left to do; a new run of the same plan is a new campaign
+    done = open_campaign(engine, plan, CHANNELS, [], resume=True, origin={})
+    assert done.campaign_id == h.campaign_id and done.cursor == Cursor(plan.n_scans, len(plan.sweep_points()))
+    assert open_campaign(engine, plan, CHANNELS, [], resume=False, origin={}).campaign_id != h.campaign_id
+
+
+def test_resume_refuses_a_changed_plan(tmp_path: Path) -> None:
+    """Resuming with a plan whose timeline changed is a one-line conflict, not silent corruption."""
+    engine = store_engine(f"sqlite:///{tmp_path / 'd.sqlite'}")
+    plan = _plan()
+    open_campaign(engine, plan, CHANNELS, [], resume=False, origin={})
+    doc = plan.model_dump(mode="json")
+    doc["stages"][1]["duration_s"] = 60
+    with pytest.raises(ConflictError, match="different plan timeline"):
+        open_campaign(engine, parse_plan(doc), CHANNELS, [], resume=True, origin={})
+
+
+def test_real_clock_resume_skips_what_was_missed() -> None:
+    """On a real clock the scans and points that fell in the downtime are skipped, not faked."""
+    plan = _plan()
+    cur, ns, np_ = skip_missed(plan, Cursor(2, 1), now_s=52.0)
+    assert cur.next_scan == 6 and ns == 4
+    assert plan.sweep_points()[cur.next_point].t_s >= 52.0 and np_ == cur.next_point - 1
+
+
+def test_plan_drives_the_virtual_machine_stages() -> None:
+    """The demo plan maps onto scenario stages: idle, spindle, feed, combined, back to back."""
+    from driftlab.daq.sim.scenario import Scenario
+
+    plan = load_plan(DEMO)
+    stages = scenario_stages(plan)
+    assert [s["heat_source"] for s in stages] == ["idle", "spindle", "idle", "feed", "idle", "combined"]
+    sc_ = plan_scenario(plan, Scenario(hours=1.0))
+    assert sc_.hours * 3600 >= plan.total_s and sc_.stages[-1].end_s == plan.total_s
+    hold = plan.model_dump(mode="json")
+    hold["stages"][1]["heat"] = [{"kind": "motor_hold", "axis": "Y", "position": 0}]
+    hold["staged_order"] = False
+    with pytest.raises(ValidationError, match="motor_hold"):
+        scenario_stages(parse_plan(hold))
