@@ -35,7 +35,7 @@ def campaign_meta(scenario: Scenario, machine: VirtualMachine | None = None) -> 
         "channels": channel_map(),
         "room_channels": list(ROOM_CHANNELS),
         "model_channels": {ax: list(chs) for ax, chs in truth.MODEL_CHANNELS.items()},
-        "stages": [st.model_dump() for st in vm._plan.stages],
+        "stages": [st.model_dump() for st in vm.stages],
         "noise": {"length_mm": scenario.noise.length_mm, "angle_rad": scenario.noise.angle_rad},
     }
 

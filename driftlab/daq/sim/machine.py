@@ -99,6 +99,11 @@ class VirtualMachine:
             if eff.kind == "thermal_lag":
                 truth.lag_coefficient(eff)
 
+    @property
+    def stages(self) -> tuple[Stage, ...]:
+        """Return the staged plan the machine runs (the scenario's stages or the default plan)."""
+        return self._plan.stages
+
     # ------------------------------------------------------------------ drives
     def stage_index(self, t_s: np.ndarray) -> np.ndarray:
         """Return the index of the stage active at each instant (-1 = none: machine off)."""

@@ -64,7 +64,14 @@ class MachineInfo(_Strict):
 
 
 class Noise(_Strict):
-    """Measurement noise (1 sigma): laser lengths, laser angles (ch. 5.5), thermocouple scans (ch. 5.3)."""
+    """Measurement noise (1 sigma): laser lengths, laser angles (ch. 5.5), thermocouple scans (ch. 5.3).
+
+    The thermocouple default is 0.01 degC, not the ~0.05 degC of a raw reading (ch. 5.3: +/-0.1 degC
+    ice-bath repeatability; the DAS-TC card smooths its scans, ch. 6.3): scan noise enters the
+    standard model through its dT regressors, and at 0.05 degC the arm-bending angle of Table 6.3
+    (2.4e-5 rad/degC of gradient) would add 1.2e-6 rad - 2.5x the laser's 0.1 arc-second - so no
+    model could reach the stated laser noise. At 0.01 degC the clean residual is within 1.12x of it.
+    """
 
     length_mm: float = Field(default=0.0005, ge=0, allow_inf_nan=False)
     angle_rad: float = Field(default=ARCSEC_0_1_RAD, ge=0, allow_inf_nan=False)
@@ -94,6 +101,11 @@ class Stage(_Strict):
     axis: Literal["X", "Y", "Z", "A", "B"] | None = None
     spindle_rpm: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     feed_mm_min: float = Field(default=0.0, ge=0, allow_inf_nan=False)  # deg/min for A/B
+
+    @field_validator("heat_source", mode="before")
+    @classmethod
+    def _yaml_off(cls, v: Any) -> Any:
+        return "off" if v is False else v  # YAML 1.1 reads a bare `off` as false
 
     @model_validator(mode="after")
     def _consistent(self) -> "Stage":

@@ -33,7 +33,7 @@ from typing import Mapping
 import numpy as np
 
 from driftlab.daq.sim.scenario import ANGLE_TERMS, AXES, TERMS, HiddenEffect
-from driftlab.daq.sim.sites import CHANNELS, ROOM_CHANNELS, SITE_INDEX, structure_channels
+from driftlab.daq.sim.sites import CHANNELS, SITE_INDEX, structure_channels
 from driftlab.errors import ValidationError
 from driftlab.models import kinematics as kin
 from driftlab.models.thermal import ALPHA_C

@@ -34,7 +34,7 @@ def test_short_plan_is_compressed_with_every_stage():
 
 def test_examples_load():
     names = {p.stem for p in EXAMPLES.glob("*.yaml")}
-    assert {"clean", "thesis", "lag-z", "screw-x", "fault-t34", "two-effects"} <= names
+    assert {"clean", "thesis", "lag-z", "screw-x", "fault-t34", "two-effects", "reference"} <= names
     for p in EXAMPLES.glob("*.yaml"):
         s = load_scenario(p)
         assert s.name == p.stem
@@ -72,6 +72,15 @@ def test_bad_scenarios_fail_in_one_line(tmp_path, text, needle):
     assert needle in msg
     assert "\n" not in str(exc.value)
     assert str(p) in msg
+
+
+def test_yaml_quirks(tmp_path):
+    p = tmp_path / "q.yaml"
+    p.write_text("stages:\n  - {name: night, start_s: 0, end_s: 60, heat_source: off}\n"
+                 "hidden:\n  - {kind: drift, axis: X, term: dx, params: {rate_per_day: 1e-3}}\n")
+    s = load_scenario(p)
+    assert s.stages[0].heat_source == "off"  # not YAML 1.1's false
+    assert s.hidden[0].params["rate_per_day"] == 1e-3  # not YAML 1.1's string "1e-3"
 
 
 def test_missing_file_is_a_validation_error(tmp_path):
