@@ -477,18 +477,16 @@ class StoreSink:
         self._t_camp = sc.Campaign.__table__
         self._stage = -1
 
-    def _temperature_rows(self, batch: Batch) -> list[dict[str, Any]]:
-        """Return the temperature rows of the batch (NULL for a flagged or non-finite reading)."""
+    def _temperature_rows(self, batch: Batch) -> list[tuple[int, int, float, float | None]]:
+        """Return (campaign_id, channel_id, time_s, value) rows of the batch (None: flagged or non-finite)."""
         rows = []
-        cid, ids = self.cid, self.channel_ids
+        cid, ids, isfinite = self.cid, self.channel_ids, math.isfinite
         for _, scan in batch.scans:
-            t = scan.t_s
+            t, flags = scan.t_s, scan.flags
             for name, value in scan.values.items():
                 ch = ids.get(name)
-                if ch is None:
-                    continue
-                ok = name not in scan.flags and math.isfinite(value)
-                rows.append({"campaign_id": cid, "channel_id": ch, "time_s": t, "value": value if ok else None})
+                if ch is not None:
+                    rows.append((cid, ch, t, value if isfinite(value) and name not in flags else None))
         return rows
 
     def _error_rows(self, batch: Batch) -> list[dict[str, Any]]:
@@ -509,6 +507,8 @@ class StoreSink:
         """Insert the batch's rows and move the cursor, stage status and fault log, all in one transaction."""
         from sqlalchemy import select
 
+        from driftlab.campaigns.ingest import bulk_insert
+
         temps = self._temperature_rows(batch)
         errs = self._error_rows(batch)
         conds = [{"campaign_id": self.cid, "time_s": t, **{k: s.get(k) for k in STATE_KEYS}} for t, s in batch.states]
@@ -520,7 +520,8 @@ class StoreSink:
         finished = batch.cursor.next_scan >= self.plan.n_scans and batch.cursor.next_point >= self.n_points
         with write_transaction(self.engine) as conn:
             if temps:
-                conn.execute(self._t_temp.insert(), temps)
+                bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
+                            ("int4", "int4", "float8", "float8"), temps)
             if conds:
                 conn.execute(self._t_cond.insert(), conds)
             if errs:
