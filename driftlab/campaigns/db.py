@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -76,12 +78,38 @@ def make_engine(url: str) -> Engine:
 
 
 @contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold off Ctrl-C while the block runs (main thread only); deliver it right after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[Any] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt
+
+
+@contextmanager
 def write_transaction(engine: Engine) -> Iterator[Connection]:
-    """Yield a connection in one write transaction: committed at the end, rolled back on any error."""
+    """Yield a connection in one write transaction: committed at the end, rolled back on any error.
+
+    An exception (Ctrl-C included) before the commit rolls everything back; the commit itself
+    runs with Ctrl-C held off, so an interrupt never leaves the caller unsure whether it landed.
+    """
     with engine.connect() as conn:
         conn = conn.execution_options(driftlab_write=True)
-        with conn.begin():
+        trans = conn.begin()
+        try:
             yield conn
+        except BaseException:
+            trans.rollback()
+            raise
+        with _sigint_deferred():
+            trans.commit()
 
 
 def alembic_config(connection: Connection | None = None) -> Any:

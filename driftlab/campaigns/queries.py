@@ -5,6 +5,7 @@ Every query's SQL lives here (callers such as the API and the CLI get DataFrames
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
@@ -174,17 +175,21 @@ def _seconds(delta: timedelta) -> float:
 
 DRIFT_COLUMNS = ["campaign_id", "time", "time_s", "position", "direction", "sweep", "value"]
 
-_NEAREST_SQL = """
-SELECT position FROM error_samples
-WHERE campaign_id = :c AND axis = :axis AND term = :term {dir}
-ORDER BY abs(position - :p), position LIMIT 1
+# Nearest measured position: the largest position <= P and the smallest >= P, per direction, each a
+# single seek in the unique index (campaign_id, axis, term, direction, position, time_s).
+_BELOW_SQL = """
+SELECT MAX(position) FROM error_samples
+WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND position <= :p
+"""
+_ABOVE_SQL = """
+SELECT MIN(position) FROM error_samples
+WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND position >= :p
 """
 
 _AT_POSITION_SQL = """
 SELECT time_s, position, direction, sweep, value FROM error_samples
-WHERE campaign_id = :c AND axis = :axis AND term = :term AND position = :pos {dir}
+WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND position = :pos
   AND time_s >= :t0 AND time_s <= :t1
-ORDER BY time_s, direction
 """
 
 _ALL_POSITIONS_SQL = """
@@ -194,25 +199,50 @@ WHERE campaign_id = :c AND axis = :axis AND term = :term {dir}
 ORDER BY time_s, position, direction
 """
 
-# Linear interpolation along position inside each sweep: each point is paired with the next one
-# by position (LEAD over the sweep); the pair that brackets P gives the value and the time.
+# Linear interpolation along position inside each sweep: per (direction, sweep) the bracketing
+# positions lo <= P <= hi are two seeks in ix_error_samples_sweep, and their rows two more.
 _INTERPOLATED_SQL = """
-WITH pairs AS (
-  SELECT time_s, position, direction, sweep, value,
-         LEAD(position) OVER w AS p2, LEAD(value) OVER w AS v2, LEAD(time_s) OVER w AS t2
-  FROM error_samples
-  WHERE campaign_id = :c AND axis = :axis AND term = :term {dir}
-  WINDOW w AS (PARTITION BY direction, sweep ORDER BY position)
+WITH sweeps AS (
+  SELECT DISTINCT direction, sweep FROM error_samples
+  WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d
+), brackets AS (
+  SELECT s.direction, s.sweep,
+    (SELECT MAX(e.position) FROM error_samples e WHERE e.campaign_id = :c AND e.axis = :axis
+       AND e.term = :term AND e.direction = s.direction AND e.sweep = s.sweep AND e.position <= :p) AS lo,
+    (SELECT MIN(e.position) FROM error_samples e WHERE e.campaign_id = :c AND e.axis = :axis
+       AND e.term = :term AND e.direction = s.direction AND e.sweep = s.sweep AND e.position >= :p) AS hi
+  FROM sweeps s
 )
-SELECT CASE WHEN position = :p THEN time_s
-            ELSE time_s + (t2 - time_s) * (:p - position) / (p2 - position) END AS t,
-       direction, sweep,
-       CASE WHEN position = :p THEN value
-            ELSE value + (v2 - value) * (:p - position) / (p2 - position) END AS v
-FROM pairs
-WHERE position = :p OR (position < :p AND p2 > :p)
-ORDER BY t, direction
+SELECT b.direction, b.sweep, b.lo, b.hi, a.time_s, a.value, h.time_s, h.value
+FROM brackets b
+JOIN error_samples a ON a.campaign_id = :c AND a.axis = :axis AND a.term = :term
+  AND a.direction = b.direction AND a.sweep = b.sweep AND a.position = b.lo
+JOIN error_samples h ON h.campaign_id = :c AND h.axis = :axis AND h.term = :term
+  AND h.direction = b.direction AND h.sweep = b.sweep AND h.position = b.hi
 """
+
+
+def _directions(conn: Connection, params: dict[str, Any], direction: int | None) -> list[int]:
+    if direction is not None:
+        return [direction]
+    rows = conn.execute(
+        text("SELECT DISTINCT direction FROM error_samples WHERE campaign_id = :c AND axis = :axis AND term = :term"),
+        params,
+    ).scalars().all()
+    return sorted(int(d) for d in rows)
+
+
+def _nearest(conn: Connection, params: dict[str, Any], directions: list[int]) -> float | None:
+    """Return the measured position nearest to params['p'] (the lower one on a tie)."""
+    candidates: list[float] = []
+    for d in directions:
+        q = {**params, "d": d}
+        candidates += [v for v in (conn.execute(text(_BELOW_SQL), q).scalar(),
+                                   conn.execute(text(_ABOVE_SQL), q).scalar()) if v is not None]
+    if not candidates:
+        return None
+    p = params["p"]
+    return min(candidates, key=lambda x: (abs(x - p), x))
 
 
 def drift(
@@ -253,23 +283,30 @@ def drift(
             continue
         params: dict[str, Any] = {"c": cid, "axis": axis, "term": term, "d": direction,
                                   "t0": max(t0, -1e300), "t1": min(t1, 1e300)}
+        data: list[tuple[Any, ...]] = []
         if position is None:
             rows = conn.execute(text(_ALL_POSITIONS_SQL.format(dir=dir_sql)), params).all()
             data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
         elif interpolate:
-            params["p"] = float(position)
-            rows = conn.execute(text(_INTERPOLATED_SQL.format(dir=dir_sql)), params).all()
-            data = [(cid, t, float(position), d, s, v) for t, d, s, v in rows if t0 <= t <= t1]
+            params["p"] = p = float(position)
+            for d in _directions(conn, params, direction):
+                for _, sweep, lo, hi, ta, va, th, vh in conn.execute(text(_INTERPOLATED_SQL), {**params, "d": d}):
+                    f = 0.0 if hi == lo else (p - lo) / (hi - lo)
+                    t = ta + (th - ta) * f
+                    if t0 <= t <= t1:
+                        data.append((cid, t, p, d, sweep, va + (vh - va) * f))
         else:
             params["p"] = float(position)
-            nearest = conn.execute(text(_NEAREST_SQL.format(dir=dir_sql)), params).scalar()
+            directions = _directions(conn, params, direction)
+            nearest = _nearest(conn, params, directions)
             if nearest is None:
                 continue
-            params["pos"] = nearest
-            rows = conn.execute(text(_AT_POSITION_SQL.format(dir=dir_sql)), params).all()
-            data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
+            for d in directions:
+                rows = conn.execute(text(_AT_POSITION_SQL), {**params, "d": d, "pos": nearest}).all()
+                data += [(cid, t, p, dd, s, v) for t, p, dd, s, v in rows]
         if data:
             frame = pd.DataFrame(data, columns=["campaign_id", "time_s", "position", "direction", "sweep", "value"])
+            frame = frame.sort_values(["time_s", "position", "direction"], kind="stable")
             frame.insert(1, "time", pd.Timestamp(started) + pd.to_timedelta(frame["time_s"], unit="s"))
             frames.append(frame)
     if not frames:
@@ -292,13 +329,6 @@ def _channel_id(conn: Connection, campaign_id: int, channel: str) -> int:
         _campaign_row(conn, campaign_id)
         raise NotFoundError(f"campaign {campaign_id} has no channel {channel!r}")
     return int(cid)
-
-
-def _bucket_expr(dialect: str) -> str:
-    # bucket index of a sample, the last sample (time = t1) folded into the last bucket
-    # (time_s >= t0, so truncation is floor on SQLite; PostgreSQL's cast would round)
-    raw = "CAST(FLOOR((time_s - :t0) / :w) AS INTEGER)" if dialect == "postgresql" else "CAST((time_s - :t0) / :w AS INTEGER)"
-    return f"CASE WHEN time_s >= :t1 THEN :nb - 1 ELSE {raw} END"
 
 
 def _range(conn: Connection, table: str, where: str, params: dict[str, Any]) -> tuple[float, float] | None:
@@ -331,11 +361,20 @@ def _history(conn: Connection, table: str, where: str, params: dict[str, Any], c
     if buckets < 1:
         raise ValidationError("buckets must be at least 1")
     width = (t1 - t0) / buckets if t1 > t0 else 1.0
-    params.update(w=width, nb=buckets)
+    # Bucket k holds t0 + k*w <= time_s < t0 + (k+1)*w; the last one also holds time_s = t1.
+    params.update(w=width, nb=buckets, t1x=math.nextafter(t1, math.inf))
     aggs = ", ".join(f"MIN({c}), AVG({c}), MAX({c})" for c in columns)
-    sql = (f"SELECT b, COUNT(*), {aggs} FROM (SELECT {_bucket_expr(conn.dialect.name)} AS b, "
-           f"{', '.join(columns)} FROM {table} WHERE {where} AND time_s >= :t0 AND time_s <= :t1) AS s "
-           "GROUP BY b ORDER BY b")
+    bounds = ("time_s >= :t0 + k.i * :w AND time_s < CASE WHEN k.i = :nb - 1 THEN :t1x "
+              "ELSE :t0 + (k.i + 1) * :w END")
+    # One primary-key range scan per bucket (no per-row bucket arithmetic, no sort of the samples).
+    if conn.dialect.name == "postgresql":
+        sql = (f"SELECT k.i, s.* FROM generate_series(0, CAST(:nb AS integer) - 1) AS k(i) CROSS JOIN LATERAL "
+               f"(SELECT COUNT(*), {aggs} FROM {table} WHERE {where} AND {bounds}) AS s WHERE s.count > 0 "
+               "ORDER BY k.i")
+    else:
+        sql = (f"WITH RECURSIVE k(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM k WHERE i < :nb - 1) "
+               f"SELECT k.i, COUNT(*), {aggs} FROM k JOIN {table} ON {where} AND {bounds} "
+               "GROUP BY k.i ORDER BY k.i")
     rows = conn.execute(text(sql), params).all()
     data = np.array([[np.nan if v is None else float(v) for v in r] for r in rows], dtype="f8").reshape(
         len(rows), 2 + 3 * len(columns))

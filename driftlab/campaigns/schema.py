@@ -215,6 +215,9 @@ class ErrorSample(Base):
         # The unique key refuses a re-inserted reading and serves the drift query
         # (WHERE campaign_id = ? AND axis = ? AND term = ? [AND direction = ?] ORDER BY position/time).
         UniqueConstraint("campaign_id", "axis", "term", "direction", "position", "time_s"),
+        # The interpolating drift query: per (direction, sweep) the positions bracketing P
+        # (MAX(position) <= P, MIN(position) >= P) and their rows, each one seek.
+        Index("ix_error_samples_sweep", "campaign_id", "axis", "term", "direction", "sweep", "position"),
         CheckConstraint("axis IN ('X', 'Y', 'Z', 'A', 'B')", name="axis"),
         CheckConstraint("term IN ('alpha', 'beta', 'gamma', 'dx', 'dy', 'dz')", name="term"),
         CheckConstraint("direction IN (-1, 1)", name="direction"),

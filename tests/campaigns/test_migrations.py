@@ -67,3 +67,14 @@ def test_sqlite_pragmas_and_parent_directories(tmp_path) -> None:
             assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
     finally:
         store.close()
+
+
+def test_cli_db_upgrade_and_current(db_url: str, capsys) -> None:
+    from driftlab.cli import main
+
+    assert main(["db", "current", "--db", db_url]) == 0
+    assert capsys.readouterr().out.strip() == "empty"
+    assert main(["db", "upgrade", "--db", db_url]) == 0
+    assert f"at revision {db.head_revision()}" in capsys.readouterr().out
+    assert main(["db", "current", "--db", db_url]) == 0
+    assert capsys.readouterr().out.strip() == db.head_revision()

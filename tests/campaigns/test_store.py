@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from sqlalchemy import insert
+from sqlalchemy import func, insert, select
 from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import ingest
@@ -95,11 +95,13 @@ def test_failure_mid_write_leaves_database_as_it_was(store: Store, bundle_factor
     store.import_bundle(load_bundle(bundle_factory(seed=1)))
     before = store.table_counts()
     real = ingest.bulk_insert
-    calls = []
+    calls: list[str] = []
+    seen_inside: list[int] = []
 
     def failing(conn, table, *args, **kwargs):
         calls.append(table)
         if table == "error_samples":  # temperatures and conditions are already written by now
+            seen_inside.append(conn.execute(select(func.count()).select_from(sc.TemperatureSample)).scalar_one())
             raise boom
         return real(conn, table, *args, **kwargs)
 
@@ -107,7 +109,8 @@ def test_failure_mid_write_leaves_database_as_it_was(store: Store, bundle_factor
     b = load_bundle(bundle_factory(seed=2))
     with pytest.raises(type(boom)):
         store.import_bundle(b)
-    assert calls == ["temperature_samples", "condition_samples", "error_samples"]
+    assert calls[-2:] == ["condition_samples", "error_samples"]
+    assert seen_inside[0] == before["temperature_samples"] + 40 * 4  # written, then rolled back
     assert store.table_counts() == before
     monkeypatch.setattr(ingest, "bulk_insert", real)
     store.import_bundle(b)  # nothing was left behind that would block a clean retry
@@ -255,7 +258,8 @@ def test_temperature_history_buckets_match_numpy(store: Store, bundle_dir: Path)
     v = b.temperatures["T2"].to_numpy()
     h = store.temperature_history(cid, "T2", buckets=6)
     edges = np.linspace(t[0], t[-1], 7)
-    idx = np.minimum(((t - t[0]) // (edges[1] - edges[0])).astype(int), 5)
+    w = (t[-1] - t[0]) / 6
+    idx = np.array([min(int(np.searchsorted(t[0] + w * np.arange(1, 6), x, side="right")), 5) for x in t])
     assert len(h) == 6
     for k in range(6):
         sel = v[idx == k]
@@ -393,3 +397,18 @@ def test_timestamps_are_utc_aware(store: Store, bundle_factory) -> None:
     [c] = store.list_campaigns()
     assert c.id == cid and c.started_at == datetime(2026, 3, 5, 8, 30, tzinfo=UTC)
     assert c.started_at.utcoffset() == timedelta(0)
+
+
+def test_ctrl_c_during_commit_is_held_until_the_commit_is_done() -> None:
+    import os
+    import signal
+
+    from driftlab.campaigns import db
+
+    reached = []
+    with pytest.raises(KeyboardInterrupt):
+        with db._sigint_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            reached.append("after the signal")
+    assert reached == ["after the signal"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

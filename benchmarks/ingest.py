@@ -1,0 +1,206 @@
+"""Import speed of a 70-hour, 50-channel, 1 Hz bundle on SQLite and PostgreSQL, beside raw baselines.
+
+Prints ONE JSON line. The bundle (12.6 million temperature readings plus a laser error log) is
+generated here with numpy into a temp dir, never committed. Baselines, measured in the same run
+into the same table definition with the same connection settings:
+- SQLite: sqlite3 ``executemany`` of prepared tuples into temperature_samples, one transaction.
+- PostgreSQL: psycopg binary COPY (``set_types``) of the same tuples into temperature_samples.
+The import figures are end to end (parse + validate + hash + write + commit), as `driftlab import`.
+Also: median of 20 drift queries (nearest position, and interpolated) and 20 1,000-bucket histories.
+
+Usage: python benchmarks/ingest.py [--hours 70] [--channels 50] [--skip-pg]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from itertools import repeat
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from driftlab.campaigns.bundle import load_bundle, write_bundle
+from driftlab.campaigns.pgcluster import PgCluster, pg_binaries_available
+from driftlab.campaigns.store import Store, connect
+
+MACHINE = "bench-vmc"
+
+
+def make_bundle(root: Path, hours: float, channels: int, seed: int = 0) -> Path:
+    """Write a synthetic campaign bundle: 1 Hz temperatures, a Z sweep (21 points, both ways) every 10 min."""
+    rng = np.random.default_rng(seed)
+    n = int(hours * 3600)
+    t = np.arange(n, dtype=float)
+    names = [f"T{k + 1}" for k in range(channels)]
+    heat = 1.0 - np.exp(-t / 7200.0)
+    temps = {"time_s": t}
+    for k, name in enumerate(names):
+        temps[name] = np.round(20.0 + (k % 7) * heat + 0.3 * np.sin(t / 3600.0 + k) + rng.normal(0, 0.02, n), 4)
+    temperatures = pd.DataFrame(temps)
+    temperatures.loc[rng.integers(0, n, 200), names[3]] = np.nan  # a few missing readings
+    cond = pd.DataFrame({"time_s": t[::10], "spindle_rpm": np.where((t[::10] // 14400) % 2 == 0, 8000.0, 0.0),
+                         "feed_mm_min": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0})
+    positions = np.linspace(0.0, 500.0, 21)
+    terms = ("dx", "dy", "dz", "alpha", "beta", "gamma")
+    rows = []
+    for s, t0 in enumerate(np.arange(0.0, n - 600, 600.0)):
+        drift = 1 - np.exp(-t0 / 7200.0)
+        for d, order in ((1, positions), (-1, positions[::-1])):
+            for i, p in enumerate(order):
+                ts = t0 + (i + (21 if d < 0 else 0)) * 5.0
+                for term in terms:
+                    scale = 1e-5 if term in ("alpha", "beta", "gamma") else 0.02
+                    rows.append((ts, "Z", term, p, d, scale * (drift * p / 500 + 0.05 * d) + rng.normal(0, scale / 50)))
+    errors = pd.DataFrame(rows, columns=["time_s", "axis", "term", "position", "direction", "value"])
+    meta = {
+        "format": "driftlab-bundle/1",
+        "machine": {"id": MACHINE, "name": "benchmark VMC", "resolution_mm": 0.0025},
+        "started_at": "2026-03-02T08:00:00Z",
+        "channels": {name: {"location": f"site {name}", "structure": "column"} for name in names},
+        "room_channels": names[-2:],
+        "stages": [{"name": f"stage-{k}", "start_s": k * 14400.0, "end_s": min((k + 1) * 14400.0, n - 1.0),
+                    "heat_source": "spindle" if k % 2 == 0 else "none", "axis": "Z",
+                    "spindle_rpm": 8000.0 if k % 2 == 0 else 0.0, "feed_mm_min": 0.0}
+                   for k in range(int(np.ceil(n / 14400.0)))],
+    }
+    return write_bundle(root / "bench-bundle", meta, temperatures, cond, errors)
+
+
+def baseline_rows(n_scans: int, channels: int) -> list[tuple[int, int, float, float]]:
+    """Return prepared (campaign, channel, time, value) tuples, as a raw client would hold them."""
+    t = np.arange(n_scans, dtype=float).tolist()
+    v = (20.0 + np.arange(n_scans) * 1e-5).tolist()
+    rows: list[tuple[int, int, float, float]] = []
+    for ch in range(channels):
+        rows.extend(zip(repeat(999, n_scans), repeat(ch, n_scans), t, v))
+    return rows
+
+
+def raw_sqlite(store: Store, rows: list) -> float:
+    """Return rows/s of sqlite3 executemany into temperature_samples in one transaction."""
+    with store.engine.connect() as conn:
+        raw = conn.connection.driver_connection
+        start = time.perf_counter()
+        raw.execute("BEGIN")
+        raw.executemany("INSERT INTO temperature_samples (campaign_id, channel_id, time_s, value) VALUES (?, ?, ?, ?)",
+                        rows)
+        raw.execute("COMMIT")
+        elapsed = time.perf_counter() - start
+        raw.execute("BEGIN")
+        raw.execute("DELETE FROM temperature_samples WHERE campaign_id = 999")
+        raw.execute("COMMIT")
+    return len(rows) / elapsed
+
+
+def raw_postgres(store: Store, rows: list) -> float:
+    """Return rows/s of psycopg binary COPY (set_types) into temperature_samples in one transaction."""
+    with store.engine.connect() as conn:
+        raw = conn.connection.driver_connection
+        raw.commit()
+        start = time.perf_counter()
+        with raw.cursor() as cur:
+            with cur.copy("COPY temperature_samples (campaign_id, channel_id, time_s, value) FROM STDIN "
+                          "(FORMAT BINARY)") as copy:
+                copy.set_types(["int4", "int4", "float8", "float8"])
+                for row in rows:
+                    copy.write_row(row)
+        raw.commit()
+        elapsed = time.perf_counter() - start
+        with raw.cursor() as cur:
+            cur.execute("DELETE FROM temperature_samples WHERE campaign_id = 999")
+        raw.commit()
+    return len(rows) / elapsed
+
+
+def median_ms(fn, runs: int = 20) -> float:
+    """Return the median wall time of ``runs`` calls in milliseconds."""
+    fn()  # warm caches once
+    times = []
+    for _ in range(runs):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return round(statistics.median(times) * 1000, 2)
+
+
+def run_backend(label: str, url: str, bundle_dir: Path, readings: int, n_scans: int, channels: int) -> dict:
+    """Measure import, raw baseline, drift and history query times on one database."""
+    store = connect(url)
+    store.ensure_schema()
+    rows = baseline_rows(n_scans, channels)
+    raw_rate = raw_sqlite(store, rows) if label == "sqlite" else raw_postgres(store, rows)
+    del rows
+    start = time.perf_counter()
+    bundle = load_bundle(bundle_dir)
+    parsed = time.perf_counter()
+    campaign_id = store.import_bundle(bundle)
+    done = time.perf_counter()
+    total = done - start
+    write = done - parsed
+    del bundle
+    mid = 250.0 + 7.0
+    t0 = pd.Timestamp("2026-03-02T08:00:00Z")
+    drift_ms = median_ms(lambda: store.drift(MACHINE, "Z", "dz", position=mid, direction=1))
+    interp_ms = median_ms(lambda: store.drift(MACHINE, "Z", "dz", position=mid, direction=1, interpolate=True))
+    window_ms = median_ms(lambda: store.drift(MACHINE, "Z", "dz", position=mid, start=t0 + pd.Timedelta(hours=10),
+                                              end=t0 + pd.Timedelta(hours=20)))
+    hist_ms = median_ms(lambda: store.temperature_history(campaign_id, "T7", buckets=1000))
+    n_drift = len(store.drift(MACHINE, "Z", "dz", position=mid, direction=1))
+    store.close()
+    rate = readings / total
+    return {
+        f"{label}_import_s": round(total, 2),
+        f"{label}_write_s": round(write, 2),
+        f"{label}_readings_per_s": round(rate),
+        f"{label}_write_readings_per_s": round(readings / write),
+        f"{label}_raw_baseline_rows_per_s": round(raw_rate),
+        f"{label}_ratio_to_raw": round(rate / raw_rate, 3),
+        f"{label}_drift_query_median_ms": drift_ms,
+        f"{label}_drift_interpolated_median_ms": interp_ms,
+        f"{label}_drift_window_median_ms": window_ms,
+        f"{label}_drift_points": n_drift,
+        f"{label}_history_1000_buckets_median_ms": hist_ms,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark and print one JSON line."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hours", type=float, default=70.0)
+    ap.add_argument("--channels", type=int, default=50)
+    ap.add_argument("--skip-pg", action="store_true")
+    args = ap.parse_args(argv)
+    tmp = Path(tempfile.mkdtemp(prefix="driftlab-bench-"))
+    figures: dict = {"benchmark": "ingest", "hours": args.hours, "channels": args.channels}
+    try:
+        start = time.perf_counter()
+        bundle_dir = make_bundle(tmp, args.hours, args.channels)
+        figures["generate_s"] = round(time.perf_counter() - start, 2)
+        n_scans = int(args.hours * 3600)
+        readings = n_scans * args.channels
+        figures["readings"] = readings
+        figures["error_samples"] = sum(1 for _ in open(bundle_dir / "errors.csv")) - 1
+        figures.update(run_backend("sqlite", f"sqlite:///{tmp / 'bench.sqlite'}", bundle_dir, readings, n_scans,
+                                   args.channels))
+        if not args.skip_pg and pg_binaries_available():
+            with PgCluster() as pg:
+                figures["postgres_settings"] = "fsync=off, synchronous_commit=off (throwaway cluster)"
+                figures.update(run_backend("postgres", pg.create_database(), bundle_dir, readings, n_scans,
+                                           args.channels))
+        else:
+            figures["postgres"] = "skipped"
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    sys.stdout.write(json.dumps(figures) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
