@@ -136,8 +136,10 @@ class TouchProbe:
         lobing: LobingMap | None = None,
         clearance_mm: float = 3.0,
         overtravel_mm: float = 3.0,
+        link: Any | None = None,
     ) -> None:
         self._io = channel
+        self.link = link  # when set, probing waits for the programmed motion to finish
         self.stylus_radius_mm = stylus_radius_mm
         self.lobing = lobing or LobingMap()
         self.clearance_mm = clearance_mm
@@ -146,7 +148,7 @@ class TouchProbe:
     @classmethod
     def on_link(cls, link: Any, **kwargs: Any) -> TouchProbe:
         """Return a probe reporting through a SerialMachineLink's channel (the controller latches the hits)."""
-        return cls(link.channel, **kwargs)
+        return cls(link.channel, link=link, **kwargs)
 
     def close(self) -> None:
         """Release the channel (only when the probe owns it)."""
@@ -169,6 +171,8 @@ class TouchProbe:
         """Return lobing-compensated stylus centres probed along the given outward normals."""
         c = np.asarray(nominal_centre, dtype=float)
         reach = radius_mm + self.stylus_radius_mm
+        if self.link is not None:
+            self.link.wait_done()
         hits, dirs = [], []
         for n in np.atleast_2d(normals):
             start = c + (reach + self.clearance_mm) * n

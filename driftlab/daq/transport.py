@@ -130,14 +130,27 @@ class VisaPort:
             raise GarbledReply(f"unterminated reply {data[:40]!r}")
         return bytes(data)
 
-    def discard_input(self) -> None:
-        """Drop unread received bytes (viClear on the session)."""
+    def discard_input(self, drain_reads: int = 8, drain_timeout_ms: float = 10.0) -> None:
+        """Drop unread bytes: the session's buffer, then whatever arrives within a few short reads."""
         import pyvisa
+        from pyvisa.constants import BufferOperation
 
+        # Not viClear: pyvisa-py's clear() spins forever on a socket the peer has closed.
         try:
-            self._res.clear()
-        except (pyvisa.errors.VisaIOError, OSError):
+            self._res.flush(BufferOperation.discard_read_buffer_no_io)
+        except (pyvisa.errors.VisaIOError, OSError, NotImplementedError):
             pass
+        saved = self._res.timeout
+        self._res.timeout = drain_timeout_ms
+        try:
+            for _ in range(drain_reads):
+                try:
+                    if not self._res.read_raw():
+                        break
+                except (pyvisa.errors.VisaIOError, OSError):
+                    break
+        finally:
+            self._res.timeout = saved
 
     def close(self) -> None:
         """Close the VISA session."""

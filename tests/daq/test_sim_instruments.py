@@ -18,6 +18,7 @@ from driftlab.daq.sim.instruments import (
     Clock,
     FixedStage,
     ManualClock,
+    WallClock,
     SimADCard,
     SimController,
     SimLaser,
@@ -328,3 +329,33 @@ def test_laser_datum_survives_a_pc_restart(rm, world, clock):
             assert sim.datum() == saved
         finally:
             ch.close()
+
+
+def test_wall_clock_runs_accelerated():
+    clock = WallClock(acceleration=1e4, t0_s=100.0)
+    clock.sleep(2.0)  # 0.2 ms of real time
+    assert clock.now() >= 102.0
+
+
+def test_refused_visa_connection_is_one_line_instrument_error(rm):
+    laser = LaserInterferometer(LineChannel(VisaPort.open("TCPIP0::127.0.0.1::1::SOCKET", 0.2, resource_manager=rm),
+                                            "laser", FAST))  # fmt: skip
+    try:
+        with pytest.raises(InstrumentError, match="laser \\*IDN\\?: VISA write failed"):
+            laser.identify()
+    finally:
+        laser.close()
+
+
+def test_controller_rejects_bad_blocks_without_changing_modal_state(world, clock):
+    with SimController(world, clock) as sim:
+        assert sim.handle("BLK 1 G1 X10 F-5") .startswith("ERR SYNTAX")
+        assert sim.handle("BLK 1 G1 X10 Q3").startswith("ERR SYNTAX")
+        assert sim.handle("BLK 3 G1 X10") == "ERR SEQ 0"
+        assert sim.handle("BLK 1 G1 X10") == "ACK 1"
+        assert sim.handle("BLK 1 G1 X10") == "ACK 1"  # duplicate: acknowledged, not queued
+        assert sim.handle("STAT?") == "STAT 15 16 0"
+        clock.sleep(0.6)  # 10 mm at the default 1000 mm/min
+        assert sim.handle("STAT?") == "STAT 16 16 1"
+        assert sim.handle("POS?") == "POS X10.0000 Y0.0000 Z0.0000 A0.0000 B0.0000"
+        assert sim.handle("PRB 0,0,0,1,0,0,5") == "MISS"

@@ -137,10 +137,13 @@ def test_probe_and_machine_link_against_the_vm(vm):
         try:
             link.send_program(["G0 Z100", "G1 X300 Y100 F3000", "G1 Z-20 F1000"], low_water=1)
             assert link.position() == {"X": 300.0, "Y": 100.0, "Z": -20.0, "A": 0.0, "B": 0.0}
+            link.send_program(["G1 Z0 F100"], wait=False)  # 12 s of motion: the probe waits for it
+            t0 = clock.now()
             offset = world_sphere_offset(vm)
             for name, s in spheres.items():
                 m = probe.probe_sphere(name, s.centre, s.radius_mm)
                 expected = np.array(s.centre) + offset(clock.now(), np.array(s.centre))
                 assert m.centre == pytest.approx(expected, abs=1e-5)
+            assert clock.now() >= t0 + 12.0
         finally:
             link.close()

@@ -727,6 +727,7 @@ class SimController(LineServer):
                       self._current[0].target[a] if self._current else self.pos[a]) for a in AXES}  # fmt: skip
         dwell = 0.0
         g = self._modal_g
+        feed = self._feed
         if _WORD.sub("", code).strip():
             raise ValueError("unparsed characters")
         for m in _WORD.finditer(code):
@@ -743,15 +744,16 @@ class SimController(LineServer):
             elif letter == "F":
                 if value <= 0:
                     raise ValueError("feed must be positive")
-                self._feed = value
+                feed = value
             elif letter == "P":
                 dwell = value
             elif letter not in ("N", "M", "S", "T"):
                 raise ValueError(f"unknown word {letter}")
+        # modal state changes only once the whole block is accepted
+        self._feed = feed
         if g in (0, 1):
             self._modal_g = g
-        feed = self.rapid_mm_min if g == 0 else self._feed
-        return _Block(seq, target, feed, dwell if g == 4 else 0.0)
+        return _Block(seq, target, self.rapid_mm_min if g == 0 else feed, dwell if g == 4 else 0.0)
 
     # -- probing
     def _probe(self, start: np.ndarray, u: np.ndarray, dist: float, t: float) -> np.ndarray | None:
