@@ -65,11 +65,11 @@ def world():
     return TinyWorld(channels=6, open_channels={"T3": 100.0})
 
 
-def _visa_channel(rm, server, timeout_s=0.3):
+def _visa_channel(rm, server, timeout_s=2.0):
     return LineChannel(VisaPort.open(visa_address(server), timeout_s, resource_manager=rm), server.name, FAST)
 
 
-def _serial_channel(server, timeout_s=0.3):
+def _serial_channel(server, timeout_s=2.0):
     return LineChannel(SerialPort.open(serial_url(server), timeout_s), server.name, FAST)
 
 
@@ -195,10 +195,12 @@ def test_controller_streams_executes_and_reports_positions(world, clock):
         link = SerialMachineLink(_serial_channel(sim), poll_s=0.5, sleep=clock.sleep)
         try:
             assert link.buffer_free() == 8
-            sim.inject("garble", "timeout")  # hits STAT? and then a BLK: both retried safely
+            sim.inject("garble", on="STAT?")
+            sim.inject("timeout", on="BLK 3 ")  # the block is queued but its ACK is lost: resent, not doubled
             report = link.send_program(program, low_water=2, high_water=6)
             assert report.blocks_sent == len(program)
             assert sim.executed == program  # every block exactly once, in order
+            assert sum(r.startswith("BLK 3 ") for r in sim.received) == 2  # the lost ACK was resent
             assert sim.max_queued <= 6
             pos = link.position()
             assert pos == {"X": 300.0, "Y": -30.0, "Z": 50.0, "A": 5.0, "B": -10.0}

@@ -62,7 +62,7 @@ def no_leaked_server_threads():
 
 
 def _visa(rm, server):
-    return LineChannel(VisaPort.open(visa_address(server), 0.5, resource_manager=rm), server.name, FAST)
+    return LineChannel(VisaPort.open(visa_address(server), 2.0, resource_manager=rm), server.name, FAST)
 
 
 def test_virtual_machine_is_a_world(vm):
@@ -131,7 +131,7 @@ def test_probe_and_machine_link_against_the_vm(vm):
     clock = ManualClock(6000.0)
     spheres = {"S1": SimSphere((300.0, 100.0, -50.0), 12.7), "S2": SimSphere((-300.0, 100.0, -50.0), 12.7)}
     with SimController(vm, clock, spheres=spheres) as sim:
-        link = SerialMachineLink(LineChannel(SerialPort.open(serial_url(sim), 0.5), "controller", FAST),
+        link = SerialMachineLink(LineChannel(SerialPort.open(serial_url(sim), 2.0), "controller", FAST),
                                  poll_s=0.5, sleep=clock.sleep)  # fmt: skip
         probe = TouchProbe.on_link(link)
         try:

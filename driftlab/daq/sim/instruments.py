@@ -241,7 +241,7 @@ class LineServer(ABC):
         self._threads: list[threading.Thread] = []
         self._conns: list[socket.socket] = []
         self._lock = threading.RLock()
-        self._faults: deque[str] = deque()
+        self._faults: deque[tuple[str, str]] = deque()
         self.received: list[str] = []
         self._started = False
 
@@ -265,12 +265,19 @@ class LineServer(ABC):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def inject(self, *faults: str) -> None:
-        """Queue faults for the next replies: ``"timeout"`` (no reply) or ``"garble"`` (corrupt reply)."""
+    def inject(self, *faults: str, on: str = "") -> None:
+        """Queue faults for the next replies (to commands starting with ``on``): ``"timeout"`` or ``"garble"``."""
         for f in faults:
             if f not in ("timeout", "garble"):
                 raise ValueError(f"unknown fault {f!r}")
-            self._faults.append(f)
+            self._faults.append((f, on))
+
+    def _take_fault(self, text: str) -> str | None:
+        for i, (kind, prefix) in enumerate(self._faults):
+            if text.startswith(prefix):
+                del self._faults[i]
+                return kind
+        return None
 
     @abstractmethod
     def handle(self, line: str) -> str | None:
@@ -288,7 +295,7 @@ class LineServer(ABC):
             except Exception as exc:  # a simulator bug must not kill the server thread
                 log.exception("%s: handling %r failed", self.name, text)
                 reply = f"ERR INTERNAL {type(exc).__name__}"
-            fault = self._faults.popleft() if self._faults else None
+            fault = self._take_fault(text)
         if reply is None or fault == "timeout":
             return None
         if fault == "garble":
