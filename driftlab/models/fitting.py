@@ -364,16 +364,14 @@ def fit_elements(
     log_rows: list[dict[str, Any]] = []
     elements = [e for e in ELEMENTS if (sample.frame["element"] == e).any()]
     solved: list[str] = []
-    for element in elements:
-        # terms handed to this element by earlier stages are re-estimated from its own test
-        for (e, _p), m in list(models.items()):
-            if e == element:
-                del models[(e, _p)]
-        rows = (sample.frame["element"] == element).to_numpy()
+    for gi, element in enumerate(elements):
+        # what the solved elements do is known and stays; every other term (elements without a
+        # test of their own, joint shapes seen through other tests) is estimated again on all the
+        # tests so far, so the last estimate has seen every heat source
+        for key in [k for k in models if k[0] not in solved]:
+            del models[key]
+        rows = sample.frame["element"].isin(elements[: gi + 1]).to_numpy()
         sub = sample.take(rows)
-        known = predict_models(models, sub)
-        W, mask = _measured_w(sub, known, dims)
-        E = allocate(W, sub.q, known, element, dims)  # eq. 4.20
         train = (sub.frame["role"] == "train").to_numpy()
         hold = (sub.frame["role"] == "holdout").to_numpy()
         axes = [a for a in AXES if (sub.frame["axis"] == a).any()]
@@ -385,7 +383,18 @@ def fit_elements(
             allowed = sorted({c for a in axes for c in model_channels[a]})
         feats = cands.for_axes(axes, allowed)
         X = design_matrix([INTERCEPT, *feats], sub.inputs, sub.q, _directions(sub))
+        E = mask = None
         for k, param in enumerate(PARAMS):
+            if k in (0, 3):
+                # angles first, then lengths re-allocated once the angles sit in their elements:
+                # an angle acts through a different lever from each element (eq. 4.20)
+                known = predict_models(models, sub)
+                own = known.pop(element, None)
+                W, mask = _measured_w(sub, {**known, **({element: own} if own is not None else {})}, dims)
+                E = allocate(W, sub.q, known, element, dims)  # eq. 4.20
+                if own is not None:
+                    E = E - own
+            assert E is not None and mask is not None
             m_train = train & mask[:, k]
             if m_train.sum() < 12:
                 continue
@@ -411,7 +420,8 @@ def fit_elements(
                 models.setdefault((owner, param), ElementModel(owner, param)).add(fit, fs)
         solved.append(element)
         log_rows.append({
-            "element": element, "axes": axes, "n": int(rows.sum()), "n_train": int(train.sum()),
+            "element": element, "axes": axes, "n": int((sample.frame["element"] == element).sum()),
+            "n_cumulative": int(rows.sum()), "n_train": int(train.sum()),
             "stages": sorted({int(s) for s in sub.frame["stage"]}),
             "channels": "model_channels" if allowed is not None else "screened",
         })

@@ -124,27 +124,46 @@ def stepwise(
     if not np.all(np.isfinite(A)) or not np.all(np.isfinite(y)):
         raise ValidationError("non-finite values in the regression data")
     n_forced = len(forced)
-    selected = list(range(n_forced))
+    selected: list[int] = []
     steps: list[Step] = []
     collinear: set[str] = set()
-    centred = A - A.mean(axis=0)
-    total2 = (centred**2).sum(axis=0)
+    total2 = ((A - A.mean(axis=0)) ** 2).sum(axis=0)
     tried_out: set[int] = set()
+    # Gram-Schmidt state: every column and y with the chosen terms projected out (updated per step)
+    Cr = A.copy()
+    r = y.copy()
+
+    def enter(j: int) -> bool:
+        """Project column j out of everything; return False when it is (numerically) dependent."""
+        nonlocal r
+        v = Cr[:, j]
+        nv = float(np.sqrt(v @ v))
+        if nv <= 1e-12 * max(1.0, float(np.sqrt(A[:, j] @ A[:, j]))):
+            return False
+        qv = v / nv
+        Cr[:] -= np.outer(qv, qv @ Cr)
+        r = r - qv * (qv @ r)
+        selected.append(j)
+        return True
+
+    def rebuild() -> None:
+        """Recompute the projections from scratch (after a backward step)."""
+        nonlocal Cr, r
+        keep = list(selected)
+        selected.clear()
+        Cr = A.copy()
+        r = y.copy()
+        for j in keep:
+            enter(j)
+
+    for j in range(n_forced):
+        enter(j)
     for _ in range(4 * max_terms + 4):
-        # forward step
-        pool = [j for j in range(n_forced, len(feats)) if j not in selected and j not in tried_out]
-        if not pool or len(selected) >= max_terms or n - len(selected) - 2 < 1:
+        pool = np.array([j for j in range(n_forced, len(feats)) if j not in selected and j not in tried_out], int)
+        if pool.size == 0 or len(selected) >= max_terms or n - len(selected) - 2 < 1:
             break
-        if selected:
-            Q, _ = np.linalg.qr(A[:, selected])
-            r = y - Q @ (Q.T @ y)
-            C = A[:, pool]
-            Cr = C - Q @ (Q.T @ C)
-        else:
-            r = y.copy()
-            Cr = A[:, pool].copy()
         sse = float(r @ r)
-        norm2 = (Cr**2).sum(axis=0)
+        norm2 = (Cr[:, pool] ** 2).sum(axis=0)
         # VIF of each candidate against the chosen terms = total2 / norm2 (scale-free per column)
         ok = (norm2 > total2[pool] / vif_max) & (total2[pool] > 0)
         for j, good in zip(pool, ok):
@@ -152,7 +171,7 @@ def stepwise(
                 collinear.add(names[j])
         if not ok.any() or sse <= 0:
             break
-        gain = np.where(ok, (Cr.T @ r) ** 2 / np.where(ok, norm2, 1.0), -np.inf)
+        gain = np.where(ok, (Cr[:, pool].T @ r) ** 2 / np.where(ok, norm2, 1.0), -np.inf)
         dof = n - len(selected) - 1
         best = int(np.argmax(gain))
         g = float(gain[best])
@@ -160,10 +179,13 @@ def stepwise(
         p = float(stats.f.sf(F, 1, dof))
         if p >= p_enter or g < min_gain * sse:
             break
-        j = pool[best]
-        selected.append(j)
+        j = int(pool[best])
+        if not enter(j):
+            tried_out.add(j)
+            continue
         steps.append(Step("add", names[j], F, p))
         # backward steps
+        removed = False
         while len(selected) > n_forced + 1:
             res = _ols(y, A[:, selected])
             pv = np.asarray(res.pvalues)[n_forced:]
@@ -172,7 +194,10 @@ def stepwise(
                 break
             k = selected.pop(n_forced + worst)
             tried_out.add(k)
+            removed = True
             steps.append(Step("remove", names[k], float(res.tvalues[n_forced + worst] ** 2), float(pv[worst])))
+        if removed:
+            rebuild()
     res = _ols(y, A[:, selected]) if selected else None
     if res is None:
         raise ValidationError("stepwise regression needs at least one forced term (the intercept)")

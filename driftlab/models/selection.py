@@ -16,14 +16,12 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.cluster.hierarchy import fcluster, linkage
-from scipy.spatial.distance import squareform
 
 from driftlab.errors import ValidationError
 from driftlab.models.features import channel_columns, fill_gaps
 
 #: words in a channel's location that mark it as sitting on a heat source (ch. 5.4)
-HEAT_SOURCE_WORDS: tuple[str, ...] = ("motor", "nut", "gear", "spindle bearing")
+HEAT_SOURCE_WORDS: tuple[str, ...] = ("motor", "nut", "gear", "z axis ballscrew")
 
 
 @dataclass
@@ -61,23 +59,65 @@ def _is_heat_site(location: str) -> bool:
     return any(w in loc for w in HEAT_SOURCE_WORDS)
 
 
+def _explain(T: np.ndarray, j: int, pool: Sequence[int], k: int) -> tuple[float, list[int]]:
+    """Return the rms residual of column j fitted on up to k columns of ``pool`` chosen greedily, and those columns."""
+    y = T[:, j] - T[:, j].mean()
+    chosen: list[int] = []
+    r = y
+    C = T[:, list(pool)] - T[:, list(pool)].mean(axis=0)
+    Cr = C.copy()
+    for _ in range(min(k, len(pool))):
+        norm2 = (Cr**2).sum(axis=0)
+        gain = np.where(norm2 > 1e-12, (Cr.T @ r) ** 2 / np.maximum(norm2, 1e-300), -1.0)
+        for i in chosen:
+            gain[i] = -1.0
+        b = int(np.argmax(gain))
+        if gain[b] <= 0:
+            break
+        chosen.append(b)
+        q = Cr[:, b] / np.sqrt(norm2[b])
+        r = r - q * (q @ r)
+        Cr = Cr - np.outer(q, q @ Cr)
+    return float(np.sqrt(np.mean(r**2))), [pool[i] for i in chosen]
+
+
+def _gradient_partner(
+    c: str, structure: str, kept: Mapping[str, str], meta: Mapping[str, Mapping[str, str]], temps: pd.DataFrame,
+    gradient_degC: float,
+) -> tuple[str, float] | None:
+    """Return (kept site, rms difference) when ``c`` is the second corner of a structure with a real gradient."""
+    if not structure:
+        return None
+    mates = [k for k in kept if meta.get(k, {}).get("structure", "") == structure]
+    if len(mates) != 1:
+        return None
+    d = float(np.nanstd(temps[c].to_numpy(float) - temps[mates[0]].to_numpy(float)))
+    return (mates[0], d) if d >= gradient_degC else None
+
+
 def screen_channels(
     temperatures: pd.DataFrame,
     channels: Mapping[str, Mapping[str, str]] | None = None,
     room_channels: Sequence[str] = (),
     *,
-    r_min: float = 0.98,
-    gradient_degC: float = 0.15,
-    explained_degC: float = 0.1,
+    explained_degC: float = 0.3,
+    explained_fraction: float = 0.15,
+    n_explain: int = 3,
+    related_r: float = 0.9,
+    gradient_degC: float = 0.8,
     always_keep: Sequence[str] = (),
 ) -> ScreeningResult:
     """Return the screening of all channels of a campaign (ch. 5.4).
 
-    Two channels are redundant when their correlation is at least ``r_min`` and the rms of
-    their difference (about its mean) is at most ``gradient_degC``; redundant groups are found
-    by complete-linkage clustering so every pair in a group meets both tests. A structure keeps
-    the two channels with the largest gradient between them; a further channel of that structure
-    is dropped when the two corners explain it to ``explained_degC`` rms.
+    Room channels and the sites of heat sources (motors, ballscrew nuts, gear trains, the spindle)
+    are kept. Every other channel is then visited, structure by structure, starting in each
+    structure with its most active site and then the one that differs most from it (the corners
+    spanning its gradient): it is kept only if the channels kept so far cannot explain it, i.e. if
+    a least-squares fit on up to ``n_explain`` of them (kept sites of its structure, kept sites
+    correlated with it by at least ``related_r``, the room) leaves more than ``explained_degC`` or
+    ``explained_fraction`` of its own variation (whichever is larger) unexplained. A structure's
+    second corner is kept whenever it differs from the first by ``gradient_degC`` rms or more (a
+    gradient bends the structure, eqs. 3.4-3.5, even when both corners correlate).
     """
     meta = {c: dict(v) for c, v in (channels or {}).items()}
     temps = fill_gaps(temperatures)
@@ -97,67 +137,54 @@ def screen_channels(
             kept_reason[c] = "room air: the room is a heat source and sink; both room channels are kept (ch. 5.4)"
         elif std[i] < 1e-6:
             dropped[c] = "constant over the campaign: no information"
+        elif _is_heat_site(meta.get(c, {}).get("location", "")):
+            kept_reason[c] = "on a heat source: " + meta[c]["location"]
     for c in always_keep:
         if c in chans and c not in dropped and c not in kept_reason:
             kept_reason[c] = "required by the user's model channels"
-    pool = [c for c in chans if c not in kept_reason and c not in dropped]
-    if len(pool) >= 2:
-        idx = [chans.index(c) for c in pool]
-        P = T[:, idx]
-        D = P[:, :, None] - P[:, None, :]
-        sd = np.sqrt(np.nanmean((D - np.nanmean(D, axis=0)) ** 2, axis=0))
-        r = np.nan_to_num(R.loc[pool, pool].to_numpy(float))
-        dist = np.maximum((1 - r) / (1 - r_min), sd / gradient_degC)
-        np.fill_diagonal(dist, 0.0)
-        dist = 0.5 * (dist + dist.T)
-        labels = fcluster(linkage(squareform(dist, checks=False), method="complete"), t=1.0, criterion="distance")
-    else:
-        labels = np.ones(len(pool), int)
-    groups: dict[int, list[str]] = {}
-    for c, g in zip(pool, labels):
-        groups.setdefault(int(g), []).append(c)
-    reps: list[str] = []
-    for members in groups.values():
-        heat = [c for c in members if _is_heat_site(meta.get(c, {}).get("location", ""))]
-        cand = heat or members
-        # the most central site: highest mean correlation with its group (T7 for T1-T8, ch. 5.4)
-        rep = max(cand, key=lambda c: (float(np.nanmean(R.loc[c, members])), -chans.index(c)))
-        reps.append(rep)
-        why = "heat-source site" if rep in heat else "one site for a group that rises and falls together"
-        kept_reason[rep] = why + (f" (represents {', '.join(m for m in members if m != rep)})" if len(members) > 1 else "")
-        for m in members:
-            if m != rep:
-                d = float(np.sqrt(np.nanvar(temps[m].to_numpy(float) - temps[rep].to_numpy(float))))
-                dropped[m] = (
-                    f"no new information: r={R.loc[m, rep]:.3f} with kept {rep}, "
-                    f"difference {d:.3f} degC rms (ch. 5.4)"
-                )
-    # structures: keep the two corners spanning the gradient, drop what they explain
+    rest = [c for c in chans if c not in kept_reason and c not in dropped]
     by_struct: dict[str, list[str]] = {}
-    for c in reps:
-        s = meta.get(c, {}).get("structure", "")
-        if s and not _is_heat_site(meta.get(c, {}).get("location", "")):
-            by_struct.setdefault(s, []).append(c)
-    for s, members in by_struct.items():
-        if len(members) <= 2:
-            continue
-        M = temps[members].to_numpy(float)
-        best, pair = -1.0, (0, 1)
-        for i in range(len(members)):
-            for j in range(i + 1, len(members)):
-                g = float(np.nanstd(M[:, i] - M[:, j]))
-                if g > best:
-                    best, pair = g, (i, j)
-        a, b = members[pair[0]], members[pair[1]]
-        A = np.column_stack([np.ones(M.shape[0]), M[:, pair[0]], M[:, pair[1]]])
-        for k, c in enumerate(members):
-            if k in pair:
-                kept_reason[c] = f"corner of {s} spanning its gradient with {b if c == a else a}"
-                continue
-            coef, *_ = np.linalg.lstsq(A, M[:, k], rcond=None)
-            res = float(np.std(M[:, k] - A @ coef))
-            if res <= explained_degC:
-                del kept_reason[c]
-                dropped[c] = f"inside the gradient of {s}: explained by corners {a}, {b} to {res:.3f} degC rms"
+    for c in rest:
+        by_struct.setdefault(meta.get(c, {}).get("structure", "") or c, []).append(c)
+    order: list[str] = []
+    corners: dict[str, tuple[str, float]] = {}
+    for members in by_struct.values():
+        first = max(members, key=lambda c: std[chans.index(c)])
+        seq = [first]
+        others = [c for c in members if c != first]
+        while others:
+            # next: the site farthest (in rms difference) from those already ordered
+            nxt = max(others, key=lambda c: min(float(np.nanstd(temps[c] - temps[o])) for o in seq))
+            seq.append(nxt)
+            others.remove(nxt)
+        order += seq
+        if len(seq) >= 2:
+            d = float(np.nanstd(temps[seq[0]].to_numpy(float) - temps[seq[1]].to_numpy(float)))
+            if d >= gradient_degC:  # the structure bends: keep the two corners that span it
+                corners[seq[0]] = (seq[1], d)
+                corners[seq[1]] = (seq[0], d)
+    idx = {c: i for i, c in enumerate(chans)}
+    Tf = np.nan_to_num(T)
+    for c in order:
+        # explainers: kept sites of the same structure, kept sites that rise and fall with it, the room
+        st = meta.get(c, {}).get("structure", "")
+        pool = [idx[k] for k in kept_reason
+                if k in room_channels or (st and meta.get(k, {}).get("structure", "") == st)
+                or abs(float(np.nan_to_num(R.loc[c, k]))) >= related_r]
+        resid, used = _explain(Tf, idx[c], pool, n_explain)
+        tol = max(explained_degC, explained_fraction * std[idx[c]])
+        names = [chans[u] for u in used]
+        corner = corners.get(c) or _gradient_partner(c, st, kept_reason, meta, temps, gradient_degC)
+        if corner is not None:
+            kept_reason[c] = (f"corner of {st} spanning its gradient with {corner[0]} "
+                              f"({corner[1]:.2f} degC rms difference, eqs. 3.4-3.5)")
+        elif pool and resid <= tol:
+            best = max(names, key=lambda k: abs(float(R.loc[c, k])))
+            dropped[c] = (
+                f"no new information: explained by kept {', '.join(names)} to {resid:.3f} degC rms "
+                f"(r={R.loc[c, best]:.2f} with {best}) (ch. 5.4)"
+            )
+        else:
+            kept_reason[c] = f"new information on {st or 'its site'}: {resid:.2f} degC rms not explained by the others"
     kept = [c for c in chans if c in kept_reason]
     return ScreeningResult(matrix=R, kept=kept, kept_reason=kept_reason, dropped=dropped)
