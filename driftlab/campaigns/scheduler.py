@@ -613,8 +613,10 @@ class InstrumentRig:
         datum: Mapping[str, Any] | None = None,
         laser_server: Any | None = None,
         closers: list[Callable[[], None]] | None = None,
+        servers: Mapping[str, Any] | None = None,
     ) -> None:
         self.plan = plan
+        self.servers = dict(servers or {})  # simulated instrument servers by role (fault injection in tests)
         self.scanner = scanner
         self.laser = laser
         self.link = link
@@ -753,7 +755,8 @@ def build_sim_rig(
         for c in reversed(closers):
             c()
         raise
-    return InstrumentRig(plan, scanner, laser, link, clock=clock, datum=datum, laser_server=head, closers=closers)
+    return InstrumentRig(plan, scanner, laser, link, clock=clock, datum=datum, laser_server=head, closers=closers,
+                         servers={"thermocouple": card, "laser": head, "controller": ctrl})
 
 
 def axis_positions(plan: Plan, cursor: Cursor) -> dict[str, tuple[float, int]]:

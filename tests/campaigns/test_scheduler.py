@@ -150,3 +150,39 @@ def test_plan_drives_the_virtual_machine_stages() -> None:
     hold["staged_order"] = False
     with pytest.raises(ValidationError, match="motor_hold"):
         scenario_stages(parse_plan(hold))
+
+
+def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -> None:
+    """A card that keeps garbling and a broken laser beam become faults; every other reading is stored."""
+    from driftlab.campaigns.clock import SimClock
+    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta
+    from driftlab.daq.sim.scenario import load_scenario
+
+    plan = parse_plan({
+        "name": "faulty", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
+        "stages": [{"name": "sp", "axis": "Z", "duration_s": 600, "heat": [{"kind": "spindle", "rpm": 9000}],
+                    "sweep": {"positions": [0, 100], "interval_s": 300, "point_s": 5}}],
+    })
+    engine = store_engine(f"sqlite:///{tmp_path / 'f.sqlite'}")
+    meta = scenario_meta(None)
+    handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
+    clock = SimClock(speed=math.inf, start_s=-4.0)
+    rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
+                        list(meta["channels"]))
+    rig.servers["thermocouple"].inject("garble", "garble", "garble")  # every attempt of the first exchange
+    rig.servers["laser"].break_beam()
+    try:
+        stats = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock).run()
+    finally:
+        rig.close()
+    assert stats.finished
+    assert _count(engine, sc.TemperatureSample.__table__) == (plan.n_scans - 1) * 50
+    assert _count(engine, sc.ErrorSample.__table__) == 0
+    (st,) = campaign_status(engine, handle.campaign_id)
+    assert st["status"] == "done"
+    assert st["faults"]["count"] == 1 + len(plan.sweep_points())
+    messages = " ".join(f["message"] for f in st["faults"]["recent"])
+    with engine.connect() as conn:
+        first = conn.execute(select(func.min(sc.TemperatureSample.time_s))).scalar_one()
+    assert first == 60.0  # scan 0 is the card's fault: missing, not invented
+    assert "laser" in messages or "BEAM" in messages
