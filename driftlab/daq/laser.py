@@ -143,12 +143,10 @@ def remove_linear_trend(positions: Sequence[float], values: Sequence[float]) -> 
     return y - (slope * x + intercept)
 
 
-_BEAM = object()  # parse result of an ``ERR BEAM`` reply
-
-
-def _parse_meas(text: str) -> tuple[float, float] | object:
+def _parse_meas(text: str) -> tuple[float, float] | None:
+    """Return (fringes, signal %) of a MEAS? reply, None for ``ERR BEAM``."""
     if text == "ERR BEAM":
-        return _BEAM
+        return None
     fringes_s, signal_s = text.split(",")
     fringes, signal = float(fringes_s), float(signal_s)
     if not (math.isfinite(fringes) and 0.0 <= signal <= 100.0):
@@ -210,7 +208,7 @@ class LaserInterferometer:
 
     def identify(self) -> str:
         """Return the instrument's identification string."""
-        return self._io.query("*IDN?", lambda s: s if s.count(",") == 3 else _raise("bad *IDN? reply"))
+        return self._io.query("*IDN?", _parse_idn)
 
     def configure(self, axis: str, term: str) -> str:
         """Set optics, axis and term for a table 5.3 measurement; return the optics mode used."""
@@ -245,11 +243,12 @@ class LaserInterferometer:
         self.reference_lost = False
         self.reference_epoch += 1
 
-    def _raw(self) -> tuple[float, float] | object:
-        return self._io.query("MEAS?", _parse_meas)
-
-    def _beam_ok(self, raw: tuple[float, float] | object) -> bool:
-        return raw is not _BEAM and raw[1] >= self.min_signal_percent  # type: ignore[index]
+    def _fringes(self) -> float | None:
+        """Return one fringe count, or None when the beam is broken or too weak to trust."""
+        raw = self._io.query("MEAS?", _parse_meas)
+        if raw is None or raw[1] < self.min_signal_percent:
+            return None
+        return raw[0]
 
     def _lose_reference(self) -> Reading:
         self.reference_lost = True
@@ -265,10 +264,10 @@ class LaserInterferometer:
         tol = self.settle_tolerance_rad if self.mode == "ANG" else self.settle_tolerance_mm
         previous: float | None = None
         for _ in range(self.max_settle_polls):
-            raw = self._raw()
-            if not self._beam_ok(raw):
+            fringes = self._fringes()
+            if fringes is None:
                 return self._lose_reference()
-            value = float(fringes_to_value(self.mode, raw[0], n_air, self.optics))  # type: ignore[index]
+            value = float(fringes_to_value(self.mode, fringes, n_air, self.optics))
             if previous is not None and abs(value - previous) <= tol:
                 break
             previous = value
@@ -277,10 +276,10 @@ class LaserInterferometer:
             raise InstrumentError(f"laser: axis did not settle within {self.max_settle_polls} polls")
         counts = []
         for _ in range(self.readings_per_point):
-            raw = self._raw()
-            if not self._beam_ok(raw):
+            fringes = self._fringes()
+            if fringes is None:
                 return self._lose_reference()
-            counts.append(raw[0])  # type: ignore[index]
+            counts.append(fringes)
         return Reading(float(fringes_to_value(self.mode, np.mean(counts), n_air, self.optics)))
 
     def read_displacement(self) -> Reading:
@@ -305,5 +304,8 @@ class LaserInterferometer:
         return ErrorSample(axis, term, float(position), int(direction), value, reading.flag)
 
 
-def _raise(message: str) -> str:
-    raise ValueError(message)
+def _parse_idn(text: str) -> str:
+    """Return an identification string of four comma-separated fields."""
+    if text.count(",") != 3:
+        raise ValueError("bad *IDN? reply")
+    return text

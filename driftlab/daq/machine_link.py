@@ -29,6 +29,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from driftlab.daq.protocols import StreamReport
+from driftlab.daq.retry import RetryPolicy
 from driftlab.daq.transport import LineChannel, SerialPort
 from driftlab.errors import InstrumentError, ValidationError
 
@@ -91,10 +92,18 @@ class SerialMachineLink:
         self._seq = 0
 
     @classmethod
-    def open(cls, url: str, timeout_s: float = 2.0, **kwargs: object) -> SerialMachineLink:
+    def open(
+        cls,
+        url: str,
+        timeout_s: float = 2.0,
+        poll_s: float = 0.5,
+        sleep: Callable[[float], None] = time.sleep,
+        max_idle_polls: int = 100_000,
+        policy: RetryPolicy | None = None,
+    ) -> SerialMachineLink:
         """Return a link on a serial device or pyserial URL."""
         port = SerialPort.open(url, timeout_s=timeout_s)
-        return cls(LineChannel(port, name="controller"), **kwargs)  # type: ignore[arg-type]
+        return cls(LineChannel(port, "controller", policy, sleep), poll_s, sleep, max_idle_polls)
 
     @property
     def channel(self) -> LineChannel:
