@@ -186,3 +186,47 @@ def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -
         first = conn.execute(select(func.min(sc.TemperatureSample.time_s))).scalar_one()
     assert first == 60.0  # scan 0 is the card's fault: missing, not invented
     assert "laser" in messages or "BEAM" in messages
+
+
+def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> None:
+    """Without --sim the daemon opens the plan's instrument addresses (here: servers on loopback) on the wall clock."""
+    from driftlab.campaigns.scheduler import run_daemon
+    from driftlab.daq.sim.instruments import (
+        SimController,
+        SimLaser,
+        SimThermocoupleCard,
+        TinyWorld,
+        WallClock,
+        serial_url,
+        visa_address,
+    )
+
+    world, clock = TinyWorld(channels=4), WallClock(acceleration=1.0)
+    card = SimThermocoupleCard(world, clock, {0: "T1", 1: "T2", 2: "T3", 3: "T4"}).start()
+    ctrl = SimController(world, clock).start()
+    head = SimLaser(world, clock, ctrl).start()
+    try:
+        plan = parse_plan({
+            "name": "bench-top", "machine": {"id": "rig-1", "channels": {f"T{i}": {"location": f"site {i}"}
+                                                                          for i in range(1, 5)}},
+            "scan_interval_s": 0.1,
+            "instruments": {"thermocouple": visa_address(card), "laser": visa_address(head),
+                            "machine_link": serial_url(ctrl)},
+            "stages": [{"name": "idle", "axis": "X", "duration_s": 0.6,
+                        "sweep": {"positions": [0, 0.01], "directions": [1], "interval_s": 0.5, "point_s": 0.25}}],
+        })
+        result = run_daemon(plan, db_url=f"sqlite:///{tmp_path / 'r.sqlite'}")
+    finally:
+        for server in (card, ctrl, head):
+            server.close()
+    assert result.stats.finished and not result.resumed
+    engine = store_engine(f"sqlite:///{tmp_path / 'r.sqlite'}")
+    with engine.connect() as conn:
+        times = conn.execute(select(sc.TemperatureSample.time_s).distinct().order_by(sc.TemperatureSample.time_s)
+                             ).scalars().all()
+        errs = conn.execute(select(func.count()).select_from(sc.ErrorSample.__table__)).scalar_one()
+    assert len(times) == plan.n_scans == 6
+    assert all(b > a for a, b in zip(times, times[1:])) and times[0] >= 0.0  # real, increasing times
+    assert errs == 2 and result.stats.faults == 0
+    (st,) = campaign_status(engine)
+    assert st["mode"] == "real" and st["status"] == "done"
