@@ -105,7 +105,14 @@ def _truth_record(scenario: Scenario, vm: VirtualMachine, sweep_t: np.ndarray) -
         rec: dict[str, Any] = eff.model_dump()
         if eff.kind == "thermal_lag":
             rec["coef_per_degC"] = truth.lag_coefficient(eff)
-        if eff.kind != "sensor_fault":
+        if eff.kind == "sensor_fault":  # how far the readings leave the structure after start_s
+            scan_t = np.arange(float(eff.params["start_s"]), scenario.duration_s + 1e-9, scenario.scan_interval_s)
+            if scan_t.size:
+                idx = [SITE_INDEX[c] for c in eff.channels]
+                off = vm.readings_array(scan_t)[:, idx] - vm.true_temperatures_array(scan_t)[:, idx]
+                fin = np.isfinite(off)
+                rec["reading_offset_rms_degC"] = float(np.sqrt(np.mean(off[fin] ** 2))) if fin.any() else None
+        else:
             pts = sweep_points(scenario)
             pts = pts[pts["axis"] == eff.axis]
             t = np.repeat(sweep_t, len(pts))

@@ -146,6 +146,9 @@ def test_every_hidden_kind_is_planted_with_its_size(planted):
     changed = dt.abs().gt(0).any()
     assert list(changed[changed].index) == ["T9"]
     assert (dt["T9"][on.temperatures.time_s < 14400] == 0).all()
+    late = on.temperatures.time_s >= 14400
+    offset = on.truth["hidden"][-1]["reading_offset_rms_degC"]
+    assert offset == pytest.approx(np.sqrt(np.mean(dt["T9"][late] ** 2)), rel=0.05) and offset > 0.2
 
 
 def test_effects_break_the_standard_model(planted):
