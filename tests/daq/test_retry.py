@@ -86,3 +86,18 @@ def test_helper_fails_when_a_pair_is_unused():
     with pytest.raises(AssertionError, match="only 1 of 2 expected pairs"):
         with expected_protocol(lambda ch: ch, [(b"A?\n", b"1\n"), (b"B?\n", b"2\n")]) as ch:
             ch.query("A?", int)
+
+
+def test_helper_serves_unsolicited_lines_and_rejects_unscripted_reads():
+    port = ProtocolPort([(b"GO\n", None), (None, b"DONE\n")])
+    port.write(b"GO\n")
+    assert port.read_line() == b"DONE\n"
+    assert port.index == 2
+    with pytest.raises(AssertionError, match="read with no reply pending"):
+        ProtocolPort([(b"GO\n", None)]).read_line()
+
+
+def test_helper_fails_when_a_reply_is_never_read():
+    with pytest.raises(AssertionError, match="never read"):
+        with expected_protocol(lambda ch: ch, [(b"A?\n", b"1\n")]) as ch:
+            ch.port.write(b"A?\n")
