@@ -1,0 +1,80 @@
+"""The FastAPI application factory: store, token, routes, problem responses, model cache, job runner."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import Depends, FastAPI
+
+from driftlab import __version__
+from driftlab.api import problems
+from driftlab.api.deps import ApiState, ModelCache, get_state
+from driftlab.api.routes import campaigns, drift, histories, jobs, machines, models, online
+from driftlab.api.schemas import Health
+from driftlab.campaigns import api_queries
+from driftlab.campaigns.store import Store, connect
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """Campaigns, drift and models of driftlab's campaign store.
+
+Reads are open; every write needs `Authorization: Bearer <DRIFTLAB_API_TOKEN>` (writes are refused
+when no token is configured). Errors are RFC 9457 `application/problem+json`.
+"""
+
+
+def create_app(db_url: str | None = None, token: str | None = None, *, store: Store | None = None,
+               run_jobs: bool = True, model_cache_ttl_s: float = 1.0) -> FastAPI:
+    """Return the API over the store at ``db_url`` (default DRIFTLAB_DB_URL) with write token ``token``.
+
+    ``token`` defaults to DRIFTLAB_API_TOKEN; an empty token disables writes. With ``run_jobs`` a
+    background thread runs queued fit and diagnosis jobs while the application is up.
+    """
+    from driftlab.config import Settings
+
+    settings = Settings()
+    the_store = store if store is not None else connect(db_url or settings.resolved_db_url())
+    state = ApiState(store=the_store, token=settings.api_token if token is None else token,
+                     models=ModelCache(the_store, ttl_s=model_cache_ttl_s))
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        the_store.ensure_schema()
+        if run_jobs:
+            state.jobs = jobs.JobRunner(state)
+            state.jobs.start()
+        try:
+            yield
+        finally:
+            if state.jobs is not None:
+                state.jobs.stop()
+                state.jobs = None
+
+    app = FastAPI(title="driftlab", version=__version__, description=DESCRIPTION, lifespan=lifespan)
+    app.state.driftlab = state
+    problems.install_handlers(app)
+    app.add_middleware(problems.CatchAllMiddleware)
+    for module in (machines, campaigns, histories, drift, models, jobs, online):
+        app.include_router(module.router)
+
+    @app.get("/health", response_model=Health, tags=["health"], summary="Liveness and database reachability")
+    def health(st: Any = Depends(get_state)) -> Health:
+        """Return ok when the database answers."""
+        api_queries.ping(st.store)
+        return Health(status="ok", database=st.store.dialect)
+
+    def openapi() -> dict[str, Any]:
+        """Return the OpenAPI document with the problem+json responses declared on every operation."""
+        if app.openapi_schema is None:
+            from fastapi.openapi.utils import get_openapi
+
+            schema = get_openapi(title=app.title, version=app.version, description=app.description,
+                                 routes=app.routes)
+            app.openapi_schema = problems.declare_problems(schema)
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+    return app

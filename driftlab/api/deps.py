@@ -1,0 +1,138 @@
+"""Shared state of the API (store, token, current-model cache, job runner) and its dependencies."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from fastapi import Request
+from starlette.exceptions import HTTPException
+
+from driftlab.campaigns import api_queries
+from driftlab.campaigns.store import Store
+
+
+def iso(dt: Any) -> str | None:
+    """Return a datetime as ISO 8601 UTC with a Z (None stays None)."""
+    return None if dt is None else dt.isoformat().replace("+00:00", "Z")
+
+
+def model_out(row: api_queries.ModelRow, with_document: bool = True) -> dict[str, Any]:
+    """Return the JSON form of a registry row (ModelVersionOut, or ModelSummary without the document)."""
+    out: dict[str, Any] = {
+        "machine_id": row.machine_id, "version": row.version, "status": row.status,
+        "created_at": iso(row.created_at), "retired_at": iso(row.retired_at),
+        "source_campaigns": [int(c) for c in row.source_campaigns],
+        "terms": len(row.document.get("terms", []) or []),
+    }
+    if with_document:
+        out["document"] = row.document
+    return out
+
+
+def model_etag(row: api_queries.ModelRow) -> str:
+    """Return the strong ETag of a model version: a hash of its row id and canonical document."""
+    h = hashlib.sha256(f"{row.id}\n".encode())
+    h.update(json.dumps(row.document, sort_keys=True, separators=(",", ":")).encode())
+    return f'"{h.hexdigest()[:32]}"'
+
+
+@dataclass(frozen=True)
+class CachedModel:
+    """A machine's current model, serialised once: body bytes, ETag and version."""
+
+    etag: str
+    body: bytes
+    version: int
+    row: api_queries.ModelRow
+
+
+class ModelCache:
+    """Current model per machine, served without a database read while fresh.
+
+    Writes through this API invalidate at once (register, promote, retire, fit jobs); changes made by
+    other processes are seen after at most ``ttl_s`` seconds. A generation counter keeps a load that
+    raced with an invalidation from storing the stale answer.
+    """
+
+    def __init__(self, store: Store, ttl_s: float = 1.0) -> None:
+        self.store = store
+        self.ttl_s = ttl_s
+        self._entries: dict[str, tuple[float, CachedModel | None]] = {}
+        self._generation = 0
+        self._lock = threading.Lock()
+        self.loads = 0
+
+    def fresh(self, machine_id: str) -> tuple[bool, CachedModel | None]:
+        """Return (hit, entry): a hit is a cached answer (possibly "no model") younger than the TTL."""
+        entry = self._entries.get(machine_id)
+        if entry is None or time.monotonic() - entry[0] >= self.ttl_s:
+            return False, None
+        return True, entry[1]
+
+    def load(self, machine_id: str) -> CachedModel | None:
+        """Read the machine's current model from the store, cache it and return it (None: no current model)."""
+        generation = self._generation
+        row = api_queries.current_model(self.store, machine_id)
+        cached = None
+        if row is not None:
+            body = json.dumps(model_out(row), allow_nan=False, separators=(",", ":")).encode()
+            cached = CachedModel(model_etag(row), body, row.version, row)
+        with self._lock:
+            self.loads += 1
+            if generation == self._generation:
+                self._entries[machine_id] = (time.monotonic(), cached)
+        return cached
+
+    def get(self, machine_id: str) -> CachedModel | None:
+        """Return the current model, from the cache when fresh."""
+        hit, entry = self.fresh(machine_id)
+        return entry if hit else self.load(machine_id)
+
+    def invalidate(self, machine_id: str | None = None) -> None:
+        """Forget one machine's cached model (or all of them)."""
+        with self._lock:
+            self._generation += 1
+            if machine_id is None:
+                self._entries.clear()
+            else:
+                self._entries.pop(machine_id, None)
+
+
+@dataclass
+class ApiState:
+    """Everything a request handler needs."""
+
+    store: Store
+    token: str
+    models: ModelCache
+    jobs: Any = None  # routes.jobs.JobRunner when the server runs jobs itself
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def get_state(request: Request) -> ApiState:
+    """Return the application's state."""
+    return request.app.state.driftlab  # type: ignore[no-any-return]
+
+
+def get_store(request: Request) -> Store:
+    """Return the application's store."""
+    return get_state(request).store
+
+
+def require_token(request: Request) -> None:
+    """Refuse a write without ``Authorization: Bearer <token>`` (401), or any write when no token is set (403)."""
+    expected = get_state(request).token
+    if not expected:
+        raise HTTPException(403, "writes are disabled: no API token is configured (DRIFTLAB_API_TOKEN)")
+    header = request.headers.get("authorization", "")
+    scheme, _, given = header.partition(" ")
+    if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), expected.encode()):
+        reason = "missing bearer token" if not header else "invalid bearer token"
+        raise HTTPException(401, f"{reason}: writes need Authorization: Bearer <DRIFTLAB_API_TOKEN>",
+                            headers={"WWW-Authenticate": 'Bearer realm="driftlab"'})

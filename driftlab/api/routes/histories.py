@@ -1,0 +1,163 @@
+"""Temperature, condition and error histories of a campaign: time range, filters, paging, downsampling.
+
+Raw histories are paged by ``limit`` with either ``offset`` or an opaque ``cursor`` (keyset paging:
+the next page starts after the last row of this one, one range scan of the primary key). With
+``buckets`` the store computes min/mean/max per equal-width time bucket in SQL (no paging).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Path, Query
+
+from driftlab.api.routes.campaigns import CampaignId
+from driftlab.api.schemas import (
+    ID_PATTERN,
+    Axis,
+    Bucket,
+    Condition,
+    ConditionBucket,
+    ConditionHistory,
+    ConditionRow,
+    ErrorHistory,
+    ErrorSampleOut,
+    TemperatureHistory,
+    TemperaturePoint,
+    Term,
+)
+from driftlab.api.deps import get_store
+from driftlab.campaigns import api_queries
+from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
+from driftlab.campaigns.store import Store
+from driftlab.errors import ValidationError
+
+router = APIRouter(tags=["histories"])
+
+Limit = Annotated[int, Query(ge=1, le=10000, description="rows per page")]
+Offset = Annotated[int, Query(ge=0, le=10**9, description="rows to skip (or use cursor)")]
+Cursor = Annotated[str | None, Query(max_length=200, description="next_cursor of the previous page")]
+StartS = Annotated[float | None, Query(ge=-1e12, le=1e12, description="from this time (s since start)")]
+EndS = Annotated[float | None, Query(ge=-1e12, le=1e12, description="up to this time (s since start)")]
+Buckets = Annotated[int | None, Query(ge=1, le=10000, description="downsample to this many time buckets")]
+
+
+def encode_cursor(kind: str, last: float | int) -> str:
+    """Return an opaque cursor naming the last row of a page."""
+    raw = json.dumps({"k": kind, "after": last}, separators=(",", ":")).encode()
+    return base64.urlsafe_b64encode(raw).decode().rstrip("=")
+
+
+def decode_cursor(cursor: str | None, kind: str) -> Any:
+    """Return the position a cursor names; ValidationError when it is not one of ours."""
+    if cursor is None:
+        return None
+    try:
+        raw = base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4))
+        data = json.loads(raw)
+        after = data["after"]
+        if data["k"] != kind or isinstance(after, bool) or not isinstance(after, (int, float)):
+            raise ValueError
+        if not math.isfinite(after):
+            raise ValueError
+    except (ValueError, KeyError, TypeError):
+        raise ValidationError(f"not a valid {kind} cursor: {cursor!r}") from None
+    return after
+
+
+def _f(v: Any) -> float | None:
+    """Return a finite float or None (NaN and missing readings are null in JSON)."""
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _range(start_s: float | None, end_s: float | None) -> None:
+    if start_s is not None and end_s is not None and end_s < start_s:
+        raise ValidationError(f"time range ends ({end_s}) before it starts ({start_s})")
+
+
+def _paging(cursor: str | None, offset: int) -> None:
+    if cursor is not None and offset:
+        raise ValidationError("give either offset or cursor, not both")
+
+
+@router.get("/campaigns/{campaign_id}/temperatures/{channel}", response_model=TemperatureHistory,
+            response_model_exclude_unset=True, summary="Temperature history of a channel")
+def temperatures(
+    campaign_id: CampaignId,
+    channel: Annotated[str, Path(pattern=ID_PATTERN, description="channel name, e.g. T9")],
+    store: Annotated[Store, Depends(get_store)],
+    start_s: StartS = None, end_s: EndS = None, buckets: Buckets = None,
+    limit: Limit = 1000, offset: Offset = 0, cursor: Cursor = None,
+) -> TemperatureHistory:
+    """Return a channel's readings in a time range (paged), or min/mean/max per time bucket."""
+    _range(start_s, end_s)
+    _paging(cursor, offset)
+    if buckets:
+        frame = store.temperature_history(campaign_id, channel, start_s, end_s, buckets)
+        out = [Bucket(time_s=r.time_s, t_end_s=r.t_end_s, n=int(r.n), min=_f(r.value_min), mean=_f(r.value_mean),
+                      max=_f(r.value_max)) for r in frame.itertuples(index=False)]
+        return TemperatureHistory(campaign_id=campaign_id, channel=channel, buckets=out)
+    after = decode_cursor(cursor, "temperature")
+    rows = api_queries.temperature_page(store, campaign_id, channel, start_s, end_s, after, offset, limit)
+    points = [TemperaturePoint(time_s=t, value=_f(v)) for t, v in rows]
+    nxt = encode_cursor("temperature", rows[-1][0]) if len(rows) == limit else None
+    return TemperatureHistory(campaign_id=campaign_id, channel=channel, points=points, next_cursor=nxt)
+
+
+@router.get("/campaigns/{campaign_id}/conditions", response_model=ConditionHistory,
+            response_model_exclude_unset=True, summary="Machine-state history")
+def conditions(
+    campaign_id: CampaignId,
+    store: Annotated[Store, Depends(get_store)],
+    column: Annotated[list[Condition] | None, Query(max_length=7, description="columns (default all seven)")] = None,
+    start_s: StartS = None, end_s: EndS = None, buckets: Buckets = None,
+    limit: Limit = 1000, offset: Offset = 0, cursor: Cursor = None,
+) -> ConditionHistory:
+    """Return spindle, feed and axis positions over a time range (paged), or min/mean/max per bucket."""
+    _range(start_s, end_s)
+    _paging(cursor, offset)
+    cols = list(dict.fromkeys(column)) if column else list(CONDITION_VALUE_COLUMNS)
+    if buckets:
+        frame = store.condition_history(campaign_id, cols, start_s, end_s, buckets)
+        out = []
+        for r in frame.to_dict("records"):
+            values = {c: Bucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), min=_f(r[f"{c}_min"]),
+                                mean=_f(r[f"{c}_mean"]), max=_f(r[f"{c}_max"])) for c in cols}
+            out.append(ConditionBucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), values=values))
+        return ConditionHistory(campaign_id=campaign_id, columns=cols, buckets=out)
+    after = decode_cursor(cursor, "condition")
+    rows = api_queries.condition_page(store, campaign_id, cols, start_s, end_s, after, offset, limit)
+    points = [ConditionRow(time_s=r[0], **{c: _f(v) for c, v in zip(cols, r[1:])}) for r in rows]
+    nxt = encode_cursor("condition", rows[-1][0]) if len(rows) == limit else None
+    return ConditionHistory(campaign_id=campaign_id, columns=cols, points=points, next_cursor=nxt)
+
+
+@router.get("/campaigns/{campaign_id}/errors", response_model=ErrorHistory, response_model_exclude_unset=True,
+            summary="Measured error samples of a campaign")
+def errors(
+    campaign_id: CampaignId,
+    store: Annotated[Store, Depends(get_store)],
+    axis: Axis | None = None, term: Term | None = None,
+    direction: Annotated[int | None, Query(ge=-1, le=1, description="+1 or -1")] = None,
+    start_s: StartS = None, end_s: EndS = None,
+    limit: Limit = 1000, offset: Offset = 0, cursor: Cursor = None,
+) -> ErrorHistory:
+    """Return a page of error samples in measurement order, filtered by axis, term, direction and time."""
+    _range(start_s, end_s)
+    _paging(cursor, offset)
+    if direction == 0:
+        raise ValidationError("direction must be +1 or -1")
+    after = decode_cursor(cursor, "error")
+    if after is not None and not isinstance(after, int):
+        raise ValidationError(f"not a valid error cursor: {cursor!r}")
+    rows = api_queries.error_page(store, campaign_id, axis, term, direction, start_s, end_s, after, offset, limit)
+    items = [ErrorSampleOut(seq=r.seq, time_s=r.time_s, axis=r.axis, term=r.term, position=r.position,
+                            direction=r.direction, sweep=r.sweep, flags=r.flags, value=r.value) for r in rows]
+    nxt = encode_cursor("error", rows[-1].seq) if len(rows) == limit else None
+    return ErrorHistory(campaign_id=campaign_id, items=items, next_cursor=nxt)

@@ -1,0 +1,189 @@
+"""Jobs: submit a fit or a diagnosis (a row of the store's jobs table), poll its state; the runner.
+
+The API server runs queued jobs itself in one background thread (``JobRunner``) unless told not to;
+any other worker process claiming from the same table works alongside it (claims are atomic).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import socket
+import threading
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Path, Query, Response
+
+from driftlab.api.deps import ApiState, get_state, get_store, require_token
+from driftlab.api.schemas import ID_PATTERN, MAX_ID, JobKind, JobList, JobOut, JobState, JobSubmit
+from driftlab.campaigns import api_queries
+from driftlab.campaigns.store import JobInfo, Store
+from driftlab.errors import DriftlabError, ValidationError
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(tags=["jobs"])
+
+JOB_KINDS = ("fit", "diagnose")
+
+
+def _finite(obj: Any) -> Any:
+    """Return ``obj`` with non-finite floats as None (JSON columns and responses are strict JSON)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def job_out(j: Any) -> JobOut:
+    """Return the response model of a job (a JobInfo or a jobs row)."""
+    return JobOut(id=j.id, kind=j.kind, state=j.state, params=dict(j.params or {}), result=_finite(j.result),
+                  error=j.error, machine_id=j.machine_id, campaign_id=j.campaign_id, attempts=j.attempts,
+                  created_at=j.created_at, started_at=j.started_at, finished_at=j.finished_at)
+
+
+def run_job(store: Store, job: JobInfo) -> dict[str, Any]:
+    """Run a claimed fit or diagnosis job and return its JSON result (DriftlabError when it cannot run)."""
+    p = job.params
+    if job.kind == "fit":
+        from driftlab.models import registry
+        from driftlab.models.fitting import FitOptions, fit_bundles
+
+        ids = [int(c) for c in p.get("campaign_ids", [])]
+        if not ids:
+            raise ValidationError("no campaigns to fit")
+        bundles = [store.load_campaign(c) for c in ids]
+        opts = FitOptions(holdout_fraction=float(p.get("holdout_fraction", 0.25)), network=bool(p.get("network")),
+                          virtual_sensors=bool(p.get("virtual_sensors")), seed=int(p.get("seed", 0)))
+        fit = fit_bundles(bundles, opts, source_campaigns=ids)
+        doc = registry.register_model(store, fit.document, source_campaigns=ids)
+        report = fit.report()
+        report["model_version"] = doc.version
+        return _finite({"machine_id": doc.machine, "model_version": doc.version, "report": report})
+    if job.kind == "diagnose":
+        from driftlab.models.diagnosis import diagnose_bundle
+
+        cid = int(p["campaign_ids"][0])
+        result = diagnose_bundle(store.load_campaign(cid), holdout_fraction=float(p.get("holdout_fraction", 0.25)))
+        return _finite({"campaign_id": cid, "report": result.to_json_dict()})
+    raise ValidationError(f"unknown job kind {job.kind!r}")
+
+
+class JobRunner(threading.Thread):
+    """A background thread that claims and runs fit/diagnosis jobs, one at a time, with heartbeats."""
+
+    def __init__(self, state: ApiState, poll_s: float = 2.0, heartbeat_s: float = 15.0,
+                 stale_s: float = 600.0) -> None:
+        super().__init__(name="driftlab-jobs", daemon=True)
+        self.state = state
+        self.poll_s = poll_s
+        self.heartbeat_s = heartbeat_s
+        self.stale_s = stale_s
+        self.worker = f"api-{socket.gethostname()}-{os.getpid()}-{id(self):x}"
+        self.wake = threading.Event()
+        self.stopping = threading.Event()
+        self.ran = 0
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Ask the thread to finish after its current job and wait for it."""
+        self.stopping.set()
+        self.wake.set()
+        if self.is_alive():
+            self.join(timeout_s)
+
+    def run(self) -> None:
+        """Claim and run jobs until stopped; sleep on the wake event when the queue is empty."""
+        store = self.state.store
+        try:
+            store.requeue_stale(self.stale_s)
+        except Exception:
+            log.exception("job runner: cannot requeue stale jobs")
+        while not self.stopping.is_set():
+            try:
+                job = store.claim_job(self.worker, kinds=list(JOB_KINDS))
+            except Exception:
+                log.exception("job runner: cannot claim a job")
+                job = None
+            if job is None:
+                self.wake.wait(self.poll_s)
+                self.wake.clear()
+                continue
+            self._execute(job)
+
+    def _execute(self, job: JobInfo) -> None:
+        """Run one job with a heartbeat beside it; record its result or its one-line error."""
+        store = self.state.store
+        done = threading.Event()
+
+        def beat() -> None:
+            while not done.wait(self.heartbeat_s):
+                try:
+                    store.heartbeat(job.id, self.worker)
+                except Exception:
+                    log.warning("job %s: heartbeat failed", job.id)
+
+        beater = threading.Thread(target=beat, name=f"job-{job.id}-heartbeat", daemon=True)
+        beater.start()
+        try:
+            result = run_job(store, job)
+        except DriftlabError as exc:
+            done.set()
+            store.fail_job(job.id, self.worker, exc.one_line())
+        except Exception as exc:
+            done.set()
+            log.exception("job %s (%s) failed", job.id, job.kind)
+            store.fail_job(job.id, self.worker, f"{type(exc).__name__}: {exc}")
+        else:
+            done.set()
+            store.finish_job(job.id, self.worker, result)
+            if job.kind == "fit" and result.get("machine_id"):
+                self.state.models.invalidate(str(result["machine_id"]))
+        finally:
+            done.set()
+            beater.join(1.0)
+            self.ran += 1
+
+
+@router.post("/jobs", response_model=JobOut, status_code=202, dependencies=[Depends(require_token)],
+             summary="Submit a fit or a diagnosis")
+def submit(body: JobSubmit, state: Annotated[ApiState, Depends(get_state)], response: Response) -> JobOut:
+    """Queue a job after checking its machine and campaigns; poll GET /jobs/{id} for its state."""
+    ids = list(dict.fromkeys(body.campaign_ids))
+    if body.kind == "diagnose" and len(ids) != 1:
+        raise ValidationError("a diagnosis is of exactly one campaign: give one campaign id")
+    if body.kind == "fit" and body.machine_id is None and not ids:
+        raise ValidationError("a fit needs a machine id or campaign ids")
+    ids = api_queries.check_job_targets(state.store, body.machine_id, ids)
+    if body.kind == "fit" and not ids:
+        raise ValidationError(f"machine {body.machine_id!r} has no campaigns to fit")
+    params = {"campaign_ids": ids, "holdout_fraction": body.holdout_fraction, "network": body.network,
+              "virtual_sensors": body.virtual_sensors, "seed": body.seed}
+    machine = body.machine_id
+    if machine is None and ids:
+        machine = api_queries.campaign_detail(state.store, ids[0])[0].machine_id
+    job_id = state.store.submit_job(body.kind, params, machine_id=machine, campaign_id=ids[0] if len(ids) == 1 else None)
+    if state.jobs is not None:
+        state.jobs.wake.set()
+    response.headers["Location"] = f"/jobs/{job_id}"
+    return job_out(state.store.get_job(job_id))
+
+
+@router.get("/jobs", response_model=JobList, summary="List jobs")
+def list_jobs(store: Annotated[Store, Depends(get_store)],
+              state: JobState | None = None, kind: JobKind | None = None,
+              machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+              offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> JobList:
+    """Return a page of fit and diagnosis jobs, newest first."""
+    rows = api_queries.list_jobs(store, state, kind, machine_id, limit, offset, kinds=JOB_KINDS)
+    return JobList(items=[job_out(r) for r in rows], limit=limit, offset=offset)
+
+
+@router.get("/jobs/{job_id}", response_model=JobOut, summary="Poll a job")
+def get_job(job_id: Annotated[int, Path(ge=1, le=MAX_ID)], store: Annotated[Store, Depends(get_store)]) -> JobOut:
+    """Return a job's state and, when done, its result."""
+    return job_out(store.get_job(job_id))

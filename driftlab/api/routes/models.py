@@ -1,0 +1,136 @@
+"""Model registry: list versions, the current model (ETag, 304), a given version, register/promote/retire.
+
+``GET /machines/{id}/model/current`` is the compensators' polling path: its answer comes from the
+in-process cache (serialised bytes and ETag) and touches the database at most once per cache TTL.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
+from starlette.concurrency import run_in_threadpool
+
+from driftlab.api.deps import ApiState, get_state, get_store, model_out, require_token
+from driftlab.api.problems import problem_response
+from driftlab.api.routes.machines import MachineId
+from driftlab.api.schemas import (
+    ID_PATTERN,
+    MAX_ID,
+    ModelList,
+    ModelRegisterIn,
+    ModelStatus,
+    ModelSummary,
+    ModelVersionOut,
+)
+from driftlab.campaigns import api_queries
+from driftlab.campaigns.store import Store
+from driftlab.errors import ValidationError
+from driftlab.models import registry
+
+router = APIRouter(tags=["models"])
+
+Version = Annotated[int, Path(ge=1, le=MAX_ID, description="model version number")]
+ETAG_HEADERS = {"ETag": {"description": "hash of the version id and document", "schema": {"type": "string"}}}
+
+
+def etag_matches(if_none_match: str | None, etag: str) -> bool:
+    """Return True when an If-None-Match header names this ETag (weak comparison, or ``*``)."""
+    if not if_none_match:
+        return False
+    for tag in if_none_match.split(","):
+        tag = tag.strip()
+        if tag == "*" or tag.removeprefix("W/") == etag:
+            return True
+    return False
+
+
+@router.get("/models", response_model=ModelList, summary="List model versions of every machine")
+def list_models(store: Annotated[Store, Depends(get_store)],
+                machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
+                status: ModelStatus | None = None,
+                limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> Any:
+    """Return a page of model versions (without documents), by machine then version."""
+    rows = api_queries.model_versions(store, machine_id, status, limit, offset)
+    return {"items": [model_out(r, with_document=False) for r in rows], "limit": limit, "offset": offset}
+
+
+@router.get("/machines/{machine_id}/models", response_model=ModelList, summary="List a machine's model versions")
+def machine_models(machine_id: MachineId, store: Annotated[Store, Depends(get_store)],
+                   status: ModelStatus | None = None,
+                   limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                   offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> Any:
+    """Return a page of a machine's model versions, oldest first."""
+    rows = api_queries.model_versions(store, machine_id, status, limit, offset)
+    return {"items": [model_out(r, with_document=False) for r in rows], "limit": limit, "offset": offset}
+
+
+@router.get(
+    "/machines/{machine_id}/model/current",
+    response_model=ModelVersionOut,
+    summary="The machine's current model (ETag; If-None-Match gives 304)",
+    responses={200: {"headers": ETAG_HEADERS}, 304: {"description": "Not Modified", "headers": ETAG_HEADERS}},
+)
+async def current_model(
+    request: Request,
+    machine_id: MachineId,
+    if_none_match: Annotated[str | None, Header(max_length=1000)] = None,
+) -> Response:
+    """Return the current model document with its ETag, or 304 when the client's copy is current."""
+    cache = get_state(request).models
+    hit, entry = cache.fresh(machine_id)
+    if not hit:
+        entry = await run_in_threadpool(cache.load, machine_id)
+    if entry is None:
+        return problem_response(404, f"machine {machine_id!r} has no current model", request.url.path)
+    headers = {"ETag": entry.etag, "Cache-Control": "no-cache"}
+    if etag_matches(if_none_match, entry.etag):
+        return Response(status_code=304, headers=headers)
+    return Response(entry.body, media_type="application/json", headers=headers)
+
+
+@router.get("/machines/{machine_id}/models/{version}", response_model=ModelVersionOut,
+            responses={200: {"headers": ETAG_HEADERS}}, summary="A given model version")
+def get_version(machine_id: MachineId, version: Version, store: Annotated[Store, Depends(get_store)],
+                response: Response) -> Any:
+    """Return one model version of a machine with its document."""
+    from driftlab.api.deps import model_etag
+
+    row = api_queries.model_version(store, machine_id, version)
+    response.headers["ETag"] = model_etag(row)
+    return model_out(row)
+
+
+@router.post("/machines/{machine_id}/models", response_model=ModelVersionOut, status_code=201,
+             dependencies=[Depends(require_token)], summary="Register a new model version (made current)")
+def register(machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiState, Depends(get_state)],
+             response: Response) -> Any:
+    """Validate and store a model document as the machine's next version, current from now on."""
+    doc = registry.validate_document(body.document)
+    if doc.machine != machine_id:
+        raise ValidationError(f"the document is of machine {doc.machine!r}, not {machine_id!r}")
+    api_queries.get_machine(state.store, machine_id)  # 404 for an unknown machine (registry would create it)
+    final = registry.register_model(state.store, doc, source_campaigns=body.source_campaigns)
+    state.models.invalidate(machine_id)
+    row = api_queries.model_version(state.store, machine_id, int(final.version or 0))
+    response.headers["Location"] = f"/machines/{machine_id}/models/{row.version}"
+    return model_out(row)
+
+
+@router.post("/machines/{machine_id}/models/{version}/promote", response_model=ModelVersionOut,
+             dependencies=[Depends(require_token)], summary="Make a version the current one")
+def promote(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
+    """Make a version current (retiring the previous current one); compensators see a new ETag."""
+    row = api_queries.promote_model(state.store, machine_id, version)
+    state.models.invalidate(machine_id)
+    return model_out(row)
+
+
+@router.post("/machines/{machine_id}/models/{version}/retire", response_model=ModelVersionOut,
+             dependencies=[Depends(require_token)], summary="Retire a version")
+def retire(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
+    """Retire a version; if it was current the machine has no current model until one is promoted."""
+    row = api_queries.retire_model(state.store, machine_id, version)
+    state.models.invalidate(machine_id)
+    return model_out(row)

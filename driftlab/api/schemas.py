@@ -1,0 +1,370 @@
+"""Request and response models of the REST API (pydantic); units mm, rad, degC, s unless named."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator
+
+Axis = Literal["X", "Y", "Z", "A", "B"]
+Term = Literal["alpha", "beta", "gamma", "dx", "dy", "dz"]
+Condition = Literal["spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b"]
+JobKind = Literal["fit", "diagnose"]
+JobState = Literal["queued", "running", "done", "failed"]
+ModelStatus = Literal["current", "retired"]
+
+#: identifiers in paths and queries (machine ids, channel names): no spaces, no control characters
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
+MAX_ID = 2**31 - 1
+ChannelName = Annotated[str, StringConstraints(pattern=ID_PATTERN)]
+TemperatureC = Annotated[float, Field(ge=-100.0, le=1000.0)]
+
+
+class _Out(BaseModel):
+    """Base of responses."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class _In(BaseModel):
+    """Base of request bodies: unknown keys and non-finite numbers are refused."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# ----------------------------------------------------------------------------- machines
+
+
+class MachineOut(_Out):
+    """A machine tool with the size of its history and its current model version."""
+
+    id: str
+    name: str
+    resolution_mm: float | None
+    resolution_deg: float | None
+    created_at: datetime
+    campaigns: int
+    current_model_version: int | None
+
+
+class MachineList(_Out):
+    """A page of machines."""
+
+    items: list[MachineOut]
+    limit: int
+    offset: int
+
+
+# ----------------------------------------------------------------------------- campaigns
+
+
+class CampaignOut(_Out):
+    """One line of the campaign list."""
+
+    id: int
+    machine_id: str
+    name: str
+    started_at: datetime
+    status: str
+    source: str
+    channels: int
+    scans: int
+    error_samples: int
+    stages: int
+
+
+class CampaignList(_Out):
+    """A page of campaigns, oldest first."""
+
+    items: list[CampaignOut]
+    limit: int
+    offset: int
+
+
+class StageOut(_Out):
+    """One stage of a campaign's plan as run."""
+
+    ordinal: int
+    name: str
+    heat_source: str
+    axis: str | None
+    spindle_rpm: float
+    feed_mm_min: float
+    start_s: float
+    end_s: float | None
+    status: str
+
+
+class ChannelOut(_Out):
+    """A thermocouple site of a campaign."""
+
+    ordinal: int
+    name: str
+    location: str
+    structure: str
+    is_room: bool
+    calibration_slope: float
+    calibration_offset: float
+
+
+class CampaignDetail(CampaignOut):
+    """A campaign with its stages, channels and campaign.json document."""
+
+    stage_list: list[StageOut]
+    channel_list: list[ChannelOut]
+    meta: dict[str, Any] | None
+
+
+# ----------------------------------------------------------------------------- histories
+
+
+class TemperaturePoint(_Out):
+    """One reading (degC); null = a missing reading."""
+
+    time_s: float
+    value: float | None
+
+
+class Bucket(_Out):
+    """Min/mean/max of the readings in [time_s, t_end_s) (the last bucket includes its end)."""
+
+    time_s: float
+    t_end_s: float
+    n: int
+    min: float | None
+    mean: float | None
+    max: float | None
+
+
+class TemperatureHistory(_Out):
+    """A channel's readings (``points``, paged) or its downsampled buckets (``buckets``)."""
+
+    campaign_id: int
+    channel: str
+    points: list[TemperaturePoint] | None = None
+    buckets: list[Bucket] | None = None
+    next_cursor: str | None = None
+
+
+class ConditionRow(_Out):
+    """One line of the machine-state log (only the requested columns are present)."""
+
+    time_s: float
+    spindle_rpm: float | None = None
+    feed_mm_min: float | None = None
+    x: float | None = None
+    y: float | None = None
+    z: float | None = None
+    a: float | None = None
+    b: float | None = None
+
+
+class ConditionBucket(_Out):
+    """Min/mean/max of each requested machine-state column in one time bucket."""
+
+    time_s: float
+    t_end_s: float
+    n: int
+    values: dict[str, Bucket]
+
+
+class ConditionHistory(_Out):
+    """Machine-state rows (``points``, paged) or downsampled buckets (``buckets``)."""
+
+    campaign_id: int
+    columns: list[str]
+    points: list[ConditionRow] | None = None
+    buckets: list[ConditionBucket] | None = None
+    next_cursor: str | None = None
+
+
+class ErrorSampleOut(_Out):
+    """One measured work-space error (rad or mm) at a position of the moved axis."""
+
+    seq: int
+    time_s: float
+    axis: str
+    term: str
+    position: float
+    direction: int
+    sweep: int
+    flags: int
+    value: float
+
+
+class ErrorHistory(_Out):
+    """A page of a campaign's error samples in measurement order."""
+
+    campaign_id: int
+    items: list[ErrorSampleOut]
+    next_cursor: str | None = None
+
+
+class DriftPoint(_Out):
+    """One point of the drift of (axis, term) across a machine's campaigns."""
+
+    campaign_id: int
+    time: datetime
+    time_s: float
+    position: float
+    direction: int
+    sweep: int
+    value: float
+
+
+class DriftOut(_Out):
+    """The error history of (axis, term) in wall-clock time."""
+
+    machine_id: str
+    axis: str
+    term: str
+    position: float | None
+    direction: int | None
+    interpolate: bool
+    points: list[DriftPoint]
+
+
+# ----------------------------------------------------------------------------- models
+
+
+class ModelSummary(_Out):
+    """A model registry entry without its document."""
+
+    machine_id: str
+    version: int
+    status: str
+    created_at: datetime
+    retired_at: datetime | None
+    source_campaigns: list[int]
+    terms: int
+
+
+class ModelVersionOut(ModelSummary):
+    """A model registry entry with its document (what compensators load)."""
+
+    document: dict[str, Any]
+
+
+class ModelList(_Out):
+    """A page of model versions."""
+
+    items: list[ModelSummary]
+    limit: int
+    offset: int
+
+
+class ModelRegisterIn(_In):
+    """A new model document to store as the machine's next (and current) version."""
+
+    document: dict[str, Any] = Field(description="a driftlab-model/1 document; its machine must match the path")
+    source_campaigns: list[int] = Field(default_factory=list, max_length=1000)
+
+
+# ----------------------------------------------------------------------------- jobs
+
+
+class JobSubmit(_In):
+    """A fit (of a machine from its campaigns) or a diagnosis (of one campaign) to run in the background."""
+
+    kind: JobKind
+    machine_id: str | None = Field(default=None, pattern=ID_PATTERN)
+    campaign_ids: list[int] = Field(default_factory=list, max_length=200,
+                                    description="fit: the campaigns (default every campaign of the machine); "
+                                                "diagnose: exactly one")
+    holdout_fraction: float = Field(default=0.25, gt=0.0, lt=0.9)
+    network: bool = Field(default=False, description="fit: also train the neural-network comparison")
+    virtual_sensors: bool = Field(default=False, description="fit: also fit virtual sensors")
+    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+
+
+class JobOut(_Out):
+    """A job's state and, once done, its result (failed: a one-line error)."""
+
+    id: int
+    kind: str
+    state: str
+    params: dict[str, Any]
+    result: dict[str, Any] | None
+    error: str | None
+    machine_id: str | None
+    campaign_id: int | None
+    attempts: int
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class JobList(_Out):
+    """A page of jobs, newest first."""
+
+    items: list[JobOut]
+    limit: int
+    offset: int
+
+
+# ----------------------------------------------------------------------------- on-line update
+
+
+class ProbeIn(_In):
+    """A touch-probe sphere-centre measurement: pose, temperatures and the measured deviation (mm)."""
+
+    measured_at: datetime | None = Field(default=None, description="UTC; default now")
+    x: float = Field(ge=-1e4, le=1e4)
+    y: float = Field(ge=-1e4, le=1e4)
+    z: float = Field(ge=-1e4, le=1e4)
+    a_deg: float = Field(default=0.0, ge=-360.0, le=360.0)
+    b_deg: float = Field(default=0.0, ge=-360.0, le=360.0)
+    dx: float = Field(ge=-10.0, le=10.0)
+    dy: float = Field(ge=-10.0, le=10.0)
+    dz: float = Field(ge=-10.0, le=10.0)
+    temperatures: dict[ChannelName, TemperatureC] = Field(default_factory=dict, max_length=200,
+                                           description="degC per channel: the model's inputs and the on-line channels")
+    channels: list[ChannelName] | None = Field(default=None, max_length=20,
+                                       description="on-line regressor channels (only when the state starts)")
+    forgetting: float | None = Field(default=None, gt=0.5, le=1.0,
+                                     description="forgetting factor lambda (only when the state starts)")
+
+    @field_validator("measured_at")
+    @classmethod
+    def _plausible_time(cls, v: datetime | None) -> datetime | None:
+        """Return the time in UTC (naive means UTC); refuse times outside 1970-2200."""
+        if v is None:
+            return None
+        if v.tzinfo is None:
+            v = v.replace(tzinfo=UTC)
+        if not datetime(1970, 1, 2, tzinfo=UTC) <= v <= datetime(2200, 1, 1, tzinfo=UTC):
+            raise ValueError("measured_at must lie between 1970 and 2200")
+        return v.astimezone(UTC)
+
+
+class Vector3(_Out):
+    """A translation error (mm)."""
+
+    dx: float
+    dy: float
+    dz: float
+
+
+class OnlineOut(_Out):
+    """The machine's on-line (RLS) state and the correction it gives at the last probed pose."""
+
+    machine_id: str
+    model_version: int
+    channels: list[str]
+    forgetting: float
+    n_updates: int
+    theta: dict[str, list[float]]
+    update_id: int | None = None
+    offline_prediction: Vector3 | None = None
+    prior_error: Vector3 | None = None
+    online_prediction: Vector3 | None = None
+    correction: Vector3 | None = Field(default=None, description="to add to the commanded position: "
+                                                                 "minus (off-line + on-line prediction)")
+
+
+class Health(_Out):
+    """Liveness and database reachability."""
+
+    status: str
+    database: str
