@@ -11,6 +11,7 @@ bulk by ``simulate_campaign`` - which uses the same array methods as the instrum
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,6 +96,7 @@ class VirtualMachine:
         self._solution: ThermalSolution | None = None
         self._lags: dict[tuple[str, float], ThermalSolution] = {}
         self._t0_true: np.ndarray | None = None
+        self._lock = threading.RLock()  # simulated instruments read the world from their server threads
         for eff in scenario.hidden:  # fail early, with the field named, on effects the truth cannot host
             if eff.kind == "thermal_lag":
                 truth.lag_coefficient(eff)
@@ -160,15 +162,23 @@ class VirtualMachine:
         sol = self._solution
         if sol is not None and sol.t_end_s >= need - 1e-9:
             return
+        with self._lock:
+            if self._solution is None or self._solution.t_end_s < need - 1e-9:
+                self._extend(need)
+
+    def _extend(self, need: float) -> None:
+        """Solve the network on a grid from the soak start to at least ``need`` (replaces the cache)."""
+        sol = self._solution
         h = self.scenario.thermal_step_s
         end = need if sol is None else max(need, sol.t_end_s + _EXTEND_S)
-        n = int(math.ceil((end + SOAK_S) / h - 1e-9)) + 1
+        n = int(math.ceil((end + SOAK_S) / h - 1e-9)) + 2  # one step past: t = end is never the last point
         grid = -SOAK_S + h * np.arange(n)
         start = np.full(len(CHANNELS), self.scenario.room.mean_degC)
-        self._solution = self.network.simulate(-SOAK_S, h, self.sources(grid), self.hall(grid), y0=start,
-                                               local=self.local_air(n))
-        self._lags.clear()
-        self._t0_true = self._solution.at(np.array([0.0]))[0]
+        solution = self.network.simulate(-SOAK_S, h, self.sources(grid), self.hall(grid), y0=start,
+                                         local=self.local_air(n))
+        self._lags = {}
+        self._t0_true = solution.at(np.array([0.0]))[0]
+        self._solution = solution
 
     def _sol(self, t: np.ndarray) -> ThermalSolution:
         if t.size:
@@ -197,10 +207,12 @@ class VirtualMachine:
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         sol = self._sol(t)
         key = (channel, float(tau_s))
-        if key not in self._lags:
+        lags = self._lags
+        lag = lags.get(key)
+        if lag is None or lag.t_end_s < sol.t_end_s:
             col = sol.y[:, SITE_INDEX[channel]]
-            self._lags[key] = first_order_lag(col, sol.h_s, tau_s, t0_s=sol.t0_s)
-        lag = self._lags[key]
+            lag = first_order_lag(col, sol.h_s, tau_s, t0_s=sol.t0_s)
+            lags[key] = lag
         return lag.at(t)[:, 0] - lag.at(np.array([0.0]))[0, 0]
 
     def readings_array(self, t_s: np.ndarray) -> np.ndarray:

@@ -189,6 +189,13 @@ def test_deterministic_per_seed():
     pd.testing.assert_frame_equal(a.errors, b.errors)
     pd.testing.assert_frame_equal(a.temperatures, b.temperatures)
     assert not np.array_equal(a.errors.value, c.errors.value)
+    # the campaign is the virtual machine sampled: same physics, same numbers
+    vm = VirtualMachine(Scenario(hours=1, seed=8))
+    row = a.errors.iloc[1234]
+    got = vm.measure_error(float(row.time_s), row.axis, float(row.position), int(row.direction))
+    assert got[row.term] == row.value
+    temps = vm.temperatures(float(a.temperatures.time_s.iloc[17]))
+    assert [temps[f"T{i}"] for i in range(1, 51)] == a.temperatures.iloc[17, 1:].tolist()
 
 
 def test_cli_writes_a_loadable_bundle(tmp_path, capsys):

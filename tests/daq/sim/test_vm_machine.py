@@ -119,3 +119,23 @@ def test_runs_past_the_scenario_and_refuses_negative_time():
         vm.measure_error(0.0, "Q", 0.0, 1)
     with pytest.raises(ValidationError):
         vm.measure_error(0.0, "X", 0.0, 0)
+
+
+def test_concurrent_readers_agree():
+    import threading
+
+    lag = HiddenEffect(kind="thermal_lag", axis="Z", term="dz", channels=["T34"], params={"tau_s": 900})
+    vm = _vm(seed=2, hidden=[lag])
+    ref = _vm(seed=2, hidden=[lag])
+    times = [10 * 3600.0 + 97 * k for k in range(40)]  # beyond the plan: the grid is extended meanwhile
+    out: dict[float, dict] = {}
+
+    def read(t: float) -> None:
+        out[t] = vm.measure_error(t, "Z", -100.0, -1)
+
+    threads = [threading.Thread(target=read, args=(t,)) for t in times]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert all(out[t] == ref.measure_error(t, "Z", -100.0, -1) for t in times)
