@@ -14,6 +14,13 @@ Readings are committed as soon as the scheduler would otherwise wait for the
 next step; when it runs behind (accelerated time) consecutive readings share a
 transaction of at most ``max_batch`` scans or ``flush_s`` seconds of work, which
 keeps transactions small while letting it catch up.
+
+Interrupts (the lost/duplicated-rows reports of other acquisition tools after a
+Ctrl-C): every write is one transaction (``db.write_transaction``: one BEGIN, a
+rollback on any exception); SIGINT/SIGTERM only set a stop flag that the loop
+reads between steps, so a signal never lands inside a write; and SIGKILL or a
+crash can only lose a transaction that had not committed, whose readings the
+stored cursor still lists as to do.
 """
 
 from __future__ import annotations
@@ -454,7 +461,7 @@ def open_campaign(
         )
         ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
     log.info("campaign %s created (id %d)", plan.name, cid)
-    return CampaignHandle(cid, Cursor(), ids, False)
+    return CampaignHandle(cid, Cursor(), ids, False, cursor)
 
 
 class StoreSink:
@@ -469,6 +476,7 @@ class StoreSink:
         self.channel_ids = handle.channel_ids
         self.sweeps = _sweep_numbers(plan)
         self.n_points = len(plan.sweep_points())
+        self._prog: dict[str, Any] = dict(handle.progress)
         self._t_temp = sc.TemperatureSample.__table__
         self._t_cond = sc.ConditionSample.__table__
         self._t_err = sc.ErrorSample.__table__
@@ -505,8 +513,6 @@ class StoreSink:
 
     def commit(self, batch: Batch) -> None:
         """Insert the batch's rows and move the cursor, stage status and fault log, all in one transaction."""
-        from sqlalchemy import select
-
         from driftlab.campaigns.ingest import bulk_insert
 
         temps = self._temperature_rows(batch)
@@ -526,8 +532,7 @@ class StoreSink:
                 conn.execute(self._t_cond.insert(), conds)
             if errs:
                 conn.execute(self._t_err.insert(), errs)
-            prog = conn.execute(select(self._t_prog.c.cursor).where(self._t_prog.c.campaign_id == self.cid)).scalar_one()
-            prog = dict(prog or {})
+            prog = dict(self._prog)  # this sink is the campaign's only writer: no read-back needed
             prog["next_scan"], prog["next_point"] = batch.cursor.next_scan, batch.cursor.next_point
             if faults:
                 prog["faults"] = int(prog.get("faults", 0)) + len(faults)
@@ -565,6 +570,7 @@ class StoreSink:
                     self._t_stage.c.campaign_id == self.cid, self._t_stage.c.status.in_(("planned", "running"))
                 ).values(status="done"))
                 conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
+        self._prog = prog  # only once committed: a failed batch leaves the in-memory cursor where the store's is
 
 
 def _utcnow() -> Any:
@@ -914,6 +920,14 @@ def resolve_channels(plan: Plan, scenario: Any | None) -> tuple[dict[str, dict[s
 
     if isinstance(plan.machine.channels, dict):
         chans = {k: {"location": v.location, "structure": v.structure} for k, v in plan.machine.channels.items()}
+        if scenario is not None:
+            known = scenario_meta(scenario)["channels"]
+            unknown = [k for k in chans if k not in known]
+            if unknown:
+                raise ValidationError(
+                    f"plan {plan.name}: machine.channels: {', '.join(unknown[:5])} not on the virtual machine "
+                    f"(it has {', '.join(list(known)[:3])} ... {list(known)[-1]})"
+                )
         return chans, list(plan.machine.room_channels)
     if scenario is None:
         raise ValidationError(

@@ -152,6 +152,23 @@ def test_plan_drives_the_virtual_machine_stages() -> None:
         scenario_stages(parse_plan(hold))
 
 
+def test_channel_maps_from_scenario_or_plan() -> None:
+    """'from scenario' takes the virtual machine's 50 sites; a plan's own map must name sites it has."""
+    from driftlab.campaigns.scheduler import resolve_channels
+    from driftlab.daq.sim.scenario import Scenario
+
+    chans, rooms = resolve_channels(load_plan(DEMO), Scenario())
+    assert len(chans) == 50 and rooms == ["T49", "T50"] and chans["T37"]["location"]
+    own = _plan()
+    assert list(resolve_channels(own, Scenario())[0]) == ["T1", "T49"]
+    bad = own.model_dump(mode="json")
+    bad["machine"]["channels"]["T99"] = {"location": "nowhere"}
+    with pytest.raises(ValidationError, match="T99 not on the virtual machine"):
+        resolve_channels(parse_plan(bad), Scenario())
+    with pytest.raises(ValidationError, match="no --sim scenario"):
+        resolve_channels(load_plan(DEMO), None)
+
+
 def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -> None:
     """A card that keeps garbling and a broken laser beam become faults; every other reading is stored."""
     from driftlab.campaigns.clock import SimClock
