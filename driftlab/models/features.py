@@ -34,7 +34,9 @@ class Feature:
         """Check the kind and the number of channels it needs."""
         if self.kind not in KINDS:
             raise ValidationError(f"unknown feature kind {self.kind!r}")
-        need = {"dT": 1, "lag": 1, "pos_dT": 1, "gradient": 2}
+        need = {"dT": 1, "lag": 1, "pos_dT": 1}
+        if self.kind == "gradient" and not (len(self.channels) >= 2 and 1 <= self.power < len(self.channels)):
+            raise ValidationError(f"a gradient needs channels on both sides, got {self.channels} split at {self.power}")
         if self.kind in need and len(self.channels) != need[self.kind]:
             raise ValidationError(f"feature {self.kind} needs {need[self.kind]} channel(s), got {self.channels}")
         if self.kind == "mean" and len(self.channels) < 2:
@@ -60,7 +62,7 @@ class Feature:
         if self.kind == "pos_dT":
             return f"pos{ax}*dT[{c[0]}]"
         if self.kind == "gradient":
-            return f"grad[{c[0]}-{c[1]}]"
+            return f"grad[{c[0]}-{c[1]}]" if len(c) == 2 else f"grad[{self.label or '+'.join(c)}]"
         return f"mean[{self.label or '+'.join(c)}]"
 
     def to_dict(self) -> dict[str, Any]:
@@ -68,7 +70,7 @@ class Feature:
         out: dict[str, Any] = {"kind": self.kind, "name": self.name}
         if self.channels:
             out["channels"] = list(self.channels)
-        if self.kind == "position":
+        if self.kind == "position" or (self.kind == "gradient" and len(self.channels) > 2):
             out["power"] = self.power
         if self.tau_s is not None:
             out["tau_s"] = float(self.tau_s)
@@ -238,8 +240,9 @@ def evaluate(
         return inputs.lagged[key] if key in inputs.lagged else _dT(inputs, feature.channels[0])
     if k == "pos_dT":
         return _axis_column(feature, position, n) * _dT(inputs, feature.channels[0])  # eq. 3.2
-    if k == "gradient":
-        return _dT(inputs, feature.channels[0]) - _dT(inputs, feature.channels[1])  # eqs. 3.4-3.5
+    if k == "gradient":  # eqs. 3.4-3.5: one side of a structure minus the other
+        a, b = feature.channels[: feature.power], feature.channels[feature.power :]
+        return np.mean([_dT(inputs, c) for c in a], axis=0) - np.mean([_dT(inputs, c) for c in b], axis=0)
     return np.mean([_dT(inputs, c) for c in feature.channels], axis=0)  # eq. 3.3
 
 
@@ -269,6 +272,21 @@ def required_lags(features: Iterable[Feature]) -> list[tuple[str, float]]:
     return [(f.channels[0], float(f.tau_s or 0)) for f in features if f.kind == "lag"]
 
 
+#: opposite sides of a structure, recognised in the sites' locations (Table 5.1 wording)
+SIDES: tuple[tuple[str, str], ...] = (("upper", "lower"), ("top", "bottom"), ("front", "back"), ("left", "right"))
+
+
+def _splits(channels: Sequence[str], locations: Mapping[str, str]) -> list[tuple[str, str, list[str], list[str]]]:
+    """Return (side, other side, sites on one, sites on the other) for every pair of opposite sides found."""
+    out = []
+    for a, b in SIDES:
+        one = [c for c in channels if a in locations.get(c, "").lower().split()]
+        two = [c for c in channels if b in locations.get(c, "").lower().split()]
+        if one and two and len(one) + len(two) > 2:
+            out.append((a, b, one, two))
+    return out
+
+
 def candidate_features(
     channels: Sequence[str],
     structures: Mapping[str, str],
@@ -279,6 +297,7 @@ def candidate_features(
     lag_channels: Sequence[str] | None = None,
     room_channels: Sequence[str] = (),
     structure_members: Mapping[str, Sequence[str]] | None = None,
+    locations: Mapping[str, str] | None = None,
     max_power: int = 3,
 ) -> list[Feature]:
     """Return the candidate terms of a link or joint error (ch. 6.4.2).
@@ -286,7 +305,8 @@ def candidate_features(
     For each moving axis in ``axes``: its position shape (pos, pos^2, pos^3), approach direction
     (reversal) and position x dT of its ballscrew channels (eq. 3.2). For the temperatures: dT per
     channel, the mean of each structure over all its sites (eq. 3.3, from ``structure_members``),
-    gradients between the kept sites of a structure (eqs. 3.4-3.5), the room's ceiling-floor
+    gradients between the kept sites of a structure and between its opposite sides (upper-lower,
+    front-back, left-right from the sites' ``locations``; eqs. 3.4-3.5), the room's ceiling-floor
     difference, and first-order lags of dT.
     """
     out: list[Feature] = []
@@ -305,6 +325,8 @@ def candidate_features(
         group = [c for c in members.get(s, cs)]
         if len(group) >= 2:
             out.append(Feature("mean", tuple(group), label=s))
+        for side_a, side_b, a, b in _splits(group, locations or {}):
+            out.append(Feature("gradient", tuple(a + b), power=len(a), label=f"{s} {side_a}-{side_b}"))
         for i in range(len(cs)):
             for j in range(i + 1, len(cs)):
                 out.append(Feature("gradient", (cs[j], cs[i])))

@@ -104,12 +104,15 @@ def stepwise(
     min_gain: float = 0.01,
     max_terms: int = 10,
     vif_max: float = 30.0,
+    tiered: bool = True,
 ) -> StepwiseResult:
     """Return a forward/backward stepwise OLS fit of ``y`` on the columns of ``X``.
 
     Forward steps add the candidate with the largest partial F (computed for all candidates at
     once by projecting them off the current design) if its p-value is below ``p_enter`` and it
-    removes at least ``min_gain`` of the remaining sum of squares; candidates whose variance
+    removes at least ``min_gain`` of the remaining sum of squares; with ``tiered``, physically
+    recast terms (position shape, direction, position x dT, structure means and gradients) are
+    offered before single channels, and those before lags; candidates whose variance
     inflation factor against the current terms exceeds ``vif_max`` are refused (correlated
     inputs mask each other, ch. 6.4.2). Backward steps drop the least significant non-forced
     term while its OLS p-value exceeds ``p_remove``.
@@ -156,6 +159,8 @@ def stepwise(
         for j in keep:
             enter(j)
 
+    tier_of = {"position": 0, "direction": 0, "pos_dT": 0, "mean": 0, "gradient": 0, "intercept": 0, "dT": 1, "lag": 2}
+    tiers = np.array([tier_of.get(f.kind, 1) if tiered else 0 for f in feats], int)
     for j in range(n_forced):
         enter(j)
     for _ in range(4 * max_terms + 4):
@@ -173,11 +178,21 @@ def stepwise(
             break
         gain = np.where(ok, (Cr[:, pool].T @ r) ** 2 / np.where(ok, norm2, 1.0), -np.inf)
         dof = n - len(selected) - 1
-        best = int(np.argmax(gain))
-        g = float(gain[best])
-        F = g / max((sse - g) / dof, 1e-300)
-        p = float(stats.f.sf(F, 1, dof))
-        if p >= p_enter or g < min_gain * sse:
+        # physically recast terms are offered first, then single channels, then lags (ch. 6.4.2:
+        # a correlated input entered early masks a more relevant one)
+        best, g, F, p = -1, 0.0, 0.0, 1.0
+        for t in sorted(set(tiers[pool].tolist())):
+            gt = np.where(tiers[pool] == t, gain, -np.inf)
+            b = int(np.argmax(gt))
+            gb = float(gt[b])
+            if not np.isfinite(gb):
+                continue
+            Fb = gb / max((sse - gb) / dof, 1e-300)
+            pb = float(stats.f.sf(Fb, 1, dof))
+            if pb < p_enter and gb >= min_gain * sse:
+                best, g, F, p = b, gb, Fb, pb
+                break
+        if best < 0:
             break
         j = int(pool[best])
         if not enter(j):
