@@ -227,51 +227,50 @@ def parse_program(
     errors: list[tuple[int, str]] = []
     times: dict[int, float] = {}
     cls = _CLS[buf]
-    special = np.flatnonzero(cls == _SPECIAL)
-    if special.shape[0]:
+    counts = np.bincount(cls, minlength=5)
+    if counts[_SPECIAL]:
         work = bytearray(data)
-        lines = np.unique(np.searchsorted(nl, special))
+        lines = np.unique(np.searchsorted(nl, np.flatnonzero(cls == _SPECIAL)))
         _strip_comments(data, work, lines, line_start, line_end, errors, times)
         buf = np.frombuffer(bytes(work), dtype=np.uint8)
         cls = _CLS[buf]
-    other = np.flatnonzero((cls == _OTHER) | (cls == _SPECIAL))
-    for pos in other[:1000].tolist():
-        errors.append((int(np.searchsorted(nl, pos)), f"unexpected character {_show(int(buf[pos]))}"))
+        counts = np.bincount(cls, minlength=5)
+    if counts[_OTHER] or counts[_SPECIAL]:
+        other = np.flatnonzero((cls == _OTHER) | (cls == _SPECIAL))
+        for p in other[:1000].tolist():
+            errors.append((int(np.searchsorted(nl, p)), f"unexpected character {_show(int(buf[p]))}"))
 
-    # words: a letter and the run of number characters right after it
-    pos = np.flatnonzero(cls == _LETTER)
-    lid = np.searchsorted(nl, pos)
+    # words: a letter and the run of number characters right after it, which ends at the
+    # next byte that is not part of a number
+    nonnum = np.flatnonzero(cls != _NUM)
+    is_letter = cls[nonnum] == _LETTER
+    widx = np.flatnonzero(is_letter)
+    pos = nonnum[widx]
+    runlen = np.append(nonnum, n)[widx + 1] - pos - 1
+    lid = np.cumsum(buf[nonnum] == 10)[widx]  # newlines before each letter
     letter = buf[pos] & 0xDF
     kind = _KIND[letter]
-    padded = np.concatenate((buf, np.zeros(_W + 1, dtype=np.uint8)))
-    win = np.lib.stride_tricks.sliding_window_view(padded, _W + 1)
     n_words = pos.shape[0]
-    runlen = np.empty(n_words, dtype=np.int64)
-    decimals = np.empty(n_words, dtype=np.int64)
-    valid = np.ones(n_words, dtype=bool)
-    value = np.empty(n_words)
-    cols = np.arange(_W + 1, dtype=np.int8)
+    valid = (runlen > 0) & (runlen < _W)
+    value = np.full(n_words, np.nan)
+    padded = np.concatenate((buf, np.zeros(_W, dtype=np.uint8)))
+    win = np.lib.stride_tricks.sliding_window_view(padded, _W)
+    cols = np.arange(_W)
     step = 1 << 18
-    for s in range(0, n_words, step):
-        m = win[pos[s : s + step] + 1]
-        ln = np.argmax(_CLS[m] != _NUM, axis=1).astype(np.int8)
-        outside = cols[None, :] >= ln[:, None]
-        m[outside] = 0  # the window is a copy: blank what follows the number
-        is_dot = m == 46
-        dp = np.where(is_dot.any(axis=1), np.argmax(is_dot, axis=1), ln)
-        runlen[s : s + step] = ln
-        decimals[s : s + step] = np.maximum(ln - dp - 1, 0)
-        strings = np.ascontiguousarray(m[:, :_W]).view(f"S{_W}").ravel()
+    todo = np.flatnonzero(valid)
+    for s in range(0, todo.shape[0], step):
+        sel = todo[s : s + step]
+        m = win[pos[sel] + 1]
+        m *= cols[None, :] < runlen[sel, None]  # the window is a copy: blank what follows the number
+        strings = m.view(f"S{_W}").ravel()
         try:
-            value[s : s + step] = strings.astype(np.float64)
+            value[sel] = strings.astype(np.float64)
         except ValueError:  # numpy's parser takes exactly [+-]digits[.digits]: find the bad ones
-            for k, txt in enumerate(strings.tolist()):
+            for k, txt in zip(sel.tolist(), strings.tolist()):
                 try:
-                    value[s + k] = float(txt)
+                    value[k] = float(txt)
                 except ValueError:
-                    value[s + k] = np.nan
-                    valid[s + k] = False
-    valid &= runlen < _W
+                    valid[k] = False
 
     for i in np.flatnonzero(~valid)[:1000].tolist():
         ltr = chr(letter[i])
@@ -282,8 +281,7 @@ def parse_program(
         else:
             txt = bytes(buf[pos[i] + 1 : pos[i] + 1 + runlen[i]]).decode("ascii")
             errors.append((int(lid[i]), f"malformed number '{ltr}{txt}'"))
-    total_num = int(np.count_nonzero(cls == _NUM))
-    if int(runlen.sum()) != total_num:
+    if int(runlen.sum()) != int(counts[_NUM]):
         per_line = np.bincount(np.searchsorted(nl, np.flatnonzero(cls == _NUM)), minlength=n_lines)
         covered = np.bincount(lid, weights=runlen, minlength=n_lines)
         for li in np.flatnonzero(per_line != covered)[:1000].tolist():
@@ -338,12 +336,13 @@ def parse_program(
     for k in skey[1:][np.diff(skey) == 0][:1000].tolist():
         errors.append((int(k // 5), f"repeated word '{AXES[k % 5]}'"))
     rot = ROTARY[a_axis]
-    dec_lin = max(min_decimals[0], int(decimals[ai[~rot]].max(initial=0)))
-    dec_rot = max(min_decimals[1], int(decimals[ai[rot]].max(initial=0)))
-    if max(dec_lin, dec_rot) > MAX_DECIMALS:
-        bad = ai[decimals[ai] > MAX_DECIMALS][0]
-        errors.append((int(lid[bad]), f"more than {MAX_DECIMALS} decimals"))
-        dec_lin, dec_rot = min(dec_lin, MAX_DECIMALS), min(dec_rot, MAX_DECIMALS)
+    dec_lin = _decimals(value[ai[~rot]], min_decimals[0])
+    dec_rot = _decimals(value[ai[rot]], min_decimals[1])
+    for dec, sel in ((dec_lin, ~rot), (dec_rot, rot)):
+        if dec > MAX_DECIMALS:
+            bad = ai[sel][~_whole(value[ai[sel]] * 10.0**MAX_DECIMALS)][0]
+            errors.append((int(lid[bad]), f"more than {MAX_DECIMALS} decimals"))
+    dec_lin, dec_rot = min(dec_lin, MAX_DECIMALS), min(dec_rot, MAX_DECIMALS)
     unit = np.where(rot, 10.0**dec_rot, 10.0**dec_lin)
     a_val = value[ai] * unit
     big = ~(np.abs(a_val) < 2.0**52)
@@ -409,6 +408,19 @@ def parse_program(
     )
 
 
+def _whole(x: np.ndarray) -> np.ndarray:
+    """Return where ``x`` is a whole number (to the precision a parsed decimal keeps)."""
+    return np.abs(x - np.rint(x)) <= 1e-6 * np.maximum(1.0, np.abs(x) * 1e-9)
+
+
+def _decimals(values: np.ndarray, least: int) -> int:
+    """Return the fewest decimals (at least ``least``) that write every value exactly; > 9 when none do."""
+    for d in range(least, MAX_DECIMALS + 1):
+        if bool(np.all(_whole(values * 10.0**d))):
+            return d
+    return MAX_DECIMALS + 1
+
+
 def _start_int(start: tuple[float, ...] | np.ndarray | None, dec_lin: int, dec_rot: int) -> np.ndarray:
     """Return the start pose (X, Y, Z mm; A, B deg) in integer units."""
     if start is None:
@@ -468,6 +480,20 @@ def subdivide(
     return Points(block=block, nominal_int=nominal)
 
 
+_LUT4 = np.array([list(f"{i:04d}".encode()) for i in range(10000)], dtype=np.uint8)
+
+
+def _digits(a: np.ndarray, k: int) -> np.ndarray:
+    """Return the (M, k) ASCII digits of non-negative integers ``a`` < 10**k, zero-padded."""
+    groups = -(-k // 4)
+    out = np.empty((a.shape[0], 4 * groups), dtype=np.uint8)
+    rest = a
+    for j in range(groups - 1, -1, -1):
+        rest, r = np.divmod(rest, 10000)
+        out[:, 4 * j : 4 * j + 4] = _LUT4[r]
+    return out[:, 4 * groups - k :]
+
+
 def format_fixed(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndarray]:
     """Return (bytes, lengths) of integers ``values`` (units 10**-decimals) written as decimals.
 
@@ -478,30 +504,27 @@ def format_fixed(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndar
     m = v.shape[0]
     neg = v < 0
     a = np.abs(v)
-    scale = 10**decimals
-    ip, fp = a // scale, a % scale
+    ip, fp = np.divmod(a, 10**decimals)
     n_int = len(str(int(ip.max(initial=0))))
-    ipow = 10 ** np.arange(n_int - 1, -1, -1, dtype=np.int64)
-    idig = (ip[:, None] // ipow[None, :]) % 10
-    nz = idig != 0
+    idig = _digits(ip, n_int)
+    nz = idig != 48
     first = np.where(nz.any(axis=1), np.argmax(nz, axis=1), n_int - 1)
     fd = max(decimals, 1)
-    fpow = 10 ** np.arange(fd - 1, -1, -1, dtype=np.int64)
-    fdig = (fp[:, None] // fpow[None, :]) % 10 if decimals else np.zeros((m, 1), dtype=np.int64)
-    fnz = fdig != 0
-    keep_f = np.where(fnz.any(axis=1), fd - np.argmax(fnz[:, ::-1], axis=1), 1)
+    fdig = _digits(fp, decimals) if decimals else np.full((m, 1), 48, dtype=np.uint8)
+    keep_f = np.maximum(fd - np.argmax(fdig[:, ::-1] != 48, axis=1), 1)
+    keep_f[~(fdig != 48).any(axis=1)] = 1
     width = 1 + n_int + 1 + fd
     chars = np.empty((m, width), dtype=np.uint8)
     chars[:, 0] = 45
-    chars[:, 1 : 1 + n_int] = idig + 48
+    chars[:, 1 : 1 + n_int] = idig
     chars[:, 1 + n_int] = 46
-    chars[:, 2 + n_int :] = fdig + 48
-    cols = np.arange(width)[None, :]
+    chars[:, 2 + n_int :] = fdig
+    cols = np.arange(width)
     mask = np.empty((m, width), dtype=bool)
     mask[:, 0] = neg
-    mask[:, 1 : 1 + n_int] = cols[:, 1 : 1 + n_int] - 1 >= first[:, None]
+    mask[:, 1 : 1 + n_int] = cols[None, 1 : 1 + n_int] - 1 >= first[:, None]
     mask[:, 1 + n_int] = True
-    mask[:, 2 + n_int :] = cols[:, 2 + n_int :] - (2 + n_int) < keep_f[:, None]
+    mask[:, 2 + n_int :] = cols[None, 2 + n_int :] - (2 + n_int) < keep_f[:, None]
     return chars[mask], mask.sum(axis=1)
 
 

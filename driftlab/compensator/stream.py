@@ -274,6 +274,7 @@ class Streamer:
         refresh_s: float = 30.0,
         lookahead: int = 64,
         batch_lines: int = 32,
+        inline_lines: int = 4,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         timer: Callable[[], float] = time.perf_counter,
@@ -289,6 +290,7 @@ class Streamer:
         self.refresh_s = refresh_s
         self.lookahead = max(1, lookahead)
         self.batch_lines = max(1, batch_lines)
+        self.inline_lines = max(1, inline_lines)
         self.clock, self.sleep, self.timer = clock, sleep, timer
         zero = np.zeros(5, dtype=np.int64)
         start = _Cursor(0, 0, zero, program.start_int.copy(), program.start_int.copy(), None)
@@ -339,8 +341,8 @@ class Streamer:
         self._made = self._taken
 
     # -- preparation
-    def _prepare(self) -> bool:
-        """Prepare the lines of the next run of program lines; return False at the end of the program."""
+    def _prepare(self, n_lines: int | None = None) -> bool:
+        """Prepare the next ``n_lines`` program lines (default: a batch); return False at the end of the program."""
         p = self.program
         cur = self._made
         if cur.line >= p.n_lines:
@@ -348,7 +350,7 @@ class Streamer:
         model = self.models.model
         assert model is not None and self._temps is not None
         l0 = cur.line
-        l1 = min(p.n_lines, l0 + self.batch_lines)
+        l1 = min(p.n_lines, l0 + (n_lines or self.batch_lines))
         b0, b1 = (int(x) for x in np.searchsorted(p.block_line, [l0, l1]))
         pts = subdivide(p, *self.segment, blocks=slice(b0, b1))
         skip = cur.sub if (b0 < b1 and p.block_line[b0] == l0) else 0
@@ -443,7 +445,9 @@ class Streamer:
                 self.refresh(due_s=self.max_age_s)
             while True:
                 if not self._ready:
-                    self._fill()
+                    # the link caught up with the preparation: a short run keeps this wait short
+                    while not self._ready and self._prepare(self.inline_lines):
+                        pass
                     if not self._ready:
                         return
                 item = self._ready[0]
