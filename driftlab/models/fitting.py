@@ -813,3 +813,104 @@ def _network_comparison(
 def result_document_json(result: FitResult) -> dict[str, Any]:
     """Return the model document of a fit as strict JSON."""
     return document_json(result.document)
+
+
+# ----------------------------------------------------------------------------- store and jobs
+
+FIT_JOB = "fit"
+
+
+def fit_campaigns(
+    store: Any,
+    campaign_ids: Sequence[int],
+    options: FitOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[FitResult, ModelDocument]:
+    """Fit the stored campaigns, register the model as the machine's current version; return both."""
+    from driftlab.models.registry import register_model
+
+    if not campaign_ids:
+        raise ValidationError("give at least one campaign")
+    bundles = [store.load_campaign(int(c)) for c in campaign_ids]
+    result = fit_bundles(bundles, options, source_campaigns=[int(c) for c in campaign_ids], progress=progress)
+    doc = register_model(store, result.document, [int(c) for c in campaign_ids])
+    result.document = doc
+    return result, doc
+
+
+def submit_fit(store: Any, campaign_ids: Sequence[int]) -> int:
+    """Queue a fit of these campaigns in the store's jobs table; return the job id."""
+    ids = [int(c) for c in campaign_ids]
+    if not ids:
+        raise ValidationError("give at least one campaign")
+    machines = {store.load_campaign(c).meta.machine.id for c in ids[:1]}
+    return int(store.submit_job(FIT_JOB, {"campaigns": ids}, machine_id=machines.pop(), campaign_id=ids[0]))
+
+
+def run_fit_job(store: Any, job: Any, worker: str, on_stage: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Run one claimed fit job to its end (done with the report, or failed with a one-line reason)."""
+    def beat(stage: str) -> None:
+        store.heartbeat(job.id, worker)
+        if on_stage is not None:
+            on_stage(stage)
+
+    try:
+        result, doc = fit_campaigns(store, job.params.get("campaigns", []), progress=beat)
+    except Exception as exc:  # the job records any failure; user errors keep their one-line text
+        store.fail_job(job.id, worker, f"{type(exc).__name__}: {exc}")
+        raise
+    report = result.report()
+    report["model_version"] = doc.version
+    store.finish_job(job.id, worker, report)
+    return report
+
+
+def default_worker_name() -> str:
+    """Return a worker name unique to this process (host:pid)."""
+    import os
+    import socket
+
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def work(
+    store: Any,
+    worker: str | None = None,
+    *,
+    until_job: int | None = None,
+    once: bool = False,
+    poll_s: float = 1.0,
+    idle_exit_s: float | None = None,
+    on_stage: Callable[[str], None] | None = None,
+) -> list[int]:
+    """Claim and run queued fit jobs; return the ids run.
+
+    Stops after one job with ``once``, when job ``until_job`` has ended, or after ``idle_exit_s``
+    without work. Claims go through the store (SKIP LOCKED on PostgreSQL), so several workers on
+    one database never take the same job.
+    """
+    name = worker or default_worker_name()
+    done: list[int] = []
+    idle_since = time.monotonic()
+    while True:
+        if until_job is not None and store.get_job(until_job).state in ("done", "failed"):
+            return done
+        job = store.claim_job(name, [FIT_JOB])
+        if job is None:
+            if once or (idle_exit_s is not None and time.monotonic() - idle_since > idle_exit_s):
+                return done
+            if until_job is not None and store.get_job(until_job).state == "running":
+                time.sleep(poll_s)  # another worker has it: wait for its end
+                continue
+            time.sleep(poll_s)
+            continue
+        try:
+            run_fit_job(store, job, name, on_stage)
+        except Exception as exc:
+            log.warning("fit job %s failed: %s", job.id, exc)
+            if until_job == job.id or once:
+                raise
+        done.append(job.id)
+        idle_since = time.monotonic()
+        if once:
+            return done

@@ -99,3 +99,122 @@ def online_regressors(n: int, dT: Mapping[str, np.ndarray] | None = None, channe
             raise ValidationError(f"on-line model needs channel {c}")
         cols.append(np.asarray(dT[c], float))
     return np.column_stack(cols)
+
+
+# ----------------------------------------------------------------------------- probe updates against the store
+
+ONLINE_JOB = "online"
+PROBE_TERMS: tuple[str, ...] = ("dx", "dy", "dz")
+PROBE_COLUMNS: tuple[str, ...] = ("time_s", "x", "y", "z", "a", "b", "dx", "dy", "dz")
+
+
+def read_probe_csv(path: Any) -> Any:
+    """Return the probe measurements of a CSV (time_s, x, y, z, a, b in mm/deg, dx, dy, dz in mm, one column per channel)."""
+    import pandas as pd
+
+    try:
+        df = pd.read_csv(path)
+    except (OSError, ValueError) as exc:
+        raise ValidationError(f"probe file {path}: {exc}") from None
+    missing = [c for c in PROBE_COLUMNS if c not in df.columns]
+    if missing:
+        raise ValidationError(f"probe file {path}: missing column(s) {', '.join(missing)}")
+    if df.empty:
+        raise ValidationError(f"probe file {path}: no measurements")
+    bad = ~np.isfinite(df[list(PROBE_COLUMNS)].to_numpy(float))
+    if bad.any():
+        row = int(np.flatnonzero(bad.any(axis=1))[0]) + 2
+        raise ValidationError(f"probe file {path}:{row}: empty or non-numeric value")
+    return df.sort_values("time_s", kind="stable").reset_index(drop=True)
+
+
+@dataclass
+class OnlineReport:
+    """What an on-line update did: per term the off-line residual before and after the on-line model."""
+
+    machine: str
+    model_version: int | None
+    n: int
+    terms: dict[str, dict[str, float]]
+    states: dict[str, RLSState]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form (also what the store keeps as the on-line state)."""
+        return {
+            "machine": self.machine,
+            "model_version": self.model_version,
+            "n": self.n,
+            "terms": self.terms,
+            "states": {k: v.to_dict() for k, v in self.states.items()},
+        }
+
+
+def online_residuals(document: Any, probe: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Return (time_s, (N, 3) measured minus off-line predicted dx, dy, dz) for probe measurements."""
+    from driftlab.models.registry import predict_workspace_errors
+
+    q = np.column_stack([probe["x"], probe["y"], probe["z"], np.deg2rad(probe["a"]), np.deg2rad(probe["b"])])
+    temps = probe.drop(columns=[c for c in PROBE_COLUMNS if c != "time_s"])
+    W = predict_workspace_errors(document, temps, q)
+    measured = probe[list(PROBE_TERMS)].to_numpy(float)
+    return probe["time_s"].to_numpy(float), measured - W[:, 3:]
+
+
+def online_update_document(
+    document: Any, probe: Any, states: Mapping[str, RLSState] | None = None, lam: float = 0.98
+) -> tuple[OnlineReport, dict[str, np.ndarray]]:
+    """Return the report and per-term one-step predictions of the on-line model (phi = [1], eq. 6.10) over the probe data."""
+    from driftlab.models.registry import validate_document
+
+    doc = validate_document(document)
+    _, resid = online_residuals(doc, probe)
+    out_states: dict[str, RLSState] = {}
+    terms: dict[str, dict[str, float]] = {}
+    preds: dict[str, np.ndarray] = {}
+    for k, term in enumerate(PROBE_TERMS):
+        st = (states or {}).get(term) or rls_init(1, lam=lam, p0=1.0)
+        run = rls_run(st, online_regressors(len(resid)), resid[:, k])
+        out_states[term] = run.state
+        preds[term] = run.prior_prediction
+        terms[term] = {
+            "offline_rms_mm": float(np.sqrt(np.mean(resid[:, k] ** 2))),
+            "online_rms_mm": run.rmse_prior,
+            "correction_mm": float(run.state.theta[0]),
+        }
+    return OnlineReport(doc.machine, doc.version, len(resid), terms, out_states), preds
+
+
+def latest_online_states(store: Any, machine: str, model_version: int | None) -> dict[str, RLSState]:
+    """Return the on-line states last stored for this machine and model version (empty when none)."""
+    from sqlalchemy import select
+
+    from driftlab.campaigns.schema import Job
+
+    store.ensure_schema()
+    with store.engine.connect() as conn:
+        row = conn.execute(
+            select(Job.result).where(Job.kind == ONLINE_JOB, Job.machine_id == machine, Job.state == "done")
+            .order_by(Job.id.desc()).limit(1)
+        ).first()
+    if row is None or not row[0] or row[0].get("model_version") != model_version:
+        return {}
+    return {k: RLSState.from_dict(v) for k, v in row[0].get("states", {}).items()}
+
+
+def online_update(store: Any, machine: str, probe: Any, lam: float = 0.98, worker: str = "online") -> OnlineReport:
+    """Update the machine's on-line model with probe measurements and keep its state in the store.
+
+    The on-line model is kept apart from the off-line document (ch. 4.3, 6.4.3): it is stored as the
+    result of an ``online`` job of the machine, continued from the last such state of the same model version.
+    """
+    from driftlab.models.registry import get_model
+
+    doc = get_model(store, machine, "current")
+    states = latest_online_states(store, machine, doc.version)
+    report, _ = online_update_document(doc, probe, states, lam)
+    job_id = store.submit_job(ONLINE_JOB, {"n": report.n, "model_version": doc.version}, machine_id=machine)
+    job = store.claim_job(worker, [ONLINE_JOB])
+    if job is None or job.id != job_id:  # another process holds the queue: record under our own id
+        raise ValidationError("could not record the on-line update: the online job was taken by another worker")
+    store.finish_job(job_id, worker, report.to_dict())
+    return report

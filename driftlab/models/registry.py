@@ -277,92 +277,63 @@ def input_ranges(doc: ModelDocument, temperatures: Mapping[str, float] | pd.Data
 # ----------------------------------------------------------------------------- store
 
 
-def _session(store: Any) -> Any:
-    """Return a new ORM session from a store (anything with ``session()`` or a SQLAlchemy engine)."""
-    if hasattr(store, "session"):
-        return store.session()
-    from sqlalchemy.orm import Session
-
-    return Session(getattr(store, "engine", store))
-
-
 def register_model(store: Any, document: Mapping[str, Any] | ModelDocument, source_campaigns: Sequence[int] = ()) -> ModelDocument:
-    """Store a document as the machine's next version, make it current, retire the previous; return it."""
-    from sqlalchemy import func, select
-
-    from driftlab.campaigns.schema import Machine, ModelVersion
-
+    """Store a document as its machine's new current version (the old one retired, still readable); return it."""
     doc = validate_document(document)
-    with _session(store) as s, s.begin():
-        if s.get(Machine, doc.machine) is None:
-            s.add(Machine(id=doc.machine, name=""))
-            s.flush()
-        # lock the machine row so two fits do not take the same version number
-        s.execute(select(Machine).where(Machine.id == doc.machine).with_for_update())
-        last = s.execute(select(func.max(ModelVersion.version)).where(ModelVersion.machine_id == doc.machine)).scalar()
-        version = int(last or 0) + 1
-        now = datetime.now(timezone.utc)
-        for old in s.execute(
-            select(ModelVersion).where(ModelVersion.machine_id == doc.machine, ModelVersion.status == "current")
-        ).scalars():
-            old.status = "retired"
-            old.retired_at = now
-        s.flush()  # retire before insert: at most one current version per machine (partial unique index)
-        final = doc.model_copy(update={"version": version, "created_at": doc.created_at or now_iso()})
-        s.add(
-            ModelVersion(
-                machine_id=doc.machine,
-                version=version,
-                created_at=now,
-                source_campaigns=[int(c) for c in source_campaigns],
-                document=document_json(final),
-                status="current",
-            )
-        )
-    return final
+    stored = document_json(doc.model_copy(update={"version": None}))
+    try:
+        info = store.register_model(doc.machine, stored, [int(c) for c in source_campaigns])
+    except NotFoundError:
+        raise NotFoundError(f"no machine {doc.machine!r} in the store: import one of its campaigns first") from None
+    return _from_row(info)
+
+
+def _from_row(info: Any) -> ModelDocument:
+    """Return the document of a registry row with its version number and status filled in."""
+    doc = validate_document(info.document)
+    return doc.model_copy(update={"version": int(info.version), "source_campaigns": list(info.source_campaigns)
+                                  or doc.source_campaigns})
 
 
 def list_models(store: Any, machine: str | None = None) -> list[dict[str, Any]]:
-    """Return one summary row per stored version (machine, version, status, created, campaigns, terms)."""
-    from sqlalchemy import select
+    """Return one summary row per stored version (machine, version, status, created, campaigns, size)."""
+    if machine:
+        rows = store.model_versions(machine)
+    else:
+        from sqlalchemy import select
 
-    from driftlab.campaigns.schema import ModelVersion
+        from driftlab.campaigns.schema import Machine
 
-    with _session(store) as s:
-        q = select(ModelVersion).order_by(ModelVersion.machine_id, ModelVersion.version)
-        if machine:
-            q = q.where(ModelVersion.machine_id == machine)
-        rows = s.execute(q).scalars().all()
-        return [
-            {
-                "machine": r.machine_id,
-                "version": r.version,
-                "status": r.status,
-                "created_at": r.created_at.isoformat() if r.created_at else None,
-                "source_campaigns": list(r.source_campaigns or []),
-                "terms": len((r.document or {}).get("terms", [])),
-                "kept_channels": len((r.document or {}).get("kept_channels", [])),
-            }
-            for r in rows
-        ]
+        store.ensure_schema()
+        with store.engine.connect() as conn:
+            machines = [m for (m,) in conn.execute(select(Machine.id).order_by(Machine.id))]
+        rows = [r for m in machines for r in store.model_versions(m)]
+    return [
+        {
+            "machine": r.machine_id,
+            "version": r.version,
+            "status": r.status,
+            "created_at": r.created_at.isoformat() if r.created_at else None,
+            "source_campaigns": list(r.source_campaigns or []),
+            "terms": len((r.document or {}).get("terms", [])),
+            "kept_channels": len((r.document or {}).get("kept_channels", [])),
+        }
+        for r in rows
+    ]
 
 
 def get_model(store: Any, machine: str, version: int | str = "current") -> ModelDocument:
     """Return a stored document: a version number or ``current``; NotFoundError when there is none."""
-    from sqlalchemy import select
-
-    from driftlab.campaigns.schema import ModelVersion
-
-    with _session(store) as s:
-        q = select(ModelVersion).where(ModelVersion.machine_id == machine)
-        if str(version) == "current":
-            q = q.where(ModelVersion.status == "current")
-        else:
-            try:
-                q = q.where(ModelVersion.version == int(version))
-            except ValueError:
-                raise ValidationError(f"model version must be a number or 'current', got {version!r}") from None
-        row = s.execute(q.order_by(ModelVersion.version.desc())).scalars().first()
-        if row is None:
-            raise NotFoundError(f"no model version {version} for machine {machine}")
-        return validate_document(row.document)
+    if str(version) == "current":
+        info = store.current_model(machine)
+        if info is None:
+            raise NotFoundError(f"machine {machine} has no current model: run `driftlab fit` first")
+        return _from_row(info)
+    try:
+        v = int(version)
+    except ValueError:
+        raise ValidationError(f"model version must be a number or 'current', got {version!r}") from None
+    for info in store.model_versions(machine):
+        if info.version == v:
+            return _from_row(info)
+    raise NotFoundError(f"no model version {v} for machine {machine}")

@@ -178,3 +178,76 @@ def test_model_channels_of_the_bundle_are_honoured():
                                                                                          virtual_sensors=False))
     used = {c for f in res.models[("phi_x", "dx")].features for c in f.channels}
     assert used <= {"T10", "T49", "T50"} and "T10" in used
+
+
+# ----------------------------------------------------------------------------- store, jobs, CLI
+
+
+@pytest.fixture()
+def store_with_campaign(tmp_path):
+    from driftlab.campaigns.store import connect
+
+    url = f"sqlite:///{tmp_path / 'fit.sqlite'}"
+    store = connect(url)
+    cid = store.import_bundle(synthetic_bundle(0))
+    yield url, store, cid
+    store.close()
+
+
+def test_cli_fit_registers_versions_and_show_gives_the_document(store_with_campaign, tmp_path, capsys):
+    from driftlab.cli import main
+    from driftlab.models.registry import get_model
+
+    url, store, cid = store_with_campaign
+    report_path = tmp_path / "report.json"
+    assert main(["fit", "--campaign", str(cid), "--db", url, "--json", str(report_path)]) == 0
+    rep = json.loads(report_path.read_text())
+    assert rep["model_version"] == 1 and rep["machine"] == "vmc-test"
+    assert {"kept_channels", "terms", "physical"} <= set(rep)
+    assert set(rep["terms"][0]) >= {"axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f"}
+    assert set(rep["physical"][0]) >= {"term", "regression", "physical", "relationship"}
+    assert main(["fit", "--campaign", str(cid), "--db", url]) == 0
+    capsys.readouterr()
+    assert main(["models", "list", "--machine", "vmc-test", "--db", url, "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [(r["version"], r["status"]) for r in rows] == [(1, "retired"), (2, "current")]
+    assert main(["models", "show", "current", "--machine", "vmc-test", "--db", url, "--json"]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert shown["version"] == 2 and shown["format"] == "driftlab-model/1"
+    old = get_model(store, "vmc-test", 1)  # a retired version stays readable
+    q = np.zeros((2, 5))
+    q[:, 0] = [0.0, 400.0]
+    temps = synthetic_bundle(0).temperatures.iloc[780].to_dict()
+    np.testing.assert_allclose(predict_workspace_errors(shown, temps, q), predict_workspace_errors(old, temps, q))
+    job = store.get_job(1)
+    assert job.kind == "fit" and job.state == "done" and job.result["model_version"] == 1
+    assert main(["models", "show", "7", "--machine", "vmc-test", "--db", url]) != 0
+
+
+def test_fit_job_runs_in_a_separate_worker_process(store_with_campaign, capsys):
+    import subprocess
+    import sys
+
+    from driftlab.cli import main
+
+    url, store, cid = store_with_campaign
+    assert main(["fit", "--campaign", str(cid), "--db", url, "--enqueue"]) == 0
+    job_id = json.loads(capsys.readouterr().out)["job"]
+    assert store.get_job(job_id).state == "queued"
+    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "fit", "--worker", "--once", "--db", url],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["jobs"] == [job_id]
+    job = store.get_job(job_id)
+    assert job.state == "done" and job.worker and job.worker.split(":")[-1] != str(__import__("os").getpid())
+    assert store.current_model("vmc-test").version == 1
+
+
+def test_cli_errors_are_one_line(store_with_campaign, capsys):
+    from driftlab.cli import main
+
+    url, _, _ = store_with_campaign
+    assert main(["fit", "--db", url]) == 2
+    assert main(["models", "show", "current", "--machine", "nope", "--db", url]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(e.startswith("driftlab: error:") for e in err)
