@@ -703,6 +703,36 @@ class InstrumentRig:
                 log.debug("error while closing an instrument", exc_info=True)
 
 
+class MemoWorld:
+    """The virtual machine behind a small cache: it is a pure function of its arguments, so asking twice is waste.
+
+    A sweep point asks the world for the same error and room air a dozen times at one instant (the
+    laser's settle polls and ten averaged readings); the cache answers the repeats exactly.
+    """
+
+    def __init__(self, world: Any, size: int = 64) -> None:
+        from functools import lru_cache
+
+        self.world = world
+        self._temps = lru_cache(maxsize=size)(world.temperatures)
+        self._errors = lru_cache(maxsize=size)(world.measure_error)
+
+    def temperatures(self, t_s: float) -> dict[str, float]:
+        """Return the world's thermocouple readings at t_s (a fresh dict each call)."""
+        return dict(self._temps(float(t_s)))
+
+    def measure_error(self, t_s: float, axis: str, position: float, direction: int) -> dict[str, float]:
+        """Return the world's measured error terms at (t_s, axis, position, direction)."""
+        return dict(self._errors(float(t_s), axis, float(position), int(direction)))
+
+    def state(self, t_s: float) -> Any:
+        """Return the world's machine state at t_s."""
+        return self.world.state(t_s)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.world, name)
+
+
 def _no_wait(_dt: float) -> None:
     """Do not wait: on a simulated clock time only moves between steps."""
 
@@ -734,7 +764,7 @@ def build_sim_rig(
     if world is None:
         from driftlab.daq.sim.machine import VirtualMachine
 
-        world = VirtualMachine(plan_scenario(plan, scenario))
+        world = MemoWorld(VirtualMachine(plan_scenario(plan, scenario)))
     card_map = dict(enumerate(channels))
     card = SimThermocoupleCard(world, clock, card_map).start()
     ctrl = SimController(world, clock)
@@ -819,9 +849,16 @@ def store_engine(db_url: str | None) -> Any:
     from driftlab.campaigns import db
     from driftlab.config import get_settings
 
-    engine = db.make_engine(db_url or get_settings().resolved_db_url())
-    if db.current_revision(engine) != db.head_revision():
-        db.upgrade(engine)
+    from sqlalchemy.exc import OperationalError
+
+    url = db_url or get_settings().resolved_db_url()
+    engine = db.make_engine(url)
+    try:
+        if db.current_revision(engine) != db.head_revision():
+            db.upgrade(engine)
+    except OperationalError as exc:
+        where = engine.url.render_as_string(hide_password=True)
+        raise db.StoreError(f"cannot open the store at {where}: {str(exc.orig).strip().splitlines()[0]}") from None
     return engine
 
 
@@ -867,21 +904,28 @@ def run_daemon(
     origin = {"mode": "sim" if scenario is not None else "real",
               "scenario": str(scenario_path) if scenario_path is not None else None,
               "speed": None if math.isinf(speed) else speed}
-    handle = open_campaign(engine, plan, channels, rooms, resume=resume, origin=origin)
-    cursor = handle.cursor
     points = plan.sweep_points()
+    if scenario is None:
+        # open the instruments before touching the store: an unreachable instrument leaves no campaign behind
+        clock: Any = WallClock()
+        rig = build_real_rig(plan, list(channels), clock)
+    try:
+        handle = open_campaign(engine, plan, channels, rooms, resume=resume, origin=origin)
+    except BaseException:
+        if scenario is None:
+            rig.close()
+        raise
+    cursor = handle.cursor
     if scenario is not None:
-        clock: Any = SimClock(speed=speed, start_s=cursor_time(plan, points, cursor))
+        clock = SimClock(speed=speed, start_s=cursor_time(plan, points, cursor))
         rig = build_sim_rig(plan, scenario, clock, list(channels), datum=handle.progress.get("datum"), world=world,
                             cursor=cursor)
     else:
-        started = _campaign_started_epoch(engine, handle.campaign_id)
-        clock = WallClock(started_epoch_s=started)
+        clock.started_epoch_s = _campaign_started_epoch(engine, handle.campaign_id)
         if handle.resumed:
             cursor, ns, np_ = skip_missed(plan, cursor, clock.now())
             if ns or np_:
                 log.warning("skipped %d scans and %d sweep points missed while the daemon was down", ns, np_)
-        rig = build_real_rig(plan, list(channels), clock)
     sink = StoreSink(engine, plan, handle)
     total = plan.n_scans + len(points)
     commits = [0]
