@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 from _common import emit, load_average  # noqa: E402
 
 from driftlab.campaigns.clock import SimClock  # noqa: E402
-from driftlab.campaigns.plan import Cursor, parse_plan  # noqa: E402
+from driftlab.campaigns.plan import Cursor, Plan, parse_plan  # noqa: E402
 from driftlab.campaigns.scheduler import (  # noqa: E402
     Batch,
     StoreSink,
@@ -53,7 +53,7 @@ SIM_S = 120.0  # simulated seconds in the end-to-end run
 SCENARIO = ROOT / "examples" / "scenarios" / "clean.yaml"
 
 
-def bench_plan():
+def bench_plan() -> Plan:
     """Return the benchmark plan: one spindle stage, 10 Hz scans, a 10-point Z sweep every minute."""
     return parse_plan({
         "name": "bench-daq", "machine": {"id": "vmc-5ax-01", "channels": "from scenario"},

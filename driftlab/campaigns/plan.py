@@ -7,11 +7,26 @@ the axis under test, the error sweep run on it (positions, both approach
 directions, interval) and its duration; the plan gives the thermocouple scan
 interval and the machine with its channel map (or "from scenario").
 
-The plan compiles to a deterministic timeline of three kinds of step, in the
+The plan compiles to a deterministic timeline of four kinds of step, in the
 style of bluesky's plan stubs (one typed function per step): `scans` yields the
-thermocouple scans, `sweep_points` the error-measurement points, `stage_starts`
+thermocouple scans, `sweep_points` the error-measurement points, `moves` the
+commands that bring the axis to each point ahead of its reading, `stage_starts`
 the moments the machine conditions change; `steps` merges them in time order
 from a `Cursor`, which is all the scheduler must remember to resume.
+
+Example (the shipped examples/plans/z-axis-test.yaml is the thesis' Z-axis test)::
+
+    format: driftlab-plan/1
+    name: z-axis-test
+    machine: {id: vmc-5ax-01, channels: from scenario}
+    scan_interval_s: 30
+    stages:
+      - name: spindle-10k
+        heat: [{kind: spindle, rpm: 10000}]
+        axis: Z
+        duration_s: 28800
+        sweep: {positions: [0, 100, 200, 300, 400], interval_s: 1800, point_s: 6, term: dz}
+      - {name: cool-down-1, axis: Z, duration_s: 21600}
 """
 
 from __future__ import annotations

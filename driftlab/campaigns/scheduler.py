@@ -38,7 +38,7 @@ from driftlab.campaigns.clock import Clock
 from driftlab.campaigns.db import write_transaction
 from driftlab.campaigns.plan import Cursor, Move, Plan, Scan, Stage, StageStart, SweepPoint, steps
 from driftlab.daq.protocols import Reading, TemperatureScan, TemperatureScanner
-from driftlab.errors import ConflictError, InstrumentError, NotFoundError
+from driftlab.errors import ConflictError, InstrumentError
 
 log = logging.getLogger(__name__)
 
@@ -934,6 +934,7 @@ def run_daemon(
             bar.advance(cursor.next_scan + cursor.next_point)
 
             def on_commit(batch: Batch, stats: RunStats) -> None:
+                """Advance the progress bar; stop after the requested number of commits."""
                 bar.advance(len(batch.scans) + len(batch.points))
                 commits[0] += 1
                 if stop_after_commits is not None and commits[0] >= stop_after_commits:

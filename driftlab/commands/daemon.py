@@ -57,6 +57,7 @@ def _daemon(args: argparse.Namespace) -> int:
     stop = threading.Event()
 
     def _on_signal(signum: int, _frame: Any) -> None:
+        """Ask the scheduler to stop after its current commit."""
         log.warning("signal %d: stopping after the current commit", signum)
         stop.set()
 

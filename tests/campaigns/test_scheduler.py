@@ -9,7 +9,7 @@ import pytest
 from sqlalchemy import func, select
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.plan import Cursor, SweepPoint, load_plan, parse_plan
+from driftlab.campaigns.plan import Cursor, load_plan, parse_plan
 from driftlab.campaigns.scheduler import (
     Batch,
     Fault,
