@@ -206,33 +206,26 @@ def quantise_carry(units: np.ndarray, state: np.ndarray | None = None) -> np.nda
     sent before; the remainder carries over (ch. 7.2). Per point: ``s = s_prev + trunc(u - s_prev)``,
     i.e. ``s = clip(s_prev, floor(u), ceil(u))``, so ``|u - s| < 1`` always and a correction that
     creeps up by less than a step sends nothing until it has accumulated one. ``state`` is the
-    step count sent before the first point (default 0). The recursion is a composition of clamps,
-    evaluated with a doubling scan over runs of equal (floor, ceil).
+    step count sent before the first point (default 0).
+
+    Vectorised: the window ``[floor u, ceil u]`` is at most one step wide, so ``s`` keeps its
+    previous value only while the window stays the same; whenever the window changes, ``s`` is
+    forced to its lower end (window moved up) or upper end (moved down), whatever came before.
     """
     u = np.asarray(units, dtype=float)
     n = u.shape[0]
     s0 = np.zeros(u.shape[1], dtype=np.int64) if state is None else np.asarray(state, dtype=np.int64)
-    out = np.empty(u.shape, dtype=np.int64)
     if n == 0:
-        return out
+        return np.empty(u.shape, dtype=np.int64)
     lo = np.floor(u).astype(np.int64)
     hi = np.ceil(u).astype(np.int64)
-    for k in range(u.shape[1]):
-        a, b = lo[:, k], hi[:, k]
-        change = np.ones(n, dtype=bool)
-        change[1:] = (a[1:] != a[:-1]) | (b[1:] != b[:-1])
-        starts = np.flatnonzero(change)
-        A, B = a[starts].copy(), b[starts].copy()
-        d = 1
-        while d < A.shape[0]:
-            # clamp to [A_i, B_i] after clamping to [A_{i-d}, B_{i-d}]: still a clamp
-            pa = np.clip(A[:-d], A[d:], B[d:])
-            pb = np.clip(B[:-d], A[d:], B[d:])
-            A[d:], B[d:] = pa, pb
-            d *= 2
-        runs = np.clip(s0[k], A, B)
-        out[:, k] = np.repeat(runs, np.diff(np.append(starts, n)))
-    return out
+    forced_value = np.where(lo[1:] >= hi[:-1], lo[1:], hi[1:])
+    same = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1]) & (hi[1:] > lo[1:])
+    values = np.vstack([np.clip(s0, lo[0], hi[0])[None, :], forced_value])
+    forced = np.vstack([np.ones((1, u.shape[1]), dtype=bool), ~same])
+    idx = np.where(forced, np.arange(n)[:, None], 0)
+    np.maximum.accumulate(idx, axis=0, out=idx)
+    return np.take_along_axis(values, idx, axis=0)
 
 
 def directions(nominal_int: np.ndarray, start_int: np.ndarray, initial: np.ndarray | None = None) -> np.ndarray:

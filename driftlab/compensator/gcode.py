@@ -196,6 +196,11 @@ def _strip_comments(
                 work[a + pct[0]] = 0x20
 
 
+def _class_counts(cls: np.ndarray) -> dict[int, int]:
+    """Return how many bytes fall in the classes that need attention (no int64 copy of the buffer)."""
+    return {k: int(np.count_nonzero(cls == k)) for k in (_OTHER, _NUM, _SPECIAL)}
+
+
 def parse_program(
     data: bytes | str,
     name: str = "<program>",
@@ -227,14 +232,14 @@ def parse_program(
     errors: list[tuple[int, str]] = []
     times: dict[int, float] = {}
     cls = _CLS[buf]
-    counts = np.bincount(cls, minlength=5)
+    counts = _class_counts(cls)
     if counts[_SPECIAL]:
         work = bytearray(data)
         lines = np.unique(np.searchsorted(nl, np.flatnonzero(cls == _SPECIAL)))
         _strip_comments(data, work, lines, line_start, line_end, errors, times)
         buf = np.frombuffer(bytes(work), dtype=np.uint8)
         cls = _CLS[buf]
-        counts = np.bincount(cls, minlength=5)
+        counts = _class_counts(cls)
     if counts[_OTHER] or counts[_SPECIAL]:
         other = np.flatnonzero((cls == _OTHER) | (cls == _SPECIAL))
         for p in other[:1000].tolist():
@@ -331,9 +336,8 @@ def parse_program(
     ai = np.flatnonzero((kind < 5) & valid)
     a_axis = kind[ai].astype(np.int64)
     a_lid = lid[ai]
-    key = a_lid * 5 + a_axis
-    skey = np.sort(key)
-    for k in skey[1:][np.diff(skey) == 0][:1000].tolist():
+    per_key = np.bincount(a_lid * 5 + a_axis, minlength=5 * n_lines)
+    for k in np.flatnonzero(per_key > 1)[:1000].tolist():
         errors.append((int(k // 5), f"repeated word '{AXES[k % 5]}'"))
     rot = ROTARY[a_axis]
     dec_lin = _decimals(value[ai[~rot]], min_decimals[0])
@@ -358,7 +362,8 @@ def parse_program(
     dist = np.where(last >= 0, dist_line[np.maximum(last, 0)], 0)
 
     # words are in byte order, so lines of axis words are sorted
-    block_line = a_lid[np.flatnonzero(np.diff(a_lid, prepend=-1))]
+    new_block = np.diff(a_lid, prepend=-1) != 0
+    block_line = a_lid[new_block]
     for li in block_line[dwell_line[block_line]][:1000].tolist():
         errors.append((int(li), "G4 dwell with axis words"))
     for li in block_line[motion[block_line] < 0][:1000].tolist():
@@ -366,7 +371,7 @@ def parse_program(
     _fail(name, errors)
 
     n_blocks = block_line.shape[0]
-    bidx = np.searchsorted(block_line, a_lid)
+    bidx = np.cumsum(new_block) - 1
     present = np.zeros((n_blocks, 5), dtype=bool)
     word_int = np.zeros((n_blocks, 5), dtype=np.int64)
     num_start = np.full((n_blocks, 5), -1, dtype=np.int64)
@@ -415,8 +420,12 @@ def _whole(x: np.ndarray) -> np.ndarray:
 
 def _decimals(values: np.ndarray, least: int) -> int:
     """Return the fewest decimals (at least ``least``) that write every value exactly; > 9 when none do."""
+    if values.shape[0] == 0:
+        return least
+    tol = 1e-6 * max(1.0, float(np.abs(values).max()) * 10.0**MAX_DECIMALS * 1e-9)
     for d in range(least, MAX_DECIMALS + 1):
-        if bool(np.all(_whole(values * 10.0**d))):
+        x = values * 10.0**d
+        if float(np.abs(x - np.rint(x)).max()) <= tol:
             return d
     return MAX_DECIMALS + 1
 
@@ -469,6 +478,12 @@ def subdivide(
     rot = np.abs(delta[:, 3:]).max(axis=1) if delta.shape[0] else np.zeros(0)
     pieces = np.maximum(np.ceil(np.maximum(lin / max_mm, rot / max_deg) - 1e-9), 1).astype(np.int64)
     pieces[program.rapid[b0:b1]] = 1
+    if pieces.shape[0] and int(pieces.max()) > 100_000:
+        b = b0 + int(np.argmax(pieces))
+        raise ValidationError(
+            f"{program.name}:{int(program.block_line[b]) + 1}: segment would need more than 100000 "
+            "subdivisions; raise the subdivision length"
+        )
     block = np.repeat(np.arange(b0, b1), pieces)
     if block.shape[0] == end.shape[0]:
         return Points(block=block, nominal_int=end.copy())
@@ -641,7 +656,8 @@ def emit(
 
     pos = np.concatenate(pos_l).astype(np.int64)
     key = np.concatenate(key_l).astype(np.int64)
-    order = np.lexsort((key, pos))
+    # edits are made in runs already in byte order, so a stable sort of one key is nearly free
+    order = np.argsort(pos * (1 << 20) + np.minimum(key, (1 << 20) - 1), kind="stable")
     pos = pos[order]
     pre = np.concatenate(pre_l).astype(np.int64)[order]
     val = np.concatenate(val_l)[order]
