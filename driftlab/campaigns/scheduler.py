@@ -377,6 +377,7 @@ def open_campaign(
     *,
     resume: bool,
     origin: Mapping[str, Any],
+    extra_meta: Mapping[str, Any] | None = None,
 ) -> CampaignHandle:
     """Create the daemon's campaign for `plan`, or with `resume` continue its latest one from its cursor.
 
@@ -417,7 +418,8 @@ def open_campaign(
         if resume:
             log.info("no unfinished campaign %s: starting it", plan.name)
         if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
-            conn.execute(sc.Machine.__table__.insert().values(id=plan.machine.id, name=plan.machine.name))
+            conn.execute(sc.Machine.__table__.insert().values(
+            id=plan.machine.id, name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", ""))))
         started = sc.utcnow()
         meta = {
             "format": "driftlab-bundle/1",
@@ -427,6 +429,10 @@ def open_campaign(
             "room_channels": list(room_channels),
             "stages": plan.bundle_stages(),
         }
+        for key, value in (extra_meta or {}).items():
+            meta.setdefault(key, value) if key != "machine" else meta["machine"].update(
+                {k: v for k, v in value.items() if k != "id" and (k != "name" or not plan.machine.name)}
+            )
         cid = conn.execute(
             sc.Campaign.__table__.insert().values(
                 machine_id=plan.machine.id, name=plan.name, started_at=started, status="running",
@@ -909,8 +915,9 @@ def run_daemon(
         # open the instruments before touching the store: an unreachable instrument leaves no campaign behind
         clock: Any = WallClock()
         rig = build_real_rig(plan, list(channels), clock)
+    extra = sim_meta(plan, scenario) if scenario is not None else None
     try:
-        handle = open_campaign(engine, plan, channels, rooms, resume=resume, origin=origin)
+        handle = open_campaign(engine, plan, channels, rooms, resume=resume, origin=origin, extra_meta=extra)
     except BaseException:
         if scenario is None:
             rig.close()
@@ -1124,3 +1131,11 @@ def scenario_meta(scenario: Any) -> dict[str, Any]:
     from driftlab.daq.sim.sites import ROOM_CHANNELS, channel_map
 
     return {"channels": channel_map(), "room_channels": list(ROOM_CHANNELS)}
+
+
+def sim_meta(plan: Plan, scenario: Any) -> dict[str, Any]:
+    """Return what the virtual machine adds to campaign.json: machine details, model channels, noise."""
+    from driftlab.daq.sim.campaign import campaign_meta
+
+    meta = campaign_meta(plan_scenario(plan, scenario))
+    return {k: meta[k] for k in ("machine", "model_channels", "noise") if k in meta}
