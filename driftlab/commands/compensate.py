@@ -80,9 +80,16 @@ def _model_file(path: Path, machine: str | None) -> Any:
 
 def _run(args: argparse.Namespace) -> int:
     """Run the offline or streaming compensation."""
-    from driftlab.compensator.compensate import TemperatureTable, compensate_file, decimals_for
+    from driftlab.compensator.compensate import (
+        TemperatureTable,
+        compensate_file,
+        decimals_for,
+        retain_freed_memory,
+    )
     from driftlab.compensator.gcode import parse_program
     from driftlab.config import get_settings
+
+    retain_freed_memory()
 
     if args.api and not args.machine:
         raise ValidationError("--api needs --machine ID")

@@ -189,3 +189,15 @@ def test_emit_rejects_points_outside_lines():
     p = parse_program(b"G1 X1\nX2\n")
     with pytest.raises(ValueError):
         emit(p, Points(np.array([1]), p.target_int[1:]), lines=slice(0, 1))
+
+
+def test_example_programs_parse_and_round_trip():
+    from pathlib import Path
+
+    files = sorted((Path(__file__).resolve().parents[2] / "examples" / "programs").glob("*.nc"))
+    assert files
+    for f in files:
+        data = f.read_bytes()
+        p = parse_program(data, str(f))
+        assert p.n_blocks > 0
+        assert emit_program(p, subdivide(p, 1e9, 1e9)) == data
