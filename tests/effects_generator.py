@@ -1,13 +1,16 @@
 """Bundles with planted effects for the diagnosis tests.
 
-``make_case`` builds a campaign bundle v1 with effects of the catalogue hidden in
-it and returns it with the truth. It runs the virtual machine
-(``driftlab.daq.sim.simulate_campaign`` with ``Scenario.hidden``) when that is
-available and the case asks for it; otherwise a small self-contained thermal
-world: first-order thermocouple sites driven by a staged single-heat-source
-plan and a daily room cycle (ch. 5.2), errors = a cubic in position + a linear
-combination of the true temperature rises of the model channels + laser noise,
-and the hidden effects applied exactly as the catalogue defines them:
+``vm_case`` runs the virtual machine (``driftlab.daq.sim.simulate_campaign`` with
+``Scenario.hidden``): the 50-site thermal network, the HTM error field and the
+hidden effects of the catalogue, and keeps the (axis, term)s a test needs (a
+bundle may hold any subset), returning the bundle and the planted truth.
+
+``make_case`` is a small self-contained thermal world for cheap unit-level
+checks (and bundles without model_channels): first-order thermocouple sites
+driven by a staged single-heat-source plan and a daily room cycle (ch. 5.2),
+errors = a cubic in position + a linear combination of the true temperature
+rises of the model channels + laser noise, and the hidden effects applied
+exactly as the catalogue defines them:
 
 - reversal: + magnitude/2 x direction (full span = magnitude)
 - screw_expansion: + coef x position x dT_k
@@ -226,3 +229,42 @@ def make_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s
         meta["model_channels"] = mc
     bundle = Bundle(name=f"case-{seed}", meta=_as_meta(meta), temperatures=temps, conditions=None, errors=err)
     return Case(bundle, planted, noise, mc, signal_rms)
+
+
+@dataclass
+class VMCase:
+    """A bundle simulated on the virtual machine, with the truth record of the simulation."""
+
+    bundle: Bundle
+    planted: list[Planted]
+    truth: dict[str, Any]
+    noise: dict[str, float]
+
+    def beyond_model_rms(self, i: int) -> float:
+        """Return the RMS of planted effect i that no standard model can absorb (the simulation's figure)."""
+        return float(self.truth["hidden"][i].get("rms_beyond_standard_model", float("nan")))
+
+
+def vm_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s: float = 120.0,
+            sweep_s: float = 1200.0, points: int = 6, keep: list[tuple[str, str]] | None = None) -> VMCase:
+    """Return a :class:`VMCase`: the virtual machine's campaign with ``planted`` hidden, reduced to ``keep``.
+
+    ``keep`` lists the (axis, term)s written to errors.csv (default: the planted ones, or Z/dz).
+    """
+    from driftlab.daq.sim.campaign import simulate_campaign
+    from driftlab.daq.sim.scenario import HiddenEffect, Scenario
+
+    hidden = [HiddenEffect(kind=p.kind, axis=p.axis or None, term=p.term or None, channels=list(p.channels),
+                           params=dict(p.params)) for p in planted]
+    sc = Scenario(seed=seed, hours=hours, scan_interval_s=scan_s, sweep_interval_s=sweep_s,
+                  points_per_axis=points, hidden=hidden)
+    sim = simulate_campaign(sc)
+    keep = keep or sorted({(p.axis, p.term) for p in planted if p.axis and p.term}) or [("Z", "dz")]
+    err = sim.errors
+    mask = np.zeros(len(err), dtype=bool)
+    for axis, term in keep:
+        mask |= ((err["axis"] == axis) & (err["term"] == term)).to_numpy()
+    errors = err[mask].reset_index(drop=True)
+    bundle = Bundle(name=f"vm-{seed}", meta=_as_meta(sim.meta), temperatures=sim.temperatures,
+                    conditions=sim.conditions, errors=errors)
+    return VMCase(bundle, planted, sim.truth, dict(sim.meta["noise"]))

@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -231,9 +232,11 @@ def compare_simulation(td: TermData, prep: PreparedBundle, noise: float) -> Simu
     """Return the calibrated Appendix A law of one (axis, term) compared with its measured errors."""
     tau, b, pred = calibrate_time_law(td)
     names = ["offset", "thermal_gain", "slope", "slope_thermal_gain"][: b.size]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # channels without readings: correlations NaN
+        text = simulation_sentences(td, prep, pred, noise)
     return SimulationComparison(td.axis, td.term, td.unit, rmse(td.y - pred), tau,
-                                dict(zip(names, (float(v) for v in b))),
-                                simulation_sentences(td, prep, pred, noise), pred, td.y - pred)
+                                dict(zip(names, (float(v) for v in b))), text, pred, td.y - pred)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -352,31 +355,43 @@ def _noise_level(prep: PreparedBundle, td: TermData, std: StandardModel) -> floa
     return robust_sigma(np.diff(std.fit.residual[td.train])) / np.sqrt(2.0)
 
 
-def _clusters(td: TermData, n_blocks: int = 40) -> np.ndarray:
-    """Return cluster labels for the training rows: ~``n_blocks`` blocks of whole sweeps in time."""
-    tr = td.train
-    t = td.t[tr]
-    sw = td.sweep[tr]
+def _clusters(td: TermData, rows: np.ndarray, n_blocks: int = 40) -> np.ndarray:
+    """Return cluster labels for ``rows``: ~``n_blocks`` blocks of whole sweeps in time."""
+    t = td.t[rows]
+    sw = td.sweep[rows]
     _, first, inverse = np.unique(sw, return_index=True, return_inverse=True)
     starts = t[first][inverse]
     span = max(float(t[-1] - t[0]), 1e-9)
     return np.minimum((starts - t[0]) / span * n_blocks, n_blocks - 1).astype(int)
 
 
-def robust_pvalue(X: np.ndarray, y: np.ndarray, td: TermData, new_cols: list[int]) -> float:
-    """Return the cluster-robust (blocks of sweeps) Wald-test p-value of ``new_cols`` on the training rows."""
-    tr = td.train
+def robust_pvalue(X: np.ndarray, y: np.ndarray, td: TermData, new_cols: list[int],
+                  before_s: float | None = None) -> float:
+    """Return the cluster-robust (blocks of sweeps) Wald-test p-value of ``new_cols`` on the training rows.
+
+    ``before_s`` restricts the test to training rows before that time (used to
+    verify later findings on rows that no virtual sensor stands in for).
+    """
+    tr = td.train.copy()
+    if before_s is not None:
+        tr &= td.t < before_s
     Xt = X[tr]
+    keep = np.ptp(Xt, axis=0) > 0
+    keep[0] = True  # the intercept
+    if tr.sum() < 3 * Xt.shape[1] or not all(keep[c] for c in new_cols):
+        return 1.0
+    cols = np.flatnonzero(keep)
+    Xt = Xt[:, cols]
     s = np.sqrt(np.mean(Xt * Xt, axis=0))
     s = np.where(s > 0, s, 1.0)
-    groups = _clusters(td)
+    groups = _clusters(td, tr)
     if np.unique(groups).size < 5:
         res = sm.OLS(y[tr], Xt / s).fit()
     else:
         res = sm.OLS(y[tr], Xt / s).fit(cov_type="cluster", cov_kwds={"groups": groups}, use_t=True)
-    R = np.zeros((len(new_cols), X.shape[1]))
+    R = np.zeros((len(new_cols), cols.size))
     for i, c in enumerate(new_cols):
-        R[i, c] = 1.0
+        R[i, int(np.flatnonzero(cols == c)[0])] = 1.0
     test = res.wald_test(R, use_f=True, scalar=True)
     p = float(np.squeeze(test.pvalue))
     return p if np.isfinite(p) else 1.0
@@ -421,7 +436,7 @@ def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], p
 
 def _channel_location(prep: PreparedBundle, ch: str) -> str:
     """Return the channel's stated location, '' when unspecified."""
-    return prep.channel_locations.get(ch, "") if hasattr(prep, "channel_locations") else ""
+    return prep.locations.get(ch, "")
 
 
 @dataclass
@@ -439,9 +454,10 @@ def _materialise(sc: Scored, ctx: TermContext, state: _State) -> tuple[Candidate
     cand = sc.cand
     hint = dict(cand.hint)
     if cand.kind == "thermal_lag":
-        tau, col = refine_tau(ctx, cand.channels[0], sc.col_index, state.X)
+        tau, cols = refine_tau(ctx, cand.channels[0], sc.col_index, state.X)
         hint["tau_s"] = tau
-        return cand, col[:, None], hint
+        ch = cand.channels[0]
+        return replace(cand, cols=cols, names=[f"lag_{ch}", f"lag_{ch}_initial"]), cols, hint
     return cand, cand.cols, hint
 
 
@@ -481,11 +497,13 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
 
 
 def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_gain: float,
-                 max_effects: int, first: list[Scored] | None, top_k: int = 6) -> tuple[list[Effect], _State]:
+                 max_effects: int, first: list[Scored] | None, noise: float, min_explained: float = 1.5,
+                 min_explained_train: float = 0.5, top_k: int = 6) -> tuple[list[Effect], _State]:
     """Return the effects accepted for one (axis, term) by forward selection, and the final model."""
     td, prep = ctx.td, ctx.prep
     state = _State(std.X, list(std.names), std.fit, [])
     hold_start = td.holdout_start_s
+    fault_start: float | None = None
     for round_ in range(max_effects):
         if round_ == 0 and first is not None:
             scored = first
@@ -497,10 +515,23 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             if cand.kind == "sensor_fault" and not np.any(cand.cols[td.train, 0] != 0):
                 scored.append(Scored(cand, float("nan"), float(cand.hint.get("p_temp", 1.0)), 1, 0, 0.0))
         scored = [s for s in scored if s.p_value < alpha_each and s.cand.key not in ctx.taken]
-        scored.sort(key=lambda s: (s.p_value, -np.nan_to_num(s.F)))
+        # repair before extension: a thermocouple shown broken by the temperatures alone is tried
+        # first, since every other candidate would otherwise be fitted to its bad readings
+        scored.sort(key=lambda s: (s.cand.kind != "sensor_fault", s.p_value, -np.nan_to_num(s.F)))
+        # try the best candidate of every kind first: one kind's many near-identical channels must
+        # not crowd out another kind (the best by p may fail on held-out data another effect dominates)
+        firsts_by_kind: dict[str, Scored] = {}
+        for sc in scored:
+            firsts_by_kind.setdefault(sc.cand.kind, sc)
+        heads = list(firsts_by_kind.values())
+        trials = heads + [sc for sc in scored if all(sc is not h for h in heads)][: max(0, top_k - len(heads))]
         accepted = None
-        for sc in scored[:top_k]:
+        for sc in trials:
             cand, cols, hint = _materialise(sc, ctx, state)
+            if cand.kind == "thermal_lag":
+                taus = ctx.lag_cache[cand.channels[0]][0]
+                if not taus[0] * 1.02 < hint["tau_s"] < taus[-1] * 0.98:
+                    continue  # the best lag sits on the edge of the resolvable range: not resolved
             X_new, names_new, new_idx = _extension(cand, cols, state)
             if cand.kind == "sensor_fault" and hint["start_s"] < hold_start:
                 X_nested = np.column_stack([state.X, cand.cols])
@@ -510,10 +541,30 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             else:
                 p_rob = robust_pvalue(X_new, td.y, td, new_idx)
             p = max(sc.p_value, p_rob)
+            log.debug("%s/%s try %s %s: p naive %.3g robust %.3g (need < %.3g)", td.axis, td.term, cand.kind,
+                      cand.channels, sc.p_value, p_rob, alpha_each)
             if p >= alpha_each:
                 continue
+            if fault_start is not None and cand.kind != "sensor_fault":
+                # after a fault, rows beyond its start carry the virtual sensor's error: a further
+                # finding must also stand on the rows before the fault, where no estimate stands in
+                if robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
+                    continue
             fit = fit_columns(X_new, td.y, td.train, names_new)
-            if not np.isfinite(fit.rmse_holdout) or fit.rmse_holdout > (1.0 - min_gain) * state.fit.rmse_holdout:
+            before_h, after_h = state.fit.rmse_holdout, fit.rmse_holdout
+            expl_train = np.sqrt(max(state.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
+            log.debug("   held-out %.4g -> %.4g; explains %.3g noise on training, %.3g held out", before_h,
+                      after_h, expl_train / noise, np.sqrt(max(before_h**2 - after_h**2, 0.0)) / noise)
+            if not np.isfinite(after_h) or after_h > (1.0 - min_gain) * before_h:
+                continue
+            # what the effect explains on the held-out part must reach the measurement repeatability:
+            # smaller gains are the standard model's own extrapolation error being shuffled around
+            if before_h**2 - after_h**2 < (min_explained * noise) ** 2:
+                continue
+            # and on the training part it must explain a real share of the repeatability: a tiny
+            # in-sample gain that only extrapolates well is the standard model's noise-fitted
+            # coefficients being corrected by chance
+            if expl_train < min_explained_train * noise:
                 continue
             coef = fit.coef[new_idx]
             params, c = _params(cand, hint, coef, td)
@@ -536,6 +587,8 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
         if cand.kind in ("unmapped_channel",) or (cand.kind == "screw_expansion" and cand.channels[0] not in ctx.model_channels):
             ctx.model_channels.append(cand.channels[0])
         if cand.kind == "sensor_fault":
+            start = float(eff.params["start_s"])
+            fault_start = start if fault_start is None else min(fault_start, start)
             ch, rep = cand.replace  # type: ignore[misc]
             ctx.chan_cols[ch] = rep
             ctx.lag_cache.pop(ch, None)
@@ -577,13 +630,6 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     prep = prepare_bundle(bundle, holdout_fraction)
-    prep.channel_locations = {  # type: ignore[attr-defined]
-        ch: (str(meta_get(info, "location", "")) if info is not None else "")
-        for ch, info in (meta_get(bundle.meta, "channels", {}) or {}).items()
-    }
-    for ch, loc in list(prep.channel_locations.items()):  # type: ignore[attr-defined]
-        if loc.lower() in ("unspecified", "unknown"):
-            prep.channel_locations[ch] = ""  # type: ignore[attr-defined]
     timings["prepare"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -619,8 +665,8 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     n_hyp = max(n_hyp, 1)
     alpha_each = alpha / n_hyp
     terms: list[TermDiagnosis] = []
-    for ctx, std, sim, first in zip(contexts, standards, sims, firsts):
-        effects, state = _search_term(ctx, std, alpha_each, min_gain, max_effects, first)
+    for ctx, std, sim, first, nz in zip(contexts, standards, sims, firsts, noises):
+        effects, state = _search_term(ctx, std, alpha_each, min_gain, max_effects, first, nz)
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
     timings["search"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0

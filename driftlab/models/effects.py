@@ -43,10 +43,14 @@ N_TAU = 16
 def lag_filter(x: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
     """Return the first-order lag of ``x`` (samples along axis 0, step ``dt_s``), starting at rest.
 
-    Exact zero-order-hold discretisation: L[n] = a L[n-1] + (1 - a) x[n], a = exp(-dt/tau).
+    Exact for an input that is linear between samples (first-order hold): with
+    a = exp(-dt/tau) and k = tau (1 - a) / dt,
+    L[n] = a L[n-1] + (1 - k) x[n] + (k - a) x[n-1]
+    (the zero-order hold would delay the response by half a scan).
     """
     a = float(np.exp(-dt_s / tau_s))
-    b, den = [1.0 - a], [1.0, -a]
+    k = float(tau_s * (1.0 - a) / dt_s)
+    b, den = [1.0 - k, k - a], [1.0, -a]
     zi = signal.lfilter_zi(b, den)[0] * x[:1]
     y, _ = signal.lfilter(b, den, x, axis=0, zi=zi)
     return y
@@ -132,14 +136,50 @@ def _dead_tail(raw: np.ndarray, min_len: int) -> int | None:
     return None
 
 
-def best_break(A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int) -> tuple[int, float]:
+def best_break(A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int,
+               A_post: np.ndarray | None = None) -> tuple[int, float]:
     """Return the cut k in [lo, hi] minimising RSS([0, k)) + RSS([k, n)) of ``y ~ A``, and the ratio
     RSS(one fit) / that minimum (a least-squares structural-break estimate).
 
     Sums of outer products are accumulated per block of ``step`` rows, so the
     coarse search over block boundaries costs one pass; the best boundary is then
-    refined row by row within one block on either side.
+    refined row by row within one block on either side. With ``A_post`` the rows
+    after the cut are fitted on those regressors instead (a detached sensor after
+    it reads the air: room channels only); the ratio's one fit stays ``y ~ A``.
     """
+    if A_post is not None:
+        lo_k, r_pre = _break_costs(A, y, lo, hi, step)
+        _, r_post = _break_costs(A_post, y, lo, hi, step)
+        cost = r_pre[0] + r_post[1]
+        i = int(np.argmin(cost))
+        one = _break_costs(A, y, y.size, y.size, 1)[1][0][0]
+        return int(lo_k[i]), one / max(float(cost[i]), 1e-300)
+    return _best_break_same(A, y, lo, hi, step)
+
+
+def _break_costs(A: np.ndarray, y: np.ndarray, lo: int, hi: int,
+                 step: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Return every cut in [lo, hi] (row by row) with the RSS of ``y ~ A`` before and after it (prefix sums)."""
+    s = np.sqrt(np.mean(A * A, axis=0))
+    A = A / np.where(s > 0, s, 1.0)
+    n, p = A.shape
+    ridge = 1e-9 * n * np.eye(p)
+    cxx = np.concatenate([np.zeros((1, p, p)), np.cumsum(np.einsum("ni,nj->nij", A, A), axis=0)])
+    cxy = np.concatenate([np.zeros((1, p)), np.cumsum(A * y[:, None], axis=0)])
+    cyy = np.concatenate([[0.0], np.cumsum(y * y)])
+    ks = np.arange(lo, hi + 1)
+
+    def rss(xx: np.ndarray, xy: np.ndarray, yy: np.ndarray) -> np.ndarray:
+        beta = np.linalg.solve(xx + ridge, xy[..., None])[..., 0]
+        return np.maximum(yy - np.einsum("ki,ki->k", beta, xy), 0.0)
+
+    pre = rss(cxx[ks], cxy[ks], cyy[ks])
+    post = rss(cxx[-1] - cxx[ks], cxy[-1] - cxy[ks], cyy[-1] - cyy[ks])
+    return ks, (pre, post)
+
+
+def _best_break_same(A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int) -> tuple[int, float]:
+    """Return the best cut and RSS ratio with the same regressors on both sides (block prefix sums)."""
     s = np.sqrt(np.mean(A * A, axis=0))
     A = A / np.where(s > 0, s, 1.0)
     n, p = A.shape
@@ -184,11 +224,29 @@ def best_break(A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int) -> tup
     return int(ks[i]), one / max(float(fine[i]), 1e-300)
 
 
+def _neighbours(prep: PreparedBundle, j: int, order: list[int], n_max: int) -> list[int]:
+    """Return the channels a virtual sensor of channel j is built from (ch. 6.6: "surrounding" ones).
+
+    The other thermocouples on the same structure and the room air when the
+    bundle names structures (few regressors that share the physics extrapolate
+    well); topped up with the most correlated channels to at least 4; without
+    structure information, the ``n_max`` most correlated channels.
+    """
+    ch = prep.channels[j]
+    struct = prep.structures.get(ch, "")
+    if not struct:
+        return order[:n_max]
+    room = {prep.channel_index(c) for c in prep.room_channels}
+    same = [k for k in order if prep.structures.get(prep.channels[k], "") == struct or k in room]
+    extra = [k for k in order if k not in same]
+    return (same + extra[: max(0, 4 - len(same))])[:n_max]
+
+
 def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str, FaultScan]:
     """Return a :class:`FaultScan` for every channel (two passes: faulty channels leave the neighbourhoods).
 
     The virtual sensor of channel j is a least-squares fit of its dT on the dT of
-    its ``n_neighbours`` most correlated channels (ch. 6.6). A loose or broken
+    its surrounding channels (``_neighbours``, ch. 6.6). A loose or broken
     thermocouple is a structural break in that relation, so the change point is
     the cut that minimises the summed RSS of separate fits before and after it
     (a least-squares break estimate, evaluated for every cut at once with prefix
@@ -214,12 +272,13 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str
     corr = np.nan_to_num(np.corrcoef(np.where(finite, D, 0.0).T))
     excluded: set[int] = set()
     out: dict[str, FaultScan] = {}
+    room_cols = [prep.channel_index(c) for c in prep.room_channels if finite[prep.channel_index(c)]]
     for _pass in range(2):
         for j in range(m):
             if not finite[j]:
                 continue
             order = [k for k in np.argsort(-np.abs(corr[j])) if k != j and finite[k] and k not in excluded]
-            nb = order[:n_neighbours]
+            nb = _neighbours(prep, j, order, n_neighbours)
             if not nb or n - min_len <= min_pre:
                 continue
             A = np.column_stack([np.ones(n), D[:, nb]])
@@ -231,10 +290,23 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str
                 start = dead
             else:
                 start, ratio = best_break(A, y, min_pre, n - min_len, step)
+                if room_cols and j not in room_cols:
+                    # a detached junction becomes an air thermometer: after the cut, room air alone
+                    A_air = np.column_stack([np.ones(n), D[:, room_cols]])
+                    k_air, r_air = best_break(A, y, min_pre, n - min_len, step, A_post=A_air)
+                    if r_air > ratio:
+                        start, ratio = k_air, r_air
             rows = np.arange(n) < start
             beta = _trimmed_fit(A, y, rows)
             r = y - A @ beta
             sigma = max(robust_sigma(r[:start]), 1e-6)
+            if dead is None:
+                # a detached sensor departs gradually: the break lands where the departure is already
+                # large, so walk back to where it began (last sample within 2 sigma of the sensor)
+                k = start
+                while k > min_pre and abs(r[k - 1]) > 2.0 * sigma and np.sign(r[k - 1]) == np.sign(r[start]):
+                    k -= 1
+                start = k
             rpost = r[start:]
             strength = float(np.sqrt(np.mean(rpost * rpost)) / sigma) if rpost.size else 0.0
             persistence = float(np.mean(np.abs(rpost) > 3 * sigma)) if rpost.size else 0.0
@@ -439,9 +511,13 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
 
 
 def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray) -> tuple[float, np.ndarray]:
-    """Return the tau (s) minimising the training RSS of ``X`` + lag(dT_channel, tau) and its column.
+    """Return the tau (s) minimising the training RSS of ``X`` + lag(dT_channel, tau) and its columns.
 
-    A bounded 1-D search (scipy) on log tau between the grid neighbours of the best grid point.
+    The columns are the lag of dT started at rest on the first scan and
+    exp(-(t - t_first scan) / tau): the body's unknown initial departure from its
+    thermocouple decays with the same time constant (a machine is rarely at
+    rest when a campaign starts). A bounded 1-D search (scipy) on log tau
+    between the grid neighbours of the best grid point.
     """
     td, prep = ctx.td, ctx.prep
     taus, _ = ctx.lag_cache[channel]
@@ -451,9 +527,10 @@ def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray) -> tu
     tr = td.train
 
     def column(log_tau: float) -> np.ndarray:
-        g = lag_filter(x, dt, float(np.exp(log_tau)))
+        tau = float(np.exp(log_tau))
+        g = lag_filter(x, dt, tau)
         at = np.interp(td.t, prep.grid_t, g)
-        return at - at[0]
+        return np.column_stack([at - at[0], np.exp(-(td.t - prep.grid_t[0]) / tau)])
 
     def rss(log_tau: float) -> float:
         A = np.column_stack([X, column(log_tau)])

@@ -97,20 +97,32 @@ def robust_sigma(x: np.ndarray) -> float:
     return s
 
 
-def spike_mask(x: np.ndarray, window: int = 5, z: float = SPIKE_Z) -> np.ndarray:
-    """Return True where a sample departs from its rolling median by more than ``z`` robust sigmas."""
+def spike_mask(x: np.ndarray, z: float = SPIKE_Z) -> np.ndarray:
+    """Return True where a sample is an isolated excursion: beyond ``z`` robust sigmas of both sides.
+
+    A sample is a spike when it departs, in the same direction, from the mean of
+    the two readings before it and from the mean of the two after it by more
+    than ``z`` sigma, sigma being the robust scale of first differences / sqrt(2)
+    (the noise of one reading). A step or a fast but lasting transient is never a
+    spike (the readings after it agree with it), and the first and last two
+    readings are never flagged (one side is unknown). NaNs are skipped.
+    """
     x = np.asarray(x, dtype=float)
-    if np.isfinite(x).sum() < 2 * window:
-        return np.zeros(x.shape, dtype=bool)
-    med = pd.Series(x).rolling(window, center=True, min_periods=1).median().to_numpy()
-    dev = x - med
-    # noise scale from first differences: the deviation from a rolling median is often exactly
-    # zero (the median is one of the samples), which makes its own MAD far too small
-    d = np.diff(x[np.isfinite(x)])
-    s = robust_sigma(d) / np.sqrt(2.0)
+    out = np.zeros(x.shape, dtype=bool)
+    idx = np.flatnonzero(np.isfinite(x))
+    if idx.size < 10:
+        return out
+    v = x[idx]
+    s = robust_sigma(np.diff(v)) / np.sqrt(2.0)
     if s == 0.0:
-        return np.zeros(x.shape, dtype=bool)
-    return np.isfinite(dev) & (np.abs(dev) > z * s)
+        return out
+    left = 0.5 * (v[:-4] + v[1:-3])
+    mid = v[2:-2]
+    right = 0.5 * (v[3:-1] + v[4:])
+    dl, dr = mid - left, mid - right
+    spike = (np.sign(dl) == np.sign(dr)) & (np.abs(dl) > z * s) & (np.abs(dr) > z * s)
+    out[idx[2:-2][spike]] = True
+    return out
 
 
 def _fill_gaps(t: np.ndarray, x: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, int]:
@@ -191,6 +203,8 @@ class PreparedBundle:
     terms: list[TermData]
     flags: list[OutlierFlags] = field(default_factory=list)
     holdout_fraction: float = 0.25
+    locations: dict[str, str] = field(default_factory=dict)  # channel -> stated location ('' = unknown)
+    structures: dict[str, str] = field(default_factory=dict)  # channel -> structure ('' = unknown)
 
     def channel_index(self, name: str) -> int:
         """Return the column of channel ``name``."""
@@ -291,9 +305,15 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
     stages = [_as_plain(s) for s in (meta_get(meta, "stages", []) or [])]
     noise = _as_plain(meta_get(meta, "noise", None)) or {}
     room = [c for c in (meta_get(meta, "room_channels", []) or []) if c in channels]
+    unknown = {"", "unspecified", "unknown", "none"}
+    info = meta_get(meta, "channels", {}) or {}
+    locations = {ch: str(meta_get(v, "location", "") or "") for ch, v in info.items()}
+    structures = {ch: str(meta_get(v, "structure", "") or "") for ch, v in info.items()}
+    locations = {k: ("" if v.strip().lower() in unknown else v) for k, v in locations.items()}
+    structures = {k: ("" if v.strip().lower() in unknown else v) for k, v in structures.items()}
     return PreparedBundle(str(getattr(bundle, "name", "bundle")), channels, room, model_channels, stages,
                           {k: float(v) for k, v in noise.items() if v is not None}, grid_t, grid_T,
-                          raw_grid, terms, flags, holdout_fraction)
+                          raw_grid, terms, flags, holdout_fraction, locations, structures)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,116 @@
+"""`driftlab diagnose` end to end: reports written, malformed bundles refused in one line, real data."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from driftlab.campaigns.bundle import load_bundle, write_bundle
+from driftlab.cli import main
+from driftlab.models.diagnosis import diagnose_bundle
+
+FL_THERMAL = Path("/work/shared/data/fl_thermal")
+
+
+def _load_generator():
+    path = Path(__file__).resolve().parents[1] / "effects_generator.py"
+    spec = importlib.util.spec_from_file_location("effects_generator", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["effects_generator"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+gen = _load_generator()
+
+
+@pytest.fixture(scope="module")
+def lag_bundle(tmp_path_factory) -> Path:
+    """A bundle directory from the virtual machine with a thermal lag hidden on Z/dz."""
+    case = gen.vm_case([gen.Planted("thermal_lag", "Z", "dz", ["T34"], {"tau_s": 2400.0})], seed=7, hours=30)
+    b = case.bundle
+    return write_bundle(tmp_path_factory.mktemp("bundles") / "lag-z", b.meta, b.temperatures, b.conditions, b.errors)
+
+
+def test_diagnose_writes_json_and_html(lag_bundle, tmp_path, capsys):
+    out, page = tmp_path / "r" / "report.json", tmp_path / "report.html"
+    rc = main(["diagnose", str(lag_bundle), "--json", str(out), "--html", str(page)])
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "driftlab-diagnosis/1"
+    assert doc["bundle"] == "lag-z"
+    assert [(e["kind"], e["axis"], e["term"], e["channels"]) for e in doc["effects"]] == [
+        ("thermal_lag", "Z", "dz", ["T34"])]
+    assert abs(doc["effects"][0]["params"]["tau_s"] - 2400) < 0.3 * 2400
+    html = page.read_text()
+    assert html.startswith("<!doctype html>") and "data:image/png;base64," in html
+    assert "1 effect accepted" in capsys.readouterr().out
+
+
+def test_holdout_fraction_option(lag_bundle, tmp_path):
+    out = tmp_path / "r.json"
+    assert main(["diagnose", str(lag_bundle), "--json", str(out), "--holdout-fraction", "0.4"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["holdout"]["method"] == "last 40% of time"
+
+
+@pytest.mark.parametrize("damage, expected", [
+    (lambda d: (d / "errors.csv").write_text((d / "errors.csv").read_text().replace(",Z,dz,", ",Z,dq,", 1)),
+     "errors.csv:2:"),
+    (lambda d: (d / "campaign.json").unlink(), "campaign.json: file missing"),
+    (lambda d: (d / "temperatures.csv").write_text("time_s,T1\n0,abc\n"), "temperatures.csv:"),
+])
+def test_malformed_bundle_is_one_line_error(lag_bundle, tmp_path, damage, expected):
+    bad = tmp_path / "bad"
+    shutil.copytree(lag_bundle, bad)
+    damage(bad)
+    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "diagnose", str(bad), "--json",
+                           str(tmp_path / "r.json")], capture_output=True, text=True)
+    assert proc.returncode != 0
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("driftlab: error: ") and expected in lines[0]
+    assert not (tmp_path / "r.json").exists()
+
+
+@pytest.fixture(scope="module")
+def fl_result():
+    if not FL_THERMAL.is_dir():
+        pytest.skip("real data set not present")
+    return diagnose_bundle(load_bundle(FL_THERMAL))
+
+
+def test_real_data_every_accepted_effect_improves_the_held_out_part(fl_result):
+    res = fl_result
+    assert [(t.td.axis, t.td.term) for t in res.terms] == [("Z", "dx"), ("Z", "dy"), ("Z", "dz")]
+    for t in res.terms:
+        assert t.standard.selection.source == "screening"  # no model_channels in this bundle
+        assert 1 <= len(t.standard.channels) <= 8
+        assert t.extended.rmse_holdout <= t.standard.fit.rmse_holdout
+        for e in t.effects:
+            assert e.rmse_holdout_after < 0.9 * e.rmse_holdout_before
+            assert e.kind in ("thermal_lag", "unmapped_channel", "quadratic", "drift", "sensor_fault")
+            if e.kind == "thermal_lag":  # resolvable: between a few scans and a third of the training span
+                assert 45 < e.params["tau_s"] < 46 * 3600 * 0.75 / 3
+    doc = res.to_json_dict()
+    json.dumps(doc, allow_nan=False)
+    # position is constant and one direction only: no reversal or screw can even be tested
+    assert not any(e["kind"] in ("reversal", "screw_expansion") for e in doc["effects"])
+    # spikes of real data are flagged, not modelled
+    assert any(f["spikes"] > 0 for f in doc["flags"])
+
+
+def test_real_data_simulation_says_what_the_time_law_misses(fl_result):
+    for t in fl_result.terms:
+        text = t.simulation.gets_wrong
+        assert text.startswith("Residual RMS") and "largest during stage spindle" in text
+        assert t.simulation.rmse > t.standard.fit.rmse_train
+    assert any("time-driven law" in t.simulation.gets_wrong for t in fl_result.terms)
+    assert np.isfinite(fl_result.holdout_start_s)
