@@ -34,7 +34,7 @@ from driftlab.campaigns.plan import Cursor, Plan, parse_plan  # noqa: E402
 from driftlab.campaigns.scheduler import (  # noqa: E402
     Batch,
     StoreSink,
-    _percentile,
+    percentile,
     build_sim_rig,
     open_campaign,
     plan_scenario,
@@ -81,7 +81,7 @@ def end_to_end(tmp: Path) -> dict:
         "e2e_keeps_up": s.max_lag_s < SWEEP_S,
         "e2e_max_lag_sim_s": round(s.max_lag_s, 2),
         "e2e_sustainable_speed_x": round(s.scans_per_s() * SCAN_S, 1),
-        "e2e_commit_p99_ms": round(_percentile(s.commit_s, 99) * 1e3, 3),
+        "e2e_commit_p99_ms": round(s.p99_commit_s() * 1e3, 3),
         "e2e_reading_to_commit_p99_ms": round(s.p99_latency_s() * 1e3, 3),
         "e2e_commits": s.commits,
     }
@@ -99,7 +99,7 @@ def demo_plan_run(tmp: Path) -> dict:
         "demo_paced_wall_s": round(plan.total_s / SPEED, 3),
         "demo_max_lag_sim_s": round(s.max_lag_s, 2),
         "demo_keeps_up": s.max_lag_s < plan.scan_interval_s,
-        "demo_commit_p99_ms": round(_percentile(s.commit_s, 99) * 1e3, 3),
+        "demo_commit_p99_ms": round(s.p99_commit_s() * 1e3, 3),
     }
 
 
@@ -155,7 +155,7 @@ def store_only(tmp: Path, channels: list[str], scans: list[TemperatureScan], bat
         lat.append(time.perf_counter() - c0)
     dt = time.perf_counter() - t0
     return {"store_scans_per_s": round(len(scans) / dt, 1), "store_rows_per_s": round(len(scans) * 50 / dt),
-            "store_commit_p99_ms": round(_percentile(lat, 99) * 1e3, 3)}
+            "store_commit_p99_ms": round(percentile(lat, 99) * 1e3, 3)}
 
 
 def raw_baseline(tmp: Path, channels: list[str], scans: list[TemperatureScan], batch: int) -> dict:
@@ -178,7 +178,7 @@ def raw_baseline(tmp: Path, channels: list[str], scans: list[TemperatureScan], b
     dt = time.perf_counter() - t0
     con.close()
     return {"baseline_raw_scans_per_s": round(len(scans) / dt, 1), "baseline_raw_rows_per_s": round(len(scans) * 50 / dt),
-            "baseline_raw_commit_p99_ms": round(_percentile(lat, 99) * 1e3, 3)}
+            "baseline_raw_commit_p99_ms": round(percentile(lat, 99) * 1e3, 3)}
 
 
 def main() -> None:

@@ -29,7 +29,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -124,20 +125,25 @@ class RunStats:
     wall_s: float = 0.0
     sim_s: float = 0.0
     max_lag_s: float = 0.0
-    latencies_s: list[float] = field(default_factory=list)
-    commit_s: list[float] = field(default_factory=list)
+    # the most recent figures only: a campaign of days at 10 Hz must not grow the daemon's memory
+    latencies_s: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
+    commit_s: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
     finished: bool = False
+
+    def p99_commit_s(self) -> float:
+        """Return the 99th percentile of commit (write transaction) durations."""
+        return percentile(self.commit_s, 99.0)
 
     def p99_latency_s(self) -> float:
         """Return the 99th percentile of reading-to-committed latency (0 when nothing was stored)."""
-        return _percentile(self.latencies_s, 99.0)
+        return percentile(self.latencies_s, 99.0)
 
     def scans_per_s(self) -> float:
         """Return scans stored per wall-clock second."""
         return self.scans / self.wall_s if self.wall_s > 0 else 0.0
 
 
-def _percentile(values: list[float], q: float) -> float:
+def percentile(values: Iterable[float], q: float) -> float:
     """Return the q-th percentile (nearest rank) of values, 0 for none."""
     if not values:
         return 0.0

@@ -74,7 +74,8 @@ def _daemon(args: argparse.Namespace) -> int:
     summary = {
         "campaign_id": result.campaign_id, "finished": stats.finished, "scans": stats.scans, "points": stats.points,
         "faults": stats.faults, "commits": stats.commits, "wall_s": round(stats.wall_s, 3),
-        "scans_per_s": round(stats.scans_per_s(), 1), "p99_write_latency_ms": round(stats.p99_latency_s() * 1e3, 3),
+        "scans_per_s": round(stats.scans_per_s(), 1), "p99_commit_ms": round(stats.p99_commit_s() * 1e3, 3),
+        "p99_reading_to_commit_ms": round(stats.p99_latency_s() * 1e3, 3),
         "max_lag_s": round(stats.max_lag_s, 3), "next_scan": result.cursor.next_scan,
         "next_point": result.cursor.next_point,
     }
