@@ -31,7 +31,8 @@ def model_out(row: api_queries.ModelRow, with_document: bool = True) -> dict[str
         "terms": len(row.document.get("terms", []) or []),
     }
     if with_document:
-        out["document"] = row.document
+        # the registry keeps the version number in the row; compensators read it from the document
+        out["document"] = {**row.document, "version": row.version}
     return out
 
 

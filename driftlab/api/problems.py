@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from http import HTTPStatus
 from typing import Any
 
@@ -70,9 +71,30 @@ async def _validation_error(request: Request, exc: Exception) -> Response:
     return problem_response(422, " ".join(detail.split()), _instance(request), errors=errors)
 
 
+def allowed_methods(app: Any, path: str) -> list[str]:
+    """Return every method the OpenAPI document declares for the path template matching ``path``."""
+    patterns = getattr(app.state, "allow_patterns", None)
+    if patterns is None:
+        patterns = []
+        for template, item in app.openapi().get("paths", {}).items():
+            regex = re.sub(r"\\\{[^}]+\\\}", "[^/]+", re.escape(template))
+            patterns.append((re.compile(f"^{regex}$"), sorted(m.upper() for m in item)))
+        app.state.allow_patterns = patterns
+    methods: set[str] = set()
+    for regex, ms in patterns:
+        if regex.match(path):
+            methods.update(ms)
+    return sorted(methods)
+
+
 async def _http_error(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, StarletteHTTPException)
     headers = dict(exc.headers or {})
+    if exc.status_code == 405:
+        # Starlette names only the methods of the first route matching the path; list them all
+        methods = allowed_methods(request.app, request.url.path)
+        if methods:
+            headers["Allow"] = ", ".join(methods)
     if exc.status_code == 304 or exc.status_code < 400:
         return Response(status_code=exc.status_code, headers=headers)
     detail = exc.detail if isinstance(exc.detail, str) else json.dumps(exc.detail, default=str)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
+from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 Axis = Literal["X", "Y", "Z", "A", "B"]
 Term = Literal["alpha", "beta", "gamma", "dx", "dy", "dz"]
@@ -19,6 +19,7 @@ ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
 MAX_ID = 2**31 - 1
 ChannelName = Annotated[str, StringConstraints(pattern=ID_PATTERN)]
 TemperatureC = Annotated[float, Field(ge=-100.0, le=1000.0)]
+RowId = Annotated[int, Field(ge=1, le=MAX_ID)]
 
 
 class _Out(BaseModel):
@@ -258,24 +259,23 @@ class ModelRegisterIn(_In):
     """A new model document to store as the machine's next (and current) version."""
 
     document: dict[str, Any] = Field(description="a driftlab-model/1 document; its machine must match the path")
-    source_campaigns: list[int] = Field(default_factory=list, max_length=1000)
+    source_campaigns: list[RowId] = Field(default_factory=list, max_length=1000)
 
 
 # ----------------------------------------------------------------------------- jobs
 
 
 class JobSubmit(_In):
-    """A fit (of a machine from its campaigns) or a diagnosis (of one campaign) to run in the background."""
+    """A fit (of a machine from its campaigns, by the fitting pipeline's job runner) or a diagnosis (of one
+    campaign) to run in the background."""
 
     kind: JobKind
     machine_id: str | None = Field(default=None, pattern=ID_PATTERN)
-    campaign_ids: list[int] = Field(default_factory=list, max_length=200,
+    campaign_ids: list[RowId] = Field(default_factory=list, max_length=200,
                                     description="fit: the campaigns (default every campaign of the machine); "
                                                 "diagnose: exactly one")
-    holdout_fraction: float = Field(default=0.25, gt=0.0, lt=0.9)
-    network: bool = Field(default=False, description="fit: also train the neural-network comparison")
-    virtual_sensors: bool = Field(default=False, description="fit: also fit virtual sensors")
-    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+    holdout_fraction: float = Field(default=0.25, gt=0.0, lt=0.9,
+                                    description="diagnose: fraction of each (axis, term)'s rows held out")
 
 
 class JobOut(_Out):
@@ -309,7 +309,7 @@ class JobList(_Out):
 class ProbeIn(_In):
     """A touch-probe sphere-centre measurement: pose, temperatures and the measured deviation (mm)."""
 
-    measured_at: datetime | None = Field(default=None, description="UTC; default now")
+    measured_at: datetime | None = Field(default=None, description="between 1970 and 2200, UTC when naive; default now")
     x: float = Field(ge=-1e4, le=1e4)
     y: float = Field(ge=-1e4, le=1e4)
     z: float = Field(ge=-1e4, le=1e4)
@@ -318,24 +318,12 @@ class ProbeIn(_In):
     dx: float = Field(ge=-10.0, le=10.0)
     dy: float = Field(ge=-10.0, le=10.0)
     dz: float = Field(ge=-10.0, le=10.0)
+    # patternProperties alone would let any other key through in the schema: close it
     temperatures: dict[ChannelName, TemperatureC] = Field(default_factory=dict, max_length=200,
-                                           description="degC per channel: the model's inputs and the on-line channels")
-    channels: list[ChannelName] | None = Field(default=None, max_length=20,
-                                       description="on-line regressor channels (only when the state starts)")
+                                                          json_schema_extra={"additionalProperties": False},
+                                           description="degC per channel: at least the model's inputs")
     forgetting: float | None = Field(default=None, gt=0.5, le=1.0,
                                      description="forgetting factor lambda (only when the state starts)")
-
-    @field_validator("measured_at")
-    @classmethod
-    def _plausible_time(cls, v: datetime | None) -> datetime | None:
-        """Return the time in UTC (naive means UTC); refuse times outside 1970-2200."""
-        if v is None:
-            return None
-        if v.tzinfo is None:
-            v = v.replace(tzinfo=UTC)
-        if not datetime(1970, 1, 2, tzinfo=UTC) <= v <= datetime(2200, 1, 1, tzinfo=UTC):
-            raise ValueError("measured_at must lie between 1970 and 2200")
-        return v.astimezone(UTC)
 
 
 class Vector3(_Out):
@@ -351,7 +339,6 @@ class OnlineOut(_Out):
 
     machine_id: str
     model_version: int
-    channels: list[str]
     forgetting: float
     n_updates: int
     theta: dict[str, list[float]]

@@ -5,10 +5,10 @@ Every function takes a ``Store`` and runs in one transaction of its own (writes 
 ``db.write_transaction``). Paging is keyset paging on the tables' primary keys, so a page costs one
 range scan whatever its offset in the history.
 
-The on-line state is kept, for now, in the ``jobs`` table: each probe update is one ``online_update``
-job row, born ``done``, whose ``result`` holds the RLS state after that update (the latest row of a
-machine and model version is the state). That is an audit trail of the updates as well; a dedicated
-table would be cleaner and needs a migration from the store's owner.
+The on-line state lives where ``driftlab.models.online`` keeps it: in the ``jobs`` table, as finished
+jobs of kind ``online`` whose ``result`` is the RLS state (the latest row of a machine is its state).
+Each probe update posted to the API writes its probe measurement and its new state in one
+transaction. A dedicated table would be cleaner; it needs a migration from the store's owner.
 """
 
 from __future__ import annotations
@@ -24,8 +24,6 @@ from driftlab.campaigns import schema as sc
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
 from driftlab.campaigns.store import Store
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
-
-ONLINE_KIND = "online_update"
 
 
 @dataclass(frozen=True)
@@ -321,36 +319,33 @@ def check_job_targets(store: Store, machine_id: str | None, campaign_ids: list[i
 # ----------------------------------------------------------------------------- on-line state
 
 
-def online_state(store: Store, machine_id: str, model_version_id: int) -> dict[str, Any] | None:
-    """Return the latest persisted on-line state of a machine for one model version (None before any)."""
+def latest_online(store: Store, machine_id: str, kind: str) -> tuple[int | None, dict[str, Any] | None]:
+    """Return (job id, result) of the machine's latest finished on-line update job of ``kind`` (None, None before any)."""
     with _read(store) as conn:
-        return _latest_online(conn, machine_id, model_version_id)
+        return _latest_online(conn, machine_id, kind)
 
 
-def _latest_online(conn: Connection, machine_id: str, model_version_id: int) -> dict[str, Any] | None:
-    rows = conn.execute(
-        select(sc.Job.result).where(sc.Job.kind == ONLINE_KIND, sc.Job.machine_id == machine_id,
-                                    sc.Job.state == "done").order_by(sc.Job.id.desc()).limit(50)
-    ).scalars().all()
-    for r in rows:
-        if r and r.get("model_version_id") == model_version_id:
-            return dict(r)
-    return None
+def _latest_online(conn: Connection, machine_id: str, kind: str) -> tuple[int | None, dict[str, Any] | None]:
+    row = conn.execute(
+        select(sc.Job.id, sc.Job.result).where(sc.Job.kind == kind, sc.Job.machine_id == machine_id,
+                                               sc.Job.state == "done").order_by(sc.Job.id.desc()).limit(1)
+    ).first()
+    return (None, None) if row is None else (int(row.id), dict(row.result or {}))
 
 
-def save_online_update(store: Store, machine_id: str, model_version_id: int, measured_at: datetime,
-                       pose: dict[str, float], measured: dict[str, float], expected_updates: int,
-                       new_state: dict[str, Any], params: dict[str, Any]) -> int:
-    """Persist one probe measurement and the RLS state after it, in one transaction; return the update's id.
+def save_online_update(store: Store, machine_id: str, kind: str, expected_job_id: int | None,
+                       model_version_id: int, measured_at: datetime, pose: dict[str, float],
+                       measured: dict[str, float], result: dict[str, Any], params: dict[str, Any]) -> int:
+    """Persist one probe measurement and the on-line state after it, in one transaction; return the update's id.
 
-    ``expected_updates`` is the update count of the state the new one was computed from: a
-    concurrent update of the same machine makes it stale and the write is refused (ConflictError).
+    The state is a finished job of ``kind`` whose result is the state (the format the fitting
+    pipeline's ``driftlab online`` reads). ``expected_job_id`` is the update the new state was computed
+    from: if another update of the machine landed meanwhile the write is refused (ConflictError).
     """
     store.ensure_schema()
     with db.write_transaction(store.engine) as conn:
         _lock_machine(conn, machine_id)
-        latest = _latest_online(conn, machine_id, model_version_id)
-        if (latest or {}).get("n_updates", 0) != expected_updates:
+        if _latest_online(conn, machine_id, kind)[0] != expected_job_id:
             raise ConflictError(f"machine {machine_id!r}: a concurrent on-line update landed first; retry")
         clash = conn.execute(select(sc.ProbeMeasurement.id).where(
             sc.ProbeMeasurement.machine_id == machine_id, sc.ProbeMeasurement.measured_at == measured_at)).first()
@@ -362,8 +357,8 @@ def save_online_update(store: Store, machine_id: str, model_version_id: int, mea
             dx=measured["dx"], dy=measured["dy"], dz=measured["dz"]))
         now = sc.utcnow()
         return int(conn.execute(insert(sc.Job).values(
-            kind=ONLINE_KIND, state="done", params=params, result=new_state, machine_id=machine_id,
-            attempts=1, worker="api", created_at=now, started_at=now, finished_at=now,
+            kind=kind, state="done", params=params, result=result, machine_id=machine_id,
+            attempts=1, worker="api", created_at=now, started_at=now, heartbeat_at=now, finished_at=now,
         ).returning(sc.Job.id)).scalar_one())
 
 

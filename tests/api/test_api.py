@@ -233,7 +233,7 @@ async def test_fit_and_diagnosis_jobs_run_in_the_background(client: httpx.AsyncC
     r = await client.post("/jobs", json={"kind": "fit", "machine_id": MACHINE}, headers=AUTH)
     assert r.status_code == 202 and r.json()["state"] in ("queued", "running")
     assert r.headers["location"] == f"/jobs/{r.json()['id']}"
-    assert r.json()["params"]["campaign_ids"] == [seeded.campaign_id]
+    assert r.json()["params"]["campaigns"] == [seeded.campaign_id]
     job = await _wait_job(client, r.json()["id"])
     assert job["state"] == "done", job["error"]
     assert job["result"]["model_version"] == seeded.model_version + 1
@@ -266,7 +266,7 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
                 "temperatures": {"T1": t1, "T2": 23.0, "T49": 20.5},
                 "measured_at": f"2026-03-03T08:{k:02d}:00Z"}
         if k == 0:
-            body |= {"channels": ["T49"], "forgetting": 0.95}
+            body |= {"forgetting": 0.95}
         # measure exactly what the models predict plus the constant offset
         off = client.app.state.driftlab  # type: ignore[attr-defined]
         from driftlab.models.registry import predict_workspace_errors
@@ -278,19 +278,28 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
         r = await client.post(url, json=body, headers=AUTH)
         assert r.status_code == 200, r.text
         last = r.json()
-        assert last["n_updates"] == k + 1 and last["channels"] == ["T49"] and last["forgetting"] == 0.95
+        assert last["n_updates"] == k + 1 and last["forgetting"] == 0.95
     assert last is not None
+    # intercept-only RLS from P(0) = 1 on a constant residual r: theta_n = r S / (lambda^n + S), S = sum lambda^i
+    lam, n = 0.95, 30
+    s = sum(lam**i for i in range(n))
     for c in ("dx", "dy", "dz"):
-        assert abs(last["online_prediction"][c] - offset[c]) < 1e-5
+        assert math.isclose(last["online_prediction"][c], offset[c] * s / (lam**n + s), rel_tol=1e-9)
+        assert abs(last["prior_error"][c]) < 0.02 * abs(offset[c])
         assert math.isclose(last["correction"][c], -(last["offline_prediction"][c] + last["online_prediction"][c]))
     state = (await client.get(f"/machines/{MACHINE}/online")).json()
     assert state["n_updates"] == 30 and state["theta"] == last["theta"]
+    # the state is the one `driftlab online` continues from
+    from driftlab.models.online import latest_online_states
+
+    shared = latest_online_states(store, MACHINE, seeded.model_version)
+    assert shared["dz"].n_updates == 30 and shared["dz"].theta.tolist() == last["theta"]["dz"]
     counts = store.table_counts()
     assert counts["probe_measurements"] == 30
     # the same probing twice is refused and changes nothing; a channel change is refused
     dup = await client.post(url, json={**body}, headers=AUTH)
     assert_problem(dup, 409)
-    assert_problem(await client.post(url, json={**body, "measured_at": "2026-03-04T00:00:00Z", "channels": ["T1"]},
+    assert_problem(await client.post(url, json={**body, "measured_at": "2026-03-04T00:00:00Z", "forgetting": 0.9},
                                      headers=AUTH), 409)
     assert_problem(await client.post(url, json={**body, "measured_at": "2026-03-04T00:00:00Z",
                                                 "temperatures": {"T1": 25.0}}, headers=AUTH), 422)

@@ -1,7 +1,9 @@
 """Jobs: submit a fit or a diagnosis (a row of the store's jobs table), poll its state; the runner.
 
-The API server runs queued jobs itself in one background thread (``JobRunner``) unless told not to;
-any other worker process claiming from the same table works alongside it (claims are atomic).
+The API server runs queued jobs itself in one background thread (``JobRunner``) unless told not to:
+fits through the fitting pipeline's job runner (``driftlab.models.fitting.run_fit_job``, the same
+jobs ``driftlab fit --enqueue`` queues and ``driftlab fit --worker`` runs), diagnoses here. Any
+other worker claiming from the same table works alongside it (claims are atomic).
 """
 
 from __future__ import annotations
@@ -20,12 +22,14 @@ from driftlab.api.schemas import ID_PATTERN, MAX_ID, JobKind, JobList, JobOut, J
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import JobInfo, Store
 from driftlab.errors import DriftlabError, ValidationError
+from driftlab.models import fitting
 
 log = logging.getLogger(__name__)
 
 router = APIRouter(tags=["jobs"])
 
-JOB_KINDS = ("fit", "diagnose")
+DIAGNOSE_JOB = "diagnose"
+JOB_KINDS = (fitting.FIT_JOB, DIAGNOSE_JOB)
 
 
 def _finite(obj: Any) -> Any:
@@ -46,31 +50,16 @@ def job_out(j: Any) -> JobOut:
                   created_at=j.created_at, started_at=j.started_at, finished_at=j.finished_at)
 
 
-def run_job(store: Store, job: JobInfo) -> dict[str, Any]:
-    """Run a claimed fit or diagnosis job and return its JSON result (DriftlabError when it cannot run)."""
-    p = job.params
-    if job.kind == "fit":
-        from driftlab.models import registry
-        from driftlab.models.fitting import FitOptions, fit_bundles
+def run_diagnosis(store: Store, job: JobInfo) -> dict[str, Any]:
+    """Run a claimed diagnosis job and return its JSON result (DriftlabError when it cannot run)."""
+    from driftlab.models.diagnosis import diagnose_bundle
 
-        ids = [int(c) for c in p.get("campaign_ids", [])]
-        if not ids:
-            raise ValidationError("no campaigns to fit")
-        bundles = [store.load_campaign(c) for c in ids]
-        opts = FitOptions(holdout_fraction=float(p.get("holdout_fraction", 0.25)), network=bool(p.get("network")),
-                          virtual_sensors=bool(p.get("virtual_sensors")), seed=int(p.get("seed", 0)))
-        fit = fit_bundles(bundles, opts, source_campaigns=ids)
-        doc = registry.register_model(store, fit.document, source_campaigns=ids)
-        report = fit.report()
-        report["model_version"] = doc.version
-        return _finite({"machine_id": doc.machine, "model_version": doc.version, "report": report})
-    if job.kind == "diagnose":
-        from driftlab.models.diagnosis import diagnose_bundle
-
-        cid = int(p["campaign_ids"][0])
-        result = diagnose_bundle(store.load_campaign(cid), holdout_fraction=float(p.get("holdout_fraction", 0.25)))
-        return _finite({"campaign_id": cid, "report": result.to_json_dict()})
-    raise ValidationError(f"unknown job kind {job.kind!r}")
+    ids = [int(c) for c in job.params.get("campaigns", [])]
+    if len(ids) != 1:
+        raise ValidationError("a diagnosis is of exactly one campaign")
+    result = diagnose_bundle(store.load_campaign(ids[0]),
+                             holdout_fraction=float(job.params.get("holdout_fraction", 0.25)))
+    return _finite({"campaign_id": ids[0], "report": result.to_json_dict()})
 
 
 class JobRunner(threading.Thread):
@@ -129,23 +118,23 @@ class JobRunner(threading.Thread):
         beater = threading.Thread(target=beat, name=f"job-{job.id}-heartbeat", daemon=True)
         beater.start()
         try:
-            result = run_job(store, job)
-        except DriftlabError as exc:
-            done.set()
-            store.fail_job(job.id, self.worker, exc.one_line())
+            if job.kind == fitting.FIT_JOB:
+                # records done (with the fit report) or failed itself, then re-raises a failure
+                fitting.run_fit_job(store, job, self.worker)
+            else:
+                store.finish_job(job.id, self.worker, run_diagnosis(store, job))
         except Exception as exc:
-            done.set()
-            log.exception("job %s (%s) failed", job.id, job.kind)
-            store.fail_job(job.id, self.worker, f"{type(exc).__name__}: {exc}")
-        else:
-            done.set()
-            store.finish_job(job.id, self.worker, result)
-            if job.kind == "fit" and result.get("machine_id"):
-                self.state.models.invalidate(str(result["machine_id"]))
+            log.log(logging.INFO if isinstance(exc, DriftlabError) else logging.ERROR,
+                    "job %s (%s) failed", job.id, job.kind, exc_info=not isinstance(exc, DriftlabError))
+            if store.get_job(job.id).state == "running":
+                text = exc.one_line() if isinstance(exc, DriftlabError) else f"{type(exc).__name__}: {exc}"
+                store.fail_job(job.id, self.worker, text)
         finally:
             done.set()
             beater.join(1.0)
             self.ran += 1
+            if job.kind == fitting.FIT_JOB and job.machine_id:
+                self.state.models.invalidate(job.machine_id)
 
 
 @router.post("/jobs", response_model=JobOut, status_code=202, dependencies=[Depends(require_token)],
@@ -160,8 +149,9 @@ def submit(body: JobSubmit, state: Annotated[ApiState, Depends(get_state)], resp
     ids = api_queries.check_job_targets(state.store, body.machine_id, ids)
     if body.kind == "fit" and not ids:
         raise ValidationError(f"machine {body.machine_id!r} has no campaigns to fit")
-    params = {"campaign_ids": ids, "holdout_fraction": body.holdout_fraction, "network": body.network,
-              "virtual_sensors": body.virtual_sensors, "seed": body.seed}
+    params: dict[str, Any] = {"campaigns": ids}  # the fitting pipeline's job parameters
+    if body.kind == DIAGNOSE_JOB:
+        params["holdout_fraction"] = body.holdout_fraction
     machine = body.machine_id
     if machine is None and ids:
         machine = api_queries.campaign_detail(state.store, ids[0])[0].machine_id
