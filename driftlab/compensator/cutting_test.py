@@ -1,0 +1,705 @@
+"""The cutting test of thesis ch. 7.3 on the virtual machine: a freeform surface cut three times.
+
+The design surface (fig. 7.2 stands for "a surface which would require the motion of all of the
+axes and be realistic compared to the surfaces created in the mold and die industry") is the
+analytic height field of :class:`MouldSurface`: over ``u`` (across the part, 15 CMM points) and
+``v`` (along the part, 99 CMM points, the direction of time)
+
+    z(u, v) = h1 sin(pi v / L) cos(0.8 pi (u - W/2) / W) + h2 sin(2 pi v / L + pi u / W)
+
+a doubly curved bump with an oblique ripple, whose normal tilts by up to about 20 degrees in
+both directions. A ball-nose tool (radius 3 mm) is held along the surface normal, so the A and B
+axes move with X, Y and Z; the tool centre follows the offset surface ``S + r n``. The program is
+a raster of short 5-axis G1 blocks across the part (passes along ``u``, zig-zag, stepping along
+``v``), at 2000 mm/min translation and at most 300 deg/min rotation, the spindle at 10,000 rpm.
+
+While it runs, the virtual machine heats up: :class:`MachiningMachine` turns the spindle and the
+mean feed of every axis into the heat sources of its thermal network for the time of the cut. The
+program streams through the machine link (``daq.machine_link.SerialMachineLink``) to the
+simulated controller, which executes it at the programmed feeds on the simulated clock; every
+executed block is logged with its time. The machined surface is the tool centre as the real,
+error-laden chain (eq. 4.12 with the true link and joint errors of the virtual machine at the
+moment the block ends) places it on the part; measured like the CMM of ch. 7.3 it is the normal
+deviation from the design surface at 15 x 99 points.
+
+Three runs (ch. 7.3): uncompensated; compensated with the off-line model (streamed through
+``compensator.stream.Streamer``); and off-line plus the on-line model of ch. 6.4.3: every
+15 minutes the program pauses, the touch probe measures reference spheres at the extremes of the
+work space (``daq.probe.TouchProbe`` through the controller), and a recursive least-squares
+model (eqs. 6.10-6.13) of what the off-line model leaves (measured minus predicted work-space
+translation) is updated; its prediction is applied on top of the off-line model as a translation
+of the spindle-side link T1, i.e. directly as axis offsets (ch. 7.2).
+
+Conventions: the chain maps part coordinates to the spindle frame, the tool centre sits at the
+spindle origin, so the machined point is ``inv(T_real) @ origin`` (part frame). A probed sphere
+appears displaced by the work-space translation error at its pose (the convention of
+``daq.sim.instruments.world_sphere_offset``), so the probe measures ``W`` directly. Hidden effects of
+the scenario are defined as work-space errors of one axis moving with the others at home (spec
+section 3); at a general pose each is the error of that axis' own joint which, with the other
+axes at home, produces exactly that work-space error (allocated by eq. 4.20).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from driftlab.compensator.compensate import ErrorModel
+from driftlab.daq.sim import truth
+from driftlab.daq.sim.instruments import ManualClock, SimController, SimSphere, serial_url
+from driftlab.daq.sim.machine import VirtualMachine
+from driftlab.daq.sim.scenario import TERMS, Scenario, Stage
+from driftlab.daq.sim.sites import FEED_REF_MM_MIN, SITE_INDEX, SOURCES, SPINDLE_REF_RPM
+from driftlab.errors import ValidationError
+from driftlab.models import kinematics as kin
+
+log = logging.getLogger(__name__)
+
+#: ch. 7.3 cutting conditions
+SPINDLE_RPM = 10000.0
+FEED_MM_MIN = 2000.0
+ROTARY_FEED_DEG_MIN = 300.0
+#: ch. 7.3 CMM grid: 15 points across the part, 99 along it (the direction of time)
+CMM_ACROSS = 15
+CMM_ALONG = 99
+#: ch. 7.3: the on-line model was updated every 15 minutes
+ONLINE_INTERVAL_S = 900.0
+JOINT_OF_AXIS = {"X": "phi_x", "Y": "phi_y", "Z": "phi_z", "A": "theta_x", "B": "theta_y"}
+AXES = ("X", "Y", "Z", "A", "B")
+
+
+# ----------------------------------------------------------------------------- the design surface
+
+
+@dataclass(frozen=True)
+class MouldSurface:
+    """The analytic design surface of the cutting test (see the module docstring), part frame in mm."""
+
+    width_mm: float = 112.0  # across (u): part y
+    length_mm: float = 120.0  # along (v): part x, the direction of time
+    h1_mm: float = 8.0
+    h2_mm: float = 3.0
+    tool_radius_mm: float = 3.0
+
+    def height(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Return the surface height z(u, v) (mm)."""
+        W, L = self.width_mm, self.length_mm
+        return (self.h1_mm * np.sin(np.pi * v / L) * np.cos(0.8 * np.pi * (u - W / 2) / W)
+                + self.h2_mm * np.sin(2 * np.pi * v / L + np.pi * u / W))
+
+    def gradient(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return (dz/du, dz/dv)."""
+        W, L = self.width_mm, self.length_mm
+        k = 0.8 * np.pi / W
+        ph = 2 * np.pi * v / L + np.pi * u / W
+        dzu = -self.h1_mm * np.sin(np.pi * v / L) * k * np.sin(k * (u - W / 2)) + self.h2_mm * np.pi / W * np.cos(ph)
+        dzv = (self.h1_mm * np.pi / L * np.cos(np.pi * v / L) * np.cos(k * (u - W / 2))
+               + self.h2_mm * 2 * np.pi / L * np.cos(ph))
+        return dzu, dzv
+
+    def point(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Return (N, 3) surface points in the part frame: x = v, y = u, z = height."""
+        u, v = np.broadcast_arrays(np.asarray(u, float), np.asarray(v, float))
+        return np.stack([v, u, self.height(u, v)], axis=-1)
+
+    def normal(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Return (N, 3) outward unit normals (part frame; +z side)."""
+        u, v = np.broadcast_arrays(np.asarray(u, float), np.asarray(v, float))
+        dzu, dzv = self.gradient(u, v)
+        n = np.stack([-dzv, -dzu, np.ones_like(dzu)], axis=-1)  # x = v, y = u
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def inverse_kinematics(centre: np.ndarray, axis: np.ndarray, dims: Mapping[str, Any] = kin.TABLE_A1,
+                       angle_step_deg: float = 0.001) -> np.ndarray:
+    """Return (N, 5) joints putting the tool centre on ``centre`` with the tool along ``axis`` (part frame).
+
+    The ideal chain (eq. 4.19) turns the part by ``Rx(A) Ry(B)``; the tool axis is the spindle z,
+    so ``Rx(A) Ry(B) n = e_z``: ``B = atan2(-n_x, n_z)``, ``A = atan2(n_y, -n_x sin B + n_z cos B)``.
+    The angles are put on the program's grid first and X, Y, Z solved for them (the position of the
+    chain is affine in X, Y, Z with unit slope), so rounding the angles does not move the tool centre.
+    """
+    c = np.atleast_2d(np.asarray(centre, float))
+    n = np.atleast_2d(np.asarray(axis, float))
+    b = np.arctan2(-n[:, 0], n[:, 2])
+    a = np.arctan2(n[:, 1], -n[:, 0] * np.sin(b) + n[:, 2] * np.cos(b))
+    step = np.deg2rad(angle_step_deg)
+    a, b = np.round(a / step) * step, np.round(b / step) * step
+    q = np.column_stack([np.zeros((len(c), 3)), a, b])
+    T0 = kin.ideal_chain(q, dims)
+    # spindle-frame position of the part point: R c + t; zero at the tool centre
+    q[:, :3] = -(np.einsum("nij,nj->ni", T0[:, :3, :3], c) + T0[:, :3, 3])
+    return q
+
+
+def tool_centre(q: np.ndarray, errors: kin.ElementErrors | None = None,
+                dims: Mapping[str, Any] = kin.TABLE_A1) -> np.ndarray:
+    """Return (N, 3) the tool centre (spindle origin) in the part frame for the chain at q (eq. 4.12)."""
+    T = kin.machine_chain(q, errors, dims) if errors else kin.ideal_chain(q, dims)
+    return kin.affine_inverse(T)[:, :3, 3]
+
+
+# ----------------------------------------------------------------------------- the program
+
+
+@dataclass(frozen=True)
+class CuttingProgram:
+    """The raster program of the cutting test and where each CMM point lies in it."""
+
+    text: str
+    #: (B, 5) block targets as written (mm, deg); block 0 is the rapid to the first point
+    pose_written: np.ndarray
+    #: (B, 3) design tool centres and (B, 3) surface normals, part frame
+    centre: np.ndarray
+    normal: np.ndarray
+    #: (B, 2) surface parameters (u across, v along) of each block's target
+    uv: np.ndarray
+    #: (3,) where the part frame's origin of the surface sits
+    part_origin: np.ndarray
+    #: (CMM_ALONG, CMM_ACROSS) block index whose end is each CMM point
+    cmm_block: np.ndarray
+    #: (B,) estimated duration of each block (s) at the programmed feeds
+    block_s: np.ndarray
+    #: mean |speed| of each axis over the cut, mm/min (deg/min for A, B)
+    mean_feed: dict[str, float]
+    surface: MouldSurface
+    passes: int
+
+    @property
+    def duration_s(self) -> float:
+        """Return the estimated cutting time (s)."""
+        return float(self.block_s.sum())
+
+    @property
+    def start_pose(self) -> tuple[float, ...]:
+        """Return the pose of the rapid move's target (mm, deg)."""
+        return tuple(float(v) for v in self.pose_written[0])
+
+    def lines(self) -> list[str]:
+        """Return the program's lines."""
+        return self.text.splitlines()
+
+
+def make_program(surface: MouldSurface | None = None, passes: int = 700, *,
+                 part_origin: Sequence[float] | None = None, dims: Mapping[str, Any] = kin.TABLE_A1) -> CuttingProgram:
+    """Return the raster program: ``passes`` zig-zag passes across the part, 15 points each (5-axis G1).
+
+    The part sits on the table so that the middle of the cut is in the middle of the X, Y, Z travel
+    (Tables A.3/A.4). Each G1 block's F makes the block last as long as the slower of 2000 mm/min
+    translation and 300 deg/min rotation (ch. 7.3).
+    """
+    s = surface or MouldSurface()
+    if passes < CMM_ALONG:
+        raise ValidationError(f"the cutting test needs at least {CMM_ALONG} passes (one per CMM row), got {passes}")
+    u = np.linspace(0.0, s.width_mm, CMM_ACROSS)
+    v = np.linspace(0.0, s.length_mm, passes)
+    uu = np.tile(u, (passes, 1))
+    uu[1::2] = uu[1::2, ::-1]  # zig-zag
+    vv = np.repeat(v[:, None], CMM_ACROSS, axis=1)
+    uf, vf = uu.ravel(), vv.ravel()
+    n = s.normal(uf, vf)
+    c = s.point(uf, vf) + s.tool_radius_mm * n
+    if part_origin is None:
+        q0 = inverse_kinematics(c, n, dims)
+        target = np.array([127.0, 127.0, -127.0])
+        part_origin = (q0[:, :3].min(axis=0) + q0[:, :3].max(axis=0)) / 2 - target
+    c = c + np.asarray(part_origin, float)
+    q = inverse_kinematics(c, n, dims)
+    pose = q.copy()
+    pose[:, 3:] = np.rad2deg(pose[:, 3:])
+    pose[:, :3] = np.round(pose[:, :3], 4)
+    pose[:, 3:] = np.round(pose[:, 3:], 3)
+    lin = np.r_[0.0, np.linalg.norm(np.diff(pose[:, :3], axis=0), axis=1)]
+    rot = np.r_[0.0, np.linalg.norm(np.diff(pose[:, 3:], axis=0), axis=1)]
+    t_min = np.maximum(lin / FEED_MM_MIN, rot / ROTARY_FEED_DEG_MIN)  # minutes per block
+    feed = np.where(lin > 0, lin / np.where(t_min > 0, t_min, 1.0), FEED_MM_MIN)
+    feed = np.clip(np.floor(feed * 10) / 10, 1.0, FEED_MM_MIN)
+    block_s = np.where(lin > 0, 60.0 * lin / feed, 60.0 * rot / ROTARY_FEED_DEG_MIN)
+    block_s[0] = 0.0
+    lines = ["%", "(driftlab cutting test, thesis ch. 7.3: freeform surface, ball nose r3)",
+             "G90", f"S{SPINDLE_RPM:.0f} M3",
+             "G0 " + _words(pose[0])]
+    lines += [f"G1 {_words(p)} F{f:.1f}" for p, f in zip(pose[1:], feed[1:])]
+    lines += ["M5", "%"]
+    rows = np.round(np.linspace(0, passes - 1, CMM_ALONG)).astype(int)
+    cols = np.arange(CMM_ACROSS)
+    cmm = rows[:, None] * CMM_ACROSS + np.where(rows[:, None] % 2 == 0, cols[None, :], CMM_ACROSS - 1 - cols[None, :])
+    dur = block_s.sum() / 60.0
+    mean_feed = {a: float(np.abs(np.diff(pose[:, k])).sum() / dur) for k, a in enumerate(AXES)} if dur > 0 else {
+        a: 0.0 for a in AXES}
+    return CuttingProgram("\n".join(lines) + "\n", pose, c, n, np.column_stack([uf, vf]),
+                          np.asarray(part_origin, float), cmm, block_s, mean_feed, s, passes)
+
+
+def _words(p: np.ndarray) -> str:
+    """Return the axis words of one pose (4 decimals in mm, 3 in deg)."""
+    return f"X{p[0]:.4f} Y{p[1]:.4f} Z{p[2]:.4f} A{p[3]:.3f} B{p[4]:.3f}"
+
+
+# ----------------------------------------------------------------------------- the machine while it cuts
+
+
+class MachiningMachine(VirtualMachine):
+    """The virtual machine powered on (motors holding) from t = 0, cutting between ``cut_start_s`` and ``cut_end_s``.
+
+    While it cuts, the spindle runs at the program's speed and each axis' motor heats with its mean
+    feed (the heat sources of the thermal network, normalised as in ``daq.sim.sites``).
+    """
+
+    def __init__(self, scenario: Scenario, cut_start_s: float, cut_end_s: float,
+                 mean_feed: Mapping[str, float], spindle_rpm: float = SPINDLE_RPM) -> None:
+        end = max(cut_end_s + 3600.0, scenario.duration_s)
+        base = scenario.model_copy(update={
+            "hours": end / 3600.0,
+            "stages": [Stage(name="powered", start_s=0.0, end_s=end, heat_source="idle")],
+        })
+        self.cut_start_s, self.cut_end_s = float(cut_start_s), float(cut_end_s)
+        self.mean_feed = dict(mean_feed)
+        self.spindle_rpm = float(spindle_rpm)
+        super().__init__(base)
+
+    def sources(self, t_s: np.ndarray) -> np.ndarray:
+        """Return (N, 10) heat-source levels: powered and holding, plus spindle and feeds while cutting."""
+        u = super().sources(t_s)
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        cut = (t >= self.cut_start_s) & (t < self.cut_end_s)
+        u[cut, SOURCES.index("spindle")] = self.spindle_rpm / SPINDLE_REF_RPM
+        for a, f in self.mean_feed.items():
+            u[cut, SOURCES.index(f"feed_{a.lower()}")] = f / FEED_REF_MM_MIN
+        return u
+
+
+def hidden_element_errors(vm: VirtualMachine, t_s: np.ndarray, q: np.ndarray,
+                          direction: np.ndarray) -> dict[str, np.ndarray]:
+    """Return the scenario's hidden effects as errors of each effect's own joint at poses q (N, 5).
+
+    Each effect is the work-space error of spec section 3 with its axis moved and the others at
+    home; the joint error that produces exactly it there is found by eq. 4.20 and then acts at q.
+    """
+    t = np.atleast_1d(np.asarray(t_s, float))
+    out: dict[str, np.ndarray] = {}
+    dT = None
+    for eff in vm.scenario.hidden:
+        if eff.kind == "sensor_fault" or eff.axis is None or eff.term is None:
+            continue
+        k = AXES.index(eff.axis)
+        pos = np.rad2deg(q[:, k]) if eff.axis in truth.ROTARY else q[:, k]
+        ch_dT = lag = None
+        if eff.channels:
+            if dT is None:
+                dT = vm.true_dT_array(t)
+            ch_dT = dT[:, SITE_INDEX[eff.channels[0]]]
+            if eff.kind == "thermal_lag":
+                lag = vm.lagged_dT(eff.channels[0], float(eff.params["tau_s"]), t)
+        W = np.zeros((len(t), 6))
+        W[:, TERMS.index(eff.term)] = truth.hidden_delta(eff, t, pos, direction[:, k], ch_dT, lag)
+        joint = JOINT_OF_AXIS[eff.axis]
+        E = kin.allocate(W, truth.axis_pose(eff.axis, pos), None, joint)  # eq. 4.20
+        out[joint] = out[joint] + E if joint in out else E
+    return out
+
+
+def true_errors(vm: VirtualMachine, t_s: np.ndarray, q: np.ndarray, direction: np.ndarray) -> dict[str, np.ndarray]:
+    """Return the virtual machine's true link and joint errors at times t and poses q (base truth + hidden)."""
+    t = np.atleast_1d(np.asarray(t_s, float))
+    errs = dict(truth.element_errors(q, vm.true_dT_array(t)))
+    for e, v in hidden_element_errors(vm, t, q, direction).items():
+        errs[e] = errs[e] + v if e in errs else v
+    return errs
+
+
+def true_workspace_translation(vm: VirtualMachine, t_s: float, xyz: Sequence[float]) -> np.ndarray:
+    """Return the (3,) true work-space translation error at pose (X, Y, Z, A = B = 0) at time t."""
+    q = np.array([[xyz[0], xyz[1], xyz[2], 0.0, 0.0]])
+    return kin.workspace_error(q, true_errors(vm, np.array([t_s]), q, np.ones((1, 5))))[0, 3:]
+
+
+# ----------------------------------------------------------------------------- the controller's log
+
+
+@dataclass(frozen=True)
+class ExecutedBlock:
+    """A block as the simulated controller ran it: sequence number, target (mm, deg), start and end time."""
+
+    seq: int
+    target: tuple[float, ...]
+    start: tuple[float, ...]
+    t_start_s: float
+    t_end_s: float
+
+
+class _LoggedQueue(deque):
+    """The controller's block queue, noting each block as it starts executing."""
+
+    def __init__(self, ctrl: "LoggingController") -> None:
+        super().__init__()
+        self._ctrl = ctrl
+
+    def popleft(self) -> Any:
+        """Return the next block and log it with its start time and duration."""
+        blk = super().popleft()
+        c = self._ctrl
+        start = dict(c.pos)
+        t0 = c._t_exec
+        dur = c._duration(start, blk)
+        c.log.append(ExecutedBlock(blk.seq, tuple(blk.target[a] for a in AXES), tuple(start[a] for a in AXES),
+                                   t0, t0 + dur))
+        return blk
+
+
+class LoggingController(SimController):
+    """The simulated controller, keeping a log of every executed block with its times."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.log: list[ExecutedBlock] = []
+        self._queue = _LoggedQueue(self)
+
+
+# ----------------------------------------------------------------------------- on-line model
+
+
+class OnlineUpdater(Protocol):
+    """The on-line model: updated from probe measurements, predicting the off-line model's residual."""
+
+    version: int
+
+    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float],
+               t_s: float) -> None:
+        """Feed one probe measurement (work-space translation at pose X, Y, Z; A = B = 0)."""
+
+    def predict(self, temperatures: Mapping[str, float]) -> np.ndarray:
+        """Return the (3,) predicted residual translation (dx, dy, dz) for these temperatures."""
+
+
+class LocalRLS:
+    """The on-line RLS of eqs. 6.10-6.13 in process: one fit per translation on phi = [1, dT_k ...]."""
+
+    def __init__(self, document: Any, channels: Sequence[str] = (), forgetting: float = 0.9, p0: float = 1.0) -> None:
+        from driftlab.models import registry
+        from driftlab.models.online import rls_init
+
+        self.doc = registry.validate_document(document)
+        self.channels = list(channels)
+        self.refs: dict[str, float] | None = None
+        self.states = [rls_init(1 + len(self.channels), lam=forgetting, p0=p0) for _ in range(3)]
+        self.version = 0
+
+    def _phi(self, temps: Mapping[str, float]) -> np.ndarray:
+        """Return the regressor vector of eq. 6.10."""
+        if self.refs is None:
+            self.refs = {c: (self.doc.inputs[c].reference if c in self.doc.inputs else float(temps[c]))
+                         for c in self.channels}
+        return np.array([1.0, *[float(temps[c]) - self.refs[c] for c in self.channels]])
+
+    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float],
+               t_s: float) -> None:
+        """Update the three fits with measured minus off-line predicted translation (eqs. 6.11-6.13)."""
+        from driftlab.models import registry
+        from driftlab.models.online import rls_update
+
+        q = np.array([[xyz[0], xyz[1], xyz[2], 0.0, 0.0]])
+        offline = registry.predict_workspace_errors(self.doc, dict(temperatures), q)[0, 3:]
+        phi = self._phi(temperatures)
+        self.states = [rls_update(st, phi, float(measured[k] - offline[k]))[0] for k, st in enumerate(self.states)]
+        self.version += 1
+
+    def predict(self, temperatures: Mapping[str, float]) -> np.ndarray:
+        """Return the predicted residual translation (eq. 6.10)."""
+        if self.version == 0:
+            return np.zeros(3)
+        phi = self._phi(temperatures)
+        return np.array([float(phi @ st.theta) for st in self.states])
+
+
+class OnlineModelSource:
+    """A model source giving the off-line model plus the on-line prediction as a translation of T1 (ch. 7.2)."""
+
+    def __init__(self, base: Any, online: OnlineUpdater) -> None:
+        self.base = base
+        self.online = online
+        self._seen = -1
+        self.model: ErrorModel | None = None
+
+    def refresh(self) -> bool:
+        """Refresh the off-line model; rebuild the combination when either part changed."""
+        changed = bool(self.base.refresh())
+        if changed or self.model is None or self.online.version != self._seen:
+            self._seen = self.online.version
+            self.model = self._combine(self.base.model)
+            return True
+        return False
+
+    def _combine(self, off: ErrorModel) -> ErrorModel:
+        """Return the off-line model with the on-line translation added to T1 (leftmost: W moves by it directly)."""
+        online = self.online
+
+        def predict(q: np.ndarray, temps: Any, direction: np.ndarray | None) -> kin.ElementErrors:
+            """Return the off-line element errors plus the on-line residual on T1."""
+            errs = dict(off.predict(q, temps, direction))
+            t = temps if isinstance(temps, Mapping) else {c: float(temps[c].iloc[-1]) for c in temps.columns}
+            r = online.predict(t)
+            t1 = np.array(errs["T1"], float, copy=True) if "T1" in errs else np.zeros((q.shape[0], 6))
+            if t1.ndim == 1:
+                t1 = np.broadcast_to(t1, (q.shape[0], 6)).copy()
+            t1[:, 3:] += r
+            errs["T1"] = t1
+            return errs
+
+        return ErrorModel(predict=predict, dims=off.dims, label=f"{off.label} + on-line ({online.version} updates)",
+                          channels=off.channels, machine=off.machine)
+
+
+# ----------------------------------------------------------------------------- a run
+
+
+@dataclass
+class RunResult:
+    """One cutting run: the CMM deviations and what the streaming did."""
+
+    name: str
+    deviation_mm: np.ndarray  # (CMM_ALONG, CMM_ACROSS) normal deviation from the design surface
+    duration_s: float
+    blocks: int
+    probes: list[dict[str, Any]] = field(default_factory=list)
+    stream: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def rmse_mm(self) -> float:
+        """Return the RMS normal deviation over the CMM grid."""
+        return float(np.sqrt(np.mean(self.deviation_mm ** 2)))
+
+    @property
+    def max_mm(self) -> float:
+        """Return the largest absolute normal deviation."""
+        return float(np.max(np.abs(self.deviation_mm)))
+
+    def summary(self) -> dict[str, Any]:
+        """Return the JSON-ready figures of the run."""
+        return {"rmse_mm": round(self.rmse_mm, 6), "max_mm": round(self.max_mm, 6),
+                "duration_min": round(self.duration_s / 60.0, 2), "blocks": self.blocks,
+                "probe_cycles": len(self.probes), **({"stream": self.stream} if self.stream else {})}
+
+
+class VMTemperatures:
+    """The virtual machine's thermocouple readings at the simulated clock's time (a TemperatureSource)."""
+
+    def __init__(self, vm: VirtualMachine, clock: ManualClock) -> None:
+        self.vm, self.clock = vm, clock
+
+    def read(self) -> dict[str, float]:
+        """Return the latest scan (degC per channel)."""
+        return self.vm.temperatures(self.clock.now())
+
+
+def default_spheres() -> dict[str, SimSphere]:
+    """Return four reference spheres (radius 12.7 mm) at the extremes of the X, Y travel, low in Z."""
+    pts = {"s1": (15.0, 15.0, -235.0), "s2": (239.0, 15.0, -235.0), "s3": (15.0, 239.0, -235.0),
+           "s4": (239.0, 239.0, -235.0)}
+    return {k: SimSphere(c, 12.7) for k, c in pts.items()}
+
+
+def measure_surface(vm: VirtualMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock],
+                    dims: Mapping[str, Any] = kin.TABLE_A1) -> np.ndarray:
+    """Return the (99, 15) normal deviations (mm) of the machined surface at the CMM points.
+
+    Each CMM point is the end of one block: the tool centre there is placed by the real chain at
+    the pose the controller reached, with the true errors of the moment it got there.
+    """
+    n_prog = program.pose_written.shape[0]
+    if len(log_) != n_prog:
+        raise ValidationError(f"the controller executed {len(log_)} blocks, the program has {n_prog}")
+    idx = program.cmm_block.ravel()
+    target = np.array([log_[i].target for i in idx])
+    start = np.array([log_[i].start for i in idx])
+    t_end = np.array([log_[i].t_end_s for i in idx])
+    q = target.copy()
+    q[:, 3:] = np.deg2rad(q[:, 3:])
+    direction = np.where(target >= start, 1.0, -1.0)
+    real = tool_centre(q, true_errors(vm, t_end, q, direction), dims)
+    dev = np.einsum("ij,ij->i", real - program.centre[idx], program.normal[idx])
+    return dev.reshape(program.cmm_block.shape)
+
+
+class CuttingBench:
+    """The virtual machine, its simulated controller and the machine link for one cutting run."""
+
+    def __init__(self, scenario: Scenario, program: CuttingProgram, *, lead_s: float = 300.0,
+                 spheres: Mapping[str, SimSphere] | None = None, capacity: int = 16) -> None:
+        self.program = program
+        self.clock = ManualClock(0.0)
+        # the machine is switched on at t = 0 (soaked at room temperature) and cuts after lead_s
+        self.vm = MachiningMachine(scenario, lead_s, lead_s + program.duration_s, program.mean_feed)
+        self.lead_s = lead_s
+        self.first_block = 0
+        self.ctrl = LoggingController(self.vm, self.clock, capacity=capacity,
+                                      spheres=dict(spheres or default_spheres()),
+                                      sphere_offset=lambda t, c: true_workspace_translation(self.vm, t, c))
+        self.ctrl.start()
+        from driftlab.daq.machine_link import SerialMachineLink
+
+        self.link = SerialMachineLink.open(serial_url(self.ctrl), sleep=self.clock.sleep, poll_s=0.5)
+
+    def close(self) -> None:
+        """Close the link and stop the controller."""
+        self.link.close()
+        self.ctrl.close()
+
+    def __enter__(self) -> "CuttingBench":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def rapid_to_start(self) -> None:
+        """Send the head of the program (up to the rapid to the first point) and wait until the cut may start."""
+        lines = self.program.lines()
+        self.link.send_program([ln for ln in lines if ln.startswith(("S", "G90"))], wait=True)
+        self.first_block = len(self.ctrl.log)  # the log from the rapid on is the program's motion
+        self.link.send_program([ln for ln in lines if ln.startswith("G0")], wait=True)
+        self.clock.advance_to(self.lead_s)
+
+    def probe_cycle(self, online: OnlineUpdater, temps: Mapping[str, float]) -> dict[str, Any]:
+        """Probe every sphere, feed the on-line model, return what was measured (ch. 6.4.3)."""
+        from driftlab.daq.probe import TouchProbe
+
+        probe = TouchProbe.on_link(self.link, stylus_radius_mm=self.ctrl.stylus_radius_mm, lobing=self.ctrl.lobing)
+        t = self.clock.now()
+        out = {"t_s": t, "spheres": {}}
+        for name, sph in self.ctrl.spheres.items():
+            m = probe.probe_sphere(name, sph.centre, sph.radius_mm)
+            measured = np.asarray(m.centre) - np.asarray(sph.centre)
+            online.update(sph.centre, measured, temps, t)
+            out["spheres"][name] = [round(float(x), 6) for x in measured]
+        self.clock.sleep(60.0)  # the probing cycle takes about a minute of machine time
+        return out
+
+
+def _chunks(program: CuttingProgram, interval_s: float) -> list[tuple[int, int]]:
+    """Return [start, end) block ranges of about ``interval_s`` machining time each (block 0 excluded)."""
+    t = np.cumsum(program.block_s)
+    out, s = [], 1
+    n = program.pose_written.shape[0]
+    while s < n:
+        e = int(np.searchsorted(t, t[s - 1] + interval_s, side="right"))
+        e = min(n, max(e, s + 1))
+        out.append((s, e))
+        s = e
+    return out
+
+
+def run_uncompensated(bench: CuttingBench) -> RunResult:
+    """Stream the program as written and measure the part."""
+    bench.rapid_to_start()
+    body = [ln for ln in bench.program.lines() if ln.startswith("G1")]
+    t0 = bench.clock.now()
+    bench.link.send_program(body, wait=True)
+    return _result("uncompensated", bench, t0)
+
+
+def run_compensated(bench: CuttingBench, models: Any, *, online: OnlineUpdater | None = None,
+                    interval_s: float = ONLINE_INTERVAL_S, name: str | None = None,
+                    max_segment_mm: float = 100.0, max_segment_deg: float = 30.0) -> RunResult:
+    """Stream the program through the compensator (with the on-line model every ``interval_s`` when given).
+
+    The blocks are short on the part already (8 mm); their machine-axis travel is longer through the
+    rotary axes' levers, so the subdivision limits are set above it: one executed block per program
+    block, which is how the CMM points are found in the controller's log.
+    """
+    from driftlab.compensator.gcode import parse_program
+    from driftlab.compensator.stream import Streamer
+
+    bench.rapid_to_start()
+    temps = VMTemperatures(bench.vm, bench.clock)
+    lines = bench.program.lines()
+    g1 = [i for i, ln in enumerate(lines) if ln.startswith("G1")]
+    ranges = _chunks(bench.program, interval_s) if online is not None else [(1, bench.program.pose_written.shape[0])]
+    source = OnlineModelSource(models, online) if online is not None else models
+    t0 = bench.clock.now()
+    probes: list[dict[str, Any]] = []
+    stream: dict[str, Any] = {"blocks_sent": 0, "recomputed": 0, "model_reloads": 0}
+    pose = bench.program.start_pose
+    for s, e in ranges:
+        if online is not None:
+            probes.append(bench.probe_cycle(online, temps.read()))
+        text = "\n".join(lines[g1[s - 1]: g1[e - 2] + 1]) + "\n"
+        prog = parse_program(text, name="cutting-test", start=pose, min_decimals=(4, 3))
+        streamer = Streamer(prog, source, temps, max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
+                            clock=bench.clock.now, sleep=bench.clock.sleep, timer=time.perf_counter)
+        res = streamer.run(bench.link, low_water=4)
+        for k in stream:
+            stream[k] += res.summary()[k]
+        pose = tuple(float(v) for v in bench.program.pose_written[e - 1])
+    out = _result(name or ("off-line + on-line" if online is not None else "off-line"), bench, t0)
+    out.probes = probes
+    out.stream = stream
+    return out
+
+
+def _result(name: str, bench: CuttingBench, t0: float) -> RunResult:
+    """Return the run's CMM figures from the controller's log."""
+    log_ = bench.ctrl.log[bench.first_block:]
+    dev = measure_surface(bench.vm, bench.program, log_)
+    return RunResult(name, dev, (log_[-1].t_end_s - t0) if log_ else 0.0, len(log_))
+
+
+# ----------------------------------------------------------------------------- the test
+
+
+@dataclass
+class CuttingTest:
+    """The three runs of ch. 7.3 and their table."""
+
+    runs: dict[str, RunResult]
+    program: CuttingProgram
+
+    def table(self) -> dict[str, dict[str, Any]]:
+        """Return {run: {rmse_mm, max_mm, ...}} for uncompensated, offline and online."""
+        return {k: r.summary() for k, r in self.runs.items()}
+
+    def ordered(self) -> bool:
+        """Return True when uncompensated > off-line > off-line + on-line in RMSE (the thesis' ordering)."""
+        r = [self.runs[k].rmse_mm for k in ("uncompensated", "offline", "online")]
+        return r[0] > r[1] > r[2]
+
+
+#: the thesis' figures (ch. 7.3), mm
+THESIS_TABLE = {"uncompensated": {"rmse_mm": 0.060, "max_mm": 0.082}, "offline": {"rmse_mm": 0.005, "max_mm": 0.015},
+                "online": {"rmse_mm": 0.003, "max_mm": 0.012}}
+
+
+def run_cutting_test(scenario: Scenario, models: Callable[[], Any], online: Callable[[], OnlineUpdater], *,
+                     passes: int = 700, lead_s: float = 300.0, interval_s: float = ONLINE_INTERVAL_S,
+                     on_run: Callable[[str], None] | None = None) -> CuttingTest:
+    """Return the three runs of the cutting test, each on a fresh, cold virtual machine.
+
+    ``models()`` returns a fresh model source (``compensator.stream`` ModelSource: a StaticModel or
+    an ApiModel), ``online()`` a fresh on-line model (LocalRLS, or one kept by the API).
+    """
+    program = make_program(passes=passes)
+    runs: dict[str, RunResult] = {}
+    for key in ("uncompensated", "offline", "online"):
+        with CuttingBench(scenario, program, lead_s=lead_s) as bench:
+            if key == "uncompensated":
+                runs[key] = run_uncompensated(bench)
+            elif key == "offline":
+                runs[key] = run_compensated(bench, models(), name="off-line")
+            else:
+                runs[key] = run_compensated(bench, models(), online=online(), interval_s=interval_s)
+        if on_run is not None:
+            on_run(key)
+    return CuttingTest(runs, program)
+
+
+def format_table(test: CuttingTest) -> list[tuple[str, str, str, str, str]]:
+    """Return rows (run, RMSE, max, thesis RMSE, thesis max) in mm, for printing."""
+    names = {"uncompensated": "without compensation", "offline": "off-line model", "online": "off-line + on-line"}
+    return [(names[k], f"{r.rmse_mm:.4f}", f"{r.max_mm:.4f}", f"{THESIS_TABLE[k]['rmse_mm']:.3f}",
+             f"{THESIS_TABLE[k]['max_mm']:.3f}") for k, r in test.runs.items()]
+

@@ -1,0 +1,128 @@
+"""The ch. 7.3 cutting test on the virtual machine: geometry, truth at 5-axis poses, the three runs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from driftlab.campaigns.bundle import load_bundle, write_bundle
+from driftlab.compensator.compensate import ErrorModel
+from driftlab.compensator.cutting_test import (
+    CMM_ACROSS,
+    CMM_ALONG,
+    LocalRLS,
+    MachiningMachine,
+    MouldSurface,
+    hidden_element_errors,
+    make_program,
+    run_cutting_test,
+    tool_centre,
+    true_errors,
+)
+from driftlab.compensator.gcode import parse_program
+from driftlab.compensator.stream import StaticModel
+from driftlab.daq.sim.campaign import simulate_campaign
+from driftlab.daq.sim.scenario import HiddenEffect, Scenario
+from driftlab.daq.sim.sites import SITE_INDEX
+from driftlab.errors import ValidationError
+from driftlab.models import kinematics as kin
+from driftlab.models.fitting import FitOptions, fit_bundles
+
+HIDDEN = HiddenEffect(kind="unmapped_channel", axis="Z", term="dz", channels=["T21"],
+                      params={"coef_per_degC": 0.006})
+
+
+def _scenario(**kw: object) -> Scenario:
+    return Scenario(name="cut", seed=11, hours=24, sweep_interval_s=1800, hidden=[HIDDEN], **kw)
+
+
+def test_program_puts_the_ideal_tool_on_the_design_surface() -> None:
+    prog = make_program(passes=CMM_ALONG)
+    q = prog.pose_written.copy()
+    q[:, 3:] = np.deg2rad(q[:, 3:])
+    # as written (4 decimals in mm, angles on the 0.001 deg grid) the ideal chain hits the design
+    assert np.abs(tool_centre(q) - prog.centre).max() < 1e-4
+    # the tool axis (spindle z seen from the part) is the surface normal, to the angle grid
+    R = kin.ideal_chain(q)[:, :3, :3]
+    axis = np.einsum("nji,j->ni", R, np.array([0.0, 0.0, 1.0]))
+    assert np.abs(axis - prog.normal).max() < 2e-5
+    # all five axes move: a 5-axis program
+    span = prog.pose_written.max(axis=0) - prog.pose_written.min(axis=0)
+    assert (span[:3] > 50).all() and (span[3:] > 10).all()
+    assert prog.cmm_block.shape == (CMM_ALONG, CMM_ACROSS)
+    # every CMM point is a design point on the CMM grid: 15 across, rows in the order of time
+    s = MouldSurface()
+    uv = prog.uv[prog.cmm_block]
+    assert np.allclose(uv[:, :, 0], np.linspace(0, s.width_mm, CMM_ACROSS)[None, :])
+    assert np.all(np.diff(uv[:, 0, 1]) > 0) and uv[0, 0, 1] == 0.0 and uv[-1, 0, 1] == s.length_mm
+    design = s.point(prog.uv[:, 0], prog.uv[:, 1]) + s.tool_radius_mm * prog.normal + prog.part_origin
+    assert np.allclose(design, prog.centre)
+    # the normal is normal: orthogonal to both tangents of the height field
+    du, dv = s.gradient(prog.uv[:, 0], prog.uv[:, 1])
+    assert np.abs(np.einsum("ij,ij->i", prog.normal, np.column_stack([np.zeros_like(du), np.ones_like(du), du]))).max() < 1e-12
+    assert np.abs(np.einsum("ij,ij->i", prog.normal, np.column_stack([np.ones_like(dv), np.zeros_like(dv), dv]))).max() < 1e-12
+    parsed = parse_program(prog.text, start=(0, 0, 0, 0, 0))
+    assert parsed.n_blocks == prog.pose_written.shape[0]
+    with pytest.raises(ValidationError):
+        make_program(passes=50)
+
+
+def test_hidden_effect_at_five_axis_poses_reproduces_the_catalogue() -> None:
+    """With Z alone moved, the joint error of the hidden effect gives exactly the VM's work-space error."""
+    prog = make_program(passes=CMM_ALONG)
+    vm = MachiningMachine(_scenario(), 300.0, 300.0 + prog.duration_s, prog.mean_feed)
+    t = np.linspace(0.0, 3000.0, 7)
+    pos = np.linspace(-250.0, 0.0, 7)
+    d = np.where(np.arange(7) % 2 == 0, 1.0, -1.0)
+    q = np.zeros((7, 5))
+    q[:, 2] = pos
+    direction = np.zeros((7, 5))
+    direction[:, 2] = d
+    got = kin.workspace_error(q, true_errors(vm, t, q, direction))
+    want = vm.true_errors_array(t, "Z", pos, d)
+    # equal to second order in the errors (the catalogue adds to W, the chain composes): < 10 nm
+    assert np.abs(got - want).max() < 1e-5
+    # and the hidden part alone is coef * dT21 on Z dz
+    hid = kin.workspace_error(q, hidden_element_errors(vm, t, q, direction))
+    dT21 = vm.true_dT_array(t)[:, SITE_INDEX["T21"]]
+    assert np.allclose(hid[:, 5], 0.006 * dT21, atol=1e-12)
+    assert np.abs(hid[:, 5]).max() > 1e-3  # the cut warms the Y motor
+
+
+def test_machining_heats_the_spindle_only_while_cutting() -> None:
+    prog = make_program(passes=CMM_ALONG)
+    vm = MachiningMachine(_scenario(), 600.0, 600.0 + prog.duration_s, prog.mean_feed)
+    dT = vm.true_dT_array(np.array([590.0, 600.0 + prog.duration_s]))
+    k = SITE_INDEX["T37"]  # main spindle motor
+    assert abs(dT[0, k]) < 0.5 and dT[1, k] > 3.0
+    assert prog.mean_feed["Y"] > prog.mean_feed["X"] > 0  # passes run along Y
+
+
+@pytest.fixture(scope="module")
+def offline_document(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """Return a model fitted by the fitting pipeline on a simulated campaign of the same machine."""
+    sim = simulate_campaign(_scenario())
+    path = write_bundle(tmp_path_factory.mktemp("campaign") / "bundle", sim.meta, sim.temperatures,
+                        sim.conditions, sim.errors)
+    result = fit_bundles([load_bundle(path)], options=FitOptions(network=False, virtual_sensors=False))
+    return result.document.model_dump(mode="json")
+
+
+def test_cutting_test_orders_uncompensated_offline_online(offline_document: dict) -> None:
+    doc = offline_document
+    test = run_cutting_test(
+        _scenario(), lambda: StaticModel(ErrorModel.from_document(doc)),
+        lambda: LocalRLS(doc, channels=[], forgetting=0.9), passes=150,
+    )
+    table = test.table()
+    assert set(table) == {"uncompensated", "offline", "online"}
+    for run in test.runs.values():
+        assert run.blocks == test.program.pose_written.shape[0]  # every block executed, once
+        assert run.deviation_mm.shape == (CMM_ALONG, CMM_ACROSS)
+    unc, off, on = (test.runs[k] for k in ("uncompensated", "offline", "online"))
+    assert test.ordered(), table
+    assert unc.rmse_mm > 0.015  # the machine warms up during the cut
+    assert off.rmse_mm < 0.7 * unc.rmse_mm
+    assert on.rmse_mm < 0.7 * off.rmse_mm  # the on-line model catches the Y motor the model lacks
+    assert len(on.probes) >= 2 and on.stream["model_reloads"] >= 2
+    assert off.stream["blocks_sent"] == unc.blocks - 1  # the rapid to the start is not compensated
