@@ -39,7 +39,7 @@ from driftlab.campaigns.clock import Clock
 from driftlab.campaigns.db import write_transaction
 from driftlab.campaigns.plan import Cursor, Move, Plan, Scan, Stage, StageStart, SweepPoint, steps
 from driftlab.daq.protocols import Reading, TemperatureScan, TemperatureScanner
-from driftlab.errors import ConflictError, InstrumentError
+from driftlab.errors import ConflictError, DriftlabError, InstrumentError
 
 log = logging.getLogger(__name__)
 
@@ -220,7 +220,7 @@ class Scheduler:
         if batch.empty():
             return batch
         t0 = time.monotonic()
-        self.sink.commit(batch)
+        self._commit_with_retry(batch)
         done = time.monotonic()
         self.stats.commits += 1
         self.stats.commit_s.append(done - t0)
@@ -231,6 +231,24 @@ class Scheduler:
         if self.on_commit is not None:
             self.on_commit(batch, self.stats)
         return Batch(cursor=batch.cursor, stage=batch.stage, t_s=batch.t_s)
+
+    def _commit_with_retry(self, batch: Batch) -> None:
+        """Commit the batch; a store that is unreachable for a moment is retried, anything else raised.
+
+        A failed transaction stored nothing (the cursor did not move either), so committing the same
+        batch again is safe; if it keeps failing the daemon stops and `--resume` continues later.
+        """
+        delays = (0.1, 0.5, 2.0, 5.0)
+        for attempt in range(len(delays) + 1):
+            try:
+                self.sink.commit(batch)
+                return
+            except StoreUnavailable as exc:
+                if attempt == len(delays):
+                    raise
+                log.warning("%s; retry %d in %.1f s", exc.one_line(), attempt + 1, delays[attempt])
+                if self.stop.wait(delays[attempt]):
+                    raise
 
     def _due(self, t_s: float) -> bool:
         """Return True when step time t_s is already due (no waiting needed before it)."""
@@ -476,6 +494,12 @@ def open_campaign(
     return CampaignHandle(cid, Cursor(), ids, False, cursor)
 
 
+class StoreUnavailable(DriftlabError):
+    """The store could not be reached or was locked for a write (worth retrying the same batch)."""
+
+    http_status = 503
+
+
 class StoreSink:
     """Commits a batch of readings and the campaign's cursor in one database transaction."""
 
@@ -524,7 +548,29 @@ class StoreSink:
         return rows
 
     def commit(self, batch: Batch) -> None:
-        """Insert the batch's rows and move the cursor, stage status and fault log, all in one transaction."""
+        """Insert the batch's rows and move the cursor, stage status and fault log, all in one transaction.
+
+        Raises ConflictError when a reading of the batch is already stored (never a second copy) and
+        StoreUnavailable when the database could not be reached; either way nothing was stored.
+        """
+        from sqlalchemy.exc import DBAPIError, IntegrityError
+
+        dbapi = self.engine.dialect.dbapi
+        try:
+            self._commit(batch)
+        except (IntegrityError, dbapi.IntegrityError) as exc:
+            raise ConflictError(
+                f"the store already holds a reading of this batch (t = {batch.t_s:g} s): {_first_line(exc)}"
+            ) from None
+        except (DBAPIError, dbapi.OperationalError, dbapi.InterfaceError) as exc:
+            if isinstance(exc, DBAPIError) and not (
+                exc.connection_invalidated or isinstance(exc.orig, (dbapi.OperationalError, dbapi.InterfaceError))
+            ):
+                raise
+            raise StoreUnavailable(f"cannot store readings at t = {batch.t_s:g} s: {_first_line(exc)}") from None
+
+    def _commit(self, batch: Batch) -> None:
+        """Write the batch (see commit)."""
         from driftlab.campaigns.ingest import bulk_insert
 
         temps = self._temperature_rows(batch)
@@ -583,6 +629,13 @@ class StoreSink:
                 ).values(status="done"))
                 conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
         self._prog = prog  # only once committed: a failed batch leaves the in-memory cursor where the store's is
+
+
+def _first_line(exc: BaseException) -> str:
+    """Return the first line of a database error's own message."""
+    orig = getattr(exc, "orig", None) or exc
+    text = str(orig).strip()
+    return text.splitlines()[0] if text else type(orig).__name__
 
 
 def _utcnow() -> Any:

@@ -247,3 +247,29 @@ def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> No
     assert errs == 2 and result.stats.faults == 0
     (st,) = campaign_status(engine)
     assert st["mode"] == "real" and st["status"] == "done"
+
+
+def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) -> None:
+    """If the store already holds a reading the cursor says is still to do, the run stops: never a double row."""
+    from driftlab.campaigns.clock import SimClock
+    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta
+    from driftlab.daq.sim.scenario import load_scenario
+
+    plan = parse_plan({"name": "dup", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
+                       "stages": [{"name": "idle", "axis": "Z", "duration_s": 300}]})
+    engine = store_engine(f"sqlite:///{tmp_path / 'dup.sqlite'}")
+    meta = scenario_meta(None)
+    handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
+    with engine.begin() as conn:
+        conn.execute(sc.TemperatureSample.__table__.insert().values(
+            campaign_id=handle.campaign_id, channel_id=handle.channel_ids["T7"], time_s=0.0, value=1.0))
+    clock = SimClock(speed=math.inf)
+    rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
+                        list(meta["channels"]))
+    try:
+        with pytest.raises(ConflictError, match="already holds a reading"):
+            Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, handle.cursor).run()
+    finally:
+        rig.close()
+    assert _count(engine, sc.TemperatureSample.__table__) == 1
+    assert open_campaign(engine, plan, meta["channels"], [], resume=True, origin={}).cursor == Cursor()
