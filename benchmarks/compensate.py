@@ -49,7 +49,6 @@ def document() -> dict:
                             "theta_x": ("alpha", "dy"), "theta_y": ("beta", "dz")}.items():
         axis = {"phi_x": "X", "phi_y": "Y", "phi_z": "Z", "theta_x": "A", "theta_y": "B"}.get(element)
         for prm in params:
-            scale = 1e-6 if prm in ("alpha", "beta", "gamma") else 1e-3
             feats = [f("intercept", "const"), f("dT", f"dT[{chans[0]}]", channels=[chans[0]]),
                      f("mean", "mean[col]", channels=chans[1:4], label="col"),
                      f("gradient", f"grad[{chans[4]}-{chans[5]}]", channels=chans[4:6])]
@@ -57,7 +56,13 @@ def document() -> dict:
                 feats += [f("position", "pos", label=axis), f("position", "pos^2", label=axis, power=2),
                           f("pos_dT", f"pos*dT[{chans[6]}]", channels=[chans[6]], label=axis),
                           f("direction", "dir", label=axis)]
-            coefs = (rng.normal(0, 1, len(feats)) * scale).tolist()
+            # magnitudes of a fitted model (mm, or rad / 1000): tens of um over the work space
+            per_kind = {"intercept": 0.01, "dT": 0.003, "mean": 0.003, "gradient": 0.002, "position": 3e-5,
+                        "pos_dT": 3e-6, "direction": 0.002}
+            size = np.array([per_kind[ft["kind"]] * (1e-3 if ft.get("power") == 2 else 1.0) for ft in feats])
+            if axis in ("A", "B"):  # the joint coordinate is in rad, not mm
+                size *= np.array([300.0 if ft["kind"] in ("position", "pos_dT") else 1.0 for ft in feats])
+            coefs = (rng.normal(0, 1, len(feats)) * size * (1e-3 if prm in ("alpha", "beta", "gamma") else 1.0)).tolist()
             terms.append({"element": element, "param": prm, "features": feats, "coefficients": coefs,
                           "statistics": {"rmse_train": 0.001}})
     return {"machine": "bench", "version": 1, "inputs": inputs, "terms": terms}
@@ -68,6 +73,10 @@ def program_text(n: int, seed: int = 1, head: str = "%\n(benchmark)\nG90 G21 G1 
     rng = np.random.default_rng(seed)
     steps = rng.integers(-4000, 4001, (n, 5)) * np.array([1, 1, 1, 1, 1]) // np.array([1, 1, 2, 50, 50])
     pose = np.cumsum(steps, axis=0) + np.array([0, 0, -1_500_000, 0, 0])  # 1e-4 mm / 1e-3 deg units
+    # tilt angles stay within +/-40 deg (away from the A = 90 deg singularity), as on a cavity
+    t = np.arange(n) * 2e-4
+    pose[:, 3] = np.rint(35_000 * np.sin(t) + pose[:, 3] % 5000).astype(np.int64)
+    pose[:, 4] = np.rint(35_000 * np.sin(0.7 * t + 1.0) + pose[:, 4] % 5000).astype(np.int64)
     cols = [format_fixed(pose[:, k], 4 if k < 3 else 3) for k in range(5)]
     words = [b"X", b" Y", b" Z", b" A", b" B", b"\n"]
     # every line: X<n> Y<n> Z<n> A<n> B<n>\n, assembled as one byte array

@@ -371,17 +371,21 @@ def parse_program(
     _fail(name, errors)
 
     n_blocks = block_line.shape[0]
-    bidx = np.cumsum(new_block) - 1
+    flat = (np.cumsum(new_block) - 1) * 5 + a_axis  # (block, axis) of each axis word
     present = np.zeros((n_blocks, 5), dtype=bool)
     word_int = np.zeros((n_blocks, 5), dtype=np.int64)
     num_start = np.full((n_blocks, 5), -1, dtype=np.int64)
     num_end = np.full((n_blocks, 5), -1, dtype=np.int64)
-    present[bidx, a_axis] = True
-    word_int[bidx, a_axis] = a_int
-    num_start[bidx, a_axis] = pos[ai] + 1
-    num_end[bidx, a_axis] = pos[ai] + 1 + runlen[ai]
-    insert_at = num_end.max(axis=1)
-    last_word = pos[ai][np.searchsorted(bidx, np.arange(n_blocks), side="right") - 1] if n_blocks else pos[:0]
+    a_start = pos[ai] + 1
+    a_end = a_start + runlen[ai]
+    present.reshape(-1)[flat] = True
+    word_int.reshape(-1)[flat] = a_int
+    num_start.reshape(-1)[flat] = a_start
+    num_end.reshape(-1)[flat] = a_end
+    # words are in byte order: a block's last axis word is the one before the next block's first
+    last = np.append(np.flatnonzero(new_block)[1:], new_block.shape[0]) - 1
+    insert_at = a_end[last]
+    last_word = a_start[last] - 1
     spaced = buf[np.maximum(last_word - 1, 0)] == 32
 
     incremental = dist[block_line] == 1
