@@ -939,6 +939,17 @@ def skip_missed(plan: Plan, cursor: Cursor, now_s: float) -> tuple[Cursor, int, 
     return Cursor(k, j), k - cursor.next_scan, j - cursor.next_point
 
 
+def sim_clock(plan: Plan, cursor: Cursor = Cursor(), speed: float = 3600.0) -> Any:
+    """Return the simulated clock for running `plan` from `cursor`: it starts at the cursor's first step.
+
+    Build it before the simulated rig: the servers take their starting time from it.
+    """
+    from driftlab.campaigns.clock import SimClock
+    from driftlab.campaigns.plan import cursor_time
+
+    return SimClock(speed=speed, start_s=cursor_time(plan, plan.sweep_points(), cursor))
+
+
 def run_daemon(
     plan: Plan,
     *,
@@ -983,7 +994,7 @@ def run_daemon(
         raise
     cursor = handle.cursor
     if scenario is not None:
-        clock = SimClock(speed=speed, start_s=cursor_time(plan, points, cursor))
+        clock = sim_clock(plan, cursor, speed)
         rig = build_sim_rig(plan, scenario, clock, list(channels), datum=handle.progress.get("datum"), world=world,
                             cursor=cursor)
     else:

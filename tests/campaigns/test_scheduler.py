@@ -171,8 +171,7 @@ def test_channel_maps_from_scenario_or_plan() -> None:
 
 def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -> None:
     """A card that keeps garbling and a broken laser beam become faults; every other reading is stored."""
-    from driftlab.campaigns.clock import SimClock
-    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta
+    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta, sim_clock
     from driftlab.daq.sim.scenario import load_scenario
 
     plan = parse_plan({
@@ -183,7 +182,7 @@ def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -
     engine = store_engine(f"sqlite:///{tmp_path / 'f.sqlite'}")
     meta = scenario_meta(None)
     handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
-    clock = SimClock(speed=math.inf, start_s=-4.0)
+    clock = sim_clock(plan, handle.cursor, math.inf)
     rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
                         list(meta["channels"]))
     rig.servers["thermocouple"].inject("garble", "garble", "garble")  # every attempt of the first exchange
@@ -251,8 +250,7 @@ def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> No
 
 def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) -> None:
     """If the store already holds a reading the cursor says is still to do, the run stops: never a double row."""
-    from driftlab.campaigns.clock import SimClock
-    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta
+    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta, sim_clock
     from driftlab.daq.sim.scenario import load_scenario
 
     plan = parse_plan({"name": "dup", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
@@ -263,7 +261,7 @@ def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) 
     with engine.begin() as conn:
         conn.execute(sc.TemperatureSample.__table__.insert().values(
             campaign_id=handle.campaign_id, channel_id=handle.channel_ids["T7"], time_s=0.0, value=1.0))
-    clock = SimClock(speed=math.inf)
+    clock = sim_clock(plan, handle.cursor, math.inf)
     rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
                         list(meta["channels"]))
     try:
@@ -273,3 +271,44 @@ def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) 
         rig.close()
     assert _count(engine, sc.TemperatureSample.__table__) == 1
     assert open_campaign(engine, plan, meta["channels"], [], resume=True, origin={}).cursor == Cursor()
+
+
+@pytest.mark.postgres
+def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(pg_cluster) -> None:
+    """PostgreSQL drops the daemon's connections mid-run: the same batch is committed again, once."""
+    from sqlalchemy import create_engine, text
+
+    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta, sim_clock
+    from driftlab.daq.sim.scenario import load_scenario
+
+    url = pg_cluster.create_database()
+    plan = parse_plan({"name": "blip", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
+                       "stages": [{"name": "idle", "axis": "Z", "duration_s": 1800,
+                                   "sweep": {"positions": [0, 200], "interval_s": 600, "point_s": 5}}]})
+    engine = store_engine(url)
+    meta = scenario_meta(None)
+    handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
+    admin = create_engine(url.rsplit("/", 1)[0] + "/postgres", isolation_level="AUTOCOMMIT")
+    dbname = url.rsplit("/", 1)[1]
+    dropped = []
+
+    def drop_connections(batch, stats) -> None:
+        if stats.commits in (2, 5):
+            with admin.connect() as conn:
+                n = conn.execute(text("SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
+                                      "WHERE datname = :d AND pid <> pg_backend_pid()"), {"d": dbname}).scalar_one()
+            dropped.append(n)
+
+    clock = sim_clock(plan, handle.cursor, math.inf)
+    rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
+                        list(meta["channels"]))
+    try:
+        stats = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, handle.cursor,
+                          on_commit=drop_connections).run()
+    finally:
+        rig.close()
+        admin.dispose()
+    assert stats.finished and dropped and all(n >= 1 for n in dropped), campaign_status(engine)[0]["faults"]
+    assert stats.faults == 0, campaign_status(engine)[0]["faults"]
+    assert _count(engine, sc.TemperatureSample.__table__) == plan.n_scans * 50
+    assert _count(engine, sc.ErrorSample.__table__) == len(plan.sweep_points())
