@@ -659,15 +659,16 @@ def emit(
     ax_l.append(np.full(bare.shape[0], -1))
 
     pos = np.concatenate(pos_l).astype(np.int64)
-    key = np.concatenate(key_l).astype(np.int64)
-    # edits are made in runs already in byte order, so a stable sort of one key is nearly free
-    order = np.argsort(pos * (1 << 20) + np.minimum(key, (1 << 20) - 1), kind="stable")
-    pos = pos[order]
-    pre = np.concatenate(pre_l).astype(np.int64)[order]
-    val = np.concatenate(val_l)[order]
-    ax = np.concatenate(ax_l).astype(np.int64)[order]
+    pre = np.concatenate(pre_l).astype(np.int64)
+    val = np.concatenate(val_l)
+    ax = np.concatenate(ax_l).astype(np.int64)
     # replacements cover their old number; everything else is a pure insertion
-    endp = np.concatenate([program.num_end[fb[r_b], r_a]] + pos_l[1:]).astype(np.int64)[order]
+    endp = np.concatenate([program.num_end[fb[r_b], r_a]] + pos_l[1:]).astype(np.int64)
+    if pos.shape[0] != r_b.shape[0] or np.any(pos[1:] < pos[:-1]):
+        # edits are made in runs already in byte order, so a stable sort of one key is nearly free
+        key = np.concatenate(key_l).astype(np.int64)
+        order = np.argsort(pos * (1 << 20) + np.minimum(key, (1 << 20) - 1), kind="stable")
+        pos, pre, val, ax, endp = pos[order], pre[order], val[order], ax[order], endp[order]
     if pos.shape[0] == 0:
         return program.data[lo:hi]
 

@@ -376,7 +376,12 @@ class Streamer:
             base = int(np.searchsorted(pts.block, pts.block[0], side="right"))
             text = emit(p, Points(pts.block[:base], pts.nominal_int[:base]), sent[:base],
                         prev_sent=cur.sent, lines=slice(l0 + 1, l0 + 1), resume=True)
-            rows.extend(zip(_rows(text), np.flatnonzero(extra[:base]).tolist(), [l0] * base))
+            # (a newline may lead them when the block's line ends the file without one)
+            texts = [r for r in _rows(text) if r]
+            carried = np.flatnonzero(extra[:base]).tolist()
+            if len(texts) != len(carried):
+                raise RuntimeError("emitted lines do not match the prepared points")
+            rows.extend((t, k, l0) for t, k in zip(texts, carried))
             start_line = l0 + 1
         elif skip:
             start_line = l0 + 1

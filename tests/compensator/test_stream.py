@@ -112,9 +112,17 @@ def _sendable(text: bytes) -> list[str]:
     return out
 
 
-@pytest.mark.parametrize("batch,lookahead,segment", [(1, 1, 5.0), (3, 4, 0.4), (32, 64, 0.3)])
-def test_streamed_blocks_equal_offline_ones_even_when_recomputed(batch, lookahead, segment):
-    p = parse_program(PROGRAM)
+@pytest.mark.parametrize(
+    "batch,lookahead,segment,text",
+    [
+        (1, 1, 5.0, PROGRAM),
+        (3, 4, 0.4, PROGRAM),
+        (32, 64, 0.3, PROGRAM),
+        (2, 3, 0.7, "G1 X0 Y0\nG91 X3 Y-1 A2\nX-2.5 B1\nG90 X10 Y4 A0 B0"),  # no final newline
+    ],
+)
+def test_streamed_blocks_equal_offline_ones_even_when_recomputed(batch, lookahead, segment, text):
+    p = parse_program(text)
     model = ErrorModel.from_document(doc(0.01, 1))
     temps = {"T1": 25.0}
     offline = _sendable(compensate_program(p, model, temps, max_segment_mm=segment).text)
@@ -129,6 +137,7 @@ def test_streamed_blocks_equal_offline_ones_even_when_recomputed(batch, lookahea
             s._discard()  # what a reload or an over-age does: prepare the rest again
     assert got == offline
     assert any("Z-0.05" in ln for ln in got)
+    assert len(got) > p.n_blocks or segment >= 5.0  # long segments were cut
 
 
 def _link(sim, clock):
