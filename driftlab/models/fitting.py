@@ -73,7 +73,10 @@ class FitOptions:
     vif_max: float = 30.0
     network: bool = True
     network_hidden: tuple[int, ...] = (30, 15, 7)
-    network_max_samples: int = 5000
+    network_max_samples: int = 4000
+    network_max_iter: int = 300
+    joint_adjust: bool = True
+    tiered: bool = False
     virtual_sensors: bool = True
     seed: int = 0
 
@@ -85,10 +88,12 @@ class Sample:
     frame: pd.DataFrame  # campaign, time_s, axis, position, direction, stage, element, role + one column per term
     q: np.ndarray  # (N, 5) joint coordinates (mm, rad)
     inputs: Inputs  # dT and lags at each sample
+    raw: pd.DataFrame | None = None  # the readings themselves (degC) at each sample
 
     def take(self, mask: np.ndarray) -> "Sample":
         """Return the rows selected by a boolean mask."""
-        return Sample(self.frame[mask].reset_index(drop=True), self.q[mask], self.inputs.take(mask))
+        raw = None if self.raw is None else self.raw[mask].reset_index(drop=True)
+        return Sample(self.frame[mask].reset_index(drop=True), self.q[mask], self.inputs.take(mask), raw)
 
 
 @dataclass
@@ -194,12 +199,16 @@ def _q(axis: np.ndarray, position: np.ndarray) -> np.ndarray:
 def build_samples(
     bundles: Sequence[Any],
     channels: Sequence[str],
-    reference: Mapping[str, float],
+    reference: Mapping[str, float] | None,
     lags: Sequence[tuple[str, float]],
     holdout_fraction: float,
 ) -> Sample:
-    """Return the error points of all campaigns with their stage, element, role and inputs."""
-    frames, qs, dts, lagged = [], [], [], []
+    """Return the error points of all campaigns with their stage, element, role and inputs.
+
+    dT is taken from ``reference`` when given, else from each campaign's own first readings (the
+    laser is zeroed at the start of each campaign: spec section 2, eq. 3.1).
+    """
+    frames, qs, dts, lagged, raws = [], [], [], [], []
     for ci, b in enumerate(bundles):
         pts = _points(b.errors)
         if pts.empty:
@@ -216,15 +225,18 @@ def build_samples(
             pts.loc[m, "role"] = role
             if role == "train" and m.any():
                 ts = np.sort(t[m])
-                cut = ts[int(np.floor((1 - holdout_fraction) * ts.size))] if ts.size >= 8 else np.inf
+                cut = ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)] \
+                    if ts.size >= 8 and holdout_fraction > 0 else np.inf
                 pts.loc[m & (t >= cut), "role"] = "holdout"
         if not b.meta.stages:
             # no plan: everything is one stage allocated to the measured axis' joint
             pts["element"] = pts["axis"].map(AXIS_JOINT)
             ts = np.sort(t)
-            cut = ts[int(np.floor((1 - holdout_fraction) * ts.size))]
+            cut = ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)] if holdout_fraction > 0 else np.inf
             pts["role"] = np.where(t >= cut, "holdout", "train")
-        inp = build_inputs(b.temperatures, t, reference, channels, lags)
+        ref = dict(reference) if reference is not None else _reference([b], channels)
+        inp = build_inputs(b.temperatures, t, ref, channels, lags)
+        raws.append(inp.dT + pd.Series({c: ref[c] for c in channels}))
         frames.append(pts)
         qs.append(_q(pts["axis"].to_numpy(str), pts["position"].to_numpy(float)))
         dts.append(inp.dT)
@@ -233,7 +245,8 @@ def build_samples(
         raise ValidationError("the campaigns hold no error measurements")
     frame = pd.concat(frames, ignore_index=True)
     lag_all = {k: np.concatenate([lg[k] for lg in lagged]) for k in lagged[0]}
-    return Sample(frame, np.vstack(qs), Inputs(pd.concat(dts, ignore_index=True), lag_all))
+    return Sample(frame, np.vstack(qs), Inputs(pd.concat(dts, ignore_index=True), lag_all),
+                  pd.concat(raws, ignore_index=True))
 
 
 # ----------------------------------------------------------------------------- per-element fits
@@ -412,7 +425,7 @@ def fit_elements(
             res = stepwise(
                 X[m_train].reset_index(drop=True), y[m_train], pool, forced=[INTERCEPT],
                 p_enter=options.p_enter, p_remove=options.p_remove, min_gain=options.min_gain,
-                max_terms=options.max_terms, vif_max=options.vif_max,
+                max_terms=options.max_terms, vif_max=options.vif_max, tiered=options.tiered,
             )
             fit = TermFit(element, param, res)
             m_hold = hold & mask[:, k]
@@ -434,6 +447,90 @@ def fit_elements(
         if on_element is not None:
             on_element(element)
     return models, log_rows
+
+
+def joint_adjust(
+    sample: Sample,
+    models: Mapping[tuple[str, str], ElementModel],
+    dims: Mapping[str, Any] = TABLE_A1,
+    noise: Mapping[str, float] | None = None,
+    ridge: float = 1e-9,
+) -> dict[str, Any]:
+    """Re-estimate every coefficient of the allocated models together, on all training points.
+
+    The terms and the elements they belong to stay as the staged allocation chose them; their
+    coefficients are refined by one weighted least-squares solve through the linearised chain
+    (W = sum_e Ad_e(q) p_e, eq. 4.12 to first order), each measured term weighted by its noise.
+    Returns a summary (number of coefficients, weighted rms before and after).
+    """
+    keys = [k for k, m in models.items() if m.features]
+    if not keys:
+        return {"coefficients": 0}
+    train = (sample.frame["role"] == "train").to_numpy()
+    sub = sample.take(train)
+    n = len(sub.frame)
+    W = sub.frame[list(PARAMS)].to_numpy(float)
+    mask = np.isfinite(W)
+    sig = {"len": 0.0005, "ang": 5e-7, **(noise or {})}
+    w = np.array([1 / sig["ang"]] * 3 + [1 / sig["len"]] * 3)
+    d = _directions(sub)
+    eps = 1e-6
+    # d W / d p_(e,k) at every pose (first order, around zero error)
+    jac: dict[tuple[str, int], np.ndarray] = {}
+    for e in sorted({k[0] for k in keys}):
+        for k in sorted({PARAMS.index(kk[1]) for kk in keys if kk[0] == e}):
+            unit = np.zeros((n, 6))
+            unit[:, k] = eps
+            jac[(e, k)] = workspace_error(sub.q, {e: unit}, dims) / eps
+    cols: list[tuple[tuple[str, str], int]] = []
+    blocks = []
+    for key in keys:
+        m = models[key]
+        F = design_matrix(m.features, sub.inputs, sub.q, d).to_numpy(float)
+        blocks.append((key, F))
+        cols += [(key, i) for i in range(F.shape[1])]
+    P = len(cols)
+    AtA = np.zeros((P, P))
+    Atb = np.zeros(P)
+    c0 = np.concatenate([np.asarray(models[key].coef, float) for key, _ in blocks])
+    before = after = 0.0
+    for t in range(6):
+        ok = mask[:, t]
+        if not ok.any():
+            continue
+        A = np.concatenate(
+            [jac[(key[0], PARAMS.index(key[1]))][ok, t][:, None] * F[ok] for key, F in blocks], axis=1
+        ) * w[t]
+        b = W[ok, t] * w[t]
+        AtA += A.T @ A
+        Atb += A.T @ b
+        before += float(np.sum((b - A @ c0) ** 2))
+    scale = np.sqrt(np.maximum(np.diag(AtA), 1e-300))
+    M = AtA / np.outer(scale, scale) + ridge * np.eye(P)
+    c = np.linalg.solve(M, Atb / scale) / scale
+    # second pass for the after-figure and the standard errors
+    sse, m_obs = 0.0, 0
+    for t in range(6):
+        ok = mask[:, t]
+        if not ok.any():
+            continue
+        A = np.concatenate(
+            [jac[(key[0], PARAMS.index(key[1]))][ok, t][:, None] * F[ok] for key, F in blocks], axis=1
+        ) * w[t]
+        r = W[ok, t] * w[t] - A @ c
+        sse += float(r @ r)
+        m_obs += int(ok.sum())
+    after = sse
+    s2 = sse / max(m_obs - P, 1)
+    cov_diag = np.diag(np.linalg.inv(M)) / scale**2 * s2
+    i = 0
+    for key, F in blocks:
+        k = F.shape[1]
+        models[key].coef = [float(v) for v in c[i : i + k]]
+        models[key].std_errors = [float(np.sqrt(max(v, 0.0))) for v in cov_diag[i : i + k]]
+        i += k
+    return {"coefficients": P, "points": m_obs, "weighted_rms_before": float(np.sqrt(before / max(m_obs, 1))),
+            "weighted_rms_after": float(np.sqrt(after / max(m_obs, 1)))}
 
 
 # ----------------------------------------------------------------------------- validation tables
@@ -669,7 +766,7 @@ def fit_bundles(
     reference = _reference(bundles, channels)
     lag_chans = [c for c in kept if c not in room]
     lags = [(c, t) for t in opts.lag_taus_s for c in lag_chans]
-    sample = build_samples(train_bundles, channels, reference, lags, opts.holdout_fraction)
+    sample = build_samples(train_bundles, channels, None, lags, opts.holdout_fraction)
     lap("samples")
 
     # 3-4. allocation through the chain and per-link stepwise models
@@ -678,6 +775,16 @@ def fit_bundles(
     if not models:
         raise ValidationError("no error term had enough training samples to fit")
     lap("allocation_and_regression")
+    adjustment: dict[str, Any] = {}
+    if opts.joint_adjust:
+        noise_meta = bundles[0].meta.noise
+        noise = {}
+        if noise_meta is not None and noise_meta.length_mm:
+            noise["len"] = float(noise_meta.length_mm)
+        if noise_meta is not None and noise_meta.angle_rad:
+            noise["ang"] = float(noise_meta.angle_rad)
+        adjustment = joint_adjust(sample, models, dims, noise)
+        lap("joint_adjustment")
 
     # 5. validation tables
     validation, W_hat = validation_table(sample, models, dims)
@@ -690,7 +797,7 @@ def fit_bundles(
     if opts.network:
         extrapolation, net_summary = _network_comparison(
             sample, W_hat, models, bundles[ext_i] if ext_i is not None else None, channels, reference, lags, dims, opts,
-            _room_shift(bundles, ext_i, room),
+            _room_shift(bundles, ext_i, room), kept,
         )
         lap("network")
 
@@ -739,7 +846,7 @@ def fit_bundles(
         "physical": physical.to_dict("records"),
         "virtual_sensors": vs,
         "extrapolation": None if extrapolation is None else {**extrapolation.to_dict(), **(net_summary or {})},
-        "allocation": alloc,
+        "allocation": alloc + ([{"joint_adjustment": adjustment}] if adjustment else []),
     }
     document = validate_document(_strict_json(doc))
     lap("document")
@@ -762,40 +869,46 @@ def _network_comparison(
     dims: Mapping[str, Any],
     opts: FitOptions,
     shift_degC: float = float("nan"),
+    net_channels: Sequence[str] | None = None,
 ) -> tuple[ExtrapolationResult | None, dict[str, Any]]:
     """Return the ch. 6.6 comparison on the largest position error: in range, and beyond it when data allow."""
     W = sample.frame[list(PARAMS)].to_numpy(float)
-    best, target = -1.0, None
+    role = sample.frame["role"].to_numpy(object)
+    # the position error the regression predicts best on held-out data (the thesis used Z position)
+    best, target = -np.inf, None
     for ax in ("Z", "X", "Y"):
         k = PARAMS.index("d" + ax.lower())
         m = (sample.frame["axis"] == ax).to_numpy() & np.isfinite(W[:, k])
-        if m.sum() > 50 and float(np.nanstd(W[m, k])) > best:
-            best, target = float(np.nanstd(W[m, k])), (ax, k)
+        ho = m & (role == "holdout")
+        if m.sum() > 50 and ho.sum() > 5 and float(np.nanstd(W[m, k])) > 0:
+            score = -rmse(W[ho, k] - W_hat[ho, k])
+            if score > best:
+                best, target = score, (ax, k)
     if target is None:
         return None, {}
     ax, k = target
-    raw = [c for c in channels]
+    raw = list(net_channels or channels)
 
     def net_inputs(s: Sample) -> pd.DataFrame:
-        X = s.inputs.dT[raw].copy()
+        # the network sees the readings themselves, scaled by eq. 6.3 (ch. 6.4.1), not the recast terms
+        X = (s.raw if s.raw is not None else s.inputs.dT)[raw].copy()
         X["position"] = s.q[:, AXES.index(ax)]
         X["direction"] = s.frame["direction"].to_numpy(float)
         return X
 
     m_ax = (sample.frame["axis"] == ax).to_numpy() & np.isfinite(W[:, k])
-    role = sample.frame["role"].to_numpy(object)
     tr = m_ax & (role == "train")
     ho = m_ax & (role == "holdout")
     X_all = net_inputs(sample)
     net = fit_network(X_all[tr].reset_index(drop=True), W[tr, k], hidden=opts.network_hidden,
-                      max_samples=opts.network_max_samples, seed=opts.seed)
+                      max_samples=opts.network_max_samples, seed=opts.seed, max_iter=opts.network_max_iter)
     summary = {"target": f"{ax} {'d' + ax.lower()}", "network_hidden": list(opts.network_hidden)}
     net_ho = net.predict(X_all[ho].reset_index(drop=True))
     summary["network_holdout_mm"] = rmse(W[ho, k] - net_ho)
     summary["regression_holdout_mm"] = rmse(W[ho, k] - W_hat[ho, k])
     if ext_bundle is None:
         return None, summary
-    ext = build_samples([ext_bundle], channels, reference, lags, 0.0)
+    ext = build_samples([ext_bundle], channels, None, lags, 0.0)
     We = ext.frame[list(PARAMS)].to_numpy(float)
     me = (ext.frame["axis"] == ax).to_numpy() & np.isfinite(We[:, k])
     if me.sum() < 5:
