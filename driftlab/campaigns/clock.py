@@ -51,6 +51,13 @@ class SimClock:
         self._lock = threading.Lock()
         self._max_lag = 0.0
 
+    def anchor(self) -> None:
+        """Start pacing from here: the current simulated time corresponds to this wall-clock moment."""
+        with self._lock:
+            self._t0 = self._now
+            self._wall0 = time.monotonic()
+            self._max_lag = 0.0
+
     def now(self) -> float:
         """Return the simulated time of the current step."""
         with self._lock:

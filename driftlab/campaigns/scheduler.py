@@ -259,6 +259,9 @@ class Scheduler:
 
     def run(self) -> RunStats:
         """Run the remaining steps; return the statistics (``finished`` when the plan is complete)."""
+        anchor = getattr(self.clock, "anchor", None)
+        if anchor is not None:
+            anchor()  # setting up the instruments is not time the campaign fell behind
         wall0 = time.monotonic()
         sim0 = None
         batch = Batch(cursor=self.cursor, stage=self._stage)

@@ -208,6 +208,11 @@ def test_sim_clock_jumps_exactly_and_paces() -> None:
     assert paced.wait_until(110.0) == 110.0
     assert time.monotonic() - t0 >= 0.099
     assert paced.lag_s() < 50.0
+    late = SimClock(speed=1000.0, start_s=0.0)
+    time.sleep(0.05)  # 50 simulated seconds of set-up
+    assert late.lag_s() >= 49.0
+    late.anchor()  # pacing starts now: set-up time is not lag
+    assert late.lag_s() < 49.0 and late.now() == 0.0
     with pytest.raises(ValueError):
         SimClock(speed=0)
 
