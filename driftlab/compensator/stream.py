@@ -383,8 +383,6 @@ class Streamer:
                 raise RuntimeError("emitted lines do not match the prepared points")
             rows.extend((t, k, l0) for t, k in zip(texts, carried))
             start_line = l0 + 1
-        elif skip:
-            start_line = l0 + 1
         if start_line < l1:
             if pts.n > base:
                 part = Points(pts.block[base:], pts.nominal_int[base:])
@@ -446,8 +444,8 @@ class Streamer:
         """Yield corrected blocks for the machine link, each prepared at most ``max_age_s`` ago."""
         while True:
             t0 = self.timer()
-            if self.clock() - min(self._model_at, self._temps_at) > self.max_age_s:
-                self.refresh(due_s=self.max_age_s)
+            if self.clock() - min(self._model_at, self._temps_at) >= self.refresh_s:
+                self.refresh()  # the link has not waited long enough for ``idle`` to do it
             while True:
                 if not self._ready:
                     # the link caught up with the preparation: a short run keeps this wait short
