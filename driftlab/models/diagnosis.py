@@ -540,7 +540,7 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                 p_rob = sc.p_value
             else:
                 p_rob = robust_pvalue(X_new, td.y, td, new_idx)
-            p = max(sc.p_value, p_rob)
+            p = max(sc.p_value, p_rob, 1e-300)  # below 1e-300 a p-value says nothing more
             log.debug("%s/%s try %s %s: p naive %.3g robust %.3g (need < %.3g)", td.axis, td.term, cand.kind,
                       cand.channels, sc.p_value, p_rob, alpha_each)
             if p >= alpha_each:

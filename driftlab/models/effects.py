@@ -269,7 +269,8 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str
     min_pre = max(30, int(0.05 * n))
     step = max(1, int(300.0 / dt))  # candidate cuts every 5 min, then refined to the scan
     D = T - T[0]
-    corr = np.nan_to_num(np.corrcoef(np.where(finite, D, 0.0).T))
+    with np.errstate(all="ignore"):  # channels without readings have no correlation (NaN -> 0)
+        corr = np.nan_to_num(np.corrcoef(np.where(finite, D, 0.0).T))
     excluded: set[int] = set()
     out: dict[str, FaultScan] = {}
     room_cols = [prep.channel_index(c) for c in prep.room_channels if finite[prep.channel_index(c)]]
@@ -398,7 +399,7 @@ def build_context(prep: PreparedBundle, td: TermData, model_channels: list[str],
 
 def lag_bank_for(prep: PreparedBundle, channels: list[str], taus: np.ndarray) -> dict[str, np.ndarray]:
     """Return, per channel, the (n_grid, n_tau) lagged temperatures on the uniform grid (one pass per tau)."""
-    if not channels or taus.size == 0:
+    if not channels or taus.size == 0 or prep.grid_t.size < 3:
         return {}
     dt = float(prep.grid_t[1] - prep.grid_t[0])
     idx = [prep.channel_index(c) for c in channels]

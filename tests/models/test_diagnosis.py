@@ -203,6 +203,20 @@ def test_clean_synthetic_bundles_without_model_channels_give_no_findings():
     assert found == []
 
 
+def test_virtual_machine_without_model_channels_screens_all_drivers_and_finds_nothing():
+    case = gen.vm_case([], seed=50, hours=30, points=5, keep=[("Z", "dz"), ("X", "dx")])
+    b = case.bundle
+    meta = b.meta.model_copy(update={"model_channels": None})
+    res = diagnose_bundle(type(b)(name=b.name, meta=meta, temperatures=b.temperatures, conditions=None,
+                                  errors=b.errors))
+    drivers = {"X": {"T9", "T10", "T45"},
+               "Z": {"T7", "T24", "T26", "T30", "T32", "T33", "T34", "T35", "T37", "T42"}}
+    for t in res.terms:
+        assert t.standard.selection.source == "screening"
+        assert drivers[t.td.axis] <= set(t.standard.channels)
+    assert res.effects == []
+
+
 def test_simulation_sentences_come_from_the_residuals():
     case = gen.vm_case([Planted("reversal", "X", "dx", [], {"magnitude_mm": 0.004})], seed=7, hours=24)
     res = diagnose_bundle(case.bundle)
