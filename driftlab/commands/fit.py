@@ -24,6 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="campaign id (repeat for several campaigns of one machine)")
     _db(fit)
     fit.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the fit report here")
+    fit.add_argument("--no-network", action="store_true", help="skip the neural-network comparison (ch. 6.6)")
     mode = fit.add_mutually_exclusive_group()
     mode.add_argument("--enqueue", action="store_true", help="only queue the fit job and print its id")
     mode.add_argument("--worker", action="store_true", help="run queued fit jobs (a worker process)")
@@ -71,7 +72,7 @@ def _fit(args: argparse.Namespace) -> int:
             return 0
         if not args.campaign:
             raise ValidationError("give --campaign ID (or --worker)")
-        job_id = submit_fit(store, args.campaign)
+        job_id = submit_fit(store, args.campaign, network=not args.no_network)
         if args.enqueue:
             print(json.dumps({"job": job_id, "state": "queued"}))
             return 0

@@ -951,13 +951,14 @@ def fit_campaigns(
     return result, doc
 
 
-def submit_fit(store: Any, campaign_ids: Sequence[int]) -> int:
+def submit_fit(store: Any, campaign_ids: Sequence[int], network: bool = True) -> int:
     """Queue a fit of these campaigns in the store's jobs table; return the job id."""
     ids = [int(c) for c in campaign_ids]
     if not ids:
         raise ValidationError("give at least one campaign")
     machines = {store.load_campaign(c).meta.machine.id for c in ids[:1]}
-    return int(store.submit_job(FIT_JOB, {"campaigns": ids}, machine_id=machines.pop(), campaign_id=ids[0]))
+    return int(store.submit_job(FIT_JOB, {"campaigns": ids, "network": bool(network)}, machine_id=machines.pop(),
+                                campaign_id=ids[0]))
 
 
 def run_fit_job(store: Any, job: Any, worker: str, on_stage: Callable[[str], None] | None = None) -> dict[str, Any]:
@@ -968,7 +969,8 @@ def run_fit_job(store: Any, job: Any, worker: str, on_stage: Callable[[str], Non
             on_stage(stage)
 
     try:
-        result, doc = fit_campaigns(store, job.params.get("campaigns", []), progress=beat)
+        opts = FitOptions(network=bool(job.params.get("network", True)))
+        result, doc = fit_campaigns(store, job.params.get("campaigns", []), opts, progress=beat)
     except Exception as exc:  # the job records any failure; user errors keep their one-line text
         store.fail_job(job.id, worker, f"{type(exc).__name__}: {exc}")
         raise
