@@ -60,7 +60,7 @@ def bench_plan() -> Plan:
         "scan_interval_s": SCAN_S, "state_every": 10,
         "stages": [{"name": "spindle-10k", "axis": "Z", "duration_s": SIM_S,
                     "heat": [{"kind": "spindle", "rpm": 10000}],
-                    "sweep": {"positions": [0, 100, 200, 300, 400], "interval_s": SWEEP_S, "point_s": 3.0,
+                    "sweep": {"positions": [-250, -190, -125, -60, 0], "interval_s": SWEEP_S, "point_s": 3.0,
                               "term": "dz"}}],
     })
 

@@ -1188,10 +1188,35 @@ def scenario_stages(plan: Plan) -> list[dict[str, Any]]:
     return out
 
 
+def check_travel(plan: Plan) -> None:
+    """Refuse sweep positions or oscillations outside the virtual machine's travel (Tables A.3, A.4)."""
+    from driftlab.daq.sim.truth import AXIS_RANGE
+    from driftlab.errors import ValidationError
+
+    for i, stage in enumerate(plan.stages):
+        lo, hi = AXIS_RANGE[stage.axis]
+        if stage.sweep is not None:
+            out = [p for p in stage.sweep.positions if not lo - 1e-9 <= p <= hi + 1e-9]
+            if out:
+                raise ValidationError(
+                    f"plan {plan.name}: stages[{i}].sweep.positions: {', '.join(f'{p:g}' for p in out)} outside "
+                    f"the virtual machine's {stage.axis} travel {lo:g}..{hi:g}"
+                )
+        for h in stage.heat:
+            if h.kind == "axis":
+                a, b = AXIS_RANGE[h.axis]
+                if not (a - 1e-9 <= min(h.from_pos, h.to_pos) and max(h.from_pos, h.to_pos) <= b + 1e-9):
+                    raise ValidationError(
+                        f"plan {plan.name}: stages[{i}].heat: {h.axis} oscillation {h.from_pos:g}..{h.to_pos:g} "
+                        f"outside the virtual machine's travel {a:g}..{b:g}"
+                    )
+
+
 def plan_scenario(plan: Plan, scenario: Any) -> Any:
     """Return the scenario with the plan's stages and length (the daemon's plan drives the world)."""
     from driftlab.daq.sim.scenario import Scenario
 
+    check_travel(plan)
     doc = scenario.model_dump()
     doc["stages"] = scenario_stages(plan)
     doc["hours"] = max(doc["hours"], math.ceil(plan.total_s / 60.0) / 60.0)

@@ -31,19 +31,19 @@ stages:
   - name: baseline
     axis: Z
     duration_s: 1200
-    sweep: &sw {positions: [0, 200, 400], interval_s: 600, point_s: 6, term: dz}
+    sweep: &sw {positions: [-250, -125, 0], interval_s: 600, point_s: 6, term: dz}
   - name: spindle-10k
     heat: [{kind: spindle, rpm: 10000}]
     axis: Z
     duration_s: 2400
     sweep: *sw
   - name: z-feed
-    heat: [{kind: axis, axis: Z, feed_mm_min: 5000, from_pos: 0, to_pos: 400}]
+    heat: [{kind: axis, axis: Z, feed_mm_min: 5000, from_pos: 0, to_pos: -250}]
     axis: Z
     duration_s: 1800
     sweep: *sw
   - name: both
-    heat: [{kind: spindle, rpm: 10000}, {kind: axis, axis: Z, feed_mm_min: 5000, from_pos: 0, to_pos: 400}]
+    heat: [{kind: spindle, rpm: 10000}, {kind: axis, axis: Z, feed_mm_min: 5000, from_pos: 0, to_pos: -250}]
     axis: Z
     duration_s: 1800
     sweep: *sw

@@ -150,6 +150,10 @@ def test_plan_drives_the_virtual_machine_stages() -> None:
     hold["staged_order"] = False
     with pytest.raises(ValidationError, match="motor_hold"):
         scenario_stages(parse_plan(hold))
+    far = plan.model_dump(mode="json")
+    far["stages"][0]["sweep"]["positions"] = [0, 400]
+    with pytest.raises(ValidationError, match=r"stages\[0\].sweep.positions: 400 outside .* Z travel -254..0"):
+        plan_scenario(parse_plan(far), Scenario())
 
 
 def test_channel_maps_from_scenario_or_plan() -> None:
@@ -177,7 +181,7 @@ def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -
     plan = parse_plan({
         "name": "faulty", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
         "stages": [{"name": "sp", "axis": "Z", "duration_s": 600, "heat": [{"kind": "spindle", "rpm": 9000}],
-                    "sweep": {"positions": [0, 100], "interval_s": 300, "point_s": 5}}],
+                    "sweep": {"positions": [-100, 0], "interval_s": 300, "point_s": 5}}],
     })
     engine = store_engine(f"sqlite:///{tmp_path / 'f.sqlite'}")
     meta = scenario_meta(None)
@@ -284,7 +288,7 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
     url = pg_cluster.create_database()
     plan = parse_plan({"name": "blip", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
                        "stages": [{"name": "idle", "axis": "Z", "duration_s": 1800,
-                                   "sweep": {"positions": [0, 200], "interval_s": 600, "point_s": 5}}]})
+                                   "sweep": {"positions": [-200, 0], "interval_s": 600, "point_s": 5}}]})
     engine = store_engine(url)
     meta = scenario_meta(None)
     handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
