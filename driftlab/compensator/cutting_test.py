@@ -153,7 +153,7 @@ class CuttingProgram:
     """The raster program of the cutting test and where each CMM point lies in it."""
 
     text: str
-    #: (B, 5) block targets as written (mm, deg); block 0 is the rapid to the first point
+    #: (B, 5) block targets as written (mm, deg); block 0 is the rapid to above the first point
     pose_written: np.ndarray
     #: (B, 3) design tool centres and (B, 3) surface normals, part frame
     centre: np.ndarray
@@ -210,6 +210,10 @@ def make_program(surface: MouldSurface | None = None, passes: int = 700, *,
         target = np.array([127.0, 127.0, -127.0])
         part_origin = (q0[:, :3].min(axis=0) + q0[:, :3].max(axis=0)) / 2 - target
     c = c + np.asarray(part_origin, float)
+    # block 0: the rapid to 10 mm above the first point along its normal; then the cut, point by point
+    c = np.vstack([c[:1] + 10.0 * n[:1], c])
+    n = np.vstack([n[:1], n])
+    uf, vf = np.r_[uf[0], uf], np.r_[vf[0], vf]
     q = inverse_kinematics(c, n, dims)
     pose = q.copy()
     pose[:, 3:] = np.rad2deg(pose[:, 3:])
@@ -229,7 +233,7 @@ def make_program(surface: MouldSurface | None = None, passes: int = 700, *,
     lines += ["M5", "%"]
     rows = np.round(np.linspace(0, passes - 1, CMM_ALONG)).astype(int)
     cols = np.arange(CMM_ACROSS)
-    cmm = rows[:, None] * CMM_ACROSS + np.where(rows[:, None] % 2 == 0, cols[None, :], CMM_ACROSS - 1 - cols[None, :])
+    cmm = 1 + rows[:, None] * CMM_ACROSS + np.where(rows[:, None] % 2 == 0, cols[None, :], CMM_ACROSS - 1 - cols[None, :])
     dur = block_s.sum() / 60.0
     mean_feed = {a: float(np.abs(np.diff(pose[:, k])).sum() / dur) for k, a in enumerate(AXES)} if dur > 0 else {
         a: 0.0 for a in AXES}
@@ -248,12 +252,14 @@ def _words(p: np.ndarray) -> str:
 class MachiningMachine(VirtualMachine):
     """The virtual machine powered on (motors holding) from t = 0, cutting between ``cut_start_s`` and ``cut_end_s``.
 
+    ``age_s`` places the session after the campaign (a later day): drifts have gone on meanwhile.
+
     While it cuts, the spindle runs at the program's speed and each axis' motor heats with its mean
     feed (the heat sources of the thermal network, normalised as in ``daq.sim.sites``).
     """
 
     def __init__(self, scenario: Scenario, cut_start_s: float, cut_end_s: float,
-                 mean_feed: Mapping[str, float], spindle_rpm: float = SPINDLE_RPM) -> None:
+                 mean_feed: Mapping[str, float], spindle_rpm: float = SPINDLE_RPM, age_s: float = 0.0) -> None:
         end = max(cut_end_s + 3600.0, scenario.duration_s)
         base = scenario.model_copy(update={
             "hours": end / 3600.0,
@@ -262,6 +268,10 @@ class MachiningMachine(VirtualMachine):
         self.cut_start_s, self.cut_end_s = float(cut_start_s), float(cut_end_s)
         self.mean_feed = dict(mean_feed)
         self.spindle_rpm = float(spindle_rpm)
+        #: time from the campaign's start to this session's t = 0: the machine has cooled down to the
+        #: room again (the thermal state starts soaked), but what does not depend on temperature
+        #: (a drift: wear, settling) has gone on
+        self.age_s = float(age_s)
         super().__init__(base)
 
     def sources(self, t_s: np.ndarray) -> np.ndarray:
@@ -298,7 +308,8 @@ def hidden_element_errors(vm: VirtualMachine, t_s: np.ndarray, q: np.ndarray,
             if eff.kind == "thermal_lag":
                 lag = vm.lagged_dT(eff.channels[0], float(eff.params["tau_s"]), t)
         W = np.zeros((len(t), 6))
-        W[:, TERMS.index(eff.term)] = truth.hidden_delta(eff, t, pos, direction[:, k], ch_dT, lag)
+        t_eff = t + float(getattr(vm, "age_s", 0.0)) if eff.kind == "drift" else t
+        W[:, TERMS.index(eff.term)] = truth.hidden_delta(eff, t_eff, pos, direction[:, k], ch_dT, lag)
         joint = JOINT_OF_AXIS[eff.axis]
         E = kin.allocate(W, truth.axis_pose(eff.axis, pos), None, joint)  # eq. 4.20
         out[joint] = out[joint] + E if joint in out else E
@@ -531,11 +542,11 @@ class CuttingBench:
     """The virtual machine, its simulated controller and the machine link for one cutting run."""
 
     def __init__(self, scenario: Scenario, program: CuttingProgram, *, lead_s: float = 300.0,
-                 spheres: Mapping[str, SimSphere] | None = None, capacity: int = 16) -> None:
+                 spheres: Mapping[str, SimSphere] | None = None, capacity: int = 16, age_s: float = 0.0) -> None:
         self.program = program
         self.clock = ManualClock(0.0)
         # the machine is switched on at t = 0 (soaked at room temperature) and cuts after lead_s
-        self.vm = MachiningMachine(scenario, lead_s, lead_s + program.duration_s, program.mean_feed)
+        self.vm = MachiningMachine(scenario, lead_s, lead_s + program.duration_s, program.mean_feed, age_s=age_s)
         self.lead_s = lead_s
         self.first_block = 0
         self.ctrl = LoggingController(self.vm, self.clock, capacity=capacity,
@@ -570,14 +581,13 @@ class CuttingBench:
         from driftlab.daq.probe import TouchProbe
 
         probe = TouchProbe.on_link(self.link, stylus_radius_mm=self.ctrl.stylus_radius_mm, lobing=self.ctrl.lobing)
-        t = self.clock.now()
-        out = {"t_s": t, "spheres": {}}
+        out: dict[str, Any] = {"t_s": self.clock.now(), "spheres": {}}
         for name, sph in self.ctrl.spheres.items():
             m = probe.probe_sphere(name, sph.centre, sph.radius_mm)
             measured = np.asarray(m.centre) - np.asarray(sph.centre)
-            online.update(sph.centre, measured, temps, t)
+            online.update(sph.centre, measured, temps, self.clock.now())
             out["spheres"][name] = [round(float(x), 6) for x in measured]
-        self.clock.sleep(60.0)  # the probing cycle takes about a minute of machine time
+            self.clock.sleep(15.0)  # moving to and touching one sphere takes about 15 s of machine time
         return out
 
 
@@ -676,8 +686,11 @@ THESIS_TABLE = {"uncompensated": {"rmse_mm": 0.060, "max_mm": 0.082}, "offline":
 
 def run_cutting_test(scenario: Scenario, models: Callable[[], Any], online: Callable[[], OnlineUpdater], *,
                      passes: int = 700, lead_s: float = 300.0, interval_s: float = ONLINE_INTERVAL_S,
-                     on_run: Callable[[str], None] | None = None) -> CuttingTest:
+                     age_s: float = 0.0, on_run: Callable[[str], None] | None = None) -> CuttingTest:
     """Return the three runs of the cutting test, each on a fresh, cold virtual machine.
+
+    Each run switches the machine on, waits ``lead_s`` and cuts; ``age_s`` is how long after the
+    campaign's start the runs take place (see ``MachiningMachine``).
 
     ``models()`` returns a fresh model source (``compensator.stream`` ModelSource: a StaticModel or
     an ApiModel), ``online()`` a fresh on-line model (LocalRLS, or one kept by the API).
@@ -685,7 +698,7 @@ def run_cutting_test(scenario: Scenario, models: Callable[[], Any], online: Call
     program = make_program(passes=passes)
     runs: dict[str, RunResult] = {}
     for key in ("uncompensated", "offline", "online"):
-        with CuttingBench(scenario, program, lead_s=lead_s) as bench:
+        with CuttingBench(scenario, program, lead_s=lead_s, age_s=age_s) as bench:
             if key == "uncompensated":
                 runs[key] = run_uncompensated(bench)
             elif key == "offline":
@@ -703,3 +716,54 @@ def format_table(test: CuttingTest) -> list[tuple[str, str, str, str, str]]:
     return [(names[k], f"{r.rmse_mm:.4f}", f"{r.max_mm:.4f}", f"{THESIS_TABLE[k]['rmse_mm']:.3f}",
              f"{THESIS_TABLE[k]['max_mm']:.3f}") for k, r in test.runs.items()]
 
+
+
+class ApiRLS:
+    """The on-line model kept by the driftlab API (``POST /machines/{id}/online/probe``, eqs. 6.10-6.13).
+
+    Each probe measurement is posted with the temperatures; the API updates the machine's RLS state
+    of the current model version (phi = [1], eq. 6.10) and answers with its coefficients, from
+    which the residual is predicted here for every block.
+    """
+
+    def __init__(self, api: str, machine: str, *, token: str | None = None, forgetting: float = 0.9,
+                 client: Any | None = None, started_at: float | None = None) -> None:
+        import httpx
+
+        self.url = f"{api.rstrip('/')}/machines/{machine}/online/probe"
+        self.forgetting = forgetting
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.client = client or httpx.Client(timeout=10.0, headers=headers)
+        self.theta = np.zeros((3, 1))
+        self.version = 0
+        self.replies: list[dict[str, Any]] = []
+        self.epoch_s = time.time() if started_at is None else started_at
+
+    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float],
+               t_s: float) -> None:
+        """Post one probe measurement; keep the coefficients the API answers with."""
+        import datetime as _dt
+
+        from driftlab.errors import InstrumentError
+
+        temps = {c: round(float(v), 4) for c, v in temperatures.items() if np.isfinite(v)}
+        body: dict[str, Any] = {
+            "x": float(xyz[0]), "y": float(xyz[1]), "z": float(xyz[2]), "a_deg": 0.0, "b_deg": 0.0,
+            "dx": float(measured[0]), "dy": float(measured[1]), "dz": float(measured[2]), "temperatures": temps,
+            "measured_at": _dt.datetime.fromtimestamp(self.epoch_s + t_s, _dt.timezone.utc).isoformat(),
+        }
+        if self.version == 0:
+            body["forgetting"] = self.forgetting
+        reply = self.client.post(self.url, json=body)
+        if reply.status_code != 200:
+            raise InstrumentError(f"on-line update refused by {self.url}: HTTP {reply.status_code} {reply.text[:200]}")
+        out = reply.json()
+        self.theta = np.array([out["theta"][c] for c in ("dx", "dy", "dz")], float)
+        self.replies.append(out)
+        self.version += 1
+
+    def predict(self, temperatures: Mapping[str, float]) -> np.ndarray:
+        """Return the predicted residual translation (eq. 6.10 with phi = [1])."""
+        if self.version == 0:
+            return np.zeros(3)
+        return self.theta @ np.ones(self.theta.shape[1])

@@ -1,0 +1,281 @@
+"""`driftlab demo`: the whole story on a fresh machine, each step the real component (see docs/demo.md).
+
+1. a staged campaign on the virtual machine with a hidden effect, through the daemon;
+2. `driftlab fit`, registering a model version;
+3. `driftlab export` + `driftlab diagnose` (JSON and HTML reports; the report names the effect);
+4. `driftlab serve` on 127.0.0.1 (a free port, a fresh write token);
+5. the cutting test of ch. 7.3: uncompensated, with the off-line model fetched from the API (ETag)
+   and streamed through the compensator to the simulated controller, and with the on-line model
+   updated through the API from probe measurements every 15 minutes;
+6. a table on the terminal, demo-report.html and demo-report.json in --out.
+
+Everything lives in --out: the SQLite database (an explicit URL), logs of every command, the
+campaign bundle and the reports, so runs are independent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import secrets
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from driftlab.errors import DriftlabError, InstrumentError, ValidationError
+
+log = logging.getLogger(__name__)
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+DEFAULT_PLAN = EXAMPLES / "plans" / "demo-z.yaml"
+DEFAULT_SCENARIO = EXAMPLES / "scenarios" / "demo-drift.yaml"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Register `demo`."""
+    p = sub.add_parser("demo", help="run the whole pipeline on the virtual machine: campaign, fit, diagnosis, "
+                                    "API, compensated cutting test; write an HTML and JSON report")
+    p.add_argument("--out", type=Path, default=Path("demo-out"), help="output directory (default demo-out)")
+    p.add_argument("--plan", type=Path, default=DEFAULT_PLAN, help="campaign plan (default examples/plans/demo-z.yaml)")
+    p.add_argument("--scenario", type=Path, default=DEFAULT_SCENARIO,
+                   help="virtual-machine scenario with the hidden effect (default examples/scenarios/demo-drift.yaml)")
+    p.add_argument("--speed", type=float, default=0.0,
+                   help="daemon speed: simulated seconds per wall second (0 = as fast as possible)")
+    p.add_argument("--passes", type=int, default=700,
+                   help="raster passes of the cutting program (700: about 80 min of cutting; at least 99)")
+    p.add_argument("--forgetting", type=float, default=0.9, help="on-line forgetting factor lambda (default 0.9)")
+    p.add_argument("--age-days", type=float, default=1.0,
+                   help="days from the campaign's start to the cutting test (the machine cooled down meanwhile)")
+    p.set_defaults(func=_demo)
+
+
+class _Steps:
+    """Runs the demo's commands as subprocesses, logging each to --out/logs and timing it."""
+
+    def __init__(self, out: Path, db_url: str, console: Any) -> None:
+        self.out, self.db_url, self.console = out, db_url, console
+        self.logs = out / "logs"
+        self.logs.mkdir(parents=True, exist_ok=True)
+        self.done: list[dict[str, Any]] = []
+
+    def cli(self, name: str, *args: str, env: dict[str, str] | None = None) -> str:
+        """Run `driftlab ARGS` to completion; return its stdout, or raise with the tail of its log."""
+        cmd = [sys.executable, "-m", "driftlab.cli", *args]
+        shown = "driftlab " + " ".join(args)
+        self.console.print(f"[bold cyan]>[/] {shown}")
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env or _env(), check=False)
+        wall = time.perf_counter() - t0
+        (self.logs / f"{name}.log").write_text(f"$ {shown}\n{proc.stdout}\n--- stderr ---\n{proc.stderr}")
+        if proc.returncode != 0:
+            tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+            raise InstrumentError(f"demo step {name} failed (exit {proc.returncode}): {tail}; "
+                                  f"see {self.logs / (name + '.log')}")
+        self.done.append({"name": name, "command": shown, "wall_s": round(wall, 2)})
+        for line in proc.stdout.strip().splitlines()[:2]:
+            self.console.print(f"  {line}")
+        return proc.stdout
+
+    def record(self, name: str, command: str, wall_s: float) -> None:
+        """Note an in-process step."""
+        self.done.append({"name": name, "command": command, "wall_s": round(wall_s, 2)})
+
+
+def _env(**extra: str) -> dict[str, str]:
+    """Return the environment for the subprocesses (this interpreter's package on the path)."""
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.update(extra)
+    return env
+
+
+def free_port() -> int:
+    """Return a TCP port free on 127.0.0.1 right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class ApiServer:
+    """`driftlab serve` in a subprocess on 127.0.0.1 with a write token; stopped on exit."""
+
+    def __init__(self, db_url: str, log_path: Path, token: str) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.token = token
+        self._log = open(log_path, "w")  # noqa: SIM115 - closed in stop()
+        cmd = [sys.executable, "-m", "driftlab.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
+               "--db", db_url, "--no-jobs", "--log-level", "warning"]
+        self.command = "driftlab " + " ".join(cmd[3:])
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT,
+                                     env=_env(DRIFTLAB_API_TOKEN=token))
+
+    def wait_ready(self, timeout_s: float = 60.0) -> None:
+        """Return once /health answers ok; InstrumentError when the server died or never answered."""
+        import httpx
+
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise InstrumentError(f"driftlab serve exited with status {self.proc.returncode}")
+            try:
+                if httpx.get(f"{self.url}/health", timeout=2.0).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise InstrumentError(f"driftlab serve did not answer on {self.url} within {timeout_s:.0f} s")
+
+    def stop(self) -> None:
+        """Terminate the server and wait for it."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+
+
+def _demo(args: argparse.Namespace) -> int:
+    """Run the demo; 0 when every step ran (the report says whether the ordering held)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from driftlab.campaigns.plan import load_plan
+    from driftlab.daq.sim.scenario import load_scenario
+
+    console = Console(stderr=False, highlight=False)
+    if args.passes < 99:
+        raise ValidationError(f"--passes must be at least 99 (one per CMM row), got {args.passes}")
+    plan = load_plan(args.plan)
+    scenario = load_scenario(args.scenario)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    db = out / "driftlab.sqlite"
+    for stale in (db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
+        stale.unlink(missing_ok=True)
+    db_url = f"sqlite:///{db.resolve()}"
+    steps = _Steps(out, db_url, console)
+    t_start = time.perf_counter()
+    machine = plan.machine.id
+
+    # 1. the campaign, through the daemon
+    console.rule("1. staged campaign on the virtual machine, through the daemon")
+    stats = out / "daemon-stats.json"
+    steps.cli("daemon", "daemon", "--plan", str(args.plan), "--sim", str(args.scenario), "--speed", f"{args.speed:g}",
+              "--db", db_url, "--stats-json", str(stats))
+    campaign_id = int(json.loads(stats.read_text())["campaign_id"])
+
+    # 2. fit and register
+    console.rule("2. fit the model and register it")
+    steps.cli("fit", "fit", "--campaign", str(campaign_id), "--db", db_url, "--json", str(out / "fit-report.json"))
+    fit_report = json.loads((out / "fit-report.json").read_text())
+
+    # 3. diagnose
+    console.rule("3. diagnose the campaign")
+    bundle = out / "campaign-bundle"
+    if bundle.exists():
+        import shutil
+
+        shutil.rmtree(bundle)
+    steps.cli("export", "export", str(campaign_id), str(bundle), "--db", db_url)
+    steps.cli("diagnose", "diagnose", str(bundle), "--json", str(out / "diagnosis.json"),
+              "--html", str(out / "diagnosis.html"))
+    diag_report = json.loads((out / "diagnosis.json").read_text())
+
+    # 4. serve, 5. cutting test
+    console.rule("4. serve the model over the API")
+    token = secrets.token_urlsafe(24)
+    server = ApiServer(db_url, steps.logs / "serve.log", token)
+    try:
+        t0 = time.perf_counter()
+        server.wait_ready()
+        steps.record("serve", server.command, time.perf_counter() - t0)
+        console.print(f"  API on {server.url}")
+        console.rule("5. cutting test (ch. 7.3) through the streaming compensator")
+        t0 = time.perf_counter()
+        test, model_info = _cutting_test(args, scenario, machine, server, console)
+        steps.record("cutting test", f"3 runs x {test.program.pose_written.shape[0]} blocks through the machine link "
+                     f"({test.program.duration_s / 60:.0f} min of cutting each)", time.perf_counter() - t0)
+    finally:
+        server.stop()
+
+    # 6. the report
+    from driftlab import demo_report as rep
+
+    table = test.table()
+    diagnosis = rep.diagnosis_summary(diag_report)
+    wall = time.perf_counter() - t_start
+    report = rep.build_report(table=table, diagnosis=diagnosis, steps=steps.done, extra={
+        "wall_s": round(wall, 1),
+        "campaign": {"id": campaign_id, "plan": str(args.plan), "scenario": str(args.scenario),
+                     **json.loads(stats.read_text())},
+        "planted": [e.model_dump() for e in scenario.hidden],
+        "model": {**model_info, "kept_channels": fit_report.get("kept_channels", [])},
+        "program": {"blocks": int(test.program.pose_written.shape[0]), "passes": test.program.passes,
+                    "cutting_min": round(test.program.duration_s / 60, 1),
+                    "spindle_rpm": 10000, "feed_mm_min": 2000, "rotary_feed_deg_min": 300},
+        "online": {**table["online"], "forgetting": args.forgetting, "updates": test.runs["online"].probes},
+    })
+    rep.write_json(out / "demo-report.json", report)
+    figure = rep.surface_figure({k: r.deviation_mm for k, r in test.runs.items()})
+    (out / "demo-report.html").write_text(rep.to_html(report, figure), encoding="utf-8")
+
+    t = Table(title="Cutting test, ch. 7.3 (normal deviation, mm)")
+    for col in ("run", "RMSE", "max", "thesis RMSE", "thesis max"):
+        t.add_column(col, justify="left" if col == "run" else "right")
+    for k, name in rep.RUN_NAMES.items():
+        t.add_row(name, f"{table[k]['rmse_mm']:.4f}", f"{table[k]['max_mm']:.4f}",
+                  f"{rep.THESIS[k]['rmse_mm']:.3f}", f"{rep.THESIS[k]['max_mm']:.3f}")
+    console.print(t)
+    named = ", ".join(diagnosis["named"]) or "nothing"
+    console.print(f"diagnosis names: [bold]{named}[/]")
+    console.print(f"ordering uncompensated > off-line > on-line: "
+                  f"{'[green]holds[/]' if report['ordering_holds'] else '[red]does not hold[/]'}")
+    console.print(f"report: {out / 'demo-report.html'} and {out / 'demo-report.json'} ({wall:.0f} s)")
+    return 0
+
+
+def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server: ApiServer,
+                  console: Any) -> tuple[Any, dict[str, Any]]:
+    """Run the three cutting runs against the API; return the test and what the API served."""
+    import httpx
+
+    from driftlab.compensator.cutting_test import ApiRLS, run_cutting_test
+    from driftlab.compensator.stream import ApiModel
+
+    sources: list[ApiModel] = []
+
+    def models() -> ApiModel:
+        """Return a fresh model source on the API (each run fetches the model, then polls with its ETag)."""
+        src = ApiModel(server.url, machine, token=server.token)
+        sources.append(src)
+        return src
+
+    first = models()
+    first.refresh()
+    if first.document is None:
+        raise DriftlabError(f"the API served no model for {machine}")
+    document = first.document
+    # a second request with the ETag must be answered 304 Not Modified
+    probe = httpx.get(f"{server.url}/machines/{machine}/model/current", headers={"If-None-Match": first.etag or ""},
+                      timeout=5.0)
+    info = {"version": document.get("version"), "etag": first.etag, "if_none_match_status": probe.status_code,
+            "terms": len(document.get("terms", []))}
+
+    def online() -> ApiRLS:
+        """Return a fresh on-line model kept by the API."""
+        return ApiRLS(server.url, machine, token=server.token, forgetting=args.forgetting)
+
+    test = run_cutting_test(scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0,
+                            on_run=lambda k: console.print(f"  run {k} done"))
+    info["polls"] = sum(1 for _ in sources)
+    return test, info

@@ -1,0 +1,137 @@
+"""The report of `driftlab demo`: demo-report.json, demo-report.html and the terminal table."""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+RUN_NAMES = {"uncompensated": "without compensation", "offline": "off-line model",
+             "online": "off-line + on-line model"}
+#: thesis ch. 7.3, mm
+THESIS = {"uncompensated": {"rmse_mm": 0.060, "max_mm": 0.082}, "offline": {"rmse_mm": 0.005, "max_mm": 0.015},
+          "online": {"rmse_mm": 0.003, "max_mm": 0.012}}
+
+
+def diagnosis_summary(report: dict[str, Any]) -> dict[str, Any]:
+    """Return the findings of a diagnosis report v1: accepted effects with their causes and gains."""
+    effects = []
+    for e in report.get("effects", []):
+        effects.append({k: e.get(k) for k in ("kind", "axis", "term", "channels", "params", "p_value", "cause",
+                                              "rmse_holdout_before", "rmse_holdout_after")})
+    names = [f"{e['kind']} {e.get('axis') or ''}/{e.get('term') or ''} {' '.join(e.get('channels') or [])}".strip()
+             for e in effects]
+    return {"effects": effects, "named": names, "flags": report.get("flags", []),
+            "baseline": report.get("baseline", [])}
+
+
+def build_report(*, table: dict[str, dict[str, Any]], diagnosis: dict[str, Any], steps: list[dict[str, Any]],
+                 extra: dict[str, Any]) -> dict[str, Any]:
+    """Return the demo-report.json document."""
+    out: dict[str, Any] = {"format": "driftlab-demo/1"}
+    out.update(table)
+    out["diagnosis"] = diagnosis
+    out["thesis"] = THESIS
+    out["ordering_holds"] = bool(table["uncompensated"]["rmse_mm"] > table["offline"]["rmse_mm"]
+                                 > table["online"]["rmse_mm"])
+    out["steps"] = steps
+    out.update(extra)
+    return _finite(out)
+
+
+def _finite(obj: Any) -> Any:
+    """Return ``obj`` with non-finite floats as None and numpy scalars as plain numbers (strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def write_json(path: Path, report: dict[str, Any]) -> Path:
+    """Write the report as strict JSON; return the path."""
+    path.write_text(json.dumps(report, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    return path
+
+
+def surface_figure(deviations: dict[str, np.ndarray]) -> str:
+    """Return a PNG (base64) of the machined-surface errors of each run (figs. 7.3, 7.4, 7.6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in ("uncompensated", "offline", "online") if k in deviations]
+    lim = max(float(np.max(np.abs(deviations[k]))) for k in keys) * 1e3 or 1.0
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 4.2), sharey=True, constrained_layout=True)
+    axes = np.atleast_1d(axes)
+    im = None
+    for ax, k in zip(axes, keys):
+        im = ax.imshow(deviations[k] * 1e3, aspect="auto", origin="lower", cmap="coolwarm", vmin=-lim, vmax=lim,
+                       extent=(0.5, deviations[k].shape[1] + 0.5, 0.5, deviations[k].shape[0] + 0.5))
+        ax.set_title(RUN_NAMES[k])
+        ax.set_xlabel("across the part (15 CMM points)")
+    axes[0].set_ylabel("along the part = time (99 CMM points)")
+    fig.colorbar(im, ax=list(axes), label="normal deviation (um)")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80)
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _row(cells: list[str], tag: str = "td") -> str:
+    """Return one HTML table row."""
+    return "<tr>" + "".join(f"<{tag}>{c}</{tag}>" for c in cells) + "</tr>"
+
+
+def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
+    """Return the demo's HTML page: the cutting-test table, the diagnosis findings, the steps."""
+    e = html.escape
+    rows = [_row(["run", "RMSE (mm)", "max (mm)", "thesis RMSE (mm)", "thesis max (mm)"], "th")]
+    for k, name in RUN_NAMES.items():
+        r, t = report[k], THESIS[k]
+        rows.append(_row([e(name), f"{r['rmse_mm']:.4f}", f"{r['max_mm']:.4f}", f"{t['rmse_mm']:.3f}",
+                          f"{t['max_mm']:.3f}"]))
+    diag = report.get("diagnosis", {})
+    findings = "".join(
+        f"<li><b>{e(str(f.get('kind')))}</b> on {e(str(f.get('axis')))}/{e(str(f.get('term')))} "
+        f"{e(' '.join(f.get('channels') or []))}: {e(str(f.get('cause') or ''))} "
+        f"(held-out RMSE {1e3 * (f.get('rmse_holdout_before') or 0):.2f} &rarr; "
+        f"{1e3 * (f.get('rmse_holdout_after') or 0):.2f} um)</li>"
+        for f in diag.get("effects", [])) or "<li>no effect accepted</li>"
+    steps = "".join(_row([e(s["name"]), e(s.get("command", "")), f"{s['wall_s']:.1f}"]) for s in report.get("steps", []))
+    fig = f'<p><img alt="machined surface errors" src="data:image/png;base64,{figure_png}"></p>' if figure_png else ""
+    planted = report.get("planted", [])
+    planted_html = "".join(f"<li>{e(json.dumps(p))}</li>" for p in planted)
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>driftlab demo</title>
+<style>body{{font-family:sans-serif;max-width:70em;margin:2em auto}}table{{border-collapse:collapse}}
+td,th{{border:1px solid #bbb;padding:.25em .6em;text-align:right}}td:first-child,th:first-child{{text-align:left}}
+code{{font-size:90%}}</style></head><body>
+<h1>driftlab demo</h1>
+<p>A staged campaign on the virtual machine through the daemon, a fitted and registered model, its diagnosis,
+the model served over the API, and the cutting test of thesis ch. 7.3 streamed through the compensator.
+Total wall time {report.get('wall_s', 0):.0f} s.</p>
+<h2>Cutting test (ch. 7.3): normal deviation of the machined surface, CMM 15 x 99 points</h2>
+<table>{''.join(rows)}</table>
+<p>Ordering uncompensated &gt; off-line &gt; off-line + on-line: <b>{'holds' if report.get('ordering_holds') else 'does NOT hold'}</b>.</p>
+{fig}
+<h2>Diagnosis of the campaign</h2>
+<ul>{findings}</ul>
+<p>Planted in the scenario (the truth, not seen by the pipeline):</p><ul>{planted_html}</ul>
+<p>Full report: <a href="diagnosis.html">diagnosis.html</a>.</p>
+<h2>Steps</h2>
+<table>{_row(['step', 'command', 'wall (s)'], 'th')}{steps}</table>
+</body></html>
+"""

@@ -1,0 +1,60 @@
+"""`driftlab demo` end to end (a shorter cutting program): daemon, fit, diagnosis, API, streamed cutting test."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from driftlab.cli import main
+from driftlab.daq.sim.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Run the demo once into a temporary directory; return it."""
+    out = tmp_path_factory.mktemp("demo") / "out"
+    assert main(["demo", "--out", str(out), "--passes", "120"]) == 0
+    return out
+
+
+def test_demo_writes_its_reports(demo_out: Path) -> None:
+    for name in ("demo-report.html", "demo-report.json", "diagnosis.html", "diagnosis.json", "fit-report.json",
+                 "driftlab.sqlite", "campaign-bundle/campaign.json"):
+        assert (demo_out / name).is_file(), name
+    page = (demo_out / "demo-report.html").read_text()
+    assert "Cutting test" in page and "data:image/png;base64," in page and 'href="diagnosis.html"' in page
+
+
+def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
+    rep = json.loads((demo_out / "demo-report.json").read_text())
+    for key in ("uncompensated", "offline", "online"):
+        assert {"rmse_mm", "max_mm"} <= set(rep[key]), key
+        assert 0 < rep[key]["rmse_mm"] <= rep[key]["max_mm"]
+    assert rep["uncompensated"]["rmse_mm"] > rep["offline"]["rmse_mm"] > rep["online"]["rmse_mm"]
+    assert rep["ordering_holds"] is True
+    assert rep["online"]["probe_cycles"] >= 1 and rep["online"]["updates"]
+    # every step is the real component, in order
+    names = [s["name"] for s in rep["steps"]]
+    assert names == ["daemon", "fit", "export", "diagnose", "serve", "cutting test"]
+    assert rep["steps"][0]["command"].startswith("driftlab daemon --plan")
+    assert rep["campaign"]["finished"] is True and rep["campaign"]["points"] > 0
+    # the model came from the API with an ETag, and a repeated request was answered 304
+    assert rep["model"]["version"] == 1 and rep["model"]["etag"]
+    assert rep["model"]["if_none_match_status"] == 304
+    assert rep["offline"]["stream"]["blocks_sent"] == rep["offline"]["blocks"] - 1
+
+
+def test_demo_diagnosis_names_the_planted_effect(demo_out: Path) -> None:
+    rep = json.loads((demo_out / "demo-report.json").read_text())
+    planted = load_scenario(ROOT / "examples" / "scenarios" / "demo-drift.yaml").hidden
+    assert rep["planted"] == [e.model_dump() for e in planted]
+    (eff,) = planted
+    found = [f for f in rep["diagnosis"]["effects"]
+             if (f["kind"], f["axis"], f["term"]) == (eff.kind, eff.axis, eff.term)]
+    assert found, rep["diagnosis"]
+    rate = float(eff.params["rate_per_day"])
+    assert abs(found[0]["params"]["rate_per_day"] - rate) < 0.25 * rate
