@@ -5,8 +5,9 @@ predicts the errors of the links and joints, ``models.kinematics.compensate`` so
 commands that cancel them (angles first, then translations: eqs. 4.23-4.26), and the correction
 is quantised to the machine's resolution with the remainder carried over (ch. 7.2: small
 corrections are accumulated until they reach the positioning resolution instead of being sent).
-Rotary corrections are put on the angular grid inside the solve, before the translations are
-solved, so that X, Y, Z also take up what the rounded angles leave (the order of eqs. 4.25-4.26).
+Angles come first (eq. 4.25): their corrections go onto the angular grid with the remainder carried
+over; the translations (eq. 4.26) then also take up what the angles on their grid leave at the
+tool (``rotary_lever``), and go onto the linear grid the same way.
 """
 
 from __future__ import annotations
@@ -280,6 +281,27 @@ class Correction:
     direction: np.ndarray
 
 
+def rotary_lever(q: np.ndarray, dims: Mapping[str, Any], delta: np.ndarray) -> np.ndarray:
+    """Return (N, 3) X, Y, Z offsets (mm) that cancel turning A, B by ``delta`` (N, 2) rad at poses ``q``.
+
+    In the chain of eq. 4.12 a small turn of a rotary joint is a rotation of the part about that
+    joint's axis, which passes through the joint's origin in the spindle frame: ``m`` for A (links
+    T1..T4 plus X, Y, Z) and ``m + Rx(A) t5`` for B, whose axis is ``Rx(A) e_y``. The tool point
+    (the spindle origin) then moves by ``-delta * axis x origin``; X, Y, Z move the part along the
+    spindle axes, so the offsets are ``delta * axis x origin`` (first order in the small errors).
+    """
+    t = {k: np.asarray(dims[k], dtype=float) if k in dims else np.asarray(kinematics.TABLE_A1[k], dtype=float)
+         for k in ("T1", "T2", "T3", "T4", "T5")}
+    m = q[:, :3] + (t["T1"] + t["T2"] + t["T3"] + t["T4"])[None, :]
+    ca, sa = np.cos(q[:, 3]), np.sin(q[:, 3])
+    t5 = t["T5"]
+    # Rx(A) t5 and Rx(A) e_y
+    mb = m + np.column_stack([np.full_like(ca, t5[0]), ca * t5[1] - sa * t5[2], sa * t5[1] + ca * t5[2]])
+    axis_b = np.column_stack([np.zeros_like(ca), ca, sa])
+    axis_a = np.array([1.0, 0.0, 0.0])
+    return delta[:, :1] * np.cross(axis_a, m) + delta[:, 1:2] * np.cross(axis_b, mb)
+
+
 def correct_points(
     program: Program,
     points: Points,
@@ -302,16 +324,22 @@ def correct_points(
     start = program.start_int if prev_nominal is None else prev_nominal
     direction = directions(points.nominal_int, start, prev_direction)
     errors = model.predict(q, temperatures, direction)
-    # angles are put on the machine's grid before the translations are solved, so the
-    # translation offsets include what the rounded angles do (ch. 4.4, eqs. 4.25 then 4.26)
-    result = kinematics.compensate(q, errors, model.dims, resolution_rad=float(np.deg2rad(resolution_deg)))
+    result = kinematics.compensate(q, errors, model.dims)
     desired = result.q_cmd - q
     if not np.all(np.isfinite(desired)):
         raise ValidationError("the model predicts non-finite errors for these temperatures")
-    units = desired / np.where(ROTARY, np.deg2rad(resolution_deg), resolution_mm)
-    whole = np.rint(units)
-    units = np.where(np.abs(units - whole) < 1e-6, whole, units)
-    steps = quantise_carry(units, state)
+    s0 = np.zeros(5, dtype=np.int64) if state is None else np.asarray(state, dtype=np.int64)
+    step_rad = float(np.deg2rad(resolution_deg))
+    # angles first (eq. 4.25): whole steps, the remainder carried over
+    ang = desired[:, 3:] / step_rad
+    whole = np.rint(ang)
+    ang_steps = quantise_carry(np.where(np.abs(ang - whole) < 1e-6, whole, ang), s0[3:])
+    # then translations (eq. 4.26), taking up what the angles on their grid leave at the tool
+    xyz = desired[:, :3] + rotary_lever(result.q_cmd, model.dims, ang_steps * step_rad - desired[:, 3:])
+    lin = xyz / resolution_mm
+    whole = np.rint(lin)
+    xyz_steps = quantise_carry(np.where(np.abs(lin - whole) < 1e-6, whole, lin), s0[:3])
+    steps = np.hstack([xyz_steps, ang_steps])
     step_int = resolution_units(program, resolution_mm, resolution_deg)
     sent = points.nominal_int + steps * step_int
     return Correction(points, desired, steps, sent, result.singular, result.uncompensable_roll, direction)
