@@ -70,3 +70,31 @@ def test_broken_lead_error_signal_is_open_fault():
     assert [(f.channel, f.mode) for f in chk.faults] == [("T24", "open")]
     assert chk.faults[0].since_s == df.time_s.iloc[1200]
     assert np.isfinite(chk.corrected["T24"]).all()
+
+
+def test_virtual_machine_detached_thermocouple_is_replaced():
+    from driftlab.daq.sim.campaign import simulate_campaign
+    from driftlab.daq.sim.machine import VirtualMachine
+    from driftlab.daq.sim.scenario import HiddenEffect, Scenario
+    from driftlab.daq.sim.sites import CHANNELS
+
+    t0 = 9 * 3600.0
+    sc = Scenario(name="fault", hours=14, seed=5, hidden=[
+        HiddenEffect(kind="sensor_fault", channels=["T34"], params={"start_s": t0, "mode": "detached"})])
+    sim = simulate_campaign(sc)
+    temps = sim.temperatures
+    chans = ["T24", "T26", "T30", "T32", "T34", "T35", "T37", "T49", "T50"]
+    clean = simulate_campaign(Scenario(name="clean", hours=14, seed=6)).temperatures  # the training campaign
+    sensors = fit_virtual_sensors(clean, chans)
+    chk = check_sensors(sensors, temps)
+    assert [f.channel for f in chk.faults] == ["T34"]
+    since = chk.faults[0].since_s
+    assert t0 <= since <= t0 + 2 * 3600
+    true = VirtualMachine(sc).true_temperatures_array(temps.time_s.to_numpy())[:, CHANNELS.index("T34")]
+    # flagged as soon as the loose junction reads measurably wrong: before that it was within the band
+    quiet = ((temps.time_s >= t0) & (temps.time_s < since - 600)).to_numpy()
+    assert np.all(np.abs(temps["T34"].to_numpy()[quiet] - true[quiet]) < sensors["T34"].band)
+    late = (temps.time_s > t0 + 3600).to_numpy()
+    fixed = np.abs(chk.corrected["T34"].to_numpy()[late] - true[late])
+    raw = np.abs(temps["T34"].to_numpy()[late] - true[late])
+    assert fixed.mean() < 0.25 * raw.mean() and fixed.mean() < 0.5
