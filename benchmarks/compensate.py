@@ -171,10 +171,10 @@ def main() -> None:
     figures = {"benchmark": "compensate", "load_average": _common.load_average()}
     figures.update(offline(data, model, temps))
     figures.update(streaming(model, temps))
-    figures["targets_met"] = bool(
-        max(figures["offline_blocks_per_s"], figures["offline_blocks_per_cpu_s"]) >= 200_000
-        and figures["stream_latency_ms_p99"] < 1.0
-    )
+    # wall time counts waiting for a core on a shared machine; CPU time is what one core does
+    p99_ok = figures["stream_latency_ms_p99"] < 1.0
+    figures["targets_met_wall"] = bool(figures["offline_blocks_per_s"] >= 200_000 and p99_ok)
+    figures["targets_met_cpu"] = bool(figures["offline_blocks_per_cpu_s"] >= 200_000 and p99_ok)
     _common.emit(figures)
 
 
