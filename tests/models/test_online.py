@@ -1,5 +1,7 @@
 """RLS with forgetting factor (eqs. 6.10-6.13): equals batch LS at lambda=1, stays stable, tracks drift."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -52,3 +54,61 @@ def test_state_round_trip_and_errors():
         rls_run(rls_init(2), np.ones((3, 3)), np.ones(3))
     with pytest.raises(ValidationError):
         online_regressors(3, {"A": np.ones(3)}, ["B"])
+
+
+def _probe_from_campaign(sim, positions=(0.0, 254.0)):
+    """Probe measurements at the X extremes from a simulated campaign (dx, dy, dz with the readings)."""
+    import pandas as pd
+
+    e = sim.errors[(sim.errors.axis == "X") & (sim.errors.position.isin(positions)) & (sim.errors.direction == 1)]
+    wide = e.pivot_table(index=["time_s", "position"], columns="term", values="value").reset_index()
+    t = wide["time_s"].to_numpy()
+    temps = sim.temperatures
+    cols = {c: np.interp(t, temps.time_s, temps[c]) for c in temps.columns if c != "time_s"}
+    return pd.DataFrame({"time_s": t, "x": wide["position"], "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0,
+                         "dx": wide["dx"], "dy": wide["dy"], "dz": wide["dz"], **cols})
+
+
+def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, capsys):
+    from driftlab.campaigns.bundle import Bundle, CampaignMeta
+    from driftlab.campaigns.store import connect
+    from driftlab.cli import main
+    from driftlab.daq.sim.campaign import simulate_campaign
+    from driftlab.daq.sim.scenario import HiddenEffect, Scenario
+    from driftlab.models.fitting import FitOptions, fit_campaigns
+    from driftlab.models.online import online_update_document
+
+    clean = simulate_campaign(Scenario(name="clean", hours=12, seed=7))
+    rate = 0.01  # mm/day of wear on X (ch. 6.4.3)
+    worn = simulate_campaign(Scenario(name="worn", hours=36, seed=8, hidden=[
+        HiddenEffect(kind="drift", axis="X", term="dx", params={"rate_per_day": rate})]))
+    url = f"sqlite:///{tmp_path / 'online.sqlite'}"
+    store = connect(url)
+    cid = store.import_bundle(Bundle("clean", CampaignMeta.model_validate(clean.meta), clean.temperatures,
+                                     clean.conditions, clean.errors))
+    _, doc = fit_campaigns(store, [cid], FitOptions(network=False, virtual_sensors=False))
+    probe = _probe_from_campaign(worn)
+    report, pred = online_update_document(doc, probe, lam=0.98)
+    from driftlab.models.online import online_residuals
+
+    t, resid = online_residuals(doc, probe)
+    late = t > 24 * 3600
+    offline = np.sqrt(np.mean(resid[late, 0] ** 2))
+    online = np.sqrt(np.mean((resid[late, 0] - pred["dx"][late]) ** 2))
+    assert offline > 0.006  # the off-line model cannot know the wear
+    assert online < 0.2 * offline
+    assert report.terms["dx"]["correction_mm"] == pytest.approx(rate * 36 / 24, abs=0.003)
+    # through the store and the command line: the state is kept and continued
+    path = tmp_path / "probe.csv"
+    probe.iloc[: len(probe) // 2].to_csv(path, index=False)
+    assert main(["online", "--machine", doc.machine, "--probe", str(path), "--db", url, "--json"]) == 0
+    first = json.loads(capsys.readouterr().out)
+    probe.iloc[len(probe) // 2:].to_csv(path, index=False)
+    assert main(["online", "--machine", doc.machine, "--probe", str(path), "--db", url, "--json"]) == 0
+    second = json.loads(capsys.readouterr().out)
+    assert second["states"]["dx"]["n_updates"] == first["states"]["dx"]["n_updates"] + second["n"]
+    assert second["terms"]["dx"]["correction_mm"] > first["terms"]["dx"]["correction_mm"]
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time_s,x\n0,1\n")
+    assert main(["online", "--machine", doc.machine, "--probe", str(bad), "--db", url]) == 2
+    store.close()
