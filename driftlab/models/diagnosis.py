@@ -422,8 +422,12 @@ def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], p
         return (f"Thermal lag: the deforming structure follows {where} with a first-order delay of "
                 f"{params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {sec}).")
     if kind == "sensor_fault":
-        nb = ", ".join(fault.neighbours[:4]) if fault else "its neighbours"
         how = "its lead broke (open circuit)" if params["mode"] == "open" else "it came loose from the structure"
+        if len(channels) > 1:
+            return (f"Sensor faults: thermocouples {', '.join(channels)} depart from their virtual sensors from "
+                    f"t = {params['start_s'] / 3600:.1f} h on (the first as if {how}); their readings no longer "
+                    f"describe the structure and the virtual-sensor estimates restore the model (thesis {sec}).")
+        nb = ", ".join(fault.neighbours[:4]) if fault else "its neighbours"
         return (f"Sensor fault: thermocouple {where} departs from its virtual sensor (predicted from {nb}) "
                 f"from t = {params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
                 f"the structure and the virtual-sensor estimate restores the model (thesis {sec}).")
@@ -454,23 +458,33 @@ def _materialise(sc: Scored, ctx: TermContext, state: _State) -> tuple[Candidate
     cand = sc.cand
     hint = dict(cand.hint)
     if cand.kind == "thermal_lag":
-        tau, cols = refine_tau(ctx, cand.channels[0], sc.col_index, state.X)
-        hint["tau_s"] = tau
         ch = cand.channels[0]
-        return replace(cand, cols=cols, names=[f"lag_{ch}", f"lag_{ch}_initial"]), cols, hint
+        outside = ch not in ctx.model_channels and ch in ctx.chan_cols
+        tau, cols = refine_tau(ctx, ch, sc.col_index, state.X, ctx.chan_cols[ch] if outside else None)
+        hint["tau_s"] = tau
+        names = [f"lag_{ch}", f"lag_{ch}_initial"]
+        if outside:
+            # a channel outside the model enters with its own dT too, so the candidate nests both
+            # "the link follows the lag" and "it follows the lag's departure from the channel"
+            cols = np.column_stack([cols, ctx.chan_cols[ch]])
+            names.append(f"dT_{ch}")
+        return replace(cand, cols=cols, names=names), cols, hint
     return cand, cand.cols, hint
 
 
 def _extension(cand: Candidate, cols: np.ndarray, state: _State) -> tuple[np.ndarray, list[str], list[int]]:
     """Return the design with the candidate in (sensor_fault: the faulty dT replaced) and its new columns."""
     if cand.replace is not None:
-        ch, rep = cand.replace
-        name = f"dT_{ch}"
         X = state.X.copy()
-        if name in state.names:
-            k = state.names.index(name)
-            X[:, k] = rep
-            return X, list(state.names), [k]
+        idx = []
+        for ch, rep in cand.replace:
+            name = f"dT_{ch}"
+            if name in state.names:
+                k = state.names.index(name)
+                X[:, k] = rep
+                idx.append(k)
+        if idx:
+            return X, list(state.names), idx
     X = np.column_stack([state.X, cols])
     names = list(state.names) + list(cand.names)
     return X, names, list(range(state.X.shape[1], X.shape[1]))
@@ -490,7 +504,11 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
     if k == "thermal_lag":
         return {"tau_s": float(hint["tau_s"]), "coef_per_degC": c}, c
     if k == "sensor_fault":
-        return {"start_s": float(hint["start_s"]), "mode": hint["mode"]}, c
+        out: dict[str, Any] = {"start_s": float(hint["start_s"]), "mode": hint["mode"]}
+        for extra in ("start_s_by_channel", "mode_by_channel"):
+            if extra in hint:
+                out[extra] = hint[extra]
+        return out, c
     if k == "drift":
         return {"rate_per_day": c}, c
     return {"coef_per_degC2": c}, c
@@ -512,7 +530,7 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
         # faults that start in the held-out part cannot be tested on training errors: their
         # significance comes from the temperatures alone (the virtual-sensor departure test)
         for cand in build_candidates(ctx):
-            if cand.kind == "sensor_fault" and not np.any(cand.cols[td.train, 0] != 0):
+            if cand.kind == "sensor_fault" and not np.any(cand.cols[td.train] != 0):
                 scored.append(Scored(cand, float("nan"), float(cand.hint.get("p_temp", 1.0)), 1, 0, 0.0))
         scored = [s for s in scored if s.p_value < alpha_each and s.cand.key not in ctx.taken]
         # repair before extension: a thermocouple shown broken by the temperatures alone is tried
@@ -535,7 +553,7 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             X_new, names_new, new_idx = _extension(cand, cols, state)
             if cand.kind == "sensor_fault" and hint["start_s"] < hold_start:
                 X_nested = np.column_stack([state.X, cand.cols])
-                p_rob = robust_pvalue(X_nested, td.y, td, [state.X.shape[1]])
+                p_rob = robust_pvalue(X_nested, td.y, td, list(range(state.X.shape[1], X_nested.shape[1])))
             elif cand.kind == "sensor_fault":
                 p_rob = sc.p_value
             else:
@@ -564,8 +582,9 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             # and on the training part it must explain a real share of the repeatability: a tiny
             # in-sample gain that only extrapolates well is the standard model's noise-fitted
             # coefficients being corrected by chance
-            if expl_train < min_explained_train * noise:
-                continue
+            in_holdout = cand.kind == "sensor_fault" and hint["start_s"] >= hold_start
+            if expl_train < min_explained_train * noise and not in_holdout:
+                continue  # (a fault that starts in the held-out part has nothing to explain in training)
             coef = fit.coef[new_idx]
             params, c = _params(cand, hint, coef, td)
             fault = ctx.faults.get(cand.channels[0]) if cand.kind == "sensor_fault" else None
@@ -576,7 +595,7 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                          state.fit.rmse_holdout, fit.rmse_holdout, sc.F, sc.p_value, p_rob,
                          [names_new[i] for i in new_idx], X_new[:, new_idx], td.t, before, contribution,
                          td.pos, td.direction, td.train,
-                         replaces=f"dT_{cand.channels[0]}" if cand.replace is not None else None)
+                         replaces=", ".join(f"dT_{c}" for c, _ in cand.replace) if cand.replace else None)
             accepted = (eff, X_new, names_new, fit, cand)
             break
         if accepted is None:
@@ -584,14 +603,15 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
         eff, X_new, names_new, fit, cand = accepted
         state = _State(X_new, names_new, fit, state.effects + [eff])
         ctx.taken.add(cand.key)
-        if cand.kind in ("unmapped_channel",) or (cand.kind == "screw_expansion" and cand.channels[0] not in ctx.model_channels):
+        if cand.kind in ("unmapped_channel", "thermal_lag", "screw_expansion") and cand.channels[0] not in ctx.model_channels:
             ctx.model_channels.append(cand.channels[0])
         if cand.kind == "sensor_fault":
             start = float(eff.params["start_s"])
             fault_start = start if fault_start is None else min(fault_start, start)
-            ch, rep = cand.replace  # type: ignore[misc]
-            ctx.chan_cols[ch] = rep
-            ctx.lag_cache.pop(ch, None)
+            for ch, rep in cand.replace or []:
+                ctx.chan_cols[ch] = rep
+                ctx.lag_cache.pop(ch, None)
+                ctx.taken.add(("sensor_fault", (ch,)))
         log.info("accepted %s on %s/%s %s", cand.kind, td.axis, td.term, eff.params)
     return state.effects, state
 

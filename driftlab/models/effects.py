@@ -354,7 +354,7 @@ class Candidate:
     cols: np.ndarray  # (n, k) added columns in physical units
     names: list[str]
     hint: dict[str, Any] = field(default_factory=dict)  # tau_s, start_s, mode ...
-    replace: tuple[str, np.ndarray] | None = None  # sensor_fault: channel -> replacement dT column
+    replace: list[tuple[str, np.ndarray]] | None = None  # sensor_fault: (channel, replacement dT column)
     family_size: int = 1  # hypotheses this candidate stands for (tau grid points)
 
     @property
@@ -410,6 +410,25 @@ def lag_bank_for(prep: PreparedBundle, channels: list[str], taus: np.ndarray) ->
     return {c: bank[:, k, :] for k, c in enumerate(channels)}
 
 
+def _fault_candidate(ctx: TermContext, scans: list[FaultScan]) -> Candidate:
+    """Return the sensor_fault candidate of one or more faulty channels (earliest start first)."""
+    td = ctx.td
+    scans = sorted(scans, key=lambda f: f.start_s)
+    cols, names, reps = [], [], []
+    for fs in scans:
+        rep = np.interp(td.t, ctx.prep.grid_t, fs.replaced)
+        rep = rep - rep[0]
+        cols.append(rep - ctx.chan_cols[fs.channel])
+        names.append(f"fault_{fs.channel}")
+        reps.append((fs.channel, rep))
+    hint: dict[str, Any] = {"start_s": scans[0].start_s, "mode": scans[0].mode,
+                            "p_temp": min(1.0, min(f.p_value for f in scans) * len(scans))}
+    if len(scans) > 1:
+        hint["start_s_by_channel"] = {f.channel: f.start_s for f in scans}
+        hint["mode_by_channel"] = {f.channel: f.mode for f in scans}
+    return Candidate("sensor_fault", [f.channel for f in scans], np.column_stack(cols), names, hint, replace=reps)
+
+
 def build_candidates(ctx: TermContext) -> list[Candidate]:
     """Return every catalogue candidate for the current model of ``ctx`` (kinds not yet taken)."""
     td = ctx.td
@@ -435,17 +454,21 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
         if in_model and ("sensor_fault", (ch,)) not in ctx.taken:
             fs = ctx.faults.get(ch)
             if fs is not None and fs.plausible:
-                rep = np.interp(td.t, ctx.prep.grid_t, fs.replaced)
-                rep = rep - rep[0]
-                delta = rep - col
-                out.append(Candidate("sensor_fault", [ch], delta[:, None], [f"fault_{ch}"],
-                                     {"start_s": fs.start_s, "mode": fs.mode, "p_temp": fs.p_value},
-                                     replace=(ch, rep)))
+                out.append(_fault_candidate(ctx, [fs]))
+    # several broken thermocouples in one model: each alone cannot show a gain while the others
+    # still corrupt the fit, so they are also tried together (one effect naming every channel)
+    faulty = [ctx.faults[ch] for ch in ctx.model_channels
+              if ch in ctx.faults and ctx.faults[ch].plausible and ch in ctx.chan_cols
+              and ("sensor_fault", (ch,)) not in ctx.taken]
+    if len(faulty) > 1:
+        out.append(_fault_candidate(ctx, faulty))
     for ch, (taus, at) in ctx.lag_cache.items():
         if ("thermal_lag", (ch,)) in ctx.taken:
             continue
-        out.append(Candidate("thermal_lag", [ch], at, [f"lag_{ch}"], {"taus": taus},
-                             family_size=int(taus.size)))
+        hint: dict[str, Any] = {"taus": taus}
+        if ch not in ctx.model_channels and ch in ctx.chan_cols:
+            hint["with"] = ctx.chan_cols[ch]  # scored together with the channel's own dT
+        out.append(Candidate("thermal_lag", [ch], at, [f"lag_{ch}"], hint, family_size=int(taus.size)))
     return out
 
 
@@ -488,11 +511,26 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
         norm2 = np.sum(RC * RC, axis=0)
         if c.kind == "thermal_lag":  # a bank: one column per tau, score each, keep the best
             ok = norm2 > 1e-10 * C.shape[0]
-            drops = np.where(ok, (RC.T @ ry) ** 2 / np.maximum(norm2, 1e-300), -1.0)
+            with_col = c.hint.get("with")
+            if with_col is None:
+                drops = np.where(ok, (RC.T @ ry) ** 2 / np.maximum(norm2, 1e-300), -1.0)
+                k = 1
+            else:  # two columns per tau, [lag_tau, dT]: closed-form 2x2 least squares for every tau
+                w = with_col[train]
+                w = w / max(float(np.sqrt(np.mean(w * w))), 1e-300)
+                rw = w - Q @ (Q.T @ w)
+                ww, wy = float(rw @ rw), float(rw @ ry)
+                bw = RC.T @ rw
+                by = RC.T @ ry
+                det = norm2 * ww - bw * bw
+                good = ok & (det > 1e-10 * np.maximum(norm2 * ww, 1e-300))
+                drops = np.where(good, (ww * by * by - 2 * bw * by * wy + norm2 * wy * wy)
+                                 / np.where(good, det, 1.0), -1.0)
+                k = 2
             i = int(np.argmax(drops))
             if drops[i] <= 0:
                 continue
-            drop, k, col_index = float(drops[i]), 1, i
+            drop, col_index = float(drops[i]), i
         else:
             if np.any(norm2 <= 1e-10 * C.shape[0]):
                 continue  # collinear with the model: nothing new
@@ -511,7 +549,8 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     return out
 
 
-def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray) -> tuple[float, np.ndarray]:
+def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray,
+               extra: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """Return the tau (s) minimising the training RSS of ``X`` + lag(dT_channel, tau) and its columns.
 
     The columns are the lag of dT started at rest on the first scan and
@@ -533,8 +572,10 @@ def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray) -> tu
         at = np.interp(td.t, prep.grid_t, g)
         return np.column_stack([at - at[0], np.exp(-(td.t - prep.grid_t[0]) / tau)])
 
+    base = X if extra is None else np.column_stack([X, extra])  # ``extra`` enters every fit of the search
+
     def rss(log_tau: float) -> float:
-        A = np.column_stack([X, column(log_tau)])
+        A = np.column_stack([base, column(log_tau)])
         b = lstsq(A[tr], td.y[tr])
         r = td.y[tr] - A[tr] @ b
         return float(r @ r)
