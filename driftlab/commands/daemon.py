@@ -51,14 +51,19 @@ def _daemon(args: argparse.Namespace) -> int:
     from driftlab.errors import ValidationError
 
     plan = load_plan(args.plan)
+    if args.max_batch < 1:
+        raise ValidationError("--max-batch must be at least 1")
     if args.speed < 0 or (args.speed == 0 and args.sim is None):
         raise ValidationError("--speed must be positive (0 = as fast as possible, only with --sim)")
     speed = math.inf if args.speed == 0 else args.speed
     stop = threading.Event()
 
     def _on_signal(signum: int, _frame: Any) -> None:
-        """Ask the scheduler to stop after its current commit."""
-        log.warning("signal %d: stopping after the current commit", signum)
+        """Ask the scheduler to stop after its current commit; a second signal stops it at once."""
+        if stop.is_set():
+            # at once: an open transaction rolls back, so the stored cursor still matches the rows
+            raise KeyboardInterrupt
+        log.warning("signal %d: stopping after the current commit (again to stop at once)", signum)
         stop.set()
 
     old = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
