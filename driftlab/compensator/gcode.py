@@ -383,7 +383,7 @@ def parse_program(
     num_start.reshape(-1)[flat] = a_start
     num_end.reshape(-1)[flat] = a_end
     # words are in byte order: a block's last axis word is the one before the next block's first
-    last = np.append(np.flatnonzero(new_block)[1:], new_block.shape[0]) - 1
+    last = np.append(np.flatnonzero(new_block)[1:], new_block.shape[0])[:n_blocks] - 1
     insert_at = a_end[last]
     last_word = a_start[last] - 1
     spaced = buf[np.maximum(last_word - 1, 0)] == 32

@@ -201,3 +201,11 @@ def test_example_programs_parse_and_round_trip():
         p = parse_program(data, str(f))
         assert p.n_blocks > 0
         assert emit_program(p, subdivide(p, 1e9, 1e9)) == data
+
+
+@pytest.mark.parametrize("text", [b"", b"%\n(only comments)\n%\n", b"M3\nG4 P1\n", b"G01 X1\nG00 Z5\n"])
+def test_programs_without_motion_or_with_leading_zero_codes(text):
+    p = parse_program(text)
+    assert p.n_blocks == text.count(b"X") + text.count(b"Z")
+    pts = subdivide(p)
+    assert emit_program(p, pts, pts.nominal_int) == text
