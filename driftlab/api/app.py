@@ -56,6 +56,7 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
     app = FastAPI(title="driftlab", version=__version__, description=DESCRIPTION, lifespan=lifespan)
     app.state.driftlab = state
     problems.install_handlers(app)
+    app.add_middleware(models.CurrentModelFastPath)  # inside the catch-all (the last added is outermost)
     app.add_middleware(problems.CatchAllMiddleware)
     for module in (machines, campaigns, histories, drift, models, jobs, online):
         app.include_router(module.router)

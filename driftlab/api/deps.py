@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import hmac
 import json
+import logging
 import threading
 import time
 from dataclasses import dataclass, field
@@ -15,6 +17,8 @@ from starlette.exceptions import HTTPException
 
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import Store
+
+log = logging.getLogger(__name__)
 
 
 def iso(dt: Any) -> str | None:
@@ -57,8 +61,10 @@ class ModelCache:
     """Current model per machine, served without a database read while fresh.
 
     Writes through this API invalidate at once (register, promote, retire, fit jobs); changes made by
-    other processes are seen after at most ``ttl_s`` seconds. A generation counter keeps a load that
-    raced with an invalidation from storing the stale answer.
+    other processes are seen after at most ``ttl_s`` seconds (plus one refresh): an expired entry is
+    still served while one background refresh runs (stale-while-revalidate), so pollers never queue
+    behind the database. A generation counter keeps a load that raced with an invalidation from
+    storing the stale answer.
     """
 
     def __init__(self, store: Store, ttl_s: float = 1.0) -> None:
@@ -67,6 +73,8 @@ class ModelCache:
         self._entries: dict[str, tuple[float, CachedModel | None]] = {}
         self._generation = 0
         self._lock = threading.Lock()
+        self._refreshing: set[str] = set()
+        self._tasks: set[Any] = set()
         self.loads = 0
 
     def fresh(self, machine_id: str) -> tuple[bool, CachedModel | None]:
@@ -75,6 +83,31 @@ class ModelCache:
         if entry is None or time.monotonic() - entry[0] >= self.ttl_s:
             return False, None
         return True, entry[1]
+
+    def servable(self, machine_id: str) -> CachedModel | None:
+        """Return the cached model to answer with now (refreshing it in the background when expired).
+
+        None means the caller must load (nothing cached, or the cached answer is "no model").
+        Call from the event loop.
+        """
+        entry = self._entries.get(machine_id)
+        if entry is None or entry[1] is None:
+            return None
+        if time.monotonic() - entry[0] >= self.ttl_s and machine_id not in self._refreshing:
+            self._refreshing.add(machine_id)
+            task = asyncio.get_running_loop().run_in_executor(None, self._refresh, machine_id)
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+        return entry[1]
+
+    def _refresh(self, machine_id: str) -> None:
+        """Reload one machine's entry (a background refresh; errors keep the old entry)."""
+        try:
+            self.load(machine_id)
+        except Exception:
+            log.warning("model cache: refreshing %s failed; serving the previous answer", machine_id, exc_info=True)
+        finally:
+            self._refreshing.discard(machine_id)
 
     def load(self, machine_id: str) -> CachedModel | None:
         """Read the machine's current model from the store, cache it and return it (None: no current model)."""

@@ -142,8 +142,15 @@ async def test_current_model_etag_304_and_cache_invalidation(client: httpx.Async
     cache = client.app.state.driftlab.models  # type: ignore[attr-defined]
     loads = cache.loads
     for _ in range(20):
-        await client.get(url)
+        again = await client.get(url)
+        # the cache-hit fast path answers exactly like the route did
+        assert again.content == r.content and again.headers == r.headers
     assert cache.loads == loads  # the hot path is served from the cache
+    cache.invalidate()
+    routed = await client.get(url, headers={"If-None-Match": etag})
+    fast = await client.get(url, headers={"If-None-Match": etag})
+    assert routed.status_code == fast.status_code == 304 and routed.headers == fast.headers
+    assert cache.loads == loads + 1
 
     # a new version changes the ETag at once (invalidation, not TTL)
     new = await client.post(f"/machines/{MACHINE}/models", json={"document": model_document(coefficient=0.003)},
@@ -341,3 +348,25 @@ async def test_openapi_declares_every_operation_and_problem(client: httpx.AsyncC
             if method in ("post", "delete"):
                 assert PROBLEM in op["responses"]["401"]["content"]
     assert (await client.get("/health")).json()["status"] == "ok"
+
+
+async def test_changes_by_other_processes_are_seen_after_the_ttl(seeded: Seeded, store) -> None:
+    from driftlab.api.app import create_app
+    from driftlab.models import registry
+
+    app = create_app(seeded.url, TOKEN, run_jobs=False, model_cache_ttl_s=0.05)
+    url = f"/machines/{MACHINE}/model/current"
+    async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+        first = await c.get(url)
+        assert first.json()["version"] == 1
+        registry.register_model(store, model_document(coefficient=0.005), [seeded.campaign_id])  # not via the API
+        versions = []
+        for _ in range(200):  # bounded polls; the background refresh lands within a few
+            await asyncio.sleep(0.02)
+            r = await c.get(url, headers={"If-None-Match": first.headers["etag"]})
+            versions.append(r.status_code)
+            if r.status_code == 200:
+                assert r.json()["version"] == 2 and r.headers["etag"] != first.headers["etag"]
+                break
+        else:
+            raise AssertionError(f"the new version was never served: {versions[-5:]}")

@@ -22,14 +22,14 @@ from driftlab.api.schemas import ID_PATTERN, MAX_ID, JobKind, JobList, JobOut, J
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import JobInfo, Store
 from driftlab.errors import DriftlabError, ValidationError
-from driftlab.models import fitting
 
 log = logging.getLogger(__name__)
 
 router = APIRouter(tags=["jobs"])
 
+FIT_JOB = "fit"  # driftlab.models.fitting.FIT_JOB (imported when a job runs: the pipeline is heavy)
 DIAGNOSE_JOB = "diagnose"
-JOB_KINDS = (fitting.FIT_JOB, DIAGNOSE_JOB)
+JOB_KINDS = (FIT_JOB, DIAGNOSE_JOB)
 
 
 def _finite(obj: Any) -> Any:
@@ -118,7 +118,9 @@ class JobRunner(threading.Thread):
         beater = threading.Thread(target=beat, name=f"job-{job.id}-heartbeat", daemon=True)
         beater.start()
         try:
-            if job.kind == fitting.FIT_JOB:
+            if job.kind == FIT_JOB:
+                from driftlab.models import fitting
+
                 # records done (with the fit report) or failed itself, then re-raises a failure
                 fitting.run_fit_job(store, job, self.worker)
             else:
@@ -133,7 +135,7 @@ class JobRunner(threading.Thread):
             done.set()
             beater.join(1.0)
             self.ran += 1
-            if job.kind == fitting.FIT_JOB and job.machine_id:
+            if job.kind == FIT_JOB and job.machine_id:
                 self.state.models.invalidate(job.machine_id)
 
 

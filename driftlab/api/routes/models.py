@@ -6,12 +6,14 @@ in-process cache (serialised bytes and ETag) and touches the database at most on
 
 from __future__ import annotations
 
+import re
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
+from starlette.types import ASGIApp, Receive, Scope, Send
 
-from driftlab.api.deps import ApiState, get_state, get_store, model_out, require_token
+from driftlab.api.deps import ApiState, get_state, get_store, model_etag, model_out, require_token
 from driftlab.api.problems import problem_response
 from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import (
@@ -26,7 +28,6 @@ from driftlab.api.schemas import (
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import Store
 from driftlab.errors import ValidationError
-from driftlab.models import registry
 
 router = APIRouter(tags=["models"])
 
@@ -43,6 +44,42 @@ def etag_matches(if_none_match: str | None, etag: str) -> bool:
         if tag == "*" or tag.removeprefix("W/") == etag:
             return True
     return False
+
+
+CURRENT_PATH = re.compile(r"^/machines/([A-Za-z0-9][A-Za-z0-9._:-]{0,63})/model/current$")
+
+
+class CurrentModelFastPath:
+    """Pure ASGI middleware answering cache hits of ``GET /machines/{id}/model/current`` before routing.
+
+    The compensators poll this path; a cached answer is sent as is (same status, headers and body as
+    the route's), which skips routing, dependency solving and the thread pool; an expired one is
+    refreshed in the background meanwhile. Misses, absent models and every other request go on to
+    the application (the route below loads and caches).
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Serve a fresh cached current model, or pass the request on."""
+        if scope["type"] == "http" and scope["method"] == "GET":
+            m = CURRENT_PATH.match(scope["path"])
+            if m is not None:
+                entry = scope["app"].state.driftlab.models.servable(m.group(1))
+                if entry is not None:
+                    inm = next((v for k, v in scope["headers"] if k == b"if-none-match"), None)
+                    headers = [(b"etag", entry.etag.encode()), (b"cache-control", b"no-cache")]
+                    if inm is not None and etag_matches(inm.decode("latin-1"), entry.etag):
+                        await send({"type": "http.response.start", "status": 304, "headers": headers})
+                        await send({"type": "http.response.body", "body": b""})
+                        return
+                    headers = [(b"content-length", str(len(entry.body)).encode()),
+                               (b"content-type", b"application/json"), *headers]
+                    await send({"type": "http.response.start", "status": 200, "headers": headers})
+                    await send({"type": "http.response.body", "body": entry.body})
+                    return
+        await self.app(scope, receive, send)
 
 
 @router.get("/models", response_model=ModelList, summary="List model versions of every machine")
@@ -79,9 +116,11 @@ async def current_model(
 ) -> Response:
     """Return the current model document with its ETag, or 304 when the client's copy is current."""
     cache = get_state(request).models
-    hit, entry = cache.fresh(machine_id)
-    if not hit:
-        entry = await run_in_threadpool(cache.load, machine_id)
+    entry = cache.servable(machine_id)
+    if entry is None:
+        hit, entry = cache.fresh(machine_id)  # a fresh "no current model" answer
+        if not hit:
+            entry = await run_in_threadpool(cache.load, machine_id)
     if entry is None:
         return problem_response(404, f"machine {machine_id!r} has no current model", request.url.path)
     headers = {"ETag": entry.etag, "Cache-Control": "no-cache"}
@@ -95,8 +134,6 @@ async def current_model(
 def get_version(machine_id: MachineId, version: Version, store: Annotated[Store, Depends(get_store)],
                 response: Response) -> Any:
     """Return one model version of a machine with its document."""
-    from driftlab.api.deps import model_etag
-
     row = api_queries.model_version(store, machine_id, version)
     response.headers["ETag"] = model_etag(row)
     return model_out(row)
@@ -107,6 +144,8 @@ def get_version(machine_id: MachineId, version: Version, store: Annotated[Store,
 def register(machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiState, Depends(get_state)],
              response: Response) -> Any:
     """Validate and store a model document as the machine's next version, current from now on."""
+    from driftlab.models import registry
+
     doc = registry.validate_document(body.document)
     if doc.machine != machine_id:
         raise ValidationError(f"the document is of machine {doc.machine!r}, not {machine_id!r}")

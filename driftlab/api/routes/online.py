@@ -22,7 +22,7 @@ from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import OnlineOut, ProbeIn, Vector3
 from driftlab.campaigns import api_queries
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
-from driftlab.models import online, registry
+from driftlab.models import online
 
 router = APIRouter(tags=["online"])
 
@@ -91,6 +91,8 @@ def post_probe(machine_id: MachineId, body: ProbeIn, state: Annotated[ApiState, 
 
     correction = -(off-line prediction + on-line prediction), in mm, to add to the commanded position.
     """
+    from driftlab.models import registry
+
     measured_at = _measured_at(body.measured_at)
     clash = sorted(set(body.temperatures) & set(online.PROBE_COLUMNS))
     if clash:
