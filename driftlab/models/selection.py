@@ -40,10 +40,12 @@ class ScreeningResult:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form (kept with reasons, dropped with reasons)."""
+        tab = self.table()
         return {
             "kept": list(self.kept),
             "kept_reason": dict(self.kept_reason),
             "dropped": dict(self.dropped),
+            "correlation_kept": {c: [None if not np.isfinite(v) else float(v) for v in tab[c]] for c in tab.columns},
         }
 
 

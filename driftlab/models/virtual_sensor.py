@@ -186,3 +186,17 @@ def check_sensors(
         corrected[c] = new
         replaced.loc[replaced.index[k:], c] = True
     return SensorCheck(faults=faults, corrected=corrected, replaced=replaced)
+
+
+def sensors_from_document(document: Any) -> dict[str, VirtualSensor]:
+    """Return the virtual sensors stored in a model document (``virtual_sensors``)."""
+    items = document.virtual_sensors if hasattr(document, "virtual_sensors") else document.get("virtual_sensors", [])
+    return {d["channel"]: VirtualSensor.from_dict(d) for d in items}
+
+
+def check_live(document: Any, temperatures: pd.DataFrame, *, persist: int = 5) -> SensorCheck:
+    """Return the check of live readings against a model's virtual sensors (faulty channels replaced)."""
+    sensors = sensors_from_document(document)
+    if not sensors:
+        raise ValidationError("the model document carries no virtual sensors")
+    return check_sensors(sensors, temperatures, persist=persist)

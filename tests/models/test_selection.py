@@ -56,7 +56,7 @@ def test_screening_collapses_redundant_sites_and_keeps_physics():
     assert "T35" in screen_channels(temps2, meta, ["T49", "T50"]).kept
     tab = res.table()
     assert list(tab.columns) == res.kept and (np.diag(tab) == 1).all()
-    assert set(res.to_dict()) == {"kept", "kept_reason", "dropped"}
+    assert set(res.to_dict()) == {"kept", "kept_reason", "dropped", "correlation_kept"}
 
 
 def test_correlation_matrix_is_eq_6_1():

@@ -98,3 +98,18 @@ def test_virtual_machine_detached_thermocouple_is_replaced():
     fixed = np.abs(chk.corrected["T34"].to_numpy()[late] - true[late])
     raw = np.abs(temps["T34"].to_numpy()[late] - true[late])
     assert fixed.mean() < 0.25 * raw.mean() and fixed.mean() < 0.5
+
+
+def test_sensors_round_trip_through_a_model_document():
+    from driftlab.models.virtual_sensor import check_live, sensors_from_document
+
+    df = _record()
+    sensors = fit_virtual_sensors(df, ["T24", "T26", "T32", "T34", "T49", "T50"])
+    doc = {"virtual_sensors": [s.to_dict() for s in sensors.values()]}
+    assert set(sensors_from_document(doc)) == set(sensors)
+    bad = df.copy()
+    bad.loc[1000:, "T26"] = 150.5  # the card's rail value for a broken lead
+    chk = check_live(doc, bad)
+    assert [(f.channel, f.mode) for f in chk.faults] == [("T26", "open")]
+    with pytest.raises(Exception):
+        check_live({"virtual_sensors": []}, df)
