@@ -44,7 +44,7 @@ def make_bundle(root: Path, hours: float, channels: int, seed: int = 0) -> Path:
     for k, name in enumerate(names):
         temps[name] = np.round(20.0 + (k % 7) * heat + 0.3 * np.sin(t / 3600.0 + k) + rng.normal(0, 0.02, n), 4)
     temperatures = pd.DataFrame(temps)
-    temperatures.loc[rng.integers(0, n, 200), names[3]] = np.nan  # a few missing readings
+    temperatures.loc[rng.integers(0, n, 200), names[min(3, channels - 1)]] = np.nan  # a few missing readings
     cond = pd.DataFrame({"time_s": t[::10], "spindle_rpm": np.where((t[::10] // 14400) % 2 == 0, 8000.0, 0.0),
                          "feed_mm_min": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0})
     positions = np.linspace(0.0, 500.0, 21)

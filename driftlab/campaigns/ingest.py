@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from sqlalchemy import Connection, insert, select
+from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import Bundle
@@ -142,6 +142,36 @@ def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequen
             cp.write(_PG_TRAILER)
 
 
+ROLLUP_COLUMNS = ("campaign_id", "channel_id", "minute", "n", "n_values", "vmin", "vsum", "vmax")
+ROLLUP_S = 60.0
+
+
+def rollup_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame) -> list[tuple[Any, ...]]:
+    """Return per channel and minute (count, present count, min, sum, max) rows of a wide frame."""
+    t = temperatures["time_s"].to_numpy(dtype="f8")
+    if not len(t):
+        return []
+    minute = np.floor(t / ROLLUP_S).astype(np.int64)
+    starts = np.r_[0, np.flatnonzero(np.diff(minute)) + 1]
+    n = np.diff(np.r_[starts, len(t)])
+    minutes = minute[starts].tolist()
+    rows: list[tuple[Any, ...]] = []
+    names = [c for c in temperatures.columns if c != "time_s"]
+    for channel_id, name in zip(channel_ids, names, strict=True):
+        v = temperatures[name].to_numpy(dtype="f8")
+        present = ~np.isnan(v)
+        n_values = np.add.reduceat(present.astype(np.int64), starts)
+        with np.errstate(invalid="ignore"):
+            vmin = np.fmin.reduceat(v, starts)
+            vmax = np.fmax.reduceat(v, starts)
+        vsum = np.add.reduceat(np.where(present, v, 0.0), starts)
+        empty = n_values == 0
+        vsum[empty] = np.nan
+        rows.extend(zip(repeat(campaign_id), repeat(channel_id), minutes, n.tolist(), n_values.tolist(),
+                        _nullable(vmin, True), _nullable(vsum, True), _nullable(vmax, True)))
+    return rows
+
+
 def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
     """Write a validated bundle in the caller's transaction and return the new campaign id."""
     meta = bundle.meta
@@ -160,7 +190,7 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         .values(
             machine_id=meta.machine.id, name=bundle.name, started_at=meta.started_at, status="done",
             source="import", content_hash=content_hash, meta=meta.document(), conditions_columns=cond_cols,
-            created_at=sc.utcnow(),
+            rollups_complete=True, created_at=sc.utcnow(),
         )
         .returning(sc.Campaign.id)
     ).scalar_one()
@@ -194,6 +224,10 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, ("int4", "int4", "float8", "float8"),
                     temperature_rows(campaign_id, channel_ids, bundle.temperatures, postgres))
 
+    bulk_insert(conn, "temperature_rollups", ROLLUP_COLUMNS,
+                ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
+                rollup_rows(campaign_id, channel_ids, bundle.temperatures))
+
     if bundle.conditions is not None and len(bundle.conditions):
         cond = bundle.conditions
         n = len(cond)
@@ -216,3 +250,19 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
     bulk_insert(conn, "error_samples", ERROR_COLUMNS,
                 ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4"), rows)
     return int(campaign_id)
+
+
+def refresh_rollups(conn: Connection, campaign_id: int) -> int:
+    """Recompute a campaign's per-minute rollups from its stored readings; return the row count."""
+    minute = "CAST(FLOOR(time_s / 60.0) AS INTEGER)" if conn.dialect.name == "postgresql" else (
+        "CAST(time_s / 60.0 AS INTEGER)")  # time_s >= 0: truncation is floor on SQLite
+    conn.execute(text("DELETE FROM temperature_rollups WHERE campaign_id = :c"), {"c": campaign_id})
+    conn.execute(
+        text(f"INSERT INTO temperature_rollups ({', '.join(ROLLUP_COLUMNS)}) "
+             f"SELECT campaign_id, channel_id, {minute}, COUNT(*), COUNT(value), MIN(value), SUM(value), MAX(value) "
+             f"FROM temperature_samples WHERE campaign_id = :c GROUP BY campaign_id, channel_id, {minute}"),
+        {"c": campaign_id},
+    )
+    conn.execute(text("UPDATE campaigns SET rollups_complete = :t WHERE id = :c"), {"c": campaign_id, "t": True})
+    return int(conn.execute(text("SELECT COUNT(*) FROM temperature_rollups WHERE campaign_id = :c"),
+                            {"c": campaign_id}).scalar_one())

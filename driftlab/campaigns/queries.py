@@ -16,7 +16,7 @@ from sqlalchemy import Connection, func, select, text
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import AXES, TERMS, Bundle, CampaignMeta
-from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
+from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS, ROLLUP_S
 from driftlab.errors import NotFoundError, ValidationError
 
 
@@ -199,26 +199,19 @@ WHERE campaign_id = :c AND axis = :axis AND term = :term {dir}
 ORDER BY time_s, position, direction
 """
 
-# Linear interpolation along position inside each sweep: per (direction, sweep) the bracketing
-# positions lo <= P <= hi are two seeks in ix_error_samples_sweep, and their rows two more.
-_INTERPOLATED_SQL = """
-WITH sweeps AS (
-  SELECT DISTINCT direction, sweep FROM error_samples
-  WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d
-), brackets AS (
-  SELECT s.direction, s.sweep,
-    (SELECT MAX(e.position) FROM error_samples e WHERE e.campaign_id = :c AND e.axis = :axis
-       AND e.term = :term AND e.direction = s.direction AND e.sweep = s.sweep AND e.position <= :p) AS lo,
-    (SELECT MIN(e.position) FROM error_samples e WHERE e.campaign_id = :c AND e.axis = :axis
-       AND e.term = :term AND e.direction = s.direction AND e.sweep = s.sweep AND e.position >= :p) AS hi
-  FROM sweeps s
-)
-SELECT b.direction, b.sweep, b.lo, b.hi, a.time_s, a.value, h.time_s, h.value
-FROM brackets b
-JOIN error_samples a ON a.campaign_id = :c AND a.axis = :axis AND a.term = :term
-  AND a.direction = b.direction AND a.sweep = b.sweep AND a.position = b.lo
-JOIN error_samples h ON h.campaign_id = :c AND h.axis = :axis AND h.term = :term
-  AND h.direction = b.direction AND h.sweep = b.sweep AND h.position = b.hi
+# Linear interpolation along position inside each sweep. First the positions bracketing P in every
+# sweep of one direction (one pass over ix_error_samples_sweep, in index order on SQLite)...
+_BRACKETS_SQL = """
+SELECT sweep, MAX(CASE WHEN position <= :p THEN position END) AS lo,
+       MIN(CASE WHEN position >= :p THEN position END) AS hi
+FROM error_samples
+WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d
+GROUP BY sweep
+"""
+# ... then the rows at each of those few positions (a seek in the unique index on ... direction, position).
+_ROWS_AT_SQL = """
+SELECT sweep, position, time_s, value FROM error_samples
+WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND position = :pos
 """
 
 
@@ -290,7 +283,15 @@ def drift(
         elif interpolate:
             params["p"] = p = float(position)
             for d in _directions(conn, params, direction):
-                for _, sweep, lo, hi, ta, va, th, vh in conn.execute(text(_INTERPOLATED_SQL), {**params, "d": d}):
+                q = {**params, "d": d}
+                brackets = [r for r in conn.execute(text(_BRACKETS_SQL), q).all() if r[1] is not None and r[2] is not None]
+                if not brackets:
+                    continue
+                wanted = sorted({r[1] for r in brackets} | {r[2] for r in brackets})
+                at = {(sw, pos): (t, v) for w in wanted
+                      for sw, pos, t, v in conn.execute(text(_ROWS_AT_SQL), {**q, "pos": w})}
+                for sweep, lo, hi in brackets:
+                    (ta, va), (th, vh) = at[(sweep, lo)], at[(sweep, hi)]
                     f = 0.0 if hi == lo else (p - lo) / (hi - lo)
                     t = ta + (th - ta) * f
                     if t0 <= t <= t1:
@@ -305,17 +306,30 @@ def drift(
                 rows = conn.execute(text(_AT_POSITION_SQL), {**params, "d": d, "pos": nearest}).all()
                 data += [(cid, t, p, dd, s, v) for t, p, dd, s, v in rows]
         if data:
-            frame = pd.DataFrame(data, columns=["campaign_id", "time_s", "position", "direction", "sweep", "value"])
-            frame = frame.sort_values(["time_s", "position", "direction"], kind="stable")
-            frame.insert(1, "time", pd.Timestamp(started) + pd.to_timedelta(frame["time_s"], unit="s"))
-            frames.append(frame)
-    if not frames:
-        out = pd.DataFrame({c: pd.Series(dtype="f8") for c in DRIFT_COLUMNS})
-        out["time"] = pd.Series(dtype="datetime64[us, UTC]")
-        return out[DRIFT_COLUMNS]
-    out = pd.concat(frames, ignore_index=True)
-    out["direction"] = out["direction"].astype("i8")
-    return out[DRIFT_COLUMNS]
+            offset_ns = int(pd.Timestamp(started).value)
+            frames.append((offset_ns, data))
+    return _drift_frame(frames)
+
+
+def _drift_frame(parts: list[tuple[int, list[tuple[Any, ...]]]]) -> pd.DataFrame:
+    """Return the drift rows as one DataFrame: campaigns in start order, then time, position, direction."""
+    rows = [(k, offset, *r) for k, (offset, data) in enumerate(parts) for r in data]
+    if not rows:
+        return pd.DataFrame({
+            "campaign_id": np.array([], dtype="i8"), "time": pd.DatetimeIndex([], tz="UTC"),
+            "time_s": np.array([], dtype="f8"), "position": np.array([], dtype="f8"),
+            "direction": np.array([], dtype="i8"), "sweep": np.array([], dtype="i8"), "value": np.array([], dtype="f8"),
+        })
+    k, offset, cid, t, p, d, sw, v = (np.asarray(col) for col in zip(*rows, strict=True))
+    t, p, v = t.astype("f8"), p.astype("f8"), v.astype("f8")
+    order = np.lexsort((d, p, t, k))
+    ns = offset.astype("i8")[order] + np.round(t[order] * 1e9).astype("i8")
+    return pd.DataFrame({
+        "campaign_id": cid.astype("i8")[order],
+        "time": pd.DatetimeIndex(ns.astype("datetime64[ns]")).tz_localize("UTC"),
+        "time_s": t[order], "position": p[order], "direction": d.astype("i8")[order],
+        "sweep": sw.astype("i8")[order], "value": v[order],
+    })
 
 
 # ----------------------------------------------------------------------------- histories
@@ -332,10 +346,13 @@ def _channel_id(conn: Connection, campaign_id: int, channel: str) -> int:
 
 
 def _range(conn: Connection, table: str, where: str, params: dict[str, Any]) -> tuple[float, float] | None:
-    row = conn.execute(text(f"SELECT MIN(time_s), MAX(time_s) FROM {table} WHERE {where}"), params).first()
-    if row is None or row[0] is None:
+    # two statements: each is a single seek at one end of the key range (SQLite optimises a lone
+    # MIN or MAX, but scans the range for both in one statement)
+    lo = conn.execute(text(f"SELECT MIN(time_s) FROM {table} WHERE {where}"), params).scalar()
+    if lo is None:
         return None
-    return float(row[0]), float(row[1])
+    hi = conn.execute(text(f"SELECT MAX(time_s) FROM {table} WHERE {where}"), params).scalar()
+    return float(lo), float(hi)
 
 
 def _history(conn: Connection, table: str, where: str, params: dict[str, Any], columns: list[str],
@@ -366,12 +383,14 @@ def _history(conn: Connection, table: str, where: str, params: dict[str, Any], c
     aggs = ", ".join(f"MIN({c}), AVG({c}), MAX({c})" for c in columns)
     bounds = ("time_s >= :t0 + k.i * :w AND time_s < CASE WHEN k.i = :nb - 1 THEN :t1x "
               "ELSE :t0 + (k.i + 1) * :w END")
-    # One primary-key range scan per bucket (no per-row bucket arithmetic, no sort of the samples).
     if conn.dialect.name == "postgresql":
-        sql = (f"SELECT k.i, s.* FROM generate_series(0, CAST(:nb AS integer) - 1) AS k(i) CROSS JOIN LATERAL "
-               f"(SELECT COUNT(*), {aggs} FROM {table} WHERE {where} AND {bounds}) AS s WHERE s.count > 0 "
-               "ORDER BY k.i")
+        # One range scan of the primary key, hash-aggregated by bucket (the same bucket bounds,
+        # as an index). work_mem is raised for this transaction so the aggregate stays in memory.
+        conn.execute(text("SET LOCAL work_mem = '64MB'"))
+        sql = (f"SELECT LEAST(CAST(FLOOR((time_s - :t0) / :w) AS integer), :nb - 1) AS b, COUNT(*), {aggs} "
+               f"FROM {table} WHERE {where} AND time_s >= :t0 AND time_s <= :t1 GROUP BY 1 ORDER BY 1")
     else:
+        # One primary-key range scan per bucket: no per-row bucket arithmetic, no sort of the samples.
         sql = (f"WITH RECURSIVE k(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM k WHERE i < :nb - 1) "
                f"SELECT k.i, COUNT(*), {aggs} FROM k JOIN {table} ON {where} AND {bounds} "
                "GROUP BY k.i ORDER BY k.i")
@@ -385,11 +404,58 @@ def _history(conn: Connection, table: str, where: str, params: dict[str, Any], c
     return pd.DataFrame(out)
 
 
+_ROLLUP_SQL = """
+SELECT (minute - :m0) / :wm AS b, SUM(n), MIN(vmin),
+       CASE WHEN SUM(n_values) > 0 THEN SUM(vsum) / SUM(n_values) END, MAX(vmax)
+FROM temperature_rollups
+WHERE campaign_id = :c AND channel_id = :ch AND minute >= :m0 AND minute <= :m1
+GROUP BY 1 ORDER BY 1
+"""
+
+
+def _rollup_history(conn: Connection, campaign_id: int, channel_id: int, t0: float, t1: float,
+                    buckets: int) -> pd.DataFrame | None:
+    """Return buckets aggregated from the per-minute rollups (edges snapped out to whole minutes),
+    or None when the buckets would be narrower than two minutes."""
+    width = (t1 - t0) / buckets
+    if width < 2 * ROLLUP_S:
+        return None
+    m0, m1 = math.floor(t0 / ROLLUP_S), math.floor(t1 / ROLLUP_S)
+    wm = math.ceil(width / ROLLUP_S)
+    rows = conn.execute(text(_ROLLUP_SQL), {"c": campaign_id, "ch": channel_id, "m0": m0, "m1": m1, "wm": wm}).all()
+    data = np.array([[np.nan if v is None else float(v) for v in r] for r in rows], dtype="f8").reshape(len(rows), 5)
+    start = m0 * ROLLUP_S + data[:, 0] * wm * ROLLUP_S
+    return pd.DataFrame({"time_s": start, "t_end_s": start + wm * ROLLUP_S, "n": data[:, 1].astype("i8"),
+                         "value_min": data[:, 2], "value_mean": data[:, 3], "value_max": data[:, 4]})
+
+
 def temperature_history(conn: Connection, campaign_id: int, channel: str, start_s: float | None = None,
-                        end_s: float | None = None, buckets: int | None = None) -> pd.DataFrame:
+                        end_s: float | None = None, buckets: int | None = None,
+                        rollups: bool = True) -> pd.DataFrame:
     """Return a channel's readings (time_s, value) in a time range, or per bucket
-    (time_s, t_end_s, n, value_min, value_mean, value_max) when ``buckets`` is given."""
+    (time_s, t_end_s, n, value_min, value_mean, value_max) when ``buckets`` is given.
+
+    Buckets of two minutes or more are aggregated from the per-minute rollups when the campaign has
+    them (``rollups``): their edges are then snapped outward to whole minutes and time_s/t_end_s
+    give the exact bounds each figure covers. Otherwise the edges are exactly
+    t0 + k (t1 - t0) / buckets.
+    """
     channel_id = _channel_id(conn, campaign_id, channel)
+    if buckets and rollups:
+        if buckets < 1:
+            raise ValidationError("buckets must be at least 1")
+        complete = conn.execute(select(sc.Campaign.rollups_complete).where(sc.Campaign.id == campaign_id)).scalar()
+        span = _range(conn, "temperature_samples", "campaign_id = :c AND channel_id = :ch",
+                      {"c": campaign_id, "ch": channel_id}) if complete else None
+        if span is not None:
+            t0 = span[0] if start_s is None else float(start_s)
+            t1 = span[1] if end_s is None else float(end_s)
+            if t1 < t0:
+                raise ValidationError(f"time range ends ({t1}) before it starts ({t0})")
+            if t1 > t0:
+                frame = _rollup_history(conn, campaign_id, channel_id, t0, t1, buckets)
+                if frame is not None:
+                    return frame
     return _history(conn, "temperature_samples", "campaign_id = :c AND channel_id = :ch",
                     {"c": campaign_id, "ch": channel_id}, ["value"], start_s, end_s, buckets)
 

@@ -100,6 +100,7 @@ class Machine(Base):
 
     __tablename__ = "machines"
 
+    # primary key: machine lookup by its bundle id (drift queries, registry, import)
     id: Mapped[str] = mapped_column(String(64), primary_key=True)
     name: Mapped[str] = mapped_column(String(200), default="")
     resolution_mm: Mapped[float | None] = mapped_column(Double)
@@ -127,6 +128,8 @@ class Campaign(Base):
     content_hash: Mapped[str | None] = mapped_column(String(64), unique=True)
     meta: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
     conditions_columns: Mapped[list[str] | None] = mapped_column(JSONDoc)
+    # temperature_rollups cover every stored reading of this campaign (set by import/refresh)
+    rollups_complete: Mapped[bool] = mapped_column(Boolean, default=False, server_default=text("false"))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
@@ -135,6 +138,7 @@ class Stage(Base):
 
     __tablename__ = "stages"
     __table_args__ = (
+        # a campaign's plan in order (WHERE campaign_id = ? ORDER BY ordinal); one stage per slot
         UniqueConstraint("campaign_id", "ordinal"),
         CheckConstraint(f"status IN {STAGE_STATUSES}", name="status"),
     )
@@ -159,6 +163,7 @@ class Channel(Base):
     __table_args__ = (
         # channel lookup by name within a campaign (history queries, import)
         UniqueConstraint("campaign_id", "name"),
+        # a campaign's channels in temperatures.csv column order (export, scan counts)
         UniqueConstraint("campaign_id", "ordinal"),
     )
 
@@ -186,6 +191,31 @@ class TemperatureSample(Base):
     channel_id: Mapped[int] = mapped_column(Integer, primary_key=True)
     time_s: Mapped[float] = mapped_column(Double, primary_key=True)
     value: Mapped[float | None] = mapped_column(Double)
+
+
+class TemperatureRollup(Base):
+    """Per channel and minute of a campaign: count, min, sum and max of the readings.
+
+    Long histories (a 1,000-bucket view of 70 hours reads 252,000 readings per channel) are
+    aggregated from these rows instead, 60 times fewer, with bucket edges snapped to whole
+    minutes so that every figure stays exact. Written with the samples by an import (and by
+    ``Store.refresh_rollups`` for campaigns written live); ``campaigns.rollups_complete`` says
+    they cover every stored reading.
+    """
+
+    __tablename__ = "temperature_rollups"
+    # The primary key serves the bucketed history (WHERE campaign_id = ? AND channel_id = ?
+    # AND minute BETWEEN ? AND ?) as one range scan.
+    __table_args__ = {"sqlite_with_rowid": False}
+
+    campaign_id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    channel_id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    minute: Mapped[int] = mapped_column(Integer, primary_key=True)  # floor(time_s / 60)
+    n: Mapped[int] = mapped_column(Integer)  # scans in the minute, missing readings included
+    n_values: Mapped[int] = mapped_column(Integer)  # readings present
+    vmin: Mapped[float | None] = mapped_column(Double)
+    vsum: Mapped[float | None] = mapped_column(Double)
+    vmax: Mapped[float | None] = mapped_column(Double)
 
 
 class ConditionSample(Base):
@@ -323,6 +353,7 @@ class AcquisitionProgress(Base):
 
     __tablename__ = "acquisition_progress"
 
+    # primary key: the daemon's resume lookup (WHERE campaign_id = ?), one resume point per campaign
     campaign_id: Mapped[int] = mapped_column(ForeignKey("campaigns.id", ondelete="CASCADE"), primary_key=True)
     stage_ordinal: Mapped[int] = mapped_column(Integer, default=0)
     sweep: Mapped[int] = mapped_column(Integer, default=0)

@@ -146,12 +146,28 @@ class Store:
                         f"bundle {bundle.name!r} is already stored as campaign {existing} (same content hash "
                         f"{content_hash[:12]}); nothing imported"
                     )
-                return ingest.import_bundle(conn, bundle, content_hash)
+                campaign_id = ingest.import_bundle(conn, bundle, content_hash)
         except IntegrityError as exc:
             # A concurrent import of the same content committed first.
             if "content_hash" in str(exc.orig):
                 raise ConflictError(f"bundle {bundle.name!r} was imported concurrently; nothing imported") from None
             raise
+        self.analyze()
+        return campaign_id
+
+    def analyze(self) -> None:
+        """Refresh the planner statistics of the sample tables (after a bulk load or a campaign's end).
+
+        Without them both planners may scan a campaign's error samples instead of seeking the
+        drift indexes. SQLite samples a bounded number of rows per index (fast on any size).
+        """
+        with self.engine.connect() as conn:
+            if self.dialect == "postgresql":
+                conn.execute(text("ANALYZE temperature_samples, temperature_rollups, condition_samples, error_samples"))
+            else:
+                conn.exec_driver_sql("PRAGMA analysis_limit=1000")
+                conn.exec_driver_sql("ANALYZE")
+            conn.commit()
 
     def load_campaign(self, campaign_id: int) -> Bundle:
         """Return a stored campaign as a Bundle with exactly the values stored."""
@@ -171,7 +187,7 @@ class Store:
         with db.write_transaction(self.engine) as conn:
             if conn.execute(select(sc.Campaign.id).where(sc.Campaign.id == campaign_id)).first() is None:
                 raise NotFoundError(f"no campaign {campaign_id}")
-            for table in (sc.TemperatureSample, sc.ConditionSample, sc.ErrorSample):
+            for table in (sc.TemperatureSample, sc.TemperatureRollup, sc.ConditionSample, sc.ErrorSample):
                 conn.execute(table.__table__.delete().where(table.__table__.c.campaign_id == campaign_id))
             conn.execute(sc.Campaign.__table__.delete().where(sc.Campaign.__table__.c.id == campaign_id))
 
@@ -195,11 +211,20 @@ class Store:
             return queries.drift(conn, machine_id, axis, term, position, direction, start, end, interpolate)
 
     def temperature_history(self, campaign_id: int, channel: str, start_s: float | None = None,
-                            end_s: float | None = None, buckets: int | None = None) -> pd.DataFrame:
-        """Return a channel's readings, or min/mean/max per bucket computed in SQL."""
+                            end_s: float | None = None, buckets: int | None = None,
+                            rollups: bool = True) -> pd.DataFrame:
+        """Return a channel's readings, or min/mean/max per bucket computed in SQL (see queries)."""
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
-            return queries.temperature_history(conn, campaign_id, channel, start_s, end_s, buckets)
+            return queries.temperature_history(conn, campaign_id, channel, start_s, end_s, buckets, rollups)
+
+    def refresh_rollups(self, campaign_id: int) -> int:
+        """Recompute a campaign's per-minute temperature rollups (e.g. when a live campaign ends)."""
+        self.ensure_schema()
+        with db.write_transaction(self.engine) as conn:
+            if conn.execute(select(sc.Campaign.id).where(sc.Campaign.id == campaign_id)).first() is None:
+                raise NotFoundError(f"no campaign {campaign_id}")
+            return ingest.refresh_rollups(conn, campaign_id)
 
     def condition_history(self, campaign_id: int, columns: list[str] | None = None, start_s: float | None = None,
                           end_s: float | None = None, buckets: int | None = None) -> pd.DataFrame:

@@ -1,4 +1,4 @@
-"""The campaign store on SQLite and PostgreSQL: exact round trips, atomic imports, queries, registry, jobs."""
+"""The campaign store on SQLite and PostgreSQL: drift and history queries, model registry, jobs, progress."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from sqlalchemy import func, insert, select
+from sqlalchemy import func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import ingest
@@ -23,145 +23,10 @@ from driftlab.errors import ConflictError, NotFoundError, ValidationError
 
 
 @pytest.fixture
-def store(db_url: str):
-    s = connect(db_url)
+def store(store_url: str):
+    s = connect(store_url)
     yield s
     s.close()
-
-
-def _assert_same_bundle(a, b) -> None:
-    pd.testing.assert_frame_equal(a.temperatures, b.temperatures, check_exact=True)
-    pd.testing.assert_frame_equal(a.errors, b.errors, check_exact=True)
-    if a.conditions is None:
-        assert b.conditions is None
-    else:
-        pd.testing.assert_frame_equal(a.conditions, b.conditions, check_exact=True)
-    assert a.meta == b.meta
-    assert a.content_hash() == b.content_hash()
-
-
-def test_import_export_import_round_trips_exactly(store: Store, bundle_dir: Path, tmp_path: Path, db_url: str) -> None:
-    original = load_bundle(bundle_dir)
-    cid = store.import_bundle(original)
-    stored = store.load_campaign(cid)
-    _assert_same_bundle(original, stored)
-    out = write_bundle(tmp_path / "exported", stored.meta, stored.temperatures, stored.conditions, stored.errors)
-    again = load_bundle(out)
-    _assert_same_bundle(original, again)
-    # the same content is the same campaign: re-importing the export is refused
-    with pytest.raises(ConflictError, match=f"already stored as campaign {cid}"):
-        store.import_bundle(again)
-    # into another database it lands and reads back identically
-    other = connect(f"sqlite:///{tmp_path / 'other.sqlite'}")
-    try:
-        _assert_same_bundle(original, other.load_campaign(other.import_bundle(again)))
-    finally:
-        other.close()
-
-
-def test_missing_cells_stay_missing(store: Store, bundle_dir: Path) -> None:
-    b = load_bundle(bundle_dir)
-    stored = store.load_campaign(store.import_bundle(b))
-    assert np.isnan(stored.temperatures.loc[3, "T2"])
-    assert stored.conditions is not None and stored.conditions["z"].isna().all()
-    raw = store.temperature_history(1, "T2")
-    assert np.isnan(raw.loc[3, "value"]) and raw["value"].notna().sum() == len(raw) - 1
-
-
-def test_real_bundle_round_trips(store: Store, fl_thermal: Path) -> None:
-    b = load_bundle(fl_thermal)
-    cid = store.import_bundle(b)
-    _assert_same_bundle(b, store.load_campaign(cid))
-    [summary] = store.list_campaigns()
-    assert (summary.id, summary.channels, summary.scans, summary.error_samples, summary.stages) == (
-        cid, 16, 11115, 33345, 16)
-    counts = store.table_counts()
-    assert counts["temperature_samples"] == 11115 * 16
-    assert counts["condition_samples"] == 11115
-
-
-def test_duplicate_import_refused_and_changes_nothing(store: Store, bundle_dir: Path) -> None:
-    b = load_bundle(bundle_dir)
-    store.import_bundle(b)
-    before = store.table_counts()
-    with pytest.raises(ConflictError) as info:
-        store.import_bundle(load_bundle(bundle_dir))
-    assert "\n" not in str(info.value)
-    assert store.table_counts() == before
-
-
-@pytest.mark.parametrize("boom", [RuntimeError("disk on fire"), KeyboardInterrupt()], ids=["error", "ctrl-c"])
-def test_failure_mid_write_leaves_database_as_it_was(store: Store, bundle_factory, monkeypatch, boom) -> None:
-    store.import_bundle(load_bundle(bundle_factory(seed=1)))
-    before = store.table_counts()
-    real = ingest.bulk_insert
-    calls: list[str] = []
-    seen_inside: list[int] = []
-
-    def failing(conn, table, *args, **kwargs):
-        calls.append(table)
-        if table == "error_samples":  # temperatures and conditions are already written by now
-            seen_inside.append(conn.execute(select(func.count()).select_from(sc.TemperatureSample)).scalar_one())
-            raise boom
-        return real(conn, table, *args, **kwargs)
-
-    monkeypatch.setattr(ingest, "bulk_insert", failing)
-    b = load_bundle(bundle_factory(seed=2))
-    with pytest.raises(type(boom)):
-        store.import_bundle(b)
-    assert calls[-2:] == ["condition_samples", "error_samples"]
-    assert seen_inside[0] == before["temperature_samples"] + 40 * 4  # written, then rolled back
-    assert store.table_counts() == before
-    monkeypatch.setattr(ingest, "bulk_insert", real)
-    store.import_bundle(b)  # nothing was left behind that would block a clean retry
-    assert store.table_counts()["campaigns"] == before["campaigns"] + 1
-
-
-def test_unique_keys_refuse_a_reinserted_reading(store: Store, bundle_dir: Path) -> None:
-    cid = store.import_bundle(load_bundle(bundle_dir))
-    with store.engine.connect() as conn:
-        ch = conn.execute(sc.Channel.__table__.select().where(sc.Channel.campaign_id == cid)).first()
-    for table, row in [
-        (sc.TemperatureSample, {"campaign_id": cid, "channel_id": ch.id, "time_s": 0.0, "value": 1.0}),
-        (sc.ConditionSample, {"campaign_id": cid, "time_s": 0.0}),
-        (sc.ErrorSample, {"campaign_id": cid, "seq": 10_000, "time_s": 0.0, "axis": "Z", "term": "dx",
-                          "position": 0.0, "direction": 1, "value": 0.0, "sweep": 0, "flags": 0}),
-    ]:
-        with pytest.raises(IntegrityError), store.engine.begin() as conn:
-            conn.execute(insert(table), row)
-
-
-def test_corrupted_bundle_via_cli_changes_nothing(db_url: str, bundle_factory, corruption, capsys) -> None:
-    store = connect(db_url)
-    try:
-        store.import_bundle(load_bundle(bundle_factory(seed=5)))
-        before = store.table_counts()
-        _, file, mutate, expected = corruption
-        bad = bundle_factory(seed=6)
-        mutate(bad / file)
-        capsys.readouterr()
-        assert main(["import", str(bad), "--db", db_url]) != 0
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and err[0].startswith("driftlab: error:")
-        assert expected in err[0]
-        assert store.table_counts() == before
-    finally:
-        store.close()
-
-
-def test_cli_import_prints_id_and_refuses_twice(db_url: str, bundle_dir: Path, tmp_path: Path, capsys) -> None:
-    assert main(["import", str(bundle_dir), "--db", db_url]) == 0
-    assert capsys.readouterr().out.strip() == "1"
-    assert main(["import", str(bundle_dir), "--db", db_url]) != 0
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "already stored as campaign 1" in err[0]
-    assert main(["export", "1", str(tmp_path / "out"), "--db", db_url]) == 0
-    _assert_same_bundle(load_bundle(bundle_dir), load_bundle(tmp_path / "out"))
-    assert main(["campaign", "list", "--json", "--db", db_url]) == 0
-    [row] = json.loads(capsys.readouterr().out.splitlines()[-1])
-    assert row["id"] == 1 and row["machine_id"] == "vmc-test-01" and row["scans"] == 40
-    assert main(["export", "7", str(tmp_path / "none"), "--db", db_url]) != 0
-    assert "no campaign 7" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- drift
@@ -234,18 +99,29 @@ def test_drift_refuses_bad_requests(store: Store, bundle_dir: Path) -> None:
         store.drift("vmc-test-01", "Z", "dz", interpolate=True)
 
 
-def test_drift_cli_csv_is_exact(db_url: str, bundle_dir: Path, capsys) -> None:
-    assert main(["import", str(bundle_dir), "--db", db_url]) == 0
+def test_drift_cli_csv_is_exact(store_url: str, bundle_dir: Path, capsys) -> None:
+    assert main(["import", str(bundle_dir), "--db", store_url]) == 0
     capsys.readouterr()
     assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "gamma", "--position", "0",
-                 "--direction", "+1", "--csv", "--db", db_url]) == 0
+                 "--direction", "+1", "--csv", "--db", store_url]) == 0
     got = pd.read_csv(io.StringIO(capsys.readouterr().out))
     errors = load_bundle(bundle_dir).errors
     want = errors[(errors.term == "gamma") & (errors.position == 0.0) & (errors.direction == 1)]
     assert got["value"].tolist() == want["value"].tolist()
     assert got["time"].iloc[0] == "2026-03-02T08:00:00Z"
-    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dz", "--db", db_url]) == 0
+    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dz", "--db", store_url]) == 0
     assert "campaign_id" in capsys.readouterr().out
+    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--position", "260",
+                 "--interpolate", "--direction", "-1", "--from", "2026-03-02T08:04:00", "--to",
+                 "2026-03-02T08:30:00Z", "--csv", "--db", store_url]) == 0
+    got = pd.read_csv(io.StringIO(capsys.readouterr().out))
+    assert len(got) == 3 and set(got["direction"]) == {-1} and set(got["position"]) == {260.0}
+    with pytest.raises(SystemExit) as usage:
+        main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--direction", "0", "--db", store_url])
+    assert usage.value.code == 2
+    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--from", "2026-03-03",
+                 "--to", "2026-03-02", "--db", store_url]) == 2
+    assert "--to is before --from" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- histories
@@ -256,7 +132,7 @@ def test_temperature_history_buckets_match_numpy(store: Store, bundle_dir: Path)
     cid = store.import_bundle(b)
     t = b.temperatures["time_s"].to_numpy()
     v = b.temperatures["T2"].to_numpy()
-    h = store.temperature_history(cid, "T2", buckets=6)
+    h = store.temperature_history(cid, "T2", buckets=6, rollups=False)
     edges = np.linspace(t[0], t[-1], 7)
     w = (t[-1] - t[0]) / 6
     idx = np.array([min(int(np.searchsorted(t[0] + w * np.arange(1, 6), x, side="right")), 5) for x in t])
@@ -272,6 +148,43 @@ def test_temperature_history_buckets_match_numpy(store: Store, bundle_dir: Path)
     assert window["time_s"].tolist() == [float(x) for x in range(300, 601, 30)]
     with pytest.raises(NotFoundError, match="no channel 'T9'"):
         store.temperature_history(cid, "T9")
+
+
+def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path) -> None:
+    b = load_bundle(bundle_dir)
+    cid = store.import_bundle(b)
+    t = b.temperatures["time_s"].to_numpy()
+    v = b.temperatures["T2"].to_numpy()
+    h = store.temperature_history(cid, "T2", buckets=3)  # 390 s wide: snapped out to 7 minutes
+    k = (np.floor(t / 60) // 7).astype(int)
+    assert h["time_s"].tolist() == [0.0, 420.0, 840.0] and h["t_end_s"].tolist() == [420.0, 840.0, 1260.0]
+    for j in range(3):
+        sel = v[(k == j) & ~np.isnan(v)]
+        assert h["value_min"][j] == sel.min() and h["value_max"][j] == sel.max()
+        assert h["value_mean"][j] == pytest.approx(sel.mean(), rel=1e-12)
+        assert h["n"][j] == (k == j).sum()
+    # narrow buckets are never taken from rollups
+    narrow = store.temperature_history(cid, "T2", buckets=20)
+    assert narrow.equals(store.temperature_history(cid, "T2", buckets=20, rollups=False))
+    # recomputing the rollups in SQL gives the rows the import wrote
+    def rollups() -> list:
+        with store.engine.connect() as conn:
+            return conn.execute(select(sc.TemperatureRollup.__table__).order_by(
+                sc.TemperatureRollup.channel_id, sc.TemperatureRollup.minute)).all()
+    written = rollups()
+    assert len(written) == 4 * 20
+    assert store.refresh_rollups(cid) == len(written)
+    again = rollups()
+    assert [r[:5] for r in again] == [r[:5] for r in written]
+    for a, w in zip(again, written, strict=True):
+        assert a[5] == w[5] and a[7] == w[7] and a[6] == pytest.approx(w[6], rel=1e-12)
+    # a campaign without complete rollups (written live) is aggregated from the readings
+    with store.engine.begin() as conn:
+        conn.execute(update(sc.Campaign).where(sc.Campaign.id == cid).values(rollups_complete=False))
+    assert store.temperature_history(cid, "T2", buckets=3).equals(
+        store.temperature_history(cid, "T2", buckets=3, rollups=False))
+    with pytest.raises(NotFoundError):
+        store.refresh_rollups(99)
 
 
 def test_condition_history(store: Store, bundle_dir: Path) -> None:
@@ -306,13 +219,13 @@ def test_model_registry_keeps_exactly_one_current(store: Store, bundle_dir: Path
         store.register_model("nope", {})
 
 
-def test_jobs_are_claimed_once_by_concurrent_workers(db_url: str) -> None:
-    first = connect(db_url)
+def test_jobs_are_claimed_once_by_concurrent_workers(store_url: str) -> None:
+    first = connect(store_url)
     ids = [first.submit_job("fit", {"n": k}) for k in range(40)]
     claimed: dict[str, list[int]] = {}
 
     def work(name: str) -> None:
-        s = connect(db_url)
+        s = connect(store_url)
         mine = claimed.setdefault(name, [])
         try:
             while (job := s.claim_job(name)) is not None:
@@ -397,18 +310,3 @@ def test_timestamps_are_utc_aware(store: Store, bundle_factory) -> None:
     [c] = store.list_campaigns()
     assert c.id == cid and c.started_at == datetime(2026, 3, 5, 8, 30, tzinfo=UTC)
     assert c.started_at.utcoffset() == timedelta(0)
-
-
-def test_ctrl_c_during_commit_is_held_until_the_commit_is_done() -> None:
-    import os
-    import signal
-
-    from driftlab.campaigns import db
-
-    reached = []
-    with pytest.raises(KeyboardInterrupt):
-        with db._sigint_deferred():
-            os.kill(os.getpid(), signal.SIGINT)
-            reached.append("after the signal")
-    assert reached == ["after the signal"]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
