@@ -74,7 +74,7 @@ class _Steps:
         (self.logs / f"{name}.log").write_text(f"$ {shown}\n{proc.stdout}\n--- stderr ---\n{proc.stderr}")
         if proc.returncode != 0:
             tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
-            raise InstrumentError(f"demo step {name} failed (exit {proc.returncode}): {tail}; "
+            raise DriftlabError(f"demo step {name} failed (exit {proc.returncode}): {tail}; "
                                   f"see {self.logs / (name + '.log')}")
         self.done.append({"name": name, "command": shown, "wall_s": round(wall, 2)})
         for line in proc.stdout.strip().splitlines()[:2]:
@@ -275,7 +275,15 @@ def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server:
         """Return a fresh on-line model kept by the API."""
         return ApiRLS(server.url, machine, token=server.token, forgetting=args.forgetting)
 
-    test = run_cutting_test(scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0,
-                            on_run=lambda k: console.print(f"  run {k} done"))
+    from driftlab.progress import progress
+
+    with progress("cutting test", total=3) as bar:
+        def done(key: str) -> None:
+            """Advance the bar and say which run finished."""
+            bar.advance()
+            console.print(f"  run {key} done")
+
+        test = run_cutting_test(scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0,
+                                on_run=done)
     info["loads_per_source"] = [src.reloads for src in sources]  # 1 each: every later poll was a 304
     return test, info
