@@ -551,28 +551,13 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                 if not taus[0] * 1.02 < hint["tau_s"] < taus[-1] * 0.98:
                     continue  # the best lag sits on the edge of the resolvable range: not resolved
             X_new, names_new, new_idx = _extension(cand, cols, state)
-            if cand.kind == "sensor_fault" and hint["start_s"] < hold_start:
-                X_nested = np.column_stack([state.X, cand.cols])
-                p_rob = robust_pvalue(X_nested, td.y, td, list(range(state.X.shape[1], X_nested.shape[1])))
-            elif cand.kind == "sensor_fault":
-                p_rob = sc.p_value
-            else:
-                p_rob = robust_pvalue(X_new, td.y, td, new_idx)
-            p = max(sc.p_value, p_rob, 1e-300)  # below 1e-300 a p-value says nothing more
-            log.debug("%s/%s try %s %s: p naive %.3g robust %.3g (need < %.3g)", td.axis, td.term, cand.kind,
-                      cand.channels, sc.p_value, p_rob, alpha_each)
-            if p >= alpha_each:
-                continue
-            if fault_start is not None and cand.kind != "sensor_fault":
-                # after a fault, rows beyond its start carry the virtual sensor's error: a further
-                # finding must also stand on the rows before the fault, where no estimate stands in
-                if robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
-                    continue
+            # the cheap checks (one least-squares refit) first, the cluster-robust test last
             fit = fit_columns(X_new, td.y, td.train, names_new)
             before_h, after_h = state.fit.rmse_holdout, fit.rmse_holdout
             expl_train = np.sqrt(max(state.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
-            log.debug("   held-out %.4g -> %.4g; explains %.3g noise on training, %.3g held out", before_h,
-                      after_h, expl_train / noise, np.sqrt(max(before_h**2 - after_h**2, 0.0)) / noise)
+            log.debug("%s/%s try %s %s: p naive %.3g; held-out %.4g -> %.4g; explains %.3g noise on training, "
+                      "%.3g held out", td.axis, td.term, cand.kind, cand.channels, sc.p_value, before_h, after_h,
+                      expl_train / noise, np.sqrt(max(before_h**2 - after_h**2, 0.0)) / noise)
             if not np.isfinite(after_h) or after_h > (1.0 - min_gain) * before_h:
                 continue
             # what the effect explains on the held-out part must reach the measurement repeatability:
@@ -581,10 +566,27 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                 continue
             # and on the training part it must explain a real share of the repeatability: a tiny
             # in-sample gain that only extrapolates well is the standard model's noise-fitted
-            # coefficients being corrected by chance
+            # coefficients being corrected by chance (a fault that starts in the held-out part has
+            # nothing to explain in training)
             in_holdout = cand.kind == "sensor_fault" and hint["start_s"] >= hold_start
             if expl_train < min_explained_train * noise and not in_holdout:
-                continue  # (a fault that starts in the held-out part has nothing to explain in training)
+                continue
+            if cand.kind == "sensor_fault" and not in_holdout:
+                X_nested = np.column_stack([state.X, cand.cols])
+                p_rob = robust_pvalue(X_nested, td.y, td, list(range(state.X.shape[1], X_nested.shape[1])))
+            elif cand.kind == "sensor_fault":
+                p_rob = sc.p_value
+            else:
+                p_rob = robust_pvalue(X_new, td.y, td, new_idx)
+            p = max(sc.p_value, p_rob, 1e-300)  # below 1e-300 a p-value says nothing more
+            log.debug("   robust p %.3g (need < %.3g)", p_rob, alpha_each)
+            if p >= alpha_each:
+                continue
+            if fault_start is not None and cand.kind != "sensor_fault":
+                # after a fault, rows beyond its start carry the virtual sensor's error: a further
+                # finding must also stand on the rows before the fault, where no estimate stands in
+                if robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
+                    continue
             coef = fit.coef[new_idx]
             params, c = _params(cand, hint, coef, td)
             fault = ctx.faults.get(cand.channels[0]) if cand.kind == "sensor_fault" else None

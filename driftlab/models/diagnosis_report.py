@@ -71,6 +71,11 @@ def _scale(unit: str) -> tuple[float, str]:
     return (1e6, "urad") if unit == "rad" else (1e3, "um")
 
 
+def _thin(n: int, most: int = 4000) -> slice:
+    """Return a stride that keeps at most ``most`` of n points for a scatter plot (the picture is the same)."""
+    return slice(None, None, max(1, n // most))
+
+
 def _effect_plot(eff: Effect, unit: str) -> str:
     """Return the residual plot that shows one finding."""
     import matplotlib
@@ -79,29 +84,33 @@ def _effect_plot(eff: Effect, unit: str) -> str:
     import matplotlib.pyplot as plt
 
     k, lab = _scale(unit)
-    th = eff.time_s / 3600.0
+    sl = _thin(eff.time_s.size)
+    th = eff.time_s[sl] / 3600.0
+    before = eff.residual_before[sl]
+    contrib = eff.contribution[sl]
+    train = eff.train[sl]
+    position, direction, regressor = eff.position[sl], eff.direction[sl], eff.columns[sl, 0]
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.4))
     ax = axes[0]
-    ax.plot(th, eff.residual_before * k, ".", ms=2, alpha=0.5, label="residual before")
-    ax.plot(th, eff.contribution * k, "-", lw=1.2, color="C3", label=f"fitted {eff.kind}")
-    hold = th[~eff.train]
+    ax.plot(th, before * k, ".", ms=2, alpha=0.5, label="residual before")
+    ax.plot(th, contrib * k, "-", lw=1.2, color="C3", label=f"fitted {eff.kind}")
+    hold = th[~train]
     if hold.size:
         ax.axvspan(hold[0], th[-1], color="0.9", zorder=0, label="held out")
     ax.set_xlabel("time (h)")
     ax.set_ylabel(f"{eff.axis}/{eff.term} ({lab})")
     ax.legend(fontsize=7, loc="best")
     ax = axes[1]
-    after = eff.residual_before - eff.contribution
+    after = before - contrib
     if eff.kind in ("reversal", "screw_expansion"):
         for d, c in ((1, "C0"), (-1, "C1")):
-            m = eff.direction == d
+            m = direction == d
             if m.any():
-                ax.plot(eff.position[m], eff.residual_before[m] * k, ".", ms=2, color=c, alpha=0.5,
-                        label=f"direction {d:+d}")
+                ax.plot(position[m], before[m] * k, ".", ms=2, color=c, alpha=0.5, label=f"direction {d:+d}")
         ax.set_xlabel("position")
     else:
-        ax.plot(eff.columns[:, 0], eff.residual_before * k, ".", ms=2, alpha=0.5, label="residual before")
-        ax.plot(eff.columns[:, 0], after * k, ".", ms=2, alpha=0.5, label="residual after")
+        ax.plot(regressor, before * k, ".", ms=2, alpha=0.5, label="residual before")
+        ax.plot(regressor, after * k, ".", ms=2, alpha=0.5, label="residual after")
         ax.set_xlabel(eff.names[0])
     ax.set_ylabel(lab)
     ax.legend(fontsize=7, loc="best")
@@ -109,21 +118,29 @@ def _effect_plot(eff: Effect, unit: str) -> str:
     return _png(fig)
 
 
-def _sim_plot(t: TermDiagnosis) -> str:
-    """Return the measured errors against the calibrated time-driven law of one term."""
+def _sim_plots(terms: list[TermDiagnosis]) -> str:
+    """Return one figure: the measured errors against the calibrated time-driven law, one panel per term."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    k, lab = _scale(t.td.unit)
-    fig, ax = plt.subplots(figsize=(11, 2.8))
-    th = t.td.t / 3600.0
-    ax.plot(th, t.td.y * k, ".", ms=2, alpha=0.4, label="measured")
-    ax.plot(th, t.simulation.predicted * k, ".", ms=2, color="C3", label="Appendix A law (calibrated)")
-    ax.set_xlabel("time (h)")
-    ax.set_ylabel(f"{t.td.axis}/{t.td.term} ({lab})")
-    ax.legend(fontsize=7, loc="best")
+    n = len(terms)
+    ncols = min(3, n)
+    nrows = -(-n // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(11, 2.3 * nrows), squeeze=False)
+    for ax, t in zip(axes.ravel(), terms):
+        k, lab = _scale(t.td.unit)
+        sl = _thin(t.td.t.size, 1500)
+        th = t.td.t[sl] / 3600.0
+        ax.plot(th, t.td.y[sl] * k, ".", ms=1.5, alpha=0.4, label="measured")
+        ax.plot(th, t.simulation.predicted[sl] * k, ".", ms=1.5, color="C3", label="Appendix A law")
+        ax.set_title(f"{t.td.axis}/{t.td.term} ({lab})", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    axes[0, 0].legend(fontsize=6, loc="best")
+    axes[-1, 0].set_xlabel("time (h)", fontsize=8)
     fig.tight_layout()
     return _png(fig)
 
@@ -171,10 +188,14 @@ def to_html(res: DiagnosisResult) -> str:
     out.append(_table(rows, ["axis", "term", "unit", "model channels", "channels from", "baseline train",
                              "baseline held-out", "extended train", "extended held-out", "effects"]))
     out.append("<h2>Simulation (Appendix A time-driven laws, calibrated) vs data</h2>")
+    rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
-        out.append(f"<h3>{e(t.td.axis)}/{e(t.td.term)}: RMSE {t.simulation.rmse * k:.4g} {lab}, "
-                   f"tau {t.simulation.tau_s / 3600:.2g} h</h3><p>{e(t.simulation.gets_wrong)}</p>{_sim_plot(t)}")
+        rows.append([e(t.td.axis), e(t.td.term), f"{t.simulation.rmse * k:.4g} {lab}",
+                     f"{t.simulation.tau_s / 3600:.2g} h", e(t.simulation.gets_wrong)])
+    out.append(_table(rows, ["axis", "term", "RMSE", "tau", "what it gets wrong"]))
+    if res.terms:
+        out.append(_sim_plots(res.terms))
     out.append("<h2>Flagged data</h2>")
     if res.flags:
         out.append(_table([[e(f.series), str(f.spikes), str(f.out_of_range), str(f.held_scans),
