@@ -83,8 +83,8 @@ def test_compensator_polls_the_served_model_and_sees_promotions(server: str, see
         assert bad.status_code == 404 and bad.headers["content-type"] == "application/problem+json"
 
 
-@pytest.mark.parametrize("url", ["mysql://x/y", "postgresql://nobody@127.0.0.1:1/none"])
-def test_serve_reports_an_unusable_database_in_one_line(url: str) -> None:
+def test_serve_reports_an_unreachable_database_in_one_line() -> None:
+    url = "postgresql://nobody@127.0.0.1:1/none"
     r = subprocess.run(
         [sys.executable, "-m", "driftlab.cli", "serve", "--port", str(free_port()), "--db", url],
         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), "DRIFTLAB_API_TOKEN": TOKEN},

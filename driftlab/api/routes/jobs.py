@@ -62,6 +62,26 @@ def run_diagnosis(store: Store, job: JobInfo) -> dict[str, Any]:
     return _finite({"campaign_id": ids[0], "report": result.to_json_dict()})
 
 
+class _InvalidatingStore:
+    """The store, except that marking a job done first drops the machine's cached current model.
+
+    A fit registers its model and then marks its job done; a client that sees "done" must already
+    get the new model, so the cache goes before the job's state changes.
+    """
+
+    def __init__(self, store: Store, invalidate: Any) -> None:
+        self._store = store
+        self._invalidate = invalidate
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._store, name)
+
+    def finish_job(self, job_id: int, worker: str, result: dict[str, Any]) -> None:
+        """Invalidate, then record the job done."""
+        self._invalidate()
+        self._store.finish_job(job_id, worker, result)
+
+
 class JobRunner(threading.Thread):
     """A background thread that claims and runs fit/diagnosis jobs, one at a time, with heartbeats."""
 
@@ -122,7 +142,9 @@ class JobRunner(threading.Thread):
                 from driftlab.models import fitting
 
                 # records done (with the fit report) or failed itself, then re-raises a failure
-                fitting.run_fit_job(store, job, self.worker)
+                machine = job.machine_id
+                fitting.run_fit_job(_InvalidatingStore(store, lambda: self.state.models.invalidate(machine)),
+                                    job, self.worker)
             else:
                 store.finish_job(job.id, self.worker, run_diagnosis(store, job))
         except Exception as exc:
