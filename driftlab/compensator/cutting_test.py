@@ -527,15 +527,25 @@ def measure_surface(vm: VirtualMachine, program: CuttingProgram, log_: Sequence[
     if len(log_) != n_prog:
         raise ValidationError(f"the controller executed {len(log_)} blocks, the program has {n_prog}")
     idx = program.cmm_block.ravel()
-    target = np.array([log_[i].target for i in idx])
-    start = np.array([log_[i].start for i in idx])
+    all_target = np.array([b.target for b in log_])
+    all_start = np.array([b.start for b in log_])
+    target = all_target[idx]
     t_end = np.array([log_[i].t_end_s for i in idx])
     q = target.copy()
     q[:, 3:] = np.deg2rad(q[:, 3:])
-    direction = np.where(target >= start, 1.0, -1.0)
+    direction = approach_directions(all_start, all_target)[idx]
     real = tool_centre(q, true_errors(vm, t_end, q, direction), dims)
     dev = np.einsum("ij,ij->i", real - program.centre[idx], program.normal[idx])
     return dev.reshape(program.cmm_block.shape)
+
+
+def approach_directions(start: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Return (B, 5) +1/-1 per axis: the sign of the last move of each axis up to each block (+1 before any)."""
+    sgn = np.sign(target - start)
+    idx = np.arange(len(sgn))[:, None]
+    last = np.maximum.accumulate(np.where(sgn != 0, idx, -1), axis=0)
+    picked = np.take_along_axis(sgn, np.maximum(last, 0), axis=0)
+    return np.where(last >= 0, picked, 1.0)
 
 
 class CuttingBench:
@@ -563,9 +573,11 @@ class CuttingBench:
         self.ctrl.close()
 
     def __enter__(self) -> "CuttingBench":
+        """Return the bench (closed on exit)."""
         return self
 
     def __exit__(self, *exc: object) -> None:
+        """Close the link and stop the controller."""
         self.close()
 
     def rapid_to_start(self) -> None:

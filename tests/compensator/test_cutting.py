@@ -13,6 +13,7 @@ from driftlab.compensator.cutting_test import (
     LocalRLS,
     MachiningMachine,
     MouldSurface,
+    approach_directions,
     hidden_element_errors,
     make_program,
     run_cutting_test,
@@ -127,3 +128,12 @@ def test_cutting_test_orders_uncompensated_offline_online(offline_document: dict
     assert on.rmse_mm < 0.7 * off.rmse_mm  # the on-line model catches the Y motor the model lacks
     assert len(on.probes) >= 2 and on.stream["model_reloads"] >= 2
     assert off.stream["blocks_sent"] == unc.blocks - 1  # the rapid to the start is not compensated
+
+
+def test_approach_direction_is_the_last_move_of_each_axis() -> None:
+    start = np.array([[0, 0, 0, 0, 0], [1, 0, 0, 0, 0], [1, 0, 0, 0, 0], [0, 0, 1, 0, 0]], float)
+    target = np.array([[1, 0, 0, 0, 0], [1, 0, 0, 0, 0], [0, 0, 1, 0, 0], [0, 0, 0, 0, 0]], float)
+    d = approach_directions(start, target)
+    assert d[:, 0].tolist() == [1, 1, -1, -1]  # X: +, held, -, held
+    assert d[:, 2].tolist() == [1, 1, 1, -1]  # Z: none yet (+1), then +, then -
+    assert (d[:, 1] == 1).all()
