@@ -17,7 +17,8 @@ While it runs, the virtual machine heats up: :class:`MachiningMachine` turns the
 mean feed of every axis into the heat sources of its thermal network for the time of the cut. The
 program streams through the machine link (``daq.machine_link.SerialMachineLink``) to the
 simulated controller, which executes it at the programmed feeds on the simulated clock; every
-executed block is logged with its time. The machined surface is the tool centre as the real,
+executed block is logged with its time. The compensator reads the 50 thermocouples through the
+thermocouple-card driver (``daq.thermocouple.ThermocoupleCard``) from the simulated card. The machined surface is the tool centre as the real,
 error-laden chain (eq. 4.12 with the true link and joint errors of the virtual machine at the
 moment the block ends) places it on the part; measured like the CMM of ch. 7.3 it is the normal
 deviation from the design surface at 15 x 99 points.
@@ -498,15 +499,15 @@ class RunResult:
                 "probe_cycles": len(self.probes), **({"stream": self.stream} if self.stream else {})}
 
 
-class VMTemperatures:
-    """The virtual machine's thermocouple readings at the simulated clock's time (a TemperatureSource)."""
+class CardTemperatures:
+    """The latest scan of a thermocouple card (``daq.thermocouple.ThermocoupleCard``): a TemperatureSource."""
 
-    def __init__(self, vm: VirtualMachine, clock: ManualClock) -> None:
-        self.vm, self.clock = vm, clock
+    def __init__(self, scanner: Any) -> None:
+        self.scanner = scanner
 
     def read(self) -> dict[str, float]:
-        """Return the latest scan (degC per channel)."""
-        return self.vm.temperatures(self.clock.now())
+        """Return one fresh scan, degC per channel (NaN where a junction is open)."""
+        return {c: float(v) for c, v in self.scanner.scan().values.items()}
 
 
 def default_spheres() -> dict[str, SimSphere]:
@@ -564,13 +565,24 @@ class CuttingBench:
                                       sphere_offset=lambda t, c: true_workspace_translation(self.vm, t, c))
         self.ctrl.start()
         from driftlab.daq.machine_link import SerialMachineLink
+        from driftlab.daq.sim.instruments import SimThermocoupleCard
+        from driftlab.daq.sim.sites import CHANNELS
+        from driftlab.daq.thermocouple import ThermocoupleCard
+        from driftlab.daq.transport import LineChannel, open_port
 
+        # the 50 thermocouples of Table 5.1 on the simulated card, read through the real driver
+        card_map = dict(enumerate(CHANNELS))
+        self.card = SimThermocoupleCard(self.vm, self.clock, card_map).start()
+        self.temperatures = CardTemperatures(ThermocoupleCard(
+            LineChannel(open_port(serial_url(self.card)), "thermocouple card"), card_map, clock=self.clock.now))
         self.link = SerialMachineLink.open(serial_url(self.ctrl), sleep=self.clock.sleep, poll_s=0.5)
 
     def close(self) -> None:
-        """Close the link and stop the controller."""
+        """Close the link and the card, stop the simulated instruments."""
         self.link.close()
+        self.temperatures.scanner.close()
         self.ctrl.close()
+        self.card.close()
 
     def __enter__(self) -> "CuttingBench":
         """Return the bench (closed on exit)."""
@@ -638,7 +650,7 @@ def run_compensated(bench: CuttingBench, models: Any, *, online: OnlineUpdater |
     from driftlab.compensator.stream import Streamer
 
     bench.rapid_to_start()
-    temps = VMTemperatures(bench.vm, bench.clock)
+    temps = bench.temperatures
     lines = bench.program.lines()
     g1 = [i for i, ln in enumerate(lines) if ln.startswith("G1")]
     ranges = _chunks(bench.program, interval_s) if online is not None else [(1, bench.program.pose_written.shape[0])]
