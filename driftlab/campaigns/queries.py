@@ -218,11 +218,10 @@ WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND 
 def _directions(conn: Connection, params: dict[str, Any], direction: int | None) -> list[int]:
     if direction is not None:
         return [direction]
-    rows = conn.execute(
-        text("SELECT DISTINCT direction FROM error_samples WHERE campaign_id = :c AND axis = :axis AND term = :term"),
-        params,
-    ).scalars().all()
-    return sorted(int(d) for d in rows)
+    # direction is +1 or -1 (a check constraint): two index probes instead of a DISTINCT scan
+    probe = text("SELECT 1 FROM error_samples WHERE campaign_id = :c AND axis = :axis AND term = :term "
+                 "AND direction = :d LIMIT 1")
+    return [d for d in (-1, 1) if conn.execute(probe, {**params, "d": d}).first() is not None]
 
 
 def _nearest(conn: Connection, params: dict[str, Any], directions: list[int]) -> float | None:

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import io
 import json
-import threading
-from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +16,7 @@ from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import load_bundle, write_bundle
 from driftlab.campaigns.store import Store, connect
 from driftlab.cli import main
-from driftlab.errors import ConflictError, NotFoundError, ValidationError
+from driftlab.errors import ConflictError
 
 
 @pytest.fixture

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import json
 import threading
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -11,12 +10,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from sqlalchemy import func, insert, select, update
+from sqlalchemy import insert, select, update
 from sqlalchemy.exc import IntegrityError
 
-from driftlab.campaigns import ingest
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import load_bundle, write_bundle
+from driftlab.campaigns.bundle import load_bundle
 from driftlab.campaigns.store import Store, connect
 from driftlab.cli import main
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
