@@ -677,9 +677,10 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     n_hyp = 0
     for td, std in zip(prep.terms, standards):
         lo, hi = tau_bounds(prep, td)
-        keep = (taus >= lo * 0.999) & (taus <= hi * 1.001)
-        sub_bank = {c: b[:, keep] for c, b in bank.items()}
-        ctx = build_context(prep, td, std.channels, faults, sub_bank, taus[keep])
+        keep = np.flatnonzero((taus >= lo * 0.999) & (taus <= hi * 1.001))
+        sel = slice(int(keep[0]), int(keep[-1]) + 1) if keep.size else slice(0, 0)
+        sub_bank = {c: b[:, sel] for c, b in bank.items()}  # views, no copies
+        ctx = build_context(prep, td, std.channels, faults, sub_bank, taus[sel])
         cands = build_candidates(ctx)
         n_hyp += sum(c.family_size for c in cands)
         firsts.append(screen(std.X, td.y, td.train, cands))

@@ -387,12 +387,15 @@ def build_context(prep: PreparedBundle, td: TermData, model_channels: list[str],
             chan_cols[ch] = col - col[0]
     lag_cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     if lag_bank is not None and taus is not None and taus.size:
+        # the points of a sweep share their time: interpolate at the distinct times only
+        ut, inverse = np.unique(td.t, return_inverse=True)
         for ch, bank in lag_bank.items():
             if ch not in chan_cols:
                 continue
-            at = np.empty((td.n, taus.size))
+            at = np.empty((ut.size, taus.size))
             for i in range(taus.size):
-                at[:, i] = np.interp(td.t, prep.grid_t, bank[:, i])
+                at[:, i] = np.interp(ut, prep.grid_t, bank[:, i])
+            at = at[inverse]
             lag_cache[ch] = (taus, at - at[0])
     return TermContext(prep, td, list(model_channels), chan_cols, lag_cache, faults, set())
 
