@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI
 
@@ -62,7 +62,7 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
         app.include_router(module.router)
 
     @app.get("/health", response_model=Health, tags=["health"], summary="Liveness and database reachability")
-    def health(st: Any = Depends(get_state)) -> Health:
+    def health(st: Annotated[ApiState, Depends(get_state)]) -> Health:
         """Return ok when the database answers."""
         api_queries.ping(st.store)
         return Health(status="ok", database=st.store.dialect)

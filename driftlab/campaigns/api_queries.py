@@ -13,6 +13,8 @@ transaction. A dedicated table would be cleaner; it needs a migration from the s
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -58,25 +60,12 @@ def _model_row(r: Any) -> ModelRow:
                     list(r.source_campaigns or []), dict(r.document or {}))
 
 
-def _read(store: Store) -> Any:
-    """Return a read transaction context (connection) on the store."""
+@contextmanager
+def _read(store: Store) -> Iterator[Connection]:
+    """Yield a connection in one read transaction (one snapshot), closed on exit."""
     store.ensure_schema()
-    return _ReadTx(store)
-
-
-class _ReadTx:
-    """A connection in one read transaction (one snapshot), closed on exit."""
-
-    def __init__(self, store: Store) -> None:
-        self._cm = store.engine.connect()
-
-    def __enter__(self) -> Connection:
-        self.conn = self._cm.__enter__()
-        self.conn.begin()
-        return self.conn
-
-    def __exit__(self, *exc: Any) -> None:
-        self._cm.__exit__(*exc)
+    with store.engine.connect() as conn, conn.begin():
+        yield conn
 
 
 def _machine_exists(conn: Connection, machine_id: str) -> None:

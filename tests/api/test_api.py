@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 
 import httpx
@@ -187,6 +188,15 @@ async def test_model_registration_is_validated(client: httpx.AsyncClient, store)
     assert_problem(await client.post(f"/machines/{MACHINE}/models", json={"document": other}, headers=AUTH), 422)
     assert_problem(await client.post("/machines/someone-else/models", json={"document": other}, headers=AUTH), 404)
     assert_problem(await client.post(f"/machines/{MACHINE}/models", json={"doc": 1}, headers=AUTH), 422)
+    nan = model_document()
+    raw = json.dumps({"document": nan}).replace("0.002", "NaN")  # Python's parser would take it
+    body = assert_problem(await client.post(f"/machines/{MACHINE}/models", content=raw, headers={
+        **AUTH, "Content-Type": "application/json"}), 422)
+    assert "finite" in body["detail"]
+    nul = model_document()
+    nul["screening"] = {"note": "a\x00b"}
+    body = assert_problem(await client.post(f"/machines/{MACHINE}/models", json={"document": nul}, headers=AUTH), 422)
+    assert "NUL" in body["detail"]
     assert store.table_counts() == before
 
 

@@ -6,6 +6,7 @@ in-process cache (serialised bytes and ETag) and touches the database at most on
 
 from __future__ import annotations
 
+import math
 import re
 from typing import Annotated, Any
 
@@ -22,7 +23,6 @@ from driftlab.api.schemas import (
     ModelList,
     ModelRegisterIn,
     ModelStatus,
-    ModelSummary,
     ModelVersionOut,
 )
 from driftlab.campaigns import api_queries
@@ -44,6 +44,27 @@ def etag_matches(if_none_match: str | None, etag: str) -> bool:
         if tag == "*" or tag.removeprefix("W/") == etag:
             return True
     return False
+
+
+def check_json(obj: Any, where: str = "document") -> None:
+    """Refuse non-finite numbers and NUL characters anywhere in a JSON value (ValidationError).
+
+    Python's JSON parser accepts NaN and Infinity, which strict JSON (and PostgreSQL's jsonb) does
+    not; PostgreSQL text cannot hold NUL either.
+    """
+    if isinstance(obj, float):
+        if not math.isfinite(obj):
+            raise ValidationError(f"{where}: numbers must be finite")
+    elif isinstance(obj, str):
+        if "\x00" in obj:
+            raise ValidationError(f"{where}: text must not contain NUL characters")
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            check_json(k, where)
+            check_json(v, f"{where}.{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            check_json(v, f"{where}[{i}]")
 
 
 CURRENT_PATH = re.compile(r"^/machines/([A-Za-z0-9][A-Za-z0-9._:-]{0,63})/model/current$")
@@ -146,6 +167,7 @@ def register(machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiS
     """Validate and store a model document as the machine's next version, current from now on."""
     from driftlab.models import registry
 
+    check_json(body.document)
     doc = registry.validate_document(body.document)
     if doc.machine != machine_id:
         raise ValidationError(f"the document is of machine {doc.machine!r}, not {machine_id!r}")
