@@ -155,6 +155,12 @@ def _demo(args: argparse.Namespace) -> int:
     console = Console(stderr=False, highlight=False)
     if args.passes < 99:
         raise ValidationError(f"--passes must be at least 99 (one per CMM row), got {args.passes}")
+    if not 0.5 < args.forgetting <= 1.0:
+        raise ValidationError(f"--forgetting must be in (0.5, 1], got {args.forgetting}")
+    if not 0.0 <= args.age_days <= 365.0:
+        raise ValidationError(f"--age-days must be in [0, 365], got {args.age_days}")
+    if args.speed < 0:
+        raise ValidationError(f"--speed must be >= 0 (0 = as fast as possible), got {args.speed}")
     plan = load_plan(args.plan)
     scenario = load_scenario(args.scenario)
     out: Path = args.out
