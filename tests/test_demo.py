@@ -58,3 +58,14 @@ def test_demo_diagnosis_names_the_planted_effect(demo_out: Path) -> None:
     assert found, rep["diagnosis"]
     rate = float(eff.params["rate_per_day"])
     assert abs(found[0]["params"]["rate_per_day"] - rate) < 0.25 * rate
+
+
+@pytest.mark.parametrize("bad", [["--passes", "10"], ["--forgetting", "0.3"], ["--age-days", "-1"],
+                                 ["--plan", "no-such-plan.yaml"]])
+def test_demo_refuses_bad_options_before_any_work(tmp_path: Path, bad: list[str],
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    assert main(["demo", "--out", str(out), *bad]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("driftlab: error: ") and err.count("\n") == 1
+    assert not out.exists()
