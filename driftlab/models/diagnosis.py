@@ -566,11 +566,10 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                 continue
             # and on the training part it must explain a real share of the repeatability: a tiny
             # in-sample gain that only extrapolates well is the standard model's noise-fitted
-            # coefficients being corrected by chance (a fault that starts in the held-out part has
-            # nothing to explain in training)
+            # coefficients being corrected by chance
             in_holdout = cand.kind == "sensor_fault" and hint["start_s"] >= hold_start
-            if expl_train < min_explained_train * noise and not in_holdout:
-                continue
+            if expl_train < min_explained_train * noise and cand.kind != "sensor_fault":
+                continue  # (a fault is a repair, not an extension: its replacement adds no parameter)
             if cand.kind == "sensor_fault" and not in_holdout:
                 X_nested = np.column_stack([state.X, cand.cols])
                 p_rob = robust_pvalue(X_nested, td.y, td, list(range(state.X.shape[1], X_nested.shape[1])))
