@@ -77,6 +77,7 @@ class FitOptions:
     network_max_iter: int = 300
     joint_adjust: bool = True
     tiered: bool = False
+    global_lengths: bool = True
     virtual_sensors: bool = True
     seed: int = 0
 
@@ -355,7 +356,8 @@ class Candidates:
 
     def for_axes(self, axes: Sequence[str], allowed: Sequence[str] | None) -> list[Feature]:
         """Return the candidate terms for rows moving ``axes``, limited to ``allowed`` channels."""
-        chans = [c for c in self.channels if allowed is None or c in allowed]
+        # the user's selection (bundle model_channels) is used as given; else the screened channels
+        chans = list(self.channels) if allowed is None else [c for c in allowed if c in self.structures or c in self.room]
         members = {s: [c for c in cs if allowed is None or c in allowed] for s, cs in self.members.items()}
         return candidate_features(
             chans, self.structures, axes=axes, screw_channels=self.screws, lag_taus_s=self.lag_taus_s,
@@ -446,7 +448,63 @@ def fit_elements(
         })
         if on_element is not None:
             on_element(element)
+    if options.global_lengths:
+        log_rows.append(_global_lengths(sample, models, cands, model_channels, options, dims))
     return models, log_rows
+
+
+def _global_lengths(
+    sample: Sample,
+    models: dict[tuple[str, str], ElementModel],
+    cands: Candidates,
+    model_channels: Mapping[str, Sequence[str]],
+    options: FitOptions,
+    dims: Mapping[str, Any],
+) -> dict[str, Any]:
+    """Re-select the length terms on all tests together, once the angles are allocated (returns a log row).
+
+    A length error does not depend on where along the chain it arises (no lever), so after the
+    staged allocation has placed every angle, the translations left in the work space are explained
+    on every test at once: a term that only one test cannot tell from another (the column and the
+    spindle warm together in the spindle test) is told apart by the others. Each chosen term still
+    goes to the element where its thermocouples sit.
+    """
+    for key in [k for k in models if k[1] in ("dx", "dy", "dz")]:
+        del models[key]
+    train = (sample.frame["role"] == "train").to_numpy()
+    known = predict_models(models, sample)
+    W, mask = _measured_w(sample, known, dims)
+    E = allocate(W, sample.q, known, "T1", dims)  # every length error seen at the spindle
+    axes = [a for a in AXES if (sample.frame["axis"] == a).any()]
+    allowed = sorted({c for a in axes for c in model_channels[a]}) if model_channels and all(
+        a in model_channels for a in axes) else None
+    feats = cands.for_axes(axes, allowed)
+    if model_channels:
+        # a joint whose axis has the user's selection reads only those channels
+        def honoured(f: Feature) -> bool:
+            axis = JOINT_OF.get(feature_element(f, cands.structures, "T1"))
+            return axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
+
+        feats = [f for f in feats if honoured(f)]
+    X = design_matrix([INTERCEPT, *feats], sample.inputs, sample.q, _directions(sample))
+    chosen = 0
+    for k, param in ((3, "dx"), (4, "dy"), (5, "dz")):
+        m = train & mask[:, k]
+        if m.sum() < 12:
+            continue
+        res = stepwise(
+            X[m].reset_index(drop=True), E[m, k], feats, forced=[INTERCEPT], p_enter=options.p_enter,
+            p_remove=options.p_remove, min_gain=options.min_gain / 4, max_terms=2 * options.max_terms,
+            vif_max=options.vif_max, tiered=options.tiered,
+        )
+        fit = TermFit("T1", param, res)
+        owners: dict[str, list[Feature]] = {}
+        for f in res.features:
+            owners.setdefault(feature_element(f, cands.structures, "T1"), []).append(f)
+        for owner, fs in owners.items():
+            models.setdefault((owner, param), ElementModel(owner, param)).add(fit, fs)
+        chosen += len(res.features)
+    return {"element": "lengths, all tests", "terms": chosen, "n_train": int(train.sum())}
 
 
 def joint_adjust(
@@ -762,9 +820,10 @@ def fit_bundles(
     members = {st: cs for st, cs in members.items() if len(cs) >= 2 and any(c in kept for c in cs)}
     screws = {ax: [c for c in kept if structures.get(c, "") in SCREW_STRUCTURES.get(AXIS_JOINT[ax], ())] for ax in AXES}
     cands = Candidates(list(kept), structures, locations, members, screws, list(room), tuple(opts.lag_taus_s))
-    channels = list(dict.fromkeys([*kept, *(c for cs in members.values() for c in cs)]))
+    chosen = [c for cs in model_channels.values() for c in cs if c in common]
+    channels = list(dict.fromkeys([*kept, *chosen, *(c for cs in members.values() for c in cs)]))
     reference = _reference(bundles, channels)
-    lag_chans = [c for c in kept if c not in room]
+    lag_chans = [c for c in dict.fromkeys([*kept, *chosen]) if c not in room]
     lags = [(c, t) for t in opts.lag_taus_s for c in lag_chans]
     sample = build_samples(train_bundles, channels, None, lags, opts.holdout_fraction)
     lap("samples")
