@@ -148,6 +148,16 @@ class TemperatureHistory(_Out):
     next_cursor: str | None = None
 
 
+class LatestTemperatures(_Out):
+    """A machine's latest thermocouple scan (what a streaming compensator reads); null = missing."""
+
+    machine_id: str
+    campaign_id: int
+    time_s: float
+    time: datetime
+    temperatures: dict[str, float | None]
+
+
 class ConditionRow(_Out):
     """One line of the machine-state log (only the requested columns are present)."""
 

@@ -141,6 +141,36 @@ def temperature_page(store: Store, campaign_id: int, channel: str, start_s: floa
         return [(float(a), None if b is None else float(b)) for a, b in rows]
 
 
+def latest_scan(store: Store, machine_id: str) -> tuple[int, datetime, float, dict[str, float | None]] | None:
+    """Return the machine's latest thermocouple scan: (campaign id, campaign start, time_s, value per channel).
+
+    The latest campaign of the machine that has readings, its last scan time (one primary-key seek
+    per channel for the maximum, then one per channel for the value); None when there is no reading.
+    """
+    t = sc.TemperatureSample
+    with _read(store) as conn:
+        _machine_exists(conn, machine_id)
+        campaigns = conn.execute(
+            select(sc.Campaign.id, sc.Campaign.started_at).where(sc.Campaign.machine_id == machine_id)
+            .order_by(sc.Campaign.started_at.desc(), sc.Campaign.id.desc())).all()
+        for cid, started in campaigns:
+            channels = conn.execute(select(sc.Channel.id, sc.Channel.name).where(sc.Channel.campaign_id == cid)
+                                    .order_by(sc.Channel.ordinal)).all()
+            last = [conn.execute(select(func.max(t.time_s)).where(t.campaign_id == cid, t.channel_id == ch)).scalar()
+                    for ch, _ in channels]
+            times = [x for x in last if x is not None]
+            if not times:
+                continue
+            when = max(times)
+            values: dict[str, float | None] = {}
+            for ch, name in channels:
+                v = conn.execute(select(t.value).where(t.campaign_id == cid, t.channel_id == ch,
+                                                       t.time_s == when)).scalar()
+                values[name] = None if v is None else float(v)
+            return int(cid), started, float(when), values
+        return None
+
+
 def condition_page(store: Store, campaign_id: int, columns: list[str], start_s: float | None, end_s: float | None,
                    after_s: float | None, offset: int, limit: int) -> list[tuple[Any, ...]]:
     """Return up to ``limit`` rows (time_s, *columns) of the machine-state log in time order."""

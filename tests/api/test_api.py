@@ -113,6 +113,17 @@ async def test_condition_and_error_histories(client: httpx.AsyncClient, seeded: 
     assert_problem(await client.get(f"{base}/errors", params={"axis": "Q"}), 422)
 
 
+async def test_latest_scan_of_the_machine(client: httpx.AsyncClient, seeded: Seeded) -> None:
+    from tests.api.helpers import small_frames
+
+    temps, _, _ = small_frames()
+    r = (await client.get(f"/machines/{MACHINE}/temperatures/latest")).json()
+    assert r["campaign_id"] == seeded.campaign_id and r["time_s"] == temps["time_s"].iloc[-1]
+    assert r["time"] == "2026-03-02T08:39:30Z"
+    assert r["temperatures"] == {c: temps[c].iloc[-1] for c in ("T1", "T2", "T49", "T50")}
+    assert_problem(await client.get("/machines/ghost/temperatures/latest"), 404)
+
+
 async def test_drift(client: httpx.AsyncClient, seeded: Seeded) -> None:
     r = (await client.get(f"/machines/{MACHINE}/drift", params={"axis": "Z", "term": "dz", "position": 410,
                                                                  "direction": 1})).json()

@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from driftlab.compensator.stream import ApiModel
+from driftlab.compensator.stream import ApiModel, ApiTemperatures
 from tests.api.helpers import AUTH, MACHINE, TOKEN, Seeded, model_document
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -76,6 +76,9 @@ def test_compensator_polls_the_served_model_and_sees_promotions(server: str, see
         assert c.post(f"/machines/{MACHINE}/models/{seeded.model_version}/promote").status_code == 401
         assert c.post(f"/machines/{MACHINE}/models/{seeded.model_version}/promote", headers=AUTH).status_code == 200
         assert poller.refresh() is True and poller.etag == first
+        # the compensator's temperature source reads the latest scan
+        temps = ApiTemperatures(server, MACHINE, client=c).read()
+        assert sorted(temps) == ["T1", "T2", "T49", "T50"] and all(20.0 < v < 30.0 for v in temps.values())
         # histories and problems over the wire
         page = c.get(f"/campaigns/{seeded.campaign_id}/temperatures/T1", params={"limit": 5}).json()
         assert len(page["points"]) == 5 and page["next_cursor"]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+from datetime import timedelta
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query
@@ -25,15 +26,17 @@ from driftlab.api.schemas import (
     ConditionRow,
     ErrorHistory,
     ErrorSampleOut,
+    LatestTemperatures,
     TemperatureHistory,
     TemperaturePoint,
     Term,
 )
 from driftlab.api.deps import get_store
+from driftlab.api.routes.machines import MachineId
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
 from driftlab.campaigns.store import Store
-from driftlab.errors import ValidationError
+from driftlab.errors import NotFoundError, ValidationError
 
 router = APIRouter(tags=["histories"])
 
@@ -161,3 +164,16 @@ def errors(
                             direction=r.direction, sweep=r.sweep, flags=r.flags, value=r.value) for r in rows]
     nxt = encode_cursor("error", rows[-1].seq) if len(rows) == limit else None
     return ErrorHistory(campaign_id=campaign_id, items=items, next_cursor=nxt)
+
+
+@router.get("/machines/{machine_id}/temperatures/latest", response_model=LatestTemperatures,
+            summary="The machine's latest thermocouple scan")
+def latest_temperatures(machine_id: MachineId, store: Annotated[Store, Depends(get_store)]) -> LatestTemperatures:
+    """Return the last scan of the machine's latest campaign with readings (degC per channel)."""
+    found = api_queries.latest_scan(store, machine_id)
+    if found is None:
+        raise NotFoundError(f"machine {machine_id!r} has no temperature readings")
+    campaign_id, started, time_s, values = found
+    return LatestTemperatures(machine_id=machine_id, campaign_id=campaign_id, time_s=time_s,
+                              time=started + timedelta(seconds=time_s),
+                              temperatures={c: _f(v) for c, v in values.items()})
