@@ -389,13 +389,14 @@ def build_context(prep: PreparedBundle, td: TermData, model_channels: list[str],
     if lag_bank is not None and taus is not None and taus.size:
         # the points of a sweep share their time: interpolate at the distinct times only
         ut, inverse = np.unique(td.t, return_inverse=True)
+        g = prep.grid_t
+        hi = np.clip(np.searchsorted(g, ut), 1, g.size - 1)  # linear interpolation weights, shared by all banks
+        lo = hi - 1
+        w = np.clip((ut - g[lo]) / np.where(g[hi] > g[lo], g[hi] - g[lo], 1.0), 0.0, 1.0)[:, None]
         for ch, bank in lag_bank.items():
             if ch not in chan_cols:
                 continue
-            at = np.empty((ut.size, taus.size))
-            for i in range(taus.size):
-                at[:, i] = np.interp(ut, prep.grid_t, bank[:, i])
-            at = at[inverse]
+            at = (bank[lo] * (1.0 - w) + bank[hi] * w)[inverse]
             lag_cache[ch] = (taus, at - at[0])
     return TermContext(prep, td, list(model_channels), chan_cols, lag_cache, faults, set())
 
@@ -505,13 +506,31 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     rss = float(ry @ ry)
     n, p = yt.size, Q.shape[1]
     out: list[Scored] = []
-    for c in cands:
-        C = c.cols[train]
-        if not np.all(np.isfinite(C)):
-            continue
-        C = C / np.maximum(np.sqrt(np.mean(C * C, axis=0)), 1e-300)
-        RC = C - Q @ (Q.T @ C)
-        norm2 = np.sum(RC * RC, axis=0)
+    # every candidate column at once: one projection for the whole catalogue of this term
+    n_tr = int(train.sum())
+    rows = slice(0, n_tr) if train[:n_tr].all() else train  # training rows are the first ones: views
+    if not cands:
+        return out
+    widths = [c.cols.shape[1] for c in cands]
+    edges = np.concatenate([[0], np.cumsum(widths)])
+    big = np.concatenate([c.cols[rows] for c in cands], axis=1)
+    col_ok = np.all(np.isfinite(big), axis=0)
+    finite = [c for ci, c in enumerate(cands) if col_ok[edges[ci]:edges[ci + 1]].all()]
+    if len(finite) < len(cands):
+        keep_cols = np.concatenate([np.arange(edges[ci], edges[ci + 1]) for ci, c in enumerate(cands)
+                                    if col_ok[edges[ci]:edges[ci + 1]].all()] or [np.zeros(0, dtype=int)])
+        big = big[:, keep_cols]
+        widths = [c.cols.shape[1] for c in finite]
+        edges = np.concatenate([[0], np.cumsum(widths)])
+    if not finite:
+        return out
+    big = big / np.maximum(np.sqrt(np.mean(big * big, axis=0)), 1e-300)
+    big_r = big - Q @ (Q.T @ big)
+    big_n2 = np.sum(big_r * big_r, axis=0)
+    for ci, c in enumerate(finite):
+        C = big[:, edges[ci]:edges[ci + 1]]
+        RC = big_r[:, edges[ci]:edges[ci + 1]]
+        norm2 = big_n2[edges[ci]:edges[ci + 1]]
         if c.kind == "thermal_lag":  # a bank: one column per tau, score each, keep the best
             ok = norm2 > 1e-10 * C.shape[0]
             with_col = c.hint.get("with")
