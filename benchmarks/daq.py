@@ -49,7 +49,7 @@ from driftlab.daq.sim.scenario import load_scenario  # noqa: E402
 SPEED = 3600.0
 SCAN_S = 0.1  # 10 Hz
 SWEEP_S = 60.0  # a sweep every (simulated) minute
-SIM_S = 120.0  # simulated seconds in the end-to-end run
+SIM_S = float(__import__("os").environ.get("DAQ_SIM_S", 120.0))  # simulated seconds in the end-to-end run
 SCENARIO = ROOT / "examples" / "scenarios" / "clean.yaml"
 
 

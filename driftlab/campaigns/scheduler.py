@@ -35,10 +35,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
+
 from driftlab.campaigns.clock import Clock
 from driftlab.campaigns.db import write_transaction
 from driftlab.campaigns.plan import Cursor, Move, Plan, Scan, Stage, StageStart, SweepPoint, steps
-from driftlab.daq.protocols import Reading, TemperatureScan, TemperatureScanner
+from driftlab.daq.protocols import BlockScanner, Reading, ScanBlock, TemperatureScan, TemperatureScanner
 from driftlab.errors import ConflictError, DriftlabError, InstrumentError
 
 log = logging.getLogger(__name__)
@@ -86,6 +88,7 @@ class Batch:
     """Readings to commit in one transaction together with the cursor that follows them."""
 
     scans: list[tuple[int, TemperatureScan]] = field(default_factory=list)
+    blocks: list[ScanBlock] = field(default_factory=list)  # buffered scans read in blocks (block mode)
     states: list[tuple[float, dict[str, float]]] = field(default_factory=list)
     points: list[tuple[SweepPoint, float, dict[str, Reading]]] = field(default_factory=list)
     faults: list[Fault] = field(default_factory=list)
@@ -97,11 +100,15 @@ class Batch:
 
     def empty(self) -> bool:
         """Return True when there is nothing to commit (not even a cursor move)."""
-        return not (self.scans or self.states or self.points or self.faults)
+        return not (self.scans or self.blocks or self.states or self.points or self.faults)
+
+    def n_scans(self) -> int:
+        """Return the number of scans in the batch (single and block-read)."""
+        return len(self.scans) + sum(len(b) for b in self.blocks)
 
     def n_readings(self) -> int:
         """Return the number of scans and sweep points in the batch."""
-        return len(self.scans) + len(self.points)
+        return self.n_scans() + len(self.points)
 
 
 class Sink(Protocol):
@@ -213,6 +220,7 @@ class Scheduler:
         self.stop = stop or threading.Event()
         self.points = plan.sweep_points()
         self.stats = RunStats()
+        self._paced = False  # the card's pacer is started at the first block read
         self._stage = plan.stage_at(0.0)
 
     def _flush(self, batch: Batch) -> Batch:
@@ -225,7 +233,7 @@ class Scheduler:
         self.stats.commits += 1
         self.stats.commit_s.append(done - t0)
         self.stats.latencies_s.extend([done - batch.first_wall] * max(1, batch.n_readings()))
-        self.stats.scans += len(batch.scans)
+        self.stats.scans += batch.n_scans()
         self.stats.points += len(batch.points)
         self.stats.faults += len(batch.faults)
         if self.on_commit is not None:
@@ -265,22 +273,34 @@ class Scheduler:
         wall0 = time.monotonic()
         sim0 = None
         batch = Batch(cursor=self.cursor, stage=self._stage)
+        block = self.block_scans()
         try:
-            for step in steps(self.plan, self.cursor, self.points):
+            it = _Lookahead(steps(self.plan, self.cursor, self.points))
+            for step in it:
                 if self.stop.is_set():
                     break
-                if not self._due(step.t_s):
+                run: list[Scan] = []
+                if block > 1 and isinstance(step, Scan):
+                    # a run of consecutive scans (nothing else due between them) is read as one block
+                    run.append(step)
+                    while len(run) < block and isinstance(it.peek(), Scan):
+                        run.append(next(it))
+                last = run[-1] if run else step
+                if not self._due(last.t_s):
                     batch = self._flush(batch)  # idle ahead of time: store what we have now
-                    if self._sleep_until(step.t_s):
+                    if self._sleep_until(last.t_s):
                         break
-                t = self.clock.wait_until(step.t_s)
-                sim0 = t if sim0 is None else sim0
+                t = self.clock.wait_until(last.t_s)
+                sim0 = (run[0].t_s if run else t) if sim0 is None else sim0
                 if not batch.first_wall:
                     batch.first_wall = time.monotonic()
-                self._do(step, t, batch)
+                if run:
+                    self._do_block(run, t, batch)
+                else:
+                    self._do(step, t, batch)
                 batch.t_s = t
                 if (
-                    len(batch.scans) >= self.max_batch
+                    batch.n_scans() >= self.max_batch
                     or batch.points
                     or time.monotonic() - batch.first_wall >= self.flush_s
                 ):
@@ -296,6 +316,43 @@ class Scheduler:
             self.stats.max_lag_s = max_lag() if max_lag else 0.0
         self.cursor = batch.cursor
         return self.stats
+
+    def block_scans(self) -> int:
+        """Return how many scans to read per block: 1 (scan by scan) unless the card buffers and time runs fast.
+
+        On a simulated clock the card's pacer runs ahead of the host, so the host reads what
+        `flush_s` of wall-clock time brings at once (at most `max_batch` scans); on a real clock
+        at real scan rates scans are read one by one as they are taken.
+        """
+        if not (isinstance(self.rig.scanner, BlockScanner) and self.clock.simulated):
+            return 1
+        speed = getattr(self.clock, "speed", math.inf)
+        per_flush = self.flush_s * speed / self.plan.scan_interval_s
+        return int(max(1, min(self.max_batch, per_flush)))
+
+    def _do_block(self, run: list[Scan], t_last: float, batch: Batch) -> None:
+        """Read a run of consecutive scans as one buffered block (states at each scan's own time) into the batch."""
+        for step in run:
+            if step.log_state:
+                self.clock.set(step.t_s)  # the controller answers for the scan's instant, as scan by scan
+                try:
+                    batch.states.append((step.t_s, read_state(self.rig)))
+                except InstrumentError as exc:
+                    batch.faults.append(Fault(step.t_s, f"state {step.index}", "machine_link", exc.one_line()))
+        self.clock.set(t_last)
+        first, n = run[0].index, len(run)
+        scanner = self.rig.scanner
+        try:
+            if not self._paced:
+                scanner.pace(self.plan.scan_interval_s)  # type: ignore[attr-defined]
+                self._paced = True
+            blk = scanner.scan_block(first, n)  # type: ignore[attr-defined]
+            times = np.array([s.t_s for s in run])
+            batch.blocks.append(ScanBlock(first, times, blk.channels, blk.values, blk.open))
+        except InstrumentError as exc:
+            what = f"scan {first}" if n == 1 else f"scans {first}-{first + n - 1}"
+            batch.faults.append(Fault(run[0].t_s, what, "thermocouple", exc.one_line()))
+        batch.cursor = Cursor(first + n, batch.cursor.next_point)
 
     def _sleep_until(self, t_s: float) -> bool:
         """Wait (interruptibly) until just before t_s is due; return True when asked to stop."""
@@ -347,6 +404,34 @@ class Scheduler:
         if datum is not None:
             batch.datum = datum
         batch.cursor = Cursor(batch.cursor.next_scan, step.index + 1)
+
+
+class _Lookahead:
+    """An iterator with a one-step peek (the scheduler groups consecutive scans into blocks)."""
+
+    _END = object()
+
+    def __init__(self, it: Iterable[Any]) -> None:
+        self._it = iter(it)
+        self._next: Any = self._END
+
+    def __iter__(self) -> _Lookahead:
+        return self
+
+    def __next__(self) -> Any:
+        if self._next is not self._END:
+            item, self._next = self._next, self._END
+            return item
+        return next(self._it)
+
+    def peek(self) -> Any:
+        """Return the next step without consuming it (None at the end)."""
+        if self._next is self._END:
+            try:
+                self._next = next(self._it)
+            except StopIteration:
+                return None
+        return self._next
 
 
 def _at(scan: TemperatureScan, t_s: float) -> TemperatureScan:
@@ -536,6 +621,21 @@ class StoreSink:
                     rows.append((cid, ch, t, value if isfinite(value) and name not in flags else None))
         return rows
 
+    def _block_frame(self, batch: Batch) -> tuple[list[int], Any] | None:
+        """Return (channel ids, wide frame time_s + one column per stored channel) of the batch's blocks."""
+        import pandas as pd
+
+        if not batch.blocks:
+            return None
+        channels = batch.blocks[0].channels
+        if any(b.channels != channels for b in batch.blocks):
+            raise ValueError("blocks of one batch must share their channels")
+        cols = [i for i, c in enumerate(channels) if c in self.channel_ids]
+        values = np.concatenate([b.values for b in batch.blocks])[:, cols]  # NaN where open: stored as NULL
+        frame = pd.DataFrame(values, columns=[channels[i] for i in cols])
+        frame.insert(0, "time_s", np.concatenate([b.t_s for b in batch.blocks]))
+        return [self.channel_ids[channels[i]] for i in cols], frame
+
     def _error_rows(self, batch: Batch) -> list[dict[str, Any]]:
         """Return the error rows of the batch; a flagged (missing) term is not stored (it is a fault)."""
         rows = []
@@ -574,9 +674,10 @@ class StoreSink:
 
     def _commit(self, batch: Batch) -> None:
         """Write the batch (see commit)."""
-        from driftlab.campaigns.ingest import bulk_insert
+        from driftlab.campaigns.ingest import bulk_insert, copy_temperatures_pg, temperature_rows
 
         temps = self._temperature_rows(batch)
+        wide = self._block_frame(batch)
         errs = self._error_rows(batch)
         conds = [{"campaign_id": self.cid, "time_s": t, **{k: s.get(k) for k in STATE_KEYS}} for t, s in batch.states]
         missing = [
@@ -589,6 +690,15 @@ class StoreSink:
             if temps:
                 bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
                             ("int4", "int4", "float8", "float8"), temps)
+            if wide is not None:
+                # the store's bulk path: numpy-encoded binary COPY on PostgreSQL, executemany on SQLite
+                ids, frame = wide
+                if conn.dialect.name == "postgresql":
+                    copy_temperatures_pg(conn, self.cid, ids, frame)
+                else:
+                    bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
+                                ("int4", "int4", "float8", "float8"),
+                                temperature_rows(self.cid, ids, frame, postgres=False))
             if conds:
                 conn.execute(self._t_cond.insert(), conds)
             if errs:
@@ -603,8 +713,8 @@ class StoreSink:
                 prog["recent_faults"] = recent[-20:]
             if batch.datum is not None:
                 prog["datum"] = batch.datum
-            if batch.scans:
-                last = batch.scans[-1][1]
+            last = _last_scan(batch)
+            if last is not None:
                 prog["last_scan"] = {"t_s": last.t_s, "values": {
                     k: (v if k not in last.flags and math.isfinite(v) else None) for k, v in last.values.items()}}
             if batch.points:
@@ -632,6 +742,17 @@ class StoreSink:
                 ).values(status="done"))
                 conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
         self._prog = prog  # only once committed: a failed batch leaves the in-memory cursor where the store's is
+
+
+def _last_scan(batch: Batch) -> TemperatureScan | None:
+    """Return the latest scan of the batch (single or block-read), None when it has none."""
+    cands = []
+    if batch.scans:
+        cands.append(batch.scans[-1][1])
+    if batch.blocks and len(batch.blocks[-1]):
+        blk = batch.blocks[-1]
+        cands.append(blk.scan(len(blk) - 1))
+    return max(cands, key=lambda s: s.t_s) if cands else None
 
 
 def _first_line(exc: BaseException) -> str:
@@ -730,9 +851,7 @@ class InstrumentRig:
         if saved is not None and (saved.get("axis"), saved.get("term")) == (point.axis, point.term) and (
             self.laser_server is not None and "error" in saved
         ):
-            from driftlab.daq.sim.instruments import _LaserRef
-
-            self.laser_server._ref = _LaserRef(saved["t_s"], saved["position"], saved["error"])
+            self.laser_server.restore_reference(saved["t_s"], saved["position"], saved["error"])
             self.laser.reference_lost = False
             self.laser.reference_position = float(saved["position"])
             self._saved = None
@@ -740,9 +859,9 @@ class InstrumentRig:
         self.laser.reference(point.position)
         datum: dict[str, Any] = {"axis": point.axis, "term": point.term, "position": point.position,
                                  "t_s": self.clock.now()}
-        ref = getattr(self.laser_server, "_ref", None)
+        ref = self.laser_server.datum() if self.laser_server is not None else None
         if ref is not None:
-            datum.update({"t_s": ref.t_s, "position": ref.position, "error": ref.error})
+            datum.update(ref)
         self._saved = None
         self._new_datum = datum
 

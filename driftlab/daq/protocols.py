@@ -54,6 +54,34 @@ class TemperatureScan:
 
 
 @dataclass(frozen=True)
+class ScanBlock:
+    """Consecutive buffered scans k..k+n-1 of the card: degC per scan and channel, NaN where open.
+
+    Arrays, not per-scan mappings: a block carries thousands of readings and nothing between the
+    card and the store needs them one at a time.
+    """
+
+    first_index: int
+    t_s: np.ndarray  # (n,) scan times, s
+    channels: tuple[str, ...]
+    values: np.ndarray  # (n, c) degC, NaN where the junction is open
+    open: np.ndarray  # (n, c) True where the junction read open (over-range)
+
+    def __len__(self) -> int:
+        """Return the number of scans in the block."""
+        return len(self.t_s)
+
+    def scan(self, i: int) -> TemperatureScan:
+        """Return scan i of the block as a TemperatureScan."""
+        row, opened = self.values[i].tolist(), self.open[i].tolist()
+        return TemperatureScan(
+            t_s=float(self.t_s[i]),
+            values=dict(zip(self.channels, row)),
+            flags={c: FLAG_OPEN for c, o in zip(self.channels, opened) if o},
+        )
+
+
+@dataclass(frozen=True)
 class ErrorSample:
     """One measured point of an error sweep (a row of errors.csv); NaN plus a flag when missing."""
 
@@ -101,6 +129,17 @@ class TemperatureScanner(Protocol):
 
     def scan(self) -> TemperatureScan:
         """Return one scan of every channel."""
+
+
+@runtime_checkable
+class BlockScanner(TemperatureScanner, Protocol):
+    """A scanner with a hardware pacer and a scan buffer: scan k is taken at k * interval, read in blocks."""
+
+    def pace(self, interval_s: float) -> None:
+        """Set the pacer's scan interval (s); scan k is taken at k * interval_s."""
+
+    def scan_block(self, first_index: int, n: int) -> ScanBlock:
+        """Return the buffered scans first_index .. first_index + n - 1 (already taken by the pacer)."""
 
 
 @runtime_checkable

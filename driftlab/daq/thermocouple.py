@@ -17,12 +17,28 @@ slope 1.000414, offset -0.20638 degC).
 Card protocol (ASCII, one ``\\n``-terminated line each way; the simulated card in
 ``driftlab.daq.sim.instruments`` answers the same):
 
-==========================  ====================================================
-``*IDN?``                   ``<maker>,<model>,<serial>,<firmware>``
-``CJC?``                    cold-junction temperature, degC, e.g. ``24.125``
-``SCAN? <first>,<last>``    EMF of channels first..last (0-63) in volts, comma
-                            separated; an open circuit reads over-range ``+9.9E37``
-==========================  ====================================================
+=================================  =============================================
+``*IDN?``                          ``<maker>,<model>,<serial>,<firmware>``
+``CJC?``                           cold-junction temperature, degC, e.g. ``24.125``
+``SCAN? <first>,<last>``           EMF of channels first..last (0-63) in volts, comma
+                                   separated; an open circuit reads over-range ``+9.9E37``
+``PACE <interval_s>``              start the card's pacer: scan k of channels 0-63 is
+                                   taken at k * interval_s on the card's time base and
+                                   kept in its scan buffer -> ``OK``
+``FETC? <first>,<last>,<k>,<n>``   buffered scans k..k+n-1 of channels first..last:
+                                   ``<k>,<n>,<hex>`` where hex is the IEEE-754 float64
+                                   big-endian image (SCPI ``FORM REAL,64`` sent as
+                                   ``FORM HEX``, so the reply stays one line) of n rows of
+                                   [cold junction degC, EMF first..last V]; ``ERR
+                                   NOTREADY`` if scan k+n-1 is not taken yet, ``ERR
+                                   OVERWRITTEN`` if scan k has left the buffer, ``ERR
+                                   NOPACE`` before ``PACE``
+=================================  =============================================
+
+Block-scan mode is what a DAS-TC class card does at speed: its pacer scans on its own clock
+into an on-board buffer and the host reads many scans per exchange, so one round trip and one
+vectorised conversion serve hundreds of scans instead of one each. Scans are addressed by their
+number, so reading a block again (a retry, or a host that restarted) returns the same scans.
 """
 
 from __future__ import annotations
@@ -34,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from driftlab.daq.protocols import FLAG_OPEN, TemperatureScan
+from driftlab.daq.protocols import FLAG_OPEN, ScanBlock, TemperatureScan
 from driftlab.daq.retry import RetryPolicy
 from driftlab.daq.transport import LineChannel, open_port
 from driftlab.errors import ValidationError
@@ -108,18 +124,29 @@ def _poly(coeffs: Sequence[float], x: np.ndarray) -> np.ndarray:
     return np.polynomial.polynomial.polyval(x, np.asarray(coeffs))
 
 
+def _piecewise(neg: Sequence[float], pos: Sequence[float], x: np.ndarray, below: np.ndarray) -> np.ndarray:
+    """Return poly ``neg`` where ``below`` else poly ``pos``; a branch nobody needs is not evaluated."""
+    if not below.any():
+        return _poly(pos, x)
+    if below.all():
+        return _poly(neg, x)
+    return np.where(below, _poly(neg, x), _poly(pos, x))
+
+
 def type_e_emf_mv(t_c: float | np.ndarray) -> np.ndarray:
     """Return the type E reference EMF (mV) at ``t_c`` degC (NIST ITS-90 forward function)."""
     t = np.asarray(t_c, dtype=float)
     if np.any((t < -270.0) | (t > 1000.0)):
         raise ValidationError("type E reference function is defined for -270..1000 degC")
-    return np.where(t < 0.0, _poly(E_FWD_NEG, t), _poly(E_FWD_POS, t))
+    return _piecewise(E_FWD_NEG, E_FWD_POS, t, t < 0.0)
+
+
+_E_SLOPE_NEG = tuple(np.polynomial.polynomial.polyder(np.asarray(E_FWD_NEG)).tolist())
+_E_SLOPE_POS = tuple(np.polynomial.polynomial.polyder(np.asarray(E_FWD_POS)).tolist())
 
 
 def _type_e_slope_mv_per_c(t: np.ndarray) -> np.ndarray:
-    neg = np.polynomial.polynomial.polyder(np.asarray(E_FWD_NEG))
-    pos = np.polynomial.polynomial.polyder(np.asarray(E_FWD_POS))
-    return np.where(t < 0.0, _poly(neg, t), _poly(pos, t))
+    return _piecewise(_E_SLOPE_NEG, _E_SLOPE_POS, t, t < 0.0)
 
 
 def type_e_temperature_c(emf_mv: float | np.ndarray) -> np.ndarray:
@@ -127,9 +154,9 @@ def type_e_temperature_c(emf_mv: float | np.ndarray) -> np.ndarray:
     e = np.asarray(emf_mv, dtype=float)
     inside = np.isfinite(e) & (e >= E_MV_MIN) & (e <= E_MV_MAX)
     ec = np.where(inside, e, 0.0)
-    t0 = np.where(ec < 0.0, _poly(E_INV_NEG, ec), _poly(E_INV_POS, ec))
+    t0 = _piecewise(E_INV_NEG, E_INV_POS, ec, ec < 0.0)
     # One Newton step on the forward reference function removes the inverse's +-0.02 degC.
-    t1 = t0 - (np.where(t0 < 0.0, _poly(E_FWD_NEG, t0), _poly(E_FWD_POS, t0)) - ec) / _type_e_slope_mv_per_c(t0)
+    t1 = t0 - (_piecewise(E_FWD_NEG, E_FWD_POS, t0, t0 < 0.0) - ec) / _type_e_slope_mv_per_c(t0)
     return np.where(inside, t1, np.nan)
 
 
@@ -155,6 +182,23 @@ def card_emf_to_temperature(
     v = np.asarray(volts, dtype=float)
     over = ~np.isfinite(v) | (np.abs(v) >= OVER_RANGE_V)
     total_mv = np.where(over, np.nan, v * 1e3) + float(type_e_emf_mv(cold_junction_c))
+    t_raw = type_e_temperature_c(total_mv)
+    open_mask = over | ~np.isfinite(t_raw)
+    if calibrations is not None:
+        slopes = np.array([c.slope for c in calibrations])
+        offsets = np.array([c.offset_c for c in calibrations])
+        t_raw = slopes * t_raw + offsets
+    return np.where(open_mask, np.nan, t_raw), open_mask
+
+
+def card_block_to_temperature(
+    volts: np.ndarray, cold_junction_c: np.ndarray, calibrations: Sequence[ChannelCalibration] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return (degC, open mask) for a block of scans: volts (n, c), one cold junction (degC) per scan."""
+    v = np.asarray(volts, dtype=float)
+    over = ~np.isfinite(v) | (np.abs(v) >= OVER_RANGE_V)
+    e_cj = type_e_emf_mv(np.asarray(cold_junction_c, dtype=float))[:, None]
+    total_mv = np.where(over, np.nan, v * 1e3) + e_cj
     t_raw = type_e_temperature_c(total_mv)
     open_mask = over | ~np.isfinite(t_raw)
     if calibrations is not None:
@@ -196,6 +240,7 @@ class ThermocoupleCard:
         self._clock = clock
         self._first = min(self._map)
         self._last = max(self._map)
+        self._interval_s: float | None = None  # the pacer's interval once pace() was sent
 
     @classmethod
     def open(
@@ -254,3 +299,42 @@ class ThermocoupleCard:
         values = {name: float(temps[i]) for i, name in enumerate(names)}
         flags = {name: FLAG_OPEN for i, name in enumerate(names) if open_mask[i]}
         return TemperatureScan(t_s=t_s, values=values, flags=flags)
+
+    def pace(self, interval_s: float) -> None:
+        """Start the card's pacer: scan k is taken at k * interval_s and kept in the card's buffer."""
+        if not (math.isfinite(interval_s) and interval_s > 0):
+            raise ValidationError("the pacer interval must be a positive number of seconds")
+        self._io.command(f"PACE {float(interval_s)!r}")
+        self._interval_s = float(interval_s)
+
+    def read_block(self, first_index: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return (cold junction degC (n,), EMFs V (n, last - first + 1)) of buffered scans first_index.."""
+        width = self._last - self._first + 2
+
+        def parse(text: str) -> tuple[np.ndarray, np.ndarray]:
+            k_s, n_s, data = text.split(",", 2)
+            if (int(k_s), int(n_s)) != (first_index, n):
+                raise ValueError(f"reply is for scans {k_s}+{n_s}")
+            if len(data) != 16 * n * width:
+                raise ValueError(f"expected {n} x {width} values, got {len(data) / 16:g}")
+            block = np.frombuffer(bytes.fromhex(data), dtype=">f8").reshape(n, width).astype(float)
+            cj = block[:, 0]
+            if not (np.isfinite(block).all() and ((cj >= -50.0) & (cj <= 100.0)).all()):
+                raise ValueError("cold junction out of range")
+            return cj, block[:, 1:]
+
+        return self._io.query(f"FETC? {self._first},{self._last},{first_index},{n}", parse)
+
+    def scan_block(self, first_index: int, n: int) -> ScanBlock:
+        """Return buffered scans first_index..first_index + n - 1: calibrated degC, open junctions NaN."""
+        interval = self._interval_s
+        if interval is None:
+            raise ValidationError("thermocouple card: call pace(interval_s) before reading blocks")
+        if n < 1:
+            raise ValidationError("a block holds at least one scan")
+        cj, volts = self.read_block(first_index, n)
+        idx = np.array(list(self._map)) - self._first
+        names = tuple(self._map.values())
+        cals = [self._cal.get(name, ChannelCalibration()) for name in names] if self._cal else None
+        temps, open_mask = card_block_to_temperature(volts[:, idx], cj, cals)
+        return ScanBlock(first_index, np.arange(first_index, first_index + n) * interval, names, temps, open_mask)

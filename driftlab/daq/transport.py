@@ -7,6 +7,8 @@ helper implements the same two calls, so a driver test asserts the exact bytes o
 
 from __future__ import annotations
 
+import select
+import socket
 import time
 from collections.abc import Callable
 from typing import Any, Protocol, TypeVar, runtime_checkable
@@ -41,6 +43,11 @@ class SerialPort:
 
     def __init__(self, serial_obj: Any) -> None:
         self._ser = serial_obj
+        self._buf = b""  # bytes received past the last line returned
+        # pyserial reads a line byte by byte (a select and a recv per byte on socket://); on a
+        # network port the socket is read in chunks instead, with the port's timeout per line
+        sock = getattr(serial_obj, "_socket", None)
+        self._sock = sock if isinstance(sock, socket.socket) else None
 
     @classmethod
     def open(cls, url: str, timeout_s: float = 2.0, baudrate: int = 9600) -> SerialPort:
@@ -63,10 +70,32 @@ class SerialPort:
         except (serial.SerialException, OSError) as exc:
             raise TransportTimeout(f"serial write failed: {exc}") from exc
 
+    def _read_line_socket(self, sock: socket.socket) -> bytes:
+        """Return one line read from a network port in chunks (leftover bytes kept for the next line)."""
+        timeout = self._ser.timeout
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while TERMINATOR not in self._buf:
+            left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+            ready, _, _ = select.select([sock], [], [], left)
+            chunk = sock.recv(65536) if ready else b""
+            if not chunk:
+                partial, self._buf = self._buf, b""
+                if ready:
+                    raise TransportTimeout("connection closed by the instrument")
+                raise TransportTimeout("timeout waiting for reply" + (f" (partial {partial!r})" if partial else ""))
+            self._buf += chunk
+        line, _, self._buf = self._buf.partition(TERMINATOR)
+        return line + TERMINATOR
+
     def read_line(self) -> bytes:
         """Return one ``\\n``-terminated line; raise TransportTimeout on a short read."""
         import serial
 
+        if self._sock is not None:
+            try:
+                return self._read_line_socket(self._sock)
+            except OSError as exc:
+                raise TransportTimeout(f"serial read failed: {exc}") from exc
         try:
             data = self._ser.read_until(TERMINATOR)
         except (serial.SerialException, OSError) as exc:
@@ -77,6 +106,7 @@ class SerialPort:
 
     def discard_input(self) -> None:
         """Drop unread received bytes."""
+        self._buf = b""
         self._ser.reset_input_buffer()
 
     def close(self) -> None:

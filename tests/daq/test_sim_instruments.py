@@ -361,3 +361,10 @@ def test_controller_rejects_bad_blocks_without_changing_modal_state(world, clock
         assert sim.handle("STAT?") == "STAT 16 16 1"
         assert sim.handle("POS?") == "POS X10.0000 Y0.0000 Z0.0000 A0.0000 B0.0000"
         assert sim.handle("PRB 0,0,0,1,0,0,5") == "MISS"
+
+
+def test_laser_restore_reference_is_the_public_datum_api(world, clock):
+    sim = SimLaser(world, clock, FixedStage())
+    assert sim.datum() is None
+    sim.restore_reference(12.0, -50.0, 0.0015)
+    assert sim.datum() == {"t_s": 12.0, "position": -50.0, "error": 0.0015}

@@ -142,3 +142,69 @@ def test_full_64_channel_scan():
         scan = card.scan()
     assert len(scan.values) == 64 and not scan.flags
     assert scan.values["C63"] == pytest.approx(26.3, abs=1e-4)
+
+
+# -- buffered block-scan mode (PACE / FETC?) -----------------------------------------------------
+
+
+def _block_hex(rows):
+    return np.asarray(rows, dtype=">f8").tobytes().hex()
+
+
+def _emf_v(t, cj=24.0):
+    return (float(type_e_emf_mv(t)) - float(type_e_emf_mv(cj))) * 1e-3
+
+
+def test_block_scan_exact_bytes_open_flag_and_times():
+    from driftlab.daq.protocols import BlockScanner
+
+    rows = [[24.0, _emf_v(30.0), 9.9e37, _emf_v(99.0), _emf_v(50.0)],
+            [24.5, _emf_v(31.0, 24.5), _emf_v(40.0, 24.5), _emf_v(98.0, 24.5), _emf_v(51.0, 24.5)]]
+    pairs = [(b"PACE 0.1\n", b"OK\n"), (b"FETC? 0,3,7,2\n", f"7,2,{_block_hex(rows)}\n".encode())]
+    with expected_protocol(_card, pairs) as card:
+        assert isinstance(card, BlockScanner)
+        card.pace(0.1)
+        block = card.scan_block(7, 2)
+    assert block.first_index == 7 and len(block) == 2 and block.channels == ("T1", "T2", "T4")
+    assert block.t_s.tolist() == [7 * 0.1, 8 * 0.1]  # scan k at exactly k * interval, as the plan times it
+    assert block.values[0, 0] == pytest.approx(30.0, abs=1e-6) and block.values[1, 0] == pytest.approx(31.0, abs=1e-6)
+    assert math.isnan(block.values[0, 1]) and block.open[:, 1].tolist() == [True, False]
+    assert block.values[1, 1] == pytest.approx(40.0, abs=1e-6)
+    assert block.values[0, 2] == pytest.approx(1.000414 * 50.0 - 0.20638, abs=1e-6)  # calibrated, channel 3
+    scan = block.scan(0)
+    assert scan.t_s == 7 * 0.1 and scan.flags == {"T2": FLAG_OPEN} and scan.values["T1"] == block.values[0, 0]
+
+
+def test_block_scan_matches_the_single_scan_conversion():
+    volts = np.array([[_emf_v(t) for t in (20.0, -50.0, 300.0, 25.0)]] * 3)
+    temps, open_mask = __import__("driftlab.daq.thermocouple", fromlist=["x"]).card_block_to_temperature(
+        volts, np.full(3, 24.0))
+    single, _ = card_emf_to_temperature(volts[0], 24.0)
+    assert not open_mask.any()
+    assert np.array_equal(temps[1], single)  # the same arithmetic, element by element
+
+
+def test_block_scan_rejects_wrong_replies_and_retries():
+    good = f"0,1,{_block_hex([[24.0, _emf_v(30.0), _emf_v(31.0), 0.0, _emf_v(32.0)]])}\n".encode()
+    short = f"0,1,{_block_hex([[24.0, _emf_v(30.0)]])}\n".encode()
+    sleeps: list[float] = []
+    pairs = [
+        (b"PACE 0.5\n", b"OK\n"),
+        (b"FETC? 0,3,0,1\n", b"ERR NOTREADY\n"),  # asked before the pacer took the scan
+        (b"FETC? 0,3,0,1\n", short),  # wrong length
+        (b"FETC? 0,3,0,1\n", good),
+    ]
+    with expected_protocol(_card, pairs, sleeps=sleeps) as card:
+        card.pace(0.5)
+        block = card.scan_block(0, 1)
+    assert block.values[0, 0] == pytest.approx(30.0, abs=1e-6) and len(sleeps) == 2
+    bad_cj = f"0,1,{_block_hex([[250.0, 0.0, 0.0, 0.0, 0.0]])}\n".encode()
+    with expected_protocol(_card, [(b"PACE 1.0\n", b"OK\n")] + [(b"FETC? 0,3,0,1\n", bad_cj)] * 3) as card:
+        card.pace(1.0)
+        with pytest.raises(InstrumentError, match="cold junction out of range"):
+            card.scan_block(0, 1)
+    with expected_protocol(_card, []) as card:
+        with pytest.raises(ValidationError, match="pace"):
+            card.scan_block(0, 1)
+        with pytest.raises(ValidationError):
+            card.pace(0.0)

@@ -147,3 +147,45 @@ def test_probe_and_machine_link_against_the_vm(vm):
             assert clock.now() >= t0 + 12.0
         finally:
             link.close()
+
+
+def test_temperatures_block_is_bit_identical_to_per_time_calls(vm):
+    """A block of instants, in any split, equals temperatures(t) of each instant bit for bit (faults too)."""
+    times = np.concatenate([np.arange(120) * 0.1, 7190.0 + np.arange(150) * 0.1, [9000.25, 13000.0]])
+    block = vm.temperatures_block(times)
+    assert block.shape == (len(times), 50)
+    for i, t in enumerate(times):
+        assert np.array_equal(block[i], np.array(list(vm.temperatures(float(t)).values())), equal_nan=True)
+    assert np.isnan(block[times >= 7200, 33]).all() and not np.isnan(block[times < 7200, 33]).any()
+    for n in (1, 3, 64):
+        parts = [vm.temperatures_block(times[i:i + n]) for i in range(0, len(times), n)]
+        assert np.array_equal(np.concatenate(parts), block, equal_nan=True)
+    cols = vm.temperatures_block(times[:5], ["T3", "nope", "T1"])
+    assert np.array_equal(cols[:, 0], block[:5, 2]) and np.isnan(cols[:, 1]).all()
+    with pytest.raises(Exception, match=">= 0 s"):
+        vm.temperatures_block(np.array([1.0, -2.0]))
+
+
+@pytest.mark.parametrize("transport", ["visa", "serial"])
+def test_buffered_block_scans_read_the_vm(rm, vm, transport):
+    """PACE + FETC? through the real transports: each scan of a block is the VM's reading at k * interval."""
+    clock = ManualClock()
+    with SimThermocoupleCard(vm, clock, CHANNELS, cold_junction_c=22.5) as sim:
+        ch = _visa(rm, sim) if transport == "visa" else LineChannel(
+            SerialPort.open(f"socket://127.0.0.1:{sim.port}", 2.0), sim.name, FAST)
+        card = ThermocoupleCard(ch, CHANNELS, clock=clock.now)
+        try:
+            card.pace(0.1)
+            clock.advance_to(71995 * 0.1)
+            block = card.scan_block(71900, 96)  # across the fault of T34 at 7200 s
+            truth = vm.temperatures_block(block.t_s)
+            assert block.t_s.tolist() == [k * 0.1 for k in range(71900, 71996)]
+            ok = ~np.isnan(truth)
+            assert np.array_equal(block.open, ~ok)
+            assert np.abs(block.values[ok] - truth[ok]).max() < 1e-6  # the inverse NIST function, not the transfer
+            single = card.scan()  # the single-scan path still answers at the clock's instant
+            assert single.values["T1"] == pytest.approx(truth[-1, 0], abs=1e-5)
+            with pytest.raises(Exception, match="NOTREADY"):
+                card.scan_block(71990, 10)
+        finally:
+            ch.close()

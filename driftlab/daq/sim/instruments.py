@@ -370,9 +370,17 @@ OPEN_CIRCUIT_CODE = "+9.9E37"
 
 
 class SimThermocoupleCard(LineServer):
-    """A DAS-TC style type E card: EMF = E(T_world) - E(T_cj); open junctions read over-range."""
+    """A DAS-TC style type E card: EMF = E(T_world) - E(T_cj); open junctions read over-range.
+
+    Besides single scans (``SCAN?``) it answers the buffered block mode of
+    :mod:`driftlab.daq.thermocouple`: its pacer takes scan k at ``k * interval`` seconds of the
+    shared clock, and ``FETC?`` returns any run of scans already taken, evaluated in one
+    vectorised pass over the world (``temperatures_block``) when the world offers it.
+    """
 
     name = "tc-card"
+    buffer_scans = 1 << 20  # scans the card keeps before the oldest are overwritten
+    max_block = 10_000  # scans one FETC? may ask for
 
     def __init__(
         self,
@@ -389,9 +397,48 @@ class SimThermocoupleCard(LineServer):
         self.cold_junction_c = cold_junction_c
         self.noise_uv = noise_uv
         self._rng = np.random.default_rng(seed)
+        self.interval_s: float | None = None  # the pacer's scan interval, once set by PACE
+
+    def _temperatures(self, times: np.ndarray, names: list[str | None]) -> np.ndarray:
+        """Return (N, C) world temperatures at the instants for the named channels (NaN: unwired)."""
+        block = getattr(self.world, "temperatures_block", None)
+        if callable(block):
+            return np.asarray(block(times, [n or "" for n in names]), dtype=float)
+        out = np.full((times.size, len(names)), math.nan)
+        for i, t in enumerate(times.tolist()):
+            temps = self.world.temperatures(t)
+            out[i] = [temps.get(n, math.nan) if n else math.nan for n in names]
+        return out
+
+    def _volts(self, temps: np.ndarray) -> np.ndarray:
+        """Return the card's EMFs (V) for junction temperatures; open or railed junctions read over-range."""
+        bad = ~(np.isfinite(temps) & (temps >= -270.0) & (temps <= 1000.0))  # open lead, or pinned at a rail
+        e_cj = float(type_e_emf_mv(self.cold_junction_c))
+        volts = (type_e_emf_mv(np.where(bad, 0.0, temps)) - e_cj) * 1e-3
+        if self.noise_uv:
+            volts = volts + self.noise_uv * 1e-6 * self._rng.standard_normal(volts.shape)
+        return np.where(bad, float(OPEN_CIRCUIT_CODE), volts)
+
+    def _fetch(self, first: int, last: int, k: int, n: int) -> str:
+        """Return the FETC? reply for scans k..k+n-1 of channels first..last."""
+        if self.interval_s is None:
+            return "ERR NOPACE"
+        if not (0 <= first <= last < 64 and k >= 0 and 1 <= n <= self.max_block):
+            return "ERR RANGE"
+        interval, now = self.interval_s, self.clock.now()
+        if (k + n - 1) * interval > now + 1e-9 * max(1.0, abs(now)):
+            return "ERR NOTREADY"
+        if k < math.floor(now / interval + 1e-9) - self.buffer_scans + 1:
+            return "ERR OVERWRITTEN"
+        times = np.arange(k, k + n) * interval  # scan k at exactly k * interval, as the campaign plan times it
+        names = [self.channel_map.get(ch) for ch in range(first, last + 1)]
+        data = np.empty((n, 2 + last - first))
+        data[:, 0] = self.cold_junction_c
+        data[:, 1:] = self._volts(self._temperatures(times, names))
+        return f"{k},{n},{data.astype('>f8').tobytes().hex()}"
 
     def handle(self, line: str) -> str | None:
-        """Answer *IDN?, CJC? and SCAN? first,last."""
+        """Answer *IDN?, CJC?, SCAN? first,last, PACE interval and FETC? first,last,k,n."""
         if line == "*IDN?":
             return "DRIFTLAB,SIM-DASTC,0,1.0"
         if line == "CJC?":
@@ -401,19 +448,22 @@ class SimThermocoupleCard(LineServer):
             first, last = int(m.group(1)), int(m.group(2))
             if not 0 <= first <= last < 64:
                 return "ERR RANGE"
-            temps = self.world.temperatures(self.clock.now())
-            e_cj = float(type_e_emf_mv(self.cold_junction_c))
-            out = []
-            for ch in range(first, last + 1):
-                name = self.channel_map.get(ch)
-                t = temps.get(name, float("nan")) if name else float("nan")
-                if not (math.isfinite(t) and -270.0 <= t <= 1000.0):  # open lead, or pinned at a rail
-                    out.append(OPEN_CIRCUIT_CODE)
-                    continue
-                volts = (float(type_e_emf_mv(t)) - e_cj) * 1e-3
-                volts += self.noise_uv * 1e-6 * self._rng.standard_normal() if self.noise_uv else 0.0
-                out.append(f"{volts:.9e}")
-            return ",".join(out)
+            names = [self.channel_map.get(ch) for ch in range(first, last + 1)]
+            volts = self._volts(self._temperatures(np.array([self.clock.now()]), names))[0]
+            return ",".join(OPEN_CIRCUIT_CODE if v == float(OPEN_CIRCUIT_CODE) else f"{v:.9e}" for v in volts.tolist())
+        m = re.fullmatch(r"PACE (\S+)", line)
+        if m:
+            try:
+                interval = float(m.group(1))
+            except ValueError:
+                return "ERR PARAM"
+            if not (math.isfinite(interval) and interval > 0):
+                return "ERR PARAM"
+            self.interval_s = interval
+            return "OK"
+        m = re.fullmatch(r"FETC\? (\d+),(\d+),(\d+),(\d+)", line)
+        if m:
+            return self._fetch(*(int(g) for g in m.groups()))
         return "ERR SYNTAX"
 
 
@@ -447,6 +497,7 @@ class SimLaser(LineServer):
         self.signal_percent = signal_percent
         self.mode, self.axis, self.term = "LIN", "X", "dx"
         self._ref: _LaserRef | None = None
+        self._air_cache: tuple[float, float] | None = None
         self.beam: str = "ok"  # "ok", "weak" (low signal), "broken" (ERR BEAM)
 
     def break_beam(self, how: str = "broken") -> None:
@@ -465,13 +516,21 @@ class SimLaser(LineServer):
             ref = self._ref
             return None if ref is None else {"t_s": ref.t_s, "position": ref.position, "error": ref.error}
 
-    def restore_datum(self, t_s: float, position: float, error: float) -> None:
+    def restore_reference(self, t_s: float, position: float, error: float) -> None:
         """Put a saved datum back (a head that kept its count while the PC restarted)."""
         with self._lock:
             self._ref = _LaserRef(float(t_s), float(position), float(error))
 
+    restore_datum = restore_reference  # the name the datum()/restore pair had first
+
     def _air_c(self, t: float) -> float:
-        return room_air_c(self.world, t)
+        # a point's settle polls and averaged readings all ask at one instant: evaluate the room once
+        cached = self._air_cache
+        if cached is not None and cached[0] == t:
+            return cached[1]
+        air = room_air_c(self.world, t)
+        self._air_cache = (t, air)
+        return air
 
     def _true_value(self, t: float) -> tuple[float, float]:
         position, direction = self.stage.where(self.axis, t)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,11 +44,15 @@ def _mix(x: np.ndarray) -> np.ndarray:
 
 def hash_normal(seed: int, stream: int, *keys: np.ndarray) -> np.ndarray:
     """Return standard-normal deviates that depend only on (seed, stream, keys...) - vectorised, order-free."""
-    arrays = np.broadcast_arrays(*[np.asarray(k).astype(np.int64) for k in keys])
+    arrays = [np.asarray(k).astype(np.int64) for k in keys]
+    shape = np.broadcast_shapes(*(k.shape for k in arrays))
     with np.errstate(over="ignore"):
-        h = _mix(np.full(arrays[0].shape, np.uint64(seed & 0xFFFFFFFFFFFFFFFF)) + np.uint64(stream) * _GOLD)
+        # The same integer steps as hashing the broadcast keys element by element, but each mix runs
+        # on the smallest shape it depends on (a (N, 1) time key is mixed N times, not N x channels).
+        h = _mix(np.full((1,) * len(shape), np.uint64(seed & 0xFFFFFFFFFFFFFFFF)) + np.uint64(stream) * _GOLD)
         for k in arrays:
-            h = _mix(h ^ (k.view(np.uint64) + _GOLD))
+            h = _mix(h ^ (k.reshape((1,) * (len(shape) - k.ndim) + k.shape).view(np.uint64) + _GOLD))
+        h = np.broadcast_to(h, shape)
         h2 = _mix(h + _GOLD)
     u1 = ((h >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0**-53
     u2 = ((h2 >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0**-53
@@ -311,6 +316,25 @@ class VirtualMachine:
         self._check_t(t_s)
         row = self.readings_array(np.array([t_s]))[0]
         return {c: float(v) for c, v in zip(CHANNELS, row)}
+
+    def temperatures_block(self, t_s: np.ndarray, channels: Sequence[str] | None = None) -> np.ndarray:
+        """Return (N, C) thermocouple readings at N instants, each row exactly ``temperatures(t)`` (NaN = open).
+
+        One vectorised pass over the instants (a buffered card's block of scans); columns follow
+        ``channels`` (default: every site in Table 5.1 order), NaN for a name the machine does not have.
+        """
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        if t.size and not (np.isfinite(t).all() and t.min() >= 0):
+            bad = t[~(np.isfinite(t) & (t >= 0))][0]
+            raise ValidationError(f"virtual machine time must be >= 0 s since the campaign start, got {bad!r}")
+        out = self.readings_array(t)
+        if channels is None:
+            return out
+        idx = np.array([SITE_INDEX.get(c, -1) for c in channels], dtype=np.int64)
+        cols = out[:, np.clip(idx, 0, None)] if len(idx) else np.empty((t.size, 0))
+        if (idx < 0).any():
+            cols[:, idx < 0] = math.nan
+        return cols
 
     def true_temperatures(self, t_s: float) -> dict[str, float]:
         """Return the true structure temperatures at t."""
