@@ -620,6 +620,8 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
 def _tau_grid(prep: PreparedBundle) -> np.ndarray:
     """Return the log grid of lag time constants covering every term's resolvable range."""
     bounds = [tau_bounds(prep, td) for td in prep.terms]
+    if not bounds:
+        return np.array([])
     lo = min(b[0] for b in bounds)
     hi = max(b[1] for b in bounds)
     return np.exp(np.linspace(np.log(lo), np.log(hi), N_TAU)) if hi > lo else np.array([])

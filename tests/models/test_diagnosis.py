@@ -279,3 +279,14 @@ def test_a_missing_channel_does_not_break_the_model():
     assert np.isfinite(res.terms[0].standard.fit.rmse_holdout)
     assert isinstance(res.to_json_dict()["baseline"][0]["rmse_holdout"], float)
     assert isinstance(pd.DataFrame(res.to_json_dict()["extended"]), pd.DataFrame)
+
+
+def test_too_few_samples_give_an_empty_report_not_a_crash():
+    case = gen.make_case([], seed=1, hours=2, sweep_s=3600)
+    b = case.bundle
+    tiny = type(b)(name="tiny", meta=b.meta, temperatures=b.temperatures, conditions=None, errors=b.errors.head(5))
+    res = diagnose_bundle(tiny)
+    doc = res.to_json_dict()
+    assert doc["baseline"] == [] and doc["effects"] == [] and doc["holdout"]["start_s"] is None
+    assert "too few to diagnose" in doc["flags"][0]["series"]
+    assert res.to_html().startswith("<!doctype html>")
