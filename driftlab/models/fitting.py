@@ -768,6 +768,22 @@ def fit_bundles(
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Return the fitted model of one machine from one or more campaign bundles."""
+    from threadpoolctl import threadpool_limits
+
+    # the products here are tall and thin: one BLAS thread does them as fast, and on a shared
+    # 2-core machine several threads per process only queue behind each other
+    with threadpool_limits(limits=1):
+        return _fit_bundles(bundles, options, source_campaigns=source_campaigns, progress=progress)
+
+
+def _fit_bundles(
+    bundles: Sequence[Any],
+    options: FitOptions | None = None,
+    *,
+    source_campaigns: Sequence[Any] = (),
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Return the fitted model (the pipeline itself; see ``fit_bundles``)."""
     opts = options or FitOptions()
     if not bundles:
         raise ValidationError("no campaigns to fit")

@@ -32,8 +32,11 @@ class NeuralModel:
 
     def predict(self, X: pd.DataFrame) -> np.ndarray:
         """Return the network's estimate (eqs. 6.4-6.6) for the rows of ``X``."""
+        from threadpoolctl import threadpool_limits
+
         Z = scale_inputs(X[self.inputs].to_numpy(float), self.lo, self.hi)
-        return self.y_mean + self.y_scale * self.net.predict(Z)
+        with threadpool_limits(limits=1):
+            return self.y_mean + self.y_scale * self.net.predict(Z)
 
     def outside_training_range(self, X: pd.DataFrame) -> np.ndarray:
         """Return a boolean per row: True where any input is beyond its training range."""
@@ -73,7 +76,10 @@ def fit_network(
 
     from sklearn.exceptions import ConvergenceWarning
 
-    with warnings.catch_warnings():
+    from threadpoolctl import threadpool_limits
+
+    # small dense products: one BLAS thread is fastest, and keeps a shared machine responsive
+    with warnings.catch_warnings(), threadpool_limits(limits=1):
         warnings.simplefilter("ignore", ConvergenceWarning)
         net.fit(scale_inputs(A[idx], lo, hi), (y[idx] - y_mean) / y_scale)
     return NeuralModel(list(X.columns), lo, hi, y_mean, y_scale, net)
