@@ -821,10 +821,21 @@ class InstrumentRig:
         self._new_datum: dict[str, Any] | None = None
         self._closers = list(closers or [])
         self._stage: Stage | None = None
+        # Axis positions read while the controller was known to be at rest: every block sent so far
+        # executed, no heat cycle of the stage moving an axis. Nothing can move them until the rig
+        # itself sends motion again, so the machine-state log need not ask for them at every scan.
+        self._rest_positions: dict[str, float] | None = None
+        self._at_rest = False
+
+    def _moving(self) -> None:
+        """Forget the positions at rest: motion (or a program) was just sent."""
+        self._at_rest = False
+        self._rest_positions = None
 
     def apply_stage(self, stage: Stage, t_s: float) -> None:
         """Send the stage's spindle command to the controller."""
         self._stage = stage
+        self._moving()
         if self.link is not None:
             self.link.send_program(stage_program(stage), wait=False)
 
@@ -834,11 +845,18 @@ class InstrumentRig:
         state = {"spindle_rpm": stage.spindle_rpm() if stage else 0.0,
                  "feed_mm_min": stage.feed_mm_min() if stage else 0.0}
         if self.link is not None:
-            state.update({k.lower(): float(v) for k, v in self.link.position().items()})
+            pos = self._rest_positions
+            if pos is None:
+                pos = {k.lower(): float(v) for k, v in self.link.position().items()}
+                axis_heat = stage is not None and any(h.kind == "axis" for h in stage.heat)
+                if self._at_rest and not axis_heat:
+                    self._rest_positions = pos
+            state.update(pos)
         return state
 
     def move_to(self, point: SweepPoint) -> None:
         """Queue the approach moves to the point on the controller."""
+        self._moving()
         if self.link is not None:
             self.link.send_program(approach_program(point), wait=False)
 
@@ -871,6 +889,7 @@ class InstrumentRig:
             raise InstrumentError("no laser interferometer configured for error sweeps")
         if self.link is not None:
             self.link.wait_done()
+            self._at_rest = True  # every block sent has executed
         self._ensure_reference(point)
         self.laser.readings_per_point = point.samples
         sample = self.laser.measure_error(point.axis, point.term, point.position, point.direction)
@@ -971,7 +990,7 @@ def build_sim_rig(
         laser_io = LineChannel(VisaPort.open(visa_address(head), resource_manager=rm), "laser", policy,
                                sleep=_no_wait)
         closers.append(laser_io.close)
-        laser = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20)
+        laser = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20, burst=True)
         link = SerialMachineLink.open(serial_url(ctrl), sleep=_no_wait, max_idle_polls=2)
         closers.append(link.close)
     except Exception:

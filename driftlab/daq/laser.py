@@ -25,7 +25,13 @@ Instrument protocol (ASCII over GPIB, ``\\n`` terminated, every command answered
 ``REF``                zero the count at the present position -> ``OK``
 ``ENV?``               weather station: ``<air degC>,<pressure Pa>,<RH %>``
 ``MEAS?``              ``<fringes>,<signal %>``; ``ERR BEAM`` while the beam is broken
+``MEAS? <n>``          a burst of n readings taken by the head back to back:
+                       ``<fringes>,<signal %>;...`` (n pairs); ``ERR BEAM`` as above
 =====================  =========================================================
+
+With ``burst=True`` the driver reads a point as one burst of two settle readings plus the
+readings to average (``MEAS? 12``) instead of twelve exchanges, and falls back to polling
+with pauses only when that burst shows the axis still moving.
 """
 
 from __future__ import annotations
@@ -154,6 +160,19 @@ def _parse_meas(text: str) -> tuple[float, float] | None:
     return fringes, signal
 
 
+def _parse_burst(text: str) -> list[tuple[float, float]] | None:
+    """Return the (fringes, signal %) pairs of a ``MEAS? n`` reply, None for ``ERR BEAM``."""
+    if text == "ERR BEAM":
+        return None
+    out = []
+    for part in text.split(";"):
+        pair = _parse_meas(part)
+        if pair is None:
+            raise ValueError("beam error inside a burst")
+        out.append(pair)
+    return out
+
+
 def _parse_env(text: str) -> Environment:
     t_s, p_s, h_s = text.split(",")
     env = Environment(float(t_s), float(p_s), float(h_s))
@@ -177,6 +196,7 @@ class LaserInterferometer:
         max_settle_polls: int = 120,
         environment: Environment | None = None,
         sleep: Callable[[float], None] = time.sleep,
+        burst: bool = False,
     ) -> None:
         self._io = channel
         self.optics = optics
@@ -188,6 +208,7 @@ class LaserInterferometer:
         self.max_settle_polls = max_settle_polls
         self.manual_environment = environment
         self.sleep = sleep
+        self.burst = burst
         self.mode: str | None = None
         self.axis: str | None = None
         self.term: str | None = None
@@ -262,6 +283,16 @@ class LaserInterferometer:
             return Reading.missing(FLAG_REFERENCE_LOST)
         n_air = self.environment().refractive_index(self.optics.wavelength_nm)
         tol = self.settle_tolerance_rad if self.mode == "ANG" else self.settle_tolerance_mm
+        if self.burst:
+            n = self.readings_per_point
+            burst = self._io.query(f"MEAS? {2 + n}", self._burst_parser(2 + n))
+            if burst is None or any(signal < self.min_signal_percent for _, signal in burst):
+                return self._lose_reference()
+            first, second = (float(fringes_to_value(self.mode, f, n_air, self.optics)) for f, _ in burst[:2])
+            if abs(second - first) <= tol:
+                counts = [f for f, _ in burst[2:]]
+                return Reading(float(fringes_to_value(self.mode, np.mean(counts), n_air, self.optics)))
+            self.sleep(self.settle_poll_s)  # still moving: poll until it settles, as without bursts
         previous: float | None = None
         for _ in range(self.max_settle_polls):
             fringes = self._fringes()
@@ -281,6 +312,16 @@ class LaserInterferometer:
                 return self._lose_reference()
             counts.append(fringes)
         return Reading(float(fringes_to_value(self.mode, np.mean(counts), n_air, self.optics)))
+
+    @staticmethod
+    def _burst_parser(n: int) -> Callable[[str], list[tuple[float, float]] | None]:
+        def parse(text: str) -> list[tuple[float, float]] | None:
+            out = _parse_burst(text)
+            if out is not None and len(out) != n:
+                raise ValueError(f"expected {n} readings, got {len(out)}")
+            return out
+
+        return parse
 
     def read_displacement(self) -> Reading:
         """Return the displacement (mm) in LIN or STR mode (DisplacementMeter)."""

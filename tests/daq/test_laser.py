@@ -173,3 +173,39 @@ def test_manual_environment_skips_weather_station():
         laser.configure("Z", "dz")
         laser.reference()
         assert laser.read().value == pytest.approx(5.0, abs=1e-8)
+
+
+def _burst(mode, values, signal=90.0):
+    return (";".join(f"{float(value_to_fringes(mode, v, N_AIR)):.5f},{signal:.1f}" for v in values) + "\n").encode()
+
+
+def test_burst_point_exact_bytes_and_mean_of_ten():
+    values = 100.003 + 1e-5 * np.arange(-5, 5)
+    pairs = _setup_pairs("LIN", "X", "dx") + [(b"ENV?\n", ENV)]
+    pairs += [(b"MEAS? 12\n", _burst("LIN", [100.0031, 100.0030, *values]))]  # settled, then ten
+    with expected_protocol(lambda ch: _laser(ch, burst=True), pairs) as laser:
+        laser.configure("X", "dx")
+        laser.reference(0.0)
+        sample = laser.measure_error("X", "dx", 100.0, -1)
+    assert sample.flag is None
+    assert sample.value == pytest.approx(np.mean(values) - 100.0, abs=1e-8)
+
+
+def test_burst_that_shows_motion_falls_back_to_polling_and_a_weak_burst_breaks_the_beam():
+    values = [50.0] * 10
+    pairs = _setup_pairs("LIN", "Y", "dy") + [(b"ENV?\n", ENV)]
+    pairs += [(b"MEAS? 12\n", _burst("LIN", [49.0, 49.5, *values]))]  # still moving
+    pairs += [(b"MEAS?\n", _meas("LIN", 50.0)), (b"MEAS?\n", _meas("LIN", 50.0))]
+    pairs += [(b"MEAS?\n", _meas("LIN", v)) for v in values]
+    sleeps: list[float] = []
+    with expected_protocol(lambda ch: LaserInterferometer(ch, sleep=sleeps.append, burst=True), pairs) as laser:
+        laser.configure("Y", "dy")
+        laser.reference(0.0)
+        assert laser.measure_error("Y", "dy", 50.0, 1).value == pytest.approx(0.0, abs=1e-8)
+    assert sleeps and sleeps[0] == laser.settle_poll_s
+    pairs = _setup_pairs("LIN", "Y", "dy") + [(b"ENV?\n", ENV), (b"MEAS? 12\n", _burst("LIN", [50.0] * 12, 4.0))]
+    with expected_protocol(lambda ch: _laser(ch, burst=True), pairs) as laser:
+        laser.configure("Y", "dy")
+        laser.reference(0.0)
+        sample = laser.measure_error("Y", "dy", 50.0, 1)
+    assert sample.flag == FLAG_BEAM_BREAK and laser.reference_lost

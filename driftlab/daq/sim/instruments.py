@@ -559,6 +559,15 @@ class SimLaser(LineServer):
             return "OK"
         if line == "ENV?":
             return f"{self._air_c(t):.3f},{self.pressure_pa:.1f},{self.rh_percent:.1f}"
+        if word == "MEAS?" and arg:
+            try:
+                n = int(arg)
+            except ValueError:
+                return "ERR PARAM"
+            if not 1 <= n <= 1000:
+                return "ERR PARAM"
+            one = self.handle("MEAS?")  # the head samples back to back: the same instant here
+            return one if one is None or one.startswith("ERR") else ";".join([one] * n)
         if line == "MEAS?":
             if self.beam == "broken":
                 return "ERR BEAM"
