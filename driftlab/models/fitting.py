@@ -26,7 +26,7 @@ from driftlab.models.features import (
     design_matrix,
     fill_gaps,
 )
-from driftlab.models.kinematics import ELEMENTS, JOINT_AXIS, JOINTS, PARAMS, TABLE_A1, allocate, workspace_error
+from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
 from driftlab.models.neural import ExtrapolationResult, extrapolation_errors, fit_network
 from driftlab.models.regression import TermFit, r_squared, rmse, stepwise
 from driftlab.models.registry import ALPHA_C_PER_DEGC, MODEL_FORMAT, ModelDocument, document_json, now_iso, validate_document
