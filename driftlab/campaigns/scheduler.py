@@ -32,6 +32,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from itertools import chain, repeat
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -621,20 +622,38 @@ class StoreSink:
                     rows.append((cid, ch, t, value if isfinite(value) and name not in flags else None))
         return rows
 
-    def _block_frame(self, batch: Batch) -> tuple[list[int], Any] | None:
-        """Return (channel ids, wide frame time_s + one column per stored channel) of the batch's blocks."""
-        import pandas as pd
-
+    def _block_arrays(self, batch: Batch) -> tuple[list[int], list[str], np.ndarray, np.ndarray] | None:
+        """Return (channel ids, names, times (n,), values (n, c)) of the batch's blocks; NaN where open."""
         if not batch.blocks:
             return None
         channels = batch.blocks[0].channels
         if any(b.channels != channels for b in batch.blocks):
             raise ValueError("blocks of one batch must share their channels")
         cols = [i for i, c in enumerate(channels) if c in self.channel_ids]
-        values = np.concatenate([b.values for b in batch.blocks])[:, cols]  # NaN where open: stored as NULL
-        frame = pd.DataFrame(values, columns=[channels[i] for i in cols])
-        frame.insert(0, "time_s", np.concatenate([b.t_s for b in batch.blocks]))
-        return [self.channel_ids[channels[i]] for i in cols], frame
+        values = np.concatenate([b.values for b in batch.blocks])[:, cols]
+        times = np.concatenate([b.t_s for b in batch.blocks])
+        names = [channels[i] for i in cols]
+        return [self.channel_ids[c] for c in names], names, times, values
+
+    def _insert_blocks(self, conn: Any, arrays: tuple[list[int], list[str], np.ndarray, np.ndarray]) -> None:
+        """Insert block readings with the store's bulk path, channel by channel (key order); NaN stored as NULL."""
+        from driftlab.campaigns.ingest import bulk_insert, copy_temperatures_pg
+
+        ids, names, times, values = arrays
+        if conn.dialect.name == "postgresql":
+            import pandas as pd
+
+            frame = pd.DataFrame(values, columns=names)
+            frame.insert(0, "time_s", times)
+            copy_temperatures_pg(conn, self.cid, ids, frame)  # numpy-encoded binary COPY
+            return
+        # executemany over C-level zips: no Python frame per row (sqlite stores a bound NaN as NULL)
+        n, t = len(times), times.tolist()
+        rows = chain.from_iterable(
+            zip(repeat(self.cid, n), repeat(ch, n), t, col) for ch, col in zip(ids, values.T.tolist())
+        )
+        bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
+                    ("int4", "int4", "float8", "float8"), rows)
 
     def _error_rows(self, batch: Batch) -> list[dict[str, Any]]:
         """Return the error rows of the batch; a flagged (missing) term is not stored (it is a fault)."""
@@ -674,10 +693,10 @@ class StoreSink:
 
     def _commit(self, batch: Batch) -> None:
         """Write the batch (see commit)."""
-        from driftlab.campaigns.ingest import bulk_insert, copy_temperatures_pg, temperature_rows
+        from driftlab.campaigns.ingest import bulk_insert
 
         temps = self._temperature_rows(batch)
-        wide = self._block_frame(batch)
+        wide = self._block_arrays(batch)
         errs = self._error_rows(batch)
         conds = [{"campaign_id": self.cid, "time_s": t, **{k: s.get(k) for k in STATE_KEYS}} for t, s in batch.states]
         missing = [
@@ -691,14 +710,7 @@ class StoreSink:
                 bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
                             ("int4", "int4", "float8", "float8"), temps)
             if wide is not None:
-                # the store's bulk path: numpy-encoded binary COPY on PostgreSQL, executemany on SQLite
-                ids, frame = wide
-                if conn.dialect.name == "postgresql":
-                    copy_temperatures_pg(conn, self.cid, ids, frame)
-                else:
-                    bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
-                                ("int4", "int4", "float8", "float8"),
-                                temperature_rows(self.cid, ids, frame, postgres=False))
+                self._insert_blocks(conn, wide)
             if conds:
                 conn.execute(self._t_cond.insert(), conds)
             if errs:
