@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
 import threading
 import time
 from collections import deque
@@ -209,6 +210,7 @@ class Scheduler:
         flush_s: float = 0.05,
         on_commit: Callable[[Batch, RunStats], None] | None = None,
         stop: threading.Event | None = None,
+        pipeline: bool = True,
     ) -> None:
         self.plan = plan
         self.rig = rig
@@ -222,12 +224,44 @@ class Scheduler:
         self.points = plan.sweep_points()
         self.stats = RunStats()
         self._paced = False  # the card's pacer is started at the first block read
+        self.pipeline = pipeline
+        self._queue: queue.Queue[Batch | None] | None = None  # batches waiting for the writer thread
+        self._writer_error: BaseException | None = None
+        self._abandon = False
         self._stage = plan.stage_at(0.0)
 
     def _flush(self, batch: Batch) -> Batch:
-        """Commit `batch` (readings + cursor) and return a fresh one."""
+        """Commit `batch` (readings + cursor), or hand it to the writer thread, and return a fresh one."""
         if batch.empty():
             return batch
+        if self._queue is not None:
+            self._raise_writer_error()
+            self._queue.put(batch)  # blocks while the writer is two batches behind: back-pressure
+            return Batch(cursor=batch.cursor, stage=batch.stage, t_s=batch.t_s)
+        self._store(batch)
+        return Batch(cursor=batch.cursor, stage=batch.stage, t_s=batch.t_s)
+
+    def _raise_writer_error(self) -> None:
+        """Re-raise, in the acquiring thread, the error that stopped the writer thread."""
+        if self._writer_error is not None:
+            raise self._writer_error
+
+    def _writer(self) -> None:
+        """Commit queued batches in order; after a failure commit nothing more (the cursor must not skip it)."""
+        assert self._queue is not None
+        while True:
+            batch = self._queue.get()
+            if batch is None:
+                return
+            if self._writer_error is not None or self._abandon:
+                continue
+            try:
+                self._store(batch)
+            except BaseException as exc:  # noqa: BLE001 - handed to the acquiring thread
+                self._writer_error = exc
+
+    def _store(self, batch: Batch) -> None:
+        """Commit `batch` (with retries on an unreachable store) and account for it."""
         t0 = time.monotonic()
         self._commit_with_retry(batch)
         done = time.monotonic()
@@ -239,7 +273,6 @@ class Scheduler:
         self.stats.faults += len(batch.faults)
         if self.on_commit is not None:
             self.on_commit(batch, self.stats)
-        return Batch(cursor=batch.cursor, stage=batch.stage, t_s=batch.t_s)
 
     def _commit_with_retry(self, batch: Batch) -> None:
         """Commit the batch; a store that is unreachable for a moment is retried, anything else raised.
@@ -275,6 +308,13 @@ class Scheduler:
         sim0 = None
         batch = Batch(cursor=self.cursor, stage=self._stage)
         block = self.block_scans()
+        writer = None
+        if block > 1 and self.pipeline:
+            # acquisition and database writes overlap: blocks are read while the previous batch commits
+            self._queue = queue.Queue(maxsize=2)
+            writer = threading.Thread(target=self._writer, name="scheduler-writer", daemon=True)
+            writer.start()
+        clean = False
         try:
             it = _Lookahead(steps(self.plan, self.cursor, self.points))
             for step in it:
@@ -310,11 +350,20 @@ class Scheduler:
                 batch = self._flush(batch)
                 self.stats.finished = True
             batch = self._flush(batch)
+            clean = True
         finally:
+            if writer is not None and self._queue is not None:
+                self._abandon = not clean  # an error or a second interrupt: commit nothing more
+                self._queue.put(None)
+                writer.join()
+                self._queue = None
             self.stats.wall_s = time.monotonic() - wall0
             self.stats.sim_s = (batch.t_s - sim0) if sim0 is not None else 0.0
             max_lag = getattr(self.clock, "max_lag_s", None)
             self.stats.max_lag_s = max_lag() if max_lag else 0.0
+        if self._writer_error is not None:
+            self.stats.finished = False
+            raise self._writer_error
         self.cursor = batch.cursor
         return self.stats
 
