@@ -40,6 +40,7 @@ from driftlab.models.effects import (
     TermContext,
     build_candidates,
     build_context,
+    columns_like,
     lag_bank_for,
     refine_tau,
     scan_sensor_faults,
@@ -53,10 +54,12 @@ from driftlab.models.standard_model import (
     StandardModel,
     TermData,
     fit_columns,
+    denoised_view,
     fit_standard_model,
     lstsq,
     meta_get,
     prepare_bundle,
+    refit_standard,
     rmse,
     robust_sigma,
 )
@@ -514,12 +517,58 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
     return {"coef_per_degC2": c}, c
 
 
+def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | None, dstate: _State | None,
+                     alpha_each: float, min_gain: float, noise: float, min_explained: float,
+                     min_explained_train: float) -> tuple[bool, np.ndarray | None]:
+    """Return whether ``cand`` also passes the cheap rules against the model on denoised readings.
+
+    A thermocouple's scan noise is an error in the standard model's variables: a smoothed
+    copy of a channel (a short lag, a proxy channel) or a drift can then "improve" a model
+    whose coefficients were fitted to noise. The same candidate, built from the denoised
+    readings, must still be significant (nested F test), lower the held-out RMSE by
+    ``min_gain`` and reach the effect sizes against the model on the denoised readings.
+    Also returns the candidate's columns in that view (to carry the model along).
+    """
+    if dctx is None or dstate is None or cand.kind == "sensor_fault":
+        return True, None
+    cols = columns_like(cand, hint, dctx)
+    if cols is None or not np.all(np.isfinite(cols)):
+        return True, None
+    td = dctx.td
+    tr = td.train
+    X = np.column_stack([dstate.X, cols])
+    fit = fit_columns(X, td.y, tr, list(dstate.names) + [f"c{i}" for i in range(cols.shape[1])])
+    before_h, after_h = dstate.fit.rmse_holdout, fit.rmse_holdout
+    if not np.isfinite(after_h) or after_h > (1.0 - min_gain) * before_h:
+        return False, cols
+    if before_h**2 - after_h**2 < (min_explained * noise) ** 2:
+        return False, cols
+    rss0 = dstate.fit.rmse_train**2 * dstate.fit.n_train
+    rss1 = fit.rmse_train**2 * fit.n_train
+    if np.sqrt(max(dstate.fit.rmse_train**2 - fit.rmse_train**2, 0.0)) < min_explained_train * noise:
+        return False, cols
+    k = cols.shape[1]
+    dof = fit.n_train - X.shape[1]
+    if dof <= 0 or rss1 <= 0:
+        return False, cols
+    from scipy import stats
+
+    p = float(stats.f.sf(((rss0 - rss1) / k) / (rss1 / dof), k, dof))
+    return p < alpha_each, cols
+
+
 def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_gain: float,
                  max_effects: int, first: list[Scored] | None, noise: float, min_explained: float = 1.5,
-                 min_explained_train: float = 0.5, top_k: int = 6) -> tuple[list[Effect], _State]:
-    """Return the effects accepted for one (axis, term) by forward selection, and the final model."""
+                 min_explained_train: float = 0.5, top_k: int = 6, dctx: TermContext | None = None,
+                 dstd: StandardModel | None = None) -> tuple[list[Effect], _State]:
+    """Return the effects accepted for one (axis, term) by forward selection, and the final model.
+
+    ``dctx``/``dstd``: the same term on denoised readings; every candidate is held to it too
+    (``_passes_denoised``) and the denoised model is carried along with the accepted effects.
+    """
     td, prep = ctx.td, ctx.prep
     state = _State(std.X, list(std.names), std.fit, [])
+    dstate = _State(dstd.X, list(dstd.names), dstd.fit, []) if dstd is not None and dctx is not None else None
     hold_start = td.holdout_start_s
     fault_start: float | None = None
     for round_ in range(max_effects):
@@ -570,6 +619,11 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             in_holdout = cand.kind == "sensor_fault" and hint["start_s"] >= hold_start
             if expl_train < min_explained_train * noise and cand.kind != "sensor_fault":
                 continue  # (a fault is a repair, not an extension: its replacement adds no parameter)
+            ok_d, dcols = _passes_denoised(cand, hint, dctx, dstate, alpha_each, min_gain, noise, min_explained,
+                                           min_explained_train)
+            log.debug("   on denoised readings: %s", ok_d)
+            if not ok_d:
+                continue
             if cand.kind == "sensor_fault" and not in_holdout:
                 X_nested = np.column_stack([state.X, cand.cols])
                 p_rob = robust_pvalue(X_nested, td.y, td, list(range(state.X.shape[1], X_nested.shape[1])))
@@ -597,15 +651,21 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                          [names_new[i] for i in new_idx], X_new[:, new_idx], td.t, before, contribution,
                          td.pos, td.direction, td.train,
                          replaces=", ".join(f"dT_{c}" for c, _ in cand.replace) if cand.replace else None)
-            accepted = (eff, X_new, names_new, fit, cand)
+            accepted = (eff, X_new, names_new, fit, cand, dcols)
             break
         if accepted is None:
             break
-        eff, X_new, names_new, fit, cand = accepted
+        eff, X_new, names_new, fit, cand, dcols = accepted
         state = _State(X_new, names_new, fit, state.effects + [eff])
-        ctx.taken.add(cand.key)
-        if cand.kind in ("unmapped_channel", "thermal_lag", "screw_expansion") and cand.channels[0] not in ctx.model_channels:
-            ctx.model_channels.append(cand.channels[0])
+        if dstate is not None and dctx is not None:
+            dstate = _carry_denoised(dstate, dctx, cand, dcols)
+        for c in (ctx, dctx):
+            if c is None:
+                continue
+            c.taken.add(cand.key)
+            if cand.kind in ("unmapped_channel", "thermal_lag", "screw_expansion") \
+                    and cand.channels[0] not in c.model_channels:
+                c.model_channels.append(cand.channels[0])
         if cand.kind == "sensor_fault":
             start = float(eff.params["start_s"])
             fault_start = start if fault_start is None else min(fault_start, start)
@@ -613,8 +673,27 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                 ctx.chan_cols[ch] = rep
                 ctx.lag_cache.pop(ch, None)
                 ctx.taken.add(("sensor_fault", (ch,)))
+                if dctx is not None:
+                    dctx.chan_cols[ch] = rep
+                    dctx.lag_cache.pop(ch, None)
+                    dctx.taken.add(("sensor_fault", (ch,)))
         log.info("accepted %s on %s/%s %s", cand.kind, td.axis, td.term, eff.params)
     return state.effects, state
+
+
+def _carry_denoised(dstate: _State, dctx: TermContext, cand: Candidate, dcols: np.ndarray | None) -> _State:
+    """Return the denoised-view model with an accepted effect in (a fault: its channel replaced)."""
+    td = dctx.td
+    X, names = dstate.X, list(dstate.names)
+    if cand.kind == "sensor_fault":
+        X = X.copy()
+        for ch, rep in cand.replace or []:
+            if f"dT_{ch}" in names:
+                X[:, names.index(f"dT_{ch}")] = rep
+    elif dcols is not None:
+        X = np.column_stack([X, dcols])
+        names += [f"{cand.kind}_{i}" for i in range(dcols.shape[1])]
+    return _State(X, names, fit_columns(X, td.y, td.train, names), dstate.effects)
 
 
 def _tau_grid(prep: PreparedBundle) -> np.ndarray:
@@ -670,11 +749,15 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     usable = [c for j, c in enumerate(prep.channels)
               if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0]
     bank = lag_bank_for(prep, usable, taus)
+    # the same bundle on denoised readings: every candidate is also held to it (errors in variables)
+    prep_d = denoised_view(prep)
+    bank_d = lag_bank_for(prep_d, usable, taus)
     timings["features"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
     contexts: list[TermContext] = []
     firsts: list[list[Scored]] = []
+    dviews: list[tuple[TermContext, StandardModel]] = []
     n_hyp = 0
     for td, std in zip(prep.terms, standards):
         lo, hi = tau_bounds(prep, td)
@@ -686,11 +769,16 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         n_hyp += sum(c.family_size for c in cands)
         firsts.append(screen(std.X, td.y, td.train, cands))
         contexts.append(ctx)
+        td_d = prep_d.terms[len(contexts) - 1]
+        dstd = refit_standard(td_d, prep_d, std.selection)
+        dctx = build_context(prep_d, td_d, std.channels, faults, {c: b[:, sel] for c, b in bank_d.items()},
+                             taus[sel])
+        dviews.append((dctx, dstd))
     n_hyp = max(n_hyp, 1)
     alpha_each = alpha / n_hyp
     terms: list[TermDiagnosis] = []
-    for ctx, std, sim, first, nz in zip(contexts, standards, sims, firsts, noises):
-        effects, state = _search_term(ctx, std, alpha_each, min_gain, max_effects, first, nz)
+    for ctx, std, sim, first, nz, (dctx, dstd) in zip(contexts, standards, sims, firsts, noises, dviews):
+        effects, state = _search_term(ctx, std, alpha_each, min_gain, max_effects, first, nz, dctx=dctx, dstd=dstd)
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
     timings["search"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0

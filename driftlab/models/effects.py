@@ -609,3 +609,42 @@ def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray,
     res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
     best = float(res.x) if rss(float(res.x)) <= rss(np.log(taus[i_best])) else float(np.log(taus[i_best]))
     return float(np.exp(best)), column(best)
+
+
+def lag_columns(ctx: TermContext, channel: str, tau_s: float) -> np.ndarray:
+    """Return the two thermal_lag columns of ``channel`` at ``tau_s``: lag of dT and exp(-(t - t_0)/tau)."""
+    td, prep = ctx.td, ctx.prep
+    j = prep.channel_index(channel)
+    dt = float(prep.grid_t[1] - prep.grid_t[0])
+    g = lag_filter(prep.grid_T[:, j], dt, float(tau_s))
+    at = np.interp(td.t, prep.grid_t, g)
+    return np.column_stack([at - at[0], np.exp(-(td.t - prep.grid_t[0]) / float(tau_s))])
+
+
+def columns_like(cand: Candidate, hint: dict[str, Any], ctx: TermContext) -> np.ndarray | None:
+    """Return the columns ``cand`` (found in another view of the same term) adds in ``ctx``'s view.
+
+    Used to hold a candidate found on the readings to the denoised readings too;
+    ``None`` for a sensor fault (a repair, tested on the readings) or an unusable channel.
+    """
+    td = ctx.td
+    k = cand.kind
+    if k in ("reversal", "drift"):
+        return cand.cols
+    if k == "sensor_fault" or not cand.channels:
+        return None
+    ch = cand.channels[0]
+    col = ctx.chan_cols.get(ch)
+    if col is None:
+        return None
+    in_model = ch in ctx.model_channels
+    if k == "screw_expansion":
+        return np.column_stack([td.pos * col] + ([] if in_model else [col]))
+    if k == "unmapped_channel":
+        return col[:, None]
+    if k == "quadratic":
+        return (col * col)[:, None]
+    if k == "thermal_lag":
+        cols = lag_columns(ctx, ch, float(hint["tau_s"]))
+        return cols if in_model else np.column_stack([cols, col])
+    return None

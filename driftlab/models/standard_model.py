@@ -555,3 +555,80 @@ def fit_standard_model(td: TermData, prep: PreparedBundle) -> StandardModel:
                                sel.source, sel.max_channels, sel.skipped_collinear)
         X, names = standard_design(td, prep, sel.channels)
     return StandardModel(td, sel, X, names, fit_columns(X, td.y, td.train, names))
+
+
+# ---------------------------------------------------------------------------------------------
+# thermocouple noise: a denoised view of the temperatures for the effect search (errors in variables)
+
+#: window lengths (scans, odd) tried by the discrepancy-principle smoother, shortest first
+DENOISE_WINDOWS = (5, 9, 17, 33, 65)
+
+
+def scan_noise(x: np.ndarray) -> float:
+    """Return the noise of one reading of a smooth series: 1.4826 MAD of second differences / sqrt(6).
+
+    Second differences cancel any trend that is locally linear over three scans
+    (temperatures are slow), so only the scan-to-scan noise is left (variance 6 sigma^2).
+    """
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    if x.size < 10:
+        return 0.0
+    return robust_sigma(np.diff(x, 2)) / np.sqrt(6.0)
+
+
+def denoise_series(x: np.ndarray, windows: tuple[int, ...] = DENOISE_WINDOWS) -> tuple[np.ndarray, int]:
+    """Return a zero-phase denoised copy of a temperature series and the window used (1 = untouched).
+
+    Savitzky-Golay (local quadratic, centred: no lag is introduced) with the longest
+    window whose removed part is still no larger than 1.1 x the series' own scan
+    noise (``scan_noise``) - the discrepancy principle: the smoother may take away
+    the noise, and at most about half a noise sigma of the signal. Noise-aware and
+    scale-free: a quiet channel or a fast one is left nearly untouched.
+    """
+    from scipy.signal import savgol_filter
+
+    x = np.asarray(x, dtype=float)
+    if x.size < 20 or not np.all(np.isfinite(x)):
+        return x, 1
+    s = scan_noise(x)
+    if s <= 0.0:
+        return x, 1
+    best, used = x, 1
+    for w in windows:
+        if w >= x.size:
+            break
+        sm = savgol_filter(x, w, 2, mode="interp")
+        if float(np.sqrt(np.mean((x - sm) ** 2))) > 1.1 * s:
+            break
+        best, used = sm, w
+    return best, used
+
+
+def denoised_view(prep: PreparedBundle) -> PreparedBundle:
+    """Return ``prep`` with every channel denoised (``denoise_series``) and re-interpolated to the error times.
+
+    The readings' own noise enters the standard model through its dT regressors
+    (errors in variables): coefficients fitted to noisy readings are attenuated and
+    extrapolate badly, and a smoothed copy of a channel (a short lag, a proxy
+    channel, even a drift) then "improves" the model without any physical effect.
+    The effect search holds every candidate to this view as well (diagnosis.py).
+    """
+    from dataclasses import replace as dc_replace
+
+    G = prep.grid_T.copy()
+    for j in range(G.shape[1]):
+        G[:, j], _ = denoise_series(G[:, j])
+    terms = []
+    for td in prep.terms:
+        T_at = np.empty_like(td.temps)
+        for j in range(G.shape[1]):
+            T_at[:, j] = np.interp(td.t, prep.grid_t, G[:, j])
+        terms.append(dc_replace(td, temps=T_at))
+    return dc_replace(prep, grid_T=G, terms=terms)
+
+
+def refit_standard(td: TermData, prep: PreparedBundle, sel: ChannelSelection) -> StandardModel:
+    """Return the standard model of ``td`` on the given channel selection (no screening)."""
+    X, names = standard_design(td, prep, sel.channels)
+    return StandardModel(td, sel, X, names, fit_columns(X, td.y, td.train, names))
