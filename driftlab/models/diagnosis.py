@@ -350,12 +350,66 @@ class DiagnosisResult:
         return to_html(self)
 
 
+def _curvature_residuals(x: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Return, for consecutive triples of ``(x, r)`` sorted by x, the departure of the middle ``r`` from the
+    line through its neighbours, scaled to the noise of one reading (a trend linear in x cancels)."""
+    if x.size < 3:
+        return np.empty(0)
+    o = np.argsort(x, kind="stable")
+    x, r = x[o], r[o]
+    x0, x1, x2 = x[:-2], x[1:-1], x[2:]
+    span = x2 - x0
+    ok = span > 0
+    w2 = np.where(ok, (x1 - x0) / np.where(ok, span, 1.0), 0.5)
+    w0 = 1.0 - w2
+    d = r[1:-1] - (w0 * r[:-2] + w2 * r[2:])
+    return (d / np.sqrt(1.0 + w0 * w0 + w2 * w2))[ok]
+
+
+def estimate_repeatability(td: TermData, residual: np.ndarray) -> float:
+    """Return the repeatability of one error reading estimated from the data itself (no stated noise).
+
+    Within every sweep and approach direction, the readings along the axis are
+    taken at (nearly) one time, so whatever the temperatures do - and whatever a
+    thermocouple's noise does to the model - is common to them. The standard
+    model's training residual is compared, point by point, with the straight line
+    through its two neighbours along the axis: a reversal (other direction), a
+    screw expansion (linear in position), a drift or a lag (common to the sweep)
+    all cancel, and what is left is the readings' own noise, sqrt(1 + w0^2 + w2^2)
+    sigma for interpolation weights w0, w2. sigma = 1.4826 MAD of the scaled
+    departures. A term measured at fewer than three positions uses the same
+    departures along time within each (position, direction) series instead.
+    """
+    tr = td.train
+    r, pos, d, sw, t = residual[tr], td.pos[tr], td.direction[tr], td.sweep[tr], td.t[tr]
+    parts = []
+    if np.unique(np.round(pos, 9)).size >= 3:
+        key = sw * 4 + (d > 0)
+        for k in np.unique(key):
+            idx = np.flatnonzero(key == k)
+            if idx.size >= 3:
+                parts.append(_curvature_residuals(pos[idx], r[idx]))
+    if sum(p.size for p in parts) < 20:
+        parts = []
+        key = np.round(pos, 9) * 10 + d
+        for k in np.unique(key):
+            idx = np.flatnonzero(key == k)
+            if idx.size >= 3:
+                parts.append(_curvature_residuals(t[idx], r[idx]))
+    dep = np.concatenate(parts) if parts else np.empty(0)
+    if dep.size >= 10:
+        s = robust_sigma(dep)
+        if s > 0:
+            return s
+    return robust_sigma(np.diff(r)) / np.sqrt(2.0)
+
+
 def _noise_level(prep: PreparedBundle, td: TermData, std: StandardModel) -> float:
-    """Return the measurement noise of a term: the bundle's stated repeatability, else a robust estimate."""
+    """Return the measurement noise of a term: the bundle's stated repeatability, else estimated from the data."""
     stated = prep.noise.get("angle_rad" if td.unit == "rad" else "length_mm")
     if stated:
         return float(stated)
-    return robust_sigma(np.diff(std.fit.residual[td.train])) / np.sqrt(2.0)
+    return estimate_repeatability(td, std.fit.residual)
 
 
 def _clusters(td: TermData, rows: np.ndarray, n_blocks: int = 40) -> np.ndarray:

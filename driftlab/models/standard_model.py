@@ -212,15 +212,26 @@ class PreparedBundle:
 
 
 def _sweep_ids(t: np.ndarray) -> np.ndarray:
-    """Return sweep indices: a new sweep starts where the time gap exceeds 3x the median positive gap."""
+    """Return sweep indices of time-sorted rows.
+
+    Rows that share their time stamp (a sweep stamped once, or read at once) form
+    one sweep each distinct time; otherwise a new sweep starts where the time gap
+    exceeds 3x the median positive gap, and a series without such gaps (one
+    reading at a time) has one sweep per reading.
+    """
     if t.size < 2:
         return np.zeros(t.size, dtype=int)
     d = np.diff(t)
     pos = d[d > 0]
     if pos.size == 0:
         return np.zeros(t.size, dtype=int)
+    if np.mean(d == 0) >= 0.5:  # most rows share a time stamp with the row before: a stamp per sweep
+        return np.concatenate([[0], np.cumsum(d > 0)]).astype(int)
     gap = 3.0 * float(np.median(pos))
-    return np.concatenate([[0], np.cumsum(d > gap)]).astype(int)
+    new = d > gap
+    if not new.any():
+        return np.arange(t.size, dtype=int)
+    return np.concatenate([[0], np.cumsum(new)]).astype(int)
 
 
 def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float | None = None) -> PreparedBundle:
