@@ -1,8 +1,9 @@
 FROM python:3.11-slim
 WORKDIR /app
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md alembic.ini ./
 COPY driftlab ./driftlab
 COPY migrations ./migrations
-COPY alembic.ini* ./
-RUN pip install --no-cache-dir .
+COPY examples ./examples
+# Installed in place: the store finds migrations/ and the demo finds examples/ beside the package.
+RUN pip install --no-cache-dir -e .
 ENTRYPOINT []
