@@ -255,8 +255,9 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str
     The virtual sensor is then learnt on the readings before the start and
     replaces the channel after it. Plausible faults last at least 30 min, split
     the relation decisively (single-fit RSS > 10x the split RSS), and depart from
-    the virtual sensor by more than 5 sigma RMS, beyond 3 sigma for 60 % of the
-    time after the start.
+    the virtual sensor by more than 5 sigma RMS, beyond 3 sigma for 60 % of the first
+    2 h after the start (a detached junction agrees with its structure again whenever the
+    structure cools to the air).
     """
     T = prep.grid_T
     t = prep.grid_t
@@ -310,7 +311,10 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str
                 start = k
             rpost = r[start:]
             strength = float(np.sqrt(np.mean(rpost * rpost)) / sigma) if rpost.size else 0.0
-            persistence = float(np.mean(np.abs(rpost) > 3 * sigma)) if rpost.size else 0.0
+            # persistence is judged on the first hours after the start: a detached junction reads the
+            # air, and agrees with its structure again whenever the structure cools to the air (a night)
+            early = rpost[: max(min_len, int(7200.0 / dt))]
+            persistence = float(np.mean(np.abs(early) > 3 * sigma)) if early.size else 0.0
             plausible = rpost.size >= min_len and start >= min_pre and (
                 dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6))
             virtual = T[0, j] + A @ beta
