@@ -13,7 +13,14 @@ a resumed campaign ends with exactly the rows of one that was never interrupted.
 Readings are committed as soon as the scheduler would otherwise wait for the
 next step; when it runs behind (accelerated time) consecutive readings share a
 transaction of at most ``max_batch`` scans or ``flush_s`` seconds of work, which
-keeps transactions small while letting it catch up.
+keeps transactions small while letting it catch up; a sweep is committed as soon
+as its last point is measured.
+
+Block mode (a card with a pacer and a scan buffer, on a fast simulated clock): a run
+of consecutive scans is read as one buffered block (``FETC?``: one exchange and one
+vectorised conversion for up to ``max_batch`` scans), and a writer thread commits each
+batch while the next blocks are read; batches commit in order and, after a failed
+one, nothing more is committed, so the stored cursor never skips a reading.
 
 Interrupts (the lost/duplicated-rows reports of other acquisition tools after a
 Ctrl-C): every write is one transaction (``db.write_transaction``: one BEGIN, a
@@ -342,7 +349,7 @@ class Scheduler:
                 batch.t_s = t
                 if (
                     batch.n_scans() >= self.max_batch
-                    or batch.points
+                    or self._sweep_ended(batch)
                     or time.monotonic() - batch.first_wall >= self.flush_s
                 ):
                     batch = self._flush(batch)
@@ -366,6 +373,14 @@ class Scheduler:
             raise self._writer_error
         self.cursor = batch.cursor
         return self.stats
+
+    def _sweep_ended(self, batch: Batch) -> bool:
+        """Return True when the batch holds the last point of a sweep (a finished sweep is committed at once)."""
+        if not batch.points:
+            return False
+        p = batch.points[-1][0]
+        nxt = p.index + 1
+        return nxt >= len(self.points) or (self.points[nxt].stage, self.points[nxt].sweep) != (p.stage, p.sweep)
 
     def block_scans(self) -> int:
         """Return how many scans to read per block: 1 (scan by scan) unless the card buffers and time runs fast.
