@@ -246,18 +246,22 @@ class VMCase:
 
 
 def vm_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s: float = 120.0,
-            sweep_s: float = 1200.0, points: int = 6, keep: list[tuple[str, str]] | None = None) -> VMCase:
+            sweep_s: float = 1200.0, points: int = 6, keep: list[tuple[str, str]] | None = None,
+            thermocouple_degC: float | None = None, stated_noise: bool = True) -> VMCase:
     """Return a :class:`VMCase`: the virtual machine's campaign with ``planted`` hidden, reduced to ``keep``.
 
     ``keep`` lists the (axis, term)s written to errors.csv (default: the planted ones, or Z/dz).
+    ``thermocouple_degC`` sets the scan noise of the thermocouples (the simulation's default otherwise);
+    ``stated_noise=False`` leaves the optional ``noise`` field out of campaign.json (real data often has none).
     """
     from driftlab.daq.sim.campaign import simulate_campaign
-    from driftlab.daq.sim.scenario import HiddenEffect, Scenario
+    from driftlab.daq.sim.scenario import HiddenEffect, Noise, Scenario
 
     hidden = [HiddenEffect(kind=p.kind, axis=p.axis or None, term=p.term or None, channels=list(p.channels),
                            params=dict(p.params)) for p in planted]
     sc = Scenario(seed=seed, hours=hours, scan_interval_s=scan_s, sweep_interval_s=sweep_s,
-                  points_per_axis=points, hidden=hidden)
+                  points_per_axis=points, hidden=hidden,
+                  noise=Noise() if thermocouple_degC is None else Noise(thermocouple_degC=thermocouple_degC))
     sim = simulate_campaign(sc)
     keep = keep or sorted({(p.axis, p.term) for p in planted if p.axis and p.term}) or [("Z", "dz")]
     err = sim.errors
@@ -265,6 +269,46 @@ def vm_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s: 
     for axis, term in keep:
         mask |= ((err["axis"] == axis) & (err["term"] == term)).to_numpy()
     errors = err[mask].reset_index(drop=True)
-    bundle = Bundle(name=f"vm-{seed}", meta=_as_meta(sim.meta), temperatures=sim.temperatures,
+    meta = dict(sim.meta)
+    if not stated_noise:
+        meta.pop("noise", None)
+    bundle = Bundle(name=f"vm-{seed}", meta=_as_meta(meta), temperatures=sim.temperatures,
                     conditions=sim.conditions, errors=errors)
     return VMCase(bundle, planted, sim.truth, dict(sim.meta["noise"]))
+
+
+def foreign(case: Case, seed: int = 0, nan_fraction: float = 0.01) -> Bundle:
+    """Return ``case``'s bundle as another lab might write it: other channel names, no stages, no
+    conditions, irregular scan times with gaps (30 min and 3 h), scattered missing readings.
+
+    Channel names are arbitrary words (``spindle_front``, ``ch_a`` ...), not T1..Tn; ``model_channels``
+    and ``room_channels`` follow the renaming.
+    """
+    rng = np.random.default_rng(seed)
+    b = case.bundle
+    old = [c for c in b.temperatures.columns if c != "time_s"]
+    words = ["spindle_front", "spindle_rear", "ch_a", "ch_b", "column-top", "column_base", "x.nut", "y_motor",
+             "bed_left", "bed_right", "head", "table", "coolant", "frame_1", "frame_2", "frame_3"]
+    new = {c: (words[i] if i < len(words) else f"extra_{i}") for i, c in enumerate(old)}
+    temps = b.temperatures.rename(columns=new).copy()
+    t = temps["time_s"].to_numpy(dtype=float)
+    dt = float(np.median(np.diff(t)))
+    t = t + rng.uniform(-0.2, 0.2, t.size) * dt  # irregular scan times
+    t[0] = 0.0
+    temps["time_s"] = t
+    span = t[-1]
+    drop = ((t > 0.30 * span) & (t < 0.30 * span + 1800.0)) | ((t > 0.55 * span) & (t < 0.55 * span + 3 * 3600.0))
+    temps = temps[~drop].reset_index(drop=True)
+    chans = [new[c] for c in old]
+    vals = temps[chans].to_numpy(dtype=float, copy=True)
+    vals[rng.uniform(size=vals.shape) < nan_fraction] = np.nan
+    temps[chans] = vals
+    meta = b.meta.model_dump() if hasattr(b.meta, "model_dump") else dict(b.meta)
+    meta["channels"] = {new[c]: {"location": "", "structure": ""} for c in old}
+    meta["room_channels"] = [new[c] for c in (meta.get("room_channels") or [])]
+    if meta.get("model_channels"):
+        meta["model_channels"] = {a: [new[c] for c in v] for a, v in meta["model_channels"].items()}
+    meta.pop("stages", None)
+    meta = {k: v for k, v in meta.items() if v is not None}
+    return Bundle(name=f"{b.name}-foreign", meta=_as_meta(meta), temperatures=temps, conditions=None,
+                  errors=b.errors)

@@ -798,13 +798,13 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     timings["simulation"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
-    faults = scan_sensor_faults(prep)
+    # the same bundle on denoised readings: every candidate is also held to it (errors in variables)
+    prep_d = denoised_view(prep)
+    faults = scan_sensor_faults(prep, smooth_T=prep_d.grid_T)
     taus = _tau_grid(prep)
     usable = [c for j, c in enumerate(prep.channels)
               if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0]
     bank = lag_bank_for(prep, usable, taus)
-    # the same bundle on denoised readings: every candidate is also held to it (errors in variables)
-    prep_d = denoised_view(prep)
     bank_d = lag_bank_for(prep_d, usable, taus)
     timings["features"] = time.perf_counter() - t1
 

@@ -242,7 +242,8 @@ def _neighbours(prep: PreparedBundle, j: int, order: list[int], n_max: int) -> l
     return (same + extra[: max(0, 4 - len(same))])[:n_max]
 
 
-def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str, FaultScan]:
+def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
+                       smooth_T: np.ndarray | None = None) -> dict[str, FaultScan]:
     """Return a :class:`FaultScan` for every channel (two passes: faulty channels leave the neighbourhoods).
 
     The virtual sensor of channel j is a least-squares fit of its dT on the dT of
@@ -257,7 +258,9 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str
     the relation decisively (single-fit RSS > 10x the split RSS), and depart from
     the virtual sensor by more than 5 sigma RMS, beyond 3 sigma for 60 % of the first
     2 h after the start (a detached junction agrees with its structure again whenever the
-    structure cools to the air).
+    structure cools to the air). With ``smooth_T`` (the denoised readings on the same
+    grid) the replacement is the virtual sensor learnt and evaluated on denoised
+    neighbours: a regression on 16 noisy channels would add their scan noise to it.
     """
     T = prep.grid_T
     t = prep.grid_t
@@ -317,7 +320,12 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16) -> dict[str
             persistence = float(np.mean(np.abs(early) > 3 * sigma)) if early.size else 0.0
             plausible = rpost.size >= min_len and start >= min_pre and (
                 dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6))
-            virtual = T[0, j] + A @ beta
+            if smooth_T is not None:
+                Ds = smooth_T - smooth_T[0]
+                A_s = np.column_stack([np.ones(n), Ds[:, nb]])
+                virtual = T[0, j] + A_s @ _trimmed_fit(A_s, Ds[:, j], rows)
+            else:
+                virtual = T[0, j] + A @ beta
             replaced = T[:, j].copy()
             replaced[start:] = virtual[start:]
             mode = "open" if dead is not None else "detached"

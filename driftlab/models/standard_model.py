@@ -126,7 +126,8 @@ def spike_mask(x: np.ndarray, z: float = SPIKE_Z) -> np.ndarray:
 
 
 def _fill_gaps(t: np.ndarray, x: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, int]:
-    """Interpolate gaps up to ``max_gap_s`` linearly, hold the last reading across longer ones."""
+    """Interpolate runs of missing readings up to ``max_gap_s`` long linearly, hold the last reading across
+    longer ones (the run's length counts the channel's missing scans, not time the logger wrote nothing)."""
     ok = np.isfinite(x)
     if ok.all():
         return x, 0
@@ -136,11 +137,18 @@ def _fill_gaps(t: np.ndarray, x: np.ndarray, max_gap_s: float) -> tuple[np.ndarr
     lin = np.interp(t, tv, xv)
     idx = np.searchsorted(tv, t, side="right")
     prev_i = np.clip(idx - 1, 0, tv.size - 1)
-    next_i = np.clip(idx, 0, tv.size - 1)
-    span = tv[next_i] - tv[prev_i]
     inside = (idx > 0) & (idx < tv.size)
-    short = inside & (span <= max_gap_s)
-    held = np.where(idx > 0, xv[prev_i], xv[0])  # leading gap: first valid reading
+    # the length of a run of missing readings is the time from its first to its last missing scan
+    # (one scan interval for a single one): a scan the logger never wrote is no missing reading
+    run = np.concatenate([[0], np.cumsum(np.diff(ok.astype(int)) != 0)])
+    miss = ~ok
+    first_t = pd.Series(np.where(miss, t, np.nan)).groupby(run).transform("min").to_numpy()
+    last_t = pd.Series(np.where(miss, t, np.nan)).groupby(run).transform("max").to_numpy()
+    step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    length = last_t - first_t + step
+    short = inside & (length <= max_gap_s)
+    del prev_i
+    held = np.where(idx > 0, xv[np.clip(idx - 1, 0, tv.size - 1)], xv[0])  # leading gap: first valid reading
     out = np.where(ok, x, np.where(short, lin, held))
     return out, int((~ok & ~short).sum())
 
@@ -298,7 +306,15 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
         fl = OutlierFlags(f"{axis}/{term}", int(bad.sum()), 0, 0, tuple(float(v) for v in t[bad][:5]))
         if bad.any():
             flags.append(fl)
-        keep = ~bad
+        # an error sample inside a gap of the scans (the logger wrote nothing for longer than max_gap_s)
+        # has no temperatures: it is left out and counted
+        nxt = np.clip(np.searchsorted(ts, t, side="left"), 0, ts.size - 1)
+        prv = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)
+        in_gap = (ts[nxt] - ts[prv] > max_gap_s) | (t < ts[0]) | (t > ts[-1])
+        if in_gap.any():
+            flags.append(OutlierFlags(f"{axis}/{term}: {int(in_gap.sum())} samples in scan gaps left out", 0,
+                                      0, 0, tuple(float(v) for v in t[in_gap][:5])))
+        keep = ~bad & ~in_gap
         t, pos, direction, y = t[keep], pos[keep], direction[keep], y[keep]
         if y.size < 12:  # too few to fit a cubic and temperatures and to hold a quarter out
             flags.append(OutlierFlags(f"{axis}/{term}: {y.size} samples, too few to diagnose", 0))
@@ -421,7 +437,9 @@ def select_channels(td: TermData, prep: PreparedBundle, max_channels: int | None
     picked early that later channels explain, the masking the thesis warns
     about in 6.4.2), then go forward again; at most four cycles. Exact
     duplicates (a channel the others explain to R^2 > 1 - 1e-5) are skipped.
-    Ties break on channel order. All subset fits come from one Gram matrix of
+    Ties break on channel order. When both approach directions were measured, the
+    direction is a nuisance column of the selection's base (not of the model), so a
+    reversal error cannot steer the choice. All subset fits come from one Gram matrix of
     the centred, scaled training columns, so the search costs no refits.
     ``max_channels`` defaults to half the usable channels, within 4..12 (the
     thesis kept 18 of 50 for five axes; one axis's errors rarely need more).
@@ -429,6 +447,10 @@ def select_channels(td: TermData, prep: PreparedBundle, max_channels: int | None
     tr = td.train
     y = td.y[tr]
     B, _ = position_basis(td.pos[tr])
+    if np.unique(td.direction[tr]).size > 1:
+        # the approach direction is a nuisance of the selection only (a reversal error must not make a
+        # channel that happens to track the sweep order look better); it never enters the standard model
+        B = np.column_stack([B, td.direction[tr]])
     D = td.temps[tr] - td.temps[0]
     usable = [j for j in range(D.shape[1]) if np.all(np.isfinite(D[:, j])) and np.ptp(D[:, j]) > 0]
     if max_channels is None:

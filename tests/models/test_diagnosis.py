@@ -290,3 +290,69 @@ def test_too_few_samples_give_an_empty_report_not_a_crash():
     assert doc["baseline"] == [] and doc["effects"] == [] and doc["holdout"]["start_s"] is None
     assert "too few to diagnose" in doc["flags"][0]["series"]
     assert res.to_html().startswith("<!doctype html>")
+
+
+# ---------------------------------------------------------------------------------------------
+# other noise levels, bundles without stated noise, other labs' bundles
+
+
+@pytest.mark.parametrize("seed", [3, 6])
+def test_noisy_thermocouples_give_no_false_findings(seed):
+    # 0.05 degC scan noise (a raw thermocouple reading): the standard model's dT regressors carry it
+    # (errors in variables) and, unguarded, a lag, a proxy channel or a drift "improves" the model
+    # of these seeds (thermal_lag X/alpha T15, unmapped_channel X/dz T27, thermal_lag Z/dz T28 ...)
+    case = gen.vm_case([], seed=seed, hours=36, keep=[("X", "alpha"), ("Z", "dz"), ("X", "dz")],
+                       thermocouple_degC=0.05)
+    res = diagnose_bundle(case.bundle)
+    assert [e.to_dict() for e in res.effects] == []
+
+
+def test_without_stated_noise_the_repeatability_is_estimated_and_findings_are_the_same():
+    planted = [Planted("reversal", "Y", "dy", [], {"magnitude_mm": 0.003})]
+    keep = [("Y", "dy"), ("Z", "dz"), ("X", "alpha")]
+    stated = gen.vm_case(planted, seed=7, keep=keep)
+    unstated = gen.vm_case(planted, seed=7, keep=keep, stated_noise=False)
+    assert unstated.bundle.meta.noise is None
+    a, b = diagnose_bundle(stated.bundle), diagnose_bundle(unstated.bundle)
+    assert [(e.kind, e.axis, e.term, e.channels) for e in b.effects] == [("reversal", "Y", "dy", [])]
+    assert [(e.kind, e.axis, e.term, e.channels) for e in a.effects] == [("reversal", "Y", "dy", [])]
+    from driftlab.models.diagnosis import estimate_repeatability
+
+    for t in b.terms:  # the estimate (departures along the axis within a sweep) is the laser's noise
+        noise = stated.noise["angle_rad" if t.td.unit == "rad" else "length_mm"]
+        est = estimate_repeatability(t.td, t.standard.fit.residual)
+        assert 0.8 * noise < est < 1.25 * noise, (t.td.axis, t.td.term, est / noise)
+
+
+def test_another_labs_bundle_runs_cleanly_and_stays_correct():
+    # channels not named T1..Tn, 12 of them, axes X and Z only, three terms, no conditions, no stages,
+    # irregular scan times with a 30 min and a 3 h gap, 1 % missing readings
+    found = []
+    for seed in range(3):
+        case = gen.make_case([], seed=300 + seed, hours=24, n_channels=12, terms={"X": ["dx", "gamma"], "Z": ["dz"]})
+        res = diagnose_bundle(gen.foreign(case, seed=seed))
+        assert len(res.terms) == 3
+        assert any("scan gaps left out" in f.series for f in res.flags)
+        json.dumps(res.to_json_dict(), allow_nan=False)
+        found += [e.to_dict() for e in res.effects]
+    assert found == []
+    # a planted reversal is found, with model_channels and noise stated or not
+    case = gen.make_case([Planted("reversal", "X", "dx", [], {"magnitude_mm": 0.003})], seed=301, hours=24,
+                         n_channels=12, terms={"X": ["dx", "gamma"], "Z": ["dz"]})
+    b = gen.foreign(case, seed=1)
+    bare = type(b)(name=b.name, meta=b.meta.model_copy(update={"model_channels": None, "noise": None}),
+                   temperatures=b.temperatures, conditions=None, errors=b.errors)
+    for bundle in (b, bare):
+        res = diagnose_bundle(bundle)
+        assert [(e.kind, e.axis, e.term) for e in res.effects] == [("reversal", "X", "dx")]
+        assert _close(res.effects[0].params["magnitude_mm"], 0.003, 0.1)
+
+
+def test_a_faulty_model_channel_is_one_sensor_fault_not_many_lags():
+    # examples/scenarios/fault-t34.yaml on two terms: T34 (a model channel) comes loose at 25 h
+    case = gen.vm_case([Planted("sensor_fault", "", "", ["T34"], {"start_s": 90000.0, "mode": "detached"})],
+                       seed=5, hours=48, keep=[("Z", "dz"), ("X", "alpha")])
+    res = diagnose_bundle(case.bundle)
+    assert {(e.kind, tuple(e.channels)) for e in res.effects} == {("sensor_fault", ("T34",))}
+    for e in res.effects:
+        assert abs(e.params["start_s"] - 90000.0) <= 3600.0 and e.params["mode"] == "detached"
