@@ -1239,7 +1239,21 @@ def run_daemon(
             stats = sched.run()
     finally:
         rig.close()
+    if stats.finished:
+        _summarise_finished(engine, handle.campaign_id)
     return DaemonResult(handle.campaign_id, sched.cursor, stats, handle.resumed)
+
+
+def _summarise_finished(engine: Any, campaign_id: int) -> None:
+    """Build the per-minute temperature rollups of a campaign that has just finished.
+
+    Live campaigns are written scan by scan without rollups; once complete, the wide-bucket
+    history queries (API, `driftlab drift`) read the rollups instead of every raw reading.
+    """
+    from driftlab.campaigns import ingest
+
+    with write_transaction(engine) as conn:
+        ingest.refresh_rollups(conn, campaign_id)
 
 
 def _campaign_started_epoch(engine: Any, campaign_id: int) -> float:

@@ -248,6 +248,11 @@ def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> No
     assert len(times) == plan.n_scans == 6
     assert all(b > a for a, b in zip(times, times[1:])) and times[0] >= 0.0  # real, increasing times
     assert errs == 2 and result.stats.faults == 0
+    with engine.connect() as conn:  # a finished live campaign gets its per-minute rollups
+        complete = conn.execute(select(sc.Campaign.rollups_complete)).scalar_one()
+        rolled = conn.execute(select(func.sum(sc.TemperatureRollup.n))).scalar_one()
+        readings = conn.execute(select(func.count()).select_from(sc.TemperatureSample.__table__)).scalar_one()
+    assert complete and rolled == readings
     (st,) = campaign_status(engine)
     assert st["mode"] == "real" and st["status"] == "done"
 
