@@ -25,6 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     _db(fit)
     fit.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the fit report here")
     fit.add_argument("--no-network", action="store_true", help="skip the neural-network comparison (ch. 6.6)")
+    fit.add_argument("--findings", type=Path, default=None, metavar="REPORT.json",
+                     help="a diagnosis report (driftlab diagnose --json): fold its effects into this fit")
+    fit.add_argument("--force-findings", action="store_true",
+                     help="with --findings: force the findings' terms in (default: offer them as candidates)")
     mode = fit.add_mutually_exclusive_group()
     mode.add_argument("--enqueue", action="store_true", help="only queue the fit job and print its id")
     mode.add_argument("--worker", action="store_true", help="run queued fit jobs (a worker process)")
@@ -72,7 +76,15 @@ def _fit(args: argparse.Namespace) -> int:
             return 0
         if not args.campaign:
             raise ValidationError("give --campaign ID (or --worker)")
-        job_id = submit_fit(store, args.campaign, network=not args.no_network)
+        findings = None
+        if args.findings is not None:
+            from driftlab.models.findings import load_findings
+
+            findings = load_findings(args.findings)
+        elif args.force_findings:
+            raise ValidationError("--force-findings needs --findings REPORT.json")
+        job_id = submit_fit(store, args.campaign, network=not args.no_network, findings=findings,
+                            force_findings=args.force_findings)
         if args.enqueue:
             print(json.dumps({"job": job_id, "state": "queued"}))
             return 0

@@ -81,9 +81,13 @@ def fast_predict(doc: Any) -> Predict:
     axis_kinds = {"position", "direction", "pos_dT"}
     terms = []
     has_lag = False
+    if getattr(doc, "substitutions", None):
+        raise ValidationError("substituted channels are evaluated by the registry")
     for t in doc.terms:
         feats = []
         for f in t.features:
+            if f.kind not in ("intercept", "position", "direction", "dT", "lag", "pos_dT", "gradient", "mean"):
+                raise ValidationError(f"feature kind {f.kind} is evaluated by the registry")
             col = AXES.index(f.label) if f.label in AXES else None
             if f.kind in axis_kinds and col is None:
                 raise ValidationError(f"{t.element}.{t.param}: feature {f.name} names no axis")

@@ -12,8 +12,9 @@ from scipy.signal import lfilter
 
 from driftlab.errors import ValidationError
 
-Kind = Literal["intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT"]
-KINDS: tuple[str, ...] = ("intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT")
+Kind = Literal["intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad", "time"]
+KINDS: tuple[str, ...] = ("intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad",
+                          "time")
 #: kinds that read a joint coordinate or approach direction; their ``label`` names the axis
 AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT"})
 #: columns of a (N, 5) joint array
@@ -34,7 +35,7 @@ class Feature:
         """Check the kind and the number of channels it needs."""
         if self.kind not in KINDS:
             raise ValidationError(f"unknown feature kind {self.kind!r}")
-        need = {"dT": 1, "lag": 1, "pos_dT": 1}
+        need = {"dT": 1, "lag": 1, "pos_dT": 1, "quad": 1, "time": 0}
         if self.kind == "gradient" and not (len(self.channels) >= 2 and 1 <= self.power < len(self.channels)):
             raise ValidationError(f"a gradient needs channels on both sides, got {self.channels} split at {self.power}")
         if self.kind in need and len(self.channels) != need[self.kind]:
@@ -48,7 +49,7 @@ class Feature:
     def name(self) -> str:
         """Return the term's display name, e.g. ``pos[X]*dT[T9]`` or ``grad[T34-T32]``."""
         c = self.channels
-        ax = f"[{self.label}]" if self.label and self.kind in AXIS_KINDS else ""
+        ax = f"[{self.label}]" if self.label and (self.kind in AXIS_KINDS or self.kind == "time") else ""
         if self.kind == "intercept":
             return "const"
         if self.kind == "position":
@@ -61,6 +62,10 @@ class Feature:
             return f"lag{int(round(self.tau_s or 0))}[{c[0]}]"
         if self.kind == "pos_dT":
             return f"pos{ax}*dT[{c[0]}]"
+        if self.kind == "quad":
+            return f"dT[{c[0]}]^2"
+        if self.kind == "time":
+            return f"days{ax}"
         if self.kind == "gradient":
             return f"grad[{c[0]}-{c[1]}]" if len(c) == 2 else f"grad[{self.label or '+'.join(c)}]"
         return f"mean[{self.label or '+'.join(c)}]"
@@ -95,10 +100,11 @@ INTERCEPT = Feature("intercept")
 
 @dataclass
 class Inputs:
-    """Temperature-derived inputs at the error samples: dT per channel and first-order-lagged dT."""
+    """Inputs at the error samples: dT per channel, lagged dT and (drift terms) days since the time origin."""
 
     dT: pd.DataFrame
     lagged: dict[tuple[str, float], np.ndarray] = field(default_factory=dict)
+    days: np.ndarray | None = None
 
     def __len__(self) -> int:
         """Return the number of samples."""
@@ -110,6 +116,7 @@ class Inputs:
         return Inputs(
             dT=self.dT.iloc[idx].reset_index(drop=True),
             lagged={k: v[idx] for k, v in self.lagged.items()},
+            days=None if self.days is None else self.days[idx],
         )
 
 
@@ -240,6 +247,12 @@ def evaluate(
         return inputs.lagged[key] if key in inputs.lagged else _dT(inputs, feature.channels[0])
     if k == "pos_dT":
         return _axis_column(feature, position, n) * _dT(inputs, feature.channels[0])  # eq. 3.2
+    if k == "quad":  # a nonlinear thermal response (ch. 6.4.2)
+        return _dT(inputs, feature.channels[0]) ** 2
+    if k == "time":  # a slow change not explained by temperature: wear, material instability (ch. 6.4.3)
+        if inputs.days is None:
+            raise ValidationError(f"term {feature.name} needs the time of each sample")
+        return np.broadcast_to(np.asarray(inputs.days, float), (n,)).copy()
     if k == "gradient":  # eqs. 3.4-3.5: one side of a structure minus the other
         a, b = feature.channels[: feature.power], feature.channels[feature.power :]
         return np.mean([_dT(inputs, c) for c in a], axis=0) - np.mean([_dT(inputs, c) for c in b], axis=0)

@@ -10,6 +10,7 @@ import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any
 
 import numpy as np
@@ -80,6 +81,9 @@ class FitOptions:
     global_lengths: bool = True
     virtual_sensors: bool = True
     seed: int = 0
+    #: diagnosis findings to fold in (``driftlab.models.findings.Findings``); forced in, or candidates
+    findings: Any = None
+    force_findings: bool = False
 
 
 @dataclass
@@ -123,6 +127,8 @@ class FitResult:
             "physical": self.physical.to_dict("records"),
             "timings_s": self.timings_s,
         }
+        if self.document.findings:
+            out["findings"] = list(self.document.findings)
         if self.extrapolation is not None:
             out["extrapolation"] = self.extrapolation.to_dict()
         return _strict_json(out)
@@ -203,13 +209,16 @@ def build_samples(
     reference: Mapping[str, float] | None,
     lags: Sequence[tuple[str, float]],
     holdout_fraction: float,
+    origin: datetime | None = None,
 ) -> Sample:
     """Return the error points of all campaigns with their stage, element, role and inputs.
 
     dT is taken from ``reference`` when given, else from each campaign's own first readings (the
-    laser is zeroed at the start of each campaign: spec section 2, eq. 3.1).
+    laser is zeroed at the start of each campaign: spec section 2, eq. 3.1). ``inputs.days`` is the
+    time since ``origin`` (default: the earliest campaign start) in days, for drift terms.
     """
-    frames, qs, dts, lagged, raws = [], [], [], [], []
+    frames, qs, dts, lagged, raws, days = [], [], [], [], [], []
+    origin = origin or min(b.meta.started_at for b in bundles)
     for ci, b in enumerate(bundles):
         pts = _points(b.errors)
         if pts.empty:
@@ -237,6 +246,7 @@ def build_samples(
             pts["role"] = np.where(t >= cut, "holdout", "train")
         ref = dict(reference) if reference is not None else _reference([b], channels)
         inp = build_inputs(b.temperatures, t, ref, channels, lags)
+        days.append(((b.meta.started_at - origin).total_seconds() + t) / 86400.0)
         raws.append(inp.dT + pd.Series({c: ref[c] for c in channels}))
         frames.append(pts)
         qs.append(_q(pts["axis"].to_numpy(str), pts["position"].to_numpy(float)))
@@ -246,7 +256,7 @@ def build_samples(
         raise ValidationError("the campaigns hold no error measurements")
     frame = pd.concat(frames, ignore_index=True)
     lag_all = {k: np.concatenate([lg[k] for lg in lagged]) for k in lagged[0]}
-    return Sample(frame, np.vstack(qs), Inputs(pd.concat(dts, ignore_index=True), lag_all),
+    return Sample(frame, np.vstack(qs), Inputs(pd.concat(dts, ignore_index=True), lag_all, np.concatenate(days)),
                   pd.concat(raws, ignore_index=True))
 
 
@@ -313,7 +323,7 @@ def _directions(sample: Sample) -> np.ndarray:
 
 def feature_element(f: Feature, structures: Mapping[str, str], default: str) -> str:
     """Return the element a chosen term belongs to: a joint for its axis' shape, else where its thermocouples sit."""
-    if f.kind in SEED_KINDS and f.label in AXIS_JOINT:
+    if (f.kind in SEED_KINDS or f.kind == "time") and f.label in AXIS_JOINT:
         return AXIS_JOINT[f.label]
     if f.channels and all(structures.get(c, "") == "room" for c in f.channels):
         return ROOM_ELEMENT
@@ -353,6 +363,36 @@ class Candidates:
     screws: dict[str, list[str]]
     room: list[str]
     lag_taus_s: tuple[float, ...]
+    #: terms from diagnosis findings (``findings.Extra``): per (axis, term), forced or candidates
+    extras: list[Any] = field(default_factory=list)
+
+    def extra_features(self, axes: Sequence[str], have: Sequence[Feature] = ()) -> list[Feature]:
+        """Return the findings' terms for rows moving ``axes`` that ``have`` does not hold (by name)."""
+        names = {f.name for f in have}
+        out = []
+        for e in self.extras:
+            if e.axis in axes and e.feature.name not in names:
+                names.add(e.feature.name)
+                out.append(e.feature)
+        return out
+
+    def split_pool(self, pool: Sequence[Feature], axes: Sequence[str], param: str,
+                   keep: Callable[[Feature], bool]) -> tuple[list[Feature], list[Feature]]:
+        """Return (forced terms, candidates): ``pool`` plus the findings' terms of (axes, param) that ``keep`` admits."""
+        forced: list[Feature] = []
+        cands = list(pool)
+        names = {f.name for f in cands}
+        for e in self.extras:
+            if e.axis not in axes or e.term != param or not keep(e.feature):
+                continue
+            if e.forced:
+                if e.feature.name not in {f.name for f in forced}:
+                    forced.append(e.feature)
+            elif e.feature.name not in names:
+                cands.append(e.feature)
+                names.add(e.feature.name)
+        fnames = {f.name for f in forced}
+        return forced, [f for f in cands if f.name not in fnames]
 
     def for_axes(self, axes: Sequence[str], allowed: Sequence[str] | None) -> list[Feature]:
         """Return the candidate terms for rows moving ``axes``, limited to ``allowed`` channels."""
@@ -403,7 +443,7 @@ def fit_elements(
         elif model_channels and all(a in model_channels for a in axes):
             allowed = sorted({c for a in axes for c in model_channels[a]})
         feats = cands.for_axes(axes, allowed)
-        X = design_matrix([INTERCEPT, *feats], sub.inputs, sub.q, _directions(sub))
+        X = design_matrix([INTERCEPT, *feats, *cands.extra_features(axes, feats)], sub.inputs, sub.q, _directions(sub))
         E = mask = None
         for k, param in enumerate(PARAMS):
             if k in (0, 3):
@@ -423,9 +463,13 @@ def fit_elements(
             # a known relationship is not learnt again: refitting it on the residual would only
             # fit the sensor noise it was evaluated with (errors in variables)
             used = {f for (e, pp), m in models.items() if pp == param for f in m.features}
-            pool = [f for f in feats if f not in used and feature_element(f, cands.structures, element) not in solved]
+
+            def admit(f: Feature) -> bool:
+                return f not in used and feature_element(f, cands.structures, element) not in solved
+
+            forced, pool = cands.split_pool([f for f in feats if admit(f)], axes, param, admit)
             res = stepwise(
-                X[m_train].reset_index(drop=True), y[m_train], pool, forced=[INTERCEPT],
+                X[m_train].reset_index(drop=True), y[m_train], pool, forced=[INTERCEPT, *forced],
                 p_enter=options.p_enter, p_remove=options.p_remove, min_gain=options.min_gain,
                 max_terms=options.max_terms, vif_max=options.vif_max, tiered=options.tiered,
             )
@@ -486,14 +530,16 @@ def _global_lengths(
             return axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
 
         feats = [f for f in feats if honoured(f)]
-    X = design_matrix([INTERCEPT, *feats], sample.inputs, sample.q, _directions(sample))
+    X = design_matrix([INTERCEPT, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q,
+                      _directions(sample))
     chosen = 0
     for k, param in ((3, "dx"), (4, "dy"), (5, "dz")):
         m = train & mask[:, k]
         if m.sum() < 12:
             continue
+        forced, pool = cands.split_pool(feats, axes, param, lambda f: True)
         res = stepwise(
-            X[m].reset_index(drop=True), E[m, k], feats, forced=[INTERCEPT], p_enter=options.p_enter,
+            X[m].reset_index(drop=True), E[m, k], pool, forced=[INTERCEPT, *forced], p_enter=options.p_enter,
             p_remove=options.p_remove, min_gain=options.min_gain / 4, max_terms=2 * options.max_terms,
             vif_max=options.vif_max, tiered=options.tiered,
         )
@@ -791,6 +837,14 @@ def _fit_bundles(
     if len(machines) != 1:
         raise ValidationError(f"campaigns of different machines: {', '.join(sorted(machines))}")
     machine = machines.pop()
+    plan = None
+    if opts.findings is not None and opts.findings.effects:
+        from driftlab.models.findings import plan_findings
+
+        # faulty channels are replaced by their virtual-sensor estimates before anything reads them
+        plan = plan_findings(opts.findings, bundles, force=opts.force_findings)
+        bundles = plan.bundles
+    origin = min(b.meta.started_at for b in bundles)
     timings: dict[str, float] = {}
     tick = time.perf_counter()
 
@@ -835,13 +889,16 @@ def _fit_bundles(
             members.setdefault(st, []).append(c)
     members = {st: cs for st, cs in members.items() if len(cs) >= 2 and any(c in kept for c in cs)}
     screws = {ax: [c for c in kept if structures.get(c, "") in SCREW_STRUCTURES.get(AXIS_JOINT[ax], ())] for ax in AXES}
-    cands = Candidates(list(kept), structures, locations, members, screws, list(room), tuple(opts.lag_taus_s))
+    cands = Candidates(list(kept), structures, locations, members, screws, list(room), tuple(opts.lag_taus_s),
+                       list(plan.extras) if plan else [])
     chosen = [c for cs in model_channels.values() for c in cs if c in common]
-    channels = list(dict.fromkeys([*kept, *chosen, *(c for cs in members.values() for c in cs)]))
+    extra_chans = list(plan.channels) if plan else []
+    channels = list(dict.fromkeys([*kept, *chosen, *(c for cs in members.values() for c in cs), *extra_chans]))
     reference = _reference(bundles, channels)
     lag_chans = [c for c in dict.fromkeys([*kept, *chosen]) if c not in room]
     lags = [(c, t) for t in opts.lag_taus_s for c in lag_chans]
-    sample = build_samples(train_bundles, channels, None, lags, opts.holdout_fraction)
+    lags += [lag for lag in (plan.lags if plan else []) if lag not in lags]
+    sample = build_samples(train_bundles, channels, None, lags, opts.holdout_fraction, origin)
     lap("samples")
 
     # 3-4. allocation through the chain and per-link stepwise models
@@ -872,7 +929,7 @@ def _fit_bundles(
     if opts.network:
         extrapolation, net_summary = _network_comparison(
             sample, W_hat, models, bundles[ext_i] if ext_i is not None else None, channels, reference, lags, dims, opts,
-            _room_shift(bundles, ext_i, room), kept,
+            _room_shift(bundles, ext_i, room), kept, origin,
         )
         lap("network")
 
@@ -905,7 +962,16 @@ def _fit_bundles(
             "steps": [{"stage_element": f.element, **st.to_dict()} for f in m.fits for st in f.result.steps],
         })
     used = sorted({c for t in terms for f in t["features"] for c in f.get("channels", [])})
-    inputs = {c: {"reference": reference[c], "min": float(lo[c]), "max": float(hi[c])} for c in channels if c in used or c in kept}
+    substituted = {c for sub in (plan.substitutions if plan else []) for c in (sub.channel, *sub.neighbours)}
+    inputs = {c: {"reference": reference[c], "min": float(lo[c]), "max": float(hi[c])} for c in channels
+              if c in used or c in kept or c in substituted}
+    findings: list[dict[str, Any]] = []
+    if plan is not None:
+        entered: dict[str, list[str]] = {}
+        for (element, param), m in models.items():
+            for f in m.features:
+                entered.setdefault(f.name, []).append(f"{element}.{param}")
+        findings = plan.records(entered)
     doc = {
         "format": MODEL_FORMAT,
         "machine": machine,
@@ -922,6 +988,9 @@ def _fit_bundles(
         "virtual_sensors": vs,
         "extrapolation": None if extrapolation is None else {**extrapolation.to_dict(), **(net_summary or {})},
         "allocation": alloc + ([{"joint_adjustment": adjustment}] if adjustment else []),
+        "time_origin": origin.isoformat(),
+        "substitutions": [sub.to_dict() for sub in (plan.substitutions if plan else [])],
+        "findings": findings,
     }
     document = validate_document(_strict_json(doc))
     lap("document")
@@ -945,6 +1014,7 @@ def _network_comparison(
     opts: FitOptions,
     shift_degC: float = float("nan"),
     net_channels: Sequence[str] | None = None,
+    origin: datetime | None = None,
 ) -> tuple[ExtrapolationResult | None, dict[str, Any]]:
     """Return the ch. 6.6 comparison on the largest position error: in range, and beyond it when data allow."""
     W = sample.frame[list(PARAMS)].to_numpy(float)
@@ -983,7 +1053,7 @@ def _network_comparison(
     summary["regression_holdout_mm"] = rmse(W[ho, k] - W_hat[ho, k])
     if ext_bundle is None:
         return None, summary
-    ext = build_samples([ext_bundle], channels, None, lags, 0.0)
+    ext = build_samples([ext_bundle], channels, None, lags, 0.0, origin)
     We = ext.frame[list(PARAMS)].to_numpy(float)
     me = (ext.frame["axis"] == ax).to_numpy() & np.isfinite(We[:, k])
     if me.sum() < 5:
@@ -1026,14 +1096,21 @@ def fit_campaigns(
     return result, doc
 
 
-def submit_fit(store: Any, campaign_ids: Sequence[int], network: bool = True) -> int:
-    """Queue a fit of these campaigns in the store's jobs table; return the job id."""
+def submit_fit(store: Any, campaign_ids: Sequence[int], network: bool = True, findings: Any = None,
+               force_findings: bool = False) -> int:
+    """Queue a fit of these campaigns in the store's jobs table; return the job id.
+
+    ``findings`` (``findings.Findings``) are kept in the job's parameters and folded in by the worker.
+    """
     ids = [int(c) for c in campaign_ids]
     if not ids:
         raise ValidationError("give at least one campaign")
     machines = {store.load_campaign(c).meta.machine.id for c in ids[:1]}
-    return int(store.submit_job(FIT_JOB, {"campaigns": ids, "network": bool(network)}, machine_id=machines.pop(),
-                                campaign_id=ids[0]))
+    params: dict[str, Any] = {"campaigns": ids, "network": bool(network)}
+    if findings is not None:
+        params["findings"] = findings.to_dict()
+        params["force_findings"] = bool(force_findings)
+    return int(store.submit_job(FIT_JOB, params, machine_id=machines.pop(), campaign_id=ids[0]))
 
 
 def run_fit_job(store: Any, job: Any, worker: str, on_stage: Callable[[str], None] | None = None) -> dict[str, Any]:
@@ -1045,6 +1122,11 @@ def run_fit_job(store: Any, job: Any, worker: str, on_stage: Callable[[str], Non
 
     try:
         opts = FitOptions(network=bool(job.params.get("network", True)))
+        if job.params.get("findings"):
+            from driftlab.models.findings import parse_findings
+
+            opts.findings = parse_findings(job.params["findings"], f"fit job {job.id} findings")
+            opts.force_findings = bool(job.params.get("force_findings", False))
         result, doc = fit_campaigns(store, job.params.get("campaigns", []), opts, progress=beat)
     except Exception as exc:  # the job records any failure; user errors keep their one-line text
         store.fail_job(job.id, worker, f"{type(exc).__name__}: {exc}")

@@ -48,6 +48,29 @@ class FeatureDoc(_Doc):
         return Feature.from_dict(self.model_dump())
 
 
+class SubstitutionDoc(_Doc):
+    """A faulty channel replaced from ``since`` by a linear estimate from its neighbours (diagnosis sensor_fault)."""
+
+    channel: str
+    neighbours: list[str]
+    coef: list[float]  # intercept first, then one per neighbour
+    since: datetime
+    start_s: float | None = None
+    mode: str = ""
+
+    @model_validator(mode="after")
+    def _shape(self) -> "SubstitutionDoc":
+        """Require one coefficient per neighbour plus the intercept, and an aware time."""
+        if len(self.coef) != len(self.neighbours) + 1:
+            raise ValueError(f"substitution of {self.channel}: {len(self.neighbours)} neighbours need "
+                             f"{len(self.neighbours) + 1} coefficients")
+        if self.channel in self.neighbours:
+            raise ValueError(f"substitution of {self.channel} reads itself")
+        if self.since.tzinfo is None:
+            raise ValueError(f"substitution of {self.channel}: since needs a time zone")
+        return self
+
+
 class TermStatistics(_Doc):
     """The statistics of one term model (tables 6.1/6.2): training and held-out figures."""
 
@@ -119,6 +142,12 @@ class ModelDocument(_Doc):
     virtual_sensors: list[dict[str, Any]] = Field(default_factory=list)
     extrapolation: dict[str, Any] | None = None
     allocation: list[dict[str, Any]] = Field(default_factory=list)
+    #: days of drift terms (``days[X]``) count from here (the first training campaign's start)
+    time_origin: datetime | None = None
+    #: faulty channels replaced by their virtual-sensor estimates (applied before dT)
+    substitutions: list[SubstitutionDoc] = Field(default_factory=list)
+    #: the diagnosis findings folded into this model and what became of each
+    findings: list[dict[str, Any]] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _consistent(self) -> "ModelDocument":
@@ -133,6 +162,17 @@ class ModelDocument(_Doc):
                 for c in f.channels:
                     if c not in self.inputs:
                         raise ValueError(f"{t.element}.{t.param} reads {c}, which is not among the inputs")
+                if f.kind == "time" and self.time_origin is None:
+                    raise ValueError(f"{t.element}.{t.param}: drift term {f.name} needs time_origin")
+        if self.time_origin is not None and self.time_origin.tzinfo is None:
+            raise ValueError("time_origin needs a time zone")
+        subs = [s.channel for s in self.substitutions]
+        for s in self.substitutions:
+            for c in (s.channel, *s.neighbours):
+                if c not in self.inputs:
+                    raise ValueError(f"substitution of {s.channel} reads {c}, which is not among the inputs")
+            if set(s.neighbours) & set(subs):
+                raise ValueError(f"substitution of {s.channel} reads another substituted channel")
         for k, v in self.dims.items():
             if len(v) != 3:
                 raise ValueError(f"dims[{k}] must be (a, b, c)")
@@ -174,35 +214,87 @@ def now_iso() -> str:
 # ----------------------------------------------------------------------------- prediction
 
 
-def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame, n: int) -> Inputs:
-    """Return the dT inputs (and lags over a frame's history) for ``n`` poses."""
+def _times(at: Any, n: int) -> np.ndarray | None:
+    """Return POSIX seconds (n,) from a datetime, datetimes or POSIX seconds (None stays None)."""
+    if at is None:
+        return None
+
+    def stamp(x: Any) -> float:
+        if isinstance(x, datetime):
+            return (x if x.tzinfo else x.replace(tzinfo=timezone.utc)).timestamp()
+        if isinstance(x, str):
+            return stamp(datetime.fromisoformat(x.replace("Z", "+00:00")))
+        return float(x)
+
+    if isinstance(at, (datetime, str, int, float, np.floating, np.integer)):
+        v = np.array([stamp(at)])
+    else:
+        v = np.array([stamp(x) for x in (at.tolist() if isinstance(at, (np.ndarray, pd.Series, pd.Index)) else at)], float)
+    if v.size == 1:
+        return np.repeat(v, n)
+    if v.size != n:
+        raise ValidationError(f"{v.size} times for {n} poses (give 1 or {n})")
+    return v
+
+
+def _substitute(doc: ModelDocument, readings: dict[str, np.ndarray], times: np.ndarray | None) -> None:
+    """Replace each substituted channel (in place) by its neighbours' estimate where the time is past ``since``.
+
+    ``readings`` holds equal-length arrays and ``times`` (POSIX s) one per row. Without times the
+    substitution applies everywhere: the channel was faulty when the model was fitted and is taken
+    to be so still.
+    """
+    for s in doc.substitutions:
+        est = float(s.coef[0]) + sum(float(k) * readings[c] for c, k in zip(s.neighbours, s.coef[1:]))
+        if times is None or s.channel not in readings:
+            readings[s.channel] = np.asarray(est, float)
+        else:
+            readings[s.channel] = np.where(times >= s.since.timestamp(), est, readings[s.channel])
+
+
+def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame, n: int, at: Any = None) -> Inputs:
+    """Return the dT inputs (and lags over a frame's history, days for drift terms) for ``n`` poses."""
     ref = {c: r.reference for c, r in doc.inputs.items()}
     lags = sorted({lag for t in doc.terms for lag in required_lags(f.feature() for f in t.features)})
+    times = _times(at, n)
+    subs = {s.channel for s in doc.substitutions}
+    # a substituted channel may be absent (an open thermocouple) where its estimate replaces it
+    optional = subs if times is None or all(np.all(times >= s.since.timestamp()) for s in doc.substitutions) else set()
     if isinstance(temperatures, pd.DataFrame):
-        missing = [c for c in ref if c not in temperatures.columns]
+        missing = [c for c in ref if c not in temperatures.columns and c not in optional]
         if missing:
             raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
         frame = temperatures
         if len(frame) not in (1, n):
             raise ValidationError(f"{len(frame)} temperature rows for {n} poses (give 1 or {n})")
-        dT = pd.DataFrame({c: frame[c].to_numpy(float) - ref[c] for c in ref})
+        readings = {c: frame[c].to_numpy(float) for c in ref if c in frame.columns}
+        if subs:
+            _substitute(doc, readings, times if len(frame) == n else (None if times is None else times[:1]))
+        dT = pd.DataFrame({c: readings[c] - ref[c] for c in ref})
         lagged: dict[tuple[str, float], np.ndarray] = {}
         if lags and "time_s" in frame.columns and len(frame) > 1:
             t = frame["time_s"].to_numpy(float)
             for c, tau in lags:
                 lagged[(c, tau)] = first_order_lag(dT[c].to_numpy(), t, tau)
     else:
-        missing = [c for c in ref if c not in temperatures]
+        missing = [c for c in ref if c not in temperatures and c not in optional]
         if missing:
             raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
-        dT = pd.DataFrame({c: [float(temperatures[c]) - ref[c]] for c in ref})
+        readings = {c: np.array([float(temperatures[c])]) for c in ref if c in temperatures}
+        if subs:
+            _substitute(doc, readings, None if times is None else times[:1])
+        dT = pd.DataFrame({c: readings[c] - ref[c] for c in ref})
         lagged = {}
     if not np.all(np.isfinite(dT.to_numpy(float))):
         raise ValidationError("temperatures contain missing readings: substitute virtual-sensor estimates first")
     if len(dT) == 1 and n > 1:
         dT = pd.DataFrame({c: np.repeat(dT[c].to_numpy(), n) for c in dT.columns})
         lagged = {k: np.repeat(v, n) for k, v in lagged.items()}
-    return Inputs(dT=dT, lagged=lagged)
+    days = None
+    if doc.time_origin is not None and any(f.kind == "time" for t in doc.terms for f in t.features):
+        t_s = times if times is not None else np.full(n, datetime.now(timezone.utc).timestamp())
+        days = (t_s - doc.time_origin.timestamp()) / 86400.0
+    return Inputs(dT=dT, lagged=lagged, days=days)
 
 
 def _directions(direction: np.ndarray | None, n: int) -> np.ndarray:
@@ -222,19 +314,25 @@ def predict_element_errors(
     temperatures: Mapping[str, float] | pd.DataFrame,
     q: np.ndarray,
     direction: np.ndarray | None = None,
+    *,
+    at: Any = None,
 ) -> dict[str, np.ndarray]:
     """Return the (N, 6) errors of every modelled link and joint at poses ``q`` (N, 5) and these temperatures.
 
     ``temperatures`` is one reading per input channel (a mapping, or a one-row frame) or a frame of
     N rows aligned with ``q`` (with ``time_s`` for lagged terms; without it lags are taken settled).
     ``direction`` is +1/-1 per pose (N,) or per pose and axis (N, 5); None means the mean of both.
+    ``at`` is the wall-clock time of the readings (a datetime, ISO string or POSIX seconds; one, or
+    one per pose): drift terms (``days[X]``) count days from the document's ``time_origin`` to it
+    (default: now), and substituted channels (``substitutions``) are replaced from their ``since`` on
+    (default: everywhere).
     """
     doc = validate_document(document)
     q = np.atleast_2d(np.asarray(q, float))
     if q.ndim != 2 or q.shape[1] != 5:
         raise ValidationError(f"q must be (N, 5), got {q.shape}")
     n = q.shape[0]
-    inp = _inputs(doc, temperatures, n)
+    inp = _inputs(doc, temperatures, n, at)
     d = _directions(direction, n)
     out: dict[str, np.ndarray] = {}
     for t in doc.terms:
@@ -257,10 +355,12 @@ def predict_workspace_errors(
     temperatures: Mapping[str, float] | pd.DataFrame,
     q: np.ndarray,
     direction: np.ndarray | None = None,
+    *,
+    at: Any = None,
 ) -> np.ndarray:
     """Return the (N, 6) work-space errors the model predicts at poses ``q`` (through the HTM chain, eq. 4.12)."""
     doc = validate_document(document)
-    errors: ElementErrors = predict_element_errors(doc, temperatures, q, direction)
+    errors: ElementErrors = predict_element_errors(doc, temperatures, q, direction, at=at)
     return workspace_error(np.atleast_2d(np.asarray(q, float)), errors, document_dims(doc))
 
 

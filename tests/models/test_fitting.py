@@ -361,3 +361,124 @@ def test_two_workers_never_take_the_same_job(db_url):
     assert [v.version for v in store.model_versions("vmc-test")] == [1, 2, 3]
     assert store.current_model("vmc-test").version == 3
     store.close()
+
+
+# ----------------------------------------------------------------------------- diagnosis findings folded in
+
+
+@pytest.fixture(scope="module")
+def planted_vm(tmp_path_factory):
+    """A 36 h virtual-machine campaign whose Z/dz follows T21 (outside model_channels), in a store, diagnosed."""
+    from driftlab.campaigns.store import connect
+    from driftlab.daq.sim.scenario import HiddenEffect, Scenario
+    from driftlab.models.diagnosis import diagnose_bundle
+
+    sc = Scenario(name="vm-t21", hours=36, seed=7, scan_interval_s=120, sweep_interval_s=1200, points_per_axis=6,
+                  hidden=[HiddenEffect(kind="unmapped_channel", axis="Z", term="dz", channels=["T21"],
+                                       params={"coef_per_degC": 0.005})])
+    bundle, _ = _vm_bundle(sc)
+    bundle = Bundle(bundle.name, bundle.meta, bundle.temperatures, bundle.conditions,
+                    bundle.errors[(bundle.errors.axis == "Z") & (bundle.errors.term == "dz")].reset_index(drop=True))
+    tmp = tmp_path_factory.mktemp("findings")
+    url = f"sqlite:///{tmp / 'f.sqlite'}"
+    with connect(url) as store:
+        cid = store.import_bundle(bundle)
+        report = diagnose_bundle(store.load_campaign(cid)).to_json_dict()
+    path = tmp / "report.json"
+    path.write_text(json.dumps(report))
+    return url, cid, path, report
+
+
+def test_findings_fold_into_the_next_fit_and_lower_the_holdout_rmse(planted_vm, tmp_path, capsys):
+    from driftlab.campaigns.store import connect
+    from driftlab.cli import main
+    from driftlab.models.registry import get_model
+
+    url, cid, path, report = planted_vm
+    assert [(e["kind"], e["channels"]) for e in report["effects"]] == [("unmapped_channel", ["T21"])]
+
+    def holdout(rep_path):
+        rep = json.loads(rep_path.read_text())
+        return next(r["rmse_holdout"] for r in rep["terms"] if (r["axis"], r["term"]) == ("Z", "dz")), rep
+
+    assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--json", str(tmp_path / "a.json")]) == 0
+    assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--json", str(tmp_path / "b.json"),
+                 "--findings", str(path)]) == 0
+    before, _ = holdout(tmp_path / "a.json")
+    after, rep = holdout(tmp_path / "b.json")
+    assert after < 0.8 * before, (before, after)
+    assert rep["findings"][0]["entered"]["dT[T21]"]  # the term entered a link model
+    with connect(url) as store:
+        doc = get_model(store, "vmc-5ax-01", "current")
+        job = store.get_job(2)
+    assert job.params["findings"]["effects"][0]["kind"] == "unmapped_channel"
+    assert "T21" in doc.inputs and doc.findings[0]["kind"] == "unmapped_channel"
+    assert any(f.name == "dT[T21]" for t in doc.terms for f in t.features)
+    # a bad report is a one-line error and no job
+    bad = tmp_path / "bad.json"
+    for text in ('{"format": "driftlab-diagnosis/9", "effects": []}',
+                 '{"format": "driftlab-diagnosis/1", "effects": [{"kind": "gremlin", "axis": "Z", "term": "dz"}]}',
+                 '{"format": "driftlab-diagnosis/1", "effects": [{"kind": "thermal_lag", "axis": "Z", "term": "dz", '
+                 '"channels": ["T34"], "params": {}}]}', "not json"):
+        bad.write_text(text)
+        capsys.readouterr()
+        assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--findings", str(bad)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("driftlab: error: findings"), err
+
+
+def test_forced_lag_finding_and_its_prediction_from_the_document():
+    """A forced thermal_lag term; the document alone predicts what the fit does (lags over the history)."""
+    from driftlab.models.findings import Findings, Finding
+
+    b = synthetic_bundle(0)
+    f = Findings(b.name, (Finding("thermal_lag", "Z", "dz", ("T24",), {"tau_s": 5000.0}),
+                          Finding("drift", "X", "dy", (), {"rate_per_day": 0.0})))
+    res = fit_bundles([b], FitOptions(network=False, virtual_sensors=False, findings=f, force_findings=True))
+    doc = res.document
+    names = {f.name for t in doc.terms for f in t.features}
+    assert {"lag5000[T24]", "days[X]"} <= names
+    assert doc.findings[0]["forced"] and doc.findings[0]["entered"]["lag5000[T24]"]
+    # predict along the campaign's own history: the lag is run over the frame's time_s
+    temps = b.temperatures  # the whole history: the lag starts settled at its first row, as in the fit
+    q = np.zeros((len(temps), 5))
+    q[:, 2] = 200.0
+    at = [b.meta.started_at.timestamp() + t for t in temps["time_s"]]
+    W = predict_workspace_errors(doc, temps, q, at=at)
+    from driftlab.models.features import build_inputs
+    from driftlab.models.fitting import predict_models, Sample
+    from driftlab.models.kinematics import workspace_error
+
+    ref = {c: r.reference for c, r in doc.inputs.items()}
+    lags = sorted({(f.channels[0], f.tau_s) for t in doc.terms for f in t.features if f.kind == "lag"})
+    inp = build_inputs(b.temperatures, temps["time_s"].to_numpy(), ref, list(ref), lags)
+    inp.days = temps["time_s"].to_numpy() / 86400
+    frame = pd.DataFrame({"axis": ["Z"] * len(temps), "direction": [0.0] * len(temps)})
+    want = workspace_error(q, predict_models(res.models, Sample(frame, q, inp)), res.document.dims)
+    np.testing.assert_allclose(W, want, rtol=1e-6, atol=1e-9)
+
+
+def test_document_substitution_and_drift_are_evaluated_from_the_document():
+    from datetime import datetime, timezone
+
+    from driftlab.models.registry import predict_element_errors
+
+    doc = {
+        "machine": "m", "time_origin": "2026-03-02T00:00:00Z",
+        "inputs": {c: {"reference": 20.0, "min": 19.0, "max": 30.0} for c in ("T1", "T2", "T3")},
+        "substitutions": [{"channel": "T1", "neighbours": ["T2", "T3"], "coef": [1.0, 0.5, 0.5],
+                           "since": "2026-03-03T00:00:00Z"}],
+        "terms": [{"element": "phi_x", "param": "dx", "features": [
+            {"kind": "dT", "name": "dT[T1]", "channels": ["T1"]}, {"kind": "time", "name": "days[X]", "label": "X"},
+            {"kind": "quad", "name": "dT[T2]^2", "channels": ["T2"]}],
+            "coefficients": [0.001, 0.01, 1e-4], "statistics": {"rmse_train": 0.0}}],
+    }
+    q = np.zeros((1, 5))
+    temps = {"T1": 25.0, "T2": 22.0, "T3": 24.0}
+    before = predict_element_errors(doc, temps, q, at=datetime(2026, 3, 2, 12, tzinfo=timezone.utc))["phi_x"][0, 3]
+    assert before == pytest.approx(0.001 * 5 + 0.01 * 0.5 + 1e-4 * 4)
+    after = predict_element_errors(doc, {"T2": 22.0, "T3": 24.0}, q, at="2026-03-04T00:00:00Z")["phi_x"][0, 3]
+    assert after == pytest.approx(0.001 * (1 + 11 + 12 - 20) + 0.01 * 2 + 1e-4 * 4)
+    from driftlab.compensator.compensate import ErrorModel
+
+    ErrorModel.from_document(doc)  # the compensator falls back to the registry for these terms
