@@ -805,7 +805,6 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     usable = [c for j, c in enumerate(prep.channels)
               if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0]
     bank = lag_bank_for(prep, usable, taus)
-    bank_d = lag_bank_for(prep_d, usable, taus)
     timings["features"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
@@ -825,8 +824,8 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         contexts.append(ctx)
         td_d = prep_d.terms[len(contexts) - 1]
         dstd = refit_standard(td_d, prep_d, std.selection)
-        dctx = build_context(prep_d, td_d, std.channels, faults, {c: b[:, sel] for c, b in bank_d.items()},
-                             taus[sel])
+        # no lag bank: a lag is only ever rebuilt there at the tau found on the readings (columns_like)
+        dctx = build_context(prep_d, td_d, std.channels, faults, None, None)
         dviews.append((dctx, dstd))
     n_hyp = max(n_hyp, 1)
     alpha_each = alpha / n_hyp

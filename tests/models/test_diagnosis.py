@@ -190,10 +190,11 @@ def test_planted_effects_are_found_with_their_parameters(name):
     assert json.loads(json.dumps(doc, allow_nan=False)) == doc
 
 
-def test_no_false_findings_over_20_clean_seeds():
+def test_no_false_findings_over_12_clean_seeds():
     found = []
-    for seed in range(20):
-        # vary axes and terms across seeds; short campaigns keep the check cheap
+    for seed in range(12):
+        # vary axes and terms across seeds; short campaigns keep the check cheap (more seeds, full
+        # 30-term bundles and 0.02/0.05 degC thermocouples: docs/diagnosis.md section 6, run by hand)
         axis = "XYZAB"[seed % 5]
         terms = [("dx", "gamma"), ("dy", "alpha"), ("dz", "beta")][seed % 3]
         case = gen.vm_case([], seed=100 + seed, hours=24, points=5, keep=[(axis, terms[0]), (axis, terms[1])])
