@@ -678,7 +678,11 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             log.debug("   on denoised readings: %s", ok_d)
             if not ok_d:
                 continue
-            if cand.kind == "sensor_fault" and not in_holdout:
+            if cand.kind == "sensor_fault" and not in_holdout and float(hint.get("p_temp", 1.0)) < alpha_each:
+                # the thermocouples establish the fault on their own (a decisive break of the virtual-sensor
+                # relation, significant on 30-min block means); the errors only have to show the repair's gain
+                p_rob = float(hint["p_temp"])
+            elif cand.kind == "sensor_fault" and not in_holdout:
                 X_nested = np.column_stack([state.X, cand.cols])
                 p_rob = robust_pvalue(X_nested, td.y, td, list(range(state.X.shape[1], X_nested.shape[1])))
             elif cand.kind == "sensor_fault":
