@@ -1,14 +1,12 @@
 """Store-side queries the REST API needs beyond ``store``/``queries``: machines, paged histories,
-model promotion and retirement, job lists and the persisted on-line (RLS) state.
+model promotion and retirement and job lists.
 
 Every function takes a ``Store`` and runs in one transaction of its own (writes through
 ``db.write_transaction``). Paging is keyset paging on the tables' primary keys, so a page costs one
 range scan whatever its offset in the history.
 
-The on-line state lives where ``driftlab.models.online`` keeps it: in the ``jobs`` table, as finished
-jobs of kind ``online`` whose ``result`` is the RLS state (the latest row of a machine is its state).
-Each probe update posted to the API writes its probe measurement and its new state in one
-transaction. A dedicated table would be cleaner; it needs a migration from the store's owner.
+The on-line (RLS) state is the store's ``online_states`` table (``Store.online_state`` and
+``Store.save_online_state``, used through ``driftlab.models.online.store_update``).
 """
 
 from __future__ import annotations
@@ -19,7 +17,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Connection, func, insert, select, text, update
+from sqlalchemy import Connection, func, select, text, update
 
 from driftlab.campaigns import db
 from driftlab.campaigns import schema as sc
@@ -333,52 +331,6 @@ def check_job_targets(store: Store, machine_id: str | None, campaign_ids: list[i
         return [int(c) for c in conn.execute(
             select(sc.Campaign.id).where(sc.Campaign.machine_id == machine_id)
             .order_by(sc.Campaign.started_at, sc.Campaign.id)).scalars().all()]
-
-
-# ----------------------------------------------------------------------------- on-line state
-
-
-def latest_online(store: Store, machine_id: str, kind: str) -> tuple[int | None, dict[str, Any] | None]:
-    """Return (job id, result) of the machine's latest finished on-line update job of ``kind`` (None, None before any)."""
-    with _read(store) as conn:
-        return _latest_online(conn, machine_id, kind)
-
-
-def _latest_online(conn: Connection, machine_id: str, kind: str) -> tuple[int | None, dict[str, Any] | None]:
-    row = conn.execute(
-        select(sc.Job.id, sc.Job.result).where(sc.Job.kind == kind, sc.Job.machine_id == machine_id,
-                                               sc.Job.state == "done").order_by(sc.Job.id.desc()).limit(1)
-    ).first()
-    return (None, None) if row is None else (int(row.id), dict(row.result or {}))
-
-
-def save_online_update(store: Store, machine_id: str, kind: str, expected_job_id: int | None,
-                       model_version_id: int, measured_at: datetime, pose: dict[str, float],
-                       measured: dict[str, float], result: dict[str, Any], params: dict[str, Any]) -> int:
-    """Persist one probe measurement and the on-line state after it, in one transaction; return the update's id.
-
-    The state is a finished job of ``kind`` whose result is the state (the format the fitting
-    pipeline's ``driftlab online`` reads). ``expected_job_id`` is the update the new state was computed
-    from: if another update of the machine landed meanwhile the write is refused (ConflictError).
-    """
-    store.ensure_schema()
-    with db.write_transaction(store.engine) as conn:
-        _lock_machine(conn, machine_id)
-        if _latest_online(conn, machine_id, kind)[0] != expected_job_id:
-            raise ConflictError(f"machine {machine_id!r}: a concurrent on-line update landed first; retry")
-        clash = conn.execute(select(sc.ProbeMeasurement.id).where(
-            sc.ProbeMeasurement.machine_id == machine_id, sc.ProbeMeasurement.measured_at == measured_at)).first()
-        if clash is not None:
-            raise ConflictError(f"machine {machine_id!r} already has a probe measurement at {measured_at.isoformat()}")
-        conn.execute(insert(sc.ProbeMeasurement).values(
-            machine_id=machine_id, measured_at=measured_at, model_version_id=model_version_id,
-            x=pose["x"], y=pose["y"], z=pose["z"], a_deg=pose["a_deg"], b_deg=pose["b_deg"],
-            dx=measured["dx"], dy=measured["dy"], dz=measured["dz"]))
-        now = sc.utcnow()
-        return int(conn.execute(insert(sc.Job).values(
-            kind=kind, state="done", params=params, result=result, machine_id=machine_id,
-            attempts=1, worker="api", created_at=now, started_at=now, heartbeat_at=now, finished_at=now,
-        ).returning(sc.Job.id)).scalar_one())
 
 
 def ping(store: Store) -> bool:

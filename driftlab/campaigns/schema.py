@@ -290,6 +290,31 @@ class ProbeMeasurement(Base):
     dy: Mapped[float] = mapped_column(Double)
     dz: Mapped[float] = mapped_column(Double)
     model_version_id: Mapped[int | None] = mapped_column(ForeignKey("model_versions.id", ondelete="SET NULL"))
+    # the readings (degC per channel) the on-line update was computed with
+    temperatures: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
+
+
+class OnlineState(Base):
+    """The on-line (RLS, eqs. 6.10-6.13) state of a machine: one row, rewritten by every probe update.
+
+    ``theta`` and ``p`` hold one entry per probed term (dx, dy, dz). The state belongs to one model
+    version (a new current model starts a new state). ``version`` is the optimistic-concurrency
+    counter: an update is written only if the row still has the version it was computed from
+    (``UPDATE ... WHERE version = :seen``), so two concurrent updates never lose one.
+    """
+
+    __tablename__ = "online_states"
+
+    # primary key: the update's read and conditional write (WHERE machine_id = ?), one state per machine
+    machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id", ondelete="CASCADE"), primary_key=True)
+    model_version_id: Mapped[int | None] = mapped_column(ForeignKey("model_versions.id", ondelete="SET NULL"))
+    model_version: Mapped[int] = mapped_column(Integer)
+    lam: Mapped[float] = mapped_column(Double)
+    n_updates: Mapped[int] = mapped_column(Integer, default=0)
+    theta: Mapped[dict[str, Any]] = mapped_column(JSONDoc)
+    p: Mapped[dict[str, Any]] = mapped_column(JSONDoc)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    version: Mapped[int] = mapped_column(Integer, default=1)
 
 
 class ModelVersion(Base):

@@ -70,6 +70,31 @@ class ProgressInfo:
     updated_at: datetime
 
 
+@dataclass(frozen=True)
+class OnlineStateInfo:
+    """A machine's stored on-line (RLS) state: per probed term theta and P, and the concurrency version."""
+
+    machine_id: str
+    model_version_id: int | None
+    model_version: int
+    lam: float
+    n_updates: int
+    theta: dict[str, Any]
+    p: dict[str, Any]
+    updated_at: datetime
+    version: int
+
+
+class StaleOnlineState(ConflictError):
+    """The on-line state changed since it was read: recompute from the new state and try again."""
+
+
+def _online(row: Any) -> OnlineStateInfo:
+    return OnlineStateInfo(row.machine_id, row.model_version_id, int(row.model_version), float(row.lam),
+                           int(row.n_updates), dict(row.theta or {}), dict(row.p or {}), row.updated_at,
+                           int(row.version))
+
+
 def _job(row: Any) -> JobInfo:
     return JobInfo(row.id, row.kind, row.state, row.params or {}, row.result, row.error, row.worker, row.attempts,
                    row.machine_id, row.campaign_id, row.created_at, row.started_at, row.heartbeat_at,
@@ -377,6 +402,64 @@ class Store:
             if row is None:
                 raise NotFoundError(f"no job {job_id}")
             return _job(row)
+
+    # ------------------------------------------------------------------ on-line state
+
+    def online_state(self, machine_id: str) -> OnlineStateInfo | None:
+        """Return the machine's on-line state row (whatever model version it belongs to), or None."""
+        self.ensure_schema()
+        with self.engine.connect() as conn, conn.begin():
+            row = conn.execute(
+                select(sc.OnlineState.__table__).where(sc.OnlineState.machine_id == machine_id)
+            ).first()
+            return None if row is None else _online(row)
+
+    def save_online_state(self, machine_id: str, seen_version: int | None, *, model_version_id: int | None,
+                          model_version: int, lam: float, n_updates: int, theta: dict[str, Any], p: dict[str, Any],
+                          probes: list[dict[str, Any]] = ()) -> tuple[OnlineStateInfo, list[int]]:
+        """Write a new on-line state and its probe measurements in one transaction; return it and the probe ids.
+
+        ``seen_version`` is the state's version the update was computed from (None: there was none).
+        If the row has moved on meanwhile nothing is written and ``StaleOnlineState`` is raised (the
+        caller recomputes from the new state). Each probe is a ``probe_measurements`` row
+        (measured_at, x, y, z, a_deg, b_deg, dx, dy, dz, temperatures); a machine's second probing
+        at the same time is refused (ConflictError) and nothing is written.
+        """
+        self.ensure_schema()
+        now = sc.utcnow()
+        values = {"model_version_id": model_version_id, "model_version": int(model_version), "lam": float(lam),
+                  "n_updates": int(n_updates), "theta": theta, "p": p, "updated_at": now}
+        with db.write_transaction(self.engine) as conn:
+            lock = select(sc.Machine.id).where(sc.Machine.id == machine_id)
+            if conn.dialect.name == "postgresql":
+                lock = lock.with_for_update()  # serialises the state writers of one machine
+            if conn.execute(lock).first() is None:
+                raise NotFoundError(f"no machine {machine_id!r}")
+            st = sc.OnlineState
+            current = conn.execute(select(st.version).where(st.machine_id == machine_id)).scalar()
+            if current != seen_version:
+                raise StaleOnlineState(f"machine {machine_id!r}: the on-line state moved on (version {current}, "
+                                       f"computed from {seen_version}); retry")
+            if seen_version is None:
+                conn.execute(insert(st).values(machine_id=machine_id, version=1, **values))
+            else:
+                n = conn.execute(update(st).where(st.machine_id == machine_id, st.version == seen_version)
+                                 .values(version=seen_version + 1, **values)).rowcount
+                if n != 1:  # pragma: no cover - the machine lock (or SQLite's writer lock) rules this out
+                    raise StaleOnlineState(f"machine {machine_id!r}: the on-line state moved on; retry")
+            ids = []
+            for pr in probes:
+                clash = conn.execute(select(sc.ProbeMeasurement.id).where(
+                    sc.ProbeMeasurement.machine_id == machine_id,
+                    sc.ProbeMeasurement.measured_at == pr["measured_at"])).first()
+                if clash is not None:
+                    raise ConflictError(f"machine {machine_id!r} already has a probe measurement at "
+                                        f"{pr['measured_at'].isoformat()}")
+                ids.append(int(conn.execute(insert(sc.ProbeMeasurement).values(
+                    machine_id=machine_id, model_version_id=model_version_id, **pr)
+                    .returning(sc.ProbeMeasurement.id)).scalar_one()))
+            row = conn.execute(select(st.__table__).where(st.machine_id == machine_id)).one()
+            return _online(row), ids
 
     # ------------------------------------------------------------------ acquisition progress
 

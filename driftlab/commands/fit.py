@@ -54,8 +54,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     online = sub.add_parser("online", help="update the on-line model (RLS, eqs. 6.10-6.13) with probe measurements")
     online.add_argument("--machine", required=True)
     online.add_argument("--probe", type=Path, required=True, metavar="FILE.csv",
-                        help="time_s,x,y,z,a,b,dx,dy,dz plus one column per model channel")
-    online.add_argument("--lambda", dest="lam", type=float, default=0.98, help="forgetting factor (default 0.98)")
+                        help="time_s,x,y,z,a,b,dx,dy,dz plus one column per model channel "
+                             "(optional measured_at: ISO times of the probings)")
+    online.add_argument("--lambda", dest="lam", type=float, default=None,
+                        help="forgetting factor of a new on-line state (default 0.98; fixed once the state starts)")
+    online.add_argument("--start", default=None, metavar="ISO",
+                        help="wall-clock time of time_s = 0 (default: the last row was measured now)")
     online.add_argument("--json", action="store_true", help="print the report as JSON")
     _db(online)
     online.set_defaults(func=_online)
@@ -161,9 +165,19 @@ def _online(args: argparse.Namespace) -> int:
     from driftlab.campaigns.store import connect
     from driftlab.models.online import online_update, read_probe_csv
 
+    from datetime import datetime
+
+    from driftlab.errors import ValidationError
+
+    start = None
+    if args.start is not None:
+        try:
+            start = datetime.fromisoformat(args.start.replace("Z", "+00:00"))
+        except ValueError:
+            raise ValidationError(f"--start: not an ISO 8601 time: {args.start!r}") from None
     probe = read_probe_csv(args.probe)
     with connect(args.db) as store:
-        report = online_update(store, args.machine, probe, lam=args.lam)
+        report = online_update(store, args.machine, probe, lam=args.lam, start=start)
     data = report.to_dict()
     if args.json:
         print(json.dumps(data, indent=2))

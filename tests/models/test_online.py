@@ -112,3 +112,60 @@ def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, c
     bad.write_text("time_s,x\n0,1\n")
     assert main(["online", "--machine", doc.machine, "--probe", str(bad), "--db", url]) == 2
     store.close()
+
+
+def test_two_concurrent_updates_both_land(store_url):
+    """Two threads update one machine's on-line state at once: both updates and both probe rows are kept."""
+    import threading
+    from datetime import datetime, timedelta, timezone
+
+    import pandas as pd
+
+    from driftlab.campaigns.bundle import load_bundle, write_bundle
+    from driftlab.campaigns.store import connect
+    from driftlab.models import registry
+    from driftlab.models.online import latest_online_states, store_update
+    from tests.api.helpers import MACHINE, model_document, small_frames, small_meta
+
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp, connect(store_url) as store:
+        temps, cond, errors = small_frames()
+        store.import_bundle(load_bundle(write_bundle(f"{tmp}/b", small_meta(), temps, cond, errors)))
+        doc = registry.register_model(store, model_document())
+    t0 = datetime(2026, 3, 3, 8, tzinfo=timezone.utc)
+    attempts: list[int] = []
+    errors_seen: list[BaseException] = []
+    barrier = threading.Barrier(2)
+
+    def worker(k: int) -> None:
+        try:
+            with connect(store_url) as s:
+                probe = pd.DataFrame([{"time_s": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0,
+                                       "dx": 0.001 * (k + 1), "dy": 0.0, "dz": 0.0, "T1": 21.0, "T2": 22.0}])
+                barrier.wait(timeout=30)
+                attempts.append(store_update(s, MACHINE, probe, [t0 + timedelta(minutes=k)]).attempts)
+        except BaseException as exc:  # reported below
+            errors_seen.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors_seen, errors_seen
+    with connect(store_url) as store:
+        states = latest_online_states(store, MACHINE, doc.version)
+        assert states["dx"].n_updates == 2 and states["dz"].n_updates == 2
+        row = store.online_state(MACHINE)
+        assert row.version == 2 and row.n_updates == 2
+        assert store.table_counts()["probe_measurements"] == 2
+        # a stale writer is refused and writes nothing
+        from driftlab.campaigns.store import StaleOnlineState
+
+        with pytest.raises(StaleOnlineState):
+            store.save_online_state(MACHINE, 1, model_version_id=None, model_version=doc.version, lam=0.98,
+                                    n_updates=9, theta=row.theta, p=row.p,
+                                    probes=[{"measured_at": t0 + timedelta(hours=5), "x": 0, "y": 0, "z": 0,
+                                             "a_deg": 0, "b_deg": 0, "dx": 0, "dy": 0, "dz": 0}])
+        assert store.table_counts()["probe_measurements"] == 2

@@ -4,7 +4,8 @@ The on-line model (``driftlab.models.online``) predicts what the current off-lin
 the work space: for each of dx, dy, dz a recursive least-squares fit with forgetting of the residual
 (probe measurement minus off-line prediction). Its state belongs to one model version (a new current
 model starts a new state) and is the same state ``driftlab online`` continues from the command line.
-Each update posted here is persisted, with its probe measurement, in one transaction.
+The state is the machine's row of ``online_states``; each update posted here is persisted, with its
+probe measurement (a ``probe_measurements`` row), in one transaction.
 """
 
 from __future__ import annotations
@@ -21,13 +22,13 @@ from driftlab.api.deps import ApiState, get_state, require_token
 from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import OnlineOut, ProbeIn, Vector3
 from driftlab.campaigns import api_queries
-from driftlab.errors import ConflictError, NotFoundError, ValidationError
+from driftlab.errors import NotFoundError, ValidationError
 from driftlab.models import online
 
 router = APIRouter(tags=["online"])
 
 TERMS = online.PROBE_TERMS  # dx, dy, dz
-DEFAULT_FORGETTING = 0.98
+DEFAULT_FORGETTING = online.DEFAULT_FORGETTING
 
 
 def _vec(values: Any) -> Vector3:
@@ -58,13 +59,6 @@ def _current(state: ApiState, machine_id: str) -> api_queries.ModelRow:
     return row
 
 
-def _states(result: dict[str, Any] | None, version: int) -> dict[str, online.RLSState]:
-    """Return the RLS states of a stored on-line result when it belongs to this model version."""
-    if not result or result.get("model_version") != version:
-        return {}
-    return {k: online.RLSState.from_dict(v) for k, v in result.get("states", {}).items()}
-
-
 def _out(machine_id: str, version: int, states: dict[str, online.RLSState], **extra: Any) -> OnlineOut:
     """Return the response model of an on-line state."""
     first = states[TERMS[0]]
@@ -77,8 +71,7 @@ def _out(machine_id: str, version: int, states: dict[str, online.RLSState], **ex
 def get_online(machine_id: MachineId, state: Annotated[ApiState, Depends(get_state)]) -> OnlineOut:
     """Return the on-line state of the machine's current model version (404 before its first update)."""
     row = _current(state, machine_id)
-    _, result = api_queries.latest_online(state.store, machine_id, online.ONLINE_JOB)
-    states = _states(result, row.version)
+    states = online.latest_online_states(state.store, machine_id, row.version)
     if not states:
         raise NotFoundError(f"machine {machine_id!r} has no on-line updates for model version {row.version} yet")
     return _out(machine_id, row.version, states)
@@ -90,37 +83,25 @@ def post_probe(machine_id: MachineId, body: ProbeIn, state: Annotated[ApiState, 
     """Update the machine's RLS state with one probe measurement and return the correction at that pose.
 
     correction = -(off-line prediction + on-line prediction), in mm, to add to the commanded position.
+    The new state and the probe row are written in one transaction; a concurrent update of the same
+    machine makes this one recompute from the state that landed first (none is lost).
     """
-    from driftlab.models import registry
-
     measured_at = _measured_at(body.measured_at)
     clash = sorted(set(body.temperatures) & set(online.PROBE_COLUMNS))
     if clash:
         raise ValidationError(f"temperature channel name(s) {', '.join(clash)} clash with the probe columns")
-    row = _current(state, machine_id)
-    doc = registry.validate_document(row.document).model_copy(update={"version": row.version})
+    _current(state, machine_id)  # 404 for an unknown machine or one without a model
     probe = pd.DataFrame([{"time_s": 0.0, "x": body.x, "y": body.y, "z": body.z, "a": body.a_deg, "b": body.b_deg,
                            "dx": body.dx, "dy": body.dy, "dz": body.dz, **body.temperatures}])
-    latest_id, result = api_queries.latest_online(state.store, machine_id, online.ONLINE_JOB)
-    states = _states(result, row.version)
-    if states and body.forgetting is not None and float(body.forgetting) != states[TERMS[0]].lam:
-        raise ConflictError(f"the on-line state of model version {row.version} has forgetting factor "
-                            f"{states[TERMS[0]].lam}; it can only be chosen when the state starts")
-    lam = DEFAULT_FORGETTING if body.forgetting is None else float(body.forgetting)
-    _, residual = online.online_residuals(doc, probe)  # measured minus off-line prediction (1, 3)
-    report, prior = online.online_update_document(doc, probe, states, lam)
+    done = online.store_update(state.store, machine_id, probe, [measured_at],
+                               None if body.forgetting is None else float(body.forgetting),
+                               [dict(body.temperatures)])
+    report = done.report
+    residual = done.residual[0]
     measured = np.array([body.dx, body.dy, body.dz])
-    offline = measured - residual[0]
+    offline = measured - residual
     on = np.array([float(report.states[t].theta @ np.ones(report.states[t].theta.size)) for t in TERMS])
-    prior_error = residual[0] - np.array([prior[t][0] for t in TERMS])
-    for st in report.states.values():
-        if not (np.all(np.isfinite(st.theta)) and np.all(np.isfinite(st.P))):
-            raise ValidationError("the on-line update diverged (non-finite state); check the inputs")
-    pose = {"x": body.x, "y": body.y, "z": body.z, "a_deg": body.a_deg, "b_deg": body.b_deg}
-    params = {"n": 1, "model_version": row.version, "measured_at": measured_at.isoformat(), **pose,
-              "dx": body.dx, "dy": body.dy, "dz": body.dz, "temperatures": dict(body.temperatures)}
-    update_id = api_queries.save_online_update(
-        state.store, machine_id, online.ONLINE_JOB, latest_id, row.id, measured_at, pose,
-        {"dx": body.dx, "dy": body.dy, "dz": body.dz}, report.to_dict(), params)
-    return _out(machine_id, row.version, report.states, update_id=update_id, offline_prediction=_vec(offline),
-                prior_error=_vec(prior_error), online_prediction=_vec(on), correction=_vec(-(offline + on)))
+    prior_error = residual - np.array([done.prior[t][0] for t in TERMS])
+    return _out(machine_id, int(report.model_version or 0), report.states, update_id=done.probe_ids[0],
+                offline_prediction=_vec(offline), prior_error=_vec(prior_error), online_prediction=_vec(on),
+                correction=_vec(-(offline + on)))
