@@ -186,8 +186,13 @@ class Substitution:
 
 
 def fit_substitution(temperatures: pd.DataFrame, channel: str, start_s: float, exclude: Sequence[str] = (),
-                     n_neighbours: int = N_NEIGHBOURS) -> tuple[tuple[str, ...], tuple[float, ...]]:
-    """Return (neighbours, coefficients) of ``channel``'s virtual sensor, fitted on the scans before ``start_s``."""
+                     n_neighbours: int = N_NEIGHBOURS, structures: Mapping[str, str] | None = None,
+                     room: Sequence[str] = ()) -> tuple[tuple[str, ...], tuple[float, ...]]:
+    """Return (neighbours, coefficients) of ``channel``'s virtual sensor, fitted on the scans before ``start_s``.
+
+    The neighbours are the other sites of the channel's structure and the room air when the bundle
+    names structures (as the diagnosis does), else the ``n_neighbours`` that best explain it.
+    """
     from driftlab.models.virtual_sensor import fit_virtual_sensors
 
     before = temperatures[temperatures["time_s"] < start_s]
@@ -196,7 +201,14 @@ def fit_substitution(temperatures: pd.DataFrame, channel: str, start_s: float, e
     if before.shape[0] < 10 or not others:
         raise ValidationError(f"findings: too few readings before t={start_s:.0f} s to estimate {channel} "
                               f"from its neighbours")
-    sensor = fit_virtual_sensors(before[["time_s", channel, *others]], [channel, *others],
+    st = (structures or {}).get(channel, "")
+    near = [c for c in others if st and st not in ("", "unspecified", "room") and (structures or {}).get(c) == st]
+    if near:
+        pool = near + [c for c in room if c in others and c not in near]
+        n_neighbours = len(pool)
+    else:
+        pool = others
+    sensor = fit_virtual_sensors(before[["time_s", channel, *pool]], [channel, *pool],
                                  n_neighbours=n_neighbours)[channel]
     return tuple(sensor.neighbours), tuple(float(c) for c in sensor.coef)
 
@@ -331,7 +343,9 @@ def plan_findings(findings: Findings, bundles: Sequence[Any], force: bool = Fals
         t0 = src.meta.started_at
         faulty = [c for c, _, _ in faults]
         for c, start_s, mode in faults:
-            neighbours, coef = fit_substitution(src.temperatures, c, start_s, exclude=faulty)
+            neighbours, coef = fit_substitution(
+                src.temperatures, c, start_s, exclude=faulty,
+                structures={k: ch.structure for k, ch in src.meta.channels.items()}, room=src.meta.room_channels)
             subs.append(Substitution(c, neighbours, coef, t0 + timedelta(seconds=start_s), start_s, mode))
             channels += [x for x in (c, *neighbours) if x not in channels]
         for c in channels:

@@ -482,3 +482,33 @@ def test_document_substitution_and_drift_are_evaluated_from_the_document():
     from driftlab.compensator.compensate import ErrorModel
 
     ErrorModel.from_document(doc)  # the compensator falls back to the registry for these terms
+
+
+def test_sensor_fault_finding_substitutes_the_channel_in_fit_and_prediction():
+    """An open T35 from 18 h: the fit reads its virtual-sensor estimate from then on, and so does the document."""
+    from driftlab.daq.sim.scenario import HiddenEffect, Scenario
+    from driftlab.models.findings import Finding, Findings
+
+    sc = Scenario(name="vm-t35", hours=36, seed=7, scan_interval_s=120, sweep_interval_s=1200, points_per_axis=6,
+                  hidden=[HiddenEffect(kind="sensor_fault", channels=["T35"],
+                                       params={"start_s": 64800.0, "mode": "open"})])
+    b, _ = _vm_bundle(sc)
+    b = Bundle(b.name, b.meta, b.temperatures,
+               b.conditions, b.errors[(b.errors.axis == "Z") & (b.errors.term == "alpha")].reset_index(drop=True))
+    f = Findings(b.name, (Finding("sensor_fault", "Z", "alpha", ("T35",), {"start_s": 64800.0, "mode": "open"}),))
+    opts = FitOptions(network=False, virtual_sensors=False)
+    r0 = fit_bundles([b], opts)
+    r1 = fit_bundles([b], FitOptions(network=False, virtual_sensors=False, findings=f))
+    h0, h1 = (r.validation.set_index(["axis", "term"]).loc[("Z", "alpha"), "rmse_holdout"] for r in (r0, r1))
+    assert h1 < h0, (h0, h1)
+    doc = r1.document
+    (sub,) = doc.substitutions
+    assert sub.channel == "T35" and set(sub.neighbours) <= set(doc.inputs)
+    assert doc.findings[0]["substituted"] == ["T35"]
+    # the document alone: a dead T35 (absent or NaN) after the fault is replaced by its estimate
+    row = b.temperatures.iloc[-1].to_dict()
+    q = np.zeros((1, 5))
+    with_nan = predict_workspace_errors(doc, row, q)
+    row.pop("T35")
+    np.testing.assert_allclose(predict_workspace_errors(doc, row, q), with_nan)
+    assert np.all(np.isfinite(with_nan))

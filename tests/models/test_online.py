@@ -169,3 +169,30 @@ def test_two_concurrent_updates_both_land(store_url):
                                     probes=[{"measured_at": t0 + timedelta(hours=5), "x": 0, "y": 0, "z": 0,
                                              "a_deg": 0, "b_deg": 0, "dx": 0, "dy": 0, "dz": 0}])
         assert store.table_counts()["probe_measurements"] == 2
+
+
+def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
+    from datetime import datetime, timezone
+
+    import pandas as pd
+
+    from driftlab.campaigns.bundle import load_bundle, write_bundle
+    from driftlab.campaigns.store import connect
+    from driftlab.models import registry
+    from driftlab.models.online import ONLINE_JOB, online_update
+    from tests.api.helpers import MACHINE, model_document, small_frames, small_meta
+
+    with connect(f"sqlite:///{tmp_path / 's.sqlite'}") as store:
+        temps, cond, errors = small_frames()
+        store.import_bundle(load_bundle(write_bundle(tmp_path / "b", small_meta(), temps, cond, errors)))
+        doc = registry.register_model(store, model_document())
+        old = {t: RLSState(np.array([0.001]), np.array([[0.5]]), 0.95, 7).to_dict() for t in ("dx", "dy", "dz")}
+        job = store.submit_job(ONLINE_JOB, {}, machine_id=MACHINE)
+        store.claim_job("w", [ONLINE_JOB])
+        store.finish_job(job, "w", {"model_version": doc.version, "states": old})
+        probe = pd.DataFrame([{"time_s": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0, "dx": 0.0, "dy": 0.0,
+                               "dz": 0.0, "T1": 21.0, "T2": 22.0}])
+        rep = online_update(store, MACHINE, probe, start=datetime(2026, 3, 3, tzinfo=timezone.utc))
+        assert rep.states["dx"].n_updates == 8 and rep.states["dx"].lam == 0.95
+        assert store.online_state(MACHINE).n_updates == 8
+        assert store.table_counts()["probe_measurements"] == 1
