@@ -624,7 +624,11 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
     state = _State(std.X, list(std.names), std.fit, [])
     dstate = _State(dstd.X, list(dstd.names), dstd.fit, []) if dstd is not None and dctx is not None else None
     hold_start = td.holdout_start_s
-    fault_start: float | None = None
+    # a model channel the thermocouples show broken corrupts the rows after its break whether or not its
+    # repair is accepted: other findings must then also stand on the rows before it (one explanation)
+    broken = [f.start_s for ch, f in ctx.faults.items() if f.plausible and ch in ctx.model_channels
+              and ch in ctx.chan_cols]
+    fault_start: float | None = min(broken) if broken else None
     for round_ in range(max_effects):
         if round_ == 0 and first is not None:
             scored = first
