@@ -380,7 +380,11 @@ class Candidates:
                    keep: Callable[[Feature], bool]) -> tuple[list[Feature], list[Feature]]:
         """Return (forced terms, candidates): ``pool`` plus the findings' terms of (axes, param) that ``keep`` admits."""
         forced: list[Feature] = []
-        cands = list(pool)
+        # a finding's lag at its measured tau replaces the pool's default-tau lags of that channel
+        # (near-identical columns: the cruder one would mask the finding through the VIF rule)
+        lagged = {e.feature.channels[0] for e in self.extras
+                  if e.axis in axes and e.term == param and e.feature.kind == "lag" and keep(e.feature)}
+        cands = [f for f in pool if not (f.kind == "lag" and f.channels[0] in lagged)]
         names = {f.name for f in cands}
         for e in self.extras:
             if e.axis not in axes or e.term != param or not keep(e.feature):
