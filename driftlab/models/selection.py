@@ -6,6 +6,13 @@ Room channels are always kept (the room is a heat source and sink, ch. 5.4); of 
 redundant channels the one on a heat source (motor, ballscrew nut, spindle) is preferred; a
 structure keeps at most the two corners that span its gradient, plus any channel the corners
 do not explain.
+
+When the campaign's work-space errors are given, they choose among redundant sites: which member
+of a group of near-duplicate thermocouples stands for the group, and whether two sites whose
+temperatures nearly agree must both stay because their difference (a gradient across a structure)
+moves the tool. A stepwise least squares of every (axis, term) error series on the temperatures
+(forward entry, swaps of a chosen site for a better one, backward removal) picks the sites the
+errors need; the temperature screening then decides the rest as without errors.
 """
 
 from __future__ import annotations
@@ -97,6 +104,157 @@ def _gradient_partner(
     return (mates[0], d) if d >= gradient_degC else None
 
 
+@dataclass
+class _ErrorDesign:
+    """Sufficient statistics of every (axis, term) error series regressed on the temperatures.
+
+    Geometry (the error's shape along the travel, the approach direction) is removed by taking
+    deviations of the errors *and* the temperatures from their means at each (axis, term,
+    position, direction): what is left is the thermal drift, linear in the temperatures.
+    """
+
+    names: list[str]  # "axis/term" per series
+    gram: np.ndarray  # (J, p, p) X'X of the centred temperatures
+    cross: np.ndarray  # (J, p) X'y
+    yy: np.ndarray  # (J,) y'y
+
+
+def _segments(temps: pd.DataFrame, n: int) -> list[pd.DataFrame]:
+    """Return ``temps`` split into the ``n`` campaigns it concatenates (time_s starts again at each)."""
+    t = temps["time_s"].to_numpy(float)
+    cuts = [0, *(np.flatnonzero(np.diff(t) <= 0) + 1).tolist(), len(t)]
+    if len(cuts) - 1 != n:
+        raise ValidationError(
+            f"{n} error frames for temperatures of {len(cuts) - 1} campaign(s) (time_s restarts at each campaign)"
+        )
+    return [temps.iloc[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
+
+
+def _error_design(temps: pd.DataFrame, chans: Sequence[str],
+                  errors: pd.DataFrame | Sequence[pd.DataFrame]) -> _ErrorDesign | None:
+    """Return the regression statistics of the work-space errors on the channels (None: nothing usable)."""
+    frames = [errors] if isinstance(errors, pd.DataFrame) else list(errors)
+    segs = _segments(temps, len(frames)) if len(frames) > 1 else [temps]
+    X_parts, keys, y_parts = [], [], []
+    for k, (seg, err) in enumerate(zip(segs, frames)):
+        need = {"time_s", "axis", "term", "value"}
+        if err is None or err.empty:
+            continue
+        if not need <= set(err.columns):
+            raise ValidationError(f"work-space errors need columns {sorted(need)}, got {list(err.columns)}")
+        e = err[np.isfinite(err["value"].to_numpy(float)) & np.isfinite(err["time_s"].to_numpy(float))]
+        if e.empty or len(seg) < 2:
+            continue
+        ts = seg["time_s"].to_numpy(float)
+        te = e["time_s"].to_numpy(float)
+        T = seg[list(chans)].to_numpy(float)
+        X_parts.append(np.column_stack([np.interp(te, ts, np.nan_to_num(T[:, i])) for i in range(len(chans))]))
+        pos = e["position"].to_numpy(float).round(6) if "position" in e else np.zeros(len(e))
+        d = e["direction"].to_numpy() if "direction" in e else np.zeros(len(e))
+        keys.append(pd.DataFrame({"campaign": k, "axis": e["axis"].astype(str).to_numpy(),
+                                  "term": e["term"].astype(str).to_numpy(), "position": pos, "direction": d}))
+        y_parts.append(e["value"].to_numpy(float))
+    if not X_parts:
+        return None
+    X = np.vstack(X_parts)
+    y = np.concatenate(y_parts)
+    key = pd.concat(keys, ignore_index=True)
+    group = key.groupby(["campaign", "axis", "term", "position", "direction"], sort=False,
+                        dropna=False).ngroup().to_numpy()
+    series = key.groupby(["axis", "term"], sort=False, dropna=False).ngroup().to_numpy()
+    # deviations from each point's mean over the campaign: geometry out, thermal drift in
+    Xd = X - pd.DataFrame(X).groupby(group).transform("mean").to_numpy()
+    yd = y - pd.Series(y).groupby(group).transform("mean").to_numpy()
+    names, grams, crosses, yys = [], [], [], []
+    first = key.groupby(series).first()
+    for j in range(int(series.max()) + 1):
+        m = series == j
+        yy = float(yd[m] @ yd[m])
+        if m.sum() < 8 or not yy > 0:
+            continue
+        names.append(f"{first.loc[j, 'axis']}/{first.loc[j, 'term']}")
+        grams.append(Xd[m].T @ Xd[m])
+        crosses.append(Xd[m].T @ yd[m])
+        yys.append(yy)
+    if not names:
+        return None
+    return _ErrorDesign(names, np.array(grams), np.array(crosses), np.array(yys))
+
+
+def _partial_r2(des: _ErrorDesign, S: Sequence[int]) -> np.ndarray:
+    """Return (J, p): the share of each series' residual (after the channels S) that each channel removes."""
+    G, b, yy = des.gram, des.cross, des.yy
+    J, p, _ = G.shape
+    diag = np.einsum("jii->ji", G)
+    if S:
+        S = list(S)
+        Gss = G[:, S][:, :, S] + np.eye(len(S))[None] * (1e-10 * diag[:, S].mean(axis=1) + 1e-300)[:, None, None]
+        M = np.linalg.solve(Gss, G[:, S, :])  # (J, s, p)
+        bS = b[:, S]
+        beta = np.linalg.solve(Gss, bS[:, :, None])[:, :, 0]
+        rss = yy - np.einsum("js,js->j", bS, beta)
+        cd = diag - np.einsum("jsp,jsp->jp", G[:, S, :], M)
+        br = b - np.einsum("jsp,js->jp", M, bS)
+    else:
+        rss, cd, br = yy.copy(), diag.copy(), b.copy()
+    ok = cd > 1e-9 * np.maximum(diag, 1e-300)
+    gain = np.where(ok, br**2 / np.where(ok, cd, 1.0), 0.0)
+    r2 = np.clip(gain / np.maximum(rss, 1e-300)[:, None], 0.0, 1.0 - 1e-12)
+    if S:
+        r2[:, S] = 0.0
+    return r2
+
+
+def _error_stepwise(des: _ErrorDesign, base: Sequence[int], cands: Sequence[int],
+                    r2_in: float, r2_out: float) -> dict[int, tuple[float, str]]:
+    """Return channel -> (share, series) for the sites the errors need beyond ``base``.
+
+    Forward: the candidate whose entry most lowers the summed log residual of all series enters
+    when it removes at least ``r2_in`` of some series' residual. Swaps: each chosen site gives way
+    to the candidate that does better in its place (a redundant group is represented by the member
+    that best explains the errors). Backward: a chosen site that no series needs by ``r2_out``
+    leaves. Repeats until nothing changes (a bounded number of passes).
+    """
+    sel: list[int] = []
+    pool = [c for c in cands if c not in base]
+
+    def score(S: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        r2 = _partial_r2(des, [*base, *S])
+        return r2.max(axis=0), r2.argmax(axis=0), -np.log1p(-r2).sum(axis=0)
+
+    for _ in range(6 * len(pool) + 6):
+        changed = False
+        free = [c for c in pool if c not in sel]
+        if free:
+            mx, _, gain = score(sel)
+            k = max(free, key=lambda c: gain[c])
+            if mx[k] >= r2_in:
+                sel.append(k)
+                changed = True
+        for s in list(sel):
+            others = [x for x in sel if x != s]
+            _, _, gain = score(others)
+            alt = max((c for c in pool if c not in others), key=lambda c: gain[c])
+            if alt != s and gain[alt] > gain[s] * (1 + 1e-3) + 1e-9:
+                sel[sel.index(s)] = alt
+                changed = True
+        worst: tuple[int, float] | None = None
+        for s in sel:
+            mx, _, _ = score([x for x in sel if x != s])
+            if mx[s] < r2_out and (worst is None or mx[s] < worst[1]):
+                worst = (s, float(mx[s]))
+        if worst is not None:
+            sel.remove(worst[0])
+            changed = True
+        if not changed:
+            break
+    out: dict[int, tuple[float, str]] = {}
+    for s in sel:
+        mx, arg, _ = score([x for x in sel if x != s])
+        out[s] = (float(mx[s]), des.names[int(arg[s])])
+    return out
+
+
 def screen_channels(
     temperatures: pd.DataFrame,
     channels: Mapping[str, Mapping[str, str]] | None = None,
@@ -108,6 +266,9 @@ def screen_channels(
     related_r: float = 0.9,
     gradient_degC: float = 0.8,
     always_keep: Sequence[str] = (),
+    errors: pd.DataFrame | Sequence[pd.DataFrame] | None = None,
+    error_r2_in: float = 0.03,
+    error_r2_out: float = 0.02,
 ) -> ScreeningResult:
     """Return the screening of all channels of a campaign (ch. 5.4).
 
@@ -120,6 +281,14 @@ def screen_channels(
     ``explained_fraction`` of its own variation (whichever is larger) unexplained. A structure's
     second corner is kept whenever it differs from the first by ``gradient_degC`` rms or more (a
     gradient bends the structure, eqs. 3.4-3.5, even when both corners correlate).
+
+    ``errors`` (the bundle's errors frame: time_s, axis, term, position, direction, value; or one
+    frame per campaign when ``temperatures`` concatenates several, time_s restarting at each) lets
+    the work-space errors choose among redundant sites before the temperature screening: the sites
+    a stepwise least squares of all (axis, term) series needs - each entering or staying only if it
+    removes ``error_r2_in`` (``error_r2_out`` to stay) of some series' remaining residual - are kept,
+    whether or not their temperatures are explained by others (a gradient between near-duplicates
+    moves the tool); the corners rule is then left to the errors.
     """
     meta = {c: dict(v) for c, v in (channels or {}).items()}
     temps = fill_gaps(temperatures)
@@ -145,6 +314,26 @@ def screen_channels(
         if c in chans and c not in dropped and c not in kept_reason:
             kept_reason[c] = "required by the user's model channels"
     rest = [c for c in chans if c not in kept_reason and c not in dropped]
+    idx = {c: i for i, c in enumerate(chans)}
+    Tf = np.nan_to_num(T)
+    des = _error_design(temps, chans, errors) if errors is not None else None
+    if des is not None:
+        need = _error_stepwise(des, [idx[c] for c in kept_reason], [idx[c] for c in rest], error_r2_in, error_r2_out)
+        for i, (share, series) in sorted(need.items()):
+            c = chans[i]
+            st = meta.get(c, {}).get("structure", "")
+            others = [j for j in [*(idx[k] for k in kept_reason), *need] if j != i and (
+                chans[j] in room_channels or (st and meta.get(chans[j], {}).get("structure", "") == st)
+                or abs(float(np.nan_to_num(R.iloc[i, j]))) >= related_r)]
+            resid, used = _explain(Tf, i, others, n_explain)
+            tol = max(explained_degC, explained_fraction * std[i])
+            why = (f"explains the work-space errors: removes {100 * share:.0f}% of what the other kept sites "
+                   f"leave of {series}")
+            if others and resid <= tol:  # its temperature is nearly another's: the difference is what moves the tool
+                why += (f", though its temperature follows {', '.join(chans[u] for u in used)} to {resid:.2f} degC rms "
+                        "(the best of its redundant group, or a gradient the errors need)")
+            kept_reason[c] = why
+        rest = [c for c in rest if c not in kept_reason]
     by_struct: dict[str, list[str]] = {}
     for c in rest:
         by_struct.setdefault(meta.get(c, {}).get("structure", "") or c, []).append(c)
@@ -160,13 +349,11 @@ def screen_channels(
             seq.append(nxt)
             others.remove(nxt)
         order += seq
-        if len(seq) >= 2:
+        if len(seq) >= 2 and des is None:  # with errors, the errors judge the gradients
             d = float(np.nanstd(temps[seq[0]].to_numpy(float) - temps[seq[1]].to_numpy(float)))
             if d >= gradient_degC:  # the structure bends: keep the two corners that span it
                 corners[seq[0]] = (seq[1], d)
                 corners[seq[1]] = (seq[0], d)
-    idx = {c: i for i, c in enumerate(chans)}
-    Tf = np.nan_to_num(T)
     for c in order:
         # explainers: kept sites of the same structure, kept sites that rise and fall with it, the room
         st = meta.get(c, {}).get("structure", "")
@@ -176,7 +363,8 @@ def screen_channels(
         resid, used = _explain(Tf, idx[c], pool, n_explain)
         tol = max(explained_degC, explained_fraction * std[idx[c]])
         names = [chans[u] for u in used]
-        corner = corners.get(c) or _gradient_partner(c, st, kept_reason, meta, temps, gradient_degC)
+        corner = corners.get(c) or (
+            _gradient_partner(c, st, kept_reason, meta, temps, gradient_degC) if des is None else None)
         if corner is not None:
             kept_reason[c] = (f"corner of {st} spanning its gradient with {corner[0]} "
                               f"({corner[1]:.2f} degC rms difference, eqs. 3.4-3.5)")
@@ -185,6 +373,7 @@ def screen_channels(
             dropped[c] = (
                 f"no new information: explained by kept {', '.join(names)} to {resid:.3f} degC rms "
                 f"(r={R.loc[c, best]:.2f} with {best}) (ch. 5.4)"
+                + ("; the work-space errors need it no more than the kept sites" if des is not None else "")
             )
         else:
             kept_reason[c] = f"new information on {st or 'its site'}: {resid:.2f} degC rms not explained by the others"

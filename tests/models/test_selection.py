@@ -2,7 +2,9 @@
 
 import numpy as np
 import pandas as pd
+import pytest
 
+from driftlab.errors import ValidationError
 from driftlab.models.selection import correlation_matrix, screen_channels
 
 
@@ -73,3 +75,49 @@ def test_dead_and_constant_channels_are_dropped_with_reason():
     temps["T61"] = np.nan
     res = screen_channels(temps, meta, ["T49", "T50"])
     assert "constant" in res.dropped["T60"] and res.dropped["T61"] == "no readings"
+
+
+# ----------------------------------------------------------------------------- the work-space errors choose
+
+
+def _vm(hours=48.0, seed=1):
+    from driftlab.daq.sim.campaign import simulate_campaign
+    from driftlab.daq.sim.scenario import Scenario
+
+    return simulate_campaign(Scenario(name="vm-screen", hours=hours, seed=seed, scan_interval_s=120,
+                                      sweep_interval_s=1200, points_per_axis=6))
+
+
+def test_errors_choose_the_truth_channels_on_the_virtual_machine():
+    """Issue 5: the kept set holds every channel the VM's truth reads, and stays near the thesis' 18."""
+    sim = _vm()
+    meta, room = sim.meta["channels"], sim.meta["room_channels"]
+    used = {c for cs in sim.meta["model_channels"].values() for c in cs} | set(sim.truth["drivers"])
+    without = screen_channels(sim.temperatures, meta, room)
+    res = screen_channels(sim.temperatures, meta, room, errors=sim.errors)
+    kept = set(res.kept)
+    assert used <= kept, sorted(used - kept)
+    assert 14 <= len(kept) <= 26
+    assert not used <= set(without.kept)  # temperatures alone pick other stand-ins
+    for c in set(sim.truth["drivers"]) - {*room}:
+        assert "heat source" in res.kept_reason[c] or "work-space errors" in res.kept_reason[c]
+    # the column pair and the arm's corners stay although their temperatures nearly agree
+    assert "follows" in res.kept_reason["T26"] or "follows" in res.kept_reason["T24"]
+    for c, why in res.dropped.items():
+        assert c not in kept and why
+    assert set(res.dropped) | kept == set(sim.temperatures.columns) - {"time_s"}
+    # one errors frame per campaign when the temperatures concatenate several (time_s restarts)
+    two = pd.concat([sim.temperatures, sim.temperatures], ignore_index=True)
+    again = screen_channels(two, meta, room, errors=[sim.errors, sim.errors])
+    assert used <= set(again.kept)
+    with pytest.raises(ValidationError, match="campaign"):
+        screen_channels(two, meta, room, errors=[sim.errors, sim.errors, sim.errors])
+
+
+def test_errors_none_or_empty_keep_the_temperature_screening():
+    temps, meta = _campaign()
+    base = screen_channels(temps, meta, ["T49", "T50"])
+    empty = pd.DataFrame(columns=["time_s", "axis", "term", "position", "direction", "value"])
+    for errs in (None, empty):
+        res = screen_channels(temps, meta, ["T49", "T50"], errors=errs)
+        assert res.kept == base.kept and res.dropped == base.dropped
