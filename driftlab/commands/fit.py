@@ -119,6 +119,16 @@ def _print_summary(report: dict[str, Any]) -> None:
                   f"{num(r['rmse_holdout'], '12.3g')} {num(r['r2'], '7.4f')} {num(r['f'], '10.4g')}\n")
     for p in report.get("physical", []):
         out.write(f"  {p['term']}: regression {p['regression']:.4g}, physical {p['physical']:.4g} ({p['relationship']})\n")
+    for f in report.get("findings", []):
+        where = f"{f['kind']} {f['axis']}/{f['term']} {' '.join(f.get('channels', []))}".rstrip()
+        if not f.get("folded"):
+            out.write(f"  finding {where}: not folded in ({f.get('note', '')})\n")
+        elif f["kind"] == "sensor_fault":
+            out.write(f"  finding {where}: {', '.join(f.get('substituted', []))} replaced by its virtual sensor\n")
+        else:
+            kept = [f"{n} in {'+'.join(m)}" for n, m in f.get("entered", {}).items() if m]
+            out.write(f"  finding {where}: {'; '.join(kept) or 'no term entered'}"
+                      f"{' (forced)' if f.get('forced') else ''}\n")
     if report.get("extrapolation"):
         e = report["extrapolation"]
         out.write(f"extrapolation: regression {e['regression_mm']:.4f} mm, network {e['network_mm']:.4f} mm\n")
