@@ -580,7 +580,8 @@ def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | 
     copy of a channel (a short lag, a proxy channel) or a drift can then "improve" a model
     whose coefficients were fitted to noise. The same candidate, built from the denoised
     readings, must still be significant (nested F test), lower the held-out RMSE by
-    ``min_gain`` and reach the effect sizes against the model on the denoised readings.
+    ``min_gain`` and reach the effect sizes against the model on the denoised readings (the training
+    one only for candidates built from a channel).
     Also returns the candidate's columns in that view (to carry the model along).
     """
     if dctx is None or dstate is None or cand.kind == "sensor_fault":
@@ -599,7 +600,11 @@ def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | 
         return False, cols
     rss0 = dstate.fit.rmse_train**2 * dstate.fit.n_train
     rss1 = fit.rmse_train**2 * fit.n_train
-    if np.sqrt(max(dstate.fit.rmse_train**2 - fit.rmse_train**2, 0.0)) < min_explained_train * noise:
+    # the training effect size is asked of candidates built from a channel (a smoothed copy of it can
+    # stand in for its denoised readings); a reversal or a drift holds no temperature, and the denoised
+    # model absorbs more of a slow drift in sample (confounded with slow temperatures over a day)
+    expl_train = np.sqrt(max(dstate.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
+    if cand.channels and expl_train < min_explained_train * noise:
         return False, cols
     k = cols.shape[1]
     dof = fit.n_train - X.shape[1]
