@@ -143,7 +143,17 @@ def test_two_concurrent_updates_both_land(store_url):
             with connect(store_url) as s:
                 probe = pd.DataFrame([{"time_s": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0,
                                        "dx": 0.001 * (k + 1), "dy": 0.0, "dz": 0.0, "T1": 21.0, "T2": 22.0}])
-                barrier.wait(timeout=30)
+                read = s.online_state
+                first = [True]
+
+                def read_then_meet(machine):  # both threads read the same state before either writes
+                    row = read(machine)
+                    if first[0]:
+                        first[0] = False
+                        barrier.wait(timeout=30)
+                    return row
+
+                s.online_state = read_then_meet
                 attempts.append(store_update(s, MACHINE, probe, [t0 + timedelta(minutes=k)]).attempts)
         except BaseException as exc:  # reported below
             errors_seen.append(exc)
@@ -154,6 +164,7 @@ def test_two_concurrent_updates_both_land(store_url):
     for t in threads:
         t.join()
     assert not errors_seen, errors_seen
+    assert sorted(attempts) == [1, 2]  # one computed from a stale state, was refused and recomputed
     with connect(store_url) as store:
         states = latest_online_states(store, MACHINE, doc.version)
         assert states["dx"].n_updates == 2 and states["dz"].n_updates == 2
