@@ -228,6 +228,8 @@ def _times(at: Any, n: int) -> np.ndarray | None:
 
     if isinstance(at, (datetime, str, int, float, np.floating, np.integer)):
         v = np.array([stamp(at)])
+    elif np.asarray(at).dtype.kind == "M":  # numpy datetime64 (taken as UTC)
+        v = np.asarray(at).astype("datetime64[us]").astype(np.int64).ravel() / 1e6
     else:
         v = np.array([stamp(x) for x in (at.tolist() if isinstance(at, (np.ndarray, pd.Series, pd.Index)) else at)], float)
     if v.size == 1:
