@@ -190,9 +190,9 @@ def test_planted_effects_are_found_with_their_parameters(name):
     assert json.loads(json.dumps(doc, allow_nan=False)) == doc
 
 
-def test_no_false_findings_over_12_clean_seeds():
+def test_no_false_findings_over_20_clean_seeds():
     found = []
-    for seed in range(12):
+    for seed in range(20):  # issue 6: at least 20 random seeds
         # vary axes and terms across seeds; short campaigns keep the check cheap (more seeds, full
         # 30-term bundles and 0.02/0.05 degC thermocouples: docs/diagnosis.md section 6, run by hand)
         axis = "XYZAB"[seed % 5]
