@@ -13,9 +13,12 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Register `diagnose BUNDLE_DIR --json REPORT.json [--html REPORT.html] [--holdout-fraction F]`."""
+    """Register `diagnose (BUNDLE_DIR | --campaign ID [--db URL]) --json REPORT.json [--html REPORT.html]`."""
     p = sub.add_parser("diagnose", help="diagnose a campaign bundle: simulation vs data, effects, held-out gain")
-    p.add_argument("bundle", type=Path, metavar="BUNDLE_DIR", help="campaign bundle v1 directory")
+    p.add_argument("bundle", type=Path, nargs="?", default=None, metavar="BUNDLE_DIR",
+                   help="campaign bundle v1 directory (or --campaign for a stored campaign)")
+    p.add_argument("--campaign", type=int, default=None, metavar="ID", help="diagnose a campaign in the store")
+    p.add_argument("--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
     p.add_argument("--json", type=Path, required=True, metavar="REPORT.json", help="write the report v1 here")
     p.add_argument("--html", type=Path, default=None, metavar="REPORT.html", help="also write an HTML page")
     p.add_argument("--holdout-fraction", type=float, default=0.25,
@@ -30,7 +33,14 @@ def _diagnose(args: argparse.Namespace) -> int:
 
     if not 0.0 < args.holdout_fraction < 0.9:
         raise ValidationError(f"--holdout-fraction must be in (0, 0.9), got {args.holdout_fraction}")
-    bundle = load_bundle(args.bundle)  # BundleError: one line FILE:ROW: problem
+    if (args.bundle is None) == (args.campaign is None):
+        raise ValidationError("give either a BUNDLE_DIR or --campaign ID, not both or neither")
+    if args.campaign is not None:
+        from driftlab.campaigns.store import connect
+
+        bundle = connect(args.db).load_campaign(args.campaign)  # NotFoundError for an unknown id
+    else:
+        bundle = load_bundle(args.bundle)  # BundleError: one line FILE:ROW: problem
     result = diagnose_bundle(bundle, holdout_fraction=args.holdout_fraction)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result.to_json_dict(), indent=2, allow_nan=False) + "\n")

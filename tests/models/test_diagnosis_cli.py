@@ -16,7 +16,7 @@ from driftlab.campaigns.bundle import load_bundle, write_bundle
 from driftlab.cli import main
 from driftlab.models.diagnosis import diagnose_bundle
 
-FL_THERMAL = Path("/work/shared/data/fl_thermal")
+FL_THERMAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "fl_thermal"  # ../shared beside the repo
 
 
 def _load_generator():
@@ -52,6 +52,23 @@ def test_diagnose_writes_json_and_html(lag_bundle, tmp_path, capsys):
     html = page.read_text()
     assert html.startswith("<!doctype html>") and "data:image/png;base64," in html
     assert "1 effect accepted" in capsys.readouterr().out
+
+
+def test_diagnose_a_stored_campaign_gives_the_bundle_report(lag_bundle, tmp_path, capsys):
+    url = f"sqlite:///{tmp_path / 'store.sqlite'}"
+    assert main(["import", str(lag_bundle), "--db", url]) == 0
+    capsys.readouterr()
+    from_dir, from_store = tmp_path / "dir.json", tmp_path / "store.json"
+    assert main(["diagnose", str(lag_bundle), "--json", str(from_dir)]) == 0
+    assert main(["diagnose", "--campaign", "1", "--db", url, "--json", str(from_store)]) == 0
+    a, b = json.loads(from_dir.read_text()), json.loads(from_store.read_text())
+    assert [(e["kind"], e["channels"]) for e in b["effects"]] == [("thermal_lag", ["T34"])]
+    assert a["effects"] == b["effects"] and a["baseline"] == b["baseline"]
+    assert main(["diagnose", "--campaign", "99", "--db", url, "--json", str(tmp_path / "x.json")]) != 0
+    assert main(["diagnose", str(lag_bundle), "--campaign", "1", "--json", str(tmp_path / "y.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("driftlab: error:") for line in err)
+    assert not (tmp_path / "x.json").exists() and not (tmp_path / "y.json").exists()
 
 
 def test_holdout_fraction_option(lag_bundle, tmp_path):
