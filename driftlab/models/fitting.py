@@ -203,6 +203,64 @@ def _q(axis: np.ndarray, position: np.ndarray) -> np.ndarray:
     return q
 
 
+def _assign_roles(pts: pd.DataFrame, stages: Sequence[Any], holdout_fraction: float) -> None:
+    """Set each point's stage, element and role (train, holdout, skip) in place (ch. 4.3).
+
+    The last ``holdout_fraction`` of each training stage's points (of the whole record when there
+    is no plan) is held out.
+    """
+    t = pts["time_s"].to_numpy(float)
+    pts["stage"] = -1
+    pts["element"] = None
+    pts["role"] = "skip"
+    for si, (st, element, role) in enumerate(stage_elements(stages)):
+        m = (t >= st.start_s) & (t <= st.end_s) & (pts["stage"].to_numpy() < 0)
+        pts.loc[m, "stage"] = si
+        pts.loc[m, "element"] = element
+        pts.loc[m, "role"] = role
+        if role == "train" and m.any():
+            ts = np.sort(t[m])
+            cut = ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)] \
+                if ts.size >= 8 and holdout_fraction > 0 else np.inf
+            pts.loc[m & (t >= cut), "role"] = "holdout"
+    if not stages:
+        # no plan: everything is one stage allocated to the measured axis' joint
+        pts["element"] = pts["axis"].map(AXIS_JOINT)
+        ts = np.sort(t)
+        cut = ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)] if holdout_fraction > 0 else np.inf
+        pts["role"] = np.where(t >= cut, "holdout", "train")
+
+
+def _training_errors(errors: pd.DataFrame, stages: Sequence[Any], holdout_fraction: float) -> pd.DataFrame:
+    """Return the rows of a campaign's errors frame that the fit trains on (held-out points never steer it)."""
+    if errors.empty:
+        return errors
+    pts = pd.DataFrame({"time_s": np.unique(errors["time_s"].to_numpy(float))})
+    pts["axis"] = ""
+    _assign_roles(pts, stages, holdout_fraction)
+    train = pts.loc[pts["role"] == "train", "time_s"].to_numpy(float)
+    return errors[np.isin(errors["time_s"].to_numpy(float), train)]
+
+
+def _keep_gradient_corners(screening: ScreeningResult, plain: ScreeningResult,
+                           chan_meta: Mapping[str, Mapping[str, str]]) -> None:
+    """Keep, in ``screening``, the corners spanning a structure's gradient that ``plain`` keeps (eqs. 3.4-3.5).
+
+    The errors pick one stand-in per group of near-duplicate sites; a structure whose corners
+    differ (``plain``, the temperature screening, keeps both) still needs both for its gradient
+    terms, whose coefficients are the physically recast ones (ch. 6.4.2).
+    """
+    structure = {c: m.get("structure", "") for c, m in chan_meta.items()}
+    have = {structure.get(c, "") for c in screening.kept}
+    for c in plain.kept:
+        why = plain.kept_reason.get(c, "")
+        if c not in screening.kept_reason and why.startswith("corner of") and structure.get(c, "") in have:
+            screening.kept_reason[c] = why
+            screening.dropped.pop(c, None)
+    order = list(screening.matrix.columns)
+    screening.kept = [c for c in order if c in screening.kept_reason]
+
+
 def build_samples(
     bundles: Sequence[Any],
     channels: Sequence[str],
@@ -225,25 +283,7 @@ def build_samples(
             continue
         pts.insert(0, "campaign", ci)
         t = pts["time_s"].to_numpy(float)
-        pts["stage"] = -1
-        pts["element"] = None
-        pts["role"] = "skip"
-        for si, (st, element, role) in enumerate(stage_elements(b.meta.stages)):
-            m = (t >= st.start_s) & (t <= st.end_s) & (pts["stage"].to_numpy() < 0)
-            pts.loc[m, "stage"] = si
-            pts.loc[m, "element"] = element
-            pts.loc[m, "role"] = role
-            if role == "train" and m.any():
-                ts = np.sort(t[m])
-                cut = ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)] \
-                    if ts.size >= 8 and holdout_fraction > 0 else np.inf
-                pts.loc[m & (t >= cut), "role"] = "holdout"
-        if not b.meta.stages:
-            # no plan: everything is one stage allocated to the measured axis' joint
-            pts["element"] = pts["axis"].map(AXIS_JOINT)
-            ts = np.sort(t)
-            cut = ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)] if holdout_fraction > 0 else np.inf
-            pts["role"] = np.where(t >= cut, "holdout", "train")
+        _assign_roles(pts, b.meta.stages, holdout_fraction)
         ref = dict(reference) if reference is not None else _reference([b], channels)
         inp = build_inputs(b.temperatures, t, ref, channels, lags)
         days.append(((b.meta.started_at - origin).total_seconds() + t) / 86400.0)
@@ -879,7 +919,10 @@ def _fit_bundles(
     # 1. screening (ch. 5.4)
     common = [c for c in channel_columns(train_bundles[0].temperatures) if all(c in b.temperatures for b in train_bundles)]
     temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in train_bundles], ignore_index=True)
-    screening = screen_channels(temps, chan_meta, room)
+    # the training errors choose among near-duplicate sites (held-out points never steer the choice)
+    errs = [_training_errors(b.errors, b.meta.stages, opts.holdout_fraction) for b in train_bundles]
+    screening = screen_channels(temps, chan_meta, room, errors=errs)
+    _keep_gradient_corners(screening, screen_channels(temps, chan_meta, room), chan_meta)
     kept = screening.kept
     lap("screening")
 

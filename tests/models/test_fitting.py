@@ -292,8 +292,12 @@ def test_vm_screening_keeps_the_channels_the_truth_uses(vm_fit):
     assert 14 <= len(kept) <= 24  # the thesis kept 18 of 50
     # the single-site drivers of the truth (ballscrews, motors, spindle) and the room pair
     assert {"T9", "T10", "T20", "T30", "T37", "T42", "T48", "T49", "T50"} <= kept
-    arm = {c for c in kept if sim.meta["channels"][c]["structure"] == "spindle_arm"}
-    assert len(arm) == 2  # two corners span the arm's gradient
+    # the arm's bending follows a gradient weighted over its corners (table 6.3): the errors keep
+    # every arm site the truth uses, and at least the two corners that span the gradient
+    truth_used = {c for chans in sim.meta["model_channels"].values() for c in chans}
+    arm_sites = {c for c, m in sim.meta["channels"].items() if m["structure"] == "spindle_arm"}
+    assert arm_sites & truth_used <= kept
+    assert len(arm_sites & kept) >= 2
     for structure in ("z_column", "base", "x_table", "xy_carriage", "rotary_base", "b_table"):
         members = {c for c, m in sim.meta["channels"].items() if m["structure"] == structure}
         assert len(members & kept) <= 2, structure  # eight corners collapse
