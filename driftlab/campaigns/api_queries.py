@@ -256,15 +256,22 @@ def _lock_machine(conn: Connection, machine_id: str) -> None:
         raise NotFoundError(f"no machine {machine_id!r}")
 
 
+def _version_row(conn: Any, machine_id: str, version: int) -> Any:
+    """Return (id, status) of a machine's model version, or raise NotFoundError."""
+    mv = sc.ModelVersion
+    row = conn.execute(select(mv.id, mv.status).where(mv.machine_id == machine_id, mv.version == version)).first()
+    if row is None:
+        raise NotFoundError(f"no model version {version} for machine {machine_id!r}")
+    return row
+
+
 def promote_model(store: Store, machine_id: str, version: int) -> ModelRow:
     """Make a version the machine's current one (retiring the previous current) and return it."""
     store.ensure_schema()
     with db.write_transaction(store.engine) as conn:
         _lock_machine(conn, machine_id)
         mv = sc.ModelVersion
-        target = conn.execute(select(mv.id, mv.status).where(mv.machine_id == machine_id, mv.version == version)).first()
-        if target is None:
-            raise NotFoundError(f"no model version {version} for machine {machine_id!r}")
+        target = _version_row(conn, machine_id, version)
         if target.status != "current":
             now = sc.utcnow()
             # retire first: the partial unique index allows one current version per machine
@@ -280,9 +287,7 @@ def retire_model(store: Store, machine_id: str, version: int) -> ModelRow:
     with db.write_transaction(store.engine) as conn:
         _lock_machine(conn, machine_id)
         mv = sc.ModelVersion
-        target = conn.execute(select(mv.id, mv.status).where(mv.machine_id == machine_id, mv.version == version)).first()
-        if target is None:
-            raise NotFoundError(f"no model version {version} for machine {machine_id!r}")
+        target = _version_row(conn, machine_id, version)
         if target.status == "retired":
             raise ConflictError(f"model version {version} of machine {machine_id!r} is already retired")
         conn.execute(update(mv).where(mv.id == target.id).values(status="retired", retired_at=sc.utcnow()))

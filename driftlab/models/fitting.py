@@ -641,7 +641,8 @@ def joint_adjust(
     AtA = np.zeros((P, P))
     Atb = np.zeros(P)
     c0 = np.concatenate([np.asarray(models[key].coef, float) for key, _ in blocks])
-    before = after = 0.0
+    before = 0.0
+    systems = []  # the weighted design and target of each work-space component, built once
     for t in range(6):
         ok = mask[:, t]
         if not ok.any():
@@ -650,6 +651,7 @@ def joint_adjust(
             [jac[(key[0], PARAMS.index(key[1]))][ok, t][:, None] * F[ok] for key, F in blocks], axis=1
         ) * w[t]
         b = W[ok, t] * w[t]
+        systems.append((A, b))
         AtA += A.T @ A
         Atb += A.T @ b
         before += float(np.sum((b - A @ c0) ** 2))
@@ -658,16 +660,10 @@ def joint_adjust(
     c = np.linalg.solve(M, Atb / scale) / scale
     # second pass for the after-figure and the standard errors
     sse, m_obs = 0.0, 0
-    for t in range(6):
-        ok = mask[:, t]
-        if not ok.any():
-            continue
-        A = np.concatenate(
-            [jac[(key[0], PARAMS.index(key[1]))][ok, t][:, None] * F[ok] for key, F in blocks], axis=1
-        ) * w[t]
-        r = W[ok, t] * w[t] - A @ c
+    for A, b in systems:
+        r = b - A @ c
         sse += float(r @ r)
-        m_obs += int(ok.sum())
+        m_obs += len(b)
     after = sse
     s2 = sse / max(m_obs - P, 1)
     cov_diag = np.diag(np.linalg.inv(M)) / scale**2 * s2
