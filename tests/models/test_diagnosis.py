@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -15,18 +12,9 @@ import statsmodels.api as sm
 from driftlab.models.diagnosis import diagnose_bundle
 from driftlab.models.effects import lag_filter
 from driftlab.models.standard_model import fit_standard_model, prepare_bundle, spike_mask
+from tests import effects_generator as gen
 
 
-def _load_generator():
-    path = Path(__file__).resolve().parents[1] / "effects_generator.py"
-    spec = importlib.util.spec_from_file_location("effects_generator", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["effects_generator"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-gen = _load_generator()
 Planted = gen.Planted
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import subprocess
@@ -15,20 +14,11 @@ import pytest
 from driftlab.campaigns.bundle import load_bundle, write_bundle
 from driftlab.cli import main
 from driftlab.models.diagnosis import diagnose_bundle
+from tests import effects_generator as gen
 
 FL_THERMAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "fl_thermal"  # ../shared beside the repo
 
 
-def _load_generator():
-    path = Path(__file__).resolve().parents[1] / "effects_generator.py"
-    spec = importlib.util.spec_from_file_location("effects_generator", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["effects_generator"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-gen = _load_generator()
 
 
 @pytest.fixture(scope="module")
