@@ -40,17 +40,11 @@ from _common import emit, load_average  # noqa: E402
 
 from driftlab.campaigns.clock import SimClock  # noqa: E402
 from driftlab.campaigns.plan import Cursor, Plan, parse_plan  # noqa: E402
-from driftlab.campaigns.scheduler import (  # noqa: E402
-    Batch,
-    StoreSink,
-    percentile,
-    build_sim_rig,
-    open_campaign,
-    plan_scenario,
-    run_daemon,
-    scenario_meta,
-    store_engine,
-)
+from driftlab.campaigns.acquisition import Batch, StoreSink, open_campaign  # noqa: E402
+from driftlab.campaigns.db import store_engine  # noqa: E402
+from driftlab.daemon.loop import percentile  # noqa: E402
+from driftlab.daemon.run import run_daemon  # noqa: E402
+from driftlab.daemon.simrig import build_sim_rig, plan_scenario, scenario_meta  # noqa: E402
 from driftlab.daq.protocols import ScanBlock  # noqa: E402
 from driftlab.daq.sim.machine import VirtualMachine  # noqa: E402
 from driftlab.daq.sim.scenario import load_scenario  # noqa: E402

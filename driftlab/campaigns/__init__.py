@@ -1,1 +1,1 @@
-"""Campaign store, bundle import/export, plans and the resumable scheduler."""
+"""Campaign store, bundle import/export, plans and acquisition records (the daemon runs them: driftlab.daemon)."""

@@ -156,3 +156,20 @@ def upgrade(engine: Engine, revision: str = "head") -> str:
     reached = current_revision(engine)
     log.info("database at revision %s", reached)
     return reached or ""
+
+
+def store_engine(db_url: str | None) -> Any:
+    """Return the SQLAlchemy engine of the campaign store at db_url (schema brought up to date)."""
+    from sqlalchemy.exc import OperationalError
+
+    from driftlab.config import get_settings
+
+    url = db_url or get_settings().resolved_db_url()
+    engine = make_engine(url)
+    try:
+        if current_revision(engine) != head_revision():
+            upgrade(engine)
+    except OperationalError as exc:
+        where = engine.url.render_as_string(hide_password=True)
+        raise StoreError(f"cannot open the store at {where}: {str(exc.orig).strip().splitlines()[0]}") from None
+    return engine

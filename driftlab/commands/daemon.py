@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _daemon(args: argparse.Namespace) -> int:
     """Run (or resume) the plan's campaign and return 0 when it completed, 3 when stopped early."""
     from driftlab.campaigns.plan import load_plan
-    from driftlab.campaigns.scheduler import run_daemon
+    from driftlab.daemon.run import run_daemon
     from driftlab.errors import ValidationError
 
     plan = load_plan(args.plan)
@@ -108,7 +108,8 @@ def register_status(campsub: argparse._SubParsersAction) -> None:
 
 def _status(args: argparse.Namespace) -> int:
     """Print the status of the daemon's campaigns (text, or JSON with --json)."""
-    from driftlab.campaigns.scheduler import campaign_status, format_status, store_engine
+    from driftlab.campaigns.db import store_engine
+    from driftlab.campaigns.status import campaign_status, format_status
     from driftlab.errors import NotFoundError
 
     rows = campaign_status(store_engine(args.db), args.campaign)

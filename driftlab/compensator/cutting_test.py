@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -52,11 +51,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from driftlab.compensator.compensate import ErrorModel
-from driftlab.daq.sim import truth
-from driftlab.daq.sim.instruments import ManualClock, SimController, SimSphere, serial_url
-from driftlab.daq.sim.machine import VirtualMachine
-from driftlab.daq.sim.scenario import TERMS, Scenario, Stage
-from driftlab.daq.sim.sites import FEED_REF_MM_MIN, SITE_INDEX, SOURCES, SPINDLE_REF_RPM
+from driftlab.daemon import machining
+from driftlab.daemon.machining import ExecutedBlock, MachiningMachine, Scenario, SimSphere, true_errors
 from driftlab.errors import ValidationError
 from driftlab.models import kinematics as kin
 
@@ -250,128 +246,7 @@ def _words(p: np.ndarray) -> str:
 # ----------------------------------------------------------------------------- the machine while it cuts
 
 
-class MachiningMachine(VirtualMachine):
-    """The virtual machine powered on (motors holding) from t = 0, cutting between ``cut_start_s`` and ``cut_end_s``.
-
-    ``age_s`` places the session after the campaign (a later day): drifts have gone on meanwhile.
-
-    While it cuts, the spindle runs at the program's speed and each axis' motor heats with its mean
-    feed (the heat sources of the thermal network, normalised as in ``daq.sim.sites``).
-    """
-
-    def __init__(self, scenario: Scenario, cut_start_s: float, cut_end_s: float,
-                 mean_feed: Mapping[str, float], spindle_rpm: float = SPINDLE_RPM, age_s: float = 0.0) -> None:
-        end = max(cut_end_s + 3600.0, scenario.duration_s)
-        base = scenario.model_copy(update={
-            "hours": end / 3600.0,
-            "stages": [Stage(name="powered", start_s=0.0, end_s=end, heat_source="idle")],
-        })
-        self.cut_start_s, self.cut_end_s = float(cut_start_s), float(cut_end_s)
-        self.mean_feed = dict(mean_feed)
-        self.spindle_rpm = float(spindle_rpm)
-        #: time from the campaign's start to this session's t = 0: the machine has cooled down to the
-        #: room again (the thermal state starts soaked), but what does not depend on temperature
-        #: (a drift: wear, settling) has gone on
-        self.age_s = float(age_s)
-        super().__init__(base)
-
-    def sources(self, t_s: np.ndarray) -> np.ndarray:
-        """Return (N, 10) heat-source levels: powered and holding, plus spindle and feeds while cutting."""
-        u = super().sources(t_s)
-        t = np.atleast_1d(np.asarray(t_s, dtype=float))
-        cut = (t >= self.cut_start_s) & (t < self.cut_end_s)
-        u[cut, SOURCES.index("spindle")] = self.spindle_rpm / SPINDLE_REF_RPM
-        for a, f in self.mean_feed.items():
-            u[cut, SOURCES.index(f"feed_{a.lower()}")] = f / FEED_REF_MM_MIN
-        return u
-
-
-def hidden_element_errors(vm: VirtualMachine, t_s: np.ndarray, q: np.ndarray,
-                          direction: np.ndarray) -> dict[str, np.ndarray]:
-    """Return the scenario's hidden effects as errors of each effect's own joint at poses q (N, 5).
-
-    Each effect is the work-space error of spec section 3 with its axis moved and the others at
-    home; the joint error that produces exactly it there is found by eq. 4.20 and then acts at q.
-    """
-    t = np.atleast_1d(np.asarray(t_s, float))
-    out: dict[str, np.ndarray] = {}
-    dT = None
-    for eff in vm.scenario.hidden:
-        if eff.kind == "sensor_fault" or eff.axis is None or eff.term is None:
-            continue
-        k = AXES.index(eff.axis)
-        pos = np.rad2deg(q[:, k]) if eff.axis in truth.ROTARY else q[:, k]
-        ch_dT = lag = None
-        if eff.channels:
-            if dT is None:
-                dT = vm.true_dT_array(t)
-            ch_dT = dT[:, SITE_INDEX[eff.channels[0]]]
-            if eff.kind == "thermal_lag":
-                lag = vm.lagged_dT(eff.channels[0], float(eff.params["tau_s"]), t)
-        W = np.zeros((len(t), 6))
-        t_eff = t + float(getattr(vm, "age_s", 0.0)) if eff.kind == "drift" else t
-        W[:, TERMS.index(eff.term)] = truth.hidden_delta(eff, t_eff, pos, direction[:, k], ch_dT, lag)
-        joint = JOINT_OF_AXIS[eff.axis]
-        E = kin.allocate(W, truth.axis_pose(eff.axis, pos), None, joint)  # eq. 4.20
-        out[joint] = out[joint] + E if joint in out else E
-    return out
-
-
-def true_errors(vm: VirtualMachine, t_s: np.ndarray, q: np.ndarray, direction: np.ndarray) -> dict[str, np.ndarray]:
-    """Return the virtual machine's true link and joint errors at times t and poses q (base truth + hidden)."""
-    t = np.atleast_1d(np.asarray(t_s, float))
-    errs = dict(truth.element_errors(q, vm.true_dT_array(t)))
-    for e, v in hidden_element_errors(vm, t, q, direction).items():
-        errs[e] = errs[e] + v if e in errs else v
-    return errs
-
-
-def true_workspace_translation(vm: VirtualMachine, t_s: float, xyz: Sequence[float]) -> np.ndarray:
-    """Return the (3,) true work-space translation error at pose (X, Y, Z, A = B = 0) at time t."""
-    q = np.array([[xyz[0], xyz[1], xyz[2], 0.0, 0.0]])
-    return kin.workspace_error(q, true_errors(vm, np.array([t_s]), q, np.ones((1, 5))))[0, 3:]
-
-
 # ----------------------------------------------------------------------------- the controller's log
-
-
-@dataclass(frozen=True)
-class ExecutedBlock:
-    """A block as the simulated controller ran it: sequence number, target (mm, deg), start and end time."""
-
-    seq: int
-    target: tuple[float, ...]
-    start: tuple[float, ...]
-    t_start_s: float
-    t_end_s: float
-
-
-class _LoggedQueue(deque):
-    """The controller's block queue, noting each block as it starts executing."""
-
-    def __init__(self, ctrl: "LoggingController") -> None:
-        super().__init__()
-        self._ctrl = ctrl
-
-    def popleft(self) -> Any:
-        """Return the next block and log it with its start time and duration."""
-        blk = super().popleft()
-        c = self._ctrl
-        start = dict(c.pos)
-        t0 = c._t_exec
-        dur = c._duration(start, blk)
-        c.log.append(ExecutedBlock(blk.seq, tuple(blk.target[a] for a in AXES), tuple(start[a] for a in AXES),
-                                   t0, t0 + dur))
-        return blk
-
-
-class LoggingController(SimController):
-    """The simulated controller, keeping a log of every executed block with its times."""
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.log: list[ExecutedBlock] = []
-        self._queue = _LoggedQueue(self)
 
 
 # ----------------------------------------------------------------------------- on-line model
@@ -510,14 +385,7 @@ class CardTemperatures:
         return {c: float(v) for c, v in self.scanner.scan().values.items()}
 
 
-def default_spheres() -> dict[str, SimSphere]:
-    """Return four reference spheres (radius 12.7 mm) at the extremes of the X, Y travel, low in Z."""
-    pts = {"s1": (15.0, 15.0, -235.0), "s2": (239.0, 15.0, -235.0), "s3": (15.0, 239.0, -235.0),
-           "s4": (239.0, 239.0, -235.0)}
-    return {k: SimSphere(c, 12.7) for k, c in pts.items()}
-
-
-def measure_surface(vm: VirtualMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock],
+def measure_surface(vm: MachiningMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock],
                     dims: Mapping[str, Any] = kin.TABLE_A1) -> np.ndarray:
     """Return the (99, 15) normal deviations (mm) of the machined surface at the CMM points.
 
@@ -555,27 +423,21 @@ class CuttingBench:
     def __init__(self, scenario: Scenario, program: CuttingProgram, *, lead_s: float = 300.0,
                  spheres: Mapping[str, SimSphere] | None = None, capacity: int = 16, age_s: float = 0.0) -> None:
         self.program = program
-        self.clock = ManualClock(0.0)
         # the machine is switched on at t = 0 (soaked at room temperature) and cuts after lead_s
-        self.vm = MachiningMachine(scenario, lead_s, lead_s + program.duration_s, program.mean_feed, age_s=age_s)
+        self.clock, self.vm, self.ctrl, self.card = machining.open_bench(
+            scenario, lead_s, lead_s + program.duration_s, program.mean_feed,
+            spheres=spheres or machining.default_spheres(), capacity=capacity, age_s=age_s)
         self.lead_s = lead_s
         self.first_block = 0
-        self.ctrl = LoggingController(self.vm, self.clock, capacity=capacity,
-                                      spheres=dict(spheres or default_spheres()),
-                                      sphere_offset=lambda t, c: true_workspace_translation(self.vm, t, c))
-        self.ctrl.start()
         from driftlab.daq.machine_link import SerialMachineLink
-        from driftlab.daq.sim.instruments import SimThermocoupleCard
-        from driftlab.daq.sim.sites import CHANNELS
         from driftlab.daq.thermocouple import ThermocoupleCard
         from driftlab.daq.transport import LineChannel, open_port
 
         # the 50 thermocouples of Table 5.1 on the simulated card, read through the real driver
-        card_map = dict(enumerate(CHANNELS))
-        self.card = SimThermocoupleCard(self.vm, self.clock, card_map).start()
+        card_map = dict(enumerate(machining.CHANNELS))
         self.temperatures = CardTemperatures(ThermocoupleCard(
-            LineChannel(open_port(serial_url(self.card)), "thermocouple card"), card_map, clock=self.clock.now))
-        self.link = SerialMachineLink.open(serial_url(self.ctrl), sleep=self.clock.sleep, poll_s=0.5)
+            LineChannel(open_port(machining.serial_url(self.card)), "thermocouple card"), card_map, clock=self.clock.now))
+        self.link = SerialMachineLink.open(machining.serial_url(self.ctrl), sleep=self.clock.sleep, poll_s=0.5)
 
     def close(self) -> None:
         """Close the link and the card, stop the simulated instruments."""

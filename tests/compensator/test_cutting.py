@@ -11,15 +11,13 @@ from driftlab.compensator.cutting_test import (
     CMM_ACROSS,
     CMM_ALONG,
     LocalRLS,
-    MachiningMachine,
     MouldSurface,
     approach_directions,
-    hidden_element_errors,
     make_program,
     run_cutting_test,
     tool_centre,
-    true_errors,
 )
+from driftlab.daemon.machining import MachiningMachine, hidden_element_errors, true_errors
 from driftlab.compensator.gcode import parse_program
 from driftlab.compensator.stream import StaticModel
 from driftlab.daq.sim.campaign import simulate_campaign

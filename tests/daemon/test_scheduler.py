@@ -10,18 +10,11 @@ from sqlalchemy import func, select
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.plan import Cursor, load_plan, parse_plan
-from driftlab.campaigns.scheduler import (
-    Batch,
-    Fault,
-    StoreSink,
-    campaign_status,
-    format_status,
-    open_campaign,
-    plan_scenario,
-    scenario_stages,
-    skip_missed,
-    store_engine,
-)
+from driftlab.campaigns.acquisition import Batch, Fault, StoreSink, open_campaign
+from driftlab.campaigns.db import store_engine
+from driftlab.campaigns.status import campaign_status, format_status
+from driftlab.daemon.run import skip_missed
+from driftlab.daemon.simrig import plan_scenario, scenario_stages
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_OPEN, Reading, TemperatureScan
 from driftlab.errors import ConflictError, ValidationError
 
@@ -158,7 +151,7 @@ def test_plan_drives_the_virtual_machine_stages() -> None:
 
 def test_channel_maps_from_scenario_or_plan() -> None:
     """'from scenario' takes the virtual machine's 50 sites; a plan's own map must name sites it has."""
-    from driftlab.campaigns.scheduler import resolve_channels
+    from driftlab.daemon.run import resolve_channels
     from driftlab.daq.sim.scenario import Scenario
 
     chans, rooms = resolve_channels(load_plan(DEMO), Scenario())
@@ -175,7 +168,9 @@ def test_channel_maps_from_scenario_or_plan() -> None:
 
 def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -> None:
     """A card that keeps garbling and a broken laser beam become faults; every other reading is stored."""
-    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta, sim_clock
+    from driftlab.daemon.loop import Scheduler
+    from driftlab.daemon.run import sim_clock
+    from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
 
     plan = parse_plan({
@@ -210,7 +205,7 @@ def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -
 
 def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> None:
     """Without --sim the daemon opens the plan's instrument addresses (here: servers on loopback) on the wall clock."""
-    from driftlab.campaigns.scheduler import run_daemon
+    from driftlab.daemon.run import run_daemon
     from driftlab.daq.sim.instruments import (
         SimController,
         SimLaser,
@@ -259,7 +254,9 @@ def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> No
 
 def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) -> None:
     """If the store already holds a reading the cursor says is still to do, the run stops: never a double row."""
-    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta, sim_clock
+    from driftlab.daemon.loop import Scheduler
+    from driftlab.daemon.run import sim_clock
+    from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
 
     plan = parse_plan({"name": "dup", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
@@ -287,7 +284,9 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
     """PostgreSQL drops the daemon's connections mid-run: the same batch is committed again, once."""
     from sqlalchemy import create_engine, text
 
-    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta, sim_clock
+    from driftlab.daemon.loop import Scheduler
+    from driftlab.daemon.run import sim_clock
+    from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
 
     url = pg_cluster.create_database()
@@ -325,7 +324,9 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
 
 def test_block_reads_store_the_rows_of_scan_by_scan_reads(tmp_path: Path) -> None:
     """Buffered block reads and one scan per exchange store the same readings (and the same states)."""
-    from driftlab.campaigns.scheduler import Scheduler, build_sim_rig, scenario_meta, sim_clock
+    from driftlab.daemon.loop import Scheduler
+    from driftlab.daemon.run import sim_clock
+    from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
 
     plan = parse_plan({

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from driftlab.campaigns.plan import load_plan
-from driftlab.campaigns.scheduler import run_daemon
+from driftlab.daemon.run import run_daemon
 from driftlab.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,0 +1,394 @@
+"""Acquisition records and where the daemon writes them: batches, faults, the campaign row and its cursor.
+
+A batch of readings is committed *together with the cursor* (the next scan and sweep point still
+to do) in one transaction (``StoreSink``), so the stored cursor always says exactly which readings
+are in the store: a run resumed after ``kill -9`` starts there and nothing is lost or stored twice.
+The run loop that fills the batches lives in ``driftlab.daemon``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from itertools import chain, repeat
+from typing import Any, Protocol
+
+import numpy as np
+
+from driftlab.campaigns.db import write_transaction
+from driftlab.campaigns.plan import Cursor, Plan, SweepPoint
+from driftlab.daq.protocols import Reading, ScanBlock, TemperatureScan
+from driftlab.errors import ConflictError, DriftlabError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Fault:
+    """An instrument fault met while running a step (the step's readings are missing)."""
+
+    t_s: float
+    step: str
+    instrument: str
+    message: str
+
+
+@dataclass
+class Batch:
+    """Readings to commit in one transaction together with the cursor that follows them."""
+
+    scans: list[tuple[int, TemperatureScan]] = field(default_factory=list)
+    blocks: list[ScanBlock] = field(default_factory=list)  # buffered scans read in blocks (block mode)
+    states: list[tuple[float, dict[str, float]]] = field(default_factory=list)
+    points: list[tuple[SweepPoint, float, dict[str, Reading]]] = field(default_factory=list)
+    faults: list[Fault] = field(default_factory=list)
+    cursor: Cursor = field(default_factory=Cursor)
+    stage: int = 0
+    t_s: float = 0.0
+    first_wall: float = 0.0
+    datum: dict[str, Any] | None = None
+
+    def empty(self) -> bool:
+        """Return True when there is nothing to commit (not even a cursor move)."""
+        return not (self.scans or self.blocks or self.states or self.points or self.faults)
+
+    def n_scans(self) -> int:
+        """Return the number of scans in the batch (single and block-read)."""
+        return len(self.scans) + sum(len(b) for b in self.blocks)
+
+    def n_readings(self) -> int:
+        """Return the number of scans and sweep points in the batch."""
+        return self.n_scans() + len(self.points)
+
+
+class Sink(Protocol):
+    """Where the scheduler's readings go: commits a batch and its cursor atomically."""
+
+    def commit(self, batch: Batch) -> None:
+        """Store every reading of the batch and move the campaign's cursor, all or nothing."""
+
+
+# -- the store side: campaigns opened by the daemon, batches committed with their cursor ------------
+
+TERMS = ("alpha", "beta", "gamma", "dx", "dy", "dz")
+STATE_KEYS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
+
+
+@dataclass(frozen=True)
+class CampaignHandle:
+    """A campaign row the daemon writes into, with its channel ids and the cursor to resume from."""
+
+    campaign_id: int
+    cursor: Cursor
+    channel_ids: dict[str, int]
+    resumed: bool
+    progress: dict[str, Any] = field(default_factory=dict)
+
+
+def _sweep_numbers(plan: Plan) -> dict[tuple[int, int], int]:
+    """Return the campaign-wide number of each (stage, sweep-in-stage) pair, in time order."""
+    out: dict[tuple[int, int], int] = {}
+    for p in plan.sweep_points():
+        out.setdefault((p.stage, p.sweep), len(out))
+    return out
+
+
+def open_campaign(
+    engine: Any,
+    plan: Plan,
+    channels: Mapping[str, Mapping[str, str]],
+    room_channels: list[str],
+    *,
+    resume: bool,
+    origin: Mapping[str, Any],
+    extra_meta: Mapping[str, Any] | None = None,
+) -> CampaignHandle:
+    """Create the daemon's campaign for `plan`, or with `resume` continue its latest one from its cursor.
+
+    With `resume` and no campaign of this plan yet (the daemon died before creating it), the
+    campaign is created; a complete one is returned with its final cursor (nothing left to do).
+    Refuses (ConflictError) to start a second copy of an unfinished campaign without `resume`, and
+    to resume one whose plan timeline has changed since it started.
+    """
+    from sqlalchemy import select
+
+    from driftlab.campaigns import schema as sc
+
+    fp = plan.fingerprint()
+    with write_transaction(engine) as conn:
+        row = conn.execute(
+            select(sc.Campaign.id, sc.Campaign.status, sc.AcquisitionProgress.cursor)
+            .join(sc.AcquisitionProgress, sc.AcquisitionProgress.campaign_id == sc.Campaign.id)
+            .where(sc.Campaign.name == plan.name, sc.Campaign.source == "daemon")
+            .order_by(sc.Campaign.id.desc())
+        ).first()
+        if row is not None and (row.status == "running" or (resume and row.status == "done")):
+            cid, cur = row.id, dict(row.cursor or {})
+            if not resume:
+                raise ConflictError(
+                    f"campaign {plan.name!r} (id {cid}) is unfinished: continue it with --resume"
+                )
+            if cur.get("fingerprint") != fp:
+                raise ConflictError(
+                    f"campaign {plan.name!r} (id {cid}) was started from a different plan timeline: "
+                    "resume it with the plan it started with"
+                )
+            ids = dict(
+                conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all()
+            )
+            if row.status == "done":
+                log.info("campaign %s (id %d) is already complete", plan.name, cid)
+            return CampaignHandle(cid, Cursor(int(cur["next_scan"]), int(cur["next_point"])), ids, True, cur)
+        if resume:
+            log.info("no unfinished campaign %s: starting it", plan.name)
+        if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
+            conn.execute(sc.Machine.__table__.insert().values(
+            id=plan.machine.id, name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", ""))))
+        started = sc.utcnow()
+        meta = {
+            "format": "driftlab-bundle/1",
+            "machine": {"id": plan.machine.id, "name": plan.machine.name},
+            "started_at": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "channels": {k: dict(v) for k, v in channels.items()},
+            "room_channels": list(room_channels),
+            "stages": plan.bundle_stages(),
+        }
+        for key, value in (extra_meta or {}).items():
+            meta.setdefault(key, value) if key != "machine" else meta["machine"].update(
+                {k: v for k, v in value.items() if k != "id" and (k != "name" or not plan.machine.name)}
+            )
+        cid = conn.execute(
+            sc.Campaign.__table__.insert().values(
+                machine_id=plan.machine.id, name=plan.name, started_at=started, status="running",
+                source="daemon", meta=meta, conditions_columns=["time_s", *STATE_KEYS],
+            )
+        ).inserted_primary_key[0]
+        conn.execute(
+            sc.Stage.__table__.insert(),
+            [
+                {"campaign_id": cid, "ordinal": i, "name": r["name"], "heat_source": r["heat_source"],
+                 "axis": r["axis"], "spindle_rpm": r["spindle_rpm"], "feed_mm_min": r["feed_mm_min"],
+                 "start_s": r["start_s"], "end_s": r["end_s"], "status": "planned"}
+                for i, r in enumerate(plan.bundle_stages())
+            ],
+        )
+        conn.execute(
+            sc.Channel.__table__.insert(),
+            [
+                {"campaign_id": cid, "ordinal": i, "name": name, "location": info.get("location", ""),
+                 "structure": info.get("structure", ""), "is_room": name in room_channels}
+                for i, (name, info) in enumerate(channels.items())
+            ],
+        )
+        cursor = {"next_scan": 0, "next_point": 0, "n_scans": plan.n_scans, "n_points": len(plan.sweep_points()),
+                  "total_s": plan.total_s, "fingerprint": fp, "plan": plan.name,
+                  "origin": dict(origin), "faults": 0, "recent_faults": []}
+        conn.execute(
+            sc.AcquisitionProgress.__table__.insert().values(
+                campaign_id=cid, stage_ordinal=0, sweep=0, last_sample_time_s=None, cursor=cursor,
+                updated_at=sc.utcnow(),
+            )
+        )
+        ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
+    log.info("campaign %s created (id %d)", plan.name, cid)
+    return CampaignHandle(cid, Cursor(), ids, False, cursor)
+
+
+class StoreUnavailable(DriftlabError):
+    """The store could not be reached or was locked for a write (worth retrying the same batch)."""
+
+    http_status = 503
+
+
+class StoreSink:
+    """Commits a batch of readings and the campaign's cursor in one database transaction."""
+
+    def __init__(self, engine: Any, plan: Plan, handle: CampaignHandle) -> None:
+        from driftlab.campaigns import schema as sc
+
+        self.engine = engine
+        self.plan = plan
+        self.cid = handle.campaign_id
+        self.channel_ids = handle.channel_ids
+        self.sweeps = _sweep_numbers(plan)
+        self.n_points = len(plan.sweep_points())
+        self._prog: dict[str, Any] = dict(handle.progress)
+        self._t_temp = sc.TemperatureSample.__table__
+        self._t_cond = sc.ConditionSample.__table__
+        self._t_err = sc.ErrorSample.__table__
+        self._t_prog = sc.AcquisitionProgress.__table__
+        self._t_stage = sc.Stage.__table__
+        self._t_camp = sc.Campaign.__table__
+        self._stage = -1
+
+    def _temperature_rows(self, batch: Batch) -> list[tuple[int, int, float, float | None]]:
+        """Return (campaign_id, channel_id, time_s, value) rows of the batch (None: flagged or non-finite)."""
+        rows = []
+        cid, ids, isfinite = self.cid, self.channel_ids, math.isfinite
+        for _, scan in batch.scans:
+            t, flags = scan.t_s, scan.flags
+            for name, value in scan.values.items():
+                ch = ids.get(name)
+                if ch is not None:
+                    rows.append((cid, ch, t, value if isfinite(value) and name not in flags else None))
+        return rows
+
+    def _block_arrays(self, batch: Batch) -> tuple[list[int], list[str], np.ndarray, np.ndarray] | None:
+        """Return (channel ids, names, times (n,), values (n, c)) of the batch's blocks; NaN where open."""
+        if not batch.blocks:
+            return None
+        channels = batch.blocks[0].channels
+        if any(b.channels != channels for b in batch.blocks):
+            raise ValueError("blocks of one batch must share their channels")
+        cols = [i for i, c in enumerate(channels) if c in self.channel_ids]
+        values = np.concatenate([b.values for b in batch.blocks])[:, cols]
+        times = np.concatenate([b.t_s for b in batch.blocks])
+        names = [channels[i] for i in cols]
+        return [self.channel_ids[c] for c in names], names, times, values
+
+    def _insert_blocks(self, conn: Any, arrays: tuple[list[int], list[str], np.ndarray, np.ndarray]) -> None:
+        """Insert block readings with the store's bulk path, channel by channel (key order); NaN stored as NULL."""
+        from driftlab.campaigns.ingest import bulk_insert, copy_temperatures_pg
+
+        ids, names, times, values = arrays
+        if conn.dialect.name == "postgresql":
+            import pandas as pd
+
+            frame = pd.DataFrame(values, columns=names)
+            frame.insert(0, "time_s", times)
+            copy_temperatures_pg(conn, self.cid, ids, frame)  # numpy-encoded binary COPY
+            return
+        # executemany over C-level zips: no Python frame per row (sqlite stores a bound NaN as NULL)
+        n, t = len(times), times.tolist()
+        rows = chain.from_iterable(
+            zip(repeat(self.cid, n), repeat(ch, n), t, col) for ch, col in zip(ids, values.T.tolist())
+        )
+        bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
+                    ("int4", "int4", "float8", "float8"), rows)
+
+    def _error_rows(self, batch: Batch) -> list[dict[str, Any]]:
+        """Return the error rows of the batch; a flagged (missing) term is not stored (it is a fault)."""
+        rows = []
+        for p, t, values in batch.points:
+            for term, r in values.items():
+                if not r.ok:
+                    continue
+                rows.append({
+                    "campaign_id": self.cid, "seq": p.index * len(TERMS) + TERMS.index(term), "time_s": t,
+                    "axis": p.axis, "term": term, "position": p.position, "direction": p.direction,
+                    "value": r.value, "sweep": self.sweeps[(p.stage, p.sweep)], "flags": 0,
+                })
+        return rows
+
+    def commit(self, batch: Batch) -> None:
+        """Insert the batch's rows and move the cursor, stage status and fault log, all in one transaction.
+
+        Raises ConflictError when a reading of the batch is already stored (never a second copy) and
+        StoreUnavailable when the database could not be reached; either way nothing was stored.
+        """
+        from sqlalchemy.exc import DBAPIError, IntegrityError
+
+        dbapi = self.engine.dialect.dbapi
+        try:
+            self._commit(batch)
+        except (IntegrityError, dbapi.IntegrityError) as exc:
+            raise ConflictError(
+                f"the store already holds a reading of this batch (t = {batch.t_s:g} s): {_first_line(exc)}"
+            ) from None
+        except (DBAPIError, dbapi.OperationalError, dbapi.InterfaceError) as exc:
+            if isinstance(exc, DBAPIError) and not (
+                exc.connection_invalidated or isinstance(exc.orig, (dbapi.OperationalError, dbapi.InterfaceError))
+            ):
+                raise
+            raise StoreUnavailable(f"cannot store readings at t = {batch.t_s:g} s: {_first_line(exc)}") from None
+
+    def _commit(self, batch: Batch) -> None:
+        """Write the batch (see commit)."""
+        from driftlab.campaigns.ingest import bulk_insert
+
+        temps = self._temperature_rows(batch)
+        wide = self._block_arrays(batch)
+        errs = self._error_rows(batch)
+        conds = [{"campaign_id": self.cid, "time_s": t, **{k: s.get(k) for k in STATE_KEYS}} for t, s in batch.states]
+        missing = [
+            Fault(t, f"point {p.index}", "laser", f"{term}: {r.flag}")
+            for p, t, values in batch.points for term, r in values.items() if not r.ok
+        ]
+        faults = [*batch.faults, *missing]
+        finished = batch.cursor.next_scan >= self.plan.n_scans and batch.cursor.next_point >= self.n_points
+        with write_transaction(self.engine) as conn:
+            if temps:
+                bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
+                            ("int4", "int4", "float8", "float8"), temps)
+            if wide is not None:
+                self._insert_blocks(conn, wide)
+            if conds:
+                conn.execute(self._t_cond.insert(), conds)
+            if errs:
+                conn.execute(self._t_err.insert(), errs)
+            prog = dict(self._prog)  # this sink is the campaign's only writer: no read-back needed
+            prog["next_scan"], prog["next_point"] = batch.cursor.next_scan, batch.cursor.next_point
+            if faults:
+                prog["faults"] = int(prog.get("faults", 0)) + len(faults)
+                recent = list(prog.get("recent_faults", [])) + [
+                    {"t_s": f.t_s, "step": f.step, "instrument": f.instrument, "message": f.message} for f in faults
+                ]
+                prog["recent_faults"] = recent[-20:]
+            if batch.datum is not None:
+                prog["datum"] = batch.datum
+            last = _last_scan(batch)
+            if last is not None:
+                prog["last_scan"] = {"t_s": last.t_s, "values": {
+                    k: (v if k not in last.flags and math.isfinite(v) else None) for k, v in last.values.items()}}
+            if batch.points:
+                p, t, values = batch.points[-1]
+                prog["last_point"] = {"t_s": t, "axis": p.axis, "position": p.position, "direction": p.direction,
+                                      "values": {k: (r.value if r.ok else None) for k, r in values.items()}}
+                prog["sweep"] = self.sweeps[(p.stage, p.sweep)]
+            conn.execute(
+                self._t_prog.update().where(self._t_prog.c.campaign_id == self.cid).values(
+                    cursor=prog, stage_ordinal=batch.stage, sweep=int(prog.get("sweep", 0)),
+                    last_sample_time_s=batch.t_s, updated_at=_utcnow(),
+                )
+            )
+            if batch.stage != self._stage:
+                conn.execute(self._t_stage.update().where(
+                    self._t_stage.c.campaign_id == self.cid, self._t_stage.c.ordinal < batch.stage,
+                    self._t_stage.c.status.in_(("planned", "running"))).values(status="done"))
+                conn.execute(self._t_stage.update().where(
+                    self._t_stage.c.campaign_id == self.cid, self._t_stage.c.ordinal == batch.stage).values(
+                    status="running"))
+                self._stage = batch.stage
+            if finished:
+                conn.execute(self._t_stage.update().where(
+                    self._t_stage.c.campaign_id == self.cid, self._t_stage.c.status.in_(("planned", "running"))
+                ).values(status="done"))
+                conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
+        self._prog = prog  # only once committed: a failed batch leaves the in-memory cursor where the store's is
+
+
+def _last_scan(batch: Batch) -> TemperatureScan | None:
+    """Return the latest scan of the batch (single or block-read), None when it has none."""
+    cands = []
+    if batch.scans:
+        cands.append(batch.scans[-1][1])
+    if batch.blocks and len(batch.blocks[-1]):
+        blk = batch.blocks[-1]
+        cands.append(blk.scan(len(blk) - 1))
+    return max(cands, key=lambda s: s.t_s) if cands else None
+
+
+def _first_line(exc: BaseException) -> str:
+    """Return the first line of a database error's own message."""
+    orig = getattr(exc, "orig", None) or exc
+    text = str(orig).strip()
+    return text.splitlines()[0] if text else type(orig).__name__
+
+
+def _utcnow() -> Any:
+    """Return the current UTC time (the store's timestamp convention)."""
+    from driftlab.campaigns.schema import utcnow
+
+    return utcnow()

@@ -1,0 +1,195 @@
+"""The simulated rig: the real drivers talking to simulated instruments that read the virtual machine.
+
+Also what the plan asks of the virtual machine: its stages as a scenario, the travel it allows and
+the campaign.json fields it adds (machine, model channels, noise).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from driftlab.campaigns.plan import Cursor, Plan
+from driftlab.daemon.rig import InstrumentRig
+
+
+class MemoWorld:
+    """The virtual machine behind a small cache: it is a pure function of its arguments, so asking twice is waste.
+
+    A sweep point asks the world for the same error and room air a dozen times at one instant (the
+    laser's settle polls and ten averaged readings); the cache answers the repeats exactly.
+    """
+
+    def __init__(self, world: Any, size: int = 64) -> None:
+        from functools import lru_cache
+
+        self.world = world
+        self._temps = lru_cache(maxsize=size)(world.temperatures)
+        self._errors = lru_cache(maxsize=size)(world.measure_error)
+
+    def temperatures(self, t_s: float) -> dict[str, float]:
+        """Return the world's thermocouple readings at t_s (a fresh dict each call)."""
+        return dict(self._temps(float(t_s)))
+
+    def measure_error(self, t_s: float, axis: str, position: float, direction: int) -> dict[str, float]:
+        """Return the world's measured error terms at (t_s, axis, position, direction)."""
+        return dict(self._errors(float(t_s), axis, float(position), int(direction)))
+
+    def state(self, t_s: float) -> Any:
+        """Return the world's machine state at t_s."""
+        return self.world.state(t_s)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.world, name)
+
+
+def _no_wait(_dt: float) -> None:
+    """Do not wait: on a simulated clock time only moves between steps."""
+
+
+def build_sim_rig(
+    plan: Plan, scenario: Any, clock: Any, channels: list[str], datum: Mapping[str, Any] | None = None,
+    world: Any | None = None, cursor: Cursor = Cursor(),
+) -> InstrumentRig:
+    """Return a rig whose real drivers talk to simulated servers reading the virtual machine at `clock`.
+
+    On a resume the simulated hardware is put back as the real hardware would have stayed while the
+    PC restarted: each axis where its last sweep point left it, the laser head on its datum.
+    """
+    import pyvisa
+
+    from driftlab.daq.laser import LaserInterferometer
+    from driftlab.daq.machine_link import SerialMachineLink
+    from driftlab.daq.retry import RetryPolicy
+    from driftlab.daq.sim.instruments import (
+        SimController,
+        SimLaser,
+        SimThermocoupleCard,
+        serial_url,
+        visa_address,
+    )
+    from driftlab.daq.thermocouple import ThermocoupleCard
+    from driftlab.daq.transport import LineChannel, VisaPort
+
+    if world is None:
+        from driftlab.daq.sim.machine import VirtualMachine
+
+        world = MemoWorld(VirtualMachine(plan_scenario(plan, scenario)))
+    card_map = dict(enumerate(channels))
+    card = SimThermocoupleCard(world, clock, card_map).start()
+    ctrl = SimController(world, clock)
+    for axis, (pos, direction) in axis_positions(plan, cursor).items():
+        ctrl.pos[axis], ctrl.direction[axis] = pos, direction
+    ctrl.start()
+    head = SimLaser(world, clock, ctrl).start()
+    closers: list[Callable[[], None]] = [card.close, ctrl.close, head.close]
+    try:
+        rm = pyvisa.ResourceManager("@py")
+        closers.append(rm.close)
+        policy = RetryPolicy(attempts=3, base_delay_s=0.0)
+        card_io = LineChannel(VisaPort.open(visa_address(card), resource_manager=rm), "thermocouple card",
+                              policy, sleep=_no_wait)
+        scanner = ThermocoupleCard(card_io, card_map, clock=clock.now)
+        closers.append(card_io.close)
+        laser_io = LineChannel(VisaPort.open(visa_address(head), resource_manager=rm), "laser", policy,
+                               sleep=_no_wait)
+        closers.append(laser_io.close)
+        laser = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20, burst=True)
+        link = SerialMachineLink.open(serial_url(ctrl), sleep=_no_wait, max_idle_polls=2)
+        closers.append(link.close)
+    except Exception:
+        for c in reversed(closers):
+            c()
+        raise
+    return InstrumentRig(plan, scanner, laser, link, clock=clock, datum=datum, laser_server=head, closers=closers,
+                         servers={"thermocouple": card, "laser": head, "controller": ctrl})
+
+
+def axis_positions(plan: Plan, cursor: Cursor) -> dict[str, tuple[float, int]]:
+    """Return where each swept axis was left (position, approach direction) before the cursor's next point."""
+    out: dict[str, tuple[float, int]] = {}
+    for p in plan.sweep_points()[: cursor.next_point]:
+        out[p.axis] = (p.position, p.direction)
+    return out
+
+
+
+
+def scenario_stages(plan: Plan) -> list[dict[str, Any]]:
+    """Return the plan's stages as virtual-machine scenario stages (the heat sources the world runs)."""
+    from driftlab.errors import ValidationError
+
+    out = []
+    for stage, (start, end) in zip(plan.stages, plan.stage_bounds()):
+        kinds = sorted(h.kind for h in stage.heat)
+        if "motor_hold" in kinds:
+            raise ValidationError(
+                f"plan {plan.name}: stage {stage.name!r}: the virtual machine's scenarios have no "
+                "motor_hold heat source; run this stage on the real machine"
+            )
+        axes = [h.axis for h in stage.heat if h.kind == "axis"]
+        if len(axes) > 1:
+            raise ValidationError(
+                f"plan {plan.name}: stage {stage.name!r}: the virtual machine runs one oscillating axis at a time"
+            )
+        source = {(): "idle", ("spindle",): "spindle", ("axis",): "feed", ("axis", "spindle"): "combined"}[
+            tuple(kinds)
+        ]
+        out.append({
+            "name": stage.name, "start_s": start, "end_s": end, "heat_source": source,
+            "axis": axes[0] if axes else (stage.axis if source == "spindle" else None),
+            "spindle_rpm": stage.spindle_rpm(), "feed_mm_min": stage.feed_mm_min(),
+        })
+    return out
+
+
+def check_travel(plan: Plan) -> None:
+    """Refuse sweep positions or oscillations outside the virtual machine's travel (Tables A.3, A.4)."""
+    from driftlab.daq.sim.truth import AXIS_RANGE
+    from driftlab.errors import ValidationError
+
+    for i, stage in enumerate(plan.stages):
+        lo, hi = AXIS_RANGE[stage.axis]
+        if stage.sweep is not None:
+            out = [p for p in stage.sweep.positions if not lo - 1e-9 <= p <= hi + 1e-9]
+            if out:
+                raise ValidationError(
+                    f"plan {plan.name}: stages[{i}].sweep.positions: {', '.join(f'{p:g}' for p in out)} outside "
+                    f"the virtual machine's {stage.axis} travel {lo:g}..{hi:g}"
+                )
+        for h in stage.heat:
+            if h.kind == "axis":
+                a, b = AXIS_RANGE[h.axis]
+                if not (a - 1e-9 <= min(h.from_pos, h.to_pos) and max(h.from_pos, h.to_pos) <= b + 1e-9):
+                    raise ValidationError(
+                        f"plan {plan.name}: stages[{i}].heat: {h.axis} oscillation {h.from_pos:g}..{h.to_pos:g} "
+                        f"outside the virtual machine's travel {a:g}..{b:g}"
+                    )
+
+
+def plan_scenario(plan: Plan, scenario: Any) -> Any:
+    """Return the scenario with the plan's stages and length (the daemon's plan drives the world)."""
+    from driftlab.daq.sim.scenario import Scenario
+
+    check_travel(plan)
+    doc = scenario.model_dump()
+    doc["stages"] = scenario_stages(plan)
+    doc["hours"] = max(doc["hours"], math.ceil(plan.total_s / 60.0) / 60.0)
+    doc["machine"] = {**doc["machine"], "id": plan.machine.id}
+    return Scenario.model_validate(doc)
+
+
+def scenario_meta(scenario: Any) -> dict[str, Any]:
+    """Return the virtual machine's channel map and room channels (Table 5.1 sites)."""
+    from driftlab.daq.sim.sites import ROOM_CHANNELS, channel_map
+
+    return {"channels": channel_map(), "room_channels": list(ROOM_CHANNELS)}
+
+
+def sim_meta(plan: Plan, scenario: Any) -> dict[str, Any]:
+    """Return what the virtual machine adds to campaign.json: machine details, model channels, noise."""
+    from driftlab.daq.sim.campaign import campaign_meta
+
+    meta = campaign_meta(plan_scenario(plan, scenario))
+    return {k: meta[k] for k in ("machine", "model_channels", "noise") if k in meta}

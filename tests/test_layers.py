@@ -1,0 +1,57 @@
+"""The import rules of the layers (issue 11): the store never reaches into the virtual machine.
+
+``campaigns`` (plans, store, bundles, acquisition records) must not import ``daq.sim``; the
+compensator reaches the virtual machine only through ``driftlab.daemon`` (the simulated rig and
+the machining bench), never directly.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[1] / "driftlab"
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Return every module a source file imports, at any depth (function-local imports included)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            out.add(node.module)
+            out.update(f"{node.module}.{a.name}" for a in node.names)
+    return out
+
+
+def _offenders(files: list[Path], forbidden: str) -> list[str]:
+    return sorted(
+        f"{p.relative_to(PKG.parent)} imports {m}"
+        for p in files for m in imported_modules(p) if m == forbidden or m.startswith(forbidden + ".")
+    )
+
+
+def test_campaigns_never_import_the_virtual_machine():
+    files = sorted((PKG / "campaigns").rglob("*.py"))
+    assert files
+    assert _offenders(files, "driftlab.daq.sim") == []
+
+
+def test_cutting_test_reaches_the_virtual_machine_only_through_the_daemon():
+    path = PKG / "compensator" / "cutting_test.py"
+    assert _offenders([path], "driftlab.daq.sim") == []
+    assert "driftlab.daemon.machining" in imported_modules(path)
+
+
+@pytest.mark.parametrize("source,expected", [
+    ("import driftlab.daq.sim.machine\n", "driftlab.daq.sim.machine"),
+    ("def f():\n    from driftlab.daq.sim import truth\n", "driftlab.daq.sim.truth"),
+])
+def test_the_import_scan_sees_local_and_from_imports(tmp_path, source, expected):
+    p = tmp_path / "m.py"
+    p.write_text(source)
+    assert expected in imported_modules(p)
