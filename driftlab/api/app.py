@@ -10,7 +10,7 @@ from typing import Annotated, Any
 from fastapi import Depends, FastAPI
 
 from driftlab import __version__
-from driftlab.api import problems
+from driftlab.api import live, pages, problems
 from driftlab.api.deps import ApiState, ModelCache, get_state
 from driftlab.api.routes import campaigns, drift, histories, jobs, machines, models, online
 from driftlab.api.schemas import Health
@@ -27,11 +27,12 @@ when no token is configured). Errors are RFC 9457 `application/problem+json`.
 
 
 def create_app(db_url: str | None = None, token: str | None = None, *, store: Store | None = None,
-               run_jobs: bool = True, model_cache_ttl_s: float = 1.0) -> FastAPI:
+               run_jobs: bool = True, model_cache_ttl_s: float = 1.0, live_poll_s: float = 0.5) -> FastAPI:
     """Return the API over the store at ``db_url`` (default DRIFTLAB_DB_URL) with write token ``token``.
 
     ``token`` defaults to DRIFTLAB_API_TOKEN; an empty token disables writes. With ``run_jobs`` a
-    background thread runs queued fit and diagnosis jobs while the application is up.
+    background thread runs queued fit and diagnosis jobs while the application is up. The live
+    page's hub polls the store for commits every ``live_poll_s`` while a page is open.
     """
     from driftlab.config import Settings
 
@@ -39,6 +40,7 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
     the_store = store if store is not None else connect(db_url or settings.resolved_db_url())
     state = ApiState(store=the_store, token=settings.api_token if token is None else token,
                      models=ModelCache(the_store, ttl_s=model_cache_ttl_s))
+    live_hub = live.LiveHub(the_store.engine, poll_s=live_poll_s)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -49,17 +51,22 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
         try:
             yield
         finally:
+            await live_hub.stop()
             if state.jobs is not None:
                 state.jobs.stop()
                 state.jobs = None
 
-    app = FastAPI(title="driftlab", version=__version__, description=DESCRIPTION, lifespan=lifespan)
+    app = FastAPI(title="driftlab", version=__version__, description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None)  # served from packaged assets by `pages`, not from a CDN
     app.state.driftlab = state
+    app.state.live_hub = live_hub
     problems.install_handlers(app)
     app.add_middleware(models.CurrentModelFastPath)  # inside the catch-all (the last added is outermost)
     app.add_middleware(problems.CatchAllMiddleware)
     for module in (machines, campaigns, histories, drift, models, jobs, online):
         app.include_router(module.router)
+    app.include_router(live.router)
+    pages.install(app)
 
     @app.get("/health", response_model=Health, tags=["health"], summary="Liveness and database reachability")
     def health(st: Annotated[ApiState, Depends(get_state)]) -> Health:
