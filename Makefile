@@ -26,3 +26,18 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) demo-out .pytest_cache
+
+# Browser tests (tests/api/test_browser.py) drive Debian's headless Chromium; installed once when missing.
+CHROMIUM := /usr/bin/chromium
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+$(CHROMIUM):
+	$(SUDO) apt-get update -qq
+	DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq chromium chromium-driver
+setup test: $(CHROMIUM)
+
+.PHONY: screenshots vendor-docs
+screenshots: $(STAMP) $(CHROMIUM)  ## regenerate docs/img/*.png (live page, /docs, /redoc, reports)
+	$(BIN)/python docs/screenshots.py
+
+vendor-docs: $(STAMP)  ## fetch Swagger UI and ReDoc again from their npm packages (versions in VENDOR.json)
+	$(BIN)/python -m driftlab.api.vendor refresh
