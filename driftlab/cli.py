@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import pkgutil
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from driftlab import __version__
 from driftlab import commands as commands_pkg
 from driftlab.errors import DriftlabError
+from driftlab.logs import setup_logging
 
 
 class _Parser(argparse.ArgumentParser):
@@ -30,7 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Measure, learn and cancel the thermal drift of a five-axis machine tool.",
     )
     parser.add_argument("--version", action="version", version=f"driftlab {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log progress at INFO level")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log progress at INFO level (-vv: DEBUG, with the libraries' own lines)")
+    parser.add_argument("--log-file", type=Path, default=None, metavar="PATH",
+                        help="also append timestamped log lines (INFO and worse) to this file")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for info in sorted(pkgutil.iter_modules(commands_pkg.__path__), key=lambda m: m.name):
         module = importlib.import_module(f"{commands_pkg.__name__}.{info.name}")
@@ -44,10 +48,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI and return its exit status; user errors become one line on stderr."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    try:
+        setup_logging(args.verbose, args.log_file)
+    except OSError as exc:
+        sys.stderr.write(f"driftlab: error: --log-file {args.log_file}: {exc.strerror or exc}\n")
+        return 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

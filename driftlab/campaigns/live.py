@@ -290,3 +290,10 @@ def _natural(name: str) -> tuple[Any, ...]:
     head = name.rstrip("0123456789")
     tail = name[len(head):]
     return (head, int(tail) if tail else -1)
+
+
+def campaign_meta(engine: Engine, campaign_id: int) -> dict[str, Any] | None:
+    """Return a stored campaign's campaign.json document (None when absent); no samples are read."""
+    with Session(engine) as s:
+        meta = s.execute(select(sc.Campaign.meta).where(sc.Campaign.id == campaign_id)).scalar()
+    return None if meta is None else dict(meta)

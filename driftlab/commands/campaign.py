@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 from driftlab.commands.db import add_db_option
 
@@ -20,6 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from driftlab.commands.daemon import register_status
 
     register_status(campsub)
+    add_watch(campsub)
 
 
 def _list(args: argparse.Namespace) -> int:
@@ -37,3 +39,173 @@ def _list(args: argparse.Namespace) -> int:
     for row in table:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
     return 0
+
+
+# -- `campaign status ID --watch`: the live page's picture in the terminal --------------------------
+
+
+def add_watch(campsub: argparse._SubParsersAction) -> None:
+    """Add `--watch` and `--interval` to the `campaign status` parser (registered with the daemon's command)."""
+    st = campsub.choices["status"]
+    plain = st.get_default("func")
+    st.add_argument("--watch", action="store_true",
+                    help="follow one campaign in the terminal until it ends (Ctrl-C to leave): stage, progress, "
+                         "latest temperatures and errors, instrument health")
+    st.add_argument("--interval", type=float, default=1.0, metavar="S", help="with --watch: seconds between reads")
+
+    def _status_or_watch(args: argparse.Namespace) -> int:
+        """Print the status, or follow it with --watch."""
+        return _watch(args) if args.watch else plain(args)
+
+    st.set_defaults(func=_status_or_watch)
+
+
+def _watch(args: argparse.Namespace) -> int:
+    """Follow one campaign with rich Live until it is no longer running; 0 then, or on Ctrl-C."""
+    from driftlab.campaigns import live
+    from driftlab.campaigns.db import store_engine
+    from driftlab.errors import NotFoundError, ValidationError
+
+    if args.campaign is None:
+        raise ValidationError("--watch follows one campaign: give its id or name")
+    if args.json:
+        raise ValidationError("--watch draws in the terminal; without it, --json prints the status once")
+    if not args.interval > 0:
+        raise ValidationError(f"--interval must be positive, got {args.interval}")
+    engine = store_engine(args.db)
+    cid = live.find_campaign(engine, args.campaign)
+    if cid is None:
+        raise NotFoundError(f"no daemon campaign {args.campaign!r}")
+    from rich.console import Console
+
+    try:
+        watch(engine, cid, Console(), args.interval)
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
+def watch(engine: Any, campaign_id: int, console: Any, interval_s: float = 1.0, max_frames: int | None = None) -> dict[str, Any]:
+    """Redraw the campaign every ``interval_s`` while it runs (at most ``max_frames`` times); return its last header."""
+    import time
+
+    from rich.live import Live
+
+    from driftlab.campaigns import live
+    from driftlab.errors import NotFoundError
+
+    chans = live.channels(engine, campaign_id)
+    frames = 0
+    with Live(console=console, auto_refresh=False, transient=False) as screen:
+        while True:
+            head = live.header(engine, campaign_id)
+            if head is None:
+                raise NotFoundError(f"campaign {campaign_id} is no longer in the store")
+            t = head["progress"]["time_s"] or 0.0
+            errs = live.error_readings(engine, campaign_id, limit=200, since_s=t - 4 * 3600.0)
+            screen.update(render(head, chans, errs), refresh=True)
+            frames += 1
+            if head["status"] != "running" or (max_frames is not None and frames >= max_frames):
+                return head
+            time.sleep(interval_s)
+
+
+def _bar(fraction: float, width: int = 30) -> Any:
+    """Return a text progress bar of ``width`` cells."""
+    from rich.text import Text
+
+    n = int(round(max(0.0, min(1.0, fraction)) * width))
+    return Text.assemble(("\u2588" * n, "green"), ("\u2591" * (width - n), "dim"))
+
+
+def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, list[Any]]) -> Any:
+    """Return the rich renderable of one campaign: stage and progress, temperatures by structure, errors, health."""
+    from rich.console import Group
+    from rich.table import Table
+    from rich.text import Text
+
+    from driftlab.labels import duration
+
+    p, st, h = head["progress"], head["stage"], head["health"]
+    title = Text.assemble((head["name"], "bold"), "  ", (f"[{head['status']}]", "green" if head["status"] == "running"
+                                                          else "cyan"),
+                          f"  campaign {head['campaign_id']}, machine {head['machine']}, "
+                          + ("instruments" if head["mode"] != "sim" else f"virtual machine x{head['speed']:g}"
+                             if head["speed"] else "virtual machine, as fast as it goes"))
+    top = Table.grid(padding=(0, 2))
+    top.add_column(style="dim", justify="right")
+    top.add_column()
+    if st:
+        heat = st["heat_source"] if st["heat_source"] not in ("", "none") else "no heat source"
+        extra = [f"axis {st['axis']}", heat]
+        if st["spindle_rpm"]:
+            extra.append(f"spindle {st['spindle_rpm']:.0f} rpm")
+        if st["feed_mm_min"]:
+            extra.append(f"feed {st['feed_mm_min']:.0f} mm/min")
+        top.add_row("stage", Text.assemble((st["name"], "bold"), f"  {st['ordinal'] + 1} of {len(head['stages'])}: ",
+                                           ", ".join(extra)))
+        if st.get("setup"):
+            top.add_row("setup", ", ".join(str(v) for v in st["setup"].values() if v))
+        frac = p["stage_fraction"] or 0.0
+        left = duration(p["stage_left_s"])
+        if p["stage_left_wall_s"] is not None and head["speed"] not in (None, 1.0):
+            left += f" (about {duration(p['stage_left_wall_s'])} wall-clock)"
+        top.add_row("in stage", Text.assemble(_bar(frac), f" {100 * frac:.0f} % done, {left} of campaign time left"))
+    top.add_row("campaign", Text.assemble(_bar(p["fraction"]), f" {100 * p['fraction']:.1f} %, "
+                                          f"{duration(p['total_left_s'])} left"))
+    top.add_row("stored", f"{p['scans']} of {p['n_scans']} scans, {p['points']} of {p['n_points']} sweep points")
+    latest = head["latest"] or {}
+    top.add_row("latest scan", f"{duration(latest.get('time_s'), clock=True)} into the campaign"
+                if latest else "none yet")
+    temps = Table(title="Latest temperatures (degC) by structure", title_justify="left", expand=False)
+    temps.add_column("structure")
+    temps.add_column("range", justify="right")
+    temps.add_column("thermocouples")
+    values = latest.get("values") or {}
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for c in chans:
+        groups.setdefault("room" if c["room"] else c["structure"], []).append(c)
+    for g in sorted(groups):
+        vals = [values.get(c["name"]) for c in groups[g]]
+        ok = [v for v in vals if v is not None]
+        cells = Text()
+        for c, v in zip(groups[g], vals):
+            if c["name"] in values and v is None:
+                cells.append(f"{c['name']} open  ", style="bold red")
+            else:
+                cells.append(f"{c['name']} {'-' if v is None else f'{v:.2f}'}  ")
+        temps.add_row(g.replace("_", " "), f"{min(ok):.2f} .. {max(ok):.2f}" if ok else "-", cells)
+    errors = Table(title="Latest error sweeps (value at each position)", title_justify="left")
+    errors.add_column("axis/term")
+    errors.add_column("approach", justify="center")
+    errors.add_column("readings")
+    errors.add_column("campaign time", justify="right")
+    last: dict[tuple[str, str, int], tuple[int, list[int]]] = {}
+    for i in range(len(errs["seq"])):
+        key = (errs["axis"][i], errs["term"][i], errs["direction"][i])
+        sw = errs["sweep"][i]
+        if key not in last or last[key][0] != sw:
+            last[key] = (sw, [])
+        last[key][1].append(i)
+    for (axis, term, d), (_, idx) in sorted(last.items()):
+        scale, unit = (1e6, "urad") if term in ("alpha", "beta", "gamma") else (1e3, "um")
+        pos_unit = "deg" if axis in ("A", "B") else "mm"
+        cells = "  ".join(f"{errs['position'][i]:g} {pos_unit}: {errs['value'][i] * scale:.1f}" for i in
+                          sorted(idx, key=lambda i: errs["position"][i]))
+        errors.add_row(f"{axis}/{term}", "+" if d > 0 else "-", f"{cells} {unit}",
+                       duration(errs["t"][idx[-1]], clock=True))
+    if not last:
+        errors.add_row("-", "-", "no error readings yet", "-")
+    health = Table.grid(padding=(0, 2))
+    health.add_column(style="dim", justify="right")
+    health.add_column()
+    health.add_row("faults", Text(str(h["faults"]), style="yellow" if h["faults"] else "green"))
+    health.add_row("timeouts", Text(f"{h['timeouts']}" + (f" (in the last {h['counted_over']} faults)"
+                                                         if h["counted_over"] < h["faults"] else ""),
+                                    style="yellow" if h["timeouts"] else "green"))
+    health.add_row("retries", ", ".join(f"{k} {v}" for k, v in h["retries"].items()) if h["retries"]
+                   else "not recorded by the daemon")
+    health.add_row("open thermocouples", Text(", ".join(h["open"]) or "none", style="bold red" if h["open"] else "green"))
+    for f in h["recent"][-3:]:
+        health.add_row("", f"{duration(f['t_s'], clock=True)} {f['instrument']} ({f['step']}): {f['message']}")
+    return Group(title, top, temps, errors, Text("Instrument health", style="bold"), health)

@@ -41,12 +41,59 @@ def _diagnose(args: argparse.Namespace) -> int:
         bundle = connect(args.db).load_campaign(args.campaign)  # NotFoundError for an unknown id
     else:
         bundle = load_bundle(args.bundle)  # BundleError: one line FILE:ROW: problem
-    result = diagnose_bundle(bundle, holdout_fraction=args.holdout_fraction)
+    from driftlab.progress import progress
+
+    with progress(f"diagnosing {bundle.name}") as _bar:  # a spinner: the search has no known length
+        result = diagnose_bundle(bundle, holdout_fraction=args.holdout_fraction)
+    doc = result.to_json_dict()
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(result.to_json_dict(), indent=2, allow_nan=False) + "\n")
+    args.json.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
     if args.html is not None:
         args.html.parent.mkdir(parents=True, exist_ok=True)
         args.html.write_text(result.to_html(), encoding="utf-8")
+    print_findings(doc)
     n = len(result.effects)
-    print(f"diagnosed {bundle.name}: {n} effect{'s' if n != 1 else ''} accepted; report {args.json}")
+    print(f"diagnosed {bundle.name}: {n} effect{'s' if n != 1 else ''} accepted; report {args.json}"
+          + (f", page {args.html}" if args.html is not None else ""))
     return 0
+
+
+def print_findings(doc: dict) -> None:
+    """Print a diagnosis report's findings (effect, cause, held-out gain in um/urad) and the baseline per term."""
+    from rich.table import Table
+
+    from driftlab.labels import display_unit, effect_label
+    from driftlab.progress import stdout_console
+
+    con = stdout_console()
+    effects = doc.get("effects", [])
+    if effects:
+        t = Table(title=f"Findings: what the standard model misses ({doc.get('holdout', {}).get('method', 'held out')} "
+                        "held out)", title_justify="left")
+        for col, just in (("#", "right"), ("effect", "left"), ("on", "left"), ("cause", "left"),
+                          ("held-out RMSE before", "right"), ("after", "right"), ("gain", "right"), ("p", "right")):
+            t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+        for i, e in enumerate(effects, 1):
+            k, unit = display_unit(str(e.get("term")))
+            b, a = e.get("rmse_holdout_before"), e.get("rmse_holdout_after")
+            gain = f"[green]{100 * (1 - a / b):.0f} %[/]" if b and a is not None else "-"
+            t.add_row(str(i), effect_label(e), f"{e.get('axis')}/{e.get('term')}", str(e.get("cause") or ""),
+                      f"{b * k:.2f} {unit}" if b is not None else "-", f"{a * k:.2f} {unit}" if a is not None else "-",
+                      gain, f"{e['p_value']:.2g}" if e.get("p_value") is not None else "-")
+        con.print(t)
+    else:
+        con.print("No effect of the catalogue is supported by the data: the standard model stands.")
+    base = doc.get("baseline", [])
+    if base:
+        t = Table(title="Standard model per term: held-out RMSE before and after the findings", title_justify="left")
+        for col, just in (("axis/term", "left"), ("model thermocouples", "left"), ("train", "right"),
+                          ("held out", "right"), ("with findings", "right")):
+            t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+        ext = {(x.get("axis"), x.get("term")): x for x in doc.get("extended", [])}
+        for r in base:
+            k, unit = display_unit(str(r.get("term")))
+            x = ext.get((r.get("axis"), r.get("term")), {})
+            fmt = lambda v: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
+            t.add_row(f"{r.get('axis')}/{r.get('term')}", " ".join(r.get("channels") or []), fmt(r.get("rmse_train")),
+                      fmt(r.get("rmse_holdout")), fmt(x.get("rmse_holdout")))
+        con.print(t)

@@ -8,7 +8,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-STAGES = ("screening", "samples", "allocation_and_regression", "validation", "network", "virtual_sensors", "document")
+STAGES = ("screening", "samples", "allocation_and_regression", "joint_adjustment", "validation", "network",
+          "virtual_sensors", "document")
+
+
+def fit_steps(network: bool = True) -> list[str]:
+    """Return the steps a fit reports, in order (the neural comparison only with ``network``)."""
+    return [s for s in STAGES if network or s != "network"]
 
 
 def _db(parser: argparse.ArgumentParser) -> None:
@@ -70,7 +76,7 @@ def _fit(args: argparse.Namespace) -> int:
     from driftlab.campaigns.store import connect
     from driftlab.errors import ValidationError
     from driftlab.models.fitting import submit_fit, work
-    from driftlab.progress import progress
+    from driftlab.progress import progress, stages
 
     with connect(args.db) as store:
         if args.worker:
@@ -92,46 +98,114 @@ def _fit(args: argparse.Namespace) -> int:
         if args.enqueue:
             print(json.dumps({"job": job_id, "state": "queued"}))
             return 0
-        with progress("fitting", total=len(STAGES)) as bar:
-            work(store, until_job=job_id, on_stage=lambda _s: bar.advance())
+        with stages("fitting", fit_steps(network=not args.no_network)) as bar:
+            work(store, until_job=job_id, on_stage=bar.done)
         job = store.get_job(job_id)
         if job.state != "done":
             raise ValidationError(f"fit job {job_id} {job.state}: {job.error or 'no result'}")
         report: dict[str, Any] = dict(job.result or {})
+        ref = _reference(store, args.campaign)
     text = json.dumps(report, indent=2)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text + "\n")
-    _print_summary(report)
+    _print_summary(report, ref)
     return 0
 
 
-def _print_summary(report: dict[str, Any]) -> None:
-    """Print the fit in the layout of tables 6.1-6.3 (one line each)."""
-    out = sys.stdout
-    out.write(f"machine {report.get('machine')}: model version {report.get('model_version')}, "
-              f"{len(report.get('kept_channels', []))} channels kept: {' '.join(report.get('kept_channels', []))}\n")
-    out.write(f"{'axis':4} {'term':6} {'link':28} {'rmse_train':>11} {'rmse_holdout':>12} {'R2':>7} {'F':>10}\n")
+def _reference(store: Any, campaign_ids: list[int]) -> dict[str, Any]:
+    """Return what the held-out errors are judged against: the campaign's stated noise, else the machine's resolution."""
+    from driftlab.campaigns.live import campaign_meta
+
+    meta = campaign_meta(store.engine, campaign_ids[0]) if campaign_ids else None
+    noise = (meta or {}).get("noise") or {}
+    machine = (meta or {}).get("machine") or {}
+    import math
+
+    res_deg = machine.get("resolution_deg") or 0.001
+    return {"noise_mm": noise.get("length_mm"), "noise_rad": noise.get("angle_rad"),
+            "resolution_mm": machine.get("resolution_mm") or 0.0025, "resolution_rad": math.radians(res_deg)}
+
+
+def verdict(rmse: float | None, term: str, ref: dict[str, Any]) -> tuple[str, str, str]:
+    """Return (ratio text, verdict, style) of a held-out RMSE against the stated noise (or the resolution)."""
+    from driftlab.labels import ANGLES
+
+    angle = term in ANGLES
+    noise = ref["noise_rad"] if angle else ref["noise_mm"]
+    basis = "noise"
+    if not noise:
+        noise, basis = (ref["resolution_rad"] if angle else ref["resolution_mm"]), "resolution"
+    if rmse is None or not noise:
+        return "-", "no held-out rows", "dim"
+    ratio = rmse / noise
+    text = f"{ratio:.1f}x {basis}"
+    if ratio <= 1.5:
+        return text, f"at the {basis}", "green"
+    if ratio <= 3.0:
+        return text, f"near the {basis}", "yellow"
+    return text, "above the noise: run driftlab diagnose" if basis == "noise" else "above the resolution", "red"
+
+
+def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) -> None:
+    """Print the fit as tables 6.1-6.3 do, with units (um, urad) and a verdict per row."""
+    from rich.table import Table
+
+    from driftlab.labels import display_unit, effect_label, feature_label
+    from driftlab.progress import stdout_console
+
+    ref = ref or {"noise_mm": None, "noise_rad": None, "resolution_mm": 0.0025, "resolution_rad": 1.7453e-05}
+    con = stdout_console()
+    kept = report.get("kept_channels", [])
+    con.print(f"machine {report.get('machine')}: model version {report.get('model_version')} registered; "
+              f"{len(kept)} thermocouples kept: {' '.join(kept)}")
+    stated = []
+    if ref.get("noise_mm"):
+        stated.append(f"{ref['noise_mm'] * 1e3:.2g} um")
+    if ref.get("noise_rad"):
+        stated.append(f"{ref['noise_rad'] * 1e6:.2g} urad")
+    t = Table(title="Per-link models (thesis tables 6.1-6.2): RMSE of the work-space error" + (
+        f"; stated noise {', '.join(stated)}" if stated else "; no noise stated: judged against the machine's resolution"),
+        title_justify="left")
+    for col, just in (("axis", "left"), ("term", "left"), ("link", "left"), ("unit", "left"), ("RMSE train", "right"),
+                      ("RMSE held out", "right"), ("R2", "right"), ("F", "right"), ("held out vs", "right"),
+                      ("verdict", "left")):
+        t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
     for r in report.get("terms", []):
-        def num(v: Any, fmt: str) -> str:
-            return format(v, fmt) if isinstance(v, (int, float)) else "-"
-        out.write(f"{r['axis']:4} {r['term']:6} {r['link'][:28]:28} {num(r['rmse_train'], '11.3g')} "
-                  f"{num(r['rmse_holdout'], '12.3g')} {num(r['r2'], '7.4f')} {num(r['f'], '10.4g')}\n")
-    for p in report.get("physical", []):
-        out.write(f"  {p['term']}: regression {p['regression']:.4g}, physical {p['physical']:.4g} ({p['relationship']})\n")
+        k, unit = display_unit(r["term"])
+        ratio, word, style = verdict(r.get("rmse_holdout"), r["term"], ref)
+
+        def num(v: Any, fmt: str, scale: float = 1.0) -> str:
+            return format(v * scale, fmt) if isinstance(v, (int, float)) else "-"
+
+        t.add_row(r["axis"], r["term"], str(r["link"]), unit, num(r.get("rmse_train"), ".2f", k),
+                  num(r.get("rmse_holdout"), ".2f", k), num(r.get("r2"), ".3f"), num(r.get("f"), ".4g"), ratio,
+                  f"[{style}]{word}[/]")
+    con.print(t)
+    phys = report.get("physical", [])
+    if phys:
+        pt = Table(title="Regression against physical coefficients (thesis table 6.3)", title_justify="left")
+        for col in ("coefficient", "regression", "physical", "relationship"):
+            pt.add_column(col, justify="right" if col in ("regression", "physical") else "left")
+        for p in phys:
+            elem, _, feat = str(p["term"]).partition(" ")
+            pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem), f"{p['regression']:.4g}", f"{p['physical']:.4g}",
+                       str(p.get("relationship", "")))
+        con.print(pt)
     for f in report.get("findings", []):
-        where = f"{f['kind']} {f['axis']}/{f['term']} {' '.join(f.get('channels', []))}".rstrip()
+        what = f"{effect_label(f)} on {f.get('axis')}/{f.get('term')}"
         if not f.get("folded"):
-            out.write(f"  finding {where}: not folded in ({f.get('note', '')})\n")
+            con.print(f"finding {what}: not folded in ({f.get('note', '')})")
         elif f["kind"] == "sensor_fault":
-            out.write(f"  finding {where}: {', '.join(f.get('substituted', []))} replaced by its virtual sensor\n")
+            con.print(f"finding {what}: {', '.join(f.get('substituted', []))} replaced by its virtual sensor")
         else:
-            kept = [f"{n} in {'+'.join(m)}" for n, m in f.get("entered", {}).items() if m]
-            out.write(f"  finding {where}: {'; '.join(kept) or 'no term entered'}"
-                      f"{' (forced)' if f.get('forced') else ''}\n")
+            kept_terms = [f"{feature_label(n)} in {'+'.join(m)}" for n, m in f.get("entered", {}).items() if m]
+            con.print(f"finding {what}: {'; '.join(kept_terms) or 'no term entered'}"
+                      f"{' (forced)' if f.get('forced') else ''}")
     if report.get("extrapolation"):
         e = report["extrapolation"]
-        out.write(f"extrapolation: regression {e['regression_mm']:.4f} mm, network {e['network_mm']:.4f} mm\n")
+        con.print(f"extrapolation to an unseen campaign (ch. 6.6): regression {e['regression_mm'] * 1e3:.1f} um, "
+                  f"neural network {e['network_mm'] * 1e3:.1f} um RMSE")
 
 
 def _list(args: argparse.Namespace) -> int:

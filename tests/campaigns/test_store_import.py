@@ -147,8 +147,9 @@ def test_corrupted_bundle_via_cli_changes_nothing(store_url: str, bundle_factory
 
 
 def test_cli_import_prints_id_and_refuses_twice(store_url: str, bundle_dir: Path, tmp_path: Path, capsys) -> None:
-    assert main(["import", str(bundle_dir), "--db", store_url]) == 0
-    assert capsys.readouterr().out.strip() == "1"
+    assert main(["import", str(bundle_dir), "--json", "--db", store_url]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["campaign_id"] == 1 and summary["machine"] == "vmc-test-01" and summary["scans"] == 40
     assert main(["import", str(bundle_dir), "--db", store_url]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "already stored as campaign 1" in err[0]
