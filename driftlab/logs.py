@@ -29,6 +29,22 @@ class _QuietLibraries(logging.Filter):
             ("Running upgrade", "Running downgrade"))
 
 
+class _CurrentStderr(logging.StreamHandler):  # type: ignore[type-arg]
+    """A stream handler that writes to whatever ``sys.stderr`` is when a record is emitted."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property  # type: ignore[override]
+    def stream(self) -> object:
+        """Return the current standard error."""
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value: object) -> None:
+        """Ignore: the stream is always the current standard error."""
+
+
 def setup_logging(verbosity: int = 0, log_file: Path | None = None) -> None:
     """Configure the root logger for a CLI run (replacing any handlers a previous run installed)."""
     from driftlab.progress import console
@@ -47,7 +63,7 @@ def setup_logging(verbosity: int = 0, log_file: Path | None = None) -> None:
                                             log_time_format="[%H:%M:%S]")
         term.setFormatter(logging.Formatter("%(name)s: %(message)s"))
     else:
-        term = logging.StreamHandler(sys.stderr)
+        term = _CurrentStderr()
         term.setFormatter(logging.Formatter(CONSOLE_FORMAT, DATE))
     term.setLevel(level)
     handlers.append(term)
