@@ -66,24 +66,28 @@ def write_json(path: Path, report: dict[str, Any]) -> Path:
 
 
 def surface_figure(deviations: dict[str, np.ndarray]) -> str:
-    """Return a PNG (base64) of the machined-surface errors of each run (figs. 7.3, 7.4, 7.6)."""
+    """Return a PNG (base64) of the machined-surface errors of each run (figs. 7.3, 7.4, 7.6), one colour scale each.
+
+    Each map has its own symmetric scale and colour bar with its range written on it: a shared
+    scale would flatten the compensated runs, whose errors are ten times smaller.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     keys = [k for k in ("uncompensated", "offline", "online") if k in deviations]
-    lim = max(float(np.max(np.abs(deviations[k]))) for k in keys) * 1e3 or 1.0
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 4.2), sharey=True, constrained_layout=True)
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.6 * len(keys), 4.4), sharey=True, constrained_layout=True)
     axes = np.atleast_1d(axes)
-    im = None
     for ax, k in zip(axes, keys):
-        im = ax.imshow(deviations[k] * 1e3, aspect="auto", origin="lower", cmap="coolwarm", vmin=-lim, vmax=lim,
-                       extent=(0.5, deviations[k].shape[1] + 0.5, 0.5, deviations[k].shape[0] + 0.5))
-        ax.set_title(RUN_NAMES[k])
+        um = deviations[k] * 1e3
+        lim = float(np.nanmax(np.abs(um))) or 1.0
+        im = ax.imshow(um, aspect="auto", origin="lower", cmap="coolwarm", vmin=-lim, vmax=lim,
+                       extent=(0.5, um.shape[1] + 0.5, 0.5, um.shape[0] + 0.5))
+        ax.set_title(f"{RUN_NAMES[k]}\nrange {np.nanmin(um):+.1f} .. {np.nanmax(um):+.1f} um", fontsize=10)
         ax.set_xlabel("across the part (15 CMM points)")
-    axes[0].set_ylabel("along the part = time (99 CMM points)")
-    fig.colorbar(im, ax=list(axes), label="normal deviation (um)")
+        fig.colorbar(im, ax=ax, label=f"normal deviation (um), scale +-{lim:.1f}", shrink=0.85)
+    axes[0].set_ylabel("along the part = machining time (99 CMM points)")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=80)
     plt.close(fig)
@@ -95,34 +99,46 @@ def _row(cells: list[str], tag: str = "td") -> str:
     return "<tr>" + "".join(f"<{tag}>{c}</{tag}>" for c in cells) + "</tr>"
 
 
+def _planted_text(p: dict[str, Any]) -> str:
+    """Return a planted effect of the scenario in words (never as JSON)."""
+    from driftlab.labels import effect_label
+
+    where = f" on {p.get('axis')}/{p.get('term')}" if p.get("axis") else ""
+    return effect_label(p) + where
+
+
 def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
-    """Return the demo's HTML page: the cutting-test table, the diagnosis findings, the steps."""
+    """Return the demo's HTML page: the cutting-test table (um), the diagnosis findings in words, the steps."""
+    from driftlab.labels import duration, effect_label
+
     e = html.escape
-    rows = [_row(["run", "RMSE (mm)", "max (mm)", "thesis RMSE (mm)", "thesis max (mm)"], "th")]
+    rows = [_row(["run", "RMSE (um)", "max (um)", "thesis RMSE (um)", "thesis max (um)", "verdict"], "th")]
     for k, name in RUN_NAMES.items():
         r, t = report[k], THESIS[k]
-        rows.append(_row([e(name), f"{r['rmse_mm']:.4f}", f"{r['max_mm']:.4f}", f"{t['rmse_mm']:.3f}",
-                          f"{t['max_mm']:.3f}"]))
+        ok = r["rmse_mm"] <= t["rmse_mm"] * 1.5
+        rows.append(_row([e(name), f"{r['rmse_mm'] * 1e3:.1f}", f"{r['max_mm'] * 1e3:.1f}", f"{t['rmse_mm'] * 1e3:.0f}",
+                          f"{t['max_mm'] * 1e3:.0f}", "as in the thesis" if ok else "worse than the thesis"]))
     diag = report.get("diagnosis", {})
     findings = "".join(
-        f"<li><b>{e(str(f.get('kind')))}</b> on {e(str(f.get('axis')))}/{e(str(f.get('term')))} "
-        f"{e(' '.join(f.get('channels') or []))}: {e(str(f.get('cause') or ''))} "
-        f"(held-out RMSE {1e3 * (f.get('rmse_holdout_before') or 0):.2f} &rarr; "
+        f"<li><b>{e(effect_label(f))}</b> on {e(str(f.get('axis')))}/{e(str(f.get('term')))}: "
+        f"{e(str(f.get('cause') or ''))} (held-out RMSE {1e3 * (f.get('rmse_holdout_before') or 0):.2f} &rarr; "
         f"{1e3 * (f.get('rmse_holdout_after') or 0):.2f} um)</li>"
         for f in diag.get("effects", [])) or "<li>no effect accepted</li>"
-    steps = "".join(_row([e(s["name"]), e(s.get("command", "")), f"{s['wall_s']:.1f}"]) for s in report.get("steps", []))
-    fig = f'<p><img alt="machined surface errors" src="data:image/png;base64,{figure_png}"></p>' if figure_png else ""
+    steps = "".join(_row([e(s["name"]), f"<code>{e(s.get('command', ''))}</code>", e(duration(s["wall_s"]))])
+                    for s in report.get("steps", []))
+    fig = (f'<p><img style="max-width:100%" alt="machined surface errors of the three runs, each with its own colour '
+           f'scale" src="data:image/png;base64,{figure_png}"></p>') if figure_png else ""
     planted = report.get("planted", [])
-    planted_html = "".join(f"<li>{e(json.dumps(p))}</li>" for p in planted)
+    planted_html = "".join(f"<li>{e(_planted_text(p))}</li>" for p in planted) or "<li>nothing hidden</li>"
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>driftlab demo</title>
-<style>body{{font-family:sans-serif;max-width:70em;margin:2em auto}}table{{border-collapse:collapse}}
+<style>body{{font-family:sans-serif;max-width:70em;margin:2em auto;color:#1d2430}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #bbb;padding:.25em .6em;text-align:right}}td:first-child,th:first-child{{text-align:left}}
-code{{font-size:90%}}</style></head><body>
+code{{font-size:85%}}</style></head><body>
 <h1>driftlab demo</h1>
 <p>A staged campaign on the virtual machine through the daemon, a fitted and registered model, its diagnosis,
 the model served over the API, and the cutting test of thesis ch. 7.3 streamed through the compensator.
-Total wall time {report.get('wall_s', 0):.0f} s.</p>
+Total wall time {e(duration(report.get('wall_s', 0)))}. Lengths in micrometres (um).</p>
 <h2>Cutting test (ch. 7.3): normal deviation of the machined surface, CMM 15 x 99 points</h2>
 <table>{''.join(rows)}</table>
 <p>Ordering uncompensated &gt; off-line &gt; off-line + on-line: <b>{'holds' if report.get('ordering_holds') else 'does NOT hold'}</b>.</p>
@@ -130,8 +146,8 @@ Total wall time {report.get('wall_s', 0):.0f} s.</p>
 <h2>Diagnosis of the campaign</h2>
 <ul>{findings}</ul>
 <p>Planted in the scenario (the truth, not seen by the pipeline):</p><ul>{planted_html}</ul>
-<p>Full report: <a href="diagnosis.html">diagnosis.html</a>.</p>
+<p>The campaign overview, every finding's plot and the per-term tables: <a href="diagnosis.html">diagnosis.html</a>.</p>
 <h2>Steps</h2>
-<table>{_row(['step', 'command', 'wall (s)'], 'th')}{steps}</table>
+<table>{_row(['step', 'command', 'wall time'], 'th')}{steps}</table>
 </body></html>
 """

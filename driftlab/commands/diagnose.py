@@ -50,7 +50,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     args.json.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
     if args.html is not None:
         args.html.parent.mkdir(parents=True, exist_ok=True)
-        args.html.write_text(result.to_html(), encoding="utf-8")
+        from driftlab.models.diagnosis_report import to_html
+
+        args.html.write_text(to_html(result, bundle), encoding="utf-8")  # with the campaign overview
     print_findings(doc)
     n = len(result.effects)
     print(f"diagnosed {bundle.name}: {n} effect{'s' if n != 1 else ''} accepted; report {args.json}"

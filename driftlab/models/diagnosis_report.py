@@ -56,14 +56,14 @@ def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
 # HTML
 
 
-def _png(fig: Any) -> str:
+def _png(fig: Any, alt: str = "plot") -> str:
     """Return a matplotlib figure as an embedded base64 PNG <img> tag (and close it)."""
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=80, bbox_inches="tight")
     plt.close(fig)
-    return f'<img alt="plot" src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
 
 
 def _scale(unit: str) -> tuple[float, str]:
@@ -77,11 +77,13 @@ def _thin(n: int, most: int = 4000) -> slice:
 
 
 def _effect_plot(eff: Effect, unit: str) -> str:
-    """Return the residual plot that shows one finding."""
+    """Return the residual plot that shows one finding (axes in words and um/urad)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from driftlab.labels import effect_label, feature_label
 
     k, lab = _scale(unit)
     sl = _thin(eff.time_s.size)
@@ -92,13 +94,13 @@ def _effect_plot(eff: Effect, unit: str) -> str:
     position, direction, regressor = eff.position[sl], eff.direction[sl], eff.columns[sl, 0]
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.4))
     ax = axes[0]
-    ax.plot(th, before * k, ".", ms=2, alpha=0.5, label="residual before")
-    ax.plot(th, contrib * k, "-", lw=1.2, color="C3", label=f"fitted {eff.kind}")
+    ax.plot(th, before * k, ".", ms=2, alpha=0.5, label="what the standard model leaves")
+    ax.plot(th, contrib * k, "-", lw=1.2, color="C3", label=effect_label(eff.to_dict()))
     hold = th[~train]
     if hold.size:
         ax.axvspan(hold[0], th[-1], color="0.9", zorder=0, label="held out")
-    ax.set_xlabel("time (h)")
-    ax.set_ylabel(f"{eff.axis}/{eff.term} ({lab})")
+    ax.set_xlabel("hours since start")
+    ax.set_ylabel(f"{eff.axis}/{eff.term} residual ({lab})")
     ax.legend(fontsize=7, loc="best")
     ax = axes[1]
     after = before - contrib
@@ -106,16 +108,25 @@ def _effect_plot(eff: Effect, unit: str) -> str:
         for d, c in ((1, "C0"), (-1, "C1")):
             m = direction == d
             if m.any():
-                ax.plot(position[m], before[m] * k, ".", ms=2, color=c, alpha=0.5, label=f"direction {d:+d}")
-        ax.set_xlabel("position")
+                ax.plot(position[m], before[m] * k, ".", ms=2, color=c, alpha=0.5, label=f"approach {d:+d}")
+        ax.set_xlabel(f"{eff.axis} position ({'deg' if eff.axis in ('A', 'B') else 'mm'})")
     else:
-        ax.plot(regressor, before * k, ".", ms=2, alpha=0.5, label="residual before")
-        ax.plot(regressor, after * k, ".", ms=2, alpha=0.5, label="residual after")
-        ax.set_xlabel(eff.names[0])
-    ax.set_ylabel(lab)
+        ax.plot(regressor, before * k, ".", ms=2, alpha=0.5, label="before")
+        ax.plot(regressor, after * k, ".", ms=2, alpha=0.5, label="after the finding")
+        ax.set_xlabel(feature_label(eff.names[0], eff.params.get("tau_s")) + _feature_unit(eff.names[0]))
+    ax.set_ylabel(f"residual ({lab})")
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
-    return _png(fig)
+    return _png(fig, f"residual of {eff.axis}/{eff.term} with {effect_label(eff.to_dict())}")
+
+
+def _feature_unit(name: str) -> str:
+    """Return the unit suffix of a regressor on an axis label."""
+    if name.startswith(("lag", "dT", "fault")):
+        return " (degC\u00b2)" if name.endswith("^2") else " (degC)"
+    if name.startswith("position*"):
+        return " (mm degC)"
+    return ""
 
 
 def _sim_plots(terms: list[TermDiagnosis]) -> str:
@@ -140,9 +151,54 @@ def _sim_plots(terms: list[TermDiagnosis]) -> str:
     for ax in axes.ravel()[n:]:
         ax.set_visible(False)
     axes[0, 0].legend(fontsize=6, loc="best")
-    axes[-1, 0].set_xlabel("time (h)", fontsize=8)
+    axes[-1, 0].set_xlabel("hours since start", fontsize=8)
     fig.tight_layout()
-    return _png(fig)
+    return _png(fig, "measured errors against the calibrated Appendix A law")
+
+
+def _overview(bundle: Any) -> str:
+    """Return the campaign on one figure: stages, mean temperature per structure, and every error term, over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    meta, temps, errors = bundle.meta, bundle.temperatures, bundle.errors
+    th = temps["time_s"].to_numpy() / 3600.0
+    groups: dict[str, list[str]] = {}
+    for name, ch in meta.channels.items():
+        if name in temps.columns:
+            groups.setdefault("room" if name in meta.room_channels else (ch.structure or "unspecified"), []).append(name)
+    keys = sorted({(a, t) for a, t in zip(errors["axis"], errors["term"])})
+    fig, axes = plt.subplots(2 + len(keys), 1, figsize=(11, 2.0 * (2 + len(keys))), sharex=True,
+                             gridspec_kw={"height_ratios": [0.5, 2] + [1.2] * len(keys)})
+    ax = axes[0]
+    span = max((st.end_s for st in meta.stages), default=1.0) or 1.0
+    for i, st in enumerate(meta.stages):
+        ax.axvspan(st.start_s / 3600, st.end_s / 3600, color=f"C{i % 10}", alpha=0.35)
+        if (st.end_s - st.start_s) / span < 0.06:
+            continue  # too narrow to name: the stage table above has it
+        ax.text((st.start_s + st.end_s) / 7200, 0.5, st.name, ha="center", va="center", fontsize=7, rotation=0,
+                clip_on=True)
+    ax.set_yticks([])
+    ax.set_ylabel("stage", fontsize=8)
+    ax = axes[1]
+    for i, (g, chans) in enumerate(sorted(groups.items())):
+        mean = temps[chans].mean(axis=1).to_numpy()
+        ax.plot(th, mean, lw=1, color=f"C{i % 10}", label=g.replace("_", " "))
+    ax.set_ylabel("mean temperature\nper structure (degC)", fontsize=8)
+    ax.legend(fontsize=6, ncol=6, loc="upper left")
+    for ax, (axis, term) in zip(axes[2:], keys):
+        k, lab = _scale("rad" if term in ("alpha", "beta", "gamma") else "mm")
+        rows = errors[(errors["axis"] == axis) & (errors["term"] == term)]
+        for d, c in ((1, "C0"), (-1, "C3")):
+            m = rows["direction"] == d
+            ax.scatter(rows["time_s"][m] / 3600, rows["value"][m] * k, s=3, color=c, label=f"approach {d:+d}")
+        ax.set_ylabel(f"{axis}/{term} ({lab})", fontsize=8)
+        ax.legend(fontsize=6, loc="upper left")
+    axes[-1].set_xlabel("hours since start")
+    fig.tight_layout()
+    return _png(fig, "campaign overview: stages, temperatures and errors over time")
 
 
 def _table(rows: list[list[str]], head: list[str]) -> str:
@@ -152,18 +208,45 @@ def _table(rows: list[list[str]], head: list[str]) -> str:
     return f"<table><tr>{h}</tr>{body}</table>"
 
 
-def to_html(res: DiagnosisResult) -> str:
-    """Return the self-contained HTML report: findings with plots and causes, tables, flags."""
+def _params_text(eff: Effect) -> str:
+    """Return an effect's parameters in words (durations, times into the campaign), never as JSON."""
+    from driftlab.labels import duration
+
+    out = []
+    for key, value in eff.params.items():
+        if key == "tau_s" and isinstance(value, (int, float)):
+            out.append(f"time constant {duration(float(value))}")
+        elif key == "start_s" and isinstance(value, (int, float)):
+            out.append(f"from {duration(float(value))} into the campaign")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            out.append(f"{key.replace('_', ' ')} {value:.4g}")
+        elif isinstance(value, (str, bool)):
+            out.append(f"{key.replace('_', ' ')}: {value}")
+    return "; ".join(html.escape(x) for x in out)
+
+
+def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
+    """Return the self-contained HTML report: an overview of the campaign (with ``bundle``), findings, tables, flags."""
+    from driftlab.labels import duration, effect_label
+
     e = html.escape
-    out = [f"<!doctype html><html><head><meta charset='utf-8'><title>driftlab diagnosis: {e(res.bundle)}</title>",
-           "<style>body{font-family:sans-serif;max-width:1150px;margin:auto}table{border-collapse:collapse}"
-           "td,th{border:1px solid #999;padding:2px 6px;font-size:13px}img{max-width:100%}</style></head><body>",
+    out = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>driftlab diagnosis: {e(res.bundle)}</title>",
+           "<style>body{font-family:sans-serif;max-width:1150px;margin:auto;color:#1d2430}table{border-collapse:collapse}"
+           "td,th{border:1px solid #999;padding:2px 6px;font-size:13px}img{max-width:100%}"
+           ".good{color:#1f7a3a;font-weight:600}</style></head><body>",
            f"<h1>Diagnosis of {e(res.bundle)}</h1>",
-           f"<p>Held out: last {res.holdout_fraction * 100:g}% of each (axis, term) in time "
-           f"(from t = {res.holdout_start_s / 3600:.2f} h). Effects are accepted only when significant on the "
-           f"training part (Bonferroni over {res.n_hypotheses} hypotheses at family alpha {res.alpha_family}, "
-           f"cluster-robust by blocks of sweeps) and lowering the held-out RMSE by at least "
-           f"{res.min_gain * 100:g}%.</p>"]
+           f"<p>Held out: the last {res.holdout_fraction * 100:g}% of each error term in time "
+           f"(from {duration(res.holdout_start_s)} into the campaign). A finding is accepted only when it is significant "
+           f"on the training part (Bonferroni over {res.n_hypotheses} hypotheses at family alpha {res.alpha_family}, "
+           f"cluster-robust by blocks of sweeps) and lowers the held-out RMSE by at least "
+           f"{res.min_gain * 100:g}%. Lengths are in micrometres (um), angles in microradians (urad).</p>"]
+    if bundle is not None:
+        out.append("<h2>The campaign</h2>")
+        stages = [[e(st.name), e(st.heat_source), e(st.axis or "-"), f"{st.spindle_rpm:.0f}", f"{st.feed_mm_min:.0f}",
+                   f"{st.start_s / 3600:.2f}", f"{st.end_s / 3600:.2f}"] for st in bundle.meta.stages]
+        out.append(_table(stages, ["stage", "heat source", "axis", "spindle (rpm)", "feed (mm/min)", "from (h)",
+                                   "to (h)"]))
+        out.append(_overview(bundle))
     effects = res.effects
     out.append(f"<h2>Findings ({len(effects)})</h2>")
     if not effects:
@@ -171,37 +254,36 @@ def to_html(res: DiagnosisResult) -> str:
     for i, eff in enumerate(effects, 1):
         unit = "rad" if eff.term in ("alpha", "beta", "gamma") else "mm"
         k, lab = _scale(unit)
-        params = ", ".join(f"{e(str(a))} = {e(f'{b:.4g}' if isinstance(b, float) else str(b))}"
-                           for a, b in eff.params.items())
-        out.append(f"<h3>{i}. {e(eff.kind)} on {e(eff.axis)}/{e(eff.term)} {e(', '.join(eff.channels))}</h3>"
-                   f"<p><b>Cause.</b> {e(eff.cause)}</p><p>{params}; p = {eff.p_value:.3g}; held-out RMSE "
-                   f"{eff.rmse_holdout_before * k:.4g} &rarr; {eff.rmse_holdout_after * k:.4g} {lab} "
-                   f"({eff.gain * 100:.0f}% better)</p>{_effect_plot(eff, unit)}")
+        out.append(f"<h3>{i}. {e(effect_label(eff.to_dict()))}, on {e(eff.axis)}/{e(eff.term)}</h3>"
+                   f"<p><b>Cause.</b> {e(eff.cause)}</p><p>{_params_text(eff)}; p = {eff.p_value:.3g}; held-out RMSE "
+                   f"{eff.rmse_holdout_before * k:.2f} &rarr; {eff.rmse_holdout_after * k:.2f} {lab} "
+                   f"(<span class='good'>{eff.gain * 100:.0f}% better</span>)</p>{_effect_plot(eff, unit)}")
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
         b, x = t.standard.fit, t.extended
         rows.append([e(t.td.axis), e(t.td.term), lab, e(", ".join(t.standard.channels)),
-                     e(t.standard.selection.source), f"{b.rmse_train * k:.4g}", f"{b.rmse_holdout * k:.4g}",
-                     f"{x.rmse_train * k:.4g}", f"{x.rmse_holdout * k:.4g}", str(len(t.effects))])
-    out.append("<h2>Standard model (baseline) and extended model</h2>")
-    out.append(_table(rows, ["axis", "term", "unit", "model channels", "channels from", "baseline train",
-                             "baseline held-out", "extended train", "extended held-out", "effects"]))
-    out.append("<h2>Simulation (Appendix A time-driven laws, calibrated) vs data</h2>")
+                     e(t.standard.selection.source), f"{b.rmse_train * k:.2f}", f"{b.rmse_holdout * k:.2f}",
+                     f"{x.rmse_train * k:.2f}", f"{x.rmse_holdout * k:.2f}", str(len(t.effects))])
+    out.append("<h2>Standard model (baseline) and the model with the findings</h2>")
+    out.append(_table(rows, ["axis", "term", "unit", "model thermocouples", "thermocouples chosen by",
+                             "baseline train RMSE", "baseline held-out RMSE", "with findings, train",
+                             "with findings, held out", "findings"]))
+    out.append("<h2>Simulation (Appendix A time-driven laws, calibrated) against the data</h2>")
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
-        rows.append([e(t.td.axis), e(t.td.term), f"{t.simulation.rmse * k:.4g} {lab}",
-                     f"{t.simulation.tau_s / 3600:.2g} h", e(t.simulation.gets_wrong)])
-    out.append(_table(rows, ["axis", "term", "RMSE", "tau", "what it gets wrong"]))
+        rows.append([e(t.td.axis), e(t.td.term), f"{t.simulation.rmse * k:.2f} {lab}",
+                     e(duration(t.simulation.tau_s)), e(t.simulation.gets_wrong)])
+    out.append(_table(rows, ["axis", "term", "RMSE", "time constant", "what it gets wrong"]))
     if res.terms:
         out.append(_sim_plots(res.terms))
     out.append("<h2>Flagged data</h2>")
     if res.flags:
         out.append(_table([[e(f.series), str(f.spikes), str(f.out_of_range), str(f.held_scans),
-                            e(", ".join(f"{v:g}" for v in f.first_times_s))] for f in res.flags],
+                            e(", ".join(duration(v, clock=True) for v in f.first_times_s))] for f in res.flags],
                           ["series", "spikes rejected (MAD)", "out of range", "scans held across long gaps",
-                           "first flagged times (s)"]))
+                           "first flagged (h:mm:ss into the campaign)"]))
     else:
         out.append("<p>No spikes, out-of-range readings or long gaps.</p>")
     out.append("</body></html>")

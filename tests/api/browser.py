@@ -62,7 +62,7 @@ class OfflinePage:
         """Continue requests to this machine; refuse and record any other."""
         url = route.request.url
         host = urlsplit(url).hostname or ""
-        if url.startswith(("data:", "blob:")) or host in LOCAL:
+        if url.startswith(("data:", "blob:", "file:")) or host in LOCAL:
             route.continue_()
         else:
             self.external.append(url)
