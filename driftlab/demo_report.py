@@ -66,7 +66,18 @@ def write_json(path: Path, report: dict[str, Any]) -> Path:
 
 
 def surface_figure(deviations: dict[str, np.ndarray]) -> str:
-    """Return a PNG (base64) of the machined-surface errors of each run (figs. 7.3, 7.4, 7.6), one colour scale each.
+    """Return a PNG (base64) of the machined-surface errors of each run (figs. 7.3, 7.4, 7.6), one colour scale each."""
+    import matplotlib.pyplot as plt
+
+    fig = surface_axes(deviations)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80)
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def surface_axes(deviations: dict[str, np.ndarray]) -> Any:
+    """Return the matplotlib figure of the surface maps.
 
     Each map has its own symmetric scale and colour bar with its range written on it: a shared
     scale would flatten the compensated runs, whose errors are ten times smaller.
@@ -88,10 +99,7 @@ def surface_figure(deviations: dict[str, np.ndarray]) -> str:
         ax.set_xlabel("across the part (15 CMM points)")
         fig.colorbar(im, ax=ax, label=f"normal deviation (um), scale +-{lim:.1f}", shrink=0.85)
     axes[0].set_ylabel("along the part = machining time (99 CMM points)")
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=80)
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode("ascii")
+    return fig
 
 
 def _row(cells: list[str], tag: str = "td") -> str:

@@ -72,9 +72,12 @@ def print_findings(doc: dict) -> None:
     if effects:
         t = Table(title=f"Findings: what the standard model misses ({doc.get('holdout', {}).get('method', 'held out')} "
                         "held out)", title_justify="left")
+        widest = max(len(effect_label(e)) for e in effects)
         for col, just in (("#", "right"), ("effect", "left"), ("on", "left"), ("cause", "left"),
                           ("held-out RMSE before", "right"), ("after", "right"), ("gain", "right"), ("p", "right")):
-            t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+            # the effect's name stays on one line; the cause wraps
+            t.add_column(col, justify=just, overflow="fold",  # type: ignore[arg-type]
+                         min_width=min(widest, 48) if col == "effect" else None)
         for i, e in enumerate(effects, 1):
             k, unit = display_unit(str(e.get("term")))
             b, a = e.get("rmse_holdout_before"), e.get("rmse_holdout_after")
