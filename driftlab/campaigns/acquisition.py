@@ -222,6 +222,9 @@ class StoreSink:
         self._t_stage = sc.Stage.__table__
         self._t_camp = sc.Campaign.__table__
         self._stage = -1
+        # bundle v2 (full pose and setup per reading) where the store's schema holds them
+        self._pose_cols = {"x", "y", "z", "a", "b", "setup"} <= set(self._t_err.c.keys())
+        self._setups = plan.used_setups()
 
     def _temperature_rows(self, batch: Batch) -> list[tuple[int, int, float, float | None]]:
         """Return (campaign_id, channel_id, time_s, value) rows of the batch (None: flagged or non-finite)."""
@@ -275,11 +278,16 @@ class StoreSink:
             for term, r in values.items():
                 if not r.ok:
                     continue
-                rows.append({
+                row = {
                     "campaign_id": self.cid, "seq": p.index * len(TERMS) + TERMS.index(term), "time_s": t,
                     "axis": p.axis, "term": term, "position": p.position, "direction": p.direction,
                     "value": r.value, "sweep": self.sweeps[(p.stage, p.sweep)], "flags": 0,
-                })
+                }
+                if self._pose_cols:
+                    setup = self._setups.get(p.setup)
+                    row.update(setup.full_pose(p.position) if setup is not None else {})
+                    row["setup"] = p.setup or None
+                rows.append(row)
         return rows
 
     def commit(self, batch: Batch) -> None:
