@@ -97,3 +97,15 @@ def test_a_fixture_taken_off_reads_out_of_range(rig_and_world):
     assert np.all(ad.voltages(0.0)[:2] > 1.0)
     rig.mount_setup("x-str")  # the reference-edge sensors come off with the proximity setup
     assert np.all(ad.voltages(0.0) == 0.0)
+
+
+def test_the_daemon_refuses_a_probe_setup_before_it_starts(tmp_path):
+    from driftlab.daemon.run import run_daemon
+    from driftlab.errors import ValidationError
+
+    plan = _plan({"sq": {"instrument": "probe", "fixture": "reference_square", "axis": "X", "terms": ["gamma"]}},
+                 [_stage("square", "X", "sq", [0, 127])])
+    db = tmp_path / "s.sqlite"
+    with pytest.raises(ValidationError, match=r"stages\[0\] \(square\): setup 'sq' is a probe setup"):
+        run_daemon(plan, db_url=f"sqlite:///{db}", scenario_path=SCENARIO, speed=math.inf)
+    assert not db.exists()  # nothing was opened, nothing stored
