@@ -148,7 +148,9 @@ def open_campaign(
             id=plan.machine.id, name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", ""))))
         started = sc.utcnow()
         meta = {
-            "format": "driftlab-bundle/1",
+            # bundle v2: every reading is stored with its commanded pose and the setup that made it
+            "format": "driftlab-bundle/2",
+            "setups": {k: v.bundle_entry() for k, v in plan.used_setups().items()},
             "machine": {"id": plan.machine.id, "name": plan.machine.name},
             "started_at": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
             "channels": {k: dict(v) for k, v in channels.items()},
