@@ -225,6 +225,9 @@ def _demo(args: argparse.Namespace) -> int:
         "campaign": {"id": campaign_id, "plan": str(args.plan), "scenario": str(args.scenario),
                      **json.loads(stats.read_text())},
         "planted": [e.model_dump() for e in scenario.hidden],
+        # what the campaign measured and what the fitted model holds, of the thirty motion-error terms
+        "coverage": {"measured": [c for c, st in plan.coverage().items() if st],
+                     "modelled": sorted({f"{t['axis']}/{t['term']}" for t in fit_report.get("terms", [])})},
         "model": {**model_info, "kept_channels": fit_report.get("kept_channels", [])},
         "program": {"blocks": int(test.program.pose_written.shape[0]), "passes": test.program.passes,
                     "cutting_min": round(test.program.duration_s / 60, 1),
