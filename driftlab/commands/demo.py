@@ -16,6 +16,7 @@ campaign bundle and the reports, so runs are independent.
 from __future__ import annotations
 
 import argparse
+from datetime import datetime
 import json
 import logging
 import os
@@ -292,7 +293,12 @@ def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server:
             bar.advance()
             console.print(f"  run {key} done")
 
+        # the session's t = 0 in POSIX time: the campaign's start (the model's time origin) plus its age, so
+        # time-dependent terms of the model are evaluated at each block's time on the simulated clock
+        origin = document.get("time_origin")
+        epoch = None if not origin else (
+            datetime.fromisoformat(str(origin).replace("Z", "+00:00")).timestamp() + args.age_days * 86400.0)
         test = run_cutting_test(scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0,
-                                on_run=done)
+                                on_run=done, epoch_s=epoch)
     info["loads_per_source"] = [src.reloads for src in sources]  # 1 each: every later poll was a 304
     return test, info
