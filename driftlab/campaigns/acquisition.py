@@ -224,9 +224,7 @@ class StoreSink:
         self._t_stage = sc.Stage.__table__
         self._t_camp = sc.Campaign.__table__
         self._stage = -1
-        # bundle v2 (full pose and setup per reading) where the store's schema holds them
-        self._pose_cols = {"x", "y", "z", "a", "b", "setup"} <= set(self._t_err.c.keys())
-        self._setups = plan.used_setups()
+        self._setups = plan.used_setups()  # bundle v2: every reading is stored with its pose and setup
 
     def _temperature_rows(self, batch: Batch) -> list[tuple[int, int, float, float | None]]:
         """Return (campaign_id, channel_id, time_s, value) rows of the batch (None: flagged or non-finite)."""
@@ -285,10 +283,8 @@ class StoreSink:
                     "axis": p.axis, "term": term, "position": p.position, "direction": p.direction,
                     "value": r.value, "sweep": self.sweeps[(p.stage, p.sweep)], "flags": 0,
                 }
-                if self._pose_cols:
-                    setup = self._setups.get(p.setup)
-                    row.update(setup.full_pose(p.position) if setup is not None else {})
-                    row["setup"] = p.setup or None
+                row.update(self._setups[p.setup].full_pose(p.position))
+                row["setup"] = p.setup
                 rows.append(row)
         return rows
 
