@@ -36,6 +36,8 @@ def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
         assert 0 < rep[key]["rmse_mm"] <= rep[key]["max_mm"]
     assert rep["uncompensated"]["rmse_mm"] > rep["offline"]["rmse_mm"] > rep["online"]["rmse_mm"]
     assert rep["ordering_holds"] is True
+    # the demo's plan measures one of the thirty terms (Z/dz), and its report says so
+    assert rep["coverage"]["measured"] == ["Z/dz"] and rep["coverage"]["modelled"] == ["Z/dz"]
     assert rep["online"]["probe_cycles"] >= 1 and rep["online"]["updates"]
     # every step is the real component, in order
     names = [s["name"] for s in rep["steps"]]

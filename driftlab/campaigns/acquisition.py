@@ -148,7 +148,9 @@ def open_campaign(
             id=plan.machine.id, name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", ""))))
         started = sc.utcnow()
         meta = {
-            "format": "driftlab-bundle/1",
+            # bundle v2: every reading is stored with its commanded pose and the setup that made it
+            "format": "driftlab-bundle/2",
+            "setups": {k: v.bundle_entry() for k, v in plan.used_setups().items()},
             "machine": {"id": plan.machine.id, "name": plan.machine.name},
             "started_at": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
             "channels": {k: dict(v) for k, v in channels.items()},
@@ -222,6 +224,7 @@ class StoreSink:
         self._t_stage = sc.Stage.__table__
         self._t_camp = sc.Campaign.__table__
         self._stage = -1
+        self._setups = plan.used_setups()  # bundle v2: every reading is stored with its pose and setup
 
     def _temperature_rows(self, batch: Batch) -> list[tuple[int, int, float, float | None]]:
         """Return (campaign_id, channel_id, time_s, value) rows of the batch (None: flagged or non-finite)."""
@@ -275,11 +278,14 @@ class StoreSink:
             for term, r in values.items():
                 if not r.ok:
                     continue
-                rows.append({
+                row = {
                     "campaign_id": self.cid, "seq": p.index * len(TERMS) + TERMS.index(term), "time_s": t,
                     "axis": p.axis, "term": term, "position": p.position, "direction": p.direction,
                     "value": r.value, "sweep": self.sweeps[(p.stage, p.sweep)], "flags": 0,
-                })
+                }
+                row.update(self._setups[p.setup].full_pose(p.position))
+                row["setup"] = p.setup
+                rows.append(row)
         return rows
 
     def commit(self, batch: Batch) -> None:

@@ -33,11 +33,16 @@ from pydantic import ValidationError as PydanticValidationError
 from driftlab.errors import ValidationError
 
 FORMAT = "driftlab-bundle/1"
+FORMAT_V2 = "driftlab-bundle/2"
+FORMATS = (FORMAT, FORMAT_V2)
 AXES = ("X", "Y", "Z", "A", "B")
 ROTARY_AXES = ("A", "B")
 TERMS = ("alpha", "beta", "gamma", "dx", "dy", "dz")
 TRANSLATION_TERMS = ("dx", "dy", "dz")
 ERROR_COLUMNS = ("time_s", "axis", "term", "position", "direction", "value")
+#: bundle v2 errors.csv: the full commanded pose (mm, degrees) after direction, then the setup id
+POSE_COLUMNS = ("x", "y", "z", "a", "b")
+ERROR_COLUMNS_V2 = ("time_s", "axis", "term", "position", "direction", *POSE_COLUMNS, "setup", "value")
 CONDITION_COLUMNS = ("time_s", "spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
 CAMPAIGN_FILE = "campaign.json"
 TEMPERATURES_FILE = "temperatures.csv"
@@ -102,10 +107,35 @@ class Noise(_Strict):
     angle_rad: float | None = Field(default=None, ge=0, allow_inf_nan=False)
 
 
-class CampaignMeta(_Strict):
-    """campaign.json of bundle v1: machine, channel map, room/model channels, stages, noise."""
+class SetupEntry(_Strict):
+    """Bundle v2: one instrument setup (what was mounted, the terms it delivers, how it was referenced)."""
 
-    format: Literal["driftlab-bundle/1"]
+    instrument: Literal["laser", "proximity", "probe", "level", "other"]
+    optics: str | None = Field(default=None, min_length=1, max_length=64)
+    fixture: str | None = Field(default=None, min_length=1, max_length=64)
+    axis: Literal["X", "Y", "Z", "A", "B"] | None = None
+    terms: list[str] = Field(min_length=1)
+    datum: Literal["session", "absolute"] = "session"
+    counter_rotating: bool = False
+    reference: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("terms")
+    @classmethod
+    def _cells(cls, value: list[str]) -> list[str]:
+        """Require AXIS/term names of the thirty motion-error terms, each once."""
+        for c in value:
+            ax, _, term = c.partition("/")
+            if ax not in AXES or term not in TERMS:
+                raise ValueError(f"{c!r} is not AXIS/term (axis X Y Z A B, term dx dy dz alpha beta gamma)")
+        if len(set(value)) != len(value):
+            raise ValueError("a term is listed twice")
+        return value
+
+
+class CampaignMeta(_Strict):
+    """campaign.json of bundle v1 or v2: machine, channel map, room/model channels, stages, noise (v2: setups)."""
+
+    format: Literal["driftlab-bundle/1", "driftlab-bundle/2"]
     machine: Machine
     started_at: datetime
     channels: dict[str, Channel] = Field(min_length=1)
@@ -113,6 +143,12 @@ class CampaignMeta(_Strict):
     model_channels: dict[Literal["X", "Y", "Z", "A", "B"], list[str]] | None = None
     stages: list[Stage] = Field(default_factory=list)
     noise: Noise | None = None
+    setups: dict[str, SetupEntry] | None = None
+
+    @property
+    def v2(self) -> bool:
+        """Return True for a bundle v2 (errors carry the full pose and the setup)."""
+        return self.format == FORMAT_V2
 
     @field_validator("started_at")
     @classmethod
@@ -203,8 +239,9 @@ def parse_meta(text: str, file: str = CAMPAIGN_FILE) -> CampaignMeta:
 
 def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) -> CampaignMeta:
     """Validate a decoded campaign.json document, including references between its parts."""
-    if isinstance(raw, dict) and "format" in raw and raw["format"] != FORMAT:
-        raise _json_fail(file, lines, ("format",), f"unsupported format {raw['format']!r}, expected {FORMAT!r}")
+    if isinstance(raw, dict) and "format" in raw and raw["format"] not in FORMATS:
+        raise _json_fail(file, lines, ("format",), f"unsupported format {raw['format']!r}, expected {FORMAT!r} "
+                         f"or {FORMAT_V2!r}")
     try:
         meta = CampaignMeta.model_validate(raw)
     except PydanticValidationError as exc:
@@ -233,6 +270,18 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
             if name in seen:
                 raise _json_fail(file, lines, ("model_channels", axis, k), f"model channel {name!r} listed twice")
             seen.add(name)
+    if meta.setups is not None and not meta.v2:
+        raise _json_fail(file, lines, ("setups",), f"setups belong to {FORMAT_V2!r} bundles")
+    if meta.v2 and not meta.setups:
+        raise _json_fail(file, lines, ("setups",) if meta.setups is not None else ("format",),
+                         "a bundle v2 needs setups: the instrument setup of every error reading")
+    for sid, entry in (meta.setups or {}).items():
+        if not _CHANNEL_NAME.match(sid) or len(sid) > 64:
+            raise _json_fail(file, lines, ("setups", sid), "setup ids may hold only letters, digits, '_', '.', '-' "
+                             "(at most 64)")
+        if entry.axis is not None and any(not c.startswith(entry.axis + "/") for c in entry.terms):
+            raise _json_fail(file, lines, ("setups", sid, "terms"), f"setup {sid!r} measures the {entry.axis} axis "
+                             "but lists terms of another")
     names_seen: set[str] = set()
     previous_end = -math.inf
     for k, stage in enumerate(meta.stages):
@@ -258,7 +307,11 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
 
 @dataclass(frozen=True)
 class Bundle:
-    """A validated campaign bundle v1 held in memory."""
+    """A validated campaign bundle (v1 or v2) held in memory.
+
+    ``errors`` has the v1 columns; a v2 bundle's also has ``x y z a b`` (the commanded pose, mm and
+    degrees) and ``setup`` (a key of ``meta.setups``).
+    """
 
     name: str
     meta: CampaignMeta
@@ -302,6 +355,10 @@ def content_hash(
     for col in ("axis", "term"):
         h.update("\n".join(errors[col].astype(str).tolist()).encode())
     h.update(errors["direction"].to_numpy(dtype="<i1").tobytes())
+    if meta.v2:  # v1 hashes are unchanged (duplicate imports of v1 bundles are still recognised)
+        for col in POSE_COLUMNS:
+            _hash_floats(h, errors[col].to_numpy(dtype="f8"))
+        h.update("\n".join(errors["setup"].astype(str).tolist()).encode())
     return h.hexdigest()
 
 
@@ -489,16 +546,18 @@ def _load_conditions(path: Path) -> pd.DataFrame:
     return frame
 
 
-def _load_errors(path: Path) -> pd.DataFrame:
+def _load_errors(path: Path, meta: CampaignMeta | None = None) -> pd.DataFrame:
     file = path.name
     header = _read_header(path, file)
+    v2 = meta is not None and meta.v2
+    columns = ERROR_COLUMNS_V2 if v2 else ERROR_COLUMNS
     for name in header:
-        if name not in ERROR_COLUMNS:
-            raise _fail(file, 1, f"unknown column {name!r}: expected {','.join(ERROR_COLUMNS)}")
-    for name in ERROR_COLUMNS:
+        if name not in columns:
+            raise _fail(file, 1, f"unknown column {name!r}: expected {','.join(columns)}")
+    for name in columns:
         if name not in header:
-            raise _fail(file, 1, f"missing column {name!r}: expected {','.join(ERROR_COLUMNS)}")
-    kinds = {"axis": "str", "term": "str", "direction": "str"}
+            raise _fail(file, 1, f"missing column {name!r}: expected {','.join(columns)}")
+    kinds = {"axis": "str", "term": "str", "direction": "str", **({"setup": "str"} if v2 else {})}
     table = _read_table(path, file, header, kinds)
     if table.num_rows == 0:
         raise _fail(file, 2, "no error samples (the file has only a header)")
@@ -556,11 +615,47 @@ def _load_errors(path: Path) -> pd.DataFrame:
             "value": value,
         }
     )
+    if v2:
+        assert meta is not None
+        _load_pose_and_setup(file, table, frame, axis, term, meta)
     dup = frame.duplicated(subset=["time_s", "axis", "term", "position", "direction"]).to_numpy()
     row = _first(dup)
     if row is not None:
         raise _fail(file, row, "duplicate reading: same time_s, axis, term, position and direction as an earlier row")
     return frame
+
+
+def _load_pose_and_setup(file: str, table: pa.Table, frame: pd.DataFrame, axis: np.ndarray, term: np.ndarray,
+                         meta: CampaignMeta) -> None:
+    """Add and check v2's pose and setup columns: finite pose, position = the moved axis' pose, known setup."""
+    for name in POSE_COLUMNS:
+        v = table.column(name).to_numpy(zero_copy_only=False)
+        row = _first(table.column(name).is_null().to_numpy(zero_copy_only=False))
+        if row is not None:
+            raise _fail(file, row, f"column {name}: missing value (a bundle v2 gives the full pose)")
+        row = _first(~np.isfinite(v))
+        if row is not None:
+            raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is not a finite number")
+        frame[name] = v
+    pose = frame[list(POSE_COLUMNS)].to_numpy(float)
+    moved = pose[np.arange(len(frame)), [AXES.index(a) for a in axis]]
+    pos = frame["position"].to_numpy(float)
+    row = _first(np.abs(moved - pos) > 1e-9 * np.maximum(1.0, np.abs(pos)))
+    if row is not None:
+        ax = axis[row - 2]
+        raise _fail(file, row, f"column {ax.lower()}: {moved[row - 2]!r} differs from position {pos[row - 2]!r} "
+                               f"of the moved axis {ax}")
+    setup = np.asarray(table.column("setup").to_pylist(), dtype=object)
+    setups = meta.setups or {}
+    for r, (sid, ax, tm) in enumerate(zip(setup, axis, term), start=2):
+        entry = setups.get(sid) if sid is not None else None
+        if entry is None:
+            what = "missing" if sid is None else f"{sid!r} is not among campaign.json setups"
+            raise _fail(file, r, f"column setup: {what}")
+        if f"{ax}/{tm}" not in entry.terms:
+            raise _fail(file, r, f"column setup: setup {sid!r} does not deliver {ax}/{tm} "
+                                 f"(it delivers {', '.join(entry.terms)})")
+    frame["setup"] = pd.array(setup.tolist(), dtype="str")
 
 
 def load_bundle(path: str | Path) -> Bundle:
@@ -580,7 +675,7 @@ def load_bundle(path: str | Path) -> Bundle:
     temperatures = _load_temperatures(root / TEMPERATURES_FILE, meta)
     cond_path = root / CONDITIONS_FILE
     conditions = _load_conditions(cond_path) if cond_path.is_file() else None
-    errors = _load_errors(root / ERRORS_FILE)
+    errors = _load_errors(root / ERRORS_FILE, meta)
     return Bundle(name=root.resolve().name, meta=meta, temperatures=temperatures, conditions=conditions, errors=errors)
 
 
@@ -630,7 +725,7 @@ def write_bundle(
     conditions: pd.DataFrame | None,
     errors: pd.DataFrame,
 ) -> Path:
-    """Write a bundle v1 directory that load_bundle and plain pandas read back exactly; return it."""
+    """Write a bundle directory (v1, or v2 when ``meta`` says so) that load_bundle and pandas read back exactly."""
     root = Path(path)
     meta_obj = _as_meta(meta)
     root.mkdir(parents=True, exist_ok=True)
@@ -646,8 +741,8 @@ def write_bundle(
     _write_csv(
         root / ERRORS_FILE,
         errors,
-        list(ERROR_COLUMNS),
-        {"axis": "str", "term": "str", "direction": "int"},
+        list(ERROR_COLUMNS_V2 if meta_obj.v2 else ERROR_COLUMNS),
+        {"axis": "str", "term": "str", "direction": "int", "setup": "str"},
     )
     return root
 

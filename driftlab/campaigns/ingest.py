@@ -11,7 +11,7 @@ import pandas as pd
 from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import Bundle
+from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle
 
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
 TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value")
@@ -241,14 +241,19 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
     err = bundle.errors
     n = len(err)
     sweeps = sweep_numbers(err)
-    rows = zip(
+    columns: tuple[Any, ...] = (
         repeat(campaign_id, n), range(n), err["time_s"].to_numpy(dtype="f8").tolist(),
         err["axis"].astype(str).tolist(), err["term"].astype(str).tolist(),
         err["position"].to_numpy(dtype="f8").tolist(), err["direction"].to_numpy(dtype="i8").tolist(),
         err["value"].to_numpy(dtype="f8").tolist(), sweeps.tolist(), repeat(0, n),
     )
-    bulk_insert(conn, "error_samples", ERROR_COLUMNS,
-                ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4"), rows)
+    names, types = ERROR_COLUMNS, ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4",
+                                   "int4")
+    if bundle.meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
+        columns += (*(err[c].to_numpy(dtype="f8").tolist() for c in POSE_COLUMNS), err["setup"].astype(str).tolist())
+        names += (*POSE_COLUMNS, "setup")
+        types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
+    bulk_insert(conn, "error_samples", names, types, zip(*columns))
     return int(campaign_id)
 
 

@@ -44,6 +44,7 @@ import pydantic
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from driftlab.campaigns.setups import Setup, all_cells, coverage, default_laser_setup
 from driftlab.errors import ValidationError
 
 PLAN_FORMAT = "driftlab-plan/1"
@@ -153,6 +154,8 @@ class Stage(_Strict):
     axis: Axis
     duration_s: float = Field(gt=0)
     sweep: Sweep | None = None
+    setup: str | None = Field(
+        default=None, description="id of the plan's setup mounted in this stage (default: a laser for sweep.term)")
 
     @model_validator(mode="after")
     def _consistent(self) -> "Stage":
@@ -165,7 +168,9 @@ class Stage(_Strict):
             raise ValueError(f"an axis cannot both oscillate and hold in stage {self.name!r}")
         if self.sweep is not None:
             allowed = LASER_TERMS[self.axis]
-            if self.sweep.term is not None and self.sweep.term not in allowed:
+            if self.setup is not None and self.sweep.term is not None:
+                raise ValueError(f"stage {self.name!r} names a setup: its terms come from the setup, not sweep.term")
+            if self.setup is None and self.sweep.term is not None and self.sweep.term not in allowed:
                 raise ValueError(
                     f"the laser cannot measure {self.sweep.term} of the {self.axis} axis "
                     f"(table 5.3: {', '.join(allowed)})"
@@ -234,6 +239,8 @@ class MachineRef(_Strict):
     name: str = ""
     channels: Literal["from scenario"] | dict[str, ChannelInfo] = FROM_SCENARIO
     room_channels: list[str] = Field(default_factory=list)
+    travel: dict[Axis, tuple[float, float]] = Field(
+        default_factory=dict, description="travel limits per axis (mm; degrees for A, B): moves must stay inside")
 
     @model_validator(mode="after")
     def _rooms_known(self) -> "MachineRef":
@@ -269,7 +276,53 @@ class Plan(_Strict):
         default=True, description="require each heat source to run alone before it runs in a combination"
     )
     instruments: Instruments = Field(default_factory=Instruments)
+    setups: dict[str, Setup] = Field(default_factory=dict, description="instrument setups by id (ch. 5.5)")
     stages: list[Stage] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _setups(self) -> "Plan":
+        """Check every stage's setup exists, measures the stage's axis, and sees every sweep position."""
+        for i, stage in enumerate(self.stages):
+            if stage.setup is None:
+                continue
+            where = f"stages[{i}] ({stage.name})"
+            setup = self.setups.get(stage.setup)
+            if setup is None:
+                known = ", ".join(sorted(self.setups)) or "none"
+                raise ValueError(f"{where}: setup {stage.setup!r} is not among the plan's setups ({known})")
+            if setup.axis != stage.axis:
+                raise ValueError(f"{where}: setup {stage.setup!r} measures the {setup.axis} axis, "
+                                 f"the stage moves {stage.axis}")
+            if stage.sweep is None:
+                raise ValueError(f"{where}: setup {stage.setup!r} is mounted but the stage has no sweep")
+            limit = setup.range_deg()
+            if limit is not None:
+                out = [p for p in stage.sweep.positions if abs(p) > limit + 1e-9]
+                if out:
+                    raise ValueError(
+                        f"{where}: sweep positions {', '.join(f'{p:g}' for p in out)} deg are beyond the angular "
+                        f"optics' +-{limit:g} deg (fig. 5.9; mount the counter-rotating table, fig. 5.10)")
+        for i, stage in enumerate(self.stages):
+            lim = self.machine.travel.get(stage.axis)
+            if lim is not None and stage.sweep is not None:
+                lo, hi = lim
+                out = [p for p in stage.sweep.positions if not lo - 1e-9 <= p <= hi + 1e-9]
+                if out:
+                    raise ValueError(f"stages[{i}] ({stage.name}): sweep positions {', '.join(f'{p:g}' for p in out)} "
+                                     f"outside the {stage.axis} travel {lo:g}..{hi:g}")
+            setup = self.setups.get(stage.setup) if stage.setup else None
+            for ax, v in (setup.pose.items() if setup else ()):
+                lim = self.machine.travel.get(ax)
+                if lim is not None and not lim[0] - 1e-9 <= v <= lim[1] + 1e-9:
+                    raise ValueError(f"stages[{i}] ({stage.name}): setup {stage.setup!r} stands {ax} at {v:g}, "
+                                     f"outside its travel {lim[0]:g}..{lim[1]:g}")
+            for h in stage.heat:
+                lim = self.machine.travel.get(h.axis) if isinstance(h, AxisSource) else None
+                if lim is not None and not (lim[0] - 1e-9 <= min(h.from_pos, h.to_pos)
+                                            and max(h.from_pos, h.to_pos) <= lim[1] + 1e-9):
+                    raise ValueError(f"stages[{i}] ({stage.name}): {h.axis} oscillation {h.from_pos:g}..{h.to_pos:g} "
+                                     f"outside its travel {lim[0]:g}..{lim[1]:g}")
+        return self
 
     @model_validator(mode="after")
     def _order(self) -> "Plan":
@@ -293,6 +346,41 @@ class Plan(_Strict):
                             "set staged_order: false to allow)"
                         )
         return self
+
+    # -- setups and coverage ----------------------------------------------------------------------
+
+    def stage_setup(self, i: int) -> tuple[str, Setup] | None:
+        """Return (id, setup) mounted in stage i: its named setup, or the laser of a legacy sweep.term."""
+        stage = self.stages[i]
+        if stage.sweep is None:
+            return None
+        if stage.setup is not None:
+            return stage.setup, self.setups[stage.setup]
+        term = stage.term()
+        return f"laser-{stage.axis}-{term}", default_laser_setup(stage.axis, term)
+
+    def used_setups(self) -> dict[str, Setup]:
+        """Return every setup some stage mounts (named ones and legacy lasers), in plan order."""
+        out: dict[str, Setup] = {}
+        for i in range(len(self.stages)):
+            got = self.stage_setup(i)
+            if got is not None:
+                out.setdefault(*got)
+        return out
+
+    def coverage(self) -> dict[str, list[str]]:
+        """Return, for each of the thirty motion-error terms, the stages that measure it (empty: none)."""
+        pairs = []
+        for i, stage in enumerate(self.stages):
+            got = self.stage_setup(i)
+            if got is not None:
+                pairs += [(c, stage.name) for c in got[1].cells()]
+        return coverage(pairs)
+
+    def missing_terms(self) -> list[str]:
+        """Return the motion-error terms no stage measures (what the model will lack)."""
+        cov = self.coverage()
+        return [c for c in all_cells() if not cov[c]]
 
     # -- timeline -------------------------------------------------------------------------------
 
@@ -332,6 +420,7 @@ class Plan(_Strict):
         for i, (stage, (start, end)) in enumerate(zip(self.stages, self.stage_bounds())):
             if stage.sweep is None:
                 continue
+            setup_id, setup = self.stage_setup(i)  # type: ignore[misc]
             m = 0
             while start + m * stage.sweep.interval_s + stage.sweep.length_s() <= end + 1e-9:
                 t0 = start + m * stage.sweep.interval_s
@@ -339,8 +428,9 @@ class Plan(_Strict):
                     out.append(
                         SweepPoint(
                             index=len(out), t_s=t0 + n * stage.sweep.point_s, stage=i, sweep=m, axis=stage.axis,
-                            position=pos, direction=d, samples=stage.sweep.samples, term=stage.term(),
+                            position=pos, direction=d, samples=stage.sweep.samples, term=setup.terms[0],
                             move_s=t0 + n * stage.sweep.point_s - stage.sweep.move_lead_s(),
+                            setup=setup_id, terms=tuple(setup.terms),
                         )
                     )
                 m += 1
@@ -359,6 +449,14 @@ class Plan(_Strict):
     def fingerprint(self) -> str:
         """Return a hash of everything that fixes the timeline (a resumed run must use the same plan)."""
         doc = self.model_dump(mode="json", exclude={"description", "instruments"})
+        # fields added with setups are left out while unused: a campaign started before they existed resumes
+        if not doc["setups"]:
+            del doc["setups"]
+        if not doc["machine"]["travel"]:
+            del doc["machine"]["travel"]
+        for st in doc["stages"]:
+            if st["setup"] is None:
+                del st["setup"]
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -388,6 +486,8 @@ class SweepPoint:
     samples: int
     term: str = "dz"
     move_s: float = 0.0
+    setup: str = ""
+    terms: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

@@ -141,9 +141,11 @@ def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
         ).all()
         arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(len(rows), len(cols) + 1)
         conditions = pd.DataFrame(arr, columns=["time_s", *cols])
+    pose_cols = [sc.ErrorSample.x, sc.ErrorSample.y, sc.ErrorSample.z, sc.ErrorSample.a, sc.ErrorSample.b,
+                 sc.ErrorSample.setup] if meta.v2 else []
     rows = conn.execute(
         select(sc.ErrorSample.time_s, sc.ErrorSample.axis, sc.ErrorSample.term, sc.ErrorSample.position,
-               sc.ErrorSample.direction, sc.ErrorSample.value)
+               sc.ErrorSample.direction, sc.ErrorSample.value, *pose_cols)
         .where(sc.ErrorSample.campaign_id == campaign_id).order_by(sc.ErrorSample.seq)
     ).all()
     errors = pd.DataFrame(
@@ -156,6 +158,10 @@ def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
             "value": np.array([r[5] for r in rows], dtype="f8"),
         }
     )
+    if meta.v2:  # bundle v2: the commanded pose (mm, deg) and setup of every reading
+        for k, name in enumerate(("x", "y", "z", "a", "b")):
+            errors[name] = np.array([np.nan if r[6 + k] is None else r[6 + k] for r in rows], dtype="f8")
+        errors["setup"] = pd.array([r[11] for r in rows], dtype="str")
     return Bundle(name=campaign.name, meta=meta, temperatures=temps, conditions=conditions, errors=errors)
 
 

@@ -267,6 +267,14 @@ class ErrorSample(Base):
     # one way; the interpolating drift query interpolates along position within one sweep.
     sweep: Mapped[int] = mapped_column(Integer, default=0)
     flags: Mapped[int] = mapped_column(Integer, default=0)
+    # bundle v2: the full commanded pose at the reading (mm, degrees) and the instrument setup that made
+    # it (an id of the campaign meta's ``setups``); NULL for readings imported from a v1 bundle
+    x: Mapped[float | None] = mapped_column(Double, nullable=True)
+    y: Mapped[float | None] = mapped_column(Double, nullable=True)
+    z: Mapped[float | None] = mapped_column(Double, nullable=True)
+    a: Mapped[float | None] = mapped_column(Double, nullable=True)
+    b: Mapped[float | None] = mapped_column(Double, nullable=True)
+    setup: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
 
 class ProbeMeasurement(Base):

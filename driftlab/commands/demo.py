@@ -16,6 +16,7 @@ campaign bundle and the reports, so runs are independent.
 from __future__ import annotations
 
 import argparse
+from datetime import datetime
 import json
 import logging
 import os
@@ -225,6 +226,9 @@ def _demo(args: argparse.Namespace) -> int:
         "campaign": {"id": campaign_id, "plan": str(args.plan), "scenario": str(args.scenario),
                      **json.loads(stats.read_text())},
         "planted": [e.model_dump() for e in scenario.hidden],
+        # what the campaign measured and what the fitted model holds, of the thirty motion-error terms
+        "coverage": {"measured": [c for c, st in plan.coverage().items() if st],
+                     "modelled": sorted({f"{t['axis']}/{t['term']}" for t in fit_report.get("terms", [])})},
         "model": {**model_info, "kept_channels": fit_report.get("kept_channels", [])},
         "program": {"blocks": int(test.program.pose_written.shape[0]), "passes": test.program.passes,
                     "cutting_min": round(test.program.duration_s / 60, 1),
@@ -289,7 +293,12 @@ def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server:
             bar.advance()
             console.print(f"  run {key} done")
 
+        # the session's t = 0 in POSIX time: the campaign's start (the model's time origin) plus its age, so
+        # time-dependent terms of the model are evaluated at each block's time on the simulated clock
+        origin = document.get("time_origin")
+        epoch = None if not origin else (
+            datetime.fromisoformat(str(origin).replace("Z", "+00:00")).timestamp() + args.age_days * 86400.0)
         test = run_cutting_test(scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0,
-                                on_run=done)
+                                on_run=done, epoch_s=epoch)
     info["loads_per_source"] = [src.reloads for src in sources]  # 1 each: every later poll was a 304
     return test, info

@@ -35,7 +35,9 @@ RESOLUTION_DEG = 0.001
 #: one reading per channel (degC), or a frame of N rows aligned with the poses (with ``time_s``)
 Temperatures = Union[Mapping[str, float], pd.DataFrame]
 #: (q (N, 5) mm/rad, temperatures, direction (N, 5) +1/-1) -> link and joint errors
-Predict = Callable[[np.ndarray, Temperatures, np.ndarray], kinematics.ElementErrors]
+#: predict(q, temperatures, direction[, at=POSIX s]) -> element errors; ``at`` is passed only when known
+#: (to models with time-dependent terms: the drift of ch. 6.4.3 is evaluated at the block's time)
+Predict = Callable[..., kinematics.ElementErrors]
 
 
 @dataclass(frozen=True)
@@ -95,8 +97,9 @@ def fast_predict(doc: Any) -> Predict:
             has_lag |= f.kind == "lag"
         terms.append((t.element, PARAMS.index(t.param), feats, [float(c) for c in t.coefficients]))
 
-    def predict(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None) -> kinematics.ElementErrors:
-        """Return the (N, 6) errors of every modelled element at poses ``q``."""
+    def predict(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: Any = None
+                ) -> kinematics.ElementErrors:
+        """Return the (N, 6) errors of every modelled element at poses ``q`` (no term here depends on ``at``)."""
         n = q.shape[0]
         if isinstance(temps, pd.DataFrame):
             if has_lag and len(temps) > 1 and "time_s" in temps.columns:
@@ -164,9 +167,12 @@ def _checked_predict(doc: Any) -> Predict:
     direction = rng.choice([-1.0, 1.0], size=(6, 5))
     temps = {c: r.reference + 3.0 * (k % 3) - 2.0 for k, (c, r) in enumerate(doc.inputs.items())}
 
-    def slow(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None) -> kinematics.ElementErrors:
-        """Return the registry's prediction."""
-        return registry.predict_element_errors(doc, temps, q, direction)
+    def slow(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: Any = None
+             ) -> kinematics.ElementErrors:
+        """Return the registry's prediction (time-dependent terms at ``at``, POSIX s; now when None)."""
+        if at is None:
+            return registry.predict_element_errors(doc, temps, q, direction)
+        return registry.predict_element_errors(doc, temps, q, direction, at=at)
 
     if fast is not None:
         try:
@@ -317,8 +323,9 @@ def correct_points(
     state: np.ndarray | None = None,
     prev_nominal: np.ndarray | None = None,
     prev_direction: np.ndarray | None = None,
+    at: float | None = None,
 ) -> Correction:
-    """Return the quantised corrections of ``points`` for these temperatures.
+    """Return the quantised corrections of ``points`` for these temperatures (and time ``at``, POSIX s).
 
     ``state`` carries the steps already sent (see ``quantise_carry``), ``prev_nominal`` and
     ``prev_direction`` the pose and approach directions before the first point, so a program can
@@ -327,7 +334,8 @@ def correct_points(
     q = program.to_q(points.nominal_int)
     start = program.start_int if prev_nominal is None else prev_nominal
     direction = directions(points.nominal_int, start, prev_direction)
-    errors = model.predict(q, temperatures, direction)
+    errors = model.predict(q, temperatures, direction) if at is None else model.predict(
+        q, temperatures, direction, at=at)
     result = kinematics.compensate(q, errors, model.dims)
     desired = result.q_cmd - q
     if not np.all(np.isfinite(desired)):

@@ -327,9 +327,9 @@ class OnlineModelSource:
         """Return the off-line model with the on-line translation added to T1 (leftmost: W moves by it directly)."""
         online = self.online
 
-        def predict(q: np.ndarray, temps: Any, direction: np.ndarray | None) -> kin.ElementErrors:
+        def predict(q: np.ndarray, temps: Any, direction: np.ndarray | None, at: Any = None) -> kin.ElementErrors:
             """Return the off-line element errors plus the on-line residual on T1."""
-            errs = dict(off.predict(q, temps, direction))
+            errs = dict(off.predict(q, temps, direction) if at is None else off.predict(q, temps, direction, at=at))
             t = temps if isinstance(temps, Mapping) else {c: float(temps[c].iloc[-1]) for c in temps.columns}
             r = online.predict(t)
             t1 = np.array(errs["T1"], float, copy=True) if "T1" in errs else np.zeros((q.shape[0], 6))
@@ -501,7 +501,8 @@ def run_uncompensated(bench: CuttingBench) -> RunResult:
 
 def run_compensated(bench: CuttingBench, models: Any, *, online: OnlineUpdater | None = None,
                     interval_s: float = ONLINE_INTERVAL_S, name: str | None = None,
-                    max_segment_mm: float = 100.0, max_segment_deg: float = 30.0) -> RunResult:
+                    max_segment_mm: float = 100.0, max_segment_deg: float = 30.0,
+                    epoch_s: float | None = None) -> RunResult:
     """Stream the program through the compensator (with the on-line model every ``interval_s`` when given).
 
     The blocks are short on the part already (8 mm); their machine-axis travel is longer through the
@@ -527,7 +528,7 @@ def run_compensated(bench: CuttingBench, models: Any, *, online: OnlineUpdater |
         text = "\n".join(lines[g1[s - 1]: g1[e - 2] + 1]) + "\n"
         prog = parse_program(text, name="cutting-test", start=pose, min_decimals=(4, 3))
         streamer = Streamer(prog, source, temps, max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
-                            clock=bench.clock.now, sleep=bench.clock.sleep, timer=time.perf_counter)
+                            clock=bench.clock.now, sleep=bench.clock.sleep, timer=time.perf_counter, epoch_s=epoch_s)
         res = streamer.run(bench.link, low_water=4)
         for k in stream:
             stream[k] += res.summary()[k]
@@ -572,7 +573,8 @@ THESIS_TABLE = {"uncompensated": {"rmse_mm": 0.060, "max_mm": 0.082}, "offline":
 
 def run_cutting_test(scenario: Scenario, models: Callable[[], Any], online: Callable[[], OnlineUpdater], *,
                      passes: int = 700, lead_s: float = 300.0, interval_s: float = ONLINE_INTERVAL_S,
-                     age_s: float = 0.0, on_run: Callable[[str], None] | None = None) -> CuttingTest:
+                     age_s: float = 0.0, on_run: Callable[[str], None] | None = None,
+                     epoch_s: float | None = None) -> CuttingTest:
     """Return the three runs of the cutting test, each on a fresh, cold virtual machine.
 
     Each run switches the machine on, waits ``lead_s`` and cuts; ``age_s`` is how long after the
@@ -580,6 +582,8 @@ def run_cutting_test(scenario: Scenario, models: Callable[[], Any], online: Call
 
     ``models()`` returns a fresh model source (``compensator.stream`` ModelSource: a StaticModel or
     an ApiModel), ``online()`` a fresh on-line model (LocalRLS, or one kept by the API).
+    ``epoch_s`` is the POSIX time of the bench's t = 0 (the campaign's start plus ``age_s``): each block
+    is then corrected for the time it runs, so a model's drift terms follow the session (ch. 6.4.3).
     """
     program = make_program(passes=passes)
     runs: dict[str, RunResult] = {}
@@ -588,9 +592,9 @@ def run_cutting_test(scenario: Scenario, models: Callable[[], Any], online: Call
             if key == "uncompensated":
                 runs[key] = run_uncompensated(bench)
             elif key == "offline":
-                runs[key] = run_compensated(bench, models(), name="off-line")
+                runs[key] = run_compensated(bench, models(), name="off-line", epoch_s=epoch_s)
             else:
-                runs[key] = run_compensated(bench, models(), online=online(), interval_s=interval_s)
+                runs[key] = run_compensated(bench, models(), online=online(), interval_s=interval_s, epoch_s=epoch_s)
         if on_run is not None:
             on_run(key)
     return CuttingTest(runs, program)

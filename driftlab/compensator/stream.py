@@ -278,6 +278,7 @@ class Streamer:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         timer: Callable[[], float] = time.perf_counter,
+        epoch_s: float | None = None,
     ) -> None:
         if not 0 < refresh_s <= max_age_s:
             raise ValidationError("refresh interval must be positive and no longer than the maximum age")
@@ -292,6 +293,11 @@ class Streamer:
         self.batch_lines = max(1, batch_lines)
         self.inline_lines = max(1, inline_lines)
         self.clock, self.sleep, self.timer = clock, sleep, timer
+        # POSIX time at clock() == 0: each block is corrected for the time it is prepared, so that
+        # time-dependent terms (drift, ch. 6.4.3) follow the program; None leaves it to the model (now)
+        if epoch_s is None and clock is time.monotonic:
+            epoch_s = time.time() - time.monotonic()
+        self.epoch_s = epoch_s
         zero = np.zeros(5, dtype=np.int64)
         start = _Cursor(0, 0, zero, program.start_int.copy(), program.start_int.copy(), None)
         self._taken = start  # just after the last line handed to the link
@@ -362,6 +368,7 @@ class Streamer:
             corr = correct_points(
                 p, pts, model, self._temps, resolution_mm=self.resolution[0], resolution_deg=self.resolution[1],
                 state=cur.steps, prev_nominal=cur.nominal, prev_direction=cur.direction,
+                at=None if self.epoch_s is None else self.epoch_s + made_at,
             )
             sent = corr.sent_int
             prev = np.vstack([cur.sent[None, :], sent[:-1]])

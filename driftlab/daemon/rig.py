@@ -12,8 +12,16 @@ from typing import Any
 
 from driftlab.campaigns.clock import Clock
 from driftlab.campaigns.plan import Plan, Stage, SweepPoint
+from driftlab.campaigns.setups import Setup
 from driftlab.daq.protocols import Reading, TemperatureScanner
-from driftlab.errors import InstrumentError
+from driftlab.errors import InstrumentError, ValidationError
+
+#: proximity pair on two parallel reference lines (fig. 5.11): per linear axis, the gap term the two
+#: sensors read and the axis along which they are separated (their difference over the separation is the roll)
+ROLL_GAP = {"X": "dz", "Y": "dz", "Z": "dy"}
+ROLL_SEPARATION_MM = 150.0
+#: a proximity sensor's calibration on a reference line (constant V, slope V/mm), appendix C magnitudes
+ROLL_CALIBRATION = ((5.0, 8.5), (5.1, 8.4))
 
 log = logging.getLogger(__name__)
 
@@ -35,8 +43,31 @@ def approach_program(point: SweepPoint, overtravel: float = 2.0, feed_mm_min: fl
     ]
 
 
+def proximity_meter(card: Any, setup: Setup) -> Any:
+    """Return the driver that reads a proximity setup on the A/D card: a roll pair or a reference-surface array.
+
+    A linear axis' roll comes from two sensors on parallel reference lines (fig. 5.11, channels 0-1);
+    a rotary axis' run-outs and tilts from the five-sensor arrays on its reference arcs or cylinder
+    (figs. 5.12-5.13, appendix C tables C.1/C.2, channels 0-4).
+    """
+    from driftlab.daq.proximity import ProximitySensor, ReferenceSurfaceMeter, RollPair, a_axis_array, b_axis_array
+
+    if setup.fixture == "reference_edge":
+        (c_a, s_a), (c_b, s_b) = ROLL_CALIBRATION
+        return RollPair(ProximitySensor(card, 0, c_a, s_a), ProximitySensor(card, 1, c_b, s_b), ROLL_SEPARATION_MM)
+    if setup.fixture in ("cylinder", "sphere") and setup.axis in ("A", "B"):
+        array = a_axis_array() if setup.axis == "A" else b_axis_array()
+        return ReferenceSurfaceMeter(card, list(range(len(array.calibration.sensors))), array)
+    raise ValidationError(f"no proximity driver for a {setup.fixture} on the {setup.axis} axis")
+
+
 class InstrumentRig:
-    """A Rig on the DAQ drivers: thermocouple card, laser interferometer and the controller link.
+    """A Rig on the DAQ drivers: thermocouple card, laser, proximity sensors on an A/D card, controller link.
+
+    Each sweep point names the setup it is measured with (``campaigns.setups``): the rig mounts it
+    when it changes (``mount``: an operator's job on a real machine, done by the simulated rig on
+    the virtual one) and reads the terms that setup delivers - the laser through its optics, the
+    proximity arrays through the A/D card (ten readings averaged, ch. 5.5).
 
     The laser is referenced (zeroed) once per set-up, at the first point it measures, so that every
     later reading refers to the state at the start of the test (ch. 5.5); the datum is stored with
@@ -56,8 +87,15 @@ class InstrumentRig:
         laser_server: Any | None = None,
         closers: list[Callable[[], None]] | None = None,
         servers: Mapping[str, Any] | None = None,
+        adcard: Any | None = None,
+        mount: Callable[[Setup | None], None] | None = None,
     ) -> None:
         self.plan = plan
+        self.adcard = adcard
+        self._mount = mount
+        self._setups = plan.used_setups()
+        self._mounted: str | None = None
+        self._meter: Any | None = None
         self.servers = dict(servers or {})  # simulated instrument servers by role (fault injection in tests)
         self.scanner = scanner
         self.laser = laser
@@ -130,17 +168,54 @@ class InstrumentRig:
         self._saved = None
         self._new_datum = datum
 
+    def mount_setup(self, setup_id: str) -> Setup:
+        """Mount the point's setup if another one is mounted (optics re-aligned: the laser needs a new datum)."""
+        setup = self._setups.get(setup_id)
+        if setup is None:
+            raise ValidationError(f"sweep point names setup {setup_id!r}, which the plan does not have")
+        if self._mounted != setup_id:
+            log.info("mount setup %s: %s %s on %s (%s)", setup_id, setup.instrument, setup.kind, setup.axis,
+                     ", ".join(setup.cells()))
+            if self._mount is not None:
+                self._mount(setup)
+            self._meter = None
+            if setup.instrument == "proximity":
+                if self.adcard is None:
+                    raise InstrumentError(f"setup {setup_id}: no A/D card configured for the proximity sensors")
+                self._meter = proximity_meter(self.adcard, setup)
+            elif setup.instrument != "laser":
+                raise InstrumentError(f"setup {setup_id}: the daemon does not drive {setup.instrument} setups")
+            self._mounted = setup_id
+        return setup
+
     def measure_point(self, point: SweepPoint) -> dict[str, Reading]:
-        """Wait for the move, then read the point's term with the laser (mean of `samples` readings)."""
-        if self.laser is None:
-            raise InstrumentError("no laser interferometer configured for error sweeps")
+        """Wait for the move, then read the terms of the point's setup (mean of `samples` readings)."""
+        setup = self.mount_setup(point.setup) if point.setup else None
         if self.link is not None:
             self.link.wait_done()
             self._at_rest = True  # every block sent has executed
+        if setup is not None and setup.instrument == "proximity":
+            return self._read_proximity(setup, point.samples)
+        if self.laser is None:
+            raise InstrumentError("no laser interferometer configured for error sweeps")
         self._ensure_reference(point)
         self.laser.readings_per_point = point.samples
         sample = self.laser.measure_error(point.axis, point.term, point.position, point.direction)
         return {point.term: Reading(sample.value, sample.flag)}
+
+    def _read_proximity(self, setup: Setup, samples: int) -> dict[str, Reading]:
+        """Return the setup's terms from the proximity sensors, each the mean of ``samples`` readings."""
+        from driftlab.daemon.loop import term_means
+
+        meter = self._meter
+        reads: list[Mapping[str, Reading]] = []
+        for _ in range(samples):
+            if hasattr(meter, "read_angle"):
+                reads.append({setup.terms[0]: meter.read_angle()})
+            else:
+                got = meter.read()  # type: ignore[union-attr]
+                reads.append({t: got.get(t, Reading.missing("not_resolved")) for t in setup.terms})
+        return term_means(reads)
 
     def take_datum(self) -> dict[str, Any] | None:
         """Return the datum set since the last call, once."""

@@ -30,6 +30,18 @@ class DaemonResult:
     resumed: bool
 
 
+def check_rig_can_run(plan: Plan) -> None:
+    """Refuse, before anything starts, a plan whose setups this daemon cannot drive (one line naming the stage)."""
+    from driftlab.errors import ValidationError
+
+    for i, stage in enumerate(plan.stages):
+        got = plan.stage_setup(i)
+        if got is not None and got[1].instrument == "probe":
+            raise ValidationError(
+                f"plan {plan.name}: stages[{i}] ({stage.name}): setup {got[0]!r} is a probe setup, which the daemon "
+                "does not drive (run it with the touch-probe cycle of the on-line model)")
+
+
 def skip_missed(plan: Plan, cursor: Cursor, now_s: float) -> tuple[Cursor, int, int]:
     """Return the cursor moved past steps already in the past on a real clock, and how many were skipped."""
     points = plan.sweep_points()
@@ -71,6 +83,9 @@ def run_daemon(
     from driftlab.campaigns.clock import WallClock
     from driftlab.progress import progress
 
+    check_rig_can_run(plan)
+    log.info("plan %s measures %d of the 30 motion-error terms%s", plan.name, 30 - len(plan.missing_terms()),
+             f"; the model will lack {', '.join(plan.missing_terms())}" if plan.missing_terms() else "")
     engine = engine if engine is not None else store_engine(db_url)
     stop = stop or threading.Event()
     scenario = None

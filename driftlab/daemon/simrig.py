@@ -62,7 +62,9 @@ def build_sim_rig(
     from driftlab.daq.laser import LaserInterferometer
     from driftlab.daq.machine_link import SerialMachineLink
     from driftlab.daq.retry import RetryPolicy
+    from driftlab.daq.proximity import ADCard
     from driftlab.daq.sim.instruments import (
+        SimADCard,
         SimController,
         SimLaser,
         SimThermocoupleCard,
@@ -83,7 +85,8 @@ def build_sim_rig(
         ctrl.pos[axis], ctrl.direction[axis] = pos, direction
     ctrl.start()
     head = SimLaser(world, clock, ctrl).start()
-    closers: list[Callable[[], None]] = [card.close, ctrl.close, head.close]
+    ad = SimADCard(clock).start()
+    closers: list[Callable[[], None]] = [card.close, ctrl.close, head.close, ad.close]
     try:
         rm = pyvisa.ResourceManager("@py")
         closers.append(rm.close)
@@ -98,12 +101,53 @@ def build_sim_rig(
         laser = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20, burst=True)
         link = SerialMachineLink.open(serial_url(ctrl), sleep=_no_wait, max_idle_polls=2)
         closers.append(link.close)
+        ad_io = LineChannel(VisaPort.open(visa_address(ad), resource_manager=rm), "A/D card", policy, sleep=_no_wait)
+        closers.append(ad_io.close)
+        adcard = ADCard(ad_io)
     except Exception:
         for c in reversed(closers):
             c()
         raise
     return InstrumentRig(plan, scanner, laser, link, clock=clock, datum=datum, laser_server=head, closers=closers,
-                         servers={"thermocouple": card, "laser": head, "controller": ctrl})
+                         servers={"thermocouple": card, "laser": head, "controller": ctrl, "ad-card": ad},
+                         adcard=adcard, mount=sim_mounter(world, ctrl, head, ad))
+
+
+def sim_mounter(world: Any, stage: Any, head: Any, ad: Any) -> Callable[[Any], None]:
+    """Return mount(setup): put the setup's optics on the simulated head or wire its fixture to the A/D card.
+
+    The simulated instruments then answer only for what is mounted: the head for its optics' mode,
+    axis and term within their range (fig. 5.9), the proximity sensors for the reference surface they
+    face, reading the virtual machine's errors of the setup's axis at the controller's position.
+    """
+    from driftlab.daemon.rig import ROLL_CALIBRATION, ROLL_GAP, ROLL_SEPARATION_MM
+    from driftlab.daq.laser import LASER_TERMS
+    from driftlab.daq.proximity import a_axis_array, b_axis_array
+    from driftlab.daq.sim.instruments import reference_surface_source, roll_pair_source
+    from driftlab.errors import ValidationError
+
+    def mount(setup: Any) -> None:
+        """Mount one setup (None: take everything off)."""
+        head.mount(None)
+        ad.unwire()
+        if setup is None:
+            return
+        if any(v != 0.0 for v in setup.pose.values()):
+            raise ValidationError(
+                f"setup on {setup.axis}: the virtual machine measures with the other axes at home (pose 0)")
+        if setup.instrument == "laser":
+            term = setup.terms[0]
+            head.mount(LASER_TERMS[setup.axis][term], setup.axis, term, setup.range_deg())
+        elif setup.fixture == "reference_edge":
+            roll = setup.terms[0]
+            ad.wire([0, 1], roll_pair_source(world, stage, setup.axis, ROLL_GAP[setup.axis], roll,
+                                             ROLL_SEPARATION_MM, ROLL_CALIBRATION))
+        else:
+            array = a_axis_array() if setup.axis == "A" else b_axis_array()
+            ad.wire(list(range(len(array.calibration.sensors))),
+                    reference_surface_source(world, stage, setup.axis, array))
+
+    return mount
 
 
 def axis_positions(plan: Plan, cursor: Cursor) -> dict[str, tuple[float, int]]:

@@ -24,7 +24,9 @@ Instrument protocol (ASCII over GPIB, ``\\n`` terminated, every command answered
 ``TERM <term>``        error term the optics are set up for -> ``OK``
 ``REF``                zero the count at the present position -> ``OK``
 ``ENV?``               weather station: ``<air degC>,<pressure Pa>,<RH %>``
-``MEAS?``              ``<fringes>,<signal %>``; ``ERR BEAM`` while the beam is broken
+``MEAS?``              ``<fringes>,<signal %>``; ``ERR BEAM`` while the beam is broken (or a rotary axis
+                       is beyond the angular optics' range); ``ERR OPTICS`` when the optics mounted
+                       are not those of the configured mode, axis and term
 ``MEAS? <n>``          a burst of n readings taken by the head back to back:
                        ``<fringes>,<signal %>;...`` (n pairs); ``ERR BEAM`` as above
 =====================  =========================================================
@@ -153,6 +155,8 @@ def _parse_meas(text: str) -> tuple[float, float] | None:
     """Return (fringes, signal %) of a MEAS? reply, None for ``ERR BEAM``."""
     if text == "ERR BEAM":
         return None
+    if text == "ERR OPTICS":
+        raise ValueError("the head has no optics mounted for this axis and term")
     fringes_s, signal_s = text.split(",")
     fringes, signal = float(fringes_s), float(signal_s)
     if not (math.isfinite(fringes) and 0.0 <= signal <= 100.0):

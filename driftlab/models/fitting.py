@@ -184,14 +184,29 @@ def _points(errors: pd.DataFrame) -> pd.DataFrame:
     """Return one row per measured point with one column per term (NaN where not measured)."""
     if errors.empty:
         return pd.DataFrame(columns=["time_s", "axis", "position", "direction", *PARAMS])
+    # bundle v2 states the full commanded pose of each reading: it is part of the point
+    pose = [c for c in POSE if c in errors.columns]
     wide = errors.pivot_table(
-        index=["time_s", "axis", "position", "direction"], columns="term", values="value", aggfunc="mean"
+        index=["time_s", "axis", "position", "direction", *pose], columns="term", values="value", aggfunc="mean"
     ).reset_index()
     wide.columns.name = None
     for p in PARAMS:
         if p not in wide.columns:
             wide[p] = np.nan
     return wide
+
+
+POSE = ("x", "y", "z", "a", "b")
+
+
+def _pose_q(pts: pd.DataFrame) -> np.ndarray:
+    """Return (N, 5) joint coordinates of the points: the bundle v2 pose where stated, else the moved axis only."""
+    q = _q(pts["axis"].to_numpy(str), pts["position"].to_numpy(float))
+    if all(c in pts.columns for c in POSE):
+        pose = pts[list(POSE)].to_numpy(float)
+        pose[:, 3:] = np.deg2rad(pose[:, 3:])
+        q = np.where(np.isfinite(pose), pose, q)
+    return q
 
 
 def _q(axis: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -289,7 +304,7 @@ def build_samples(
         days.append(((b.meta.started_at - origin).total_seconds() + t) / 86400.0)
         raws.append(inp.dT + pd.Series({c: ref[c] for c in channels}))
         frames.append(pts)
-        qs.append(_q(pts["axis"].to_numpy(str), pts["position"].to_numpy(float)))
+        qs.append(_pose_q(pts))
         dts.append(inp.dT)
         lagged.append(inp.lagged)
     if not frames:

@@ -49,6 +49,28 @@ stages:
     sweep: *sw
 """
 N_SCANS, N_POINTS = 120, 72  # 7200 s / 60 s; 12 sweeps x 6 points
+#: the same timeline with the setup changing between stages (issue 11): a laser on Z, a proximity pair on
+#: a Z reference edge, the A axis' proximity array (five terms a point) and its angular optics within +-10 deg
+PLAN_SETUPS = """\
+format: driftlab-plan/1
+name: resume-test
+machine: {id: vmc-5ax-01, channels: from scenario}
+scan_interval_s: 60
+state_every: 2
+setups:
+  z-pos: {instrument: laser, optics: linear, axis: Z, terms: [dz]}
+  z-roll: {instrument: proximity, fixture: reference_edge, axis: Z, terms: [gamma]}
+  a-runout: {instrument: proximity, fixture: cylinder, axis: A, terms: [dx, dy, dz, beta, gamma]}
+  a-pos: {instrument: laser, optics: angular, axis: A, terms: [alpha]}
+stages:
+  - {name: baseline, axis: Z, setup: z-pos, duration_s: 1200,
+     sweep: &sw {positions: [-250, -125, 0], interval_s: 600, point_s: 6}}
+  - {name: spindle-10k, heat: [{kind: spindle, rpm: 10000}], axis: Z, setup: z-roll, duration_s: 2400, sweep: *sw}
+  - {name: a-feed, heat: [{kind: axis, axis: A, feed_mm_min: 2000, from_pos: -10, to_pos: 10}], axis: A,
+     setup: a-runout, duration_s: 1800, sweep: &sa {positions: [-10, 0, 10], interval_s: 600, point_s: 6}}
+  - {name: cool, axis: A, setup: a-pos, duration_s: 1800, sweep: *sa}
+"""
+N_ERRORS = {PLAN: N_POINTS, PLAN_SETUPS: 12 + 24 + 18 * 5 + 18}
 SPEED = "7200"  # accelerated time: about a second of wall clock per run once started
 
 
@@ -119,10 +141,11 @@ def _rows(db: Path) -> dict[str, list[tuple]]:
 
 
 @pytest.mark.slow
-def test_killed_five_times_ends_with_exactly_the_uninterrupted_rows(tmp_path: Path) -> None:
+@pytest.mark.parametrize("text", [PLAN, PLAN_SETUPS], ids=["one-setup", "setups-change"])
+def test_killed_five_times_ends_with_exactly_the_uninterrupted_rows(tmp_path: Path, text: str) -> None:
     """Five SIGKILLs at random moments (one during start-up) and a SIGTERM, each followed by --resume: same rows."""
     plan = tmp_path / "plan.yaml"
-    plan.write_text(PLAN)
+    plan.write_text(text)
     clean_db, killed_db = tmp_path / "clean.sqlite", tmp_path / "killed.sqlite"
 
     # the run that is never interrupted (in this process: the same code path without the CLI around it)
@@ -167,7 +190,7 @@ def test_killed_five_times_ends_with_exactly_the_uninterrupted_rows(tmp_path: Pa
 
     clean, killed = _rows(clean_db), _rows(killed_db)
     assert len(clean["temperatures"]) == N_SCANS * 50
-    assert len(clean["errors"]) == N_POINTS
+    assert len(clean["errors"]) == N_ERRORS[text]
     assert len(clean["conditions"]) == N_SCANS // 2
     for table in clean:
         assert len(killed[table]) == len(clean[table]), table

@@ -528,3 +528,17 @@ def test_sensor_fault_finding_substitutes_the_channel_in_fit_and_prediction():
     row.pop("T35")
     np.testing.assert_allclose(predict_workspace_errors(doc, row, q), with_nan)
     assert np.all(np.isfinite(with_nan))
+
+
+def test_joint_coordinates_follow_the_bundle_v2_pose():
+    """A v2 reading states where every axis stood: the HTM chain is evaluated there, not at home (eq. 4.12)."""
+    from driftlab.models.fitting import _points, _pose_q
+
+    e = pd.DataFrame({"time_s": [0.0, 0.0], "axis": ["X", "A"], "term": ["dx", "dy"], "position": [50.0, 30.0],
+                      "direction": [1, -1], "x": [50.0, 10.0], "y": [100.0, 0.0], "z": [-20.0, 0.0],
+                      "a": [0.0, 30.0], "b": [5.0, 0.0], "setup": ["s1", "s2"], "value": [1e-3, 2e-3]})
+    q = _pose_q(_points(e).sort_values("axis").reset_index(drop=True))
+    assert q[0] == pytest.approx([10.0, 0.0, 0.0, np.deg2rad(30.0), 0.0])
+    assert q[1] == pytest.approx([50.0, 100.0, -20.0, 0.0, np.deg2rad(5.0)])
+    v1 = _pose_q(_points(e.drop(columns=["x", "y", "z", "a", "b", "setup"])).sort_values("axis"))
+    assert v1[1] == pytest.approx([50.0, 0.0, 0.0, 0.0, 0.0])  # v1: only the moved axis is known

@@ -496,6 +496,9 @@ class SimLaser(LineServer):
         self.pressure_pa, self.rh_percent = pressure_pa, rh_percent
         self.signal_percent = signal_percent
         self.mode, self.axis, self.term = "LIN", "X", "dx"
+        #: the optics mounted on the machine (mode, axis, term, rotary range in deg or None), None: a bench
+        #: head that answers for any configuration (driver tests)
+        self.mounted: tuple[str, str, str, float | None] | None = None
         self._ref: _LaserRef | None = None
         self._air_cache: tuple[float, float] | None = None
         self.beam: str = "ok"  # "ok", "weak" (low signal), "broken" (ERR BEAM)
@@ -504,6 +507,27 @@ class SimLaser(LineServer):
         """Interrupt the beam: ``"weak"`` reports a low signal, ``"broken"`` an error reply."""
         with self._lock:
             self.beam = how
+
+    def mount(self, mode: str | None, axis: str = "X", term: str = "dx", range_deg: float | None = None) -> None:
+        """Mount optics for one measurement (what an operator does between stages); None: take them off.
+
+        The head then answers only for that optics, axis and term (``ERR OPTICS`` otherwise) and, on a
+        rotary axis, loses the beam beyond ``range_deg`` of rotation (fig. 5.9: +-10 deg).
+        """
+        with self._lock:
+            self.mounted = None if mode is None else (mode, axis, term, range_deg)
+            self._ref = None
+
+    def _optics_fault(self, t: float) -> str | None:
+        """Return the error reply when the configured measurement is not what is mounted, or out of its range."""
+        m = self.mounted
+        if m is None:
+            return None
+        if m[:3] != (self.mode, self.axis, self.term):
+            return "ERR OPTICS"
+        if m[3] is not None and abs(self.stage.where(self.axis, t)[0]) > m[3] + 1e-9:
+            return "ERR BEAM"
+        return None
 
     def restore_beam(self) -> None:
         """Realign the optics (the count still needs a new REF)."""
@@ -554,6 +578,9 @@ class SimLaser(LineServer):
         if line == "REF":
             if self.beam != "ok":
                 return "ERR BEAM"
+            fault = self._optics_fault(t)
+            if fault is not None:
+                return fault
             position, err = self._true_value(t)
             self._ref = _LaserRef(t, position, err)
             return "OK"
@@ -571,6 +598,9 @@ class SimLaser(LineServer):
         if line == "MEAS?":
             if self.beam == "broken":
                 return "ERR BEAM"
+            fault = self._optics_fault(t)
+            if fault is not None:
+                return fault
             position, err = self._true_value(t)
             if self._ref is None:  # power-on: the count starts from wherever the axis is
                 self._ref = _LaserRef(t, position, err)
@@ -601,6 +631,10 @@ class SimADCard(LineServer):
     def wire(self, channels: list[int], source: Callable[[float], np.ndarray]) -> None:
         """Connect sensors on ``channels``; ``source(t)`` returns their voltages in that order."""
         self._sources.append((list(channels), source))
+
+    def unwire(self) -> None:
+        """Disconnect every sensor (a fixture taken off: its channels read 0 V, out of range)."""
+        self._sources.clear()
 
     def voltages(self, t: float) -> np.ndarray:
         """Return every channel's voltage (unwired channels sit at 0 V)."""
