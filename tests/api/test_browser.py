@@ -36,6 +36,8 @@ def test_live_page_follows_a_running_campaign(tmp_path: Path) -> None:
         daemon = start_daemon(db_url, 600)
         try:
             page.wait_for_selector(SCANS, timeout=60_000)
+            # the campaign appears at its creation; its first scans follow
+            page.wait_for_function(f"Number(document.querySelector('{SCANS}').textContent) > 0", timeout=60_000)
             first = _scans(page)
             t_first = float(page.get_attribute('[data-live="latest-time"]', "data-seconds"))
             seen = {first}
