@@ -353,12 +353,12 @@ class StoreSink:
                 prog["last_point"] = {"t_s": t, "axis": p.axis, "position": p.position, "direction": p.direction,
                                       "values": {k: (r.value if r.ok else None) for k, r in values.items()}}
                 prog["sweep"] = self.sweeps[(p.stage, p.sweep)]
-            conn.execute(
-                self._t_prog.update().where(self._t_prog.c.campaign_id == self.cid).values(
-                    cursor=prog, stage_ordinal=batch.stage, sweep=int(prog.get("sweep", 0)),
-                    last_sample_time_s=batch.t_s, updated_at=_utcnow(),
-                )
-            )
+            progress = {"cursor": prog, "stage_ordinal": batch.stage, "sweep": int(prog.get("sweep", 0)),
+                        "updated_at": _utcnow()}
+            t_read = last_reading_s(batch)
+            if t_read is not None:  # a batch of moves and faults alone stores no sample: the time stays
+                progress["last_sample_time_s"] = t_read
+            conn.execute(self._t_prog.update().where(self._t_prog.c.campaign_id == self.cid).values(**progress))
             if batch.stage != self._stage:
                 conn.execute(self._t_stage.update().where(
                     self._t_stage.c.campaign_id == self.cid, self._t_stage.c.ordinal < batch.stage,
@@ -373,6 +373,17 @@ class StoreSink:
                 ).values(status="done"))
                 conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
         self._prog = prog  # only once committed: a failed batch leaves the in-memory cursor where the store's is
+
+
+def last_reading_s(batch: Batch) -> float | None:
+    """Return the time of the batch's latest stored sample (scan, state or error reading), None without one.
+
+    The batch's own ``t_s`` is the time of its last step, which may be a move command that stores nothing.
+    """
+    times = [scan.t_s for _, scan in batch.scans] + [t for t, _ in batch.states]
+    times += [float(b.t_s[-1]) for b in batch.blocks if len(b)]
+    times += [t for _, t, values in batch.points if any(r.ok for r in values.values())]
+    return max(times) if times else None
 
 
 def _last_scan(batch: Batch) -> TemperatureScan | None:

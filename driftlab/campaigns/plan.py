@@ -35,7 +35,7 @@ import hashlib
 import heapq
 import json
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
@@ -302,26 +302,15 @@ class Plan(_Strict):
                     raise ValueError(
                         f"{where}: sweep positions {', '.join(f'{p:g}' for p in out)} deg are beyond the angular "
                         f"optics' +-{limit:g} deg (fig. 5.9; mount the counter-rotating table, fig. 5.10)")
-        for i, stage in enumerate(self.stages):
-            lim = self.machine.travel.get(stage.axis)
-            if lim is not None and stage.sweep is not None:
-                lo, hi = lim
-                out = [p for p in stage.sweep.positions if not lo - 1e-9 <= p <= hi + 1e-9]
-                if out:
-                    raise ValueError(f"stages[{i}] ({stage.name}): sweep positions {', '.join(f'{p:g}' for p in out)} "
-                                     f"outside the {stage.axis} travel {lo:g}..{hi:g}")
-            setup = self.setups.get(stage.setup) if stage.setup else None
-            for ax, v in (setup.pose.items() if setup else ()):
-                lim = self.machine.travel.get(ax)
-                if lim is not None and not lim[0] - 1e-9 <= v <= lim[1] + 1e-9:
-                    raise ValueError(f"stages[{i}] ({stage.name}): setup {stage.setup!r} stands {ax} at {v:g}, "
-                                     f"outside its travel {lim[0]:g}..{lim[1]:g}")
-            for h in stage.heat:
-                lim = self.machine.travel.get(h.axis) if isinstance(h, AxisSource) else None
-                if lim is not None and not (lim[0] - 1e-9 <= min(h.from_pos, h.to_pos)
-                                            and max(h.from_pos, h.to_pos) <= lim[1] + 1e-9):
-                    raise ValueError(f"stages[{i}] ({stage.name}): {h.axis} oscillation {h.from_pos:g}..{h.to_pos:g} "
-                                     f"outside its travel {lim[0]:g}..{lim[1]:g}")
+        for i, what, axis, values, lo, hi in self.travel_violations(self.machine.travel):
+            stage = self.stages[i]
+            where = f"stages[{i}] ({stage.name})"
+            if what == "sweep":
+                raise ValueError(f"{where}: sweep positions {values} outside the {axis} travel {lo:g}..{hi:g}")
+            if what == "pose":
+                raise ValueError(f"{where}: setup {stage.setup!r} stands {axis} at {values}, "
+                                 f"outside its travel {lo:g}..{hi:g}")
+            raise ValueError(f"{where}: {axis} oscillation {values} outside its travel {lo:g}..{hi:g}")
         return self
 
     @model_validator(mode="after")
@@ -346,6 +335,33 @@ class Plan(_Strict):
                             "set staged_order: false to allow)"
                         )
         return self
+
+    def travel_violations(
+        self, travel: Mapping[str, tuple[float, float]]
+    ) -> Iterator[tuple[int, str, str, str, float, float]]:
+        """Yield (stage index, 'sweep' | 'pose' | 'heat', axis, values, lo, hi) for what leaves ``travel``.
+
+        ``travel`` maps an axis to its (lo, hi) limits (mm; degrees for A, B); axes it lacks are not
+        checked. Per stage: sweep positions, then the setup's stand of the other axes, then oscillations.
+        """
+        def inside(v: float, lim: tuple[float, float]) -> bool:
+            return lim[0] - 1e-9 <= v <= lim[1] + 1e-9
+
+        for i, stage in enumerate(self.stages):
+            lim = travel.get(stage.axis)
+            if lim is not None and stage.sweep is not None:
+                out = [p for p in stage.sweep.positions if not inside(p, lim)]
+                if out:
+                    yield i, "sweep", stage.axis, ", ".join(f"{p:g}" for p in out), *lim
+            setup = self.setups.get(stage.setup) if stage.setup else None
+            for ax, v in (setup.pose.items() if setup else ()):
+                lim = travel.get(ax)
+                if lim is not None and not inside(v, lim):
+                    yield i, "pose", ax, f"{v:g}", *lim
+            for h in stage.heat:
+                lim = travel.get(h.axis) if isinstance(h, AxisSource) else None
+                if lim is not None and not (inside(h.from_pos, lim) and inside(h.to_pos, lim)):
+                    yield i, "heat", h.axis, f"{h.from_pos:g}..{h.to_pos:g}", *lim
 
     # -- setups and coverage ----------------------------------------------------------------------
 
