@@ -12,9 +12,10 @@ from scipy.signal import lfilter
 
 from driftlab.errors import ValidationError
 
-Kind = Literal["intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad", "time"]
+Kind = Literal["intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad", "time",
+               "session"]
 KINDS: tuple[str, ...] = ("intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad",
-                          "time")
+                          "time", "session")
 #: kinds that read a joint coordinate or approach direction; their ``label`` names the axis
 AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT"})
 #: columns of a (N, 5) joint array
@@ -35,7 +36,7 @@ class Feature:
         """Check the kind and the number of channels it needs."""
         if self.kind not in KINDS:
             raise ValidationError(f"unknown feature kind {self.kind!r}")
-        need = {"dT": 1, "lag": 1, "pos_dT": 1, "quad": 1, "time": 0}
+        need = {"dT": 1, "lag": 1, "pos_dT": 1, "quad": 1, "time": 0, "session": 0}
         if self.kind == "gradient" and not (len(self.channels) >= 2 and 1 <= self.power < len(self.channels)):
             raise ValidationError(f"a gradient needs channels on both sides, got {self.channels} split at {self.power}")
         if self.kind in need and len(self.channels) != need[self.kind]:
@@ -44,6 +45,8 @@ class Feature:
             raise ValidationError("a structure mean needs at least two channels")
         if self.kind == "lag" and not (self.tau_s and self.tau_s > 0):
             raise ValidationError("a lag feature needs tau_s > 0")
+        if self.kind == "session" and not self.label:
+            raise ValidationError("a session offset needs the session's label")
 
     @property
     def name(self) -> str:
@@ -66,6 +69,8 @@ class Feature:
             return f"dT[{c[0]}]^2"
         if self.kind == "time":
             return f"days{ax}"
+        if self.kind == "session":
+            return f"datum[{self.label}]"
         if self.kind == "gradient":
             return f"grad[{c[0]}-{c[1]}]" if len(c) == 2 else f"grad[{self.label or '+'.join(c)}]"
         return f"mean[{self.label or '+'.join(c)}]"
@@ -105,6 +110,8 @@ class Inputs:
     dT: pd.DataFrame
     lagged: dict[tuple[str, float], np.ndarray] = field(default_factory=dict)
     days: np.ndarray | None = None
+    #: the instrument session of each sample (``session`` terms); None outside a campaign
+    session: np.ndarray | None = None
 
     def __len__(self) -> int:
         """Return the number of samples."""
@@ -117,6 +124,7 @@ class Inputs:
             dT=self.dT.iloc[idx].reset_index(drop=True),
             lagged={k: v[idx] for k, v in self.lagged.items()},
             days=None if self.days is None else self.days[idx],
+            session=None if self.session is None else self.session[idx],
         )
 
 
@@ -253,6 +261,12 @@ def evaluate(
         if inputs.days is None:
             raise ValidationError(f"term {feature.name} needs the time of each sample")
         return np.broadcast_to(np.asarray(inputs.days, float), (n,)).copy()
+    if k == "session":
+        # a laser zeroed when it was set up reads every error less its value at that moment (ch. 5.5):
+        # an unknown constant per setup session, nothing outside a campaign (compensation)
+        if inputs.session is None:
+            return np.zeros(n)
+        return (np.asarray(inputs.session) == feature.label).astype(float)
     if k == "gradient":  # eqs. 3.4-3.5: one side of a structure minus the other
         a, b = feature.channels[: feature.power], feature.channels[feature.power :]
         return np.mean([_dT(inputs, c) for c in a], axis=0) - np.mean([_dT(inputs, c) for c in b], axis=0)

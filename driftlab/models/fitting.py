@@ -185,7 +185,7 @@ def _points(errors: pd.DataFrame) -> pd.DataFrame:
     if errors.empty:
         return pd.DataFrame(columns=["time_s", "axis", "position", "direction", *PARAMS])
     # bundle v2 states the full commanded pose of each reading: it is part of the point
-    pose = [c for c in POSE if c in errors.columns]
+    pose = [c for c in (*POSE, "setup") if c in errors.columns]
     wide = errors.pivot_table(
         index=["time_s", "axis", "position", "direction", *pose], columns="term", values="value", aggfunc="mean"
     ).reset_index()
@@ -216,6 +216,41 @@ def _q(axis: np.ndarray, position: np.ndarray) -> np.ndarray:
         m = axis == ax
         q[m, k] = np.deg2rad(position[m]) if ax in ROTARY else position[m]
     return q
+
+
+def _sessions(pts: pd.DataFrame, setups: Mapping[str, Any] | None, campaign: int) -> np.ndarray:
+    """Return each point's instrument session label ('' for readings against a stable artefact).
+
+    A laser is zeroed when it is set up (bundle v2 ``datum: session``): its readings are the error
+    less the error at that moment, an unknown constant per mounting (ch. 5.5). A session is a
+    maximal run, in time order, of readings of one such setup.
+    """
+    out = np.full(len(pts), "", dtype=object)
+    if not setups or "setup" not in pts.columns:
+        return out
+    order = np.argsort(pts["time_s"].to_numpy(float), kind="stable")
+    sid = pts["setup"].to_numpy(object)[order]
+    run = np.concatenate([[0], np.cumsum(sid[1:] != sid[:-1])]) if sid.size else sid
+    for i, s, r in zip(order, sid, run):
+        entry = setups.get(s)
+        if entry is not None and getattr(entry, "datum", "absolute") == "session":
+            out[i] = f"{campaign}.{s}.{r}"
+    return out
+
+
+def session_terms(sessions: np.ndarray | None, rows: np.ndarray) -> list[Feature]:
+    """Return one offset term per zeroed session among ``rows`` (none for the first when all rows are zeroed).
+
+    With every row relative to its own datum the intercept carries the first session's offset;
+    rows against a stable artefact pin the intercept themselves.
+    """
+    if sessions is None:
+        return []
+    s = np.asarray(sessions, dtype=object)[rows]
+    labels = list(dict.fromkeys(x for x in s if x))
+    if labels and all(s != ""):
+        labels = labels[1:]
+    return [Feature("session", label=x) for x in labels]
 
 
 def _assign_roles(pts: pd.DataFrame, stages: Sequence[Any], holdout_fraction: float) -> None:
@@ -290,7 +325,7 @@ def build_samples(
     laser is zeroed at the start of each campaign: spec section 2, eq. 3.1). ``inputs.days`` is the
     time since ``origin`` (default: the earliest campaign start) in days, for drift terms.
     """
-    frames, qs, dts, lagged, raws, days = [], [], [], [], [], []
+    frames, qs, dts, lagged, raws, days, sessions = [], [], [], [], [], [], []
     origin = origin or min(b.meta.started_at for b in bundles)
     for ci, b in enumerate(bundles):
         pts = _points(b.errors)
@@ -302,6 +337,7 @@ def build_samples(
         ref = dict(reference) if reference is not None else _reference([b], channels)
         inp = build_inputs(b.temperatures, t, ref, channels, lags)
         days.append(((b.meta.started_at - origin).total_seconds() + t) / 86400.0)
+        sessions.append(_sessions(pts, getattr(b.meta, "setups", None), ci))
         raws.append(inp.dT + pd.Series({c: ref[c] for c in channels}))
         frames.append(pts)
         qs.append(_pose_q(pts))
@@ -311,8 +347,9 @@ def build_samples(
         raise ValidationError("the campaigns hold no error measurements")
     frame = pd.concat(frames, ignore_index=True)
     lag_all = {k: np.concatenate([lg[k] for lg in lagged]) for k in lagged[0]}
-    return Sample(frame, np.vstack(qs), Inputs(pd.concat(dts, ignore_index=True), lag_all, np.concatenate(days)),
-                  pd.concat(raws, ignore_index=True))
+    sess = np.concatenate(sessions)
+    inputs = Inputs(pd.concat(dts, ignore_index=True), lag_all, np.concatenate(days), sess if any(sess) else None)
+    return Sample(frame, np.vstack(qs), inputs, pd.concat(raws, ignore_index=True))
 
 
 # ----------------------------------------------------------------------------- per-element fits
@@ -502,7 +539,9 @@ def fit_elements(
         elif model_channels and all(a in model_channels for a in axes):
             allowed = sorted({c for a in axes for c in model_channels[a]})
         feats = cands.for_axes(axes, allowed)
-        X = design_matrix([INTERCEPT, *feats, *cands.extra_features(axes, feats)], sub.inputs, sub.q, _directions(sub))
+        offsets = session_terms(sub.inputs.session, np.ones(len(sub.frame), bool))
+        X = design_matrix([INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sub.inputs, sub.q,
+                          _directions(sub))
         E = mask = None
         for k, param in enumerate(PARAMS):
             if k in (0, 3):
@@ -528,7 +567,8 @@ def fit_elements(
 
             forced, pool = cands.split_pool([f for f in feats if admit(f)], axes, param, admit)
             res = stepwise(
-                X[m_train].reset_index(drop=True), y[m_train], pool, forced=[INTERCEPT, *forced],
+                X[m_train].reset_index(drop=True), y[m_train], pool,
+                forced=[INTERCEPT, *session_terms(sub.inputs.session, m_train), *forced],
                 p_enter=options.p_enter, p_remove=options.p_remove, min_gain=options.min_gain,
                 max_terms=options.max_terms, vif_max=options.vif_max, tiered=options.tiered,
             )
@@ -589,7 +629,8 @@ def _global_lengths(
             return axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
 
         feats = [f for f in feats if honoured(f)]
-    X = design_matrix([INTERCEPT, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q,
+    offsets = session_terms(sample.inputs.session, np.ones(len(sample.frame), bool))
+    X = design_matrix([INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q,
                       _directions(sample))
     chosen = 0
     for k, param in ((3, "dx"), (4, "dy"), (5, "dz")):
@@ -598,7 +639,8 @@ def _global_lengths(
             continue
         forced, pool = cands.split_pool(feats, axes, param, lambda f: True)
         res = stepwise(
-            X[m].reset_index(drop=True), E[m, k], pool, forced=[INTERCEPT, *forced], p_enter=options.p_enter,
+            X[m].reset_index(drop=True), E[m, k], pool,
+            forced=[INTERCEPT, *session_terms(sample.inputs.session, m), *forced], p_enter=options.p_enter,
             p_remove=options.p_remove, min_gain=options.min_gain / 4, max_terms=2 * options.max_terms,
             vif_max=options.vif_max, tiered=options.tiered,
         )
@@ -1007,12 +1049,16 @@ def _fit_bundles(
             continue
         fit = m.primary
         res = fit.result
+        # a zeroed instrument's session offsets belong to the campaign, not to the machine
+        keep = [i for i, f in enumerate(m.features) if f.kind != "session"]
+        if not keep:
+            continue
         terms.append({
             "element": element, "param": param, "axis": _axes_of(fit), "term": param,
-            "features": [f.to_dict() for f in m.features],
-            "coefficients": [float(v) for v in m.coef],
-            "std_errors": [float(v) for v in m.std_errors],
-            "p_values": [float(v) for v in m.p_values],
+            "features": [m.features[i].to_dict() for i in keep],
+            "coefficients": [float(m.coef[i]) for i in keep],
+            "std_errors": [float(m.std_errors[i]) for i in keep],
+            "p_values": [float(m.p_values[i]) for i in keep],
             "statistics": {
                 "rmse_train": res.rmse, "rmse_holdout": fit.rmse_holdout, "r2": res.rsquared, "f": res.fvalue,
                 "n_train": res.nobs, "n_holdout": fit.n_holdout, "condition_number": res.condition_number,
