@@ -140,8 +140,9 @@ def fast_predict(doc: Any) -> Predict:
                     const = const + c * dT[ch[0]]
                 elif kind == "pos_dT":
                     lin[col] = lin.get(col, 0.0) + c * dT[ch[0]]
-                elif kind == "gradient":
-                    const = const + c * (dT[ch[0]] - dT[ch[1]])
+                elif kind == "gradient":  # eqs. 3.4-3.5: mean of one side less mean of the other
+                    a, b = ch[:power], ch[power:]
+                    const = const + c * (sum(dT[x] for x in a) / len(a) - sum(dT[x] for x in b) / len(b))
                 else:  # structure mean (eq. 3.3)
                     const = const + c * (sum(dT[x] for x in ch) / len(ch))
             value = acc + const

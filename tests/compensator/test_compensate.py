@@ -241,8 +241,10 @@ def _all_kinds_doc() -> dict:
         f("mean", "mean[col]", channels=["T9", "T10", "T11"], label="col"),
         f("gradient", "grad[T9-T11]", channels=["T9", "T11"]),
         f("pos_dT", "pos*dT[T10]", channels=["T10"], label="A"),
+        # a structure's two sides of several sites each (eqs. 3.4-3.5): split after the first two
+        f("gradient", "grad[upper-lower]", channels=["T9", "T10", "T11"], power=2, label="upper-lower"),
     ]
-    coefs = [0.003, 1e-5, -2e-8, 3e-11, 0.0012, 0.004, -0.002, 0.001, 0.0007, 1.5e-3]
+    coefs = [0.003, 1e-5, -2e-8, 3e-11, 0.0012, 0.004, -0.002, 0.001, 0.0007, 1.5e-3, 0.0021]
     inputs = {c: {"reference": 20.0 + i, "min": 10.0, "max": 40.0} for i, c in enumerate(["T9", "T10", "T11"])}
     terms = [
         {"element": "phi_x", "param": "dx", "features": feats, "coefficients": coefs, "statistics": {"rmse_train": 0.0}},
