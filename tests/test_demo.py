@@ -36,12 +36,23 @@ def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
         assert 0 < rep[key]["rmse_mm"] <= rep[key]["max_mm"]
     assert rep["uncompensated"]["rmse_mm"] > rep["offline"]["rmse_mm"] > rep["online"]["rmse_mm"]
     assert rep["ordering_holds"] is True
-    # the demo's plan measures one of the thirty terms (Z/dz), and its report says so
-    assert rep["coverage"]["measured"] == ["Z/dz"] and rep["coverage"]["modelled"] == ["Z/dz"]
+    # the demo's plan measures all thirty terms, and the fitted model holds every one
+    cells = {f"{a}/{t}" for a in "XYZAB" for t in ("dx", "dy", "dz", "alpha", "beta", "gamma")}
+    assert set(rep["coverage"]["measured"]) == cells and set(rep["coverage"]["modelled"]) == cells
     assert rep["online"]["probe_cycles"] >= 1 and rep["online"]["updates"]
+    # two cutting tests: the campaign's machine, and the same machine worn; the wear is what the on-line
+    # model is for, so on the worn machine the off-line model alone falls behind the on-line one
+    thermal, worn = rep["cutting_tests"]
+    assert (thermal["case"], worn["case"]) == ("thermal", "thermal+wear")
+    for c in (thermal, worn):
+        assert c["uncompensated_mm"] > c["offline_mm"] > 0 and c["online_mm"] > 0
+    assert worn["uncompensated_mm"] > thermal["uncompensated_mm"]
+    assert worn["offline_mm"] > 2 * worn["online_mm"]
+    assert worn["online_mm"] == rep["online"]["rmse_mm"]  # the top-level table is the thermal+wear case
     # every step is the real component, in order
     names = [s["name"] for s in rep["steps"]]
-    assert names == ["daemon", "fit", "export", "diagnose", "serve", "cutting test"]
+    assert names == ["daemon", "fit", "export", "diagnose", "serve", "cutting test (thermal)",
+                     "cutting test (thermal+wear)"]
     assert rep["steps"][0]["command"].startswith("driftlab daemon --plan")
     assert rep["campaign"]["finished"] is True and rep["campaign"]["points"] > 0
     # the model came from the API with an ETag, and a repeated request was answered 304
@@ -52,17 +63,18 @@ def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
 
 def test_demo_diagnosis_names_the_planted_effect(demo_out: Path) -> None:
     rep = json.loads((demo_out / "demo-report.json").read_text())
-    planted = load_scenario(ROOT / "examples" / "scenarios" / "demo-drift.yaml").hidden
+    planted = load_scenario(ROOT / "examples" / "scenarios" / "demo-full.yaml").hidden
     assert rep["planted"] == [e.model_dump() for e in planted]
     (eff,) = planted
     found = [f for f in rep["diagnosis"]["effects"]
              if (f["kind"], f["axis"], f["term"]) == (eff.kind, eff.axis, eff.term)]
     assert found, rep["diagnosis"]
-    rate = float(eff.params["rate_per_day"])
-    assert abs(found[0]["params"]["rate_per_day"] - rate) < 0.25 * rate
+    assert found[0]["channels"] == eff.channels
+    coef = float(eff.params["coef_per_mm_degC"])
+    assert abs(found[0]["params"]["coef_per_mm_degC"] - coef) < 0.25 * coef
 
 
-@pytest.mark.parametrize("bad", [["--passes", "10"], ["--forgetting", "0.3"], ["--age-days", "-1"],
+@pytest.mark.parametrize("bad", [["--passes", "10"], ["--forgetting", "0.3"], ["--age-days", "-1"], ["--wear-um-per-day", "0"],
                                  ["--plan", "no-such-plan.yaml"]])
 def test_demo_refuses_bad_options_before_any_work(tmp_path: Path, bad: list[str],
                                                   capsys: pytest.CaptureFixture[str]) -> None:

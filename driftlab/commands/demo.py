@@ -33,8 +33,10 @@ from driftlab.errors import DriftlabError, InstrumentError, ValidationError
 log = logging.getLogger(__name__)
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-DEFAULT_PLAN = EXAMPLES / "plans" / "demo-z.yaml"
-DEFAULT_SCENARIO = EXAMPLES / "scenarios" / "demo-drift.yaml"
+DEFAULT_PLAN = EXAMPLES / "plans" / "demo-full.yaml"
+DEFAULT_SCENARIO = EXAMPLES / "scenarios" / "demo-full.yaml"
+#: the two cutting tests: the campaign's machine as it is, and the same machine after wear (ch. 6.4.3)
+CASES = ("thermal", "thermal+wear")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -42,9 +44,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the whole pipeline on the virtual machine: campaign, fit, diagnosis, "
                                     "API, compensated cutting test; write an HTML and JSON report")
     p.add_argument("--out", type=Path, default=Path("demo-out"), help="output directory (default demo-out)")
-    p.add_argument("--plan", type=Path, default=DEFAULT_PLAN, help="campaign plan (default examples/plans/demo-z.yaml)")
+    p.add_argument("--plan", type=Path, default=DEFAULT_PLAN,
+                   help="campaign plan (default examples/plans/demo-full.yaml: all thirty terms)")
     p.add_argument("--scenario", type=Path, default=DEFAULT_SCENARIO,
-                   help="virtual-machine scenario with the hidden effect (default examples/scenarios/demo-drift.yaml)")
+                   help="virtual-machine scenario with the hidden effect (default examples/scenarios/demo-full.yaml)")
     p.add_argument("--speed", type=float, default=0.0,
                    help="daemon speed: simulated seconds per wall second (0 = as fast as possible)")
     p.add_argument("--passes", type=int, default=700,
@@ -52,6 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--forgetting", type=float, default=0.9, help="on-line forgetting factor lambda (default 0.9)")
     p.add_argument("--age-days", type=float, default=1.0,
                    help="days from the campaign's start to the cutting test (the machine cooled down meanwhile)")
+    p.add_argument("--wear-um-per-day", type=float, default=30.0,
+                   help="wear of the Z slideways in the thermal+wear cutting test, um per day since the campaign "
+                        "started (default 30; catalogue: drift)")
     p.set_defaults(func=_demo)
 
 
@@ -162,6 +168,8 @@ def _demo(args: argparse.Namespace) -> int:
         raise ValidationError(f"--age-days must be in [0, 365], got {args.age_days}")
     if args.speed < 0:
         raise ValidationError(f"--speed must be >= 0 (0 = as fast as possible), got {args.speed}")
+    if not 0.0 < args.wear_um_per_day <= 1000.0:
+        raise ValidationError(f"--wear-um-per-day must be in (0, 1000], got {args.wear_um_per_day}")
     plan = load_plan(args.plan)
     scenario = load_scenario(args.scenario)
     out: Path = args.out
@@ -207,13 +215,19 @@ def _demo(args: argparse.Namespace) -> int:
         server.wait_ready()
         steps.record("serve", server.command, time.perf_counter() - t0)
         console.print(f"  API on {server.url}")
-        console.rule("5. cutting test (ch. 7.3) through the streaming compensator")
-        t0 = time.perf_counter()
-        test, model_info = _cutting_test(args, scenario, machine, server, console)
-        steps.record("cutting test", f"3 runs x {test.program.pose_written.shape[0]} blocks through the machine link "
-                     f"({test.program.duration_s / 60:.0f} min of cutting each)", time.perf_counter() - t0)
+        console.rule("5. cutting tests (ch. 7.3) through the streaming compensator")
+        tests: dict[str, Any] = {}
+        model_info: dict[str, Any] = {}
+        for case, machine_case in zip(CASES, (scenario, with_wear(scenario, args.wear_um_per_day))):
+            t0 = time.perf_counter()
+            console.print(f"  case [bold]{case}[/]")
+            tests[case], model_info = _cutting_test(args, machine_case, machine, server, console)
+            program = tests[case].program
+            steps.record(f"cutting test ({case})", f"3 runs x {program.pose_written.shape[0]} blocks through the "
+                         f"machine link ({program.duration_s / 60:.0f} min of cutting each)", time.perf_counter() - t0)
     finally:
         server.stop()
+    test = tests["thermal+wear"]
 
     # 6. the report
     from driftlab import demo_report as rep
@@ -234,17 +248,25 @@ def _demo(args: argparse.Namespace) -> int:
                     "cutting_min": round(test.program.duration_s / 60, 1),
                     "spindle_rpm": 10000, "feed_mm_min": 2000, "rotary_feed_deg_min": 300},
         "online": {**table["online"], "forgetting": args.forgetting, "updates": test.runs["online"].probes},
+        # both cutting tests, RMSE of the normal deviation (mm): the campaign's machine, then worn
+        "cutting_tests": [{"case": case, **{f"{k}_mm": t.table()[k]["rmse_mm"] for k in rep.RUN_NAMES},
+                           **{f"{k}_max_mm": t.table()[k]["max_mm"] for k in rep.RUN_NAMES}}
+                          for case, t in tests.items()],
+        "wear_um_per_day": args.wear_um_per_day,
     })
     rep.write_json(out / "demo-report.json", report)
     figure = rep.surface_figure({k: r.deviation_mm for k, r in test.runs.items()})
     (out / "demo-report.html").write_text(rep.to_html(report, figure), encoding="utf-8")
 
-    t = Table(title="Cutting test, ch. 7.3 (normal deviation, mm)")
-    for col in ("run", "RMSE", "max", "thesis RMSE", "thesis max"):
-        t.add_column(col, justify="left" if col == "run" else "right")
-    for k, name in rep.RUN_NAMES.items():
-        t.add_row(name, f"{table[k]['rmse_mm']:.4f}", f"{table[k]['max_mm']:.4f}",
-                  f"{rep.THESIS[k]['rmse_mm']:.3f}", f"{rep.THESIS[k]['max_mm']:.3f}")
+    t = Table(title="Cutting tests, ch. 7.3 (normal deviation of the machined surface, um)")
+    for col in ("case", "run", "RMSE", "max", "thesis RMSE", "thesis max"):
+        t.add_column(col, justify="left" if col in ("case", "run") else "right")
+    for case, ct in tests.items():
+        tab = ct.table()
+        for k, name in rep.RUN_NAMES.items():
+            t.add_row(case if k == "uncompensated" else "", name, f"{tab[k]['rmse_mm'] * 1e3:.1f}",
+                      f"{tab[k]['max_mm'] * 1e3:.1f}", f"{rep.THESIS[k]['rmse_mm'] * 1e3:.0f}",
+                      f"{rep.THESIS[k]['max_mm'] * 1e3:.0f}")
     console.print(t)
     named = ", ".join(diagnosis["named"]) or "nothing"
     console.print(f"diagnosis names: [bold]{named}[/]")
@@ -252,6 +274,14 @@ def _demo(args: argparse.Namespace) -> int:
                   f"{'[green]holds[/]' if report['ordering_holds'] else '[red]does not hold[/]'}")
     console.print(f"report: {out / 'demo-report.html'} and {out / 'demo-report.json'} ({wall:.0f} s)")
     return 0
+
+
+def with_wear(scenario: Any, um_per_day: float) -> Any:
+    """Return ``scenario`` with its Z slideways wearing (catalogue ``drift`` on Z/dz, ch. 6.4.3), nothing else changed."""
+    from driftlab.daq.sim.scenario import HiddenEffect
+
+    wear = HiddenEffect(kind="drift", axis="Z", term="dz", params={"rate_per_day": um_per_day * 1e-3})
+    return scenario.model_copy(update={"hidden": [*scenario.hidden, wear]})
 
 
 def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server: ApiServer,
@@ -270,6 +300,11 @@ def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server:
         sources.append(src)
         return src
 
+    # each case starts the on-line model afresh, as after maintenance (DELETE /machines/{id}/online)
+    reset = httpx.delete(f"{server.url}/machines/{machine}/online", timeout=10.0,
+                         headers={"Authorization": f"Bearer {server.token}"})
+    if reset.status_code not in (204, 404):
+        raise DriftlabError(f"the API refused to reset the on-line model: HTTP {reset.status_code}")
     first = models()
     first.refresh()
     if first.document is None:

@@ -654,6 +654,11 @@ def _global_lengths(
     return {"element": "lengths, all tests", "terms": chosen, "n_train": int(train.sum())}
 
 
+#: prior spread of a link's constant error (angle rad, length mm), an order above Tables A.3/A.4's
+#: geometric errors: it decides only constants the measurements leave free (zeroed sessions)
+CONSTANT_PRIOR = (1e-5, 0.01)
+
+
 def joint_adjust(
     sample: Sample,
     models: Mapping[tuple[str, str], ElementModel],
@@ -712,6 +717,16 @@ def joint_adjust(
         AtA += A.T @ A
         Atb += A.T @ b
         before += float(np.sum((b - A @ c0) ** 2))
+    # A machine constant that only zeroed sessions see is not identified: the sessions' offsets absorb
+    # any value of it. A weak prior (CONSTANT_PRIOR, far wider than any constant the data pin) sends
+    # such constants to zero instead of to an arbitrary split between elements that cancels at the
+    # measured poses and not at others.
+    i = 0
+    for key, F in blocks:
+        for f in models[key].features[: F.shape[1]]:
+            if f.kind == "intercept":  # the prior's row: coefficient / spread (the rows above are in noise units)
+                AtA[i, i] += CONSTANT_PRIOR[key[1].startswith("d")] ** -2
+            i += 1
     scale = np.sqrt(np.maximum(np.diag(AtA), 1e-300))
     M = AtA / np.outer(scale, scale) + ridge * np.eye(P)
     c = np.linalg.solve(M, Atb / scale) / scale

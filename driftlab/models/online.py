@@ -292,6 +292,29 @@ def store_update(store: Any, machine: str, probe: Any, measured_at: Sequence[Any
 DEFAULT_FORGETTING = 0.98
 
 
+def reset_online_state(store: Any, machine: str) -> bool:
+    """Start the machine's on-line model afresh (after maintenance or a re-calibration); False when it had none.
+
+    The state row stays (its version moves on, so a concurrent update recomputes) with no terms:
+    the next probe starts a new RLS from the current off-line model (eq. 6.13, P(0)). Probe history stays.
+    """
+    from driftlab.campaigns.store import StaleOnlineState
+
+    for _ in range(50):
+        row = store.online_state(machine)
+        if row is None or not row.theta:
+            return False
+        try:
+            store.save_online_state(machine, row.version, model_version_id=row.model_version_id,
+                                    model_version=row.model_version, lam=row.lam, n_updates=0, theta={}, p={})
+            return True
+        except StaleOnlineState:
+            continue
+    from driftlab.errors import ConflictError
+
+    raise ConflictError(f"machine {machine!r}: the on-line state kept changing; retry the reset")
+
+
 def probe_times(probe: Any, start: Any = None) -> list[Any]:
     """Return each probe row's wall-clock time: a ``measured_at`` column, else ``start`` + time_s, else
     counted back from now (the last row measured now); rows sharing a time_s are 1 us apart."""

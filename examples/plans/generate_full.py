@@ -56,7 +56,11 @@ def plan(name: str, description: str, hours: dict[str, float], scan_s: float, sw
          combined_h: float) -> dict:
     """Return a full-coverage plan: every setup through baseline, spindle, cool, own feed, cool."""
     stages = []
-    for sid, st in SETUPS.items():
+    # the setups that read against a stable artefact (proximity arrays) go first, on the cold machine:
+    # a laser is zeroed when mounted, so only these tie the errors to the cold state the model starts from
+    order = sorted(SETUPS, key=lambda sid: SETUPS[sid]["instrument"] != "proximity")
+    for sid in order:
+        st = SETUPS[sid]
         ax = st["axis"]
         sweep = {"positions": POSITIONS[ax], "interval_s": sweep_s, "point_s": 6, "samples": 10}
         feed, lo, hi = FEED[ax]

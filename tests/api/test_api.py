@@ -224,6 +224,7 @@ async def test_writes_need_the_token_and_change_nothing(client: httpx.AsyncClien
         ("POST", f"/machines/{MACHINE}/online/probe", {"x": 0, "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0,
                                                         "temperatures": {"T1": 21, "T2": 22}}),
         ("DELETE", f"/campaigns/{seeded.campaign_id}", None),
+        ("DELETE", f"/machines/{MACHINE}/online", None),
     ]
     for method, url, body in writes:
         r = await client.request(method, url, json=body, headers=headers)
@@ -332,6 +333,17 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
     assert_problem(await client.post(url, json={**body, "measured_at": "2026-03-04T00:00:00Z",
                                                 "temperatures": {"T1": 25.0}}, headers=AUTH), 422)
     assert store.table_counts() == counts
+    # a reset (after maintenance) starts the next probe from the off-line model; the probe history stays
+    assert (await client.delete(f"/machines/{MACHINE}/online", headers=AUTH)).status_code == 204
+    assert_problem(await client.get(f"/machines/{MACHINE}/online"), 404)
+    assert_problem(await client.delete(f"/machines/{MACHINE}/online", headers=AUTH), 404)
+    assert store.table_counts()["probe_measurements"] == 30
+    fresh = await client.post(url, json={**body, "measured_at": "2026-03-05T00:00:00Z", "forgetting": 0.9},
+                              headers=AUTH)
+    assert fresh.status_code == 200 and fresh.json()["n_updates"] == 1 and fresh.json()["forgetting"] == 0.9
+    # from P(0) = 1: theta_1 = r / (lambda + 1) of the first residual alone
+    for c in ("dx", "dy", "dz"):
+        assert math.isclose(fresh.json()["online_prediction"][c], offset[c] / 1.9, rel_tol=1e-6)
     # a new current model starts a new on-line state
     await client.post(f"/machines/{MACHINE}/models", json={"document": model_document()}, headers=AUTH)
     assert_problem(await client.get(f"/machines/{MACHINE}/online"), 404)

@@ -16,7 +16,7 @@ from typing import Annotated, Any
 
 import numpy as np
 import pandas as pd
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, Response
 
 from driftlab.api.deps import ApiState, get_state, require_token
 from driftlab.api.routes.machines import MachineId
@@ -105,3 +105,16 @@ def post_probe(machine_id: MachineId, body: ProbeIn, state: Annotated[ApiState, 
     return _out(machine_id, int(report.model_version or 0), report.states, update_id=done.probe_ids[0],
                 offline_prediction=_vec(offline), prior_error=_vec(prior_error), online_prediction=_vec(on),
                 correction=_vec(-(offline + on)))
+
+
+@router.delete("/machines/{machine_id}/online", status_code=204, response_class=Response,
+               dependencies=[Depends(require_token)], summary="Start the on-line model afresh")
+def delete_online(machine_id: MachineId, state: Annotated[ApiState, Depends(get_state)]) -> Response:
+    """Reset the machine's on-line (RLS) state, e.g. after maintenance: the next probe starts from the off-line model.
+
+    404 when the machine has no on-line state to reset. The probe history is kept.
+    """
+    _current(state, machine_id)
+    if not online.reset_online_state(state.store, machine_id):
+        raise NotFoundError(f"machine {machine_id!r} has no on-line state to reset")
+    return Response(status_code=204)
