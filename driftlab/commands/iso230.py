@@ -22,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--part", type=int, choices=(2, 3), required=True, help="2: positioning accuracy; 3: thermal tests")
     p.add_argument("--axis", default=None, help="axis for part 2 (X Y Z A B)")
     p.add_argument("--term", default=None, help="part 2: term to evaluate (default the axis' positioning term)")
+    p.add_argument("--stage", default=None, help="part 2: only the runs measured during this stage of the campaign")
     p.add_argument("--json", type=Path, default=None, metavar="OUT.json", help="write the figures here")
     p.add_argument("--html", type=Path, default=None, metavar="OUT.html", help="write the report page with its plots")
     p.set_defaults(func=_run)
@@ -52,21 +53,32 @@ def _run(args: argparse.Namespace) -> int:
     if args.part == 2 and not args.axis:
         raise ValidationError("--part 2 needs --axis (X Y Z A B)")
     bundle = _load(args)
+    lines: list[str] = []
     if args.part == 2:
-        res = iso230_2.from_bundle_errors(bundle.errors, args.axis, args.term)
+        errors = bundle.errors
+        if args.stage is not None:
+            stage = next((s for s in bundle.meta.stages if s.name == args.stage), None)
+            if stage is None:
+                raise ValidationError(f"{bundle.name}: no stage {args.stage!r} in campaign.json")
+            t = errors["time_s"]
+            errors = errors[(t >= stage.start_s) & (t <= stage.end_s)]
+        res = iso230_2.from_bundle_errors(errors, args.axis, args.term)
         doc: dict[str, Any] = res.to_json_dict()
         page = report.iso230_2_html(res, f"ISO 230-2: {bundle.name}, axis {res.axis}") if args.html else ""
-        print(f"ISO 230-2 {bundle.name} axis {res.axis} ({res.unit}, {res.runs} runs, {res.targets.size} targets): "
-              + " ".join(f"{k} {res.figures[k]:.6g}" for k in iso230_2.FIGURES))
+        lines.append(f"ISO 230-2 {bundle.name} axis {res.axis} ({res.unit}, {res.runs} runs, {res.targets.size} "
+                     "targets): " + " ".join(f"{k} {res.figures[k]:.6g}" for k in iso230_2.FIGURES))
     else:
+        if args.stage is not None:
+            raise ValidationError("--stage is for --part 2 (part 3 evaluates every stage)")
         res3 = iso230_3.evaluate_bundle(bundle)
         doc = res3.to_json_dict()
         page = report.iso230_3_html(res3, f"ISO 230-3: {bundle.name}") if args.html else ""
         for kind in ("etve", "spindle", "linear"):
             for t in getattr(res3, kind):
                 top = max(t.figures, key=lambda k: t.figures[k] if t.units[k] == "mm" else 0.0)
-                print(f"ISO 230-3 {kind} {t.stage}: largest {top} {t.figures[top]:.6g} {t.units[top]}")
+                lines.append(f"ISO 230-3 {kind} {t.stage}: largest {top} {t.figures[top]:.6g} {t.units[top]}")
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
-    _write(args.json, text)
+    _write(args.json, text)  # the reports first: a closed stdout loses only the summary
     _write(args.html, page)
+    print("\n".join(lines))
     return 0

@@ -74,5 +74,6 @@ def write(table: AxisTable, reference: float = 0.0, detection_unit: float = 0.00
     lines += [f"N{10000 + first_point + i}P{int(v)}" for i, v in enumerate(blocks[0][1])]
     lines += [f"N{10000 + neg_first + i}P{int(v)}" for i, v in enumerate(blocks[1][1])]
     lines.append("%")
-    settings = {"detection_unit": detection_unit, "grid_from": float(pos[0]), **{f"No.{k}": v for k, v in params.items()}}
+    settings = {"detection_unit": detection_unit, "first_point_position": float(pos[0]),
+                **{f"No.{k}": v for k, v in params.items()}}
     return Export("fanuc", "\n".join(lines) + "\n", settings)

@@ -26,7 +26,7 @@ def write(table: AxisTable, name: str | None = None) -> Export:
     mean = (table.forward + table.reverse) / 2.0
     backlash = float(np.mean(table.forward - table.reverse))
     rows = [f"BEGIN {fname} {unit}", f"{'NR':<6}{ax:<14}D{ax}"]
-    rows += [f"{i:<6}{p:+.4f}{'':<4}{v:+.6f}" for i, (p, v) in enumerate(zip(table.positions, mean))]
+    rows += [f"{i:<6}{p:<+14.4f}{v:+.6f}" for i, (p, v) in enumerate(zip(table.positions, mean))]
     rows.append("[END]")
     settings = {f"CfgAxisComp/{ax}/backLash": round(backlash, 6),
                 f"compensation assignment (*.CMA)": f"{ax}: {fname}"}
