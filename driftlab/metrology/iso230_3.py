@@ -102,7 +102,7 @@ def drift_series(errors: pd.DataFrame, start_s: float, end_s: float) -> list[Dri
         g = g.sort_values("time_s", kind="stable")
         scale, unit = _unit(str(term))
         v = g["value"].to_numpy(float) * scale
-        # ISO 230-3 clause 5.3 / 6.3: drift is relative to the reading at the start of the test
+        # ISO 230-3 clauses 5 and 6: drift is relative to the reading at the start of the test
         out.append(DriftSeries(str(axis), str(term), float(pos), int(d), unit,
                                (g["time_s"].to_numpy(float) - start_s) / 3600.0, v - v[0]))
     return out
@@ -122,7 +122,7 @@ def _per_term(series: list[DriftSeries], stat: str) -> tuple[dict[str, float], d
 
 def etve_test(errors: pd.DataFrame, temperatures: pd.DataFrame | None, room_channels: list[str], stage: Any
               ) -> StageTest:
-    """Return the ETVE of one stage without heat source: per AXIS/term the largest drift range (ISO 230-3 5.4)."""
+    """Return the ETVE of one stage without heat source: per AXIS/term the largest drift range (ISO 230-3 clause 5)."""
     series = drift_series(errors, stage.start_s, stage.end_s)
     figures, units = _per_term(series, "range")
     room = None
@@ -130,14 +130,14 @@ def etve_test(errors: pd.DataFrame, temperatures: pd.DataFrame | None, room_chan
         t = temperatures["time_s"].to_numpy(float)
         rows = temperatures[(t >= stage.start_s) & (t <= stage.end_s)]
         if len(rows):
-            mean_room = rows[room_channels].mean(axis=1, skipna=True).to_numpy(float)  # air temperature (5.2)
+            mean_room = rows[room_channels].mean(axis=1, skipna=True).to_numpy(float)  # air temperature (clause 5)
             if np.isfinite(mean_room).any():
                 room = float(np.nanmax(mean_room) - np.nanmin(mean_room))
     return StageTest("etve", stage.name, stage.start_s, stage.end_s, figures, units, series, room)
 
 
 def spindle_test(errors: pd.DataFrame, stage: Any) -> StageTest:
-    """Return the thermal distortion of one spindle stage: per AXIS/term max drift range and end drift (ISO 230-3 6.4)."""
+    """Return the thermal distortion of one spindle stage: per AXIS/term max drift range and end drift (ISO 230-3 clause 6)."""
     series = drift_series(errors, stage.start_s, stage.end_s)
     figures, units = _per_term(series, "range")
     end, _ = _per_term(series, "end")
@@ -146,7 +146,7 @@ def spindle_test(errors: pd.DataFrame, stage: Any) -> StageTest:
 
 
 def linear_test(errors: pd.DataFrame, stage: Any) -> StageTest | None:
-    """Return the thermal distortion of one feed stage of a linear axis (ISO 230-3 7.4), None if it was not measured."""
+    """Return the thermal distortion of one feed stage of a linear axis (ISO 230-3 clause 7), None if it was not measured."""
     axis = stage.axis
     term = POSITIONING_TERM[axis]
     series = [s for s in drift_series(errors[(errors["axis"] == axis) & (errors["term"] == term)], stage.start_s,
@@ -160,7 +160,7 @@ def linear_test(errors: pd.DataFrame, stage: Any) -> StageTest | None:
         return max(s.range for s in series if s.position == p)
 
     figures = {
-        # change of the positioning deviation at the two end targets over the test (ISO 230-3 7.4, P1 and P2)
+        # change of the positioning deviation at the two end targets over the test (ISO 230-3 clause 7, P1 and P2)
         "drift_P1": at(p1),
         "drift_P2": at(p2),
         # the largest change anywhere on the measured length: the axis' thermal expansion and drift together

@@ -27,7 +27,7 @@ DIRECTIONS = {"+": 1, "-": -1, "1": 1, "+1": 1, "-1": -1, "up": 1, "down": -1, "
               "forwards": 1, "backwards": -1, "reverse": -1, "pos": 1, "neg": -1, "positive": 1, "negative": -1}
 
 
-class ImportError_(ValidationError):
+class InstrumentFileError(ValidationError):
     """An instrument file that cannot become a bundle; the message is ``FILE:ROW: problem`` where a row is involved."""
 
 
@@ -37,7 +37,7 @@ def value_factor(unit: str, term: str, where: str) -> float:
     table = ANGLE_UNITS if term in ROTATIONS else LENGTH_UNITS
     if u not in table:
         kind = "an angle" if term in ROTATIONS else "a length"
-        raise ImportError_(f"{where}: unit {unit!r} is not {kind} unit ({' '.join(table)})")
+        raise InstrumentFileError(f"{where}: unit {unit!r} is not {kind} unit ({' '.join(table)})")
     return table[u]
 
 
@@ -46,10 +46,10 @@ def position_factor(unit: str, axis: str, where: str) -> float:
     u = unit.strip().lower().replace("μ", "µ")
     if axis in ("A", "B"):
         if u != "deg":
-            raise ImportError_(f"{where}: positions of rotary axis {axis} must be in deg, not {unit!r}")
+            raise InstrumentFileError(f"{where}: positions of rotary axis {axis} must be in deg, not {unit!r}")
         return 1.0
     if u not in LENGTH_UNITS:
-        raise ImportError_(f"{where}: unit {unit!r} is not a length unit ({' '.join(LENGTH_UNITS)})")
+        raise InstrumentFileError(f"{where}: unit {unit!r} is not a length unit ({' '.join(LENGTH_UNITS)})")
     return LENGTH_UNITS[u]
 
 
@@ -72,7 +72,7 @@ def parse_time(text: str, where: str) -> datetime:
             except ValueError:
                 continue
         if dt is None:
-            raise ImportError_(f"{where}: date {text!r} is neither ISO 8601 nor dd/mm/yyyy hh:mm:ss") from None
+            raise InstrumentFileError(f"{where}: date {text!r} is neither ISO 8601 nor dd/mm/yyyy hh:mm:ss") from None
     return dt if dt.tzinfo is not None else dt.replace(tzinfo=timezone.utc)
 
 
@@ -105,17 +105,17 @@ def write_readings(readings: Readings, out: str | Path, *, machine: str | None =
     """Write the readings as a bundle v1 at ``out`` (validated by the bundle loader first; nothing left on an error)."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ImportError_(f"{out}: exists and is not an empty directory")
+        raise InstrumentFileError(f"{out}: exists and is not an empty directory")
     src = readings.source
     errors = readings.errors
     if errors.empty:
-        raise ImportError_(f"{src}: no readings")
+        raise InstrumentFileError(f"{src}: no readings")
     machine_id = machine or readings.machine
     if not machine_id:
-        raise ImportError_(f"{src}: the file names no machine: give --machine ID")
+        raise InstrumentFileError(f"{src}: the file names no machine: give --machine ID")
     when = started_at or readings.started_at
     if when is None:
-        raise ImportError_(f"{src}: the file carries no date: give --started-at ISO_TIME")
+        raise InstrumentFileError(f"{src}: the file carries no date: give --started-at ISO_TIME")
     if readings.temperature_frame is not None:
         temps = readings.temperature_frame
     else:
@@ -123,7 +123,7 @@ def write_readings(readings: Readings, out: str | Path, *, machine: str | None =
         if air_temp_degC is not None:
             values["air"] = float(air_temp_degC)
         if not values:
-            raise ImportError_(f"{src}: the file records no temperature: give --air-temp DEGC (the room during the test)")
+            raise InstrumentFileError(f"{src}: the file records no temperature: give --air-temp DEGC (the room during the test)")
         temps = pd.DataFrame({"time_s": [0.0], **{k: [v] for k, v in values.items()}})
     channels = [c for c in temps.columns if c != "time_s"]
     meta: dict[str, Any] = {
@@ -150,8 +150,8 @@ def write_readings(readings: Readings, out: str | Path, *, machine: str | None =
         if m:  # name the instrument file's row, not the bundle's
             k = int(m.group(1)) - 2
             row = int(rows[k]) if 0 <= k < rows.size else 0
-            raise ImportError_(f"{src}:{row}: {m.group(2)}" if row else f"{src}: {m.group(2)}") from None
-        raise ImportError_(f"{src}: {exc.one_line()}") from None
+            raise InstrumentFileError(f"{src}:{row}: {m.group(2)}" if row else f"{src}: {m.group(2)}") from None
+        raise InstrumentFileError(f"{src}: {exc.one_line()}") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -162,10 +162,10 @@ def write_readings(readings: Readings, out: str | Path, *, machine: str | None =
 
 
 def check_axis(axis: str, where: str) -> str:
-    """Return the axis letter upper-cased; ImportError_ when it is not one of the bundle's axes."""
+    """Return the axis letter upper-cased; InstrumentFileError when it is not one of the bundle's axes."""
     a = str(axis).strip().upper()
     if a not in AXES:
-        raise ImportError_(f"{where}: axis {axis!r} is not one of {' '.join(AXES)}")
+        raise InstrumentFileError(f"{where}: axis {axis!r} is not one of {' '.join(AXES)}")
     return a
 
 

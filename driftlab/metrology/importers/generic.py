@@ -29,7 +29,7 @@ from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.campaigns.bundle import AXES, TERMS
 from driftlab.metrology.importers.common import (
-    ImportError_,
+    InstrumentFileError,
     Readings,
     channel_name,
     parse_direction,
@@ -60,35 +60,35 @@ class Mapping(BaseModel):
 
 
 def load_mapping(path: str | Path) -> Mapping:
-    """Return the validated mapping of a YAML/JSON file; one-line ImportError_ naming the field otherwise."""
+    """Return the validated mapping of a YAML/JSON file; one-line InstrumentFileError naming the field otherwise."""
     path = Path(path)
     try:
         raw = yaml.safe_load(path.read_text(encoding="utf-8"))
     except OSError as exc:
-        raise ImportError_(f"{path.name}: {exc.strerror or exc}") from None
+        raise InstrumentFileError(f"{path.name}: {exc.strerror or exc}") from None
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
-        raise ImportError_(f"{path.name}:{(line or 0) + 1}: not YAML/JSON ({getattr(exc, 'problem', exc)})") from None
+        raise InstrumentFileError(f"{path.name}:{(line or 0) + 1}: not YAML/JSON ({getattr(exc, 'problem', exc)})") from None
     try:
         m = Mapping.model_validate(raw if raw is not None else {})
     except PydanticValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(x) for x in err["loc"]) or "mapping"
-        raise ImportError_(f"{path.name}: {loc}: {err['msg']}") from None
+        raise InstrumentFileError(f"{path.name}: {loc}: {err['msg']}") from None
     for f in list(m.columns) + list(m.constants):
         if f not in FIELDS:
-            raise ImportError_(f"{path.name}: {f!r} is not a bundle field ({' '.join(FIELDS)})")
+            raise InstrumentFileError(f"{path.name}: {f!r} is not a bundle field ({' '.join(FIELDS)})")
     for f in ("axis", "term", "position", "value"):
         if f not in m.columns and f not in m.constants:
-            raise ImportError_(f"{path.name}: no column or constant for {f!r}")
+            raise InstrumentFileError(f"{path.name}: no column or constant for {f!r}")
     if "direction" not in m.columns and "direction" not in m.constants:
-        raise ImportError_(f"{path.name}: no column or constant for 'direction' (ISO 230-2 runs need it)")
+        raise InstrumentFileError(f"{path.name}: no column or constant for 'direction' (ISO 230-2 runs need it)")
     bad = [v for v in m.directions.values() if v not in (1, -1)]
     if bad:
-        raise ImportError_(f"{path.name}: directions map to +1 or -1, not {bad[0]}")
+        raise InstrumentFileError(f"{path.name}: directions map to +1 or -1, not {bad[0]}")
     bad_t = [v for v in m.terms.values() if v not in TERMS]
     if bad_t:
-        raise ImportError_(f"{path.name}: terms map to one of {' '.join(TERMS)}, not {bad_t[0]!r}")
+        raise InstrumentFileError(f"{path.name}: terms map to one of {' '.join(TERMS)}, not {bad_t[0]!r}")
     return m
 
 
@@ -100,15 +100,15 @@ def read_generic(path: str | Path, mapping: Mapping, mapping_name: str = "mappin
         table = pd.read_csv(path, dtype=str, keep_default_na=False, sep=mapping.delimiter, skip_blank_lines=False,
                             encoding="utf-8-sig")
     except FileNotFoundError:
-        raise ImportError_(f"{src}: no such file") from None
+        raise InstrumentFileError(f"{src}: no such file") from None
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise ImportError_(f"{src}: not a CSV file ({' '.join(str(exc).split())})") from None
+        raise InstrumentFileError(f"{src}: not a CSV file ({' '.join(str(exc).split())})") from None
     wanted = {**mapping.columns, **{f"temperature {k}": v for k, v in mapping.temperatures.items()}}
     for field, col in wanted.items():
         if col not in table.columns:
-            raise ImportError_(f"{src}:1: no column {col!r} (mapped to {field} in {mapping_name})")
+            raise InstrumentFileError(f"{src}:1: no column {col!r} (mapped to {field} in {mapping_name})")
     if table.empty:
-        raise ImportError_(f"{src}:2: no rows (the file has only a header)")
+        raise InstrumentFileError(f"{src}:2: no rows (the file has only a header)")
     n = len(table)
     lines = np.arange(n) + 2
 
@@ -117,13 +117,13 @@ def read_generic(path: str | Path, mapping: Mapping, mapping_name: str = "mappin
             return table[mapping.columns[field]].astype(str).str.strip().to_numpy()
         return np.full(n, str(mapping.constants[field]))
 
-    def fail(i: int, field: str, what: str) -> ImportError_:
+    def fail(i: int, field: str, what: str) -> InstrumentFileError:
         col = mapping.columns.get(field, f"constant {field}")
-        return ImportError_(f"{src}:{lines[i]}: column {col}: {what}")
+        return InstrumentFileError(f"{src}:{lines[i]}: column {col}: {what}")
 
     empty = np.flatnonzero((table.astype(str).apply(lambda c: c.str.strip()) == "").all(axis=1).to_numpy())
     if empty.size:
-        raise ImportError_(f"{src}:{lines[empty[0]]}: empty line")
+        raise InstrumentFileError(f"{src}:{lines[empty[0]]}: empty line")
 
     def numbers(field: str) -> np.ndarray:
         text = cells(field)
@@ -165,7 +165,7 @@ def read_generic(path: str | Path, mapping: Mapping, mapping_name: str = "mappin
     if "time_s" in mapping.columns or "time_s" in mapping.constants:
         t_unit = mapping.units.get("time_s", "s")
         if t_unit not in TIME_UNITS:
-            raise ImportError_(f"{mapping_name}: units.time_s {t_unit!r} is not one of {' '.join(TIME_UNITS)}")
+            raise InstrumentFileError(f"{mapping_name}: units.time_s {t_unit!r} is not one of {' '.join(TIME_UNITS)}")
         time_s = numbers("time_s") * TIME_UNITS[t_unit]
     else:
         time_s = np.arange(n, dtype=float)  # measuring order, one second apart
@@ -178,7 +178,7 @@ def read_generic(path: str | Path, mapping: Mapping, mapping_name: str = "mappin
             v = pd.to_numeric(table[col].str.replace(mapping.decimal, ".", regex=False), errors="coerce")
             bad_rows = np.flatnonzero(v.isna().to_numpy() & (table[col].str.strip() != "").to_numpy())
             if bad_rows.size:
-                raise ImportError_(f"{src}:{lines[bad_rows[0]]}: column {col}: {table[col].iat[bad_rows[0]]!r} "
+                raise InstrumentFileError(f"{src}:{lines[bad_rows[0]]}: column {col}: {table[col].iat[bad_rows[0]]!r} "
                                    "is not a number (degC)")
             cols[channel_name(ch)] = v.to_numpy(float)
         temps = pd.DataFrame({"time_s": time_s, **cols}).drop_duplicates("time_s").reset_index(drop=True)
