@@ -23,6 +23,9 @@ class Settings(BaseSettings):
     api_token: str = ""
     api_host: str = "127.0.0.1"
     api_port: int = 8765
+    #: VISA backend of the instruments: "@py" (pyvisa-py, pure Python), "@sim" or "FILE.yaml@sim"
+    #: (pyvisa-sim), "@ivi" (the vendor VISA pyvisa finds), or the path of a vendor VISA library
+    visa_library: str = "@py"
 
     def resolved_db_url(self) -> str:
         """Return the configured database URL, or the embedded SQLite default."""

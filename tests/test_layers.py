@@ -55,3 +55,30 @@ def test_the_import_scan_sees_local_and_from_imports(tmp_path, source, expected)
     p = tmp_path / "m.py"
     p.write_text(source)
     assert expected in imported_modules(p)
+
+
+def _driftlab_imports(files: list[Path]) -> set[str]:
+    """Return the driftlab top-level subpackages the files import (``driftlab.x``)."""
+    return {".".join(m.split(".")[:2]) for p in files for m in imported_modules(p) if m.startswith("driftlab.")}
+
+
+def test_metrology_imports_only_campaigns_models_and_the_base():
+    files = sorted((PKG / "metrology").rglob("*.py"))
+    assert files
+    allowed = {"driftlab.metrology", "driftlab.campaigns", "driftlab.models", "driftlab.errors"}
+    assert _driftlab_imports(files) - allowed == set()
+
+
+def test_compensator_exports_import_only_models_and_the_compensator():
+    files = sorted((PKG / "compensator" / "exports").rglob("*.py"))
+    assert files
+    allowed = {"driftlab.compensator", "driftlab.models", "driftlab.errors"}
+    assert _driftlab_imports(files) - allowed == set()
+
+
+@pytest.mark.parametrize("package", ["driftlab.metrology", "driftlab.compensator.exports"])
+def test_nothing_low_imports_the_bridge(package):
+    """Only the bridge itself and the commands reach the ISO reports, importers and controller exports."""
+    own = PKG.joinpath(*package.split(".")[1:])
+    files = [p for p in PKG.rglob("*.py") if own not in p.parents and PKG / "commands" not in p.parents]
+    assert _offenders(files, package) == []

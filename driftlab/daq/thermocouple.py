@@ -1,7 +1,9 @@
-"""Type E thermocouple card (thesis ch. 5.3, appendix B): EMF to degC, cold junction, calibration.
+"""Thermocouple card (thesis ch. 5.3, appendix B): EMF to degC for types E, J, K, T, cold junction, calibration.
 
-Conversion follows the NIST ITS-90 thermocouple reference functions for type E
-(chromel-constantan), NIST Monograph 175 (1993):
+Conversion follows the NIST ITS-90 thermocouple reference functions, NIST Monograph 175 (1993).
+Types J, K and T (:data:`TYPES`, :func:`emf_mv`, :func:`temperature_c`) use the published forward
+pieces (type K with its exponential term above 0 degC) and inverse polynomials refined by two
+Newton steps on the forward function. Type E (chromel-constantan), the thesis card's type:
 
 * forward  E(t) = sum c_i t^i   (mV, t in degC), two ranges -270..0 and 0..1000 degC;
 * inverse  t(E) = sum d_i E^i   (degC, E in mV), -8.825..0 mV and 0..76.373 mV,
@@ -119,6 +121,143 @@ E_MV_MIN = -8.825  # inverse range limits (mV)
 E_MV_MAX = 76.373
 OVER_RANGE_V = 1.0  # any |reading| this large is the card's open-circuit/over-range code
 
+# ----------------------------------------------------------------------------- types J, K, T
+# NIST ITS-90 reference function coefficients, NIST Monograph 175 (1993), tables of section 6
+# (as published in the NIST ITS-90 Thermocouple Database, SRD 60). Forward: E (mV) = sum c_i t^i
+# (t in degC), type K above 0 degC plus a0 exp(a1 (t - a2)^2). Inverse: t = sum d_i E^i (E in mV).
+
+# Type J (iron / copper-nickel): forward -210..760 degC and 760..1200 degC.
+J_FWD_LOW = (0.0, 0.503811878150e-01, 0.304758369300e-04, -0.856810657200e-07, 0.132281952950e-09,
+             -0.170529583370e-12, 0.209480906970e-15, -0.125383953360e-18, 0.156317256970e-22)
+J_FWD_HIGH = (0.296456256810e03, -0.149761277860e01, 0.317871039240e-02, -0.318476867010e-05,
+              0.157208190040e-08, -0.306913690560e-12)
+# inverse -8.095..0 mV, 0..42.919 mV, 42.919..69.553 mV
+J_INV = (
+    (0.0, 1.9528268e01, -1.2286185e00, -1.0752178e00, -5.9086933e-01, -1.7256713e-01, -2.8131513e-02,
+     -2.3963370e-03, -8.3823321e-05),
+    (0.0, 1.978425e01, -2.001204e-01, 1.036969e-02, -2.549687e-04, 3.585153e-06, -5.344285e-08, 5.099890e-10),
+    (-3.11358187e03, 3.00543684e02, -9.94773230e00, 1.70276630e-01, -1.43033468e-03, 4.73886084e-06),
+)
+# Type K (nickel-chromium / nickel-aluminium): forward -270..0 degC and 0..1372 degC (+ exponential term).
+K_FWD_NEG = (0.0, 0.394501280250e-01, 0.236223735980e-04, -0.328589067840e-06, -0.499048287770e-08,
+             -0.675090591730e-10, -0.574103274280e-12, -0.310888728940e-14, -0.104516093650e-16,
+             -0.198892668780e-19, -0.163226974860e-22)
+K_FWD_POS = (-0.176004136860e-01, 0.389212049750e-01, 0.185587700320e-04, -0.994575928740e-07,
+             0.318409457190e-09, -0.560728448890e-12, 0.560750590590e-15, -0.320207200030e-18,
+             0.971511471520e-22, -0.121047212750e-25)
+K_EXP = (0.118597600000e00, -0.118343200000e-03, 0.126968600000e03)  # a0, a1, a2 (0..1372 degC only)
+# inverse -5.891..0 mV, 0..20.644 mV, 20.644..54.886 mV
+K_INV = (
+    (0.0, 2.5173462e01, -1.1662878e00, -1.0833638e00, -8.9773540e-01, -3.7342377e-01, -8.6632643e-02,
+     -1.0450598e-02, -5.1920577e-04),
+    (0.0, 2.508355e01, 7.860106e-02, -2.503131e-01, 8.315270e-02, -1.228034e-02, 9.804036e-04, -4.413030e-05,
+     1.057734e-06, -1.052755e-08),
+    (-1.318058e02, 4.830222e01, -1.646031e00, 5.464731e-02, -9.650715e-04, 8.802193e-06, -3.110810e-08),
+)
+# Type T (copper / copper-nickel): forward -270..0 degC and 0..400 degC.
+T_FWD_NEG = (0.0, 0.387481063640e-01, 0.441944343470e-04, 0.118443231050e-06, 0.200329735540e-07,
+             0.901380195590e-09, 0.226511565930e-10, 0.360711542050e-12, 0.384939398830e-14,
+             0.282135219250e-16, 0.142515947790e-18, 0.487686622860e-21, 0.107955392700e-23,
+             0.139450270620e-26, 0.797951539270e-30)
+T_FWD_POS = (0.0, 0.387481063640e-01, 0.332922278800e-04, 0.206182434040e-06, -0.218822568460e-08,
+             0.109968809280e-10, -0.308157587720e-13, 0.454791352900e-16, -0.275129016730e-19)
+# inverse -5.603..0 mV, 0..20.872 mV
+T_INV = (
+    (0.0, 2.5949192e01, -2.1316967e-01, 7.9018692e-01, 4.2527777e-01, 1.3304473e-01, 2.0241446e-02,
+     1.2668171e-03),
+    (0.0, 2.592800e01, -7.602961e-01, 4.637791e-02, -2.165394e-03, 6.048144e-05, -7.293422e-07),
+)
+
+
+@dataclass(frozen=True)
+class ThermocoupleType:
+    """One letter type's NIST ITS-90 reference functions: forward pieces, inverse pieces and their ranges."""
+
+    letter: str
+    t_breaks: tuple[float, ...]  # degC: piece k of the forward function covers t_breaks[k]..t_breaks[k+1]
+    forward: tuple[tuple[float, ...], ...]
+    mv_breaks: tuple[float, ...]  # mV: inverse piece k covers mv_breaks[k]..mv_breaks[k+1]
+    inverse: tuple[tuple[float, ...], ...]
+    exponential: tuple[float, float, float] | None = None  # type K above 0 degC
+
+    def _pieces(self, x: np.ndarray, breaks: tuple[float, ...]) -> np.ndarray:
+        return np.clip(np.searchsorted(np.asarray(breaks[1:-1]), x, side="right"), 0, len(breaks) - 2)
+
+    def emf_mv(self, t_c: float | np.ndarray) -> np.ndarray:
+        """Return the reference EMF (mV, reference junction at 0 degC) at ``t_c`` degC."""
+        t = np.asarray(t_c, dtype=float)
+        lo, hi = self.t_breaks[0], self.t_breaks[-1]
+        if np.any((t < lo) | (t > hi)):
+            raise ValidationError(f"type {self.letter} reference function is defined for {lo:g}..{hi:g} degC")
+        return self._forward(t)
+
+    def _forward(self, t: np.ndarray) -> np.ndarray:
+        k = self._pieces(t, self.t_breaks)
+        out = np.zeros(t.shape)
+        for i, coeffs in enumerate(self.forward):
+            sel = k == i
+            if np.any(sel):
+                out = np.where(sel, _poly(coeffs, t), out)
+        if self.exponential is not None:  # NIST type K: + a0 exp(a1 (t - a2)^2) for t >= 0
+            a0, a1, a2 = self.exponential
+            out = out + np.where(t >= 0.0, a0 * np.exp(a1 * (t - a2) ** 2), 0.0)
+        return out
+
+    def _slope(self, t: np.ndarray) -> np.ndarray:
+        k = self._pieces(t, self.t_breaks)
+        out = np.zeros(t.shape)
+        for i, coeffs in enumerate(self.forward):
+            der = np.polynomial.polynomial.polyder(np.asarray(coeffs))
+            out = np.where(k == i, _poly(der, t), out)
+        if self.exponential is not None:
+            a0, a1, a2 = self.exponential
+            out = out + np.where(t >= 0.0, a0 * np.exp(a1 * (t - a2) ** 2) * 2.0 * a1 * (t - a2), 0.0)
+        return out
+
+    def temperature_c(self, emf_mv: float | np.ndarray) -> np.ndarray:
+        """Return degC for an EMF in mV: NIST inverse polynomial refined by two Newton steps; NaN out of range."""
+        e = np.asarray(emf_mv, dtype=float)
+        inside = np.isfinite(e) & (e >= self.mv_breaks[0]) & (e <= self.mv_breaks[-1])
+        ec = np.where(inside, e, 0.0)
+        k = self._pieces(ec, self.mv_breaks)
+        t = np.zeros(ec.shape)
+        for i, coeffs in enumerate(self.inverse):
+            t = np.where(k == i, _poly(coeffs, ec), t)
+        lo, hi = self.t_breaks[0], self.t_breaks[-1]
+        # Newton steps on the forward reference function remove the inverse's +-0.05 degC approximation
+        for _ in range(2):
+            t = np.clip(t - (self._forward(np.clip(t, lo, hi)) - ec) / self._slope(np.clip(t, lo, hi)), lo, hi)
+        return np.where(inside, t, np.nan)
+
+
+TYPES: dict[str, ThermocoupleType] = {
+    "E": ThermocoupleType("E", (-270.0, 0.0, 1000.0), (E_FWD_NEG, E_FWD_POS), (E_MV_MIN, 0.0, E_MV_MAX),
+                          (E_INV_NEG, E_INV_POS)),
+    "J": ThermocoupleType("J", (-210.0, 760.0, 1200.0), (J_FWD_LOW, J_FWD_HIGH), (-8.095, 0.0, 42.919, 69.553),
+                          J_INV),
+    "K": ThermocoupleType("K", (-270.0, 0.0, 1372.0), (K_FWD_NEG, K_FWD_POS), (-5.891, 0.0, 20.644, 54.886),
+                          K_INV, K_EXP),
+    "T": ThermocoupleType("T", (-270.0, 0.0, 400.0), (T_FWD_NEG, T_FWD_POS), (-5.603, 0.0, 20.872), T_INV),
+}
+
+
+def thermocouple_type(letter: str) -> ThermocoupleType:
+    """Return the reference functions of type ``letter`` (E, J, K or T); ValidationError otherwise."""
+    try:
+        return TYPES[str(letter).upper()]
+    except KeyError:
+        raise ValidationError(f"thermocouple type {letter!r} is not one of {' '.join(TYPES)}") from None
+
+
+def emf_mv(letter: str, t_c: float | np.ndarray) -> np.ndarray:
+    """Return the NIST ITS-90 reference EMF (mV) of type ``letter`` at ``t_c`` degC."""
+    return thermocouple_type(letter).emf_mv(t_c)
+
+
+def temperature_c(letter: str, emf: float | np.ndarray) -> np.ndarray:
+    """Return degC for an EMF (mV) of type ``letter``; NaN outside the inverse function's range."""
+    return thermocouple_type(letter).temperature_c(emf)
+
 
 def _poly(coeffs: Sequence[float], x: np.ndarray) -> np.ndarray:
     return np.polynomial.polynomial.polyval(x, np.asarray(coeffs))
@@ -175,14 +314,25 @@ class ChannelCalibration:
 APPENDIX_B_EXAMPLE = ChannelCalibration(slope=1.000414, offset_c=-0.20638)
 
 
+def _conversions(tc_type: str) -> tuple[Callable[..., np.ndarray], Callable[..., np.ndarray]]:
+    """Return (forward, inverse) of a type; type E keeps its own vectorised two-piece path."""
+    if str(tc_type).upper() == "E":
+        return type_e_emf_mv, type_e_temperature_c
+    kind = thermocouple_type(tc_type)
+    return kind.emf_mv, kind.temperature_c
+
+
 def card_emf_to_temperature(
-    volts: np.ndarray, cold_junction_c: float, calibrations: Sequence[ChannelCalibration] | None = None
+    volts: np.ndarray, cold_junction_c: float, calibrations: Sequence[ChannelCalibration] | None = None,
+    tc_type: str = "E",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return (degC, open mask) for card EMFs in volts: cold-junction compensated, calibrated; NaN where open."""
+    forward, inverse = _conversions(tc_type)
     v = np.asarray(volts, dtype=float)
     over = ~np.isfinite(v) | (np.abs(v) >= OVER_RANGE_V)
-    total_mv = np.where(over, np.nan, v * 1e3) + float(type_e_emf_mv(cold_junction_c))
-    t_raw = type_e_temperature_c(total_mv)
+    # cold-junction compensation: E(t_hot) = E_measured + E(t_cj) (NIST Monograph 175, section 2)
+    total_mv = np.where(over, np.nan, v * 1e3) + float(forward(cold_junction_c))
+    t_raw = inverse(total_mv)
     open_mask = over | ~np.isfinite(t_raw)
     if calibrations is not None:
         slopes = np.array([c.slope for c in calibrations])
@@ -192,14 +342,16 @@ def card_emf_to_temperature(
 
 
 def card_block_to_temperature(
-    volts: np.ndarray, cold_junction_c: np.ndarray, calibrations: Sequence[ChannelCalibration] | None = None
+    volts: np.ndarray, cold_junction_c: np.ndarray, calibrations: Sequence[ChannelCalibration] | None = None,
+    tc_type: str = "E",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return (degC, open mask) for a block of scans: volts (n, c), one cold junction (degC) per scan."""
+    forward, inverse = _conversions(tc_type)
     v = np.asarray(volts, dtype=float)
     over = ~np.isfinite(v) | (np.abs(v) >= OVER_RANGE_V)
-    e_cj = type_e_emf_mv(np.asarray(cold_junction_c, dtype=float))[:, None]
+    e_cj = forward(np.asarray(cold_junction_c, dtype=float))[:, None]
     total_mv = np.where(over, np.nan, v * 1e3) + e_cj
-    t_raw = type_e_temperature_c(total_mv)
+    t_raw = inverse(total_mv)
     open_mask = over | ~np.isfinite(t_raw)
     if calibrations is not None:
         slopes = np.array([c.slope for c in calibrations])
@@ -216,7 +368,7 @@ def _parse_float(text: str) -> float:
 
 
 class ThermocoupleCard:
-    """A DAS-TC style type E scanner on a line channel; satisfies TemperatureScanner."""
+    """A DAS-TC style scanner (type E by default; J, K, T too) on a line channel; satisfies TemperatureScanner."""
 
     def __init__(
         self,
@@ -224,7 +376,9 @@ class ThermocoupleCard:
         channel_map: Mapping[int, str],
         calibrations: Mapping[str, ChannelCalibration] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        tc_type: str = "E",
     ) -> None:
+        self.tc_type = thermocouple_type(tc_type).letter
         if not channel_map:
             raise ValidationError("thermocouple card needs at least one channel")
         if len(channel_map) > MAX_CHANNELS or any(not 0 <= k < MAX_CHANNELS for k in channel_map):
@@ -250,10 +404,12 @@ class ThermocoupleCard:
         calibrations: Mapping[str, ChannelCalibration] | None = None,
         timeout_s: float = 2.0,
         policy: RetryPolicy | None = None,
+        tc_type: str = "E",
     ) -> ThermocoupleCard:
         """Return a card on a VISA resource name or a serial device/URL."""
+        thermocouple_type(tc_type)  # refuse an unknown type before opening the port
         channel = LineChannel(open_port(address, timeout_s), "thermocouple card", policy)
-        return cls(channel, channel_map, calibrations)
+        return cls(channel, channel_map, calibrations, tc_type=tc_type)
 
     def close(self) -> None:
         """Release the card's port."""
@@ -295,7 +451,7 @@ class ThermocoupleCard:
         idx = np.array(list(self._map)) - self._first
         names = list(self._map.values())
         cals = [self._cal.get(name, ChannelCalibration()) for name in names]
-        temps, open_mask = card_emf_to_temperature(volts[idx], cj, cals)
+        temps, open_mask = card_emf_to_temperature(volts[idx], cj, cals, self.tc_type)
         values = {name: float(temps[i]) for i, name in enumerate(names)}
         flags = {name: FLAG_OPEN for i, name in enumerate(names) if open_mask[i]}
         return TemperatureScan(t_s=t_s, values=values, flags=flags)
@@ -336,5 +492,5 @@ class ThermocoupleCard:
         idx = np.array(list(self._map)) - self._first
         names = tuple(self._map.values())
         cals = [self._cal.get(name, ChannelCalibration()) for name in names] if self._cal else None
-        temps, open_mask = card_block_to_temperature(volts[:, idx], cj, cals)
+        temps, open_mask = card_block_to_temperature(volts[:, idx], cj, cals, self.tc_type)
         return ScanBlock(first_index, np.arange(first_index, first_index + n) * interval, names, temps, open_mask)

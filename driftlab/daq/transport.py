@@ -7,14 +7,13 @@ helper implements the same two calls, so a driver test asserts the exact bytes o
 
 from __future__ import annotations
 
-import select
-import socket
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
 from driftlab.daq.retry import GarbledReply, RetryPolicy, TransportTimeout, call_with_retry
-from driftlab.errors import InstrumentError
+from driftlab.errors import InstrumentError, ValidationError
 
 T = TypeVar("T")
 
@@ -39,15 +38,20 @@ class RawPort(Protocol):
 
 
 class SerialPort:
-    """RawPort over pyserial (a COM port, or a ``socket://`` / ``loop://`` URL)."""
+    """RawPort over pyserial (a COM port, or a ``socket://`` / ``loop://`` URL), through its public API only.
+
+    pyserial's ``read_until`` reads a line byte by byte (a select and a recv per byte on
+    ``socket://``). Lines are read in chunks instead: wait for one byte with the time left of the
+    line's timeout, then take whatever else has arrived with a non-blocking read (``timeout = 0``),
+    keeping bytes past the terminator for the next line.
+    """
+
+    CHUNK = 65536
 
     def __init__(self, serial_obj: Any) -> None:
         self._ser = serial_obj
         self._buf = b""  # bytes received past the last line returned
-        # pyserial reads a line byte by byte (a select and a recv per byte on socket://); on a
-        # network port the socket is read in chunks instead, with the port's timeout per line
-        sock = getattr(serial_obj, "_socket", None)
-        self._sock = sock if isinstance(sock, socket.socket) else None
+        self._timeout = serial_obj.timeout  # the port's timeout per line (None: wait for ever)
 
     @classmethod
     def open(cls, url: str, timeout_s: float = 2.0, baudrate: int = 9600) -> SerialPort:
@@ -70,39 +74,31 @@ class SerialPort:
         except (serial.SerialException, OSError) as exc:
             raise TransportTimeout(f"serial write failed: {exc}") from exc
 
-    def _read_line_socket(self, sock: socket.socket) -> bytes:
-        """Return one line read from a network port in chunks (leftover bytes kept for the next line)."""
-        timeout = self._ser.timeout
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while TERMINATOR not in self._buf:
-            left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
-            ready, _, _ = select.select([sock], [], [], left)
-            chunk = sock.recv(65536) if ready else b""
-            if not chunk:
-                partial, self._buf = self._buf, b""
-                if ready:
-                    raise TransportTimeout("connection closed by the instrument")
-                raise TransportTimeout("timeout waiting for reply" + (f" (partial {partial!r})" if partial else ""))
-            self._buf += chunk
-        line, _, self._buf = self._buf.partition(TERMINATOR)
-        return line + TERMINATOR
-
     def read_line(self) -> bytes:
-        """Return one ``\\n``-terminated line; raise TransportTimeout on a short read."""
+        """Return one ``\\n``-terminated line; raise TransportTimeout on a short read or a closed port."""
         import serial
 
-        if self._sock is not None:
-            try:
-                return self._read_line_socket(self._sock)
-            except OSError as exc:
-                raise TransportTimeout(f"serial read failed: {exc}") from exc
+        deadline = None if self._timeout is None else time.monotonic() + self._timeout
         try:
-            data = self._ser.read_until(TERMINATOR)
-        except (serial.SerialException, OSError) as exc:
+            while TERMINATOR not in self._buf:
+                left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+                self._ser.timeout = left
+                first = self._ser.read(1)  # blocks until a byte comes or the line's time is up
+                if not first:
+                    partial, self._buf = self._buf, b""
+                    raise TransportTimeout("timeout waiting for reply" + (f" (partial {partial!r})" if partial else ""))
+                self._ser.timeout = 0  # non-blocking: whatever has already arrived
+                self._buf += first + self._ser.read(self.CHUNK)
+        except serial.SerialException as exc:
+            self._buf = b""
+            what = "connection closed by the instrument" if "disconnected" in str(exc) else f"serial read failed: {exc}"
+            raise TransportTimeout(what) from exc
+        except OSError as exc:
             raise TransportTimeout(f"serial read failed: {exc}") from exc
-        if not data.endswith(TERMINATOR):
-            raise TransportTimeout("timeout waiting for reply" + (f" (partial {data!r})" if data else ""))
-        return bytes(data)
+        finally:
+            self._ser.timeout = self._timeout
+        line, _, self._buf = self._buf.partition(TERMINATOR)
+        return line + TERMINATOR
 
     def discard_input(self) -> None:
         """Drop unread received bytes."""
@@ -124,13 +120,13 @@ class VisaPort:
 
     @classmethod
     def open(
-        cls, address: str, timeout_s: float = 2.0, resource_manager: Any | None = None
+        cls, address: str, timeout_s: float = 2.0, resource_manager: Any | None = None, library: str | None = None
     ) -> VisaPort:
-        """Return a port on ``address`` via pyvisa (pyvisa-py backend unless a manager is given)."""
+        """Return a port on ``address`` via pyvisa: the given manager, else one on ``library`` (DRIFTLAB_VISA_LIBRARY)."""
         import pyvisa
 
+        rm = resource_manager or visa_resource_manager(library)
         try:
-            rm = resource_manager or pyvisa.ResourceManager("@py")
             res = rm.open_resource(address)
         except (pyvisa.Error, OSError, ValueError) as exc:
             raise InstrumentError(f"cannot open VISA resource {address}: {exc}") from exc
@@ -185,6 +181,38 @@ class VisaPort:
     def close(self) -> None:
         """Close the VISA session."""
         self._res.close()
+
+
+def visa_library_spec(library: str | None = None) -> str:
+    """Return the pyvisa backend spec to use: ``library``, else DRIFTLAB_VISA_LIBRARY; checked, one-line errors."""
+    from driftlab.config import get_settings
+
+    spec = (library if library is not None else get_settings().visa_library).strip() or "@py"
+    if spec in ("@py", "@ivi", "@sim"):
+        return spec
+    if spec.endswith("@sim"):  # FILE.yaml@sim: pyvisa-sim with the instruments defined in FILE.yaml
+        path = spec[: -len("@sim")]
+        if not Path(path).is_file():
+            raise ValidationError(f"VISA library {spec!r}: no such pyvisa-sim definitions file {path}")
+        return spec
+    if spec.startswith("@"):
+        raise ValidationError(f"VISA library {spec!r}: use @py, @sim, FILE.yaml@sim, @ivi or the path of a vendor "
+                              "VISA library")
+    if not Path(spec).is_file():
+        raise ValidationError(f"VISA library {spec!r}: no such file (give the path of the vendor's VISA library)")
+    return spec
+
+
+def visa_resource_manager(library: str | None = None) -> Any:
+    """Return a pyvisa ResourceManager on the configured backend (pyvisa-py, pyvisa-sim, or a vendor VISA)."""
+    import pyvisa
+
+    spec = visa_library_spec(library)
+    try:
+        return pyvisa.ResourceManager(spec)
+    except (pyvisa.Error, OSError, ValueError) as exc:
+        hint = " (the @sim backend needs the pyvisa-sim package)" if spec.endswith("@sim") else ""
+        raise InstrumentError(f"cannot load VISA library {spec!r}: {' '.join(str(exc).split())}{hint}") from exc
 
 
 def open_port(address: str, timeout_s: float = 2.0) -> RawPort:
