@@ -42,8 +42,11 @@ ROTARY = ("A", "B")
 AXIS_JOINT: Mapping[str, str] = {"X": "phi_x", "Y": "phi_y", "Z": "phi_z", "A": "theta_x", "B": "theta_y"}
 #: the axis of each joint
 JOINT_OF: Mapping[str, str] = {j: a for a, j in AXIS_JOINT.items()}
-#: names of the error measurements of tables 6.1/6.2, by (axis, term)
-MEASUREMENT_NAMES: Mapping[str, str] = {"alpha": "Roll", "beta": "Pitch", "gamma": "Yaw"}
+#: the rotation about each axis (thesis notation: alpha about X, beta about Y, gamma about Z)
+ROTATION_ABOUT: Mapping[str, str] = {"X": "alpha", "Y": "beta", "Z": "gamma", "A": "alpha", "B": "beta"}
+#: pitch and yaw of a linear axis (Table 5.3: what the angular optics see; roll is the rotation about the axis)
+PITCH_YAW: Mapping[str, tuple[str, str]] = {"X": ("beta", "gamma"), "Y": ("alpha", "gamma"), "Z": ("alpha", "beta")}
+ANGLES = ("alpha", "beta", "gamma")
 #: feature kinds that belong to a joint (position shape, reversal, ballscrew)
 SEED_KINDS = frozenset({"position", "direction", "pos_dT"})
 #: the element whose structure a thermocouple's structure belongs to (allocation of a chosen term)
@@ -754,8 +757,12 @@ def joint_adjust(
 
 def _measurement_name(axis: str, term: str) -> str:
     """Return the thesis' name of an error measurement (Position, X Straightness, Roll, ...)."""
-    if term in MEASUREMENT_NAMES:
-        return MEASUREMENT_NAMES[term]
+    if term in ANGLES:
+        if axis in ROTARY:  # a rotary axis' own rotation is its positioning; the other two tilt it (ISO 230-7)
+            return "Positioning" if term == ROTATION_ABOUT[axis] else f"{term.capitalize()} Tilt"
+        if term == ROTATION_ABOUT[axis]:
+            return "Roll"
+        return "Pitch" if term == PITCH_YAW[axis][0] else "Yaw"
     t_axis = term[1].upper()
     if axis in ROTARY:
         return f"{t_axis} Deflection"
@@ -797,7 +804,7 @@ def validation_table(
             f = (r2 / max(n_terms, 1)) / ((1 - r2) / dof) if dof > 0 and n_terms and r2 < 1 else float("nan")
             rows.append({
                 "axis": axis, "term": term, "link": "+".join(links) or "-",
-                "measurement": _measurement_name(axis, term), "unit": "rad" if term in MEASUREMENT_NAMES else "mm",
+                "measurement": _measurement_name(axis, term), "unit": "rad" if term in ANGLES else "mm",
                 "rmse_train": rmse(col[tr] - W_hat[tr, k]), "rmse_holdout": rmse(col[ho] - W_hat[ho, k]),
                 "rmse_validation": rmse(col[va] - W_hat[va, k]), "r2": r2, "f": f,
                 "r2_holdout": r_squared(col[ho], W_hat[ho, k]) if ho.sum() > 2 else float("nan"),

@@ -542,3 +542,14 @@ def test_joint_coordinates_follow_the_bundle_v2_pose():
     assert q[1] == pytest.approx([50.0, 100.0, -20.0, 0.0, np.deg2rad(5.0)])
     v1 = _pose_q(_points(e.drop(columns=["x", "y", "z", "a", "b", "setup"])).sort_values("axis"))
     assert v1[1] == pytest.approx([50.0, 0.0, 0.0, 0.0, 0.0])  # v1: only the moved axis is known
+
+
+def test_measurement_names_follow_the_moving_axis():
+    """Tables 6.1/6.2: roll is the rotation about the moving axis; pitch and yaw as the angular optics see them."""
+    from driftlab.models.fitting import _measurement_name as name
+
+    assert [name("X", t) for t in ("alpha", "beta", "gamma")] == ["Roll", "Pitch", "Yaw"]
+    assert [name("Y", t) for t in ("alpha", "beta", "gamma")] == ["Pitch", "Roll", "Yaw"]
+    assert [name("Z", t) for t in ("alpha", "beta", "gamma")] == ["Pitch", "Yaw", "Roll"]
+    assert [name("A", t) for t in ("alpha", "beta", "gamma")] == ["Positioning", "Beta Tilt", "Gamma Tilt"]
+    assert name("B", "beta") == "Positioning" and name("Y", "dy") == "Position" and name("Y", "dx") == "X Straightness"
