@@ -13,6 +13,11 @@ the current model of an (axis, term)):
   other thermocouples, ch. 6.4.2/6.6) after a change point found on the temperatures alone.
 - ``drift``: time in days (3.2, 6.4.3).
 - ``quadratic``: dT_k^2 (6.4.2).
+- ``operating_condition``: a conditions.csv column (spindle_rpm, feed_mm_min) to the power 1 or 2,
+  entering the error directly (6.4.3: centrifugal spindle growth with rpm^2, feed-dependent errors).
+
+A ``sensor_fault`` is not a candidate regressor: it is decided on the temperatures alone
+(``scan_sensor_faults``) and its repair applied before the search (diagnosis.py).
 
 Screening is one QR of the current training design and a projection of all
 candidate columns at once (numpy); statsmodels is used only for the final
@@ -30,7 +35,7 @@ from scipy import optimize, signal, stats
 from driftlab.models.standard_model import PreparedBundle, TermData, lstsq, robust_sigma
 
 KINDS = ("reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift",
-         "quadratic")
+         "quadratic", "operating_condition")
 
 #: number of log-spaced time constants screened per channel for thermal_lag
 N_TAU = 16
@@ -368,11 +373,12 @@ class Candidate:
     hint: dict[str, Any] = field(default_factory=dict)  # tau_s, start_s, mode ...
     replace: list[tuple[str, np.ndarray]] | None = None  # sensor_fault: (channel, replacement dT column)
     family_size: int = 1  # hypotheses this candidate stands for (tau grid points)
+    label: str = ""  # what tells apart candidates of one kind without channels (operating_condition)
 
     @property
     def key(self) -> tuple[str, tuple[str, ...]]:
-        """Return (kind, channels): what makes two candidates the same effect."""
-        return self.kind, tuple(self.channels)
+        """Return (kind, channels) - or (kind, (label,)) - : what makes two candidates the same effect."""
+        return self.kind, (self.label,) if self.label else tuple(self.channels)
 
 
 @dataclass
@@ -467,17 +473,15 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             out.append(Candidate("unmapped_channel", [ch], col[:, None], [f"dT_{ch}"]))
         if in_model and ("quadratic", (ch,)) not in ctx.taken:
             out.append(Candidate("quadratic", [ch], (col * col)[:, None], [f"dT_{ch}^2"]))
-        if in_model and ("sensor_fault", (ch,)) not in ctx.taken:
-            fs = ctx.faults.get(ch)
-            if fs is not None and fs.plausible:
-                out.append(_fault_candidate(ctx, [fs]))
-    # several broken thermocouples in one model: each alone cannot show a gain while the others
-    # still corrupt the fit, so they are also tried together (one effect naming every channel)
-    faulty = [ctx.faults[ch] for ch in ctx.model_channels
-              if ch in ctx.faults and ctx.faults[ch].plausible and ch in ctx.chan_cols
-              and ("sensor_fault", (ch,)) not in ctx.taken]
-    if len(faulty) > 1:
-        out.append(_fault_candidate(ctx, faulty))
+    # the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)
+    for col, v in td.conditions.items():
+        for power in (1, 2):
+            label = f"{col}^{power}"
+            x = v**power
+            if ("operating_condition", (label,)) in ctx.taken or np.ptp(x[td.train]) == 0:
+                continue
+            out.append(Candidate("operating_condition", [], x[:, None].astype(float), [label],
+                                 {"column": col, "power": power}, label=label))
     for ch, (taus, at) in ctx.lag_cache.items():
         if ("thermal_lag", (ch,)) in ctx.taken:
             continue
@@ -641,7 +645,7 @@ def columns_like(cand: Candidate, hint: dict[str, Any], ctx: TermContext) -> np.
     """
     td = ctx.td
     k = cand.kind
-    if k in ("reversal", "drift"):
+    if k in ("reversal", "drift", "operating_condition"):
         return cand.cols
     if k == "sensor_fault" or not cand.channels:
         return None
