@@ -32,11 +32,12 @@ import pandas as pd
 import statsmodels.api as sm
 from scipy import optimize
 
-from driftlab.models.effects import (
+from driftlab.models.effects import (  # noqa: I001
     N_TAU,
     Candidate,
     FaultScan,
     Scored,
+    _fault_candidate,
     TermContext,
     build_candidates,
     build_context,
@@ -911,7 +912,7 @@ def _tau_grid(prep: PreparedBundle) -> np.ndarray:
     return np.exp(np.linspace(np.log(lo), np.log(hi), N_TAU)) if hi > lo else np.array([])
 
 
-def diagnose_bundle(bundle: Any, holdout_fraction: float = 0.25, alpha: float = 0.01, min_gain: float = 0.10,
+def diagnose_bundle(bundle: Any, holdout_fraction: float = 0.25, alpha: float = 0.01, min_gain: float = 0.0,
                     max_effects: int = 4) -> DiagnosisResult:
     """Return the :class:`DiagnosisResult` of a bundle (a ``Bundle`` from a directory or from the store)."""
     # the matrices here are tall and thin: one BLAS thread is faster, and far faster on a busy machine

@@ -334,12 +334,15 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
             replaced = T[:, j].copy()
             replaced[start:] = virtual[start:]
             mode = "open" if dead is not None else "detached"
-            # Welch test on block means (30-min blocks tame the autocorrelation of temperatures)
+            # the departure grows after the fault: one-sided Welch test on the log mean square of the
+            # departure in 30-min blocks (blocks tame the autocorrelation of temperatures; the square
+            # catches a departure of either sign, e.g. a held reading the structure warms past and cools
+            # back through, whose mean can be near zero)
             blk = max(1, int(1800.0 / dt))
-            pre_b = _block_means(r[:start], blk)
-            post_b = _block_means(r[start:], blk)
+            pre_b = np.log(_block_means(r[:start] ** 2, blk) + 1e-12)
+            post_b = np.log(_block_means(r[start:] ** 2, blk) + 1e-12)
             if pre_b.size >= 2 and post_b.size >= 2 and np.ptp(np.concatenate([pre_b, post_b])) > 0:
-                p_temp = float(stats.ttest_ind(pre_b, post_b, equal_var=False).pvalue)
+                p_temp = float(stats.ttest_ind(post_b, pre_b, equal_var=False, alternative="greater").pvalue)
             else:
                 p_temp = 1.0
             out[prep.channels[j]] = FaultScan(prep.channels[j], float(t[min(start, n - 1)]), strength,
@@ -349,7 +352,32 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
         excluded = {prep.channel_index(c) for c, f in out.items() if f.plausible}
         if not excluded:
             break
+    _peer_test(out)
     return out
+
+
+def _peer_test(scans: dict[str, FaultScan]) -> None:
+    """Hold every detached-fault candidate to its peers: its break must stand out among all channels'.
+
+    Every channel's virtual-sensor relation, split at its own best break, fits better on the two
+    sides (the relation between sites changes with the heat sources, and the break is chosen to
+    make the most of it), so the break ratio of a healthy channel is not 1 and the block test on
+    the departure, taken after choosing the cut, is optimistic. A loose thermocouple breaks its
+    relation far more than its peers do: the robust z of its log break ratio among all channels
+    (median, 1.4826 MAD) gives a one-sided normal p-value, and the fault's temperature p-value
+    becomes the larger of that and the block test. A dead tail (no or stuck readings to the
+    end) is its own evidence and is left as it is.
+    """
+    ratios = np.array([f.break_ratio for f in scans.values() if np.isfinite(f.break_ratio) and f.break_ratio > 0])
+    if ratios.size < 5:
+        return
+    logs = np.log(ratios)
+    med = float(np.median(logs))
+    mad = max(1.4826 * float(np.median(np.abs(logs - med))), 1e-6)
+    for f in scans.values():
+        if f.mode == "detached":
+            z = (np.log(max(f.break_ratio, 1e-300)) - med) / mad if np.isfinite(f.break_ratio) else -np.inf
+            f.p_value = max(f.p_value, float(stats.norm.sf(z)))
 
 
 def _block_means(x: np.ndarray, blk: int) -> np.ndarray:
