@@ -45,6 +45,7 @@ def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
         "extended": [t.extended_dict() for t in res.terms],
         "acceptance": {"alpha_family": res.alpha_family, "hypotheses": res.n_hypotheses,
                        "correction": "bonferroni", "decided_on": "training part only",
+                       "alpha_per_candidate": res.alpha_each, "alpha_per_channel_fault": res.alpha_fault,
                        "validation": "rolling origin inside the training part (origins at 2/3 and 5/6)",
                        "min_validation_gain": res.min_gain,
                        "robust_covariance": "max of HAC (Newey-West) and cluster (blocks of whole sweeps)",

@@ -323,8 +323,16 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
             # air, and agrees with its structure again whenever the structure cools to the air (a night)
             early = rpost[: max(min_len, int(7200.0 / dt))]
             persistence = float(np.mean(np.abs(early) > 3 * sigma)) if early.size else 0.0
+            toward_air = 1.0
+            if dead is None and room_cols and j not in room_cols:
+                # a junction that came loose reads nearer the air than its structure: its departure from
+                # the virtual sensor points toward the room temperature (judged on the same early window)
+                air = np.mean(T[:, room_cols], axis=1)
+                est = T[0, j] + A @ beta
+                w = slice(start, start + early.size)
+                toward_air = float(np.mean(np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w])))
             plausible = rpost.size >= min_len and start >= min_pre and (
-                dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6))
+                dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6))
             if smooth_T is not None:
                 Ds = smooth_T - smooth_T[0]
                 A_s = np.column_stack([np.ones(n), Ds[:, nb]])
@@ -345,6 +353,10 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
                 p_temp = float(stats.ttest_ind(post_b, pre_b, equal_var=False, alternative="greater").pvalue)
             else:
                 p_temp = 1.0
+            if dead is not None:
+                # no reading, or one stuck value, from start to the end for at least 30 min: the card says
+                # so itself; this is an observation, not a statistical inference on the departure
+                p_temp = 0.0
             out[prep.channels[j]] = FaultScan(prep.channels[j], float(t[min(start, n - 1)]), strength,
                                               persistence, mode, p_temp if np.isfinite(p_temp) else 1.0,
                                               replaced, bool(plausible),

@@ -103,6 +103,7 @@ class Case:
     rho: float
     beyond_span: dict[str, float]  # (axis/term) -> RMS of the base error outside the model's span
     signal_rms: list[float]  # per planted effect: RMS of its observed contribution
+    beyond_model_rms: list[float]  # per planted effect: the part of it no standard model can absorb
 
 
 def _lag(x: np.ndarray, dt: float, tau: float) -> np.ndarray:
@@ -264,6 +265,7 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
         raise ValueError(p.kind)
 
     errors, expected, signal = [], [{} for _ in planted], [0.0] * len(planted)
+    beyond_model = [0.0] * len(planted)
     beyond: dict[str, float] = {}
     effects = [p for p in planted if p.kind != "sensor_fault"]
     for axis in axes:
@@ -282,6 +284,7 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
                 Wi = kin.workspace_error(q, element_errors(q, [p], idx))
                 delta = Wi[:, c] - W0[:, c]
                 signal[i] = float(np.sqrt(np.mean(delta**2)))
+                beyond_model[i] = _beyond_span(delta, R.iloc[idx], dT_at[idx], names)
                 expected[i] = _expected_params(p, delta, idx, R, dT_at, names, rpm_at, rt, angle)
             y = W[:, c] + _ar1(idx.size, rho, sigma, rng)
             if glitches:  # single readings hit by EMI: 3 per series, 20-60 x the noise
@@ -325,7 +328,8 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
         "noise": {"length_mm": noise_mm, "angle_rad": noise_rad},
     }
     bundle = Bundle(name=f"open-{seed}", meta=_as_meta(meta), temperatures=temps, conditions=cond, errors=err)
-    return Case(bundle, planted, expected, {"length_mm": noise_mm, "angle_rad": noise_rad}, rho, beyond, signal)
+    return Case(bundle, planted, expected, {"length_mm": noise_mm, "angle_rad": noise_rad}, rho, beyond, signal,
+                beyond_model)
 
 
 def _beyond_span(w: np.ndarray, rows: pd.DataFrame, dT: np.ndarray, names: list[str]) -> float:
