@@ -538,6 +538,35 @@ def validation_rmse(X: np.ndarray, y: np.ndarray, folds: list[tuple[np.ndarray, 
     return rmse(np.concatenate(res)) if res else float("nan")
 
 
+def validation_gain(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
+                    folds: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float]:
+    """Return the validation RMSE (pooled over ``folds``) before and after a candidate's columns ``cols``.
+
+    Time-ordered validation of the candidate itself: the current model and the candidate's
+    columns are both partialled on the current design over the training rows (Frisch-Waugh-Lovell),
+    the candidate's coefficients are estimated on each fold's fit rows only and applied to the
+    block after it. A real effect estimated on the early part explains the later part; a proxy
+    that only fits in sample does not. (Refitting the whole standard model on the fit rows
+    instead makes the check hostage to the extrapolation of its collinear dT coefficients: a
+    candidate orthogonal to them, a reversal, then moves them along their near-null direction
+    and can "lose" in validation at random.) Training rows only: the held-out rows never enter.
+    """
+    b = lstsq(X[train], y[train])
+    r = y - X @ b
+    D = np.column_stack([lstsq(X[train], cols[train, k]) for k in range(cols.shape[1])])
+    cr = cols - X @ D
+    before, after = [], []
+    for fit, val in folds:
+        if fit.sum() < cols.shape[1] + 3:
+            continue
+        g = lstsq(cr[fit], r[fit])
+        before.append(r[val])
+        after.append(r[val] - cr[val] @ g)
+    if not before:
+        return float("nan"), float("nan")
+    return rmse(np.concatenate(before)), rmse(np.concatenate(after))
+
+
 def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], params: dict[str, Any],
            coef: float, fault: FaultScan | None) -> str:
     """Return the plain-language cause of an effect, with its numbers and thesis section."""
@@ -690,7 +719,7 @@ def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | 
     X = np.column_stack([dstate.X, cols])
     fit = fit_columns(X, td.y, tr, list(dstate.names) + [f"c{i}" for i in range(cols.shape[1])])
     folds = validation_folds(td)
-    before_v, after_v = validation_rmse(dstate.X, td.y, folds), validation_rmse(X, td.y, folds)
+    before_v, after_v = validation_gain(dstate.X, cols, td.y, tr, folds)
     if not (np.isfinite(after_v) and np.isfinite(before_v)) or after_v > (1.0 - min_gain) * before_v:
         return False, cols
     if before_v**2 - after_v**2 < (min_explained * noise) ** 2:
@@ -768,7 +797,7 @@ def _repair_faults(ctx: TermContext, state: _State, scans: list[FaultScan], p_te
 
 
 def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_gain: float,
-                 max_effects: int, noise: float, min_explained: float = 1.5,
+                 max_effects: int, noise: float, min_explained: float = 1.0,
                  min_explained_train: float = 0.5, top_k: int = 6, dctx: TermContext | None = None,
                  dstd: StandardModel | None = None, faults_here: list[FaultScan] | None = None,
                  fault_p: float = 1.0, broken: dict[str, FaultScan] | None = None) -> tuple[list[Effect], _State]:
@@ -813,7 +842,6 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             firsts_by_kind.setdefault(sc.cand.kind, sc)
         heads = list(firsts_by_kind.values())
         trials = heads + [sc for sc in scored if all(sc is not h for h in heads)][: max(0, top_k - len(heads))]
-        before_v = validation_rmse(state.X, td.y, folds)
         accepted = None
         for sc in trials:
             cand, cols, hint = _materialise(sc, ctx, state)
@@ -828,7 +856,7 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                     continue  # the thermal terms already explain the column: nothing direct to claim
             X_new, names_new, new_idx = _extension(cand, cols, state)
             fit = fit_columns(X_new, td.y, td.train, names_new)
-            after_v = validation_rmse(X_new, td.y, folds)
+            before_v, after_v = validation_gain(state.X, cols, td.y, td.train, folds)
             expl_train = np.sqrt(max(state.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
             log.debug("%s/%s try %s %s: p naive %.3g; validation %.4g -> %.4g; explains %.3g noise on training",
                       td.axis, td.term, cand.kind, cand.channels, sc.p_value, before_v, after_v, expl_train / noise)
