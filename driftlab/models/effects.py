@@ -98,6 +98,8 @@ class FaultScan:
     plausible: bool
     neighbours: list[str] = field(default_factory=list)
     break_ratio: float = float("nan")  # RSS of one virtual-sensor fit / RSS of the fits split at start_s
+    toward_air: float = float("nan")  # share of the early departure pointing toward the room air
+    gap_left: float = float("nan")  # |reading - air| / |virtual sensor - air| once settled (0: reads the air)
 
 
 def _trimmed_fit(A: np.ndarray, y: np.ndarray, rows: np.ndarray, rounds: int = 3) -> np.ndarray:
@@ -323,16 +325,23 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
             # air, and agrees with its structure again whenever the structure cools to the air (a night)
             early = rpost[: max(min_len, int(7200.0 / dt))]
             persistence = float(np.mean(np.abs(early) > 3 * sigma)) if early.size else 0.0
-            toward_air = 1.0
+            toward_air, gap_left = 1.0, 0.0
             if dead is None and room_cols and j not in room_cols:
-                # a junction that came loose reads nearer the air than its structure: its departure from
-                # the virtual sensor points toward the room temperature (judged on the same early window)
+                # a junction that came loose reads the air: its departure from the virtual sensor points
+                # toward the room temperature, and it closes most of the gap between its structure and the
+                # air once it has settled (judged on the early window after 30 min; a healthy site whose
+                # relation to its neighbours changes at a stage change moves with its structure instead)
                 air = np.mean(T[:, room_cols], axis=1)
                 est = T[0, j] + A @ beta
                 w = slice(start, start + early.size)
                 toward_air = float(np.mean(np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w])))
+                settled = slice(start + max(1, int(1800.0 / dt)), start + early.size)
+                gap_est = float(np.median(np.abs(est[settled] - air[settled]))) if early.size else 0.0
+                gap_left = float(np.median(np.abs(T[settled, j] - air[settled]))) / max(gap_est, 1e-9) \
+                    if early.size else 1.0
             plausible = rpost.size >= min_len and start >= min_pre and (
-                dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6))
+                dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6
+                                     and gap_left < 0.5))
             if smooth_T is not None:
                 Ds = smooth_T - smooth_T[0]
                 A_s = np.column_stack([np.ones(n), Ds[:, nb]])
@@ -360,7 +369,7 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
             out[prep.channels[j]] = FaultScan(prep.channels[j], float(t[min(start, n - 1)]), strength,
                                               persistence, mode, p_temp if np.isfinite(p_temp) else 1.0,
                                               replaced, bool(plausible),
-                                              [prep.channels[k] for k in nb], ratio)
+                                              [prep.channels[k] for k in nb], ratio, toward_air, gap_left)
         excluded = {prep.channel_index(c) for c, f in out.items() if f.plausible}
         if not excluded:
             break
