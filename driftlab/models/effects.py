@@ -334,11 +334,13 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
                 air = np.mean(T[:, room_cols], axis=1)
                 est = T[0, j] + A @ beta
                 w = slice(start, start + early.size)
-                toward_air = float(np.mean(np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w])))
-                settled = slice(start + max(1, int(1800.0 / dt)), start + early.size)
-                gap_est = float(np.median(np.abs(est[settled] - air[settled]))) if early.size else 0.0
-                gap_left = float(np.median(np.abs(T[settled, j] - air[settled]))) / max(gap_est, 1e-9) \
-                    if early.size else 1.0
+                toward_air = float(np.mean(np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w]))) if early.size else 0.0
+                settled = slice(start + min(max(1, int(1800.0 / dt)), early.size // 2), start + early.size)
+                if early.size:
+                    gap_est = float(np.median(np.abs(est[settled] - air[settled])))
+                    gap_left = float(np.median(np.abs(T[settled, j] - air[settled]))) / max(gap_est, 1e-9)
+                else:
+                    gap_left = float("inf")
             plausible = rpost.size >= min_len and start >= min_pre and (
                 dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6
                                      and gap_left < 1.0))
