@@ -542,10 +542,10 @@ def validation_gain(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.nd
                     folds: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float]:
     """Return the validation RMSE (pooled over ``folds``) before and after a candidate's columns ``cols``.
 
-    Time-ordered validation of the candidate itself: the current model and the candidate's
-    columns are both partialled on the current design over the training rows (Frisch-Waugh-Lovell),
-    the candidate's coefficients are estimated on each fold's fit rows only and applied to the
-    block after it. A real effect estimated on the early part explains the later part; a proxy
+    Time-ordered validation of the candidate itself: the current model's residual over the
+    training rows is the target; the candidate's own part (its columns partialled on the current
+    design, Frisch-Waugh-Lovell) and its coefficients are estimated on each fold's fit rows only
+    and applied to the block after it. A real effect estimated on the early part explains the later part; a proxy
     that only fits in sample does not. (Refitting the whole standard model on the fit rows
     instead makes the check hostage to the extrapolation of its collinear dT coefficients: a
     candidate orthogonal to them, a reversal, then moves them along their near-null direction
@@ -553,12 +553,13 @@ def validation_gain(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.nd
     """
     b = lstsq(X[train], y[train])
     r = y - X @ b
-    D = np.column_stack([lstsq(X[train], cols[train, k]) for k in range(cols.shape[1])])
-    cr = cols - X @ D
     before, after = [], []
     for fit, val in folds:
-        if fit.sum() < cols.shape[1] + 3:
+        if fit.sum() < X.shape[1] + cols.shape[1] + 3:
             continue
+        # the candidate's own part (beyond the current design) and its coefficient, from the early rows only
+        D = np.column_stack([lstsq(X[fit], cols[fit, k]) for k in range(cols.shape[1])])
+        cr = cols - X @ D
         g = lstsq(cr[fit], r[fit])
         before.append(r[val])
         after.append(r[val] - cr[val] @ g)
