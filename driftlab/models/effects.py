@@ -328,9 +328,10 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
             toward_air, gap_left = 1.0, 0.0
             if dead is None and room_cols and j not in room_cols:
                 # a junction that came loose reads the air: its departure from the virtual sensor points
-                # toward the room temperature, and it closes most of the gap between its structure and the
-                # air once it has settled, reading nearer the air than its structure would (judged on the early window after 30 min; a healthy site whose
-                # relation to its neighbours changes at a stage change moves with its structure instead)
+                # toward the room temperature, and once settled it has closed at least half the gap between
+                # its structure (the virtual sensor) and the air (judged on the early window after 30 min; a
+                # healthy site whose relation to its neighbours changes at a stage change moves with its
+                # structure instead)
                 air = np.mean(T[:, room_cols], axis=1)
                 est = T[0, j] + A @ beta
                 w = slice(start, start + early.size)
@@ -343,7 +344,7 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
                     gap_left = float("inf")
             plausible = rpost.size >= min_len and start >= min_pre and (
                 dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6
-                                     and gap_left < 1.0))
+                                     and gap_left < 0.5))
             if smooth_T is not None:
                 Ds = smooth_T - smooth_T[0]
                 A_s = np.column_stack([np.ones(n), Ds[:, nb]])

@@ -111,7 +111,7 @@ def _warm_start_s(seed: int, after_h: float, source: str) -> float:
     return float(st.start_s) + 3600.0
 
 
-@pytest.mark.parametrize("after_h, mode, channel, source", [(6.0, "detached", "T7", "x_motor"),
+@pytest.mark.parametrize("after_h, mode, channel, source", [(6.0, "detached", "T8", "x_motor"),
                                                             (23.0, "detached", "T8", "x_motor"),
                                                             (26.0, "open", "T1", "")])
 def test_sensor_fault_is_found_on_the_temperatures_wherever_it_falls(after_h, mode, channel, source):
