@@ -6,15 +6,16 @@
    function of time and position only) calibrated to the measured errors, and
    computed sentences on where they depart from them;
 2. the standard model of spec section 2 (``standard_model``);
-3. a forward search over the effect catalogue (``effects``): every candidate
-   of every kind, channel and term screened by a nested-model F test on the
-   training rows with Bonferroni control over the whole family at
-   ``alpha`` (0.01), confirmed by a cluster-robust Wald test (clusters = blocks
-   of whole sweeps in time: residuals of a sweep and its neighbours are
-   correlated), and accepted only if it also lowers the held-out RMSE by at
-   least ``min_gain`` (10 %); the best accepted effect is added, the model
+3. sensor faults decided on the temperatures alone (a change point of each channel's departure
+   from its virtual sensor), repaired on the terms whose model uses them;
+4. a forward search over the effect catalogue (``effects``), every decision on the training rows
+   alone (spec section 4): every candidate of every kind, channel and term screened by a
+   nested-model F test with Bonferroni control over the whole family at ``alpha`` (0.01),
+   confirmed by tests robust to autocorrelated residuals (Newey-West HAC and blocks of whole
+   sweeps), and accepted only with a gain in rolling-origin validation inside the training part
+   and an effect size above the repeatability; the best accepted effect is added, the model
    refitted and the search repeated;
-4. the extended model and its held-out gain.
+5. the extended model, and the held-out part scored once, after the effects are final.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import pandas as pd
 import statsmodels.api as sm
 from scipy import optimize
 
-from driftlab.models.effects import (  # noqa: I001
+from driftlab.models.effects import (
     N_TAU,
     Candidate,
     FaultScan,
@@ -1068,6 +1069,7 @@ def _unfed_fault(prep: PreparedBundle, f: FaultScan) -> Effect:
              f"(predicted from {nb}) from t = {f.start_s / 3600:.1f} h on, as if {how}; no model uses it "
              f"(thesis {THESIS['sensor_fault']}).")
     empty = np.empty(0)
-    return Effect("sensor_fault", None, None, [f.channel], params, max(f.p_value, 1e-300), cause,  # type: ignore[arg-type]
+    return Effect("sensor_fault", None, None,  # type: ignore[arg-type]
+                  [f.channel], params, max(f.p_value, 1e-300), cause,
                   float("nan"), float("nan"), float("nan"), float("nan"), f.p_value, [f"fault_{f.channel}"],
                   np.empty((0, 1)), empty, empty, empty, empty, empty, np.empty(0, dtype=bool))

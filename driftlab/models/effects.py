@@ -335,7 +335,8 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
                 air = np.mean(T[:, room_cols], axis=1)
                 est = T[0, j] + A @ beta
                 w = slice(start, start + early.size)
-                toward_air = float(np.mean(np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w]))) if early.size else 0.0
+                toward = np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w])
+                toward_air = float(np.mean(toward)) if early.size else 0.0
                 settled = slice(start + min(max(1, int(1800.0 / dt)), early.size // 2), start + early.size)
                 if early.size:
                     gap_est = float(np.median(np.abs(est[settled] - air[settled])))
