@@ -127,3 +127,34 @@ def test_sensor_fault_is_found_on_the_temperatures_wherever_it_falls(after_h, mo
         assert e.p_value < res.alpha_fault
         # the repair's held-out gain is reported as it comes out (it may be small or negative)
         assert np.isfinite(e.rmse_holdout_before) and np.isfinite(e.rmse_holdout_after)
+
+
+def test_report_of_a_direct_speed_effect_and_of_a_fault_no_model_uses():
+    import json
+
+    from driftlab.models.findings import parse_findings, plan_findings
+
+    # T9 (the Y motor) feeds no model of this bundle; its lead breaks at 20 h; and the spindle grows with rpm^2
+    planted = [P("operating_condition", "Z", "dz", "T1", "dz", [], {"power": 2, "coef_per_unit": -3e-10}),
+               P("sensor_fault", "", "", "", "", ["T9"], {"start_s": 20 * 3600.0, "mode": "open"})]
+    case = openworld_case(planted, seed=702, keep=[("Z", "dz")])
+    res = diagnose_bundle(case.bundle)
+    doc = res.to_json_dict()
+    assert json.loads(json.dumps(doc, allow_nan=False)) == doc
+    by_kind = {e["kind"]: e for e in doc["effects"]}
+    assert set(by_kind) == {"operating_condition", "sensor_fault"}, doc["effects"]
+    oc = by_kind["operating_condition"]
+    assert oc["params"]["column"] == "spindle_rpm" and oc["params"]["power"] == 2 and oc["channels"] == []
+    assert 1.0 <= oc["params"]["vif"] <= 100.0 and oc["params"]["condition_number"] >= 1.0
+    assert abs(oc["params"]["coef_per_unit"] - case.expected[0]["coef_per_unit"]) <= 0.3 * 3e-10
+    sf = by_kind["sensor_fault"]
+    assert sf["axis"] is None and sf["term"] is None and sf["channels"] == ["T9"]
+    assert sf["rmse_holdout_before"] is None and sf["rmse_holdout_after"] is None
+    assert abs(sf["params"]["start_s"] - 20 * 3600.0) <= 600.0 and sf["params"]["mode"] == "open"
+    assert doc["acceptance"]["decided_on"] == "training part only"
+    page = res.to_html()
+    assert "direct effect of spindle rpm^2" in page and "no model uses this channel" in page
+    # the fitting side reads the report: the fault substitutes the channel, the speed term is reported only
+    findings = parse_findings(doc)
+    plan = plan_findings(findings, [case.bundle])
+    assert any("no such feature" in note for note in plan.skipped.values())
