@@ -365,8 +365,12 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
             T_at[:, j] = np.interp(t, grid_t, grid_T[:, j])
         n_train = int(np.sum(t < hold_t))
         conds = {c: f(t) for c, f in cond_at.items()}
+        # sweeps of the training rows from their own times (which held-out rows survive cleaning depends on
+        # their values), the held-out rows' numbered after them
+        sw_train = _sweep_ids(t[:n_train])
+        sw_hold = _sweep_ids(t[n_train:]) + (int(sw_train.max()) + 1 if n_train else 0)
         terms.append(TermData(str(axis), str(term), t, pos, direction, y, T_at, n_train,
-                              _sweep_ids(t), fl, conds))
+                              np.concatenate([sw_train, sw_hold]).astype(int), fl, conds))
 
     mc_raw = _as_plain(meta_get(meta, "model_channels", None)) or {}
     model_channels = {str(a): [c for c in v if c in channels] for a, v in mc_raw.items()}
