@@ -21,6 +21,7 @@ KIND_WORDS = {
     "sensor_fault": "faulty thermocouple",
     "drift": "slow drift",
     "quadratic": "non-linear response",
+    "operating_condition": "direct effect of the machine state (spindle speed, feed)",
 }
 
 
@@ -106,6 +107,10 @@ def effect_label(effect: dict[str, Any]) -> str:
         return f"a heat source the model's sensors do not see, read by {chans}"
     if kind == "quadratic":
         return f"non-linear response to {chans}"
+    if kind == "operating_condition":
+        col = str(params.get("column") or "a machine-state column").replace("_", " ")
+        power = params.get("power")
+        return f"direct effect of {col}" + ("^2" if power == 2 else "")
     if kind == "drift":
         return "slow drift over days since start"
     if kind == "reversal":

@@ -81,8 +81,10 @@ def print_findings(doc: dict) -> None:
         for i, e in enumerate(effects, 1):
             k, unit = display_unit(str(e.get("term")))
             b, a = e.get("rmse_holdout_before"), e.get("rmse_holdout_after")
-            gain = f"[green]{100 * (1 - a / b):.0f} %[/]" if b and a is not None else "-"
-            t.add_row(str(i), effect_label(e), f"{e.get('axis')}/{e.get('term')}", str(e.get("cause") or ""),
+            gain = (f"[green]{100 * (1 - a / b):.0f} %[/]" if a <= b else f"[red]{100 * (1 - a / b):.0f} %[/]") \
+                if b and a is not None else "-"
+            where = f"{e.get('axis')}/{e.get('term')}" if e.get("axis") else "temperatures"
+            t.add_row(str(i), effect_label(e), where, str(e.get("cause") or ""),
                       f"{b * k:.2f} {unit}" if b is not None else "-", f"{a * k:.2f} {unit}" if a is not None else "-",
                       gain, f"{e['p_value']:.2g}" if e.get("p_value") is not None else "-")
         con.print(t)

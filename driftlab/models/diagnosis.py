@@ -6,15 +6,16 @@
    function of time and position only) calibrated to the measured errors, and
    computed sentences on where they depart from them;
 2. the standard model of spec section 2 (``standard_model``);
-3. a forward search over the effect catalogue (``effects``): every candidate
-   of every kind, channel and term screened by a nested-model F test on the
-   training rows with Bonferroni control over the whole family at
-   ``alpha`` (0.01), confirmed by a cluster-robust Wald test (clusters = blocks
-   of whole sweeps in time: residuals of a sweep and its neighbours are
-   correlated), and accepted only if it also lowers the held-out RMSE by at
-   least ``min_gain`` (10 %); the best accepted effect is added, the model
+3. sensor faults decided on the temperatures alone (a change point of each channel's departure
+   from its virtual sensor), repaired on the terms whose model uses them;
+4. a forward search over the effect catalogue (``effects``), every decision on the training rows
+   alone (spec section 4): every candidate of every kind, channel and term screened by a
+   nested-model F test with Bonferroni control over the whole family at ``alpha`` (0.01),
+   confirmed by tests robust to autocorrelated residuals (Newey-West HAC and blocks of whole
+   sweeps), and accepted only with a gain in rolling-origin validation inside the training part
+   and an effect size above the repeatability; the best accepted effect is added, the model
    refitted and the search repeated;
-4. the extended model and its held-out gain.
+5. the extended model, and the held-out part scored once, after the effects are final.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from driftlab.models.effects import (
     Candidate,
     FaultScan,
     Scored,
+    _fault_candidate,
     TermContext,
     build_candidates,
     build_context,
@@ -76,6 +78,7 @@ THESIS = {
     "sensor_fault": "6.4.2, 6.6",
     "drift": "3.2, 6.4.3",
     "quadratic": "6.4.2",
+    "operating_condition": "6.4.3",
 }
 
 
@@ -331,11 +334,14 @@ class DiagnosisResult:
     min_gain: float
     timings_s: dict[str, float] = field(default_factory=dict)
     faults: dict[str, FaultScan] = field(default_factory=dict)
+    unfed_faults: list[Effect] = field(default_factory=list)  # broken channels no model uses
+    alpha_each: float = float("nan")  # per-candidate level of the error candidates
+    alpha_fault: float = float("nan")  # per-channel level of the temperature (sensor_fault) tests
 
     @property
     def effects(self) -> list[Effect]:
-        """Return every accepted effect, in (axis, term, acceptance) order."""
-        return [e for td in self.terms for e in td.effects]
+        """Return every accepted effect, in (axis, term, acceptance) order, then faults of unused channels."""
+        return [e for td in self.terms for e in td.effects] + list(self.unfed_faults)
 
     def to_json_dict(self) -> dict[str, Any]:
         """Return the diagnosis report v1 (spec section 4) as a JSON-ready dict."""
@@ -422,36 +428,169 @@ def _clusters(td: TermData, rows: np.ndarray, n_blocks: int = 40) -> np.ndarray:
     return np.minimum((starts - t[0]) / span * n_blocks, n_blocks - 1).astype(int)
 
 
-def robust_pvalue(X: np.ndarray, y: np.ndarray, td: TermData, new_cols: list[int],
-                  before_s: float | None = None) -> float:
-    """Return the cluster-robust (blocks of sweeps) Wald-test p-value of ``new_cols`` on the training rows.
+def hac_maxlags(r: np.ndarray) -> int:
+    """Return the Newey-West truncation lag for residuals ``r`` (rows in time order).
 
-    ``before_s`` restricts the test to training rows before that time (used to
-    verify later findings on rows that no virtual sensor stands in for).
+    The larger of the sample-size rule floor(4 (n/100)^(2/9)) and twice the first lag at which
+    the residual autocorrelation falls inside its 95 % band 2/sqrt(n) (the residuals' own
+    memory: laser residuals have lag-1 autocorrelation around 0.6), at most n/4.
     """
-    tr = td.train.copy()
+    n = r.size
+    if n < 8:
+        return 1
+    x = r - r.mean()
+    f = np.fft.rfft(x, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[:n]
+    acf = acf / max(acf[0], 1e-300)
+    inside = np.flatnonzero(np.abs(acf[1:]) < 2.0 / np.sqrt(n))
+    memory = int(inside[0]) + 1 if inside.size else n
+    rule = int(np.floor(4.0 * (n / 100.0) ** (2.0 / 9.0)))
+    return int(max(1, min(max(rule, 2 * memory), n // 4)))
+
+
+def robust_pvalue(X: np.ndarray, y: np.ndarray, td: TermData, new_cols: list[int],
+                  before_s: float | None = None, rows: np.ndarray | None = None) -> float:
+    """Return the p-value of ``new_cols`` on the training rows with inference robust to autocorrelation.
+
+    The larger of two Wald tests (statsmodels): Newey-West HAC (Bartlett kernel,
+    ``hac_maxlags``) and cluster-robust with ~40 blocks of whole sweeps in time (t with
+    G - 1 df); both on the Frisch-Waugh-Lovell reduction (the new columns and the errors
+    with the rest of the design partialled out), which gives the same coefficients and
+    sandwich covariance as the full regression at a fraction of the cost.
+    ``before_s`` restricts the test to training rows before that time (used to verify
+    later findings on rows that no virtual sensor stands in for); ``rows`` to a subset.
+    """
+    tr = td.train.copy() if rows is None else rows.copy()
     if before_s is not None:
         tr &= td.t < before_s
     Xt = X[tr]
     keep = np.ptp(Xt, axis=0) > 0
     keep[0] = True  # the intercept
-    if tr.sum() < 3 * Xt.shape[1] or not all(keep[c] for c in new_cols):
+    if tr.sum() < 3 * Xt.shape[1] + 10 or not all(keep[c] for c in new_cols):
         return 1.0
     cols = np.flatnonzero(keep)
     Xt = Xt[:, cols]
     s = np.sqrt(np.mean(Xt * Xt, axis=0))
-    s = np.where(s > 0, s, 1.0)
-    groups = _clusters(td, tr)
-    if np.unique(groups).size < 5:
-        res = sm.OLS(y[tr], Xt / s).fit()
-    else:
-        res = sm.OLS(y[tr], Xt / s).fit(cov_type="cluster", cov_kwds={"groups": groups}, use_t=True)
-    R = np.zeros((len(new_cols), cols.size))
-    for i, c in enumerate(new_cols):
-        R[i, int(np.flatnonzero(cols == c)[0])] = 1.0
-    test = res.wald_test(R, use_f=True, scalar=True)
-    p = float(np.squeeze(test.pvalue))
+    Xt = Xt / np.where(s > 0, s, 1.0)
+    new = [int(np.flatnonzero(cols == c)[0]) for c in new_cols]
+    old = [i for i in range(cols.size) if i not in new]
+    yt = y[tr]
+    Q, R = np.linalg.qr(Xt[:, old])
+    ok = np.abs(np.diag(R)) > 1e-10 * max(float(np.abs(np.diag(R)).max()), 1e-300)
+    Q = Q[:, ok]
+    Z = Xt[:, new] - Q @ (Q.T @ Xt[:, new])
+    u = yt - Q @ (Q.T @ yt)
+    if np.any(np.sum(Z * Z, axis=0) <= 1e-10 * Z.shape[0]):
+        return 1.0
+    dof = int(tr.sum()) - cols.size
+    if dof <= 5:
+        return 1.0
+    pvals = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        base = sm.OLS(u, Z)
+        r0 = base.fit()
+        base.df_resid = float(dof)  # the partialled-out columns used degrees of freedom too
+        res_hac = base.fit(cov_type="HAC", cov_kwds={"maxlags": hac_maxlags(r0.resid)}, use_t=True)
+        pvals.append(res_hac.f_test(np.eye(len(new))).pvalue)
+        groups = _clusters(td, tr)
+        if np.unique(groups).size >= 5:
+            res_cl = base.fit(cov_type="cluster", cov_kwds={"groups": groups}, use_t=True)
+            pvals.append(res_cl.f_test(np.eye(len(new))).pvalue)
+    p = max(float(np.squeeze(v)) for v in pvals)
     return p if np.isfinite(p) else 1.0
+
+
+def validation_folds(td: TermData) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Return rolling-origin folds inside the training part: (fit rows, validation rows) masks.
+
+    Two origins, at 2/3 and 5/6 of the training rows (moved back to a time boundary so a
+    sweep is never split): fit on everything before an origin, validate on the block that
+    follows it. The held-out rows are never in a fold.
+    """
+    n_tr = td.n_train
+    t = td.t[:n_tr]
+    if n_tr < 24:
+        return []
+
+    def origin(k: int) -> int:
+        return n_tr if k >= n_tr else int(np.searchsorted(t, t[k], side="left"))
+
+    o = [origin(int(np.floor(f * n_tr))) for f in (2.0 / 3.0, 5.0 / 6.0)] + [n_tr]
+    folds = []
+    for a, b in ((o[0], o[1]), (o[1], o[2])):
+        if b - a >= 4 and a >= 12:
+            fit = np.zeros(td.n, dtype=bool)
+            fit[:a] = True
+            val = np.zeros(td.n, dtype=bool)
+            val[a:b] = True
+            folds.append((fit, val))
+    return folds
+
+
+def validation_rmse(X: np.ndarray, y: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """Return the RMSE of ``y ~ X`` pooled over the validation blocks of ``folds`` (each fit on its own rows)."""
+    res = []
+    for fit, val in folds:
+        if fit.sum() < X.shape[1] + 3:
+            continue
+        b = lstsq(X[fit], y[fit])
+        res.append(y[val] - X[val] @ b)
+    return rmse(np.concatenate(res)) if res else float("nan")
+
+
+def validation_gain(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
+                    folds: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float]:
+    """Return the validation RMSE (pooled over ``folds``) before and after a candidate's columns ``cols``.
+
+    Time-ordered validation of the candidate itself: the current model's residual over the
+    training rows is the target; the candidate's own part (its columns partialled on the current
+    design, Frisch-Waugh-Lovell) and its coefficients are estimated on each fold's fit rows only
+    and applied to the block after it. A real effect estimated on the early part explains the later part; a proxy
+    that only fits in sample does not. (Refitting the whole standard model on the fit rows
+    instead makes the check hostage to the extrapolation of its collinear dT coefficients: a
+    candidate orthogonal to them, a reversal, then moves them along their near-null direction
+    and can "lose" in validation at random.) Training rows only: the held-out rows never enter.
+    """
+    b = lstsq(X[train], y[train])
+    r = y - X @ b
+    before, after = [], []
+    for fit, val in folds:
+        if fit.sum() < X.shape[1] + cols.shape[1] + 3:
+            continue
+        # the candidate's own part (beyond the current design) and its coefficient, from the early rows only
+        D = np.column_stack([lstsq(X[fit], cols[fit, k]) for k in range(cols.shape[1])])
+        cr = cols - X @ D
+        g = lstsq(cr[fit], r[fit])
+        before.append(r[val])
+        after.append(r[val] - cr[val] @ g)
+    if not before:
+        return float("nan"), float("nan")
+    return rmse(np.concatenate(before)), rmse(np.concatenate(after))
+
+
+def validates(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
+              folds: list[tuple[np.ndarray, np.ndarray]], min_gain: float, min_explained: float,
+              noise: float) -> tuple[bool, str]:
+    """Return whether a candidate shows its gain in time-ordered validation inside the training part, and how.
+
+    Two readings of "fit on the early part, score the block after it", both on training rows:
+    the whole extended model refitted on each fold's rows (``validation_rmse``: what the model
+    would predict; a slow effect that the standard model absorbs in sample - a drift, a square -
+    shows there as extrapolation error) or the candidate's own coefficients from the early rows
+    against the later residual (``validation_gain``: immune to the extrapolation noise of the
+    standard model's collinear dT coefficients). Either must lower the validation RMSE by
+    ``min_gain`` and explain ``min_explained`` x noise there.
+    """
+    def ok(before: float, after: float) -> bool:
+        return bool(np.isfinite(before) and np.isfinite(after) and after < (1.0 - min_gain) * before
+                    and before**2 - after**2 >= (min_explained * noise) ** 2)
+
+    b1, a1 = validation_gain(X, cols, y, train, folds)
+    if ok(b1, a1):
+        return True, f"own coefficients {b1:.4g} -> {a1:.4g}"
+    b2, a2 = validation_rmse(X, y, folds), validation_rmse(np.column_stack([X, cols]), y, folds)
+    return ok(b2, a2), f"refitted model {b2:.4g} -> {a2:.4g} (own coefficients {b1:.4g} -> {a1:.4g})"
 
 
 def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], params: dict[str, Any],
@@ -488,6 +627,14 @@ def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], p
         return (f"Sensor fault: thermocouple {where} departs from its virtual sensor (predicted from {nb}) "
                 f"from t = {params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
                 f"the structure and the virtual-sensor estimate restores the model (thesis {sec}).")
+    if kind == "operating_condition":
+        col, pw = params["column"], int(params["power"])
+        what = {"spindle_rpm": "the spindle speed", "feed_mm_min": "the feed rate"}.get(col, col)
+        story = ("centrifugal and bearing growth of the spindle, which follows the speed at once, not through a "
+                 "temperature" if col == "spindle_rpm" else "a following error of the drives that follows the feed")
+        return (f"The {td.axis}/{td.term} error follows {what}{'^2' if pw == 2 else ''} directly "
+                f"({_fmt(coef, u)} per {col.replace('_', ' ')}{'^2' if pw == 2 else ''}; VIF against the thermal "
+                f"terms {params['vif']:.2g}): {story} (thesis {sec}).")
     if kind == "drift":
         return (f"A slow drift not explained by temperature of {_fmt(params['rate_per_day'], u)} per day: "
                 f"wear, settling or material instability (thesis {sec}).")
@@ -568,6 +715,10 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
         return out, c
     if k == "drift":
         return {"rate_per_day": c}, c
+    if k == "operating_condition":
+        return {"column": hint["column"], "power": int(hint["power"]), "coef_per_unit": c,
+                "vif": float(hint.get("vif", float("nan"))),
+                "condition_number": float(hint.get("condition_number", float("nan")))}, c
     return {"coef_per_degC2": c}, c
 
 
@@ -579,9 +730,9 @@ def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | 
     A thermocouple's scan noise is an error in the standard model's variables: a smoothed
     copy of a channel (a short lag, a proxy channel) or a drift can then "improve" a model
     whose coefficients were fitted to noise. The same candidate, built from the denoised
-    readings, must still be significant (nested F test), lower the held-out RMSE by
-    ``min_gain`` and reach the effect sizes against the model on the denoised readings (the training
-    one only for candidates built from a channel).
+    readings, must still be significant (nested F test), lower the time-ordered validation
+    RMSE inside the training part by ``min_gain`` and reach the effect sizes against the model
+    on the denoised readings (the training one only for candidates built from a channel).
     Also returns the candidate's columns in that view (to carry the model along).
     """
     if dctx is None or dstate is None or cand.kind == "sensor_fault":
@@ -593,10 +744,7 @@ def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | 
     tr = td.train
     X = np.column_stack([dstate.X, cols])
     fit = fit_columns(X, td.y, tr, list(dstate.names) + [f"c{i}" for i in range(cols.shape[1])])
-    before_h, after_h = dstate.fit.rmse_holdout, fit.rmse_holdout
-    if not np.isfinite(after_h) or after_h > (1.0 - min_gain) * before_h:
-        return False, cols
-    if before_h**2 - after_h**2 < (min_explained * noise) ** 2:
+    if not validates(dstate.X, cols, td.y, tr, validation_folds(td), min_gain, min_explained, noise)[0]:
         return False, cols
     rss0 = dstate.fit.rmse_train**2 * dstate.fit.n_train
     rss1 = fit.rmse_train**2 * fit.n_train
@@ -616,40 +764,101 @@ def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | 
     return p < alpha_each, cols
 
 
+#: a direct operating-condition term whose column the current (thermal) design explains to R^2 > 0.99
+#: (variance inflation factor > 100) is refused: its own part is within the thermocouples' noise and the
+#: model's misfit, so whatever it "explains" the thermal terms already carry. Below that, the collinearity
+#: is priced in by the tests themselves (the robust test and the validation gain are on the column's
+#: part the thermal terms do not explain, Frisch-Waugh-Lovell), and VIF and condition number are reported.
+#: (The common VIF > 10 rule of thumb is about coefficient precision; a spindle's temperatures follow its
+#: speed, so the speed's VIF against them is typically near 10 even when it acts directly.)
+VIF_MAX = 100.0
+
+
+def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
+    """Return (VIF, condition number) of adding ``col`` to the design ``X`` on ``rows``.
+
+    VIF = 1 / (1 - R^2) of the column regressed on the current design (intercept included in
+    ``X``); the condition number is that of the extended design with unit-RMS columns.
+    """
+    c = col[rows]
+    A = X[rows]
+    b = lstsq(A, c)
+    r = c - A @ b
+    ss = float(np.sum((c - c.mean()) ** 2))
+    r2 = 1.0 - float(r @ r) / ss if ss > 0 else 1.0
+    vif = 1.0 / max(1.0 - r2, 1e-12)
+    E = np.column_stack([A, c])
+    E = E / np.maximum(np.sqrt(np.mean(E * E, axis=0)), 1e-300)
+    return float(vif), float(np.linalg.cond(E))
+
+
+def _repair_faults(ctx: TermContext, state: _State, scans: list[FaultScan], p_temp: float,
+                   dctx: TermContext | None, dstate: _State | None) -> tuple[Effect | None, _State, _State | None]:
+    """Return the sensor_fault effect of repairing this term's faulty model channels, and the repaired models.
+
+    The faults were accepted on the temperatures alone; here the channels' dT columns are
+    replaced by their virtual-sensor estimates from the fault on. The held-out RMSE before
+    and after is the repair's gain (null when the fault starts after the term's last reading).
+    """
+    td, prep = ctx.td, ctx.prep
+    cand = _fault_candidate(ctx, scans)
+    X_new, names_new, new_idx = _extension(cand, cand.cols, state)
+    fit = fit_columns(X_new, td.y, td.train, names_new)
+    params, c = _params(cand, dict(cand.hint), fit.coef[new_idx], td)
+    overlaps = bool(np.any(cand.cols != 0))
+    before = state.fit.residual
+    eff = Effect("sensor_fault", td.axis, td.term, list(cand.channels), params, max(p_temp, 1e-300),
+                 _cause("sensor_fault", td, prep, cand.channels, params, c, ctx.faults.get(cand.channels[0])),
+                 state.fit.rmse_holdout if overlaps else float("nan"),
+                 fit.rmse_holdout if overlaps else float("nan"), float("nan"), float("nan"), p_temp,
+                 [f"fault_{ch}" for ch in cand.channels], cand.cols, td.t, before, before - fit.residual,
+                 td.pos, td.direction, td.train, replaces=", ".join(f"dT_{ch}" for ch, _ in cand.replace or []))
+    new_state = _State(X_new, names_new, fit, state.effects + [eff])
+    new_dstate = _carry_denoised(dstate, dctx, cand, None) if dstate is not None and dctx is not None else None
+    return eff, new_state, new_dstate
+
+
 def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_gain: float,
-                 max_effects: int, first: list[Scored] | None, noise: float, min_explained: float = 1.5,
+                 max_effects: int, noise: float, min_explained: float = 1.0,
                  min_explained_train: float = 0.5, top_k: int = 6, dctx: TermContext | None = None,
-                 dstd: StandardModel | None = None) -> tuple[list[Effect], _State]:
+                 dstd: StandardModel | None = None, faults_here: list[FaultScan] | None = None,
+                 fault_p: float = 1.0, broken: dict[str, FaultScan] | None = None) -> tuple[list[Effect], _State]:
     """Return the effects accepted for one (axis, term) by forward selection, and the final model.
 
-    ``dctx``/``dstd``: the same term on denoised readings; every candidate is held to it too
-    (``_passes_denoised``) and the denoised model is carried along with the accepted effects.
+    Every decision is made on the training rows alone (spec section 4): a candidate needs a
+    nested F test and a test robust to autocorrelation (``robust_pvalue``: HAC and blocks of
+    sweeps) below ``alpha_each`` (Bonferroni over every hypothesis of the bundle), a gain of
+    ``min_gain`` in the time-ordered validation inside the training part (``validation_folds``)
+    that explains ``min_explained`` x noise there, and ``min_explained_train`` x noise on the
+    training rows. The held-out rows are only scored, after the search.
+    ``faults_here``: this term's model channels that the temperatures show broken (accepted
+    before any error was looked at); they are repaired first. ``dctx``/``dstd``: the same term
+    on denoised readings; every candidate is held to it too (``_passes_denoised``).
     """
     td, prep = ctx.td, ctx.prep
     state = _State(std.X, list(std.names), std.fit, [])
     dstate = _State(dstd.X, list(dstd.names), dstd.fit, []) if dstd is not None and dctx is not None else None
-    hold_start = td.holdout_start_s
+    folds = validation_folds(td)
+    history: list[tuple[Effect, LinearFit, LinearFit]] = []
+    if faults_here:
+        _, state, dstate = _repair_faults(ctx, state, faults_here, fault_p, dctx, dstate)
+    for ch, fs in (broken or {}).items():
+        # no candidate is built from a broken channel's readings: from its fault on, its estimate stands in
+        for c in (ctx, dctx):
+            if c is not None and ch in c.chan_cols:
+                rep = np.interp(c.td.t, prep.grid_t, fs.replaced)
+                c.chan_cols[ch] = rep - rep[0]
+                c.lag_cache.pop(ch, None)
     # a model channel the thermocouples show broken corrupts the rows after its break whether or not its
-    # repair is accepted: other findings must then also stand on the rows before it (one explanation)
-    broken = [f.start_s for ch, f in ctx.faults.items() if f.plausible and ch in ctx.model_channels
-              and ch in ctx.chan_cols]
+    # repair is good: other findings must then also stand on the rows before it (one explanation)
+    broken = [f.start_s for ch, f in ctx.faults.items() if f.plausible and ch in ctx.model_channels]
     fault_start: float | None = min(broken) if broken else None
-    for round_ in range(max_effects):
-        if round_ == 0 and first is not None:
-            scored = first
-        else:
-            scored = screen(state.X, td.y, td.train, build_candidates(ctx))
-        # faults that start in the held-out part cannot be tested on training errors: their
-        # significance comes from the temperatures alone (the virtual-sensor departure test)
-        for cand in build_candidates(ctx):
-            if cand.kind == "sensor_fault" and not np.any(cand.cols[td.train] != 0):
-                scored.append(Scored(cand, float("nan"), float(cand.hint.get("p_temp", 1.0)), 1, 0, 0.0))
+    for _round in range(max_effects):
+        scored = screen(state.X, td.y, td.train, build_candidates(ctx))
         scored = [s for s in scored if s.p_value < alpha_each and s.cand.key not in ctx.taken]
-        # repair before extension: a thermocouple shown broken by the temperatures alone is tried
-        # first, since every other candidate would otherwise be fitted to its bad readings
-        scored.sort(key=lambda s: (s.cand.kind != "sensor_fault", s.p_value, -np.nan_to_num(s.F)))
+        scored.sort(key=lambda s: (s.p_value, -np.nan_to_num(s.F)))
         # try the best candidate of every kind first: one kind's many near-identical channels must
-        # not crowd out another kind (the best by p may fail on held-out data another effect dominates)
+        # not crowd out another kind
         firsts_by_kind: dict[str, Scored] = {}
         for sc in scored:
             firsts_by_kind.setdefault(sc.cand.kind, sc)
@@ -662,67 +871,50 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                 taus = ctx.lag_cache[cand.channels[0]][0]
                 if not taus[0] * 1.02 < hint["tau_s"] < taus[-1] * 0.98:
                     continue  # the best lag sits on the edge of the resolvable range: not resolved
+            if cand.kind == "operating_condition":
+                vif, cond = collinearity(cols[:, 0], state.X, td.train)
+                hint["vif"], hint["condition_number"] = vif, cond
+                if vif > VIF_MAX:
+                    continue  # the thermal terms already explain the column: nothing direct to claim
             X_new, names_new, new_idx = _extension(cand, cols, state)
-            # the cheap checks (one least-squares refit) first, the cluster-robust test last
             fit = fit_columns(X_new, td.y, td.train, names_new)
-            before_h, after_h = state.fit.rmse_holdout, fit.rmse_holdout
+            valid, how = validates(state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise)
             expl_train = np.sqrt(max(state.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
-            log.debug("%s/%s try %s %s: p naive %.3g; held-out %.4g -> %.4g; explains %.3g noise on training, "
-                      "%.3g held out", td.axis, td.term, cand.kind, cand.channels, sc.p_value, before_h, after_h,
-                      expl_train / noise, np.sqrt(max(before_h**2 - after_h**2, 0.0)) / noise)
-            if not np.isfinite(after_h) or after_h > (1.0 - min_gain) * before_h:
+            log.debug("%s/%s try %s %s: p naive %.3g; validation %s: %s; explains %.3g noise on training",
+                      td.axis, td.term, cand.kind, cand.channels, sc.p_value, how, valid, expl_train / noise)
+            # (b) a gain in time-ordered validation inside the training part that explains at least the
+            # measurement repeatability there (smaller gains are the model's own error shuffled around)
+            if not valid:
                 continue
-            # what the effect explains on the held-out part must reach the measurement repeatability:
-            # smaller gains are the standard model's own extrapolation error being shuffled around
-            if before_h**2 - after_h**2 < (min_explained * noise) ** 2:
+            # and on the training rows it must explain a real share of the repeatability
+            if expl_train < min_explained_train * noise:
                 continue
-            # and on the training part it must explain a real share of the repeatability: a tiny
-            # in-sample gain that only extrapolates well is the standard model's noise-fitted
-            # coefficients being corrected by chance
-            in_holdout = cand.kind == "sensor_fault" and hint["start_s"] >= hold_start
-            if expl_train < min_explained_train * noise and cand.kind != "sensor_fault":
-                continue  # (a fault is a repair, not an extension: its replacement adds no parameter)
             ok_d, dcols = _passes_denoised(cand, hint, dctx, dstate, alpha_each, min_gain, noise, min_explained,
                                            min_explained_train)
-            log.debug("   on denoised readings: %s", ok_d)
             if not ok_d:
                 continue
-            if cand.kind == "sensor_fault" and not in_holdout and float(hint.get("p_temp", 1.0)) < alpha_each:
-                # the thermocouples establish the fault on their own (a decisive break of the virtual-sensor
-                # relation, significant on 30-min block means); the errors only have to show the repair's gain
-                p_rob = float(hint["p_temp"])
-            elif cand.kind == "sensor_fault" and not in_holdout:
-                X_nested = np.column_stack([state.X, cand.cols])
-                p_rob = robust_pvalue(X_nested, td.y, td, list(range(state.X.shape[1], X_nested.shape[1])))
-            elif cand.kind == "sensor_fault":
-                p_rob = sc.p_value
-            else:
-                p_rob = robust_pvalue(X_new, td.y, td, new_idx)
+            # (a) significance robust to autocorrelated residuals, Bonferroni over the whole family
+            p_rob = robust_pvalue(X_new, td.y, td, new_idx)
             p = max(sc.p_value, p_rob, 1e-300)  # below 1e-300 a p-value says nothing more
             log.debug("   robust p %.3g (need < %.3g)", p_rob, alpha_each)
             if p >= alpha_each:
                 continue
-            if fault_start is not None and cand.kind != "sensor_fault":
-                # after a fault, rows beyond its start carry the virtual sensor's error: a further
-                # finding must also stand on the rows before the fault, where no estimate stands in
-                if robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
-                    continue
-            coef = fit.coef[new_idx]
-            params, c = _params(cand, hint, coef, td)
-            fault = ctx.faults.get(cand.channels[0]) if cand.kind == "sensor_fault" else None
+            if fault_start is not None and \
+                    robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
+                continue  # after a fault a further finding must also stand on the rows before it
+            params, c = _params(cand, hint, fit.coef[new_idx], td)
             before = state.fit.residual
-            contribution = before - fit.residual
             eff = Effect(cand.kind, td.axis, td.term, list(cand.channels), params, p,
-                         _cause(cand.kind, td, prep, cand.channels, params, c, fault),
-                         state.fit.rmse_holdout, fit.rmse_holdout, sc.F, sc.p_value, p_rob,
-                         [names_new[i] for i in new_idx], X_new[:, new_idx], td.t, before, contribution,
-                         td.pos, td.direction, td.train,
-                         replaces=", ".join(f"dT_{c}" for c, _ in cand.replace) if cand.replace else None)
+                         _cause(cand.kind, td, prep, cand.channels, params, c, None),
+                         float("nan"), float("nan"), sc.F, sc.p_value, p_rob,
+                         [names_new[i] for i in new_idx], X_new[:, new_idx], td.t, before, before - fit.residual,
+                         td.pos, td.direction, td.train)
             accepted = (eff, X_new, names_new, fit, cand, dcols)
             break
         if accepted is None:
             break
         eff, X_new, names_new, fit, cand, dcols = accepted
+        history.append((eff, state.fit, fit))
         state = _State(X_new, names_new, fit, state.effects + [eff])
         if dstate is not None and dctx is not None:
             dstate = _carry_denoised(dstate, dctx, cand, dcols)
@@ -733,19 +925,20 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             if cand.kind in ("unmapped_channel", "thermal_lag", "screw_expansion") \
                     and cand.channels[0] not in c.model_channels:
                 c.model_channels.append(cand.channels[0])
-        if cand.kind == "sensor_fault":
-            start = float(eff.params["start_s"])
-            fault_start = start if fault_start is None else min(fault_start, start)
-            for ch, rep in cand.replace or []:
-                ctx.chan_cols[ch] = rep
-                ctx.lag_cache.pop(ch, None)
-                ctx.taken.add(("sensor_fault", (ch,)))
-                if dctx is not None:
-                    dctx.chan_cols[ch] = rep
-                    dctx.lag_cache.pop(ch, None)
-                    dctx.taken.add(("sensor_fault", (ch,)))
         log.info("accepted %s on %s/%s %s", cand.kind, td.axis, td.term, eff.params)
+    _score_holdout_once(history)
     return state.effects, state
+
+
+def _score_holdout_once(history: list[tuple[Effect, LinearFit, LinearFit]]) -> None:
+    """Fill in each effect's held-out RMSE before and after it, now that the set of effects is final.
+
+    'before' is the model with the effects accepted before it (the standard model for the
+    first), 'after' with it in; reported as they come out, small or negative gains included.
+    """
+    for eff, before, after in history:
+        eff.rmse_holdout_before = before.rmse_holdout
+        eff.rmse_holdout_after = after.rmse_holdout
 
 
 def _carry_denoised(dstate: _State, dctx: TermContext, cand: Candidate, dcols: np.ndarray | None) -> _State:
@@ -773,7 +966,7 @@ def _tau_grid(prep: PreparedBundle) -> np.ndarray:
     return np.exp(np.linspace(np.log(lo), np.log(hi), N_TAU)) if hi > lo else np.array([])
 
 
-def diagnose_bundle(bundle: Any, holdout_fraction: float = 0.25, alpha: float = 0.01, min_gain: float = 0.10,
+def diagnose_bundle(bundle: Any, holdout_fraction: float = 0.25, alpha: float = 0.01, min_gain: float = 0.0,
                     max_effects: int = 4) -> DiagnosisResult:
     """Return the :class:`DiagnosisResult` of a bundle (a ``Bundle`` from a directory or from the store)."""
     # the matrices here are tall and thin: one BLAS thread is faster, and far faster on a busy machine
@@ -822,32 +1015,61 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
 
     t1 = time.perf_counter()
     contexts: list[TermContext] = []
-    firsts: list[list[Scored]] = []
     dviews: list[tuple[TermContext, StandardModel]] = []
-    n_hyp = 0
-    for td, std in zip(prep.terms, standards):
+    # the family: every candidate of every kind, channel, tau grid point and term, and every channel
+    # scanned for a fault (the temperature evidence is one hypothesis per channel)
+    n_hyp = len(faults)
+    for i, (td, std) in enumerate(zip(prep.terms, standards)):
         lo, hi = tau_bounds(prep, td)
         keep = np.flatnonzero((taus >= lo * 0.999) & (taus <= hi * 1.001))
         sel = slice(int(keep[0]), int(keep[-1]) + 1) if keep.size else slice(0, 0)
         sub_bank = {c: b[:, sel] for c, b in bank.items()}  # views, no copies
         ctx = build_context(prep, td, std.channels, faults, sub_bank, taus[sel])
-        cands = build_candidates(ctx)
-        n_hyp += sum(c.family_size for c in cands)
-        firsts.append(screen(std.X, td.y, td.train, cands))
+        n_hyp += sum(c.family_size for c in build_candidates(ctx))
         contexts.append(ctx)
-        td_d = prep_d.terms[len(contexts) - 1]
+        td_d = prep_d.terms[i]
         dstd = refit_standard(td_d, prep_d, std.selection)
         # no lag bank: a lag is only ever rebuilt there at the tau found on the readings (columns_like)
         dctx = build_context(prep_d, td_d, std.channels, faults, None, None)
         dviews.append((dctx, dstd))
     n_hyp = max(n_hyp, 1)
-    alpha_each = alpha / n_hyp
+    # Bonferroni over the union of two families that share the family alpha: the error candidates
+    # (alpha / 2 over them) and the channels scanned for a fault on the temperatures (alpha / 2 over those)
+    n_ch = len(faults)
+    alpha_each = 0.5 * alpha / max(n_hyp - n_ch, 1)
+    alpha_fault = 0.5 * alpha / max(n_ch, 1)
+    # sensor faults are decided on the temperatures alone, before any error is looked at
+    broken = {ch: f for ch, f in faults.items() if f.plausible and f.p_value < alpha_fault}
     terms: list[TermDiagnosis] = []
-    for ctx, std, sim, first, nz, (dctx, dstd) in zip(contexts, standards, sims, firsts, noises, dviews):
-        effects, state = _search_term(ctx, std, alpha_each, min_gain, max_effects, first, nz, dctx=dctx, dstd=dstd)
+    fed: set[str] = set()
+    for ctx, std, sim, nz, (dctx, dstd) in zip(contexts, standards, sims, noises, dviews):
+        here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
+        p_here = max((f.p_value for f in here), default=1.0)
+        fed |= {f.channel for f in here}
+        effects, state = _search_term(ctx, std, alpha_each, min_gain, max_effects, nz, dctx=dctx, dstd=dstd,
+                                      faults_here=here, fault_p=p_here, broken=broken)
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
+    # a broken channel that feeds no model is still a finding about the temperatures (no error gain)
+    loose = [_unfed_fault(prep, f) for ch, f in sorted(broken.items(), key=lambda kv: kv[1].start_s)
+             if ch not in fed]
     timings["search"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     hold = min((td.holdout_start_s for td in prep.terms if np.isfinite(td.holdout_start_s)), default=float("nan"))
     return DiagnosisResult(prep.name, holdout_fraction, hold, terms, prep.flags, alpha, n_hyp, min_gain,
-                           timings, faults)
+                           timings, faults, loose, alpha_each, alpha_fault)
+
+
+def _unfed_fault(prep: PreparedBundle, f: FaultScan) -> Effect:
+    """Return the sensor_fault effect of a channel no model uses: axis and term null, no held-out figures."""
+    params = {"start_s": f.start_s, "mode": f.mode}
+    nb = ", ".join(f.neighbours[:4])
+    how = "its lead broke (open circuit)" if f.mode == "open" else "it came loose from the structure"
+    loc = _channel_location(prep, f.channel)
+    cause = (f"Sensor fault: thermocouple {f.channel}{f' ({loc})' if loc else ''} departs from its virtual sensor "
+             f"(predicted from {nb}) from t = {f.start_s / 3600:.1f} h on, as if {how}; no model uses it "
+             f"(thesis {THESIS['sensor_fault']}).")
+    empty = np.empty(0)
+    return Effect("sensor_fault", None, None,  # type: ignore[arg-type]
+                  [f.channel], params, max(f.p_value, 1e-300), cause,
+                  float("nan"), float("nan"), float("nan"), float("nan"), f.p_value, [f"fault_{f.channel}"],
+                  np.empty((0, 1)), empty, empty, empty, empty, empty, np.empty(0, dtype=bool))

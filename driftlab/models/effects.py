@@ -13,6 +13,11 @@ the current model of an (axis, term)):
   other thermocouples, ch. 6.4.2/6.6) after a change point found on the temperatures alone.
 - ``drift``: time in days (3.2, 6.4.3).
 - ``quadratic``: dT_k^2 (6.4.2).
+- ``operating_condition``: a conditions.csv column (spindle_rpm, feed_mm_min) to the power 1 or 2,
+  entering the error directly (6.4.3: centrifugal spindle growth with rpm^2, feed-dependent errors).
+
+A ``sensor_fault`` is not a candidate regressor: it is decided on the temperatures alone
+(``scan_sensor_faults``) and its repair applied before the search (diagnosis.py).
 
 Screening is one QR of the current training design and a projection of all
 candidate columns at once (numpy); statsmodels is used only for the final
@@ -30,7 +35,7 @@ from scipy import optimize, signal, stats
 from driftlab.models.standard_model import PreparedBundle, TermData, lstsq, robust_sigma
 
 KINDS = ("reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift",
-         "quadratic")
+         "quadratic", "operating_condition")
 
 #: number of log-spaced time constants screened per channel for thermal_lag
 N_TAU = 16
@@ -93,6 +98,8 @@ class FaultScan:
     plausible: bool
     neighbours: list[str] = field(default_factory=list)
     break_ratio: float = float("nan")  # RSS of one virtual-sensor fit / RSS of the fits split at start_s
+    toward_air: float = float("nan")  # share of the early departure pointing toward the room air
+    gap_left: float = float("nan")  # |reading - air| / |virtual sensor - air| once settled (0: reads the air)
 
 
 def _trimmed_fit(A: np.ndarray, y: np.ndarray, rows: np.ndarray, rounds: int = 3) -> np.ndarray:
@@ -318,8 +325,27 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
             # air, and agrees with its structure again whenever the structure cools to the air (a night)
             early = rpost[: max(min_len, int(7200.0 / dt))]
             persistence = float(np.mean(np.abs(early) > 3 * sigma)) if early.size else 0.0
+            toward_air, gap_left = 1.0, 0.0
+            if dead is None and room_cols and j not in room_cols:
+                # a junction that came loose reads the air: its departure from the virtual sensor points
+                # toward the room temperature, and once settled it has closed at least half the gap between
+                # its structure (the virtual sensor) and the air (judged on the early window after 30 min; a
+                # healthy site whose relation to its neighbours changes at a stage change moves with its
+                # structure instead)
+                air = np.mean(T[:, room_cols], axis=1)
+                est = T[0, j] + A @ beta
+                w = slice(start, start + early.size)
+                toward = np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w])
+                toward_air = float(np.mean(toward)) if early.size else 0.0
+                settled = slice(start + min(max(1, int(1800.0 / dt)), early.size // 2), start + early.size)
+                if early.size:
+                    gap_est = float(np.median(np.abs(est[settled] - air[settled])))
+                    gap_left = float(np.median(np.abs(T[settled, j] - air[settled]))) / max(gap_est, 1e-9)
+                else:
+                    gap_left = float("inf")
             plausible = rpost.size >= min_len and start >= min_pre and (
-                dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6))
+                dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6
+                                     and gap_left < 0.5))
             if smooth_T is not None:
                 Ds = smooth_T - smooth_T[0]
                 A_s = np.column_stack([np.ones(n), Ds[:, nb]])
@@ -329,22 +355,54 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
             replaced = T[:, j].copy()
             replaced[start:] = virtual[start:]
             mode = "open" if dead is not None else "detached"
-            # Welch test on block means (30-min blocks tame the autocorrelation of temperatures)
+            # the departure grows after the fault: one-sided Welch test on the log mean square of the
+            # departure in 30-min blocks (blocks tame the autocorrelation of temperatures; the square
+            # catches a departure of either sign, e.g. a held reading the structure warms past and cools
+            # back through, whose mean can be near zero)
             blk = max(1, int(1800.0 / dt))
-            pre_b = _block_means(r[:start], blk)
-            post_b = _block_means(r[start:], blk)
+            pre_b = np.log(_block_means(r[:start] ** 2, blk) + 1e-12)
+            post_b = np.log(_block_means(r[start:] ** 2, blk) + 1e-12)
             if pre_b.size >= 2 and post_b.size >= 2 and np.ptp(np.concatenate([pre_b, post_b])) > 0:
-                p_temp = float(stats.ttest_ind(pre_b, post_b, equal_var=False).pvalue)
+                p_temp = float(stats.ttest_ind(post_b, pre_b, equal_var=False, alternative="greater").pvalue)
             else:
                 p_temp = 1.0
+            if dead is not None:
+                # no reading, or one stuck value, from start to the end for at least 30 min: the card says
+                # so itself; this is an observation, not a statistical inference on the departure
+                p_temp = 0.0
             out[prep.channels[j]] = FaultScan(prep.channels[j], float(t[min(start, n - 1)]), strength,
                                               persistence, mode, p_temp if np.isfinite(p_temp) else 1.0,
                                               replaced, bool(plausible),
-                                              [prep.channels[k] for k in nb], ratio)
+                                              [prep.channels[k] for k in nb], ratio, toward_air, gap_left)
         excluded = {prep.channel_index(c) for c, f in out.items() if f.plausible}
         if not excluded:
             break
+    _peer_test(out)
     return out
+
+
+def _peer_test(scans: dict[str, FaultScan]) -> None:
+    """Hold every detached-fault candidate to its peers: its break must stand out among all channels'.
+
+    Every channel's virtual-sensor relation, split at its own best break, fits better on the two
+    sides (the relation between sites changes with the heat sources, and the break is chosen to
+    make the most of it), so the break ratio of a healthy channel is not 1 and the block test on
+    the departure, taken after choosing the cut, is optimistic. A loose thermocouple breaks its
+    relation far more than its peers do: the robust z of its log break ratio among all channels
+    (median, 1.4826 MAD) gives a one-sided normal p-value, and the fault's temperature p-value
+    becomes the larger of that and the block test. A dead tail (no or stuck readings to the
+    end) is its own evidence and is left as it is.
+    """
+    ratios = np.array([f.break_ratio for f in scans.values() if np.isfinite(f.break_ratio) and f.break_ratio > 0])
+    if ratios.size < 5:
+        return
+    logs = np.log(ratios)
+    med = float(np.median(logs))
+    mad = max(1.4826 * float(np.median(np.abs(logs - med))), 1e-6)
+    for f in scans.values():
+        if f.mode == "detached":
+            z = (np.log(max(f.break_ratio, 1e-300)) - med) / mad if np.isfinite(f.break_ratio) else -np.inf
+            f.p_value = max(f.p_value, float(stats.norm.sf(z)))
 
 
 def _block_means(x: np.ndarray, blk: int) -> np.ndarray:
@@ -368,11 +426,12 @@ class Candidate:
     hint: dict[str, Any] = field(default_factory=dict)  # tau_s, start_s, mode ...
     replace: list[tuple[str, np.ndarray]] | None = None  # sensor_fault: (channel, replacement dT column)
     family_size: int = 1  # hypotheses this candidate stands for (tau grid points)
+    label: str = ""  # what tells apart candidates of one kind without channels (operating_condition)
 
     @property
     def key(self) -> tuple[str, tuple[str, ...]]:
-        """Return (kind, channels): what makes two candidates the same effect."""
-        return self.kind, tuple(self.channels)
+        """Return (kind, channels) - or (kind, (label,)) - : what makes two candidates the same effect."""
+        return self.kind, (self.label,) if self.label else tuple(self.channels)
 
 
 @dataclass
@@ -467,17 +526,15 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             out.append(Candidate("unmapped_channel", [ch], col[:, None], [f"dT_{ch}"]))
         if in_model and ("quadratic", (ch,)) not in ctx.taken:
             out.append(Candidate("quadratic", [ch], (col * col)[:, None], [f"dT_{ch}^2"]))
-        if in_model and ("sensor_fault", (ch,)) not in ctx.taken:
-            fs = ctx.faults.get(ch)
-            if fs is not None and fs.plausible:
-                out.append(_fault_candidate(ctx, [fs]))
-    # several broken thermocouples in one model: each alone cannot show a gain while the others
-    # still corrupt the fit, so they are also tried together (one effect naming every channel)
-    faulty = [ctx.faults[ch] for ch in ctx.model_channels
-              if ch in ctx.faults and ctx.faults[ch].plausible and ch in ctx.chan_cols
-              and ("sensor_fault", (ch,)) not in ctx.taken]
-    if len(faulty) > 1:
-        out.append(_fault_candidate(ctx, faulty))
+    # the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)
+    for col, v in td.conditions.items():
+        for power in (1, 2):
+            label = f"{col}^{power}"
+            x = v**power
+            if ("operating_condition", (label,)) in ctx.taken or np.ptp(x[td.train]) == 0:
+                continue
+            out.append(Candidate("operating_condition", [], x[:, None].astype(float), [label],
+                                 {"column": col, "power": power}, label=label))
     for ch, (taus, at) in ctx.lag_cache.items():
         if ("thermal_lag", (ch,)) in ctx.taken:
             continue
@@ -641,7 +698,7 @@ def columns_like(cand: Candidate, hint: dict[str, Any], ctx: TermContext) -> np.
     """
     td = ctx.td
     k = cand.kind
-    if k in ("reversal", "drift"):
+    if k in ("reversal", "drift", "operating_condition"):
         return cand.cols
     if k == "sensor_fault" or not cand.channels:
         return None

@@ -37,7 +37,7 @@ from driftlab.models.features import Feature, channel_columns, fill_gaps
 REPORT_FORMAT = "driftlab-diagnosis/1"
 #: the effect catalogue of the bundle spec (section 3)
 FINDING_KINDS: tuple[str, ...] = ("reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault",
-                                  "drift", "quadratic")
+                                  "drift", "quadratic", "operating_condition")
 #: kinds that name at least one thermocouple
 CHANNEL_KINDS = frozenset({"screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "quadratic"})
 #: parameters a finding must carry to be folded in (the others are reported but not needed)
@@ -103,9 +103,11 @@ def parse_findings(data: Any, source: str = "findings") -> Findings:
         if kind not in FINDING_KINDS:
             raise bad(f"{where}: unknown kind {kind!r} (one of {', '.join(FINDING_KINDS)})")
         axis, term = e.get("axis"), e.get("term")
-        if axis not in AXES:
+        if kind == "sensor_fault" and axis is None and term is None:
+            pass  # a broken channel that feeds no model: a finding about the temperatures only
+        elif axis not in AXES:
             raise bad(f"{where}: axis must be one of {' '.join(AXES)}, got {axis!r}")
-        if term not in TERMS:
+        elif term not in TERMS:
             raise bad(f"{where}: term must be one of {' '.join(TERMS)}, got {term!r}")
         channels = e.get("channels", [])
         if not isinstance(channels, list) or not all(isinstance(c, str) and c for c in channels):
@@ -327,6 +329,9 @@ def plan_findings(findings: Findings, bundles: Sequence[Any], force: bool = Fals
                 if c not in [x for x, _, _ in faults]:
                     faults.append((c, f.start_s(c), str((f.params.get("mode_by_channel") or {}).get(
                         c, f.params.get("mode", "")))))
+            continue
+        if f.kind == "operating_condition":
+            skipped[i] = "a direct machine-state term: the fitting catalogue has no such feature yet (reported only)"
             continue
         if (f.axis, f.term) not in measured:
             skipped[i] = f"no {f.axis}/{f.term} measurements in these campaigns"

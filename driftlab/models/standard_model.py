@@ -16,7 +16,8 @@ The standard model itself (spec section 2) is OLS per (axis, term) on
 intercept, position, position^2, position^3 and dT_k = T_k(t) - T_k(t_first)
 for the model channels of the axis, with regressors centred and scaled
 (position^3 of 254 mm is 1.6e7) and coefficients reported in physical units.
-Train = first ``1 - holdout_fraction`` of the rows in time, score = the rest.
+Train = the rows before the time of the term's row at ``1 - holdout_fraction`` of its rows (the
+split depends on the rows' times only, never on their values), score = the rest.
 """
 
 from __future__ import annotations
@@ -167,6 +168,7 @@ class TermData:
     n_train: int
     sweep: np.ndarray  # sweep index of each row (consecutive rows closer than the sweep gap)
     flags: OutlierFlags
+    conditions: dict[str, np.ndarray] = field(default_factory=dict)  # machine-state columns at the error times
 
     @property
     def unit(self) -> str:
@@ -242,6 +244,37 @@ def _sweep_ids(t: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(new)]).astype(int)
 
 
+#: conditions.csv columns that describe how the machine is run (the pose columns x..b are where it is)
+OPERATING_COLUMNS = ("spindle_rpm", "feed_mm_min")
+
+
+def _conditions_source(bundle: Any) -> dict[str, Any]:
+    """Return, per operating column of conditions.csv, a function giving its value at error times.
+
+    The state log is a log of set points: a value holds until the next row (zero-order hold);
+    unknown cells hold the last known value. Columns that never change are left out.
+    """
+    cond = getattr(bundle, "conditions", None)
+    out: dict[str, Any] = {}
+    if cond is None or len(cond) == 0 or "time_s" not in cond:
+        return out
+    c = cond.sort_values("time_s", kind="stable")
+    tc = c["time_s"].to_numpy(dtype=float)
+    for col in OPERATING_COLUMNS:
+        if col not in c:
+            continue
+        v = pd.to_numeric(c[col], errors="coerce").ffill().bfill().to_numpy(dtype=float)
+        if not np.isfinite(v).all() or np.ptp(v) == 0:
+            continue
+
+        def at(t: np.ndarray, tc: np.ndarray = tc, v: np.ndarray = v) -> np.ndarray:
+            i = np.clip(np.searchsorted(tc, t, side="right") - 1, 0, tc.size - 1)
+            return v[i]
+
+        out[col] = at
+    return out
+
+
 def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float | None = None) -> PreparedBundle:
     """Return the cleaned, grid-aligned :class:`PreparedBundle` of a bundle (one pass, vectorised)."""
     if not 0.0 < holdout_fraction < 0.9:
@@ -288,10 +321,16 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
             flags.append(OutlierFlags(ch, int(sp.sum()), int(oor.sum()), held,
                                       tuple(float(v) for v in bad[:5])))
 
-    errs = errors.dropna(subset=["value", "time_s", "position"])
+    # the held-out split is fixed on the rows' times alone (never their values), and the training and
+    # held-out rows are cleaned apart: nothing in the held-out values can change a training decision
+    errs = errors.dropna(subset=["time_s", "position"])
+    cond_at = _conditions_source(bundle)
     terms: list[TermData] = []
     for (axis, term), g in errs.groupby(["axis", "term"], sort=True):
         g = g.sort_values("time_s", kind="stable")
+        t_all = g["time_s"].to_numpy(dtype=float)
+        hold_t = float(t_all[int(math.floor((1.0 - holdout_fraction) * t_all.size))]) if t_all.size else np.inf
+        g = g[np.isfinite(g["value"].to_numpy(dtype=float))]
         y = g["value"].to_numpy(dtype=float)
         t = g["time_s"].to_numpy(dtype=float)
         pos = g["position"].to_numpy(dtype=float)
@@ -299,10 +338,12 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
         direction = np.where(np.isfinite(direction), direction, 1.0)
         bad = np.zeros(y.size, dtype=bool)
         keys = np.round(pos, 9) * 10 + direction
+        is_train = t < hold_t
         for key in np.unique(keys):
-            idx = np.flatnonzero(keys == key)
-            if idx.size >= 10:
-                bad[idx] = spike_mask(y[idx])
+            for part in (is_train, ~is_train):
+                idx = np.flatnonzero((keys == key) & part)
+                if idx.size >= 10:
+                    bad[idx] = spike_mask(y[idx])
         fl = OutlierFlags(f"{axis}/{term}", int(bad.sum()), 0, 0, tuple(float(v) for v in t[bad][:5]))
         if bad.any():
             flags.append(fl)
@@ -322,9 +363,14 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
         T_at = np.empty((t.size, len(channels)))
         for j in range(len(channels)):
             T_at[:, j] = np.interp(t, grid_t, grid_T[:, j])
-        n_train = int(math.floor((1.0 - holdout_fraction) * y.size))
+        n_train = int(np.sum(t < hold_t))
+        conds = {c: f(t) for c, f in cond_at.items()}
+        # sweeps of the training rows from their own times (which held-out rows survive cleaning depends on
+        # their values), the held-out rows' numbered after them
+        sw_train = _sweep_ids(t[:n_train])
+        sw_hold = _sweep_ids(t[n_train:]) + (int(sw_train.max()) + 1 if n_train else 0)
         terms.append(TermData(str(axis), str(term), t, pos, direction, y, T_at, n_train,
-                              _sweep_ids(t), fl))
+                              np.concatenate([sw_train, sw_hold]).astype(int), fl, conds))
 
     mc_raw = _as_plain(meta_get(meta, "model_channels", None)) or {}
     model_channels = {str(a): [c for c in v if c in channels] for a, v in mc_raw.items()}

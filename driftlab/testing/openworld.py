@@ -1,0 +1,379 @@
+"""An open-world generator of campaign bundles for the diagnosis tests (tests only: nothing in production imports it).
+
+The closed-world fixtures (``tests/effects_generator.py``) build the errors in the same form as
+the standard model: a cubic in position plus dT of the model channels, effects added per
+(axis, term). Passing tests on such data says little about a real machine. Here:
+
+- **The base field is outside the model's span.** Each deforming body's temperature is a
+  weighted mix of its sensor sites (a distributed field), lagging them a little (a few % of
+  its change follows a lag of tens of minutes) plus a small component no sensor reads (heat
+  from a source reaching the body by another path). ``Case.beyond_span`` records, per
+  (axis, term), the RMS of the noise-free base error that the standard model fitted on the
+  noise-free sensors cannot represent.
+- **Effects are planted in the element errors** of the HTM chain (a joint's backlash, a
+  screw's growth, a link's lag ...) and observed through it with
+  ``kinematics.workspace_error`` (eq. 4.12), as the virtual machine builds its truth
+  (``daq.sim.truth``): a reversal of the A joint is seen through the A rotation. The expected
+  catalogue parameter on the observed (axis, term) is the least-squares coefficient of the
+  observed change on the catalogue's regressor (``Case.expected``), not the planted number.
+- **The readings are real-data-like**: AR(1) laser noise (rho 0.4-0.8 along each series in
+  measuring order), single-scan glitches in temperatures and errors (EMI on the card),
+  logger gaps (scans missing for 15-50 min), a laser gap, scattered missing readings, and a
+  machine-state log (spindle rpm, feed) in conditions.csv.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from driftlab.campaigns.bundle import Bundle, _as_meta
+from driftlab.daq.sim import truth
+from driftlab.models import kinematics as kin
+from driftlab.models.thermal import ALPHA_C
+
+#: sensor sites: name -> (structure, heat sources it sees: spindle, x motor, y motor)
+SITES: dict[str, tuple[str, tuple[float, float, float]]] = {
+    "T1": ("spindle_arm_upper", (6.0, 0.0, 0.5)),
+    "T2": ("spindle_arm_upper", (5.0, 0.3, 0.8)),
+    "T3": ("spindle_arm_lower", (3.5, 0.0, 0.4)),
+    "T4": ("spindle_arm_lower", (3.0, 0.2, 0.6)),
+    "T5": ("column", (1.2, 0.3, 2.0)),
+    "T6": ("column", (0.8, 0.5, 2.5)),
+    "T7": ("x_screw", (0.2, 5.0, 0.2)),
+    "T8": ("x_screw", (0.1, 4.0, 0.3)),
+    "T9": ("y_motor", (0.3, 0.4, 6.0)),
+    "T10": ("table", (0.6, 1.5, 0.8)),
+    "T11": ("room", (0.0, 0.0, 0.0)),
+    "T12": ("room", (0.0, 0.0, 0.0)),
+}
+ROOM = ("T11", "T12")
+#: bodies that deform: their temperature is a mix of sensor sites (weights sum to 1)
+BODIES: dict[str, dict[str, float]] = {
+    "arm_upper": {"T1": 0.6, "T2": 0.4},
+    "arm_lower": {"T3": 0.5, "T4": 0.5},
+    "column": {"T5": 0.55, "T6": 0.45},
+    "x_screw": {"T7": 0.7, "T8": 0.3},
+    "table": {"T10": 1.0},
+}
+L_ARM, H_ARM, L_COLUMN, L_SCREW, H_TABLE = 400.0, 200.0, 1200.0, 150.0, 200.0
+#: (element, parameter, coefficient per degC, body or gradient): base thermal element errors
+#: (eqs. 3.1-3.5 with the magnitudes of Table 6.3, as the virtual machine's THERMAL_TERMS)
+BASE_TERMS: tuple[tuple[str, str, float, str], ...] = (
+    ("T1", "alpha", ALPHA_C * L_ARM / H_ARM, "arm_gradient"),  # eq. 3.4
+    ("T1", "dz", ALPHA_C * L_ARM**2 / (2 * H_ARM), "arm_gradient"),  # eq. 3.5
+    ("T1", "dy", ALPHA_C * L_ARM, "arm_upper"),  # eq. 3.1
+    ("T2", "dz", ALPHA_C * L_COLUMN, "column"),  # eq. 3.3
+    ("phi_x", "dx", ALPHA_C * L_SCREW, "x_screw"),  # eq. 3.2, fixed part of the screw
+    ("T4", "dz", ALPHA_C * H_TABLE, "table"),  # eq. 3.1
+)
+#: the user's sensor selection: every site that feeds a body, and a room channel
+MODEL_CHANNELS = ["T1", "T2", "T3", "T4", "T5", "T6", "T7", "T8", "T10", "T11"]
+
+
+@dataclass
+class OpenPlanted:
+    """One effect planted in an element error, and the (axis, term) where the catalogue should name it.
+
+    ``element``/``param``: where in the chain it is planted; ``kind``, ``axis``, ``term``,
+    ``channels`` and ``params`` as the catalogue states it (``params`` holds the planted
+    element-level numbers; ``Case.expected`` the ones observed through the chain).
+    """
+
+    kind: str
+    axis: str
+    term: str
+    element: str = ""
+    param: str = ""
+    channels: list[str] = field(default_factory=list)
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Case:
+    """An open-world bundle, what was planted, and what the catalogue should report."""
+
+    bundle: Bundle
+    planted: list[OpenPlanted]
+    expected: list[dict[str, Any]]  # per planted effect: the catalogue params observed through the chain
+    noise: dict[str, float]
+    rho: float
+    beyond_span: dict[str, float]  # (axis/term) -> RMS of the base error outside the model's span
+    signal_rms: list[float]  # per planted effect: RMS of its observed contribution
+    beyond_model_rms: list[float]  # per planted effect: the part of it no standard model can absorb
+
+
+def _lag(x: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    """Return a first-order lag of ``x`` along axis 0 (exponential smoothing, started at rest)."""
+    a = np.exp(-dt / tau)
+    y = np.empty_like(x)
+    y[0] = x[0]
+    for i in range(1, x.shape[0]):
+        y[i] = a * y[i - 1] + (1 - a) * x[i]
+    return y
+
+
+def _ar1(n: int, rho: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """Return AR(1) noise with marginal standard deviation ``sigma`` and lag-1 correlation ``rho``."""
+    e = rng.normal(0.0, sigma * np.sqrt(1.0 - rho * rho), n)
+    e[0] = rng.normal(0.0, sigma)
+    from scipy.signal import lfilter
+
+    zi = np.array([rho * e[0]])
+    out, _ = lfilter([1.0], [1.0, -rho], e[1:], zi=zi)
+    return np.concatenate([[e[0]], out])
+
+
+def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hours: float = 30.0,
+                   scan_s: float = 120.0, sweep_s: float = 1200.0, points: int = 6,
+                   keep: list[tuple[str, str]] | None = None, rho: float | None = None,
+                   noise_mm: float = 5e-4, noise_rad: float = 5e-7, glitches: bool = True, gaps: bool = True,
+                   lag_fraction: float | None = None, unmeasured_degC: float = 0.1) -> Case:
+    """Return an open-world :class:`Case` with ``planted`` effects hidden in element errors."""
+    planted = list(planted or [])
+    rng = np.random.default_rng(seed)
+    rho = float(rng.uniform(0.4, 0.8)) if rho is None else float(rho)
+    names = list(SITES)
+    n = int(hours * 3600 / scan_s) + 1
+    t = np.arange(n) * scan_s
+
+    # staged single-heat-source plan (ch. 5.2): spindle at several speeds, X and Y motors, rests
+    u = np.zeros((n, 3))
+    rpm = np.zeros(n)
+    feed = np.zeros(n)
+    stages = []
+    cursor, k = 0.5 * 3600.0, 0
+    while cursor < t[-1]:
+        src = k % 3
+        on = round(rng.uniform(3, 4.5) * 60) * 60.0
+        off = round(rng.uniform(1.5, 3) * 60) * 60.0
+        m = (t >= cursor) & (t < cursor + on)
+        if src == 0:
+            speed = float(rng.choice([2000.0, 4000.0, 6000.0, 8000.0]))
+            rpm[m] = speed
+            u[m, 0] = (speed / 8000.0) ** 1.5  # bearing and motor losses grow faster than the speed
+        else:
+            level = rng.uniform(0.6, 1.0)
+            u[m, src] = level
+            feed[m] = 2000.0 * level
+        stages.append({"name": f"{['spindle', 'x_motor', 'y_motor'][src]}-{k}", "start_s": cursor,
+                       "end_s": min(cursor + on, t[-1]), "heat_source": ["spindle", "x_motor", "y_motor"][src],
+                       "axis": "XYZ"[src], "spindle_rpm": float(rpm[m].max()) if m.any() else 0.0,
+                       "feed_mm_min": float(feed[m].max()) if m.any() else 0.0})
+        stages.append({"name": f"rest-{k}", "start_s": min(cursor + on, t[-1]),
+                       "end_s": min(cursor + on + off, t[-1]), "heat_source": "none", "axis": "X",
+                       "spindle_rpm": 0.0, "feed_mm_min": 0.0})
+        cursor += on + off
+        k += 1
+    phase = rng.uniform(0, 2 * np.pi)
+    room_air = 20.0 + 0.8 * np.sin(2 * np.pi * t / 86400 + phase) + 0.2 * np.sin(2 * np.pi * t / 15000 + 1.0)
+    true = np.empty((n, len(names)))
+    for j, ch in enumerate(names):
+        struct, gains = SITES[ch]
+        if struct == "room":
+            true[:, j] = room_air + (0.15 if ch == "T12" else -0.15)
+            continue
+        g = np.array(gains) * rng.uniform(0.8, 1.2, 3)
+        tau = rng.uniform(20, 120) * 60
+        true[:, j] = _lag(room_air + u @ g, scan_s, tau) + rng.uniform(-1, 1)
+    dTs = true - true[0]
+
+    # the bodies: a distributed field - a mix of sites, lagging them a little, plus heat no sensor reads
+    frac = float(rng.uniform(0.01, 0.03)) if lag_fraction is None else float(lag_fraction)
+    hidden_heat = _lag(u @ rng.uniform(0.3, 1.0, 3), scan_s, rng.uniform(2, 5) * 3600)
+    hidden_heat = unmeasured_degC * hidden_heat / max(float(np.abs(hidden_heat).max()), 1e-12)
+    body: dict[str, np.ndarray] = {}
+    for b, w in BODIES.items():
+        mix = sum(wk * dTs[:, names.index(c)] for c, wk in w.items())
+        slow = _lag(mix, scan_s, rng.uniform(1, 3) * 3600)
+        body[b] = (1 - frac) * mix + frac * slow + hidden_heat * rng.uniform(0.5, 1.0)
+    body["arm_gradient"] = body["arm_upper"] - body["arm_lower"]
+
+    readings = true + rng.normal(0, 0.01, true.shape)
+    for p in planted:  # faults change the readings only: the bodies keep their true temperatures
+        if p.kind != "sensor_fault":
+            continue
+        j = names.index(p.channels[0])
+        after = t >= float(p.params["start_s"])
+        if p.params.get("mode", "detached") == "open":
+            readings[after, j] = np.nan
+        else:
+            k0 = int(np.argmax(after))
+            target = room_air + 0.5
+            dec = np.exp(-(t[after] - t[k0]) / 600.0)
+            readings[after, j] = target[after] + (readings[k0, j] - target[after]) * dec \
+                + rng.normal(0, 0.01, int(after.sum()))
+
+    # laser sweeps: every axis, positions up then down, 10 s per point; a 1.5 h laser gap
+    keep = keep or sorted({(p.axis, p.term) for p in planted if p.axis}) or [("Z", "dz")]
+    axes = sorted({a for a, _ in keep})
+    sweep_t0 = np.arange(0.0, t[-1] - 2 * points * 10.0 * len(axes) - 10.0, sweep_s)
+    if gaps:
+        g0 = rng.uniform(0.35, 0.55) * t[-1]
+        sweep_t0 = sweep_t0[(sweep_t0 < g0) | (sweep_t0 > g0 + 5400.0)]
+    rows = []
+    for s0 in sweep_t0:
+        i = 0
+        for axis in axes:
+            lo, hi = truth.AXIS_RANGE[axis]
+            grid = np.linspace(lo, hi, points)
+            for d, order in ((1, grid), (-1, grid[::-1])):
+                for pos in order:
+                    rows.append((s0 + 10.0 * i, axis, float(pos), d))
+                    i += 1
+    R = pd.DataFrame(rows, columns=["time_s", "axis", "position", "direction"])
+    rt = R["time_s"].to_numpy()
+    body_at = {b: np.interp(rt, t, v) for b, v in body.items()}
+    dT_at = np.column_stack([np.interp(rt, t, dTs[:, j]) for j in range(len(names))])
+    rpm_at = rpm[np.clip(np.searchsorted(t, rt, side="right") - 1, 0, n - 1)]
+
+    def element_errors(q: np.ndarray, extra: list[OpenPlanted], rows_idx: np.ndarray) -> dict[str, np.ndarray]:
+        errs = {e: v.copy() for e, v in truth.geometric_errors(q).items()}
+        for element, param, coef, src in BASE_TERMS:
+            e = errs.setdefault(element, np.zeros((len(q), 6)))
+            e[:, kin.PARAMS.index(param)] += coef * body_at[src][rows_idx]
+        for p in extra:
+            e = errs.setdefault(p.element, np.zeros((len(q), 6)))
+            e[:, kin.PARAMS.index(p.param)] += _planted_value(p, rows_idx)
+        return errs
+
+    def _planted_value(p: OpenPlanted, idx: np.ndarray) -> np.ndarray:
+        pr = p.params
+        d = R["direction"].to_numpy(dtype=float)[idx]
+        x = R["position"].to_numpy(dtype=float)[idx]
+        days = rt[idx] / 86400.0
+        if p.kind == "reversal":  # backlash of the joint: half the span each way (3.3, 5.5)
+            return 0.5 * float(pr["magnitude"]) * d
+        if p.kind == "drift":
+            return float(pr["rate_per_day"]) * days
+        if p.kind == "operating_condition":  # centrifugal growth: coef x rpm^power (6.4.3)
+            return float(pr["coef_per_unit"]) * rpm_at[idx] ** int(pr["power"])
+        j = names.index(p.channels[0])
+        dT = dT_at[idx, j]
+        if p.kind == "screw_expansion":  # eq. 3.2: pitch growth with the screw temperature
+            return float(pr["coef_per_mm_degC"]) * x * dT
+        if p.kind == "unmapped_channel":
+            return float(pr["coef_per_degC"]) * dT
+        if p.kind == "quadratic":
+            return float(pr["coef_per_degC2"]) * dT * dT
+        if p.kind == "thermal_lag":  # the body follows a lag of the site: c (lag(dT) - dT)
+            lg = np.interp(rt[idx], t, _lag(dTs[:, j], scan_s, float(pr["tau_s"])))
+            return float(pr["coef_per_degC"]) * (lg - dT)
+        raise ValueError(p.kind)
+
+    errors, expected, signal = [], [{} for _ in planted], [0.0] * len(planted)
+    beyond_model = [0.0] * len(planted)
+    beyond: dict[str, float] = {}
+    effects = [p for p in planted if p.kind != "sensor_fault"]
+    for axis in axes:
+        idx = np.flatnonzero((R["axis"] == axis).to_numpy())
+        q = truth.axis_pose(axis, R["position"].to_numpy()[idx])
+        W0 = kin.workspace_error(q, element_errors(q, [], idx))  # eq. 4.12 through the chain
+        W = kin.workspace_error(q, element_errors(q, effects, idx)) if effects else W0
+        for term in [tm for a, tm in keep if a == axis]:
+            c = kin.PARAMS.index(term)
+            angle = term in ("alpha", "beta", "gamma")
+            sigma = noise_rad if angle else noise_mm
+            beyond[f"{axis}/{term}"] = _beyond_span(W0[:, c], R.iloc[idx], dT_at[idx], names)
+            for i, p in enumerate(planted):
+                if p.kind == "sensor_fault" or (p.axis, p.term) != (axis, term):
+                    continue
+                Wi = kin.workspace_error(q, element_errors(q, [p], idx))
+                delta = Wi[:, c] - W0[:, c]
+                signal[i] = float(np.sqrt(np.mean(delta**2)))
+                beyond_model[i] = _beyond_span(delta, R.iloc[idx], dT_at[idx], names)
+                expected[i] = _expected_params(p, delta, idx, R, dT_at, names, rpm_at, rt, angle)
+            y = W[:, c] + _ar1(idx.size, rho, sigma, rng)
+            if glitches:  # single readings hit by EMI: 3 per series, 20-60 x the noise
+                hit = rng.choice(idx.size, size=3, replace=False)
+                y[hit] += rng.choice([-1, 1], 3) * rng.uniform(20, 60, 3) * sigma
+            errors.append(pd.DataFrame({"time_s": rt[idx], "axis": axis, "term": term,
+                                        "position": R["position"].to_numpy()[idx],
+                                        "direction": R["direction"].to_numpy()[idx].astype(int), "value": y}))
+    err = pd.concat(errors, ignore_index=True).sort_values(["time_s", "axis", "term"], kind="stable")
+    err = err.reset_index(drop=True)
+
+    temps = pd.DataFrame(np.round(readings, 4), columns=names)
+    temps.insert(0, "time_s", t)
+    cond = pd.DataFrame({"time_s": t, "spindle_rpm": rpm, "feed_mm_min": feed})
+    if glitches:  # single-scan EMI spikes on a few channels
+        vals = temps[names].to_numpy(copy=True)
+        for _ in range(6):
+            j, i = int(rng.integers(0, len(names))), int(rng.integers(5, n - 5))
+            if np.isfinite(vals[i, j]):
+                vals[i, j] += float(rng.choice([-1, 1]) * rng.uniform(2, 8))
+        temps[names] = vals
+    if gaps:  # logger gaps (no scan written) and scattered missing readings
+        drop = np.zeros(n, dtype=bool)
+        for length in (900.0, 3000.0):
+            a = rng.uniform(0.1, 0.9) * t[-1]
+            drop |= (t > a) & (t < a + length)
+        temps = temps[~drop].reset_index(drop=True)
+        cond = cond[~drop].reset_index(drop=True)
+        vals = temps[names].to_numpy(copy=True)
+        vals[rng.uniform(size=vals.shape) < 0.003] = np.nan
+        temps[names] = vals
+    meta = {
+        "format": "driftlab-bundle/1",
+        "machine": {"id": "open-world", "name": "open-world generator (tests)", "resolution_mm": 0.0001},
+        "started_at": "2026-03-02T08:00:00Z",
+        "channels": {c: {"location": f"{SITES[c][0].replace('_', ' ')} site {c}", "structure": SITES[c][0]}
+                     for c in names},
+        "room_channels": list(ROOM),
+        "model_channels": {a: list(MODEL_CHANNELS) for a in axes},
+        "stages": stages,
+        "noise": {"length_mm": noise_mm, "angle_rad": noise_rad},
+    }
+    bundle = Bundle(name=f"open-{seed}", meta=_as_meta(meta), temperatures=temps, conditions=cond, errors=err)
+    return Case(bundle, planted, expected, {"length_mm": noise_mm, "angle_rad": noise_rad}, rho, beyond, signal,
+                beyond_model)
+
+
+def _beyond_span(w: np.ndarray, rows: pd.DataFrame, dT: np.ndarray, names: list[str]) -> float:
+    """Return the RMS of a noise-free base error that the standard model (on noise-free sensors) cannot fit."""
+    x = rows["position"].to_numpy(dtype=float)
+    x = (x - x.mean()) / max(np.ptp(x), 1e-9)
+    cols = [np.ones_like(x), x, x**2, x**3] + [dT[:, names.index(c)] for c in MODEL_CHANNELS]
+    A = np.column_stack(cols)
+    b, *_ = np.linalg.lstsq(A, w, rcond=None)
+    r = w - A @ b
+    return float(np.sqrt(np.mean(r * r)))
+
+
+def _expected_params(p: OpenPlanted, delta: np.ndarray, idx: np.ndarray, R: pd.DataFrame, dT_at: np.ndarray,
+                     names: list[str], rpm_at: np.ndarray, rt: np.ndarray, angle: bool) -> dict[str, Any]:
+    """Return the catalogue parameters of a planted effect as observed through the chain on its (axis, term).
+
+    The observed change ``delta`` is regressed on the catalogue's own regressor (direction,
+    position x dT, dT, days, rpm^power ...) with an intercept: what a perfect diagnosis reports.
+    """
+    d = R["direction"].to_numpy(dtype=float)[idx]
+    x = R["position"].to_numpy(dtype=float)[idx]
+    one = np.ones_like(delta)
+
+    def coef(col: np.ndarray) -> float:
+        b, *_ = np.linalg.lstsq(np.column_stack([one, col]), delta, rcond=None)
+        return float(b[1])
+
+    k = p.kind
+    if k == "reversal":
+        return {f"magnitude_{'rad' if angle else 'mm'}": 2.0 * coef(d)}
+    if k == "drift":
+        return {"rate_per_day": coef(rt[idx] / 86400.0)}
+    if k == "operating_condition":
+        pw = int(p.params["power"])
+        return {"column": "spindle_rpm", "power": pw, "coef_per_unit": coef(rpm_at[idx] ** pw)}
+    j = names.index(p.channels[0])
+    dT = dT_at[idx, j]
+    if k == "screw_expansion":
+        return {"coef_per_mm_degC": coef(x * dT)}
+    if k == "unmapped_channel":
+        return {"coef_per_degC": coef(dT)}
+    if k == "quadratic":
+        return {"coef_per_degC2": coef(dT * dT)}
+    if k == "thermal_lag":
+        return {"tau_s": float(p.params["tau_s"])}
+    return {}
