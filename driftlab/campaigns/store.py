@@ -488,6 +488,29 @@ class Store:
             return ProgressInfo(row.campaign_id, row.stage_ordinal, row.sweep, row.last_sample_time_s, row.cursor,
                                 row.updated_at)
 
+    def check_writable(self) -> None:
+        """Raise StoreError unless the store is at the head schema and accepts a write now.
+
+        The probe rewrites the schema revision with itself inside a transaction that is rolled
+        back: a read-only file, directory, mount or PostgreSQL role fails here, before a daemon
+        starts its instruments, rather than at its first commit.
+        """
+        from sqlalchemy.exc import DBAPIError
+
+        try:
+            self.ensure_schema()
+            with self.engine.connect() as conn:
+                conn = conn.execution_options(driftlab_write=True)
+                trans = conn.begin()
+                try:
+                    conn.execute(text("UPDATE alembic_version SET version_num = version_num"))
+                finally:
+                    trans.rollback()
+        except (DBAPIError, OSError) as exc:
+            orig = getattr(exc, "orig", None) or exc
+            first = next((ln.strip() for ln in str(orig).splitlines() if ln.strip()), type(orig).__name__)
+            raise db.StoreError(f"cannot write to the store at {self.url}: {first[:300]}") from None
+
     def ping(self) -> bool:
         """Return True when the database answers."""
         with self.engine.connect() as conn:
