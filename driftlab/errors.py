@@ -20,6 +20,12 @@ class ValidationError(DriftlabError):
     http_status = 422
 
 
+class BadRequestError(ValidationError):
+    """A malformed request parameter (query, path or cursor): HTTP 400, a CLI usage error."""
+
+    http_status = 400
+
+
 class NotFoundError(DriftlabError):
     """A machine, campaign, model version or job that does not exist."""
 

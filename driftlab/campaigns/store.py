@@ -212,11 +212,16 @@ class Store:
         """Delete a campaign with all its samples, stages, channels and progress (one transaction)."""
         self.ensure_schema()
         with db.write_transaction(self.engine) as conn:
-            if conn.execute(select(sc.Campaign.id).where(sc.Campaign.id == campaign_id)).first() is None:
+            # FOR UPDATE (PostgreSQL; SQLite's BEGIN IMMEDIATE already serialises writers): a concurrent
+            # delete of the same campaign waits here, then finds no row and answers "no campaign"
+            row = conn.execute(select(sc.Campaign.id).where(sc.Campaign.id == campaign_id).with_for_update()).first()
+            if row is None:
                 raise NotFoundError(f"no campaign {campaign_id}")
             for table in (sc.TemperatureSample, sc.TemperatureRollup, sc.ConditionSample, sc.ErrorSample):
                 conn.execute(table.__table__.delete().where(table.__table__.c.campaign_id == campaign_id))
-            conn.execute(sc.Campaign.__table__.delete().where(sc.Campaign.__table__.c.id == campaign_id))
+            gone = conn.execute(sc.Campaign.__table__.delete().where(sc.Campaign.__table__.c.id == campaign_id))
+            if gone.rowcount != 1:  # pragma: no cover - the row lock above makes this unreachable
+                raise NotFoundError(f"no campaign {campaign_id}")
 
     def table_counts(self) -> dict[str, int]:
         """Return the row count of every table (used to prove a failed write changed nothing)."""
