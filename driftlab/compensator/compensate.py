@@ -516,7 +516,10 @@ def compensate_program(
 
 
 #: bytes of program text parsed, corrected and written at a time by the streaming pipeline
-STREAM_CHUNK_BYTES = 1 << 20
+STREAM_CHUNK_BYTES = 1 << 18
+#: points corrected at once when every point takes the same temperatures (the result is the same
+#: whatever the batch; the working set of a batch is about 1 kB per point)
+SNAPSHOT_BATCH_POINTS = 1 << 14
 #: the longest line accepted (a line is never split between two pieces)
 MAX_LINE_BYTES = 1 << 20
 
@@ -648,9 +651,13 @@ def compensate_stream(
     else:
         how, fixed = "given", temperatures
     # Points are corrected in batches of ``chunk_points`` counted over the whole program, as
-    # compensate_program does: a model with lagged terms filters a batch's temperatures in time, so
-    # the batches must fall where they always did for the output to stay the same. Pieces wait
-    # (parsed, with their points) until every point of theirs is corrected, then are written.
+    # compensate_program does: with temperatures per point (a table and a timed program) a model with
+    # lagged terms filters a batch's temperatures in time, so the batches must fall where they always
+    # did for the output to stay the same. With one set of temperatures for every point the result
+    # does not depend on the batches: smaller ones keep the working set small. Pieces wait (parsed,
+    # with their points) until every point of theirs is corrected, then are written.
+    if not per_point:
+        chunk_points = min(chunk_points, SNAPSHOT_BATCH_POINTS)
     pending: list[tuple[Program, Points, bytes]] = []
     nominal: list[np.ndarray] = []  # points not yet corrected, in order
     times: list[np.ndarray] = []
