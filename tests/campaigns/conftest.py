@@ -297,6 +297,11 @@ def _sparse(size: int):
     return mutate
 
 
+def _sparse_tail(path: Path, size: int) -> None:
+    with path.open("r+b") as fh:
+        fh.truncate(path.stat().st_size + size)  # valid rows, then a run of NUL bytes without a line break
+
+
 def _drop_final_break(path: Path) -> None:
     text = path.read_text()
     path.write_text(text.rstrip("\n")[:-1])  # cut inside the last value: the row still has every field
@@ -372,6 +377,8 @@ HOSTILE = [
     ("temperatures-2gb-sparse", "temperatures.csv", _sparse(2 << 30),
      "temperatures.csv: 2147483648 bytes, more than the limit of 536870912 bytes"),
     ("errors-sparse-no-newline", "errors.csv", _sparse(3 << 20), "errors.csv:1: line longer than 1048576 bytes"),
+    ("temperatures-sparse-tail", "temperatures.csv", lambda p: _sparse_tail(p, 64 << 20),
+     "temperatures.csv:42: line longer than 1048576 bytes"),
     ("temperatures-is-fifo", "temperatures.csv", _into_fifo, "temperatures.csv: not a regular file (a FIFO)"),
     ("conditions-is-directory", "conditions.csv", _into_dir, "conditions.csv: not a regular file (a directory)"),
     ("conditions-is-fifo", "conditions.csv", _into_fifo, "conditions.csv: not a regular file (a FIFO)"),
@@ -394,6 +401,10 @@ HOSTILE = [
      "temperatures.csv:9: column T1: '\uff12\uff10.5' is not a number"),
     ("field-over-csv-limit", "temperatures.csv", lambda p: _edit_cell(p, 6, "T1", "x" * 200_000),
      "temperatures.csv:6: column T1: 'xxxxxxxxx"),
+    ("csv-5000-digit-reading", "temperatures.csv", lambda p: _edit_cell(p, 5, "T1", "9" * 5000),
+     "temperatures.csv:5: column T1: inf is not a finite number"),
+    ("csv-5000-digit-time", "errors.csv", lambda p: _edit_cell(p, 5, "time_s", "9" * 5000),
+     "errors.csv:5: time_s is not a finite number"),
     ("text-cell-too-long", "errors.csv", lambda p: _edit_cell(p, 4, "axis", "X" * 300),
      "errors.csv:4: column axis: a cell of 300 characters (at most 256)"),
     ("header-line-too-long", "temperatures.csv", lambda p: _with_header(p, "time_s" + ",T" * 600_000 + "\n"),
