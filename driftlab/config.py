@@ -23,6 +23,8 @@ class Settings(BaseSettings):
     api_token: str = ""
     api_host: str = "127.0.0.1"
     api_port: int = 8765
+    #: the largest request body the API accepts (413 beyond; a model document is tens of kilobytes)
+    api_max_body_bytes: int = 8 << 20
 
     def resolved_db_url(self) -> str:
         """Return the configured database URL, or the embedded SQLite default."""

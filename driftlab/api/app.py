@@ -28,13 +28,14 @@ when no token is configured). Errors are RFC 9457 `application/problem+json`.
 
 def create_app(db_url: str | None = None, token: str | None = None, *, store: Store | None = None,
                run_jobs: bool = True, model_cache_ttl_s: float = 1.0, live_poll_s: float = 0.5,
-               max_body_bytes: int = guard.MAX_BODY_BYTES) -> FastAPI:
+               max_body_bytes: int | None = None) -> FastAPI:
     """Return the API over the store at ``db_url`` (default DRIFTLAB_DB_URL) with write token ``token``.
 
     ``token`` defaults to DRIFTLAB_API_TOKEN; an empty token disables writes. With ``run_jobs`` a
     background thread runs queued fit and diagnosis jobs while the application is up. The live
     page's hub polls the store for commits every ``live_poll_s`` while a page is open. A request body
-    over ``max_body_bytes`` is refused with 413; a write's token is checked before its body is read.
+    over ``max_body_bytes`` (default DRIFTLAB_API_MAX_BODY_BYTES, 8 MiB) is refused with 413; a write's
+    token is checked before its body is read.
     """
     from driftlab.config import Settings
 
@@ -66,7 +67,8 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
     app.add_middleware(models.CurrentModelFastPath)  # inside the catch-all (the last added is outermost)
     app.add_middleware(problems.CatchAllMiddleware)
     # outermost: a write's token and every body's size are checked before anything reads the body
-    app.add_middleware(guard.FrontDoorMiddleware, max_body_bytes=max_body_bytes)
+    limit = settings.api_max_body_bytes if max_body_bytes is None else max_body_bytes
+    app.add_middleware(guard.FrontDoorMiddleware, max_body_bytes=limit)
     for module in (machines, campaigns, histories, drift, models, jobs, online):
         app.include_router(module.router)
     app.include_router(live.router)

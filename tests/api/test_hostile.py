@@ -269,3 +269,15 @@ async def test_concurrent_deletes_of_one_campaign(small_client: httpx.AsyncClien
     assert codes == [204, 404, 404, 404], [r.text for r in answers]
     counts = store.table_counts()
     assert counts["campaigns"] == 0 and counts["temperature_samples"] == 0 and counts["error_samples"] == 0
+
+
+async def test_body_limit_from_the_environment(seeded: Seeded, monkeypatch) -> None:
+    """DRIFTLAB_API_MAX_BODY_BYTES sets the limit of an app built without one."""
+    monkeypatch.setenv("DRIFTLAB_API_MAX_BODY_BYTES", "100")
+    app = create_app(seeded.url, TOKEN, run_jobs=False)
+    async with app.router.lifespan_context(app):
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://test") as c:
+            r = await c.post("/jobs", content=b" " * 101, headers={**AUTH, **JSON})
+            assert r.status_code == 413 and "100 bytes" in r.json()["detail"]
+            r = await c.post("/jobs", json={"kind": "sing"}, headers=AUTH)
+            assert r.status_code == 422
