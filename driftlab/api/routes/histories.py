@@ -67,9 +67,9 @@ def decode_cursor(cursor: str | None, kind: str) -> Any:
         if kind == "error":  # a sequence number: an integer the database's BIGINT can hold
             if not isinstance(after, int) or not 0 <= after < 2**63:
                 raise ValueError
-        else:  # a time in seconds: a huge integer would overflow the driver, so compare as a float
+        else:  # a time in seconds (within the range start_s/end_s accept), compared as a float
             after = float(after)
-            if not math.isfinite(after):
+            if not (math.isfinite(after) and abs(after) <= 1e12):
                 raise ValueError
     except (ValueError, KeyError, TypeError, OverflowError, RecursionError):
         raise BadRequestError(f"not a valid {kind} cursor: {cursor[:60]!r}") from None
