@@ -6,13 +6,18 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 
 from driftlab import __version__
 from driftlab import commands as commands_pkg
-from driftlab.errors import DriftlabError
+from driftlab.errors import DriftlabError, environment_error
 from driftlab.logs import setup_logging
+
+
+#: exit status of a database, file or permission failure (2 is bad input or usage, 3 a stopped campaign)
+ENVIRONMENT_EXIT = 1
 
 
 class _Parser(argparse.ArgumentParser):
@@ -59,11 +64,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except DriftlabError as exc:
+        if args.verbose:
+            traceback.print_exc()
         sys.stderr.write(f"driftlab: error: {exc.one_line()}\n")
         return exc.exit_code
     except KeyboardInterrupt:
         sys.stderr.write("driftlab: interrupted\n")
         return 130
+    except Exception as exc:
+        # a database, file or permission failure: one line (the traceback with -v); a bug still raises
+        line = environment_error(exc)
+        if line is None:
+            raise
+        if args.verbose:
+            traceback.print_exc()
+        sys.stderr.write(f"driftlab: error: {line}\n")
+        return ENVIRONMENT_EXIT
 
 
 if __name__ == "__main__":  # pragma: no cover

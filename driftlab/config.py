@@ -26,6 +26,8 @@ class Settings(BaseSettings):
     #: VISA backend of the instruments: "@py" (pyvisa-py, pure Python), "@sim" or "FILE.yaml@sim"
     #: (pyvisa-sim), "@ivi" (the vendor VISA pyvisa finds), or the path of a vendor VISA library
     visa_library: str = "@py"
+    #: the largest request body the API accepts (413 beyond; a model document is tens of kilobytes)
+    api_max_body_bytes: int = 8 << 20
 
     def resolved_db_url(self) -> str:
         """Return the configured database URL, or the embedded SQLite default."""

@@ -20,6 +20,12 @@ class ValidationError(DriftlabError):
     http_status = 422
 
 
+class BadRequestError(ValidationError):
+    """A malformed request parameter (query, path or cursor): HTTP 400, a CLI usage error."""
+
+    http_status = 400
+
+
 class NotFoundError(DriftlabError):
     """A machine, campaign, model version or job that does not exist."""
 
@@ -42,3 +48,24 @@ class KinematicsError(DriftlabError):
     """A pose the kinematic model cannot solve (e.g. the A = 90 deg singularity)."""
 
     http_status = 422
+
+
+def environment_error(exc: BaseException) -> str | None:
+    """Return a one-line description of a database, file or permission failure (None for anything else).
+
+    These are not user errors in the input but in the surroundings (an unreachable or read-only
+    database, an unreadable file): the CLI reports them in one line, with the traceback under -v.
+    """
+    from sqlalchemy.exc import DBAPIError, SQLAlchemyError
+
+    if isinstance(exc, DBAPIError):
+        orig = exc.orig if exc.orig is not None else exc
+        first = next((line.strip() for line in str(orig).splitlines() if line.strip()), type(orig).__name__)
+        return f"database: {first[:300]}"
+    if isinstance(exc, SQLAlchemyError):
+        return f"database: {' '.join(str(exc).split())[:300]}"
+    if isinstance(exc, OSError):
+        reason = exc.strerror or " ".join(str(exc).split())[:300] or type(exc).__name__
+        where = exc.filename if exc.filename is not None else None
+        return f"{where}: {reason}" if where else reason
+    return None

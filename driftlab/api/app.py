@@ -10,7 +10,7 @@ from typing import Annotated, Any
 from fastapi import Depends, FastAPI
 
 from driftlab import __version__
-from driftlab.api import live, pages, problems
+from driftlab.api import guard, live, pages, problems
 from driftlab.api.deps import ApiState, ModelCache, get_state
 from driftlab.api.routes import campaigns, drift, histories, jobs, machines, models, online
 from driftlab.api.schemas import Health
@@ -27,12 +27,15 @@ when no token is configured). Errors are RFC 9457 `application/problem+json`.
 
 
 def create_app(db_url: str | None = None, token: str | None = None, *, store: Store | None = None,
-               run_jobs: bool = True, model_cache_ttl_s: float = 1.0, live_poll_s: float = 0.5) -> FastAPI:
+               run_jobs: bool = True, model_cache_ttl_s: float = 1.0, live_poll_s: float = 0.5,
+               max_body_bytes: int | None = None) -> FastAPI:
     """Return the API over the store at ``db_url`` (default DRIFTLAB_DB_URL) with write token ``token``.
 
     ``token`` defaults to DRIFTLAB_API_TOKEN; an empty token disables writes. With ``run_jobs`` a
     background thread runs queued fit and diagnosis jobs while the application is up. The live
-    page's hub polls the store for commits every ``live_poll_s`` while a page is open.
+    page's hub polls the store for commits every ``live_poll_s`` while a page is open. A request body
+    over ``max_body_bytes`` (default DRIFTLAB_API_MAX_BODY_BYTES, 8 MiB) is refused with 413; a write's
+    token is checked before its body is read.
     """
     from driftlab.config import Settings
 
@@ -63,6 +66,9 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
     problems.install_handlers(app)
     app.add_middleware(models.CurrentModelFastPath)  # inside the catch-all (the last added is outermost)
     app.add_middleware(problems.CatchAllMiddleware)
+    # outermost: a write's token and every body's size are checked before anything reads the body
+    limit = settings.api_max_body_bytes if max_body_bytes is None else max_body_bytes
+    app.add_middleware(guard.FrontDoorMiddleware, max_body_bytes=limit)
     for module in (machines, campaigns, histories, drift, models, jobs, online):
         app.include_router(module.router)
     app.include_router(live.router)

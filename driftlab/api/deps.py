@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
-import hmac
 import json
 import logging
 import threading
@@ -160,13 +159,13 @@ def get_store(request: Request) -> Store:
 
 
 def require_token(request: Request) -> None:
-    """Refuse a write without ``Authorization: Bearer <token>`` (401), or any write when no token is set (403)."""
-    expected = get_state(request).token
-    if not expected:
-        raise HTTPException(403, "writes are disabled: no API token is configured (DRIFTLAB_API_TOKEN)")
-    header = request.headers.get("authorization", "")
-    scheme, _, given = header.partition(" ")
-    if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), expected.encode()):
-        reason = "missing bearer token" if not header else "invalid bearer token"
-        raise HTTPException(401, f"{reason}: writes need Authorization: Bearer <DRIFTLAB_API_TOKEN>",
-                            headers={"WWW-Authenticate": 'Bearer realm="driftlab"'})
+    """Refuse a write without ``Authorization: Bearer <token>`` (401), or any write when no token is set (403).
+
+    The front door (api.guard) has already checked this before the body was read; this dependency
+    keeps every write route safe on its own and declares the requirement in the OpenAPI document.
+    """
+    from driftlab.api.guard import token_problem
+
+    refused = token_problem(get_state(request).token, request.headers.get("authorization"))
+    if refused is not None:
+        raise HTTPException(refused[0], refused[1], headers=refused[2] or None)

@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 #: statuses declared as problem responses on every operation (plus 401/403 on writes, 304 where cached)
 COMMON_PROBLEMS = (400, 404, 422, 500, 503)
-WRITE_PROBLEMS = (401, 403, 409)
+WRITE_PROBLEMS = (401, 403, 409, 413)
 
 
 def problem_type(status: int) -> str:
@@ -68,7 +68,11 @@ async def _validation_error(request: Request, exc: Exception) -> Response:
         loc = ".".join(str(p) for p in e.get("loc", ()))
         errors.append({"loc": loc, "msg": str(e.get("msg", ""))})
     detail = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors[:5]) or "invalid request"
-    return problem_response(422, " ".join(detail.split()), _instance(request), errors=errors)
+    # a malformed parameter (query, path, header) is a bad request (400); a body that parses but
+    # does not meet its schema is unprocessable content (422)
+    in_body = any(tuple(e.get("loc", ()))[:1] == ("body",) for e in exc.errors())
+    return problem_response(422 if in_body else 400, " ".join(detail.split())[:2000], _instance(request),
+                            errors=errors[:20])
 
 
 def allowed_methods(app: Any, path: str) -> list[str]:

@@ -144,7 +144,9 @@ def open_campaign(
         if resume:
             log.info("no unfinished campaign %s: starting it", plan.name)
         if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
-            conn.execute(sc.Machine.__table__.insert().values(
+            from driftlab.campaigns.ingest import insert_ignoring_duplicates
+
+            conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(
             id=plan.machine.id, name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", ""))))
         started = sc.utcnow()
         meta = {

@@ -23,7 +23,7 @@ from driftlab.campaigns import db
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
 from driftlab.campaigns.store import Store
-from driftlab.errors import ConflictError, NotFoundError, ValidationError
+from driftlab.errors import BadRequestError, ConflictError, NotFoundError, ValidationError
 
 
 @dataclass(frozen=True)
@@ -174,7 +174,7 @@ def condition_page(store: Store, campaign_id: int, columns: list[str], start_s: 
     """Return up to ``limit`` rows (time_s, *columns) of the machine-state log in time order."""
     for c in columns:
         if c not in CONDITION_VALUE_COLUMNS:
-            raise ValidationError(f"unknown condition {c!r}: expected some of {', '.join(CONDITION_VALUE_COLUMNS)}")
+            raise BadRequestError(f"unknown condition {c!r}: expected some of {', '.join(CONDITION_VALUE_COLUMNS)}")
     with _read(store) as conn:
         _campaign_exists(conn, campaign_id)
         t = sc.ConditionSample

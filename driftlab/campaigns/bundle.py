@@ -7,6 +7,11 @@ with ROW counted as a text editor shows it (the header is line 1).
 Large files are parsed by pyarrow's C++ CSV reader with explicit column types (correctly
 rounded float parsing, so values round-trip bit-exactly); only when that fast parse fails does
 a slow line-by-line scanner run to find the exact row and say what is wrong with it.
+
+Before anything is read, every file is checked to be a regular file within its size limit (the
+limits table of docs/bundle.md), so a hostile bundle (a FIFO, a directory, a 2 GB sparse file, a
+deeply nested JSON document, a number of thousands of digits) is refused in bounded time and
+memory: the scanner reads line by line with a bounded line length, never the whole file.
 """
 
 from __future__ import annotations
@@ -15,10 +20,12 @@ import csv
 import hashlib
 import json
 import math
+import os
 import re
-from collections.abc import Mapping
+import stat
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
@@ -55,10 +62,28 @@ MAX_TRANSLATION_MM = 5.0
 MAX_ROTATION_RAD = 0.05
 MAX_ROTARY_POSITION_DEG = 720.0
 
+# Limits of what a bundle may hold (docs/bundle.md, "Limits"): each keeps memory and time bounded
+# or keeps a value inside what the store, pandas and the API can represent.
+MAX_JSON_BYTES = 1 << 20          # campaign.json: metadata, never bulk data
+MAX_JSON_DEPTH = 32               # the deepest valid document nests 5 levels (setups.*.reference.*)
+MAX_JSON_NUMBER_CHARS = 40        # longer literals carry no more binary64 precision (and >4300 digits crash int())
+MAX_CSV_BYTES = 512 << 20         # per CSV file; parsed tables are held in memory
+MAX_LINE_BYTES = 1 << 20          # per CSV line (the scanner reads a line at a time)
+MAX_FIELD_CHARS = 256             # per CSV cell: numbers, axis/term/direction/setup names
+MAX_NAME_CHARS = 64               # machine id, channel names, setup ids (API path segments), stage names
+MAX_TEXT_CHARS = 200              # free text of campaign.json: machine name, channel location and structure
+MAX_TIME_S = 1e9                  # time_s and stage times: about 31.7 years after started_at
+STARTED_AT_RANGE = (datetime(1970, 1, 1, tzinfo=timezone.utc), datetime(2200, 1, 1, tzinfo=timezone.utc))
+MAX_LINEAR_POSITION_MM = 1e5      # 100 m: positions and poses of X Y Z (a larger one is a units mistake)
+
 _DIRECTIONS = {"1": 1, "+1": 1, "1.0": 1, "+1.0": 1, "-1": -1, "-1.0": -1}
-_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+# ASCII digits only: Python's \d and float() accept full-width and other Unicode digits, pyarrow does not
+_NUMBER = re.compile(r"^[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?$")
 _NONFINITE = re.compile(r"^[+-]?(nan|inf|infinity)$", re.IGNORECASE)
-_CHANNEL_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+#: machine ids, channel names and setup ids: what the API accepts as a path segment (api.schemas.ID_PATTERN)
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
+_CHANNEL_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+_CONTROL = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")
 
 
 class BundleError(ValidationError):
@@ -75,8 +100,8 @@ class _Strict(BaseModel):
 class Machine(_Strict):
     """The machine a campaign was measured on."""
 
-    id: str = Field(min_length=1, max_length=64)
-    name: str = ""
+    id: str = Field(min_length=1, max_length=64, pattern=ID_PATTERN)
+    name: str = Field(default="", max_length=MAX_TEXT_CHARS)
     resolution_mm: float | None = Field(default=None, gt=0, allow_inf_nan=False)
     resolution_deg: float | None = Field(default=None, gt=0, allow_inf_nan=False)
 
@@ -84,17 +109,17 @@ class Machine(_Strict):
 class Channel(_Strict):
     """A thermocouple site: where it is and which structure it sits on."""
 
-    location: str = ""
-    structure: str = ""
+    location: str = Field(default="", max_length=MAX_TEXT_CHARS)
+    structure: str = Field(default="", max_length=MAX_TEXT_CHARS)
 
 
 class Stage(_Strict):
     """One stage of the staged single-heat-source plan, as it was run."""
 
-    name: str = Field(min_length=1)
-    start_s: float = Field(ge=0, allow_inf_nan=False)
-    end_s: float = Field(ge=0, allow_inf_nan=False)
-    heat_source: str = Field(min_length=1)
+    name: str = Field(min_length=1, max_length=MAX_NAME_CHARS)
+    start_s: float = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
+    end_s: float = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
+    heat_source: str = Field(min_length=1, max_length=MAX_NAME_CHARS)
     axis: Literal["X", "Y", "Z", "A", "B"] | None = None
     spindle_rpm: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     feed_mm_min: float = Field(default=0.0, ge=0, allow_inf_nan=False)
@@ -156,6 +181,9 @@ class CampaignMeta(_Strict):
         """Require a time zone on started_at (wall-clock times are computed from it)."""
         if value.tzinfo is None:
             raise ValueError("started_at needs a time zone, e.g. 2026-03-02T08:00:00Z")
+        lo, hi = STARTED_AT_RANGE
+        if not lo <= value < hi:
+            raise ValueError(f"started_at {value.isoformat()} is outside {lo.year}..{hi.year - 1}")
         return value
 
     def document(self) -> dict[str, Any]:
@@ -227,20 +255,94 @@ def _json_fail(file: str, lines: Mapping[tuple[Any, ...], int], path: tuple[Any,
     return BundleError(f"{file}:{lines.get(probe, 1)}: {_path_text(path)}: {problem}")
 
 
+_JSON_TOKEN = re.compile(r'"(?:[^"\\\n]|\\.)*"|[\[\]{}]|-?Infinity|NaN|-?[0-9][0-9.eE+-]*|\n')
+
+
+def _prescan_json(text: str, file: str) -> None:
+    """Refuse, naming the line and column, what json.loads would crash on or silently accept.
+
+    Nesting deeper than MAX_JSON_DEPTH (RecursionError), number literals longer than
+    MAX_JSON_NUMBER_CHARS (int() refuses more than 4300 digits) and a key repeated in one object
+    (json.loads keeps the last one silently). Malformed JSON is left to json.loads to describe.
+    """
+    line, line_start = 1, 0
+    keys: list[set[str]] = []
+    depth = 0
+    for m in _JSON_TOKEN.finditer(text):
+        tok, at = m.group(), m.start()
+        if tok == "\n":
+            line, line_start = line + 1, at + 1
+            continue
+        where = f"{file}:{line}: column {at - line_start + 1}"
+        if tok in "[{":
+            depth += 1
+            if depth > MAX_JSON_DEPTH:
+                raise BundleError(f"{where}: nesting deeper than {MAX_JSON_DEPTH} levels")
+            keys.append(set())
+        elif tok in "]}":
+            depth = max(depth - 1, 0)
+            if keys:
+                keys.pop()
+        elif tok[0] == '"':
+            rest = text[m.end():m.end() + 64].lstrip(" \t\r\n")
+            if rest.startswith(":") and keys:
+                try:
+                    key = json.loads(tok)
+                except ValueError:
+                    continue  # json.loads reports it
+                if key in keys[-1]:
+                    raise BundleError(f"{where}: key {_short(key)} appears twice in one object")
+                keys[-1].add(key)
+        elif tok[-1] in "yN":
+            raise BundleError(f"{where}: {tok} is not a finite number (numbers must be finite)")
+        elif len(tok) > MAX_JSON_NUMBER_CHARS:
+            raise BundleError(f"{where}: number of {len(tok)} characters (at most {MAX_JSON_NUMBER_CHARS})")
+
+
+def _short(value: object, limit: int = 40) -> str:
+    """Return repr(value) cut to ``limit`` characters (messages stay one readable line)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _check_strings(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int], path: tuple[Any, ...] = ()) -> None:
+    """Refuse control characters and lone surrogates in any key or string (the store cannot keep them)."""
+    if isinstance(raw, dict):
+        for key, value in raw.items():
+            if _CONTROL.search(key):
+                raise _json_fail(file, lines, path + (key,), "control character or lone surrogate in a key")
+            _check_strings(value, file, lines, path + (key,))
+    elif isinstance(raw, list):
+        for k, value in enumerate(raw):
+            _check_strings(value, file, lines, path + (k,))
+    elif isinstance(raw, str) and _CONTROL.search(raw):
+        raise _json_fail(file, lines, path, "control character or lone surrogate in a string")
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a finite number")
+
+
 def parse_meta(text: str, file: str = CAMPAIGN_FILE) -> CampaignMeta:
     """Return the validated CampaignMeta of a campaign.json text; raise BundleError naming the line."""
+    if len(text) > MAX_JSON_BYTES:
+        raise BundleError(f"{file}: {len(text)} characters, more than the limit of {MAX_JSON_BYTES}")
+    _prescan_json(text, file)
     try:
-        raw = json.loads(text)
+        raw = json.loads(text, parse_constant=_no_constant)
     except json.JSONDecodeError as exc:
         raise BundleError(f"{file}:{exc.lineno}: invalid JSON: {exc.msg} (column {exc.colno})") from None
+    except (ValueError, RecursionError) as exc:  # NaN/Infinity literals; anything the prescan let through
+        raise BundleError(f"{file}: invalid JSON: {' '.join(str(exc).split())[:200]}") from None
     lines = _locate_json(text)
+    _check_strings(raw, file, lines)
     return _validate_meta(raw, file, lines)
 
 
 def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) -> CampaignMeta:
     """Validate a decoded campaign.json document, including references between its parts."""
     if isinstance(raw, dict) and "format" in raw and raw["format"] not in FORMATS:
-        raise _json_fail(file, lines, ("format",), f"unsupported format {raw['format']!r}, expected {FORMAT!r} "
+        raise _json_fail(file, lines, ("format",), f"unsupported format {_short(raw['format'])}, expected {FORMAT!r} "
                          f"or {FORMAT_V2!r}")
     try:
         meta = CampaignMeta.model_validate(raw)
@@ -250,25 +352,25 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
     for name in meta.channels:
         if not _CHANNEL_NAME.match(name) or name == "time_s":
             raise _json_fail(
-                file, lines, ("channels", name), "channel names may hold only letters, digits, '_', '.', '-' "
-                "and may not be time_s"
+                file, lines, ("channels", name), "channel names start with a letter or digit, then hold only "
+                f"letters, digits, '_', '.', '-' (at most {MAX_NAME_CHARS}), and may not be time_s"
             )
     seen: set[str] = set()
     for k, name in enumerate(meta.room_channels):
         if name not in meta.channels:
-            raise _json_fail(file, lines, ("room_channels", k), f"room channel {name!r} is not in channels")
+            raise _json_fail(file, lines, ("room_channels", k), f"room channel {_short(name)} is not in channels")
         if name in seen:
-            raise _json_fail(file, lines, ("room_channels", k), f"room channel {name!r} listed twice")
+            raise _json_fail(file, lines, ("room_channels", k), f"room channel {_short(name)} listed twice")
         seen.add(name)
     for axis, names in (meta.model_channels or {}).items():
         seen = set()
         for k, name in enumerate(names):
             if name not in meta.channels:
                 raise _json_fail(
-                    file, lines, ("model_channels", axis, k), f"model channel {name!r} is not in channels"
+                    file, lines, ("model_channels", axis, k), f"model channel {_short(name)} is not in channels"
                 )
             if name in seen:
-                raise _json_fail(file, lines, ("model_channels", axis, k), f"model channel {name!r} listed twice")
+                raise _json_fail(file, lines, ("model_channels", axis, k), f"model channel {_short(name)} listed twice")
             seen.add(name)
     if meta.setups is not None and not meta.v2:
         raise _json_fail(file, lines, ("setups",), f"setups belong to {FORMAT_V2!r} bundles")
@@ -280,23 +382,23 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
             raise _json_fail(file, lines, ("setups", sid), "setup ids may hold only letters, digits, '_', '.', '-' "
                              "(at most 64)")
         if entry.axis is not None and any(not c.startswith(entry.axis + "/") for c in entry.terms):
-            raise _json_fail(file, lines, ("setups", sid, "terms"), f"setup {sid!r} measures the {entry.axis} axis "
+            raise _json_fail(file, lines, ("setups", sid, "terms"), f"setup {_short(sid)} measures the {entry.axis} axis "
                              "but lists terms of another")
     names_seen: set[str] = set()
     previous_end = -math.inf
     for k, stage in enumerate(meta.stages):
         if stage.end_s < stage.start_s:
             raise _json_fail(
-                file, lines, ("stages", k, "end_s"), f"stage {stage.name!r} ends ({stage.end_s}) before it starts "
+                file, lines, ("stages", k, "end_s"), f"stage {_short(stage.name)} ends ({stage.end_s}) before it starts "
                 f"({stage.start_s})"
             )
         if stage.start_s < previous_end:
             raise _json_fail(
-                file, lines, ("stages", k, "start_s"), f"stage {stage.name!r} starts at {stage.start_s}, before the "
+                file, lines, ("stages", k, "start_s"), f"stage {_short(stage.name)} starts at {stage.start_s}, before the "
                 f"previous stage ends ({previous_end}): stages must be in order and not overlap"
             )
         if stage.name in names_seen:
-            raise _json_fail(file, lines, ("stages", k, "name"), f"stage name {stage.name!r} used twice")
+            raise _json_fail(file, lines, ("stages", k, "name"), f"stage name {_short(stage.name)} used twice")
         names_seen.add(stage.name)
         previous_end = stage.end_s
     return meta
@@ -366,63 +468,157 @@ def _fail(file: str, row: int | None, problem: str) -> BundleError:
     return BundleError(f"{file}:{row}: {problem}" if row is not None else f"{file}: {problem}")
 
 
-def _read_header(path: Path, file: str) -> list[str]:
-    """Return the header fields of a CSV file, checked for emptiness and duplicates."""
-    with path.open("r", newline="", encoding="utf-8", errors="strict") as fh:
+def _check_file(root: Path, name: str, limit: int, required: bool) -> Path | None:
+    """Return the path of a bundle file after checking it is a regular file within ``limit`` bytes.
+
+    None when an optional file is absent. Nothing is opened: a FIFO or a device is refused before
+    a read could block or run without end.
+    """
+    path = root / name
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        if os.path.lexists(path):
+            raise BundleError(f"{name}: a link to a file that does not exist") from None
+        if required:
+            raise BundleError(f"{name}: file missing from bundle {root}") from None
+        return None
+    except OSError as exc:
+        raise BundleError(f"{name}: cannot read: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a directory" if stat.S_ISDIR(st.st_mode) else "a FIFO" if stat.S_ISFIFO(st.st_mode) else (
+            "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "a socket")
+        raise BundleError(f"{name}: not a regular file ({kind})")
+    if st.st_size > limit:
+        raise BundleError(f"{name}: {st.st_size} bytes, more than the limit of {limit} bytes")
+    return path
+
+
+def _open(path: Path, file: str) -> Any:
+    """Return ``path`` opened for binary reading; BundleError when it cannot be read."""
+    try:
+        return path.open("rb")
+    except OSError as exc:
+        raise BundleError(f"{file}: cannot read: {exc.strerror or exc}") from None
+
+
+def _decode_line(raw: bytes, file: str, lineno: int, header: list[str] | None) -> str:
+    """Return a line as text without its line break; BundleError naming row and column if not UTF-8."""
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        k = raw[: exc.start].count(b",")
+        column = header[k] if header is not None and k < len(header) else str(k + 1)
+        raise _fail(file, lineno, f"column {column}: not UTF-8 text (byte {exc.start + 1} of the line)") from None
+    return text.rstrip("\n").removesuffix("\r")
+
+
+def _read_line(fh: Any, file: str, lineno: int) -> bytes:
+    """Return the next line (b'' at the end) of at most MAX_LINE_BYTES; BundleError on a longer one."""
+    raw = fh.readline(MAX_LINE_BYTES + 1)
+    if len(raw) > MAX_LINE_BYTES:
+        raise _fail(file, lineno, f"line longer than {MAX_LINE_BYTES} bytes")
+    return raw
+
+
+def _split(line: str, file: str, lineno: int, header: list[str] | None,
+           kinds: Mapping[str, str] | None = None) -> list[str]:
+    """Return a CSV line's fields; BundleError naming the column of an over-long text field."""
+    cells = line.split(",") if '"' not in line else None
+    if cells is None:
         try:
-            first = fh.readline()
-        except UnicodeDecodeError:
-            raise _fail(file, 1, "not UTF-8 text") from None
+            cells = next(csv.reader([line]))
+        except csv.Error as exc:
+            raise _fail(file, lineno, f"malformed CSV line: {exc}") from None
+    for k, cell in enumerate(cells):
+        text_column = header is None or k >= len(header) or (kinds or {}).get(header[k], "float") != "float"
+        if text_column and len(cell) > MAX_FIELD_CHARS:
+            column = header[k] if header is not None and k < len(header) else str(k + 1)
+            raise _fail(file, lineno, f"column {column}: a cell of {len(cell)} characters (at most {MAX_FIELD_CHARS})")
+    return cells
+
+
+def _read_header(path: Path, file: str) -> list[str]:
+    """Return the header fields of a CSV file, checked for emptiness, length and duplicates."""
+    with _open(path, file) as fh:
+        raw = _read_line(fh, file, 1)
+    if raw.startswith(b"\xef\xbb\xbf"):
+        raise _fail(file, 1, "starts with a byte-order mark: save it as UTF-8 without BOM")
+    first = _decode_line(raw, file, 1, None)
     if not first.strip():
         raise _fail(file, 1, "empty file: expected a header line starting with time_s")
-    header = next(csv.reader([first]))
+    header = _split(first, file, 1, None)
     seen: set[str] = set()
-    for name in header:
+    for k, name in enumerate(header, start=1):
         if not name.strip():
-            raise _fail(file, 1, "empty column name in header")
+            raise _fail(file, 1, f"column {k}: empty column name in header")
+        if len(name) > MAX_NAME_CHARS:
+            raise _fail(file, 1, f"column {k}: a column name of {len(name)} characters (at most {MAX_NAME_CHARS})")
         if name in seen:
-            raise _fail(file, 1, f"duplicate column {name!r}")
+            raise _fail(file, 1, f"duplicate column {_short(name)}")
         seen.add(name)
     if header[0] != "time_s":
-        raise _fail(file, 1, f"first column must be time_s, found {header[0]!r}")
+        raise _fail(file, 1, f"first column must be time_s, found {_short(header[0])}")
     return header
+
+
+def _scan_lines(path: Path, file: str) -> Iterator[tuple[int, bytes]]:
+    """Yield (line number, raw line) of the data rows, one bounded line at a time."""
+    with _open(path, file) as fh:
+        _read_line(fh, file, 1)
+        lineno = 1
+        while True:
+            lineno += 1
+            raw = _read_line(fh, file, lineno)
+            if not raw:
+                return
+            yield lineno, raw
 
 
 def _scan_for_problem(path: Path, file: str, header: list[str], kinds: Mapping[str, str]) -> BundleError | None:
     """Return the first row-level problem found by a slow, exact line-by-line scan (or None)."""
     n = len(header)
-    with path.open("r", newline="", encoding="utf-8", errors="replace") as fh:
-        data = fh.read()
-    lines = data.split("\n")
-    if lines and lines[-1] == "":
-        lines.pop()
-    for lineno, raw in enumerate(lines[1:], start=2):
-        line = raw[:-1] if raw.endswith("\r") else raw
-        if not line.strip():
-            return _fail(file, lineno, "empty line")
-        fields = next(csv.reader([line]))
-        if fields == header:
-            return _fail(file, lineno, "repeated header line")
-        if len(fields) != n:
-            hint = " (truncated line?)" if len(fields) < n and lineno == len(lines) else ""
-            return _fail(file, lineno, f"expected {n} fields, found {len(fields)}{hint}")
-        for name, cell in zip(header, fields, strict=True):
-            kind = kinds.get(name, "float")
-            if kind == "float":
-                if cell == "":
-                    continue
-                if _NONFINITE.match(cell.strip()):
-                    return _fail(file, lineno, f"column {name}: {cell!r} is not a finite number")
-                if not _NUMBER.match(cell):
-                    return _fail(file, lineno, f"column {name}: {cell!r} is not a number")
+    try:
+        for lineno, raw in _scan_lines(path, file):
+            line = _decode_line(raw, file, lineno, header)
+            if not line.strip():
+                return _fail(file, lineno, "empty line")
+            fields = _split(line, file, lineno, header, kinds)
+            if fields == header:
+                return _fail(file, lineno, "repeated header line")
+            if len(fields) != n:
+                hint = " (truncated line?)" if len(fields) < n and not raw.endswith(b"\n") else ""
+                return _fail(file, lineno, f"expected {n} fields, found {len(fields)}{hint}")
+            for name, cell in zip(header, fields, strict=True):
+                kind = kinds.get(name, "float")
+                if kind == "float":
+                    if cell == "":
+                        continue
+                    if _NONFINITE.match(cell.strip()):
+                        return _fail(file, lineno, f"column {name}: {_short(cell)} is not a finite number")
+                    if not _NUMBER.match(cell):
+                        return _fail(file, lineno, f"column {name}: {_short(cell)} is not a number")
+    except BundleError as exc:
+        return exc
     return None
+
+
+def _check_final_line_break(path: Path, file: str, last_line: int) -> None:
+    """Refuse a file whose last line has no line break: it may have been cut in the middle of a value."""
+    with _open(path, file) as fh:
+        fh.seek(0, os.SEEK_END)
+        if fh.tell() == 0:
+            return
+        fh.seek(-1, os.SEEK_END)
+        if fh.read(1) != b"\n":
+            raise _fail(file, last_line, "the last line has no line break (a truncated file?)")
 
 
 def _read_table(path: Path, file: str, header: list[str], kinds: Mapping[str, str]) -> pa.Table:
     """Return the CSV parsed with explicit types, or raise BundleError naming the bad row."""
     types = {name: (pa.float64() if kinds.get(name, "float") == "float" else pa.string()) for name in header}
     try:
-        return pacsv.read_csv(
+        table = pacsv.read_csv(
             path,
             read_options=pacsv.ReadOptions(block_size=1 << 24),
             parse_options=pacsv.ParseOptions(newlines_in_values=False, ignore_empty_lines=False),
@@ -438,7 +634,19 @@ def _read_table(path: Path, file: str, header: list[str], kinds: Mapping[str, st
         problem = _scan_for_problem(path, file, header, kinds)
         if problem is not None:
             raise problem from None
-        raise _fail(file, None, f"cannot parse: {' '.join(str(exc).split())}") from None
+        raise _fail(file, None, f"cannot parse: {' '.join(str(exc).split())[:200]}") from None
+    except OSError as exc:
+        raise BundleError(f"{file}: cannot read: {' '.join(str(exc).split())[:200]}") from None
+    _check_final_line_break(path, file, table.num_rows + 1)
+    for name in header:
+        if kinds.get(name, "float") != "float":
+            lengths = pc.utf8_length(table.column(name)).to_numpy(zero_copy_only=False)
+            with np.errstate(invalid="ignore"):
+                row = _first(np.nan_to_num(lengths.astype("f8"), nan=0.0) > MAX_FIELD_CHARS)
+            if row is not None:
+                raise _fail(file, row, f"column {name}: a cell of {int(lengths[row - 2])} characters "
+                                       f"(at most {MAX_FIELD_CHARS})")
+    return table
 
 
 def _first(mask: np.ndarray) -> int | None:
@@ -470,6 +678,10 @@ def _check_time(file: str, t: np.ndarray, strict: bool) -> None:
     row = _first(t < 0)
     if row is not None:
         raise _fail(file, row, f"time_s {float(t[row - 2])!r} is negative (seconds since started_at)")
+    row = _first(t > MAX_TIME_S)
+    if row is not None:
+        raise _fail(file, row, f"time_s {float(t[row - 2])!r} is beyond {MAX_TIME_S:.0e} s (about 31 years after "
+                               "started_at)")
     if t.size > 1:
         d = np.diff(t)
         bad = d <= 0 if strict else d < 0
@@ -485,10 +697,10 @@ def _load_temperatures(path: Path, meta: CampaignMeta) -> pd.DataFrame:
     header = _read_header(path, file)
     for name in header[1:]:
         if name not in meta.channels:
-            raise _fail(file, 1, f"column {name!r} is not a channel of campaign.json")
+            raise _fail(file, 1, f"column {_short(name)} is not a channel of campaign.json")
     missing = [c for c in meta.channels if c not in header]
     if missing:
-        raise _fail(file, 1, f"channel {missing[0]!r} of campaign.json has no column")
+        raise _fail(file, 1, f"channel {_short(missing[0])} of campaign.json has no column")
     table = _read_table(path, file, header, {})
     if table.num_rows == 0:
         raise _fail(file, 2, "no readings (the file has only a header)")
@@ -525,7 +737,7 @@ def _load_conditions(path: Path) -> pd.DataFrame:
     header = _read_header(path, file)
     for name in header[1:]:
         if name not in CONDITION_COLUMNS:
-            raise _fail(file, 1, f"unknown column {name!r}: expected some of {','.join(CONDITION_COLUMNS)}")
+            raise _fail(file, 1, f"unknown column {_short(name)}: expected some of {','.join(CONDITION_COLUMNS)}")
     table = _read_table(path, file, header, {})
     _check_empty_lines(table, file)
     frame = table.to_pandas()
@@ -543,6 +755,12 @@ def _load_conditions(path: Path) -> pd.DataFrame:
                 row = _first(np.abs(v) > MAX_ROTARY_POSITION_DEG)
             if row is not None:
                 raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is not a rotary position in degrees")
+        if name in ("x", "y", "z"):
+            with np.errstate(invalid="ignore"):
+                row = _first(np.abs(v) > MAX_LINEAR_POSITION_MM)
+            if row is not None:
+                raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} mm is beyond "
+                                       f"{MAX_LINEAR_POSITION_MM:.0f} mm: positions must be in mm")
     return frame
 
 
@@ -553,7 +771,7 @@ def _load_errors(path: Path, meta: CampaignMeta | None = None) -> pd.DataFrame:
     columns = ERROR_COLUMNS_V2 if v2 else ERROR_COLUMNS
     for name in header:
         if name not in columns:
-            raise _fail(file, 1, f"unknown column {name!r}: expected {','.join(columns)}")
+            raise _fail(file, 1, f"unknown column {_short(name)}: expected {','.join(columns)}")
     for name in columns:
         if name not in header:
             raise _fail(file, 1, f"missing column {name!r}: expected {','.join(columns)}")
@@ -571,13 +789,13 @@ def _load_errors(path: Path, meta: CampaignMeta | None = None) -> pd.DataFrame:
         row = _first(~np.isin(values, np.asarray(vocab, dtype=object)))
         if row is not None:
             cell = values[row - 2]
-            what = "missing" if cell is None else f"{cell!r} is not one of {' '.join(vocab)}"
+            what = "missing" if cell is None else f"{_short(cell)} is not one of {' '.join(vocab)}"
             raise _fail(file, row, f"column {name}: {what}")
     ok = np.isin(direction_text, np.asarray(list(_DIRECTIONS), dtype=object))
     row = _first(~ok)
     if row is not None:
         cell = direction_text[row - 2]
-        what = "missing" if cell is None else f"{cell!r} is not +1 or -1"
+        what = "missing" if cell is None else f"{_short(cell)} is not +1 or -1"
         raise _fail(file, row, f"column direction: {what}")
     direction = np.fromiter((_DIRECTIONS[d] for d in direction_text), dtype=np.int64, count=len(direction_text))
     position = table.column("position").to_numpy(zero_copy_only=False)
@@ -594,6 +812,10 @@ def _load_errors(path: Path, meta: CampaignMeta | None = None) -> pd.DataFrame:
     row = _first(is_rot_axis & (np.abs(position) > MAX_ROTARY_POSITION_DEG))
     if row is not None:
         raise _fail(file, row, f"column position: {float(position[row - 2])!r} is not a rotary position in degrees")
+    row = _first(~is_rot_axis & (np.abs(position) > MAX_LINEAR_POSITION_MM))
+    if row is not None:
+        raise _fail(file, row, f"column position: {float(position[row - 2])!r} mm is beyond "
+                               f"{MAX_LINEAR_POSITION_MM:.0f} mm: positions must be in mm")
     is_trans = np.isin(term, np.asarray(TRANSLATION_TERMS, dtype=object))
     row = _first(is_trans & (np.abs(value) > MAX_TRANSLATION_MM))
     if row is not None:
@@ -636,6 +858,11 @@ def _load_pose_and_setup(file: str, table: pa.Table, frame: pd.DataFrame, axis: 
         row = _first(~np.isfinite(v))
         if row is not None:
             raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is not a finite number")
+        bound = MAX_ROTARY_POSITION_DEG if name in ("a", "b") else MAX_LINEAR_POSITION_MM
+        row = _first(np.abs(v) > bound)
+        if row is not None:
+            raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is beyond {bound:.0f} "
+                                   f"({'degrees' if name in ('a', 'b') else 'mm'})")
         frame[name] = v
     pose = frame[list(POSE_COLUMNS)].to_numpy(float)
     moved = pose[np.arange(len(frame)), [AXES.index(a) for a in axis]]
@@ -650,10 +877,10 @@ def _load_pose_and_setup(file: str, table: pa.Table, frame: pd.DataFrame, axis: 
     for r, (sid, ax, tm) in enumerate(zip(setup, axis, term), start=2):
         entry = setups.get(sid) if sid is not None else None
         if entry is None:
-            what = "missing" if sid is None else f"{sid!r} is not among campaign.json setups"
+            what = "missing" if sid is None else f"{_short(sid)} is not among campaign.json setups"
             raise _fail(file, r, f"column setup: {what}")
         if f"{ax}/{tm}" not in entry.terms:
-            raise _fail(file, r, f"column setup: setup {sid!r} does not deliver {ax}/{tm} "
+            raise _fail(file, r, f"column setup: setup {_short(sid)} does not deliver {ax}/{tm} "
                                  f"(it delivers {', '.join(entry.terms)})")
     frame["setup"] = pd.array(setup.tolist(), dtype="str")
 
@@ -661,21 +888,30 @@ def _load_pose_and_setup(file: str, table: pa.Table, frame: pd.DataFrame, axis: 
 def load_bundle(path: str | Path) -> Bundle:
     """Return the validated bundle in directory ``path``; raise BundleError (``FILE:ROW: problem``)."""
     root = Path(path)
-    if not root.is_dir():
-        raise BundleError(f"{root}: not a bundle directory")
-    meta_path = root / CAMPAIGN_FILE
-    for required in (CAMPAIGN_FILE, TEMPERATURES_FILE, ERRORS_FILE):
-        if not (root / required).is_file():
-            raise BundleError(f"{required}: file missing from bundle {root}")
     try:
-        text = meta_path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise BundleError(f"{CAMPAIGN_FILE}:1: not UTF-8 text") from None
-    meta = parse_meta(text)
-    temperatures = _load_temperatures(root / TEMPERATURES_FILE, meta)
-    cond_path = root / CONDITIONS_FILE
-    conditions = _load_conditions(cond_path) if cond_path.is_file() else None
-    errors = _load_errors(root / ERRORS_FILE, meta)
+        if not root.is_dir():
+            raise BundleError(f"{root}: not a bundle directory")
+        # every file is checked (regular, within its size limit) before any is read
+        meta_path = _check_file(root, CAMPAIGN_FILE, MAX_JSON_BYTES, required=True)
+        temp_path = _check_file(root, TEMPERATURES_FILE, MAX_CSV_BYTES, required=True)
+        err_path = _check_file(root, ERRORS_FILE, MAX_CSV_BYTES, required=True)
+        cond_path = _check_file(root, CONDITIONS_FILE, MAX_CSV_BYTES, required=False)
+        assert meta_path is not None and temp_path is not None and err_path is not None
+        with _open(meta_path, CAMPAIGN_FILE) as fh:
+            data = fh.read(MAX_JSON_BYTES + 1)
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            line = data.count(b"\n", 0, exc.start) + 1
+            column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+            raise BundleError(f"{CAMPAIGN_FILE}:{line}: column {column}: not UTF-8 text") from None
+        meta = parse_meta(text)
+        temperatures = _load_temperatures(temp_path, meta)
+        conditions = _load_conditions(cond_path) if cond_path is not None else None
+        errors = _load_errors(err_path, meta)
+    except OSError as exc:  # a read failing half-way (EIO, a file removed under us)
+        where = Path(exc.filename).name if exc.filename else str(root)
+        raise BundleError(f"{where}: cannot read: {exc.strerror or exc}") from None
     return Bundle(name=root.resolve().name, meta=meta, temperatures=temperatures, conditions=conditions, errors=errors)
 
 

@@ -14,10 +14,12 @@ from sqlalchemy import Connection, Engine, create_engine, event, text
 from sqlalchemy.engine import make_url
 
 from driftlab.errors import DriftlabError, ValidationError
+from driftlab.resources import migrations_dir
 
 log = logging.getLogger(__name__)
 
-MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+#: the Alembic scripts, shipped in the package (driftlab.migrations; top-level migrations/ in the source tree)
+MIGRATIONS_DIR = migrations_dir()
 
 
 class StoreError(DriftlabError):

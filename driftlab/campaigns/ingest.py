@@ -172,18 +172,28 @@ def rollup_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.D
     return rows
 
 
+def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) -> Any:
+    """Return an INSERT of ``table`` that skips a row whose ``keys`` already exist (both dialects)."""
+    if conn.dialect.name == "postgresql":
+        from sqlalchemy.dialects.postgresql import insert as pg_insert
+
+        return pg_insert(table).on_conflict_do_nothing(index_elements=keys)
+    from sqlalchemy.dialects.sqlite import insert as sqlite_insert
+
+    return sqlite_insert(table).on_conflict_do_nothing(index_elements=keys)
+
+
 def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
     """Write a validated bundle in the caller's transaction and return the new campaign id."""
     meta = bundle.meta
     postgres = conn.dialect.name == "postgresql"
     machine = conn.execute(select(sc.Machine.id).where(sc.Machine.id == meta.machine.id)).first()
     if machine is None:
-        conn.execute(
-            insert(sc.Machine).values(
-                id=meta.machine.id, name=meta.machine.name, resolution_mm=meta.machine.resolution_mm,
-                resolution_deg=meta.machine.resolution_deg, created_at=sc.utcnow(),
-            )
-        )
+        # ON CONFLICT DO NOTHING: two imports of a new machine at once both see no row; the second
+        # insert then waits for the first to commit and keeps its row instead of failing on the key
+        values = dict(id=meta.machine.id, name=meta.machine.name, resolution_mm=meta.machine.resolution_mm,
+                      resolution_deg=meta.machine.resolution_deg, created_at=sc.utcnow())
+        conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(**values))
     cond_cols = None if bundle.conditions is None else list(bundle.conditions.columns)
     campaign_id = conn.execute(
         insert(sc.Campaign)

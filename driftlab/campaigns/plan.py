@@ -44,6 +44,7 @@ import pydantic
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from driftlab.campaigns.bundle import ID_PATTERN
 from driftlab.campaigns.setups import Setup, all_cells, coverage, default_laser_setup
 from driftlab.errors import ValidationError
 
@@ -235,7 +236,9 @@ class ChannelInfo(_Strict):
 class MachineRef(_Strict):
     """The machine under test and its thermocouple channel map (or the scenario's)."""
 
-    id: str = Field(min_length=1)
+    # the bundle's machine.id rule: a campaign the daemon records can be exported, imported and addressed
+    # by the API as /machines/{id}
+    id: str = Field(min_length=1, max_length=64, pattern=ID_PATTERN)
     name: str = ""
     channels: Literal["from scenario"] | dict[str, ChannelInfo] = FROM_SCENARIO
     room_channels: list[str] = Field(default_factory=list)

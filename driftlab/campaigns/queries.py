@@ -17,7 +17,7 @@ from sqlalchemy import Connection, func, select, text
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import AXES, TERMS, Bundle, CampaignMeta
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS, ROLLUP_S
-from driftlab.errors import NotFoundError, ValidationError
+from driftlab.errors import BadRequestError, NotFoundError, ValidationError
 
 
 @dataclass(frozen=True)
@@ -265,7 +265,7 @@ def drift(
     if direction not in (None, 1, -1):
         raise ValidationError(f"direction must be +1 or -1, not {direction}")
     if interpolate and position is None:
-        raise ValidationError("interpolation needs a position")
+        raise BadRequestError("interpolation needs a position")
     if conn.execute(select(sc.Machine.id).where(sc.Machine.id == machine_id)).first() is None:
         raise NotFoundError(f"no machine {machine_id!r}")
     campaigns = conn.execute(

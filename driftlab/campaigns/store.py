@@ -212,11 +212,16 @@ class Store:
         """Delete a campaign with all its samples, stages, channels and progress (one transaction)."""
         self.ensure_schema()
         with db.write_transaction(self.engine) as conn:
-            if conn.execute(select(sc.Campaign.id).where(sc.Campaign.id == campaign_id)).first() is None:
+            # FOR UPDATE (PostgreSQL; SQLite's BEGIN IMMEDIATE already serialises writers): a concurrent
+            # delete of the same campaign waits here, then finds no row and answers "no campaign"
+            row = conn.execute(select(sc.Campaign.id).where(sc.Campaign.id == campaign_id).with_for_update()).first()
+            if row is None:
                 raise NotFoundError(f"no campaign {campaign_id}")
             for table in (sc.TemperatureSample, sc.TemperatureRollup, sc.ConditionSample, sc.ErrorSample):
                 conn.execute(table.__table__.delete().where(table.__table__.c.campaign_id == campaign_id))
-            conn.execute(sc.Campaign.__table__.delete().where(sc.Campaign.__table__.c.id == campaign_id))
+            gone = conn.execute(sc.Campaign.__table__.delete().where(sc.Campaign.__table__.c.id == campaign_id))
+            if gone.rowcount != 1:  # pragma: no cover - the row lock above makes this unreachable
+                raise NotFoundError(f"no campaign {campaign_id}")
 
     def table_counts(self) -> dict[str, int]:
         """Return the row count of every table (used to prove a failed write changed nothing)."""
@@ -487,6 +492,29 @@ class Store:
                 return None
             return ProgressInfo(row.campaign_id, row.stage_ordinal, row.sweep, row.last_sample_time_s, row.cursor,
                                 row.updated_at)
+
+    def check_writable(self) -> None:
+        """Raise StoreError unless the store is at the head schema and accepts a write now.
+
+        The probe rewrites the schema revision with itself inside a transaction that is rolled
+        back: a read-only file, directory, mount or PostgreSQL role fails here, before a daemon
+        starts its instruments, rather than at its first commit.
+        """
+        from sqlalchemy.exc import DBAPIError
+
+        try:
+            self.ensure_schema()
+            with self.engine.connect() as conn:
+                conn = conn.execution_options(driftlab_write=True)
+                trans = conn.begin()
+                try:
+                    conn.execute(text("UPDATE alembic_version SET version_num = version_num"))
+                finally:
+                    trans.rollback()
+        except (DBAPIError, OSError) as exc:
+            orig = getattr(exc, "orig", None) or exc
+            first = next((ln.strip() for ln in str(orig).splitlines() if ln.strip()), type(orig).__name__)
+            raise db.StoreError(f"cannot write to the store at {self.url}: {first[:300]}") from None
 
     def ping(self) -> bool:
         """Return True when the database answers."""

@@ -85,8 +85,8 @@ def _run(args: argparse.Namespace) -> int:
         compensate_file,
         decimals_for,
         retain_freed_memory,
+        scan_program,
     )
-    from driftlab.compensator.gcode import parse_program
     from driftlab.config import get_settings
 
     retain_freed_memory()
@@ -96,11 +96,9 @@ def _run(args: argparse.Namespace) -> int:
     start = _start(args.start)
     token = get_settings().api_token or None
     decimals = decimals_for(args.resolution_mm, args.resolution_deg)
-    if not args.program.is_file():
-        raise ValidationError(f"{args.program}: no such file")
-    data = args.program.read_bytes()
-    # the whole program is checked before any output is written or any block is sent
-    parse_program(data, name=str(args.program), start=start, min_decimals=decimals)
+    # the whole program is checked before any output is written or any block is sent, a piece at a
+    # time (constant memory whatever its length)
+    scan = scan_program(args.program, str(args.program), decimals)
 
     if args.port is None:
         if args.out is None:
@@ -124,7 +122,7 @@ def _run(args: argparse.Namespace) -> int:
         result = compensate_file(
             args.program, model, temps, args.out, start=start,
             resolution_mm=args.resolution_mm, resolution_deg=args.resolution_deg,
-            max_segment_mm=args.max_segment_mm, max_segment_deg=args.max_segment_deg,
+            max_segment_mm=args.max_segment_mm, max_segment_deg=args.max_segment_deg, scan=scan,
         )
         summary = {"out": str(args.out), **result.summary()}
         if args.json:
@@ -137,6 +135,10 @@ def _run(args: argparse.Namespace) -> int:
                 f"A {mc['A']} B {mc['B']} deg"
             )
         return 0
+    try:
+        data = args.program.read_bytes()  # streaming to a controller keeps the parsed program (see Streamer)
+    except OSError as exc:
+        raise ValidationError(f"{args.program}: cannot read: {exc.strerror or exc}") from None
     return _stream(args, data, start, decimals, token)
 
 

@@ -56,6 +56,10 @@ def _daemon(args: argparse.Namespace) -> int:
     if args.speed < 0 or (args.speed == 0 and args.sim is None):
         raise ValidationError("--speed must be positive (0 = as fast as possible, only with --sim)")
     speed = math.inf if args.speed == 0 else args.speed
+    from driftlab.campaigns.store import connect
+
+    with connect(args.db) as store:  # a read-only or unreachable store: one line now, not a traceback later
+        store.check_writable()
     stop = threading.Event()
 
     def _on_signal(signum: int, _frame: Any) -> None:

@@ -29,10 +29,11 @@ from pathlib import Path
 from typing import Any
 
 from driftlab.errors import DriftlabError, InstrumentError, ValidationError
+from driftlab.resources import examples_dir
 
 log = logging.getLogger(__name__)
 
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+EXAMPLES = examples_dir()  # shipped in the package: the demo runs from any directory
 DEFAULT_PLAN = EXAMPLES / "plans" / "demo-full.yaml"
 DEFAULT_SCENARIO = EXAMPLES / "scenarios" / "demo-full.yaml"
 #: the two cutting tests: the campaign's machine as it is, and the same machine after wear (ch. 6.4.3)

@@ -13,7 +13,7 @@ tool (``rotary_lever``), and go onto the linear grid the same way.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
@@ -22,7 +22,16 @@ from typing import Any, Union
 import numpy as np
 import pandas as pd
 
-from driftlab.compensator.gcode import ROTARY, Points, Program, emit_program, parse_program, subdivide
+from driftlab.compensator.gcode import (
+    ROTARY,
+    Points,
+    Program,
+    count_points,
+    emit,
+    emit_program,
+    parse_program,
+    subdivide,
+)
 from driftlab.errors import ValidationError
 from driftlab.models import kinematics
 
@@ -507,6 +516,250 @@ def compensate_program(
     )
 
 
+#: bytes of program text parsed, corrected and written at a time by the streaming pipeline
+STREAM_CHUNK_BYTES = 1 << 18
+#: points corrected at once when every point takes the same temperatures (the result is the same
+#: whatever the batch; the working set of a batch is about 1 kB per point)
+SNAPSHOT_BATCH_POINTS = 1 << 14
+#: the longest line accepted (a line is never split between two pieces)
+MAX_LINE_BYTES = 1 << 20
+
+
+def program_pieces(path: str | Path, chunk_bytes: int = STREAM_CHUNK_BYTES) -> Iterator[tuple[int, bytes]]:
+    """Yield (lines before, text) of a program file in pieces of whole lines, reading ``chunk_bytes`` at a time.
+
+    ValidationError for a file that cannot be read, is not a regular file, or has a line longer
+    than MAX_LINE_BYTES.
+    """
+    import os
+    import stat
+
+    path = Path(path)
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValidationError(f"{path}: not a regular file")
+        fh = path.open("rb")
+    except FileNotFoundError:
+        raise ValidationError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise ValidationError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    lines = 0
+    rest = b""
+    with fh:
+        while True:
+            try:
+                block = fh.read(chunk_bytes)
+            except OSError as exc:
+                raise ValidationError(f"{path}: cannot read: {exc.strerror or exc}") from None
+            if not block:
+                break
+            text = rest + block
+            cut = text.rfind(b"\n") + 1
+            if cut == 0:
+                if len(text) > MAX_LINE_BYTES:
+                    raise ValidationError(f"{path}:{lines + 1}: line longer than {MAX_LINE_BYTES} bytes; "
+                                          "program not accepted")
+                rest = text
+                continue
+            piece, rest = text[:cut], text[cut:]
+            if len(rest) > MAX_LINE_BYTES:
+                at = lines + piece.count(b"\n") + 1
+                raise ValidationError(f"{path}:{at}: line longer than {MAX_LINE_BYTES} bytes; program not accepted")
+            yield lines, piece
+            lines += piece.count(b"\n")
+        if rest:
+            if len(rest) > MAX_LINE_BYTES:
+                raise ValidationError(f"{path}:{lines + 1}: line longer than {MAX_LINE_BYTES} bytes; "
+                                      "program not accepted")
+            yield lines, rest
+
+
+@dataclass(frozen=True)
+class ProgramScan:
+    """What the first pass over a streamed program learns: it parses, and the state pieces need."""
+
+    decimals: tuple[int, int]
+    eol: bytes
+    first_time_s: float
+    blocks: int
+    lines: int
+
+
+def scan_program(path: str | Path, name: str, min_decimals: tuple[int, int],
+                 chunk_bytes: int = STREAM_CHUNK_BYTES) -> ProgramScan:
+    """Check every line of a program file piece by piece (first pass); return what the second pass needs."""
+    from driftlab.compensator.gcode import MAX_DECIMALS, decimals_of
+
+    eol: bytes | None = None
+    motion, dist = -1, 0
+    first_time = float("nan")
+    lin: list[tuple[float, np.ndarray]] = []
+    rot: list[tuple[float, np.ndarray]] = []
+    blocks = lines = 0
+    for offset, text in program_pieces(path, chunk_bytes):
+        piece = parse_program(text, name=name, min_decimals=min_decimals, initial_motion=motion,
+                              initial_dist=dist, eol=eol, line_offset=offset, residuals=True)
+        if eol is None:
+            eol = piece.eol
+        motion, dist = piece.end_motion, piece.end_dist
+        if not np.isfinite(first_time) and piece.n_lines and np.isfinite(piece.line_time_s).any():
+            first_time = float(piece.line_time_s[np.flatnonzero(np.isfinite(piece.line_time_s))[0]])
+        assert piece.residuals is not None
+        lin.append(piece.residuals[0])
+        rot.append(piece.residuals[1])
+        blocks += piece.n_blocks
+        lines = offset + piece.n_lines
+    decimals = (decimals_of(lin, min_decimals[0]), decimals_of(rot, min_decimals[1]))
+    if max(decimals) > MAX_DECIMALS:  # pragma: no cover - each piece has refused its own already
+        raise ValidationError(f"{name}: more than {MAX_DECIMALS} decimals; program not accepted")
+    return ProgramScan(decimals, eol or b"\n", first_time, blocks, lines)
+
+
+def compensate_stream(
+    program_path: str | Path,
+    model: ErrorModel,
+    temperatures: TemperatureTable | Temperatures,
+    out: Any,
+    *,
+    start: tuple[float, ...] | None = None,
+    resolution_mm: float = RESOLUTION_MM,
+    resolution_deg: float = RESOLUTION_DEG,
+    max_segment_mm: float = 5.0,
+    max_segment_deg: float = 5.0,
+    chunk_bytes: int = STREAM_CHUNK_BYTES,
+    chunk_points: int = 1 << 17,
+    scan: ProgramScan | None = None,
+) -> OfflineResult:
+    """Correct a program file into the binary stream ``out`` in constant memory; return what was done.
+
+    Two passes over the file, each a generator of pieces of whole lines: the first checks every
+    line and learns what the pieces share (the decimals of the whole program, its line terminator,
+    its first time stamp); the second parses each piece with the state the lines before it left
+    (pose, modal G0/G1 and G90/G91, time stamp), corrects its points carrying the quantisation
+    remainder and approach directions, and writes it. The output is byte for byte that of
+    ``compensate_program`` on the whole text (``OfflineResult.text`` stays empty).
+    """
+    name = str(program_path)
+    min_dec = decimals_for(resolution_mm, resolution_deg)
+    if scan is None:
+        scan = scan_program(program_path, name, min_dec, chunk_bytes)
+    table = isinstance(temperatures, TemperatureTable)
+    per_point = table and scan.blocks > 0 and bool(np.isfinite(scan.first_time_s))
+    if table:
+        how = "nearest scan to each block's time" if per_point else "latest scan"
+        fixed = None if per_point else temperatures.latest(model.channels)  # type: ignore[union-attr]
+    else:
+        how, fixed = "given", temperatures
+    # Points are corrected in batches of ``chunk_points`` counted over the whole program, as
+    # compensate_program does: with temperatures per point (a table and a timed program) a model with
+    # lagged terms filters a batch's temperatures in time, so the batches must fall where they always
+    # did for the output to stay the same. With one set of temperatures for every point the result
+    # does not depend on the batches: smaller ones keep the working set small. Pieces wait (parsed,
+    # with their points) until every point of theirs is corrected, then are written.
+    if not per_point:
+        chunk_points = min(chunk_points, SNAPSHOT_BATCH_POINTS)
+    pending: list[tuple[Program, Points, bytes]] = []
+    nominal: list[np.ndarray] = []  # points not yet corrected, in order
+    times: list[np.ndarray] = []
+    queued = 0
+    sent_parts: list[np.ndarray] = []  # corrected points not yet written, in order
+    corrected = 0
+    carry: dict[str, Any] = {"state": None, "prev_nom": None, "prev_dir": None, "singular": 0}
+    sent_before: np.ndarray | None = None
+    biggest = np.zeros(5, dtype=np.int64)
+    points_total = 0
+    first_piece: Program | None = None
+
+    def correct(n: int) -> None:
+        """Correct the next ``n`` queued points as one batch."""
+        nonlocal nominal, times, queued, corrected
+        nom_all = np.concatenate(nominal) if len(nominal) > 1 else nominal[0]
+        t_all = np.concatenate(times) if len(times) > 1 else times[0]
+        nom, rest_nom = nom_all[:n], nom_all[n:]
+        t, rest_t = t_all[:n], t_all[n:]
+        nominal, times = ([rest_nom], [rest_t]) if rest_nom.shape[0] else ([], [])
+        queued -= n
+        assert first_piece is not None
+        temps = temperatures.nearest(t, model.channels) if per_point else fixed  # type: ignore[union-attr]
+        corr = correct_points(
+            first_piece, Points(np.zeros(n, dtype=np.int64), nom), model, temps, resolution_mm=resolution_mm,
+            resolution_deg=resolution_deg, state=carry["state"],
+            prev_nominal=carry["prev_nom"] if carry["prev_nom"] is not None else first_piece.start_int,
+            prev_direction=carry["prev_dir"],
+        )
+        sent_parts.append(corr.sent_int)
+        corrected += n
+        carry.update(state=corr.steps[-1], prev_nom=nom[-1], prev_dir=corr.direction[-1],
+                     singular=carry["singular"] + int(corr.singular.sum()))
+
+    def flush() -> None:
+        """Write every waiting piece whose points are all corrected."""
+        nonlocal sent_parts, corrected, sent_before, biggest, points_total
+        while pending and pending[0][1].n <= corrected:
+            piece, points, text = pending.pop(0)
+            if points.n == 0:
+                out.write(text)
+                continue
+            sent_all = np.concatenate(sent_parts) if len(sent_parts) > 1 else sent_parts[0]
+            sent, rest = sent_all[: points.n], sent_all[points.n :]
+            sent_parts = [rest] if rest.shape[0] else []
+            corrected -= points.n
+            out.write(emit(piece, points, sent, prev_sent=sent_before))
+            biggest = np.maximum(biggest, np.abs(sent - points.nominal_int).max(axis=0))
+            sent_before = sent[-1]
+            points_total += points.n
+
+    parse_state: dict[str, Any] = {"pose": None, "motion": -1, "dist": 0, "time_s": scan.first_time_s}
+
+    def parsed(offset: int, text: bytes) -> Iterator[tuple[Program, Points, bytes]]:
+        """Yield the piece parsed with the state before it, halved (by lines) while it makes too many points."""
+        st = parse_state
+        piece = parse_program(text, name=name, start=start, min_decimals=min_dec, decimals=scan.decimals,
+                              start_int=st["pose"], initial_motion=st["motion"], initial_dist=st["dist"],
+                              initial_time_s=st["time_s"], eol=scan.eol, line_offset=offset)
+        if piece.n_lines > 1 and count_points(piece, max_segment_mm, max_segment_deg) > max(chunk_points // 2, 1):
+            mid = piece.n_lines // 2  # long segments subdivided: keep the points of a piece bounded
+            cut = int(piece.line_start[mid])
+            del piece
+            yield from parsed(offset, text[:cut])
+            yield from parsed(offset + mid, text[cut:])
+            return
+        st["pose"] = piece.target_int[-1] if piece.n_blocks else piece.start_int
+        st["motion"], st["dist"] = piece.end_motion, piece.end_dist
+        if piece.n_lines:
+            st["time_s"] = float(piece.line_time_s[-1])
+        yield piece, subdivide(piece, max_segment_mm, max_segment_deg), text
+
+    scale = None
+    for offset, chunk in program_pieces(program_path, chunk_bytes):
+        for piece, points, text in parsed(offset, chunk):
+            scale = piece.scale
+            if first_piece is None:
+                first_piece = piece
+            if points.n:
+                nominal.append(points.nominal_int)
+                times.append(piece.line_time_s[piece.block_line[points.block]])
+                queued += points.n
+            pending.append((piece, points, text))
+            while queued >= chunk_points:
+                correct(chunk_points)
+            flush()
+    if queued:
+        correct(queued)
+    flush()
+    assert not pending
+    singular = carry["singular"]
+    if singular:
+        log.warning("%d point(s) near A = +/-90 deg: beta cannot be compensated there", singular)
+    mx = biggest * scale if scale is not None and points_total else np.zeros(5)
+    return OfflineResult(
+        text=b"", blocks=scan.blocks, points=points_total,
+        max_correction={a: float(round(v, 6)) for a, v in zip("XYZAB", mx)},
+        singular=singular, model=model.label, temperatures=how,
+    )
+
+
 def compensate_file(
     program_path: str | Path,
     model: ErrorModel,
@@ -518,22 +771,26 @@ def compensate_file(
     resolution_deg: float = RESOLUTION_DEG,
     max_segment_mm: float = 5.0,
     max_segment_deg: float = 5.0,
+    chunk_bytes: int = STREAM_CHUNK_BYTES,
+    chunk_points: int = 1 << 17,
+    scan: ProgramScan | None = None,
 ) -> OfflineResult:
-    """Parse, correct and write a program; nothing is written when the program does not parse."""
-    program_path = Path(program_path)
-    try:
-        data = program_path.read_bytes()
-    except OSError as exc:
-        raise ValidationError(f"{program_path}: {exc.strerror or exc}") from None
-    program = parse_program(
-        data, name=str(program_path), start=start, min_decimals=decimals_for(resolution_mm, resolution_deg)
-    )
-    result = compensate_program(
-        program, model, temperatures, resolution_mm=resolution_mm, resolution_deg=resolution_deg,
-        max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
-    )
+    """Parse, correct and write a program in constant memory (``compensate_stream``).
+
+    The text goes to ``OUT.part``, renamed to ``out_path`` only once the whole program is done:
+    nothing is written when the program does not parse or cannot be corrected.
+    """
     out_path = Path(out_path)
     tmp = out_path.with_name(out_path.name + ".part")
-    tmp.write_bytes(result.text)
-    tmp.replace(out_path)
+    try:
+        with tmp.open("wb") as fh:
+            result = compensate_stream(
+                program_path, model, temperatures, fh, start=start, resolution_mm=resolution_mm,
+                resolution_deg=resolution_deg, max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
+                chunk_bytes=chunk_bytes, chunk_points=chunk_points, scan=scan,
+            )
+        tmp.replace(out_path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return result

@@ -96,6 +96,13 @@ class Program:
     rapid: np.ndarray
     insert_at: np.ndarray
     spaced: np.ndarray
+    #: line number (0-based) of this text's first line in the whole program (a piece of a streamed program)
+    first_line: int = 0
+    #: modal motion (-1 none yet, 0 G0, 1 G1) and distance (0 G90, 1 G91) modes in effect after the last line
+    end_motion: int = -1
+    end_dist: int = 0
+    #: for each of (linear, rotary): (largest |value|, residual |v*10**d - rint(v*10**d)| for d = least..9)
+    residuals: tuple[tuple[float, np.ndarray], tuple[float, np.ndarray]] | None = None
 
     @property
     def n_lines(self) -> int:
@@ -132,11 +139,11 @@ class Program:
         return self.line_time_s[self.block_line]
 
 
-def _fail(name: str, errors: list[tuple[int, str]]) -> None:
+def _fail(name: str, errors: list[tuple[int, str]], line_offset: int = 0) -> None:
     """Raise the first error (by line; on a line, G-code problems first) as one line ``NAME:LINE: problem``."""
     if errors:
         line, msg = min(errors, key=lambda e: (e[0], not e[1].startswith(("G", "unsupported G"))))
-        raise ValidationError(f"{name}:{line + 1}: {msg}; program not accepted")
+        raise ValidationError(f"{name}:{line + line_offset + 1}: {msg}; program not accepted")
 
 
 def _show(byte: int) -> str:
@@ -208,11 +215,27 @@ def parse_program(
     name: str = "<program>",
     start: tuple[float, ...] | np.ndarray | None = None,
     min_decimals: tuple[int, int] = (4, 3),
+    *,
+    decimals: tuple[int, int] | None = None,
+    start_int: np.ndarray | None = None,
+    initial_motion: int = -1,
+    initial_dist: int = 0,
+    initial_time_s: float = math.nan,
+    eol: bytes | None = None,
+    line_offset: int = 0,
+    residuals: bool = False,
 ) -> Program:
     """Return the parsed program; raise ValidationError naming the first bad line otherwise.
 
     ``start`` is the machine's pose before the first block (X, Y, Z mm; A, B deg; default home).
     ``min_decimals`` sets the finest position unit (linear, rotary); it grows to the program's.
+
+    A piece of a longer program (streaming, see ``compensate.compensate_stream``) is parsed with
+    the state the lines before it leave: ``decimals`` (fixed, those of the whole program),
+    ``start_int`` (the pose, in those units), the modal motion and distance modes, the time stamp in
+    effect (``initial_time_s``), the file's line terminator ``eol`` and ``line_offset`` (lines before
+    it, for error messages). ``residuals`` records what choosing the decimals of the whole program
+    needs (``Program.residuals``).
     """
     if isinstance(data, str):
         data = data.encode("utf-8")
@@ -229,7 +252,8 @@ def parse_program(
         line_end[-1] = n
     has_newline = np.zeros(n_lines, dtype=bool)
     has_newline[: nl.shape[0]] = True
-    eol = b"\r\n" if nl.shape[0] and nl[0] > 0 and buf[nl[0] - 1] == 13 else b"\n"
+    if eol is None:
+        eol = b"\r\n" if nl.shape[0] and nl[0] > 0 and buf[nl[0] - 1] == 13 else b"\n"
 
     errors: list[tuple[int, str]] = []
     times: dict[int, float] = {}
@@ -342,13 +366,19 @@ def parse_program(
     for k in np.flatnonzero(per_key > 1)[:1000].tolist():
         errors.append((int(k // 5), f"repeated word '{AXES[k % 5]}'"))
     rot = ROTARY[a_axis]
-    dec_lin = _decimals(value[ai[~rot]], min_decimals[0])
-    dec_rot = _decimals(value[ai[rot]], min_decimals[1])
-    for dec, sel in ((dec_lin, ~rot), (dec_rot, rot)):
-        if dec > MAX_DECIMALS:
-            bad = ai[sel][~_whole(value[ai[sel]] * 10.0**MAX_DECIMALS)][0]
-            errors.append((int(lid[bad]), f"more than {MAX_DECIMALS} decimals"))
-    dec_lin, dec_rot = min(dec_lin, MAX_DECIMALS), min(dec_rot, MAX_DECIMALS)
+    need = None
+    if residuals:
+        need = (_residuals(value[ai[~rot]], min_decimals[0]), _residuals(value[ai[rot]], min_decimals[1]))
+    if decimals is not None:
+        dec_lin, dec_rot = decimals
+    else:
+        dec_lin = _decimals(value[ai[~rot]], min_decimals[0])
+        dec_rot = _decimals(value[ai[rot]], min_decimals[1])
+        for dec, sel in ((dec_lin, ~rot), (dec_rot, rot)):
+            if dec > MAX_DECIMALS:
+                bad = ai[sel][~_whole(value[ai[sel]] * 10.0**MAX_DECIMALS)][0]
+                errors.append((int(lid[bad]), f"more than {MAX_DECIMALS} decimals"))
+        dec_lin, dec_rot = min(dec_lin, MAX_DECIMALS), min(dec_rot, MAX_DECIMALS)
     unit = np.where(rot, 10.0**dec_rot, 10.0**dec_lin)
     a_val = value[ai] * unit
     big = ~(np.abs(a_val) < 2.0**52)
@@ -359,9 +389,9 @@ def parse_program(
     # modal state, line by line
     idx = np.arange(n_lines)
     last = np.maximum.accumulate(np.where(motion_line >= 0, idx, -1))
-    motion = np.where(last >= 0, motion_line[np.maximum(last, 0)], -1)
+    motion = np.where(last >= 0, motion_line[np.maximum(last, 0)], initial_motion)
     last = np.maximum.accumulate(np.where(dist_line >= 0, idx, -1))
-    dist = np.where(last >= 0, dist_line[np.maximum(last, 0)], 0)
+    dist = np.where(last >= 0, dist_line[np.maximum(last, 0)], initial_dist)
 
     # words are in byte order, so lines of axis words are sorted
     new_block = np.diff(a_lid, prepend=-1) != 0
@@ -370,7 +400,7 @@ def parse_program(
         errors.append((int(li), "G4 dwell with axis words"))
     for li in block_line[motion[block_line] < 0][:1000].tolist():
         errors.append((int(li), "axis words before any G0/G1"))
-    _fail(name, errors)
+    _fail(name, errors, line_offset)
 
     n_blocks = block_line.shape[0]
     flat = (np.cumsum(new_block) - 1) * 5 + a_axis  # (block, axis) of each axis word
@@ -392,7 +422,7 @@ def parse_program(
 
     incremental = dist[block_line] == 1
     rapid = motion[block_line] == 0
-    start_int = _start_int(start, dec_lin, dec_rot)
+    start_int = _start_int(start, dec_lin, dec_rot) if start_int is None else np.asarray(start_int, dtype=np.int64)
     target = np.empty((n_blocks, 5), dtype=np.int64)
     ar = np.arange(n_blocks)
     for k in range(5):
@@ -403,19 +433,25 @@ def parse_program(
         base = np.where(r >= 0, word_int[np.maximum(r, 0), k] - csum[np.maximum(r, 0)], start_int[k])
         target[:, k] = base + csum
 
-    line_time = np.full(n_lines, np.nan)
+    line_time = np.full(n_lines, initial_time_s)
     if times:
         tl = np.array(sorted(times))
         line_time[tl] = [times[t] for t in tl.tolist()]
-        last = np.maximum.accumulate(np.where(np.isfinite(line_time), idx, -1))
-        line_time = np.where(last >= 0, line_time[np.maximum(last, 0)], line_time[tl[0]])
+        stamped = np.zeros(n_lines, dtype=bool)
+        stamped[tl] = True
+        last = np.maximum.accumulate(np.where(stamped, idx, -1))
+        # lines before the first stamp take the time in effect (a whole program: its first stamp)
+        before = initial_time_s if math.isfinite(initial_time_s) else line_time[tl[0]]
+        line_time = np.where(last >= 0, line_time[np.maximum(last, 0)], before)
 
     return Program(
         data=data, name=name, decimals=(dec_lin, dec_rot),
         line_start=line_start, line_end=line_end, has_newline=has_newline, eol=eol,
         line_time_s=line_time, block_line=block_line, target_int=target, start_int=start_int,
         present=present, word_int=word_int, num_start=num_start, num_end=num_end,
-        incremental=incremental, rapid=rapid, insert_at=insert_at, spaced=spaced,
+        incremental=incremental, rapid=rapid, insert_at=insert_at, spaced=spaced, first_line=line_offset,
+        end_motion=int(motion[-1]) if n_lines else initial_motion, end_dist=int(dist[-1]) if n_lines else initial_dist,
+        residuals=need,
     )
 
 
@@ -434,6 +470,25 @@ def _decimals(values: np.ndarray, least: int) -> int:
         if float(np.abs(x - np.rint(x)).max()) <= tol:
             return d
     return MAX_DECIMALS + 1
+
+
+def _residuals(values: np.ndarray, least: int) -> tuple[float, np.ndarray]:
+    """Return (largest |value|, worst residual at each of least..9 decimals): what ``_decimals`` decides on."""
+    if values.shape[0] == 0:
+        return 0.0, np.zeros(MAX_DECIMALS + 1 - least)
+    res = [float(np.abs(values * 10.0**d - np.rint(values * 10.0**d)).max()) for d in range(least, MAX_DECIMALS + 1)]
+    return float(np.abs(values).max()), np.array(res)
+
+
+def decimals_of(pieces: list[tuple[float, np.ndarray]], least: int) -> int:
+    """Return what ``_decimals`` gives for the values of all pieces together (> 9 when none do)."""
+    if not pieces:
+        return least
+    biggest = max(p[0] for p in pieces)
+    worst = np.max(np.vstack([p[1] for p in pieces]), axis=0)
+    tol = 1e-6 * max(1.0, biggest * 10.0**MAX_DECIMALS * 1e-9)
+    fits = np.flatnonzero(worst <= tol)
+    return least + int(fits[0]) if fits.shape[0] else MAX_DECIMALS + 1
 
 
 def _start_int(start: tuple[float, ...] | np.ndarray | None, dec_lin: int, dec_rot: int) -> np.ndarray:
@@ -461,19 +516,11 @@ class Points:
         return int(self.block.shape[0])
 
 
-def subdivide(
-    program: Program, max_mm: float = 5.0, max_deg: float = 5.0,
-    blocks: slice = slice(None),
-) -> Points:
-    """Return the points of ``blocks``: G1 segments longer than max_mm / max_deg split evenly (ch. 7.2).
-
-    Rapid (G0) moves are not cut: they are not cutting moves. Points follow the controller's
-    joint-space linear interpolation, so the correction tracks the kinematic error along the
-    segment rather than only at its ends.
-    """
+def _pieces(program: Program, max_mm: float, max_deg: float, b0: int, b1: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (start, end, pieces) of blocks b0..b1: their poses and how many points each becomes."""
     if not (max_mm > 0 and max_deg > 0):
         raise ValidationError("subdivision lengths must be positive")
-    b0, b1, _ = blocks.indices(program.n_blocks)
     end = program.target_int[b0:b1]
     start = np.empty_like(end)
     if b1 > b0:
@@ -487,9 +534,29 @@ def subdivide(
     if pieces.shape[0] and int(pieces.max()) > 100_000:
         b = b0 + int(np.argmax(pieces))
         raise ValidationError(
-            f"{program.name}:{int(program.block_line[b]) + 1}: segment would need more than 100000 "
-            "subdivisions; raise the subdivision length"
+            f"{program.name}:{int(program.block_line[b]) + program.first_line + 1}: segment would need more than "
+            "100000 subdivisions; raise the subdivision length"
         )
+    return start, end, pieces
+
+
+def count_points(program: Program, max_mm: float = 5.0, max_deg: float = 5.0) -> int:
+    """Return how many points ``subdivide`` makes of the program (without making them)."""
+    return int(_pieces(program, max_mm, max_deg, 0, program.n_blocks)[2].sum())
+
+
+def subdivide(
+    program: Program, max_mm: float = 5.0, max_deg: float = 5.0,
+    blocks: slice = slice(None),
+) -> Points:
+    """Return the points of ``blocks``: G1 segments longer than max_mm / max_deg split evenly (ch. 7.2).
+
+    Rapid (G0) moves are not cut: they are not cutting moves. Points follow the controller's
+    joint-space linear interpolation, so the correction tracks the kinematic error along the
+    segment rather than only at its ends.
+    """
+    b0, b1, _ = blocks.indices(program.n_blocks)
+    start, end, pieces = _pieces(program, max_mm, max_deg, b0, b1)
     block = np.repeat(np.arange(b0, b1), pieces)
     if block.shape[0] == end.shape[0]:
         return Points(block=block, nominal_int=end.copy())

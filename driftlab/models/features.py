@@ -8,7 +8,6 @@ from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
-from scipy.signal import lfilter
 
 from driftlab.errors import ValidationError
 
@@ -157,6 +156,9 @@ def first_order_lag(values: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.nda
         return v.copy()
     dt = np.diff(t)
     if dt.size and np.allclose(dt, dt.mean(), rtol=1e-3, atol=1e-9):
+        # imported here: scipy.signal is about 60 MB resident, and the compensator's snapshots never lag
+        from scipy.signal import lfilter
+
         a = float(np.exp(-dt.mean() / tau_s))
         # y[k] = a y[k-1] + (1-a) u[k], settled at u[0]
         y, _ = lfilter([1.0 - a], [1.0, -a], v, zi=[a * v[0]])

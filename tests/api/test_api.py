@@ -49,7 +49,7 @@ async def test_machines_and_campaigns(client: httpx.AsyncClient, seeded: Seeded)
     assert [ch["is_room"] for ch in (await client.get(f"/campaigns/{seeded.campaign_id}/channels")).json()] == [
         False, False, True, True]
     assert_problem(await client.get("/campaigns/999"), 404)
-    assert_problem(await client.get("/campaigns/abc"), 422)
+    assert_problem(await client.get("/campaigns/abc"), 400)
 
 
 async def test_temperature_history_paging_cursor_and_buckets(client: httpx.AsyncClient, seeded: Seeded) -> None:
@@ -81,9 +81,9 @@ async def test_temperature_history_paging_cursor_and_buckets(client: httpx.Async
     assert first["n"] == 10 and math.isclose(first["mean"], sum(values) / 10, rel_tol=1e-12)
     assert first["min"] == min(values) and first["max"] == max(values)
     assert_problem(await client.get(f"{base}/T99"), 404)
-    assert_problem(await client.get(f"{base}/T1", params={"cursor": "garbage"}), 422)
-    assert_problem(await client.get(f"{base}/T1", params={"start_s": 10, "end_s": 5}), 422)
-    assert_problem(await client.get(f"{base}/T1", params={"limit": 0}), 422)
+    assert_problem(await client.get(f"{base}/T1", params={"cursor": "garbage"}), 400)
+    assert_problem(await client.get(f"{base}/T1", params={"start_s": 10, "end_s": 5}), 400)
+    assert_problem(await client.get(f"{base}/T1", params={"limit": 0}), 400)
 
 
 async def test_condition_and_error_histories(client: httpx.AsyncClient, seeded: Seeded) -> None:
@@ -97,7 +97,7 @@ async def test_condition_and_error_histories(client: httpx.AsyncClient, seeded: 
     assert nxt["points"][0]["time_s"] == 90.0
     b = (await client.get(f"{base}/conditions", params={"column": "spindle_rpm", "buckets": 2})).json()
     assert [x["values"]["spindle_rpm"]["mean"] for x in b["buckets"]] == [8000.0, 0.0]
-    assert_problem(await client.get(f"{base}/conditions", params={"column": "torque"}), 422)
+    assert_problem(await client.get(f"{base}/conditions", params={"column": "torque"}), 400)
 
     e = (await client.get(f"{base}/errors", params={"term": "dz", "direction": -1, "limit": 1000})).json()
     assert len(e["items"]) == 8 * 5 and {i["term"] for i in e["items"]} == {"dz"}
@@ -110,7 +110,7 @@ async def test_condition_and_error_histories(client: httpx.AsyncClient, seeded: 
         if not cursor:
             break
     assert seqs == sorted(seqs) and len(seqs) == len(set(seqs)) == 240
-    assert_problem(await client.get(f"{base}/errors", params={"axis": "Q"}), 422)
+    assert_problem(await client.get(f"{base}/errors", params={"axis": "Q"}), 400)
 
 
 async def test_latest_scan_of_the_machine(client: httpx.AsyncClient, seeded: Seeded) -> None:
@@ -135,7 +135,7 @@ async def test_drift(client: httpx.AsyncClient, seeded: Seeded) -> None:
                                                                  "interpolate": True, "direction": 1})).json()
     assert len(i["points"]) == 8 and all(p["position"] == 150.0 for p in i["points"])
     assert_problem(await client.get(f"/machines/{MACHINE}/drift", params={"axis": "Z", "term": "dz",
-                                                                           "interpolate": True}), 422)
+                                                                           "interpolate": True}), 400)
     assert_problem(await client.get("/machines/ghost/drift", params={"axis": "Z", "term": "dz"}), 404)
 
 

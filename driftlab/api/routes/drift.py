@@ -12,7 +12,7 @@ from driftlab.api.deps import get_store
 from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import Axis, DriftOut, DriftPoint, Term
 from driftlab.campaigns.store import Store
-from driftlab.errors import ValidationError
+from driftlab.errors import BadRequestError
 
 router = APIRouter(tags=["drift"])
 
@@ -38,7 +38,7 @@ def drift(
 ) -> DriftOut:
     """Return the measured values of (axis, term) over a machine's campaigns (nearest or interpolated position)."""
     if direction == 0:
-        raise ValidationError("direction must be +1 or -1")
+        raise BadRequestError("direction must be +1 or -1")
     start, end = _aware(start), _aware(end)
     frame = store.drift(machine_id, axis, term, position, direction, start, end, interpolate)
     points = [

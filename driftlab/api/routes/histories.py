@@ -36,7 +36,7 @@ from driftlab.api.routes.machines import MachineId
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
 from driftlab.campaigns.store import Store
-from driftlab.errors import NotFoundError, ValidationError
+from driftlab.errors import BadRequestError, NotFoundError
 
 router = APIRouter(tags=["histories"])
 
@@ -55,7 +55,7 @@ def encode_cursor(kind: str, last: float | int) -> str:
 
 
 def decode_cursor(cursor: str | None, kind: str) -> Any:
-    """Return the position a cursor names; ValidationError when it is not one of ours."""
+    """Return the position a cursor names; BadRequestError (400) when it is not one of ours."""
     if cursor is None:
         return None
     try:
@@ -64,10 +64,15 @@ def decode_cursor(cursor: str | None, kind: str) -> Any:
         after = data["after"]
         if data["k"] != kind or isinstance(after, bool) or not isinstance(after, (int, float)):
             raise ValueError
-        if not math.isfinite(after):
-            raise ValueError
-    except (ValueError, KeyError, TypeError):
-        raise ValidationError(f"not a valid {kind} cursor: {cursor!r}") from None
+        if kind == "error":  # a sequence number: an integer the database's BIGINT can hold
+            if not isinstance(after, int) or not 0 <= after < 2**63:
+                raise ValueError
+        else:  # a time in seconds (within the range start_s/end_s accept), compared as a float
+            after = float(after)
+            if not (math.isfinite(after) and abs(after) <= 1e12):
+                raise ValueError
+    except (ValueError, KeyError, TypeError, OverflowError, RecursionError):
+        raise BadRequestError(f"not a valid {kind} cursor: {cursor[:60]!r}") from None
     return after
 
 
@@ -81,12 +86,12 @@ def _f(v: Any) -> float | None:
 
 def _range(start_s: float | None, end_s: float | None) -> None:
     if start_s is not None and end_s is not None and end_s < start_s:
-        raise ValidationError(f"time range ends ({end_s}) before it starts ({start_s})")
+        raise BadRequestError(f"time range ends ({end_s}) before it starts ({start_s})")
 
 
 def _paging(cursor: str | None, offset: int) -> None:
     if cursor is not None and offset:
-        raise ValidationError("give either offset or cursor, not both")
+        raise BadRequestError("give either offset or cursor, not both")
 
 
 @router.get("/campaigns/{campaign_id}/temperatures/{channel}", response_model=TemperatureHistory,
@@ -155,10 +160,8 @@ def errors(
     _range(start_s, end_s)
     _paging(cursor, offset)
     if direction == 0:
-        raise ValidationError("direction must be +1 or -1")
+        raise BadRequestError("direction must be +1 or -1")
     after = decode_cursor(cursor, "error")
-    if after is not None and not isinstance(after, int):
-        raise ValidationError(f"not a valid error cursor: {cursor!r}")
     rows = api_queries.error_page(store, campaign_id, axis, term, direction, start_s, end_s, after, offset, limit)
     items = [ErrorSampleOut(seq=r.seq, time_s=r.time_s, axis=r.axis, term=r.term, position=r.position,
                             direction=r.direction, sweep=r.sweep, flags=r.flags, value=r.value) for r in rows]

@@ -1,0 +1,1 @@
+"""The campaign store's Alembic migrations (shipped in the package as driftlab.migrations)."""

@@ -1,0 +1,85 @@
+"""docker-compose.yml and the Dockerfile, checked by parsing (no docker daemon or compose plugin here).
+
+Compose: PostgreSQL, the migration, the API and the daemon; every long-running service has a
+healthcheck, and every dependency waits on a condition (healthy, or the migration completed).
+Dockerfile: a non-root user, the API port exposed, ``driftlab`` as the entrypoint, a wheel install.
+The image's commands are driftlab subcommands, so each compose command must parse as one.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+from pathlib import Path
+
+import pytest
+import yaml
+
+from driftlab.cli import build_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    return yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+
+
+def _dockerfile() -> list[tuple[str, str]]:
+    """Return (INSTRUCTION, arguments) of the Dockerfile, continuation lines joined."""
+    text = (ROOT / "Dockerfile").read_text().replace("\\\n", " ")
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), rest.strip()))
+    return out
+
+
+def test_compose_services_healthchecks_and_conditions(compose: dict) -> None:
+    services = compose["services"]
+    assert {"postgres", "migrate", "api", "daemon"} <= set(services)
+    for name in ("postgres", "api", "daemon"):
+        check = services[name].get("healthcheck")
+        assert check and check.get("test"), f"{name} has no healthcheck"
+    for name in ("migrate", "api", "daemon"):
+        deps = services[name]["depends_on"]
+        assert isinstance(deps, dict), f"{name}: depends_on must name conditions"
+        for dep, spec in deps.items():
+            assert dep in services
+            assert spec["condition"] in ("service_healthy", "service_completed_successfully"), (name, dep)
+        assert deps["postgres"]["condition"] == "service_healthy"
+    for name in ("api", "daemon"):
+        assert services[name]["depends_on"]["migrate"]["condition"] == "service_completed_successfully"
+        assert services[name]["environment"]["DRIFTLAB_DB_URL"].startswith("postgresql+psycopg://")
+    assert "8765" in services["api"]["healthcheck"]["test"][-1] and "/health" in services["api"]["healthcheck"]["test"][-1]
+    assert all(p.startswith("127.0.0.1:") for s in services.values() for p in s.get("ports", []))
+
+
+def test_compose_commands_are_driftlab_subcommands(compose: dict) -> None:
+    parser = build_parser()
+    for name in ("migrate", "api", "daemon"):
+        args = parser.parse_args(compose["services"][name]["command"])
+        assert getattr(args, "func", None) is not None, name
+    check = compose["services"]["daemon"]["healthcheck"]["test"]
+    assert check[:2] == ["CMD", "driftlab"] and build_parser().parse_args(check[2:]).func
+
+
+def test_dockerfile_runs_as_a_user_with_a_port_and_an_entrypoint() -> None:
+    steps = _dockerfile()
+    kinds = [k for k, _ in steps]
+    users = [v for k, v in steps if k == "USER"]
+    assert users and users[-1] not in ("root", "0"), "the image must not run as root"
+    assert kinds.index("USER") > max(i for i, k in enumerate(kinds) if k == "RUN"), "USER after the last RUN"
+    assert any(k == "EXPOSE" and "8765" in v.split() for k, v in steps)
+    [entry] = [v for k, v in steps if k == "ENTRYPOINT"]
+    assert json.loads(entry) == ["driftlab"]
+    [cmd] = [v for k, v in steps if k == "CMD"]
+    assert build_parser().parse_args(json.loads(cmd)).func
+    run = " ".join(v for k, v in steps if k == "RUN")
+    assert "pip install" in run and " -e " not in f" {run} ", "install the wheel, not an editable checkout"
+    assert any(k == "HEALTHCHECK" for k in kinds)
+    for _, value in steps:
+        assert "ENTRYPOINT []" not in value
+    assert shlex.split(dict(steps)["FROM"])[0].startswith("python:")
