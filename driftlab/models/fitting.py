@@ -724,12 +724,9 @@ def joint_adjust(
     # any value of it. A weak prior (CONSTANT_PRIOR, far wider than any constant the data pin) sends
     # such constants to zero instead of to an arbitrary split between elements that cancels at the
     # measured poses and not at others.
-    i = 0
-    for key, F in blocks:
-        for f in models[key].features[: F.shape[1]]:
-            if f.kind == "intercept":  # the prior's row: coefficient / spread (the rows above are in noise units)
-                AtA[i, i] += CONSTANT_PRIOR[key[1].startswith("d")] ** -2
-            i += 1
+    for i, (key, j) in enumerate(cols):
+        if models[key].features[j].kind == "intercept":  # the prior's row: coefficient / spread (noise units above)
+            AtA[i, i] += CONSTANT_PRIOR[key[1].startswith("d")] ** -2
     scale = np.sqrt(np.maximum(np.diag(AtA), 1e-300))
     M = AtA / np.outer(scale, scale) + ridge * np.eye(P)
     c = np.linalg.solve(M, Atb / scale) / scale

@@ -299,6 +299,7 @@ def reset_online_state(store: Any, machine: str) -> bool:
     the next probe starts a new RLS from the current off-line model (eq. 6.13, P(0)). Probe history stays.
     """
     from driftlab.campaigns.store import StaleOnlineState
+    from driftlab.errors import ConflictError
 
     for _ in range(50):
         row = store.online_state(machine)
@@ -310,8 +311,6 @@ def reset_online_state(store: Any, machine: str) -> bool:
             return True
         except StaleOnlineState:
             continue
-    from driftlab.errors import ConflictError
-
     raise ConflictError(f"machine {machine!r}: the on-line state kept changing; retry the reset")
 
 
