@@ -122,8 +122,14 @@ class FitResult:
     def report(self) -> dict[str, Any]:
         """Return the JSON report of ``driftlab fit --json``."""
         rows = []
+        forms = {(ln["axis"], ln["term"]): ln for ln in self.document.lines}
         for r in self.validation.to_dict("records"):
-            rows.append({k: r[k] for k in ("axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f")})
+            row = {k: r[k] for k in ("axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f")}
+            line = forms.get((r["axis"], r["term"]))
+            # which form won on this line (link models alone, or plus its correction) and why
+            row["form"] = line["form"] if line else "link"
+            row["form_why"] = line["why"] if line else ""
+            rows.append(row)
         out: dict[str, Any] = {
             "model_version": self.document.version,
             "machine": self.document.machine,
