@@ -241,10 +241,10 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
     if bundle.conditions is not None and len(bundle.conditions):
         cond = bundle.conditions
         n = len(cond)
-        columns = [cond[c].to_numpy(dtype="f8") if c in cond.columns else np.full(n, np.nan)
-                   for c in CONDITION_VALUE_COLUMNS]
+        cond_values = [cond[c].to_numpy(dtype="f8") if c in cond.columns else np.full(n, np.nan)
+                       for c in CONDITION_VALUE_COLUMNS]
         rows = zip(repeat(campaign_id, n), cond["time_s"].to_numpy(dtype="f8").tolist(),
-                   *[_nullable(c, postgres) for c in columns])
+                   *[_nullable(c, postgres) for c in cond_values])
         bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS),
                     ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS)), rows)
 
@@ -257,13 +257,13 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         err["position"].to_numpy(dtype="f8").tolist(), err["direction"].to_numpy(dtype="i8").tolist(),
         err["value"].to_numpy(dtype="f8").tolist(), sweeps.tolist(), repeat(0, n),
     )
-    names, types = ERROR_COLUMNS, ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4",
-                                   "int4")
+    err_names: tuple[str, ...] = tuple(ERROR_COLUMNS)
+    types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4")
     if bundle.meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
         columns += (*(err[c].to_numpy(dtype="f8").tolist() for c in POSE_COLUMNS), err["setup"].astype(str).tolist())
-        names += (*POSE_COLUMNS, "setup")
+        err_names += (*POSE_COLUMNS, "setup")
         types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
-    bulk_insert(conn, "error_samples", names, types, zip(*columns))
+    bulk_insert(conn, "error_samples", err_names, types, zip(*columns))
     return int(campaign_id)
 
 

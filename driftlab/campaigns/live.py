@@ -112,9 +112,10 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
     speed = origin.get("speed") if origin.get("mode") == "sim" else 1.0
     stage_left = stage_frac = None
     if current is not None and current["end_s"] is not None and t is not None:
-        span = max(current["end_s"] - current["start_s"], 1e-9)
-        stage_frac = min(max((t - current["start_s"]) / span, 0.0), 1.0)
-        stage_left = max(current["end_s"] - t, 0.0)
+        c_start, c_end = float(current["start_s"]), float(current["end_s"])
+        span = max(c_end - c_start, 1e-9)
+        stage_frac = min(max((t - c_start) / span, 0.0), 1.0)
+        stage_left = max(c_end - t, 0.0)
     total_left = max(float(total_s) - t, 0.0) if total_s is not None and t is not None else None
     if camp.status != "running":
         stage_left = 0.0 if camp.status == "done" else stage_left

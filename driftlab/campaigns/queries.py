@@ -357,7 +357,7 @@ def _range(conn: Connection, table: str, where: str, params: dict[str, Any]) -> 
     if lo is None:
         return None
     hi = conn.execute(text(f"SELECT MAX(time_s) FROM {table} WHERE {where}"), params).scalar()
-    return float(lo), float(hi)
+    return float(lo), float(lo if hi is None else hi)
 
 
 def _history(conn: Connection, table: str, where: str, params: dict[str, Any], columns: list[str],

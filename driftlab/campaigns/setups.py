@@ -199,7 +199,7 @@ def default_laser_setup(axis: str, term: str) -> Setup:
             "straightness" if term in STRAIGHTNESS[axis] else "angular")
     else:
         optics = "angular"
-    return Setup(instrument="laser", optics=optics, axis=axis, terms=[term])  # type: ignore[arg-type]
+    return Setup(instrument="laser", optics=optics, axis=axis, terms=[term])  # type: ignore[arg-type,list-item]
 
 
 def coverage(measured: Iterable[tuple[str, str]]) -> dict[str, list[str]]:

@@ -190,9 +190,9 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
     for (axis, term, d), (_, idx) in sorted(last.items()):
         scale, unit = (1e6, "urad") if term in ("alpha", "beta", "gamma") else (1e3, "um")
         pos_unit = "deg" if axis in ("A", "B") else "mm"
-        cells = "  ".join(f"{errs['position'][i]:g} {pos_unit}: {errs['value'][i] * scale:.1f}" for i in
-                          sorted(idx, key=lambda i: errs["position"][i]))
-        errors.add_row(f"{axis}/{term}", "+" if d > 0 else "-", f"{cells} {unit}",
+        readings = "  ".join(f"{errs['position'][i]:g} {pos_unit}: {errs['value'][i] * scale:.1f}" for i in
+                             sorted(idx, key=lambda i: errs["position"][i]))
+        errors.add_row(f"{axis}/{term}", "+" if d > 0 else "-", f"{readings} {unit}",
                        duration(errs["t"][idx[-1]], clock=True))
     if not last:
         errors.add_row("-", "-", "no error readings yet", "-")

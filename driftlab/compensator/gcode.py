@@ -50,12 +50,12 @@ _KIND = np.full(256, _K_UNKNOWN, dtype=np.int8)
 for _i, _a in enumerate("XYZAB"):
     _KIND[ord(_a)] = _i
 _KIND[ord("G")] = _K_G
-for _c in "NMFSTPOHD":
-    _KIND[ord(_c)] = _K_PASS
-for _c in "IJKR":
-    _KIND[ord(_c)] = _K_ARC
-for _c in "CUVW":
-    _KIND[ord(_c)] = _K_FOREIGN
+for _w in "NMFSTPOHD":
+    _KIND[ord(_w)] = _K_PASS
+for _w in "IJKR":
+    _KIND[ord(_w)] = _K_ARC
+for _w in "CUVW":
+    _KIND[ord(_w)] = _K_FOREIGN
 
 # G codes times ten
 _G_MOTION = {0: 0, 10: 1}

@@ -351,14 +351,17 @@ class Scheduler:
 
     def _do_block(self, run: list[Scan], t_last: float, batch: Batch) -> None:
         """Read a run of consecutive scans as one buffered block (states at each scan's own time) into the batch."""
+        set_time = getattr(self.clock, "set", None)
+        if set_time is None:  # blocks are only formed on a simulated rig, whose clock the loop sets
+            raise RuntimeError("buffered scan blocks need the simulated rig's settable clock")
         for step in run:
             if step.log_state:
-                self.clock.set(step.t_s)  # the controller answers for the scan's instant, as scan by scan
+                set_time(step.t_s)  # the controller answers for the scan's instant, as scan by scan
                 try:
                     batch.states.append((step.t_s, read_state(self.rig)))
                 except InstrumentError as exc:
                     batch.faults.append(Fault(step.t_s, f"state {step.index}", "machine_link", exc.one_line()))
-        self.clock.set(t_last)
+        set_time(t_last)
         first, n = run[0].index, len(run)
         scanner = self.rig.scanner
         try:

@@ -147,19 +147,22 @@ class InstrumentRig:
 
     def _ensure_reference(self, point: SweepPoint) -> None:
         """Configure the optics for the point's term and make sure the head has its datum."""
-        self.laser.configure(point.axis, point.term)
-        if not self.laser.reference_lost:
+        laser = self.laser
+        if laser is None:
+            raise InstrumentError("no laser interferometer configured for error sweeps")
+        laser.configure(point.axis, point.term)
+        if not laser.reference_lost:
             return
         saved = self._saved
         if saved is not None and (saved.get("axis"), saved.get("term")) == (point.axis, point.term) and (
             self.laser_server is not None and "error" in saved
         ):
             self.laser_server.restore_reference(saved["t_s"], saved["position"], saved["error"])
-            self.laser.reference_lost = False
-            self.laser.reference_position = float(saved["position"])
+            laser.reference_lost = False
+            laser.reference_position = float(saved["position"])
             self._saved = None
             return
-        self.laser.reference(point.position)
+        laser.reference(point.position)
         datum: dict[str, Any] = {"axis": point.axis, "term": point.term, "position": point.position,
                                  "t_s": self.clock.now()}
         ref = self.laser_server.datum() if self.laser_server is not None else None
@@ -208,6 +211,8 @@ class InstrumentRig:
         from driftlab.daemon.loop import term_means
 
         meter = self._meter
+        if meter is None:
+            raise InstrumentError(f"{setup.instrument} setup on {setup.axis}: no proximity sensors mounted")
         reads: list[Mapping[str, Reading]] = []
         for _ in range(samples):
             if hasattr(meter, "read_angle"):

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, ErrorSample, Reading
 from driftlab.daq.retry import RetryPolicy
@@ -114,7 +115,7 @@ class Optics:
     angle_spacing_mm: float = 32.0  # distance between the two retro-reflectors of the angle optics
 
 
-def fringes_to_value(mode: str, fringes: np.ndarray, n_air: float, optics: Optics = Optics()) -> np.ndarray:
+def fringes_to_value(mode: str, fringes: ArrayLike, n_air: float, optics: Optics = Optics()) -> np.ndarray:
     """Return the measured quantity (mm for LIN/STR, rad for ANG) from fringe counts."""
     path_mm = np.asarray(fringes, dtype=float) * optics.wavelength_nm * 1e-6 / (2.0 * n_air)
     if mode == "LIN":

@@ -167,7 +167,7 @@ class TouchProbe:
             )
         return hit
 
-    def probe_points(self, nominal_centre: Sequence[float], radius_mm: float, normals: np.ndarray) -> np.ndarray:
+    def probe_points(self, nominal_centre: Sequence[float] | np.ndarray, radius_mm: float, normals: np.ndarray) -> np.ndarray:
         """Return lobing-compensated stylus centres probed along the given outward normals."""
         c = np.asarray(nominal_centre, dtype=float)
         reach = radius_mm + self.stylus_radius_mm

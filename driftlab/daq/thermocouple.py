@@ -259,7 +259,7 @@ def temperature_c(letter: str, emf: float | np.ndarray) -> np.ndarray:
     return thermocouple_type(letter).temperature_c(emf)
 
 
-def _poly(coeffs: Sequence[float], x: np.ndarray) -> np.ndarray:
+def _poly(coeffs: Sequence[float] | np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.polynomial.polynomial.polyval(x, np.asarray(coeffs))
 
 

@@ -871,8 +871,8 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                 c.lag_cache.pop(ch, None)
     # a model channel the thermocouples show broken corrupts the rows after its break whether or not its
     # repair is good: other findings must then also stand on the rows before it (one explanation)
-    broken = [f.start_s for ch, f in ctx.faults.items() if f.plausible and ch in ctx.model_channels]
-    fault_start: float | None = min(broken) if broken else None
+    breaks = [f.start_s for ch, f in ctx.faults.items() if f.plausible and ch in ctx.model_channels]
+    fault_start: float | None = min(breaks) if breaks else None
     for _round in range(max_effects):
         scored = screen(state.X, td.y, td.train, build_candidates(ctx))
         scored = [s for s in scored if s.p_value < alpha_each and s.cand.key not in ctx.taken]
@@ -932,10 +932,10 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             if fault_start is not None and \
                     robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
                 continue  # after a fault a further finding must also stand on the rows before it
-            params, c = _params(cand, hint, fit.coef[new_idx], td)
+            params, coef = _params(cand, hint, fit.coef[new_idx], td)
             before = state.fit.residual
             eff = Effect(cand.kind, td.axis, td.term, list(cand.channels), params, p,
-                         _cause(cand.kind, td, prep, cand.channels, params, c, None),
+                         _cause(cand.kind, td, prep, cand.channels, params, coef, None),
                          float("nan"), float("nan"), sc.F, sc.p_value, p_rob,
                          [names_new[i] for i in new_idx], X_new[:, new_idx], td.t, before, before - fit.residual,
                          td.pos, td.direction, td.train)

@@ -527,14 +527,14 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
         if in_model and ("quadratic", (ch,)) not in ctx.taken:
             out.append(Candidate("quadratic", [ch], (col * col)[:, None], [f"dT_{ch}^2"]))
     # the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)
-    for col, v in td.conditions.items():
+    for name, v in td.conditions.items():
         for power in (1, 2):
-            label = f"{col}^{power}"
+            label = f"{name}^{power}"
             x = v**power
             if ("operating_condition", (label,)) in ctx.taken or np.ptp(x[td.train]) == 0:
                 continue
             out.append(Candidate("operating_condition", [], x[:, None].astype(float), [label],
-                                 {"column": col, "power": power}, label=label))
+                                 {"column": name, "power": power}, label=label))
     for ch, (taus, at) in ctx.lag_cache.items():
         if ("thermal_lag", (ch,)) in ctx.taken:
             continue

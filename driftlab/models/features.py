@@ -165,9 +165,9 @@ def first_order_lag(values: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.nda
         return y
     y = np.empty_like(v)
     y[0] = v[0]
-    a = np.exp(-dt / tau_s)
+    decay = np.exp(-dt / tau_s)
     for k in range(1, v.size):
-        y[k] = a[k - 1] * y[k - 1] + (1.0 - a[k - 1]) * v[k]
+        y[k] = decay[k - 1] * y[k - 1] + (1.0 - decay[k - 1]) * v[k]
     return y
 
 

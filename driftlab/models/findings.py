@@ -53,8 +53,8 @@ class Finding:
     """One accepted effect of a diagnosis report: kind, (axis, term), channels and catalogue parameters."""
 
     kind: str
-    axis: str
-    term: str
+    axis: str | None  # None (with term) for a broken channel that feeds no model
+    term: str | None
     channels: tuple[str, ...] = ()
     params: Mapping[str, Any] = field(default_factory=dict)
 
@@ -144,10 +144,11 @@ def load_findings(path: str | Path) -> Findings:
 def finding_features(f: Finding) -> tuple[list[Feature], list[Feature]]:
     """Return (the finding's own terms, supporting candidates) it adds to its (axis, term)'s models."""
     chans = f.channels
+    axis = f.axis or ""  # every kind below but sensor_fault names its axis (parse_findings)
     if f.kind == "reversal":
-        return [Feature("direction", label=f.axis)], []
+        return [Feature("direction", label=axis)], []
     if f.kind == "screw_expansion":  # eq. 3.2, plus dT_k itself when k is not in the model
-        return [Feature("pos_dT", (c,), label=f.axis) for c in chans], [Feature("dT", (c,)) for c in chans]
+        return [Feature("pos_dT", (c,), label=axis) for c in chans], [Feature("dT", (c,)) for c in chans]
     if f.kind == "unmapped_channel":
         return [Feature("dT", (c,)) for c in chans], []
     if f.kind == "thermal_lag":  # a lag of a channel outside the model enters with that channel's dT
@@ -156,7 +157,7 @@ def finding_features(f: Finding) -> tuple[list[Feature], list[Feature]]:
     if f.kind == "quadratic":  # dT_k^2 about the model's reference needs dT_k beside it
         return [Feature("quad", (c,)) for c in chans], [Feature("dT", (c,)) for c in chans]
     if f.kind == "drift":
-        return [Feature("time", label=f.axis)], []
+        return [Feature("time", label=axis)], []
     return [], []  # sensor_fault: a substitution of the input, not a term
 
 
@@ -333,7 +334,7 @@ def plan_findings(findings: Findings, bundles: Sequence[Any], force: bool = Fals
         if f.kind == "operating_condition":
             skipped[i] = "a direct machine-state term: the fitting catalogue has no such feature yet (reported only)"
             continue
-        if (f.axis, f.term) not in measured:
+        if f.axis is None or f.term is None or (f.axis, f.term) not in measured:
             skipped[i] = f"no {f.axis}/{f.term} measurements in these campaigns"
             continue
         own, support = finding_features(f)

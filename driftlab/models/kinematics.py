@@ -19,7 +19,7 @@ cache; elements without error skip their rotation product entirely.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
@@ -260,7 +260,7 @@ def _plus(p: np.ndarray | float, r: np.ndarray | float) -> np.ndarray | float:
     return p + r
 
 
-def _matvec(m: tuple, v: tuple) -> np.ndarray | float:
+def _matvec(m: Sequence[Any], v: Sequence[Any]) -> np.ndarray | float:
     """M @ v (a fresh array) for column-held M and components v, skipping exact zeros."""
     acc: np.ndarray | float = 0.0
     for col, x in zip(m, v):
@@ -350,7 +350,7 @@ def _post_rot(pre_rot: tuple, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: 
 def _post_pos(pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols, dims: dict) -> tuple[tuple, np.ndarray]:
     """Return (rotation, position) of the full chain from the pre-chain (eqs. 4.12, 4.17, 4.18)."""
     m = _mul_rx(pre.rot, ca, sa)
-    p = pre.pos.copy()  # accumulated in place below; the pre-chain is reused by the caller
+    p: Any = pre.pos.copy()  # accumulated in place below; the pre-chain is reused by the caller
     for name in ("T5", "theta_y", "T6"):
         a, b, g, dx, dy, dz = cols.get(name, _ZERO6)
         if name in LINKS:

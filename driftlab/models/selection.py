@@ -342,12 +342,12 @@ def screen_channels(
     for members in by_struct.values():
         first = max(members, key=lambda c: std[chans.index(c)])
         seq = [first]
-        others = [c for c in members if c != first]
-        while others:
+        left = [c for c in members if c != first]
+        while left:
             # next: the site farthest (in rms difference) from those already ordered
-            nxt = max(others, key=lambda c: min(float(np.nanstd(temps[c] - temps[o])) for o in seq))
+            nxt = max(left, key=lambda c: min(float(np.nanstd(temps[c] - temps[o])) for o in seq))
             seq.append(nxt)
-            others.remove(nxt)
+            left.remove(nxt)
         order += seq
         if len(seq) >= 2 and des is None:  # with errors, the errors judge the gradients
             d = float(np.nanstd(temps[seq[0]].to_numpy(float) - temps[seq[1]].to_numpy(float)))

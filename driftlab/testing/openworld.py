@@ -264,7 +264,9 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
             return float(pr["coef_per_degC"]) * (lg - dT)
         raise ValueError(p.kind)
 
-    errors, expected, signal = [], [{} for _ in planted], [0.0] * len(planted)
+    errors: list[pd.DataFrame] = []
+    expected: list[dict[str, Any]] = [{} for _ in planted]
+    signal = [0.0] * len(planted)
     beyond_model = [0.0] * len(planted)
     beyond: dict[str, float] = {}
     effects = [p for p in planted if p.kind != "sensor_fault"]

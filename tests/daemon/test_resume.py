@@ -154,7 +154,7 @@ def test_killed_five_times_ends_with_exactly_the_uninterrupted_rows(tmp_path: Pa
 
     rng = random.Random(20261122)
     total = N_SCANS + N_POINTS
-    targets = sorted(rng.sample(range(5, total - 40), 4))  # room left for the SIGTERM stop below
+    targets = sorted(rng.sample(range(5, total - 80), 4))  # room left for the SIGTERM stop below
     kills: list[int] = []
     # kill 1: at a random moment of start-up (schema, servers, drivers), possibly before the campaign exists
     proc = _forked_daemon(plan, killed_db, "--resume")
@@ -176,13 +176,15 @@ def test_killed_five_times_ends_with_exactly_the_uninterrupted_rows(tmp_path: Pa
         kills.append(_done(killed_db))
     assert kills == sorted(kills) and kills[-1] < total  # every kill left the campaign unfinished
     # SIGTERM (a supervisor stopping it) ends the run between two commits with the "resumable" status
+    # (as soon as it has stored something: on a loaded machine the poll below can lag the daemon by many rows)
     proc = _forked_daemon(plan, killed_db, "--resume")
-    while proc.is_alive() and _done(killed_db) < kills[-1] + 10:
-        time.sleep(0.005)
+    while proc.is_alive() and _done(killed_db) <= kills[-1]:
+        time.sleep(0.002)
+    assert proc.is_alive(), f"the daemon finished (status {proc.exitcode}) before its SIGTERM"
     os.kill(proc.pid, signal.SIGTERM)
     proc.join()
     assert proc.exitcode == 3
-    assert kills[-1] + 10 <= _done(killed_db) < total
+    assert kills[-1] < _done(killed_db) < total
     # the last resume through the installed entry point, as an operator (or a supervisor) would run it
     proc = _daemon(plan, killed_db, "--resume")
     out, err = proc.communicate()

@@ -130,7 +130,7 @@ def conditions(
     """Return spindle, feed and axis positions over a time range (paged), or min/mean/max per bucket."""
     _range(start_s, end_s)
     _paging(cursor, offset)
-    cols = list(dict.fromkeys(column)) if column else list(CONDITION_VALUE_COLUMNS)
+    cols: list[str] = list(dict.fromkeys(column)) if column else list(CONDITION_VALUE_COLUMNS)
     if buckets:
         frame = store.condition_history(campaign_id, cols, start_s, end_s, buckets)
         out = []

@@ -28,7 +28,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -250,7 +250,7 @@ class LineServer(ABC):
         """Return the TCP port the server listens on."""
         return int(self._listener.getsockname()[1])
 
-    def start(self) -> LineServer:
+    def start(self) -> Self:
         """Start accepting connections; return self."""
         if not self._started:
             t = threading.Thread(target=self._accept_loop, name=f"sim-{self.name}-accept", daemon=True)

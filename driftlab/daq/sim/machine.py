@@ -240,7 +240,7 @@ class VirtualMachine:
         if not rows.any():
             return
         if eff.params["mode"] == "open":
-            out[np.ix_(rows, [SITE_INDEX[c] for c in eff.channels])] = float(eff.params.get("rail_degC", math.nan))
+            out[np.ix_(rows, np.array([SITE_INDEX[c] for c in eff.channels]))] = float(eff.params.get("rail_degC", math.nan))
             return
         tau = float(eff.params.get("tau_s", 300.0))
         at0 = self.true_temperatures_array(np.array([t0]))[0]

@@ -61,6 +61,7 @@ def parse_direction(cell: Any) -> int | None:
 def parse_time(text: str, where: str) -> datetime:
     """Return an aware datetime from ISO 8601 or ``dd/mm/yyyy hh:mm[:ss]`` (UTC when no zone is given)."""
     t = text.strip()
+    dt: datetime | None
     try:
         dt = datetime.fromisoformat(t.replace("Z", "+00:00"))
     except ValueError:

@@ -154,29 +154,29 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
     p_scale = position_factor(t_unit, ax, f"{src}:{head + 1}: column {cols['target'][0]}")
     v_scale = value_factor(e_unit, term, f"{src}:{head + 1}: column {cols['error'][0]}")
     has_time = "time" in cols
-    rows_out = []
+    rows_out: list[tuple[float, str, str, float, int, float, int]] = []
     lines_out = []
     for k, row in table.iterrows():
         lineno = head + 2 + int(k)  # the table's header is line head + 1
-        cells = {name: str(row[orig]).strip() for name, (orig, _) in cols.items()}
-        if not any(cells.values()):
+        cell = {name: str(row[orig]).strip() for name, (orig, _) in cols.items()}
+        if not any(cell.values()):
             raise InstrumentFileError(f"{src}:{lineno}: empty line inside the data table")
-        d = parse_direction(cells["direction"])
+        d = parse_direction(cell["direction"])
         if d is None:
-            raise InstrumentFileError(f"{src}:{lineno}: column Direction: {cells['direction']!r} is not + or - "
+            raise InstrumentFileError(f"{src}:{lineno}: column Direction: {cell['direction']!r} is not + or - "
                                "(or forward/backward, up/down)")
         try:
-            run = int(cells["run"])
+            run = int(cell["run"])
         except ValueError:
-            raise InstrumentFileError(f"{src}:{lineno}: column Run: {cells['run']!r} is not a run number") from None
+            raise InstrumentFileError(f"{src}:{lineno}: column Run: {cell['run']!r} is not a run number") from None
         numbers = []
         for name in ("target", "error", *(("time",) if has_time else ())):
             try:
-                v = float(cells[name])
+                v = float(cell[name])
             except ValueError:
                 v = float("nan")
             if not np.isfinite(v):
-                raise InstrumentFileError(f"{src}:{lineno}: column {cols[name][0]}: {cells[name]!r} is not a number")
+                raise InstrumentFileError(f"{src}:{lineno}: column {cols[name][0]}: {cell[name]!r} is not a number")
             numbers.append(v)
         t = numbers[2] if has_time else float(len(rows_out))  # measuring order, one second apart
         rows_out.append((t, ax, term, numbers[0] * p_scale, d, numbers[1] * v_scale, run))
