@@ -99,6 +99,28 @@ def test_driftlab_worker_process_runs_a_queued_fit_into_the_registry(pg_store: S
     assert current is not None and current.version == 1 and current.source_campaigns == [cid]
 
 
+@pytest.mark.slow
+def test_two_worker_processes_share_the_queue_and_run_each_job_once(pg_store: Store) -> None:
+    """Two fits of each of two machines, two `driftlab worker` processes: every job once, each machine in order."""
+    url = store_url(pg_store)
+    cids = {MACHINE: pg_store.import_bundle(bundle(MACHINE, seed=0)), OTHER: pg_store.import_bundle(bundle(OTHER, seed=1))}
+    jobs = [submit_fit(pg_store, [cids[m]], network=False) for m in (MACHINE, OTHER, MACHINE, OTHER)]
+    cmd = [sys.executable, "-m", "driftlab.cli", "worker", "--db", url, "--until-idle"]
+    procs = [subprocess.Popen([*cmd, "--name", f"w{k}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=_worker_env()) for k in range(2)]
+    outs = [p.communicate() for p in procs]
+    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
+    # --until-idle leaves when nothing is runnable; a worker holding a machine's lock fetches again
+    # after its job, so nothing is left behind when both have left
+    infos = [pg_store.get_job(j) for j in jobs]
+    assert [(j.state, j.attempts) for j in infos] == [("done", 1)] * 4, [j.error for j in infos]
+    assert {j.worker for j in infos} <= {"w0", "w1"}
+    for machine in (MACHINE, OTHER):
+        mine = [j for j in infos if j.machine_id == machine]
+        assert mine[1].started_at >= mine[0].finished_at
+        assert [v.version for v in pg_store.model_versions(machine)] == [1, 2]
+
+
 def test_driftlab_worker_refuses_the_sqlite_store(tmp_path, capsys) -> None:
     assert main(["worker", "--db", f"sqlite:///{tmp_path / 's.sqlite'}", "--until-idle"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
