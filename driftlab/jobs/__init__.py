@@ -23,6 +23,7 @@ from driftlab.jobs.tasks import DIAGNOSE, FIT, KINDS, OnModel, OnStage
 
 if TYPE_CHECKING:
     from procrastinate import App
+    from psycopg_pool import NullConnectionPool
 
     from driftlab.campaigns.store import JobInfo, Store
     from driftlab.jobs.local import LocalRunner
@@ -55,6 +56,7 @@ class Jobs:
         self.concurrency = concurrency
         self.runner: LocalRunner | QueueWorker | None = None
         self._app: App | None = None
+        self._pool: NullConnectionPool | None = None
         self._lock = threading.Lock()
 
     def start(self) -> None:
@@ -80,15 +82,27 @@ class Jobs:
             if self._app is not None:
                 self._app.close()
                 self._app = None
+            if self._pool is not None:
+                self._pool.close()
+                self._pool = None
 
     def _deferrer(self) -> App:
-        """Return the procrastinate App this object defers through (opened once, synchronously)."""
+        """Return the procrastinate App this object defers through (opened once, synchronously).
+
+        Its pool keeps no idle connection (a submission opens one): an API that is never shut down
+        cleanly, or a short-lived command, leaves none behind.
+        """
         with self._lock:
             if self._app is None:
-                from driftlab.jobs.queue import build_app, store_url
+                from psycopg_pool import NullConnectionPool
 
-                app = build_app(store_url(self.store), pool_size=2)
-                app.open()
+                from driftlab.jobs.queue import build_app, conninfo, store_url
+
+                url = store_url(self.store)
+                self._pool = NullConnectionPool(conninfo(url), max_size=4, num_workers=1, open=False)
+                self._pool.open()
+                app = build_app(url)
+                app.open(self._pool)
                 self._app = app
             return self._app
 

@@ -122,9 +122,11 @@ def test_two_worker_processes_share_the_queue_and_run_each_job_once(pg_store: St
 
 
 def test_driftlab_worker_refuses_the_sqlite_store(tmp_path, capsys) -> None:
-    assert main(["worker", "--db", f"sqlite:///{tmp_path / 's.sqlite'}", "--until-idle"]) == 2
+    url = f"sqlite:///{tmp_path / 's.sqlite'}"
+    assert main(["worker", "--db", url, "--until-idle"]) == 2
+    assert main(["worker", "--db", url, "--concurrency", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "PostgreSQL" in err[0]
+    assert len(err) == 2 and "PostgreSQL" in err[0] and "--concurrency" in err[1]
 
 
 @pytest.mark.slow

@@ -42,7 +42,7 @@ def submit(body: JobSubmit, state: Annotated[ApiState, Depends(get_state)], resp
     ids = api_queries.check_job_targets(state.store, body.machine_id, ids)
     if body.kind == FIT and not ids:
         raise ValidationError(f"machine {body.machine_id!r} has no campaigns to fit")
-    params: dict[str, Any] = {"campaigns": ids}  # the fitting pipeline's job parameters
+    params: dict[str, Any] = {"campaigns": ids}  # a driftlab.jobs fit or diagnosis job's parameters
     if body.kind == DIAGNOSE:
         params["holdout_fraction"] = body.holdout_fraction
     machine = body.machine_id
