@@ -586,11 +586,26 @@ def validates(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
         return bool(np.isfinite(before) and np.isfinite(after) and after < (1.0 - min_gain) * before
                     and before**2 - after**2 >= (min_explained * noise) ** 2)
 
+    return validation_check(X, cols, y, train, folds, min_gain, min_explained, noise)[:2]
+
+
+def validation_check(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
+                     folds: list[tuple[np.ndarray, np.ndarray]], min_gain: float, min_explained: float,
+                     noise: float) -> tuple[bool, str, float]:
+    """Return ``validates``' verdict and reason, and the extended model's validation RMSE (refitted per fold).
+
+    The last figure compares candidates with one another: every candidate of a round extends the
+    same model, so the one whose refitted model predicts the later blocks best is the best supported.
+    """
+    def ok(before: float, after: float) -> bool:
+        return bool(np.isfinite(before) and np.isfinite(after) and after < (1.0 - min_gain) * before
+                    and before**2 - after**2 >= (min_explained * noise) ** 2)
+
     b1, a1 = validation_gain(X, cols, y, train, folds)
-    if ok(b1, a1):
-        return True, f"own coefficients {b1:.4g} -> {a1:.4g}"
     b2, a2 = validation_rmse(X, y, folds), validation_rmse(np.column_stack([X, cols]), y, folds)
-    return ok(b2, a2), f"refitted model {b2:.4g} -> {a2:.4g} (own coefficients {b1:.4g} -> {a1:.4g})"
+    if ok(b1, a1):
+        return True, f"own coefficients {b1:.4g} -> {a1:.4g}", a2
+    return ok(b2, a2), f"refitted model {b2:.4g} -> {a2:.4g} (own coefficients {b1:.4g} -> {a1:.4g})", a2
 
 
 def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], params: dict[str, Any],
@@ -764,6 +779,11 @@ def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | 
     return p < alpha_each, cols
 
 
+#: a candidate whose refitted validation RMSE is more than this much above that of a candidate of the same
+#: kind validated earlier in the round (and refused by a later rule) is not tried: a site that only stands in
+#: for a better one (a corner of the screw's bed for the screw nut) would be named with the wrong channel
+STAND_IN_MARGIN = 0.10
+
 #: a direct operating-condition term whose column the current (thermal) design explains to R^2 > 0.99
 #: (variance inflation factor > 100) is refused: its own part is within the thermocouples' noise and the
 #: model's misfit, so whatever it "explains" the thermal terms already carry. Below that, the collinearity
@@ -865,6 +885,8 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
         heads = list(firsts_by_kind.values())
         trials = heads + [sc for sc in scored if all(sc is not h for h in heads)][: max(0, top_k - len(heads))]
         accepted = None
+        # per kind, the refitted validation RMSE of the best candidate validated so far this round
+        best_of_kind: dict[str, float] = {}
         for sc in trials:
             cand, cols, hint = _materialise(sc, ctx, state)
             if cand.kind == "thermal_lag":
@@ -878,7 +900,15 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
                     continue  # the thermal terms already explain the column: nothing direct to claim
             X_new, names_new, new_idx = _extension(cand, cols, state)
             fit = fit_columns(X_new, td.y, td.train, names_new)
-            valid, how = validates(state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise)
+            valid, how, after = validation_check(state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise)
+            # a channel that predicts the later blocks clearly worse than one of the same kind already
+            # validated (and refused by a later rule) is a stand-in for it, not a finding of its own
+            if valid and after > (1.0 + STAND_IN_MARGIN) * best_of_kind.get(cand.kind, np.inf):
+                log.debug("%s/%s skip %s %s: validation %.4g, a validated candidate of its kind reached %.4g",
+                          td.axis, td.term, cand.kind, cand.channels, after, best_of_kind[cand.kind])
+                continue
+            if valid and np.isfinite(after):
+                best_of_kind[cand.kind] = min(best_of_kind.get(cand.kind, np.inf), after)
             expl_train = np.sqrt(max(state.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
             log.debug("%s/%s try %s %s: p naive %.3g; validation %s: %s; explains %.3g noise on training",
                       td.axis, td.term, cand.kind, cand.channels, sc.p_value, how, valid, expl_train / noise)

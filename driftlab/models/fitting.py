@@ -28,6 +28,7 @@ from driftlab.models.features import (
     fill_gaps,
 )
 from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
+from driftlab.models.lines import LINE_ELEMENT, Composed, LineFit, compose, distinct, fit_lines, home_deviation, line_pool
 from driftlab.models.neural import ExtrapolationResult, extrapolation_errors, fit_network
 from driftlab.models.regression import TermFit, r_squared, rmse, stepwise
 from driftlab.models.registry import ALPHA_C_PER_DEGC, MODEL_FORMAT, ModelDocument, document_json, now_iso, validate_document
@@ -83,6 +84,8 @@ class FitOptions:
     tiered: bool = False
     global_lengths: bool = True
     virtual_sensors: bool = True
+    #: a correction per measured line over the standard terms, kept where validation in training shows it helps
+    lines: bool = True
     seed: int = 0
     #: diagnosis findings to fold in (``driftlab.models.findings.Findings``); forced in, or candidates
     findings: Any = None
@@ -119,8 +122,14 @@ class FitResult:
     def report(self) -> dict[str, Any]:
         """Return the JSON report of ``driftlab fit --json``."""
         rows = []
+        forms = {(ln["axis"], ln["term"]): ln for ln in self.document.lines}
         for r in self.validation.to_dict("records"):
-            rows.append({k: r[k] for k in ("axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f")})
+            row = {k: r[k] for k in ("axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f")}
+            line = forms.get((r["axis"], r["term"]))
+            # which form won on this line (link models alone, or plus its correction) and why
+            row["form"] = line["form"] if line else "link"
+            row["form_why"] = line["why"] if line else ""
+            rows.append(row)
         out: dict[str, Any] = {
             "model_version": self.document.version,
             "machine": self.document.machine,
@@ -766,17 +775,36 @@ def _measurement_name(axis: str, term: str) -> str:
     return "Position" if t_axis == axis else f"{t_axis} Straightness"
 
 
+def composed_errors(composed: Composed, sample: Sample) -> np.ndarray:
+    """Return the (N, 6) error of the lines' element (T1) that the composed line corrections add."""
+    out = np.zeros((sample.q.shape[0], len(PARAMS)))
+    d = _directions(sample)
+    for param, rows in composed.terms.items():
+        feats = [f for f, *_ in rows]
+        out[:, PARAMS.index(param)] = design_matrix(feats, sample.inputs, sample.q, d).to_numpy(float) @ np.array(
+            [c for _, c, *_ in rows])
+    return out
+
+
 def validation_table(
-    sample: Sample, models: Mapping[tuple[str, str], ElementModel], dims: Mapping[str, Any]
+    sample: Sample, models: Mapping[tuple[str, str], ElementModel], dims: Mapping[str, Any],
+    composed: Composed | None = None,
 ) -> tuple[pd.DataFrame, np.ndarray]:
     """Return tables 6.1/6.2: per (axis, term) the work-space RMSE on training and held-out data, R^2 and F.
 
     ``link`` names the elements whose models carry that term (largest contribution first); R^2 and
     F are those of the full chain's prediction on the training points (F with as many regressors
-    as the contributing terms).
+    as the contributing terms). With ``composed`` line corrections, the prediction is the model
+    document's (corrections on T1) plus each point's own line's home deviation
+    (``models.lines``); ``line`` names the correction in the link column.
     """
     el = predict_models(models, sample)
+    if composed is not None and composed.terms:
+        el = {k: v.copy() for k, v in el.items()}
+        el[LINE_ELEMENT] = el.get(LINE_ELEMENT, np.zeros((sample.q.shape[0], 6))) + composed_errors(composed, sample)
     W_hat = workspace_error(sample.q, el, dims)
+    if composed is not None and composed.home_deviation:
+        W_hat = W_hat + home_deviation(composed, sample.frame, sample.inputs, sample.q, _directions(sample))
     W = sample.frame[list(PARAMS)].to_numpy(float)
     role = sample.frame["role"].to_numpy(object)
     axis_col = sample.frame["axis"].to_numpy(str)
@@ -795,6 +823,8 @@ def validation_table(
             top = max(contrib.values(), default=0.0)
             links = [e for e, c in sorted(contrib.items(), key=lambda kv: -kv[1]) if top > 0 and c >= 0.05 * top]
             n_terms = sum(len(models[(e, term)].features) for e in links if (e, term) in models)
+            if composed is not None and LINE_ELEMENT in links:
+                n_terms += len(composed.terms.get(term, []))
             r2 = r_squared(col[tr], W_hat[tr, k])
             n = int(tr.sum())
             dof = n - n_terms - 1
@@ -1037,8 +1067,44 @@ def _fit_bundles(
         adjustment = joint_adjust(sample, models, dims, noise)
         lap("joint_adjustment")
 
+    # 4b. what the link models leave along each measured line (the standard form), kept by validation
+    lines: list[LineFit] = []
+    composed = Composed({}, {})
+    if opts.lines:
+        W_link = workspace_error(sample.q, predict_models(models, sample), dims)
+
+        # a link shared by several axes reads the channels of all of them: a line must be able to
+        # undo what the links put on it, so its pool holds those channels as well as its own
+        link_read = [c for m in models.values() for f in m.features for c in f.channels]
+        link_lags = [f for m in models.values() for f in m.features if f.kind == "lag"]
+
+        def pool_of(axis: str) -> list[Feature]:
+            # the user's selection of the line's channels is honoured (bundle model_channels)
+            allowed = model_channels.get(axis)
+            own = [c for c in (allowed or kept) if c in sample.inputs.dT.columns]
+            chans = list(dict.fromkeys([*own, *(c for c in link_read if c in sample.inputs.dT.columns)]))
+            return line_pool(axis, chans, [*cands.for_axes([axis], allowed), *link_lags])
+
+        def full_of(axis: str) -> list[Feature]:
+            # the standard model (spec section 2) plus what the links put on the line: their
+            # channels, position x dT of them (an angle acting through the line's lever) and lags
+            allowed = model_channels.get(axis)
+            own = [c for c in (allowed or kept) if c in sample.inputs.dT.columns]
+            chans = list(dict.fromkeys([*own, *(c for c in link_read if c in sample.inputs.dT.columns)]))
+            out = [Feature("position", power=p, label=axis) for p in (1, 2, 3)]
+            out += [Feature("dT", (c,)) for c in chans] + [Feature("pos_dT", (c,), label=axis) for c in chans]
+            out += list(dict.fromkeys(link_lags))
+            if any(f.kind == "direction" and f.label == axis for m in models.values() for f in m.features):
+                out.append(Feature("direction", label=axis))
+            return out
+
+        lines = fit_lines(sample.frame, sample.q, _directions(sample), sample.inputs,
+                          sample.frame[list(PARAMS)].to_numpy(float), W_link, pool_of, opts, full_of=full_of)
+        composed = compose(lines, dims)
+        lap("lines")
+
     # 5. validation tables
-    validation, W_hat = validation_table(sample, models, dims)
+    validation, W_hat = validation_table(sample, models, dims, composed)
     physical = physical_table(models, dims, structures)
     lap("validation")
 
@@ -1084,6 +1150,7 @@ def _fit_bundles(
             },
             "steps": [{"stage_element": f.element, **st.to_dict()} for f in m.fits for st in f.result.steps],
         })
+    _merge_lines(terms, composed, validation)
     used = sorted({c for t in terms for f in t["features"] for c in f.get("channels", [])})
     substituted = {c for sub in (plan.substitutions if plan else []) for c in (sub.channel, *sub.neighbours)}
     inputs = {c: {"reference": reference[c], "min": float(lo[c]), "max": float(hi[c])} for c in channels
@@ -1114,10 +1181,55 @@ def _fit_bundles(
         "time_origin": origin.isoformat(),
         "substitutions": [sub.to_dict() for sub in (plan.substitutions if plan else [])],
         "findings": findings,
+        "lines": [_line_record(fit, composed) for fit in lines],
     }
     document = validate_document(_strict_json(doc))
     lap("document")
     return FitResult(document, screening, models, validation, physical, extrapolation, timings)
+
+
+def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd.DataFrame) -> None:
+    """Add the lines' composed corrections to the T1 terms of a document (in place; ``models.lines``)."""
+    for param, rows in composed.terms.items():
+        entry = next((t for t in terms if t["element"] == LINE_ELEMENT and t["param"] == param), None)
+        if entry is None:
+            on = validation[validation["term"] == param] if not validation.empty else validation
+            entry = {
+                "element": LINE_ELEMENT, "param": param, "axis": None, "term": param, "features": [],
+                "coefficients": [], "std_errors": [], "p_values": [],
+                "statistics": {
+                    "rmse_train": float(on["rmse_train"].max()) if len(on) else float("nan"),
+                    "rmse_holdout": float(on["rmse_holdout"].max()) if len(on) else None,
+                    "n_train": int(on["n_train"].sum()) if len(on) else 0,
+                    "n_holdout": int(on["n_holdout"].sum()) if len(on) else 0,
+                },
+                "steps": [],
+            }
+            terms.append(entry)
+        taken = {f["name"]: Feature.from_dict(f) for f in entry["features"]}
+        names = [f["name"] for f in entry["features"]]
+        for f, c, se, p in rows:
+            f = distinct(f, taken)
+            if f.name in names:
+                i = names.index(f.name)
+                entry["coefficients"][i] += c
+                entry["std_errors"][i] = float(np.hypot(entry["std_errors"][i], se))
+                entry["p_values"][i] = min(entry["p_values"][i], p)
+            else:
+                names.append(f.name)
+                entry["features"].append(f.to_dict())
+                entry["coefficients"].append(c)
+                entry["std_errors"].append(se)
+                entry["p_values"].append(p)
+
+
+def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:
+    """Return a line's entry of the document: which form won, why, and its home deviation."""
+    out = fit.to_dict()
+    dev = composed.home_deviation.get((fit.axis, fit.term))
+    out["home_deviation"] = None if dev is None else {
+        "features": [f.to_dict() for f in dev[0]], "coefficients": [float(c) for c in dev[1]]}
+    return out
 
 
 def _axes_of(fit: TermFit) -> str | None:

@@ -148,6 +148,8 @@ class ModelDocument(_Doc):
     substitutions: list[SubstitutionDoc] = Field(default_factory=list)
     #: the diagnosis findings folded into this model and what became of each
     findings: list[dict[str, Any]] = Field(default_factory=list)
+    #: per measured line, the form that won (link models alone, or plus a line correction) and why
+    lines: list[dict[str, Any]] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _consistent(self) -> "ModelDocument":

@@ -216,7 +216,8 @@ def test_cli_fit_registers_versions_and_show_gives_the_document(store_with_campa
     rep = json.loads(report_path.read_text())
     assert rep["model_version"] == 1 and rep["machine"] == "vmc-test"
     assert {"kept_channels", "terms", "physical"} <= set(rep)
-    assert set(rep["terms"][0]) >= {"axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f"}
+    assert set(rep["terms"][0]) >= {"axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f", "form", "form_why"}
+    assert {r["form"] for r in rep["terms"]} <= {"link", "link+stepwise", "link+full"}
     assert set(rep["physical"][0]) >= {"term", "regression", "physical", "relationship"}
     assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network"]) == 0
     capsys.readouterr()

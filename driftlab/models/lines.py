@@ -1,0 +1,401 @@
+"""The measuring-line layer: what the link models leave along each measured line, in the standard form.
+
+The per-link models (ch. 4.3, 6.4) only offer the physically recast terms that suit a machine
+whose errors come from its links. A machine whose drift is plainly linear in its thermocouples
+along each measured line (the standard model of the bundle spec, section 2: a cubic in position
+plus dT of the line's channels) is not of that form: the lines' home values need not agree, and
+each line has its own temperature coefficients. So after the link models, each measured line
+(moving axis, term) gets a candidate correction fitted to the link models' residual by the same
+stepwise regression, over the union of the plain standard terms (position^1..3, dT_k of the
+line's channels, position x dT_k) and the recast ones (structure means, gradients, lags).
+
+Whether a line keeps its correction is decided inside the training part alone, by time-ordered
+validation (rolling origin: fit on the first half, check the next quarter; fit on the first three
+quarters, check the last): the correction is kept only when it lowers the checked RMSE by
+``min_gain`` (10 %). The held-out part is never read here.
+
+For compensation every line's correction goes to the first link (T1) of the chain, whose error
+reaches the work space through a constant similarity transform (eq. 4.12 with the fixed T1 of
+eq. 4.13): its position-dependent part (``pos``, ``pos^2``, ``pos^3``, ``pos x dT``, ``dir`` of
+the line's own axis) as it is, its home part (the terms that do not vary along the line) as the
+mean over the measured lines of that term. How far each line's home part is from that mean is
+kept as the line's ``home_deviation``: a model evaluated on that line (validation) adds it; the
+compensator, which cannot know which line a pose belongs to, cannot.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import statsmodels.api as sm
+from scipy.linalg import qr
+
+from driftlab.errors import ValidationError
+from driftlab.models.features import INTERCEPT, Feature, Inputs, design_matrix
+from driftlab.models.kinematics import AXES, PARAMS, TABLE_A1, allocate
+from driftlab.models.regression import rmse, stepwise
+
+#: the element that carries the lines' corrections (its error reaches the tool through a fixed transform)
+LINE_ELEMENT = "T1"
+#: kinds that vary along a line (evaluated at the line axis' coordinate): the position-dependent part
+ALONG = frozenset({"position", "pos_dT", "direction"})
+#: rolling-origin folds inside the training part: (fit on rows before, check rows up to) as fractions
+FOLDS: tuple[tuple[float, float], ...] = ((0.5, 0.75), (0.75, 1.0))
+
+
+@dataclass
+class LineFit:
+    """The correction of one measured line (moving axis, term) and why it was kept or not."""
+
+    axis: str
+    term: str
+    form: str  # "link" (the link models alone) or "link+line" (plus this correction)
+    features: list[Feature] = field(default_factory=list)
+    coef: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    std_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: time-ordered validation inside the training part: checked RMSE of each form
+    checked: dict[str, float] = field(default_factory=dict)
+    n_fit: int = 0
+    n_checked: int = 0
+    why: str = ""
+
+    def along(self) -> list[int]:
+        """Return the indices of the position-dependent terms (the rest is the line's home part)."""
+        return [i for i, f in enumerate(self.features) if f.kind in ALONG]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form kept in the model document (``lines``)."""
+        return {
+            "axis": self.axis, "term": self.term, "form": self.form, "why": self.why,
+            "checked_rmse": dict(self.checked), "n_fit": self.n_fit, "n_checked": self.n_checked,
+            "features": [f.to_dict() for f in self.features], "coefficients": [float(c) for c in self.coef],
+        }
+
+
+def _correction(X: pd.DataFrame, y: np.ndarray, pool: Sequence[Feature], forced: Sequence[Feature],
+                options: Any) -> Any:
+    """Return the stepwise fit of a line's residual (the options of the link models)."""
+    return stepwise(X.reset_index(drop=True), y, pool, forced=forced, p_enter=options.p_enter,
+                    p_remove=options.p_remove, min_gain=options.min_gain, max_terms=options.max_terms,
+                    vif_max=options.vif_max, tiered=options.tiered)
+
+
+def _session_features(sessions: np.ndarray | None, rows: np.ndarray) -> list[Feature]:
+    """Return one offset per zeroed session among ``rows`` (see ``fitting.session_terms``)."""
+    if sessions is None:
+        return []
+    s = np.asarray(sessions, dtype=object)[rows]
+    labels = list(dict.fromkeys(x for x in s if x))
+    if labels and all(s != ""):
+        labels = labels[1:]
+    return [Feature("session", label=x) for x in labels]
+
+
+def independent(A: np.ndarray, rtol: float = 1e-9) -> list[int]:
+    """Return the columns of ``A`` (scaled to unit norm) that a pivoted QR finds independent, in order."""
+    norms = np.linalg.norm(A, axis=0)
+    ok = np.flatnonzero(norms > 0)
+    if ok.size == 0:
+        return []
+    _, R, piv = qr(A[:, ok] / norms[ok], mode="economic", pivoting=True)
+    d = np.abs(np.diag(R))
+    rank = int(np.sum(d > rtol * d[0])) if d.size else 0
+    return sorted(int(ok[j]) for j in piv[:rank])
+
+
+@dataclass
+class _Form:
+    """One candidate form of a line's correction, fitted: its terms and the statsmodels result."""
+
+    features: list[Feature]
+    ols: Any
+
+    def predict(self, X: pd.DataFrame) -> np.ndarray:
+        return X[[f.name for f in self.features]].to_numpy(float) @ np.asarray(self.ols.params, float)
+
+
+def _fit_form(form: str, X: pd.DataFrame, y: np.ndarray, pool: Sequence[Feature], full: Sequence[Feature],
+              forced: Sequence[Feature], options: Any) -> _Form:
+    """Return a fitted form: ``stepwise`` over ``pool``, or ``full`` least squares on every term of ``full``."""
+    if form == "stepwise":
+        res = _correction(X, y, pool, forced, options)
+        return _Form(list(res.features), res.ols)
+    feats = list(dict.fromkeys([*forced, *full]))
+    A = X[[f.name for f in feats]].to_numpy(float)
+    keep = independent(A)
+    feats = [feats[j] for j in keep]
+    return _Form(feats, sm.OLS(y, A[:, keep], hasconst=True).fit())
+
+
+def fit_line(
+    axis: str,
+    k: int,
+    residual: np.ndarray,
+    time_s: np.ndarray,
+    X: pd.DataFrame,
+    pool: Sequence[Feature],
+    sessions: np.ndarray | None,
+    options: Any,
+    full: Sequence[Feature] = (),
+    min_gain: float = 0.10,
+) -> LineFit:
+    """Return the correction of one line's residual (training rows only), kept if validation shows it helps.
+
+    ``residual``, ``time_s``, ``X`` and ``sessions`` hold the line's training rows only. Two forms
+    are tried against the link models alone: a stepwise regression over ``pool`` (few terms, the
+    recast ones among them) and plain least squares on every term of ``full`` (the standard model
+    and what the links read: a drift linear in many correlated channels, which the stepwise
+    regression's collinearity rule would refuse). A form is kept only when it lowers the checked
+    RMSE by ``min_gain`` against the simpler one (link < stepwise < full).
+    """
+    term = PARAMS[k]
+    n = residual.size
+    order = np.argsort(time_s, kind="stable")
+    out = LineFit(axis, term, "link")
+    if n < 40:
+        out.why = f"{n} training points: too few to check a correction"
+        return out
+    forms = ["stepwise", "full"] if full else ["stepwise"]
+    sse = {"link": 0.0, **{f: 0.0 for f in forms}}
+    n_checked = 0
+    for lo, hi in FOLDS:
+        fit_rows = np.zeros(n, bool)
+        fit_rows[order[: int(lo * n)]] = True
+        check = np.zeros(n, bool)
+        check[order[int(lo * n): int(hi * n)]] = True
+        forced = [INTERCEPT, *_session_features(sessions, fit_rows)]
+        # a session first seen in the checked block has no offset to predict it with: leave it out
+        if sessions is not None:
+            seen = list(set(np.asarray(sessions, dtype=object)[fit_rows]))
+            check &= np.isin(np.asarray(sessions, dtype=object), seen)
+        if check.sum() < 5:
+            continue
+        sse["link"] += float(np.sum(residual[check] ** 2))
+        for form in forms:
+            fitted = _fit_form(form, X[fit_rows], residual[fit_rows], pool, full, forced, options)
+            sse[form] += float(np.sum((residual[check] - fitted.predict(X[check])) ** 2))
+        n_checked += int(check.sum())
+    if n_checked == 0:
+        out.why = "no checked block with a known datum"
+        return out
+    out.checked = {f: float(np.sqrt(v / n_checked)) for f, v in sse.items()}
+    out.n_checked = n_checked
+    best = "link"
+    for form in forms:
+        if out.checked[form] <= (1.0 - min_gain) * out.checked[best]:
+            best = form
+    if best == "link":
+        ratio = min(out.checked[f] for f in forms) / out.checked["link"] if out.checked["link"] > 0 else 1.0
+        out.why = f"no correction cuts the checked RMSE by {min_gain:.0%} (best factor {ratio:.2f})"
+        return out
+    fitted = _fit_form(best, X, residual, pool, full, [INTERCEPT, *_session_features(sessions, np.ones(n, bool))],
+                       options)
+    keep = [i for i, f in enumerate(fitted.features) if f.kind != "session"]
+    out.form = f"link+{best}"
+    out.features = [fitted.features[i] for i in keep]
+    out.coef = np.asarray(fitted.ols.params, float)[keep]
+    out.std_errors = np.asarray(fitted.ols.bse, float)[keep]
+    out.p_values = np.asarray(fitted.ols.pvalues, float)[keep]
+    out.n_fit = n
+    out.why = (f"{best} correction: checked RMSE {out.checked[best]:.3g} against {out.checked['link']:.3g} "
+               f"for the link models alone")
+    return out
+
+
+def line_pool(axis: str, channels: Sequence[str], recast: Sequence[Feature]) -> list[Feature]:
+    """Return the candidates of a line: the standard terms (spec section 2) plus position x dT and the recast ones."""
+    out = [Feature("position", power=p, label=axis) for p in (1, 2, 3)]
+    out += [Feature("dT", (c,)) for c in channels]
+    out += [Feature("pos_dT", (c,), label=axis) for c in channels]
+    names = {f.name for f in out}
+    for f in recast:
+        if f.kind == "time" or f.name in names:
+            continue
+        if f.kind in ALONG and f.label != axis:
+            continue
+        out.append(f)
+        names.add(f.name)
+    return out
+
+
+def fit_lines(
+    frame: pd.DataFrame,
+    q: np.ndarray,
+    directions: np.ndarray,
+    inputs: Inputs,
+    W: np.ndarray,
+    W_hat: np.ndarray,
+    pool_of: Callable[[str], Sequence[Feature]],
+    options: Any,
+    on_line: Callable[[str], None] | None = None,
+    full_of: Callable[[str], Sequence[Feature]] | None = None,
+) -> list[LineFit]:
+    """Return the correction of every measured line (moving axis, term) from the training rows alone.
+
+    ``W`` holds the measured work-space errors (NaN where a term was not measured) and ``W_hat``
+    what the link models predict at the same points; ``pool_of(axis)`` the candidate terms of a
+    line's stepwise correction, ``full_of(axis)`` those of its plain least-squares one.
+    """
+    role = frame["role"].to_numpy(object)
+    axis_col = frame["axis"].to_numpy(str)
+    t = inputs.days * 86400.0 if inputs.days is not None else frame["time_s"].to_numpy(float)
+    out: list[LineFit] = []
+    for axis in AXES:
+        on = (axis_col == axis) & (role == "train")
+        if not on.any():
+            continue
+        pool = list(pool_of(axis))
+        full = list(full_of(axis)) if full_of is not None else []
+        names = {f.name for f in pool}
+        sub = inputs.take(on)
+        X = design_matrix([INTERCEPT, *_session_features(sub.session, np.ones(int(on.sum()), bool)), *pool,
+                           *(f for f in full if f.name not in names)], sub, q[on], directions[on])
+        for k in range(len(PARAMS)):
+            ok = np.isfinite(W[on, k])
+            if ok.sum() == 0:
+                continue
+            rows = np.flatnonzero(ok)
+            usable = [f for f in pool if np.ptp(X[f.name].to_numpy(float)[rows]) > 0]
+            fit = fit_line(axis, k, (W[on, k] - W_hat[on, k])[rows], t[on][rows], X.iloc[rows],
+                           usable, None if sub.session is None else sub.session[rows], options,
+                           full=[f for f in full if np.ptp(X[f.name].to_numpy(float)[rows]) > 0])
+            out.append(fit)
+            if on_line is not None:
+                on_line(f"{axis} {PARAMS[k]}")
+    return out
+
+
+def predict_line(fit: LineFit, inputs: Inputs, q: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Return a line's correction at the given samples (zero for a line kept at ``link``)."""
+    if not fit.features:
+        return np.zeros(q.shape[0])
+    return design_matrix(fit.features, inputs, q, directions).to_numpy(float) @ fit.coef
+
+
+def line_corrections(lines: Sequence[LineFit], frame: pd.DataFrame, inputs: Inputs, q: np.ndarray,
+                     directions: np.ndarray) -> np.ndarray:
+    """Return (N, 6) work-space corrections of the measured points: each point gets its own line's."""
+    out = np.zeros((q.shape[0], len(PARAMS)))
+    axis_col = frame["axis"].to_numpy(str)
+    for fit in lines:
+        on = axis_col == fit.axis
+        if fit.features and on.any():
+            out[on, PARAMS.index(fit.term)] = predict_line(fit, inputs.take(on), q[on], directions[on])
+    return out
+
+
+def t1_map(dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+    """Return M (6, 6): the T1 error that produces a unit work-space error in each column (eq. 4.20).
+
+    T1 is a fixed translation (eq. 4.13), so the map does not depend on the pose.
+    """
+    q = np.zeros((1, 5))
+    M = np.zeros((6, 6))
+    for k in range(6):
+        w = np.zeros((1, 6))
+        w[0, k] = 1e-6
+        M[:, k] = allocate(w, q, None, LINE_ELEMENT, dims)[0] / 1e-6
+    return M
+
+
+def distinct(f: Feature, taken: dict[str, Feature]) -> Feature:
+    """Return ``f``, or ``f`` named by its channels when another term already holds its name.
+
+    A structure's mean or gradient is named by its structure; two lines reading different sites of
+    one structure (their ``model_channels``) give two terms of one name, which a design matrix,
+    keyed by name, cannot hold.
+    """
+    held = taken.get(f.name)
+    if held is None or held == f:
+        taken[f.name] = f
+        return f
+    g = replace(f, label="")
+    taken.setdefault(g.name, g)
+    return g
+
+
+@dataclass
+class Composed:
+    """The lines' corrections as T1 terms (what the compensator applies) and each line's home deviation."""
+
+    #: T1 parameter -> [(feature, coefficient, std error, p-value)]
+    terms: dict[str, list[tuple[Feature, float, float, float]]]
+    #: (axis, term) -> (features, coefficients): the line's home part less the mean of its term's lines
+    home_deviation: dict[tuple[str, str], tuple[list[Feature], np.ndarray]]
+
+
+def compose(lines: Sequence[LineFit], dims: Mapping[str, Any] = TABLE_A1) -> Composed:
+    """Return the lines' corrections as T1 terms: position-dependent parts whole, home parts averaged."""
+    M = t1_map(dims)
+    by_term: dict[str, list[LineFit]] = {}
+    for fit in lines:
+        by_term.setdefault(fit.term, []).append(fit)
+    # work-space term -> feature -> [coefficient, variance, p-value]
+    work: dict[str, dict[Feature, list[float]]] = {}
+    deviation: dict[tuple[str, str], tuple[list[Feature], np.ndarray]] = {}
+    for term, fits in by_term.items():
+        n_lines = len(fits)
+        acc = work.setdefault(term, {})
+        mean: dict[Feature, float] = {}
+        for fit in fits:
+            along = set(fit.along())
+            for i, f in enumerate(fit.features):
+                share = 1.0 if i in along else 1.0 / n_lines
+                slot = acc.setdefault(f, [0.0, 0.0, 1.0])
+                slot[0] += share * float(fit.coef[i])
+                slot[1] += (share * float(fit.std_errors[i])) ** 2
+                slot[2] = min(slot[2], float(fit.p_values[i]))
+                if i not in along:
+                    mean[f] = mean.get(f, 0.0) + float(fit.coef[i]) / n_lines
+        for fit in fits:
+            # this line's home part less the term's mean home part: what a point of this line adds
+            own = {f: float(fit.coef[i]) for i, f in enumerate(fit.features) if i not in set(fit.along())}
+            dev = {f: own.get(f, 0.0) - mean.get(f, 0.0) for f in dict.fromkeys([*own, *mean])}
+            kept = {f: c for f, c in dev.items() if c != 0.0}
+            if kept:
+                taken: dict[str, Feature] = {}
+                deviation[(fit.axis, term)] = ([distinct(f, taken) for f in kept], np.array(list(kept.values())))
+    terms: dict[str, list[tuple[Feature, float, float, float]]] = {}
+    for j, param in enumerate(PARAMS):
+        out: dict[Feature, list[float]] = {}
+        for k, term in enumerate(PARAMS):
+            m = M[j, k]
+            if abs(m) < 1e-12 or term not in work:
+                continue
+            for f, (c, var, p) in work[term].items():
+                slot = out.setdefault(f, [0.0, 0.0, p])
+                slot[0] += m * c
+                slot[1] += m**2 * var
+                slot[2] = min(slot[2], p)
+        taken = {}
+        rows = [(distinct(f, taken), c, float(np.sqrt(var)), p) for f, (c, var, p) in out.items() if c != 0.0]
+        if rows:
+            terms[param] = rows
+    return Composed(terms, deviation)
+
+
+def home_deviation(composed: Composed, frame: pd.DataFrame, inputs: Inputs, q: np.ndarray,
+                   directions: np.ndarray) -> np.ndarray:
+    """Return (N, 6): what each measured point's own line adds to the composed (compensator's) model."""
+    out = np.zeros((q.shape[0], len(PARAMS)))
+    axis_col = frame["axis"].to_numpy(str)
+    for (axis, term), (feats, coef) in composed.home_deviation.items():
+        on = axis_col == axis
+        if on.any():
+            out[on, PARAMS.index(term)] += design_matrix(feats, inputs.take(on), q[on], directions[on]).to_numpy(float) @ coef
+    return out
+
+
+def check_lines(lines: Sequence[LineFit]) -> None:
+    """Raise ValidationError when two corrections claim the same line."""
+    seen: set[tuple[str, str]] = set()
+    for fit in lines:
+        key = (fit.axis, fit.term)
+        if key in seen:
+            raise ValidationError(f"two corrections for line {fit.axis} {fit.term}")
+        seen.add(key)
