@@ -114,10 +114,11 @@ class Jobs:
 
             return submit_to_queue(self._deferrer(), self.store, kind, params, machine_id=machine_id,
                                    campaign_id=campaign_id, priority=priority)
+        from driftlab.jobs.local import LocalRunner
+
         job_id = self.store.record_job(kind, params, machine_id=machine_id, campaign_id=campaign_id)
-        runner = self.runner
-        if runner is not None and hasattr(runner, "submit"):
-            runner.submit(job_id)
+        if isinstance(self.runner, LocalRunner):
+            self.runner.submit(job_id)
         return job_id
 
 
