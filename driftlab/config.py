@@ -28,6 +28,10 @@ class Settings(BaseSettings):
     visa_library: str = "@py"
     #: the largest request body the API accepts (413 beyond; a model document is tens of kilobytes)
     api_max_body_bytes: int = 8 << 20
+    #: seconds before a failed job's first retry (the n-th retry waits n times it); see driftlab.jobs.policy
+    job_retry_wait_s: float = 30.0
+    #: when the PostgreSQL workers look for machines with campaigns newer than their model (cron; "" = never)
+    refit_cron: str = "17 2 * * *"
 
     def resolved_db_url(self) -> str:
         """Return the configured database URL, or the embedded SQLite default."""

@@ -85,13 +85,18 @@ def _pg_head_database(pg_cluster: PgCluster) -> str:
     return url
 
 
+#: the job queue's tables (procrastinate, migration 0006), emptied with the store's
+QUEUE_TABLES = ("procrastinate_jobs", "procrastinate_events", "procrastinate_periodic_defers", "procrastinate_workers")
+
+
 def _truncate_all(url: str) -> None:
-    """Empty every table of the store schema and restart its id sequences (much faster than CREATE DATABASE)."""
+    """Empty every table of the store schema and of the job queue, and restart their id sequences
+    (much faster than CREATE DATABASE)."""
     import psycopg
 
     from driftlab.campaigns.schema import metadata
 
-    tables = ", ".join(metadata.tables)
+    tables = ", ".join([*metadata.tables, *QUEUE_TABLES])
     conninfo = url.replace("postgresql+psycopg://", "postgresql://")
     with psycopg.connect(conninfo, autocommit=True) as conn:
         conn.execute(f"TRUNCATE {tables} RESTART IDENTITY CASCADE")

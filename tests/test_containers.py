@@ -1,7 +1,8 @@
 """docker-compose.yml and the Dockerfile, checked by parsing (no docker daemon or compose plugin here).
 
-Compose: PostgreSQL, the migration, the API and the daemon; every long-running service has a
-healthcheck, and every dependency waits on a condition (healthy, or the migration completed).
+Compose: PostgreSQL, the migration, the API, the daemon and the job workers; every long-running
+service has a healthcheck, and every dependency waits on a condition (healthy, or the migration
+completed); the workers scale (no fixed name, no published port).
 Dockerfile: a non-root user, the API port exposed, ``driftlab`` as the entrypoint, a wheel install.
 The image's commands are driftlab subcommands, so each compose command must parse as one.
 """
@@ -39,27 +40,36 @@ def _dockerfile() -> list[tuple[str, str]]:
 
 def test_compose_services_healthchecks_and_conditions(compose: dict) -> None:
     services = compose["services"]
-    assert {"postgres", "migrate", "api", "daemon"} <= set(services)
-    for name in ("postgres", "api", "daemon"):
+    assert {"postgres", "migrate", "api", "daemon", "worker"} <= set(services)
+    for name in ("postgres", "api", "daemon", "worker"):
         check = services[name].get("healthcheck")
         assert check and check.get("test"), f"{name} has no healthcheck"
-    for name in ("migrate", "api", "daemon"):
+    for name in ("migrate", "api", "daemon", "worker"):
         deps = services[name]["depends_on"]
         assert isinstance(deps, dict), f"{name}: depends_on must name conditions"
         for dep, spec in deps.items():
             assert dep in services
             assert spec["condition"] in ("service_healthy", "service_completed_successfully"), (name, dep)
         assert deps["postgres"]["condition"] == "service_healthy"
-    for name in ("api", "daemon"):
+    for name in ("api", "daemon", "worker"):
         assert services[name]["depends_on"]["migrate"]["condition"] == "service_completed_successfully"
         assert services[name]["environment"]["DRIFTLAB_DB_URL"].startswith("postgresql+psycopg://")
     assert "8765" in services["api"]["healthcheck"]["test"][-1] and "/health" in services["api"]["healthcheck"]["test"][-1]
     assert all(p.startswith("127.0.0.1:") for s in services.values() for p in s.get("ports", []))
 
 
+def test_compose_workers_scale(compose: dict) -> None:
+    """`docker compose up --scale worker=4`: replicas need no fixed name and publish no port."""
+    worker = compose["services"]["worker"]
+    assert "container_name" not in worker and "ports" not in worker
+    args = build_parser().parse_args(worker["command"])
+    assert args.func.__module__ == "driftlab.commands.worker" and args.concurrency >= 1
+    assert "--no-jobs" in compose["services"]["api"]["command"]  # the API queues, the workers run
+
+
 def test_compose_commands_are_driftlab_subcommands(compose: dict) -> None:
     parser = build_parser()
-    for name in ("migrate", "api", "daemon"):
+    for name in ("migrate", "api", "daemon", "worker"):
         args = parser.parse_args(compose["services"][name]["command"])
         assert getattr(args, "func", None) is not None, name
     check = compose["services"]["daemon"]["healthcheck"]["test"]

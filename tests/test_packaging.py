@@ -33,6 +33,7 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     names = set(zipfile.ZipFile(wheel).namelist())
     for expected in ("driftlab/migrations/env.py", "driftlab/migrations/script.py.mako",
                      "driftlab/migrations/versions/0001_campaign_store_initial_schema.py",
+                     "driftlab/migrations/sql/procrastinate-3.10.0.sql",  # the job queue's schema (0006)
                      "driftlab/examples/plans/demo-z.yaml", "driftlab/examples/scenarios/demo-drift.yaml",
                      "driftlab/examples/programs/five_axis_finish.nc", "driftlab/__main__.py",
                      "driftlab/api/static/vendor/swagger-ui/swagger-ui-bundle.js"):

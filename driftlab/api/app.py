@@ -1,4 +1,4 @@
-"""The FastAPI application factory: store, token, routes, problem responses, model cache, job runner."""
+"""The FastAPI application factory: store, token, routes, problem responses, model cache, jobs."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from driftlab.api.routes import campaigns, drift, histories, jobs, machines, mod
 from driftlab.api.schemas import Health
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import Store, connect
+from driftlab.jobs import Jobs
 
 log = logging.getLogger(__name__)
 
@@ -31,8 +32,9 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
                max_body_bytes: int | None = None) -> FastAPI:
     """Return the API over the store at ``db_url`` (default DRIFTLAB_DB_URL) with write token ``token``.
 
-    ``token`` defaults to DRIFTLAB_API_TOKEN; an empty token disables writes. With ``run_jobs`` a
-    background thread runs queued fit and diagnosis jobs while the application is up. The live
+    ``token`` defaults to DRIFTLAB_API_TOKEN; an empty token disables writes. Jobs are submitted
+    through driftlab.jobs; with ``run_jobs`` this process also runs them while the application is up
+    (a procrastinate worker thread on PostgreSQL, the in-process runner on SQLite). The live
     page's hub polls the store for commits every ``live_poll_s`` while a page is open. A request body
     over ``max_body_bytes`` (default DRIFTLAB_API_MAX_BODY_BYTES, 8 MiB) is refused with 413; a write's
     token is checked before its body is read.
@@ -41,23 +43,21 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
 
     settings = Settings()
     the_store = store if store is not None else connect(db_url or settings.resolved_db_url())
-    state = ApiState(store=the_store, token=settings.api_token if token is None else token,
-                     models=ModelCache(the_store, ttl_s=model_cache_ttl_s))
+    models_cache = ModelCache(the_store, ttl_s=model_cache_ttl_s)
+    # a fit run in this process drops the machine's cached model before its job reads "done"
+    state = ApiState(store=the_store, token=settings.api_token if token is None else token, models=models_cache,
+                     jobs=Jobs(the_store, run_here=run_jobs, on_model=models_cache.invalidate))
     live_hub = live.LiveHub(the_store.engine, poll_s=live_poll_s)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         the_store.ensure_schema()
-        if run_jobs:
-            state.jobs = jobs.JobRunner(state)
-            state.jobs.start()
+        state.jobs.start()
         try:
             yield
         finally:
             await live_hub.stop()
-            if state.jobs is not None:
-                state.jobs.stop()
-                state.jobs = None
+            state.jobs.stop()
 
     app = FastAPI(title="driftlab", version=__version__, description=DESCRIPTION, lifespan=lifespan,
                   docs_url=None, redoc_url=None)  # served from packaged assets by `pages`, not from a CDN

@@ -16,6 +16,7 @@ from starlette.exceptions import HTTPException
 
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import Store
+from driftlab.jobs import Jobs
 
 log = logging.getLogger(__name__)
 
@@ -144,7 +145,7 @@ class ApiState:
     store: Store
     token: str
     models: ModelCache
-    jobs: Any = None  # routes.jobs.JobRunner when the server runs jobs itself
+    jobs: Jobs  # submits jobs; runs them in this process too unless the server was started with --no-jobs
     extra: dict[str, Any] = field(default_factory=dict)
 
 

@@ -276,7 +276,7 @@ class ModelRegisterIn(_In):
 
 
 class JobSubmit(_In):
-    """A fit (of a machine from its campaigns, by the fitting pipeline's job runner) or a diagnosis (of one
+    """A fit (of a machine from its campaigns, registering a new model version) or a diagnosis (of one
     campaign) to run in the background."""
 
     kind: JobKind

@@ -22,7 +22,7 @@ from sqlalchemy import Connection, func, select, text, update
 from driftlab.campaigns import db
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
-from driftlab.campaigns.store import Store
+from driftlab.campaigns.store import JobInfo, Store, job_info, jobs_select
 from driftlab.errors import BadRequestError, ConflictError, NotFoundError, ValidationError
 
 
@@ -298,19 +298,20 @@ def retire_model(store: Store, machine_id: str, version: int) -> ModelRow:
 
 
 def list_jobs(store: Store, state: str | None, kind: str | None, machine_id: str | None, limit: int,
-              offset: int, kinds: tuple[str, ...] | None = None) -> list[Any]:
-    """Return job rows (newest first), filtered by state, kind (or set of kinds) and machine."""
+              offset: int, kinds: tuple[str, ...] | None = None) -> list[JobInfo]:
+    """Return jobs (newest first), filtered by state (as reported), kind (or set of kinds) and machine."""
     with _read(store) as conn:
-        q = select(sc.Job.__table__).order_by(sc.Job.id.desc())
+        jobs = jobs_select(conn.dialect.name).subquery()
+        q = select(jobs).order_by(jobs.c.id.desc())
         if kinds:
-            q = q.where(sc.Job.kind.in_(kinds))
+            q = q.where(jobs.c.kind.in_(kinds))
         if state is not None:
-            q = q.where(sc.Job.state == state)
+            q = q.where(jobs.c.state == state)
         if kind is not None:
-            q = q.where(sc.Job.kind == kind)
+            q = q.where(jobs.c.kind == kind)
         if machine_id is not None:
-            q = q.where(sc.Job.machine_id == machine_id)
-        return list(conn.execute(q.limit(limit).offset(offset)).all())
+            q = q.where(jobs.c.machine_id == machine_id)
+        return [job_info(r) for r in conn.execute(q.limit(limit).offset(offset)).all()]
 
 
 def check_job_targets(store: Store, machine_id: str | None, campaign_ids: list[int]) -> list[int]:

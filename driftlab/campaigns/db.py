@@ -114,6 +114,15 @@ def write_transaction(engine: Engine) -> Iterator[Connection]:
             trans.commit()
 
 
+#: the job queue's tables (procrastinate, revision 0006): created from procrastinate's SQL, not the metadata
+QUEUE_TABLE_PREFIX = "procrastinate_"
+
+
+def include_name(name: str | None, type_: str, parent_names: Any) -> bool:
+    """Return False for the job queue's tables: Alembic's autogenerate compares the store's own schema only."""
+    return not (type_ == "table" and (name or "").startswith(QUEUE_TABLE_PREFIX))
+
+
 def alembic_config(connection: Connection | None = None) -> Any:
     """Return an Alembic Config pointing at the absolute migrations folder (no alembic.ini needed)."""
     from alembic.config import Config

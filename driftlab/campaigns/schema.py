@@ -22,6 +22,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     CheckConstraint,
     DateTime,
@@ -355,14 +356,19 @@ class ModelVersion(Base):
 
 
 class Job(Base):
-    """A fitting or diagnosis run, claimed by one worker at a time."""
+    """The record of a fit or diagnosis job: what was asked, its state, and what came out.
+
+    Not a queue: jobs are queued by procrastinate on PostgreSQL (``queue_job_id`` is the
+    procrastinate_jobs row, whose state the API reports while the job is queued or running) and run
+    in-process on SQLite. The record keeps what a queue does not: the result or the one-line error.
+    """
 
     __tablename__ = "jobs"
     __table_args__ = (
         CheckConstraint(f"state IN {JOB_STATES}", name="state"),
-        # the claim query: oldest queued job first (WHERE state = 'queued' ORDER BY id LIMIT 1),
-        # and the stale-worker sweep (WHERE state = 'running' AND heartbeat_at < ?)
-        Index("ix_jobs_state_id", "state", "id"),
+        # a machine's jobs, newest first (GET /jobs?machine_id=..., and the refit looking up the
+        # fit that made the current model: WHERE machine_id = ? AND kind = 'fit' ORDER BY id DESC)
+        Index("ix_jobs_machine_id_id", "machine_id", "id"),
     )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
@@ -371,14 +377,16 @@ class Job(Base):
     params: Mapped[dict[str, Any]] = mapped_column(JSONDoc, default=dict)
     result: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
     error: Mapped[str | None] = mapped_column(Text)
+    # the worker that ran (or last tried) the job
     worker: Mapped[str | None] = mapped_column(String(128))
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     machine_id: Mapped[str | None] = mapped_column(ForeignKey("machines.id", ondelete="SET NULL"))
     campaign_id: Mapped[int | None] = mapped_column(ForeignKey("campaigns.id", ondelete="SET NULL"))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
-    heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # procrastinate_jobs.id of the queued job (PostgreSQL); NULL on SQLite
+    queue_job_id: Mapped[int | None] = mapped_column(BigInteger)
 
 
 class AcquisitionProgress(Base):

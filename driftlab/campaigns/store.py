@@ -1,4 +1,4 @@
-"""The campaign store: one object over SQLite or PostgreSQL for ingest, queries, registry and jobs.
+"""The campaign store: one object over SQLite or PostgreSQL for ingest, queries, registry and job records.
 
 Writes happen in one transaction each (``db.write_transaction``): an import either lands whole or
 leaves the database exactly as it was, whatever interrupts it.
@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from datetime import datetime, timedelta
+from datetime import datetime
 from typing import Any
 
 import pandas as pd
-from sqlalchemy import Engine, func, insert, select, text, update
+from sqlalchemy import Engine, Select, Text, case, cast, column, delete, func, insert, null, select, table, text, update
 from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import db, ingest, queries
@@ -41,8 +41,21 @@ class JobInfo:
     campaign_id: int | None
     created_at: datetime
     started_at: datetime | None
-    heartbeat_at: datetime | None
     finished_at: datetime | None
+    queue_job_id: int | None = None
+    #: procrastinate's status of the job (PostgreSQL), None when it has no queue row
+    queue_status: str | None = None
+
+
+@dataclass(frozen=True)
+class RefitCandidate:
+    """A machine with finished campaigns newer than its current model: what a refit would fit."""
+
+    machine_id: str
+    model_version: int
+    campaign_ids: list[int]
+    #: the parameters of the fit that made the current model ({} when none is recorded)
+    params: dict[str, Any]
 
 
 @dataclass(frozen=True)
@@ -95,10 +108,37 @@ def _online(row: Any) -> OnlineStateInfo:
                            int(row.version))
 
 
-def _job(row: Any) -> JobInfo:
-    return JobInfo(row.id, row.kind, row.state, row.params or {}, row.result, row.error, row.worker, row.attempts,
-                   row.machine_id, row.campaign_id, row.created_at, row.started_at, row.heartbeat_at,
-                   row.finished_at)
+#: procrastinate's job statuses as the job states driftlab reports (queued, running, done, failed)
+QUEUE_STATES = {"todo": "queued", "doing": "running", "aborting": "running", "succeeded": "done",
+                "failed": "failed", "cancelled": "failed", "aborted": "failed"}
+_QUEUE_JOBS = table("procrastinate_jobs", column("id"), column("status"))
+
+
+def jobs_select(dialect: str) -> Select[Any]:
+    """Return the SELECT of job records with the state to report, as ``state``.
+
+    A record that ended (done, failed) is final: the task wrote it. Before that, on PostgreSQL, the
+    queue knows better than the record (a job waiting for its retry, taken back from a lost worker,
+    cancelled with procrastinate's own tools), so its status, mapped by ``QUEUE_STATES``, wins.
+    """
+    cols = [c for c in sc.Job.__table__.c if c.name != "state"]
+    if dialect != "postgresql":
+        return select(*cols, sc.Job.state, null().label("queue_status"))
+    status = cast(_QUEUE_JOBS.c.status, Text)
+    by_queue = [(status == k, v) for k, v in QUEUE_STATES.items()]
+    state = case((sc.Job.state.in_(("done", "failed")), sc.Job.state), *by_queue, else_=sc.Job.state)
+    return (select(*cols, state.label("state"), status.label("queue_status"))
+            .select_from(sc.Job.__table__.outerjoin(_QUEUE_JOBS, _QUEUE_JOBS.c.id == sc.Job.queue_job_id)))
+
+
+def job_info(row: Any) -> JobInfo:
+    """Return the JobInfo of a row of ``jobs_select``."""
+    error = row.error
+    if row.state == "failed" and error is None and row.queue_status in ("failed", "cancelled", "aborted"):
+        error = f"the job queue reports it {row.queue_status} (see the worker's log)"
+    return JobInfo(row.id, row.kind, row.state, row.params or {}, row.result, error, row.worker, row.attempts,
+                   row.machine_id, row.campaign_id, row.created_at, row.started_at, row.finished_at,
+                   row.queue_job_id, row.queue_status)
 
 
 def _model(row: Any) -> ModelVersionInfo:
@@ -201,6 +241,15 @@ class Store:
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
             return queries.load_campaign(conn, campaign_id)
+
+    def campaign_machine(self, campaign_id: int) -> str:
+        """Return the machine id of a campaign; NotFoundError if there is no such campaign."""
+        self.ensure_schema()
+        with self.engine.connect() as conn, conn.begin():
+            machine = conn.execute(select(sc.Campaign.machine_id).where(sc.Campaign.id == campaign_id)).scalar()
+        if machine is None:
+            raise NotFoundError(f"no campaign {campaign_id}")
+        return str(machine)
 
     def list_campaigns(self, machine_id: str | None = None) -> list[CampaignSummary]:
         """Return a summary of every campaign, oldest first."""
@@ -315,11 +364,13 @@ class Store:
             ).all()
             return [_model(r) for r in rows]
 
-    # ------------------------------------------------------------------ jobs
+    # ------------------------------------------------------------------ job records
+    # The queue itself is driftlab.jobs (procrastinate on PostgreSQL, in-process on SQLite); these
+    # rows are what a job was asked to do and what came of it.
 
-    def submit_job(self, kind: str, params: dict[str, Any] | None = None, machine_id: str | None = None,
+    def record_job(self, kind: str, params: dict[str, Any] | None = None, machine_id: str | None = None,
                    campaign_id: int | None = None) -> int:
-        """Queue a job and return its id."""
+        """Record a new job, queued, and return its id."""
         self.ensure_schema()
         if not kind:
             raise ValidationError("a job needs a kind")
@@ -330,83 +381,117 @@ class Store:
                 .returning(sc.Job.id)
             ).scalar_one())
 
-    def claim_job(self, worker: str, kinds: list[str] | None = None) -> JobInfo | None:
-        """Atomically take the oldest queued job (of ``kinds``) for ``worker``; None when there is none.
+    def link_queue_job(self, job_id: int, queue_job_id: int) -> None:
+        """Record the queue's id of a job (procrastinate_jobs.id)."""
+        self._update_job(job_id, queue_job_id=int(queue_job_id))
 
-        PostgreSQL: SELECT ... FOR UPDATE SKIP LOCKED, so concurrent workers never take the same
-        job nor wait on each other. SQLite: one conditional UPDATE (state still 'queued') under the
-        database's single writer lock.
+    def start_job(self, job_id: int, worker: str, *, only_if_queued: bool = False) -> JobInfo | None:
+        """Mark a job running under ``worker`` (one more attempt); return it.
+
+        With ``only_if_queued`` the job is taken only from the queued state (None otherwise): the
+        in-process runner's guard against a second process running the same record. A queue's
+        worker passes False: the queue already gave the job to it alone, and a job it retries after
+        a lost worker may still read "running".
         """
         self.ensure_schema()
         now = sc.utcnow()
         with db.write_transaction(self.engine) as conn:
-            pick = select(sc.Job.id).where(sc.Job.state == "queued").order_by(sc.Job.id).limit(1)
-            if kinds:
-                pick = pick.where(sc.Job.kind.in_(kinds))
-            if conn.dialect.name == "postgresql":
-                job_id = conn.execute(pick.with_for_update(skip_locked=True)).scalar()
-                if job_id is None:
-                    return None
-                cond = sc.Job.id == job_id
-            else:
-                cond = sc.Job.id == pick.scalar_subquery()
-            claimed = conn.execute(
-                update(sc.Job).where(cond, sc.Job.state == "queued")
-                .values(state="running", worker=worker, started_at=now, heartbeat_at=now,
+            cond = [sc.Job.id == job_id]
+            if only_if_queued:
+                cond.append(sc.Job.state == "queued")
+            n = conn.execute(
+                update(sc.Job).where(*cond)
+                .values(state="running", worker=worker, started_at=now, finished_at=None,
                         attempts=sc.Job.attempts + 1)
-                .returning(sc.Job.id)
-            ).scalar()
-            if claimed is None:
-                return None
-            return _job(conn.execute(select(sc.Job.__table__).where(sc.Job.id == claimed)).one())
-
-    def heartbeat(self, job_id: int, worker: str) -> bool:
-        """Record that ``worker`` is still running the job; False if the job is no longer its own."""
-        self.ensure_schema()
-        with db.write_transaction(self.engine) as conn:
-            n = conn.execute(
-                update(sc.Job).where(sc.Job.id == job_id, sc.Job.worker == worker, sc.Job.state == "running")
-                .values(heartbeat_at=sc.utcnow())
-            ).rowcount
-            return bool(n)
-
-    def finish_job(self, job_id: int, worker: str, result: dict[str, Any]) -> None:
-        """Mark the worker's running job done with its result."""
-        self._end_job(job_id, worker, "done", result=result)
-
-    def fail_job(self, job_id: int, worker: str, error: str) -> None:
-        """Mark the worker's running job failed with a one-line error."""
-        self._end_job(job_id, worker, "failed", error=" ".join(error.split()))
-
-    def _end_job(self, job_id: int, worker: str, state: str, result: dict[str, Any] | None = None,
-                 error: str | None = None) -> None:
-        self.ensure_schema()
-        with db.write_transaction(self.engine) as conn:
-            n = conn.execute(
-                update(sc.Job).where(sc.Job.id == job_id, sc.Job.worker == worker, sc.Job.state == "running")
-                .values(state=state, result=result, error=error, finished_at=sc.utcnow())
             ).rowcount
             if not n:
-                raise ConflictError(f"job {job_id} is not running under worker {worker!r}")
+                if only_if_queued:
+                    return None
+                raise NotFoundError(f"no job {job_id}")
+            return job_info(conn.execute(jobs_select(conn.dialect.name).where(sc.Job.id == job_id)).one())
 
-    def requeue_stale(self, older_than_s: float) -> int:
-        """Put back in the queue running jobs whose worker has not beaten for ``older_than_s``; return how many."""
+    def finish_job(self, job_id: int, result: dict[str, Any]) -> None:
+        """Record a job done with its result."""
+        self._update_job(job_id, state="done", result=result, error=None, finished_at=sc.utcnow())
+
+    def fail_job(self, job_id: int, error: str, *, retry: bool = False) -> None:
+        """Record a job's one-line error: failed, or queued again when a retry comes."""
+        line = " ".join(error.split())
+        if retry:
+            self._update_job(job_id, state="queued", error=line)
+        else:
+            self._update_job(job_id, state="failed", error=line, finished_at=sc.utcnow())
+
+    def delete_job(self, job_id: int) -> None:
+        """Delete a job record (one that never reached the queue)."""
         self.ensure_schema()
-        cutoff = sc.utcnow() - timedelta(seconds=older_than_s)
         with db.write_transaction(self.engine) as conn:
-            return int(conn.execute(
-                update(sc.Job).where(sc.Job.state == "running", sc.Job.heartbeat_at < cutoff)
-                .values(state="queued", worker=None)
-            ).rowcount)
+            conn.execute(delete(sc.Job).where(sc.Job.id == job_id))
 
-    def get_job(self, job_id: int) -> JobInfo:
-        """Return a job; NotFoundError if there is none with that id."""
+    def _update_job(self, job_id: int, **values: Any) -> None:
+        self.ensure_schema()
+        with db.write_transaction(self.engine) as conn:
+            if not conn.execute(update(sc.Job).where(sc.Job.id == job_id).values(**values)).rowcount:
+                raise NotFoundError(f"no job {job_id}")
+
+    def jobs_in_state(self, state: str, kinds: list[str] | None = None) -> list[int]:
+        """Return the ids of the records in ``state`` (as recorded, not as the queue reports), oldest first."""
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
-            row = conn.execute(select(sc.Job.__table__).where(sc.Job.id == job_id)).first()
+            q = select(sc.Job.id).where(sc.Job.state == state).order_by(sc.Job.id)
+            if kinds:
+                q = q.where(sc.Job.kind.in_(kinds))
+            return [int(j) for j in conn.execute(q).scalars()]
+
+    def get_job(self, job_id: int) -> JobInfo:
+        """Return a job (its state as the queue reports it); NotFoundError if there is none with that id."""
+        self.ensure_schema()
+        with self.engine.connect() as conn, conn.begin():
+            row = conn.execute(jobs_select(conn.dialect.name).where(sc.Job.id == job_id)).first()
             if row is None:
                 raise NotFoundError(f"no job {job_id}")
-            return _job(row)
+            return job_info(row)
+
+    def refit_candidates(self) -> list[RefitCandidate]:
+        """Return the machines whose current model predates finished campaigns of theirs, with what to refit.
+
+        A candidate's campaigns are the current model's sources plus every finished campaign started
+        after the newest of them (campaigns the model left out on purpose stay out); ``params`` are
+        those of the fit job that made the current model, when one did.
+        """
+        self.ensure_schema()
+        out: list[RefitCandidate] = []
+        with self.engine.connect() as conn, conn.begin():
+            models = conn.execute(
+                select(sc.ModelVersion.machine_id, sc.ModelVersion.version, sc.ModelVersion.source_campaigns)
+                .where(sc.ModelVersion.status == "current").order_by(sc.ModelVersion.machine_id)
+            ).all()
+            for m in models:
+                sources = [int(c) for c in (m.source_campaigns or [])]
+                if not sources:
+                    continue
+                done = conn.execute(
+                    select(sc.Campaign.id, sc.Campaign.started_at)
+                    .where(sc.Campaign.machine_id == m.machine_id, sc.Campaign.status == "done")
+                    .order_by(sc.Campaign.started_at, sc.Campaign.id)
+                ).all()
+                started = {int(c.id): c.started_at for c in done}
+                newest = max((started[c] for c in sources if c in started), default=None)
+                if newest is None:
+                    continue
+                new = [c for c, at in started.items() if c not in sources and at > newest]
+                if not new:
+                    continue
+                fits = conn.execute(
+                    select(sc.Job.params, sc.Job.result)
+                    .where(sc.Job.machine_id == m.machine_id, sc.Job.kind == "fit", sc.Job.state == "done")
+                    .order_by(sc.Job.id.desc())
+                ).all()
+                params = next((dict(f.params or {}) for f in fits
+                               if (f.result or {}).get("model_version") == m.version), {})
+                out.append(RefitCandidate(m.machine_id, int(m.version), [c for c in sources if c in started] + new,
+                                          params))
+        return out
 
     # ------------------------------------------------------------------ on-line state
 

@@ -35,12 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="a diagnosis report (driftlab diagnose --json): fold its effects into this fit")
     fit.add_argument("--force-findings", action="store_true",
                      help="with --findings: force the findings' terms in (default: offer them as candidates)")
-    mode = fit.add_mutually_exclusive_group()
-    mode.add_argument("--enqueue", action="store_true", help="only queue the fit job and print its id")
-    mode.add_argument("--worker", action="store_true", help="run queued fit jobs (a worker process)")
-    fit.add_argument("--once", action="store_true", help="with --worker: run at most one job, then exit")
-    fit.add_argument("--idle-exit", type=float, default=None, metavar="S",
-                     help="with --worker: exit after S seconds without work")
+    fit.add_argument("--enqueue", action="store_true",
+                     help="only queue the fit job and print its id (`driftlab worker` runs it on PostgreSQL, "
+                          "`driftlab serve` on SQLite)")
     fit.set_defaults(func=_fit)
 
     models = sub.add_parser("models", help="list or show registered model versions")
@@ -72,20 +69,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    """Fit (in this process, through the jobs table), queue a fit, or run as a worker."""
+    """Queue a fit job and run it here (or only queue it with --enqueue); print the report."""
     from driftlab.campaigns.store import connect
     from driftlab.errors import ValidationError
-    from driftlab.models.fitting import submit_fit, work
-    from driftlab.progress import progress, stages
+    from driftlab.jobs import run_until_ended, submit_fit
+    from driftlab.progress import stages
 
     with connect(args.db) as store:
-        if args.worker:
-            with progress("fit jobs") as bar:
-                done = work(store, once=args.once, idle_exit_s=args.idle_exit, on_stage=lambda _s: bar.advance())
-            print(json.dumps({"jobs": done}))
-            return 0
         if not args.campaign:
-            raise ValidationError("give --campaign ID (or --worker)")
+            raise ValidationError("give --campaign ID")
         findings = None
         if args.findings is not None:
             from driftlab.models.findings import load_findings
@@ -99,12 +91,11 @@ def _fit(args: argparse.Namespace) -> int:
             print(json.dumps({"job": job_id, "state": "queued"}))
             return 0
         with stages("fitting", fit_steps(network=not args.no_network)) as bar:
-            work(store, until_job=job_id, on_stage=bar.done)
-        job = store.get_job(job_id)
+            job = run_until_ended(store, job_id, on_stage=bar.done)
         if job.state != "done":
             raise ValidationError(f"fit job {job_id} {job.state}: {job.error or 'no result'}")
         report: dict[str, Any] = dict(job.result or {})
-        ref = _reference(store, args.campaign)
+    ref = _reference(store, args.campaign)
     text = json.dumps(report, indent=2)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)

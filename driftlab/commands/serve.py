@@ -1,4 +1,4 @@
-"""`driftlab serve`: the REST API (FastAPI) under uvicorn, one worker, jobs run in the background."""
+"""`driftlab serve`: the REST API (FastAPI) under uvicorn, one process; jobs also run in it unless --no-jobs."""
 
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=None, help="port (default: DRIFTLAB_API_PORT or 8765)")
     add_db_option(p)
     p.add_argument("--no-jobs", action="store_true",
-                   help="do not run queued fit/diagnosis jobs in this process (leave them to workers)")
+                   help="do not run fit/diagnosis jobs in this process: leave them to `driftlab worker` processes "
+                        "(PostgreSQL; on SQLite they then wait for a server that runs jobs)")
     p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
                    help="uvicorn log level (default info)")
     p.set_defaults(func=_serve)

@@ -18,11 +18,13 @@ def test_upgrade_from_empty_matches_metadata(db_url: str) -> None:
         reached = store.upgrade()
         assert reached == db.head_revision()
         with store.engine.connect() as conn:
-            ctx = MigrationContext.configure(conn, opts={"compare_type": True})
+            ctx = MigrationContext.configure(conn, opts={"compare_type": True, "include_name": db.include_name})
             diff = compare_metadata(ctx, metadata)
         assert diff == []
         tables = set(inspect(store.engine).get_table_names())
         assert set(metadata.tables) <= tables
+        queue = {"procrastinate_jobs", "procrastinate_events", "procrastinate_periodic_defers", "procrastinate_workers"}
+        assert (queue <= tables) == (store.dialect == "postgresql")  # the job queue: PostgreSQL only (0006)
         assert store.upgrade() == reached  # idempotent
     finally:
         store.close()
@@ -33,7 +35,9 @@ def test_downgrade_to_base_and_back(db_url: str) -> None:
     try:
         store.upgrade()
         db_downgrade(store)
-        assert not (set(metadata.tables) & set(inspect(store.engine).get_table_names()))
+        left = set(inspect(store.engine).get_table_names())
+        assert not (set(metadata.tables) & left)
+        assert not {t for t in left if t.startswith(db.QUEUE_TABLE_PREFIX)}  # the job queue's schema went too
         store.upgrade()
         assert store.revision() == db.head_revision()
     finally:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import threading
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import load_bundle
 from driftlab.campaigns.store import Store, connect
 from driftlab.cli import main
-from driftlab.errors import ConflictError, NotFoundError, ValidationError
+from driftlab.errors import NotFoundError, ValidationError
 
 
 @pytest.fixture
@@ -217,51 +216,33 @@ def test_model_registry_keeps_exactly_one_current(store: Store, bundle_dir: Path
         store.register_model("nope", {})
 
 
-def test_jobs_are_claimed_once_by_concurrent_workers(store_url: str) -> None:
-    first = connect(store_url)
-    ids = [first.submit_job("fit", {"n": k}) for k in range(40)]
-    claimed: dict[str, list[int]] = {}
-
-    def work(name: str) -> None:
-        s = connect(store_url)
-        mine = claimed.setdefault(name, [])
-        try:
-            while (job := s.claim_job(name)) is not None:
-                mine.append(job.id)
-                s.finish_job(job.id, name, {"ok": job.params["n"]})
-        finally:
-            s.close()
-
-    threads = [threading.Thread(target=work, args=(f"w{k}",)) for k in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    taken = [j for jobs in claimed.values() for j in jobs]
-    assert sorted(taken) == ids  # every job once, none twice
-    assert all(first.get_job(j).state == "done" for j in ids)
-    assert first.get_job(ids[3]).result == {"ok": 3}
-    first.close()
-
-
-def test_job_lifecycle(store: Store) -> None:
-    a = store.submit_job("diagnose", {"bundle": "x"})
-    b = store.submit_job("fit", {})
-    job = store.claim_job("w1", kinds=["fit"])
-    assert job is not None and job.id == b and job.state == "running" and job.attempts == 1
-    assert store.heartbeat(b, "w1") and not store.heartbeat(b, "w2")
-    with pytest.raises(ConflictError):
-        store.finish_job(b, "w2", {})
-    store.fail_job(b, "w1", "singular\nmatrix")
-    assert store.get_job(b).state == "failed" and store.get_job(b).error == "singular matrix"
-    job = store.claim_job("w2")
-    assert job is not None and job.id == a
-    assert store.claim_job("w3") is None
-    assert store.requeue_stale(-1.0) == 1  # heartbeat older than "1 s in the future": stale
-    again = store.claim_job("w3")
-    assert again is not None and again.id == a and again.attempts == 2
+def test_job_records_lifecycle(store: Store) -> None:
+    """A job record: queued, running (one attempt more each start), queued again for a retry, then done or failed."""
+    a = store.record_job("diagnose", {"campaigns": [1]})
+    b = store.record_job("fit", {"campaigns": [1]})
+    assert [store.get_job(j).state for j in (a, b)] == ["queued", "queued"]
+    assert store.jobs_in_state("queued") == [a, b] and store.jobs_in_state("queued", ["fit"]) == [b]
+    job = store.start_job(b, "w1", only_if_queued=True)
+    assert job is not None and job.state == "running" and job.attempts == 1 and job.worker == "w1"
+    assert store.start_job(b, "w2", only_if_queued=True) is None  # another process has it
+    store.fail_job(b, "database\ngone away", retry=True)
+    job = store.get_job(b)
+    assert job.state == "queued" and job.error == "database gone away" and job.finished_at is None
+    assert store.start_job(b, "w2").attempts == 2
+    store.finish_job(b, {"model_version": 3})
+    job = store.get_job(b)
+    assert job.state == "done" and job.result == {"model_version": 3} and job.error is None and job.finished_at
+    store.start_job(a, "w1")
+    store.fail_job(a, "singular\nmatrix")
+    assert store.get_job(a).state == "failed" and store.get_job(a).error == "singular matrix"
+    assert store.get_job(a).queue_status is None  # never queued on procrastinate
+    store.delete_job(a)
     with pytest.raises(NotFoundError):
-        store.get_job(999)
+        store.get_job(a)
+    with pytest.raises(NotFoundError):
+        store.start_job(999, "w1")
+    with pytest.raises(ValidationError):
+        store.record_job("")
 
 
 def test_acquisition_progress_upsert(store: Store, bundle_dir: Path) -> None:

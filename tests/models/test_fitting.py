@@ -237,25 +237,6 @@ def test_cli_fit_registers_versions_and_show_gives_the_document(store_with_campa
     assert main(["models", "show", "7", "--machine", "vmc-test", "--db", url]) != 0
 
 
-def test_fit_job_runs_in_a_separate_worker_process(store_with_campaign, capsys):
-    import subprocess
-    import sys
-
-    from driftlab.cli import main
-
-    url, store, cid = store_with_campaign
-    assert main(["fit", "--campaign", str(cid), "--db", url, "--enqueue", "--no-network"]) == 0
-    job_id = json.loads(capsys.readouterr().out)["job"]
-    assert store.get_job(job_id).state == "queued"
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "fit", "--worker", "--once", "--db", url],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    assert json.loads(proc.stdout)["jobs"] == [job_id]
-    job = store.get_job(job_id)
-    assert job.state == "done" and job.worker and job.worker.split(":")[-1] != str(__import__("os").getpid())
-    assert store.current_model("vmc-test").version == 1
-
-
 def test_cli_errors_are_one_line(store_with_campaign, capsys):
     from driftlab.cli import main
 
@@ -353,31 +334,6 @@ def test_vm_extrapolation_network_error_grows_beyond_the_regression(vm_fit):
     assert e.network_in_range_mm < 2 * e.regression_in_range_mm  # both interpolate
     assert e.network_mm > 3 * e.regression_mm and e.regression_mm < 2 * e.regression_in_range_mm
     assert res.report()["extrapolation"]["network_mm"] == e.network_mm
-
-
-@pytest.mark.slow
-def test_two_workers_never_take_the_same_job(db_url):
-    """Three queued fits, two worker processes on one database: each job runs exactly once."""
-    import subprocess
-    import sys
-
-    from driftlab.campaigns.store import connect
-    from driftlab.models.fitting import submit_fit
-
-    store = connect(db_url)
-    cid = store.import_bundle(synthetic_bundle(0))
-    jobs = [submit_fit(store, [cid], network=False) for _ in range(3)]
-    cmd = [sys.executable, "-m", "driftlab.cli", "fit", "--worker", "--idle-exit", "1", "--db", db_url]
-    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
-    outs = [p.communicate(timeout=600) for p in procs]
-    assert all(p.returncode == 0 for p in procs), [o[1] for o in outs]
-    ran = [j for out, _ in outs for j in json.loads(out)["jobs"]]
-    assert sorted(ran) == sorted(jobs)  # every job once, none twice
-    infos = [store.get_job(j) for j in jobs]
-    assert all(i.state == "done" and i.attempts == 1 for i in infos)
-    assert [v.version for v in store.model_versions("vmc-test")] == [1, 2, 3]
-    assert store.current_model("vmc-test").version == 3
-    store.close()
 
 
 # ----------------------------------------------------------------------------- diagnosis findings folded in

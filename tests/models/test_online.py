@@ -75,7 +75,8 @@ def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, c
     from driftlab.cli import main
     from driftlab.daq.sim.campaign import simulate_campaign
     from driftlab.daq.sim.scenario import HiddenEffect, Scenario
-    from driftlab.models.fitting import FitOptions, fit_campaigns
+    from driftlab.jobs.tasks import fit_campaigns
+    from driftlab.models.fitting import FitOptions
     from driftlab.models.online import online_update_document
 
     clean = simulate_campaign(Scenario(name="clean", hours=12, seed=7))
@@ -198,9 +199,9 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
         store.import_bundle(load_bundle(write_bundle(tmp_path / "b", small_meta(), temps, cond, errors)))
         doc = registry.register_model(store, model_document())
         old = {t: RLSState(np.array([0.001]), np.array([[0.5]]), 0.95, 7).to_dict() for t in ("dx", "dy", "dz")}
-        job = store.submit_job(ONLINE_JOB, {}, machine_id=MACHINE)
-        store.claim_job("w", [ONLINE_JOB])
-        store.finish_job(job, "w", {"model_version": doc.version, "states": old})
+        job = store.record_job(ONLINE_JOB, {}, machine_id=MACHINE)
+        store.start_job(job, "w")
+        store.finish_job(job, {"model_version": doc.version, "states": old})
         probe = pd.DataFrame([{"time_s": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0, "dx": 0.0, "dy": 0.0,
                                "dz": 0.0, "T1": 21.0, "T2": 22.0}])
         rep = online_update(store, MACHINE, probe, start=datetime(2026, 3, 3, tzinfo=timezone.utc))

@@ -1,0 +1,266 @@
+"""procrastinate on the store's PostgreSQL database: the tasks, deferring a job, and workers.
+
+The tasks are thin: each calls ``tasks.execute`` on a job record. A fit is deferred with its
+machine's lock (``policy.machine_lock``), so two fits of one machine never run at once, on however
+many workers; every job is retried by ``policy.RetryPolicy``. Two periodic tasks run on the
+workers: ``driftlab.refit`` (DRIFTLAB_REFIT_CRON, nightly by default) queues a refit of every
+machine that has finished campaigns newer than its current model, and ``driftlab.retry_stalled``
+(every five minutes) puts back in the queue the jobs of workers that stopped beating.
+
+The queue's schema is created by the store's migrations (revision 0006), never by procrastinate's
+own ``schema --apply``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import socket
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+from procrastinate import App, JobContext, PsycopgConnector
+from procrastinate.exceptions import AlreadyEnqueued
+from procrastinate.worker import Worker
+
+from driftlab.errors import ValidationError
+from driftlab.jobs import policy
+from driftlab.jobs.tasks import DIAGNOSE, FIT, OnModel, OnStage, execute, one_line
+
+if TYPE_CHECKING:
+    from driftlab.campaigns.store import JobInfo, Store
+
+log = logging.getLogger(__name__)
+
+#: procrastinate task of each job kind
+TASKS = {FIT: "driftlab.fit", DIAGNOSE: "driftlab.diagnose"}
+REFIT_TASK = "driftlab.refit"
+STALLED_TASK = "driftlab.retry_stalled"
+STALLED_CRON = "*/5 * * * *"
+
+
+def default_worker_name() -> str:
+    """Return a worker name unique to this process (host:pid)."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def conninfo(url: str) -> str:
+    """Return the libpq URI of a store's SQLAlchemy URL (PostgreSQL only)."""
+    from sqlalchemy.engine import make_url
+
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "postgresql":
+        raise ValidationError(f"the job queue needs PostgreSQL, not {parsed.get_backend_name()!r}")
+    return parsed.set(drivername="postgresql").render_as_string(hide_password=False)
+
+
+def store_url(store: Store) -> str:
+    """Return the store's URL with its password (for the queue's own connections)."""
+    return store.engine.url.render_as_string(hide_password=False)
+
+
+# ----------------------------------------------------------------------------- tasks
+
+
+def _store_of(context: JobContext) -> Store:
+    """Return the store a worker handed to its tasks (DRIFTLAB_DB_URL's when run by another launcher)."""
+    store = (context.additional_context or {}).get("store")
+    if store is None:
+        from driftlab.campaigns.store import connect
+
+        store = connect(None)
+        context.additional_context["store"] = store
+    return store  # type: ignore[no-any-return]
+
+
+def _run_task(context: JobContext, job_id: int) -> None:
+    """Run a fit or diagnosis job's record (the task of every job kind)."""
+    extra = context.additional_context or {}
+    attempts_done = context.job.attempts + 1
+    execute(_store_of(context), int(job_id), context.worker_name or default_worker_name(),
+            will_retry=lambda exc, _job: policy.retry_in_s(exc, attempts_done) is not None,
+            on_stage=extra.get("on_stage"), on_model=extra.get("on_model"))
+    # the result is in the job's record; procrastinate keeps no results
+
+
+def _refit_task(context: JobContext, timestamp: int) -> None:
+    """Queue a refit of every machine with finished campaigns newer than its current model."""
+    ids = submit_refits(_store_of(context), context.app)
+    log.info("refit at %s: %d job(s) queued %s", timestamp, len(ids), ids)
+
+
+async def _retry_stalled_task(context: JobContext, timestamp: int) -> None:
+    """Put back in the queue the jobs of workers that stopped beating (killed, host lost)."""
+    manager = context.app.job_manager
+    for job in await manager.get_stalled_jobs():
+        log.warning("job %s of a lost worker: queued again", job.id)
+        await manager.retry_job(job)
+
+
+def build_app(url: str, *, pool_size: int = 4, refit_cron: str | None = None) -> App:
+    """Return a procrastinate App over the store's database with driftlab's tasks (not opened)."""
+    from driftlab.config import get_settings
+
+    app = App(connector=PsycopgConnector(conninfo=conninfo(url), min_size=1, max_size=max(2, pool_size)))
+    retry = policy.RetryPolicy()
+    for name in TASKS.values():
+        app.task(name=name, queue=policy.QUEUE, pass_context=True, retry=retry,
+                 priority=policy.PRIORITY_INTERACTIVE)(_run_task)
+    refit = app.task(name=REFIT_TASK, queue=policy.QUEUE, pass_context=True, priority=policy.PRIORITY_UPKEEP)(_refit_task)
+    cron = get_settings().refit_cron if refit_cron is None else refit_cron
+    if cron:
+        app.periodic(cron=cron, periodic_id="refit")(refit)
+    stalled = app.task(name=STALLED_TASK, queue=policy.QUEUE, pass_context=True,
+                       priority=policy.PRIORITY_UPKEEP)(_retry_stalled_task)
+    app.periodic(cron=STALLED_CRON, periodic_id="stalled")(stalled)
+    return app
+
+
+# ----------------------------------------------------------------------------- deferring
+
+
+def defer(app: App, store: Store, job_id: int, kind: str, machine_id: str | None, *,
+          priority: int = policy.PRIORITY_INTERACTIVE, queueing_lock: str | None = None) -> int:
+    """Queue a recorded job on procrastinate (a fit under its machine's lock); link and return the queue's id."""
+    if kind not in TASKS:
+        raise ValidationError(f"unknown job kind {kind!r}")
+    lock = policy.machine_lock(machine_id) if kind == FIT and machine_id else None
+    queue_id = app.configure_task(TASKS[kind], allow_unknown=False, lock=lock, priority=priority,
+                                  queueing_lock=queueing_lock).defer(job_id=job_id)
+    store.link_queue_job(job_id, queue_id)
+    return int(queue_id)
+
+
+def submit_to_queue(app: App, store: Store, kind: str, params: dict[str, Any], *, machine_id: str | None,
+                    campaign_id: int | None, priority: int = policy.PRIORITY_INTERACTIVE,
+                    queueing_lock: str | None = None) -> int:
+    """Record a job and queue it; return its id.
+
+    AlreadyEnqueued (a job with the same queueing lock waits already) removes the record and is
+    re-raised; any other failure to queue leaves the record failed with the reason.
+    """
+    job_id = store.record_job(kind, params, machine_id=machine_id, campaign_id=campaign_id)
+    try:
+        defer(app, store, job_id, kind, machine_id, priority=priority, queueing_lock=queueing_lock)
+    except AlreadyEnqueued:
+        store.delete_job(job_id)
+        raise
+    except Exception as exc:
+        store.fail_job(job_id, f"could not be queued: {one_line(exc)}")
+        raise
+    return job_id
+
+
+def submit_refits(store: Store, app: App) -> list[int]:
+    """Queue a low-priority refit of each machine whose current model predates finished campaigns; return the job ids.
+
+    A refit repeats the fit that made the current model (its network and findings options) on the
+    model's campaigns plus the newer ones; at most one refit per machine waits in the queue.
+    """
+    ids = []
+    for cand in store.refit_candidates():
+        kept = {k: v for k, v in cand.params.items() if k in ("network", "findings", "force_findings")}
+        params = {"network": False, **kept, "campaigns": cand.campaign_ids, "refit_of": cand.model_version}
+        try:
+            ids.append(submit_to_queue(app, store, FIT, params, machine_id=cand.machine_id, campaign_id=None,
+                                       priority=policy.PRIORITY_REFIT,
+                                       queueing_lock=policy.refit_queueing_lock(cand.machine_id)))
+        except AlreadyEnqueued:
+            log.info("refit of %s: one is already waiting", cand.machine_id)
+    return ids
+
+
+# ----------------------------------------------------------------------------- workers
+
+
+def _worker(app: App, store: Store, *, concurrency: int, wait: bool, name: str | None, signals: bool,
+            on_model: OnModel | None = None, on_stage: OnStage | None = None,
+            polling_s: float = 5.0) -> Worker:
+    return Worker(app=app, queues=[policy.QUEUE], name=name or default_worker_name(), concurrency=concurrency,
+                  wait=wait, install_signal_handlers=signals, fetch_job_polling_interval=polling_s,
+                  additional_context={"store": store, "on_model": on_model, "on_stage": on_stage})
+
+
+def run_worker(store: Store, *, concurrency: int = 1, wait: bool = True, name: str | None = None,
+               on_stage: OnStage | None = None) -> None:
+    """Run a worker in the foreground until SIGINT/SIGTERM (or, without ``wait``, until nothing is runnable).
+
+    A stop lets the running jobs end first.
+    """
+    if concurrency < 1:
+        raise ValidationError(f"concurrency must be at least 1, got {concurrency}")
+    app = build_app(store_url(store), pool_size=concurrency + 3)
+
+    async def main() -> None:
+        async with app.open_async():
+            await _worker(app, store, concurrency=concurrency, wait=wait, name=name, signals=True,
+                          on_stage=on_stage).run()
+
+    asyncio.run(main())
+
+
+def run_until_ended(store: Store, job_id: int, *, on_stage: OnStage | None = None, poll_s: float = 1.0) -> JobInfo:
+    """Run queued jobs in this process until job ``job_id`` has ended (another worker may run it); return it."""
+    while True:
+        job = store.get_job(job_id)
+        if job.state in ("done", "failed"):
+            return job
+        if job.state == "queued":
+            run_worker(store, wait=False, on_stage=on_stage)
+            job = store.get_job(job_id)
+            if job.state in ("done", "failed"):
+                return job
+        time.sleep(poll_s)  # running elsewhere, held by its machine's lock, or waiting for its retry
+
+
+class QueueWorker(threading.Thread):
+    """A procrastinate worker in a thread of this process, with its own event loop (`driftlab serve`)."""
+
+    def __init__(self, store: Store, *, concurrency: int = 1, name: str | None = None,
+                 on_model: OnModel | None = None, polling_s: float = 5.0) -> None:
+        super().__init__(name="driftlab-queue-worker", daemon=True)
+        self.store = store
+        self.concurrency = concurrency
+        self.worker_name = name
+        self.on_model = on_model
+        self.polling_s = polling_s
+        self.ready = threading.Event()
+        self.error: BaseException | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._worker: Worker | None = None
+        self._stopping = False
+        self._lock = threading.Lock()
+
+    def run(self) -> None:
+        """Run the worker until stopped."""
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:  # reported, not raised: the thread has nobody to raise to
+            self.error = exc
+            log.exception("job queue worker stopped")
+        finally:
+            self.ready.set()
+
+    async def _main(self) -> None:
+        app = build_app(store_url(self.store), pool_size=self.concurrency + 3)
+        async with app.open_async():
+            worker = _worker(app, self.store, concurrency=self.concurrency, wait=True, name=self.worker_name,
+                             signals=False, on_model=self.on_model, polling_s=self.polling_s)
+            with self._lock:
+                if self._stopping:
+                    return
+                self._loop = asyncio.get_running_loop()
+                self._worker = worker
+            self.ready.set()
+            await worker.run()
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Ask the worker to stop once its running jobs end, and wait up to ``timeout_s`` for it."""
+        with self._lock:
+            self._stopping = True
+            if self._loop is not None and self._worker is not None:
+                self._loop.call_soon_threadsafe(self._worker.stop)
+        if self.is_alive():
+            self.join(timeout_s)
