@@ -99,7 +99,7 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
     n_scans, n_points = int(cur.get("n_scans", 0)), int(cur.get("n_points", 0))
     scans, points = int(cur.get("next_scan", 0)), int(cur.get("next_point", 0))
     total_s = cur.get("total_s") or (max((st.end_s or 0.0) for st in stages) if stages else None)
-    stage_rows = []
+    stage_rows: list[dict[str, Any]] = []
     for st in stages:
         extra = meta_stages[st.ordinal] if st.ordinal < len(meta_stages) else {}
         stage_rows.append({

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from datetime import datetime
+from collections.abc import Sequence
 from typing import Any
 
 import pandas as pd
@@ -267,8 +268,8 @@ class Store:
             if row is None:
                 raise NotFoundError(f"no campaign {campaign_id}")
             for table in (sc.TemperatureSample, sc.TemperatureRollup, sc.ConditionSample, sc.ErrorSample):
-                conn.execute(table.__table__.delete().where(table.__table__.c.campaign_id == campaign_id))
-            gone = conn.execute(sc.Campaign.__table__.delete().where(sc.Campaign.__table__.c.id == campaign_id))
+                conn.execute(delete(table).where(table.campaign_id == campaign_id))
+            gone = conn.execute(delete(sc.Campaign).where(sc.Campaign.id == campaign_id))
             if gone.rowcount != 1:  # pragma: no cover - the row lock above makes this unreachable
                 raise NotFoundError(f"no campaign {campaign_id}")
 
@@ -506,7 +507,7 @@ class Store:
 
     def save_online_state(self, machine_id: str, seen_version: int | None, *, model_version_id: int | None,
                           model_version: int, lam: float, n_updates: int, theta: dict[str, Any], p: dict[str, Any],
-                          probes: list[dict[str, Any]] = ()) -> tuple[OnlineStateInfo, list[int]]:
+                          probes: Sequence[dict[str, Any]] = ()) -> tuple[OnlineStateInfo, list[int]]:
         """Write a new on-line state and its probe measurements in one transaction; return it and the probe ids.
 
         ``seen_version`` is the state's version the update was computed from (None: there was none).

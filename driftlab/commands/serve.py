@@ -48,6 +48,7 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         app.state.driftlab.store.ensure_schema()  # an unreachable database fails here, in one line
     except SQLAlchemyError as exc:
-        raise StoreError(f"cannot open the database: {' '.join(str(exc.orig or exc).split())[:200]}") from None
+        cause = getattr(exc, "orig", None) or exc  # DBAPIError carries the driver's own message
+        raise StoreError(f"cannot open the database: {' '.join(str(cause).split())[:200]}") from None
     uvicorn.run(app, host=host, port=port, log_level=args.log_level, workers=1, access_log=False)
     return 0

@@ -99,10 +99,10 @@ class LocalRunner(threading.Thread):
     def run(self) -> None:
         """Take up what an earlier process left, then run jobs until stopped."""
         try:
-            for job_id in self.store.jobs_in_state("running", list(KINDS)):
-                self.store.fail_job(job_id, INTERRUPTED)
-            for job_id in self.store.jobs_in_state("queued", list(KINDS)):
-                self.submit(job_id)
+            for left in self.store.jobs_in_state("running", list(KINDS)):
+                self.store.fail_job(left, INTERRUPTED)
+            for left in self.store.jobs_in_state("queued", list(KINDS)):
+                self.submit(left)
         except Exception:
             log.exception("job runner: cannot read the jobs left by an earlier process")
         while (job_id := self._next()) is not None:
