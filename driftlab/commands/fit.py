@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -183,14 +184,26 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
                   f"[{style}]{word}[/]")
     con.print(t)
     phys = report.get("physical", [])
-    if phys:
-        pt = Table(title="Regression against physical coefficients (thesis table 6.3)", title_justify="left")
-        for col in ("coefficient", "regression", "physical", "relationship"):
-            pt.add_column(col, justify="right" if col in ("regression", "physical") else "left")
+    check = report.get("physical_check") or {}
+    if check and check.get("status") != "compared":
+        # no stated geometry: say so instead of comparing with lengths that are not this machine's
+        con.print(f"Regression against physical coefficients (thesis table 6.3): {check.get('status')}: "
+                  f"{check.get('note', '')}")
+    elif phys:
+        pt = Table(title="Regression against physical coefficients (thesis table 6.3)" + (
+            f"; {check['note']}" if check.get("note") else ""), title_justify="left")
+        for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
+            pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
+
+        def num(v: Any, fmt: str) -> str:
+            return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
         for p in phys:
             elem, _, feat = str(p["term"]).partition(" ")
-            pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem), f"{p['regression']:.4g}", f"{p['physical']:.4g}",
-                       str(p.get("relationship", "")))
+            status = str(p.get("status", "compared"))
+            pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem), num(p.get("regression"), ".4g"),
+                       num(p.get("physical"), ".4g"), num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
+                       str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"))
         con.print(pt)
     for f in report.get("findings", []):
         what = f"{effect_label(f)} on {f.get('axis')}/{f.get('term')}"

@@ -29,6 +29,7 @@ from driftlab.models.features import (
 )
 from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
 from driftlab.models.neural import ExtrapolationResult, extrapolation_errors, fit_network
+from driftlab.models.physical_check import physical_check
 from driftlab.models.regression import TermFit, r_squared, rmse, stepwise
 from driftlab.models.registry import ALPHA_C_PER_DEGC, MODEL_FORMAT, ModelDocument, document_json, now_iso, validate_document
 from driftlab.models.selection import ScreeningResult, screen_channels
@@ -115,6 +116,7 @@ class FitResult:
     physical: pd.DataFrame  # table 6.3 layout
     extrapolation: ExtrapolationResult | None
     timings_s: dict[str, float] = field(default_factory=dict)
+    physical_check: dict[str, Any] = field(default_factory=dict)  # table 6.3's status: compared / no geometry
 
     def report(self) -> dict[str, Any]:
         """Return the JSON report of ``driftlab fit --json``."""
@@ -128,6 +130,7 @@ class FitResult:
             "dropped_channels": dict(self.screening.dropped),
             "terms": rows,
             "physical": self.physical.to_dict("records"),
+            "physical_check": self.physical_check,
             "timings_s": self.timings_s,
         }
         if self.document.findings:
@@ -810,69 +813,6 @@ def validation_table(
     return pd.DataFrame(rows), W_hat
 
 
-def physical_table(
-    models: Mapping[tuple[str, str], ElementModel],
-    dims: Mapping[str, Any],
-    structures: Mapping[str, str],
-    geometry: Mapping[str, float] | None = None,
-    alpha_c: float = ALPHA_C_PER_DEGC,
-) -> pd.DataFrame:
-    """Return table 6.3: each physically recast coefficient beside its physical value (ch. 3.5).
-
-    position x dT of a ballscrew: alpha_c per mm of travel (eq. 3.2, L = position); the dT terms
-    of a joint's ballscrew sites together: alpha_c l, l its non-travelled length (eq. 3.2);
-    a structure mean on a link: alpha_c L (eqs. 3.1, 3.3, L from the link dims); a gradient across
-    a structure: alpha_c L^2/2H on a translation (eq. 3.5), alpha_c L/H on an angle (eq. 3.4).
-    """
-    g = {"arm_length_mm": 400.0, "arm_height_mm": 200.0, "screw_fixed_mm": 150.0, "column_mm": 1200.0}
-    g.update(geometry or {})
-    rows = []
-
-    def row(term: str, m: ElementModel, feature: str, reg: float, se: float, phys: float, rel: str) -> None:
-        rows.append({"term": term, "element": m.element, "param": m.param, "feature": feature,
-                     "regression": reg, "std_error": se, "physical": phys, "relationship": rel,
-                     "ratio": abs(reg) / phys if phys else float("nan")})
-
-    for (element, param), m in models.items():
-        screw_sum, screw_se, screw_names = 0.0, 0.0, []
-        for f, coef, se in zip(m.features, m.coef, m.std_errors):
-            translation = param in ("dx", "dy", "dz")
-            if f.kind == "pos_dT" and translation:
-                row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c,
-                    "alpha_c dT L, L = position (eq. 3.2), mm/mm/degC")
-            elif f.kind == "dT" and translation and element in SCREW_STRUCTURES and \
-                    structures.get(f.channels[0], "") in SCREW_STRUCTURES[element]:
-                screw_sum += coef
-                screw_se = float(np.hypot(screw_se, se))
-                screw_names.append(f.channels[0])
-            elif f.kind == "mean" and translation and element in dims:
-                L = abs(float(tuple(dims[element])[("dx", "dy", "dz").index(param)]))
-                if element == "T2" and param == "dz":
-                    L = g["column_mm"]
-                if L > 0:
-                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L,
-                        f"alpha_c dT L, L = {L:.0f} mm (eqs. 3.1, 3.3), mm/degC")
-            elif f.kind == "gradient" and not _room_pair(f):
-                L, H = g["arm_length_mm"], g["arm_height_mm"]
-                if translation:
-                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L**2 / (2 * H),
-                        f"alpha_c dT L^2/2H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.5), mm/degC")
-                else:
-                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L / H,
-                        f"alpha_c dT L/H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.4), rad/degC")
-        if screw_names:
-            name = "+".join(f"dT[{c}]" for c in screw_names)
-            row(f"{element}.{param} {name}", m, name, screw_sum, screw_se, alpha_c * g["screw_fixed_mm"],
-                f"alpha_c dT l, l = {g['screw_fixed_mm']:.0f} mm non-travelled screw (eq. 3.2), mm/degC")
-    return pd.DataFrame(rows, columns=["term", "element", "param", "feature", "regression", "std_error",
-                                       "physical", "relationship", "ratio"])
-
-
-def _room_pair(f: Feature, room: Sequence[str] = ("T49", "T50")) -> bool:
-    """Return True for the ceiling-floor room gradient (not a structural bending term)."""
-    return any(c in room for c in f.channels)
-
-
 # ----------------------------------------------------------------------------- the pipeline
 
 
@@ -1039,7 +979,9 @@ def _fit_bundles(
 
     # 5. validation tables
     validation, W_hat = validation_table(sample, models, dims)
-    physical = physical_table(models, dims, structures)
+    # table 6.3 with the lengths the machine's campaigns state, or an explicit "no geometry"
+    check = physical_check(models, structures, bundles, locations=locations, room=room)
+    physical = check.table
     lap("validation")
 
     # 6. neural comparison and extrapolation (ch. 6.6)
@@ -1108,6 +1050,7 @@ def _fit_bundles(
         "screening": screening.to_dict(),
         "validation": validation.to_dict("records"),
         "physical": physical.to_dict("records"),
+        "physical_check": check.to_dict(),
         "virtual_sensors": vs,
         "extrapolation": None if extrapolation is None else {**extrapolation.to_dict(), **(net_summary or {})},
         "allocation": alloc + ([{"joint_adjustment": adjustment}] if adjustment else []),
@@ -1117,7 +1060,7 @@ def _fit_bundles(
     }
     document = validate_document(_strict_json(doc))
     lap("document")
-    return FitResult(document, screening, models, validation, physical, extrapolation, timings)
+    return FitResult(document, screening, models, validation, physical, extrapolation, timings, check.to_dict())
 
 
 def _axes_of(fit: TermFit) -> str | None:

@@ -139,6 +139,8 @@ class ModelDocument(_Doc):
     screening: dict[str, Any] = Field(default_factory=dict)
     validation: list[dict[str, Any]] = Field(default_factory=list)
     physical: list[dict[str, Any]] = Field(default_factory=list)
+    #: table 6.3's status (``compared``, ``no geometry``, ``conflicting geometry``) and the geometry it used
+    physical_check: dict[str, Any] | None = None
     virtual_sensors: list[dict[str, Any]] = Field(default_factory=list)
     extrapolation: dict[str, Any] | None = None
     allocation: list[dict[str, Any]] = Field(default_factory=list)
