@@ -215,10 +215,28 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             kept_terms = [f"{feature_label(n)} in {'+'.join(m)}" for n, m in f.get("entered", {}).items() if m]
             con.print(f"finding {what}: {'; '.join(kept_terms) or 'no term entered'}"
                       f"{' (forced)' if f.get('forced') else ''}")
-    if report.get("extrapolation"):
-        e = report["extrapolation"]
-        con.print(f"extrapolation to an unseen campaign (ch. 6.6): regression {e['regression_mm'] * 1e3:.1f} um, "
-                  f"neural network {e['network_mm'] * 1e3:.1f} um RMSE")
+    for c in report.get("neural_comparison") or []:
+        # ch. 6.6: least squares and the network on the same inputs, each extrapolation direction
+        if c.get("status") != "compared":
+            con.print(f"neural comparison on {c['target']} (ch. 6.6): {c.get('status')}: {c.get('note', '')}")
+            continue
+        k, unit = display_unit(c["target"].partition("/")[2])
+        nt = Table(title=f"Neural network against least squares on the same inputs, {c['target']} (ch. 6.6; split by "
+                         f"{c['split']}; {len(c.get('channels', []))} channels)", title_justify="left")
+        for col in ("direction", "train", "test", f"regression test ({unit})", f"network test ({unit})",
+                    f"regression train ({unit})", f"network train ({unit})", "test beyond range"):
+            nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
+
+        def val(v: Any) -> str:
+            return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
+        for d in c.get("directions", []):
+            nt.add_row(d["direction"], d["train"], d["test"], val(d["regression_test"]), val(d["network_test"]),
+                       val(d["regression_train"]), val(d["network_train"]),
+                       f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC")
+        con.print(nt)
+        for what, why in (c.get("excluded") or {}).items():
+            con.print(f"  not a target: {what}: {why}")
 
 
 def _list(args: argparse.Namespace) -> int:
