@@ -168,7 +168,8 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
     t = Table(title="Per-link models (thesis tables 6.1-6.2): RMSE of the work-space error" + (
         f"; stated noise {', '.join(stated)}" if stated else "; no noise stated: judged against the machine's resolution"),
         title_justify="left")
-    for col, just in (("axis", "left"), ("term", "left"), ("link", "left"), ("unit", "left"), ("RMSE train", "right"),
+    for col, just in (("axis", "left"), ("term", "left"), ("measurement", "left"), ("link", "left"), ("unit", "left"),
+                      ("RMSE train", "right"),
                       ("RMSE held out", "right"), ("R2", "right"), ("F", "right"), ("held out vs", "right"),
                       ("verdict", "left")):
         t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
@@ -179,7 +180,7 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         def num(v: Any, fmt: str, scale: float = 1.0) -> str:
             return format(v * scale, fmt) if isinstance(v, (int, float)) else "-"
 
-        t.add_row(r["axis"], r["term"], str(r["link"]), unit, num(r.get("rmse_train"), ".2f", k),
+        t.add_row(r["axis"], r["term"], str(r.get("measurement", "")), str(r["link"]), unit, num(r.get("rmse_train"), ".2f", k),
                   num(r.get("rmse_holdout"), ".2f", k), num(r.get("r2"), ".3f"), num(r.get("f"), ".4g"), ratio,
                   f"[{style}]{word}[/]")
     con.print(t)

@@ -127,7 +127,7 @@ class FitResult:
         """Return the JSON report of ``driftlab fit --json``."""
         rows = []
         for r in self.validation.to_dict("records"):
-            rows.append({k: r[k] for k in ("axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f")})
+            rows.append({k: r[k] for k in ("axis", "term", "measurement", "link", "rmse_train", "rmse_holdout", "r2", "f")})
         out: dict[str, Any] = {
             "model_version": self.document.version,
             "machine": self.document.machine,

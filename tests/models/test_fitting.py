@@ -408,6 +408,22 @@ def test_vm_neural_comparison_same_inputs_fixed_target_both_directions(vm_fit, v
     assert res.document.neural_comparison[0]["target"] == "Z/dz"
 
 
+def test_vm_report_names_each_measurement_as_tables_6_1_and_6_2(vm_fit):
+    """Roll is the rotation about the moving axis; a rotary axis' own rotation is its positioning, the rest tilt it."""
+    res, _ = vm_fit
+    names = {(r["axis"], r["term"]): r["measurement"] for r in res.report()["terms"]}
+    assert len(names) == 30
+    assert [names[(a, t)] for a, t in (("X", "alpha"), ("Y", "beta"), ("Z", "gamma"))] == ["Roll"] * 3
+    assert [names[("X", t)] for t in ("beta", "gamma")] == ["Pitch", "Yaw"]
+    assert [names[("Z", t)] for t in ("alpha", "beta")] == ["Pitch", "Yaw"]
+    assert names[("A", "alpha")] == names[("B", "beta")] == "Positioning"
+    assert {names[("A", "beta")], names[("A", "gamma")], names[("B", "alpha")], names[("B", "gamma")]} == \
+        {"Beta Tilt", "Gamma Tilt", "Alpha Tilt"}
+    assert names[("Z", "dz")] == "Position" and names[("Z", "dx")] == "X Straightness"
+    assert names[("A", "dy")] == "Y Deflection"
+    assert not any("Roll" in n for (a, _), n in names.items() if a in ("A", "B"))
+
+
 def test_fit_compares_only_the_targets_it_was_given():
     res = fit_bundles([synthetic_bundle(0)], FitOptions(virtual_sensors=False, network_targets=("X/dy",),
                                                         network_hidden=(8, 4), network_max_iter=50))

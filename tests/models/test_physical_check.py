@@ -11,11 +11,10 @@ import math
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 import yaml
 
-from driftlab.campaigns.bundle import BundleError, CampaignMeta, load_bundle, write_bundle, Bundle
+from driftlab.campaigns.bundle import Bundle, BundleError, CampaignMeta, load_bundle, write_bundle
 from driftlab.daq.sim import truth
 from driftlab.geometry import Geometry
 from driftlab.models.features import Feature
