@@ -47,7 +47,7 @@ def _baseline(bundle: Bundle) -> float:
 
 
 def main() -> None:
-    """Fit a 70 h campaign (with a warm-room campaign for the extrapolation test) and print one JSON line."""
+    """Fit a 70 h campaign and a warm-room one (the neural comparison on Z/dz, both directions); print one JSON line."""
     train = _bundle(Scenario(name="bench-70h", hours=HOURS, seed=1))
     warm = _bundle(Scenario(name="bench-warm", hours=16.0, seed=2, room=Room(mean_degC=24.0)))
     w0, c0 = time.perf_counter(), time.process_time()
@@ -56,7 +56,10 @@ def main() -> None:
     v = result.validation
     lengths = v[v["unit"] == "mm"]
     angles = v[v["unit"] == "rad"]
-    ext = result.extrapolation
+    neural = [{"target": c.target, "status": c.status, "split": c.split,
+               "directions": [{k: d.to_dict()[k] for k in ("direction", "regression_test", "network_test",
+                                                            "max_excess_degC")} for d in c.directions]}
+              for c in result.neural]
     emit({
         "benchmark": "fit",
         "hours": HOURS,
@@ -71,7 +74,7 @@ def main() -> None:
         "kept_channels": result.document.kept_channels,
         "worst_rmse_holdout_mm": float(lengths["rmse_holdout"].max()),
         "worst_rmse_holdout_rad": float(angles["rmse_holdout"].max()),
-        "extrapolation": None if ext is None else ext.to_dict(),
+        "neural_comparison": neural,
         "load_average": load_average(),
     })
 

@@ -20,7 +20,8 @@ import numpy as np
 from driftlab.campaigns.db import write_transaction
 from driftlab.campaigns.plan import Cursor, Plan, SweepPoint
 from driftlab.daq.protocols import Reading, ScanBlock, TemperatureScan
-from driftlab.errors import ConflictError, DriftlabError
+from driftlab.errors import ConflictError, DriftlabError, ValidationError
+from driftlab.geometry import Geometry
 
 log = logging.getLogger(__name__)
 
@@ -153,13 +154,18 @@ def open_campaign(
             # bundle v2: every reading is stored with its commanded pose and the setup that made it
             "format": "driftlab-bundle/2",
             "setups": {k: v.bundle_entry() for k, v in plan.used_setups().items()},
-            "machine": {"id": plan.machine.id, "name": plan.machine.name},
+            "machine": {"id": plan.machine.id, "name": plan.machine.name,
+                        **({"geometry": plan.machine.geometry.document()} if plan.machine.geometry else {})},
             "started_at": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
             "channels": {k: dict(v) for k, v in channels.items()},
             "room_channels": list(room_channels),
             "stages": plan.bundle_stages(),
         }
         for key, value in (extra_meta or {}).items():
+            if key == "machine" and "geometry" in value and "geometry" in meta["machine"] and \
+                    Geometry.model_validate(value["geometry"]) != plan.machine.geometry:
+                raise ValidationError(f"plan {plan.name!r} and the scenario state different geometries of machine "
+                                      f"{plan.machine.id!r}: state it once")
             meta.setdefault(key, value) if key != "machine" else meta["machine"].update(
                 {k: v for k, v in value.items() if k != "id" and (k != "name" or not plan.machine.name)}
             )

@@ -38,6 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.errors import ValidationError
+from driftlab.geometry import Geometry
 
 FORMAT = "driftlab-bundle/1"
 FORMAT_V2 = "driftlab-bundle/2"
@@ -104,6 +105,8 @@ class Machine(_Strict):
     name: str = Field(default="", max_length=MAX_TEXT_CHARS)
     resolution_mm: float | None = Field(default=None, gt=0, allow_inf_nan=False)
     resolution_deg: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    #: optional stated dimensions (table 6.3's physical check); absent = "no geometry"
+    geometry: Geometry | None = None
 
 
 class Channel(_Strict):

@@ -47,6 +47,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from driftlab.campaigns.bundle import ID_PATTERN
 from driftlab.campaigns.setups import Setup, all_cells, coverage, default_laser_setup
 from driftlab.errors import ValidationError
+from driftlab.geometry import Geometry
 
 PLAN_FORMAT = "driftlab-plan/1"
 Axis = Literal["X", "Y", "Z", "A", "B"]
@@ -244,6 +245,8 @@ class MachineRef(_Strict):
     room_channels: list[str] = Field(default_factory=list)
     travel: dict[Axis, tuple[float, float]] = Field(
         default_factory=dict, description="travel limits per axis (mm; degrees for A, B): moves must stay inside")
+    geometry: Geometry | None = Field(
+        default=None, description="the machine's stated lengths for table 6.3 (campaign.json machine.geometry)")
 
     @model_validator(mode="after")
     def _rooms_known(self) -> "MachineRef":
@@ -473,6 +476,7 @@ class Plan(_Strict):
             del doc["setups"]
         if not doc["machine"]["travel"]:
             del doc["machine"]["travel"]
+        doc["machine"].pop("geometry", None)  # stated lengths do not move the timeline
         for st in doc["stages"]:
             if st["setup"] is None:
                 del st["setup"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -158,7 +159,8 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
     t = Table(title="Per-link models (thesis tables 6.1-6.2): RMSE of the work-space error" + (
         f"; stated noise {', '.join(stated)}" if stated else "; no noise stated: judged against the machine's resolution"),
         title_justify="left")
-    for col, just in (("axis", "left"), ("term", "left"), ("link", "left"), ("form", "left"), ("unit", "left"),
+    for col, just in (("axis", "left"), ("term", "left"), ("measurement", "left"), ("link", "left"), ("form", "left"),
+                      ("unit", "left"),
                       ("RMSE train", "right"),
                       ("RMSE held out", "right"), ("R2", "right"), ("F", "right"), ("held out vs", "right"),
                       ("verdict", "left")):
@@ -170,19 +172,32 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         def num(v: Any, fmt: str, scale: float = 1.0) -> str:
             return format(v * scale, fmt) if isinstance(v, (int, float)) else "-"
 
-        t.add_row(r["axis"], r["term"], str(r["link"]), str(r.get("form", "link")), unit, num(r.get("rmse_train"), ".2f", k),
+        t.add_row(r["axis"], r["term"], str(r.get("measurement", "")), str(r["link"]), str(r.get("form", "link")), unit,
+                  num(r.get("rmse_train"), ".2f", k),
                   num(r.get("rmse_holdout"), ".2f", k), num(r.get("r2"), ".3f"), num(r.get("f"), ".4g"), ratio,
                   f"[{style}]{word}[/]")
     con.print(t)
     phys = report.get("physical", [])
-    if phys:
-        pt = Table(title="Regression against physical coefficients (thesis table 6.3)", title_justify="left")
-        for col in ("coefficient", "regression", "physical", "relationship"):
-            pt.add_column(col, justify="right" if col in ("regression", "physical") else "left")
+    check = report.get("physical_check") or {}
+    if check and check.get("status") != "compared":
+        # no stated geometry: say so instead of comparing with lengths that are not this machine's
+        con.print(f"Regression against physical coefficients (thesis table 6.3): {check.get('status')}: "
+                  f"{check.get('note', '')}")
+    elif phys:
+        pt = Table(title="Regression against physical coefficients (thesis table 6.3)" + (
+            f"; {check['note']}" if check.get("note") else ""), title_justify="left")
+        for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
+            pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
+
+        def num(v: Any, fmt: str) -> str:
+            return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
         for p in phys:
             elem, _, feat = str(p["term"]).partition(" ")
-            pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem), f"{p['regression']:.4g}", f"{p['physical']:.4g}",
-                       str(p.get("relationship", "")))
+            status = str(p.get("status", "compared"))
+            pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem), num(p.get("regression"), ".4g"),
+                       num(p.get("physical"), ".4g"), num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
+                       str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"))
         con.print(pt)
     for f in report.get("findings", []):
         what = f"{effect_label(f)} on {f.get('axis')}/{f.get('term')}"
@@ -194,10 +209,28 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             kept_terms = [f"{feature_label(n)} in {'+'.join(m)}" for n, m in f.get("entered", {}).items() if m]
             con.print(f"finding {what}: {'; '.join(kept_terms) or 'no term entered'}"
                       f"{' (forced)' if f.get('forced') else ''}")
-    if report.get("extrapolation"):
-        e = report["extrapolation"]
-        con.print(f"extrapolation to an unseen campaign (ch. 6.6): regression {e['regression_mm'] * 1e3:.1f} um, "
-                  f"neural network {e['network_mm'] * 1e3:.1f} um RMSE")
+    for c in report.get("neural_comparison") or []:
+        # ch. 6.6: least squares and the network on the same inputs, each extrapolation direction
+        if c.get("status") != "compared":
+            con.print(f"neural comparison on {c['target']} (ch. 6.6): {c.get('status')}: {c.get('note', '')}")
+            continue
+        k, unit = display_unit(c["target"].partition("/")[2])
+        nt = Table(title=f"Neural network against least squares on the same inputs, {c['target']} (ch. 6.6; split by "
+                         f"{c['split']}; {len(c.get('channels', []))} channels)", title_justify="left")
+        for col in ("direction", "train", "test", f"regression test ({unit})", f"network test ({unit})",
+                    f"regression train ({unit})", f"network train ({unit})", "test beyond range"):
+            nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
+
+        def val(v: Any) -> str:
+            return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
+        for d in c.get("directions", []):
+            nt.add_row(d["direction"], d["train"], d["test"], val(d["regression_test"]), val(d["network_test"]),
+                       val(d["regression_train"]), val(d["network_train"]),
+                       f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC")
+        con.print(nt)
+        for what, why in (c.get("excluded") or {}).items():
+            con.print(f"  not a target: {what}: {why}")
 
 
 def _list(args: argparse.Namespace) -> int:

@@ -29,7 +29,8 @@ from driftlab.models.features import (
 )
 from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
 from driftlab.models.lines import LINE_ELEMENT, Composed, LineFit, compose, distinct, fit_lines, home_deviation, line_pool
-from driftlab.models.neural import ExtrapolationResult, extrapolation_errors, fit_network
+from driftlab.models.neural import NeuralComparison, neural_comparisons
+from driftlab.models.physical_check import physical_check
 from driftlab.models.regression import TermFit, r_squared, rmse, stepwise
 from driftlab.models.registry import ALPHA_C_PER_DEGC, MODEL_FORMAT, ModelDocument, document_json, now_iso, validate_document
 from driftlab.models.selection import ScreeningResult, screen_channels
@@ -80,6 +81,11 @@ class FitOptions:
     network_hidden: tuple[int, ...] = (30, 15, 7)
     network_max_samples: int = 4000
     network_max_iter: int = 300
+    #: the terms the neural comparison is run on, fixed before any result is seen ("all": every measured term)
+    network_targets: tuple[str, ...] = ("Z/dz",)
+    #: how its two extrapolation directions are formed: "auto" (by campaign when two or more have
+    #: absolute readings, else by time), "time" or "campaign"
+    network_split: str = "auto"
     joint_adjust: bool = True
     tiered: bool = False
     global_lengths: bool = True
@@ -116,15 +122,16 @@ class FitResult:
     models: dict[tuple[str, str], "ElementModel"]
     validation: pd.DataFrame  # tables 6.1/6.2 layout
     physical: pd.DataFrame  # table 6.3 layout
-    extrapolation: ExtrapolationResult | None
+    neural: list[NeuralComparison]  # ch. 6.6: one per target fixed in advance, both directions each
     timings_s: dict[str, float] = field(default_factory=dict)
+    physical_check: dict[str, Any] = field(default_factory=dict)  # table 6.3's status: compared / no geometry
 
     def report(self) -> dict[str, Any]:
         """Return the JSON report of ``driftlab fit --json``."""
         rows = []
         forms = {(ln["axis"], ln["term"]): ln for ln in self.document.lines}
         for r in self.validation.to_dict("records"):
-            row = {k: r[k] for k in ("axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f")}
+            row = {k: r[k] for k in ("axis", "term", "measurement", "link", "rmse_train", "rmse_holdout", "r2", "f")}
             line = forms.get((r["axis"], r["term"]))
             # which form won on this line (link models alone, or plus its correction) and why
             row["form"] = line["form"] if line else "link"
@@ -137,12 +144,13 @@ class FitResult:
             "dropped_channels": dict(self.screening.dropped),
             "terms": rows,
             "physical": self.physical.to_dict("records"),
+            "physical_check": self.physical_check,
             "timings_s": self.timings_s,
         }
         if self.document.findings:
             out["findings"] = list(self.document.findings)
-        if self.extrapolation is not None:
-            out["extrapolation"] = self.extrapolation.to_dict()
+        if self.neural:
+            out["neural_comparison"] = [c.to_dict() for c in self.neural]
         return _strict_json(out)
 
 
@@ -840,69 +848,6 @@ def validation_table(
     return pd.DataFrame(rows), W_hat
 
 
-def physical_table(
-    models: Mapping[tuple[str, str], ElementModel],
-    dims: Mapping[str, Any],
-    structures: Mapping[str, str],
-    geometry: Mapping[str, float] | None = None,
-    alpha_c: float = ALPHA_C_PER_DEGC,
-) -> pd.DataFrame:
-    """Return table 6.3: each physically recast coefficient beside its physical value (ch. 3.5).
-
-    position x dT of a ballscrew: alpha_c per mm of travel (eq. 3.2, L = position); the dT terms
-    of a joint's ballscrew sites together: alpha_c l, l its non-travelled length (eq. 3.2);
-    a structure mean on a link: alpha_c L (eqs. 3.1, 3.3, L from the link dims); a gradient across
-    a structure: alpha_c L^2/2H on a translation (eq. 3.5), alpha_c L/H on an angle (eq. 3.4).
-    """
-    g = {"arm_length_mm": 400.0, "arm_height_mm": 200.0, "screw_fixed_mm": 150.0, "column_mm": 1200.0}
-    g.update(geometry or {})
-    rows = []
-
-    def row(term: str, m: ElementModel, feature: str, reg: float, se: float, phys: float, rel: str) -> None:
-        rows.append({"term": term, "element": m.element, "param": m.param, "feature": feature,
-                     "regression": reg, "std_error": se, "physical": phys, "relationship": rel,
-                     "ratio": abs(reg) / phys if phys else float("nan")})
-
-    for (element, param), m in models.items():
-        screw_sum, screw_se, screw_names = 0.0, 0.0, []
-        for f, coef, se in zip(m.features, m.coef, m.std_errors):
-            translation = param in ("dx", "dy", "dz")
-            if f.kind == "pos_dT" and translation:
-                row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c,
-                    "alpha_c dT L, L = position (eq. 3.2), mm/mm/degC")
-            elif f.kind == "dT" and translation and element in SCREW_STRUCTURES and \
-                    structures.get(f.channels[0], "") in SCREW_STRUCTURES[element]:
-                screw_sum += coef
-                screw_se = float(np.hypot(screw_se, se))
-                screw_names.append(f.channels[0])
-            elif f.kind == "mean" and translation and element in dims:
-                L = abs(float(tuple(dims[element])[("dx", "dy", "dz").index(param)]))
-                if element == "T2" and param == "dz":
-                    L = g["column_mm"]
-                if L > 0:
-                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L,
-                        f"alpha_c dT L, L = {L:.0f} mm (eqs. 3.1, 3.3), mm/degC")
-            elif f.kind == "gradient" and not _room_pair(f):
-                L, H = g["arm_length_mm"], g["arm_height_mm"]
-                if translation:
-                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L**2 / (2 * H),
-                        f"alpha_c dT L^2/2H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.5), mm/degC")
-                else:
-                    row(f"{element}.{param} {f.name}", m, f.name, coef, se, alpha_c * L / H,
-                        f"alpha_c dT L/H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.4), rad/degC")
-        if screw_names:
-            name = "+".join(f"dT[{c}]" for c in screw_names)
-            row(f"{element}.{param} {name}", m, name, screw_sum, screw_se, alpha_c * g["screw_fixed_mm"],
-                f"alpha_c dT l, l = {g['screw_fixed_mm']:.0f} mm non-travelled screw (eq. 3.2), mm/degC")
-    return pd.DataFrame(rows, columns=["term", "element", "param", "feature", "regression", "std_error",
-                                       "physical", "relationship", "ratio"])
-
-
-def _room_pair(f: Feature, room: Sequence[str] = ("T49", "T50")) -> bool:
-    """Return True for the ceiling-floor room gradient (not a structural bending term)."""
-    return any(c in room for c in f.channels)
-
-
 # ----------------------------------------------------------------------------- the pipeline
 
 
@@ -918,38 +863,6 @@ def _reference(bundles: Sequence[Any], channels: Sequence[str]) -> dict[str, flo
                     ref[c] = float(v[ok][0])
                     break
     return ref
-
-
-def _extrapolation_split(bundles: Sequence[Any], room: Sequence[str], min_shift_degC: float = 1.0) -> int | None:
-    """Return the index of a campaign whose room air lies beyond all the others' (ch. 6.6), or None."""
-    if len(bundles) < 2 or not room:
-        return None
-    means = []
-    for b in bundles:
-        cols = [c for c in room if c in b.temperatures.columns]
-        means.append(float(np.nanmean(b.temperatures[cols].to_numpy(float))) if cols else np.nan)
-    i = int(np.nanargmax(means))
-    others = [j for j in range(len(bundles)) if j != i]
-    hi_others = max(
-        float(np.nanmax(bundles[j].temperatures[[c for c in room if c in bundles[j].temperatures.columns]].to_numpy(float)))
-        for j in others
-    )
-    cols = [c for c in room if c in bundles[i].temperatures.columns]
-    if float(np.nanmean(bundles[i].temperatures[cols].to_numpy(float))) - hi_others >= min_shift_degC:
-        return i
-    return None
-
-
-def _room_shift(bundles: Sequence[Any], ext_i: int | None, room: Sequence[str]) -> float:
-    """Return how far (degC) the extrapolation campaign's mean room air lies above the training maximum."""
-    if ext_i is None:
-        return float("nan")
-
-    def vals(b: Any) -> np.ndarray:
-        return b.temperatures[[c for c in room if c in b.temperatures.columns]].to_numpy(float)
-
-    hi = max(float(np.nanmax(vals(b))) for i, b in enumerate(bundles) if i != ext_i)
-    return float(np.nanmean(vals(bundles[ext_i]))) - hi
 
 
 def fit_bundles(
@@ -1015,8 +928,8 @@ def _fit_bundles(
     structures = {c: m["structure"] for c, m in chan_meta.items()}
     locations = {c: m["location"] for c, m in chan_meta.items()}
 
-    ext_i = _extrapolation_split(bundles, room) if opts.network else None
-    train_bundles = [b for i, b in enumerate(bundles) if i != ext_i]
+    # every campaign trains the model: the neural comparison below is an experiment beside it
+    train_bundles = list(bundles)
 
     # 1. screening (ch. 5.4)
     common = [c for c in channel_columns(train_bundles[0].temperatures) if all(c in b.temperatures for b in train_bundles)]
@@ -1105,17 +1018,25 @@ def _fit_bundles(
 
     # 5. validation tables
     validation, W_hat = validation_table(sample, models, dims, composed)
-    physical = physical_table(models, dims, structures)
+    # table 6.3 with the lengths the machine's campaigns state, or an explicit "no geometry"
+    check = physical_check(models, structures, bundles, locations=locations, room=room)
+    physical = check.table
     lap("validation")
 
-    # 6. neural comparison and extrapolation (ch. 6.6)
-    extrapolation = None
-    net_summary: dict[str, Any] | None = None
+    # 6. neural comparison (ch. 6.6): the same inputs to both models, the targets fixed in advance
+    # (options), both extrapolation directions, absolute readings only (models/neural.py)
+    neural: list[NeuralComparison] = []
     if opts.network:
-        extrapolation, net_summary = _network_comparison(
-            sample, W_hat, models, bundles[ext_i] if ext_i is not None else None, channels, reference, lags, dims, opts,
-            _room_shift(bundles, ext_i, room), kept, origin,
-        )
+        targets = list(opts.network_targets)
+        if targets == ["all"]:
+            seen = pd.concat([b.errors[["axis", "term"]] for b in bundles]).drop_duplicates()
+            targets = [f"{a}/{t}" for a, t in sorted(map(tuple, seen.to_numpy().tolist()))]
+        for target in targets:
+            # the user's sensor selection for the axis, else the screening's: the same for both models
+            net_channels = [c for c in model_channels.get(str(target).partition("/")[0], []) if c in common] or kept
+            neural += neural_comparisons(bundles, [target], net_channels, split=opts.network_split,
+                                         hidden=opts.network_hidden, max_samples=opts.network_max_samples,
+                                         max_iter=opts.network_max_iter, seed=opts.seed)
         lap("network")
 
     # 7. virtual sensors (ch. 6.6, fig. 6.9)
@@ -1175,8 +1096,9 @@ def _fit_bundles(
         "screening": screening.to_dict(),
         "validation": validation.to_dict("records"),
         "physical": physical.to_dict("records"),
+        "physical_check": check.to_dict(),
         "virtual_sensors": vs,
-        "extrapolation": None if extrapolation is None else {**extrapolation.to_dict(), **(net_summary or {})},
+        "neural_comparison": [c.to_dict() for c in neural] or None,
         "allocation": alloc + ([{"joint_adjustment": adjustment}] if adjustment else []),
         "time_origin": origin.isoformat(),
         "substitutions": [sub.to_dict() for sub in (plan.substitutions if plan else [])],
@@ -1185,7 +1107,7 @@ def _fit_bundles(
     }
     document = validate_document(_strict_json(doc))
     lap("document")
-    return FitResult(document, screening, models, validation, physical, extrapolation, timings)
+    return FitResult(document, screening, models, validation, physical, neural, timings, check.to_dict())
 
 
 def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd.DataFrame) -> None:
@@ -1235,69 +1157,6 @@ def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:
 def _axes_of(fit: TermFit) -> str | None:
     """Return the element's own axis for a joint (None for a link, measured through every axis)."""
     return JOINT_OF.get(fit.element)
-
-
-def _network_comparison(
-    sample: Sample,
-    W_hat: np.ndarray,
-    models: Mapping[tuple[str, str], "ElementModel"],
-    ext_bundle: Any | None,
-    channels: Sequence[str],
-    reference: Mapping[str, float],
-    lags: Sequence[tuple[str, float]],
-    dims: Mapping[str, Any],
-    opts: FitOptions,
-    shift_degC: float = float("nan"),
-    net_channels: Sequence[str] | None = None,
-    origin: datetime | None = None,
-) -> tuple[ExtrapolationResult | None, dict[str, Any]]:
-    """Return the ch. 6.6 comparison on the largest position error: in range, and beyond it when data allow."""
-    W = sample.frame[list(PARAMS)].to_numpy(float)
-    role = sample.frame["role"].to_numpy(object)
-    # the position error the regression predicts best on held-out data (the thesis used Z position)
-    best, target = -np.inf, None
-    for ax in ("Z", "X", "Y"):
-        k = PARAMS.index("d" + ax.lower())
-        m = (sample.frame["axis"] == ax).to_numpy() & np.isfinite(W[:, k])
-        ho = m & (role == "holdout")
-        if m.sum() > 50 and ho.sum() > 5 and float(np.nanstd(W[m, k])) > 0:
-            score = -rmse(W[ho, k] - W_hat[ho, k])
-            if score > best:
-                best, target = score, (ax, k)
-    if target is None:
-        return None, {}
-    ax, k = target
-    raw = list(net_channels or channels)
-
-    def net_inputs(s: Sample) -> pd.DataFrame:
-        # the network sees the readings themselves, scaled by eq. 6.3 (ch. 6.4.1), not the recast terms
-        X = (s.raw if s.raw is not None else s.inputs.dT)[raw].copy()
-        X["position"] = s.q[:, AXES.index(ax)]
-        X["direction"] = s.frame["direction"].to_numpy(float)
-        return X
-
-    m_ax = (sample.frame["axis"] == ax).to_numpy() & np.isfinite(W[:, k])
-    tr = m_ax & (role == "train")
-    ho = m_ax & (role == "holdout")
-    X_all = net_inputs(sample)
-    net = fit_network(X_all[tr].reset_index(drop=True), W[tr, k], hidden=opts.network_hidden,
-                      max_samples=opts.network_max_samples, seed=opts.seed, max_iter=opts.network_max_iter)
-    summary = {"target": f"{ax} {'d' + ax.lower()}", "network_hidden": list(opts.network_hidden)}
-    net_ho = net.predict(X_all[ho].reset_index(drop=True))
-    summary["network_holdout_mm"] = rmse(W[ho, k] - net_ho)
-    summary["regression_holdout_mm"] = rmse(W[ho, k] - W_hat[ho, k])
-    if ext_bundle is None:
-        return None, summary
-    ext = build_samples([ext_bundle], channels, None, lags, 0.0, origin)
-    We = ext.frame[list(PARAMS)].to_numpy(float)
-    me = (ext.frame["axis"] == ax).to_numpy() & np.isfinite(We[:, k])
-    if me.sum() < 5:
-        return None, summary
-    ext = ext.take(me)
-    reg_out = workspace_error(ext.q, predict_models(models, ext), dims)[:, k]
-    net_out = net.predict(net_inputs(ext))
-    res = extrapolation_errors(W[ho, k], W_hat[ho, k], net_ho, We[me, k], reg_out, net_out, shift_degC)
-    return res, summary
 
 
 # ----------------------------------------------------------------------------- documents as JSON

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -131,3 +131,310 @@ def extrapolation_errors(
         shift_degC=float(shift_degC),
         n=int(len(y_out)),
     )
+
+
+# ----------------------------------------------------------------------------- the fair comparison (ch. 6.6)
+#
+# The thesis compared its regression with a network on Z position and found the network better in
+# range and far worse beyond it (a room 2 degC warmer: 15 um against 5 um). A comparison says
+# something only if it is fair:
+#
+# - the same inputs: one feature matrix (the standard model's columns, spec section 2: position,
+#   position^2, position^3 and dT of a channel set fixed beforehand) goes to both models;
+# - the target fixed in advance (a parameter), never the term that happens to suit one model;
+# - both extrapolation directions: train on the earlier part and test on the later, and the reverse
+#   (or one campaign against another, both ways), so a result is not an accident of which side was
+#   warmer;
+# - no zeroed campaign as an absolute target. A reading's datum is what its zero means: ``absolute``
+#   (bundle v2 setup against a stable artefact: one datum shared by every campaign), a laser session
+#   (v2 ``datum: session``: zeroed at mount, an unknown offset per session) or a v1 campaign (the
+#   project's convention, spec section 2: errors and dT count from the campaign's start, so the
+#   campaign is zeroed at its start). Across campaigns only absolute readings are targets; within
+#   campaigns each other datum gets an offset column in the shared matrix, the same for both models;
+# - one temperature reference for every row (eq. 3.1), so a warm campaign's inputs are not zeroed.
+
+SPLIT_MODES = ("auto", "time", "campaign")
+ABSOLUTE = "absolute"
+
+
+@dataclass
+class ComparisonData:
+    """The rows of one target term over the campaigns and the one feature matrix both models get."""
+
+    target: str  # "AXIS/term"
+    X: pd.DataFrame  # position, position^2, position^3, dT[c]..., datum[g]... (one row per reading)
+    y: np.ndarray  # the measured error (mm or rad)
+    t_s: np.ndarray  # seconds since the first campaign's start
+    campaign: np.ndarray  # index into ``campaigns``
+    datum: np.ndarray  # each row's datum group: "absolute", a v1 campaign's name, or "campaign/setup#session"
+    campaigns: list[str]
+    channels: list[str]
+    reference: dict[str, float]  # degC: each channel's first reading of the earliest campaign
+
+    @property
+    def absolute(self) -> np.ndarray:
+        """Return True for rows read against an absolute datum (targets across campaigns)."""
+        return self.datum == ABSOLUTE
+
+
+def _parse_target(target: str) -> tuple[str, str]:
+    """Return (axis, term) of "AXIS/term", or raise ValidationError."""
+    axis, _, term = str(target).partition("/")
+    if axis not in ("X", "Y", "Z", "A", "B") or term not in ("dx", "dy", "dz", "alpha", "beta", "gamma"):
+        raise ValidationError(f"neural comparison target {target!r}: give AXIS/term, e.g. Z/dz")
+    return axis, term
+
+
+def _datum_groups(b: Any, name: str, e: pd.DataFrame) -> np.ndarray:
+    """Return each reading's datum group (see the module notes): absolute, the v1 campaign, or the laser session."""
+    setups = getattr(b.meta, "setups", None) or {}
+    if not setups or "setup" not in e.columns:
+        return np.full(len(e), name, dtype=object)  # v1: zeroed at the campaign's start
+    out = np.full(len(e), ABSOLUTE, dtype=object)
+    order = np.argsort(e["time_s"].to_numpy(float), kind="stable")
+    sid = e["setup"].to_numpy(object)[order]
+    run = np.concatenate([[0], np.cumsum(sid[1:] != sid[:-1])]) if sid.size else sid
+    for i, s, r in zip(order, sid, run):  # a session: a maximal run, in time order, of one zeroed setup
+        if getattr(setups.get(s), "datum", ABSOLUTE) == "session":
+            out[i] = f"{name}/{s}#{r}"
+    return out
+
+
+def comparison_data(bundles: Sequence[Any], target: str, channels: Sequence[str]) -> ComparisonData:
+    """Return the target's readings over the campaigns with the one feature matrix both models get."""
+    axis, term = _parse_target(target)
+    if not bundles:
+        raise ValidationError("the neural comparison needs at least one campaign")
+    chans = [c for c in dict.fromkeys(channels) if all(c in b.temperatures.columns for b in bundles)]
+    order = sorted(range(len(bundles)), key=lambda i: bundles[i].meta.started_at)
+    origin = bundles[order[0]].meta.started_at
+    reference: dict[str, float] = {}
+    for c in chans:  # eq. 3.1: one fixed reference temperature, the same for every campaign
+        for i in order:
+            v = bundles[i].temperatures[c].to_numpy(float)
+            if np.isfinite(v).any():
+                reference[c] = float(v[np.isfinite(v)][0])
+                break
+    chans = [c for c in chans if c in reference]
+    names = [str(getattr(bundles[i], "name", "") or f"campaign {k}") for k, i in enumerate(order)]
+    parts: list[pd.DataFrame] = []
+    for k, i in enumerate(order):
+        b = bundles[i]
+        e = b.errors
+        m = (e["axis"] == axis).to_numpy() & (e["term"] == term).to_numpy() & np.isfinite(e["value"].to_numpy(float))
+        if not m.any():
+            continue
+        e = e[m]
+        t = e["time_s"].to_numpy(float)
+        tt = b.temperatures["time_s"].to_numpy(float)
+        frame: dict[str, Any] = {"position": e["position"].to_numpy(float)}
+        for c in chans:
+            v = b.temperatures[c].to_numpy(float)
+            ok = np.isfinite(v)
+            frame[f"dT[{c}]"] = np.interp(t, tt[ok], v[ok]) - reference[c] if ok.any() else np.full(t.size, np.nan)
+        part = pd.DataFrame(frame)
+        part["_y"] = e["value"].to_numpy(float)
+        part["_t"] = (b.meta.started_at - origin).total_seconds() + t
+        part["_c"] = k
+        part["_g"] = _datum_groups(b, names[k], e)
+        parts.append(part)
+    if not parts:
+        raise ValidationError(f"neural comparison on {target}: no readings of {target} in these campaigns")
+    data = pd.concat(parts, ignore_index=True).dropna().sort_values("_t", kind="stable").reset_index(drop=True)
+    pos = data["position"].to_numpy(float)
+    X = pd.DataFrame({"position": pos, "position^2": pos**2, "position^3": pos**3})
+    X = pd.concat([X, data[[f"dT[{c}]" for c in chans]]], axis=1)
+    return ComparisonData(target, X, data["_y"].to_numpy(float), data["_t"].to_numpy(float),
+                          data["_c"].to_numpy(int), data["_g"].to_numpy(object), names, chans, reference)
+
+
+@dataclass
+class DirectionResult:
+    """One extrapolation direction: both models trained on one side, scored on the other."""
+
+    direction: str  # "earlier -> later" or "later -> earlier"
+    train: str
+    test: str
+    n_train: int
+    n_test: int
+    inputs: list[str]  # the columns both models were given (constant ones on the training side left out)
+    regression_train: float
+    network_train: float
+    regression_test: float
+    network_test: float
+    #: share of test rows with an input beyond its training range, and the largest temperature excess (degC)
+    beyond_range: float
+    max_excess_degC: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form."""
+        return dict(self.__dict__)
+
+
+@dataclass
+class NeuralComparison:
+    """The ch. 6.6 comparison of one target: the same inputs, both directions, no zeroed absolute targets."""
+
+    target: str
+    status: str  # "compared", "refused" (with the reason in ``note``) or "too few readings"
+    unit: str = "mm"
+    split: str = ""
+    channels: list[str] = field(default_factory=list)
+    campaigns: list[str] = field(default_factory=list)
+    #: readings that are no target of this split, and why (a zeroed campaign or session across campaigns)
+    excluded: dict[str, str] = field(default_factory=dict)
+    #: datums other than absolute, each given an offset column in the shared matrix (time split)
+    offsets: list[str] = field(default_factory=list)
+    directions: list[DirectionResult] = field(default_factory=list)
+    network_hidden: list[int] = field(default_factory=list)
+    note: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON form of one entry of the report's ``neural_comparison``."""
+        out = {k: v for k, v in self.__dict__.items() if k != "directions"}
+        out["directions"] = [d.to_dict() for d in self.directions]
+        return out
+
+
+Direction = tuple[str, np.ndarray, np.ndarray, str, str]
+
+
+def _splits(data: ComparisonData, mode: str) -> tuple[str, list[Direction], dict[str, str]]:
+    """Return the split used, its two directions (name, train rows, test rows, texts) and the excluded datums."""
+    names = data.campaigns
+    absolute = sorted(set(data.campaign[data.absolute].tolist()))
+    zeroed = {g: c for g, c in zip(data.datum, data.campaign) if g != ABSOLUTE}
+    if mode == "campaign" or (mode == "auto" and len(absolute) >= 2):
+        if len(absolute) < 2:
+            why = "; ".join(sorted({f"{g} ({'laser zeroed at mount, datum: session' if '/' in g else 'v1: zeroed at its start'})"
+                                    for g in zeroed}))
+            raise ValidationError(f"neural comparison on {data.target}: a split by campaign needs two campaigns read "
+                                  f"against an absolute datum; zeroed: {why or 'none'}: a zeroed campaign is not an "
+                                  "absolute target")
+        excluded = {g: ("datum: session (laser zeroed at mount)" if "/" in g else "v1 campaign, zeroed at its start")
+                    + ": not an absolute target across campaigns" for g in sorted(zeroed)}
+        first, last = absolute[0], absolute[-1]
+        early = data.absolute & np.isin(data.campaign, absolute[:-1])
+        late = data.absolute & np.isin(data.campaign, absolute[1:])
+        return "campaign", [
+            ("earlier -> later", early, data.absolute & (data.campaign == last),
+             ", ".join(names[c] for c in absolute[:-1]), names[last]),
+            ("later -> earlier", late, data.absolute & (data.campaign == first),
+             ", ".join(names[c] for c in absolute[1:]), names[first]),
+        ], excluded
+    # by time, within each datum: its earlier half against its later half, both ways (times only, never values)
+    early = np.zeros(data.y.size, bool)
+    for g in set(data.datum.tolist()):
+        m = data.datum == g
+        early[m] = data.t_s[m] < np.median(data.t_s[m])
+    return "time", [("earlier -> later", early, ~early, "earlier half of each datum", "later half"),
+                    ("later -> earlier", ~early, early, "later half of each datum", "earlier half")], {}
+
+
+@dataclass
+class LinearModel:
+    """Least squares with an intercept on the comparison's columns (the regression side of ch. 6.6)."""
+
+    inputs: list[str]
+    coef: np.ndarray  # intercept first
+
+    def predict(self, X: pd.DataFrame) -> np.ndarray:
+        """Return the fitted values for the rows of ``X``."""
+        return self.coef[0] + X[self.inputs].to_numpy(float) @ self.coef[1:]
+
+
+def fit_linear(X: pd.DataFrame, y: np.ndarray) -> LinearModel:
+    """Return the least-squares fit of ``y`` on the columns of ``X`` plus an intercept (unit-scaled solve)."""
+    A = np.column_stack([np.ones(len(y)), X.to_numpy(float)])
+    scale = np.sqrt(np.mean(A**2, axis=0))
+    scale[scale == 0] = 1.0
+    c, *_ = np.linalg.lstsq(A / scale, np.asarray(y, float), rcond=None)
+    return LinearModel(list(X.columns), c / scale)
+
+
+def compare_models(
+    data: ComparisonData,
+    *,
+    split: str = "auto",
+    hidden: Sequence[int] = (30, 15, 7),
+    max_samples: int = 4000,
+    max_iter: int = 300,
+    seed: int = 0,
+    min_rows: int = 30,
+    fit_regression: Callable[[pd.DataFrame, np.ndarray], Any] = fit_linear,
+    fit_net: Callable[[pd.DataFrame, np.ndarray], Any] | None = None,
+) -> NeuralComparison:
+    """Return the comparison of least squares and the network on the same matrix, in both directions.
+
+    ``fit_regression`` and ``fit_net`` (default: ``fit_linear`` and ``fit_network`` with ``hidden``,
+    ``max_samples``, ``max_iter``, ``seed``) each get the very same training frame and target.
+    Raises ValidationError when the split asks for a zeroed campaign as an absolute target.
+    """
+    if split not in SPLIT_MODES:
+        raise ValidationError(f"split {split!r}: one of {', '.join(SPLIT_MODES)}")
+    _, term = _parse_target(data.target)
+    unit = "rad" if term in ("alpha", "beta", "gamma") else "mm"
+    if fit_net is None:
+        def fit_net(X: pd.DataFrame, y: np.ndarray) -> NeuralModel:
+            return fit_network(X, y, hidden=hidden, max_samples=max_samples, seed=seed, max_iter=max_iter)
+    mode, directions, excluded = _splits(data, split)
+    X = data.X
+    offsets: list[str] = []
+    if mode == "time":
+        # each datum other than absolute carries its own unknown offset: one column for it, in the matrix
+        # both models get (with no absolute reading the intercept holds the first datum's)
+        groups = list(dict.fromkeys(g for g in data.datum if g != ABSOLUTE))
+        offsets = groups if data.absolute.any() else groups[1:]
+        if offsets:
+            X = pd.concat([X, pd.DataFrame({f"datum[{g}]": (data.datum == g).astype(float) for g in offsets})], axis=1)
+    out = NeuralComparison(data.target, "compared", unit, mode, list(data.channels), list(data.campaigns),
+                           excluded, offsets, [], list(hidden))
+    results = []
+    for name, tr, te, tr_text, te_text in directions:
+        if tr.sum() < min_rows or te.sum() < max(5, min_rows // 6):
+            out.status = "too few readings"
+            out.note = f"{name}: {int(tr.sum())} training and {int(te.sum())} test readings"
+            return out
+        # columns constant on the training side carry nothing either model could learn from
+        keep = [c for c in X.columns if float(X.loc[tr, c].std()) > 0]
+        Xtr = X.loc[tr, keep].reset_index(drop=True)
+        Xte = X.loc[te, keep].reset_index(drop=True)
+        ytr, yte = data.y[tr], data.y[te]
+        reg = fit_regression(Xtr, ytr)
+        net = fit_net(Xtr, ytr)
+        A, B = Xte.to_numpy(float), Xtr.to_numpy(float)
+        lo, hi = B.min(axis=0), B.max(axis=0)
+        temp = np.array([c.startswith("dT[") for c in keep], bool)
+        excess = np.maximum(A - hi, lo - A)[:, temp] if temp.any() else np.zeros((len(A), 1))
+        results.append(DirectionResult(
+            name, tr_text, te_text, int(tr.sum()), int(te.sum()), keep,
+            _rms(ytr - reg.predict(Xtr)), _rms(ytr - net.predict(Xtr)),
+            _rms(yte - reg.predict(Xte)), _rms(yte - net.predict(Xte)),
+            float(((A < lo) | (A > hi)).any(axis=1).mean()), float(max(0.0, excess.max())),
+        ))
+    out.directions = results
+    return out
+
+
+def neural_comparisons(
+    bundles: Sequence[Any],
+    targets: Sequence[str],
+    channels: Sequence[str],
+    **kwargs: Any,
+) -> list[NeuralComparison]:
+    """Return one comparison per target fixed in advance ("all": every term the campaigns measured).
+
+    A target the split cannot use honestly (only zeroed readings across campaigns) comes back
+    ``refused`` with the reason, not compared.
+    """
+    if list(targets) == ["all"]:
+        seen = pd.concat([b.errors[["axis", "term"]] for b in bundles]).drop_duplicates()
+        targets = [f"{a}/{t}" for a, t in sorted(map(tuple, seen.to_numpy().tolist()))]
+    out = []
+    for target in targets:
+        try:
+            out.append(compare_models(comparison_data(bundles, target, channels), **kwargs))
+        except ValidationError as exc:
+            out.append(NeuralComparison(str(target), "refused", note=str(exc),
+                                        network_hidden=list(kwargs.get("hidden", (30, 15, 7)))))
+    return out

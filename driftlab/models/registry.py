@@ -139,8 +139,13 @@ class ModelDocument(_Doc):
     screening: dict[str, Any] = Field(default_factory=dict)
     validation: list[dict[str, Any]] = Field(default_factory=list)
     physical: list[dict[str, Any]] = Field(default_factory=list)
+    #: table 6.3's status (``compared``, ``no geometry``, ``conflicting geometry``) and the geometry it used
+    physical_check: dict[str, Any] | None = None
     virtual_sensors: list[dict[str, Any]] = Field(default_factory=list)
+    #: the ch. 6.6 experiment of documents written before the fair comparison (read, never written now)
     extrapolation: dict[str, Any] | None = None
+    #: the neural-network comparison: per target fixed in advance, both extrapolation directions
+    neural_comparison: list[dict[str, Any]] | None = None
     allocation: list[dict[str, Any]] = Field(default_factory=list)
     #: days of drift terms (``days[X]``) count from here (the first training campaign's start)
     time_origin: datetime | None = None

@@ -22,6 +22,16 @@ TRAVEL = {"X": [0.0, 254.0], "Y": [0.0, 254.0], "Z": [-254.0, 0.0], "A": [-45.0,
 POSITIONS = {"X": [0.0, 63.5, 127.0, 190.5, 254.0], "Y": [0.0, 63.5, 127.0, 190.5, 254.0],
              "Z": [-254.0, -190.5, -127.0, -63.5, 0.0], "A": [-40.0, -20.0, 0.0, 20.0, 40.0],
              "B": [-40.0, -20.0, 0.0, 20.0, 40.0]}
+#: the thesis machine's stated lengths for table 6.3's physical check (docs/bundle.md, machine.geometry)
+GEOMETRY = {
+    "source": "thesis appendix A, Table A.1; ch. 3.5 (spindle arm L 400 mm, H 200 mm; ballscrews l 150 mm)",
+    "alpha_c_per_degC": 1.21e-05,
+    "links_mm": {"spindle_head": [0.0, -400.0, -200.0], "column": [0.0, 400.0, 1200.0], "carriage": [0.0, 0.0, -200.0],
+                 "table": [0.0, 0.0, -200.0], "rotary_support": [0.0, 0.0, -200.0], "part_table": [0.0, 0.0, -400.0]},
+    "screw_fixed_mm": {"X": 150.0, "Y": 150.0, "Z": 150.0},
+    "bending": {"spindle_arm": {"length_mm": 400.0, "height_mm": 200.0, "across": "upper-lower", "angle": "alpha",
+                                "deflection": "dz"}},
+}
 #: oscillation of each axis' own drive (its motor, screw or gear train warms up)
 FEED = {"X": (4000, 0.0, 254.0), "Y": (4000, 0.0, 254.0), "Z": (4000, -254.0, 0.0), "A": (2000, -40.0, 40.0),
         "B": (2000, -40.0, 40.0)}
@@ -80,7 +90,7 @@ def plan(name: str, description: str, hours: dict[str, float], scan_s: float, sw
         stages.append({"name": f"{sid}.cool3", "axis": ax, "setup": sid, "duration_s": combined_h * 1800,
                        "heat": [], "sweep": sweep})
     return {"format": "driftlab-plan/1", "name": name, "description": description,
-            "machine": {"id": "vmc-5ax-01", "channels": "from scenario", "travel": TRAVEL},
+            "machine": {"id": "vmc-5ax-01", "channels": "from scenario", "travel": TRAVEL, "geometry": GEOMETRY},
             "scan_interval_s": scan_s, "setups": SETUPS, "stages": stages}
 
 

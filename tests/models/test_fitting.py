@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 
 from driftlab.campaigns.bundle import Bundle, CampaignMeta
+from driftlab.errors import ValidationError
 from driftlab.models.features import Inputs
 from driftlab.models.fitting import FitOptions, fit_bundles, stage_elements
 from driftlab.models.kinematics import workspace_error
@@ -153,9 +154,7 @@ def test_physical_coefficients_within_ten_percent(fitted):
     assert p[("phi_x", "dx")].coefficient("pos[X]*dT[T9]") == pytest.approx(ALPHA, rel=0.1)
     assert p[("phi_z", "dz")].coefficient("pos[Z]*dT[T30]") == pytest.approx(ALPHA, rel=0.1)
     assert p[("phi_x", "dx")].coefficient("dir[X]") == pytest.approx(0.001, rel=0.1)
-    phys = fitted.physical.set_index("term")
-    row = phys.loc["phi_x.dx pos[X]*dT[T9]"]
-    assert row["physical"] == ALPHA and 0.9 < row["ratio"] < 1.1
+    # its table 6.3 row needs the machine's geometry: test_table_6_3_compares_with_the_geometry_the_campaign_states
 
 
 def test_holdout_rmse_near_laser_noise(fitted):
@@ -195,6 +194,27 @@ def test_model_channels_of_the_bundle_are_honoured():
 # ----------------------------------------------------------------------------- store, jobs, CLI
 
 
+def test_table_6_3_compares_with_the_geometry_the_campaign_states(fitted):
+    from driftlab.daq.sim.truth import STATED_GEOMETRY
+
+    assert fitted.physical_check["status"] == "no geometry" and fitted.physical.empty
+    assert fitted.document.physical_check["status"] == "no geometry" and fitted.document.physical == []
+    b = synthetic_bundle(0)
+    doc = b.meta.document()
+    doc["machine"]["geometry"] = {"screw_fixed_mm": STATED_GEOMETRY["screw_fixed_mm"],
+                                  "bending": {"spindle_arm": {"length_mm": 400, "height_mm": 200, "across": "upper-lower",
+                                                              "deflection": "dz", "angle": "alpha"}}}
+    res = fit_bundles([Bundle(b.name, CampaignMeta.model_validate(doc), b.temperatures, None, b.errors)],
+                      FitOptions(network=False, virtual_sensors=False))
+    assert res.physical_check["status"] == "compared" and res.document.physical_check["geometry"]["screw_fixed_mm"]
+    rows = res.physical.set_index("term")
+    # the X ballscrew's truth is alpha_c x position x dT9 (eq. 3.2, L = position): ratio 1
+    assert rows.loc["phi_x.dx pos[X]*dT[T9]", "ratio"] == pytest.approx(1.0, abs=0.1)
+    assert rows.loc["phi_x.dx pos[X]*dT[T9]", "physical"] == pytest.approx(12.1e-6)
+    # this geometry states no links: a structure mean on the spindle head is listed, not compared
+    assert set(rows["status"]) <= {"compared", "not stated: links_mm.spindle_head"}
+
+
 @pytest.fixture()
 def store_with_campaign(tmp_path):
     from driftlab.campaigns.store import connect
@@ -215,12 +235,15 @@ def test_cli_fit_registers_versions_and_show_gives_the_document(store_with_campa
     assert main(["fit", "--campaign", str(cid), "--db", url, "--json", str(report_path), "--no-network"]) == 0
     rep = json.loads(report_path.read_text())
     assert rep["model_version"] == 1 and rep["machine"] == "vmc-test"
-    assert {"kept_channels", "terms", "physical"} <= set(rep)
+    assert {"kept_channels", "terms", "physical", "physical_check"} <= set(rep)
     assert set(rep["terms"][0]) >= {"axis", "term", "link", "rmse_train", "rmse_holdout", "r2", "f", "form", "form_why"}
     assert {r["form"] for r in rep["terms"]} <= {"link", "link+stepwise", "link+full"}
-    assert set(rep["physical"][0]) >= {"term", "regression", "physical", "relationship"}
-    assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network"]) == 0
+    # the campaign states no geometry: table 6.3 says so instead of comparing with borrowed lengths
+    assert rep["physical"] == [] and rep["physical_check"]["status"] == "no geometry"
     capsys.readouterr()
+    assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network"]) == 0
+    out = capsys.readouterr().out
+    assert "table 6.3): no geometry: no campaign of machine vmc-test states its geometry" in " ".join(out.split())
     assert main(["models", "list", "--machine", "vmc-test", "--db", url, "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert [(r["version"], r["status"]) for r in rows] == [(1, "retired"), (2, "current")]
@@ -259,13 +282,22 @@ def _vm_bundle(scenario):
 
 
 @pytest.fixture(scope="module")
-def vm_fit():
-    """A 16 h staged campaign on the virtual machine, plus one with the room 2+ degC warmer (ch. 6.6)."""
-    from driftlab.daq.sim.scenario import Room, Scenario
+def vm_campaigns():
+    """A 16 h staged campaign on the virtual machine, plus one with the room 4 degC warmer (ch. 6.6)."""
+    from driftlab.daq.sim.scenario import MachineInfo, Room, Scenario
+    from driftlab.daq.sim.truth import STATED_GEOMETRY
 
-    train, sim = _vm_bundle(Scenario(name="vm-train", hours=16, seed=3))
-    warm, _ = _vm_bundle(Scenario(name="vm-warm", hours=16, seed=4, room=Room(mean_degC=24.0)))
-    res = fit_bundles([train, warm], FitOptions(network_max_samples=2000, network_max_iter=200))
+    machine = MachineInfo(geometry=dict(STATED_GEOMETRY))  # the thesis machine states its lengths (table 6.3)
+    train, sim = _vm_bundle(Scenario(name="vm-train", hours=16, seed=3, machine=machine))
+    warm, _ = _vm_bundle(Scenario(name="vm-warm", hours=16, seed=4, room=Room(mean_degC=24.0), machine=machine))
+    return train, warm, sim
+
+
+@pytest.fixture(scope="module")
+def vm_fit(vm_campaigns):
+    """The model of the first campaign (the warm one is the neural comparison's, below)."""
+    train, _, sim = vm_campaigns
+    res = fit_bundles([train], FitOptions(network_max_samples=2000, network_max_iter=200))
     print("vm fit timings", res.timings_s)
     print(res.validation[["axis", "term", "link", "rmse_holdout", "r2"]].to_string())
     print(res.physical[["term", "regression", "physical", "ratio"]].to_string())
@@ -308,6 +340,10 @@ def test_vm_arm_and_screw_coefficients_within_ten_percent(vm_fit):
     assert total == pytest.approx(screw, rel=0.1)
     row = res.physical[res.physical["term"].str.startswith("phi_x.dx dT[")].iloc[0]
     assert 0.9 < row["ratio"] < 1.1 and "eq. 3.2" in row["relationship"]
+    # the arm's bending angle against eq. 3.4 with the stated L = 400, H = 200 mm
+    arm_row = res.physical.set_index("term").loc["T1.alpha grad[spindle_arm upper-lower]"]
+    assert arm_row["physical"] == pytest.approx(12.1e-6 * 400 / 200) and 0.9 < arm_row["ratio"] < 1.1
+    assert res.physical_check["status"] == "compared"
     column = _truth_coef(sim, "T2", "dz", ["T24", "T26"])  # eq. 3.3, mean of the column's corners
     c = res.models[("T2", "dz")]
     names = [f.name for f in c.features]
@@ -327,13 +363,54 @@ def test_vm_holdout_rmse_near_the_laser_noise(vm_fit):
             assert v.loc[(axis, term), "rmse_holdout"] < 1.5 * length, (axis, term)
 
 
-def test_vm_extrapolation_network_error_grows_beyond_the_regression(vm_fit):
+def test_vm_neural_comparison_same_inputs_fixed_target_both_directions(vm_fit, vm_campaigns):
+    """Ch. 6.6 made fair: least squares and the network on one matrix, Z/dz fixed in advance, both ways."""
+    from driftlab.models.neural import neural_comparisons
+
     res, _ = vm_fit
-    e = res.extrapolation
-    assert e is not None and e.shift_degC >= 2.0
-    assert e.network_in_range_mm < 2 * e.regression_in_range_mm  # both interpolate
-    assert e.network_mm > 3 * e.regression_mm and e.regression_mm < 2 * e.regression_in_range_mm
-    assert res.report()["extrapolation"]["network_mm"] == e.network_mm
+    [c] = res.neural  # the fit's own: one campaign, its earlier half against its later half and back
+    assert c.target == "Z/dz" and c.status == "compared" and c.split == "time" and c.offsets == []
+    train, warm, _ = vm_campaigns
+    # with the warm campaign: v1 campaigns count from their own start (zeroed), never an absolute target
+    # across campaigns, so the split stays by time, each campaign's offset a column both models get
+    [c] = neural_comparisons([train, warm], ["Z/dz"], c.channels, hidden=(30, 15, 7), max_samples=2000, max_iter=200)
+    assert c.split == "time" and c.offsets == ["vm-warm"] and c.excluded == {}
+    assert [d.direction for d in c.directions] == ["earlier -> later", "later -> earlier"]
+    for d in c.directions:
+        assert "datum[vm-warm]" in d.inputs and sum(i.startswith("dT[") for i in d.inputs) == len(c.channels)
+        assert d.beyond_range > 0.3 and d.max_excess_degC > 2.0  # the heated half lies beyond the other
+        assert d.network_train < 1.5 * d.regression_train  # both fit their own range
+        assert d.network_test > 3 * d.regression_test, d  # the network extrapolates worse, either way
+    with pytest.raises(ValidationError, match="zeroed campaign is not an absolute target"):
+        from driftlab.models.neural import compare_models, comparison_data
+
+        compare_models(comparison_data([train, warm], "Z/dz", c.channels), split="campaign")
+    rep = res.report()["neural_comparison"][0]
+    assert rep["directions"][1]["network_test"] == res.neural[0].directions[1].network_test
+    assert res.document.neural_comparison[0]["target"] == "Z/dz"
+
+
+def test_vm_report_names_each_measurement_as_tables_6_1_and_6_2(vm_fit):
+    """Roll is the rotation about the moving axis; a rotary axis' own rotation is its positioning, the rest tilt it."""
+    res, _ = vm_fit
+    names = {(r["axis"], r["term"]): r["measurement"] for r in res.report()["terms"]}
+    assert len(names) == 30
+    assert [names[(a, t)] for a, t in (("X", "alpha"), ("Y", "beta"), ("Z", "gamma"))] == ["Roll"] * 3
+    assert [names[("X", t)] for t in ("beta", "gamma")] == ["Pitch", "Yaw"]
+    assert [names[("Z", t)] for t in ("alpha", "beta")] == ["Pitch", "Yaw"]
+    assert names[("A", "alpha")] == names[("B", "beta")] == "Positioning"
+    assert {names[("A", "beta")], names[("A", "gamma")], names[("B", "alpha")], names[("B", "gamma")]} == \
+        {"Beta Tilt", "Gamma Tilt", "Alpha Tilt"}
+    assert names[("Z", "dz")] == "Position" and names[("Z", "dx")] == "X Straightness"
+    assert names[("A", "dy")] == "Y Deflection"
+    assert not any("Roll" in n for (a, _), n in names.items() if a in ("A", "B"))
+
+
+def test_fit_compares_only_the_targets_it_was_given():
+    res = fit_bundles([synthetic_bundle(0)], FitOptions(virtual_sensors=False, network_targets=("X/dy",),
+                                                        network_hidden=(8, 4), network_max_iter=50))
+    assert [c.target for c in res.neural] == ["X/dy"] and res.neural[0].status == "compared"
+    assert res.neural[0].unit == "mm" and len(res.neural[0].directions) == 2
 
 
 # ----------------------------------------------------------------------------- diagnosis findings folded in

@@ -101,3 +101,14 @@ def test_the_document_alone_follows_every_session_up_to_its_datum(full_fit) -> N
     assert (per_cell <= 2.0).all(), per_cell.sort_values().tail(3).to_dict()
     on_combined = z[combined].groupby([e.axis[combined], e.term[combined]]).mean().pow(0.5)
     assert len(on_combined) == 3 and (on_combined <= 3.0).all(), on_combined.to_dict()
+
+
+def test_the_daemon_campaign_carries_the_stated_geometry_into_table_6_3(full_fit) -> None:
+    """The plan and the scenario state the thesis machine's lengths: the campaign keeps them, the fit compares."""
+    from driftlab.daq.sim.truth import STATED_GEOMETRY
+    from driftlab.geometry import Geometry
+
+    bundle, result = full_fit
+    assert bundle.meta.machine.geometry == Geometry.model_validate(dict(STATED_GEOMETRY))
+    assert result.physical_check["status"] == "compared" and len(result.physical) > 0
+    assert result.document.physical_check["geometry"]["bending"]["spindle_arm"]["length_mm"] == 400.0

@@ -30,7 +30,7 @@ def campaign_meta(scenario: Scenario, machine: VirtualMachine | None = None) -> 
     vm = machine or VirtualMachine(scenario)
     return {
         "format": "driftlab-bundle/1",
-        "machine": scenario.machine.model_dump(),
+        "machine": scenario.machine.model_dump(mode="json", exclude_none=True),
         "started_at": scenario.started_at,
         "channels": channel_map(),
         "room_channels": list(ROOM_CHANNELS),

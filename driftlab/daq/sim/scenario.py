@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.errors import ValidationError
+from driftlab.geometry import Geometry
 
 AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
 TERMS: tuple[str, ...] = ("alpha", "beta", "gamma", "dx", "dy", "dz")
@@ -61,6 +62,8 @@ class MachineInfo(_Strict):
     name: str = "five-axis VMC with A/B tilt table (virtual)"
     resolution_mm: float = Field(default=0.0025, gt=0)
     resolution_deg: float = Field(default=0.001, gt=0)
+    #: the stated dimensions of table 6.3's physical check (absent: the fit reports "no geometry")
+    geometry: Geometry | None = None
 
 
 class Noise(_Strict):

@@ -91,6 +91,21 @@ H_CARRIAGE = H_TABLE = H_ROTARY = 200.0
 L_GEAR = 100.0
 L_B_TABLE = 300.0
 
+#: the virtual machine's geometry as a campaign states it (``machine.geometry``, docs/bundle.md): the
+#: thesis machine's links (Table A.1), the arm that bends under its upper-lower gradient (eqs. 3.4-3.5,
+#: alpha about X and dz at the tip) and the ballscrews' non-travelled length (eq. 3.2). The shipped
+#: scenarios and plans state the same (tests/daq/sim/test_geometry_stated.py).
+STATED_GEOMETRY: Mapping[str, object] = MappingProxyType({
+    "source": "thesis appendix A, Table A.1; ch. 3.5 (spindle arm L 400 mm, H 200 mm; ballscrews l 150 mm)",
+    "alpha_c_per_degC": ALPHA_C,
+    "links_mm": {"spindle_head": list(kin.TABLE_A1["T1"]), "column": list(kin.TABLE_A1["T2"]),
+                 "carriage": list(kin.TABLE_A1["T3"]), "table": list(kin.TABLE_A1["T4"]),
+                 "rotary_support": list(kin.TABLE_A1["T5"]), "part_table": list(kin.TABLE_A1["T6"])},
+    "screw_fixed_mm": {"X": L_SCREW_FIXED, "Y": L_SCREW_FIXED, "Z": L_SCREW_FIXED},
+    "bending": {"spindle_arm": {"length_mm": L_ARM, "height_mm": H_ARM, "across": "upper-lower",
+                                "angle": "alpha", "deflection": "dz"}},
+})
+
 
 def _mean(structure: str) -> dict[str, float]:
     chans = structure_channels(structure)

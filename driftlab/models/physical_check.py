@@ -1,0 +1,200 @@
+"""Thesis table 6.3: fitted coefficients beside the physical ones of ch. 3.5, for the machine's stated geometry.
+
+A physical coefficient is a length times the expansion coefficient alpha_c; the lengths are the
+machine's, so they come from the geometry its campaigns state (``machine.geometry`` of
+campaign.json, docs/bundle.md), never from the virtual machine's. Without a stated geometry there
+is nothing to compare with and the check says so (status ``no geometry``) instead of inventing one.
+
+Relationships (ch. 3.5):
+
+- eq. 3.2, ballscrew of axis k: position x dT of its sites on the joint's own translation:
+  alpha_c per mm of travel (L = position); the plain dT of its sites together: alpha_c l, l the
+  non-travelled length (``screw_fixed_mm``);
+- eqs. 3.1/3.3, a structure mean on the link it belongs to: alpha_c L, L the link's dimension along
+  the translation (``links_mm``, Table A.1);
+- eqs. 3.4/3.5, a gradient across a structure that bends (``bending``): alpha_c L/H on the angle it
+  bends, alpha_c L^2/2H on the deflection at its tip.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from driftlab.geometry import BENDING_SIDES, GEOMETRY_LINKS
+
+STATUS_COMPARED = "compared"
+STATUS_NO_GEOMETRY = "no geometry"
+STATUS_CONFLICT = "conflicting geometry"
+
+LINK_OF_NAME: Mapping[str, str] = GEOMETRY_LINKS
+NAME_OF_LINK: Mapping[str, str] = {v: k for k, v in LINK_OF_NAME.items()}
+#: the axis each translational joint drives
+JOINT_AXIS: Mapping[str, str] = {"phi_x": "X", "phi_y": "Y", "phi_z": "Z"}
+TRANSLATIONS = ("dx", "dy", "dz")
+COLUMNS = ["term", "element", "param", "feature", "regression", "std_error", "physical", "unit", "relationship",
+           "ratio", "status"]
+
+
+@dataclass
+class PhysicalCheck:
+    """Table 6.3 and whether it could be made: ``compared``, ``no geometry`` or ``conflicting geometry``."""
+
+    status: str
+    table: pd.DataFrame
+    geometry: dict[str, Any] | None = None
+    note: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the JSON summary kept beside the table (report and model document ``physical_check``)."""
+        compared = int((self.table["status"] == STATUS_COMPARED).sum()) if len(self.table) else 0
+        return {"status": self.status, "note": self.note, "geometry": self.geometry, "rows": int(len(self.table)),
+                "compared": compared}
+
+
+def _plain(geometry: Any) -> dict[str, Any] | None:
+    """Return a stated geometry as a plain JSON dict (pydantic model or mapping), None when absent."""
+    if geometry is None:
+        return None
+    if hasattr(geometry, "model_dump"):
+        return geometry.model_dump(mode="json")
+    return json.loads(json.dumps(dict(geometry)))
+
+
+def machine_geometry(bundles: Sequence[Any]) -> tuple[str, dict[str, Any] | None, str]:
+    """Return (status, geometry, note): the one geometry the campaigns of a machine state.
+
+    Campaigns that state none are fine beside one that does; two different stated geometries are
+    a conflict, reported as such (no comparison) rather than resolved by a guess.
+    """
+    stated: dict[str, tuple[dict[str, Any], list[str]]] = {}
+    for b in bundles:
+        g = _plain(getattr(b.meta.machine, "geometry", None))
+        if g is not None:
+            key = json.dumps(g, sort_keys=True)
+            stated.setdefault(key, (g, []))[1].append(str(getattr(b, "name", "?")))
+    machine = bundles[0].meta.machine.id if bundles else "?"
+    if not stated:
+        return STATUS_NO_GEOMETRY, None, (f"no campaign of machine {machine} states its geometry (machine.geometry "
+                                          "in campaign.json): the fitted coefficients are not compared with physical ones")
+    if len(stated) > 1:
+        who = "; ".join(", ".join(names) for _, names in stated.values())
+        return STATUS_CONFLICT, None, f"campaigns of machine {machine} state different geometries ({who}): nothing compared"
+    g, names = next(iter(stated.values()))
+    src = f" ({g['source']})" if g.get("source") else ""
+    return STATUS_COMPARED, g, f"geometry stated by {', '.join(names)}{src}"
+
+
+def _sides(f: Any, locations: Mapping[str, str]) -> str | None:
+    """Return the opposite sides ("upper-lower") a gradient spans, or None when they cannot be told."""
+    if f.label and " " in f.label:
+        return f.label.rsplit(" ", 1)[1]
+    if len(f.channels) != 2:
+        return None
+    words = [set(locations.get(c, "").lower().split()) for c in f.channels]
+    for pair in BENDING_SIDES:
+        a, b = pair.split("-")
+        if (a in words[0] and b in words[1]) or (b in words[0] and a in words[1]):
+            return pair
+    return None
+
+
+def physical_table(
+    models: Mapping[tuple[str, str], Any],
+    structures: Mapping[str, str],
+    geometry: Mapping[str, Any],
+    *,
+    locations: Mapping[str, str] | None = None,
+    room: Sequence[str] = (),
+) -> pd.DataFrame:
+    """Return table 6.3 for a stated geometry: each recast coefficient beside its physical value (ch. 3.5).
+
+    A row whose relationship applies but whose length the geometry does not state has ``physical``
+    NaN and ``status`` "not stated: <what>".
+    """
+    # imported here: fitting imports this module (the structure maps are the pipeline's own)
+    from driftlab.models.fitting import SCREW_STRUCTURES, STRUCTURE_ELEMENT
+
+    g = _plain(geometry) or {}
+    alpha_c = float(g.get("alpha_c_per_degC", 12.1e-6))
+    links = {LINK_OF_NAME[k]: tuple(v) for k, v in (g.get("links_mm") or {}).items() if k in LINK_OF_NAME}
+    screws = dict(g.get("screw_fixed_mm") or {})
+    bending = dict(g.get("bending") or {})
+    locations = locations or {}
+    rows: list[dict[str, Any]] = []
+
+    def row(m: Any, feature: str, reg: float, se: float, phys: float, unit: str, rel: str, missing: str = "") -> None:
+        ok = not missing and phys > 0
+        rows.append({"term": f"{m.element}.{m.param} {feature}", "element": m.element, "param": m.param,
+                     "feature": feature, "regression": float(reg), "std_error": float(se),
+                     "physical": float(phys) if ok else float("nan"), "unit": unit, "relationship": rel,
+                     "ratio": abs(float(reg)) / phys if ok else float("nan"),
+                     "status": STATUS_COMPARED if ok else f"not stated: {missing}"})
+
+    for (element, param), m in models.items():
+        own = JOINT_AXIS.get(element)
+        screw_sum, screw_se, screw_names = 0.0, 0.0, []
+        for f, coef, se in zip(m.features, m.coef, m.std_errors):
+            if f.kind == "pos_dT" and own and param == "d" + own.lower() and f.label in ("", own):
+                row(m, f.name, coef, se, alpha_c, "mm/mm/degC", "alpha_c dT L, L = position (eq. 3.2)")
+            elif f.kind == "dT" and own and param == "d" + own.lower() and \
+                    structures.get(f.channels[0], "") in SCREW_STRUCTURES.get(element, ()):
+                screw_sum += coef
+                screw_se = float(np.hypot(screw_se, se))
+                screw_names.append(f.channels[0])
+            elif f.kind == "mean" and param in TRANSLATIONS and STRUCTURE_ELEMENT.get(f.label) == element:
+                if element not in links:
+                    row(m, f.name, coef, se, float("nan"), "mm/degC", "alpha_c dT L (eqs. 3.1, 3.3)",
+                        f"links_mm.{NAME_OF_LINK.get(element, element)}")
+                    continue
+                L = abs(float(links[element][TRANSLATIONS.index(param)]))
+                if L > 0:  # no extent along this translation: the relationship does not apply
+                    row(m, f.name, coef, se, alpha_c * L, "mm/degC",
+                        f"alpha_c dT L, L = {L:.0f} mm (eqs. 3.1, 3.3)")
+            elif f.kind == "gradient" and not any(c in room for c in f.channels):
+                owners = {structures.get(c, "") for c in f.channels}
+                bent = bending.get(owners.pop()) if len(owners) == 1 else None
+                if bent is None or _sides(f, locations) != bent.get("across", "upper-lower"):
+                    continue  # a structure that states no bending, or a gradient along another direction
+                L, H = float(bent["length_mm"]), float(bent["height_mm"])
+                if param == bent.get("angle"):
+                    row(m, f.name, coef, se, alpha_c * L / H, "rad/degC",
+                        f"alpha_c dT L/H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.4)")
+                elif param == bent.get("deflection"):
+                    row(m, f.name, coef, se, alpha_c * L**2 / (2 * H), "mm/degC",
+                        f"alpha_c dT L^2/2H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.5)")
+        if screw_names:
+            name = "+".join(f"dT[{c}]" for c in screw_names)
+            if own in screws:
+                ell = float(screws[own])
+                row(m, name, screw_sum, screw_se, alpha_c * ell, "mm/degC",
+                    f"alpha_c dT l, l = {ell:.0f} mm non-travelled screw (eq. 3.2)")
+            else:
+                row(m, name, screw_sum, screw_se, float("nan"), "mm/degC", "alpha_c dT l (eq. 3.2)",
+                    f"screw_fixed_mm.{own}")
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def physical_check(
+    models: Mapping[tuple[str, str], Any],
+    structures: Mapping[str, str],
+    bundles: Sequence[Any] = (),
+    *,
+    geometry: Any = None,
+    locations: Mapping[str, str] | None = None,
+    room: Sequence[str] = (),
+) -> PhysicalCheck:
+    """Return table 6.3 for the geometry the campaigns state (or ``geometry``), or an explicit "no geometry"."""
+    if geometry is not None:
+        status, g, note = STATUS_COMPARED, _plain(geometry), "geometry given"
+    else:
+        status, g, note = machine_geometry(bundles)
+    if g is None:
+        return PhysicalCheck(status, pd.DataFrame(columns=COLUMNS), None, note)
+    table = physical_table(models, structures, g, locations=locations, room=room)
+    return PhysicalCheck(status, table, g, note)
