@@ -89,7 +89,7 @@ class Geometry(_Strict):
         return value
 
     @model_validator(mode="after")
-    def _something(self) -> "Geometry":
+    def _something(self) -> Geometry:
         """Refuse a geometry that states no length at all (state none instead)."""
         if not (self.links_mm or self.screw_fixed_mm or self.bending):
             raise ValueError("a geometry states at least one of links_mm, screw_fixed_mm, bending")

@@ -195,8 +195,8 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         for p in phys:
             elem, _, feat = str(p["term"]).partition(" ")
             status = str(p.get("status", "compared"))
-            pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem), num(p.get("regression"), ".4g"),
-                       num(p.get("physical"), ".4g"), num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
+            pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
+                       num(p.get("regression"), ".4g"), num(p.get("physical"), ".4g"), num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
                        str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"))
         con.print(pt)
     for f in report.get("findings", []):
@@ -221,7 +221,7 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
                     f"regression train ({unit})", f"network train ({unit})", "test beyond range"):
             nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
 
-        def val(v: Any) -> str:
+        def val(v: Any, k: float = k) -> str:
             return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
 
         for d in c.get("directions", []):

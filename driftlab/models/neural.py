@@ -306,8 +306,9 @@ def _splits(data: ComparisonData, mode: str) -> tuple[str, list[Direction], dict
     zeroed = {g: c for g, c in zip(data.datum, data.campaign) if g != ABSOLUTE}
     if mode == "campaign" or (mode == "auto" and len(absolute) >= 2):
         if len(absolute) < 2:
-            why = "; ".join(sorted({f"{g} ({'laser zeroed at mount, datum: session' if '/' in g else 'v1: zeroed at its start'})"
-                                    for g in zeroed}))
+            kinds = {g: "laser zeroed at mount, datum: session" if "/" in g else "v1: zeroed at its start"
+                     for g in zeroed}
+            why = "; ".join(sorted(f"{g} ({kind})" for g, kind in kinds.items()))
             raise ValidationError(f"neural comparison on {data.target}: a split by campaign needs two campaigns read "
                                   f"against an absolute datum; zeroed: {why or 'none'}: a zeroed campaign is not an "
                                   "absolute target")

@@ -80,11 +80,13 @@ def machine_geometry(bundles: Sequence[Any]) -> tuple[str, dict[str, Any] | None
             stated.setdefault(key, (g, []))[1].append(str(getattr(b, "name", "?")))
     machine = bundles[0].meta.machine.id if bundles else "?"
     if not stated:
-        return STATUS_NO_GEOMETRY, None, (f"no campaign of machine {machine} states its geometry (machine.geometry "
-                                          "in campaign.json): the fitted coefficients are not compared with physical ones")
+        return STATUS_NO_GEOMETRY, None, (
+            f"no campaign of machine {machine} states its geometry (machine.geometry in campaign.json): "
+            "the fitted coefficients are not compared with physical ones")
     if len(stated) > 1:
         who = "; ".join(", ".join(names) for _, names in stated.values())
-        return STATUS_CONFLICT, None, f"campaigns of machine {machine} state different geometries ({who}): nothing compared"
+        return STATUS_CONFLICT, None, (f"campaigns of machine {machine} state different geometries ({who}): "
+                                       "nothing compared")
     g, names = next(iter(stated.values()))
     src = f" ({g['source']})" if g.get("source") else ""
     return STATUS_COMPARED, g, f"geometry stated by {', '.join(names)}{src}"

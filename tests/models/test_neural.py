@@ -1,11 +1,22 @@
 """Neural comparison: eq. 6.3 scaling; interpolates well; extrapolates worse than physical regression."""
 
+from datetime import UTC, datetime, timedelta
+from types import SimpleNamespace
+
 import numpy as np
 import pandas as pd
 import pytest
 
 from driftlab.errors import ValidationError
-from driftlab.models.neural import extrapolation_errors, fit_network, scale_inputs
+from driftlab.models.neural import (
+    compare_models,
+    comparison_data,
+    extrapolation_errors,
+    fit_linear,
+    fit_network,
+    neural_comparisons,
+    scale_inputs,
+)
 
 
 def test_scaling_maps_training_range_to_plus_minus_0_9():
@@ -51,17 +62,7 @@ def test_network_needs_data():
 
 # ----------------------------------------------------------------------------- the fair comparison (ch. 6.6)
 
-from datetime import datetime, timedelta, timezone
-from types import SimpleNamespace
-
-from driftlab.models.neural import (
-    compare_models,
-    comparison_data,
-    fit_linear,
-    neural_comparisons,
-)
-
-T0 = datetime(2026, 3, 2, 8, tzinfo=timezone.utc)
+T0 = datetime(2026, 3, 2, 8, tzinfo=UTC)
 COEF = {"T1": 0.012, "T2": -0.004}  # mm/degC: the truth is linear in the two channels
 
 

@@ -93,7 +93,8 @@ def test_with_the_thesis_geometry_every_ratio_is_the_hand_calculation():
     r = rows["T2.dz mean[z_column]"]
     assert r["physical"] == pytest.approx(0.01452) and r["ratio"] == pytest.approx(0.0140 / 0.01452)
     assert set(check.table["status"]) == {STATUS_COMPARED}
-    assert check.to_dict()["compared"] == 5 and check.to_dict()["geometry"]["bending"]["spindle_arm"]["height_mm"] == 200
+    summary = check.to_dict()
+    assert summary["compared"] == 5 and summary["geometry"]["bending"]["spindle_arm"]["height_mm"] == 200
 
 
 def test_the_thesis_worked_example_of_ch_3_5_on_a_machine_with_other_lengths():
@@ -126,7 +127,8 @@ def test_without_a_stated_geometry_the_check_says_so_and_compares_nothing():
         def __init__(self, name, geometry=None):
             self.name = name
             self.meta = CampaignMeta.model_validate({
-                "format": "driftlab-bundle/1", "machine": {"id": "mill-7", **({"geometry": geometry} if geometry else {})},
+                "format": "driftlab-bundle/1",
+                "machine": {"id": "mill-7", **({"geometry": geometry} if geometry else {})},
                 "started_at": "2026-03-02T08:00:00Z", "channels": {"T9": {}}})
 
     check = physical_check(_models(), STRUCTURES, [B("a"), B("b")], locations=LOCATIONS)
