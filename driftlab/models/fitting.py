@@ -964,7 +964,8 @@ def _fit_bundles(
     lap("samples")
 
     # 3-4. allocation through the chain and per-link stepwise models
-    dims = TABLE_A1
+    # the chain's fixed links (eq. 4.13): the lengths the machine's campaigns state, else Table A.1's
+    dims = chain_dims(bundles)
     models, alloc = fit_elements(sample, cands, model_channels, opts, dims)
     if not models:
         raise ValidationError("no error term had enough training samples to fit")
@@ -1152,6 +1153,29 @@ def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:
     out["home_deviation"] = None if dev is None else {
         "features": [f.to_dict() for f in dev[0]], "coefficients": [float(c) for c in dev[1]]}
     return out
+
+
+def chain_dims(bundles: Sequence[Any]) -> dict[str, tuple[float, float, float]]:
+    """Return the fixed link lengths (a, b, c) of the chain: Table A.1 with the machine's stated links over it.
+
+    Campaigns that disagree on the links are refused (one machine has one geometry).
+    """
+    from driftlab.geometry import GEOMETRY_LINKS
+
+    dims = {k: tuple(float(x) for x in v) for k, v in TABLE_A1.items()}
+    stated: dict[str, tuple[float, float, float]] | None = None
+    for b in bundles:
+        g = getattr(b.meta.machine, "geometry", None)
+        links = getattr(g, "links_mm", None) if g is not None and not isinstance(g, Mapping) else (
+            (g or {}).get("links_mm"))
+        if not links:
+            continue
+        here = {GEOMETRY_LINKS[name]: tuple(float(x) for x in v) for name, v in dict(links).items()}
+        if stated is not None and here != stated:
+            raise ValidationError("the campaigns state different link lengths for one machine (machine.geometry)")
+        stated = here
+    dims.update(stated or {})
+    return dims  # type: ignore[return-value]
 
 
 def _axes_of(fit: TermFit) -> str | None:
