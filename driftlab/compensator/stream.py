@@ -17,6 +17,7 @@ If the API goes away, the last good model and temperatures stay in use and a war
 from __future__ import annotations
 
 import logging
+import random
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -221,20 +222,43 @@ class _Ready:
     model: str
 
 
+#: block latencies kept for the percentiles: every one up to this many, then a uniform sample of this size
+LATENCY_SAMPLE = 100_000
+
+
 @dataclass
 class StreamResult:
-    """What a streaming run did."""
+    """What a streaming run did (in memory that does not grow with the program's length)."""
 
     blocks_sent: int = 0
     recomputed: int = 0
     reloads: int = 0
+    #: per-block latency (s): all of them for up to LATENCY_SAMPLE blocks, then a uniform sample of them
     latency_s: list[float] = field(default_factory=list)
+    latency_max_s: float = 0.0
     link_report: Any = None
     warnings: list[str] = field(default_factory=list)
+    _recorded: int = field(default=0, repr=False)
+    _rng: random.Random = field(default_factory=lambda: random.Random(0), repr=False)
+
+    def record(self, latency_s: float) -> None:
+        """Count one block's latency: kept, or past LATENCY_SAMPLE blocks sampled (reservoir), the maximum exact."""
+        self.latency_max_s = max(self.latency_max_s, latency_s)
+        if len(self.latency_s) < LATENCY_SAMPLE:
+            self.latency_s.append(latency_s)
+        else:
+            k = self._rng.randrange(self._recorded + 1)
+            if k < LATENCY_SAMPLE:
+                self.latency_s[k] = latency_s
+        self._recorded += 1
 
     def latency_ms(self, pct: float) -> float:
-        """Return a percentile of the per-block latency (ms), 0 when nothing was sent."""
-        return float(np.percentile(self.latency_s, pct) * 1e3) if self.latency_s else 0.0
+        """Return a percentile of the per-block latency (ms), 0 when nothing was sent (100: the exact maximum)."""
+        if not self.latency_s:
+            return 0.0
+        if pct >= 100:
+            return self.latency_max_s * 1e3
+        return float(np.percentile(self.latency_s, pct) * 1e3)
 
     def summary(self) -> dict[str, Any]:
         """Return a JSON-ready summary."""
@@ -500,7 +524,7 @@ class Streamer:
                 self._release()
                 if _sendable(item.text):
                     break
-            self.result.latency_s.append(self.timer() - t0)
+            self.result.record(self.timer() - t0)
             self.result.blocks_sent += 1
             yield item.text
 

@@ -340,3 +340,16 @@ def test_the_program_is_read_a_piece_at_a_time_as_the_controller_takes_blocks(tm
         assert accepted >= first_line - lookahead - batch - 1, (first_line, accepted)
         assert alive <= 4  # the pieces already sent were let go: memory holds a window, not the program
     assert pulls[-1][1] > len(lines) - 60
+
+
+def test_latency_statistics_stay_bounded_however_many_blocks():
+    from driftlab.compensator.stream import LATENCY_SAMPLE, StreamResult
+
+    result = StreamResult()
+    n = 3 * LATENCY_SAMPLE
+    for k in range(n):
+        result.record((k % 1000) * 1e-6 + (0.5 if k == n - 7 else 0.0))  # 0..999 us, and one slow block
+    assert len(result.latency_s) == LATENCY_SAMPLE
+    assert result.latency_ms(100) == pytest.approx(500.993)  # the slow block: the exact maximum
+    assert result.latency_ms(50) == pytest.approx(0.5, abs=0.02)  # a uniform sample keeps the percentiles
+    assert result.latency_ms(99) == pytest.approx(0.99, abs=0.01)
