@@ -752,7 +752,8 @@ def _check_text_lengths(table: pa.Table, place: _Rows, header: list[str], kinds:
             with np.errstate(invalid="ignore"):
                 k = place.first(np.nan_to_num(lengths.astype("f8"), nan=0.0) > MAX_FIELD_CHARS)
             if k is not None:
-                raise place.fail(k, f"column {name}: a cell of {int(lengths[k])} characters (at most {MAX_FIELD_CHARS})")
+                raise place.fail(k, f"column {name}: a cell of {int(lengths[k])} characters "
+                                    f"(at most {MAX_FIELD_CHARS})")
 
 
 @dataclass(frozen=True)
