@@ -5,7 +5,8 @@ Prints ONE JSON line. Offline: parse + predict + solve (eqs. 4.23-4.26) + quanti
 the CPU figure is what one core does); baseline in the same run: the forward chain
 ``kinematics.machine_chain`` over the same poses with the predicted errors. Streaming: per-block latency (time
 from the link asking for a block to having it) while streaming to the simulated controller
-over a socket, p50/p99/max in ms. Targets: >= 200,000 blocks/s offline, p99 < 1 ms.
+over a socket, the program read in pieces as `driftlab compensate --port` reads it, p50/p99/max
+in ms. Targets: >= 200,000 blocks/s offline, p99 < 1 ms.
 """
 
 from __future__ import annotations
@@ -134,8 +135,18 @@ def streaming(model: ErrorModel, temps: dict) -> dict:
     from driftlab.daq.sim.instruments import SimController, TinyWorld, WallClock, serial_url
     from driftlab.daq.transport import LineChannel, SerialPort
 
+    import tempfile
+
+    from driftlab.compensator.compensate import parse_pieces, program_pieces, scan_program
+
     data = program_text(N_STREAM, seed=2, head="G90 G1 F2000\n")  # the simulated controller's dialect
-    program = parse_program(data, "stream.nc", min_decimals=decimals_for(0.0025, 0.001))
+    tmp = tempfile.NamedTemporaryFile(suffix=".nc")
+    tmp.write(data)
+    tmp.flush()
+    # read in pieces, as `driftlab compensate --port` does (a piece is parsed when preparation reaches it)
+    dec = decimals_for(0.0025, 0.001)
+    program = parse_pieces(program_pieces(tmp.name), scan_program(tmp.name, "stream.nc", dec), "stream.nc",
+                           min_decimals=dec)
     # the controller runs 4x faster than real time (a 0.3 mm block at F2000 takes ~2 ms), still
     # slower than preparation, as on the machine: the link waits, and preparation uses the wait
     clock = WallClock(acceleration=SPEEDUP)
@@ -149,6 +160,7 @@ def streaming(model: ErrorModel, temps: dict) -> dict:
             wall = time.perf_counter() - t0
         finally:
             link.close()
+            tmp.close()
     lat = np.asarray(result.latency_s) * 1e3
     return {
         "stream_blocks": result.blocks_sent,

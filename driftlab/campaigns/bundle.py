@@ -4,9 +4,13 @@ A bundle is a directory with campaign.json, temperatures.csv, errors.csv and an 
 conditions.csv (see docs/bundle.md). Every problem is reported as one line ``FILE:ROW: problem``
 with ROW counted as a text editor shows it (the header is line 1).
 
-Large files are parsed by pyarrow's C++ CSV reader with explicit column types (correctly
-rounded float parsing, so values round-trip bit-exactly); only when that fast parse fails does
-a slow line-by-line scanner run to find the exact row and say what is wrong with it.
+CSV files are parsed by pyarrow's streaming C++ CSV reader with explicit column types (correctly
+rounded float parsing, so values round-trip bit-exactly), a block of text at a time; each chunk
+of rows is validated as it comes, with what spans chunks (time order, duplicate readings) carried
+from one to the next, so a file is never held whole (``open_bundle``; ``load_bundle`` then
+gathers the chunks in memory, ``staging.stage_bundle`` writes them to a temporary file). Only
+when the fast parse fails does a slow line-by-line scanner run to find the exact row and say
+what is wrong with it.
 
 Before anything is read, every file is checked to be a regular file within its size limit (the
 limits table of docs/bundle.md), so a hostile bundle (a FIFO, a directory, a 2 GB sparse file, a
@@ -23,11 +27,11 @@ import math
 import os
 import re
 import stat
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -68,8 +72,9 @@ MAX_ROTARY_POSITION_DEG = 720.0
 MAX_JSON_BYTES = 1 << 20          # campaign.json: metadata, never bulk data
 MAX_JSON_DEPTH = 32               # the deepest valid document nests 5 levels (setups.*.reference.*)
 MAX_JSON_NUMBER_CHARS = 40        # longer literals carry no more binary64 precision (and >4300 digits crash int())
-MAX_CSV_BYTES = 512 << 20         # per CSV file; parsed tables are held in memory
+MAX_CSV_BYTES = 512 << 20         # per CSV file (read a chunk at a time: staging.stage_bundle)
 MAX_LINE_BYTES = 1 << 20          # per CSV line (the scanner reads a line at a time)
+CSV_BLOCK_BYTES = 1 << 20         # CSV text read and parsed at a time, in whole lines (a chunk's working set)
 MAX_FIELD_CHARS = 256             # per CSV cell: numbers, axis/term/direction/setup names
 MAX_NAME_CHARS = 64               # machine id, channel names, setup ids (API path segments), stage names
 MAX_TEXT_CHARS = 200              # free text of campaign.json: machine name, channel location and structure
@@ -85,6 +90,9 @@ _NONFINITE = re.compile(r"^[+-]?(nan|inf|infinity)$", re.IGNORECASE)
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
 _CHANNEL_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
 _CONTROL = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")
+
+
+_T = TypeVar("_T")
 
 
 class BundleError(ValidationError):
@@ -434,36 +442,94 @@ class Bundle:
         return content_hash(self.meta, self.temperatures, self.conditions, self.errors)
 
 
+class ColumnTable(Protocol):
+    """A table read a column at a time, each column as a run of arrays in row order (a frame, or staged chunks)."""
+
+    columns: list[str]
+    n_rows: int
+
+    def column(self, name: str) -> Iterator[np.ndarray]:
+        """Yield the column ``name`` a chunk at a time."""
+
+    def chunks(self, names: Sequence[str] | None = None) -> Iterator[dict[str, np.ndarray]]:
+        """Yield runs of consecutive rows as {column: values}."""
+
+
+class FrameTable:
+    """A DataFrame seen as a ColumnTable of one chunk."""
+
+    def __init__(self, frame: pd.DataFrame) -> None:
+        self.frame = frame
+        self.columns = [str(c) for c in frame.columns]
+        self.n_rows = len(frame)
+
+    def column(self, name: str) -> Iterator[np.ndarray]:
+        """Yield the whole column."""
+        yield self.frame[name].to_numpy()
+
+    def chunks(self, names: Sequence[str] | None = None) -> Iterator[dict[str, np.ndarray]]:
+        """Yield every row at once."""
+        yield {name: self.frame[name].to_numpy() for name in (names or self.columns)}
+
+
+def as_table(table: pd.DataFrame | ColumnTable) -> ColumnTable:
+    """Return a frame as a ColumnTable (a ColumnTable as it is)."""
+    return FrameTable(table) if isinstance(table, pd.DataFrame) else table
+
+
 def _hash_floats(h: Any, values: np.ndarray) -> None:
     arr = np.ascontiguousarray(values, dtype="<f8").copy()
     arr[np.isnan(arr)] = np.nan  # one canonical NaN bit pattern
     h.update(arr.tobytes())
 
 
+def _hash_text(h: Any, parts: Iterator[np.ndarray]) -> None:
+    """Hash the values of a text column joined by newlines, as one string would be, a chunk at a time."""
+    first = True
+    for part in parts:
+        if len(part) == 0:
+            continue
+        if not first:
+            h.update(b"\n")
+        h.update("\n".join(str(v) for v in part).encode())
+        first = False
+
+
 def content_hash(
     meta: CampaignMeta, temperatures: pd.DataFrame, conditions: pd.DataFrame | None, errors: pd.DataFrame
 ) -> str:
     """Return the SHA-256 hex digest identifying a bundle's content."""
+    return table_hash(meta, FrameTable(temperatures), None if conditions is None else FrameTable(conditions),
+                      FrameTable(errors))
+
+
+def table_hash(meta: CampaignMeta, temperatures: ColumnTable, conditions: ColumnTable | None,
+               errors: ColumnTable) -> str:
+    """Return ``content_hash`` of tables read a chunk at a time: the same bytes, column after column."""
     h = hashlib.sha256()
     h.update(json.dumps(meta.document(), sort_keys=True).encode())
-    for label, frame in (("temperatures", temperatures), ("conditions", conditions)):
+    for label, table in (("temperatures", temperatures), ("conditions", conditions)):
         h.update(f"\0{label}\0".encode())
-        if frame is None:
+        if table is None:
             h.update(b"absent")
             continue
-        h.update(",".join(frame.columns).encode())
-        for col in frame.columns:
-            _hash_floats(h, frame[col].to_numpy(dtype="f8"))
+        h.update(",".join(table.columns).encode())
+        for col in table.columns:
+            for part in table.column(col):
+                _hash_floats(h, part)
     h.update(b"\0errors\0")
     for col in ("time_s", "position", "value"):
-        _hash_floats(h, errors[col].to_numpy(dtype="f8"))
+        for part in errors.column(col):
+            _hash_floats(h, part)
     for col in ("axis", "term"):
-        h.update("\n".join(errors[col].astype(str).tolist()).encode())
-    h.update(errors["direction"].to_numpy(dtype="<i1").tobytes())
+        _hash_text(h, errors.column(col))
+    for part in errors.column("direction"):
+        h.update(np.asarray(part).astype("<i1").tobytes())
     if meta.v2:  # v1 hashes are unchanged (duplicate imports of v1 bundles are still recognised)
         for col in POSE_COLUMNS:
-            _hash_floats(h, errors[col].to_numpy(dtype="f8"))
-        h.update("\n".join(errors["setup"].astype(str).tolist()).encode())
+            for part in errors.column(col):
+                _hash_floats(h, part)
+        _hash_text(h, errors.column("setup"))
     return h.hexdigest()
 
 
@@ -617,85 +683,152 @@ def _check_final_line_break(path: Path, file: str, last_line: int) -> None:
             raise _fail(file, last_line, "the last line has no line break (a truncated file?)")
 
 
-def _read_table(path: Path, file: str, header: list[str], kinds: Mapping[str, str]) -> pa.Table:
-    """Return the CSV parsed with explicit types, or raise BundleError naming the bad row."""
+def _csv_pieces(path: Path, file: str, block_bytes: int) -> Iterator[bytes]:
+    """Yield the data lines of a CSV file (after its header) in pieces of whole lines, about ``block_bytes`` each.
+
+    The file is read ``block_bytes`` at a time and cut after the last line break; a line longer
+    than MAX_LINE_BYTES is refused as soon as it is seen (the lines before it have been yielded).
+    """
+    with _open(path, file) as fh:
+        _read_line(fh, file, 1)  # the header (checked before)
+        lines, rest = 1, b""
+        while block := fh.read(block_bytes):
+            text = rest + block
+            cut = text.rfind(b"\n") + 1
+            if cut:
+                piece, rest = text[:cut], text[cut:]
+                lines += piece.count(b"\n")
+                yield piece
+            else:
+                rest = text
+            if len(rest) > MAX_LINE_BYTES:
+                raise _fail(file, lines + 1, f"line longer than {MAX_LINE_BYTES} bytes")
+        if rest:
+            yield rest
+
+
+def _read_chunks(path: Path, file: str, header: list[str], kinds: Mapping[str, str],
+                  block_bytes: int = CSV_BLOCK_BYTES) -> Iterator[tuple[_Rows, pa.Table]]:
+    """Yield the CSV as tables of consecutive rows parsed with explicit types, each with its place in the file.
+
+    Each piece of about ``block_bytes`` of whole lines (``_csv_pieces``) is parsed on its own, so
+    memory holds a piece and its table, never the file (pyarrow's own streaming reader reads ahead
+    of its consumer without bound). When a piece fails to parse, the slow scanner reads the file
+    again from the top to name the bad row. After the last piece a final line without a line break
+    is refused. At least one table comes, empty for a file with only a header (its columns typed).
+    """
     types = {name: (pa.float64() if kinds.get(name, "float") == "float" else pa.string()) for name in header}
-    try:
-        table = pacsv.read_csv(
-            path,
-            read_options=pacsv.ReadOptions(block_size=1 << 24),
-            parse_options=pacsv.ParseOptions(newlines_in_values=False, ignore_empty_lines=False),
-            convert_options=pacsv.ConvertOptions(
-                column_types=types,
-                null_values=[""],
-                strings_can_be_null=True,
-                quoted_strings_can_be_null=True,
-                include_columns=header,
-            ),
-        )
-    except (pa.ArrowInvalid, UnicodeDecodeError) as exc:
-        problem = _scan_for_problem(path, file, header, kinds)
-        if problem is not None:
-            raise problem from None
-        raise _fail(file, None, f"cannot parse: {' '.join(str(exc).split())[:200]}") from None
-    except OSError as exc:
-        raise BundleError(f"{file}: cannot read: {' '.join(str(exc).split())[:200]}") from None
-    _check_final_line_break(path, file, table.num_rows + 1)
+    read = pacsv.ReadOptions(column_names=header)
+    parse = pacsv.ParseOptions(newlines_in_values=False, ignore_empty_lines=False)
+    convert = pacsv.ConvertOptions(column_types=types, null_values=[""], strings_can_be_null=True,
+                                   quoted_strings_can_be_null=True)
+    rows = 0
+    for piece in _csv_pieces(path, file, block_bytes):
+        try:
+            table = pacsv.read_csv(pa.BufferReader(piece), read_options=read, parse_options=parse,
+                                   convert_options=convert)
+        except (pa.ArrowInvalid, UnicodeDecodeError) as exc:
+            raise _parse_failure(path, file, header, kinds, exc) from None
+        del piece
+        place = _Rows(file, rows)
+        _check_text_lengths(table, place, header, kinds)
+        rows += table.num_rows
+        yield place, table
+    if rows == 0:
+        yield _Rows(file, 0), pa.table({name: pa.array([], type=t) for name, t in types.items()})
+    _check_final_line_break(path, file, rows + 1)
+
+
+def _parse_failure(path: Path, file: str, header: list[str], kinds: Mapping[str, str], exc: Exception) -> BundleError:
+    """Return the exact row-level problem the scanner finds, or pyarrow's own words when it finds none."""
+    problem = _scan_for_problem(path, file, header, kinds)
+    if problem is not None:
+        return problem
+    return _fail(file, None, f"cannot parse: {' '.join(str(exc).split())[:200]}")
+
+
+def _check_text_lengths(table: pa.Table, place: _Rows, header: list[str], kinds: Mapping[str, str]) -> None:
+    """Refuse a text cell longer than MAX_FIELD_CHARS (the store keeps names, not text)."""
     for name in header:
         if kinds.get(name, "float") != "float":
             lengths = pc.utf8_length(table.column(name)).to_numpy(zero_copy_only=False)
             with np.errstate(invalid="ignore"):
-                row = _first(np.nan_to_num(lengths.astype("f8"), nan=0.0) > MAX_FIELD_CHARS)
-            if row is not None:
-                raise _fail(file, row, f"column {name}: a cell of {int(lengths[row - 2])} characters "
-                                       f"(at most {MAX_FIELD_CHARS})")
-    return table
+                k = place.first(np.nan_to_num(lengths.astype("f8"), nan=0.0) > MAX_FIELD_CHARS)
+            if k is not None:
+                raise place.fail(k, f"column {name}: a cell of {int(lengths[k])} characters "
+                                    f"(at most {MAX_FIELD_CHARS})")
 
 
-def _first(mask: np.ndarray) -> int | None:
-    """Return the CSV line number of the first True in a per-row mask (header is line 1)."""
-    idx = np.flatnonzero(mask)
-    return int(idx[0]) + 2 if idx.size else None
+@dataclass(frozen=True)
+class _Rows:
+    """Where a chunk of rows sits in its file: its row k is line ``at + k + 2`` (the header is line 1)."""
+
+    file: str
+    at: int
+
+    @staticmethod
+    def first(mask: np.ndarray) -> int | None:
+        """Return the chunk row of the first True in a per-row mask (None when there is none)."""
+        idx = np.flatnonzero(mask)
+        return int(idx[0]) if idx.size else None
+
+    def fail(self, k: int, problem: str) -> BundleError:
+        """Return a BundleError naming the line of the chunk's row ``k``."""
+        return _fail(self.file, self.at + k + 2, problem)
 
 
-def _check_empty_lines(table: pa.Table, file: str) -> None:
+def _check_empty_lines(table: pa.Table, place: _Rows) -> None:
     """Reject empty lines (pyarrow reads them as rows whose every cell is null)."""
     mask = None
     for col in table.columns:
         nulls = col.is_null().to_numpy(zero_copy_only=False)
         mask = nulls if mask is None else mask & nulls
     if mask is not None:
-        row = _first(mask)
-        if row is not None:
-            raise _fail(file, row, "empty line")
+        k = place.first(mask)
+        if k is not None:
+            raise place.fail(k, "empty line")
 
 
-def _check_time(file: str, t: np.ndarray, strict: bool) -> None:
-    """Check time_s: present, finite, non-negative, in (strictly, for scans) increasing order."""
-    row = _first(np.isnan(t))
-    if row is not None:
-        raise _fail(file, row, "time_s is missing")
-    row = _first(~np.isfinite(t))
-    if row is not None:
-        raise _fail(file, row, "time_s is not a finite number")
-    row = _first(t < 0)
-    if row is not None:
-        raise _fail(file, row, f"time_s {float(t[row - 2])!r} is negative (seconds since started_at)")
-    row = _first(t > MAX_TIME_S)
-    if row is not None:
-        raise _fail(file, row, f"time_s {float(t[row - 2])!r} is beyond {MAX_TIME_S:.0e} s (about 31 years after "
-                               "started_at)")
-    if t.size > 1:
-        d = np.diff(t)
-        bad = d <= 0 if strict else d < 0
-        idx = np.flatnonzero(bad)
-        if idx.size:
-            k = int(idx[0]) + 1
-            what = "not after" if strict else "before"
-            raise _fail(file, k + 2, f"time_s {float(t[k])!r} is {what} the previous row's {float(t[k - 1])!r}: rows must be in time order")
+def _check_time(place: _Rows, t: np.ndarray, strict: bool, before: float | None) -> None:
+    """Check time_s: present, finite, non-negative, in (strictly, for scans) increasing order.
+
+    ``before`` is the last time of the chunk before (None for the first): order holds across chunks.
+    """
+    k = place.first(np.isnan(t))
+    if k is not None:
+        raise place.fail(k, "time_s is missing")
+    k = place.first(~np.isfinite(t))
+    if k is not None:
+        raise place.fail(k, "time_s is not a finite number")
+    k = place.first(t < 0)
+    if k is not None:
+        raise place.fail(k, f"time_s {float(t[k])!r} is negative (seconds since started_at)")
+    k = place.first(t > MAX_TIME_S)
+    if k is not None:
+        raise place.fail(k, f"time_s {float(t[k])!r} is beyond {MAX_TIME_S:.0e} s (about 31 years after "
+                            "started_at)")
+    prev = np.concatenate(([before], t[:-1])) if before is not None else t[:-1]
+    step = t - prev if before is not None else np.diff(t)
+    k = place.first(step <= 0 if strict else step < 0)
+    if k is not None:
+        row = k if before is not None else k + 1
+        what = "not after" if strict else "before"
+        raise place.fail(row, f"time_s {float(t[row])!r} is {what} the previous row's {float(prev[k])!r}: "
+                              "rows must be in time order")
 
 
-def _load_temperatures(path: Path, meta: CampaignMeta) -> pd.DataFrame:
+def _check_finite_nan_is_missing(table: pa.Table, place: _Rows, name: str) -> None:
+    """Reject NaN/inf written in a cell (an empty cell, a null, is the only way to say missing)."""
+    col = table.column(name)
+    v = col.to_numpy(zero_copy_only=False)
+    nulls = col.is_null().to_numpy(zero_copy_only=False)
+    k = place.first(~np.isfinite(v) & ~nulls)
+    if k is not None:
+        raise place.fail(k, f"column {name}: {float(v[k])!r} is not a finite number (leave the cell empty if missing)")
+
+
+def _temperature_header(path: Path, meta: CampaignMeta) -> list[str]:
+    """Return temperatures.csv's header: time_s, then exactly the channels of campaign.json."""
     file = path.name
     header = _read_header(path, file)
     for name in header[1:]:
@@ -704,133 +837,170 @@ def _load_temperatures(path: Path, meta: CampaignMeta) -> pd.DataFrame:
     missing = [c for c in meta.channels if c not in header]
     if missing:
         raise _fail(file, 1, f"channel {_short(missing[0])} of campaign.json has no column")
-    table = _read_table(path, file, header, {})
-    if table.num_rows == 0:
-        raise _fail(file, 2, "no readings (the file has only a header)")
-    _check_empty_lines(table, file)
-    frame = table.to_pandas()
-    t = frame["time_s"].to_numpy()
-    _check_time(file, t, strict=True)
+    return header
+
+
+def _temperature_chunks(path: Path, meta: CampaignMeta, block_bytes: int = CSV_BLOCK_BYTES) -> Iterator[pd.DataFrame]:
+    """Yield temperatures.csv as validated frames of consecutive rows (time order holds across them)."""
+    file = path.name
+    header = _temperature_header(path, meta)
     lo, hi = TEMP_RANGE_DEGC
-    for name in header[1:]:
-        v = frame[name].to_numpy(dtype="f8")
-        _check_finite_nan_is_missing(table, file, name)
-        with np.errstate(invalid="ignore"):
-            row = _first((v < lo) | (v > hi))
-        if row is not None:
-            raise _fail(
-                file, row, f"column {name}: {float(v[row - 2])!r} degC is outside {lo}..{hi}: temperatures must be in degC"
-            )
-    return frame
+    last: float | None = None
+    for place, table in _read_chunks(path, file, header, {}, block_bytes):
+        if table.num_rows == 0:
+            continue  # a header alone: refused once the file is read to its end
+        _check_empty_lines(table, place)
+        frame = table.to_pandas()
+        t = frame["time_s"].to_numpy()
+        _check_time(place, t, strict=True, before=last)
+        for name in header[1:]:
+            v = frame[name].to_numpy(dtype="f8")
+            _check_finite_nan_is_missing(table, place, name)
+            with np.errstate(invalid="ignore"):
+                k = place.first((v < lo) | (v > hi))
+            if k is not None:
+                raise place.fail(k, f"column {name}: {float(v[k])!r} degC is outside {lo}..{hi}: temperatures must "
+                                    "be in degC")
+        last = float(t[-1])
+        yield frame
+    if last is None:
+        raise _fail(file, 2, "no readings (the file has only a header)")
 
 
-def _check_finite_nan_is_missing(table: pa.Table, file: str, name: str) -> None:
-    """Reject NaN/inf written in a cell (an empty cell, a null, is the only way to say missing)."""
-    col = table.column(name)
-    v = col.to_numpy(zero_copy_only=False)
-    nulls = col.is_null().to_numpy(zero_copy_only=False)
-    bad = ~np.isfinite(v) & ~nulls
-    row = _first(bad)
-    if row is not None:
-        raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is not a finite number (leave the cell empty if missing)")
-
-
-def _load_conditions(path: Path) -> pd.DataFrame:
+def _conditions_header(path: Path) -> list[str]:
+    """Return conditions.csv's header: time_s, then some of CONDITION_COLUMNS."""
     file = path.name
     header = _read_header(path, file)
     for name in header[1:]:
         if name not in CONDITION_COLUMNS:
             raise _fail(file, 1, f"unknown column {_short(name)}: expected some of {','.join(CONDITION_COLUMNS)}")
-    table = _read_table(path, file, header, {})
-    _check_empty_lines(table, file)
-    frame = table.to_pandas()
-    _check_time(file, frame["time_s"].to_numpy(), strict=True)
-    for name in header[1:]:
-        _check_finite_nan_is_missing(table, file, name)
-        v = frame[name].to_numpy(dtype="f8")
+    return header
+
+
+def _condition_chunks(path: Path, block_bytes: int = CSV_BLOCK_BYTES) -> Iterator[pd.DataFrame]:
+    """Yield conditions.csv as validated frames of consecutive rows (one empty frame for a header alone)."""
+    file = path.name
+    header = _conditions_header(path)
+    last: float | None = None
+    for place, table in _read_chunks(path, file, header, {}, block_bytes):
+        _check_empty_lines(table, place)
+        frame = table.to_pandas()
+        if len(frame):
+            _check_time(place, frame["time_s"].to_numpy(), strict=True, before=last)
+        for name in header[1:]:
+            _check_finite_nan_is_missing(table, place, name)
+            _check_condition(place, name, frame[name].to_numpy(dtype="f8"))
+        if len(frame):
+            last = float(frame["time_s"].iat[-1])
+        yield frame
+
+
+def _check_condition(place: _Rows, name: str, v: np.ndarray) -> None:
+    """Refuse a negative speed or feed and a position out of range (a units mistake)."""
+    with np.errstate(invalid="ignore"):
         if name in ("spindle_rpm", "feed_mm_min"):
-            with np.errstate(invalid="ignore"):
-                row = _first(v < 0)
-            if row is not None:
-                raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is negative")
+            k = place.first(v < 0)
+            if k is not None:
+                raise place.fail(k, f"column {name}: {float(v[k])!r} is negative")
         if name in ("a", "b"):
-            with np.errstate(invalid="ignore"):
-                row = _first(np.abs(v) > MAX_ROTARY_POSITION_DEG)
-            if row is not None:
-                raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is not a rotary position in degrees")
+            k = place.first(np.abs(v) > MAX_ROTARY_POSITION_DEG)
+            if k is not None:
+                raise place.fail(k, f"column {name}: {float(v[k])!r} is not a rotary position in degrees")
         if name in ("x", "y", "z"):
-            with np.errstate(invalid="ignore"):
-                row = _first(np.abs(v) > MAX_LINEAR_POSITION_MM)
-            if row is not None:
-                raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} mm is beyond "
-                                       f"{MAX_LINEAR_POSITION_MM:.0f} mm: positions must be in mm")
-    return frame
+            k = place.first(np.abs(v) > MAX_LINEAR_POSITION_MM)
+            if k is not None:
+                raise place.fail(k, f"column {name}: {float(v[k])!r} mm is beyond {MAX_LINEAR_POSITION_MM:.0f} mm: "
+                                    "positions must be in mm")
 
 
-def _load_errors(path: Path, meta: CampaignMeta | None = None) -> pd.DataFrame:
+def _errors_header(path: Path, meta: CampaignMeta | None) -> list[str]:
+    """Return errors.csv's header: exactly the v1 (or, for a v2 bundle, v2) columns."""
     file = path.name
     header = _read_header(path, file)
-    v2 = meta is not None and meta.v2
-    columns = ERROR_COLUMNS_V2 if v2 else ERROR_COLUMNS
+    columns = ERROR_COLUMNS_V2 if meta is not None and meta.v2 else ERROR_COLUMNS
     for name in header:
         if name not in columns:
             raise _fail(file, 1, f"unknown column {_short(name)}: expected {','.join(columns)}")
     for name in columns:
         if name not in header:
             raise _fail(file, 1, f"missing column {name!r}: expected {','.join(columns)}")
+    return header
+
+
+#: the columns that identify a reading: a second row with the same values is a duplicate
+READING_KEY = ["time_s", "axis", "term", "position", "direction"]
+
+
+def _error_chunks(path: Path, meta: CampaignMeta | None = None,
+                  block_bytes: int = CSV_BLOCK_BYTES) -> Iterator[pd.DataFrame]:
+    """Yield errors.csv as validated frames of consecutive rows (order and duplicates checked across them)."""
+    file = path.name
+    header = _errors_header(path, meta)
+    v2 = meta is not None and meta.v2
     kinds = {"axis": "str", "term": "str", "direction": "str", **({"setup": "str"} if v2 else {})}
-    table = _read_table(path, file, header, kinds)
-    if table.num_rows == 0:
+    last: float | None = None
+    tail: pd.DataFrame | None = None  # the readings at the last time so far: a duplicate can only be among them
+    for place, table in _read_chunks(path, file, header, kinds, block_bytes):
+        if table.num_rows == 0:
+            continue  # a header alone: refused once the file is read to its end
+        _check_empty_lines(table, place)
+        t = table.column("time_s").to_numpy(zero_copy_only=False)
+        _check_time(place, t, strict=False, before=last)
+        frame = _error_frame(table, place, t)
+        if v2:
+            assert meta is not None
+            _load_pose_and_setup(place, table, frame, meta)
+        tail = _check_duplicates(place, frame, tail)
+        last = float(t[-1])
+        yield frame
+    if last is None:
         raise _fail(file, 2, "no error samples (the file has only a header)")
-    _check_empty_lines(table, file)
-    t = table.column("time_s").to_numpy(zero_copy_only=False)
-    _check_time(file, t, strict=False)
+
+
+def _error_frame(table: pa.Table, place: _Rows, t: np.ndarray) -> pd.DataFrame:
+    """Return the v1 columns of a chunk of errors.csv, each checked: vocabulary, direction, finite, plausible."""
     axis = np.asarray(table.column("axis").to_pylist(), dtype=object)
     term = np.asarray(table.column("term").to_pylist(), dtype=object)
     direction_text = np.asarray(table.column("direction").to_pylist(), dtype=object)
     for name, values, vocab in (("axis", axis, AXES), ("term", term, TERMS)):
-        row = _first(~np.isin(values, np.asarray(vocab, dtype=object)))
-        if row is not None:
-            cell = values[row - 2]
+        k = place.first(~np.isin(values, np.asarray(vocab, dtype=object)))
+        if k is not None:
+            cell = values[k]
             what = "missing" if cell is None else f"{_short(cell)} is not one of {' '.join(vocab)}"
-            raise _fail(file, row, f"column {name}: {what}")
-    ok = np.isin(direction_text, np.asarray(list(_DIRECTIONS), dtype=object))
-    row = _first(~ok)
-    if row is not None:
-        cell = direction_text[row - 2]
+            raise place.fail(k, f"column {name}: {what}")
+    k = place.first(~np.isin(direction_text, np.asarray(list(_DIRECTIONS), dtype=object)))
+    if k is not None:
+        cell = direction_text[k]
         what = "missing" if cell is None else f"{_short(cell)} is not +1 or -1"
-        raise _fail(file, row, f"column direction: {what}")
+        raise place.fail(k, f"column direction: {what}")
     direction = np.fromiter((_DIRECTIONS[d] for d in direction_text), dtype=np.int64, count=len(direction_text))
     position = table.column("position").to_numpy(zero_copy_only=False)
     value = table.column("value").to_numpy(zero_copy_only=False)
     for name, v in (("position", position), ("value", value)):
-        nulls = table.column(name).is_null().to_numpy(zero_copy_only=False)
-        row = _first(nulls)
-        if row is not None:
-            raise _fail(file, row, f"column {name}: missing value")
-        row = _first(~np.isfinite(v))
-        if row is not None:
-            raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is not a finite number")
+        k = place.first(table.column(name).is_null().to_numpy(zero_copy_only=False))
+        if k is not None:
+            raise place.fail(k, f"column {name}: missing value")
+        k = place.first(~np.isfinite(v))
+        if k is not None:
+            raise place.fail(k, f"column {name}: {float(v[k])!r} is not a finite number")
     is_rot_axis = np.isin(axis, np.asarray(ROTARY_AXES, dtype=object))
-    row = _first(is_rot_axis & (np.abs(position) > MAX_ROTARY_POSITION_DEG))
-    if row is not None:
-        raise _fail(file, row, f"column position: {float(position[row - 2])!r} is not a rotary position in degrees")
-    row = _first(~is_rot_axis & (np.abs(position) > MAX_LINEAR_POSITION_MM))
-    if row is not None:
-        raise _fail(file, row, f"column position: {float(position[row - 2])!r} mm is beyond "
-                               f"{MAX_LINEAR_POSITION_MM:.0f} mm: positions must be in mm")
+    k = place.first(is_rot_axis & (np.abs(position) > MAX_ROTARY_POSITION_DEG))
+    if k is not None:
+        raise place.fail(k, f"column position: {float(position[k])!r} is not a rotary position in degrees")
+    k = place.first(~is_rot_axis & (np.abs(position) > MAX_LINEAR_POSITION_MM))
+    if k is not None:
+        raise place.fail(k, f"column position: {float(position[k])!r} mm is beyond {MAX_LINEAR_POSITION_MM:.0f} mm: "
+                            "positions must be in mm")
     is_trans = np.isin(term, np.asarray(TRANSLATION_TERMS, dtype=object))
-    row = _first(is_trans & (np.abs(value) > MAX_TRANSLATION_MM))
-    if row is not None:
-        raise _fail(
-            file, row, f"column value: {float(value[row - 2])!r} mm is implausibly large for a translation: values must be in mm"
-        )
-    row = _first(~is_trans & (np.abs(value) > MAX_ROTATION_RAD))
-    if row is not None:
-        raise _fail(
-            file, row, f"column value: {float(value[row - 2])!r} rad is implausibly large for a rotation: values must be in rad"
-        )
-    frame = pd.DataFrame(
+    k = place.first(is_trans & (np.abs(value) > MAX_TRANSLATION_MM))
+    if k is not None:
+        raise place.fail(k, f"column value: {float(value[k])!r} mm is implausibly large for a translation: values "
+                            "must be in mm")
+    k = place.first(~is_trans & (np.abs(value) > MAX_ROTATION_RAD))
+    if k is not None:
+        raise place.fail(k, f"column value: {float(value[k])!r} rad is implausibly large for a rotation: values "
+                            "must be in rad")
+    return pd.DataFrame(
         {
             "time_s": t,
             "axis": pd.array(axis.tolist(), dtype="str"),
@@ -840,56 +1010,111 @@ def _load_errors(path: Path, meta: CampaignMeta | None = None) -> pd.DataFrame:
             "value": value,
         }
     )
-    if v2:
-        assert meta is not None
-        _load_pose_and_setup(file, table, frame, axis, term, meta)
-    dup = frame.duplicated(subset=["time_s", "axis", "term", "position", "direction"]).to_numpy()
-    row = _first(dup)
-    if row is not None:
-        raise _fail(file, row, "duplicate reading: same time_s, axis, term, position and direction as an earlier row")
-    return frame
 
 
-def _load_pose_and_setup(file: str, table: pa.Table, frame: pd.DataFrame, axis: np.ndarray, term: np.ndarray,
-                         meta: CampaignMeta) -> None:
+def _check_duplicates(place: _Rows, frame: pd.DataFrame, tail: pd.DataFrame | None) -> pd.DataFrame:
+    """Refuse a reading repeated from an earlier row; return the readings at the chunk's last time.
+
+    Rows are in time order (checked first), so a reading can only repeat one of the same time_s: the
+    rows at the previous chunk's last time are all an earlier chunk can contribute.
+    """
+    keys = frame[READING_KEY]
+    both = keys if tail is None else pd.concat([tail, keys], ignore_index=True)
+    dup = both.duplicated().to_numpy()[len(both) - len(keys):]
+    k = place.first(dup)
+    if k is not None:
+        raise place.fail(k, "duplicate reading: same time_s, axis, term, position and direction as an earlier row")
+    t = both["time_s"].to_numpy()
+    return both[t == t[-1]].reset_index(drop=True)
+
+
+def _load_pose_and_setup(place: _Rows, table: pa.Table, frame: pd.DataFrame, meta: CampaignMeta) -> None:
     """Add and check v2's pose and setup columns: finite pose, position = the moved axis' pose, known setup."""
     for name in POSE_COLUMNS:
         v = table.column(name).to_numpy(zero_copy_only=False)
-        row = _first(table.column(name).is_null().to_numpy(zero_copy_only=False))
-        if row is not None:
-            raise _fail(file, row, f"column {name}: missing value (a bundle v2 gives the full pose)")
-        row = _first(~np.isfinite(v))
-        if row is not None:
-            raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is not a finite number")
+        k = place.first(table.column(name).is_null().to_numpy(zero_copy_only=False))
+        if k is not None:
+            raise place.fail(k, f"column {name}: missing value (a bundle v2 gives the full pose)")
+        k = place.first(~np.isfinite(v))
+        if k is not None:
+            raise place.fail(k, f"column {name}: {float(v[k])!r} is not a finite number")
         bound = MAX_ROTARY_POSITION_DEG if name in ("a", "b") else MAX_LINEAR_POSITION_MM
-        row = _first(np.abs(v) > bound)
-        if row is not None:
-            raise _fail(file, row, f"column {name}: {float(v[row - 2])!r} is beyond {bound:.0f} "
-                                   f"({'degrees' if name in ('a', 'b') else 'mm'})")
+        k = place.first(np.abs(v) > bound)
+        if k is not None:
+            raise place.fail(k, f"column {name}: {float(v[k])!r} is beyond {bound:.0f} "
+                                f"({'degrees' if name in ('a', 'b') else 'mm'})")
         frame[name] = v
+    axis = frame["axis"].to_numpy(dtype=object)
+    term = frame["term"].to_numpy(dtype=object)
     pose = frame[list(POSE_COLUMNS)].to_numpy(float)
     moved = pose[np.arange(len(frame)), [AXES.index(a) for a in axis]]
     pos = frame["position"].to_numpy(float)
-    row = _first(np.abs(moved - pos) > 1e-9 * np.maximum(1.0, np.abs(pos)))
-    if row is not None:
-        ax = axis[row - 2]
-        raise _fail(file, row, f"column {ax.lower()}: {moved[row - 2]!r} differs from position {pos[row - 2]!r} "
-                               f"of the moved axis {ax}")
+    k = place.first(np.abs(moved - pos) > 1e-9 * np.maximum(1.0, np.abs(pos)))
+    if k is not None:
+        ax = axis[k]
+        raise place.fail(k, f"column {ax.lower()}: {moved[k]!r} differs from position {pos[k]!r} "
+                            f"of the moved axis {ax}")
     setup = np.asarray(table.column("setup").to_pylist(), dtype=object)
     setups = meta.setups or {}
-    for r, (sid, ax, tm) in enumerate(zip(setup, axis, term), start=2):
+    for k, (sid, ax, tm) in enumerate(zip(setup, axis, term)):
         entry = setups.get(sid) if sid is not None else None
         if entry is None:
             what = "missing" if sid is None else f"{_short(sid)} is not among campaign.json setups"
-            raise _fail(file, r, f"column setup: {what}")
+            raise place.fail(k, f"column setup: {what}")
         if f"{ax}/{tm}" not in entry.terms:
-            raise _fail(file, r, f"column setup: setup {_short(sid)} does not deliver {ax}/{tm} "
-                                 f"(it delivers {', '.join(entry.terms)})")
+            raise place.fail(k, f"column setup: setup {_short(sid)} does not deliver {ax}/{tm} "
+                                f"(it delivers {', '.join(entry.terms)})")
     frame["setup"] = pd.array(setup.tolist(), dtype="str")
 
 
-def load_bundle(path: str | Path) -> Bundle:
-    """Return the validated bundle in directory ``path``; raise BundleError (``FILE:ROW: problem``)."""
+def _readable(chunks: Iterator[_T], file: str) -> Iterator[_T]:
+    """Yield from ``chunks``, turning a read failing half-way (EIO, a file removed under us) into a BundleError."""
+    try:
+        yield from chunks
+    except OSError as exc:
+        where = Path(exc.filename).name if exc.filename else file
+        raise BundleError(f"{where}: cannot read: {exc.strerror or exc}") from None
+
+
+@dataclass(frozen=True)
+class BundleFiles:
+    """A bundle directory whose files and campaign.json are checked, its CSVs read a chunk at a time.
+
+    Each of ``temperatures()``, ``conditions()`` and ``errors()`` reads its file afresh and yields
+    validated frames of consecutive rows (about ``block_bytes`` of CSV text each), checking what
+    spans chunks (time order, duplicate readings) with state carried from one to the next; a problem
+    anywhere is a BundleError naming its line. Memory holds a chunk, not the file.
+    """
+
+    root: Path
+    meta: CampaignMeta
+    temperatures_path: Path
+    conditions_path: Path | None
+    errors_path: Path
+    block_bytes: int = CSV_BLOCK_BYTES
+
+    @property
+    def name(self) -> str:
+        """Return the bundle's name (its directory's)."""
+        return self.root.resolve().name
+
+    def temperatures(self) -> Iterator[pd.DataFrame]:
+        """Yield temperatures.csv: ``time_s`` and one column per channel, in the file's column order."""
+        return _readable(_temperature_chunks(self.temperatures_path, self.meta, self.block_bytes), TEMPERATURES_FILE)
+
+    def conditions(self) -> Iterator[pd.DataFrame]:
+        """Yield conditions.csv (nothing when the bundle has none)."""
+        if self.conditions_path is None:
+            return iter(())
+        return _readable(_condition_chunks(self.conditions_path, self.block_bytes), CONDITIONS_FILE)
+
+    def errors(self) -> Iterator[pd.DataFrame]:
+        """Yield errors.csv with ``direction`` as +1/-1 (and, for v2, the pose and setup columns)."""
+        return _readable(_error_chunks(self.errors_path, self.meta, self.block_bytes), ERRORS_FILE)
+
+
+def open_bundle(path: str | Path, block_bytes: int = CSV_BLOCK_BYTES) -> BundleFiles:
+    """Return the bundle in directory ``path`` with its files and campaign.json checked; BundleError otherwise."""
     root = Path(path)
     try:
         if not root.is_dir():
@@ -902,20 +1127,34 @@ def load_bundle(path: str | Path) -> Bundle:
         assert meta_path is not None and temp_path is not None and err_path is not None
         with _open(meta_path, CAMPAIGN_FILE) as fh:
             data = fh.read(MAX_JSON_BYTES + 1)
-        try:
-            text = data.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            line = data.count(b"\n", 0, exc.start) + 1
-            column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
-            raise BundleError(f"{CAMPAIGN_FILE}:{line}: column {column}: not UTF-8 text") from None
-        meta = parse_meta(text)
-        temperatures = _load_temperatures(temp_path, meta)
-        conditions = _load_conditions(cond_path) if cond_path is not None else None
-        errors = _load_errors(err_path, meta)
     except OSError as exc:  # a read failing half-way (EIO, a file removed under us)
         where = Path(exc.filename).name if exc.filename else str(root)
         raise BundleError(f"{where}: cannot read: {exc.strerror or exc}") from None
-    return Bundle(name=root.resolve().name, meta=meta, temperatures=temperatures, conditions=conditions, errors=errors)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise BundleError(f"{CAMPAIGN_FILE}:{line}: column {column}: not UTF-8 text") from None
+    return BundleFiles(root, parse_meta(text), temp_path, cond_path, err_path, block_bytes)
+
+
+def _concat(chunks: Iterator[pd.DataFrame]) -> pd.DataFrame:
+    """Return the chunks of a file as one frame (index 0..n-1)."""
+    frames = list(chunks)
+    return frames[0] if len(frames) == 1 else pd.concat(frames, ignore_index=True)
+
+
+def load_bundle(path: str | Path, block_bytes: int = CSV_BLOCK_BYTES) -> Bundle:
+    """Return the validated bundle in directory ``path`` held in memory; raise BundleError (``FILE:ROW: problem``).
+
+    For a bundle too large to hold, ``staging.stage_bundle`` validates the same way a chunk at a time.
+    """
+    files = open_bundle(path, block_bytes)
+    temperatures = _concat(files.temperatures())
+    conditions = _concat(files.conditions()) if files.conditions_path is not None else None
+    errors = _concat(files.errors())
+    return Bundle(name=files.name, meta=files.meta, temperatures=temperatures, conditions=conditions, errors=errors)
 
 
 # ----------------------------------------------------------------------------- writing

@@ -1,4 +1,10 @@
-"""Bulk ingest of a validated bundle: one transaction, COPY on PostgreSQL, executemany on SQLite."""
+"""Bulk ingest of a validated bundle: one transaction, COPY on PostgreSQL, executemany on SQLite.
+
+The bundle's tables may be frames in memory (``Bundle``) or staged on disk (``StagedBundle``):
+either way they are read a chunk at a time (``bundle.ColumnTable``), and every row goes to the
+driver as it is made, so memory holds a chunk whatever the bundle's size. What spans chunks
+(sweep numbers, per-minute rollups) carries its state from one chunk to the next.
+"""
 
 from __future__ import annotations
 
@@ -11,35 +17,54 @@ import pandas as pd
 from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle
+from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, as_table
 
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
 TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value")
 ERROR_COLUMNS = ("campaign_id", "seq", "time_s", "axis", "term", "position", "direction", "value", "sweep", "flags")
 
 
-def sweep_numbers(errors: pd.DataFrame) -> np.ndarray:
-    """Return a sweep number per error row: within (axis, term, direction), in time order, a new
-    sweep starts when the position repeats or stops moving the same way."""
-    out = np.zeros(len(errors), dtype=np.int64)
-    keys = errors["axis"].astype(str) + "|" + errors["term"].astype(str) + "|" + errors["direction"].astype(str)
-    positions = errors["position"].to_numpy(dtype="f8")
-    for idx in keys.groupby(keys, sort=False).indices.values():
-        p = positions[idx]
-        sweep, sign = 0, 0.0
-        numbers = np.empty(len(idx), dtype=np.int64)
-        numbers[0] = 0
-        for k in range(1, len(idx)):
-            d = p[k] - p[k - 1]
-            step = np.sign(d)
-            if d == 0 or (sign != 0 and step != sign):
-                sweep += 1
-                sign = 0.0
+class SweepCounter:
+    """Sweep numbers of error rows given a chunk at a time: within (axis, term, direction), in time
+    order, a new sweep starts when the position repeats or stops moving the same way."""
+
+    def __init__(self) -> None:
+        self._state: dict[str, tuple[float, int, float]] = {}  # key -> (last position, sweep, sign)
+
+    def numbers(self, axis: np.ndarray, term: np.ndarray, direction: np.ndarray, position: np.ndarray) -> np.ndarray:
+        """Return the sweep number of each row of the next chunk."""
+        out = np.zeros(len(position), dtype=np.int64)
+        keys = pd.Series(axis).astype(str) + "|" + pd.Series(term).astype(str) + "|" + pd.Series(direction).astype(str)
+        positions = np.asarray(position, dtype="f8")
+        for key, idx in keys.groupby(keys, sort=False).indices.items():
+            p = positions[idx]
+            numbers = np.empty(len(idx), dtype=np.int64)
+            if key in self._state:
+                last, sweep, sign = self._state[key]
+                start = 0
             else:
-                sign = step
-            numbers[k] = sweep
-        out[idx] = numbers
-    return out
+                last, sweep, sign = p[0], 0, 0.0
+                numbers[0] = 0
+                start = 1
+            for k in range(start, len(idx)):
+                d = p[k] - last
+                step = np.sign(d)
+                if d == 0 or (sign != 0 and step != sign):
+                    sweep += 1
+                    sign = 0.0
+                else:
+                    sign = step
+                numbers[k] = sweep
+                last = p[k]
+            self._state[key] = (float(last), sweep, float(sign))
+            out[idx] = numbers
+        return out
+
+
+def sweep_numbers(errors: pd.DataFrame) -> np.ndarray:
+    """Return a sweep number per error row (see SweepCounter) of a whole frame."""
+    return SweepCounter().numbers(errors["axis"].to_numpy(), errors["term"].to_numpy(),
+                                  errors["direction"].to_numpy(), errors["position"].to_numpy())
 
 
 def _copy_rows(conn: Connection, table: str, columns: Sequence[str], types: Sequence[str],
@@ -79,22 +104,25 @@ def _nullable(values: np.ndarray, postgres: bool) -> list[Any]:
     return obj.tolist()
 
 
-def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame,
+def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable,
                      postgres: bool) -> Iterable[tuple[Any, ...]]:
     """Return (campaign, channel, time, value) rows channel by channel: primary-key order, so appends.
 
     The rows are chained C-level zips (no Python frame per row): the per-row cost is the driver's.
+    A chunk's values become Python lists only when the driver reaches them.
     """
-    times = temperatures["time_s"].to_numpy(dtype="f8").tolist()
-    n = len(times)
-    names = [c for c in temperatures.columns if c != "time_s"]
+    table = as_table(temperatures)
+    names = [c for c in table.columns if c != "time_s"]
 
-    def per_channel() -> Iterator[Iterable[tuple[Any, ...]]]:
+    def per_chunk() -> Iterator[Iterable[tuple[Any, ...]]]:
         for channel_id, name in zip(channel_ids, names, strict=True):
-            values = _nullable(temperatures[name].to_numpy(dtype="f8"), postgres)
-            yield zip(repeat(campaign_id, n), repeat(channel_id, n), times, values)
+            for times, values in zip(table.column("time_s"), table.column(name), strict=True):
+                n = len(times)
+                t = np.asarray(times, dtype="f8").tolist()
+                v = _nullable(np.asarray(values, dtype="f8"), postgres)
+                yield zip(repeat(campaign_id, n), repeat(channel_id, n), t, v)
 
-    return chain.from_iterable(per_channel())
+    return chain.from_iterable(per_chunk())
 
 
 # PostgreSQL binary COPY of temperature rows, encoded by numpy (no Python object per row): the
@@ -119,26 +147,27 @@ def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray
 
 
 def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequence[int],
-                         temperatures: pd.DataFrame, chunk_rows: int = 200_000) -> None:
-    """Stream a wide temperature frame into temperature_samples with binary COPY, in key order."""
+                         temperatures: pd.DataFrame | ColumnTable, chunk_rows: int = 200_000) -> None:
+    """Stream a wide temperature table into temperature_samples with binary COPY, in key order."""
     raw = conn.connection.driver_connection
-    t_all = temperatures["time_s"].to_numpy(dtype="f8")
-    names = [c for c in temperatures.columns if c != "time_s"]
+    table = as_table(temperatures)
+    names = [c for c in table.columns if c != "time_s"]
     with raw.cursor() as cur:  # type: ignore[union-attr]
         with cur.copy(f"COPY temperature_samples ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)") as cp:
             cp.write(_PG_HEADER)
             for channel_id, name in zip(channel_ids, names, strict=True):
-                v_all = temperatures[name].to_numpy(dtype="f8")
-                for lo in range(0, len(t_all), chunk_rows):
-                    t, v = t_all[lo:lo + chunk_rows], v_all[lo:lo + chunk_rows]
-                    missing = np.isnan(v)
-                    if not missing.any():
-                        cp.write(_encode_rows(campaign_id, channel_id, t, v))
-                        continue
-                    # rows keep key order: runs of present and missing values alternate
-                    edges = np.flatnonzero(np.diff(missing.astype(np.int8))) + 1
-                    for a, b in zip(np.r_[0, edges], np.r_[edges, len(v)], strict=True):
-                        cp.write(_encode_rows(campaign_id, channel_id, t[a:b], None if missing[a] else v[a:b]))
+                for t_all, v_all in zip(table.column("time_s"), table.column(name), strict=True):
+                    t_all, v_all = np.asarray(t_all, dtype="f8"), np.asarray(v_all, dtype="f8")
+                    for lo in range(0, len(t_all), chunk_rows):
+                        t, v = t_all[lo:lo + chunk_rows], v_all[lo:lo + chunk_rows]
+                        missing = np.isnan(v)
+                        if not missing.any():
+                            cp.write(_encode_rows(campaign_id, channel_id, t, v))
+                            continue
+                        # rows keep key order: runs of present and missing values alternate
+                        edges = np.flatnonzero(np.diff(missing.astype(np.int8))) + 1
+                        for a, b in zip(np.r_[0, edges], np.r_[edges, len(v)], strict=True):
+                            cp.write(_encode_rows(campaign_id, channel_id, t[a:b], None if missing[a] else v[a:b]))
             cp.write(_PG_TRAILER)
 
 
@@ -146,30 +175,45 @@ ROLLUP_COLUMNS = ("campaign_id", "channel_id", "minute", "n", "n_values", "vmin"
 ROLLUP_S = 60.0
 
 
-def rollup_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame) -> list[tuple[Any, ...]]:
-    """Return per channel and minute (count, present count, min, sum, max) rows of a wide frame."""
-    t = temperatures["time_s"].to_numpy(dtype="f8")
-    if not len(t):
-        return []
-    minute = np.floor(t / ROLLUP_S).astype(np.int64)
-    starts = np.r_[0, np.flatnonzero(np.diff(minute)) + 1]
-    n = np.diff(np.r_[starts, len(t)])
-    minutes = minute[starts].tolist()
-    rows: list[tuple[Any, ...]] = []
-    names = [c for c in temperatures.columns if c != "time_s"]
+def rollup_rows(campaign_id: int, channel_ids: Sequence[int],
+                temperatures: pd.DataFrame | ColumnTable) -> Iterator[tuple[Any, ...]]:
+    """Yield per channel and minute (count, present count, min, sum, max) rows of a wide table.
+
+    Scans are in time order, so a minute is a run of consecutive rows; a run cut by the end of a
+    chunk is finished with the next chunk's rows (the same sums, in the same order, as in one go).
+    """
+    table = as_table(temperatures)
+    names = [c for c in table.columns if c != "time_s"]
     for channel_id, name in zip(channel_ids, names, strict=True):
-        v = temperatures[name].to_numpy(dtype="f8")
-        present = ~np.isnan(v)
-        n_values = np.add.reduceat(present.astype(np.int64), starts)
-        with np.errstate(invalid="ignore"):
-            vmin = np.fmin.reduceat(v, starts)
-            vmax = np.fmax.reduceat(v, starts)
-        vsum = np.add.reduceat(np.where(present, v, 0.0), starts)
-        empty = n_values == 0
-        vsum[empty] = np.nan
-        rows.extend(zip(repeat(campaign_id), repeat(channel_id), minutes, n.tolist(), n_values.tolist(),
-                        _nullable(vmin, True), _nullable(vsum, True), _nullable(vmax, True)))
-    return rows
+        rest_t, rest_v = np.empty(0), np.empty(0)
+        for times, values in zip(table.column("time_s"), table.column(name), strict=True):
+            t = np.concatenate([rest_t, np.asarray(times, dtype="f8")])
+            v = np.concatenate([rest_v, np.asarray(values, dtype="f8")])
+            if not len(t):
+                continue
+            minute = np.floor(t / ROLLUP_S).astype(np.int64)
+            other = np.flatnonzero(minute != minute[-1])
+            cut = int(other[-1]) + 1 if other.size else 0  # the last run of a minute may go on in the next chunk
+            yield from _rollups(campaign_id, channel_id, minute[:cut], v[:cut])
+            rest_t, rest_v = t[cut:], v[cut:]
+        yield from _rollups(campaign_id, channel_id, np.floor(rest_t / ROLLUP_S).astype(np.int64), rest_v)
+
+
+def _rollups(campaign_id: int, channel_id: int, minute: np.ndarray, v: np.ndarray) -> Iterator[tuple[Any, ...]]:
+    """Yield the rollup rows of whole minutes of one channel."""
+    if not len(minute):
+        return
+    starts = np.r_[0, np.flatnonzero(np.diff(minute)) + 1]
+    n = np.diff(np.r_[starts, len(minute)])
+    present = ~np.isnan(v)
+    n_values = np.add.reduceat(present.astype(np.int64), starts)
+    with np.errstate(invalid="ignore"):
+        vmin = np.fmin.reduceat(v, starts)
+        vmax = np.fmax.reduceat(v, starts)
+    vsum = np.add.reduceat(np.where(present, v, 0.0), starts)
+    vsum[n_values == 0] = np.nan
+    yield from zip(repeat(campaign_id), repeat(channel_id), minute[starts].tolist(), n.tolist(), n_values.tolist(),
+                   _nullable(vmin, True), _nullable(vsum, True), _nullable(vmax, True))
 
 
 def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) -> Any:
@@ -183,8 +227,8 @@ def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) ->
     return sqlite_insert(table).on_conflict_do_nothing(index_elements=keys)
 
 
-def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
-    """Write a validated bundle in the caller's transaction and return the new campaign id."""
+def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> int:
+    """Write a validated bundle (in memory, or staged) in the caller's transaction; return the new campaign id."""
     meta = bundle.meta
     postgres = conn.dialect.name == "postgresql"
     machine = conn.execute(select(sc.Machine.id).where(sc.Machine.id == meta.machine.id)).first()
@@ -228,43 +272,64 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
     ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == campaign_id)).all())
     channel_ids = [ids[name] for name in names]
 
+    temperatures = as_table(bundle.temperatures)
     if postgres:
-        copy_temperatures_pg(conn, campaign_id, channel_ids, bundle.temperatures)
+        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures)
     else:
         bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, ("int4", "int4", "float8", "float8"),
-                    temperature_rows(campaign_id, channel_ids, bundle.temperatures, postgres))
+                    temperature_rows(campaign_id, channel_ids, temperatures, postgres))
 
     bulk_insert(conn, "temperature_rollups", ROLLUP_COLUMNS,
                 ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
-                rollup_rows(campaign_id, channel_ids, bundle.temperatures))
+                rollup_rows(campaign_id, channel_ids, temperatures))
 
-    if bundle.conditions is not None and len(bundle.conditions):
-        cond = bundle.conditions
-        n = len(cond)
-        cond_values = [cond[c].to_numpy(dtype="f8") if c in cond.columns else np.full(n, np.nan)
-                       for c in CONDITION_VALUE_COLUMNS]
-        rows = zip(repeat(campaign_id, n), cond["time_s"].to_numpy(dtype="f8").tolist(),
-                   *[_nullable(c, postgres) for c in cond_values])
-        bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS),
-                    ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS)), rows)
+    if bundle.conditions is not None:
+        conditions = as_table(bundle.conditions)
+        if conditions.n_rows:
+            bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS),
+                        ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS)),
+                        condition_rows(campaign_id, conditions, postgres))
 
-    err = bundle.errors
-    n = len(err)
-    sweeps = sweep_numbers(err)
-    columns: tuple[Any, ...] = (
-        repeat(campaign_id, n), range(n), err["time_s"].to_numpy(dtype="f8").tolist(),
-        err["axis"].astype(str).tolist(), err["term"].astype(str).tolist(),
-        err["position"].to_numpy(dtype="f8").tolist(), err["direction"].to_numpy(dtype="i8").tolist(),
-        err["value"].to_numpy(dtype="f8").tolist(), sweeps.tolist(), repeat(0, n),
-    )
     err_names: tuple[str, ...] = tuple(ERROR_COLUMNS)
     types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4")
-    if bundle.meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
-        columns += (*(err[c].to_numpy(dtype="f8").tolist() for c in POSE_COLUMNS), err["setup"].astype(str).tolist())
+    if meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
         err_names += (*POSE_COLUMNS, "setup")
         types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
-    bulk_insert(conn, "error_samples", err_names, types, zip(*columns))
+    bulk_insert(conn, "error_samples", err_names, types, error_rows(campaign_id, as_table(bundle.errors), meta.v2))
     return int(campaign_id)
+
+
+def condition_rows(campaign_id: int, conditions: ColumnTable, postgres: bool) -> Iterator[tuple[Any, ...]]:
+    """Yield (campaign, time, spindle_rpm, feed_mm_min, x, y, z, a, b) rows, NULL where a column is absent."""
+    present = [c for c in CONDITION_VALUE_COLUMNS if c in conditions.columns]
+    for chunk in conditions.chunks(["time_s", *present]):
+        n = len(chunk["time_s"])
+        columns = [np.asarray(chunk[c], dtype="f8") if c in chunk else np.full(n, np.nan)
+                   for c in CONDITION_VALUE_COLUMNS]
+        yield from zip(repeat(campaign_id, n), np.asarray(chunk["time_s"], dtype="f8").tolist(),
+                       *[_nullable(c, postgres) for c in columns])
+
+
+def error_rows(campaign_id: int, errors: ColumnTable, v2: bool) -> Iterator[tuple[Any, ...]]:
+    """Yield error_samples rows in file order: seq counts over the whole file, sweeps carry across chunks."""
+    sweeps = SweepCounter()
+    seq = 0
+    for chunk in errors.chunks():
+        n = len(chunk["time_s"])
+        axis, term = [str(v) for v in chunk["axis"]], [str(v) for v in chunk["term"]]
+        direction = np.asarray(chunk["direction"], dtype="i8")
+        numbers = sweeps.numbers(np.asarray(axis, dtype=object), np.asarray(term, dtype=object), direction,
+                                 np.asarray(chunk["position"], dtype="f8"))
+        columns: tuple[Any, ...] = (
+            repeat(campaign_id, n), range(seq, seq + n), np.asarray(chunk["time_s"], dtype="f8").tolist(), axis,
+            term, np.asarray(chunk["position"], dtype="f8").tolist(), direction.tolist(),
+            np.asarray(chunk["value"], dtype="f8").tolist(), numbers.tolist(), repeat(0, n),
+        )
+        if v2:
+            columns += (*(np.asarray(chunk[c], dtype="f8").tolist() for c in POSE_COLUMNS),
+                        [str(v) for v in chunk["setup"]])
+        yield from zip(*columns)
+        seq += n
 
 
 def refresh_rollups(conn: Connection, campaign_id: int) -> int:

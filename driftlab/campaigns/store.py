@@ -19,6 +19,7 @@ from sqlalchemy.exc import IntegrityError
 from driftlab.campaigns import db, ingest, queries
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import Bundle
+from driftlab.campaigns.staging import StagedBundle
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
 
 log = logging.getLogger(__name__)
@@ -195,10 +196,11 @@ class Store:
 
     # ------------------------------------------------------------------ campaigns
 
-    def import_bundle(self, bundle: Bundle) -> int:
-        """Store a validated bundle in one transaction and return its campaign id.
+    def import_bundle(self, bundle: Bundle | StagedBundle) -> int:
+        """Store a validated bundle (in memory, or staged: ``staging.stage_bundle``) in one transaction.
 
-        Refused (ConflictError) when a campaign with the same content hash is already stored.
+        Returns its campaign id. Refused (ConflictError) when a campaign with the same content hash
+        is already stored. A staged bundle's rows are written a chunk at a time.
         """
         self.ensure_schema()
         content_hash = bundle.content_hash()

@@ -24,19 +24,23 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _import(args: argparse.Namespace) -> int:
-    """Validate the whole bundle, write it in one transaction, say what was stored (or JSON with --json)."""
+    """Validate the whole bundle, write it in one transaction, say what was stored (or JSON with --json).
+
+    The bundle is validated and staged a chunk at a time (memory does not grow with its size), all
+    of it before the store is opened: a bad row anywhere leaves the store as it was.
+    """
     import json
 
-    from driftlab.campaigns.bundle import load_bundle
+    from driftlab.campaigns.staging import stage_bundle
     from driftlab.campaigns.store import connect
     from driftlab.progress import progress
 
     with progress(f"validating {args.bundle}") as bar:  # spinners: neither step knows its length in advance
-        bundle = load_bundle(args.bundle)
-        bar.update(description=f"storing {bundle.name}")
-        with connect(args.db) as store:
-            campaign_id = store.import_bundle(bundle)
-    summary = import_summary(campaign_id, bundle)
+        with stage_bundle(args.bundle) as bundle:
+            bar.update(description=f"storing {bundle.name}")
+            with connect(args.db) as store:
+                campaign_id = store.import_bundle(bundle)
+            summary = import_summary(campaign_id, bundle)
     if args.json:
         print(json.dumps(summary))
         return 0
@@ -45,21 +49,35 @@ def _import(args: argparse.Namespace) -> int:
 
 
 def import_summary(campaign_id: int, bundle: Any) -> dict[str, Any]:
-    """Return what an import stored: machine, channels, readings, time span, stages, error terms."""
-    meta, temps, errors = bundle.meta, bundle.temperatures, bundle.errors
+    """Return what an import stored: machine, channels, readings, time span, stages, error terms.
+
+    ``bundle`` is a Bundle or a StagedBundle: its tables are read a chunk at a time.
+    """
+    import numpy as np
+
+    from driftlab.campaigns.bundle import as_table
+
+    meta = bundle.meta
+    temps, errors = as_table(bundle.temperatures), as_table(bundle.errors)
     chans = [c for c in temps.columns if c != "time_s"]
-    t = temps["time_s"]
-    terms = sorted({f"{a}/{b}" for a, b in zip(errors["axis"], errors["term"])}) if len(errors) else []
+    present = sum(int((~np.isnan(np.asarray(part, dtype="f8"))).sum()) for c in chans for part in temps.column(c))
+    t_min, t_max = np.inf, -np.inf
+    for part in temps.column("time_s"):
+        if len(part):
+            t_min, t_max = min(t_min, float(np.min(part))), max(t_max, float(np.max(part)))
+    terms: set[str] = set()
+    for chunk in errors.chunks(["axis", "term"]):
+        terms.update(f"{a}/{b}" for a, b in set(zip(chunk["axis"], chunk["term"])))
+    conditions = None if bundle.conditions is None else as_table(bundle.conditions)
     return {
         "campaign_id": int(campaign_id), "name": bundle.name, "machine": meta.machine.id,
         "started_at": meta.started_at.isoformat().replace("+00:00", "Z") if hasattr(meta.started_at, "isoformat")
         else str(meta.started_at),
-        "channels": len(chans), "room_channels": len(meta.room_channels), "scans": int(len(temps)),
-        "temperature_readings": int(temps[chans].notna().sum().sum()) if chans else 0,
-        "missing_readings": int(temps[chans].isna().sum().sum()) if chans else 0,
-        "condition_rows": 0 if bundle.conditions is None else int(len(bundle.conditions)),
-        "error_readings": int(len(errors)), "error_terms": terms, "stages": len(meta.stages),
-        "span_s": float(t.max() - t.min()) if len(t) else 0.0,
+        "channels": len(chans), "room_channels": len(meta.room_channels), "scans": int(temps.n_rows),
+        "temperature_readings": present, "missing_readings": temps.n_rows * len(chans) - present,
+        "condition_rows": 0 if conditions is None else int(conditions.n_rows),
+        "error_readings": int(errors.n_rows), "error_terms": sorted(terms), "stages": len(meta.stages),
+        "span_s": t_max - t_min if temps.n_rows else 0.0,
     }
 
 

@@ -135,18 +135,13 @@ def _run(args: argparse.Namespace) -> int:
                 f"A {mc['A']} B {mc['B']} deg"
             )
         return 0
-    try:
-        data = args.program.read_bytes()  # streaming to a controller keeps the parsed program (see Streamer)
-    except OSError as exc:
-        raise ValidationError(f"{args.program}: cannot read: {exc.strerror or exc}") from None
-    return _stream(args, data, start, decimals, token)
+    return _stream(args, scan, start, decimals, token)
 
 
-def _stream(args: argparse.Namespace, data: bytes, start: tuple[float, ...] | None,
+def _stream(args: argparse.Namespace, scan: Any, start: tuple[float, ...] | None,
             decimals: tuple[int, int], token: str | None) -> int:
-    """Stream the corrected program to the controller."""
-    from driftlab.compensator.compensate import ErrorModel
-    from driftlab.compensator.gcode import parse_program
+    """Stream the corrected program to the controller, reading it again a piece at a time (constant memory)."""
+    from driftlab.compensator.compensate import ErrorModel, parse_pieces, program_pieces
     from driftlab.compensator.stream import ApiModel, ApiTemperatures, CsvTemperatures, StaticModel, Streamer
     from driftlab.daq.machine_link import SerialMachineLink
 
@@ -169,9 +164,12 @@ def _stream(args: argparse.Namespace, data: bytes, start: tuple[float, ...] | No
         if start is None:
             pos = link.position()
             start = tuple(pos[a] for a in ("X", "Y", "Z", "A", "B"))
-        program = parse_program(data, name=str(args.program), start=start, min_decimals=decimals)
+        # the second pass of the offline path: pieces parsed with the state the lines before them leave
+        pieces = parse_pieces(program_pieces(args.program), scan, str(args.program), start=start,
+                              min_decimals=decimals, max_segment_mm=args.max_segment_mm,
+                              max_segment_deg=args.max_segment_deg)
         streamer = Streamer(
-            program, models, temps, resolution_mm=args.resolution_mm, resolution_deg=args.resolution_deg,
+            pieces, models, temps, resolution_mm=args.resolution_mm, resolution_deg=args.resolution_deg,
             max_segment_mm=args.max_segment_mm, max_segment_deg=args.max_segment_deg,
             max_age_s=args.max_age_s, refresh_s=min(args.refresh_s, args.max_age_s),
         )

@@ -13,7 +13,7 @@ tool (``rotary_lever``), and go onto the linear grid the same way.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
@@ -616,6 +616,53 @@ def scan_program(path: str | Path, name: str, min_decimals: tuple[int, int],
     return ProgramScan(decimals, eol or b"\n", first_time, blocks, lines)
 
 
+def parse_pieces(
+    pieces: Iterable[tuple[int, bytes]],
+    scan: ProgramScan,
+    name: str,
+    *,
+    start: tuple[float, ...] | None = None,
+    min_decimals: tuple[int, int] = (4, 3),
+    max_segment_mm: float = 5.0,
+    max_segment_deg: float = 5.0,
+    max_points: int | None = None,
+) -> Iterator[Program]:
+    """Yield each piece of a program (``program_pieces``) parsed with the state the lines before it leave.
+
+    The second pass of a streamed program, shared by the offline path (``compensate_stream``) and
+    the machine link (``stream.Streamer``): every piece is parsed with the decimals, line terminator
+    and first time stamp of the whole program (``scan``, the first pass) and starts from the pose,
+    modal G0/G1 and G90/G91 and time stamp the previous piece ended with, so its lines read exactly as
+    they would in the whole program. Pieces are read one at a time, when the consumer asks for the
+    next: memory holds the pieces the consumer keeps, not the program. With ``max_points`` a piece
+    that would subdivide into more points is halved (by lines) until it does not.
+    """
+    state: dict[str, Any] = {"pose": None, "motion": -1, "dist": 0, "time_s": scan.first_time_s}
+
+    def parsed(offset: int, text: bytes) -> Iterator[Program]:
+        """Yield the piece parsed with the state before it, halved while it makes too many points."""
+        st = state
+        piece = parse_program(text, name=name, start=start, min_decimals=min_decimals, decimals=scan.decimals,
+                              start_int=st["pose"], initial_motion=st["motion"], initial_dist=st["dist"],
+                              initial_time_s=st["time_s"], eol=scan.eol, line_offset=offset)
+        if (max_points is not None and piece.n_lines > 1
+                and count_points(piece, max_segment_mm, max_segment_deg) > max_points):
+            mid = piece.n_lines // 2  # long segments subdivided: keep the points of a piece bounded
+            cut = int(piece.line_start[mid])
+            del piece
+            yield from parsed(offset, text[:cut])
+            yield from parsed(offset + mid, text[cut:])
+            return
+        st["pose"] = piece.target_int[-1] if piece.n_blocks else piece.start_int
+        st["motion"], st["dist"] = piece.end_motion, piece.end_dist
+        if piece.n_lines:
+            st["time_s"] = float(piece.line_time_s[-1])
+        yield piece
+
+    for offset, text in pieces:
+        yield from parsed(offset, text)
+
+
 def compensate_stream(
     program_path: str | Path,
     model: ErrorModel,
@@ -710,41 +757,23 @@ def compensate_stream(
             sent_before = sent[-1]
             points_total += points.n
 
-    parse_state: dict[str, Any] = {"pose": None, "motion": -1, "dist": 0, "time_s": scan.first_time_s}
-
-    def parsed(offset: int, text: bytes) -> Iterator[tuple[Program, Points, bytes]]:
-        """Yield the piece parsed with the state before it, halved (by lines) while it makes too many points."""
-        st = parse_state
-        piece = parse_program(text, name=name, start=start, min_decimals=min_dec, decimals=scan.decimals,
-                              start_int=st["pose"], initial_motion=st["motion"], initial_dist=st["dist"],
-                              initial_time_s=st["time_s"], eol=scan.eol, line_offset=offset)
-        if piece.n_lines > 1 and count_points(piece, max_segment_mm, max_segment_deg) > max(chunk_points // 2, 1):
-            mid = piece.n_lines // 2  # long segments subdivided: keep the points of a piece bounded
-            cut = int(piece.line_start[mid])
-            del piece
-            yield from parsed(offset, text[:cut])
-            yield from parsed(offset + mid, text[cut:])
-            return
-        st["pose"] = piece.target_int[-1] if piece.n_blocks else piece.start_int
-        st["motion"], st["dist"] = piece.end_motion, piece.end_dist
-        if piece.n_lines:
-            st["time_s"] = float(piece.line_time_s[-1])
-        yield piece, subdivide(piece, max_segment_mm, max_segment_deg), text
-
     scale = None
-    for offset, chunk in program_pieces(program_path, chunk_bytes):
-        for piece, points, text in parsed(offset, chunk):
-            scale = piece.scale
-            if first_piece is None:
-                first_piece = piece
-            if points.n:
-                nominal.append(points.nominal_int)
-                times.append(piece.line_time_s[piece.block_line[points.block]])
-                queued += points.n
-            pending.append((piece, points, text))
-            while queued >= chunk_points:
-                correct(chunk_points)
-            flush()
+    pieces = parse_pieces(program_pieces(program_path, chunk_bytes), scan, name, start=start, min_decimals=min_dec,
+                          max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
+                          max_points=max(chunk_points // 2, 1))
+    for piece in pieces:
+        points = subdivide(piece, max_segment_mm, max_segment_deg)
+        scale = piece.scale
+        if first_piece is None:
+            first_piece = piece
+        if points.n:
+            nominal.append(points.nominal_int)
+            times.append(piece.line_time_s[piece.block_line[points.block]])
+            queued += points.n
+        pending.append((piece, points, piece.data))
+        while queued >= chunk_points:
+            correct(chunk_points)
+        flush()
     if queued:
         correct(queued)
     flush()

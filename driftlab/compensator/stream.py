@@ -1,23 +1,26 @@
 """Streaming compensation: corrected blocks fed to the controller as it asks for them (ch. 7.2).
 
-The program is parsed completely before anything is sent (a bad block stops it there). Blocks
-are corrected lazily: ``Streamer.lines()`` is the iterable the machine link pulls from whenever
-the controller's buffer has drained to the low-water mark, so every block leaves with the
-latest model and temperatures. The waiting time of the link (``Streamer.idle``, given to the
-link as its sleep) is used to refresh the model and temperatures and to correct the next
-blocks ahead, so a pull returns at once. A prepared block is never sent once its correction is
-older than ``max_age_s`` (two minutes, ch. 7.2): it is corrected again first. When the model's
-ETag changes (``GET {api}/machines/{id}/model/current`` with ``If-None-Match``), the blocks
-prepared with the old model are corrected again with the new one. If the API goes away, the
-last good model and temperatures stay in use and a warning is logged.
+The program is checked completely before anything is sent (a bad block stops it there), then
+read again a piece at a time (``compensate.parse_pieces``, the second pass of the offline path):
+the streamer holds only the pieces between the last line sent and the last line prepared, so its
+memory does not grow with the program's length. Blocks are corrected lazily: ``Streamer.lines()``
+is the iterable the machine link pulls from whenever the controller's buffer has drained to the
+low-water mark, so every block leaves with the latest model and temperatures. The waiting time of
+the link (``Streamer.idle``, given to the link as its sleep) is used to refresh the model and
+temperatures and to correct the next blocks ahead, so a pull returns at once. A prepared block is
+never sent once its correction is older than ``max_age_s`` (two minutes, ch. 7.2): it is corrected
+again first. When the model's ETag changes (``GET {api}/machines/{id}/model/current`` with
+``If-None-Match``), the blocks prepared with the old model are corrected again with the new one.
+If the API goes away, the last good model and temperatures stay in use and a warning is logged.
 """
 
 from __future__ import annotations
 
 import logging
+import random
 import time
 from collections import deque
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -219,20 +222,43 @@ class _Ready:
     model: str
 
 
+#: block latencies kept for the percentiles: every one up to this many, then a uniform sample of this size
+LATENCY_SAMPLE = 100_000
+
+
 @dataclass
 class StreamResult:
-    """What a streaming run did."""
+    """What a streaming run did (in memory that does not grow with the program's length)."""
 
     blocks_sent: int = 0
     recomputed: int = 0
     reloads: int = 0
+    #: per-block latency (s): all of them for up to LATENCY_SAMPLE blocks, then a uniform sample of them
     latency_s: list[float] = field(default_factory=list)
+    latency_max_s: float = 0.0
     link_report: Any = None
     warnings: list[str] = field(default_factory=list)
+    _recorded: int = field(default=0, repr=False)
+    _rng: random.Random = field(default_factory=lambda: random.Random(0), repr=False)
+
+    def record(self, latency_s: float) -> None:
+        """Count one block's latency: kept, or past LATENCY_SAMPLE blocks sampled (reservoir), the maximum exact."""
+        self.latency_max_s = max(self.latency_max_s, latency_s)
+        if len(self.latency_s) < LATENCY_SAMPLE:
+            self.latency_s.append(latency_s)
+        else:
+            k = self._rng.randrange(self._recorded + 1)
+            if k < LATENCY_SAMPLE:
+                self.latency_s[k] = latency_s
+        self._recorded += 1
 
     def latency_ms(self, pct: float) -> float:
-        """Return a percentile of the per-block latency (ms), 0 when nothing was sent."""
-        return float(np.percentile(self.latency_s, pct) * 1e3) if self.latency_s else 0.0
+        """Return a percentile of the per-block latency (ms), 0 when nothing was sent (100: the exact maximum)."""
+        if not self.latency_s:
+            return 0.0
+        if pct >= 100:
+            return self.latency_max_s * 1e3
+        return float(np.percentile(self.latency_s, pct) * 1e3)
 
     def summary(self) -> dict[str, Any]:
         """Return a JSON-ready summary."""
@@ -262,7 +288,7 @@ class Streamer:
 
     def __init__(
         self,
-        program: Program,
+        program: Program | Iterable[Program],
         models: ModelSource,
         temperatures: TemperatureSource,
         *,
@@ -282,7 +308,10 @@ class Streamer:
     ) -> None:
         if not 0 < refresh_s <= max_age_s:
             raise ValidationError("refresh interval must be positive and no longer than the maximum age")
-        self.program = program
+        # a whole program, or its pieces in order (``parse_pieces``), read only as preparation needs them
+        self._source: Iterator[Program] = iter([program] if isinstance(program, Program) else program)
+        self._window: deque[Program] = deque()  # the pieces from the last line sent to the last prepared
+        first = self._next_piece()
         self.models = models
         self.temperature_source = temperatures
         self.resolution = (resolution_mm, resolution_deg)
@@ -299,7 +328,8 @@ class Streamer:
             epoch_s = time.time() - time.monotonic()
         self.epoch_s = epoch_s
         zero = np.zeros(5, dtype=np.int64)
-        start = _Cursor(0, 0, zero, program.start_int.copy(), program.start_int.copy(), None)
+        pose = first.start_int.copy() if first is not None else zero
+        start = _Cursor(first.first_line if first is not None else 0, 0, zero, pose, pose.copy(), None)
         self._taken = start  # just after the last line handed to the link
         self._made = start  # just after the last line prepared
         self._ready: deque[_Ready] = deque()
@@ -346,16 +376,41 @@ class Streamer:
         self._ready.clear()
         self._made = self._taken
 
+    # -- pieces
+    def _next_piece(self) -> Program | None:
+        """Read the next piece of the program into the window (None at the end)."""
+        for piece in self._source:
+            if piece.n_lines:
+                self._window.append(piece)
+                return piece
+        return None
+
+    def _piece(self, line: int) -> Program | None:
+        """Return the piece holding program line ``line``, reading on as far as it (None past the end)."""
+        for piece in self._window:
+            if piece.first_line <= line < piece.first_line + piece.n_lines:
+                return piece
+        while (piece := self._next_piece()) is not None:
+            if line < piece.first_line + piece.n_lines:
+                return piece
+        return None
+
+    def _release(self) -> None:
+        """Drop the pieces whose every line has been sent (a discard restarts after the last line sent)."""
+        while self._window and self._window[0].first_line + self._window[0].n_lines <= self._taken.line:
+            self._window.popleft()
+
     # -- preparation
     def _prepare(self, n_lines: int | None = None) -> bool:
-        """Prepare the next ``n_lines`` program lines (default: a batch); return False at the end of the program."""
-        p = self.program
+        """Prepare the next ``n_lines`` program lines (default: a batch, within one piece); False at the end."""
         cur = self._made
-        if cur.line >= p.n_lines:
+        p = self._piece(cur.line)
+        if p is None:
             return False
         model = self.models.model
         assert model is not None and self._temps is not None
-        l0 = cur.line
+        f = p.first_line  # cursors count lines over the whole program, the piece from its first
+        l0 = cur.line - f
         l1 = min(p.n_lines, l0 + (n_lines or self.batch_lines))
         b0, b1 = (int(x) for x in np.searchsorted(p.block_line, [l0, l1]))
         pts = subdivide(p, *self.segment, blocks=slice(b0, b1))
@@ -413,17 +468,17 @@ class Streamer:
                 blk = pts.block[k]
                 last = k + 1 >= pts.n or pts.block[k + 1] != blk
                 done = k + 1 - int(np.searchsorted(pts.block, blk)) + (skip if blk == b0 else 0)
-                state = _Cursor(li + 1 if last else li, 0 if last else done,
+                state = _Cursor(f + li + 1 if last else f + li, 0 if last else done,
                                 corr.steps[k], sent[k], pts.nominal_int[k], corr.direction[k])
             else:
                 j = int(np.searchsorted(point_line, li)) - 1 if pts.n else -1
-                state = (_Cursor(li + 1, 0, corr.steps[j], sent[j], pts.nominal_int[j], corr.direction[j])
-                         if j >= 0 else _Cursor(li + 1, 0, cur.steps, cur.sent, cur.nominal, cur.direction))
+                state = (_Cursor(f + li + 1, 0, corr.steps[j], sent[j], pts.nominal_int[j], corr.direction[j])
+                         if j >= 0 else _Cursor(f + li + 1, 0, cur.steps, cur.sent, cur.nominal, cur.direction))
             self._ready.append(_Ready(text.decode("utf-8", "replace"), state, made_at, model.label))
         if pts.n:
-            self._made = _Cursor(l1, 0, corr.steps[-1], sent[-1], pts.nominal_int[-1], corr.direction[-1])
+            self._made = _Cursor(f + l1, 0, corr.steps[-1], sent[-1], pts.nominal_int[-1], corr.direction[-1])
         else:
-            self._made = _Cursor(l1, 0, cur.steps, cur.sent, cur.nominal, cur.direction)
+            self._made = _Cursor(f + l1, 0, cur.steps, cur.sent, cur.nominal, cur.direction)
         return True
 
     def _fill(self) -> None:
@@ -466,9 +521,10 @@ class Streamer:
                     continue
                 self._ready.popleft()
                 self._taken = item.after
+                self._release()
                 if _sendable(item.text):
                     break
-            self.result.latency_s.append(self.timer() - t0)
+            self.result.record(self.timer() - t0)
             self.result.blocks_sent += 1
             yield item.text
 

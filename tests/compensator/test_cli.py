@@ -104,3 +104,56 @@ def test_streaming_to_the_simulated_controller_through_the_api(capsys):
     assert summary["blocks_sent"] == 14 == len(executed)  # the bad program sent nothing
     assert executed[1] == "X1 Y1 Z-0.05"
     assert "bad.nc:2:" in err
+
+
+def _controller_program(lines: int, seed: int = 3) -> str:
+    """Return a program in the simulated controller's dialect: a walk of short moves (some long enough to be
+    subdivided) with mixed decimals, rapid moves, blank lines, and a long comment line every third line
+    (comments are not sent: they make the file span several pieces without making it slow to stream)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    out = ["%", "(the controller's dialect: G90, G0/G1, F)", "G90 G1 F3000"]
+    note = "(" + "tool path note, " * 8 + ")"
+    pose = np.zeros(5)
+    for k in range(lines):
+        r = rng.random()
+        if k % 3 == 0:
+            out.append(note)
+        elif r < 0.01:
+            out.append("")
+        elif r < 0.03:
+            out.append(f"G0 Z{round(float(rng.uniform(5, 30)), 1)}")
+        else:
+            pose += rng.normal(0, [3.0, 3.0, 1.0, 0.5, 0.5])
+            words = [f"{a}{round(float(v), int(rng.integers(0, 4)))}" for a, v in zip("XYZAB", pose)
+                     if rng.random() < (0.8 if a in "XYZ" else 0.2)]
+            feed = f" F{2000 + k % 7}" if r > 0.98 else ""
+            out.append(("G1 " if r < 0.1 else "") + (" ".join(words) or "X1.5") + feed)
+    return "\n".join(out + ["M30", "%"]) + "\n"
+
+
+def test_port_sends_exactly_the_blocks_the_offline_path_writes(files, tmp_path, capsys):
+    """`--port` and `-o` read the program through the same pieces: the controller gets the offline file's blocks."""
+    from driftlab.compensator.compensate import STREAM_CHUNK_BYTES
+
+    _, model, _ = files
+    temps = tmp_path / "latest.csv"
+    temps.write_text("time_s,T1,T2\n0.0,26.5,21.0\n")  # one scan: both paths use it for every block
+    prog = tmp_path / "long.nc"
+    prog.write_text(_controller_program(6000))
+    assert prog.stat().st_size > STREAM_CHUNK_BYTES  # several pieces
+    out = tmp_path / "out.nc"
+    assert main(["compensate", str(prog), "--model", str(model), "--temps", str(temps), "-o", str(out)]) == 0
+    offline = [ln.strip() for ln in out.read_text().splitlines()
+               if ln.strip() and ln.strip() != "%" and not ln.strip().startswith("(")]
+    # a controller that runs the blocks as fast as they come: the link never waits for the buffer to drain
+    with SimController(TinyWorld(channels=2), WallClock(acceleration=1e9), capacity=256) as sim:
+        code = main(["compensate", str(prog), "--model", str(model), "--temps", str(temps),
+                     "--port", serial_url(sim), "--json"])
+        executed = list(sim.executed)
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert executed == offline
+    assert summary["blocks_sent"] == len(offline) > 4000 + 100  # some segments were cut into more blocks
+    assert any(" Z" in b and "Z-" in b for b in executed[:20])  # corrected (26.5 degC: the head has grown)

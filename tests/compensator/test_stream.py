@@ -1,16 +1,26 @@
-"""Streaming: same blocks as offline, low-water refills, ETag hot reload, API outage, two-minute age."""
+"""Streaming: same blocks as offline, low-water refills, ETag hot reload, API outage, two-minute age,
+a program read a piece at a time as the controller takes its blocks."""
 
 from __future__ import annotations
 
 import json
 import logging
 import threading
+import weakref
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
 import pytest
 
-from driftlab.compensator.compensate import ErrorModel, compensate_program
+from driftlab.compensator.compensate import (
+    ErrorModel,
+    compensate_file,
+    compensate_program,
+    decimals_for,
+    parse_pieces,
+    program_pieces,
+    scan_program,
+)
 from driftlab.compensator.gcode import parse_program
 from driftlab.compensator.stream import (
     ApiModel,
@@ -244,3 +254,102 @@ def test_prepared_blocks_older_than_two_minutes_are_corrected_again():
     line = next(it)
     assert s.result.recomputed > 0
     assert "Z-0.1" in line  # prepared again with the fresh temperatures (30 degC)
+
+
+# ----------------------------------------------------------------------------- a program read in pieces
+
+
+def _pieces(path, piece_bytes: int, start=None, segment: float = 5.0):
+    """Return the pieces `driftlab compensate --port` streams: both passes, ``piece_bytes`` at a time."""
+    dec = decimals_for(0.0025, 0.001)
+    scan = scan_program(path, str(path), dec, piece_bytes)
+    return parse_pieces(program_pieces(path, piece_bytes), scan, str(path), start=start, min_decimals=dec,
+                        max_segment_mm=segment)
+
+
+def _streamed(source, model, temps, segment: float, seed: int, discards: float) -> list[str]:
+    """Return every line a streamer hands the link, with preparation thrown away at random (as reloads do)."""
+    s = Streamer(source, StaticModel(model), FixedTemperatures(temps), batch_lines=5, lookahead=7,
+                 max_segment_mm=segment)
+    s.prime()
+    rng = np.random.default_rng(seed)
+    got = []
+    for line in s.lines():
+        got.append(line)
+        if rng.random() < discards:
+            s._discard()
+    return got
+
+
+def _cases():
+    from tests.compensator.test_streaming import CASES
+
+    return [c for c in CASES if c[0] != "generated-small-batches"]  # (batches of a lagged table: offline only)
+
+
+@pytest.mark.parametrize("piece", [64, 700, 1 << 18])
+@pytest.mark.parametrize("name,data,kw", _cases(), ids=[c[0] for c in _cases()])
+def test_blocks_streamed_piece_by_piece_equal_the_offline_streaming_output(name, data, kw, piece, tmp_path):
+    from tests.compensator.test_compensate import _all_kinds_doc
+
+    src = tmp_path / "p.nc"
+    src.write_bytes(data)
+    model = ErrorModel.from_document(_all_kinds_doc())
+    temps = {"T9": 26.0, "T10": 21.5, "T11": 24.0}
+    segment, start = kw.get("max_segment_mm", 5.0), kw.get("start")
+    compensate_file(src, model, temps, tmp_path / "out.nc", start=start, max_segment_mm=segment, chunk_bytes=piece)
+    offline = _sendable((tmp_path / "out.nc").read_bytes())
+    discards = min(0.2, 40 / len(offline))  # some forty times (each prepares a batch again)
+    got = _streamed(_pieces(src, piece, start, segment), model, temps, segment, seed=piece, discards=discards)
+    assert got == offline, name
+    # and what the link was sent before, when the whole program was parsed first
+    whole = parse_program(data, "p.nc", start=start, min_decimals=decimals_for(0.0025, 0.001))
+    assert _streamed(whole, model, temps, segment, seed=1, discards=discards) == got
+
+
+def test_the_program_is_read_a_piece_at_a_time_as_the_controller_takes_blocks(tmp_path):
+    """A piece is read only once the link has sent nearly everything before it, and let go once sent."""
+    lines = ["G90 G1 F6000"] + [f"X{k % 50} Y{(k * 7) % 40 / 4:g}" for k in range(1, 1200)] + ["M30"]
+    src = tmp_path / "long.nc"
+    src.write_text("\n".join(lines) + "\n")
+    lookahead, batch = 16, 4
+    clock = ManualClock()
+    pulls: list[tuple[int, int, int]] = []  # (first line of the piece, blocks accepted by then, pieces alive)
+    refs: list[weakref.ref] = []
+    with SimController(TinyWorld(channels=2), clock, capacity=8) as sim:
+        link = _link(sim, clock)
+
+        def pieces():
+            for piece in _pieces(src, 128):
+                refs.append(weakref.ref(piece))
+                pulls.append((piece.first_line, sim.accepted_seq, sum(r() is not None for r in refs)))
+                yield piece
+
+        try:
+            s = Streamer(pieces(), StaticModel(ErrorModel.from_document(doc(0.01, 1))), FixedTemperatures(
+                {"T1": 25.0}), clock=clock.now, sleep=clock.sleep, lookahead=lookahead, batch_lines=batch)
+            s.run(link, low_water=2)
+        finally:
+            link.close()
+        executed = list(sim.executed)
+    compensate_file(src, ErrorModel.from_document(doc(0.01, 1)), {"T1": 25.0}, tmp_path / "out.nc")
+    assert executed == [ln.strip() for ln in _sendable((tmp_path / "out.nc").read_bytes())]
+    assert len(pulls) > 50
+    for first_line, accepted, alive in pulls:
+        # the blocks up to a look-ahead (and a batch, and the one the link holds) before the piece were sent
+        assert accepted >= first_line - lookahead - batch - 1, (first_line, accepted)
+        assert alive <= 4  # the pieces already sent were let go: memory holds a window, not the program
+    assert pulls[-1][1] > len(lines) - 60
+
+
+def test_latency_statistics_stay_bounded_however_many_blocks():
+    from driftlab.compensator.stream import LATENCY_SAMPLE, StreamResult
+
+    result = StreamResult()
+    n = 3 * LATENCY_SAMPLE
+    for k in range(n):
+        result.record((k % 1000) * 1e-6 + (0.5 if k == n - 7 else 0.0))  # 0..999 us, and one slow block
+    assert len(result.latency_s) == LATENCY_SAMPLE
+    assert result.latency_ms(100) == pytest.approx(500.993)  # the slow block: the exact maximum
+    assert result.latency_ms(50) == pytest.approx(0.5, abs=0.02)  # a uniform sample keeps the percentiles
+    assert result.latency_ms(99) == pytest.approx(0.99, abs=0.01)
