@@ -12,10 +12,13 @@ from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle
+from driftlab.campaigns.partitions import start_day
 
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
-TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value")
-ERROR_COLUMNS = ("campaign_id", "seq", "time_s", "axis", "term", "position", "direction", "value", "sweep", "flags")
+TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value", "campaign_start_day")
+TEMPERATURE_TYPES = ("int4", "int4", "float8", "float8", "int4")
+ERROR_COLUMNS = ("campaign_id", "seq", "time_s", "axis", "term", "position", "direction", "value", "sweep", "flags",
+                 "campaign_start_day")
 
 
 def sweep_numbers(errors: pd.DataFrame) -> np.ndarray:
@@ -80,8 +83,8 @@ def _nullable(values: np.ndarray, postgres: bool) -> list[Any]:
 
 
 def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame,
-                     postgres: bool) -> Iterable[tuple[Any, ...]]:
-    """Return (campaign, channel, time, value) rows channel by channel: primary-key order, so appends.
+                     postgres: bool, start_day: int) -> Iterable[tuple[Any, ...]]:
+    """Return (campaign, channel, time, value, start day) rows channel by channel: primary-key order, so appends.
 
     The rows are chained C-level zips (no Python frame per row): the per-row cost is the driver's.
     """
@@ -92,7 +95,7 @@ def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures:
     def per_channel() -> Iterator[Iterable[tuple[Any, ...]]]:
         for channel_id, name in zip(channel_ids, names, strict=True):
             values = _nullable(temperatures[name].to_numpy(dtype="f8"), postgres)
-            yield zip(repeat(campaign_id, n), repeat(channel_id, n), times, values)
+            yield zip(repeat(campaign_id, n), repeat(channel_id, n), times, values, repeat(start_day, n))
 
     return chain.from_iterable(per_channel())
 
@@ -102,15 +105,16 @@ def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures:
 _PG_HEADER = b"PGCOPY\n\xff\r\n\x00" + (0).to_bytes(4, "big") + (0).to_bytes(4, "big")
 _PG_TRAILER = (-1).to_bytes(2, "big", signed=True)
 _ROW = np.dtype([("n", ">i2"), ("l1", ">i4"), ("c", ">i4"), ("l2", ">i4"), ("ch", ">i4"), ("l3", ">i4"),
-                 ("t", ">f8"), ("l4", ">i4"), ("v", ">f8")])
+                 ("t", ">f8"), ("l4", ">i4"), ("v", ">f8"), ("l5", ">i4"), ("d", ">i4")])
 _ROW_NULL = np.dtype([("n", ">i2"), ("l1", ">i4"), ("c", ">i4"), ("l2", ">i4"), ("ch", ">i4"), ("l3", ">i4"),
-                      ("t", ">f8"), ("l4", ">i4")])
+                      ("t", ">f8"), ("l4", ">i4"), ("l5", ">i4"), ("d", ">i4")])
 
 
-def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray | None) -> bytes:
+def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray | None, start_day: int) -> bytes:
     """Return binary COPY tuples of one channel (v None: every value NULL)."""
     arr = np.empty(len(t), dtype=_ROW if v is not None else _ROW_NULL)
-    arr["n"], arr["l1"], arr["c"], arr["l2"], arr["ch"], arr["l3"], arr["t"] = 4, 4, campaign_id, 4, channel_id, 8, t
+    arr["n"], arr["l1"], arr["c"], arr["l2"], arr["ch"], arr["l3"], arr["t"] = 5, 4, campaign_id, 4, channel_id, 8, t
+    arr["l5"], arr["d"] = 4, start_day
     if v is None:
         arr["l4"] = -1
     else:
@@ -119,8 +123,11 @@ def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray
 
 
 def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequence[int],
-                         temperatures: pd.DataFrame, chunk_rows: int = 200_000) -> None:
-    """Stream a wide temperature frame into temperature_samples with binary COPY, in key order."""
+                         temperatures: pd.DataFrame, start_day: int, chunk_rows: int = 200_000) -> None:
+    """Stream a wide temperature frame into temperature_samples with binary COPY, in key order.
+
+    ``start_day`` is the campaign's partition key (``partitions.start_day``); its partition must exist.
+    """
     raw = conn.connection.driver_connection
     t_all = temperatures["time_s"].to_numpy(dtype="f8")
     names = [c for c in temperatures.columns if c != "time_s"]
@@ -133,12 +140,13 @@ def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequen
                     t, v = t_all[lo:lo + chunk_rows], v_all[lo:lo + chunk_rows]
                     missing = np.isnan(v)
                     if not missing.any():
-                        cp.write(_encode_rows(campaign_id, channel_id, t, v))
+                        cp.write(_encode_rows(campaign_id, channel_id, t, v, start_day))
                         continue
                     # rows keep key order: runs of present and missing values alternate
                     edges = np.flatnonzero(np.diff(missing.astype(np.int8))) + 1
                     for a, b in zip(np.r_[0, edges], np.r_[edges, len(v)], strict=True):
-                        cp.write(_encode_rows(campaign_id, channel_id, t[a:b], None if missing[a] else v[a:b]))
+                        cp.write(_encode_rows(campaign_id, channel_id, t[a:b], None if missing[a] else v[a:b],
+                                              start_day))
             cp.write(_PG_TRAILER)
 
 
@@ -184,9 +192,13 @@ def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) ->
 
 
 def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
-    """Write a validated bundle in the caller's transaction and return the new campaign id."""
+    """Write a validated bundle in the caller's transaction and return the new campaign id.
+
+    On PostgreSQL the partition of the campaign's start (``partitions.ensure_partitions``) must exist.
+    """
     meta = bundle.meta
     postgres = conn.dialect.name == "postgresql"
+    day = start_day(meta.started_at)
     machine = conn.execute(select(sc.Machine.id).where(sc.Machine.id == meta.machine.id)).first()
     if machine is None:
         # ON CONFLICT DO NOTHING: two imports of a new machine at once both see no row; the second
@@ -229,10 +241,10 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
     channel_ids = [ids[name] for name in names]
 
     if postgres:
-        copy_temperatures_pg(conn, campaign_id, channel_ids, bundle.temperatures)
+        copy_temperatures_pg(conn, campaign_id, channel_ids, bundle.temperatures, day)
     else:
-        bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, ("int4", "int4", "float8", "float8"),
-                    temperature_rows(campaign_id, channel_ids, bundle.temperatures, postgres))
+        bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES,
+                    temperature_rows(campaign_id, channel_ids, bundle.temperatures, postgres, day))
 
     bulk_insert(conn, "temperature_rollups", ROLLUP_COLUMNS,
                 ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
@@ -244,9 +256,9 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         cond_values = [cond[c].to_numpy(dtype="f8") if c in cond.columns else np.full(n, np.nan)
                        for c in CONDITION_VALUE_COLUMNS]
         rows = zip(repeat(campaign_id, n), cond["time_s"].to_numpy(dtype="f8").tolist(),
-                   *[_nullable(c, postgres) for c in cond_values])
-        bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS),
-                    ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS)), rows)
+                   *[_nullable(c, postgres) for c in cond_values], repeat(day, n))
+        bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
+                    ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"), rows)
 
     err = bundle.errors
     n = len(err)
@@ -255,10 +267,11 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         repeat(campaign_id, n), range(n), err["time_s"].to_numpy(dtype="f8").tolist(),
         err["axis"].astype(str).tolist(), err["term"].astype(str).tolist(),
         err["position"].to_numpy(dtype="f8").tolist(), err["direction"].to_numpy(dtype="i8").tolist(),
-        err["value"].to_numpy(dtype="f8").tolist(), sweeps.tolist(), repeat(0, n),
+        err["value"].to_numpy(dtype="f8").tolist(), sweeps.tolist(), repeat(0, n), repeat(day, n),
     )
     err_names: tuple[str, ...] = tuple(ERROR_COLUMNS)
-    types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4")
+    types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4",
+                              "int4")
     if bundle.meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
         columns += (*(err[c].to_numpy(dtype="f8").tolist() for c in POSE_COLUMNS), err["setup"].astype(str).tolist())
         err_names += (*POSE_COLUMNS, "setup")
