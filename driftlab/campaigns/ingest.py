@@ -152,6 +152,22 @@ def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequen
 
 ROLLUP_COLUMNS = ("campaign_id", "channel_id", "minute", "n", "n_values", "vmin", "vsum", "vmax")
 ROLLUP_S = 60.0
+#: rollups are written only where they are at least this many times fewer than the scans
+ROLLUP_MIN_SCANS_PER_ROW = 2
+
+
+def rollups_pay(times: np.ndarray) -> bool:
+    """Return True when per-minute rollups would be at least ROLLUP_MIN_SCANS_PER_ROW times fewer rows
+    than the readings (scans every 30 s or faster, on average).
+
+    A campaign scanned every 2 minutes (a fleet's monitoring) has one scan per minute at most: its
+    rollups would be as many rows as its readings, doubling the import for nothing, and its
+    bucketed histories are computed from the readings directly (``rollups_complete`` false).
+    """
+    t = np.asarray(times, dtype="f8")
+    if not len(t):
+        return False
+    return bool(np.unique(np.floor(t / ROLLUP_S)).size * ROLLUP_MIN_SCANS_PER_ROW <= len(t))
 
 
 def rollup_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame) -> list[tuple[Any, ...]]:
@@ -207,12 +223,13 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
                       resolution_deg=meta.machine.resolution_deg, created_at=sc.utcnow())
         conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(**values))
     cond_cols = None if bundle.conditions is None else list(bundle.conditions.columns)
+    rollups = rollups_pay(bundle.temperatures["time_s"].to_numpy(dtype="f8"))
     campaign_id = conn.execute(
         insert(sc.Campaign)
         .values(
             machine_id=meta.machine.id, name=bundle.name, started_at=meta.started_at, status="done",
             source="import", content_hash=content_hash, meta=meta.document(), conditions_columns=cond_cols,
-            rollups_complete=True, created_at=sc.utcnow(),
+            rollups_complete=rollups, created_at=sc.utcnow(),
         )
         .returning(sc.Campaign.id)
     ).scalar_one()
@@ -246,9 +263,10 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES,
                     temperature_rows(campaign_id, channel_ids, bundle.temperatures, postgres, day))
 
-    bulk_insert(conn, "temperature_rollups", ROLLUP_COLUMNS,
-                ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
-                rollup_rows(campaign_id, channel_ids, bundle.temperatures))
+    if rollups:
+        bulk_insert(conn, "temperature_rollups", ROLLUP_COLUMNS,
+                    ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
+                    rollup_rows(campaign_id, channel_ids, bundle.temperatures))
 
     if bundle.conditions is not None and len(bundle.conditions):
         cond = bundle.conditions

@@ -208,25 +208,27 @@ def ensure_ahead(engine: Engine, months: int = MONTHS_AHEAD, today: date | None 
     return ensure_partitions(engine, months_ahead(today, months))
 
 
-def analyze_stale(conn: Connection, tables: Iterable[str], fraction: float = 0.1) -> list[str]:
-    """ANALYZE those of ``tables`` never analysed or with more than ``fraction`` of their rows changed since.
+def analyze_new(conn: Connection, tables: Iterable[str]) -> list[str]:
+    """ANALYZE those of ``tables`` that have never been analysed; return them.
 
-    For partitions, which is where the planner reads statistics after pruning; autovacuum would get
-    there too, but only after its next nap, and a new month's first drift query would not wait.
+    For a month's new partitions, where the planner reads statistics once it has pruned to them:
+    without any, the first drift queries of the month could plan on an empty-table guess until
+    autovacuum's next nap. Later growth is autovacuum's (it analyses a partition once a tenth of
+    its rows changed), off the import's clock: a synchronous ANALYZE costs a tenth of a second
+    or more per partition of a fleet, and re-analysing after every import would cost that each time.
     """
     if conn.dialect.name != "postgresql":
         return []
     names = list(tables)
     if not names:
         return []
-    rows = conn.execute(text(
-        "SELECT relname FROM pg_stat_user_tables WHERE relname = ANY(:names) AND "
-        "(coalesce(last_analyze, last_autoanalyze) IS NULL OR n_mod_since_analyze > :f * greatest(n_live_tup, 1))"),
-        {"names": names, "f": fraction}).scalars().all()
-    stale = [n for n in names if n in set(rows)]
-    if stale:
-        conn.execute(text(f"ANALYZE {', '.join(stale)}"))
-    return stale
+    fresh = set(conn.execute(text(
+        "SELECT relname FROM pg_stat_user_tables WHERE relname = ANY(:names) "
+        "AND last_analyze IS NULL AND last_autoanalyze IS NULL"), {"names": names}).scalars())
+    todo = [n for n in names if n in fresh]
+    if todo:
+        conn.execute(text(f"ANALYZE {', '.join(todo)}"))
+    return todo
 
 
 def leaf(conn: Connection, table: str, day: int) -> str | None:

@@ -187,21 +187,26 @@ def _seconds(delta: timedelta) -> float:
 
 DRIFT_COLUMNS = ["campaign_id", "time", "time_s", "position", "direction", "sweep", "value"]
 
-# Nearest measured position: the largest position <= P and the smallest >= P, per direction, each a
-# single seek in the unique index (campaign_id, axis, term, direction, position, time_s).
-_BELOW_SQL = """
-SELECT MAX(position) FROM error_samples
-WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term AND direction = :d AND position <= :p
-"""
-_ABOVE_SQL = """
-SELECT MIN(position) FROM error_samples
-WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term AND direction = :d AND position >= :p
-"""
-
-_AT_POSITION_SQL = """
+# Nearest measured position and its readings, one statement per campaign: the position nearest P
+# (the lower one on a tie) of the largest <= P and the smallest >= P, each a single seek in the
+# unique index (campaign_id, axis, term, direction, position, ...) when the direction is given,
+# then the readings at that position, a seek in the same index. campaign_start_day = :day keeps
+# every part of it in the campaign's partition (PostgreSQL).
+_NEAREST_SQL = """
 SELECT time_s, position, direction, sweep, value FROM error_samples
-WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term AND direction = :d AND position = :pos
+WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term {dir}
   AND time_s >= :t0 AND time_s <= :t1
+  AND position = (
+    SELECT x FROM (
+      SELECT x FROM (SELECT position AS x FROM error_samples
+                     WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term {dir}
+                       AND position <= :p ORDER BY position DESC LIMIT 1) AS below
+      UNION ALL
+      SELECT x FROM (SELECT position AS x FROM error_samples
+                     WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term {dir}
+                       AND position >= :p ORDER BY position LIMIT 1) AS above
+    ) AS candidates
+    ORDER BY ABS(x - :p), x LIMIT 1)
 """
 
 _ALL_POSITIONS_SQL = """
@@ -234,19 +239,6 @@ def _directions(conn: Connection, params: dict[str, Any], direction: int | None)
     probe = text("SELECT 1 FROM error_samples WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis "
                  "AND term = :term AND direction = :d LIMIT 1")
     return [d for d in (-1, 1) if conn.execute(probe, {**params, "d": d}).first() is not None]
-
-
-def _nearest(conn: Connection, params: dict[str, Any], directions: list[int]) -> float | None:
-    """Return the measured position nearest to params['p'] (the lower one on a tie)."""
-    candidates: list[float] = []
-    for d in directions:
-        q = {**params, "d": d}
-        candidates += [v for v in (conn.execute(text(_BELOW_SQL), q).scalar(),
-                                   conn.execute(text(_ABOVE_SQL), q).scalar()) if v is not None]
-    if not candidates:
-        return None
-    p = params["p"]
-    return min(candidates, key=lambda x: (abs(x - p), x))
 
 
 def drift(
@@ -309,13 +301,8 @@ def drift(
                         data.append((cid, t, p, d, sweep, va + (vh - va) * f))
         else:
             params["p"] = float(position)
-            directions = _directions(conn, params, direction)
-            nearest = _nearest(conn, params, directions)
-            if nearest is None:
-                continue
-            for d in directions:
-                rows = conn.execute(text(_AT_POSITION_SQL), {**params, "d": d, "pos": nearest}).all()
-                data += [(cid, t, p, dd, s, v) for t, p, dd, s, v in rows]
+            rows = conn.execute(text(_NEAREST_SQL.format(dir=dir_sql)), params).all()
+            data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
         if data:
             offset_ns = int(pd.Timestamp(started).value)
             frames.append((offset_ns, data))

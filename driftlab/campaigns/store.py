@@ -228,9 +228,10 @@ class Store:
 
         Without them both planners may scan a campaign's error samples instead of seeking the
         drift indexes. SQLite samples a bounded number of rows per index (fast on any size). On
-        PostgreSQL, with ``start_day``, only the partitions of that day's month whose statistics are
-        missing or stale are analysed (the planner reads a partition's own statistics once it has
-        pruned to it): a whole-table ANALYZE samples every partition, a cost that grows with the fleet.
+        PostgreSQL, with ``start_day``, only the partitions of that day's month (and the rollups) that
+        were never analysed are, now (the planner reads a partition's own statistics once it has
+        pruned to it); their growth is left to autovacuum. A whole-table ANALYZE samples every
+        partition, a cost that grows with the fleet.
         """
         with self.engine.connect() as conn:
             if self.dialect == "postgresql":
@@ -240,7 +241,7 @@ class Store:
                     conn.execute(text("ANALYZE temperature_rollups, condition_samples, error_samples"))
                 else:
                     leaves = [partitions.leaf(conn, t, start_day) for t in ("condition_samples", "error_samples")]
-                    partitions.analyze_stale(conn, ["temperature_rollups", *[x for x in leaves if x]])
+                    partitions.analyze_new(conn, ["temperature_rollups", *[x for x in leaves if x]])
             else:
                 conn.exec_driver_sql("PRAGMA analysis_limit=1000")
                 conn.exec_driver_sql("ANALYZE")
