@@ -73,7 +73,7 @@ def campaign_bundle(m: int, k: int, args: argparse.Namespace) -> Bundle | None:
     hours = min(args.campaign_days, args.days - k * args.campaign_days) * 24.0
     if hours <= 0:
         return None
-    scenario = Scenario(name=f"{machine_id(m)}-week{k + 1:02d}", seed=1000 * m + k, hours=hours,
+    scenario = Scenario(name=f"{machine_id(m)}-c{k + 1:03d}", seed=1000 * m + k, hours=hours,
                         scan_interval_s=args.scan_s, sweep_interval_s=args.sweep_h * 3600.0,
                         started_at=start.isoformat().replace("+00:00", "Z"),
                         machine=MachineInfo(id=machine_id(m), name=f"fleet machine {m + 1}"))
@@ -116,11 +116,12 @@ def raw_copy(store: Store, day: int, rows: dict[str, list[tuple[Any, ...]]]) -> 
                 conn.execute(text(f"CREATE TABLE {p.name} PARTITION OF {p.table} FOR VALUES FROM ({p.lo}) TO ({p.hi})"))
     with store.engine.connect() as conn:
         raw = conn.connection.driver_connection
-        raw.commit()
+        # straight into the month's partitions, as the import does (looked up off the clock)
+        leaves = {t: partitions.leaf(conn, RAW_PREFIX + t, day) for t in RAW_COLUMNS}
         start = time.perf_counter()
         with raw.cursor() as cur:
             for table, (columns, types) in RAW_COLUMNS.items():
-                with cur.copy(f"COPY {RAW_PREFIX}{table} ({', '.join(columns)}) FROM STDIN (FORMAT BINARY)") as copy:
+                with cur.copy(f"COPY {leaves[table]} ({', '.join(columns)}) FROM STDIN (FORMAT BINARY)") as copy:
                     copy.set_types(list(types))
                     for row in rows[table]:
                         copy.write_row(row)

@@ -59,10 +59,13 @@ def _copy_rows(conn: Connection, table: str, columns: Sequence[str], types: Sequ
 
 
 def bulk_insert(conn: Connection, table: str, columns: Sequence[str], pg_types: Sequence[str],
-                rows: Iterable[Sequence[Any]]) -> None:
-    """Insert many rows fast in the connection's transaction: binary COPY or sqlite3 executemany."""
+                rows: Iterable[Sequence[Any]], into: str | None = None) -> None:
+    """Insert many rows fast in the connection's transaction: binary COPY or sqlite3 executemany.
+
+    ``into`` names the partition of ``table`` every row belongs to, when known (PostgreSQL).
+    """
     if conn.dialect.name == "postgresql":
-        _copy_rows(conn, table, columns, pg_types, rows)
+        _copy_rows(conn, into or table, columns, pg_types, rows)
         return
     raw = conn.connection.driver_connection
     marks = ", ".join("?" for _ in columns)
@@ -127,12 +130,15 @@ def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequen
     """Stream a wide temperature frame into temperature_samples with binary COPY, in key order.
 
     ``start_day`` is the campaign's partition key (``partitions.start_day``); its partition must exist.
+    The rows go straight into that partition (every row of a campaign has the same key): no routing
+    per row, and PostgreSQL still checks each against the partition's bounds.
     """
+    target = _into(conn, "temperature_samples", start_day)
     raw = conn.connection.driver_connection
     t_all = temperatures["time_s"].to_numpy(dtype="f8")
     names = [c for c in temperatures.columns if c != "time_s"]
     with raw.cursor() as cur:  # type: ignore[union-attr]
-        with cur.copy(f"COPY temperature_samples ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)") as cp:
+        with cur.copy(f"COPY {target} ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)") as cp:
             cp.write(_PG_HEADER)
             for channel_id, name in zip(channel_ids, names, strict=True):
                 v_all = temperatures[name].to_numpy(dtype="f8")
@@ -207,6 +213,16 @@ def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) ->
     return sqlite_insert(table).on_conflict_do_nothing(index_elements=keys)
 
 
+def _into(conn: Connection, table: str, day: int) -> str:
+    """Return where a campaign's readings of ``table`` are written: on PostgreSQL its partition (no
+    routing per row), else the table."""
+    if conn.dialect.name != "postgresql":
+        return table
+    from driftlab.campaigns.partitions import leaf
+
+    return leaf(conn, table, day) or table
+
+
 def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
     """Write a validated bundle in the caller's transaction and return the new campaign id.
 
@@ -276,7 +292,8 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         rows = zip(repeat(campaign_id, n), cond["time_s"].to_numpy(dtype="f8").tolist(),
                    *[_nullable(c, postgres) for c in cond_values], repeat(day, n))
         bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
-                    ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"), rows)
+                    ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"), rows,
+                    into=_into(conn, "condition_samples", day))
 
     err = bundle.errors
     n = len(err)
@@ -294,7 +311,7 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         columns += (*(err[c].to_numpy(dtype="f8").tolist() for c in POSE_COLUMNS), err["setup"].astype(str).tolist())
         err_names += (*POSE_COLUMNS, "setup")
         types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
-    bulk_insert(conn, "error_samples", err_names, types, zip(*columns))
+    bulk_insert(conn, "error_samples", err_names, types, zip(*columns), into=_into(conn, "error_samples", day))
     return int(campaign_id)
 
 

@@ -188,26 +188,32 @@ def _seconds(delta: timedelta) -> float:
 DRIFT_COLUMNS = ["campaign_id", "time", "time_s", "position", "direction", "sweep", "value"]
 
 # Nearest measured position and its readings, one statement per campaign: the position nearest P
-# (the lower one on a tie) of the largest <= P and the smallest >= P, each a single seek in the
-# unique index (campaign_id, axis, term, direction, position, ...) when the direction is given,
-# then the readings at that position, a seek in the same index. campaign_start_day = :day keeps
+# (the lower one on a tie) of the largest <= P and the smallest >= P of each direction, each a
+# single seek in the unique index (campaign_id, axis, term, direction, position, ...), then the
+# readings at that position, one seek per direction in the same index (direction IN (...), not
+# left open: the index is ordered by direction before position). campaign_start_day = :day keeps
 # every part of it in the campaign's partition (PostgreSQL).
-_NEAREST_SQL = """
+_CAMPAIGN_TERM = "campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term"
+_NEAREST_CANDIDATES = """
+      SELECT x FROM (SELECT position AS x FROM error_samples WHERE {where} AND direction = {d}
+                     AND position {op} :p ORDER BY position {order} LIMIT 1) AS {alias}"""
+
+
+def nearest_sql(directions: list[int]) -> str:
+    """Return the statement of the drift at the nearest measured position, for these directions (+1/-1)."""
+    candidates = "\n      UNION ALL".join(
+        _NEAREST_CANDIDATES.format(where=_CAMPAIGN_TERM, d=int(d), op=op, order=order, alias=f"{alias}{k}")
+        for k, d in enumerate(directions) for op, order, alias in (("<=", "DESC", "below"), (">=", "", "above")))
+    return f"""
 SELECT time_s, position, direction, sweep, value FROM error_samples
-WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term {dir}
+WHERE {_CAMPAIGN_TERM} AND direction IN ({", ".join(str(int(d)) for d in directions)})
   AND time_s >= :t0 AND time_s <= :t1
   AND position = (
-    SELECT x FROM (
-      SELECT x FROM (SELECT position AS x FROM error_samples
-                     WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term {dir}
-                       AND position <= :p ORDER BY position DESC LIMIT 1) AS below
-      UNION ALL
-      SELECT x FROM (SELECT position AS x FROM error_samples
-                     WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term {dir}
-                       AND position >= :p ORDER BY position LIMIT 1) AS above
+    SELECT x FROM ({candidates}
     ) AS candidates
     ORDER BY ABS(x - :p), x LIMIT 1)
 """
+
 
 _ALL_POSITIONS_SQL = """
 SELECT time_s, position, direction, sweep, value FROM error_samples
@@ -301,7 +307,8 @@ def drift(
                         data.append((cid, t, p, d, sweep, va + (vh - va) * f))
         else:
             params["p"] = float(position)
-            rows = conn.execute(text(_NEAREST_SQL.format(dir=dir_sql)), params).all()
+            dirs = [-1, 1] if direction is None else [direction]
+            rows = conn.execute(text(nearest_sql(dirs)), params).all()
             data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
         if data:
             offset_ns = int(pd.Timestamp(started).value)

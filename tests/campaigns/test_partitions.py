@@ -274,19 +274,19 @@ def test_drift_statements_read_one_partition_each(pg: Store, bundle_factory) -> 
 def test_a_prepared_drift_statement_prunes_at_run_time(pg: Store, bundle_factory) -> None:
     """psycopg prepares a statement after a few executions; PostgreSQL may then run a generic plan,
     which must still read one partition (run-time pruning: the others are 'Subplans Removed')."""
-    from driftlab.campaigns.queries import _NEAREST_SQL
+    from driftlab.campaigns.queries import nearest_sql
 
     ids = _import_months(pg, bundle_factory)
-    names = ["c", "day", "axis", "term", "d", "t0", "t1", "p"]
-    sql = re.sub(r":(\w+)", lambda m: f"${names.index(m.group(1)) + 1}", _NEAREST_SQL.format(dir="AND direction = :d"))
+    names = ["c", "day", "axis", "term", "t0", "t1", "p"]
+    sql = re.sub(r":(\w+)", lambda m: f"${names.index(m.group(1)) + 1}", nearest_sql([1]))
     with pg.engine.connect() as conn:
         started = conn.execute(select(sc.Campaign.started_at).where(sc.Campaign.id == ids[1])).scalar_one()
         raw = conn.connection.driver_connection
         with raw.cursor() as cur:
             cur.execute("SET plan_cache_mode = force_generic_plan")
-            cur.execute(f"PREPARE drift_near (int, int, text, text, int, float8, float8, float8) AS {sql}")
+            cur.execute(f"PREPARE drift_near (int, int, text, text, float8, float8, float8) AS {sql}")
             cur.execute("EXPLAIN (ANALYZE, COSTS OFF, TIMING OFF, SUMMARY OFF) EXECUTE drift_near "
-                        f"({ids[1]}, {start_day(started)}, 'Z', 'dz', 1, -1e300, 1e300, 130.0)")
+                        f"({ids[1]}, {start_day(started)}, 'Z', 'dz', -1e300, 1e300, 130.0)")
             plan = "\n".join(r[0] for r in cur.fetchall())
         raw.rollback()
     assert "Subplans Removed" in plan, plan  # decided at run time, with the parameters' values
