@@ -133,7 +133,8 @@ def _none(values: np.ndarray) -> list[Any]:
     return [None if x != x else x for x in values.tolist()]
 
 
-def baseline_rows(campaign_id: int, first_channel_id: int, day: int, bundle: Bundle) -> dict[str, list[tuple[Any, ...]]]:
+def baseline_rows(campaign_id: int, first_channel_id: int, day: int,
+                  bundle: Bundle) -> dict[str, list[tuple[Any, ...]]]:
     """Return the reading rows the import writes for a bundle (the same ids in a fresh database: campaigns
     and channels are numbered in import order), prepared as a raw client would hold them."""
     temps = bundle.temperatures
@@ -339,7 +340,8 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "fleet", "machines": args.machines, "days": args.days, "campaign_days": args.campaign_days,
         "channels": args.channels, "scan_s": args.scan_s, "sweep_h": args.sweep_h, "cpus": os.cpu_count(),
         "load_average_1m_at_start": load_average(),
-        "postgres_settings": "throwaway cluster: fsync=off, synchronous_commit=off, full_page_writes=off, defaults else",
+        "postgres_settings": "throwaway cluster: fsync=off, synchronous_commit=off, full_page_writes=off, "
+                             "defaults else",
     }
     if args.pg_dir:
         Path(args.pg_dir).mkdir(parents=True, exist_ok=True)

@@ -254,7 +254,8 @@ class StoreSink:
         self._setups = plan.used_setups()  # bundle v2: every reading is stored with its pose and setup
 
     def _temperature_rows(self, batch: Batch) -> list[tuple[int, int, float, float | None, int]]:
-        """Return (campaign_id, channel_id, time_s, value, start day) rows of the batch (None: flagged or non-finite)."""
+        """Return (campaign_id, channel_id, time_s, value, start day) rows of the batch (value None: flagged or
+        non-finite)."""
         rows = []
         cid, ids, isfinite, day = self.cid, self.channel_ids, math.isfinite, self.day
         for _, scan in batch.scans:
@@ -293,7 +294,8 @@ class StoreSink:
         # executemany over C-level zips: no Python frame per row (sqlite stores a bound NaN as NULL)
         n, t = len(times), times.tolist()
         rows = chain.from_iterable(
-            zip(repeat(self.cid, n), repeat(ch, n), t, col, repeat(self.day, n)) for ch, col in zip(ids, values.T.tolist())
+            zip(repeat(self.cid, n), repeat(ch, n), t, col, repeat(self.day, n))
+            for ch, col in zip(ids, values.T.tolist())
         )
         bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, rows)
 

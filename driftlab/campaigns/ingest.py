@@ -291,7 +291,8 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
                        for c in CONDITION_VALUE_COLUMNS]
         rows = zip(repeat(campaign_id, n), cond["time_s"].to_numpy(dtype="f8").tolist(),
                    *[_nullable(c, postgres) for c in cond_values], repeat(day, n))
-        bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
+        bulk_insert(conn, "condition_samples",
+                    ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
                     ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"), rows,
                     into=_into(conn, "condition_samples", day))
 
@@ -305,8 +306,8 @@ def import_bundle(conn: Connection, bundle: Bundle, content_hash: str) -> int:
         err["value"].to_numpy(dtype="f8").tolist(), sweeps.tolist(), repeat(0, n), repeat(day, n),
     )
     err_names: tuple[str, ...] = tuple(ERROR_COLUMNS)
-    types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4",
-                              "int4")
+    types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4",
+                              "int4", "int4")
     if bundle.meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
         columns += (*(err[c].to_numpy(dtype="f8").tolist() for c in POSE_COLUMNS), err["setup"].astype(str).tolist())
         err_names += (*POSE_COLUMNS, "setup")

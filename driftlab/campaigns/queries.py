@@ -234,7 +234,8 @@ GROUP BY sweep
 # ... then the rows at each of those few positions (a seek in the unique index on ... direction, position).
 _ROWS_AT_SQL = """
 SELECT sweep, position, time_s, value FROM error_samples
-WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term AND direction = :d AND position = :pos
+WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term AND direction = :d
+  AND position = :pos
 """
 
 

@@ -66,6 +66,7 @@ def _partitions(args: argparse.Namespace) -> int:
         with store.engine.connect() as conn:
             rows = partitions.describe(conn)
         for r in rows:
-            print(f"{r['partition']:<40} {r['from'] or 'DEFAULT':>10} .. {r['to'] or '':<10} {r['bytes'] / 2**20:10.1f} MiB")
+            span = f"{r['from'] or 'DEFAULT':>10} .. {r['to'] or '':<10}"
+            print(f"{r['partition']:<40} {span} {r['bytes'] / 2**20:10.1f} MiB")
         print(f"{len(made)} partition(s) created" + (f": {', '.join(made)}" if made else ""))
     return 0

@@ -83,14 +83,17 @@ def _keys(table: str, partitioned: bool) -> tuple[list[str], list[str] | None]:
 
 
 def _uq_name(partitioned: bool) -> str:
-    return "uq_error_samples_reading" if partitioned else "uq_error_samples_campaign_id_axis_term_direction_position_time_s"
+    if partitioned:
+        return "uq_error_samples_reading"
+    return "uq_error_samples_campaign_id_axis_term_direction_position_time_s"  # 0001's (PostgreSQL shortens it)
 
 
 def _checks(table: str) -> list[sa.CheckConstraint]:
     if table != "error_samples":
         return []
     return [sa.CheckConstraint("axis IN ('X', 'Y', 'Z', 'A', 'B')", name=op.f("ck_error_samples_axis")),
-            sa.CheckConstraint("term IN ('alpha', 'beta', 'gamma', 'dx', 'dy', 'dz')", name=op.f("ck_error_samples_term")),
+            sa.CheckConstraint("term IN ('alpha', 'beta', 'gamma', 'dx', 'dy', 'dz')",
+                               name=op.f("ck_error_samples_term")),
             sa.CheckConstraint("direction IN (-1, 1)", name=op.f("ck_error_samples_direction"))]
 
 
@@ -143,7 +146,8 @@ def _rebuild(table: str, partitioned: bool) -> None:
     if copied != before:
         raise RuntimeError(
             f"{table}: {before - copied} of {before} rows belong to no stored campaign and have no partition to go "
-            f"to; delete them (DELETE FROM {table} WHERE campaign_id NOT IN (SELECT id FROM campaigns)) and upgrade again")
+            f"to; delete them (DELETE FROM {table} WHERE campaign_id NOT IN (SELECT id FROM campaigns)) "
+            "and upgrade again")
     if table == "error_samples":
         op.drop_index("ix_error_samples_sweep", table_name=table)
     op.drop_table(table)
