@@ -207,7 +207,7 @@ def raw_baseline_pg(url: str, blocks: list[ScanBlock]) -> dict:
     n = sum(len(b) for b in blocks)
     with psycopg.connect(dsn) as con:
         con.execute("CREATE TABLE t (campaign_id int4, channel_id int4, time_s float8, value float8, "
-                    "PRIMARY KEY (campaign_id, channel_id, time_s))")
+                    "campaign_start_day int4, PRIMARY KEY (campaign_id, channel_id, time_s, campaign_start_day))")
         con.commit()
         t0 = time.perf_counter()
         for b in blocks:
@@ -215,7 +215,7 @@ def raw_baseline_pg(url: str, blocks: list[ScanBlock]) -> dict:
             with con.cursor() as cur, cur.copy("COPY t FROM STDIN (FORMAT BINARY)") as cp:
                 cp.write(_PG_HEADER)
                 for j in range(b.values.shape[1]):
-                    cp.write(_encode_rows(1, j, b.t_s, b.values[:, j]))
+                    cp.write(_encode_rows(1, j, b.t_s, b.values[:, j], 20000))
                 cp.write(_PG_TRAILER)
             con.commit()
             lat.append(time.perf_counter() - c0)

@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from driftlab.campaigns.bundle import load_bundle, write_bundle
+from driftlab.campaigns.partitions import ensure_partitions, start_day
 from driftlab.campaigns.pgcluster import PgCluster, pg_binaries_available
 from driftlab.campaigns.store import Store, connect
 
@@ -74,13 +75,18 @@ def make_bundle(root: Path, hours: float, channels: int, seed: int = 0) -> Path:
     return write_bundle(root / "bench-bundle", meta, temperatures, cond, errors)
 
 
-def baseline_rows(n_scans: int, channels: int) -> list[tuple[int, int, float, float]]:
-    """Return prepared (campaign, channel, time, value) tuples, as a raw client would hold them."""
+#: the bundle's campaign_start_day (partitions.start_day of 2026-03-02T08:00Z): the baseline writes the
+#: same key, into the same partition, as the import
+START_DAY = start_day(pd.Timestamp("2026-03-02T08:00:00Z").to_pydatetime())
+
+
+def baseline_rows(n_scans: int, channels: int) -> list[tuple[int, int, float, float, int]]:
+    """Return prepared (campaign, channel, time, value, start day) tuples, as a raw client would hold them."""
     t = np.arange(n_scans, dtype=float).tolist()
     v = (20.0 + np.arange(n_scans) * 1e-5).tolist()
-    rows: list[tuple[int, int, float, float]] = []
+    rows: list[tuple[int, int, float, float, int]] = []
     for ch in range(channels):
-        rows.extend(zip(repeat(999, n_scans), repeat(ch, n_scans), t, v))
+        rows.extend(zip(repeat(999, n_scans), repeat(ch, n_scans), t, v, repeat(START_DAY, n_scans)))
     return rows
 
 
@@ -90,8 +96,8 @@ def raw_sqlite(store: Store, rows: list) -> float:
         raw = conn.connection.driver_connection
         start = time.perf_counter()
         raw.execute("BEGIN")
-        raw.executemany("INSERT INTO temperature_samples (campaign_id, channel_id, time_s, value) VALUES (?, ?, ?, ?)",
-                        rows)
+        raw.executemany("INSERT INTO temperature_samples (campaign_id, channel_id, time_s, value, campaign_start_day) "
+                        "VALUES (?, ?, ?, ?, ?)", rows)
         raw.execute("COMMIT")
         elapsed = time.perf_counter() - start
         raw.execute("BEGIN")
@@ -102,14 +108,15 @@ def raw_sqlite(store: Store, rows: list) -> float:
 
 def raw_postgres(store: Store, rows: list) -> float:
     """Return rows/s of psycopg binary COPY (set_types) into temperature_samples in one transaction."""
+    ensure_partitions(store.engine, [START_DAY])
     with store.engine.connect() as conn:
         raw = conn.connection.driver_connection
         raw.commit()
         start = time.perf_counter()
         with raw.cursor() as cur:
-            with cur.copy("COPY temperature_samples (campaign_id, channel_id, time_s, value) FROM STDIN "
-                          "(FORMAT BINARY)") as copy:
-                copy.set_types(["int4", "int4", "float8", "float8"])
+            with cur.copy("COPY temperature_samples (campaign_id, channel_id, time_s, value, campaign_start_day) "
+                          "FROM STDIN (FORMAT BINARY)") as copy:
+                copy.set_types(["int4", "int4", "float8", "float8", "int4"])
                 for row in rows:
                     copy.write_row(row)
         raw.commit()

@@ -86,6 +86,8 @@ class CampaignHandle:
     channel_ids: dict[str, int]
     resumed: bool
     progress: dict[str, Any] = field(default_factory=dict)
+    #: the campaign's partition key (``partitions.start_day`` of its start), written into every reading
+    start_day: int = 0
 
 
 def _sweep_numbers(plan: Plan) -> dict[tuple[int, int], int]:
@@ -111,16 +113,37 @@ def open_campaign(
     With `resume` and no campaign of this plan yet (the daemon died before creating it), the
     campaign is created; a complete one is returned with its final cursor (nothing left to do).
     Refuses (ConflictError) to start a second copy of an unfinished campaign without `resume`, and
-    to resume one whose plan timeline has changed since it started.
+    to resume one whose plan timeline has changed since it started. On PostgreSQL the partition of
+    the campaign's start is made (if missing) before the handle is returned: before any reading.
     """
+    from driftlab.campaigns.partitions import ensure_partitions
+
+    handle = _open_campaign(engine, plan, channels, room_channels, resume=resume, origin=origin,
+                            extra_meta=extra_meta)
+    ensure_partitions(engine, [handle.start_day])
+    return handle
+
+
+def _open_campaign(
+    engine: Any,
+    plan: Plan,
+    channels: Mapping[str, Mapping[str, str]],
+    room_channels: list[str],
+    *,
+    resume: bool,
+    origin: Mapping[str, Any],
+    extra_meta: Mapping[str, Any] | None = None,
+) -> CampaignHandle:
+    """Create or find the campaign row (see open_campaign)."""
     from sqlalchemy import select
 
     from driftlab.campaigns import schema as sc
+    from driftlab.campaigns.partitions import start_day
 
     fp = plan.fingerprint()
     with write_transaction(engine) as conn:
         row = conn.execute(
-            select(sc.Campaign.id, sc.Campaign.status, sc.AcquisitionProgress.cursor)
+            select(sc.Campaign.id, sc.Campaign.status, sc.AcquisitionProgress.cursor, sc.Campaign.started_at)
             .join(sc.AcquisitionProgress, sc.AcquisitionProgress.campaign_id == sc.Campaign.id)
             .where(sc.Campaign.name == plan.name, sc.Campaign.source == "daemon")
             .order_by(sc.Campaign.id.desc())
@@ -141,7 +164,8 @@ def open_campaign(
             )
             if row.status == "done":
                 log.info("campaign %s (id %d) is already complete", plan.name, cid)
-            return CampaignHandle(cid, Cursor(int(cur["next_scan"]), int(cur["next_point"])), ids, True, cur)
+            return CampaignHandle(cid, Cursor(int(cur["next_scan"]), int(cur["next_point"])), ids, True, cur,
+                                  start_day(row.started_at))
         if resume:
             log.info("no unfinished campaign %s: starting it", plan.name)
         if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
@@ -203,7 +227,7 @@ def open_campaign(
         )
         ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
     log.info("campaign %s created (id %d)", plan.name, cid)
-    return CampaignHandle(cid, Cursor(), ids, False, cursor)
+    return CampaignHandle(cid, Cursor(), ids, False, cursor, start_day(started))
 
 
 class StoreUnavailable(DriftlabError):
@@ -221,6 +245,7 @@ class StoreSink:
         self.engine = engine
         self.plan = plan
         self.cid = handle.campaign_id
+        self.day = handle.start_day
         self.channel_ids = handle.channel_ids
         self.sweeps = _sweep_numbers(plan)
         self.n_points = len(plan.sweep_points())
@@ -234,16 +259,17 @@ class StoreSink:
         self._stage = -1
         self._setups = plan.used_setups()  # bundle v2: every reading is stored with its pose and setup
 
-    def _temperature_rows(self, batch: Batch) -> list[tuple[int, int, float, float | None]]:
-        """Return (campaign_id, channel_id, time_s, value) rows of the batch (None: flagged or non-finite)."""
+    def _temperature_rows(self, batch: Batch) -> list[tuple[int, int, float, float | None, int]]:
+        """Return (campaign_id, channel_id, time_s, value, start day) rows of the batch (value None: flagged or
+        non-finite)."""
         rows = []
-        cid, ids, isfinite = self.cid, self.channel_ids, math.isfinite
+        cid, ids, isfinite, day = self.cid, self.channel_ids, math.isfinite, self.day
         for _, scan in batch.scans:
             t, flags = scan.t_s, scan.flags
             for name, value in scan.values.items():
                 ch = ids.get(name)
                 if ch is not None:
-                    rows.append((cid, ch, t, value if isfinite(value) and name not in flags else None))
+                    rows.append((cid, ch, t, value if isfinite(value) and name not in flags else None, day))
         return rows
 
     def _block_arrays(self, batch: Batch) -> tuple[list[int], list[str], np.ndarray, np.ndarray] | None:
@@ -261,7 +287,7 @@ class StoreSink:
 
     def _insert_blocks(self, conn: Any, arrays: tuple[list[int], list[str], np.ndarray, np.ndarray]) -> None:
         """Insert block readings with the store's bulk path, channel by channel (key order); NaN stored as NULL."""
-        from driftlab.campaigns.ingest import bulk_insert, copy_temperatures_pg
+        from driftlab.campaigns.ingest import TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, bulk_insert, copy_temperatures_pg
 
         ids, names, times, values = arrays
         if conn.dialect.name == "postgresql":
@@ -269,15 +295,15 @@ class StoreSink:
 
             frame = pd.DataFrame(values, columns=names)
             frame.insert(0, "time_s", times)
-            copy_temperatures_pg(conn, self.cid, ids, frame)  # numpy-encoded binary COPY
+            copy_temperatures_pg(conn, self.cid, ids, frame, self.day)  # numpy-encoded binary COPY
             return
         # executemany over C-level zips: no Python frame per row (sqlite stores a bound NaN as NULL)
         n, t = len(times), times.tolist()
         rows = chain.from_iterable(
-            zip(repeat(self.cid, n), repeat(ch, n), t, col) for ch, col in zip(ids, values.T.tolist())
+            zip(repeat(self.cid, n), repeat(ch, n), t, col, repeat(self.day, n))
+            for ch, col in zip(ids, values.T.tolist())
         )
-        bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
-                    ("int4", "int4", "float8", "float8"), rows)
+        bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, rows)
 
     def _error_rows(self, batch: Batch) -> list[dict[str, Any]]:
         """Return the error rows of the batch; a flagged (missing) term is not stored (it is a fault)."""
@@ -290,6 +316,7 @@ class StoreSink:
                     "campaign_id": self.cid, "seq": p.index * len(TERMS) + TERMS.index(term), "time_s": t,
                     "axis": p.axis, "term": term, "position": p.position, "direction": p.direction,
                     "value": r.value, "sweep": self.sweeps[(p.stage, p.sweep)], "flags": 0,
+                    "campaign_start_day": self.day,
                 }
                 row.update(self._setups[p.setup].full_pose(p.position))
                 row["setup"] = p.setup
@@ -320,12 +347,13 @@ class StoreSink:
 
     def _commit(self, batch: Batch) -> None:
         """Write the batch (see commit)."""
-        from driftlab.campaigns.ingest import bulk_insert
+        from driftlab.campaigns.ingest import TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, bulk_insert
 
         temps = self._temperature_rows(batch)
         wide = self._block_arrays(batch)
         errs = self._error_rows(batch)
-        conds = [{"campaign_id": self.cid, "time_s": t, **{k: s.get(k) for k in STATE_KEYS}} for t, s in batch.states]
+        conds = [{"campaign_id": self.cid, "time_s": t, **{k: s.get(k) for k in STATE_KEYS},
+                  "campaign_start_day": self.day} for t, s in batch.states]
         missing = [
             Fault(t, f"point {p.index}", "laser", f"{term}: {r.flag}")
             for p, t, values in batch.points for term, r in values.items() if not r.ok
@@ -334,8 +362,7 @@ class StoreSink:
         finished = batch.cursor.next_scan >= self.plan.n_scans and batch.cursor.next_point >= self.n_points
         with write_transaction(self.engine) as conn:
             if temps:
-                bulk_insert(conn, "temperature_samples", ("campaign_id", "channel_id", "time_s", "value"),
-                            ("int4", "int4", "float8", "float8"), temps)
+                bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, temps)
             if wide is not None:
                 self._insert_blocks(conn, wide)
             if conds:

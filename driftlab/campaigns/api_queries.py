@@ -22,6 +22,7 @@ from sqlalchemy import Connection, func, select, text, update
 from driftlab.campaigns import db
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
+from driftlab.campaigns.partitions import start_day
 from driftlab.campaigns.store import JobInfo, Store, job_info, jobs_select
 from driftlab.errors import BadRequestError, ConflictError, NotFoundError, ValidationError
 
@@ -71,9 +72,12 @@ def _machine_exists(conn: Connection, machine_id: str) -> None:
         raise NotFoundError(f"no machine {machine_id!r}")
 
 
-def _campaign_exists(conn: Connection, campaign_id: int) -> None:
-    if conn.execute(select(sc.Campaign.id).where(sc.Campaign.id == campaign_id)).first() is None:
+def _campaign_exists(conn: Connection, campaign_id: int) -> int:
+    """Return the campaign's partition key (start day); NotFoundError when there is no such campaign."""
+    started = conn.execute(select(sc.Campaign.started_at).where(sc.Campaign.id == campaign_id)).scalar()
+    if started is None:
         raise NotFoundError(f"no campaign {campaign_id}")
+    return start_day(started)
 
 
 # ----------------------------------------------------------------------------- machines
@@ -127,13 +131,14 @@ def temperature_page(store: Store, campaign_id: int, channel: str, start_s: floa
                      after_s: float | None, offset: int, limit: int) -> list[tuple[float, float | None]]:
     """Return up to ``limit`` (time_s, value) readings of a channel in time order, after ``after_s``."""
     with _read(store) as conn:
+        day = _campaign_exists(conn, campaign_id)
         ch = conn.execute(select(sc.Channel.id).where(sc.Channel.campaign_id == campaign_id,
                                                       sc.Channel.name == channel)).scalar()
         if ch is None:
-            _campaign_exists(conn, campaign_id)
             raise NotFoundError(f"campaign {campaign_id} has no channel {channel!r}")
         t = sc.TemperatureSample
-        q = select(t.time_s, t.value).where(t.campaign_id == campaign_id, t.channel_id == ch)
+        q = select(t.time_s, t.value).where(t.campaign_id == campaign_id, t.channel_id == ch,
+                                            t.campaign_start_day == day)
         q = _time_window(q, t.time_s, start_s, end_s, after_s)
         rows = conn.execute(q.order_by(t.time_s).limit(limit).offset(offset)).all()
         return [(float(a), None if b is None else float(b)) for a, b in rows]
@@ -152,9 +157,11 @@ def latest_scan(store: Store, machine_id: str) -> tuple[int, datetime, float, di
             select(sc.Campaign.id, sc.Campaign.started_at).where(sc.Campaign.machine_id == machine_id)
             .order_by(sc.Campaign.started_at.desc(), sc.Campaign.id.desc())).all()
         for cid, started in campaigns:
+            day = start_day(started)
             channels = conn.execute(select(sc.Channel.id, sc.Channel.name).where(sc.Channel.campaign_id == cid)
                                     .order_by(sc.Channel.ordinal)).all()
-            last = [conn.execute(select(func.max(t.time_s)).where(t.campaign_id == cid, t.channel_id == ch)).scalar()
+            last = [conn.execute(select(func.max(t.time_s)).where(t.campaign_id == cid, t.channel_id == ch,
+                                                                  t.campaign_start_day == day)).scalar()
                     for ch, _ in channels]
             times = [x for x in last if x is not None]
             if not times:
@@ -163,7 +170,7 @@ def latest_scan(store: Store, machine_id: str) -> tuple[int, datetime, float, di
             values: dict[str, float | None] = {}
             for ch, name in channels:
                 v = conn.execute(select(t.value).where(t.campaign_id == cid, t.channel_id == ch,
-                                                       t.time_s == when)).scalar()
+                                                       t.time_s == when, t.campaign_start_day == day)).scalar()
                 values[name] = None if v is None else float(v)
             return int(cid), started, float(when), values
         return None
@@ -176,9 +183,10 @@ def condition_page(store: Store, campaign_id: int, columns: list[str], start_s: 
         if c not in CONDITION_VALUE_COLUMNS:
             raise BadRequestError(f"unknown condition {c!r}: expected some of {', '.join(CONDITION_VALUE_COLUMNS)}")
     with _read(store) as conn:
-        _campaign_exists(conn, campaign_id)
+        day = _campaign_exists(conn, campaign_id)
         t = sc.ConditionSample
-        q = select(t.time_s, *[getattr(t, c) for c in columns]).where(t.campaign_id == campaign_id)
+        q = select(t.time_s, *[getattr(t, c) for c in columns]).where(t.campaign_id == campaign_id,
+                                                                     t.campaign_start_day == day)
         q = _time_window(q, t.time_s, start_s, end_s, after_s)
         return [tuple(r) for r in conn.execute(q.order_by(t.time_s).limit(limit).offset(offset)).all()]
 
@@ -188,10 +196,10 @@ def error_page(store: Store, campaign_id: int, axis: str | None, term: str | Non
                limit: int) -> list[Any]:
     """Return up to ``limit`` error samples in bundle order (seq), filtered by axis/term/direction/time."""
     with _read(store) as conn:
-        _campaign_exists(conn, campaign_id)
+        day = _campaign_exists(conn, campaign_id)
         e = sc.ErrorSample
         q = select(e.seq, e.time_s, e.axis, e.term, e.position, e.direction, e.sweep, e.flags, e.value).where(
-            e.campaign_id == campaign_id)
+            e.campaign_id == campaign_id, e.campaign_start_day == day)
         if axis is not None:
             q = q.where(e.axis == axis)
         if term is not None:

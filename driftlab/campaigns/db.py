@@ -119,8 +119,13 @@ QUEUE_TABLE_PREFIX = "procrastinate_"
 
 
 def include_name(name: str | None, type_: str, parent_names: Any) -> bool:
-    """Return False for the job queue's tables: Alembic's autogenerate compares the store's own schema only."""
-    return not (type_ == "table" and (name or "").startswith(QUEUE_TABLE_PREFIX))
+    """Return False for the job queue's tables and the reading tables' partitions (made at run time, not
+    by a revision): Alembic's autogenerate compares the store's own declared schema only."""
+    from driftlab.campaigns.partitions import is_partition_name
+
+    if type_ != "table":
+        return True
+    return not ((name or "").startswith(QUEUE_TABLE_PREFIX) or is_partition_name(name))
 
 
 def alembic_config(connection: Connection | None = None) -> Any:

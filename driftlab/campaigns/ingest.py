@@ -18,10 +18,13 @@ from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, as_table
+from driftlab.campaigns.partitions import start_day
 
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
-TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value")
-ERROR_COLUMNS = ("campaign_id", "seq", "time_s", "axis", "term", "position", "direction", "value", "sweep", "flags")
+TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value", "campaign_start_day")
+TEMPERATURE_TYPES = ("int4", "int4", "float8", "float8", "int4")
+ERROR_COLUMNS = ("campaign_id", "seq", "time_s", "axis", "term", "position", "direction", "value", "sweep", "flags",
+                 "campaign_start_day")
 
 
 class SweepCounter:
@@ -81,10 +84,13 @@ def _copy_rows(conn: Connection, table: str, columns: Sequence[str], types: Sequ
 
 
 def bulk_insert(conn: Connection, table: str, columns: Sequence[str], pg_types: Sequence[str],
-                rows: Iterable[Sequence[Any]]) -> None:
-    """Insert many rows fast in the connection's transaction: binary COPY or sqlite3 executemany."""
+                rows: Iterable[Sequence[Any]], into: str | None = None) -> None:
+    """Insert many rows fast in the connection's transaction: binary COPY or sqlite3 executemany.
+
+    ``into`` names the partition of ``table`` every row belongs to, when known (PostgreSQL).
+    """
     if conn.dialect.name == "postgresql":
-        _copy_rows(conn, table, columns, pg_types, rows)
+        _copy_rows(conn, into or table, columns, pg_types, rows)
         return
     raw = conn.connection.driver_connection
     marks = ", ".join("?" for _ in columns)
@@ -105,8 +111,8 @@ def _nullable(values: np.ndarray, postgres: bool) -> list[Any]:
 
 
 def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable,
-                     postgres: bool) -> Iterable[tuple[Any, ...]]:
-    """Return (campaign, channel, time, value) rows channel by channel: primary-key order, so appends.
+                     postgres: bool, start_day: int) -> Iterable[tuple[Any, ...]]:
+    """Return (campaign, channel, time, value, start day) rows channel by channel: primary-key order, so appends.
 
     The rows are chained C-level zips (no Python frame per row): the per-row cost is the driver's.
     A chunk's values become Python lists only when the driver reaches them.
@@ -120,7 +126,7 @@ def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures:
                 n = len(times)
                 t = np.asarray(times, dtype="f8").tolist()
                 v = _nullable(np.asarray(values, dtype="f8"), postgres)
-                yield zip(repeat(campaign_id, n), repeat(channel_id, n), t, v)
+                yield zip(repeat(campaign_id, n), repeat(channel_id, n), t, v, repeat(start_day, n))
 
     return chain.from_iterable(per_chunk())
 
@@ -130,15 +136,16 @@ def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures:
 _PG_HEADER = b"PGCOPY\n\xff\r\n\x00" + (0).to_bytes(4, "big") + (0).to_bytes(4, "big")
 _PG_TRAILER = (-1).to_bytes(2, "big", signed=True)
 _ROW = np.dtype([("n", ">i2"), ("l1", ">i4"), ("c", ">i4"), ("l2", ">i4"), ("ch", ">i4"), ("l3", ">i4"),
-                 ("t", ">f8"), ("l4", ">i4"), ("v", ">f8")])
+                 ("t", ">f8"), ("l4", ">i4"), ("v", ">f8"), ("l5", ">i4"), ("d", ">i4")])
 _ROW_NULL = np.dtype([("n", ">i2"), ("l1", ">i4"), ("c", ">i4"), ("l2", ">i4"), ("ch", ">i4"), ("l3", ">i4"),
-                      ("t", ">f8"), ("l4", ">i4")])
+                      ("t", ">f8"), ("l4", ">i4"), ("l5", ">i4"), ("d", ">i4")])
 
 
-def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray | None) -> bytes:
+def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray | None, start_day: int) -> bytes:
     """Return binary COPY tuples of one channel (v None: every value NULL)."""
     arr = np.empty(len(t), dtype=_ROW if v is not None else _ROW_NULL)
-    arr["n"], arr["l1"], arr["c"], arr["l2"], arr["ch"], arr["l3"], arr["t"] = 4, 4, campaign_id, 4, channel_id, 8, t
+    arr["n"], arr["l1"], arr["c"], arr["l2"], arr["ch"], arr["l3"], arr["t"] = 5, 4, campaign_id, 4, channel_id, 8, t
+    arr["l5"], arr["d"] = 4, start_day
     if v is None:
         arr["l4"] = -1
     else:
@@ -147,13 +154,19 @@ def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray
 
 
 def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequence[int],
-                         temperatures: pd.DataFrame | ColumnTable, chunk_rows: int = 200_000) -> None:
-    """Stream a wide temperature table into temperature_samples with binary COPY, in key order."""
+                         temperatures: pd.DataFrame | ColumnTable, start_day: int, chunk_rows: int = 200_000) -> None:
+    """Stream a wide temperature table into temperature_samples with binary COPY, in key order.
+
+    ``start_day`` is the campaign's partition key (``partitions.start_day``); its partition must exist.
+    The rows go straight into that partition (every row of a campaign has the same key): no routing
+    per row, and PostgreSQL still checks each against the partition's bounds.
+    """
+    target = _into(conn, "temperature_samples", start_day)
     raw = conn.connection.driver_connection
     table = as_table(temperatures)
     names = [c for c in table.columns if c != "time_s"]
     with raw.cursor() as cur:  # type: ignore[union-attr]
-        with cur.copy(f"COPY temperature_samples ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)") as cp:
+        with cur.copy(f"COPY {target} ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)") as cp:
             cp.write(_PG_HEADER)
             for channel_id, name in zip(channel_ids, names, strict=True):
                 for t_all, v_all in zip(table.column("time_s"), table.column(name), strict=True):
@@ -162,17 +175,48 @@ def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequen
                         t, v = t_all[lo:lo + chunk_rows], v_all[lo:lo + chunk_rows]
                         missing = np.isnan(v)
                         if not missing.any():
-                            cp.write(_encode_rows(campaign_id, channel_id, t, v))
+                            cp.write(_encode_rows(campaign_id, channel_id, t, v, start_day))
                             continue
                         # rows keep key order: runs of present and missing values alternate
                         edges = np.flatnonzero(np.diff(missing.astype(np.int8))) + 1
                         for a, b in zip(np.r_[0, edges], np.r_[edges, len(v)], strict=True):
-                            cp.write(_encode_rows(campaign_id, channel_id, t[a:b], None if missing[a] else v[a:b]))
+                            cp.write(_encode_rows(campaign_id, channel_id, t[a:b], None if missing[a] else v[a:b],
+                                                  start_day))
             cp.write(_PG_TRAILER)
 
 
 ROLLUP_COLUMNS = ("campaign_id", "channel_id", "minute", "n", "n_values", "vmin", "vsum", "vmax")
 ROLLUP_S = 60.0
+#: rollups are written only where they are at least this many times fewer than the scans
+ROLLUP_MIN_SCANS_PER_ROW = 2
+
+
+def rollups_pay(times: np.ndarray) -> bool:
+    """Return True when per-minute rollups would be at least ROLLUP_MIN_SCANS_PER_ROW times fewer rows
+    than the readings (scans every 30 s or faster, on average).
+
+    A campaign scanned every 2 minutes (a fleet's monitoring) has one scan per minute at most: its
+    rollups would be as many rows as its readings, doubling the import for nothing, and its
+    bucketed histories are computed from the readings directly (``rollups_complete`` false).
+    """
+    t = np.asarray(times, dtype="f8")
+    if not len(t):
+        return False
+    return bool(np.unique(np.floor(t / ROLLUP_S)).size * ROLLUP_MIN_SCANS_PER_ROW <= len(t))
+
+
+def rollups_pay_chunks(chunks: Iterable[Any]) -> bool:
+    """``rollups_pay`` over the time column given a chunk at a time (scans in time order: minutes only grow)."""
+    n_rows = n_minutes = 0
+    last: int | None = None
+    for times in chunks:
+        minute = np.floor(np.asarray(times, dtype="f8") / ROLLUP_S).astype(np.int64)
+        if not minute.size:
+            continue
+        n_rows += minute.size
+        n_minutes += int(np.count_nonzero(np.diff(minute))) + int(last is None or minute[0] != last)
+        last = int(minute[-1])
+    return bool(n_rows and n_minutes * ROLLUP_MIN_SCANS_PER_ROW <= n_rows)
 
 
 def rollup_rows(campaign_id: int, channel_ids: Sequence[int],
@@ -227,10 +271,24 @@ def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) ->
     return sqlite_insert(table).on_conflict_do_nothing(index_elements=keys)
 
 
+def _into(conn: Connection, table: str, day: int) -> str:
+    """Return where a campaign's readings of ``table`` are written: on PostgreSQL its partition (no
+    routing per row), else the table."""
+    if conn.dialect.name != "postgresql":
+        return table
+    from driftlab.campaigns.partitions import leaf
+
+    return leaf(conn, table, day) or table
+
+
 def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> int:
-    """Write a validated bundle (in memory, or staged) in the caller's transaction; return the new campaign id."""
+    """Write a validated bundle (in memory, or staged) in the caller's transaction; return the new campaign id.
+
+    On PostgreSQL the partition of the campaign's start (``partitions.ensure_partitions``) must exist.
+    """
     meta = bundle.meta
     postgres = conn.dialect.name == "postgresql"
+    day = start_day(meta.started_at)
     machine = conn.execute(select(sc.Machine.id).where(sc.Machine.id == meta.machine.id)).first()
     if machine is None:
         # ON CONFLICT DO NOTHING: two imports of a new machine at once both see no row; the second
@@ -239,12 +297,14 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
                       resolution_deg=meta.machine.resolution_deg, created_at=sc.utcnow())
         conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(**values))
     cond_cols = None if bundle.conditions is None else list(bundle.conditions.columns)
+    temperatures = as_table(bundle.temperatures)
+    rollups = rollups_pay_chunks(temperatures.column("time_s"))
     campaign_id = conn.execute(
         insert(sc.Campaign)
         .values(
             machine_id=meta.machine.id, name=bundle.name, started_at=meta.started_at, status="done",
             source="import", content_hash=content_hash, meta=meta.document(), conditions_columns=cond_cols,
-            rollups_complete=True, created_at=sc.utcnow(),
+            rollups_complete=rollups, created_at=sc.utcnow(),
         )
         .returning(sc.Campaign.id)
     ).scalar_one()
@@ -272,45 +332,49 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == campaign_id)).all())
     channel_ids = [ids[name] for name in names]
 
-    temperatures = as_table(bundle.temperatures)
     if postgres:
-        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures)
+        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
     else:
-        bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, ("int4", "int4", "float8", "float8"),
-                    temperature_rows(campaign_id, channel_ids, temperatures, postgres))
+        bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES,
+                    temperature_rows(campaign_id, channel_ids, temperatures, postgres, day))
 
-    bulk_insert(conn, "temperature_rollups", ROLLUP_COLUMNS,
-                ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
-                rollup_rows(campaign_id, channel_ids, temperatures))
+    if rollups:
+        bulk_insert(conn, "temperature_rollups", ROLLUP_COLUMNS,
+                    ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
+                    rollup_rows(campaign_id, channel_ids, temperatures))
 
     if bundle.conditions is not None:
         conditions = as_table(bundle.conditions)
         if conditions.n_rows:
-            bulk_insert(conn, "condition_samples", ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS),
-                        ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS)),
-                        condition_rows(campaign_id, conditions, postgres))
+            bulk_insert(conn, "condition_samples",
+                        ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
+                        ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
+                        condition_rows(campaign_id, conditions, postgres, day),
+                        into=_into(conn, "condition_samples", day))
 
     err_names: tuple[str, ...] = tuple(ERROR_COLUMNS)
-    types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4")
+    types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4",
+                              "int4", "int4")
     if meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
         err_names += (*POSE_COLUMNS, "setup")
         types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
-    bulk_insert(conn, "error_samples", err_names, types, error_rows(campaign_id, as_table(bundle.errors), meta.v2))
+    bulk_insert(conn, "error_samples", err_names, types, error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
+                into=_into(conn, "error_samples", day))
     return int(campaign_id)
 
 
-def condition_rows(campaign_id: int, conditions: ColumnTable, postgres: bool) -> Iterator[tuple[Any, ...]]:
-    """Yield (campaign, time, spindle_rpm, feed_mm_min, x, y, z, a, b) rows, NULL where a column is absent."""
+def condition_rows(campaign_id: int, conditions: ColumnTable, postgres: bool, day: int) -> Iterator[tuple[Any, ...]]:
+    """Yield (campaign, time, spindle_rpm, feed_mm_min, x, y, z, a, b, start day) rows, NULL where a column is absent."""
     present = [c for c in CONDITION_VALUE_COLUMNS if c in conditions.columns]
     for chunk in conditions.chunks(["time_s", *present]):
         n = len(chunk["time_s"])
         columns = [np.asarray(chunk[c], dtype="f8") if c in chunk else np.full(n, np.nan)
                    for c in CONDITION_VALUE_COLUMNS]
         yield from zip(repeat(campaign_id, n), np.asarray(chunk["time_s"], dtype="f8").tolist(),
-                       *[_nullable(c, postgres) for c in columns])
+                       *[_nullable(c, postgres) for c in columns], repeat(day, n))
 
 
-def error_rows(campaign_id: int, errors: ColumnTable, v2: bool) -> Iterator[tuple[Any, ...]]:
+def error_rows(campaign_id: int, errors: ColumnTable, v2: bool, day: int) -> Iterator[tuple[Any, ...]]:
     """Yield error_samples rows in file order: seq counts over the whole file, sweeps carry across chunks."""
     sweeps = SweepCounter()
     seq = 0
@@ -323,7 +387,7 @@ def error_rows(campaign_id: int, errors: ColumnTable, v2: bool) -> Iterator[tupl
         columns: tuple[Any, ...] = (
             repeat(campaign_id, n), range(seq, seq + n), np.asarray(chunk["time_s"], dtype="f8").tolist(), axis,
             term, np.asarray(chunk["position"], dtype="f8").tolist(), direction.tolist(),
-            np.asarray(chunk["value"], dtype="f8").tolist(), numbers.tolist(), repeat(0, n),
+            np.asarray(chunk["value"], dtype="f8").tolist(), numbers.tolist(), repeat(0, n), repeat(day, n),
         )
         if v2:
             columns += (*(np.asarray(chunk[c], dtype="f8").tolist() for c in POSE_COLUMNS),

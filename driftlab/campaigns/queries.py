@@ -17,6 +17,7 @@ from sqlalchemy import Connection, func, select, text
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import AXES, TERMS, Bundle, CampaignMeta
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS, ROLLUP_S
+from driftlab.campaigns.partitions import start_day
 from driftlab.errors import BadRequestError, NotFoundError, ValidationError
 
 
@@ -65,10 +66,12 @@ def list_campaigns(conn: Connection, machine_id: str | None = None) -> list[Camp
             # one channel's key range (primary key prefix) counts the scans without a table scan
             scans = conn.execute(
                 select(func.count()).select_from(sc.TemperatureSample).where(
-                    sc.TemperatureSample.campaign_id == c.id, sc.TemperatureSample.channel_id == channels[0])
+                    sc.TemperatureSample.campaign_id == c.id, sc.TemperatureSample.channel_id == channels[0],
+                    sc.TemperatureSample.campaign_start_day == start_day(c.started_at))
             ).scalar_one()
         errors = conn.execute(
-            select(func.count()).select_from(sc.ErrorSample).where(sc.ErrorSample.campaign_id == c.id)
+            select(func.count()).select_from(sc.ErrorSample).where(
+                sc.ErrorSample.campaign_id == c.id, sc.ErrorSample.campaign_start_day == start_day(c.started_at))
         ).scalar_one()
         stages = conn.execute(
             select(func.count()).select_from(sc.Stage).where(sc.Stage.campaign_id == c.id)
@@ -109,6 +112,7 @@ def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
     channels = conn.execute(
         select(sc.Channel.id, sc.Channel.name).where(sc.Channel.campaign_id == campaign_id).order_by(sc.Channel.ordinal)
     ).all()
+    day = start_day(campaign.started_at)
     raw = conn.connection.driver_connection
     placeholder = "%s" if conn.dialect.name == "postgresql" else "?"
     cur = raw.cursor()  # type: ignore[union-attr]
@@ -117,8 +121,8 @@ def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
         for channel_id, name in channels:
             cur.execute(
                 "SELECT time_s, value FROM temperature_samples WHERE campaign_id = "
-                f"{placeholder} AND channel_id = {placeholder} ORDER BY time_s",
-                (campaign_id, channel_id),
+                f"{placeholder} AND channel_id = {placeholder} AND campaign_start_day = {placeholder} ORDER BY time_s",
+                (campaign_id, channel_id, day),
             )
             rows = cur.fetchall()
             t = np.fromiter((r[0] for r in rows), dtype="f8", count=len(rows))
@@ -137,7 +141,8 @@ def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
         cols = [c for c in campaign.conditions_columns if c != "time_s"]
         rows = conn.execute(
             select(sc.ConditionSample.time_s, *[getattr(sc.ConditionSample, c) for c in cols])
-            .where(sc.ConditionSample.campaign_id == campaign_id).order_by(sc.ConditionSample.time_s)
+            .where(sc.ConditionSample.campaign_id == campaign_id, sc.ConditionSample.campaign_start_day == day)
+            .order_by(sc.ConditionSample.time_s)
         ).all()
         arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(len(rows), len(cols) + 1)
         conditions = pd.DataFrame(arr, columns=["time_s", *cols])
@@ -146,7 +151,8 @@ def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
     rows = conn.execute(
         select(sc.ErrorSample.time_s, sc.ErrorSample.axis, sc.ErrorSample.term, sc.ErrorSample.position,
                sc.ErrorSample.direction, sc.ErrorSample.value, *pose_cols)
-        .where(sc.ErrorSample.campaign_id == campaign_id).order_by(sc.ErrorSample.seq)
+        .where(sc.ErrorSample.campaign_id == campaign_id, sc.ErrorSample.campaign_start_day == day)
+        .order_by(sc.ErrorSample.seq)
     ).all()
     errors = pd.DataFrame(
         {
@@ -181,26 +187,37 @@ def _seconds(delta: timedelta) -> float:
 
 DRIFT_COLUMNS = ["campaign_id", "time", "time_s", "position", "direction", "sweep", "value"]
 
-# Nearest measured position: the largest position <= P and the smallest >= P, per direction, each a
-# single seek in the unique index (campaign_id, axis, term, direction, position, time_s).
-_BELOW_SQL = """
-SELECT MAX(position) FROM error_samples
-WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND position <= :p
-"""
-_ABOVE_SQL = """
-SELECT MIN(position) FROM error_samples
-WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND position >= :p
+# Nearest measured position and its readings, one statement per campaign: the position nearest P
+# (the lower one on a tie) of the largest <= P and the smallest >= P of each direction, each a
+# single seek in the unique index (campaign_id, axis, term, direction, position, ...), then the
+# readings at that position, one seek per direction in the same index (direction IN (...), not
+# left open: the index is ordered by direction before position). campaign_start_day = :day keeps
+# every part of it in the campaign's partition (PostgreSQL).
+_CAMPAIGN_TERM = "campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term"
+_NEAREST_CANDIDATES = """
+      SELECT x FROM (SELECT position AS x FROM error_samples WHERE {where} AND direction = {d}
+                     AND position {op} :p ORDER BY position {order} LIMIT 1) AS {alias}"""
+
+
+def nearest_sql(directions: list[int]) -> str:
+    """Return the statement of the drift at the nearest measured position, for these directions (+1/-1)."""
+    candidates = "\n      UNION ALL".join(
+        _NEAREST_CANDIDATES.format(where=_CAMPAIGN_TERM, d=int(d), op=op, order=order, alias=f"{alias}{k}")
+        for k, d in enumerate(directions) for op, order, alias in (("<=", "DESC", "below"), (">=", "", "above")))
+    return f"""
+SELECT time_s, position, direction, sweep, value FROM error_samples
+WHERE {_CAMPAIGN_TERM} AND direction IN ({", ".join(str(int(d)) for d in directions)})
+  AND time_s >= :t0 AND time_s <= :t1
+  AND position = (
+    SELECT x FROM ({candidates}
+    ) AS candidates
+    ORDER BY ABS(x - :p), x LIMIT 1)
 """
 
-_AT_POSITION_SQL = """
-SELECT time_s, position, direction, sweep, value FROM error_samples
-WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND position = :pos
-  AND time_s >= :t0 AND time_s <= :t1
-"""
 
 _ALL_POSITIONS_SQL = """
 SELECT time_s, position, direction, sweep, value FROM error_samples
-WHERE campaign_id = :c AND axis = :axis AND term = :term {dir}
+WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term {dir}
   AND time_s >= :t0 AND time_s <= :t1
 ORDER BY time_s, position, direction
 """
@@ -211,13 +228,14 @@ _BRACKETS_SQL = """
 SELECT sweep, MAX(CASE WHEN position <= :p THEN position END) AS lo,
        MIN(CASE WHEN position >= :p THEN position END) AS hi
 FROM error_samples
-WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d
+WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term AND direction = :d
 GROUP BY sweep
 """
 # ... then the rows at each of those few positions (a seek in the unique index on ... direction, position).
 _ROWS_AT_SQL = """
 SELECT sweep, position, time_s, value FROM error_samples
-WHERE campaign_id = :c AND axis = :axis AND term = :term AND direction = :d AND position = :pos
+WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis AND term = :term AND direction = :d
+  AND position = :pos
 """
 
 
@@ -225,22 +243,9 @@ def _directions(conn: Connection, params: dict[str, Any], direction: int | None)
     if direction is not None:
         return [direction]
     # direction is +1 or -1 (a check constraint): two index probes instead of a DISTINCT scan
-    probe = text("SELECT 1 FROM error_samples WHERE campaign_id = :c AND axis = :axis AND term = :term "
-                 "AND direction = :d LIMIT 1")
+    probe = text("SELECT 1 FROM error_samples WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis "
+                 "AND term = :term AND direction = :d LIMIT 1")
     return [d for d in (-1, 1) if conn.execute(probe, {**params, "d": d}).first() is not None]
-
-
-def _nearest(conn: Connection, params: dict[str, Any], directions: list[int]) -> float | None:
-    """Return the measured position nearest to params['p'] (the lower one on a tie)."""
-    candidates: list[float] = []
-    for d in directions:
-        q = {**params, "d": d}
-        candidates += [v for v in (conn.execute(text(_BELOW_SQL), q).scalar(),
-                                   conn.execute(text(_ABOVE_SQL), q).scalar()) if v is not None]
-    if not candidates:
-        return None
-    p = params["p"]
-    return min(candidates, key=lambda x: (abs(x - p), x))
 
 
 def drift(
@@ -279,7 +284,7 @@ def drift(
         t1 = np.inf if end is None else _seconds(end - started)
         if t1 < 0:
             continue
-        params: dict[str, Any] = {"c": cid, "axis": axis, "term": term, "d": direction,
+        params: dict[str, Any] = {"c": cid, "day": start_day(started), "axis": axis, "term": term, "d": direction,
                                   "t0": max(t0, -1e300), "t1": min(t1, 1e300)}
         data: list[tuple[Any, ...]] = []
         if position is None:
@@ -303,13 +308,9 @@ def drift(
                         data.append((cid, t, p, d, sweep, va + (vh - va) * f))
         else:
             params["p"] = float(position)
-            directions = _directions(conn, params, direction)
-            nearest = _nearest(conn, params, directions)
-            if nearest is None:
-                continue
-            for d in directions:
-                rows = conn.execute(text(_AT_POSITION_SQL), {**params, "d": d, "pos": nearest}).all()
-                data += [(cid, t, p, dd, s, v) for t, p, dd, s, v in rows]
+            dirs = [-1, 1] if direction is None else [direction]
+            rows = conn.execute(text(nearest_sql(dirs)), params).all()
+            data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
         if data:
             offset_ns = int(pd.Timestamp(started).value)
             frames.append((offset_ns, data))
@@ -340,14 +341,16 @@ def _drift_frame(parts: list[tuple[int, list[tuple[Any, ...]]]]) -> pd.DataFrame
 # ----------------------------------------------------------------------------- histories
 
 
-def _channel_id(conn: Connection, campaign_id: int, channel: str) -> int:
-    cid = conn.execute(
-        select(sc.Channel.id).where(sc.Channel.campaign_id == campaign_id, sc.Channel.name == channel)
-    ).scalar()
-    if cid is None:
+def _channel_id(conn: Connection, campaign_id: int, channel: str) -> tuple[int, int]:
+    """Return a campaign's channel id and the campaign's partition key (start day)."""
+    row = conn.execute(
+        select(sc.Channel.id, sc.Campaign.started_at).join(sc.Campaign, sc.Campaign.id == sc.Channel.campaign_id)
+        .where(sc.Channel.campaign_id == campaign_id, sc.Channel.name == channel)
+    ).first()
+    if row is None:
         _campaign_row(conn, campaign_id)
         raise NotFoundError(f"campaign {campaign_id} has no channel {channel!r}")
-    return int(cid)
+    return int(row[0]), start_day(row[1])
 
 
 def _range(conn: Connection, table: str, where: str, params: dict[str, Any]) -> tuple[float, float] | None:
@@ -445,13 +448,14 @@ def temperature_history(conn: Connection, campaign_id: int, channel: str, start_
     give the exact bounds each figure covers. Otherwise the edges are exactly
     t0 + k (t1 - t0) / buckets.
     """
-    channel_id = _channel_id(conn, campaign_id, channel)
+    channel_id, day = _channel_id(conn, campaign_id, channel)
+    where, params = "campaign_id = :c AND channel_id = :ch AND campaign_start_day = :day", {
+        "c": campaign_id, "ch": channel_id, "day": day}
     if buckets and rollups:
         if buckets < 1:
             raise ValidationError("buckets must be at least 1")
         complete = conn.execute(select(sc.Campaign.rollups_complete).where(sc.Campaign.id == campaign_id)).scalar()
-        span = _range(conn, "temperature_samples", "campaign_id = :c AND channel_id = :ch",
-                      {"c": campaign_id, "ch": channel_id}) if complete else None
+        span = _range(conn, "temperature_samples", where, params) if complete else None
         if span is not None:
             t0 = span[0] if start_s is None else float(start_s)
             t1 = span[1] if end_s is None else float(end_s)
@@ -461,17 +465,17 @@ def temperature_history(conn: Connection, campaign_id: int, channel: str, start_
                 frame = _rollup_history(conn, campaign_id, channel_id, t0, t1, buckets)
                 if frame is not None:
                     return frame
-    return _history(conn, "temperature_samples", "campaign_id = :c AND channel_id = :ch",
-                    {"c": campaign_id, "ch": channel_id}, ["value"], start_s, end_s, buckets)
+    return _history(conn, "temperature_samples", where, params, ["value"], start_s, end_s, buckets)
 
 
 def condition_history(conn: Connection, campaign_id: int, columns: list[str] | None = None,
                       start_s: float | None = None, end_s: float | None = None,
                       buckets: int | None = None) -> pd.DataFrame:
     """Return machine-state values in a time range, raw or min/mean/max per bucket."""
-    _campaign_row(conn, campaign_id)
+    day = start_day(_campaign_row(conn, campaign_id).started_at)
     cols = list(columns or CONDITION_VALUE_COLUMNS)
     for c in cols:
         if c not in CONDITION_VALUE_COLUMNS:
             raise ValidationError(f"unknown condition {c!r}: expected some of {', '.join(CONDITION_VALUE_COLUMNS)}")
-    return _history(conn, "condition_samples", "campaign_id = :c", {"c": campaign_id}, cols, start_s, end_s, buckets)
+    return _history(conn, "condition_samples", "campaign_id = :c AND campaign_start_day = :day",
+                    {"c": campaign_id, "day": day}, cols, start_s, end_s, buckets)

@@ -13,6 +13,13 @@ query. Conditions (a fixed set of seven machine-state values, always read togeth
 No foreign keys on the three sample tables: a per-row referential check (a trigger per row on
 PostgreSQL) would halve bulk COPY speed. The store writes samples only inside the transaction that
 creates or locks their campaign and channels, and deletes them with the campaign.
+
+Fleet scale: on PostgreSQL the three sample tables are range-partitioned by month of campaign
+start on ``campaign_start_day`` (the UTC day of the campaign's start, days since 1970-01-01, the
+same in every reading of a campaign; see ``partitions``). The key is the last column of each
+unique key (a partitioned table's unique keys must hold it; being constant per campaign it changes
+neither what they refuse nor the order of a campaign's rows). SQLite has the same columns and keys,
+unpartitioned.
 """
 
 from __future__ import annotations
@@ -179,19 +186,25 @@ class Channel(Base):
     calibration_offset: Mapped[float] = mapped_column(Double, default=0.0)
 
 
+#: partitioning of the sample tables on PostgreSQL (partitions are made by ``partitions``)
+PARTITION_BY = "RANGE (campaign_start_day)"
+
+
 class TemperatureSample(Base):
     """One thermocouple reading (degC); value NULL = a missing reading (an empty bundle cell)."""
 
     __tablename__ = "temperature_samples"
-    # The primary key serves the temperature history query
-    # (WHERE campaign_id = ? AND channel_id = ? AND time_s BETWEEN ? AND ?) as one range scan,
+    # The primary key serves the temperature history query (WHERE campaign_id = ? AND channel_id = ?
+    # AND time_s BETWEEN ? AND ? AND campaign_start_day = ?) as one range scan of one partition,
     # and makes re-inserting the same reading impossible.
-    __table_args__ = {"sqlite_with_rowid": False}
+    __table_args__ = {"sqlite_with_rowid": False, "postgresql_partition_by": PARTITION_BY}
 
     campaign_id: Mapped[int] = mapped_column(Integer, primary_key=True)
     channel_id: Mapped[int] = mapped_column(Integer, primary_key=True)
     time_s: Mapped[float] = mapped_column(Double, primary_key=True)
     value: Mapped[float | None] = mapped_column(Double)
+    # the campaign's start day (partitions.start_day): the partition key
+    campaign_start_day: Mapped[int] = mapped_column(Integer, primary_key=True)
 
 
 class TemperatureRollup(Base):
@@ -223,9 +236,9 @@ class ConditionSample(Base):
     """One line of the machine state log (wide: the seven values are always read together)."""
 
     __tablename__ = "condition_samples"
-    # The primary key serves condition histories (WHERE campaign_id = ? AND time_s BETWEEN ? AND ?)
-    # and refuses a second state record at the same time.
-    __table_args__ = {"sqlite_with_rowid": False}
+    # The primary key serves condition histories (WHERE campaign_id = ? AND time_s BETWEEN ? AND ?
+    # AND campaign_start_day = ?) and refuses a second state record at the same time.
+    __table_args__ = {"sqlite_with_rowid": False, "postgresql_partition_by": PARTITION_BY}
 
     campaign_id: Mapped[int] = mapped_column(Integer, primary_key=True)
     time_s: Mapped[float] = mapped_column(Double, primary_key=True)
@@ -236,6 +249,7 @@ class ConditionSample(Base):
     z: Mapped[float | None] = mapped_column(Double)
     a: Mapped[float | None] = mapped_column(Double)
     b: Mapped[float | None] = mapped_column(Double)
+    campaign_start_day: Mapped[int] = mapped_column(Integer, primary_key=True)  # the partition key
 
 
 class ErrorSample(Base):
@@ -244,15 +258,17 @@ class ErrorSample(Base):
     __tablename__ = "error_samples"
     __table_args__ = (
         # The unique key refuses a re-inserted reading and serves the drift query
-        # (WHERE campaign_id = ? AND axis = ? AND term = ? [AND direction = ?] ORDER BY position/time).
-        UniqueConstraint("campaign_id", "axis", "term", "direction", "position", "time_s"),
+        # (WHERE campaign_id = ? AND axis = ? AND term = ? [AND direction = ?] ORDER BY position/time;
+        # with campaign_start_day = ? the query reads one partition).
+        UniqueConstraint("campaign_id", "axis", "term", "direction", "position", "time_s", "campaign_start_day",
+                         name="uq_error_samples_reading"),
         # The interpolating drift query: per (direction, sweep) the positions bracketing P
         # (MAX(position) <= P, MIN(position) >= P) and their rows, each one seek.
         Index("ix_error_samples_sweep", "campaign_id", "axis", "term", "direction", "sweep", "position"),
         CheckConstraint("axis IN ('X', 'Y', 'Z', 'A', 'B')", name="axis"),
         CheckConstraint("term IN ('alpha', 'beta', 'gamma', 'dx', 'dy', 'dz')", name="term"),
         CheckConstraint("direction IN (-1, 1)", name="direction"),
-        {"sqlite_with_rowid": False},
+        {"sqlite_with_rowid": False, "postgresql_partition_by": PARTITION_BY},
     )
 
     # (campaign_id, seq) keeps the bundle's row order for an exact export.
@@ -276,6 +292,7 @@ class ErrorSample(Base):
     a: Mapped[float | None] = mapped_column(Double, nullable=True)
     b: Mapped[float | None] = mapped_column(Double, nullable=True)
     setup: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    campaign_start_day: Mapped[int] = mapped_column(Integer, primary_key=True)  # the partition key
 
 
 class ProbeMeasurement(Base):

@@ -1,4 +1,4 @@
-"""`driftlab db`: bring a campaign store's schema to the current revision."""
+"""`driftlab db`: bring a campaign store's schema to the current revision; its reading partitions."""
 
 from __future__ import annotations
 
@@ -22,6 +22,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     cur = dbsub.add_parser("current", help="print the database's schema revision")
     add_db_option(cur)
     cur.set_defaults(func=_current)
+    part = dbsub.add_parser("partitions", help="create the reading tables' partitions ahead (PostgreSQL) and list them")
+    add_db_option(part)
+    part.add_argument("--ahead", type=int, default=None, metavar="MONTHS",
+                      help="months after the current one to create (default: 2)")
+    part.set_defaults(func=_partitions)
 
 
 def _upgrade(args: argparse.Namespace) -> int:
@@ -40,4 +45,28 @@ def _current(args: argparse.Namespace) -> int:
 
     with connect(args.db, auto_upgrade=False) as store:
         print(store.revision() or "empty")
+    return 0
+
+
+def _partitions(args: argparse.Namespace) -> int:
+    """Create the missing partitions of this month and the next ones, then list every partition."""
+    from driftlab.campaigns import partitions
+    from driftlab.campaigns.store import connect
+    from driftlab.errors import ValidationError
+
+    ahead = partitions.MONTHS_AHEAD if args.ahead is None else args.ahead
+    if not 0 <= ahead <= 120:
+        raise ValidationError(f"--ahead must be between 0 and 120 months, not {ahead}")
+    with connect(args.db) as store:
+        store.ensure_schema()
+        if store.dialect != "postgresql":
+            print(f"{store.url}: SQLite keeps its reading tables unpartitioned; nothing to do")
+            return 0
+        made = partitions.ensure_ahead(store.engine, ahead)
+        with store.engine.connect() as conn:
+            rows = partitions.describe(conn)
+        for r in rows:
+            span = f"{r['from'] or 'DEFAULT':>10} .. {r['to'] or '':<10}"
+            print(f"{r['partition']:<40} {span} {r['bytes'] / 2**20:10.1f} MiB")
+        print(f"{len(made)} partition(s) created" + (f": {', '.join(made)}" if made else ""))
     return 0

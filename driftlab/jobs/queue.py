@@ -4,8 +4,10 @@ The tasks are thin: each calls ``tasks.execute`` on a job record. A fit is defer
 machine's lock (``policy.machine_lock``), so two fits of one machine never run at once, on however
 many workers; every job is retried by ``policy.RetryPolicy``. Two periodic tasks run on the
 workers: ``driftlab.refit`` (DRIFTLAB_REFIT_CRON, nightly by default) queues a refit of every
-machine that has finished campaigns newer than its current model, and ``driftlab.retry_stalled``
-(every five minutes) puts back in the queue the jobs of workers that stopped beating.
+machine that has finished campaigns newer than its current model, ``driftlab.retry_stalled``
+(every five minutes) puts back in the queue the jobs of workers that stopped beating, and
+``driftlab.partitions`` (daily) creates the reading tables' partitions of this month and the next
+two ahead of any write (``campaigns.partitions.ensure_ahead``).
 
 The queue's schema is created by the store's migrations (revision 0006), never by procrastinate's
 own ``schema --apply``.
@@ -39,6 +41,9 @@ TASKS = {FIT: "driftlab.fit", DIAGNOSE: "driftlab.diagnose"}
 REFIT_TASK = "driftlab.refit"
 STALLED_TASK = "driftlab.retry_stalled"
 STALLED_CRON = "*/5 * * * *"
+PARTITIONS_TASK = "driftlab.partitions"
+#: daily; with partitions made two months ahead, a month of workers down still finds them there
+PARTITIONS_CRON = "41 3 * * *"
 
 
 def default_worker_name() -> str:
@@ -91,6 +96,14 @@ def _refit_task(context: JobContext, timestamp: int) -> None:
     log.info("refit at %s: %d job(s) queued %s", timestamp, len(ids), ids)
 
 
+def _partitions_task(context: JobContext, timestamp: int) -> None:
+    """Create the reading tables' partitions of this month and the next ones, when missing."""
+    from driftlab.campaigns.partitions import ensure_ahead
+
+    made = ensure_ahead(_store_of(context).engine)
+    log.info("partitions at %s: %s", timestamp, ", ".join(made) if made else "none missing")
+
+
 async def _retry_stalled_task(context: JobContext, timestamp: int) -> None:
     """Put back in the queue the jobs of workers that stopped beating (killed, host lost)."""
     manager = context.app.job_manager
@@ -115,6 +128,9 @@ def build_app(url: str, *, pool_size: int = 4, refit_cron: str | None = None) ->
     stalled = app.task(name=STALLED_TASK, queue=policy.QUEUE, pass_context=True,
                        priority=policy.PRIORITY_UPKEEP)(_retry_stalled_task)
     app.periodic(cron=STALLED_CRON, periodic_id="stalled")(stalled)
+    parts = app.task(name=PARTITIONS_TASK, queue=policy.QUEUE, pass_context=True,
+                     priority=policy.PRIORITY_UPKEEP)(_partitions_task)
+    app.periodic(cron=PARTITIONS_CRON, periodic_id="partitions")(parts)
     return app
 
 

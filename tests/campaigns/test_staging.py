@@ -151,8 +151,8 @@ def test_a_failure_after_many_chunks_are_written_rolls_all_back(store_url: str, 
         real = ingest.error_rows
         written: list[int] = []
 
-        def failing(campaign_id, errors, v2):
-            for k, row in enumerate(real(campaign_id, errors, v2)):
+        def failing(campaign_id, errors, v2, day):
+            for k, row in enumerate(real(campaign_id, errors, v2, day)):
                 if k == 100:  # the temperatures, rollups, conditions and 100 readings are written by now
                     written.append(k)
                     raise boom

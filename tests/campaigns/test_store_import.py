@@ -14,6 +14,7 @@ from sqlalchemy.exc import IntegrityError
 from driftlab.campaigns import ingest
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import load_bundle, write_bundle
+from driftlab.campaigns.partitions import start_day
 from driftlab.campaigns.store import Store, connect
 from driftlab.cli import main
 from driftlab.errors import ConflictError
@@ -115,14 +116,18 @@ def test_failure_mid_write_leaves_database_as_it_was(store: Store, bundle_factor
 
 
 def test_unique_keys_refuse_a_reinserted_reading(store: Store, bundle_dir: Path) -> None:
-    cid = store.import_bundle(load_bundle(bundle_dir))
+    bundle = load_bundle(bundle_dir)
+    cid = store.import_bundle(bundle)
+    day = start_day(bundle.meta.started_at)  # the key the import wrote: the same row again, in its partition
     with store.engine.connect() as conn:
         ch = conn.execute(sc.Channel.__table__.select().where(sc.Channel.campaign_id == cid)).first()
     for table, row in [
-        (sc.TemperatureSample, {"campaign_id": cid, "channel_id": ch.id, "time_s": 0.0, "value": 1.0}),
-        (sc.ConditionSample, {"campaign_id": cid, "time_s": 0.0}),
+        (sc.TemperatureSample, {"campaign_id": cid, "channel_id": ch.id, "time_s": 0.0, "value": 1.0,
+                                "campaign_start_day": day}),
+        (sc.ConditionSample, {"campaign_id": cid, "time_s": 0.0, "campaign_start_day": day}),
         (sc.ErrorSample, {"campaign_id": cid, "seq": 10_000, "time_s": 0.0, "axis": "Z", "term": "dx",
-                          "position": 0.0, "direction": 1, "value": 0.0, "sweep": 0, "flags": 0}),
+                          "position": 0.0, "direction": 1, "value": 0.0, "sweep": 0, "flags": 0,
+                          "campaign_start_day": day}),
     ]:
         with pytest.raises(IntegrityError), store.engine.begin() as conn:
             conn.execute(insert(table), row)

@@ -266,7 +266,8 @@ def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) 
     handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
     with engine.begin() as conn:
         conn.execute(sc.TemperatureSample.__table__.insert().values(
-            campaign_id=handle.campaign_id, channel_id=handle.channel_ids["T7"], time_s=0.0, value=1.0))
+            campaign_id=handle.campaign_id, channel_id=handle.channel_ids["T7"], time_s=0.0, value=1.0,
+            campaign_start_day=handle.start_day))
     clock = sim_clock(plan, handle.cursor, math.inf)
     rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
                         list(meta["channels"]))
