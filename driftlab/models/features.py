@@ -366,3 +366,18 @@ def candidate_features(
             if c in channels:
                 out.append(Feature("lag", (c,), tau_s=float(tau)))
     return out
+
+
+def session_terms(sessions: np.ndarray | None, rows: np.ndarray) -> list[Feature]:
+    """Return one offset term per zeroed session among ``rows`` (none for the first when all rows are zeroed).
+
+    With every row relative to its own datum the intercept carries the first session's offset;
+    rows against a stable artefact pin the intercept themselves.
+    """
+    if sessions is None:
+        return []
+    s = np.asarray(sessions, dtype=object)[rows]
+    labels = list(dict.fromkeys(x for x in s if x))
+    if labels and all(s != ""):
+        labels = labels[1:]
+    return [Feature("session", label=x) for x in labels]

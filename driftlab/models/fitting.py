@@ -26,6 +26,7 @@ from driftlab.models.features import (
     channel_columns,
     design_matrix,
     fill_gaps,
+    session_terms,
 )
 from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
 from driftlab.models.lines import LINE_ELEMENT, Composed, LineFit, compose, distinct, fit_lines, home_deviation, line_pool
@@ -256,21 +257,6 @@ def _sessions(pts: pd.DataFrame, setups: Mapping[str, Any] | None, campaign: int
         if entry is not None and getattr(entry, "datum", "absolute") == "session":
             out[i] = f"{campaign}.{s}.{r}"
     return out
-
-
-def session_terms(sessions: np.ndarray | None, rows: np.ndarray) -> list[Feature]:
-    """Return one offset term per zeroed session among ``rows`` (none for the first when all rows are zeroed).
-
-    With every row relative to its own datum the intercept carries the first session's offset;
-    rows against a stable artefact pin the intercept themselves.
-    """
-    if sessions is None:
-        return []
-    s = np.asarray(sessions, dtype=object)[rows]
-    labels = list(dict.fromkeys(x for x in s if x))
-    if labels and all(s != ""):
-        labels = labels[1:]
-    return [Feature("session", label=x) for x in labels]
 
 
 def _assign_roles(pts: pd.DataFrame, stages: Sequence[Any], holdout_fraction: float) -> None:

@@ -34,10 +34,9 @@ import pandas as pd
 import statsmodels.api as sm
 from scipy.linalg import qr
 
-from driftlab.errors import ValidationError
-from driftlab.models.features import INTERCEPT, Feature, Inputs, design_matrix
+from driftlab.models.features import INTERCEPT, Feature, Inputs, design_matrix, session_terms
 from driftlab.models.kinematics import AXES, PARAMS, TABLE_A1, allocate
-from driftlab.models.regression import rmse, stepwise
+from driftlab.models.regression import stepwise
 
 #: the element that carries the lines' corrections (its error reaches the tool through a fixed transform)
 LINE_ELEMENT = "T1"
@@ -83,17 +82,6 @@ def _correction(X: pd.DataFrame, y: np.ndarray, pool: Sequence[Feature], forced:
     return stepwise(X.reset_index(drop=True), y, pool, forced=forced, p_enter=options.p_enter,
                     p_remove=options.p_remove, min_gain=options.min_gain, max_terms=options.max_terms,
                     vif_max=options.vif_max, tiered=options.tiered)
-
-
-def _session_features(sessions: np.ndarray | None, rows: np.ndarray) -> list[Feature]:
-    """Return one offset per zeroed session among ``rows`` (see ``fitting.session_terms``)."""
-    if sessions is None:
-        return []
-    s = np.asarray(sessions, dtype=object)[rows]
-    labels = list(dict.fromkeys(x for x in s if x))
-    if labels and all(s != ""):
-        labels = labels[1:]
-    return [Feature("session", label=x) for x in labels]
 
 
 def independent(A: np.ndarray, rtol: float = 1e-9) -> list[int]:
@@ -168,7 +156,7 @@ def fit_line(
         fit_rows[order[: int(lo * n)]] = True
         check = np.zeros(n, bool)
         check[order[int(lo * n): int(hi * n)]] = True
-        forced = [INTERCEPT, *_session_features(sessions, fit_rows)]
+        forced = [INTERCEPT, *session_terms(sessions, fit_rows)]
         # a session first seen in the checked block has no offset to predict it with: leave it out
         if sessions is not None:
             seen = list(set(np.asarray(sessions, dtype=object)[fit_rows]))
@@ -193,7 +181,7 @@ def fit_line(
         ratio = min(out.checked[f] for f in forms) / out.checked["link"] if out.checked["link"] > 0 else 1.0
         out.why = f"no correction cuts the checked RMSE by {min_gain:.0%} (best factor {ratio:.2f})"
         return out
-    fitted = _fit_form(best, X, residual, pool, full, [INTERCEPT, *_session_features(sessions, np.ones(n, bool))],
+    fitted = _fit_form(best, X, residual, pool, full, [INTERCEPT, *session_terms(sessions, np.ones(n, bool))],
                        options)
     keep = [i for i, f in enumerate(fitted.features) if f.kind != "session"]
     out.form = f"link+{best}"
@@ -253,7 +241,7 @@ def fit_lines(
         full = list(full_of(axis)) if full_of is not None else []
         names = {f.name for f in pool}
         sub = inputs.take(on)
-        X = design_matrix([INTERCEPT, *_session_features(sub.session, np.ones(int(on.sum()), bool)), *pool,
+        X = design_matrix([INTERCEPT, *session_terms(sub.session, np.ones(int(on.sum()), bool)), *pool,
                            *(f for f in full if f.name not in names)], sub, q[on], directions[on])
         for k in range(len(PARAMS)):
             ok = np.isfinite(W[on, k])
@@ -267,25 +255,6 @@ def fit_lines(
             out.append(fit)
             if on_line is not None:
                 on_line(f"{axis} {PARAMS[k]}")
-    return out
-
-
-def predict_line(fit: LineFit, inputs: Inputs, q: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Return a line's correction at the given samples (zero for a line kept at ``link``)."""
-    if not fit.features:
-        return np.zeros(q.shape[0])
-    return design_matrix(fit.features, inputs, q, directions).to_numpy(float) @ fit.coef
-
-
-def line_corrections(lines: Sequence[LineFit], frame: pd.DataFrame, inputs: Inputs, q: np.ndarray,
-                     directions: np.ndarray) -> np.ndarray:
-    """Return (N, 6) work-space corrections of the measured points: each point gets its own line's."""
-    out = np.zeros((q.shape[0], len(PARAMS)))
-    axis_col = frame["axis"].to_numpy(str)
-    for fit in lines:
-        on = axis_col == fit.axis
-        if fit.features and on.any():
-            out[on, PARAMS.index(fit.term)] = predict_line(fit, inputs.take(on), q[on], directions[on])
     return out
 
 
@@ -387,15 +356,6 @@ def home_deviation(composed: Composed, frame: pd.DataFrame, inputs: Inputs, q: n
     for (axis, term), (feats, coef) in composed.home_deviation.items():
         on = axis_col == axis
         if on.any():
-            out[on, PARAMS.index(term)] += design_matrix(feats, inputs.take(on), q[on], directions[on]).to_numpy(float) @ coef
+            X = design_matrix(feats, inputs.take(on), q[on], directions[on]).to_numpy(float)
+            out[on, PARAMS.index(term)] += X @ coef
     return out
-
-
-def check_lines(lines: Sequence[LineFit]) -> None:
-    """Raise ValidationError when two corrections claim the same line."""
-    seen: set[tuple[str, str]] = set()
-    for fit in lines:
-        key = (fit.axis, fit.term)
-        if key in seen:
-            raise ValidationError(f"two corrections for line {fit.axis} {fit.term}")
-        seen.add(key)

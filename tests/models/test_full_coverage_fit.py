@@ -15,12 +15,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from driftlab.campaigns.plan import load_plan
 from driftlab.campaigns.db import store_engine
+from driftlab.campaigns.plan import load_plan
 from driftlab.campaigns.store import Store
 from driftlab.daemon.run import run_daemon
-from driftlab.models.features import Feature
-from driftlab.models.fitting import FitOptions, fit_bundles, session_terms
+from driftlab.models.features import Feature, session_terms
+from driftlab.models.fitting import FitOptions, fit_bundles
 from driftlab.models.registry import predict_workspace_errors
 
 ROOT = Path(__file__).resolve().parents[2]
