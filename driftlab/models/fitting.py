@@ -978,21 +978,19 @@ def _fit_bundles(
         link_read = [c for m in models.values() for f in m.features for c in f.channels]
         link_lags = [f for m in models.values() for f in m.features if f.kind == "lag"]
 
+        def line_channels(axis: str) -> list[str]:
+            # the user's selection of the line's channels is honoured (bundle model_channels), with the links'
+            have = sample.inputs.dT.columns
+            own = [c for c in (model_channels.get(axis) or kept) if c in have]
+            return list(dict.fromkeys([*own, *(c for c in link_read if c in have)]))
+
         def pool_of(axis: str) -> list[Feature]:
-            # the user's selection of the line's channels is honoured (bundle model_channels)
-            allowed = model_channels.get(axis)
-            own = [c for c in (allowed or kept) if c in sample.inputs.dT.columns]
-            chans = list(dict.fromkeys([*own, *(c for c in link_read if c in sample.inputs.dT.columns)]))
-            return line_pool(axis, chans, [*cands.for_axes([axis], allowed), *link_lags])
+            return line_pool(axis, line_channels(axis), [*cands.for_axes([axis], model_channels.get(axis)), *link_lags])
 
         def full_of(axis: str) -> list[Feature]:
             # the standard model (spec section 2) plus what the links put on the line: their
             # channels, position x dT of them (an angle acting through the line's lever) and lags
-            allowed = model_channels.get(axis)
-            own = [c for c in (allowed or kept) if c in sample.inputs.dT.columns]
-            chans = list(dict.fromkeys([*own, *(c for c in link_read if c in sample.inputs.dT.columns)]))
-            out = [Feature("position", power=p, label=axis) for p in (1, 2, 3)]
-            out += [Feature("dT", (c,)) for c in chans] + [Feature("pos_dT", (c,), label=axis) for c in chans]
+            out = line_pool(axis, line_channels(axis), ())
             out += list(dict.fromkeys(link_lags))
             if any(f.kind == "direction" and f.label == axis for m in models.values() for f in m.features):
                 out.append(Feature("direction", label=axis))
