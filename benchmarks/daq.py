@@ -22,8 +22,6 @@ the daemon did.
 
 from __future__ import annotations
 
-import _common  # noqa: F401  (first: pins numeric thread pools)
-
 import math
 import os
 import sqlite3
@@ -32,16 +30,18 @@ import tempfile
 import time
 from pathlib import Path
 
+import _common  # noqa: F401  (first: pins numeric thread pools)
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 from _common import emit, load_average  # noqa: E402
 
-from driftlab.campaigns.clock import SimClock  # noqa: E402
-from driftlab.campaigns.plan import Cursor, Plan, parse_plan  # noqa: E402
 from driftlab.campaigns.acquisition import Batch, StoreSink, open_campaign  # noqa: E402
+from driftlab.campaigns.clock import SimClock  # noqa: E402
 from driftlab.campaigns.db import store_engine  # noqa: E402
+from driftlab.campaigns.plan import Cursor, Plan, parse_plan  # noqa: E402
 from driftlab.daemon.loop import percentile  # noqa: E402
 from driftlab.daemon.run import run_daemon  # noqa: E402
 from driftlab.daemon.simrig import build_sim_rig, plan_scenario, scenario_meta  # noqa: E402

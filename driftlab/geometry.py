@@ -14,6 +14,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from driftlab.vocabulary import LinearAxis, Rotation, Translation
+
 #: the fixed links of Table A.1 by the name a geometry block gives them (the HTM chain's T1..T6, ch. 4)
 GEOMETRY_LINKS: Mapping[str, str] = {
     "spindle_head": "T1", "column": "T2", "carriage": "T3", "table": "T4", "rotary_support": "T5", "part_table": "T6",
@@ -39,8 +41,8 @@ class Bending(_Strict):
     #: the pair of opposite sides (site location words) the gradient spans, across the height H
     across: Literal["upper-lower", "top-bottom", "front-back", "left-right"] = "upper-lower"
     #: the rotation the gradient bends the structure by (eq. 3.4) and the deflection at its tip (eq. 3.5)
-    angle: Literal["alpha", "beta", "gamma"] | None = None
-    deflection: Literal["dx", "dy", "dz"] | None = None
+    angle: Rotation | None = None
+    deflection: Translation | None = None
 
 
 class Geometry(_Strict):
@@ -55,7 +57,7 @@ class Geometry(_Strict):
     #: fixed links of the chain (Table A.1): (a, b, c) in mm along X, Y, Z
     links_mm: dict[LinkName, tuple[float, float, float]] = Field(default_factory=dict)
     #: non-travelled length l of each ballscrew, motor to nut at position 0 (eq. 3.2)
-    screw_fixed_mm: dict[Literal["X", "Y", "Z"], float] = Field(default_factory=dict)
+    screw_fixed_mm: dict[LinearAxis, float] = Field(default_factory=dict)
     #: structures that bend under a gradient (eqs. 3.4-3.5), by the ``structure`` name of their channels
     bending: dict[str, Bending] = Field(default_factory=dict)
 

@@ -10,7 +10,8 @@ import math
 import re
 from typing import Any
 
-ANGLES = ("alpha", "beta", "gamma")
+from driftlab.vocabulary import ROTATIONS as ANGLES
+
 TERM_WORDS = {"dx": "translation along X", "dy": "translation along Y", "dz": "translation along Z",
               "alpha": "rotation about X", "beta": "rotation about Y", "gamma": "rotation about Z"}
 KIND_WORDS = {

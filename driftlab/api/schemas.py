@@ -7,8 +7,6 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
-Axis = Literal["X", "Y", "Z", "A", "B"]
-Term = Literal["alpha", "beta", "gamma", "dx", "dy", "dz"]
 Condition = Literal["spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b"]
 JobKind = Literal["fit", "diagnose"]
 JobState = Literal["queued", "running", "done", "failed"]

@@ -22,6 +22,7 @@ from driftlab.campaigns.plan import Cursor, Plan, SweepPoint
 from driftlab.daq.protocols import Reading, ScanBlock, TemperatureScan
 from driftlab.errors import ConflictError, DriftlabError, ValidationError
 from driftlab.geometry import Geometry
+from driftlab.vocabulary import TERMS
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +74,6 @@ class Sink(Protocol):
 
 # -- the store side: campaigns opened by the daemon, batches committed with their cursor ------------
 
-TERMS = ("alpha", "beta", "gamma", "dx", "dy", "dz")
 STATE_KEYS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
 
 

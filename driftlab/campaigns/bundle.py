@@ -43,14 +43,13 @@ from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.errors import ValidationError
 from driftlab.geometry import Geometry
+from driftlab.vocabulary import AXES, TERMS, Axis
+from driftlab.vocabulary import TRANSLATIONS as TRANSLATION_TERMS
 
 FORMAT = "driftlab-bundle/1"
 FORMAT_V2 = "driftlab-bundle/2"
 FORMATS = (FORMAT, FORMAT_V2)
-AXES = ("X", "Y", "Z", "A", "B")
 ROTARY_AXES = ("A", "B")
-TERMS = ("alpha", "beta", "gamma", "dx", "dy", "dz")
-TRANSLATION_TERMS = ("dx", "dy", "dz")
 ERROR_COLUMNS = ("time_s", "axis", "term", "position", "direction", "value")
 #: bundle v2 errors.csv: the full commanded pose (mm, degrees) after direction, then the setup id
 POSE_COLUMNS = ("x", "y", "z", "a", "b")
@@ -131,7 +130,7 @@ class Stage(_Strict):
     start_s: float = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
     end_s: float = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
     heat_source: str = Field(min_length=1, max_length=MAX_NAME_CHARS)
-    axis: Literal["X", "Y", "Z", "A", "B"] | None = None
+    axis: Axis | None = None
     spindle_rpm: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     feed_mm_min: float = Field(default=0.0, ge=0, allow_inf_nan=False)
 
@@ -149,7 +148,7 @@ class SetupEntry(_Strict):
     instrument: Literal["laser", "proximity", "probe", "level", "other"]
     optics: str | None = Field(default=None, min_length=1, max_length=64)
     fixture: str | None = Field(default=None, min_length=1, max_length=64)
-    axis: Literal["X", "Y", "Z", "A", "B"] | None = None
+    axis: Axis | None = None
     terms: list[str] = Field(min_length=1)
     datum: Literal["session", "absolute"] = "session"
     counter_rotating: bool = False
@@ -176,7 +175,7 @@ class CampaignMeta(_Strict):
     started_at: datetime
     channels: dict[str, Channel] = Field(min_length=1)
     room_channels: list[str] = Field(default_factory=list)
-    model_channels: dict[Literal["X", "Y", "Z", "A", "B"], list[str]] | None = None
+    model_channels: dict[Axis, list[str]] | None = None
     stages: list[Stage] = Field(default_factory=list)
     noise: Noise | None = None
     setups: dict[str, SetupEntry] | None = None

@@ -48,10 +48,9 @@ from driftlab.campaigns.bundle import ID_PATTERN
 from driftlab.campaigns.setups import Setup, all_cells, coverage, default_laser_setup
 from driftlab.errors import ValidationError
 from driftlab.geometry import Geometry
+from driftlab.vocabulary import Axis, Term
 
 PLAN_FORMAT = "driftlab-plan/1"
-Axis = Literal["X", "Y", "Z", "A", "B"]
-LINEAR_AXES = ("X", "Y", "Z")
 FROM_SCENARIO = "from scenario"
 
 
@@ -116,7 +115,7 @@ class Sweep(_Strict):
     interval_s: float = Field(gt=0, description="time from the start of one sweep to the next")
     point_s: float = Field(default=5.0, gt=0, description="move, settle and read time per point")
     samples: int = Field(default=10, ge=1, le=1000, description="laser readings averaged per point")
-    term: Literal["dx", "dy", "dz", "alpha", "beta", "gamma"] | None = Field(
+    term: Term | None = Field(
         default=None, description="error term the laser is set up for (default: the axis' own motion)"
     )
     lead_s: float | None = Field(

@@ -15,10 +15,11 @@ import pandas as pd
 from sqlalchemy import Connection, func, select, text
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import AXES, TERMS, Bundle, CampaignMeta
+from driftlab.campaigns.bundle import Bundle, CampaignMeta
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS, ROLLUP_S
 from driftlab.campaigns.partitions import start_day
 from driftlab.errors import BadRequestError, NotFoundError, ValidationError
+from driftlab.vocabulary import AXES, TERMS
 
 
 @dataclass(frozen=True)

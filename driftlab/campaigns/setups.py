@@ -39,16 +39,12 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
-TERMS: tuple[str, ...] = ("dx", "dy", "dz", "alpha", "beta", "gamma")
-LINEAR: tuple[str, ...] = ("X", "Y", "Z")
-ROTARY: tuple[str, ...] = ("A", "B")
-Axis = Literal["X", "Y", "Z", "A", "B"]
-Term = Literal["dx", "dy", "dz", "alpha", "beta", "gamma"]
+from driftlab.vocabulary import AXES, OWN_ROTATION, OWN_TRANSLATION, ROTATIONS, TRANSLATIONS, Axis, Term
+from driftlab.vocabulary import LINEAR_AXES as LINEAR
+from driftlab.vocabulary import ROTARY_AXES as ROTARY
 
-#: the translation along each linear axis and the rotation about each axis (thesis notation)
-OWN_TRANSLATION = {"X": "dx", "Y": "dy", "Z": "dz"}
-OWN_ROTATION = {"X": "alpha", "Y": "beta", "Z": "gamma", "A": "alpha", "B": "beta"}
+#: the coverage table's column order: translations first
+TERMS: tuple[str, ...] = (*TRANSLATIONS, *ROTATIONS)
 
 #: Table 5.3: the angular optics see the two angles other than the roll of a linear axis
 LASER_ANGLES = {ax: tuple(t for t in ("alpha", "beta", "gamma") if t != OWN_ROTATION[ax]) for ax in LINEAR}

@@ -26,15 +26,8 @@ from typing import Any, BinaryIO
 import numpy as np
 import pandas as pd
 
-from driftlab.campaigns.bundle import (
-    AXES,
-    CSV_BLOCK_BYTES,
-    POSE_COLUMNS,
-    TERMS,
-    CampaignMeta,
-    open_bundle,
-    table_hash,
-)
+from driftlab.campaigns.bundle import CSV_BLOCK_BYTES, POSE_COLUMNS, CampaignMeta, open_bundle, table_hash
+from driftlab.vocabulary import AXES, TERMS
 
 
 @dataclass

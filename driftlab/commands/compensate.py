@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from driftlab.errors import ValidationError
+from driftlab.vocabulary import AXES
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +164,7 @@ def _stream(args: argparse.Namespace, scan: Any, start: tuple[float, ...] | None
     try:
         if start is None:
             pos = link.position()
-            start = tuple(pos[a] for a in ("X", "Y", "Z", "A", "B"))
+            start = tuple(pos[a] for a in AXES)
         # the second pass of the offline path: pieces parsed with the state the lines before them leave
         pieces = parse_pieces(program_pieces(args.program), scan, str(args.program), start=start,
                               min_decimals=decimals, max_segment_mm=args.max_segment_mm,

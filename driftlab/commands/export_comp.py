@@ -86,7 +86,8 @@ def _temperatures(args: argparse.Namespace, model: Any) -> dict[str, float]:
 def _run(args: argparse.Namespace) -> int:
     """Evaluate the grid, write the table atomically, print the controller settings."""
     from driftlab.compensator.exports import write
-    from driftlab.compensator.exports.grid import AXES, ROTARY, correction_table, describe, grid_positions
+    from driftlab.compensator.exports.grid import ROTARY, correction_table, describe, grid_positions
+    from driftlab.vocabulary import AXES
 
     axis = args.axis.upper()
     if axis not in AXES:

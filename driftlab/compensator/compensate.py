@@ -33,7 +33,7 @@ from driftlab.compensator.gcode import (
     subdivide,
 )
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics
+from driftlab.physics import kinematics
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,8 @@ def fast_predict(doc: Any) -> Predict:
     terms of ch. 6.4.2). Frames with a history and lagged terms go to the registry, which owns lags.
     """
     from driftlab.models import registry
-    from driftlab.models.kinematics import AXES, PARAMS
+    from driftlab.physics.kinematics import PARAMS
+    from driftlab.vocabulary import AXES
 
     refs = {c: r.reference for c, r in doc.inputs.items()}
     axis_kinds = {"position", "direction", "pos_dT"}

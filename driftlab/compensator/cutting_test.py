@@ -54,7 +54,8 @@ from driftlab.compensator.compensate import ErrorModel
 from driftlab.daemon import machining
 from driftlab.daemon.machining import ExecutedBlock, MachiningMachine, Scenario, SimSphere, true_errors
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics as kin
+from driftlab.physics import kinematics as kin
+from driftlab.vocabulary import AXES
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +69,6 @@ CMM_ALONG = 99
 #: ch. 7.3: the on-line model was updated every 15 minutes
 ONLINE_INTERVAL_S = 900.0
 JOINT_OF_AXIS = {"X": "phi_x", "Y": "phi_y", "Z": "phi_z", "A": "theta_x", "B": "theta_y"}
-AXES = ("X", "Y", "Z", "A", "B")
 
 
 # ----------------------------------------------------------------------------- the design surface

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from driftlab.errors import ValidationError
+from driftlab.vocabulary import AXES
 
-AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
 ROTARY: np.ndarray = np.array([False, False, False, True, True])
 MAX_DECIMALS = 9
 _W = 16  # widest number word accepted (characters after the letter)

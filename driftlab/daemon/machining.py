@@ -22,9 +22,10 @@ import numpy as np
 from driftlab.daq.sim import truth
 from driftlab.daq.sim.instruments import ManualClock, SimController, SimSphere, SimThermocoupleCard, serial_url
 from driftlab.daq.sim.machine import VirtualMachine
-from driftlab.daq.sim.scenario import TERMS, Scenario, Stage
+from driftlab.daq.sim.scenario import Scenario, Stage
 from driftlab.daq.sim.sites import CHANNELS, FEED_REF_MM_MIN, SITE_INDEX, SOURCES, SPINDLE_REF_RPM
-from driftlab.models import kinematics as kin
+from driftlab.physics import kinematics as kin
+from driftlab.vocabulary import AXES, TERMS
 
 __all__ = [
     "CHANNELS", "ExecutedBlock", "LoggingController", "MachiningMachine", "ManualClock", "Scenario", "SimSphere",
@@ -35,7 +36,6 @@ __all__ = [
 #: ch. 7.3 cutting conditions
 SPINDLE_RPM = 10000.0
 JOINT_OF_AXIS = {"X": "phi_x", "Y": "phi_y", "Z": "phi_z", "A": "theta_x", "B": "theta_y"}
-AXES = ("X", "Y", "Z", "A", "B")
 
 
 class MachiningMachine(VirtualMachine):

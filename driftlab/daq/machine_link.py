@@ -32,8 +32,7 @@ from driftlab.daq.protocols import StreamReport
 from driftlab.daq.retry import RetryPolicy
 from driftlab.daq.transport import LineChannel, SerialPort
 from driftlab.errors import InstrumentError, ValidationError
-
-AXES = ("X", "Y", "Z", "A", "B")
+from driftlab.vocabulary import AXES
 
 
 @dataclass(frozen=True)

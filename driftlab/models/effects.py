@@ -30,9 +30,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import optimize, signal, stats
+from scipy import optimize, stats
 
 from driftlab.models.standard_model import PreparedBundle, TermData, lstsq, robust_sigma
+from driftlab.physics.lag import first_order_lag_even
 
 KINDS = ("reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift",
          "quadratic", "operating_condition")
@@ -42,23 +43,7 @@ N_TAU = 16
 
 
 # ---------------------------------------------------------------------------------------------
-# first-order lag (the thermal network's own element: dL/dt = (T - L) / tau)
-
-
-def lag_filter(x: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
-    """Return the first-order lag of ``x`` (samples along axis 0, step ``dt_s``), starting at rest.
-
-    Exact for an input that is linear between samples (first-order hold): with
-    a = exp(-dt/tau) and k = tau (1 - a) / dt,
-    L[n] = a L[n-1] + (1 - k) x[n] + (k - a) x[n-1]
-    (the zero-order hold would delay the response by half a scan).
-    """
-    a = float(np.exp(-dt_s / tau_s))
-    k = float(tau_s * (1.0 - a) / dt_s)
-    b, den = [1.0 - k, k - a], [1.0, -a]
-    zi = signal.lfilter_zi(b, den)[0] * x[:1]
-    y, _ = signal.lfilter(b, den, x, axis=0, zi=zi)
-    return y
+# first-order lag: physics.lag (the thermal network's own element, dL/dt = (T - L) / tau)
 
 
 def tau_bounds(prep: PreparedBundle, td: TermData) -> tuple[float, float]:
@@ -481,7 +466,7 @@ def lag_bank_for(prep: PreparedBundle, channels: list[str], taus: np.ndarray) ->
     X = prep.grid_T[:, idx]
     bank = np.empty((X.shape[0], len(idx), taus.size))
     for i, tau in enumerate(taus):
-        bank[:, :, i] = lag_filter(X, dt, float(tau))
+        bank[:, :, i] = first_order_lag_even(X, dt, float(tau))
     return {c: bank[:, k, :] for k, c in enumerate(channels)}
 
 
@@ -659,7 +644,7 @@ def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray,
 
     def column(log_tau: float) -> np.ndarray:
         tau = float(np.exp(log_tau))
-        g = lag_filter(x, dt, tau)
+        g = first_order_lag_even(x, dt, tau)
         at = np.interp(td.t, prep.grid_t, g)
         return np.column_stack([at - at[0], np.exp(-(td.t - prep.grid_t[0]) / tau)])
 
@@ -685,7 +670,7 @@ def lag_columns(ctx: TermContext, channel: str, tau_s: float) -> np.ndarray:
     td, prep = ctx.td, ctx.prep
     j = prep.channel_index(channel)
     dt = float(prep.grid_t[1] - prep.grid_t[0])
-    g = lag_filter(prep.grid_T[:, j], dt, float(tau_s))
+    g = first_order_lag_even(prep.grid_T[:, j], dt, float(tau_s))
     at = np.interp(td.t, prep.grid_t, g)
     return np.column_stack([at - at[0], np.exp(-(td.t - prep.grid_t[0]) / float(tau_s))])
 

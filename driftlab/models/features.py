@@ -10,6 +10,8 @@ import numpy as np
 import pandas as pd
 
 from driftlab.errors import ValidationError
+from driftlab.physics.lag import first_order_lag
+from driftlab.vocabulary import AXES
 
 Kind = Literal["intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad", "time",
                "session"]
@@ -18,7 +20,6 @@ KINDS: tuple[str, ...] = ("intercept", "position", "direction", "dT", "lag", "me
 #: kinds that read a joint coordinate or approach direction; their ``label`` names the axis
 AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT"})
 #: columns of a (N, 5) joint array
-AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
 
 
 @dataclass(frozen=True)
@@ -146,29 +147,6 @@ def fill_gaps(temperatures: pd.DataFrame) -> pd.DataFrame:
             continue
         out[c] = np.interp(t, t[ok], v[ok])
     return out
-
-
-def first_order_lag(values: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Return the first-order lag of ``values`` with time constant ``tau_s`` (exact step, starts settled)."""
-    v = np.asarray(values, float)
-    t = np.asarray(t_s, float)
-    if v.size == 0:
-        return v.copy()
-    dt = np.diff(t)
-    if dt.size and np.allclose(dt, dt.mean(), rtol=1e-3, atol=1e-9):
-        # imported here: scipy.signal is about 60 MB resident, and the compensator's snapshots never lag
-        from scipy.signal import lfilter
-
-        a = float(np.exp(-dt.mean() / tau_s))
-        # y[k] = a y[k-1] + (1-a) u[k], settled at u[0]
-        y, _ = lfilter([1.0 - a], [1.0, -a], v, zi=[a * v[0]])
-        return y
-    y = np.empty_like(v)
-    y[0] = v[0]
-    decay = np.exp(-dt / tau_s)
-    for k in range(1, v.size):
-        y[k] = decay[k - 1] * y[k - 1] + (1.0 - decay[k - 1]) * v[k]
-    return y
 
 
 def build_inputs(

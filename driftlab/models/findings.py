@@ -33,6 +33,7 @@ import pandas as pd
 
 from driftlab.errors import ValidationError
 from driftlab.models.features import Feature, channel_columns, fill_gaps
+from driftlab.vocabulary import AXES, TERMS
 
 REPORT_FORMAT = "driftlab-diagnosis/1"
 #: the effect catalogue of the bundle spec (section 3)
@@ -42,8 +43,6 @@ FINDING_KINDS: tuple[str, ...] = ("reversal", "screw_expansion", "unmapped_chann
 CHANNEL_KINDS = frozenset({"screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "quadratic"})
 #: parameters a finding must carry to be folded in (the others are reported but not needed)
 NEEDED_PARAMS: Mapping[str, tuple[str, ...]] = {"thermal_lag": ("tau_s",), "sensor_fault": ("start_s",)}
-AXES = ("X", "Y", "Z", "A", "B")
-TERMS = ("alpha", "beta", "gamma", "dx", "dy", "dz")
 #: neighbours of a virtual sensor that replaces a faulty channel
 N_NEIGHBOURS = 4
 

@@ -28,18 +28,34 @@ from driftlab.models.features import (
     fill_gaps,
     session_terms,
 )
-from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
-from driftlab.models.lines import LINE_ELEMENT, Composed, LineFit, compose, distinct, fit_lines, home_deviation, line_pool
+from driftlab.models.lines import (
+    LINE_ELEMENT,
+    Composed,
+    LineFit,
+    compose,
+    distinct,
+    fit_lines,
+    home_deviation,
+    line_pool,
+)
 from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import physical_check
+from driftlab.models.registry import (
+    ALPHA_C_PER_DEGC,
+    MODEL_FORMAT,
+    ModelDocument,
+    document_json,
+    now_iso,
+    validate_document,
+)
 from driftlab.models.regression import TermFit, r_squared, rmse, stepwise
-from driftlab.models.registry import ALPHA_C_PER_DEGC, MODEL_FORMAT, ModelDocument, document_json, now_iso, validate_document
 from driftlab.models.selection import ScreeningResult, screen_channels
 from driftlab.models.virtual_sensor import fit_virtual_sensors
+from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
+from driftlab.vocabulary import AXES
 
 log = logging.getLogger(__name__)
 
-AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
 ROTARY = ("A", "B")
 #: the joint each axis drives
 AXIS_JOINT: Mapping[str, str] = {"X": "phi_x", "Y": "phi_y", "Z": "phi_z", "A": "theta_x", "B": "theta_y"}

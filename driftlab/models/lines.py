@@ -35,8 +35,9 @@ import statsmodels.api as sm
 from scipy.linalg import qr
 
 from driftlab.models.features import INTERCEPT, Feature, Inputs, design_matrix, session_terms
-from driftlab.models.kinematics import AXES, PARAMS, TABLE_A1, allocate
 from driftlab.models.regression import stepwise
+from driftlab.physics.kinematics import PARAMS, TABLE_A1, allocate
+from driftlab.vocabulary import AXES
 
 #: the element that carries the lines' corrections (its error reaches the tool through a fixed transform)
 LINE_ELEMENT = "T1"

@@ -11,6 +11,7 @@ import pandas as pd
 from sklearn.neural_network import MLPRegressor
 
 from driftlab.errors import ValidationError
+from driftlab.vocabulary import AXES, TERMS
 
 
 def scale_inputs(X: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -75,7 +76,6 @@ def fit_network(
     import warnings
 
     from sklearn.exceptions import ConvergenceWarning
-
     from threadpoolctl import threadpool_limits
 
     # small dense products: one BLAS thread is fastest, and keeps a shared machine responsive
@@ -180,7 +180,7 @@ class ComparisonData:
 def _parse_target(target: str) -> tuple[str, str]:
     """Return (axis, term) of "AXIS/term", or raise ValidationError."""
     axis, _, term = str(target).partition("/")
-    if axis not in ("X", "Y", "Z", "A", "B") or term not in ("dx", "dy", "dz", "alpha", "beta", "gamma"):
+    if axis not in AXES or term not in TERMS:
         raise ValidationError(f"neural comparison target {target!r}: give AXIS/term, e.g. Z/dz")
     return axis, term
 

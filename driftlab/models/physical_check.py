@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 
 from driftlab.geometry import BENDING_SIDES, GEOMETRY_LINKS
+from driftlab.vocabulary import TRANSLATIONS
 
 STATUS_COMPARED = "compared"
 STATUS_NO_GEOMETRY = "no geometry"
@@ -36,7 +37,6 @@ LINK_OF_NAME: Mapping[str, str] = GEOMETRY_LINKS
 NAME_OF_LINK: Mapping[str, str] = {v: k for k, v in LINK_OF_NAME.items()}
 #: the axis each translational joint drives
 JOINT_AXIS: Mapping[str, str] = {"phi_x": "X", "phi_y": "Y", "phi_z": "Z"}
-TRANSLATIONS = ("dx", "dy", "dz")
 COLUMNS = ["term", "element", "param", "feature", "regression", "std_error", "physical", "unit", "relationship",
            "ratio", "status"]
 

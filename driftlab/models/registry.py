@@ -11,8 +11,9 @@ import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from driftlab.errors import NotFoundError, ValidationError
-from driftlab.models.features import Feature, Inputs, design_matrix, first_order_lag, required_lags
-from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
+from driftlab.models.features import Feature, Inputs, design_matrix, required_lags
+from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
+from driftlab.physics.lag import first_order_lag
 
 MODEL_FORMAT = "driftlab-model/1"
 #: the thermal expansion coefficient of the castings (ch. 3.5)

@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics as kin
-from driftlab.models.kinematics import TABLE_A1, ElementErrors
+from driftlab.physics import kinematics as kin
+from driftlab.physics.kinematics import TABLE_A1, ElementErrors
 
 HOUR_S = 3600.0
 

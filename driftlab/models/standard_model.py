@@ -32,9 +32,7 @@ from scipy import stats
 
 from driftlab.errors import ValidationError
 
-TRANSLATIONS = ("dx", "dy", "dz")
 ROTATIONS = ("alpha", "beta", "gamma")
-AXES = ("X", "Y", "Z", "A", "B")
 
 #: physically possible thermocouple readings on a machine tool (degC); outside = card error value
 TEMP_RANGE_C = (-40.0, 250.0)

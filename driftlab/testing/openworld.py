@@ -32,8 +32,9 @@ import pandas as pd
 
 from driftlab.campaigns.bundle import Bundle, _as_meta
 from driftlab.daq.sim import truth
-from driftlab.models import kinematics as kin
-from driftlab.models.thermal import ALPHA_C
+from driftlab.physics import kinematics as kin
+from driftlab.physics.lag import first_order_lag_even
+from driftlab.physics.thermal import ALPHA_C
 
 #: sensor sites: name -> (structure, heat sources it sees: spindle, x motor, y motor)
 SITES: dict[str, tuple[str, tuple[float, float, float]]] = {
@@ -106,16 +107,6 @@ class Case:
     beyond_model_rms: list[float]  # per planted effect: the part of it no standard model can absorb
 
 
-def _lag(x: np.ndarray, dt: float, tau: float) -> np.ndarray:
-    """Return a first-order lag of ``x`` along axis 0 (exponential smoothing, started at rest)."""
-    a = np.exp(-dt / tau)
-    y = np.empty_like(x)
-    y[0] = x[0]
-    for i in range(1, x.shape[0]):
-        y[i] = a * y[i - 1] + (1 - a) * x[i]
-    return y
-
-
 def _ar1(n: int, rho: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """Return AR(1) noise with marginal standard deviation ``sigma`` and lag-1 correlation ``rho``."""
     e = rng.normal(0.0, sigma * np.sqrt(1.0 - rho * rho), n)
@@ -178,17 +169,17 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
             continue
         g = np.array(gains) * rng.uniform(0.8, 1.2, 3)
         tau = rng.uniform(20, 120) * 60
-        true[:, j] = _lag(room_air + u @ g, scan_s, tau) + rng.uniform(-1, 1)
+        true[:, j] = first_order_lag_even(room_air + u @ g, scan_s, tau) + rng.uniform(-1, 1)
     dTs = true - true[0]
 
     # the bodies: a distributed field - a mix of sites, lagging them a little, plus heat no sensor reads
     frac = float(rng.uniform(0.01, 0.03)) if lag_fraction is None else float(lag_fraction)
-    hidden_heat = _lag(u @ rng.uniform(0.3, 1.0, 3), scan_s, rng.uniform(2, 5) * 3600)
+    hidden_heat = first_order_lag_even(u @ rng.uniform(0.3, 1.0, 3), scan_s, rng.uniform(2, 5) * 3600)
     hidden_heat = unmeasured_degC * hidden_heat / max(float(np.abs(hidden_heat).max()), 1e-12)
     body: dict[str, np.ndarray] = {}
     for b, w in BODIES.items():
         mix = sum(wk * dTs[:, names.index(c)] for c, wk in w.items())
-        slow = _lag(mix, scan_s, rng.uniform(1, 3) * 3600)
+        slow = first_order_lag_even(mix, scan_s, rng.uniform(1, 3) * 3600)
         body[b] = (1 - frac) * mix + frac * slow + hidden_heat * rng.uniform(0.5, 1.0)
     body["arm_gradient"] = body["arm_upper"] - body["arm_lower"]
 
@@ -260,7 +251,7 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
         if p.kind == "quadratic":
             return float(pr["coef_per_degC2"]) * dT * dT
         if p.kind == "thermal_lag":  # the body follows a lag of the site: c (lag(dT) - dT)
-            lg = np.interp(rt[idx], t, _lag(dTs[:, j], scan_s, float(pr["tau_s"])))
+            lg = np.interp(rt[idx], t, first_order_lag_even(dTs[:, j], scan_s, float(pr["tau_s"])))
             return float(pr["coef_per_degC"]) * (lg - dT)
         raise ValueError(p.kind)
 

@@ -18,7 +18,7 @@ from driftlab.compensator.compensate import (
 )
 from driftlab.compensator.gcode import Points, parse_program, subdivide
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics as k
+from driftlab.physics import kinematics as k
 
 RES_MM, RES_DEG = 0.0025, 0.001
 

@@ -17,15 +17,15 @@ from driftlab.compensator.cutting_test import (
     run_cutting_test,
     tool_centre,
 )
-from driftlab.daemon.machining import MachiningMachine, hidden_element_errors, true_errors
 from driftlab.compensator.gcode import parse_program
 from driftlab.compensator.stream import StaticModel
+from driftlab.daemon.machining import MachiningMachine, hidden_element_errors, true_errors
 from driftlab.daq.sim.campaign import simulate_campaign
 from driftlab.daq.sim.scenario import HiddenEffect, Scenario
 from driftlab.daq.sim.sites import SITE_INDEX
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics as kin
 from driftlab.models.fitting import FitOptions, fit_bundles
+from driftlab.physics import kinematics as kin
 
 HIDDEN = HiddenEffect(kind="unmapped_channel", axis="Z", term="dz", channels=["T21"],
                       params={"coef_per_degC": 0.006})

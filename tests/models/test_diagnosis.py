@@ -10,10 +10,8 @@ import pytest
 import statsmodels.api as sm
 
 from driftlab.models.diagnosis import diagnose_bundle
-from driftlab.models.effects import lag_filter
 from driftlab.models.standard_model import fit_standard_model, prepare_bundle, spike_mask
 from tests import effects_generator as gen
-
 
 Planted = gen.Planted
 
@@ -75,22 +73,6 @@ def test_cleaning_flags_spikes_and_does_not_invent_effects():
     assert res.effects == []
     doc = res.to_json_dict()
     assert any(f["series"] == "T1" for f in doc["flags"])
-
-
-def test_lag_filter_is_exact_for_ramps_and_vectorised():
-    t = np.arange(0.0, 20000.0, 120.0)
-    x = np.column_stack([np.sin(t / 3000.0), 2.0 * np.sin(t / 3000.0)])
-    y = lag_filter(x, 120.0, 2000.0)
-    # reference: the ODE dy/dt = (x - y)/tau integrated finely
-    tf = np.arange(0.0, 20000.0, 1.0)
-    xf = np.sin(tf / 3000.0)
-    yf = np.empty_like(xf)
-    yf[0] = 0.0
-    a = np.exp(-1.0 / 2000.0)
-    for i in range(1, tf.size):
-        yf[i] = a * yf[i - 1] + (1 - a) * xf[i]
-    assert np.abs(y[:, 0] - yf[::120]).max() < 1e-3
-    assert np.allclose(y[:, 1], 2 * y[:, 0])
 
 
 def test_channel_screening_without_model_channels_finds_the_drivers():

@@ -11,7 +11,6 @@ from driftlab.models.features import (
     build_inputs,
     candidate_features,
     design_matrix,
-    first_order_lag,
     inputs_from_snapshot,
     required_lags,
 )
@@ -22,19 +21,6 @@ def _temps():
     return pd.DataFrame(
         {"time_s": t, "A": 20 + 5 * (1 - np.exp(-t / 7200)), "B": 20 + 0.0001 * t, "C": np.full(t.size, 21.0)}
     )
-
-
-def test_first_order_lag_matches_closed_form_step_response():
-    t = np.arange(0.0, 20000.0, 30.0)
-    u = np.where(t > 0, 1.0, 0.0)
-    u[0] = 0.0
-    y = first_order_lag(u, t, 3000.0)
-    expected = 1 - np.exp(-(t) / 3000.0)
-    assert np.max(np.abs(y[1:] - expected[1:])) < 0.011  # one-step discretisation offset only
-    # non-uniform sampling takes the exact per-step path and agrees
-    t2 = np.concatenate([t[:300], t[301:]])
-    y2 = first_order_lag(np.where(t2 > 0, 1.0, 0.0), t2, 3000.0)
-    assert abs(y2[-1] - y[-1]) < 1e-6
 
 
 def test_build_inputs_interpolates_and_fills_gaps():

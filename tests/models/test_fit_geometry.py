@@ -14,7 +14,7 @@ from effects_generator import make_case  # noqa: E402
 from driftlab.campaigns.bundle import Bundle, _as_meta  # noqa: E402
 from driftlab.errors import ValidationError  # noqa: E402
 from driftlab.models.fitting import FitOptions, chain_dims, fit_bundles  # noqa: E402
-from driftlab.models.kinematics import TABLE_A1  # noqa: E402
+from driftlab.physics.kinematics import TABLE_A1  # noqa: E402
 
 
 def _with_links(bundle: Bundle, column_mm: tuple[float, float, float]) -> Bundle:

@@ -10,8 +10,8 @@ from driftlab.campaigns.bundle import Bundle, CampaignMeta
 from driftlab.errors import ValidationError
 from driftlab.models.features import Inputs
 from driftlab.models.fitting import FitOptions, fit_bundles, stage_elements
-from driftlab.models.kinematics import workspace_error
 from driftlab.models.registry import predict_workspace_errors
+from driftlab.physics.kinematics import workspace_error
 
 NOISE_MM = 0.0005
 ALPHA = 12.1e-6
@@ -479,7 +479,7 @@ def test_findings_fold_into_the_next_fit_and_lower_the_holdout_rmse(planted_vm, 
 
 def test_forced_lag_finding_and_its_prediction_from_the_document():
     """A forced thermal_lag term; the document alone predicts what the fit does (lags over the history)."""
-    from driftlab.models.findings import Findings, Finding
+    from driftlab.models.findings import Finding, Findings
 
     b = synthetic_bundle(0)
     f = Findings(b.name, (Finding("thermal_lag", "Z", "dz", ("T24",), {"tau_s": 5000.0}),
@@ -496,8 +496,8 @@ def test_forced_lag_finding_and_its_prediction_from_the_document():
     at = [b.meta.started_at.timestamp() + t for t in temps["time_s"]]
     W = predict_workspace_errors(doc, temps, q, at=at)
     from driftlab.models.features import build_inputs
-    from driftlab.models.fitting import predict_models, Sample
-    from driftlab.models.kinematics import workspace_error
+    from driftlab.models.fitting import Sample, predict_models
+    from driftlab.physics.kinematics import workspace_error
 
     ref = {c: r.reference for c, r in doc.inputs.items()}
     lags = sorted({(f.channels[0], f.tau_s) for t in doc.terms for f in t.features if f.kind == "lag"})

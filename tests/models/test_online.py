@@ -117,6 +117,7 @@ def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, c
 
 def test_two_concurrent_updates_both_land(store_url):
     """Two threads update one machine's on-line state at once: both updates and both probe rows are kept."""
+    import tempfile
     import threading
     from datetime import datetime, timedelta, timezone
 
@@ -127,8 +128,6 @@ def test_two_concurrent_updates_both_land(store_url):
     from driftlab.models import registry
     from driftlab.models.online import latest_online_states, store_update
     from tests.api.helpers import MACHINE, model_document, small_frames, small_meta
-
-    import tempfile
 
     with tempfile.TemporaryDirectory() as tmp, connect(store_url) as store:
         temps, cond, errors = small_frames()

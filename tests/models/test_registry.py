@@ -7,7 +7,6 @@ import pandas as pd
 import pytest
 
 from driftlab.errors import ValidationError
-from driftlab.models.kinematics import workspace_error
 from driftlab.models.registry import (
     ModelDocument,
     document_json,
@@ -16,6 +15,7 @@ from driftlab.models.registry import (
     predict_workspace_errors,
     validate_document,
 )
+from driftlab.physics.kinematics import workspace_error
 
 
 def _doc(**over):

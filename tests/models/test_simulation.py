@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics as kin
 from driftlab.models import simulation as sim
+from driftlab.physics import kinematics as kin
 
 H = sim.HOUR_S
 REPO = Path(__file__).resolve().parents[2]  # run the CLI from the work tree, as `make test` does

@@ -10,9 +10,10 @@ from fastapi import APIRouter, Depends, Query
 
 from driftlab.api.deps import get_store
 from driftlab.api.routes.machines import MachineId
-from driftlab.api.schemas import Axis, DriftOut, DriftPoint, Term
+from driftlab.api.schemas import DriftOut, DriftPoint
 from driftlab.campaigns.store import Store
 from driftlab.errors import BadRequestError
+from driftlab.vocabulary import Axis, Term
 
 router = APIRouter(tags=["drift"])
 

@@ -15,10 +15,11 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query
 
+from driftlab.api.deps import get_store
 from driftlab.api.routes.campaigns import CampaignId
+from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import (
     ID_PATTERN,
-    Axis,
     Bucket,
     Condition,
     ConditionBucket,
@@ -29,14 +30,12 @@ from driftlab.api.schemas import (
     LatestTemperatures,
     TemperatureHistory,
     TemperaturePoint,
-    Term,
 )
-from driftlab.api.deps import get_store
-from driftlab.api.routes.machines import MachineId
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
 from driftlab.campaigns.store import Store
 from driftlab.errors import BadRequestError, NotFoundError
+from driftlab.vocabulary import Axis, Term
 
 router = APIRouter(tags=["histories"])
 

@@ -21,9 +21,9 @@ import numpy as np
 
 from driftlab.compensator.compensate import ErrorModel
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics
+from driftlab.physics import kinematics
+from driftlab.vocabulary import AXES
 
-AXES = ("X", "Y", "Z", "A", "B")
 ROTARY = ("A", "B")
 
 

@@ -10,8 +10,9 @@ import pandas as pd
 
 from driftlab.daq.sim import truth
 from driftlab.daq.sim.machine import VirtualMachine
-from driftlab.daq.sim.scenario import AXES, TERMS, Scenario
+from driftlab.daq.sim.scenario import Scenario
 from driftlab.daq.sim.sites import CHANNELS, ROOM_CHANNELS, SITE_INDEX, channel_map
+from driftlab.vocabulary import AXES, TERMS
 
 
 @dataclass(frozen=True)

@@ -19,12 +19,12 @@ as a real line fault would be.  Every server stops its threads in :meth:`LineSer
 from __future__ import annotations
 
 import logging
-from abc import ABC, abstractmethod
 import math
 import re
 import socket
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -36,10 +36,10 @@ from driftlab.daq.laser import air_refractive_index, value_to_fringes
 from driftlab.daq.probe import LobingMap
 from driftlab.daq.proximity import ReferenceSurfaceArray
 from driftlab.daq.thermocouple import type_e_emf_mv
+from driftlab.vocabulary import AXES
 
 log = logging.getLogger(__name__)
 
-AXES = ("X", "Y", "Z", "A", "B")
 TRANSLATIONS = ("dx", "dy", "dz")
 
 

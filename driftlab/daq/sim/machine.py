@@ -1,7 +1,7 @@
 """The virtual machine tool: the world that simulated instruments read.
 
 ``VirtualMachine(scenario)`` is a pure function of time given the scenario: the thermal network
-(``driftlab.models.thermal``) is solved once on a fixed grid from a two-day soak before t = 0 (so
+(``driftlab.physics.thermal``) is solved once on a fixed grid from a two-day soak before t = 0 (so
 slow structures start in their daily cycle) and cached; any instant is then evaluated exactly from
 the grid point before it. Noise is a counter-based hash of (seed, stream, instant, channel or
 measurement point), so a reading is the same whether asked once, repeatedly, out of order, or in
@@ -19,12 +19,20 @@ import numpy as np
 from scipy.signal import lfilter
 
 from driftlab.daq.sim import truth
-from driftlab.daq.sim.scenario import ANGLE_TERMS, AXES, TERMS, HiddenEffect, Scenario, Stage
+from driftlab.daq.sim.scenario import ANGLE_TERMS, HiddenEffect, Scenario, Stage
 from driftlab.daq.sim.sites import (
-    CHANNELS, EXOGENOUS, FEED_REF_MM_MIN, ROOM_CHANNELS, SITE_INDEX, SITES, SOURCES, SPINDLE_REF_RPM,
+    CHANNELS,
+    EXOGENOUS,
+    FEED_REF_MM_MIN,
+    ROOM_CHANNELS,
+    SITE_INDEX,
+    SITES,
+    SOURCES,
+    SPINDLE_REF_RPM,
 )
 from driftlab.errors import ValidationError
-from driftlab.models.thermal import ThermalNetwork, ThermalSolution, first_order_lag
+from driftlab.physics.thermal import ThermalNetwork, ThermalSolution, driven_node
+from driftlab.vocabulary import AXES, TERMS
 
 SOAK_S = 2 * 86400.0  # machine off before t = 0, room cycling
 _EXTEND_S = 86400.0  # grid extension step beyond the scenario for long-running callers
@@ -216,7 +224,7 @@ class VirtualMachine:
         lag = lags.get(key)
         if lag is None or lag.t_end_s < sol.t_end_s:
             col = sol.y[:, SITE_INDEX[channel]]
-            lag = first_order_lag(col, sol.h_s, tau_s, t0_s=sol.t0_s)
+            lag = driven_node(col, sol.h_s, tau_s, t0_s=sol.t0_s)
             lags[key] = lag
         return lag.at(t)[:, 0] - lag.at(np.array([0.0]))[0, 0]
 

@@ -19,10 +19,9 @@ from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.errors import ValidationError
 from driftlab.geometry import Geometry
+from driftlab.vocabulary import ROTATIONS, Axis, Term
 
-AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
-TERMS: tuple[str, ...] = ("alpha", "beta", "gamma", "dx", "dy", "dz")
-ANGLE_TERMS: frozenset[str] = frozenset({"alpha", "beta", "gamma"})
+ANGLE_TERMS: frozenset[str] = frozenset(ROTATIONS)
 HEAT_SOURCES: tuple[str, ...] = ("spindle", "feed", "combined", "idle", "off")
 KINDS: tuple[str, ...] = (
     "reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift", "quadratic",
@@ -101,7 +100,7 @@ class Stage(_Strict):
     start_s: float = Field(ge=0, allow_inf_nan=False)
     end_s: float = Field(ge=0, allow_inf_nan=False)
     heat_source: Literal["spindle", "feed", "combined", "idle", "off"]
-    axis: Literal["X", "Y", "Z", "A", "B"] | None = None
+    axis: Axis | None = None
     spindle_rpm: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     feed_mm_min: float = Field(default=0.0, ge=0, allow_inf_nan=False)  # deg/min for A/B
 
@@ -129,8 +128,8 @@ class HiddenEffect(_Strict):
 
     kind: Literal["reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift",
                   "quadratic"]
-    axis: Literal["X", "Y", "Z", "A", "B"] | None = None
-    term: Literal["alpha", "beta", "gamma", "dx", "dy", "dz"] | None = None
+    axis: Axis | None = None
+    term: Term | None = None
     channels: list[str] = Field(default_factory=list)
     params: dict[str, float | str] = Field(default_factory=dict)
 

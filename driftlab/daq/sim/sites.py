@@ -1,6 +1,6 @@
 """The 50 thermocouple sites of the virtual machine (thesis Table 5.1) and their thermal response.
 
-Each site is a first-order node of the thermal network (``driftlab.models.thermal``): it follows
+Each site is a first-order node of the thermal network (``driftlab.physics.thermal``): it follows
 its local air (a mix of the ceiling and floor room channels T49/T50, by height) plus a steady
 rise per unit of each heat source, with its own time constant: minutes near a motor, hours for
 the Z column and the base (ch. 3.5, 5.3, 6.3: "time constants ... on the order of three hours").

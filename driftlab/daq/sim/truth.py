@@ -32,11 +32,12 @@ from typing import Mapping
 
 import numpy as np
 
-from driftlab.daq.sim.scenario import ANGLE_TERMS, AXES, TERMS, HiddenEffect
+from driftlab.daq.sim.scenario import ANGLE_TERMS, HiddenEffect
 from driftlab.daq.sim.sites import CHANNELS, SITE_INDEX, structure_channels
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics as kin
-from driftlab.models.thermal import ALPHA_C
+from driftlab.physics import kinematics as kin
+from driftlab.physics.thermal import ALPHA_C
+from driftlab.vocabulary import AXES, TERMS
 
 #: travel of each axis (Table A.3: 254 mm for X, Y, Z; Table A.4: pi/4 for the rotary axes), in
 #: bundle units (mm, degrees); home (0) is where the other axes sit while one is measured

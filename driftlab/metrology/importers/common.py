@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from driftlab.campaigns.bundle import AXES, ERROR_COLUMNS, BundleError, load_bundle, write_bundle
+from driftlab.campaigns.bundle import ERROR_COLUMNS, BundleError, load_bundle, write_bundle
 from driftlab.errors import ValidationError
+from driftlab.vocabulary import AXES
 
 #: the positioning term of each axis (its own translation or rotation)
 POSITIONING_TERM = {"X": "dx", "Y": "dy", "Z": "dz", "A": "alpha", "B": "beta"}

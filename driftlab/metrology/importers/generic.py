@@ -27,7 +27,6 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic import ValidationError as PydanticValidationError
 
-from driftlab.campaigns.bundle import AXES, TERMS
 from driftlab.metrology.importers.common import (
     InstrumentFileError,
     Readings,
@@ -37,6 +36,7 @@ from driftlab.metrology.importers.common import (
     position_factor,
     value_factor,
 )
+from driftlab.vocabulary import AXES, TERMS
 
 FIELDS = ("time_s", "axis", "term", "position", "direction", "value")
 TIME_UNITS = {"s": 1.0, "min": 60.0, "h": 3600.0, "ms": 1e-3}

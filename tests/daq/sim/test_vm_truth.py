@@ -9,8 +9,8 @@ from driftlab.daq.sim import truth
 from driftlab.daq.sim.scenario import HiddenEffect
 from driftlab.daq.sim.sites import CHANNELS, SITE_INDEX, SITES, channel_map, structure_channels
 from driftlab.errors import ValidationError
-from driftlab.models import kinematics as kin
-from driftlab.models.thermal import ALPHA_C
+from driftlab.physics import kinematics as kin
+from driftlab.physics.thermal import ALPHA_C
 
 
 def test_table_5_1_sites():

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from driftlab.errors import KinematicsError
-from driftlab.models import kinematics as k
+from driftlab.physics import kinematics as k
 
 # appendix-A-sized errors: links up to ~0.08 mm and ~25 urad (table A.2), joints similar (A.3, A.4)
 ANG, LIN = 30e-6, 0.08

@@ -155,10 +155,14 @@ class ThermalNetwork:
         return ThermalSolution(float(t0_s), float(h_s), self.tau_s.copy(), y, hold, ramp)
 
 
-def first_order_lag(x: np.ndarray, h_s: float, tau_s: float, t0_s: float = 0.0,
-                    y0: np.ndarray | None = None) -> ThermalSolution:
-    """Return the exact first-order lag (time constant tau) of samples x (N,) or (N, k) on a step-h grid."""
-    x = np.asarray(x, dtype=float)
+def driven_node(ramp: np.ndarray, h_s: float, tau_s: float, t0_s: float = 0.0,
+                y0: np.ndarray | None = None) -> ThermalSolution:
+    """Return one network node (time constant tau) driven only by ``ramp`` (N,) or (N, k) on a step-h grid.
+
+    This is how the simulator lags a continuous temperature exactly (the step above, with the input
+    linear between grid samples); readings, which are samples, are lagged by ``physics.lag``.
+    """
+    x = np.asarray(ramp, dtype=float)
     x2 = x.reshape(len(x), -1)
     tau = np.full(x2.shape[1], float(tau_s))
     start = x2[0] if y0 is None else np.atleast_1d(np.asarray(y0, dtype=float))

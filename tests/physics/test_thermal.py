@@ -3,8 +3,13 @@
 import numpy as np
 import pytest
 
-from driftlab.models.thermal import (
-    ALPHA_C, ThermalNetwork, first_order_lag, integrate, propagate, step_response,
+from driftlab.physics.thermal import (
+    ALPHA_C,
+    ThermalNetwork,
+    driven_node,
+    integrate,
+    propagate,
+    step_response,
 )
 
 
@@ -83,7 +88,7 @@ def test_any_instant_is_exact_between_grid_points():
 def test_lag_of_a_step_is_the_analytic_response():
     h, tau = 30.0, 900.0
     x = np.r_[np.zeros(10), np.ones(200)]
-    lag = first_order_lag(x, h, tau, t0_s=-300.0)
+    lag = driven_node(x, h, tau, t0_s=-300.0)
     t = lag.t0_s + h * np.arange(len(x))
     # x is a ramp from 0 to 1 over [-30, 0] then constant: compare with the exact answer after it
     after = t >= 0

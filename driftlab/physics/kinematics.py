@@ -27,15 +27,15 @@ from typing import Any
 import numpy as np
 
 from driftlab.errors import KinematicsError
+from driftlab.vocabulary import AXES
+from driftlab.vocabulary import TERMS as PARAMS
 
-PARAMS: tuple[str, ...] = ("alpha", "beta", "gamma", "dx", "dy", "dz")
 ELEMENTS: tuple[str, ...] = (
     "T1", "phi_z", "T2", "phi_y", "T3", "phi_x", "T4", "theta_x", "T5", "theta_y", "T6",
 )
 LINKS: tuple[str, ...] = ("T1", "T2", "T3", "T4", "T5", "T6")
 JOINTS: tuple[str, ...] = ("phi_z", "phi_y", "phi_x", "theta_x", "theta_y")
 #: columns of the joint array ``q``: X, Y, Z (mm), A = theta_x, B = theta_y (rad)
-AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
 #: joint element -> column of q that drives it
 JOINT_AXIS: Mapping[str, int] = MappingProxyType(
     {"phi_x": 0, "phi_y": 1, "phi_z": 2, "theta_x": 3, "theta_y": 4}

@@ -1,0 +1,62 @@
+"""The words every layer shares: axes, error terms, units, channel names.
+
+Defined once here; every module that spells an axis or a term list imports it from this module.
+
+* Axes are the machine's five joints (ch. 4.2): three linear X, Y, Z and two rotary A (about X)
+  and B (about Y).
+* Error terms are the six components of an error vector in the order of the small-angle HTM of
+  eq. 4.8: ``(alpha, beta, gamma, dx, dy, dz)`` = rotations about X, Y, Z then translations.
+* Units inside driftlab: lengths in mm, angles in rad, temperatures in degC, times in s.
+  People read um and urad (``labels.display_unit``). Rotary positions in files are degrees.
+* Channels (thermocouples, bundle columns, instrument setup ids) are named by
+  :data:`CHANNEL_NAME`: a letter or digit, then letters, digits, ``_ . -``, at most 64 in all.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Literal
+
+Axis = Literal["X", "Y", "Z", "A", "B"]
+LinearAxis = Literal["X", "Y", "Z"]
+Term = Literal["alpha", "beta", "gamma", "dx", "dy", "dz"]
+Rotation = Literal["alpha", "beta", "gamma"]
+Translation = Literal["dx", "dy", "dz"]
+
+#: the five joints of the machine (ch. 4.2)
+AXES: tuple[Axis, ...] = ("X", "Y", "Z", "A", "B")
+LINEAR_AXES: tuple[Axis, ...] = ("X", "Y", "Z")
+ROTARY_AXES: tuple[Axis, ...] = ("A", "B")
+
+#: the error vector's components in the order of eq. 4.8 (rad, rad, rad, mm, mm, mm)
+TERMS: tuple[Term, ...] = ("alpha", "beta", "gamma", "dx", "dy", "dz")
+ROTATIONS: tuple[Term, ...] = ("alpha", "beta", "gamma")
+TRANSLATIONS: tuple[Term, ...] = ("dx", "dy", "dz")
+
+#: each linear axis's own translation and each axis's own rotation (positioning and roll)
+OWN_TRANSLATION: dict[str, Term] = {"X": "dx", "Y": "dy", "Z": "dz"}
+OWN_ROTATION: dict[str, Term] = {"X": "alpha", "Y": "beta", "Z": "gamma", "A": "alpha", "B": "beta"}
+
+#: units of the stored values
+LENGTH_UNIT = "mm"
+ANGLE_UNIT = "rad"
+TEMPERATURE_UNIT = "degC"
+TIME_UNIT = "s"
+
+#: a channel's (or instrument setup's) name
+CHANNEL_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+
+
+def is_angle(term: str) -> bool:
+    """Return True for a rotation term (rad), False for a translation (mm)."""
+    return term in ROTATIONS
+
+
+def term_unit(term: str) -> str:
+    """Return the stored unit of a term: rad for rotations, mm for translations."""
+    return ANGLE_UNIT if is_angle(term) else LENGTH_UNIT
+
+
+def valid_channel_name(name: str) -> bool:
+    """Return True when ``name`` may name a channel (and is not the reserved ``time_s``)."""
+    return bool(CHANNEL_NAME.match(name)) and name != "time_s"
