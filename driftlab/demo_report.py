@@ -6,11 +6,12 @@ import base64
 import html
 import io
 import json
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from driftlab.jsonsafe import strict_json
 
 RUN_NAMES = {"uncompensated": "without compensation", "offline": "off-line model",
              "online": "off-line + on-line model"}
@@ -42,21 +43,7 @@ def build_report(*, table: dict[str, dict[str, Any]], diagnosis: dict[str, Any],
                                  > table["online"]["rmse_mm"])
     out["steps"] = steps
     out.update(extra)
-    return _finite(out)
-
-
-def _finite(obj: Any) -> Any:
-    """Return ``obj`` with non-finite floats as None and numpy scalars as plain numbers (strict JSON)."""
-    if isinstance(obj, dict):
-        return {str(k): _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
+    return strict_json(out)
 
 
 def write_json(path: Path, report: dict[str, Any]) -> Path:

@@ -54,6 +54,7 @@ from driftlab.compensator.compensate import ErrorModel
 from driftlab.daemon import machining
 from driftlab.daemon.machining import ExecutedBlock, MachiningMachine, Scenario, SimSphere, true_errors
 from driftlab.errors import ValidationError
+from driftlab.metrics import rmse
 from driftlab.physics import kinematics as kin
 from driftlab.vocabulary import AXES
 
@@ -360,7 +361,7 @@ class RunResult:
     @property
     def rmse_mm(self) -> float:
         """Return the RMS normal deviation over the CMM grid."""
-        return float(np.sqrt(np.mean(self.deviation_mm ** 2)))
+        return rmse(self.deviation_mm)
 
     @property
     def max_mm(self) -> float:

@@ -32,6 +32,7 @@ from driftlab.daq.protocols import Reading, SphereMeasurement
 from driftlab.daq.proximity import FLAG_OUT_OF_RANGE, ProximitySensor
 from driftlab.daq.transport import LineChannel
 from driftlab.errors import InstrumentError, ValidationError
+from driftlab.metrics import rmse
 
 
 def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -52,7 +53,7 @@ def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
 
     res = least_squares(residual, np.append(c0, r0), method="lm")
     centre, radius = res.x[:3], float(res.x[3])
-    rms = float(np.sqrt(np.mean(residual(res.x) ** 2)))
+    rms = rmse(residual(res.x))
     return centre, radius, rms
 
 

@@ -11,11 +11,11 @@ travelled.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from driftlab.errors import DriftlabError, ValidationError
+from driftlab.jsonsafe import strict_json
 
 if TYPE_CHECKING:
     from driftlab.campaigns.store import JobInfo, Store
@@ -33,17 +33,6 @@ KINDS: tuple[str, ...] = (FIT, DIAGNOSE)
 OnModel = Callable[[str], None]
 #: called with the name of each fitting stage as it ends
 OnStage = Callable[[str], None]
-
-
-def finite(obj: Any) -> Any:
-    """Return ``obj`` with non-finite floats as None (job results are stored and served as strict JSON)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [finite(v) for v in obj]
-    return obj
 
 
 def one_line(exc: BaseException) -> str:
@@ -130,7 +119,7 @@ def execute(store: Store, job_id: int, worker: str, *, will_retry: Callable[[Bas
         body = BODIES.get(job.kind)
         if body is None:
             raise ValidationError(f"unknown job kind {job.kind!r}")
-        result = finite(body(store, dict(job.params), on_stage=on_stage, on_model=on_model))
+        result = strict_json(body(store, dict(job.params), on_stage=on_stage, on_model=on_model))
     except Exception as exc:
         retry = will_retry(exc, job)
         log.log(logging.INFO if isinstance(exc, DriftlabError) else logging.WARNING,

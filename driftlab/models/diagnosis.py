@@ -33,6 +33,7 @@ import pandas as pd
 import statsmodels.api as sm
 from scipy import optimize
 
+from driftlab.metrics import rmse
 from driftlab.models.effects import (
     N_TAU,
     Candidate,
@@ -61,7 +62,6 @@ from driftlab.models.standard_model import (
     lstsq,
     prepare_bundle,
     refit_standard,
-    rmse,
     robust_sigma,
 )
 

@@ -8,28 +8,12 @@ import io
 import math
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from driftlab.jsonsafe import strict_json
 
 if TYPE_CHECKING:
     from driftlab.models.diagnosis import DiagnosisResult, Effect, TermDiagnosis
 
 FORMAT = "driftlab-diagnosis/1"
-
-
-def _clean(obj: Any) -> Any:
-    """Return ``obj`` with numpy scalars made plain and non-finite floats made null (strict JSON)."""
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
 
 
 def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
@@ -53,7 +37,7 @@ def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
         "flags": [f.to_dict() for f in res.flags],
         "timings_s": res.timings_s,
     }
-    return _clean(doc)
+    return strict_json(doc)
 
 
 # ---------------------------------------------------------------------------------------------

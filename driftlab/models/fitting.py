@@ -17,6 +17,8 @@ import numpy as np
 import pandas as pd
 
 from driftlab.errors import ValidationError
+from driftlab.jsonsafe import strict_json
+from driftlab.metrics import rmse
 from driftlab.models.features import (
     INTERCEPT,
     Feature,
@@ -48,7 +50,7 @@ from driftlab.models.registry import (
     now_iso,
     validate_document,
 )
-from driftlab.models.regression import TermFit, r_squared, rmse, stepwise
+from driftlab.models.regression import TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
 from driftlab.models.virtual_sensor import fit_virtual_sensors
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
@@ -168,21 +170,7 @@ class FitResult:
             out["findings"] = list(self.document.findings)
         if self.neural:
             out["neural_comparison"] = [c.to_dict() for c in self.neural]
-        return _strict_json(out)
-
-
-def _strict_json(obj: Any) -> Any:
-    """Return ``obj`` with numpy scalars made plain and non-finite floats made None."""
-    if isinstance(obj, dict):
-        return {k: _strict_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_strict_json(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
+        return strict_json(out)
 
 
 # ----------------------------------------------------------------------------- stages -> elements
@@ -1106,7 +1094,7 @@ def _fit_bundles(
         "findings": findings,
         "lines": [_line_record(fit, composed) for fit in lines],
     }
-    document = validate_document(_strict_json(doc))
+    document = validate_document(strict_json(doc))
     lap("document")
     return FitResult(document, screening, models, validation, physical, neural, timings, check.to_dict())
 

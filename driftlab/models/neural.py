@@ -11,6 +11,7 @@ import pandas as pd
 from sklearn.neural_network import MLPRegressor
 
 from driftlab.errors import ValidationError
+from driftlab.metrics import rmse
 from driftlab.vocabulary import AXES, TERMS
 
 
@@ -108,11 +109,6 @@ class ExtrapolationResult:
         }
 
 
-def _rms(x: np.ndarray) -> float:
-    """Return the root mean square."""
-    return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
-
-
 def extrapolation_errors(
     y_in: np.ndarray,
     reg_in: np.ndarray,
@@ -124,10 +120,10 @@ def extrapolation_errors(
 ) -> ExtrapolationResult:
     """Return the RMS prediction errors of both models in and beyond the training range."""
     return ExtrapolationResult(
-        regression_mm=_rms(np.asarray(y_out) - reg_out),
-        network_mm=_rms(np.asarray(y_out) - net_out),
-        regression_in_range_mm=_rms(np.asarray(y_in) - reg_in),
-        network_in_range_mm=_rms(np.asarray(y_in) - net_in),
+        regression_mm=rmse(np.asarray(y_out) - reg_out),
+        network_mm=rmse(np.asarray(y_out) - net_out),
+        regression_in_range_mm=rmse(np.asarray(y_in) - reg_in),
+        network_in_range_mm=rmse(np.asarray(y_in) - net_in),
         shift_degC=float(shift_degC),
         n=int(len(y_out)),
     )
@@ -409,8 +405,8 @@ def compare_models(
         excess = np.maximum(A - hi, lo - A)[:, temp] if temp.any() else np.zeros((len(A), 1))
         results.append(DirectionResult(
             name, tr_text, te_text, int(tr.sum()), int(te.sum()), keep,
-            _rms(ytr - reg.predict(Xtr)), _rms(ytr - net.predict(Xtr)),
-            _rms(yte - reg.predict(Xte)), _rms(yte - net.predict(Xte)),
+            rmse(ytr - reg.predict(Xtr)), rmse(ytr - net.predict(Xtr)),
+            rmse(yte - reg.predict(Xte)), rmse(yte - net.predict(Xte)),
             float(((A < lo) | (A > hi)).any(axis=1).mean()), float(max(0.0, excess.max())),
         ))
     out.directions = results

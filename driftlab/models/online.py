@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from driftlab.errors import ValidationError
+from driftlab.metrics import rmse
 
 
 @dataclass
@@ -72,7 +73,7 @@ class OnlineRun:
     @property
     def rmse_prior(self) -> float:
         """Return the RMS of the one-step-ahead prediction errors (the honest on-line figure)."""
-        return float(np.sqrt(np.mean(self.prior_error**2))) if self.prior_error.size else float("nan")
+        return rmse(self.prior_error)
 
 
 def rls_run(state: RLSState, Phi: np.ndarray, y: np.ndarray) -> OnlineRun:
@@ -177,7 +178,7 @@ def online_update_document(
         out_states[term] = run.state
         preds[term] = run.prior_prediction
         terms[term] = {
-            "offline_rms_mm": float(np.sqrt(np.mean(resid[:, k] ** 2))),
+            "offline_rms_mm": rmse(resid[:, k]),
             "online_rms_mm": run.rmse_prior,
             "correction_mm": float(run.state.theta[0]),
         }

@@ -11,6 +11,7 @@ import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from driftlab.errors import NotFoundError, ValidationError
+from driftlab.jsonsafe import strict_json
 from driftlab.models.features import Feature, Inputs, design_matrix, required_lags
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
 from driftlab.physics.lag import first_order_lag
@@ -200,18 +201,7 @@ def validate_document(doc: Mapping[str, Any] | ModelDocument) -> ModelDocument:
 
 def document_json(doc: ModelDocument) -> dict[str, Any]:
     """Return the JSON-ready form of a document (NaN statistics become null)."""
-    return _clean(doc.model_dump(mode="json"))
-
-
-def _clean(obj: Any) -> Any:
-    """Return ``obj`` with non-finite floats replaced by None (strict JSON)."""
-    if isinstance(obj, float):
-        return obj if np.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj
+    return strict_json(doc.model_dump(mode="json"))
 
 
 def now_iso() -> str:

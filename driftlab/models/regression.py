@@ -12,6 +12,7 @@ import statsmodels.api as sm
 from scipy import stats
 
 from driftlab.errors import ValidationError
+from driftlab.metrics import rmse
 from driftlab.models.features import Feature, Inputs, design_matrix
 
 
@@ -71,7 +72,7 @@ class StepwiseResult:
     @property
     def rmse(self) -> float:
         """Return the training RMSE of the residuals."""
-        return float(np.sqrt(np.mean(np.asarray(self.ols.resid) ** 2)))
+        return rmse(self.ols.resid)
 
     @property
     def nobs(self) -> int:
@@ -284,13 +285,6 @@ class TermFit:
         other = TermFit(other_element, self.param, self.result, float("nan"), 0,
                         [feats[i] for i in theirs], coef[theirs], seeded_by=self.element)
         return keep, other
-
-
-def rmse(residual: np.ndarray) -> float:
-    """Return the root mean square of a residual (nan when empty)."""
-    r = np.asarray(residual, float)
-    r = r[np.isfinite(r)]
-    return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
 
 
 def r_squared(y: np.ndarray, y_hat: np.ndarray) -> float:

@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 
 from driftlab.errors import ValidationError
+from driftlab.metrics import rmse
 from driftlab.models.features import channel_columns, fill_gaps
 
 #: words in a channel's location that mark it as sitting on a heat source (ch. 5.4)
@@ -87,7 +88,7 @@ def _explain(T: np.ndarray, j: int, pool: Sequence[int], k: int) -> tuple[float,
         q = Cr[:, b] / np.sqrt(norm2[b])
         r = r - q * (q @ r)
         Cr = Cr - np.outer(q, q @ Cr)
-    return float(np.sqrt(np.mean(r**2))), [pool[i] for i in chosen]
+    return rmse(r), [pool[i] for i in chosen]
 
 
 def _gradient_partner(

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from driftlab.errors import ValidationError
+from driftlab.metrics import rmse
 from driftlab.physics import kinematics as kin
 from driftlab.physics.kinematics import TABLE_A1, ElementErrors
 
@@ -205,11 +206,11 @@ def _figures(w: np.ndarray) -> dict[str, Any]:
     absmax = np.abs(w).max(axis=0)
     return {
         "max_mm": float(pos.max()),
-        "rms_mm": float(np.sqrt(np.mean(pos**2))),
+        "rms_mm": rmse(pos),
         "max_deg": float(ang.max()),
-        "rms_deg": float(np.sqrt(np.mean(ang**2))),
+        "rms_deg": rmse(ang),
         "max_roll_deg": float(roll.max()),
-        "rms_roll_deg": float(np.sqrt(np.mean(roll**2))),
+        "rms_roll_deg": rmse(roll),
         "max_abs": {
             "dx_mm": float(absmax[3]),
             "dy_mm": float(absmax[4]),

@@ -31,6 +31,7 @@ import pandas as pd
 from scipy import stats
 
 from driftlab.errors import ValidationError
+from driftlab.metrics import rmse
 
 ROTATIONS = ("alpha", "beta", "gamma")
 
@@ -402,12 +403,6 @@ def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
     Xn, s = _normalise(X)
     beta, *_ = np.linalg.lstsq(Xn, y, rcond=None)
     return beta / s
-
-
-def rmse(r: np.ndarray) -> float:
-    """Return the root mean square of a residual vector (NaN when empty)."""
-    r = np.asarray(r, dtype=float)
-    return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
 
 
 def position_basis(pos: np.ndarray, ref: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:

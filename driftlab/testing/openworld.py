@@ -32,6 +32,7 @@ import pandas as pd
 
 from driftlab.campaigns.bundle import Bundle, _as_meta
 from driftlab.daq.sim import truth
+from driftlab.metrics import rmse
 from driftlab.physics import kinematics as kin
 from driftlab.physics.lag import first_order_lag_even
 from driftlab.physics.thermal import ALPHA_C
@@ -276,7 +277,7 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
                     continue
                 Wi = kin.workspace_error(q, element_errors(q, [p], idx))
                 delta = Wi[:, c] - W0[:, c]
-                signal[i] = float(np.sqrt(np.mean(delta**2)))
+                signal[i] = rmse(delta)
                 beyond_model[i] = _beyond_span(delta, R.iloc[idx], dT_at[idx], names)
                 expected[i] = _expected_params(p, delta, idx, R, dT_at, names, rpm_at, rt, angle)
             y = W[:, c] + _ar1(idx.size, rho, sigma, rng)
@@ -332,8 +333,7 @@ def _beyond_span(w: np.ndarray, rows: pd.DataFrame, dT: np.ndarray, names: list[
     cols = [np.ones_like(x), x, x**2, x**3] + [dT[:, names.index(c)] for c in MODEL_CHANNELS]
     A = np.column_stack(cols)
     b, *_ = np.linalg.lstsq(A, w, rcond=None)
-    r = w - A @ b
-    return float(np.sqrt(np.mean(r * r)))
+    return rmse(w - A @ b)
 
 
 def _expected_params(p: OpenPlanted, delta: np.ndarray, idx: np.ndarray, R: pd.DataFrame, dT_at: np.ndarray,

@@ -5,8 +5,9 @@ import pandas as pd
 import pytest
 
 from driftlab.errors import ValidationError
+from driftlab.metrics import rmse
 from driftlab.models.features import INTERCEPT, Feature, Inputs, design_matrix
-from driftlab.models.regression import TermFit, r_squared, rmse, stepwise
+from driftlab.models.regression import TermFit, r_squared, stepwise
 
 
 def _data(n=3000, seed=1):

@@ -35,6 +35,7 @@ from driftlab.campaigns import api_queries
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
 from driftlab.campaigns.store import Store
 from driftlab.errors import BadRequestError, NotFoundError
+from driftlab.jsonsafe import finite_or_none
 from driftlab.vocabulary import Axis, Term
 
 router = APIRouter(tags=["histories"])
@@ -75,14 +76,6 @@ def decode_cursor(cursor: str | None, kind: str) -> Any:
     return after
 
 
-def _f(v: Any) -> float | None:
-    """Return a finite float or None (NaN and missing readings are null in JSON)."""
-    if v is None:
-        return None
-    v = float(v)
-    return v if math.isfinite(v) else None
-
-
 def _range(start_s: float | None, end_s: float | None) -> None:
     if start_s is not None and end_s is not None and end_s < start_s:
         raise BadRequestError(f"time range ends ({end_s}) before it starts ({start_s})")
@@ -107,12 +100,12 @@ def temperatures(
     _paging(cursor, offset)
     if buckets:
         frame = store.temperature_history(campaign_id, channel, start_s, end_s, buckets)
-        out = [Bucket(time_s=r.time_s, t_end_s=r.t_end_s, n=int(r.n), min=_f(r.value_min), mean=_f(r.value_mean),
-                      max=_f(r.value_max)) for r in frame.itertuples(index=False)]
+        out = [Bucket(time_s=r.time_s, t_end_s=r.t_end_s, n=int(r.n), min=finite_or_none(r.value_min), mean=finite_or_none(r.value_mean),
+                      max=finite_or_none(r.value_max)) for r in frame.itertuples(index=False)]
         return TemperatureHistory(campaign_id=campaign_id, channel=channel, buckets=out)
     after = decode_cursor(cursor, "temperature")
     rows = api_queries.temperature_page(store, campaign_id, channel, start_s, end_s, after, offset, limit)
-    points = [TemperaturePoint(time_s=t, value=_f(v)) for t, v in rows]
+    points = [TemperaturePoint(time_s=t, value=finite_or_none(v)) for t, v in rows]
     nxt = encode_cursor("temperature", rows[-1][0]) if len(rows) == limit else None
     return TemperatureHistory(campaign_id=campaign_id, channel=channel, points=points, next_cursor=nxt)
 
@@ -134,13 +127,13 @@ def conditions(
         frame = store.condition_history(campaign_id, cols, start_s, end_s, buckets)
         out = []
         for r in frame.to_dict("records"):
-            values = {c: Bucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), min=_f(r[f"{c}_min"]),
-                                mean=_f(r[f"{c}_mean"]), max=_f(r[f"{c}_max"])) for c in cols}
+            values = {c: Bucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), min=finite_or_none(r[f"{c}_min"]),
+                                mean=finite_or_none(r[f"{c}_mean"]), max=finite_or_none(r[f"{c}_max"])) for c in cols}
             out.append(ConditionBucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), values=values))
         return ConditionHistory(campaign_id=campaign_id, columns=cols, buckets=out)
     after = decode_cursor(cursor, "condition")
     rows = api_queries.condition_page(store, campaign_id, cols, start_s, end_s, after, offset, limit)
-    points = [ConditionRow(time_s=r[0], **{c: _f(v) for c, v in zip(cols, r[1:])}) for r in rows]
+    points = [ConditionRow(time_s=r[0], **{c: finite_or_none(v) for c, v in zip(cols, r[1:])}) for r in rows]
     nxt = encode_cursor("condition", rows[-1][0]) if len(rows) == limit else None
     return ConditionHistory(campaign_id=campaign_id, columns=cols, points=points, next_cursor=nxt)
 
@@ -178,4 +171,4 @@ def latest_temperatures(machine_id: MachineId, store: Annotated[Store, Depends(g
     campaign_id, started, time_s, values = found
     return LatestTemperatures(machine_id=machine_id, campaign_id=campaign_id, time_s=time_s,
                               time=started + timedelta(seconds=time_s),
-                              temperatures={c: _f(v) for c, v in values.items()})
+                              temperatures={c: finite_or_none(v) for c, v in values.items()})

@@ -18,14 +18,14 @@ from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import JobInfo, Store
 from driftlab.errors import ValidationError
 from driftlab.jobs import DIAGNOSE, FIT, KINDS
-from driftlab.jobs.tasks import finite
+from driftlab.jsonsafe import strict_json
 
 router = APIRouter(tags=["jobs"])
 
 
 def job_out(j: JobInfo) -> JobOut:
     """Return the response model of a job."""
-    return JobOut(id=j.id, kind=j.kind, state=j.state, params=dict(j.params or {}), result=finite(j.result),
+    return JobOut(id=j.id, kind=j.kind, state=j.state, params=dict(j.params or {}), result=strict_json(j.result),
                   error=j.error, machine_id=j.machine_id, campaign_id=j.campaign_id, attempts=j.attempts,
                   created_at=j.created_at, started_at=j.started_at, finished_at=j.finished_at)
 

@@ -6,7 +6,6 @@ in-process cache (serialised bytes and ETag) and touches the database at most on
 
 from __future__ import annotations
 
-import math
 import re
 from typing import Annotated, Any
 
@@ -28,6 +27,7 @@ from driftlab.api.schemas import (
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import Store
 from driftlab.errors import ValidationError
+from driftlab.jsonsafe import check_json
 
 router = APIRouter(tags=["models"])
 
@@ -44,27 +44,6 @@ def etag_matches(if_none_match: str | None, etag: str) -> bool:
         if tag == "*" or tag.removeprefix("W/") == etag:
             return True
     return False
-
-
-def check_json(obj: Any, where: str = "document") -> None:
-    """Refuse non-finite numbers and NUL characters anywhere in a JSON value (ValidationError).
-
-    Python's JSON parser accepts NaN and Infinity, which strict JSON (and PostgreSQL's jsonb) does
-    not; PostgreSQL text cannot hold NUL either.
-    """
-    if isinstance(obj, float):
-        if not math.isfinite(obj):
-            raise ValidationError(f"{where}: numbers must be finite")
-    elif isinstance(obj, str):
-        if "\x00" in obj:
-            raise ValidationError(f"{where}: text must not contain NUL characters")
-    elif isinstance(obj, dict):
-        for k, v in obj.items():
-            check_json(k, where)
-            check_json(v, f"{where}.{k}")
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj):
-            check_json(v, f"{where}[{i}]")
 
 
 CURRENT_PATH = re.compile(r"^/machines/([A-Za-z0-9][A-Za-z0-9._:-]{0,63})/model/current$")

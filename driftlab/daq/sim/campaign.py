@@ -12,6 +12,7 @@ from driftlab.daq.sim import truth
 from driftlab.daq.sim.machine import VirtualMachine
 from driftlab.daq.sim.scenario import Scenario
 from driftlab.daq.sim.sites import CHANNELS, ROOM_CHANNELS, SITE_INDEX, channel_map
+from driftlab.metrics import rmse
 from driftlab.vocabulary import AXES, TERMS
 
 
@@ -112,7 +113,7 @@ def _truth_record(scenario: Scenario, vm: VirtualMachine, sweep_t: np.ndarray) -
                 idx = [SITE_INDEX[c] for c in eff.channels]
                 off = vm.readings_array(scan_t)[:, idx] - vm.true_temperatures_array(scan_t)[:, idx]
                 fin = np.isfinite(off)
-                rec["reading_offset_rms_degC"] = float(np.sqrt(np.mean(off[fin] ** 2))) if fin.any() else None
+                rec["reading_offset_rms_degC"] = rmse(off[fin]) if fin.any() else None
         else:
             pts = sweep_points(scenario)
             pts = pts[pts["axis"] == eff.axis]
@@ -122,14 +123,14 @@ def _truth_record(scenario: Scenario, vm: VirtualMachine, sweep_t: np.ndarray) -
             dT = vm.true_dT_array(t)[:, SITE_INDEX[eff.channels[0]]] if eff.channels else None
             lag = vm.lagged_dT(eff.channels[0], float(eff.params["tau_s"]), t) if eff.kind == "thermal_lag" else None
             delta = truth.hidden_delta(eff, t, pos, d, dT, lag)
-            rec["rms"] = float(np.sqrt(np.mean(delta**2)))
+            rec["rms"] = rmse(delta)
             rec["peak"] = float(np.max(np.abs(delta)))
             # the part no standard model (spec section 2) can absorb: what diagnosis can find at best
             model = [SITE_INDEX[c] for c in truth.MODEL_CHANNELS[eff.axis]]
             X = np.column_stack([np.vander(pos, 4, increasing=True), vm.true_dT_array(t)[:, model]])
             X = X / np.where(X.std(axis=0) > 0, X.std(axis=0), 1.0)
             coef, *_ = np.linalg.lstsq(X, delta, rcond=None)
-            rec["rms_beyond_standard_model"] = float(np.sqrt(np.mean((delta - X @ coef) ** 2)))
+            rec["rms_beyond_standard_model"] = rmse(delta - X @ coef)
         hidden.append(rec)
     return {
         "alpha_c_per_degC": truth.ALPHA_C,
