@@ -124,7 +124,7 @@ def seed(url: str, workdir: Path) -> None:
 
     from driftlab.campaigns.bundle import load_bundle, write_bundle
     from driftlab.campaigns.store import connect
-    from driftlab.models import registry
+    from driftlab.jobs import registry as model_registry
 
     channels = [f"T{k}" for k in range(1, 17)]
     meta = {
@@ -155,7 +155,7 @@ def seed(url: str, workdir: Path) -> None:
            "kept_channels": channels, "terms": terms}
     with connect(url) as store:
         cid = store.import_bundle(load_bundle(path))
-        registry.register_model(store, doc, [cid])
+        model_registry.register_model(store, doc, [cid])
 
 
 def start(cmd: list[str], port: int, log: Path, env: dict[str, str]) -> subprocess.Popen[bytes]:

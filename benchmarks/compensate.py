@@ -134,8 +134,9 @@ def streaming(model: ErrorModel, temps: dict) -> dict:
     from driftlab.compensator.compensate import parse_pieces, program_pieces, scan_program
     from driftlab.daq.machine_link import SerialMachineLink
     from driftlab.daq.retry import RetryPolicy
-    from driftlab.daq.sim.instruments import SimController, TinyWorld, WallClock, serial_url
+    from driftlab.daq.sim.instruments import SimController, WallClock, serial_url
     from driftlab.daq.transport import LineChannel, SerialPort
+    from driftlab.testing.tinyworld import TinyWorld
 
     data = program_text(N_STREAM, seed=2, head="G90 G1 F2000\n")  # the simulated controller's dialect
     tmp = tempfile.NamedTemporaryFile(suffix=".nc")

@@ -84,7 +84,8 @@ def label_of(n: int) -> str:
 
 def port_figures(program: Path, out: Path, model: Path, temps: Path, n: int) -> dict[str, float]:
     """Return peak RSS and wall time of `driftlab compensate --port` streaming to the simulated controller."""
-    from driftlab.daq.sim.instruments import SimController, TinyWorld, WallClock, serial_url
+    from driftlab.daq.sim.instruments import SimController, WallClock, serial_url
+    from driftlab.testing.tinyworld import TinyWorld
 
     # a controller that executes blocks as fast as they come: the link never waits for its buffer to drain
     with SimController(TinyWorld(channels=2), WallClock(acceleration=1e9), capacity=256) as sim:

@@ -248,7 +248,7 @@ def main() -> None:
     pg = None
     if os.environ.get("DAQ_NO_PG") != "1":
         try:
-            from driftlab.campaigns.pgcluster import PgCluster, pg_binaries_available
+            from driftlab.testing.pgcluster import PgCluster, pg_binaries_available
 
             if pg_binaries_available():
                 pg = PgCluster()

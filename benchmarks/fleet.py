@@ -52,10 +52,10 @@ from driftlab.campaigns import partitions  # noqa: E402
 from driftlab.campaigns import schema as sc  # noqa: E402
 from driftlab.campaigns.bundle import Bundle, CampaignMeta  # noqa: E402
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS, ERROR_COLUMNS, sweep_numbers  # noqa: E402
-from driftlab.campaigns.pgcluster import PgCluster  # noqa: E402
 from driftlab.campaigns.store import Store, connect  # noqa: E402
 from driftlab.daq.sim.campaign import simulate_campaign  # noqa: E402
 from driftlab.daq.sim.scenario import MachineInfo, Scenario  # noqa: E402
+from driftlab.testing.pgcluster import PgCluster  # noqa: E402
 
 T0 = datetime(2026, 1, 5, 6, 0, tzinfo=UTC)
 RAW_PREFIX = "bench_raw_"

@@ -29,8 +29,8 @@ import pandas as pd
 
 from driftlab.campaigns.bundle import load_bundle, write_bundle
 from driftlab.campaigns.partitions import ensure_partitions, start_day
-from driftlab.campaigns.pgcluster import PgCluster, pg_binaries_available
 from driftlab.campaigns.store import Store, connect
+from driftlab.testing.pgcluster import PgCluster, pg_binaries_available
 
 MACHINE = "bench-vmc"
 

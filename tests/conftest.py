@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from driftlab.campaigns.pgcluster import PgCluster, PgClusterError, pg_binaries_available
+from driftlab.testing.pgcluster import PgCluster, PgClusterError, pg_binaries_available
 
 
 def _require_pg() -> bool:

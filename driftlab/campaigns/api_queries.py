@@ -6,7 +6,7 @@ Every function takes a ``Store`` and runs in one transaction of its own (writes 
 range scan whatever its offset in the history.
 
 The on-line (RLS) state is the store's ``online_states`` table (``Store.online_state`` and
-``Store.save_online_state``, used through ``driftlab.models.online.store_update``).
+``Store.save_online_state``, used through ``driftlab.jobs.online.store_update``).
 """
 
 from __future__ import annotations

@@ -380,6 +380,12 @@ class Store:
             ).all()
             return [_model(r) for r in rows]
 
+    def machine_ids(self) -> list[str]:
+        """Return the id of every machine in the store, in order."""
+        self.ensure_schema()
+        with self.engine.connect() as conn:
+            return [m for (m,) in conn.execute(select(sc.Machine.id).order_by(sc.Machine.id))]
+
     # ------------------------------------------------------------------ job records
     # The queue itself is driftlab.jobs (procrastinate on PostgreSQL, in-process on SQLite); these
     # rows are what a job was asked to do and what came of it.
@@ -458,6 +464,16 @@ class Store:
             if kinds:
                 q = q.where(sc.Job.kind.in_(kinds))
             return [int(j) for j in conn.execute(q).scalars()]
+
+    def last_job_result(self, kind: str, machine_id: str) -> dict[str, Any] | None:
+        """Return the result of the machine's last finished job of this kind (None when there is none)."""
+        self.ensure_schema()
+        with self.engine.connect() as conn:
+            row = conn.execute(
+                select(sc.Job.result).where(sc.Job.kind == kind, sc.Job.machine_id == machine_id, sc.Job.state == "done")
+                .order_by(sc.Job.id.desc()).limit(1)
+            ).first()
+        return None if row is None else row[0]
 
     def get_job(self, job_id: int) -> JobInfo:
         """Return a job (its state as the queue reports it); NotFoundError if there is none with that id."""

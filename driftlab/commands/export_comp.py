@@ -59,7 +59,8 @@ def _model(args: argparse.Namespace) -> Any:
     if not args.machine:
         raise ValidationError("--model VERSION needs --machine ID (or give a model document .json file)")
     from driftlab.campaigns.store import connect
-    from driftlab.models.registry import document_json, get_model
+    from driftlab.jobs.registry import get_model
+    from driftlab.models.document import document_json
 
     store = connect(args.db)
     try:

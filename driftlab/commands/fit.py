@@ -235,7 +235,7 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
 def _list(args: argparse.Namespace) -> int:
     """Print the registry's versions."""
     from driftlab.campaigns.store import connect
-    from driftlab.models.registry import list_models
+    from driftlab.jobs.registry import list_models
 
     with connect(args.db) as store:
         rows = list_models(store, args.machine)
@@ -252,7 +252,8 @@ def _list(args: argparse.Namespace) -> int:
 def _show(args: argparse.Namespace) -> int:
     """Print one model document."""
     from driftlab.campaigns.store import connect
-    from driftlab.models.registry import document_json, get_model
+    from driftlab.jobs.registry import get_model
+    from driftlab.models.document import document_json
 
     with connect(args.db) as store:
         doc = get_model(store, args.machine, args.version)
@@ -274,7 +275,8 @@ def _online(args: argparse.Namespace) -> int:
 
     from driftlab.campaigns.store import connect
     from driftlab.errors import ValidationError
-    from driftlab.models.online import online_update, read_probe_csv
+    from driftlab.jobs.online import online_update
+    from driftlab.models.online import read_probe_csv
 
     start = None
     if args.start is not None:

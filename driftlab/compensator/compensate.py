@@ -65,27 +65,27 @@ class ErrorModel:
 
         The document's terms are linear in dT, position and direction, so they are evaluated
         here directly over numpy arrays (``fast_predict``); temperature frames with a history
-        and lagged terms go through ``registry.predict_element_errors``, which owns the lags.
+        and lagged terms go through ``models.document.predict_element_errors``, which owns the lags.
         """
-        from driftlab.models import registry
+        from driftlab.models import document as documents
 
-        doc = registry.validate_document(document)
+        doc = documents.validate_document(document)
         name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
         return cls(
-            predict=_checked_predict(doc), dims=registry.document_dims(doc), label=name,
+            predict=_checked_predict(doc), dims=documents.document_dims(doc), label=name,
             channels=tuple(doc.inputs), machine=doc.machine,
         )
 
 
 def fast_predict(doc: Any) -> Predict:
-    """Return a predict callable equal to ``registry.predict_element_errors`` for ``doc``, without pandas.
+    """Return a predict callable equal to ``models.document.predict_element_errors`` for ``doc``, without pandas.
 
     Every feature kind of ``models.features`` is a product of at most one joint coordinate (or
     approach direction, of the axis its label names) and one linear combination of dT, so for a
     snapshot of temperatures each term is a short polynomial in the joint coordinates (the recast
     terms of ch. 6.4.2). Frames with a history and lagged terms go to the registry, which owns lags.
     """
-    from driftlab.models import registry
+    from driftlab.models import document as documents
     from driftlab.physics.kinematics import PARAMS
     from driftlab.vocabulary import AXES
 
@@ -113,7 +113,7 @@ def fast_predict(doc: Any) -> Predict:
         n = q.shape[0]
         if isinstance(temps, pd.DataFrame):
             if has_lag and len(temps) > 1 and "time_s" in temps.columns:
-                return registry.predict_element_errors(doc, temps, q, direction)
+                return documents.predict_element_errors(doc, temps, q, direction)
             missing = [c for c in refs if c not in temps.columns]
             if missing:
                 raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
@@ -167,7 +167,7 @@ def fast_predict(doc: Any) -> Predict:
 
 def _checked_predict(doc: Any) -> Predict:
     """Return ``fast_predict(doc)`` if it reproduces the registry on probe poses, else the registry itself."""
-    from driftlab.models import registry
+    from driftlab.models import document as documents
 
     try:
         fast = fast_predict(doc)
@@ -182,8 +182,8 @@ def _checked_predict(doc: Any) -> Predict:
              ) -> kinematics.ElementErrors:
         """Return the registry's prediction (time-dependent terms at ``at``, POSIX s; now when None)."""
         if at is None:
-            return registry.predict_element_errors(doc, temps, q, direction)
-        return registry.predict_element_errors(doc, temps, q, direction, at=at)
+            return documents.predict_element_errors(doc, temps, q, direction)
+        return documents.predict_element_errors(doc, temps, q, direction, at=at)
 
     if fast is not None:
         try:

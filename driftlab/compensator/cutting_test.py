@@ -270,10 +270,10 @@ class LocalRLS:
     """The on-line RLS of eqs. 6.10-6.13 in process: one fit per translation on phi = [1, dT_k ...]."""
 
     def __init__(self, document: Any, channels: Sequence[str] = (), forgetting: float = 0.9, p0: float = 1.0) -> None:
-        from driftlab.models import registry
+        from driftlab.models import document as documents
         from driftlab.models.online import rls_init
 
-        self.doc = registry.validate_document(document)
+        self.doc = documents.validate_document(document)
         self.channels = list(channels)
         self.refs: dict[str, float] | None = None
         self.states = [rls_init(1 + len(self.channels), lam=forgetting, p0=p0) for _ in range(3)]
@@ -289,11 +289,11 @@ class LocalRLS:
     def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float],
                t_s: float) -> None:
         """Update the three fits with measured minus off-line predicted translation (eqs. 6.11-6.13)."""
-        from driftlab.models import registry
+        from driftlab.models import document as documents
         from driftlab.models.online import rls_update
 
         q = np.array([[xyz[0], xyz[1], xyz[2], 0.0, 0.0]])
-        offline = registry.predict_workspace_errors(self.doc, dict(temperatures), q)[0, 3:]
+        offline = documents.predict_workspace_errors(self.doc, dict(temperatures), q)[0, 3:]
         phi = self._phi(temperatures)
         self.states = [rls_update(st, phi, float(measured[k] - offline[k]))[0] for k, st in enumerate(self.states)]
         self.version += 1

@@ -19,8 +19,8 @@ from driftlab.jsonsafe import strict_json
 
 if TYPE_CHECKING:
     from driftlab.campaigns.store import JobInfo, Store
+    from driftlab.models.document import ModelDocument
     from driftlab.models.fitting import FitOptions, FitResult
-    from driftlab.models.registry import ModelDocument
 
 log = logging.getLogger(__name__)
 
@@ -48,8 +48,8 @@ def one_line(exc: BaseException) -> str:
 def fit_campaigns(store: Store, campaign_ids: Sequence[int], options: FitOptions | None = None,
                   progress: OnStage | None = None) -> tuple[FitResult, ModelDocument]:
     """Fit the stored campaigns, register the model as the machine's current version; return both."""
+    from driftlab.jobs.registry import register_model
     from driftlab.models.fitting import fit_bundles
-    from driftlab.models.registry import register_model
 
     ids = [int(c) for c in campaign_ids]
     if not ids:

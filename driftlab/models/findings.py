@@ -16,7 +16,7 @@ the per-link models of that (axis, term) as a candidate term (or forced in):
 
 The model document records every such term among its terms' features, the substitutions of faulty
 channels (``substitutions``), the time origin of drift terms (``time_origin``) and what became of
-each finding (``findings``), so that ``registry.predict_*`` reproduces them from the document alone.
+each finding (``findings``), so that ``document.predict_*`` reproduces them from the document alone.
 """
 
 from __future__ import annotations

@@ -19,6 +19,14 @@ import pandas as pd
 from driftlab.errors import ValidationError
 from driftlab.jsonsafe import strict_json
 from driftlab.metrics import rmse
+from driftlab.models.document import (
+    ALPHA_C_PER_DEGC,
+    MODEL_FORMAT,
+    ModelDocument,
+    document_json,
+    now_iso,
+    validate_document,
+)
 from driftlab.models.features import (
     INTERCEPT,
     Feature,
@@ -42,14 +50,6 @@ from driftlab.models.lines import (
 )
 from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import physical_check
-from driftlab.models.registry import (
-    ALPHA_C_PER_DEGC,
-    MODEL_FORMAT,
-    ModelDocument,
-    document_json,
-    now_iso,
-    validate_document,
-)
 from driftlab.models.regression import TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
 from driftlab.models.virtual_sensor import fit_virtual_sensors

@@ -14,6 +14,7 @@ import numpy as np
 
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
+from driftlab.vocabulary import TRANSLATIONS
 
 
 @dataclass
@@ -102,10 +103,12 @@ def online_regressors(n: int, dT: Mapping[str, np.ndarray] | None = None, channe
     return np.column_stack(cols)
 
 
-# ----------------------------------------------------------------------------- probe updates against the store
+# ----------------------------------------------------------------------------- probe updates (stored by driftlab.jobs.online)
 
 ONLINE_JOB = "online"
-PROBE_TERMS: tuple[str, ...] = ("dx", "dy", "dz")
+#: the forgetting factor of a new on-line state (eq. 6.12)
+DEFAULT_FORGETTING = 0.98
+PROBE_TERMS: tuple[str, ...] = TRANSLATIONS
 PROBE_COLUMNS: tuple[str, ...] = ("time_s", "x", "y", "z", "a", "b", "dx", "dy", "dz")
 
 
@@ -152,7 +155,7 @@ class OnlineReport:
 
 def online_residuals(document: Any, probe: Any) -> tuple[np.ndarray, np.ndarray]:
     """Return (time_s, (N, 3) measured minus off-line predicted dx, dy, dz) for probe measurements."""
-    from driftlab.models.registry import predict_workspace_errors
+    from driftlab.models.document import predict_workspace_errors
 
     q = np.column_stack([probe["x"], probe["y"], probe["z"], np.deg2rad(probe["a"]), np.deg2rad(probe["b"])])
     temps = probe.drop(columns=[c for c in PROBE_COLUMNS if c != "time_s"])
@@ -165,7 +168,7 @@ def online_update_document(
     document: Any, probe: Any, states: Mapping[str, RLSState] | None = None, lam: float = 0.98
 ) -> tuple[OnlineReport, dict[str, np.ndarray]]:
     """Return the report and per-term one-step predictions of the on-line model (phi = [1], eq. 6.10) over the probe data."""
-    from driftlab.models.registry import validate_document
+    from driftlab.models.document import validate_document
 
     doc = validate_document(document)
     _, resid = online_residuals(doc, probe)
@@ -183,136 +186,6 @@ def online_update_document(
             "correction_mm": float(run.state.theta[0]),
         }
     return OnlineReport(doc.machine, doc.version, len(resid), terms, out_states), preds
-
-
-def _legacy_states(store: Any, machine: str, model_version: int | None) -> dict[str, RLSState]:
-    """Return the states kept before the ``online_states`` table: the last finished ``online`` job's result."""
-    from sqlalchemy import select
-
-    from driftlab.campaigns.schema import Job
-
-    store.ensure_schema()
-    with store.engine.connect() as conn:
-        row = conn.execute(
-            select(Job.result).where(Job.kind == ONLINE_JOB, Job.machine_id == machine, Job.state == "done")
-            .order_by(Job.id.desc()).limit(1)
-        ).first()
-    if row is None or not row[0] or row[0].get("model_version") != model_version:
-        return {}
-    return {k: RLSState.from_dict(v) for k, v in row[0].get("states", {}).items()}
-
-
-def _states_of(row: Any) -> dict[str, RLSState]:
-    """Return the per-term states of an ``online_states`` row."""
-    return {k: RLSState(theta=np.asarray(row.theta[k], float), P=np.asarray(row.p[k], float), lam=row.lam,
-                        n_updates=row.n_updates) for k in row.theta}
-
-
-def read_online_states(store: Any, machine: str, model_version: int | None) -> tuple[dict[str, RLSState], int | None]:
-    """Return (the machine's on-line states for this model version, the row version they were read at).
-
-    States of another model version are not continued (empty). Before the machine's first row in
-    ``online_states``, a state kept the old way (as an ``online`` job's result) is read once; the
-    next update writes it to the table.
-    """
-    row = store.online_state(machine)
-    if row is None:
-        return _legacy_states(store, machine, model_version), None
-    if row.model_version != model_version:
-        return {}, row.version
-    return _states_of(row), row.version
-
-
-def latest_online_states(store: Any, machine: str, model_version: int | None) -> dict[str, RLSState]:
-    """Return the on-line states last stored for this machine and model version (empty when none)."""
-    return read_online_states(store, machine, model_version)[0]
-
-
-@dataclass
-class StoredUpdate:
-    """An on-line update as stored: the report, the one-step predictions, the residuals and the probe ids."""
-
-    report: OnlineReport
-    prior: dict[str, np.ndarray]
-    residual: np.ndarray  # (N, 3) measured minus off-line prediction
-    probe_ids: list[int]
-    attempts: int
-
-
-def store_update(store: Any, machine: str, probe: Any, measured_at: Sequence[Any], lam: float | None = None,
-                 temperatures: Sequence[Mapping[str, float]] | None = None, max_attempts: int = 50) -> StoredUpdate:
-    """Update the machine's on-line state with probe measurements; store the state and the probes together.
-
-    Optimistic concurrency: the state is read with its version, the update computed, and both the
-    new state and the probe rows are written in one transaction only if the version is unchanged;
-    otherwise the update is recomputed from the state that landed first (so no update is lost).
-    ``lam`` is the forgetting factor of a new state (default 0.98); choosing another one for a
-    running state is refused. ``measured_at`` gives each probe row's time (aware datetimes).
-    """
-    from driftlab.campaigns.store import StaleOnlineState
-    from driftlab.errors import ConflictError, NotFoundError
-    from driftlab.models.registry import validate_document
-
-    if len(measured_at) != len(probe):
-        raise ValidationError(f"{len(measured_at)} measurement times for {len(probe)} probe rows")
-    if len(set(measured_at)) != len(measured_at):
-        raise ValidationError("two probe measurements at the same time")
-    chans = [c for c in probe.columns if c not in PROBE_COLUMNS]
-    for attempt in range(1, max_attempts + 1):
-        info = store.current_model(machine)
-        if info is None:
-            raise NotFoundError(f"machine {machine!r} has no current model: run `driftlab fit` first")
-        doc = validate_document(info.document).model_copy(update={"version": info.version})
-        states, seen = read_online_states(store, machine, doc.version)
-        if states and lam is not None and float(lam) != next(iter(states.values())).lam:
-            raise ConflictError(f"the on-line state of model version {doc.version} has forgetting factor "
-                                f"{next(iter(states.values())).lam}; it can only be chosen when the state starts")
-        _, residual = online_residuals(doc, probe)
-        report, prior = online_update_document(doc, probe, states, DEFAULT_FORGETTING if lam is None else lam)
-        for st in report.states.values():
-            if not (np.all(np.isfinite(st.theta)) and np.all(np.isfinite(st.P))):
-                raise ValidationError("the on-line update diverged (non-finite state); check the inputs")
-        rows = []
-        for i, (_, r) in enumerate(probe.iterrows()):
-            temps = dict(temperatures[i]) if temperatures is not None else {c: float(r[c]) for c in chans}
-            rows.append({"measured_at": measured_at[i], "x": float(r["x"]), "y": float(r["y"]), "z": float(r["z"]),
-                         "a_deg": float(r["a"]), "b_deg": float(r["b"]), "dx": float(r["dx"]), "dy": float(r["dy"]),
-                         "dz": float(r["dz"]), "temperatures": temps})
-        first = report.states[PROBE_TERMS[0]]
-        try:
-            _, ids = store.save_online_state(
-                machine, seen, model_version_id=info.id, model_version=int(doc.version or 0), lam=first.lam,
-                n_updates=first.n_updates, theta={k: v.theta.tolist() for k, v in report.states.items()},
-                p={k: v.P.tolist() for k, v in report.states.items()}, probes=rows)
-        except StaleOnlineState:
-            continue
-        return StoredUpdate(report, prior, residual, ids, attempt)
-    raise ConflictError(f"machine {machine!r}: the on-line state kept changing under {max_attempts} attempts; retry")
-
-
-DEFAULT_FORGETTING = 0.98
-
-
-def reset_online_state(store: Any, machine: str) -> bool:
-    """Start the machine's on-line model afresh (after maintenance or a re-calibration); False when it had none.
-
-    The state row stays (its version moves on, so a concurrent update recomputes) with no terms:
-    the next probe starts a new RLS from the current off-line model (eq. 6.13, P(0)). Probe history stays.
-    """
-    from driftlab.campaigns.store import StaleOnlineState
-    from driftlab.errors import ConflictError
-
-    for _ in range(50):
-        row = store.online_state(machine)
-        if row is None or not row.theta:
-            return False
-        try:
-            store.save_online_state(machine, row.version, model_version_id=row.model_version_id,
-                                    model_version=row.model_version, lam=row.lam, n_updates=0, theta={}, p={})
-            return True
-        except StaleOnlineState:
-            continue
-    raise ConflictError(f"machine {machine!r}: the on-line state kept changing; retry the reset")
 
 
 def probe_times(probe: Any, start: Any = None) -> list[Any]:
@@ -342,15 +215,3 @@ def probe_times(probe: Any, start: Any = None) -> list[Any]:
         seen.add(at)
         out.append(at)
     return out
-
-
-def online_update(store: Any, machine: str, probe: Any, lam: float | None = None, start: Any = None) -> OnlineReport:
-    """Update the machine's on-line model with probe measurements and keep its state in the store.
-
-    The on-line model is kept apart from the off-line document (ch. 4.3, 6.4.3): its state is the
-    machine's row of ``online_states`` (continued while the model version stays current), and each
-    probe measurement is a row of ``probe_measurements`` written in the same transaction.
-    """
-    times = probe_times(probe, start)
-    data = probe.drop(columns=["measured_at"]) if "measured_at" in probe.columns else probe
-    return store_update(store, machine, data, times, lam).report

@@ -11,7 +11,7 @@ import pandas as pd
 
 from driftlab.campaigns.bundle import load_bundle, write_bundle
 from driftlab.campaigns.store import connect
-from driftlab.models import registry
+from driftlab.jobs import registry as model_registry
 
 TOKEN = "test-token-0123456789"
 MACHINE = "vmc-api-01"
@@ -100,7 +100,7 @@ def seed(url: str, tmp_path: Path) -> Seeded:
     path = write_bundle(tmp_path / "bundle", small_meta(), temps, cond, errors)
     with connect(url) as store:
         campaign_id = store.import_bundle(load_bundle(path))
-        doc = registry.register_model(store, model_document(), source_campaigns=[campaign_id])
+        doc = model_registry.register_model(store, model_document(), source_campaigns=[campaign_id])
     return Seeded(url, campaign_id, int(doc.version or 0))
 
 

@@ -300,7 +300,7 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
         off = client.app.state.driftlab  # type: ignore[attr-defined]
         import numpy as np
 
-        from driftlab.models.registry import predict_workspace_errors
+        from driftlab.models.document import predict_workspace_errors
 
         row = off.models.get(MACHINE).row
         w = predict_workspace_errors(row.document, body["temperatures"], np.array([[100.0, 50.0, -200.0, 0, 0]]))[0]
@@ -320,7 +320,7 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
     state = (await client.get(f"/machines/{MACHINE}/online")).json()
     assert state["n_updates"] == 30 and state["theta"] == last["theta"]
     # the state is the one `driftlab online` continues from
-    from driftlab.models.online import latest_online_states
+    from driftlab.jobs.online import latest_online_states
 
     shared = latest_online_states(store, MACHINE, seeded.model_version)
     assert shared["dz"].n_updates == 30 and shared["dz"].theta.tolist() == last["theta"]["dz"]
@@ -386,14 +386,14 @@ async def test_openapi_declares_every_operation_and_problem(client: httpx.AsyncC
 
 async def test_changes_by_other_processes_are_seen_after_the_ttl(seeded: Seeded, store) -> None:
     from driftlab.api.app import create_app
-    from driftlab.models import registry
+    from driftlab.jobs import registry as model_registry
 
     app = create_app(seeded.url, TOKEN, run_jobs=False, model_cache_ttl_s=0.05)
     url = f"/machines/{MACHINE}/model/current"
     async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
         first = await c.get(url)
         assert first.json()["version"] == 1
-        registry.register_model(store, model_document(coefficient=0.005), [seeded.campaign_id])  # not via the API
+        model_registry.register_model(store, model_document(coefficient=0.005), [seeded.campaign_id])  # not via the API
         versions = []
         for _ in range(200):  # bounded polls; the background refresh lands within a few
             await asyncio.sleep(0.02)

@@ -27,8 +27,8 @@ from driftlab.campaigns import db, partitions
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import Bundle, load_bundle
 from driftlab.campaigns.partitions import start_day
-from driftlab.campaigns.pgcluster import PgCluster
 from driftlab.campaigns.store import Store, connect
+from driftlab.testing.pgcluster import PgCluster
 
 MACHINE = "vmc-test-01"
 #: campaigns of one machine over three months (the last one's readings run into April: same partition)

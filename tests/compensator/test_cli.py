@@ -11,7 +11,8 @@ import pytest
 
 from driftlab.cli import main
 from driftlab.compensator.gcode import parse_program
-from driftlab.daq.sim.instruments import SimController, TinyWorld, WallClock, serial_url
+from driftlab.daq.sim.instruments import SimController, WallClock, serial_url
+from driftlab.testing.tinyworld import TinyWorld
 from tests.compensator.test_stream import Api, doc
 
 PROGRAM = "%\n(T=0)\nG90 G1 X0 Y0 Z0 F3000\nX4 Y2\n(T=3600)\nX8 Y4 A1.5\nG0 Z20\nM30\n%\n"

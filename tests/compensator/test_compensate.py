@@ -256,9 +256,9 @@ def _all_kinds_doc() -> dict:
 
 def test_fast_prediction_equals_the_registry_for_every_feature_kind():
     from driftlab.compensator.compensate import fast_predict
-    from driftlab.models import registry
+    from driftlab.models import document as documents
 
-    doc = registry.validate_document(_all_kinds_doc())
+    doc = documents.validate_document(_all_kinds_doc())
     rng = np.random.default_rng(3)
     n = 50
     q = np.column_stack([rng.uniform(-300, 300, (n, 3)), rng.uniform(-1, 1, (n, 2))])
@@ -267,7 +267,7 @@ def test_fast_prediction_equals_the_registry_for_every_feature_kind():
     frame = pd.DataFrame({"T9": rng.uniform(18, 30, n), "T10": rng.uniform(18, 30, n), "T11": rng.uniform(18, 30, n)})
     fast = fast_predict(doc)
     for temps in (snapshot, frame, frame.iloc[:1]):
-        want = registry.predict_element_errors(doc, temps, q, direction)
+        want = documents.predict_element_errors(doc, temps, q, direction)
         got = fast(q, temps, direction)
         assert set(got) == set(want)
         for e in want:
@@ -276,15 +276,15 @@ def test_fast_prediction_equals_the_registry_for_every_feature_kind():
 
 
 def test_model_falls_back_to_the_registry_when_the_fast_path_disagrees(monkeypatch, caplog):
-    from driftlab.models import registry
+    from driftlab.models import document as documents
 
-    real = registry.predict_element_errors
+    real = documents.predict_element_errors
 
     def changed(doc, temps, q, direction=None):
         out = real(doc, temps, q, direction)
         return {e: v * 1.5 for e, v in out.items()}
 
-    monkeypatch.setattr(registry, "predict_element_errors", changed)
+    monkeypatch.setattr(documents, "predict_element_errors", changed)
     model = ErrorModel.from_document(_all_kinds_doc())
     assert model.predict.__name__ == "slow"
     assert "registry" in caplog.text

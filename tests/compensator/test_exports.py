@@ -142,7 +142,7 @@ def test_cli_export_comp_writes_each_format(fitted, tmp_path, capsys):
 def test_cli_export_comp_from_a_registered_version(fitted, tmp_path, capsys):
     from driftlab.campaigns.bundle import load_bundle
     from driftlab.campaigns.store import connect
-    from driftlab.models.registry import register_model
+    from driftlab.jobs.registry import register_model
 
     model, temps, root = fitted
     url = f"sqlite:///{tmp_path / 's.sqlite'}"

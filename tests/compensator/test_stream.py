@@ -31,9 +31,10 @@ from driftlab.compensator.stream import (
 )
 from driftlab.daq.machine_link import SerialMachineLink
 from driftlab.daq.retry import RetryPolicy
-from driftlab.daq.sim.instruments import ManualClock, SimController, TinyWorld, serial_url
+from driftlab.daq.sim.instruments import ManualClock, SimController, serial_url
 from driftlab.daq.transport import LineChannel, SerialPort
 from driftlab.errors import InstrumentError
+from driftlab.testing.tinyworld import TinyWorld
 
 
 def doc(coef: float, version: int) -> dict:

@@ -210,11 +210,11 @@ def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> No
         SimController,
         SimLaser,
         SimThermocoupleCard,
-        TinyWorld,
         WallClock,
         serial_url,
         visa_address,
     )
+    from driftlab.testing.tinyworld import TinyWorld
 
     world, clock = TinyWorld(channels=4), WallClock(acceleration=1.0)
     card = SimThermocoupleCard(world, clock, {0: "T1", 1: "T2", 2: "T3", 3: "T4"}).start()

@@ -23,7 +23,6 @@ from driftlab.daq.sim.instruments import (
     SimLaser,
     SimSphere,
     SimThermocoupleCard,
-    TinyWorld,
     WallClock,
     World,
     WorldStage,
@@ -36,6 +35,7 @@ from driftlab.daq.sim.instruments import (
 from driftlab.daq.thermocouple import ThermocoupleCard
 from driftlab.daq.transport import LineChannel, SerialPort, VisaPort
 from driftlab.errors import InstrumentError
+from driftlab.testing.tinyworld import TinyWorld
 
 FAST = RetryPolicy(attempts=3, base_delay_s=0.0)
 

@@ -8,9 +8,9 @@ import pytest
 
 from driftlab.campaigns.bundle import Bundle, CampaignMeta
 from driftlab.errors import ValidationError
+from driftlab.models.document import predict_workspace_errors
 from driftlab.models.features import Inputs
 from driftlab.models.fitting import FitOptions, fit_bundles, stage_elements
-from driftlab.models.registry import predict_workspace_errors
 from driftlab.physics.kinematics import workspace_error
 
 NOISE_MM = 0.0005
@@ -228,7 +228,7 @@ def store_with_campaign(tmp_path):
 
 def test_cli_fit_registers_versions_and_show_gives_the_document(store_with_campaign, tmp_path, capsys):
     from driftlab.cli import main
-    from driftlab.models.registry import get_model
+    from driftlab.jobs.registry import get_model
 
     url, store, cid = store_with_campaign
     report_path = tmp_path / "report.json"
@@ -442,7 +442,7 @@ def planted_vm(tmp_path_factory):
 def test_findings_fold_into_the_next_fit_and_lower_the_holdout_rmse(planted_vm, tmp_path, capsys):
     from driftlab.campaigns.store import connect
     from driftlab.cli import main
-    from driftlab.models.registry import get_model
+    from driftlab.jobs.registry import get_model
 
     url, cid, path, report = planted_vm
     assert [(e["kind"], e["channels"]) for e in report["effects"]] == [("unmapped_channel", ["T21"])]
@@ -511,7 +511,7 @@ def test_forced_lag_finding_and_its_prediction_from_the_document():
 def test_document_substitution_and_drift_are_evaluated_from_the_document():
     from datetime import datetime, timezone
 
-    from driftlab.models.registry import predict_element_errors
+    from driftlab.models.document import predict_element_errors
 
     doc = {
         "machine": "m", "time_origin": "2026-03-02T00:00:00Z",

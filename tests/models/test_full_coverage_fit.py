@@ -19,9 +19,9 @@ from driftlab.campaigns.db import store_engine
 from driftlab.campaigns.plan import load_plan
 from driftlab.campaigns.store import Store
 from driftlab.daemon.run import run_daemon
+from driftlab.models.document import predict_workspace_errors
 from driftlab.models.features import Feature, session_terms
 from driftlab.models.fitting import FitOptions, fit_bundles
-from driftlab.models.registry import predict_workspace_errors
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO_FULL = ROOT / "examples" / "plans" / "demo-full.yaml"

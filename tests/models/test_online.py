@@ -125,14 +125,14 @@ def test_two_concurrent_updates_both_land(store_url):
 
     from driftlab.campaigns.bundle import load_bundle, write_bundle
     from driftlab.campaigns.store import connect
-    from driftlab.models import registry
-    from driftlab.models.online import latest_online_states, store_update
+    from driftlab.jobs import registry as model_registry
+    from driftlab.jobs.online import latest_online_states, store_update
     from tests.api.helpers import MACHINE, model_document, small_frames, small_meta
 
     with tempfile.TemporaryDirectory() as tmp, connect(store_url) as store:
         temps, cond, errors = small_frames()
         store.import_bundle(load_bundle(write_bundle(f"{tmp}/b", small_meta(), temps, cond, errors)))
-        doc = registry.register_model(store, model_document())
+        doc = model_registry.register_model(store, model_document())
     t0 = datetime(2026, 3, 3, 8, tzinfo=timezone.utc)
     attempts: list[int] = []
     errors_seen: list[BaseException] = []
@@ -189,14 +189,15 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
 
     from driftlab.campaigns.bundle import load_bundle, write_bundle
     from driftlab.campaigns.store import connect
-    from driftlab.models import registry
-    from driftlab.models.online import ONLINE_JOB, online_update
+    from driftlab.jobs import registry as model_registry
+    from driftlab.jobs.online import online_update
+    from driftlab.models.online import ONLINE_JOB
     from tests.api.helpers import MACHINE, model_document, small_frames, small_meta
 
     with connect(f"sqlite:///{tmp_path / 's.sqlite'}") as store:
         temps, cond, errors = small_frames()
         store.import_bundle(load_bundle(write_bundle(tmp_path / "b", small_meta(), temps, cond, errors)))
-        doc = registry.register_model(store, model_document())
+        doc = model_registry.register_model(store, model_document())
         old = {t: RLSState(np.array([0.001]), np.array([[0.5]]), 0.95, 7).to_dict() for t in ("dx", "dy", "dz")}
         job = store.record_job(ONLINE_JOB, {}, machine_id=MACHINE)
         store.start_job(job, "w")

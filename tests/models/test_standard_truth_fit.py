@@ -91,7 +91,7 @@ def test_the_compensator_reads_the_line_corrections(tmp_path: Path) -> None:
     On a single measured line there is no other line to disagree with, so the document's
     work-space prediction at that line's points equals the fit's own.
     """
-    from driftlab.models.registry import predict_workspace_errors
+    from driftlab.models.document import predict_workspace_errors
 
     case = make_case([], seed=2, hours=48.0, terms={"X": ["dz"]}, n_channels=10, noise_mm=1e-7)
     bundle = _with_ar1(case.bundle, rho=0.6, sigma=NOISE_MM, seed=9)

@@ -144,14 +144,15 @@ def get_version(machine_id: MachineId, version: Version, store: Annotated[Store,
 def register(machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiState, Depends(get_state)],
              response: Response) -> Any:
     """Validate and store a model document as the machine's next version, current from now on."""
-    from driftlab.models import registry
+    from driftlab.jobs import registry as model_registry
+    from driftlab.models import document as documents
 
     check_json(body.document)
-    doc = registry.validate_document(body.document)
+    doc = documents.validate_document(body.document)
     if doc.machine != machine_id:
         raise ValidationError(f"the document is of machine {doc.machine!r}, not {machine_id!r}")
     api_queries.get_machine(state.store, machine_id)  # 404 for an unknown machine (registry would create it)
-    final = registry.register_model(state.store, doc, source_campaigns=body.source_campaigns)
+    final = model_registry.register_model(state.store, doc, source_campaigns=body.source_campaigns)
     state.models.invalidate(machine_id)
     row = api_queries.model_version(state.store, machine_id, int(final.version or 0))
     response.headers["Location"] = f"/machines/{machine_id}/models/{row.version}"

@@ -23,7 +23,7 @@ from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import OnlineOut, ProbeIn, Vector3
 from driftlab.campaigns import api_queries
 from driftlab.errors import NotFoundError, ValidationError
-from driftlab.models import online
+from driftlab.jobs import online
 
 router = APIRouter(tags=["online"])
 

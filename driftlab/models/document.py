@@ -1,8 +1,11 @@
-"""Versioned model documents: build, validate (pydantic), predict without the training data, store."""
+"""Model documents: their schema (pydantic), validation and prediction without the training data.
+
+Pure: storing and listing versions is ``driftlab.jobs.registry``, which joins documents and the store.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from datetime import datetime, timezone
 from typing import Any, Literal
 
@@ -10,7 +13,7 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from driftlab.errors import NotFoundError, ValidationError
+from driftlab.errors import ValidationError
 from driftlab.jsonsafe import strict_json
 from driftlab.models.features import Feature, Inputs, design_matrix, required_lags
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
@@ -372,68 +375,3 @@ def input_ranges(doc: ModelDocument, temperatures: Mapping[str, float] | pd.Data
         if np.any(v < r.min) or np.any(v > r.max):
             out.append(c)
     return out
-
-
-# ----------------------------------------------------------------------------- store
-
-
-def register_model(store: Any, document: Mapping[str, Any] | ModelDocument, source_campaigns: Sequence[int] = ()) -> ModelDocument:
-    """Store a document as its machine's new current version (the old one retired, still readable); return it."""
-    doc = validate_document(document)
-    stored = document_json(doc.model_copy(update={"version": None}))
-    try:
-        info = store.register_model(doc.machine, stored, [int(c) for c in source_campaigns])
-    except NotFoundError:
-        raise NotFoundError(f"no machine {doc.machine!r} in the store: import one of its campaigns first") from None
-    return _from_row(info)
-
-
-def _from_row(info: Any) -> ModelDocument:
-    """Return the document of a registry row with its version number and status filled in."""
-    doc = validate_document(info.document)
-    return doc.model_copy(update={"version": int(info.version), "source_campaigns": list(info.source_campaigns)
-                                  or doc.source_campaigns})
-
-
-def list_models(store: Any, machine: str | None = None) -> list[dict[str, Any]]:
-    """Return one summary row per stored version (machine, version, status, created, campaigns, size)."""
-    if machine:
-        rows = store.model_versions(machine)
-    else:
-        from sqlalchemy import select
-
-        from driftlab.campaigns.schema import Machine
-
-        store.ensure_schema()
-        with store.engine.connect() as conn:
-            machines = [m for (m,) in conn.execute(select(Machine.id).order_by(Machine.id))]
-        rows = [r for m in machines for r in store.model_versions(m)]
-    return [
-        {
-            "machine": r.machine_id,
-            "version": r.version,
-            "status": r.status,
-            "created_at": r.created_at.isoformat() if r.created_at else None,
-            "source_campaigns": list(r.source_campaigns or []),
-            "terms": len((r.document or {}).get("terms", [])),
-            "kept_channels": len((r.document or {}).get("kept_channels", [])),
-        }
-        for r in rows
-    ]
-
-
-def get_model(store: Any, machine: str, version: int | str = "current") -> ModelDocument:
-    """Return a stored document: a version number or ``current``; NotFoundError when there is none."""
-    if str(version) == "current":
-        info = store.current_model(machine)
-        if info is None:
-            raise NotFoundError(f"machine {machine} has no current model: run `driftlab fit` first")
-        return _from_row(info)
-    try:
-        v = int(version)
-    except ValueError:
-        raise ValidationError(f"model version must be a number or 'current', got {version!r}") from None
-    for info in store.model_versions(machine):
-        if info.version == v:
-            return _from_row(info)
-    raise NotFoundError(f"no model version {v} for machine {machine}")

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from driftlab.errors import ValidationError
-from driftlab.models.registry import (
+from driftlab.models.document import (
     ModelDocument,
     document_json,
     input_ranges,
