@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from driftlab import demo_report
+from driftlab.commands import demo_report
 from driftlab.campaigns.bundle import write_bundle
 from driftlab.cli import main
 from tests import effects_generator as gen

@@ -231,7 +231,7 @@ def _demo(args: argparse.Namespace) -> int:
     test = tests["thermal+wear"]
 
     # 6. the report
-    from driftlab import demo_report as rep
+    from driftlab.commands import demo_report as rep
 
     table = test.table()
     diagnosis = rep.diagnosis_summary(diag_report)
