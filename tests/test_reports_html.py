@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from driftlab.commands import demo_report
 from driftlab.campaigns.bundle import write_bundle
 from driftlab.cli import main
+from driftlab.commands import demo_report
 from tests import effects_generator as gen
 
 RAW_NAME = re.compile(r"\b(lag_T\d+|time_days|dT_T\d+|tau_s|start_s)\b")

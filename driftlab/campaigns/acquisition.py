@@ -20,7 +20,7 @@ import numpy as np
 from driftlab.campaigns.db import write_transaction
 from driftlab.campaigns.plan import Cursor, Plan, SweepPoint
 from driftlab.errors import ConflictError, DriftlabError, ValidationError
-from driftlab.geometry import Geometry
+from driftlab.physics.geometry import Geometry
 from driftlab.readings import Reading, ScanBlock, TemperatureScan
 from driftlab.vocabulary import TERMS
 

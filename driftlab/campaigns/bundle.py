@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.errors import ValidationError
-from driftlab.geometry import Geometry
+from driftlab.physics.geometry import Geometry
 from driftlab.vocabulary import AXES, TERMS, Axis
 from driftlab.vocabulary import TRANSLATIONS as TRANSLATION_TERMS
 

@@ -47,7 +47,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from driftlab.campaigns.bundle import ID_PATTERN
 from driftlab.campaigns.setups import Setup, all_cells, coverage, default_laser_setup
 from driftlab.errors import ValidationError
-from driftlab.geometry import Geometry
+from driftlab.physics.geometry import Geometry
 from driftlab.vocabulary import Axis, Term
 
 PLAN_FORMAT = "driftlab-plan/1"

@@ -18,10 +18,9 @@ from driftlab.jsonsafe import strict_json
 from driftlab.models.features import Feature, Inputs, design_matrix, required_lags
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
 from driftlab.physics.lag import first_order_lag
+from driftlab.physics.thermal import ALPHA_C
 
 MODEL_FORMAT = "driftlab-model/1"
-#: the thermal expansion coefficient of the castings (ch. 3.5)
-ALPHA_C_PER_DEGC = 12.1e-6
 
 
 class _Doc(BaseModel):
@@ -139,7 +138,7 @@ class ModelDocument(_Doc):
     kept_channels: list[str] = Field(default_factory=list)
     inputs: dict[str, InputRange]
     dims: dict[str, list[float]] = Field(default_factory=lambda: {k: list(v) for k, v in TABLE_A1.items()})
-    alpha_c_per_degC: float = ALPHA_C_PER_DEGC
+    alpha_c_per_degC: float = ALPHA_C  # ch. 3.5
     terms: list[TermDoc]
     screening: dict[str, Any] = Field(default_factory=dict)
     validation: list[dict[str, Any]] = Field(default_factory=list)

@@ -20,7 +20,6 @@ from driftlab.errors import ValidationError
 from driftlab.jsonsafe import strict_json
 from driftlab.metrics import rmse
 from driftlab.models.document import (
-    ALPHA_C_PER_DEGC,
     MODEL_FORMAT,
     ModelDocument,
     document_json,
@@ -49,11 +48,12 @@ from driftlab.models.lines import (
     line_pool,
 )
 from driftlab.models.neural import NeuralComparison, neural_comparisons
-from driftlab.models.physical_check import physical_check
+from driftlab.models.physical_check import physical_check, stated_geometries
 from driftlab.models.regression import TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
 from driftlab.models.virtual_sensor import fit_virtual_sensors
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
+from driftlab.physics.thermal import ALPHA_C
 from driftlab.vocabulary import AXES
 
 log = logging.getLogger(__name__)
@@ -1080,7 +1080,7 @@ def _fit_bundles(
         "kept_channels": list(kept),
         "inputs": inputs,
         "dims": {k: list(v) for k, v in dims.items()},
-        "alpha_c_per_degC": ALPHA_C_PER_DEGC,
+        "alpha_c_per_degC": ALPHA_C,
         "terms": terms,
         "screening": screening.to_dict(),
         "validation": validation.to_dict("records"),
@@ -1148,14 +1148,12 @@ def chain_dims(bundles: Sequence[Any]) -> dict[str, tuple[float, float, float]]:
 
     Campaigns that disagree on the links are refused (one machine has one geometry).
     """
-    from driftlab.geometry import GEOMETRY_LINKS
+    from driftlab.physics.geometry import GEOMETRY_LINKS
 
     dims = {k: tuple(float(x) for x in v) for k, v in TABLE_A1.items()}
     stated: dict[str, tuple[float, float, float]] | None = None
-    for b in bundles:
-        g = getattr(b.meta.machine, "geometry", None)
-        links = getattr(g, "links_mm", None) if g is not None and not isinstance(g, Mapping) else (
-            (g or {}).get("links_mm"))
+    for g, _names in stated_geometries(bundles).values():
+        links = g.get("links_mm")
         if not links:
             continue
         here = {GEOMETRY_LINKS[name]: tuple(float(x) for x in v) for name, v in dict(links).items()}

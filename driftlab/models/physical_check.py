@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from driftlab.geometry import BENDING_SIDES, GEOMETRY_LINKS
+from driftlab.physics.geometry import BENDING_SIDES, GEOMETRY_LINKS
+from driftlab.physics.thermal import ALPHA_C
 from driftlab.vocabulary import TRANSLATIONS
 
 STATUS_COMPARED = "compared"
@@ -66,11 +67,11 @@ def _plain(geometry: Any) -> dict[str, Any] | None:
     return json.loads(json.dumps(dict(geometry)))
 
 
-def machine_geometry(bundles: Sequence[Any]) -> tuple[str, dict[str, Any] | None, str]:
-    """Return (status, geometry, note): the one geometry the campaigns of a machine state.
+def stated_geometries(bundles: Sequence[Any]) -> dict[str, tuple[dict[str, Any], list[str]]]:
+    """Return every distinct geometry the campaigns state (``machine.geometry``), keyed by its JSON.
 
-    Campaigns that state none are fine beside one that does; two different stated geometries are
-    a conflict, reported as such (no comparison) rather than resolved by a guess.
+    Each value is (the geometry as plain JSON, the names of the campaigns that state it). This is
+    the one reader of stated geometry: the physical check and the fit's chain lengths both use it.
     """
     stated: dict[str, tuple[dict[str, Any], list[str]]] = {}
     for b in bundles:
@@ -78,6 +79,16 @@ def machine_geometry(bundles: Sequence[Any]) -> tuple[str, dict[str, Any] | None
         if g is not None:
             key = json.dumps(g, sort_keys=True)
             stated.setdefault(key, (g, []))[1].append(str(getattr(b, "name", "?")))
+    return stated
+
+
+def machine_geometry(bundles: Sequence[Any]) -> tuple[str, dict[str, Any] | None, str]:
+    """Return (status, geometry, note): the one geometry the campaigns of a machine state.
+
+    Campaigns that state none are fine beside one that does; two different stated geometries are
+    a conflict, reported as such (no comparison) rather than resolved by a guess.
+    """
+    stated = stated_geometries(bundles)
     machine = bundles[0].meta.machine.id if bundles else "?"
     if not stated:
         return STATUS_NO_GEOMETRY, None, (
@@ -123,7 +134,7 @@ def physical_table(
     from driftlab.models.fitting import SCREW_STRUCTURES, STRUCTURE_ELEMENT
 
     g = _plain(geometry) or {}
-    alpha_c = float(g.get("alpha_c_per_degC", 12.1e-6))
+    alpha_c = float(g.get("alpha_c_per_degC", ALPHA_C))
     links = {LINK_OF_NAME[k]: tuple(v) for k, v in (g.get("links_mm") or {}).items() if k in LINK_OF_NAME}
     screws = dict(g.get("screw_fixed_mm") or {})
     bending = dict(g.get("bending") or {})

@@ -106,7 +106,7 @@ def test_the_document_alone_follows_every_session_up_to_its_datum(full_fit) -> N
 def test_the_daemon_campaign_carries_the_stated_geometry_into_table_6_3(full_fit) -> None:
     """The plan and the scenario state the thesis machine's lengths: the campaign keeps them, the fit compares."""
     from driftlab.daq.sim.truth import STATED_GEOMETRY
-    from driftlab.geometry import Geometry
+    from driftlab.physics.geometry import Geometry
 
     bundle, result = full_fit
     assert bundle.meta.machine.geometry == Geometry.model_validate(dict(STATED_GEOMETRY))

@@ -16,7 +16,6 @@ import yaml
 
 from driftlab.campaigns.bundle import Bundle, BundleError, CampaignMeta, load_bundle, write_bundle
 from driftlab.daq.sim import truth
-from driftlab.geometry import Geometry
 from driftlab.models.features import Feature
 from driftlab.models.fitting import ElementModel
 from driftlab.models.physical_check import (
@@ -26,6 +25,7 @@ from driftlab.models.physical_check import (
     machine_geometry,
     physical_check,
 )
+from driftlab.physics.geometry import Geometry
 
 ROOT = Path(__file__).resolve().parents[2]
 ALPHA_C = 12.1e-6  # ch. 3.5: "a typical value for alpha_c is 12.1e-6 /degC"

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.errors import ValidationError
-from driftlab.geometry import Geometry
+from driftlab.physics.geometry import Geometry
 from driftlab.vocabulary import ROTATIONS, Axis, Term
 
 ANGLE_TERMS: frozenset[str] = frozenset(ROTATIONS)

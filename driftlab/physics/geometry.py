@@ -14,6 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from driftlab.physics.thermal import ALPHA_C
 from driftlab.vocabulary import LinearAxis, Rotation, Translation
 
 #: the fixed links of Table A.1 by the name a geometry block gives them (the HTM chain's T1..T6, ch. 4)
@@ -53,7 +54,7 @@ class Geometry(_Strict):
 
     source: str = Field(default="", max_length=_MAX_TEXT)
     #: expansion coefficient of the castings (eq. 3.1: 12.1e-6 /degC for cast iron and steel)
-    alpha_c_per_degC: float = Field(default=12.1e-6, gt=0, le=1e-4, allow_inf_nan=False)
+    alpha_c_per_degC: float = Field(default=ALPHA_C, gt=0, le=1e-4, allow_inf_nan=False)
     #: fixed links of the chain (Table A.1): (a, b, c) in mm along X, Y, Z
     links_mm: dict[LinkName, tuple[float, float, float]] = Field(default_factory=dict)
     #: non-travelled length l of each ballscrew, motor to nut at position 0 (eq. 3.2)
