@@ -17,10 +17,11 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
-from typing import Any, Union
+from typing import Any, TypedDict, Union
 
 import numpy as np
 import pandas as pd
+from typing_extensions import Unpack
 
 from driftlab.compensator.gcode import (
     ROTARY,
@@ -790,22 +791,27 @@ def compensate_stream(
     )
 
 
+class StreamOptions(TypedDict, total=False):
+    """The keyword options of :func:`compensate_stream`, passed on unchanged by :func:`compensate_file`."""
+
+    start: tuple[float, ...] | None
+    resolution_mm: float
+    resolution_deg: float
+    max_segment_mm: float
+    max_segment_deg: float
+    chunk_bytes: int
+    chunk_points: int
+    scan: ProgramScan | None
+
+
 def compensate_file(
     program_path: str | Path,
     model: ErrorModel,
     temperatures: TemperatureTable | Temperatures,
     out_path: str | Path,
-    *,
-    start: tuple[float, ...] | None = None,
-    resolution_mm: float = RESOLUTION_MM,
-    resolution_deg: float = RESOLUTION_DEG,
-    max_segment_mm: float = 5.0,
-    max_segment_deg: float = 5.0,
-    chunk_bytes: int = STREAM_CHUNK_BYTES,
-    chunk_points: int = 1 << 17,
-    scan: ProgramScan | None = None,
+    **options: Unpack[StreamOptions],
 ) -> OfflineResult:
-    """Parse, correct and write a program in constant memory (``compensate_stream``).
+    """Parse, correct and write a program in constant memory (``compensate_stream`` with ``options``).
 
     The text goes to ``OUT.part``, renamed to ``out_path`` only once the whole program is done:
     nothing is written when the program does not parse or cannot be corrected.
@@ -814,11 +820,7 @@ def compensate_file(
     tmp = out_path.with_name(out_path.name + ".part")
     try:
         with tmp.open("wb") as fh:
-            result = compensate_stream(
-                program_path, model, temperatures, fh, start=start, resolution_mm=resolution_mm,
-                resolution_deg=resolution_deg, max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
-                chunk_bytes=chunk_bytes, chunk_points=chunk_points, scan=scan,
-            )
+            result = compensate_stream(program_path, model, temperatures, fh, **options)
         tmp.replace(out_path)
     except BaseException:
         tmp.unlink(missing_ok=True)
