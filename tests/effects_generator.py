@@ -24,26 +24,23 @@ exactly as the catalogue defines them:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from driftlab.campaigns.bundle import Bundle, _as_meta
+from driftlab.physics.lag import first_order_lag_even
+from driftlab.testing.openworld import OpenPlanted
 
 TERMS_MM = ("dx", "dy", "dz")
 
 
-@dataclass
-class Planted:
-    """One hidden effect, as the catalogue of the bundle spec defines it."""
-
-    kind: str
-    axis: str
-    term: str
-    channels: list[str] = field(default_factory=list)
-    params: dict[str, Any] = field(default_factory=dict)
+def Planted(kind: str, axis: str, term: str, channels: list[str] | None = None,  # noqa: N802 - reads as the type
+            params: dict[str, Any] | None = None) -> OpenPlanted:
+    """Return one hidden effect as the catalogue of the bundle spec states it (no element: planted on the term)."""
+    return OpenPlanted(kind, axis, term, "", "", list(channels or []), dict(params or {}))
 
 
 @dataclass
@@ -51,20 +48,10 @@ class Case:
     """A generated bundle and what was planted in it."""
 
     bundle: Bundle
-    planted: list[Planted]
+    planted: list[OpenPlanted]
     noise: dict[str, float]
     model_channels: dict[str, list[str]]
     signal_rms: dict[int, float]  # planted effect index -> RMS of its contribution to the errors
-
-
-def _lag(x: np.ndarray, dt: float, tau: float) -> np.ndarray:
-    """First-order lag, starting at rest on the first sample (independent of driftlab's filter)."""
-    a = np.exp(-dt / tau)
-    y = np.empty_like(x)
-    y[0] = x[0]
-    for i in range(1, x.shape[0]):
-        y[i] = a * y[i - 1] + (1 - a) * x[i]
-    return y
 
 
 def _detectable_rms(add: np.ndarray, rp: np.ndarray, rt: np.ndarray, t: np.ndarray, readings: np.ndarray,
@@ -81,7 +68,7 @@ def _detectable_rms(add: np.ndarray, rp: np.ndarray, rt: np.ndarray, t: np.ndarr
     return float(np.sqrt(np.mean(res * res)))
 
 
-def make_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s: float = 120.0,
+def make_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, scan_s: float = 120.0,
               sweep_s: float = 1200.0, terms: dict[str, list[str]] | None = None, n_channels: int = 10,
               positions: int = 7, noise_mm: float = 5e-4, noise_rad: float = 5e-7,
               model_channels: dict[str, list[str]] | None = None, with_model_channels: bool = True,
@@ -125,7 +112,7 @@ def make_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s
         gains[j % n_src] += rng.uniform(2, 6)
         tau = rng.uniform(10, 150) * 60
         drive = room_air + u @ gains
-        true[:, j] = _lag(drive, scan_s, tau) + rng.uniform(-1, 1)
+        true[:, j] = first_order_lag_even(drive, scan_s, tau) + rng.uniform(-1, 1)
     readings = true + rng.normal(0, 0.01, true.shape)
 
     for p in planted:  # faults change the readings, not the structure
@@ -177,7 +164,7 @@ def make_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s
             for c, b in coefs.items():
                 j = names.index(c)
                 if c in lagged:
-                    lg = _lag(true[:, j], scan_s, lagged[c])
+                    lg = first_order_lag_even(true[:, j], scan_s, lagged[c])
                     col = np.interp(rt, t, lg)
                     y = y + b * (col - col[0])
                 else:
@@ -198,7 +185,7 @@ def make_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s
                     add = p.params["coef_per_degC2"] * dT_true[:, names.index(p.channels[0])] ** 2
                 elif p.kind == "thermal_lag":
                     j = names.index(p.channels[0])
-                    col = np.interp(rt, t, _lag(true[:, j], scan_s, p.params["tau_s"]))
+                    col = np.interp(rt, t, first_order_lag_even(true[:, j], scan_s, p.params["tau_s"]))
                     add = coefs[p.channels[0]] * ((col - col[0]) - dT_true[:, j])
                 if p.kind == "sensor_fault":  # what the standard model suffers from the bad readings
                     j = names.index(p.channels[0])
@@ -236,7 +223,7 @@ class VMCase:
     """A bundle simulated on the virtual machine, with the truth record of the simulation."""
 
     bundle: Bundle
-    planted: list[Planted]
+    planted: list[OpenPlanted]
     truth: dict[str, Any]
     noise: dict[str, float]
 
@@ -245,7 +232,7 @@ class VMCase:
         return float(self.truth["hidden"][i].get("rms_beyond_standard_model", float("nan")))
 
 
-def vm_case(planted: list[Planted], seed: int = 0, hours: float = 36.0, scan_s: float = 120.0,
+def vm_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, scan_s: float = 120.0,
             sweep_s: float = 1200.0, points: int = 6, keep: list[tuple[str, str]] | None = None,
             thermocouple_degC: float | None = None, stated_noise: bool = True) -> VMCase:
     """Return a :class:`VMCase`: the virtual machine's campaign with ``planted`` hidden, reduced to ``keep``.
