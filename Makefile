@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench setup clean
+.PHONY: demo test lint bench setup clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -18,7 +18,16 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/driftlab demo --out demo-out
 
-test: $(STAMP)
+# The code contracts of docs/architecture.md: lint, one format, types, the import layers, the module map.
+LINTED := driftlab tests benchmarks docs
+lint: $(STAMP)
+	$(BIN)/ruff check $(LINTED)
+	$(BIN)/ruff format --check $(LINTED)
+	$(BIN)/mypy
+	$(BIN)/lint-imports
+	$(BIN)/python docs/module_map.py --check
+
+test: $(STAMP) lint
 	DRIFTLAB_REQUIRE_PG=$${DRIFTLAB_REQUIRE_PG:-1} $(BIN)/python -m pytest -n 2 --dist loadfile -q
 
 bench: $(STAMP)

@@ -1,6 +1,6 @@
 """HTM kinematic model of the five-axis machine (thesis ch. 4.2-4.4), vectorised over N poses.
 
-Conventions (docs/interfaces.md):
+Conventions (units and term order: driftlab.vocabulary; layers: docs/architecture.md):
 
 * error vectors ``p`` are ``(alpha, beta, gamma, dx, dy, dz)`` (rad, mm), arrays ``(N, 6)``;
 * chain (eq. 4.12) ``T = T1 @ PhiZ @ T2 @ PhiY @ T3 @ PhiX @ T4 @ ThetaX @ T5 @ ThetaY @ T6``;

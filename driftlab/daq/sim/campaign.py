@@ -1,4 +1,4 @@
-"""Simulated test campaigns on the virtual machine, as bundle v1 frames (docs/interfaces.md)."""
+"""Simulated test campaigns on the virtual machine, as bundle v1 frames (docs/bundle.md)."""
 
 from __future__ import annotations
 

@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 
 @runtime_checkable
 class World(Protocol):
-    """What the simulated instruments read: VirtualMachine satisfies it (docs/interfaces.md)."""
+    """What the simulated instruments read: VirtualMachine and testing.tinyworld.TinyWorld satisfy it."""
 
     def temperatures(self, t_s: float) -> Mapping[str, float]:
         """Return degC per thermocouple channel at ``t_s`` (NaN where the junction is open)."""
