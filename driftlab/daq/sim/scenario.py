@@ -20,6 +20,9 @@ from pydantic import ValidationError as PydanticValidationError
 from driftlab.errors import ValidationError
 from driftlab.geometry import Geometry
 
+Axis = Literal["X", "Y", "Z", "A", "B"]
+HeatSource = Literal["spindle", "feed", "combined", "idle", "off"]
+
 AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
 TERMS: tuple[str, ...] = ("alpha", "beta", "gamma", "dx", "dy", "dz")
 ANGLE_TERMS: frozenset[str] = frozenset({"alpha", "beta", "gamma"})
@@ -100,8 +103,8 @@ class Stage(_Strict):
     name: str = Field(min_length=1)
     start_s: float = Field(ge=0, allow_inf_nan=False)
     end_s: float = Field(ge=0, allow_inf_nan=False)
-    heat_source: Literal["spindle", "feed", "combined", "idle", "off"]
-    axis: Literal["X", "Y", "Z", "A", "B"] | None = None
+    heat_source: HeatSource
+    axis: Axis | None = None
     spindle_rpm: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     feed_mm_min: float = Field(default=0.0, ge=0, allow_inf_nan=False)  # deg/min for A/B
 
@@ -129,7 +132,7 @@ class HiddenEffect(_Strict):
 
     kind: Literal["reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift",
                   "quadratic"]
-    axis: Literal["X", "Y", "Z", "A", "B"] | None = None
+    axis: Axis | None = None
     term: Literal["alpha", "beta", "gamma", "dx", "dy", "dz"] | None = None
     channels: list[str] = Field(default_factory=list)
     params: dict[str, float | str] = Field(default_factory=dict)
@@ -195,6 +198,7 @@ class HiddenEffect(_Strict):
         if k == "unmapped_channel":
             from driftlab.daq.sim.truth import MODEL_CHANNELS
 
+            assert self.axis is not None  # checked above: every kind but sensor_fault has an axis
             if self.channels[0] in MODEL_CHANNELS[self.axis]:
                 raise ValueError(f"{self.channels[0]} is a model channel of {self.axis}; unmapped_channel needs one "
                                  f"outside model_channels (e.g. T11, T21, T31, T36, T47)")
@@ -258,16 +262,17 @@ class Scenario(_Strict):
         return list(self.stages) if self.stages is not None else default_plan(self.hours, self.thermal_step_s)
 
 
-# one 24 h cycle of the staged plan (ch. 5.2 Fig. 5.1): (hours, heat_source, axis)
-_CYCLE: tuple[tuple[float, str, str | None], ...] = (
+# one 24 h cycle of the staged plan (ch. 5.2 Fig. 5.1): (hours, heat_source, axis); an axis 1..3 is the
+# 1st..3rd linear axis in the cycle's order (_ORDERS)
+_CYCLE: tuple[tuple[float, HeatSource, Axis | int | None], ...] = (
     (3.0, "spindle", "Z"), (1.5, "idle", None),
-    (2.0, "feed", "1"), (1.0, "idle", None),
-    (2.0, "feed", "2"), (1.0, "idle", None),
-    (2.0, "feed", "3"), (1.0, "idle", None),
+    (2.0, "feed", 1), (1.0, "idle", None),
+    (2.0, "feed", 2), (1.0, "idle", None),
+    (2.0, "feed", 3), (1.0, "idle", None),
     (1.5, "feed", "A"), (1.5, "feed", "B"), (1.0, "idle", None),
     (2.5, "combined", "Z"), (4.0, "off", None),
 )
-_ORDERS = (("X", "Y", "Z"), ("Z", "X", "Y"), ("Y", "Z", "X"))
+_ORDERS: tuple[tuple[Axis, Axis, Axis], ...] = (("X", "Y", "Z"), ("Z", "X", "Y"), ("Y", "Z", "X"))
 _RPM = (8000.0, 12000.0, 6000.0)
 _FEED = (4000.0, 2500.0, 5000.0)
 _ROT_FEED = (3600.0, 2400.0, 4800.0)  # deg/min
@@ -285,7 +290,7 @@ def default_plan(hours: float, step_s: float = 60.0) -> list[Stage]:
         for j, (dur_h, source, axis) in enumerate(_CYCLE):
             if t >= total - 1e-9:
                 break
-            ax = _ORDERS[c][int(axis) - 1] if axis in ("1", "2", "3") else axis
+            ax = _ORDERS[c][axis - 1] if isinstance(axis, int) else axis
             end = min(total, round((t + dur_h * 3600.0 * scale) / step_s) * step_s)
             if end <= t:
                 continue
@@ -296,8 +301,10 @@ def default_plan(hours: float, step_s: float = 60.0) -> list[Stage]:
             if source == "spindle":
                 name = f"spindle-{rpm / 1000:.0f}k"
             elif source == "feed":
+                assert ax is not None  # every feed stage of _CYCLE names an axis
                 name = f"feed-{ax.lower()}-{feed:.0f}"
             elif source == "combined":
+                assert ax is not None  # as is every combined stage
                 name = f"spindle-{rpm / 1000:.0f}k+feed-{ax.lower()}-{feed:.0f}"
             else:
                 name = "cool-down" if source == "idle" else "power-off"
