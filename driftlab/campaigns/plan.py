@@ -38,7 +38,7 @@ import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Final, Literal, Union
 
 import pydantic
 import yaml
@@ -49,10 +49,10 @@ from driftlab.campaigns.setups import Setup, all_cells, coverage, default_laser_
 from driftlab.errors import ValidationError
 from driftlab.geometry import Geometry
 
-PLAN_FORMAT = "driftlab-plan/1"
+PLAN_FORMAT: Final = "driftlab-plan/1"
 Axis = Literal["X", "Y", "Z", "A", "B"]
 LINEAR_AXES = ("X", "Y", "Z")
-FROM_SCENARIO = "from scenario"
+FROM_SCENARIO: Final = "from scenario"
 
 
 class _Strict(BaseModel):
@@ -343,7 +343,7 @@ class Plan(_Strict):
         return self
 
     def travel_violations(
-        self, travel: Mapping[str, tuple[float, float]]
+        self, travel: Mapping[Axis, tuple[float, float]] | Mapping[str, tuple[float, float]]
     ) -> Iterator[tuple[int, str, str, str, float, float]]:
         """Yield (stage index, 'sweep' | 'pose' | 'heat', axis, values, lo, hi) for what leaves ``travel``.
 
@@ -365,7 +365,9 @@ class Plan(_Strict):
                 if lim is not None and not inside(v, lim):
                     yield i, "pose", ax, f"{v:g}", *lim
             for h in stage.heat:
-                lim = travel.get(h.axis) if isinstance(h, AxisSource) else None
+                if not isinstance(h, AxisSource):
+                    continue
+                lim = travel.get(h.axis)
                 if lim is not None and not (inside(h.from_pos, lim) and inside(h.to_pos, lim)):
                     yield i, "heat", h.axis, f"{h.from_pos:g}..{h.to_pos:g}", *lim
 

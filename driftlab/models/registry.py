@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timezone
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 import pandas as pd
@@ -14,7 +14,7 @@ from driftlab.errors import NotFoundError, ValidationError
 from driftlab.models.features import Feature, Inputs, design_matrix, first_order_lag, required_lags
 from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
 
-MODEL_FORMAT = "driftlab-model/1"
+MODEL_FORMAT: Final = "driftlab-model/1"
 #: the thermal expansion coefficient of the castings (ch. 3.5)
 ALPHA_C_PER_DEGC = 12.1e-6
 
