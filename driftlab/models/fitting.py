@@ -188,7 +188,7 @@ def stage_elements(stages: Sequence[Any]) -> list[tuple[Any, str | None, str]]:
             last = (None, "validation")
         elif hs == "spindle":
             last = ("T1", "train")
-        elif hs in ("feed", "axis", "motor_hold") and axis in AXIS_JOINT:
+        elif hs in ("feed", "axis", "motor_hold") and axis is not None and axis in AXIS_JOINT:
             last = (AXIS_JOINT[axis], "train")
         elif last is None:
             out.append((st, None, "pending"))
@@ -540,7 +540,7 @@ def fit_elements(
         axes = [a for a in AXES if (sub.frame["axis"] == a).any()]
         allowed = None
         own_axis = JOINT_OF.get(element)
-        if own_axis in model_channels:
+        if own_axis is not None and own_axis in model_channels:
             allowed = list(model_channels[own_axis])
         elif model_channels and all(a in model_channels for a in axes):
             allowed = sorted({c for a in axes for c in model_channels[a]})
@@ -632,7 +632,7 @@ def _global_lengths(
         # a joint whose axis has the user's selection reads only those channels
         def honoured(f: Feature) -> bool:
             axis = JOINT_OF.get(feature_element(f, cands.structures, "T1"))
-            return axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
+            return axis is None or axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
 
         feats = [f for f in feats if honoured(f)]
     offsets = session_terms(sample.inputs.session, np.ones(len(sample.frame), bool))
@@ -1034,7 +1034,7 @@ def _fit_bundles(
     # 8. the document
     lo = temps[channels].min()
     hi = temps[channels].max()
-    terms = []
+    terms: list[dict[str, Any]] = []  # the document's "terms" (registry.TermDoc)
     for (element, param), m in models.items():
         if not m.features:
             continue
@@ -1146,7 +1146,11 @@ def chain_dims(bundles: Sequence[Any]) -> dict[str, tuple[float, float, float]]:
     """
     from driftlab.geometry import GEOMETRY_LINKS
 
-    dims = {k: tuple(float(x) for x in v) for k, v in TABLE_A1.items()}
+    def xyz(v: Any) -> tuple[float, float, float]:
+        x, y, z = v  # a link is (a, b, c): Table A.1, Geometry.links_mm
+        return float(x), float(y), float(z)
+
+    dims = {k: xyz(v) for k, v in TABLE_A1.items()}
     stated: dict[str, tuple[float, float, float]] | None = None
     for b in bundles:
         g = getattr(b.meta.machine, "geometry", None)
@@ -1154,12 +1158,12 @@ def chain_dims(bundles: Sequence[Any]) -> dict[str, tuple[float, float, float]]:
             (g or {}).get("links_mm"))
         if not links:
             continue
-        here = {GEOMETRY_LINKS[name]: tuple(float(x) for x in v) for name, v in dict(links).items()}
+        here = {GEOMETRY_LINKS[name]: xyz(v) for name, v in dict(links).items()}
         if stated is not None and here != stated:
             raise ValidationError("the campaigns state different link lengths for one machine (machine.geometry)")
         stated = here
     dims.update(stated or {})
-    return dims  # type: ignore[return-value]
+    return dims
 
 
 def _axes_of(fit: TermFit) -> str | None:
