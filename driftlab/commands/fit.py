@@ -189,14 +189,15 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
             pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
 
-        def num(v: Any, fmt: str) -> str:
+        def finite_num(v: Any, fmt: str) -> str:
             return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
 
         for p in phys:
             elem, _, feat = str(p["term"]).partition(" ")
             status = str(p.get("status", "compared"))
             pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
-                       num(p.get("regression"), ".4g"), num(p.get("physical"), ".4g"), num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
+                       finite_num(p.get("regression"), ".4g"), finite_num(p.get("physical"), ".4g"),
+                       finite_num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
                        str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"))
         con.print(pt)
     for f in report.get("findings", []):
