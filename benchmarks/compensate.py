@@ -17,10 +17,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import _common  # noqa: E402,F401  (pins numeric thread pools before numpy loads)
-
 import time  # noqa: E402
 
+import _common  # noqa: E402,F401  (pins numeric thread pools before numpy loads)
 import numpy as np  # noqa: E402
 
 from driftlab.compensator.compensate import (  # noqa: E402
@@ -130,14 +129,13 @@ def offline(data: bytes, model: ErrorModel, temps: dict) -> dict:
 
 def streaming(model: ErrorModel, temps: dict) -> dict:
     """Return per-block latency figures of a run to the simulated controller."""
+    import tempfile
+
+    from driftlab.compensator.compensate import parse_pieces, program_pieces, scan_program
     from driftlab.daq.machine_link import SerialMachineLink
     from driftlab.daq.retry import RetryPolicy
     from driftlab.daq.sim.instruments import SimController, TinyWorld, WallClock, serial_url
     from driftlab.daq.transport import LineChannel, SerialPort
-
-    import tempfile
-
-    from driftlab.compensator.compensate import parse_pieces, program_pieces, scan_program
 
     data = program_text(N_STREAM, seed=2, head="G90 G1 F2000\n")  # the simulated controller's dialect
     tmp = tempfile.NamedTemporaryFile(suffix=".nc")

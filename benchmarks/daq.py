@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import _common  # noqa: F401  (first: pins numeric thread pools)
 
+# isort: split
+
 import math
 import os
 import sqlite3
@@ -38,10 +40,10 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 from _common import emit, load_average  # noqa: E402
 
-from driftlab.campaigns.clock import SimClock  # noqa: E402
-from driftlab.campaigns.plan import Cursor, Plan, parse_plan  # noqa: E402
 from driftlab.campaigns.acquisition import Batch, StoreSink, open_campaign  # noqa: E402
+from driftlab.campaigns.clock import SimClock  # noqa: E402
 from driftlab.campaigns.db import store_engine  # noqa: E402
+from driftlab.campaigns.plan import Cursor, Plan, parse_plan  # noqa: E402
 from driftlab.daemon.loop import percentile  # noqa: E402
 from driftlab.daemon.run import run_daemon  # noqa: E402
 from driftlab.daemon.simrig import build_sim_rig, plan_scenario, scenario_meta  # noqa: E402

@@ -13,7 +13,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common  # noqa: E402  (pins BLAS to one thread before numpy loads)
-
 import numpy as np  # noqa: E402
 
 from driftlab.campaigns.bundle import Bundle, _as_meta  # noqa: E402

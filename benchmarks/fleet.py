@@ -46,6 +46,8 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import emit, load_average  # noqa: E402  (pins BLAS threads before numpy loads)
 
+# isort: split
+
 import numpy as np  # noqa: E402
 from sqlalchemy import select, text  # noqa: E402
 

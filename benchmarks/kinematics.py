@@ -17,6 +17,8 @@ import time  # noqa: E402
 
 from _common import emit, load_average, timeit_best  # noqa: E402  (sets one thread before numpy loads)
 
+# isort: split
+
 import numpy as np  # noqa: E402
 
 from driftlab.models import kinematics as kin  # noqa: E402

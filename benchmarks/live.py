@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import _common  # noqa: F401  (first: pins numeric thread pools)
 
+# isort: split
+
 import json
 import statistics
 import sys

@@ -15,7 +15,6 @@ from driftlab import commands as commands_pkg
 from driftlab.errors import DriftlabError, environment_error
 from driftlab.logs import setup_logging
 
-
 #: exit status of a database, file or permission failure (2 is bad input or usage, 3 a stopped campaign)
 ENVIRONMENT_EXIT = 1
 

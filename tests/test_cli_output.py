@@ -163,8 +163,8 @@ def test_stage_bar_never_runs_past_its_end() -> None:
 
 
 def test_import_says_what_it_stored(tmp_path: Path, capsys) -> None:
-    from tests.api.helpers import small_frames, small_meta
     from driftlab.campaigns.bundle import write_bundle
+    from tests.api.helpers import small_frames, small_meta
 
     temps, cond, errors = small_frames()
     path = write_bundle(tmp_path / "b", small_meta(), temps, cond, errors)

@@ -15,7 +15,7 @@ from typing import Any
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from driftlab.api.problems import allowed_methods, problem_body, PROBLEM_MEDIA_TYPE
+from driftlab.api.problems import PROBLEM_MEDIA_TYPE, allowed_methods, problem_body
 
 WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 #: the largest request body accepted (a model document is tens of kilobytes; a probe post is one line)

@@ -29,7 +29,7 @@ import re
 import stat
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal, Protocol, TypeVar
 
@@ -79,7 +79,7 @@ MAX_FIELD_CHARS = 256             # per CSV cell: numbers, axis/term/direction/s
 MAX_NAME_CHARS = 64               # machine id, channel names, setup ids (API path segments), stage names
 MAX_TEXT_CHARS = 200              # free text of campaign.json: machine name, channel location and structure
 MAX_TIME_S = 1e9                  # time_s and stage times: about 31.7 years after started_at
-STARTED_AT_RANGE = (datetime(1970, 1, 1, tzinfo=timezone.utc), datetime(2200, 1, 1, tzinfo=timezone.utc))
+STARTED_AT_RANGE = (datetime(1970, 1, 1, tzinfo=UTC), datetime(2200, 1, 1, tzinfo=UTC))
 MAX_LINEAR_POSITION_MM = 1e5      # 100 m: positions and poses of X Y Z (a larger one is a units mistake)
 
 _DIRECTIONS = {"1": 1, "+1": 1, "1.0": 1, "+1.0": 1, "-1": -1, "-1.0": -1}

@@ -82,7 +82,7 @@ class AxisSource(_Strict):
     to_pos: float
 
     @model_validator(mode="after")
-    def _span(self) -> "AxisSource":
+    def _span(self) -> AxisSource:
         """Refuse a zero-length oscillation (it would not move the axis)."""
         if self.from_pos == self.to_pos:
             raise ValueError("from_pos and to_pos must differ")
@@ -105,7 +105,7 @@ class MotorHoldSource(_Strict):
         return f"motor_hold:{self.axis}"
 
 
-HeatSource = Annotated[Union[SpindleSource, AxisSource, MotorHoldSource], Field(discriminator="kind")]
+HeatSource = Annotated[SpindleSource | AxisSource | MotorHoldSource, Field(discriminator="kind")]
 
 
 class Sweep(_Strict):
@@ -160,7 +160,7 @@ class Stage(_Strict):
         default=None, description="id of the plan's setup mounted in this stage (default: a laser for sweep.term)")
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Stage":
+    def _consistent(self) -> Stage:
         """Check one source per kind and axis, and that a sweep fits in its interval and stage."""
         keys = [h.key() for h in self.heat]
         if len(set(keys)) != len(keys):
@@ -249,7 +249,7 @@ class MachineRef(_Strict):
         default=None, description="the machine's stated lengths for table 6.3 (campaign.json machine.geometry)")
 
     @model_validator(mode="after")
-    def _rooms_known(self) -> "MachineRef":
+    def _rooms_known(self) -> MachineRef:
         """Require room channels to be in the channel map when one is given."""
         if isinstance(self.channels, dict):
             unknown = [c for c in self.room_channels if c not in self.channels]
@@ -286,7 +286,7 @@ class Plan(_Strict):
     stages: list[Stage] = Field(min_length=1)
 
     @model_validator(mode="after")
-    def _setups(self) -> "Plan":
+    def _setups(self) -> Plan:
         """Check every stage's setup exists, measures the stage's axis, and sees every sweep position."""
         for i, stage in enumerate(self.stages):
             if stage.setup is None:
@@ -320,7 +320,7 @@ class Plan(_Strict):
         return self
 
     @model_validator(mode="after")
-    def _order(self) -> "Plan":
+    def _order(self) -> Plan:
         """Check stage names are unique and (ch. 4.3) combinations only follow their single stages."""
         names = [s.name for s in self.stages]
         dup = sorted({n for n in names if names.count(n) > 1})
@@ -438,7 +438,7 @@ class Plan(_Strict):
                 return i
         return len(self.stages) - 1
 
-    def sweep_points(self) -> list["SweepPoint"]:
+    def sweep_points(self) -> list[SweepPoint]:
         """Return every error-measurement point of the campaign in time order, numbered from 0."""
         out: list[SweepPoint] = []
         for i, (stage, (start, end)) in enumerate(zip(self.stages, self.stage_bounds())):

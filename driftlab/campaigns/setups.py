@@ -126,7 +126,7 @@ class Setup(BaseModel):
         default_factory=dict, description="where the instrument sat, the artefact, its stated uncertainty")
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Setup":
+    def _consistent(self) -> Setup:
         """Check the setup can deliver its terms (Table 5.3) and names what is mounted."""
         kind = self.kind
         if self.instrument == "laser" and (self.optics is None or self.fixture is not None):

@@ -6,7 +6,6 @@ import math
 from typing import Any
 
 
-
 def campaign_status(engine: Any, campaign: str | int | None = None) -> list[dict[str, Any]]:
     """Return the status of daemon campaigns (all, or one by id or name): stage, progress, last readings, faults."""
     from sqlalchemy import select

@@ -7,9 +7,9 @@ leaves the database exactly as it was, whatever interrupts it.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
-from collections.abc import Sequence
 from typing import Any
 
 import pandas as pd

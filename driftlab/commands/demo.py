@@ -16,7 +16,6 @@ campaign bundle and the reports, so runs are independent.
 from __future__ import annotations
 
 import argparse
-from datetime import datetime
 import json
 import logging
 import os
@@ -25,6 +24,7 @@ import socket
 import subprocess
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -272,12 +271,11 @@ def _show(args: argparse.Namespace) -> int:
 
 def _online(args: argparse.Namespace) -> int:
     """Run the on-line update and print what it changed."""
-    from driftlab.campaigns.store import connect
-    from driftlab.models.online import online_update, read_probe_csv
-
     from datetime import datetime
 
+    from driftlab.campaigns.store import connect
     from driftlab.errors import ValidationError
+    from driftlab.models.online import online_update, read_probe_csv
 
     start = None
     if args.start is not None:

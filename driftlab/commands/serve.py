@@ -30,9 +30,8 @@ def _serve(args: argparse.Namespace) -> int:
     import uvicorn
     from sqlalchemy.exc import SQLAlchemyError
 
-    from driftlab.campaigns.db import StoreError
-
     from driftlab.api.app import create_app
+    from driftlab.campaigns.db import StoreError
     from driftlab.config import Settings
 
     settings = Settings()

@@ -446,7 +446,7 @@ class CuttingBench:
         self.ctrl.close()
         self.card.close()
 
-    def __enter__(self) -> "CuttingBench":
+    def __enter__(self) -> CuttingBench:
         """Return the bench (closed on exit)."""
         return self
 
@@ -640,7 +640,7 @@ class ApiRLS:
         body: dict[str, Any] = {
             "x": float(xyz[0]), "y": float(xyz[1]), "z": float(xyz[2]), "a_deg": 0.0, "b_deg": 0.0,
             "dx": float(measured[0]), "dy": float(measured[1]), "dz": float(measured[2]), "temperatures": temps,
-            "measured_at": _dt.datetime.fromtimestamp(self.epoch_s + t_s, _dt.timezone.utc).isoformat(),
+            "measured_at": _dt.datetime.fromtimestamp(self.epoch_s + t_s, _dt.UTC).isoformat(),
         }
         if self.version == 0:
             body["forgetting"] = self.forgetting

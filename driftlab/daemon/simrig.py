@@ -61,8 +61,8 @@ def build_sim_rig(
 
     from driftlab.daq.laser import LaserInterferometer
     from driftlab.daq.machine_link import SerialMachineLink
-    from driftlab.daq.retry import RetryPolicy
     from driftlab.daq.proximity import ADCard
+    from driftlab.daq.retry import RetryPolicy
     from driftlab.daq.sim.instruments import (
         SimADCard,
         SimController,

@@ -88,7 +88,7 @@ class Feature:
         return out
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "Feature":
+    def from_dict(cls, d: Mapping[str, Any]) -> Feature:
         """Rebuild a feature from its JSON form."""
         return cls(
             kind=str(d["kind"]),
@@ -116,7 +116,7 @@ class Inputs:
         """Return the number of samples."""
         return len(self.dT)
 
-    def take(self, index: np.ndarray) -> "Inputs":
+    def take(self, index: np.ndarray) -> Inputs:
         """Return the inputs restricted to the rows ``index`` (boolean mask or integer positions)."""
         idx = np.flatnonzero(index) if np.asarray(index).dtype == bool else np.asarray(index)
         return Inputs(

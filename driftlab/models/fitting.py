@@ -29,11 +29,27 @@ from driftlab.models.features import (
     session_terms,
 )
 from driftlab.models.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
-from driftlab.models.lines import LINE_ELEMENT, Composed, LineFit, compose, distinct, fit_lines, home_deviation, line_pool
+from driftlab.models.lines import (
+    LINE_ELEMENT,
+    Composed,
+    LineFit,
+    compose,
+    distinct,
+    fit_lines,
+    home_deviation,
+    line_pool,
+)
 from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import physical_check
+from driftlab.models.registry import (
+    ALPHA_C_PER_DEGC,
+    MODEL_FORMAT,
+    ModelDocument,
+    document_json,
+    now_iso,
+    validate_document,
+)
 from driftlab.models.regression import TermFit, r_squared, rmse, stepwise
-from driftlab.models.registry import ALPHA_C_PER_DEGC, MODEL_FORMAT, ModelDocument, document_json, now_iso, validate_document
 from driftlab.models.selection import ScreeningResult, screen_channels
 from driftlab.models.virtual_sensor import fit_virtual_sensors
 
@@ -108,7 +124,7 @@ class Sample:
     inputs: Inputs  # dT and lags at each sample
     raw: pd.DataFrame | None = None  # the readings themselves (degC) at each sample
 
-    def take(self, mask: np.ndarray) -> "Sample":
+    def take(self, mask: np.ndarray) -> Sample:
         """Return the rows selected by a boolean mask."""
         raw = None if self.raw is None else self.raw[mask].reset_index(drop=True)
         return Sample(self.frame[mask].reset_index(drop=True), self.q[mask], self.inputs.take(mask), raw)
@@ -120,7 +136,7 @@ class FitResult:
 
     document: ModelDocument
     screening: ScreeningResult
-    models: dict[tuple[str, str], "ElementModel"]
+    models: dict[tuple[str, str], ElementModel]
     validation: pd.DataFrame  # tables 6.1/6.2 layout
     physical: pd.DataFrame  # table 6.3 layout
     neural: list[NeuralComparison]  # ch. 6.6: one per target fixed in advance, both directions each

@@ -75,7 +75,6 @@ def fit_network(
     import warnings
 
     from sklearn.exceptions import ConvergenceWarning
-
     from threadpoolctl import threadpool_limits
 
     # small dense products: one BLAS thread is fastest, and keeps a shared machine responsive

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Any, Final, Literal
 
 import numpy as np
@@ -59,7 +59,7 @@ class SubstitutionDoc(_Doc):
     mode: str = ""
 
     @model_validator(mode="after")
-    def _shape(self) -> "SubstitutionDoc":
+    def _shape(self) -> SubstitutionDoc:
         """Require one coefficient per neighbour plus the intercept, and an aware time."""
         if len(self.coef) != len(self.neighbours) + 1:
             raise ValueError(f"substitution of {self.channel}: {len(self.neighbours)} neighbours need "
@@ -114,7 +114,7 @@ class TermDoc(_Doc):
         return v
 
     @model_validator(mode="after")
-    def _lengths(self) -> "TermDoc":
+    def _lengths(self) -> TermDoc:
         """Require one coefficient per feature."""
         if len(self.coefficients) != len(self.features):
             raise ValueError(f"{self.element}.{self.param}: {len(self.features)} features, {len(self.coefficients)} coefficients")
@@ -157,7 +157,7 @@ class ModelDocument(_Doc):
     lines: list[dict[str, Any]] = Field(default_factory=list)
 
     @model_validator(mode="after")
-    def _consistent(self) -> "ModelDocument":
+    def _consistent(self) -> ModelDocument:
         """Require every channel a term reads to be a declared input, and one model per element parameter."""
         seen: set[tuple[str, str]] = set()
         for t in self.terms:
@@ -215,7 +215,7 @@ def _clean(obj: Any) -> Any:
 
 def now_iso() -> str:
     """Return the current UTC time as ISO 8601."""
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+    return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 # ----------------------------------------------------------------------------- prediction
@@ -228,7 +228,7 @@ def _times(at: Any, n: int) -> np.ndarray | None:
 
     def stamp(x: Any) -> float:
         if isinstance(x, datetime):
-            return (x if x.tzinfo else x.replace(tzinfo=timezone.utc)).timestamp()
+            return (x if x.tzinfo else x.replace(tzinfo=UTC)).timestamp()
         if isinstance(x, str):
             return stamp(datetime.fromisoformat(x.replace("Z", "+00:00")))
         return float(x)
@@ -301,7 +301,7 @@ def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame
         lagged = {k: np.repeat(v, n) for k, v in lagged.items()}
     days = None
     if doc.time_origin is not None and any(f.kind == "time" for t in doc.terms for f in t.features):
-        t_s = times if times is not None else np.full(n, datetime.now(timezone.utc).timestamp())
+        t_s = times if times is not None else np.full(n, datetime.now(UTC).timestamp())
         days = (t_s - doc.time_origin.timestamp()) / 86400.0
     return Inputs(dT=dT, lagged=lagged, days=days)
 

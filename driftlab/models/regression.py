@@ -272,7 +272,7 @@ class TermFit:
         X = design_matrix(self.terms, inputs, position, direction)
         return X.to_numpy(float) @ self.coefficients
 
-    def split(self, belongs: Callable[[Feature], bool], other_element: str) -> tuple["TermFit", "TermFit | None"]:
+    def split(self, belongs: Callable[[Feature], bool], other_element: str) -> tuple[TermFit, TermFit | None]:
         """Return (this model without the features ``belongs`` picks, a model of ``other_element`` with them)."""
         feats, coef = self.terms, self.coefficients
         mine = [i for i, f in enumerate(feats) if not belongs(f)]

@@ -45,7 +45,7 @@ class VirtualSensor:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "VirtualSensor":
+    def from_dict(cls, d: Mapping[str, Any]) -> VirtualSensor:
         """Rebuild a virtual sensor from its JSON form."""
         return cls(str(d["channel"]), list(d["neighbours"]), np.asarray(d["coef"], float), float(d["sigma"]), float(d["band"]))
 

@@ -298,8 +298,9 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
             body |= {"forgetting": 0.95}
         # measure exactly what the models predict plus the constant offset
         off = client.app.state.driftlab  # type: ignore[attr-defined]
-        from driftlab.models.registry import predict_workspace_errors
         import numpy as np
+
+        from driftlab.models.registry import predict_workspace_errors
 
         row = off.models.get(MACHINE).row
         w = predict_workspace_errors(row.document, body["temperatures"], np.array([[100.0, 50.0, -200.0, 0, 0]]))[0]

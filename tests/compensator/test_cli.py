@@ -85,7 +85,8 @@ def test_streaming_to_the_simulated_controller_through_the_api(capsys):
     try:
         with SimController(TinyWorld(channels=2), clock, capacity=8) as sim:
             prog_text = "G90 G1 F6000\n" + "".join(f"X{k} Y{k}\n" for k in range(1, 13)) + "M30\n"
-            import tempfile, pathlib  # noqa: E401
+            import pathlib
+            import tempfile  # noqa: E401
 
             with tempfile.TemporaryDirectory() as d:
                 prog = pathlib.Path(d) / "p.nc"

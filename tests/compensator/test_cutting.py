@@ -17,9 +17,9 @@ from driftlab.compensator.cutting_test import (
     run_cutting_test,
     tool_centre,
 )
-from driftlab.daemon.machining import MachiningMachine, hidden_element_errors, true_errors
 from driftlab.compensator.gcode import parse_program
 from driftlab.compensator.stream import StaticModel
+from driftlab.daemon.machining import MachiningMachine, hidden_element_errors, true_errors
 from driftlab.daq.sim.campaign import simulate_campaign
 from driftlab.daq.sim.scenario import HiddenEffect, Scenario
 from driftlab.daq.sim.sites import SITE_INDEX

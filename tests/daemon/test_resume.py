@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from driftlab.campaigns.plan import load_plan
-from driftlab.daemon.run import run_daemon
 from driftlab.cli import main as cli_main
+from driftlab.daemon.run import run_daemon
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "examples" / "scenarios" / "clean.yaml"

@@ -9,9 +9,9 @@ import pytest
 from sqlalchemy import func, select
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.plan import Cursor, load_plan, parse_plan
 from driftlab.campaigns.acquisition import Batch, Fault, StoreSink, open_campaign
 from driftlab.campaigns.db import store_engine
+from driftlab.campaigns.plan import Cursor, load_plan, parse_plan
 from driftlab.campaigns.status import campaign_status, format_status
 from driftlab.daemon.run import skip_missed
 from driftlab.daemon.simrig import plan_scenario, scenario_stages

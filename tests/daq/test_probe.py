@@ -11,8 +11,8 @@ from driftlab.daq.probe import (
     LobingMap,
     TouchProbe,
     fit_sphere,
-    spindle_angles,
     sphere_pattern,
+    spindle_angles,
     table_tilt,
 )
 from driftlab.daq.protocols import Prober

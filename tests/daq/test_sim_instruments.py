@@ -12,25 +12,25 @@ from driftlab.daq.laser import LaserInterferometer, air_refractive_index, fringe
 from driftlab.daq.machine_link import SerialMachineLink
 from driftlab.daq.probe import LobingMap, SpindleBarMeter, TouchProbe
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_OPEN, FLAG_REFERENCE_LOST
-from driftlab.daq.proximity import ADCard, ReferenceSurfaceMeter, RollPair, ProximitySensor, a_axis_array
+from driftlab.daq.proximity import ADCard, ProximitySensor, ReferenceSurfaceMeter, RollPair, a_axis_array
 from driftlab.daq.retry import RetryPolicy
 from driftlab.daq.sim.instruments import (
     Clock,
     FixedStage,
     ManualClock,
-    WallClock,
     SimADCard,
     SimController,
     SimLaser,
     SimSphere,
     SimThermocoupleCard,
     TinyWorld,
+    WallClock,
     World,
     WorldStage,
     reference_surface_source,
     roll_pair_source,
-    spindle_bar_source,
     serial_url,
+    spindle_bar_source,
     visa_address,
 )
 from driftlab.daq.thermocouple import ThermocoupleCard

@@ -14,7 +14,6 @@ from driftlab.models.effects import lag_filter
 from driftlab.models.standard_model import fit_standard_model, prepare_bundle, spike_mask
 from tests import effects_generator as gen
 
-
 Planted = gen.Planted
 
 

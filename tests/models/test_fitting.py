@@ -1,6 +1,7 @@
 """The fitting pipeline end to end on campaigns with known truth (element errors through the HTM chain)."""
 
 import json
+from datetime import UTC
 
 import numpy as np
 import pandas as pd
@@ -479,7 +480,7 @@ def test_findings_fold_into_the_next_fit_and_lower_the_holdout_rmse(planted_vm, 
 
 def test_forced_lag_finding_and_its_prediction_from_the_document():
     """A forced thermal_lag term; the document alone predicts what the fit does (lags over the history)."""
-    from driftlab.models.findings import Findings, Finding
+    from driftlab.models.findings import Finding, Findings
 
     b = synthetic_bundle(0)
     f = Findings(b.name, (Finding("thermal_lag", "Z", "dz", ("T24",), {"tau_s": 5000.0}),
@@ -496,7 +497,7 @@ def test_forced_lag_finding_and_its_prediction_from_the_document():
     at = [b.meta.started_at.timestamp() + t for t in temps["time_s"]]
     W = predict_workspace_errors(doc, temps, q, at=at)
     from driftlab.models.features import build_inputs
-    from driftlab.models.fitting import predict_models, Sample
+    from driftlab.models.fitting import Sample, predict_models
     from driftlab.models.kinematics import workspace_error
 
     ref = {c: r.reference for c, r in doc.inputs.items()}
@@ -509,7 +510,7 @@ def test_forced_lag_finding_and_its_prediction_from_the_document():
 
 
 def test_document_substitution_and_drift_are_evaluated_from_the_document():
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     from driftlab.models.registry import predict_element_errors
 
@@ -525,7 +526,7 @@ def test_document_substitution_and_drift_are_evaluated_from_the_document():
     }
     q = np.zeros((1, 5))
     temps = {"T1": 25.0, "T2": 22.0, "T3": 24.0}
-    before = predict_element_errors(doc, temps, q, at=datetime(2026, 3, 2, 12, tzinfo=timezone.utc))["phi_x"][0, 3]
+    before = predict_element_errors(doc, temps, q, at=datetime(2026, 3, 2, 12, tzinfo=UTC))["phi_x"][0, 3]
     assert before == pytest.approx(0.001 * 5 + 0.01 * 0.5 + 1e-4 * 4)
     after = predict_element_errors(doc, {"T2": 22.0, "T3": 24.0}, q, at="2026-03-04T00:00:00Z")["phi_x"][0, 3]
     assert after == pytest.approx(0.001 * (1 + 11 + 12 - 20) + 0.01 * 2 + 1e-4 * 4)

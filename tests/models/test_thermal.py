@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 
 from driftlab.models.thermal import (
-    ALPHA_C, ThermalNetwork, first_order_lag, integrate, propagate, step_response,
+    ALPHA_C,
+    ThermalNetwork,
+    first_order_lag,
+    integrate,
+    propagate,
+    step_response,
 )
 
 

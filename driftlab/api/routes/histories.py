@@ -15,7 +15,9 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query
 
+from driftlab.api.deps import get_store
 from driftlab.api.routes.campaigns import CampaignId
+from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import (
     ID_PATTERN,
     Axis,
@@ -31,8 +33,6 @@ from driftlab.api.schemas import (
     TemperaturePoint,
     Term,
 )
-from driftlab.api.deps import get_store
-from driftlab.api.routes.machines import MachineId
 from driftlab.campaigns import api_queries
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
 from driftlab.campaigns.store import Store

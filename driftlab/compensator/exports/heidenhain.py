@@ -29,5 +29,5 @@ def write(table: AxisTable, name: str | None = None) -> Export:
     rows += [f"{i:<6}{p:<+14.4f}{v:+.6f}" for i, (p, v) in enumerate(zip(table.positions, mean))]
     rows.append("[END]")
     settings = {f"CfgAxisComp/{ax}/backLash": round(backlash, 6),
-                f"compensation assignment (*.CMA)": f"{ax}: {fname}"}
+                "compensation assignment (*.CMA)": f"{ax}: {fname}"}
     return Export("heidenhain", "\n".join(rows) + "\n", settings)

@@ -19,12 +19,12 @@ as a real line fault would be.  Every server stops its threads in :meth:`LineSer
 from __future__ import annotations
 
 import logging
-from abc import ABC, abstractmethod
 import math
 import re
 import socket
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -306,7 +306,7 @@ class LineServer(ABC):
         while not self._stop.is_set():
             try:
                 conn, _ = self._listener.accept()
-            except (TimeoutError, socket.timeout):
+            except TimeoutError:
                 continue
             except OSError:
                 break
@@ -322,7 +322,7 @@ class LineServer(ABC):
             while not self._stop.is_set():
                 try:
                     data = conn.recv(4096)
-                except (TimeoutError, socket.timeout):
+                except TimeoutError:
                     continue
                 except OSError:
                     break

@@ -21,7 +21,14 @@ from scipy.signal import lfilter
 from driftlab.daq.sim import truth
 from driftlab.daq.sim.scenario import ANGLE_TERMS, AXES, TERMS, HiddenEffect, Scenario, Stage
 from driftlab.daq.sim.sites import (
-    CHANNELS, EXOGENOUS, FEED_REF_MM_MIN, ROOM_CHANNELS, SITE_INDEX, SITES, SOURCES, SPINDLE_REF_RPM,
+    CHANNELS,
+    EXOGENOUS,
+    FEED_REF_MM_MIN,
+    ROOM_CHANNELS,
+    SITE_INDEX,
+    SITES,
+    SOURCES,
+    SPINDLE_REF_RPM,
 )
 from driftlab.errors import ValidationError
 from driftlab.models.thermal import ThermalNetwork, ThermalSolution, first_order_lag

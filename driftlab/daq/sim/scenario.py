@@ -114,7 +114,7 @@ class Stage(_Strict):
         return "off" if v is False else v  # YAML 1.1 reads a bare `off` as false
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Stage":
+    def _consistent(self) -> Stage:
         if self.end_s <= self.start_s:
             raise ValueError(f"end_s {self.end_s} must be after start_s {self.start_s}")
         if self.heat_source in ("feed", "combined"):
@@ -164,7 +164,7 @@ class HiddenEffect(_Strict):
         return v
 
     @model_validator(mode="after")
-    def _catalogue(self) -> "HiddenEffect":
+    def _catalogue(self) -> HiddenEffect:
         k = self.kind
         if k != "sensor_fault" and (self.axis is None or self.term is None):
             raise ValueError(f"{k} needs an axis and a term")

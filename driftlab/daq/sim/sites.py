@@ -11,9 +11,9 @@ back of the Z column, ch. 5.4) - and the room air itself.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Mapping
 
 #: heat sources of the network, in the column order of the source matrix
 SOURCES: tuple[str, ...] = (

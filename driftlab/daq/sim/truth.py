@@ -26,9 +26,10 @@ Hidden effects (the spec's effect catalogue) are added on top, per (axis, term),
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from functools import lru_cache
 from types import MappingProxyType
-from typing import Mapping, TypedDict
+from typing import TypedDict
 
 import numpy as np
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 import shutil
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +74,7 @@ def parse_time(text: str, where: str) -> datetime:
                 continue
         if dt is None:
             raise InstrumentFileError(f"{where}: date {text!r} is neither ISO 8601 nor dd/mm/yyyy hh:mm:ss") from None
-    return dt if dt.tzinfo is not None else dt.replace(tzinfo=timezone.utc)
+    return dt if dt.tzinfo is not None else dt.replace(tzinfo=UTC)
 
 
 @dataclass

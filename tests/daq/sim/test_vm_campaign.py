@@ -12,7 +12,7 @@ import pytest
 from driftlab.campaigns.bundle import CampaignMeta, load_bundle, write_bundle
 from driftlab.daq.sim.campaign import simulate_campaign
 from driftlab.daq.sim.machine import VirtualMachine
-from driftlab.daq.sim.scenario import ANGLE_TERMS, HiddenEffect, Noise, Scenario
+from driftlab.daq.sim.scenario import ANGLE_TERMS, HiddenEffect, Scenario
 from driftlab.daq.sim.sites import SITE_INDEX
 
 ROOT = Path(__file__).resolve().parents[3]
