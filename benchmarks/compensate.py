@@ -101,7 +101,7 @@ def offline(data: bytes, model: ErrorModel, temps: dict) -> dict:
     wall, cpu = time.perf_counter, time.process_time
     w0, c0 = wall(), cpu()
     program = parse_program(data, "bench.nc", min_decimals=decimals_for(0.0025, 0.001))
-    w1, c1 = wall(), cpu()
+    w1 = wall()
     result = compensate_program(program, model, temps)
     w2, c2 = wall(), cpu()
     q = program.to_q(subdivide(program).nominal_int)

@@ -72,7 +72,7 @@ def test_demo_page_has_one_scale_per_map_in_um_and_no_json() -> None:
     fig = demo_report.surface_axes(dev)
     maps = [ax for ax in fig.axes if ax.images]
     assert len(maps) == 3 and len(fig.axes) == 6  # three maps, each with its own colour bar
-    for ax, (k, v) in zip(maps, dev.items()):
+    for ax, (_k, v) in zip(maps, dev.items()):
         lo, hi = ax.images[0].get_clim()
         assert hi == pytest.approx(np.max(np.abs(v)) * 1e3) and lo == -hi  # its own symmetric scale, in um
         assert f"range {v.min() * 1e3:+.1f} .. {v.max() * 1e3:+.1f} um" in ax.get_title()

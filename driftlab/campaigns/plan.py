@@ -38,7 +38,7 @@ import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Final, Literal, Union
+from typing import Annotated, Any, Final, Literal
 
 import pydantic
 import yaml
@@ -531,7 +531,7 @@ class StageStart:
     t_s: float
 
 
-Step = Union[StageStart, Scan, SweepPoint, Move]
+Step = StageStart | Scan | SweepPoint | Move
 
 
 @dataclass(frozen=True, slots=True)

@@ -100,7 +100,7 @@ def print_findings(doc: dict) -> None:
         for r in base:
             k, unit = display_unit(str(r.get("term")))
             x = ext.get((r.get("axis"), r.get("term")), {})
-            fmt = lambda v: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
+            fmt = lambda v, k=k, unit=unit: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
             t.add_row(f"{r.get('axis')}/{r.get('term')}", " ".join(r.get("channels") or []), fmt(r.get("rmse_train")),
                       fmt(r.get("rmse_holdout")), fmt(x.get("rmse_holdout")))
         con.print(t)

@@ -584,7 +584,7 @@ def fit_elements(
             # fit the sensor noise it was evaluated with (errors in variables)
             used = {f for (e, pp), m in models.items() if pp == param for f in m.features}
 
-            def admit(f: Feature) -> bool:
+            def admit(f: Feature, used: set[Feature] = used, element: str = element) -> bool:
                 return f not in used and feature_element(f, cands.structures, element) not in solved
 
             forced, pool = cands.split_pool([f for f in feats if admit(f)], axes, param, admit)

@@ -180,7 +180,7 @@ def stepwise(
         dof = n - len(selected) - 1
         # physically recast terms are offered first, then single channels, then lags (ch. 6.4.2:
         # a correlated input entered early masks a more relevant one)
-        best, g, F, p = -1, 0.0, 0.0, 1.0
+        best, F, p = -1, 0.0, 1.0
         for t in sorted(set(tiers[pool].tolist())):
             gt = np.where(tiers[pool] == t, gain, -np.inf)
             b = int(np.argmax(gt))
@@ -190,7 +190,7 @@ def stepwise(
             Fb = gb / max((sse - gb) / dof, 1e-300)
             pb = float(stats.f.sf(Fb, 1, dof))
             if pb < p_enter and gb >= min_gain * sse:
-                best, g, F, p = b, gb, Fb, pb
+                best, F, p = b, Fb, pb
                 break
         if best < 0:
             break

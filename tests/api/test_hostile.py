@@ -243,7 +243,7 @@ def test_concurrent_imports_of_a_new_machine(store: Store, tmp_path: Path) -> No
         machine = f"race-{rnd}"
         bundles = [load_bundle(write_bundle(tmp_path / f"r{rnd}-{i}", small_meta(machine, f"2026-04-0{i + 1}T08:00:00Z"),
                                             temps, cond, errors)) for i in range(4)]
-        results = _race(4, lambda i: store.import_bundle(bundles[i]))
+        results = _race(4, lambda i, bundles=bundles: store.import_bundle(bundles[i]))
         assert all(isinstance(r, int) for r in results), results
         assert len(set(results)) == 4
         assert [c.machine_id for c in store.list_campaigns(machine)] == [machine] * 4

@@ -46,8 +46,7 @@ def synthetic_bundle(seed=0, room_offset=0.0, hours=32.0):
     sp = np.zeros_like(t)
     fx = np.zeros_like(t)
     fz = np.zeros_like(t)
-    axis_at = np.full(t.size, "", object)
-    for name, a, b, heat, axis in STAGES:
+    for _name, a, b, heat, axis in STAGES:
         m = (h >= a) & (h < b)
         if heat in ("spindle", "combined"):
             sp[m] = 1.0
@@ -73,7 +72,7 @@ def synthetic_bundle(seed=0, room_offset=0.0, hours=32.0):
     # error sweeps every 10 min on the stage's axis (cool-downs keep the previous axis)
     rows = []
     axis = "Z"
-    for name, a, b, heat, ax in STAGES:
+    for _name, a, b, _heat, ax in STAGES:
         axis = ax or axis
         for ts in np.arange(a * 3600, b * 3600, 600.0):
             k = int(ts // 60)
