@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 import pandas as pd
@@ -42,7 +42,7 @@ RESOLUTION_MM = 0.0025
 RESOLUTION_DEG = 0.001
 
 #: one reading per channel (degC), or a frame of N rows aligned with the poses (with ``time_s``)
-Temperatures = Mapping[str, float] | pd.DataFrame
+Temperatures: TypeAlias = Mapping[str, float] | pd.DataFrame
 #: (q (N, 5) mm/rad, temperatures, direction (N, 5) +1/-1) -> link and joint errors
 #: predict(q, temperatures, direction[, at=POSIX s]) -> element errors; ``at`` is passed only when known
 #: (to models with time-dependent terms: the drift of ch. 6.4.3 is evaluated at the block's time)
