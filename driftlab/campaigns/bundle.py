@@ -393,19 +393,22 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
             raise _json_fail(file, lines, ("setups", sid), "setup ids may hold only letters, digits, '_', '.', '-' "
                              "(at most 64)")
         if entry.axis is not None and any(not c.startswith(entry.axis + "/") for c in entry.terms):
-            raise _json_fail(file, lines, ("setups", sid, "terms"), f"setup {_short(sid)} measures the {entry.axis} axis "
+            raise _json_fail(file, lines, ("setups", sid, "terms"),
+                             f"setup {_short(sid)} measures the {entry.axis} axis "
                              "but lists terms of another")
     names_seen: set[str] = set()
     previous_end = -math.inf
     for k, stage in enumerate(meta.stages):
         if stage.end_s < stage.start_s:
             raise _json_fail(
-                file, lines, ("stages", k, "end_s"), f"stage {_short(stage.name)} ends ({stage.end_s}) before it starts "
+                file, lines, ("stages", k, "end_s"),
+                f"stage {_short(stage.name)} ends ({stage.end_s}) before it starts "
                 f"({stage.start_s})"
             )
         if stage.start_s < previous_end:
             raise _json_fail(
-                file, lines, ("stages", k, "start_s"), f"stage {_short(stage.name)} starts at {stage.start_s}, before the "
+                file, lines, ("stages", k, "start_s"),
+                f"stage {_short(stage.name)} starts at {stage.start_s}, before the "
                 f"previous stage ends ({previous_end}): stages must be in order and not overlap"
             )
         if stage.name in names_seen:

@@ -167,7 +167,8 @@ class Setup(BaseModel):
 
     def range_deg(self) -> float | None:
         """Return the rotary range the setup sees either side of 0 (None: the whole travel)."""
-        if self.instrument == "laser" and self.optics == "angular" and self.axis in ROTARY and not self.counter_rotating:
+        if (self.instrument == "laser" and self.optics == "angular" and self.axis in ROTARY
+                and not self.counter_rotating):
             return ANGULAR_OPTICS_RANGE_DEG
         return None
 

@@ -214,7 +214,8 @@ def _dT(inputs: Inputs, channel: str) -> np.ndarray:
 
 
 def _axis_column(feature: Feature, values: np.ndarray | None, n: int) -> np.ndarray:
-    """Return the per-sample coordinate (or direction) a feature reads: a (N,) array, or the column of its axis label in (N, 5)."""
+    """Return the per-sample coordinate (or direction) a feature reads: a (N,) array, or the column of its
+    axis label in (N, 5)."""
     if values is None:
         return np.zeros(n)
     v = np.asarray(values, float)

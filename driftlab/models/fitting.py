@@ -456,7 +456,8 @@ def predict_models(models: Mapping[tuple[str, str], ElementModel], sample: Sampl
     return out
 
 
-def _measured_w(sample: Sample, known: Mapping[str, np.ndarray], dims: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+def _measured_w(sample: Sample, known: Mapping[str, np.ndarray],
+                dims: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Return W (N, 6) with unmeasured terms filled by the known model, and the measured mask."""
     W = sample.frame[list(PARAMS)].to_numpy(float)
     mask = np.isfinite(W)
@@ -492,7 +493,8 @@ class Candidates:
 
     def split_pool(self, pool: Sequence[Feature], axes: Sequence[str], param: str,
                    keep: Callable[[Feature], bool]) -> tuple[list[Feature], list[Feature]]:
-        """Return (forced terms, candidates): ``pool`` plus the findings' terms of (axes, param) that ``keep`` admits."""
+        """Return (forced terms, candidates): ``pool`` plus the findings' terms of (axes, param) that ``keep``
+        admits."""
         forced: list[Feature] = []
         # a finding's lag at its measured tau replaces the pool's default-tau lags of that channel
         # (near-identical columns: the cruder one would mask the finding through the VIF rule)
@@ -515,7 +517,8 @@ class Candidates:
     def for_axes(self, axes: Sequence[str], allowed: Sequence[str] | None) -> list[Feature]:
         """Return the candidate terms for rows moving ``axes``, limited to ``allowed`` channels."""
         # the user's selection (bundle model_channels) is used as given; else the screened channels
-        chans = list(self.channels) if allowed is None else [c for c in allowed if c in self.structures or c in self.room]
+        chans = list(self.channels) if allowed is None else [
+            c for c in allowed if c in self.structures or c in self.room]
         members = {s: [c for c in cs if allowed is None or c in allowed] for s, cs in self.members.items()}
         return candidate_features(
             chans, self.structures, axes=axes, screw_channels=self.screws, lag_taus_s=self.lag_taus_s,
@@ -934,7 +937,8 @@ def _fit_bundles(
     train_bundles = list(bundles)
 
     # 1. screening (ch. 5.4)
-    common = [c for c in channel_columns(train_bundles[0].temperatures) if all(c in b.temperatures for b in train_bundles)]
+    common = [c for c in channel_columns(train_bundles[0].temperatures)
+              if all(c in b.temperatures for b in train_bundles)]
     temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in train_bundles], ignore_index=True)
     # the training errors choose among near-duplicate sites (held-out points never steer the choice)
     errs = [_training_errors(b.errors, b.meta.stages, opts.holdout_fraction) for b in train_bundles]

@@ -110,7 +110,8 @@ PROBE_COLUMNS: tuple[str, ...] = ("time_s", "x", "y", "z", "a", "b", "dx", "dy",
 
 
 def read_probe_csv(path: Any) -> Any:
-    """Return the probe measurements of a CSV (time_s, x, y, z, a, b in mm/deg, dx, dy, dz in mm, one column per channel)."""
+    """Return the probe measurements of a CSV (time_s, x, y, z, a, b in mm/deg, dx, dy, dz in mm, one column
+    per channel)."""
     import pandas as pd
 
     try:
@@ -164,7 +165,8 @@ def online_residuals(document: Any, probe: Any) -> tuple[np.ndarray, np.ndarray]
 def online_update_document(
     document: Any, probe: Any, states: Mapping[str, RLSState] | None = None, lam: float = 0.98
 ) -> tuple[OnlineReport, dict[str, np.ndarray]]:
-    """Return the report and per-term one-step predictions of the on-line model (phi = [1], eq. 6.10) over the probe data."""
+    """Return the report and per-term one-step predictions of the on-line model (phi = [1], eq. 6.10) over
+    the probe data."""
     from driftlab.models.registry import validate_document
 
     doc = validate_document(document)

@@ -117,7 +117,8 @@ class TermDoc(_Doc):
     def _lengths(self) -> TermDoc:
         """Require one coefficient per feature."""
         if len(self.coefficients) != len(self.features):
-            raise ValueError(f"{self.element}.{self.param}: {len(self.features)} features, {len(self.coefficients)} coefficients")
+            raise ValueError(f"{self.element}.{self.param}: {len(self.features)} features, "
+                             f"{len(self.coefficients)} coefficients")
         for f in self.features:
             f.feature()
         return self
@@ -238,7 +239,8 @@ def _times(at: Any, n: int) -> np.ndarray | None:
     elif np.asarray(at).dtype.kind == "M":  # numpy datetime64 (taken as UTC)
         v = np.asarray(at).astype("datetime64[us]").astype(np.int64).ravel() / 1e6
     else:
-        v = np.array([stamp(x) for x in (at.tolist() if isinstance(at, (np.ndarray, pd.Series, pd.Index)) else at)], float)
+        items = at.tolist() if isinstance(at, (np.ndarray, pd.Series, pd.Index)) else at
+        v = np.array([stamp(x) for x in items], float)
     if v.size == 1:
         return np.repeat(v, n)
     if v.size != n:
@@ -386,7 +388,8 @@ def input_ranges(doc: ModelDocument, temperatures: Mapping[str, float] | pd.Data
 # ----------------------------------------------------------------------------- store
 
 
-def register_model(store: Any, document: Mapping[str, Any] | ModelDocument, source_campaigns: Sequence[int] = ()) -> ModelDocument:
+def register_model(store: Any, document: Mapping[str, Any] | ModelDocument,
+                   source_campaigns: Sequence[int] = ()) -> ModelDocument:
     """Store a document as its machine's new current version (the old one retired, still readable); return it."""
     doc = validate_document(document)
     stored = document_json(doc.model_copy(update={"version": None}))

@@ -52,7 +52,8 @@ def sweep_points(scenario: Scenario) -> pd.DataFrame:
 
 
 def simulate_campaign(scenario: Scenario) -> SimulatedCampaign:
-    """Run the staged plan on the virtual machine: scans every scan_interval_s, full laser sweeps every sweep_interval_s."""
+    """Run the staged plan on the virtual machine: scans every scan_interval_s, full laser sweeps every
+    sweep_interval_s."""
     vm = VirtualMachine(scenario)
     end = scenario.duration_s
     vm.advance_to(end)

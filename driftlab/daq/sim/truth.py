@@ -220,7 +220,8 @@ class BaseTerm(TypedDict):
 
 @lru_cache(maxsize=1)
 def base_coefficients() -> dict[str, dict[str, BaseTerm]]:
-    """Return axis -> term -> {"poly": [c0, c1, c2, c3] in bundle units, "channels": {ch: coef per degC}, "cubic_residual"}."""
+    """Return axis -> term -> {"poly": [c0, c1, c2, c3] in bundle units, "channels": {ch: coef per degC},
+    "cubic_residual"}."""
     out: dict[str, dict[str, BaseTerm]] = {}
     n = len(CHANNELS)
     drivers = [SITE_INDEX[c] for c in DRIVERS]

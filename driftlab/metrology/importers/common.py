@@ -124,7 +124,8 @@ def write_readings(readings: Readings, out: str | Path, *, machine: str | None =
         if air_temp_degC is not None:
             values["air"] = float(air_temp_degC)
         if not values:
-            raise InstrumentFileError(f"{src}: the file records no temperature: give --air-temp DEGC (the room during the test)")
+            raise InstrumentFileError(f"{src}: the file records no temperature: "
+                                      "give --air-temp DEGC (the room during the test)")
         temps = pd.DataFrame({"time_s": [0.0], **{k: [v] for k, v in values.items()}})
     channels = [c for c in temps.columns if c != "time_s"]
     meta: dict[str, Any] = {
