@@ -202,7 +202,8 @@ def test_table_6_3_compares_with_the_geometry_the_campaign_states(fitted):
     b = synthetic_bundle(0)
     doc = b.meta.document()
     doc["machine"]["geometry"] = {"screw_fixed_mm": STATED_GEOMETRY["screw_fixed_mm"],
-                                  "bending": {"spindle_arm": {"length_mm": 400, "height_mm": 200, "across": "upper-lower",
+                                  "bending": {"spindle_arm": {"length_mm": 400, "height_mm": 200,
+                                                              "across": "upper-lower",
                                                               "deflection": "dz", "angle": "alpha"}}}
     res = fit_bundles([Bundle(b.name, CampaignMeta.model_validate(doc), b.temperatures, None, b.errors)],
                       FitOptions(network=False, virtual_sensors=False))
