@@ -139,7 +139,8 @@ def seed(url: str, workdir: Path) -> None:
     t = np.arange(120) * 30.0
     rng = np.random.default_rng(0)
     temps = pd.DataFrame({"time_s": t, **{c: 20 + 0.002 * t + rng.normal(0, 0.05, t.size) for c in channels}})
-    rows = [(60.0 * s + i, "Z", "dz", p, 1, 1e-3 * s * p / 400) for s in range(20) for i, p in enumerate(range(0, 500, 100))]
+    rows = [(60.0 * s + i, "Z", "dz", p, 1, 1e-3 * s * p / 400)
+            for s in range(20) for i, p in enumerate(range(0, 500, 100))]
     errors = pd.DataFrame(rows, columns=["time_s", "axis", "term", "position", "direction", "value"])
     path = write_bundle(workdir / "bundle", meta, temps, None, errors)
     # a document of realistic size: one model per element parameter the chain has, eight terms each

@@ -62,7 +62,8 @@ def document() -> dict:
             size = np.array([per_kind[ft["kind"]] * (1e-3 if ft.get("power") == 2 else 1.0) for ft in feats])
             if axis in ("A", "B"):  # the joint coordinate is in rad, not mm
                 size *= np.array([300.0 if ft["kind"] in ("position", "pos_dT") else 1.0 for ft in feats])
-            coefs = (rng.normal(0, 1, len(feats)) * size * (1e-3 if prm in ("alpha", "beta", "gamma") else 1.0)).tolist()
+            coefs = (rng.normal(0, 1, len(feats)) * size
+                     * (1e-3 if prm in ("alpha", "beta", "gamma") else 1.0)).tolist()
             terms.append({"element": element, "param": prm, "features": feats, "coefficients": coefs,
                           "statistics": {"rmse_train": 0.001}})
     return {"machine": "bench", "version": 1, "inputs": inputs, "terms": terms}
@@ -90,7 +91,8 @@ def program_text(n: int, seed: int = 1, head: str = "%\n(benchmark)\nG90 G21 G1 
         for j, byte in enumerate(w):
             out[starts[:, k] + j] = byte
         chars, clen = cols[k]
-        dst = np.repeat(starts[:, k] + len(w), clen) + (np.arange(chars.shape[0]) - np.repeat(np.cumsum(clen) - clen, clen))
+        dst = np.repeat(starts[:, k] + len(w), clen) + (
+            np.arange(chars.shape[0]) - np.repeat(np.cumsum(clen) - clen, clen))
         out[dst] = chars
     out[starts[:, 5]] = 10
     return head.encode() + out.tobytes() + b"M30\n%\n"
@@ -101,7 +103,7 @@ def offline(data: bytes, model: ErrorModel, temps: dict) -> dict:
     wall, cpu = time.perf_counter, time.process_time
     w0, c0 = wall(), cpu()
     program = parse_program(data, "bench.nc", min_decimals=decimals_for(0.0025, 0.001))
-    w1, c1 = wall(), cpu()
+    w1 = wall()
     result = compensate_program(program, model, temps)
     w2, c2 = wall(), cpu()
     q = program.to_q(subdivide(program).nominal_int)

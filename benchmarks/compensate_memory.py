@@ -49,13 +49,15 @@ n = 0
 with open(sys.argv[1], "rb") as fh:
     for line in fh:
         n += 1
-print(json.dumps({"kb": int(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).split()[1]), "lines": n}))
+print(json.dumps({"kb": int(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).split()[1]),
+                  "lines": n}))
 """
 
 PORT = r"""
 import json, sys
 from driftlab.cli import main
-code = main(["compensate", sys.argv[1], "--model", sys.argv[3], "--temps", sys.argv[5], "--port", sys.argv[4], "--json"])
+code = main(["compensate", sys.argv[1], "--model", sys.argv[3], "--temps", sys.argv[5], "--port", sys.argv[4],
+             "--json"])
 assert code == 0
 print(json.dumps({"kb": int(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).split()[1])}))
 """

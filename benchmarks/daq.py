@@ -22,6 +22,10 @@ the daemon did.
 
 from __future__ import annotations
 
+import _common  # noqa: F401  (first: pins numeric thread pools)
+
+# isort: split
+
 import math
 import os
 import sqlite3
@@ -29,8 +33,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-
-import _common  # noqa: F401  (first: pins numeric thread pools)
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -244,7 +246,8 @@ def main() -> None:
         figures.update(instruments_only())
         figures.update(store_only(f"sqlite:///{tmp / 'store.sqlite'}", "store_sqlite", blocks))
         figures.update(raw_baseline_sqlite(tmp, blocks))
-    figures["store_sqlite_vs_raw"] = round(figures["store_sqlite_rows_per_s"] / figures["baseline_raw_sqlite_rows_per_s"], 3)
+    figures["store_sqlite_vs_raw"] = round(
+        figures["store_sqlite_rows_per_s"] / figures["baseline_raw_sqlite_rows_per_s"], 3)
     pg = None
     if os.environ.get("DAQ_NO_PG") != "1":
         try:
@@ -263,7 +266,8 @@ def main() -> None:
             figures.update(daemon_run(pg.create_database(), "pg_flat_out", math.inf))
             figures.update(store_only(pg.create_database(), "store_pg", blocks))
             figures.update(raw_baseline_pg(pg.create_database(), blocks))
-            figures["store_pg_vs_raw"] = round(figures["store_pg_rows_per_s"] / figures["baseline_raw_pg_copy_rows_per_s"], 3)
+            figures["store_pg_vs_raw"] = round(
+                figures["store_pg_rows_per_s"] / figures["baseline_raw_pg_copy_rows_per_s"], 3)
         finally:
             pg.stop()
     reach = {}

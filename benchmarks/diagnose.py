@@ -27,7 +27,7 @@ def _baseline_lstsq(bundle: Bundle) -> float:
     t_scan = temps["time_s"].to_numpy()
     meta = bundle.meta
     start = time.perf_counter()
-    for (axis, term), g in bundle.errors.groupby(["axis", "term"]):
+    for (axis, _term), g in bundle.errors.groupby(["axis", "term"]):
         chans = (meta.model_channels or {}).get(axis, [])
         t = g["time_s"].to_numpy()
         p = g["position"].to_numpy()

@@ -15,9 +15,12 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import emit, load_average  # noqa: E402  (pins BLAS threads before numpy loads)
+
+# isort: split
+
 import numpy as np  # noqa: E402
 import statsmodels.api as sm  # noqa: E402
-from _common import emit, load_average  # noqa: E402  (pins BLAS threads before numpy loads)
 
 from driftlab.campaigns.bundle import Bundle, CampaignMeta  # noqa: E402
 from driftlab.daq.sim.campaign import simulate_campaign  # noqa: E402

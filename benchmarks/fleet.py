@@ -44,8 +44,11 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import numpy as np  # noqa: E402
 from _common import emit, load_average  # noqa: E402  (pins BLAS threads before numpy loads)
+
+# isort: split
+
+import numpy as np  # noqa: E402
 from sqlalchemy import select, text  # noqa: E402
 
 from driftlab.campaigns import partitions  # noqa: E402

@@ -52,7 +52,7 @@ def make_bundle(root: Path, hours: float, channels: int, seed: int = 0) -> Path:
     positions = np.linspace(0.0, 500.0, 21)
     terms = ("dx", "dy", "dz", "alpha", "beta", "gamma")
     rows = []
-    for s, t0 in enumerate(np.arange(0.0, n - 600, 600.0)):
+    for _s, t0 in enumerate(np.arange(0.0, n - 600, 600.0)):
         drift = 1 - np.exp(-t0 / 7200.0)
         for d, order in ((1, positions), (-1, positions[::-1])):
             for i, p in enumerate(order):

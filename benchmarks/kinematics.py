@@ -15,8 +15,11 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import time  # noqa: E402
 
-import numpy as np  # noqa: E402
 from _common import emit, load_average, timeit_best  # noqa: E402  (sets one thread before numpy loads)
+
+# isort: split
+
+import numpy as np  # noqa: E402
 
 from driftlab.models.simulation import appendix_a_errors, sinusoidal_program  # noqa: E402
 from driftlab.physics import kinematics as kin  # noqa: E402

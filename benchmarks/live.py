@@ -17,6 +17,10 @@ A real `driftlab serve` and real `driftlab daemon` processes on one SQLite store
 
 from __future__ import annotations
 
+import _common  # noqa: F401  (first: pins numeric thread pools)
+
+# isort: split
+
 import json
 import statistics
 import sys
@@ -26,7 +30,6 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-import _common  # noqa: F401  (first: pins numeric thread pools)
 import httpx
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -48,7 +48,7 @@ def _columns(total: float | None) -> list[Any]:
 
 
 @contextmanager
-def progress(description: str, total: float | None = None) -> Iterator["_Task"]:
+def progress(description: str, total: float | None = None) -> Iterator[_Task]:
     """Yield a task whose ``advance(n)`` moves a bar on a terminal and does nothing elsewhere.
 
     Without ``total`` the bar is a spinner with the elapsed time (nothing claims a fraction it

@@ -24,18 +24,18 @@ Rotation = Literal["alpha", "beta", "gamma"]
 Translation = Literal["dx", "dy", "dz"]
 
 #: the five joints of the machine (ch. 4.2)
-AXES: tuple[Axis, ...] = ("X", "Y", "Z", "A", "B")
-LINEAR_AXES: tuple[Axis, ...] = ("X", "Y", "Z")
-ROTARY_AXES: tuple[Axis, ...] = ("A", "B")
+AXES: tuple[str, ...] = ("X", "Y", "Z", "A", "B")
+LINEAR_AXES: tuple[str, ...] = ("X", "Y", "Z")
+ROTARY_AXES: tuple[str, ...] = ("A", "B")
 
 #: the error vector's components in the order of eq. 4.8 (rad, rad, rad, mm, mm, mm)
-TERMS: tuple[Term, ...] = ("alpha", "beta", "gamma", "dx", "dy", "dz")
-ROTATIONS: tuple[Term, ...] = ("alpha", "beta", "gamma")
-TRANSLATIONS: tuple[Term, ...] = ("dx", "dy", "dz")
+TERMS: tuple[str, ...] = ("alpha", "beta", "gamma", "dx", "dy", "dz")
+ROTATIONS: tuple[str, ...] = ("alpha", "beta", "gamma")
+TRANSLATIONS: tuple[str, ...] = ("dx", "dy", "dz")
 
 #: each linear axis's own translation and each axis's own rotation (positioning and roll)
-OWN_TRANSLATION: dict[str, Term] = {"X": "dx", "Y": "dy", "Z": "dz"}
-OWN_ROTATION: dict[str, Term] = {"X": "alpha", "Y": "beta", "Z": "gamma", "A": "alpha", "B": "beta"}
+OWN_TRANSLATION: dict[str, str] = {"X": "dx", "Y": "dy", "Z": "dz"}
+OWN_ROTATION: dict[str, str] = {"X": "alpha", "Y": "beta", "Z": "gamma", "A": "alpha", "B": "beta"}
 
 #: units of the stored values
 LENGTH_UNIT = "mm"

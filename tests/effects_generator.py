@@ -206,7 +206,8 @@ def make_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, sc
         "format": "driftlab-bundle/1",
         "machine": {"id": "synthetic", "name": "generated for diagnosis tests", "resolution_mm": 0.0001},
         "started_at": "2026-03-02T08:00:00Z",
-        "channels": {c: {"location": "room air" if c in room else f"site {c}", "structure": "room" if c in room else "machine"}
+        "channels": {c: {"location": "room air" if c in room else f"site {c}",
+                         "structure": "room" if c in room else "machine"}
                      for c in names},
         "room_channels": room,
         "stages": stages,

@@ -134,7 +134,8 @@ def test_labels_read_as_words() -> None:
     assert feature_label("dT_T7^2") == "square of the temperature rise of T7"
     assert effect_label({"kind": "thermal_lag", "channels": ["T4"], "params": {"tau_s": 900.0}}) == \
         "thermal lag of T4, tau 15 min"
-    assert effect_label({"kind": "sensor_fault", "channels": ["T34"], "params": {"start_s": 90000, "mode": "detached"}}) \
+    assert effect_label({"kind": "sensor_fault", "channels": ["T34"],
+                         "params": {"start_s": 90000, "mode": "detached"}}) \
         == "faulty thermocouple T34 (detached) from 25.0 h into the campaign"
     assert duration(3725, clock=True) == "1:02:05" and duration(None) == "-" and duration(5 * 86400) == "5.0 days"
 

@@ -54,7 +54,8 @@ def test_compose_services_healthchecks_and_conditions(compose: dict) -> None:
     for name in ("api", "daemon", "worker"):
         assert services[name]["depends_on"]["migrate"]["condition"] == "service_completed_successfully"
         assert services[name]["environment"]["DRIFTLAB_DB_URL"].startswith("postgresql+psycopg://")
-    assert "8765" in services["api"]["healthcheck"]["test"][-1] and "/health" in services["api"]["healthcheck"]["test"][-1]
+    health = services["api"]["healthcheck"]["test"][-1]
+    assert "8765" in health and "/health" in health
     assert all(p.startswith("127.0.0.1:") for s in services.values() for p in s.get("ports", []))
 
 

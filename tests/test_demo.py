@@ -73,7 +73,8 @@ def test_demo_diagnosis_names_the_planted_effect(demo_out: Path) -> None:
     assert abs(found[0]["params"]["magnitude_mm"] - mag) < 0.25 * mag
 
 
-@pytest.mark.parametrize("bad", [["--passes", "10"], ["--forgetting", "0.3"], ["--age-days", "-1"], ["--wear-um-per-day", "0"],
+@pytest.mark.parametrize("bad", [["--passes", "10"], ["--forgetting", "0.3"], ["--age-days", "-1"],
+                                 ["--wear-um-per-day", "0"],
                                  ["--plan", "no-such-plan.yaml"]])
 def test_demo_refuses_bad_options_before_any_work(tmp_path: Path, bad: list[str],
                                                   capsys: pytest.CaptureFixture[str]) -> None:

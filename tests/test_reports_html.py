@@ -1,4 +1,5 @@
-"""The HTML reports a person reads: the campaign overview, findings in words, um/urad, one colour scale per map, no JSON."""
+"""The HTML reports a person reads: the campaign overview, findings in words, um/urad, one colour scale per map,
+no JSON."""
 
 from __future__ import annotations
 
@@ -53,7 +54,8 @@ def test_demo_page_has_one_scale_per_map_in_um_and_no_json() -> None:
     rng = np.random.default_rng(0)
     dev = {"uncompensated": rng.normal(0, 0.06, (99, 15)), "offline": rng.normal(0, 0.005, (99, 15)),
            "online": rng.normal(0, 0.003, (99, 15))}
-    table = {k: {"rmse_mm": float(np.sqrt(np.mean(v ** 2))), "max_mm": float(np.max(np.abs(v)))} for k, v in dev.items()}
+    table = {k: {"rmse_mm": float(np.sqrt(np.mean(v ** 2))), "max_mm": float(np.max(np.abs(v)))}
+             for k, v in dev.items()}
     diag = demo_report.diagnosis_summary({"effects": [
         {"kind": "thermal_lag", "axis": "Z", "term": "dz", "channels": ["T34"], "params": {"tau_s": 3000.0},
          "p_value": 1e-9, "cause": "the arm lags its thermocouple", "rmse_holdout_before": 0.004,
@@ -72,7 +74,7 @@ def test_demo_page_has_one_scale_per_map_in_um_and_no_json() -> None:
     fig = demo_report.surface_axes(dev)
     maps = [ax for ax in fig.axes if ax.images]
     assert len(maps) == 3 and len(fig.axes) == 6  # three maps, each with its own colour bar
-    for ax, (k, v) in zip(maps, dev.items()):
+    for ax, (_k, v) in zip(maps, dev.items()):
         lo, hi = ax.images[0].get_clim()
         assert hi == pytest.approx(np.max(np.abs(v)) * 1e3) and lo == -hi  # its own symmetric scale, in um
         assert f"range {v.min() * 1e3:+.1f} .. {v.max() * 1e3:+.1f} um" in ax.get_title()

@@ -40,7 +40,8 @@ def swagger_ui_redirect() -> HTMLResponse:
 @router.get("/redoc", response_class=HTMLResponse)
 def redoc() -> HTMLResponse:
     """Return ReDoc on the packaged assets (no web fonts: the system's are used)."""
-    return get_redoc_html(openapi_url="/openapi.json", title="driftlab API", redoc_js_url=f"{REDOC}/redoc.standalone.js",
+    return get_redoc_html(openapi_url="/openapi.json", title="driftlab API",
+                          redoc_js_url=f"{REDOC}/redoc.standalone.js",
                           redoc_favicon_url=f"{SWAGGER}/favicon-32x32.png", with_google_fonts=False)
 
 

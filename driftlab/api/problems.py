@@ -175,7 +175,7 @@ def declare_problems(schema: dict[str, Any]) -> dict[str, Any]:
     """
     schema.setdefault("components", {}).setdefault("schemas", {})["Problem"] = PROBLEM_SCHEMA
     ref = {"$ref": "#/components/schemas/Problem"}
-    for path, item in schema.get("paths", {}).items():
+    for item in schema.get("paths", {}).values():
         for method, op in item.items():
             if not isinstance(op, dict) or "responses" not in op:
                 continue

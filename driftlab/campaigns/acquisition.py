@@ -174,31 +174,35 @@ def _open_campaign(
             conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(
             id=plan.machine.id, name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", ""))))
         started = sc.utcnow()
-        meta = {
+        machine: dict[str, Any] = {
+            "id": plan.machine.id, "name": plan.machine.name,
+            **({"geometry": plan.machine.geometry.document()} if plan.machine.geometry else {})}
+        meta: dict[str, Any] = {  # campaign.json of the bundle
             # bundle v2: every reading is stored with its commanded pose and the setup that made it
             "format": "driftlab-bundle/2",
             "setups": {k: v.bundle_entry() for k, v in plan.used_setups().items()},
-            "machine": {"id": plan.machine.id, "name": plan.machine.name,
-                        **({"geometry": plan.machine.geometry.document()} if plan.machine.geometry else {})},
+            "machine": machine,
             "started_at": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
             "channels": {k: dict(v) for k, v in channels.items()},
             "room_channels": list(room_channels),
             "stages": plan.bundle_stages(),
         }
         for key, value in (extra_meta or {}).items():
-            if key == "machine" and "geometry" in value and "geometry" in meta["machine"] and \
+            if key == "machine" and "geometry" in value and "geometry" in machine and \
                     Geometry.model_validate(value["geometry"]) != plan.machine.geometry:
                 raise ValidationError(f"plan {plan.name!r} and the scenario state different geometries of machine "
                                       f"{plan.machine.id!r}: state it once")
-            meta.setdefault(key, value) if key != "machine" else meta["machine"].update(
+            meta.setdefault(key, value) if key != "machine" else machine.update(
                 {k: v for k, v in value.items() if k != "id" and (k != "name" or not plan.machine.name)}
             )
-        cid = conn.execute(
+        inserted = conn.execute(
             sc.Campaign.__table__.insert().values(
                 machine_id=plan.machine.id, name=plan.name, started_at=started, status="running",
                 source="daemon", meta=meta, conditions_columns=["time_s", *STATE_KEYS],
             )
-        ).inserted_primary_key[0]
+        ).inserted_primary_key
+        assert inserted is not None  # a single-row insert of a table with a primary key
+        cid = inserted[0]
         conn.execute(
             sc.Stage.__table__.insert(),
             [

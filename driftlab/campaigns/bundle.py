@@ -29,7 +29,7 @@ import re
 import stat
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal, Protocol, TypeVar
 
@@ -78,7 +78,7 @@ MAX_FIELD_CHARS = 256             # per CSV cell: numbers, axis/term/direction/s
 MAX_NAME_CHARS = 64               # machine id, channel names, setup ids (API path segments), stage names
 MAX_TEXT_CHARS = 200              # free text of campaign.json: machine name, channel location and structure
 MAX_TIME_S = 1e9                  # time_s and stage times: about 31.7 years after started_at
-STARTED_AT_RANGE = (datetime(1970, 1, 1, tzinfo=timezone.utc), datetime(2200, 1, 1, tzinfo=timezone.utc))
+STARTED_AT_RANGE = (datetime(1970, 1, 1, tzinfo=UTC), datetime(2200, 1, 1, tzinfo=UTC))
 MAX_LINEAR_POSITION_MM = 1e5      # 100 m: positions and poses of X Y Z (a larger one is a units mistake)
 
 _DIRECTIONS = {"1": 1, "+1": 1, "1.0": 1, "+1.0": 1, "-1": -1, "-1.0": -1}
@@ -392,19 +392,22 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
             raise _json_fail(file, lines, ("setups", sid), "setup ids may hold only letters, digits, '_', '.', '-' "
                              "(at most 64)")
         if entry.axis is not None and any(not c.startswith(entry.axis + "/") for c in entry.terms):
-            raise _json_fail(file, lines, ("setups", sid, "terms"), f"setup {_short(sid)} measures the {entry.axis} axis "
+            raise _json_fail(file, lines, ("setups", sid, "terms"),
+                             f"setup {_short(sid)} measures the {entry.axis} axis "
                              "but lists terms of another")
     names_seen: set[str] = set()
     previous_end = -math.inf
     for k, stage in enumerate(meta.stages):
         if stage.end_s < stage.start_s:
             raise _json_fail(
-                file, lines, ("stages", k, "end_s"), f"stage {_short(stage.name)} ends ({stage.end_s}) before it starts "
+                file, lines, ("stages", k, "end_s"),
+                f"stage {_short(stage.name)} ends ({stage.end_s}) before it starts "
                 f"({stage.start_s})"
             )
         if stage.start_s < previous_end:
             raise _json_fail(
-                file, lines, ("stages", k, "start_s"), f"stage {_short(stage.name)} starts at {stage.start_s}, before the "
+                file, lines, ("stages", k, "start_s"),
+                f"stage {_short(stage.name)} starts at {stage.start_s}, before the "
                 f"previous stage ends ({previous_end}): stages must be in order and not overlap"
             )
         if stage.name in names_seen:

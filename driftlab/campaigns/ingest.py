@@ -364,7 +364,8 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
 
 
 def condition_rows(campaign_id: int, conditions: ColumnTable, postgres: bool, day: int) -> Iterator[tuple[Any, ...]]:
-    """Yield (campaign, time, spindle_rpm, feed_mm_min, x, y, z, a, b, start day) rows, NULL where a column is absent."""
+    """Yield (campaign, time, spindle_rpm, feed_mm_min, x, y, z, a, b, start day) rows, NULL where a column
+    is absent."""
     present = [c for c in CONDITION_VALUE_COLUMNS if c in conditions.columns]
     for chunk in conditions.chunks(["time_s", *present]):
         n = len(chunk["time_s"])

@@ -72,7 +72,8 @@ def find_campaign(engine: Engine, campaign: str | int) -> int | None:
 
 
 def header(engine: Engine, campaign_id: int) -> dict[str, Any] | None:
-    """Return a campaign's state as stored: stages, current stage and setup, progress, time left, latest scan, health."""
+    """Return a campaign's state as stored: stages, current stage and setup, progress, time left, latest scan,
+    health."""
     with Session(engine) as s:
         row = s.execute(
             select(sc.Campaign, sc.AcquisitionProgress)
@@ -136,7 +137,8 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
         },
         "latest": None if not last_scan else {
             "time_s": last_scan.get("t_s"), "values": dict(last_scan.get("values") or {}),
-            "at": _iso(started + timedelta(seconds=float(last_scan["t_s"]))) if started and last_scan.get("t_s") is not None else None,
+            "at": _iso(started + timedelta(seconds=float(last_scan["t_s"])))
+            if started and last_scan.get("t_s") is not None else None,
         },
         "last_point": cur.get("last_point"),
         "health": _health(cur, last_scan),
@@ -223,7 +225,8 @@ def temperature_buckets(engine: Engine, campaign_id: int, chans: list[dict[str, 
 
 def error_readings(engine: Engine, campaign_id: int, after_seq: int | None = None, since_s: float | None = None,
                    limit: int = MAX_ERRORS) -> dict[str, list[Any]]:
-    """Return the error readings after ``after_seq`` (or from campaign time ``since_s``), at most ``limit``, latest kept.
+    """Return the error readings after ``after_seq`` (or from campaign time ``since_s``), at most ``limit``,
+    latest kept.
 
     Columns: seq, t (s), axis, term, position (mm; deg for A, B), direction, value (mm or rad), sweep.
     """
@@ -269,7 +272,8 @@ def snapshot(engine: Engine, campaign_id: int, window_s: float = WINDOW_S,
 
 def update(engine: Engine, campaign_id: int, chans: list[dict[str, Any]], after_s: float | None, after_seq: int,
            width_s: float) -> dict[str, Any] | None:
-    """Return a campaign's header with the temperature buckets from the one holding ``after_s`` and errors after ``after_seq``."""
+    """Return a campaign's header with the temperature buckets from the one holding ``after_s`` and errors
+    after ``after_seq``."""
     head = header(engine, campaign_id)
     if head is None:
         return None

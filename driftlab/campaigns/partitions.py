@@ -52,7 +52,7 @@ _EPOCH = date(1970, 1, 1)
 #: pg_advisory_xact_lock key of partition DDL (db.upgrade serialises itself on 727271)
 _LOCK_KEY = 727272
 _BOUND = re.compile(r"FOR VALUES FROM \((-?\d+)\) TO \((-?\d+)\)")
-_PARTITION_NAME = re.compile(r"^(%s)_p\d{4}_\d{2}(_\d{2})?$" % "|".join(PARTITIONED_TABLES))
+_PARTITION_NAME = re.compile("^(" + "|".join(PARTITIONED_TABLES) + r")_p\d{4}_\d{2}(_\d{2})?$")
 
 
 def start_day(started_at: datetime) -> int:

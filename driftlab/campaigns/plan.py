@@ -38,7 +38,7 @@ import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Final, Literal
 
 import pydantic
 import yaml
@@ -50,8 +50,8 @@ from driftlab.errors import ValidationError
 from driftlab.physics.geometry import Geometry
 from driftlab.vocabulary import Axis, Term
 
-PLAN_FORMAT = "driftlab-plan/1"
-FROM_SCENARIO = "from scenario"
+PLAN_FORMAT: Final = "driftlab-plan/1"
+FROM_SCENARIO: Final = "from scenario"
 
 
 class _Strict(BaseModel):
@@ -81,7 +81,7 @@ class AxisSource(_Strict):
     to_pos: float
 
     @model_validator(mode="after")
-    def _span(self) -> "AxisSource":
+    def _span(self) -> AxisSource:
         """Refuse a zero-length oscillation (it would not move the axis)."""
         if self.from_pos == self.to_pos:
             raise ValueError("from_pos and to_pos must differ")
@@ -104,7 +104,7 @@ class MotorHoldSource(_Strict):
         return f"motor_hold:{self.axis}"
 
 
-HeatSource = Annotated[Union[SpindleSource, AxisSource, MotorHoldSource], Field(discriminator="kind")]
+HeatSource = Annotated[SpindleSource | AxisSource | MotorHoldSource, Field(discriminator="kind")]
 
 
 class Sweep(_Strict):
@@ -159,7 +159,7 @@ class Stage(_Strict):
         default=None, description="id of the plan's setup mounted in this stage (default: a laser for sweep.term)")
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Stage":
+    def _consistent(self) -> Stage:
         """Check one source per kind and axis, and that a sweep fits in its interval and stage."""
         keys = [h.key() for h in self.heat]
         if len(set(keys)) != len(keys):
@@ -248,7 +248,7 @@ class MachineRef(_Strict):
         default=None, description="the machine's stated lengths for table 6.3 (campaign.json machine.geometry)")
 
     @model_validator(mode="after")
-    def _rooms_known(self) -> "MachineRef":
+    def _rooms_known(self) -> MachineRef:
         """Require room channels to be in the channel map when one is given."""
         if isinstance(self.channels, dict):
             unknown = [c for c in self.room_channels if c not in self.channels]
@@ -285,7 +285,7 @@ class Plan(_Strict):
     stages: list[Stage] = Field(min_length=1)
 
     @model_validator(mode="after")
-    def _setups(self) -> "Plan":
+    def _setups(self) -> Plan:
         """Check every stage's setup exists, measures the stage's axis, and sees every sweep position."""
         for i, stage in enumerate(self.stages):
             if stage.setup is None:
@@ -319,7 +319,7 @@ class Plan(_Strict):
         return self
 
     @model_validator(mode="after")
-    def _order(self) -> "Plan":
+    def _order(self) -> Plan:
         """Check stage names are unique and (ch. 4.3) combinations only follow their single stages."""
         names = [s.name for s in self.stages]
         dup = sorted({n for n in names if names.count(n) > 1})
@@ -342,7 +342,7 @@ class Plan(_Strict):
         return self
 
     def travel_violations(
-        self, travel: Mapping[str, tuple[float, float]]
+        self, travel: Mapping[Axis, tuple[float, float]] | Mapping[str, tuple[float, float]]
     ) -> Iterator[tuple[int, str, str, str, float, float]]:
         """Yield (stage index, 'sweep' | 'pose' | 'heat', axis, values, lo, hi) for what leaves ``travel``.
 
@@ -364,7 +364,9 @@ class Plan(_Strict):
                 if lim is not None and not inside(v, lim):
                     yield i, "pose", ax, f"{v:g}", *lim
             for h in stage.heat:
-                lim = travel.get(h.axis) if isinstance(h, AxisSource) else None
+                if not isinstance(h, AxisSource):
+                    continue
+                lim = travel.get(h.axis)
                 if lim is not None and not (inside(h.from_pos, lim) and inside(h.to_pos, lim)):
                     yield i, "heat", h.axis, f"{h.from_pos:g}..{h.to_pos:g}", *lim
 
@@ -435,7 +437,7 @@ class Plan(_Strict):
                 return i
         return len(self.stages) - 1
 
-    def sweep_points(self) -> list["SweepPoint"]:
+    def sweep_points(self) -> list[SweepPoint]:
         """Return every error-measurement point of the campaign in time order, numbered from 0."""
         out: list[SweepPoint] = []
         for i, (stage, (start, end)) in enumerate(zip(self.stages, self.stage_bounds())):
@@ -528,7 +530,7 @@ class StageStart:
     t_s: float
 
 
-Step = Union[StageStart, Scan, SweepPoint, Move]
+Step = StageStart | Scan | SweepPoint | Move
 
 
 @dataclass(frozen=True, slots=True)

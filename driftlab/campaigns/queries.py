@@ -145,7 +145,8 @@ def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
             .where(sc.ConditionSample.campaign_id == campaign_id, sc.ConditionSample.campaign_start_day == day)
             .order_by(sc.ConditionSample.time_s)
         ).all()
-        arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(len(rows), len(cols) + 1)
+        arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(
+            len(rows), len(cols) + 1)
         conditions = pd.DataFrame(arr, columns=["time_s", *cols])
     pose_cols = [sc.ErrorSample.x, sc.ErrorSample.y, sc.ErrorSample.z, sc.ErrorSample.a, sc.ErrorSample.b,
                  sc.ErrorSample.setup] if meta.v2 else []
@@ -295,7 +296,8 @@ def drift(
             params["p"] = p = float(position)
             for d in _directions(conn, params, direction):
                 q = {**params, "d": d}
-                brackets = [r for r in conn.execute(text(_BRACKETS_SQL), q).all() if r[1] is not None and r[2] is not None]
+                brackets = [r for r in conn.execute(text(_BRACKETS_SQL), q).all()
+                            if r[1] is not None and r[2] is not None]
                 if not brackets:
                     continue
                 wanted = sorted({r[1] for r in brackets} | {r[2] for r in brackets})

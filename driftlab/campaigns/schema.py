@@ -25,7 +25,7 @@ unpartitioned.
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, ClassVar
 
 from sqlalchemy import (
     JSON,
@@ -40,6 +40,7 @@ from sqlalchemy import (
     MetaData,
     SmallInteger,
     String,
+    Table,
     Text,
     UniqueConstraint,
     text,
@@ -101,6 +102,9 @@ class Base(DeclarativeBase):
     """Declarative base with a constraint naming convention (needed by Alembic batch mode)."""
 
     metadata = MetaData(naming_convention=NAMING)
+    # every mapping here is a plain Table (no mapping to a join or select), so say so to the type
+    # checker: DeclarativeBase types __table__ as the general FromClause, which has no insert()/update()
+    __table__: ClassVar[Table]
 
 
 class Machine(Base):

@@ -122,7 +122,7 @@ class Setup(BaseModel):
         default_factory=dict, description="where the instrument sat, the artefact, its stated uncertainty")
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Setup":
+    def _consistent(self) -> Setup:
         """Check the setup can deliver its terms (Table 5.3) and names what is mounted."""
         kind = self.kind
         if self.instrument == "laser" and (self.optics is None or self.fixture is not None):
@@ -163,7 +163,8 @@ class Setup(BaseModel):
 
     def range_deg(self) -> float | None:
         """Return the rotary range the setup sees either side of 0 (None: the whole travel)."""
-        if self.instrument == "laser" and self.optics == "angular" and self.axis in ROTARY and not self.counter_rotating:
+        if (self.instrument == "laser" and self.optics == "angular" and self.axis in ROTARY
+                and not self.counter_rotating):
             return ANGULAR_OPTICS_RANGE_DEG
         return None
 

@@ -85,7 +85,8 @@ def _watch(args: argparse.Namespace) -> int:
     return 0
 
 
-def watch(engine: Any, campaign_id: int, console: Any, interval_s: float = 1.0, max_frames: int | None = None) -> dict[str, Any]:
+def watch(engine: Any, campaign_id: int, console: Any, interval_s: float = 1.0,
+          max_frames: int | None = None) -> dict[str, Any]:
     """Redraw the campaign every ``interval_s`` while it runs (at most ``max_frames`` times); return its last header."""
     import time
 
@@ -205,7 +206,8 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
                                     style="yellow" if h["timeouts"] else "green"))
     health.add_row("retries", ", ".join(f"{k} {v}" for k, v in h["retries"].items()) if h["retries"]
                    else "not recorded by the daemon")
-    health.add_row("open thermocouples", Text(", ".join(h["open"]) or "none", style="bold red" if h["open"] else "green"))
+    health.add_row("open thermocouples",
+                   Text(", ".join(h["open"]) or "none", style="bold red" if h["open"] else "green"))
     for f in h["recent"][-3:]:
         health.add_row("", f"{duration(f['t_s'], clock=True)} {f['instrument']} ({f['step']}): {f['message']}")
     return Group(title, top, temps, errors, Text("Instrument health", style="bold"), health)

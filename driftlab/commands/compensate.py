@@ -29,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--model", type=Path, help="model document JSON (as printed by `driftlab models show`)")
     src.add_argument("--api", help="driftlab API base URL: the machine's current model (hot-reloaded when streaming)")
     p.add_argument("--machine", help="machine id (required with --api)")
-    p.add_argument("--temps", type=Path, help="temperatures.csv (bundle v1 layout); default with --api: its latest scan")
+    p.add_argument("--temps", type=Path,
+                   help="temperatures.csv (bundle v1 layout); default with --api: its latest scan")
     p.add_argument("-o", "--out", type=Path, help="write the corrected program here (offline)")
     p.add_argument("--port", help="stream to the controller on this serial device or pyserial URL (socket://...)")
     p.add_argument("--start", help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or "

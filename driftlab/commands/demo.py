@@ -278,7 +278,8 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def with_wear(scenario: Any, um_per_day: float) -> Any:
-    """Return ``scenario`` with its Z slideways wearing (catalogue ``drift`` on Z/dz, ch. 6.4.3), nothing else changed."""
+    """Return ``scenario`` with its Z slideways wearing (catalogue ``drift`` on Z/dz, ch. 6.4.3), nothing else
+    changed."""
     from driftlab.daq.sim.scenario import HiddenEffect
 
     wear = HiddenEffect(kind="drift", axis="Z", term="dz", params={"rate_per_day": um_per_day * 1e-3})

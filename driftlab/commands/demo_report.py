@@ -130,6 +130,7 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
            f'scale" src="data:image/png;base64,{figure_png}"></p>') if figure_png else ""
     planted = report.get("planted", [])
     planted_html = "".join(f"<li>{e(_planted_text(p))}</li>" for p in planted) or "<li>nothing hidden</li>"
+    ordering = "holds" if report.get("ordering_holds") else "does NOT hold"
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>driftlab demo</title>
 <style>body{{font-family:sans-serif;max-width:70em;margin:2em auto;color:#1d2430}}table{{border-collapse:collapse}}
@@ -144,7 +145,7 @@ Total wall time {e(duration(report.get('wall_s', 0)))}. Lengths in micrometres (
 with the Z slideways worn ({e(str(report.get('wear_um_per_day', '')))} um a day), which no campaign saw. The maps
 below are of the thermal+wear case.</p>
 <table>{''.join(rows)}</table>
-<p>Ordering uncompensated &gt; off-line &gt; off-line + on-line: <b>{'holds' if report.get('ordering_holds') else 'does NOT hold'}</b>.</p>
+<p>Ordering uncompensated &gt; off-line &gt; off-line + on-line: <b>{ordering}</b>.</p>
 {fig}
 <h2>Diagnosis of the campaign</h2>
 <ul>{findings}</ul>

@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("bundle", type=Path, nargs="?", default=None, metavar="BUNDLE_DIR",
                    help="campaign bundle v1 directory (or --campaign for a stored campaign)")
     p.add_argument("--campaign", type=int, default=None, metavar="ID", help="diagnose a campaign in the store")
-    p.add_argument("--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
+    p.add_argument("--db", default=None, metavar="URL",
+                   help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
     p.add_argument("--json", type=Path, required=True, metavar="REPORT.json", help="write the report v1 here")
     p.add_argument("--html", type=Path, default=None, metavar="REPORT.html", help="also write an HTML page")
     p.add_argument("--holdout-fraction", type=float, default=0.25,
@@ -100,7 +101,7 @@ def print_findings(doc: dict) -> None:
         for r in base:
             k, unit = display_unit(str(r.get("term")))
             x = ext.get((r.get("axis"), r.get("term")), {})
-            fmt = lambda v: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
+            fmt = lambda v, k=k, unit=unit: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
             t.add_row(f"{r.get('axis')}/{r.get('term')}", " ".join(r.get("channels") or []), fmt(r.get("rmse_train")),
                       fmt(r.get("rmse_holdout")), fmt(x.get("rmse_holdout")))
         con.print(t)

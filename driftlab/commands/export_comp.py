@@ -20,7 +20,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, metavar="VERSION|FILE",
                    help="a registered model version (number or 'current', with --machine) or a model document JSON")
     p.add_argument("--machine", default=None, help="machine id (for a registered version, and with --api)")
-    p.add_argument("--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
+    p.add_argument("--db", default=None, metavar="URL",
+                   help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--temps", type=Path, metavar="CSV", help="temperatures.csv: its latest scan is used")
     src.add_argument("--api", metavar="URL", help="driftlab API base URL: the machine's latest scan")

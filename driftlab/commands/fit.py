@@ -105,7 +105,8 @@ def _fit(args: argparse.Namespace) -> int:
 
 
 def _reference(store: Any, campaign_ids: list[int]) -> dict[str, Any]:
-    """Return what the held-out errors are judged against: the campaign's stated noise, else the machine's resolution."""
+    """Return what the held-out errors are judged against: the campaign's stated noise, else the machine's
+    resolution."""
     from driftlab.campaigns.live import campaign_meta
 
     meta = campaign_meta(store.engine, campaign_ids[0]) if campaign_ids else None
@@ -156,7 +157,8 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
     if ref.get("noise_rad"):
         stated.append(f"{ref['noise_rad'] * 1e6:.2g} urad")
     t = Table(title="Per-link models (thesis tables 6.1-6.2): RMSE of the work-space error" + (
-        f"; stated noise {', '.join(stated)}" if stated else "; no noise stated: judged against the machine's resolution"),
+        f"; stated noise {', '.join(stated)}" if stated
+        else "; no noise stated: judged against the machine's resolution"),
         title_justify="left")
     for col, just in (("axis", "left"), ("term", "left"), ("measurement", "left"), ("link", "left"), ("form", "left"),
                       ("unit", "left"),
@@ -188,14 +190,15 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
             pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
 
-        def num(v: Any, fmt: str) -> str:
+        def finite_num(v: Any, fmt: str) -> str:
             return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
 
         for p in phys:
             elem, _, feat = str(p["term"]).partition(" ")
             status = str(p.get("status", "compared"))
             pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
-                       num(p.get("regression"), ".4g"), num(p.get("physical"), ".4g"), num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
+                       finite_num(p.get("regression"), ".4g"), finite_num(p.get("physical"), ".4g"),
+                       finite_num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
                        str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"))
         con.print(pt)
     for f in report.get("findings", []):

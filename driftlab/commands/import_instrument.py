@@ -39,7 +39,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ValidationError(f"{args.file}: no such file")
     if args.fmt == "generic":
         if args.mapping is None:
-            raise ValidationError("--format generic needs --mapping MAP.yaml (columns -> axis, term, position, direction)")
+            raise ValidationError("--format generic needs --mapping MAP.yaml "
+                                  "(columns -> axis, term, position, direction)")
         readings = generic.read_generic(args.file, generic.load_mapping(args.mapping), args.mapping.name)
     elif args.mapping is not None:
         raise ValidationError(f"--mapping is for --format generic, not {args.fmt}")

@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "from the campaign's stages.")
     p.add_argument("bundle", type=Path, nargs="?", default=None, metavar="BUNDLE_DIR", help="campaign bundle directory")
     p.add_argument("--campaign", type=int, default=None, metavar="ID", help="a stored campaign instead of a bundle")
-    p.add_argument("--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
+    p.add_argument("--db", default=None, metavar="URL",
+                   help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
     p.add_argument("--part", type=int, choices=(2, 3), required=True, help="2: positioning accuracy; 3: thermal tests")
     p.add_argument("--axis", default=None, help="axis for part 2 (X Y Z A B)")
     p.add_argument("--term", default=None, help="part 2: term to evaluate (default the axis' positioning term)")

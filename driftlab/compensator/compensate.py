@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
-from typing import Any, TypedDict, Union
+from typing import Any, TypeAlias, TypedDict
 
 import numpy as np
 import pandas as pd
@@ -43,7 +43,7 @@ RESOLUTION_MM = 0.0025
 RESOLUTION_DEG = 0.001
 
 #: one reading per channel (degC), or a frame of N rows aligned with the poses (with ``time_s``)
-Temperatures = Union[Mapping[str, float], pd.DataFrame]
+Temperatures: TypeAlias = Mapping[str, float] | pd.DataFrame
 #: (q (N, 5) mm/rad, temperatures, direction (N, 5) +1/-1) -> link and joint errors
 #: predict(q, temperatures, direction[, at=POSIX s]) -> element errors; ``at`` is passed only when known
 #: (to models with time-dependent terms: the drift of ch. 6.4.3 is evaluated at the block's time)
@@ -140,6 +140,7 @@ def fast_predict(doc: Any) -> Predict:
                 if kind == "intercept":
                     const = const + c
                 elif kind == "position":
+                    assert col is not None  # fast_predict refused axis kinds that name no axis
                     if power == 1:
                         lin[col] = lin.get(col, 0.0) + c
                     else:
@@ -150,6 +151,7 @@ def fast_predict(doc: Any) -> Predict:
                 elif kind in ("dT", "lag"):  # a snapshot carries no history: a settled lag equals dT
                     const = const + c * dT[ch[0]]
                 elif kind == "pos_dT":
+                    assert col is not None  # as above
                     lin[col] = lin.get(col, 0.0) + c * dT[ch[0]]
                 elif kind == "gradient":  # eqs. 3.4-3.5: mean of one side less mean of the other
                     a, b = ch[:power], ch[power:]
@@ -483,10 +485,14 @@ def compensate_program(
     """
     points = subdivide(program, max_segment_mm, max_segment_deg)
     times = program.line_time_s[program.block_line[points.block]]
-    per_point = isinstance(temperatures, TemperatureTable) and points.n > 0 and bool(np.isfinite(times).all())
+    # the table each point takes its nearest scan from; None: every point takes ``fixed``
+    per_point: TemperatureTable | None = None
+    fixed: Temperatures | None
     if isinstance(temperatures, TemperatureTable):
-        how = "nearest scan to each block's time" if per_point else "latest scan"
-        fixed = None if per_point else temperatures.latest(model.channels)
+        if points.n > 0 and bool(np.isfinite(times).all()):
+            per_point = temperatures
+        how = "nearest scan to each block's time" if per_point is not None else "latest scan"
+        fixed = None if per_point is not None else temperatures.latest(model.channels)
     else:
         how, fixed = "given", temperatures
     sent = np.empty_like(points.nominal_int)
@@ -496,7 +502,7 @@ def compensate_program(
     prev_dir = None
     for s in range(0, points.n, chunk_points):
         sub = Points(points.block[s : s + chunk_points], points.nominal_int[s : s + chunk_points])
-        temps = temperatures.nearest(times[s : s + chunk_points], model.channels) if per_point else fixed
+        temps = per_point.nearest(times[s : s + chunk_points], model.channels) if per_point is not None else fixed
         corr = correct_points(
             program, sub, model, temps, resolution_mm=resolution_mm, resolution_deg=resolution_deg,
             state=state, prev_nominal=prev_nom, prev_direction=prev_dir,

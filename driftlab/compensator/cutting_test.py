@@ -18,7 +18,8 @@ mean feed of every axis into the heat sources of its thermal network for the tim
 program streams through the machine link (``daq.machine_link.SerialMachineLink``) to the
 simulated controller, which executes it at the programmed feeds on the simulated clock; every
 executed block is logged with its time. The compensator reads the 50 thermocouples through the
-thermocouple-card driver (``daq.thermocouple.ThermocoupleCard``) from the simulated card. The machined surface is the tool centre as the real,
+thermocouple-card driver (``daq.thermocouple.ThermocoupleCard``) from the simulated card. The machined
+surface is the tool centre as the real,
 error-laden chain (eq. 4.12 with the true link and joint errors of the virtual machine at the
 moment the block ends) places it on the part; measured like the CMM of ch. 7.3 it is the normal
 deviation from the design surface at 15 x 99 points.
@@ -231,7 +232,8 @@ def make_program(surface: MouldSurface | None = None, passes: int = 700, *,
     lines += ["M5", "%"]
     rows = np.round(np.linspace(0, passes - 1, CMM_ALONG)).astype(int)
     cols = np.arange(CMM_ACROSS)
-    cmm = 1 + rows[:, None] * CMM_ACROSS + np.where(rows[:, None] % 2 == 0, cols[None, :], CMM_ACROSS - 1 - cols[None, :])
+    cmm = 1 + rows[:, None] * CMM_ACROSS + np.where(rows[:, None] % 2 == 0, cols[None, :],
+                                                    CMM_ACROSS - 1 - cols[None, :])
     dur = block_s.sum() / 60.0
     mean_feed = {a: float(np.abs(np.diff(pose[:, k])).sum() / dur) for k, a in enumerate(AXES)} if dur > 0 else {
         a: 0.0 for a in AXES}
@@ -437,7 +439,8 @@ class CuttingBench:
         # the 50 thermocouples of Table 5.1 on the simulated card, read through the real driver
         card_map = dict(enumerate(machining.CHANNELS))
         self.temperatures = CardTemperatures(ThermocoupleCard(
-            LineChannel(open_port(machining.serial_url(self.card)), "thermocouple card"), card_map, clock=self.clock.now))
+            LineChannel(open_port(machining.serial_url(self.card)), "thermocouple card"), card_map,
+            clock=self.clock.now))
         self.link = SerialMachineLink.open(machining.serial_url(self.ctrl), sleep=self.clock.sleep, poll_s=0.5)
 
     def close(self) -> None:
@@ -447,7 +450,7 @@ class CuttingBench:
         self.ctrl.close()
         self.card.close()
 
-    def __enter__(self) -> "CuttingBench":
+    def __enter__(self) -> CuttingBench:
         """Return the bench (closed on exit)."""
         return self
 
@@ -641,7 +644,7 @@ class ApiRLS:
         body: dict[str, Any] = {
             "x": float(xyz[0]), "y": float(xyz[1]), "z": float(xyz[2]), "a_deg": 0.0, "b_deg": 0.0,
             "dx": float(measured[0]), "dy": float(measured[1]), "dz": float(measured[2]), "temperatures": temps,
-            "measured_at": _dt.datetime.fromtimestamp(self.epoch_s + t_s, _dt.timezone.utc).isoformat(),
+            "measured_at": _dt.datetime.fromtimestamp(self.epoch_s + t_s, _dt.UTC).isoformat(),
         }
         if self.version == 0:
             body["forgetting"] = self.forgetting

@@ -390,9 +390,9 @@ class Streamer:
         for piece in self._window:
             if piece.first_line <= line < piece.first_line + piece.n_lines:
                 return piece
-        while (piece := self._next_piece()) is not None:
-            if line < piece.first_line + piece.n_lines:
-                return piece
+        while (read := self._next_piece()) is not None:
+            if line < read.first_line + read.n_lines:
+                return read
         return None
 
     def _release(self) -> None:

@@ -134,7 +134,7 @@ class ExecutedBlock:
 class _LoggedQueue(deque):
     """The controller's block queue, noting each block as it starts executing."""
 
-    def __init__(self, ctrl: "LoggingController") -> None:
+    def __init__(self, ctrl: LoggingController) -> None:
         super().__init__()
         self._ctrl = ctrl
 

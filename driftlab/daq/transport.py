@@ -122,7 +122,8 @@ class VisaPort:
     def open(
         cls, address: str, timeout_s: float = 2.0, resource_manager: Any | None = None, library: str | None = None
     ) -> VisaPort:
-        """Return a port on ``address`` via pyvisa: the given manager, else one on ``library`` (DRIFTLAB_VISA_LIBRARY)."""
+        """Return a port on ``address`` via pyvisa: the given manager, else one on ``library``
+        (DRIFTLAB_VISA_LIBRARY)."""
         import pyvisa
 
         rm = resource_manager or visa_resource_manager(library)

@@ -121,7 +121,8 @@ def build_app(url: str, *, pool_size: int = 4, refit_cron: str | None = None) ->
     for name in TASKS.values():
         app.task(name=name, queue=policy.QUEUE, pass_context=True, retry=retry,
                  priority=policy.PRIORITY_INTERACTIVE)(_run_task)
-    refit = app.task(name=REFIT_TASK, queue=policy.QUEUE, pass_context=True, priority=policy.PRIORITY_UPKEEP)(_refit_task)
+    refit = app.task(name=REFIT_TASK, queue=policy.QUEUE, pass_context=True,
+                     priority=policy.PRIORITY_UPKEEP)(_refit_task)
     cron = get_settings().refit_cron if refit_cron is None else refit_cron
     if cron:
         app.periodic(cron=cron, periodic_id="refit")(refit)

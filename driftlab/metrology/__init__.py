@@ -1,1 +1,2 @@
-"""Metrology in the machine-tool standards' terms: ISO 230-2 positioning, ISO 230-3 thermal tests, instrument importers."""
+"""Metrology in the machine-tool standards' terms: ISO 230-2 positioning, ISO 230-3 thermal tests, instrument
+importers."""

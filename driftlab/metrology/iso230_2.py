@@ -70,7 +70,8 @@ class Iso230_2Result:
 
 
 def split_runs(position: np.ndarray, direction: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """Return the runs of readings in measuring order: (direction, row indices) of each maximal one-direction sequence."""
+    """Return the runs of readings in measuring order: (direction, row indices) of each maximal one-direction
+    sequence."""
     d = np.asarray(direction)
     if d.size == 0:
         return []
@@ -175,7 +176,8 @@ def from_bundle_errors(errors: pd.DataFrame, axis: str, term: str | None = None)
 
 
 def plot(result: Iso230_2Result) -> Any:
-    """Return the standard's plot (matplotlib Figure): each run's deviations, the means and the +-2s bands per direction."""
+    """Return the standard's plot (matplotlib Figure): each run's deviations, the means and the +-2s bands
+    per direction."""
     import matplotlib
 
     matplotlib.use("Agg")

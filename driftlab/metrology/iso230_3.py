@@ -137,7 +137,8 @@ def etve_test(errors: pd.DataFrame, temperatures: pd.DataFrame | None, room_chan
 
 
 def spindle_test(errors: pd.DataFrame, stage: Any) -> StageTest:
-    """Return the thermal distortion of one spindle stage: per AXIS/term max drift range and end drift (ISO 230-3 clause 6)."""
+    """Return the thermal distortion of one spindle stage: per AXIS/term max drift range and end drift
+    (ISO 230-3 clause 6)."""
     series = drift_series(errors, stage.start_s, stage.end_s)
     figures, units = _per_term(series, "range")
     end, _ = _per_term(series, "end")
@@ -146,7 +147,8 @@ def spindle_test(errors: pd.DataFrame, stage: Any) -> StageTest:
 
 
 def linear_test(errors: pd.DataFrame, stage: Any) -> StageTest | None:
-    """Return the thermal distortion of one feed stage of a linear axis (ISO 230-3 clause 7), None if it was not measured."""
+    """Return the thermal distortion of one feed stage of a linear axis (ISO 230-3 clause 7), None if it was
+    not measured."""
     axis = stage.axis
     term = POSITIONING_TERM[axis]
     series = [s for s in drift_series(errors[(errors["axis"] == axis) & (errors["term"] == term)], stage.start_s,
@@ -190,7 +192,8 @@ def evaluate_bundle(bundle: Any) -> Iso230_3Result:
 
 
 def plot(test: StageTest) -> Any:
-    """Return the test's plot (matplotlib Figure): drift against time per term (ETVE, spindle) or per target (linear)."""
+    """Return the test's plot (matplotlib Figure): drift against time per term (ETVE, spindle) or per target
+    (linear)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -201,7 +204,8 @@ def plot(test: StageTest) -> Any:
         p1, p2 = test.extra["P1"], test.extra["P2"]
         for s in test.series:
             if s.position in (p1, p2):
-                ax.plot(s.t_h, s.drift * 1e3, label=f"{s.axis} at {s.position:g} mm ({'+' if s.direction > 0 else '-'})")
+                ax.plot(s.t_h, s.drift * 1e3,
+                        label=f"{s.axis} at {s.position:g} mm ({'+' if s.direction > 0 else '-'})")
         ax.set_ylabel("change of positioning deviation (um)")
         ax.set_title(f"ISO 230-3 linear motion: {test.stage}, axis {test.extra['axis']} at "
                      f"{test.extra['feed_mm_min']:g} mm/min", fontsize=10)

@@ -156,7 +156,8 @@ def _overview(bundle: Any) -> str:
     groups: dict[str, list[str]] = {}
     for name, ch in meta.channels.items():
         if name in temps.columns:
-            groups.setdefault("room" if name in meta.room_channels else (ch.structure or "unspecified"), []).append(name)
+            group = "room" if name in meta.room_channels else (ch.structure or "unspecified")
+            groups.setdefault(group, []).append(name)
     keys = sorted({(a, t) for a, t in zip(errors["axis"], errors["term"])})
     fig, axes = plt.subplots(2 + len(keys), 1, figsize=(11, 2.0 * (2 + len(keys))), sharex=True,
                              gridspec_kw={"height_ratios": [0.5, 2] + [1.2] * len(keys)})
@@ -218,7 +219,8 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
     from driftlab.labels import duration, effect_label
 
     e = html.escape
-    out = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>driftlab diagnosis: {e(res.bundle)}</title>",
+    out = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
+           f"<title>driftlab diagnosis: {e(res.bundle)}</title>",
            "<style>body{font-family:sans-serif;max-width:1150px;margin:auto;color:#1d2430}table{border-collapse:collapse}"
            "td,th{border:1px solid #999;padding:2px 6px;font-size:13px}img{max-width:100%}"
            ".good{color:#1f7a3a;font-weight:600}</style></head><body>",
@@ -226,7 +228,8 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
            f"<p>Held out: the last {res.holdout_fraction * 100:g}% of each error term in time "
            f"(from {duration(res.holdout_start_s)} into the campaign). Every decision is made on the training part "
            f"alone: a finding must be significant there (Bonferroni over {res.n_hypotheses} hypotheses at family alpha "
-           f"{res.alpha_family}, with inference robust to autocorrelated residuals: HAC and blocks of sweeps) and lower "
+           f"{res.alpha_family}, with inference robust to autocorrelated residuals: HAC and blocks of sweeps) "
+           f"and lower "
            f"the error by at least {res.min_gain * 100:g}% in time-ordered validation inside the training part. The "
            f"held-out part is scored once, after the findings are final, and its figures are shown as they came out. "
            f"A faulty thermocouple is decided on the temperatures alone. "
@@ -255,7 +258,8 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
             gain = "no held-out figure (the channel feeds no model, or the fault starts after the last reading)"
         plot = _effect_plot(eff, unit) if eff.time_s.size else ""
         out.append(f"<h3>{i}. {e(effect_label(eff.to_dict()))}, on {where}</h3>"
-                   f"<p><b>Cause.</b> {e(eff.cause)}</p><p>{_params_text(eff)}; p = {eff.p_value:.3g}; {gain}</p>{plot}")
+                   f"<p><b>Cause.</b> {e(eff.cause)}</p>"
+                   f"<p>{_params_text(eff)}; p = {eff.p_value:.3g}; {gain}</p>{plot}")
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)

@@ -6,8 +6,8 @@ Pure: storing and listing versions is ``driftlab.jobs.registry``, which joins do
 from __future__ import annotations
 
 from collections.abc import Mapping
-from datetime import datetime, timezone
-from typing import Any, Literal
+from datetime import UTC, datetime
+from typing import Any, Final, Literal
 
 import numpy as np
 import pandas as pd
@@ -20,7 +20,7 @@ from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementError
 from driftlab.physics.lag import first_order_lag
 from driftlab.physics.thermal import ALPHA_C
 
-MODEL_FORMAT = "driftlab-model/1"
+MODEL_FORMAT: Final = "driftlab-model/1"
 
 
 class _Doc(BaseModel):
@@ -63,7 +63,7 @@ class SubstitutionDoc(_Doc):
     mode: str = ""
 
     @model_validator(mode="after")
-    def _shape(self) -> "SubstitutionDoc":
+    def _shape(self) -> SubstitutionDoc:
         """Require one coefficient per neighbour plus the intercept, and an aware time."""
         if len(self.coef) != len(self.neighbours) + 1:
             raise ValueError(f"substitution of {self.channel}: {len(self.neighbours)} neighbours need "
@@ -118,10 +118,11 @@ class TermDoc(_Doc):
         return v
 
     @model_validator(mode="after")
-    def _lengths(self) -> "TermDoc":
+    def _lengths(self) -> TermDoc:
         """Require one coefficient per feature."""
         if len(self.coefficients) != len(self.features):
-            raise ValueError(f"{self.element}.{self.param}: {len(self.features)} features, {len(self.coefficients)} coefficients")
+            raise ValueError(f"{self.element}.{self.param}: {len(self.features)} features, "
+                             f"{len(self.coefficients)} coefficients")
         for f in self.features:
             f.feature()
         return self
@@ -161,7 +162,7 @@ class ModelDocument(_Doc):
     lines: list[dict[str, Any]] = Field(default_factory=list)
 
     @model_validator(mode="after")
-    def _consistent(self) -> "ModelDocument":
+    def _consistent(self) -> ModelDocument:
         """Require every channel a term reads to be a declared input, and one model per element parameter."""
         seen: set[tuple[str, str]] = set()
         for t in self.terms:
@@ -208,7 +209,7 @@ def document_json(doc: ModelDocument) -> dict[str, Any]:
 
 def now_iso() -> str:
     """Return the current UTC time as ISO 8601."""
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+    return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 # ----------------------------------------------------------------------------- prediction
@@ -221,7 +222,7 @@ def _times(at: Any, n: int) -> np.ndarray | None:
 
     def stamp(x: Any) -> float:
         if isinstance(x, datetime):
-            return (x if x.tzinfo else x.replace(tzinfo=timezone.utc)).timestamp()
+            return (x if x.tzinfo else x.replace(tzinfo=UTC)).timestamp()
         if isinstance(x, str):
             return stamp(datetime.fromisoformat(x.replace("Z", "+00:00")))
         return float(x)
@@ -231,7 +232,8 @@ def _times(at: Any, n: int) -> np.ndarray | None:
     elif np.asarray(at).dtype.kind == "M":  # numpy datetime64 (taken as UTC)
         v = np.asarray(at).astype("datetime64[us]").astype(np.int64).ravel() / 1e6
     else:
-        v = np.array([stamp(x) for x in (at.tolist() if isinstance(at, (np.ndarray, pd.Series, pd.Index)) else at)], float)
+        items = at.tolist() if isinstance(at, (np.ndarray, pd.Series, pd.Index)) else at
+        v = np.array([stamp(x) for x in items], float)
     if v.size == 1:
         return np.repeat(v, n)
     if v.size != n:
@@ -294,7 +296,7 @@ def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame
         lagged = {k: np.repeat(v, n) for k, v in lagged.items()}
     days = None
     if doc.time_origin is not None and any(f.kind == "time" for t in doc.terms for f in t.features):
-        t_s = times if times is not None else np.full(n, datetime.now(timezone.utc).timestamp())
+        t_s = times if times is not None else np.full(n, datetime.now(UTC).timestamp())
         days = (t_s - doc.time_origin.timestamp()) / 86400.0
     return Inputs(dT=dT, lagged=lagged, days=days)
 

@@ -89,7 +89,7 @@ class Feature:
         return out
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "Feature":
+    def from_dict(cls, d: Mapping[str, Any]) -> Feature:
         """Rebuild a feature from its JSON form."""
         return cls(
             kind=str(d["kind"]),
@@ -117,7 +117,7 @@ class Inputs:
         """Return the number of samples."""
         return len(self.dT)
 
-    def take(self, index: np.ndarray) -> "Inputs":
+    def take(self, index: np.ndarray) -> Inputs:
         """Return the inputs restricted to the rows ``index`` (boolean mask or integer positions)."""
         idx = np.flatnonzero(index) if np.asarray(index).dtype == bool else np.asarray(index)
         return Inputs(
@@ -192,7 +192,8 @@ def _dT(inputs: Inputs, channel: str) -> np.ndarray:
 
 
 def _axis_column(feature: Feature, values: np.ndarray | None, n: int) -> np.ndarray:
-    """Return the per-sample coordinate (or direction) a feature reads: a (N,) array, or the column of its axis label in (N, 5)."""
+    """Return the per-sample coordinate (or direction) a feature reads: a (N,) array, or the column of its
+    axis label in (N, 5)."""
     if values is None:
         return np.zeros(n)
     v = np.asarray(values, float)

@@ -126,7 +126,7 @@ class Sample:
     inputs: Inputs  # dT and lags at each sample
     raw: pd.DataFrame | None = None  # the readings themselves (degC) at each sample
 
-    def take(self, mask: np.ndarray) -> "Sample":
+    def take(self, mask: np.ndarray) -> Sample:
         """Return the rows selected by a boolean mask."""
         raw = None if self.raw is None else self.raw[mask].reset_index(drop=True)
         return Sample(self.frame[mask].reset_index(drop=True), self.q[mask], self.inputs.take(mask), raw)
@@ -138,7 +138,7 @@ class FitResult:
 
     document: ModelDocument
     screening: ScreeningResult
-    models: dict[tuple[str, str], "ElementModel"]
+    models: dict[tuple[str, str], ElementModel]
     validation: pd.DataFrame  # tables 6.1/6.2 layout
     physical: pd.DataFrame  # table 6.3 layout
     neural: list[NeuralComparison]  # ch. 6.6: one per target fixed in advance, both directions each
@@ -192,7 +192,7 @@ def stage_elements(stages: Sequence[Any]) -> list[tuple[Any, str | None, str]]:
             last = (None, "validation")
         elif hs == "spindle":
             last = ("T1", "train")
-        elif hs in ("feed", "axis", "motor_hold") and axis in AXIS_JOINT:
+        elif hs in ("feed", "axis", "motor_hold") and axis is not None and axis in AXIS_JOINT:
             last = (AXIS_JOINT[axis], "train")
         elif last is None:
             out.append((st, None, "pending"))
@@ -444,7 +444,8 @@ def predict_models(models: Mapping[tuple[str, str], ElementModel], sample: Sampl
     return out
 
 
-def _measured_w(sample: Sample, known: Mapping[str, np.ndarray], dims: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+def _measured_w(sample: Sample, known: Mapping[str, np.ndarray],
+                dims: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Return W (N, 6) with unmeasured terms filled by the known model, and the measured mask."""
     W = sample.frame[list(PARAMS)].to_numpy(float)
     mask = np.isfinite(W)
@@ -480,7 +481,8 @@ class Candidates:
 
     def split_pool(self, pool: Sequence[Feature], axes: Sequence[str], param: str,
                    keep: Callable[[Feature], bool]) -> tuple[list[Feature], list[Feature]]:
-        """Return (forced terms, candidates): ``pool`` plus the findings' terms of (axes, param) that ``keep`` admits."""
+        """Return (forced terms, candidates): ``pool`` plus the findings' terms of (axes, param) that ``keep``
+        admits."""
         forced: list[Feature] = []
         # a finding's lag at its measured tau replaces the pool's default-tau lags of that channel
         # (near-identical columns: the cruder one would mask the finding through the VIF rule)
@@ -503,7 +505,8 @@ class Candidates:
     def for_axes(self, axes: Sequence[str], allowed: Sequence[str] | None) -> list[Feature]:
         """Return the candidate terms for rows moving ``axes``, limited to ``allowed`` channels."""
         # the user's selection (bundle model_channels) is used as given; else the screened channels
-        chans = list(self.channels) if allowed is None else [c for c in allowed if c in self.structures or c in self.room]
+        chans = list(self.channels) if allowed is None else [
+            c for c in allowed if c in self.structures or c in self.room]
         members = {s: [c for c in cs if allowed is None or c in allowed] for s, cs in self.members.items()}
         return candidate_features(
             chans, self.structures, axes=axes, screw_channels=self.screws, lag_taus_s=self.lag_taus_s,
@@ -544,7 +547,7 @@ def fit_elements(
         axes = [a for a in AXES if (sub.frame["axis"] == a).any()]
         allowed = None
         own_axis = JOINT_OF.get(element)
-        if own_axis in model_channels:
+        if own_axis is not None and own_axis in model_channels:
             allowed = list(model_channels[own_axis])
         elif model_channels and all(a in model_channels for a in axes):
             allowed = sorted({c for a in axes for c in model_channels[a]})
@@ -572,7 +575,7 @@ def fit_elements(
             # fit the sensor noise it was evaluated with (errors in variables)
             used = {f for (e, pp), m in models.items() if pp == param for f in m.features}
 
-            def admit(f: Feature) -> bool:
+            def admit(f: Feature, used: set[Feature] = used, element: str = element) -> bool:
                 return f not in used and feature_element(f, cands.structures, element) not in solved
 
             forced, pool = cands.split_pool([f for f in feats if admit(f)], axes, param, admit)
@@ -636,7 +639,7 @@ def _global_lengths(
         # a joint whose axis has the user's selection reads only those channels
         def honoured(f: Feature) -> bool:
             axis = JOINT_OF.get(feature_element(f, cands.structures, "T1"))
-            return axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
+            return axis is None or axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
 
         feats = [f for f in feats if honoured(f)]
     offsets = session_terms(sample.inputs.session, np.ones(len(sample.frame), bool))
@@ -922,7 +925,8 @@ def _fit_bundles(
     train_bundles = list(bundles)
 
     # 1. screening (ch. 5.4)
-    common = [c for c in channel_columns(train_bundles[0].temperatures) if all(c in b.temperatures for b in train_bundles)]
+    common = [c for c in channel_columns(train_bundles[0].temperatures)
+              if all(c in b.temperatures for b in train_bundles)]
     temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in train_bundles], ignore_index=True)
     # the training errors choose among near-duplicate sites (held-out points never steer the choice)
     errs = [_training_errors(b.errors, b.meta.stages, opts.holdout_fraction) for b in train_bundles]
@@ -1038,7 +1042,7 @@ def _fit_bundles(
     # 8. the document
     lo = temps[channels].min()
     hi = temps[channels].max()
-    terms = []
+    terms: list[dict[str, Any]] = []  # the document's "terms" (registry.TermDoc)
     for (element, param), m in models.items():
         if not m.features:
             continue
@@ -1150,18 +1154,22 @@ def chain_dims(bundles: Sequence[Any]) -> dict[str, tuple[float, float, float]]:
     """
     from driftlab.physics.geometry import GEOMETRY_LINKS
 
-    dims = {k: tuple(float(x) for x in v) for k, v in TABLE_A1.items()}
+    def xyz(v: Any) -> tuple[float, float, float]:
+        x, y, z = v  # a link is (a, b, c): Table A.1, Geometry.links_mm
+        return float(x), float(y), float(z)
+
+    dims = {k: xyz(v) for k, v in TABLE_A1.items()}
     stated: dict[str, tuple[float, float, float]] | None = None
     for g, _names in stated_geometries(bundles).values():
         links = g.get("links_mm")
         if not links:
             continue
-        here = {GEOMETRY_LINKS[name]: tuple(float(x) for x in v) for name, v in dict(links).items()}
+        here = {GEOMETRY_LINKS[name]: xyz(v) for name, v in dict(links).items()}
         if stated is not None and here != stated:
             raise ValidationError("the campaigns state different link lengths for one machine (machine.geometry)")
         stated = here
     dims.update(stated or {})
-    return dims  # type: ignore[return-value]
+    return dims
 
 
 def _axes_of(fit: TermFit) -> str | None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from datetime import UTC
 from typing import Any
 
 import numpy as np
@@ -31,7 +32,7 @@ class RLSState:
         return {"theta": self.theta.tolist(), "P": self.P.tolist(), "lam": self.lam, "n_updates": self.n_updates}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "RLSState":
+    def from_dict(cls, d: Mapping[str, Any]) -> RLSState:
         """Rebuild a state from its JSON form."""
         theta = np.asarray(d["theta"], float)
         P = np.asarray(d["P"], float)
@@ -113,7 +114,8 @@ PROBE_COLUMNS: tuple[str, ...] = ("time_s", "x", "y", "z", "a", "b", "dx", "dy",
 
 
 def read_probe_csv(path: Any) -> Any:
-    """Return the probe measurements of a CSV (time_s, x, y, z, a, b in mm/deg, dx, dy, dz in mm, one column per channel)."""
+    """Return the probe measurements of a CSV (time_s, x, y, z, a, b in mm/deg, dx, dy, dz in mm, one column
+    per channel)."""
     import pandas as pd
 
     try:
@@ -191,7 +193,7 @@ def online_update_document(
 def probe_times(probe: Any, start: Any = None) -> list[Any]:
     """Return each probe row's wall-clock time: a ``measured_at`` column, else ``start`` + time_s, else
     counted back from now (the last row measured now); rows sharing a time_s are 1 us apart."""
-    from datetime import datetime, timedelta, timezone
+    from datetime import datetime, timedelta
 
     import pandas as pd
 
@@ -203,9 +205,9 @@ def probe_times(probe: Any, start: Any = None) -> list[Any]:
         return [t.to_pydatetime() for t in ts]
     t = probe["time_s"].to_numpy(float)
     if start is None:
-        origin = datetime.now(timezone.utc) - timedelta(seconds=float(t.max()))
+        origin = datetime.now(UTC) - timedelta(seconds=float(t.max()))
     else:
-        origin = start if start.tzinfo else start.replace(tzinfo=timezone.utc)
+        origin = start if start.tzinfo else start.replace(tzinfo=UTC)
     out: list[Any] = []
     seen: set[Any] = set()
     for x in t:

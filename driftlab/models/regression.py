@@ -181,7 +181,7 @@ def stepwise(
         dof = n - len(selected) - 1
         # physically recast terms are offered first, then single channels, then lags (ch. 6.4.2:
         # a correlated input entered early masks a more relevant one)
-        best, g, F, p = -1, 0.0, 0.0, 1.0
+        best, F, p = -1, 0.0, 1.0
         for t in sorted(set(tiers[pool].tolist())):
             gt = np.where(tiers[pool] == t, gain, -np.inf)
             b = int(np.argmax(gt))
@@ -191,7 +191,7 @@ def stepwise(
             Fb = gb / max((sse - gb) / dof, 1e-300)
             pb = float(stats.f.sf(Fb, 1, dof))
             if pb < p_enter and gb >= min_gain * sse:
-                best, g, F, p = b, gb, Fb, pb
+                best, F, p = b, Fb, pb
                 break
         if best < 0:
             break
@@ -273,7 +273,7 @@ class TermFit:
         X = design_matrix(self.terms, inputs, position, direction)
         return X.to_numpy(float) @ self.coefficients
 
-    def split(self, belongs: Callable[[Feature], bool], other_element: str) -> tuple["TermFit", "TermFit | None"]:
+    def split(self, belongs: Callable[[Feature], bool], other_element: str) -> tuple[TermFit, TermFit | None]:
         """Return (this model without the features ``belongs`` picks, a model of ``other_element`` with them)."""
         feats, coef = self.terms, self.coefficients
         mine = [i for i, f in enumerate(feats) if not belongs(f)]

@@ -45,9 +45,10 @@ class VirtualSensor:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "VirtualSensor":
+    def from_dict(cls, d: Mapping[str, Any]) -> VirtualSensor:
         """Rebuild a virtual sensor from its JSON form."""
-        return cls(str(d["channel"]), list(d["neighbours"]), np.asarray(d["coef"], float), float(d["sigma"]), float(d["band"]))
+        return cls(str(d["channel"]), list(d["neighbours"]), np.asarray(d["coef"], float), float(d["sigma"]),
+                   float(d["band"]))
 
 
 def fit_virtual_sensors(
@@ -91,7 +92,8 @@ def _greedy_neighbours(T: np.ndarray, j: int, n: int) -> list[int]:
         else:
             r, Cr = y, C
         norm2 = (Cr**2).sum(axis=0)
-        gain = np.where(norm2 > 1e-9 * max(float(norm2.max()), 1e-300), (Cr.T @ r) ** 2 / np.maximum(norm2, 1e-300), -1.0)
+        gain = np.where(norm2 > 1e-9 * max(float(norm2.max()), 1e-300),
+                        (Cr.T @ r) ** 2 / np.maximum(norm2, 1e-300), -1.0)
         gain[[j, *chosen]] = -1.0
         k = int(np.argmax(gain))
         if gain[k] <= 1e-6 * float(r @ r) or gain[k] <= 0:

@@ -104,7 +104,8 @@ async def test_condition_and_error_histories(client: httpx.AsyncClient, seeded: 
     assert all(i["direction"] == -1 for i in e["items"])
     seqs, cursor = [], None
     while True:
-        page = (await client.get(f"{base}/errors", params={"limit": 50, **({"cursor": cursor} if cursor else {})})).json()
+        params = {"limit": 50, **({"cursor": cursor} if cursor else {})}
+        page = (await client.get(f"{base}/errors", params=params)).json()
         seqs += [i["seq"] for i in page["items"]]
         cursor = page["next_cursor"]
         if not cursor:

@@ -82,9 +82,11 @@ CASES: list[tuple[str, str, str, dict[str, Any], int, str]] = [
      "not a valid error cursor"),
     ("cursor-huge-int-error", "GET", "/campaigns/{cid}/errors",
      {"params": {"cursor": _cursor({"k": "error", "after": 2**63})}}, 400, "not a valid error cursor"),
-    ("cursor-negative-seq", "GET", "/campaigns/{cid}/errors", {"params": {"cursor": _cursor({"k": "error", "after": -1})}},
+    ("cursor-negative-seq", "GET", "/campaigns/{cid}/errors",
+     {"params": {"cursor": _cursor({"k": "error", "after": -1})}},
      400, "not a valid error cursor"),
-    ("cursor-float-seq", "GET", "/campaigns/{cid}/errors", {"params": {"cursor": _cursor({"k": "error", "after": 1.5})}},
+    ("cursor-float-seq", "GET", "/campaigns/{cid}/errors",
+     {"params": {"cursor": _cursor({"k": "error", "after": 1.5})}},
      400, "not a valid error cursor"),
     ("cursor-other-kind", "GET", "/campaigns/{cid}/conditions",
      {"params": {"cursor": _cursor({"k": "error", "after": 1})}}, 400, "not a valid condition cursor"),
@@ -241,9 +243,10 @@ def test_concurrent_imports_of_a_new_machine(store: Store, tmp_path: Path) -> No
     temps, cond, errors = small_frames(scans=8, sweeps=1)
     for rnd in range(3):
         machine = f"race-{rnd}"
-        bundles = [load_bundle(write_bundle(tmp_path / f"r{rnd}-{i}", small_meta(machine, f"2026-04-0{i + 1}T08:00:00Z"),
+        bundles = [load_bundle(write_bundle(tmp_path / f"r{rnd}-{i}",
+                                            small_meta(machine, f"2026-04-0{i + 1}T08:00:00Z"),
                                             temps, cond, errors)) for i in range(4)]
-        results = _race(4, lambda i: store.import_bundle(bundles[i]))
+        results = _race(4, lambda i, bundles=bundles: store.import_bundle(bundles[i]))
         assert all(isinstance(r, int) for r in results), results
         assert len(set(results)) == 4
         assert [c.machine_id for c in store.list_campaigns(machine)] == [machine] * 4

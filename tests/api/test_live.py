@@ -74,7 +74,8 @@ def test_docs_pages_load_vendored_swagger_ui_and_redoc(db_url: str) -> None:
     assert vendor.verify() == []
     app = create_app(db_url, run_jobs=False)
     with serving(app) as base:
-        for path, assets in (("/docs", ("swagger-ui-bundle.js", "swagger-ui.css")), ("/redoc", ("redoc.standalone.js",))):
+        for path, assets in (("/docs", ("swagger-ui-bundle.js", "swagger-ui.css")),
+                             ("/redoc", ("redoc.standalone.js",))):
             html = httpx.get(base + path).text
             assert not EXTERNAL.search(html), path
             assert "fonts.googleapis" not in html and "cdn.jsdelivr" not in html

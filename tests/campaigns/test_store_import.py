@@ -38,7 +38,8 @@ def _assert_same_bundle(a, b) -> None:
     assert a.content_hash() == b.content_hash()
 
 
-def test_import_export_import_round_trips_exactly(store: Store, bundle_dir: Path, tmp_path: Path, store_url: str) -> None:
+def test_import_export_import_round_trips_exactly(store: Store, bundle_dir: Path, tmp_path: Path,
+                                                  store_url: str) -> None:
     original = load_bundle(bundle_dir)
     cid = store.import_bundle(original)
     stored = store.load_campaign(cid)

@@ -114,7 +114,8 @@ def test_drift_cli_csv_is_exact(store_url: str, bundle_dir: Path, capsys) -> Non
     got = pd.read_csv(io.StringIO(capsys.readouterr().out))
     assert len(got) == 3 and set(got["direction"]) == {-1} and set(got["position"]) == {260.0}
     with pytest.raises(SystemExit) as usage:
-        main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--direction", "0", "--db", store_url])
+        main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--direction", "0",
+              "--db", store_url])
     assert usage.value.code == 2
     assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--from", "2026-03-03",
                  "--to", "2026-03-02", "--db", store_url]) == 2

@@ -96,7 +96,8 @@ def test_streaming_to_the_simulated_controller_through_the_api(capsys):
                              "--port", serial_url(sim), "--low-water", "2", "--high-water", "6", "--json"])
                 bad = pathlib.Path(d) / "bad.nc"
                 bad.write_text("G1 X1\nG2 X2 Y2 R1\n")
-                code_bad = main(["compensate", str(bad), "--api", api.url, "--machine", "m1", "--port", serial_url(sim)])
+                code_bad = main(["compensate", str(bad), "--api", api.url, "--machine", "m1",
+                                 "--port", serial_url(sim)])
             executed = list(sim.executed)
     finally:
         api.stop()

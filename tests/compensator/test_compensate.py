@@ -247,7 +247,8 @@ def _all_kinds_doc() -> dict:
     coefs = [0.003, 1e-5, -2e-8, 3e-11, 0.0012, 0.004, -0.002, 0.001, 0.0007, 1.5e-3, 0.0021]
     inputs = {c: {"reference": 20.0 + i, "min": 10.0, "max": 40.0} for i, c in enumerate(["T9", "T10", "T11"])}
     terms = [
-        {"element": "phi_x", "param": "dx", "features": feats, "coefficients": coefs, "statistics": {"rmse_train": 0.0}},
+        {"element": "phi_x", "param": "dx", "features": feats, "coefficients": coefs,
+         "statistics": {"rmse_train": 0.0}},
         {"element": "T2", "param": "beta", "features": feats[5:9], "coefficients": [1e-6, 2e-6, -1e-6, 5e-7],
          "statistics": {"rmse_train": 0.0}},
     ]

@@ -61,8 +61,10 @@ def test_program_puts_the_ideal_tool_on_the_design_surface() -> None:
     assert np.allclose(prog.centre[0], design[0] + 10.0 * prog.normal[0])
     # the normal is normal: orthogonal to both tangents of the height field
     du, dv = s.gradient(prog.uv[:, 0], prog.uv[:, 1])
-    assert np.abs(np.einsum("ij,ij->i", prog.normal, np.column_stack([np.zeros_like(du), np.ones_like(du), du]))).max() < 1e-12
-    assert np.abs(np.einsum("ij,ij->i", prog.normal, np.column_stack([np.ones_like(dv), np.zeros_like(dv), dv]))).max() < 1e-12
+    tangent_u = np.column_stack([np.zeros_like(du), np.ones_like(du), du])
+    tangent_v = np.column_stack([np.ones_like(dv), np.zeros_like(dv), dv])
+    assert np.abs(np.einsum("ij,ij->i", prog.normal, tangent_u)).max() < 1e-12
+    assert np.abs(np.einsum("ij,ij->i", prog.normal, tangent_v)).max() < 1e-12
     parsed = parse_program(prog.text, start=(0, 0, 0, 0, 0))
     assert parsed.n_blocks == prog.pose_written.shape[0]
     with pytest.raises(ValidationError):

@@ -46,7 +46,8 @@ def doc(coef: float, version: int) -> dict:
         "terms": [
             {"element": "T1", "param": "dz", "features": [{"kind": "dT", "name": "dT[T1]", "channels": ["T1"]}],
              "coefficients": [coef], "statistics": {"rmse_train": 0.0}},
-            {"element": "phi_x", "param": "dx", "features": [{"kind": "pos_dT", "name": "pos*dT[T1]", "channels": ["T1"], "label": "X"}],
+            {"element": "phi_x", "param": "dx",
+             "features": [{"kind": "pos_dT", "name": "pos*dT[T1]", "channels": ["T1"], "label": "X"}],
              "coefficients": [2e-5], "statistics": {"rmse_train": 0.0}},
         ],
     }

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 import pytest
@@ -13,7 +13,7 @@ from driftlab.compensator.stream import FixedTemperatures, StaticModel, Streamer
 from driftlab.daq.sim.instruments import ManualClock
 from driftlab.models.features import Feature
 
-ORIGIN = datetime(2026, 3, 2, 8, 0, tzinfo=timezone.utc)
+ORIGIN = datetime(2026, 3, 2, 8, 0, tzinfo=UTC)
 RATE_MM_PER_DAY = 0.004  # wear of the Z slideways (ch. 6.4.3)
 PROGRAM = "G90 G1 X10 Y10 Z-10 F2000\nG1 X20 Y10 Z-10\nG1 X30 Y20 Z-12\n"
 

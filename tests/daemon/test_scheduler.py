@@ -81,7 +81,7 @@ def test_a_failing_batch_stores_nothing_and_keeps_the_cursor(db_url: str) -> Non
     sink.commit(Batch(scans=[(0, _scan(0.0))], cursor=Cursor(1, 0)))
     before = _count(engine, sc.TemperatureSample.__table__)
     dup = Batch(scans=[(1, _scan(10.0)), (0, _scan(0.0, base=99.0))], cursor=Cursor(2, 0), t_s=10.0)
-    with pytest.raises(Exception):
+    with pytest.raises(ConflictError):
         sink.commit(dup)
     assert _count(engine, sc.TemperatureSample.__table__) == before == 2
     assert open_campaign(engine, plan, CHANNELS, [], resume=True, origin={}).cursor == Cursor(1, 0)

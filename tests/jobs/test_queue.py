@@ -103,7 +103,8 @@ def test_driftlab_worker_process_runs_a_queued_fit_into_the_registry(pg_store: S
 def test_two_worker_processes_share_the_queue_and_run_each_job_once(pg_store: Store) -> None:
     """Two fits of each of two machines, two `driftlab worker` processes: every job once, each machine in order."""
     url = store_url(pg_store)
-    cids = {MACHINE: pg_store.import_bundle(bundle(MACHINE, seed=0)), OTHER: pg_store.import_bundle(bundle(OTHER, seed=1))}
+    cids = {MACHINE: pg_store.import_bundle(bundle(MACHINE, seed=0)),
+            OTHER: pg_store.import_bundle(bundle(OTHER, seed=1))}
     jobs = [submit_fit(pg_store, [cids[m]], network=False) for m in (MACHINE, OTHER, MACHINE, OTHER)]
     cmd = [sys.executable, "-m", "driftlab.cli", "worker", "--db", url, "--until-idle"]
     procs = [subprocess.Popen([*cmd, "--name", f"w{k}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -342,7 +343,8 @@ def test_the_refit_is_a_periodic_task_of_every_worker() -> None:
     assert ("driftlab.refit", "0 3 * * *") in periodic and ("driftlab.retry_stalled", "*/5 * * * *") in periodic
     assert {"driftlab.fit", "driftlab.diagnose"} <= set(app.tasks)
     assert not any(p.task.name == "driftlab.refit"
-                   for p in build_app("postgresql+psycopg://u@h/d", refit_cron="").periodic_registry.periodic_tasks.values())
+                   for p in build_app("postgresql+psycopg://u@h/d",
+                                      refit_cron="").periodic_registry.periodic_tasks.values())
 
 
 def test_submit_fit_records_the_campaigns_machine(pg_store: Store) -> None:

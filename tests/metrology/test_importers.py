@@ -24,7 +24,8 @@ def rtx_bytes(samples: np.ndarray, rate: float = 1000.0, axis: str = "Z", extra:
 
 
 def renishaw_csv(runs: int = 3, targets=(0.0, 100.0, 200.0, 300.0), axis: str = "X", seed: int = 0) -> tuple[str, list]:
-    """Return a CSV export (preamble + table, errors in um) and the readings it holds (target mm, direction, error mm)."""
+    """Return a CSV export (preamble + table, errors in um) and the readings it holds (target mm, direction,
+    error mm)."""
     rng = np.random.default_rng(seed)
     lines = [f"Axis,{axis}", "Machine,vmc-01", "Date,2026-03-02T08:00:00Z", "Test,linear", "Air temperature,20.4",
              "Material temperature,21.1", "", "Run,Direction,Target (mm),Error (um)"]
@@ -151,7 +152,8 @@ def generic_csv() -> str:
                 rows.append(f"{k};X;Lin;{p};{d};{p * 0.02 + (1 if d == 'V' else -1) + run * 0.1:.2f}".replace(".", ",")
                             + f";{20 + k * 0.01:.2f}".replace(".", ","))
                 k += 1
-                rows.append(f"{k};X;Gier;{p};{d};{0.5:.1f}".replace(".", ",") + f";{20 + k * 0.01:.2f}".replace(".", ","))
+                rows.append(f"{k};X;Gier;{p};{d};{0.5:.1f}".replace(".", ",")
+                            + f";{20 + k * 0.01:.2f}".replace(".", ","))
                 k += 1
     return "\n".join(rows) + "\n"
 

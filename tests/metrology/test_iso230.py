@@ -177,7 +177,8 @@ def test_cli_iso230_part3_and_one_line_errors(vm_bundle, tmp_path):
     assert json.loads(out.read_text())["spindle"]
     assert page.read_text().count("data:image/png") >= 3
     bad = tmp_path / "bad.json"
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "iso230", str(path), "--part", "2", "--json", str(bad)],
+    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "iso230", str(path), "--part", "2",
+                           "--json", str(bad)],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.strip() == "driftlab: error: --part 2 needs --axis (X Y Z A B)"
     assert not bad.exists()

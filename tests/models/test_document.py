@@ -29,7 +29,8 @@ def _doc(**over):
         "terms": [
             {
                 "element": "phi_x", "param": "dx", "axis": "X", "term": "dx",
-                "features": [{"kind": "intercept", "name": "const"}, {"kind": "pos_dT", "name": "pos[X]*dT[T9]", "channels": ["T9"], "label": "X"},
+                "features": [{"kind": "intercept", "name": "const"},
+                             {"kind": "pos_dT", "name": "pos[X]*dT[T9]", "channels": ["T9"], "label": "X"},
                              {"kind": "direction", "name": "dir[X]", "label": "X"}],
                 "coefficients": [0.001, 12.1e-6, 0.002],
                 "statistics": {"rmse_train": 0.0005, "r2": 0.98, "f": 2e4, "n_train": 100},

@@ -1,6 +1,7 @@
 """The fitting pipeline end to end on campaigns with known truth (element errors through the HTM chain)."""
 
 import json
+from datetime import UTC
 
 import numpy as np
 import pandas as pd
@@ -45,8 +46,7 @@ def synthetic_bundle(seed=0, room_offset=0.0, hours=32.0):
     sp = np.zeros_like(t)
     fx = np.zeros_like(t)
     fz = np.zeros_like(t)
-    axis_at = np.full(t.size, "", object)
-    for name, a, b, heat, axis in STAGES:
+    for _name, a, b, heat, axis in STAGES:
         m = (h >= a) & (h < b)
         if heat in ("spindle", "combined"):
             sp[m] = 1.0
@@ -72,7 +72,7 @@ def synthetic_bundle(seed=0, room_offset=0.0, hours=32.0):
     # error sweeps every 10 min on the stage's axis (cool-downs keep the previous axis)
     rows = []
     axis = "Z"
-    for name, a, b, heat, ax in STAGES:
+    for _name, a, b, _heat, ax in STAGES:
         axis = ax or axis
         for ts in np.arange(a * 3600, b * 3600, 600.0):
             k = int(ts // 60)
@@ -202,7 +202,8 @@ def test_table_6_3_compares_with_the_geometry_the_campaign_states(fitted):
     b = synthetic_bundle(0)
     doc = b.meta.document()
     doc["machine"]["geometry"] = {"screw_fixed_mm": STATED_GEOMETRY["screw_fixed_mm"],
-                                  "bending": {"spindle_arm": {"length_mm": 400, "height_mm": 200, "across": "upper-lower",
+                                  "bending": {"spindle_arm": {"length_mm": 400, "height_mm": 200,
+                                                              "across": "upper-lower",
                                                               "deflection": "dz", "angle": "alpha"}}}
     res = fit_bundles([Bundle(b.name, CampaignMeta.model_validate(doc), b.temperatures, None, b.errors)],
                       FitOptions(network=False, virtual_sensors=False))
@@ -509,7 +510,7 @@ def test_forced_lag_finding_and_its_prediction_from_the_document():
 
 
 def test_document_substitution_and_drift_are_evaluated_from_the_document():
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     from driftlab.models.document import predict_element_errors
 
@@ -525,7 +526,7 @@ def test_document_substitution_and_drift_are_evaluated_from_the_document():
     }
     q = np.zeros((1, 5))
     temps = {"T1": 25.0, "T2": 22.0, "T3": 24.0}
-    before = predict_element_errors(doc, temps, q, at=datetime(2026, 3, 2, 12, tzinfo=timezone.utc))["phi_x"][0, 3]
+    before = predict_element_errors(doc, temps, q, at=datetime(2026, 3, 2, 12, tzinfo=UTC))["phi_x"][0, 3]
     assert before == pytest.approx(0.001 * 5 + 0.01 * 0.5 + 1e-4 * 4)
     after = predict_element_errors(doc, {"T2": 22.0, "T3": 24.0}, q, at="2026-03-04T00:00:00Z")["phi_x"][0, 3]
     assert after == pytest.approx(0.001 * (1 + 11 + 12 - 20) + 0.01 * 2 + 1e-4 * 4)

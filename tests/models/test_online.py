@@ -1,6 +1,7 @@
 """RLS with forgetting factor (eqs. 6.10-6.13): equals batch LS at lambda=1, stays stable, tracks drift."""
 
 import json
+from datetime import UTC
 
 import numpy as np
 import pytest
@@ -119,7 +120,7 @@ def test_two_concurrent_updates_both_land(store_url):
     """Two threads update one machine's on-line state at once: both updates and both probe rows are kept."""
     import tempfile
     import threading
-    from datetime import datetime, timedelta, timezone
+    from datetime import datetime, timedelta
 
     import pandas as pd
 
@@ -133,7 +134,7 @@ def test_two_concurrent_updates_both_land(store_url):
         temps, cond, errors = small_frames()
         store.import_bundle(load_bundle(write_bundle(f"{tmp}/b", small_meta(), temps, cond, errors)))
         doc = model_registry.register_model(store, model_document())
-    t0 = datetime(2026, 3, 3, 8, tzinfo=timezone.utc)
+    t0 = datetime(2026, 3, 3, 8, tzinfo=UTC)
     attempts: list[int] = []
     errors_seen: list[BaseException] = []
     barrier = threading.Barrier(2)
@@ -183,7 +184,7 @@ def test_two_concurrent_updates_both_land(store_url):
 
 
 def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     import pandas as pd
 
@@ -204,7 +205,7 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
         store.finish_job(job, {"model_version": doc.version, "states": old})
         probe = pd.DataFrame([{"time_s": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0, "dx": 0.0, "dy": 0.0,
                                "dz": 0.0, "T1": 21.0, "T2": 22.0}])
-        rep = online_update(store, MACHINE, probe, start=datetime(2026, 3, 3, tzinfo=timezone.utc))
+        rep = online_update(store, MACHINE, probe, start=datetime(2026, 3, 3, tzinfo=UTC))
         assert rep.states["dx"].n_updates == 8 and rep.states["dx"].lam == 0.95
         assert store.online_state(MACHINE).n_updates == 8
         assert store.table_counts()["probe_measurements"] == 1

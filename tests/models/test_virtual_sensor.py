@@ -4,6 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from driftlab.errors import ValidationError
 from driftlab.models.virtual_sensor import VirtualSensor, check_sensors, fit_virtual_sensors
 
 
@@ -111,5 +112,5 @@ def test_sensors_round_trip_through_a_model_document():
     bad.loc[1000:, "T26"] = 150.5  # the card's rail value for a broken lead
     chk = check_live(doc, bad)
     assert [(f.channel, f.mode) for f in chk.faults] == [("T26", "open")]
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match="no virtual sensors"):
         check_live({"virtual_sensors": []}, df)

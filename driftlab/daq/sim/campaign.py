@@ -44,7 +44,7 @@ def campaign_meta(scenario: Scenario, machine: VirtualMachine | None = None) -> 
 
 def sweep_points(scenario: Scenario) -> pd.DataFrame:
     """Return one laser sweep's points: axis, position (bundle units), direction, in measuring order."""
-    rows = []
+    rows: list[tuple[str, float, int]] = []
     for axis in AXES:
         lo, hi = truth.AXIS_RANGE[axis]
         pos = np.linspace(lo, hi, scenario.points_per_axis)
@@ -54,7 +54,8 @@ def sweep_points(scenario: Scenario) -> pd.DataFrame:
 
 
 def simulate_campaign(scenario: Scenario) -> SimulatedCampaign:
-    """Run the staged plan on the virtual machine: scans every scan_interval_s, full laser sweeps every sweep_interval_s."""
+    """Run the staged plan on the virtual machine: scans every scan_interval_s, full laser sweeps every
+    sweep_interval_s."""
     vm = VirtualMachine(scenario)
     end = scenario.duration_s
     vm.advance_to(end)
@@ -115,6 +116,7 @@ def _truth_record(scenario: Scenario, vm: VirtualMachine, sweep_t: np.ndarray) -
                 fin = np.isfinite(off)
                 rec["reading_offset_rms_degC"] = rmse(off[fin]) if fin.any() else None
         else:
+            assert eff.axis is not None  # HiddenEffect: every kind but sensor_fault has an axis
             pts = sweep_points(scenario)
             pts = pts[pts["axis"] == eff.axis]
             t = np.repeat(sweep_t, len(pts))

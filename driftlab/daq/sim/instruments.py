@@ -248,7 +248,7 @@ class LineServer(ABC):
         while not self._stop.is_set():
             try:
                 conn, _ = self._listener.accept()
-            except (TimeoutError, socket.timeout):
+            except TimeoutError:
                 continue
             except OSError:
                 break
@@ -264,7 +264,7 @@ class LineServer(ABC):
             while not self._stop.is_set():
                 try:
                     data = conn.recv(4096)
-                except (TimeoutError, socket.timeout):
+                except TimeoutError:
                     continue
                 except OSError:
                     break

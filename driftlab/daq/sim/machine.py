@@ -156,7 +156,8 @@ class VirtualMachine:
         phase = 2.0 * math.pi * (hour - r.peak_hour) / 24.0
         ceiling = r.mean_degC + 0.5 * r.ceiling_floor_degC + r.daily_amplitude_degC * np.cos(phase)
         # the floor swings less and later than the ceiling
-        floor = r.mean_degC - 0.5 * r.ceiling_floor_degC + 0.6 * r.daily_amplitude_degC * np.cos(phase - 2 * math.pi / 24)
+        floor = (r.mean_degC - 0.5 * r.ceiling_floor_degC
+                 + 0.6 * r.daily_amplitude_degC * np.cos(phase - 2 * math.pi / 24))
         return np.stack([ceiling, floor], axis=1)
 
     def local_air(self, n: int) -> np.ndarray:
@@ -248,7 +249,8 @@ class VirtualMachine:
         if not rows.any():
             return
         if eff.params["mode"] == "open":
-            out[np.ix_(rows, np.array([SITE_INDEX[c] for c in eff.channels]))] = float(eff.params.get("rail_degC", math.nan))
+            out[np.ix_(rows, np.array([SITE_INDEX[c] for c in eff.channels]))] = float(
+                eff.params.get("rail_degC", math.nan))
             return
         tau = float(eff.params.get("tau_s", 300.0))
         at0 = self.true_temperatures_array(np.array([t0]))[0]
@@ -301,7 +303,8 @@ class VirtualMachine:
             w[:, TERMS.index(eff.term)] += truth.hidden_delta(eff, t, pos, d, ch_dT, lag)
         return w
 
-    def measure_errors_array(self, t_s: np.ndarray, axis: str, position: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    def measure_errors_array(self, t_s: np.ndarray, axis: str, position: np.ndarray,
+                             direction: np.ndarray) -> np.ndarray:
         """Return (N, 6) measured work-space errors: truth plus laser noise (ch. 5.5), per term."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         pos = np.broadcast_to(np.asarray(position, dtype=float), t.shape)
@@ -362,7 +365,8 @@ class VirtualMachine:
         return out
 
     def measure_error(self, t_s: float, axis: str, position: float, direction: int) -> dict[str, float]:
-        """Return the six measured work-space error terms at t for ``axis`` at ``position`` approached from ``direction``."""
+        """Return the six measured work-space error terms at t for ``axis`` at ``position`` approached from
+        ``direction``."""
         self._check_t(t_s)
         if direction not in (1, -1):
             raise ValidationError(f"direction must be +1 or -1, got {direction!r}")

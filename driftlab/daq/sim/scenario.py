@@ -21,6 +21,8 @@ from driftlab.errors import ValidationError
 from driftlab.physics.geometry import Geometry
 from driftlab.vocabulary import ROTATIONS, Axis, Term
 
+HeatSource = Literal["spindle", "feed", "combined", "idle", "off"]
+
 ANGLE_TERMS: frozenset[str] = frozenset(ROTATIONS)
 HEAT_SOURCES: tuple[str, ...] = ("spindle", "feed", "combined", "idle", "off")
 KINDS: tuple[str, ...] = (
@@ -99,7 +101,7 @@ class Stage(_Strict):
     name: str = Field(min_length=1)
     start_s: float = Field(ge=0, allow_inf_nan=False)
     end_s: float = Field(ge=0, allow_inf_nan=False)
-    heat_source: Literal["spindle", "feed", "combined", "idle", "off"]
+    heat_source: HeatSource
     axis: Axis | None = None
     spindle_rpm: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     feed_mm_min: float = Field(default=0.0, ge=0, allow_inf_nan=False)  # deg/min for A/B
@@ -110,7 +112,7 @@ class Stage(_Strict):
         return "off" if v is False else v  # YAML 1.1 reads a bare `off` as false
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Stage":
+    def _consistent(self) -> Stage:
         if self.end_s <= self.start_s:
             raise ValueError(f"end_s {self.end_s} must be after start_s {self.start_s}")
         if self.heat_source in ("feed", "combined"):
@@ -160,7 +162,7 @@ class HiddenEffect(_Strict):
         return v
 
     @model_validator(mode="after")
-    def _catalogue(self) -> "HiddenEffect":
+    def _catalogue(self) -> HiddenEffect:
         k = self.kind
         if k != "sensor_fault" and (self.axis is None or self.term is None):
             raise ValueError(f"{k} needs an axis and a term")
@@ -194,6 +196,7 @@ class HiddenEffect(_Strict):
         if k == "unmapped_channel":
             from driftlab.daq.sim.truth import MODEL_CHANNELS
 
+            assert self.axis is not None  # checked above: every kind but sensor_fault has an axis
             if self.channels[0] in MODEL_CHANNELS[self.axis]:
                 raise ValueError(f"{self.channels[0]} is a model channel of {self.axis}; unmapped_channel needs one "
                                  f"outside model_channels (e.g. T11, T21, T31, T36, T47)")
@@ -257,16 +260,17 @@ class Scenario(_Strict):
         return list(self.stages) if self.stages is not None else default_plan(self.hours, self.thermal_step_s)
 
 
-# one 24 h cycle of the staged plan (ch. 5.2 Fig. 5.1): (hours, heat_source, axis)
-_CYCLE: tuple[tuple[float, str, str | None], ...] = (
+# one 24 h cycle of the staged plan (ch. 5.2 Fig. 5.1): (hours, heat_source, axis); an axis 1..3 is the
+# 1st..3rd linear axis in the cycle's order (_ORDERS)
+_CYCLE: tuple[tuple[float, HeatSource, Axis | int | None], ...] = (
     (3.0, "spindle", "Z"), (1.5, "idle", None),
-    (2.0, "feed", "1"), (1.0, "idle", None),
-    (2.0, "feed", "2"), (1.0, "idle", None),
-    (2.0, "feed", "3"), (1.0, "idle", None),
+    (2.0, "feed", 1), (1.0, "idle", None),
+    (2.0, "feed", 2), (1.0, "idle", None),
+    (2.0, "feed", 3), (1.0, "idle", None),
     (1.5, "feed", "A"), (1.5, "feed", "B"), (1.0, "idle", None),
     (2.5, "combined", "Z"), (4.0, "off", None),
 )
-_ORDERS = (("X", "Y", "Z"), ("Z", "X", "Y"), ("Y", "Z", "X"))
+_ORDERS: tuple[tuple[Axis, Axis, Axis], ...] = (("X", "Y", "Z"), ("Z", "X", "Y"), ("Y", "Z", "X"))
 _RPM = (8000.0, 12000.0, 6000.0)
 _FEED = (4000.0, 2500.0, 5000.0)
 _ROT_FEED = (3600.0, 2400.0, 4800.0)  # deg/min
@@ -284,7 +288,7 @@ def default_plan(hours: float, step_s: float = 60.0) -> list[Stage]:
         for j, (dur_h, source, axis) in enumerate(_CYCLE):
             if t >= total - 1e-9:
                 break
-            ax = _ORDERS[c][int(axis) - 1] if axis in ("1", "2", "3") else axis
+            ax = _ORDERS[c][axis - 1] if isinstance(axis, int) else axis
             end = min(total, round((t + dur_h * 3600.0 * scale) / step_s) * step_s)
             if end <= t:
                 continue
@@ -295,8 +299,10 @@ def default_plan(hours: float, step_s: float = 60.0) -> list[Stage]:
             if source == "spindle":
                 name = f"spindle-{rpm / 1000:.0f}k"
             elif source == "feed":
+                assert ax is not None  # every feed stage of _CYCLE names an axis
                 name = f"feed-{ax.lower()}-{feed:.0f}"
             elif source == "combined":
+                assert ax is not None  # as is every combined stage
                 name = f"spindle-{rpm / 1000:.0f}k+feed-{ax.lower()}-{feed:.0f}"
             else:
                 name = "cool-down" if source == "idle" else "power-off"

@@ -11,9 +11,9 @@ back of the Z column, ch. 5.4) - and the room air itself.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Mapping
 
 #: heat sources of the network, in the column order of the source matrix
 SOURCES: tuple[str, ...] = (
@@ -51,10 +51,14 @@ _TABLE: tuple[Site, ...] = (
     _s(2, "X axis back left corner", "x_table", 90, 0.5, feed_x=1.0, hold_x=0.1, cabinet=0.3, feed_a=0.2),
     _s(3, "X axis back right corner", "x_table", 95, 0.5, feed_x=0.9, hold_x=0.1, cabinet=0.3, feed_b=0.2),
     _s(4, "X axis front right corner", "x_table", 80, 0.5, feed_x=1.3, hold_x=0.1, cabinet=0.2, feed_b=0.2),
-    _s(5, "X-Y carriage front left corner", "xy_carriage", 70, 0.4, feed_x=1.5, feed_y=0.8, hold_x=0.15, hold_y=0.15, cabinet=0.2),
-    _s(6, "X-Y carriage back left corner", "xy_carriage", 75, 0.4, feed_x=1.3, feed_y=1.0, hold_x=0.15, hold_y=0.2, cabinet=0.3),
-    _s(7, "X-Y carriage back right corner", "xy_carriage", 85, 0.4, feed_x=1.1, feed_y=1.1, hold_x=0.1, hold_y=0.2, cabinet=0.3),
-    _s(8, "X-Y carriage front right corner", "xy_carriage", 80, 0.4, feed_x=1.6, feed_y=0.7, hold_x=0.2, hold_y=0.1, cabinet=0.2),
+    _s(5, "X-Y carriage front left corner", "xy_carriage", 70, 0.4, feed_x=1.5, feed_y=0.8, hold_x=0.15, hold_y=0.15,
+       cabinet=0.2),
+    _s(6, "X-Y carriage back left corner", "xy_carriage", 75, 0.4, feed_x=1.3, feed_y=1.0, hold_x=0.15, hold_y=0.2,
+       cabinet=0.3),
+    _s(7, "X-Y carriage back right corner", "xy_carriage", 85, 0.4, feed_x=1.1, feed_y=1.1, hold_x=0.1, hold_y=0.2,
+       cabinet=0.3),
+    _s(8, "X-Y carriage front right corner", "xy_carriage", 80, 0.4, feed_x=1.6, feed_y=0.7, hold_x=0.2, hold_y=0.1,
+       cabinet=0.2),
     _s(9, "X axis ballscrew nut", "x_screw", 25, 0.4, feed_x=5.0, hold_x=0.4),
     _s(10, "X axis motor", "x_motor", 12, 0.4, feed_x=8.0, hold_x=1.5),
     _s(11, "X axis ballscrew end bearing", "x_screw", 40, 0.4, feed_x=3.0, hold_x=0.3),
@@ -87,9 +91,12 @@ _TABLE: tuple[Site, ...] = (
     _s(36, "Main spindle bearing and chilling line", "spindle", 8, 0.7, spindle=1.5),
     _s(37, "Main spindle motor", "spindle", 20, 0.8, spindle=20.0),
     _s(38, "Front left corner of rotary base", "rotary_base", 95, 0.3, feed_a=1.5, feed_b=0.5, feed_x=0.4, cabinet=0.1),
-    _s(39, "Back left corner of rotary base", "rotary_base", 105, 0.3, feed_a=1.3, feed_b=0.6, feed_x=0.3, cabinet=0.15),
-    _s(40, "Back right corner of rotary base", "rotary_base", 110, 0.3, feed_a=1.2, feed_b=0.7, feed_x=0.3, cabinet=0.15),
-    _s(41, "Front right corner of rotary base", "rotary_base", 90, 0.3, feed_a=1.6, feed_b=0.4, feed_x=0.4, cabinet=0.1),
+    _s(39, "Back left corner of rotary base", "rotary_base", 105, 0.3, feed_a=1.3, feed_b=0.6, feed_x=0.3,
+       cabinet=0.15),
+    _s(40, "Back right corner of rotary base", "rotary_base", 110, 0.3, feed_a=1.2, feed_b=0.7, feed_x=0.3,
+       cabinet=0.15),
+    _s(41, "Front right corner of rotary base", "rotary_base", 90, 0.3, feed_a=1.6, feed_b=0.4, feed_x=0.4,
+       cabinet=0.1),
     _s(42, "A Axis motor and gear train", "a_drive", 20, 0.3, feed_a=6.0, feed_b=0.3),
     _s(43, "Left side of B axis table", "b_table", 55, 0.45, feed_b=2.0, feed_a=0.6),
     _s(44, "Right side of B axis table", "b_table", 60, 0.45, feed_b=1.8, feed_a=0.7),

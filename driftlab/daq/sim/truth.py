@@ -26,9 +26,10 @@ Hidden effects (the spec's effect catalogue) are added on top, per (axis, term),
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from functools import lru_cache
 from types import MappingProxyType
-from typing import Mapping
+from typing import TypedDict
 
 import numpy as np
 
@@ -210,10 +211,19 @@ def base_workspace(axis: str, position: np.ndarray, dT: np.ndarray) -> np.ndarra
     return kin.workspace_error(q, element_errors(q, dT))
 
 
+class BaseTerm(TypedDict):
+    """The base truth of one (axis, term): see ``base_coefficients``."""
+
+    poly: list[float]
+    channels: dict[str, float]
+    cubic_residual: float
+
+
 @lru_cache(maxsize=1)
-def base_coefficients() -> dict[str, dict[str, dict[str, object]]]:
-    """Return axis -> term -> {"poly": [c0, c1, c2, c3] in bundle units, "channels": {ch: coef per degC}, "cubic_residual"}."""
-    out: dict[str, dict[str, dict[str, object]]] = {}
+def base_coefficients() -> dict[str, dict[str, BaseTerm]]:
+    """Return axis -> term -> {"poly": [c0, c1, c2, c3] in bundle units, "channels": {ch: coef per degC},
+    "cubic_residual"}."""
+    out: dict[str, dict[str, BaseTerm]] = {}
     n = len(CHANNELS)
     drivers = [SITE_INDEX[c] for c in DRIVERS]
     for axis in AXES:
@@ -241,7 +251,8 @@ def lag_coefficient(effect: HiddenEffect) -> float:
     if "coef_per_degC" in effect.params:
         return float(effect.params["coef_per_degC"])
     ch = effect.channels[0]
-    c = base_coefficients()[effect.axis][effect.term]["channels"].get(ch, 0.0)  # type: ignore[union-attr]
+    assert effect.axis is not None and effect.term is not None  # HiddenEffect: only sensor_fault has neither
+    c = base_coefficients()[effect.axis][effect.term]["channels"].get(ch, 0.0)
     scale = 1e-9 if effect.term in ANGLE_TERMS else 1e-6
     if abs(c) < scale:
         raise ValidationError(

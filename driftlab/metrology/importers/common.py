@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 import shutil
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -75,7 +75,7 @@ def parse_time(text: str, where: str) -> datetime:
                 continue
         if dt is None:
             raise InstrumentFileError(f"{where}: date {text!r} is neither ISO 8601 nor dd/mm/yyyy hh:mm:ss") from None
-    return dt if dt.tzinfo is not None else dt.replace(tzinfo=timezone.utc)
+    return dt if dt.tzinfo is not None else dt.replace(tzinfo=UTC)
 
 
 @dataclass
@@ -125,7 +125,8 @@ def write_readings(readings: Readings, out: str | Path, *, machine: str | None =
         if air_temp_degC is not None:
             values["air"] = float(air_temp_degC)
         if not values:
-            raise InstrumentFileError(f"{src}: the file records no temperature: give --air-temp DEGC (the room during the test)")
+            raise InstrumentFileError(f"{src}: the file records no temperature: "
+                                      "give --air-temp DEGC (the room during the test)")
         temps = pd.DataFrame({"time_s": [0.0], **{k: [v] for k, v in values.items()}})
     channels = [c for c in temps.columns if c != "time_s"]
     meta: dict[str, Any] = {

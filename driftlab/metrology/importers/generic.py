@@ -68,7 +68,8 @@ def load_mapping(path: str | Path) -> Mapping:
         raise InstrumentFileError(f"{path.name}: {exc.strerror or exc}") from None
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
-        raise InstrumentFileError(f"{path.name}:{(line or 0) + 1}: not YAML/JSON ({getattr(exc, 'problem', exc)})") from None
+        raise InstrumentFileError(
+            f"{path.name}:{(line or 0) + 1}: not YAML/JSON ({getattr(exc, 'problem', exc)})") from None
     try:
         m = Mapping.model_validate(raw if raw is not None else {})
     except PydanticValidationError as exc:

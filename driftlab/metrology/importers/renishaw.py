@@ -70,7 +70,8 @@ def read_rtx(path: str | Path, *, axis: str | None = None, position: float = 0.0
         raise InstrumentFileError(f"{src}: the data block does not end with EOF:: (a truncated file?)")
     body = body[: -len(RTX_EOF)]
     if len(body) % 8:
-        raise InstrumentFileError(f"{src}: the data block holds {len(body)} bytes, not a whole number of float64 samples")
+        raise InstrumentFileError(
+            f"{src}: the data block holds {len(body)} bytes, not a whole number of float64 samples")
     samples = np.frombuffer(body, dtype="<f8")
     if samples.size == 0:
         raise InstrumentFileError(f"{src}: the capture holds no samples")
@@ -80,7 +81,8 @@ def read_rtx(path: str | Path, *, axis: str | None = None, position: float = 0.0
     except ValueError:
         rate = float("nan")
     if not (np.isfinite(rate) and rate > 0):
-        raise InstrumentFileError(f"{src}: header 'Actual sample rate' is missing or not a positive number ({rate_text!r})")
+        raise InstrumentFileError(
+            f"{src}: header 'Actual sample rate' is missing or not a positive number ({rate_text!r})")
     bad = np.flatnonzero(~np.isfinite(samples))
     if bad.size:
         raise InstrumentFileError(f"{src}: sample {int(bad[0])} is not a finite number")
@@ -131,7 +133,8 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
         if cells and cells[0]:
             meta[cells[0].lower()] = cells[1] if len(cells) > 1 else ""
     if head is None:
-        raise InstrumentFileError(f"{src}: no data table: expected a header line with Run, Direction, Target (unit), Error (unit)")
+        raise InstrumentFileError(f"{src}: no data table: expected a header line with Run, Direction, "
+                                  "Target (unit), Error (unit)")
     try:
         table = pd.read_csv(io.StringIO("\n".join(lines[head:])), dtype=str, keep_default_na=False,
                             skip_blank_lines=False)

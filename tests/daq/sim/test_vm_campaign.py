@@ -220,7 +220,8 @@ def test_cli_module_entry_point(tmp_path):
     scen = tmp_path / "s.yaml"
     scen.write_text("hours: 0.5\n")
     proc = subprocess.run(
-        [sys.executable, "-m", "driftlab.cli", "sim", "campaign", "--scenario", str(scen), "--out", str(tmp_path / "b")],
+        [sys.executable, "-m", "driftlab.cli", "sim", "campaign", "--scenario", str(scen),
+         "--out", str(tmp_path / "b")],
         capture_output=True, text=True, cwd=ROOT,
     )
     assert proc.returncode == 0, proc.stderr

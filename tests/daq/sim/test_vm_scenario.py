@@ -89,7 +89,8 @@ def test_missing_file_is_a_validation_error(tmp_path):
 
 
 def test_built_in_code():
-    s = Scenario(hours=2, seed=9, hidden=[HiddenEffect(kind="drift", axis="B", term="beta", params={"rate_per_day": 1e-6})])
+    s = Scenario(hours=2, seed=9,
+                 hidden=[HiddenEffect(kind="drift", axis="B", term="beta", params={"rate_per_day": 1e-6})])
     assert s.plan()[-1].end_s == 7200
     assert s.model_copy(update={"hours": 3.0}).plan()[-1].end_s == 10800
     assert s.start_hour_of_day == 8.0
