@@ -35,7 +35,7 @@ TOKEN = "bench-token"
 # The load generator, run as its own process: C concurrent keep-alive HTTP/1.1 clients on asyncio
 # streams (httpx costs milliseconds of CPU per request here and would measure itself), N requests in
 # all, bounded in time. Each response is parsed (status line, Content-Length) and read in full.
-LOADGEN = r'''
+LOADGEN = r"""
 import asyncio, json, sys, time
 from urllib.parse import urlsplit
 
@@ -93,10 +93,10 @@ async def main(url, n, clients, max_s, etag):
 
 asyncio.run(main(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]),
                  sys.argv[5] if len(sys.argv) > 5 else ""))
-'''
+"""
 
 # The baseline server: a bare ASGI callable returning a constant body, under the same uvicorn settings.
-BASELINE = r'''
+BASELINE = r"""
 import sys, uvicorn
 body = open(sys.argv[2], "rb").read()
 headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
@@ -107,7 +107,7 @@ async def app(scope, receive, send):
     await send({"type": "http.response.start", "status": 200, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[1]), log_level="warning", access_log=False)
-'''
+"""
 
 
 def free_port() -> int:
@@ -133,14 +133,24 @@ def seed(url: str, workdir: Path) -> None:
         "started_at": "2026-03-02T08:00:00Z",
         "channels": {c: {"location": c, "structure": "spindle" if k < 8 else "column"} for k, c in enumerate(channels)},
         "room_channels": ["T16"],
-        "stages": [{"name": "spindle", "start_s": 0, "end_s": 3600, "heat_source": "spindle", "axis": "Z",
-                    "spindle_rpm": 8000, "feed_mm_min": 0}],
+        "stages": [
+            {
+                "name": "spindle",
+                "start_s": 0,
+                "end_s": 3600,
+                "heat_source": "spindle",
+                "axis": "Z",
+                "spindle_rpm": 8000,
+                "feed_mm_min": 0,
+            }
+        ],
     }
     t = np.arange(120) * 30.0
     rng = np.random.default_rng(0)
     temps = pd.DataFrame({"time_s": t, **{c: 20 + 0.002 * t + rng.normal(0, 0.05, t.size) for c in channels}})
-    rows = [(60.0 * s + i, "Z", "dz", p, 1, 1e-3 * s * p / 400)
-            for s in range(20) for i, p in enumerate(range(0, 500, 100))]
+    rows = [
+        (60.0 * s + i, "Z", "dz", p, 1, 1e-3 * s * p / 400) for s in range(20) for i, p in enumerate(range(0, 500, 100))
+    ]
     errors = pd.DataFrame(rows, columns=["time_s", "axis", "term", "position", "direction", "value"])
     path = write_bundle(workdir / "bundle", meta, temps, None, errors)
     # a document of realistic size: one model per element parameter the chain has, eight terms each
@@ -148,12 +158,23 @@ def seed(url: str, workdir: Path) -> None:
     for element in ("T1", "phi_z", "T2", "phi_y", "T3", "phi_x"):
         for param in ("alpha", "beta", "gamma", "dx", "dy", "dz"):
             feats = [{"kind": "intercept", "name": "const"}] + [
-                {"kind": "dT", "name": f"dT[{c}]", "channels": [c]} for c in channels[:7]]
-            terms.append({"element": element, "param": param, "features": feats,
-                          "coefficients": [1e-4 * (k + 1) for k in range(len(feats))],
-                          "statistics": {"rmse_train": 0.001, "r2": 0.95, "n_train": 1000}})
-    doc = {"machine": MACHINE, "inputs": {c: {"reference": 20.0, "min": 18.0, "max": 35.0} for c in channels},
-           "kept_channels": channels, "terms": terms}
+                {"kind": "dT", "name": f"dT[{c}]", "channels": [c]} for c in channels[:7]
+            ]
+            terms.append(
+                {
+                    "element": element,
+                    "param": param,
+                    "features": feats,
+                    "coefficients": [1e-4 * (k + 1) for k in range(len(feats))],
+                    "statistics": {"rmse_train": 0.001, "r2": 0.95, "n_train": 1000},
+                }
+            )
+    doc = {
+        "machine": MACHINE,
+        "inputs": {c: {"reference": 20.0, "min": 18.0, "max": 35.0} for c in channels},
+        "kept_channels": channels,
+        "terms": terms,
+    }
     with connect(url) as store:
         cid = store.import_bundle(load_bundle(path))
         model_registry.register_model(store, doc, [cid])
@@ -197,8 +218,12 @@ def load(url: str, n: int, clients: int, max_s: float, server_pid: int, etag: st
     server's CPU time per request (from /proc) says what one core of this server can carry.
     """
     cpu0 = cpu_seconds(server_pid)
-    out = subprocess.run([sys.executable, "-c", LOADGEN, url, str(n), str(clients), str(max_s), etag],
-                         capture_output=True, text=True, timeout=max_s + 120)
+    out = subprocess.run(
+        [sys.executable, "-c", LOADGEN, url, str(n), str(clients), str(max_s), etag],
+        capture_output=True,
+        text=True,
+        timeout=max_s + 120,
+    )
     if out.returncode != 0:
         raise SystemExit(f"load generator failed: {out.stderr[-2000:]}")
     figures = json.loads(out.stdout.strip().splitlines()[-1])
@@ -225,8 +250,26 @@ def main() -> None:
         seed(url, work)
         env = {**os.environ, "DRIFTLAB_API_TOKEN": TOKEN, "PYTHONPATH": str(ROOT)}
         port, bport = free_port(), free_port()
-        api = start([sys.executable, "-m", "driftlab.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
-                     "--db", url, "--no-jobs", "--log-level", "warning"], port, work / "api.log", env)
+        api = start(
+            [
+                sys.executable,
+                "-m",
+                "driftlab.cli",
+                "serve",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--db",
+                url,
+                "--no-jobs",
+                "--log-level",
+                "warning",
+            ],
+            port,
+            work / "api.log",
+            env,
+        )
         base = None
         try:
             model_url = f"http://127.0.0.1:{port}/machines/{MACHINE}/model/current"
@@ -234,13 +277,15 @@ def main() -> None:
             first.raise_for_status()
             body, etag = first.content, first.headers["etag"]
             (work / "body.json").write_bytes(body)
-            base = start([sys.executable, "-c", BASELINE, str(bport), str(work / "body.json")], bport,
-                         work / "baseline.log", env)
+            base = start(
+                [sys.executable, "-c", BASELINE, str(bport), str(work / "body.json")], bport, work / "baseline.log", env
+            )
             # interleaved rounds, best of each: the machine is shared, so load comes and goes
             runs: dict[str, list[dict[str, object]]] = {"baseline": [], "fetch": [], "poll": []}
             for _ in range(args.rounds):
-                runs["baseline"].append(load(f"http://127.0.0.1:{bport}/", args.requests, args.clients,
-                                             args.max_seconds, base.pid))
+                runs["baseline"].append(
+                    load(f"http://127.0.0.1:{bport}/", args.requests, args.clients, args.max_seconds, base.pid)
+                )
                 runs["fetch"].append(load(model_url, args.requests, args.clients, args.max_seconds, api.pid))
                 runs["poll"].append(load(model_url, args.requests, args.clients, args.max_seconds, api.pid, etag))
         finally:
@@ -253,21 +298,27 @@ def main() -> None:
     def ok(r: dict[str, object]) -> bool:
         return bool(r["rps"] and r["rps"] >= 1000 and r["p99_ms"] is not None and r["p99_ms"] < 50 and not r["errors"])
 
-    _common.emit({
-        "benchmark": "api",
-        "load_average": _common.load_average(),
-        "cpus": os.cpu_count(),
-        "clients": args.clients,
-        "body_bytes": len(body),
-        "model_fetch_200": fetch,
-        "model_poll_304": poll,
-        "baseline_constant_asgi": baseline,
-        "rounds_rps": {k: [r["rps"] for r in v] for k, v in runs.items()},
-        "fetch_vs_baseline_rps": round(float(fetch["rps"]) / float(baseline["rps"]), 3) if baseline["rps"] else None,
-        "target": "model fetch >= 1000 req/s and p99 < 50 ms, 50 clients, one uvicorn worker",
-        "target_met": ok(fetch),
-        "capacity_met": bool(fetch["server_capacity_rps_per_core"] and fetch["server_capacity_rps_per_core"] >= 1000),
-    })
+    _common.emit(
+        {
+            "benchmark": "api",
+            "load_average": _common.load_average(),
+            "cpus": os.cpu_count(),
+            "clients": args.clients,
+            "body_bytes": len(body),
+            "model_fetch_200": fetch,
+            "model_poll_304": poll,
+            "baseline_constant_asgi": baseline,
+            "rounds_rps": {k: [r["rps"] for r in v] for k, v in runs.items()},
+            "fetch_vs_baseline_rps": round(float(fetch["rps"]) / float(baseline["rps"]), 3)
+            if baseline["rps"]
+            else None,
+            "target": "model fetch >= 1000 req/s and p99 < 50 ms, 50 clients, one uvicorn worker",
+            "target_met": ok(fetch),
+            "capacity_met": bool(
+                fetch["server_capacity_rps_per_core"] and fetch["server_capacity_rps_per_core"] >= 1000
+            ),
+        }
+    )
 
 
 if __name__ == "__main__":

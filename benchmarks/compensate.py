@@ -44,28 +44,56 @@ def document() -> dict:
     inputs = {c: {"reference": 20.0, "min": 15.0, "max": 40.0} for c in chans}
     terms = []
     rng = np.random.default_rng(0)
-    for element, params in {"T1": ("dx", "dy", "dz", "alpha", "beta"), "T2": ("dz", "beta"), "T3": ("dz",),
-                            "phi_x": ("dx", "gamma"), "phi_y": ("dy",), "phi_z": ("dz", "alpha"),
-                            "theta_x": ("alpha", "dy"), "theta_y": ("beta", "dz")}.items():
+    for element, params in {
+        "T1": ("dx", "dy", "dz", "alpha", "beta"),
+        "T2": ("dz", "beta"),
+        "T3": ("dz",),
+        "phi_x": ("dx", "gamma"),
+        "phi_y": ("dy",),
+        "phi_z": ("dz", "alpha"),
+        "theta_x": ("alpha", "dy"),
+        "theta_y": ("beta", "dz"),
+    }.items():
         axis = {"phi_x": "X", "phi_y": "Y", "phi_z": "Z", "theta_x": "A", "theta_y": "B"}.get(element)
         for prm in params:
-            feats = [f("intercept", "const"), f("dT", f"dT[{chans[0]}]", channels=[chans[0]]),
-                     f("mean", "mean[col]", channels=chans[1:4], label="col"),
-                     f("gradient", f"grad[{chans[4]}-{chans[5]}]", channels=chans[4:6])]
+            feats = [
+                f("intercept", "const"),
+                f("dT", f"dT[{chans[0]}]", channels=[chans[0]]),
+                f("mean", "mean[col]", channels=chans[1:4], label="col"),
+                f("gradient", f"grad[{chans[4]}-{chans[5]}]", channels=chans[4:6]),
+            ]
             if axis:
-                feats += [f("position", "pos", label=axis), f("position", "pos^2", label=axis, power=2),
-                          f("pos_dT", f"pos*dT[{chans[6]}]", channels=[chans[6]], label=axis),
-                          f("direction", "dir", label=axis)]
+                feats += [
+                    f("position", "pos", label=axis),
+                    f("position", "pos^2", label=axis, power=2),
+                    f("pos_dT", f"pos*dT[{chans[6]}]", channels=[chans[6]], label=axis),
+                    f("direction", "dir", label=axis),
+                ]
             # magnitudes of a fitted model (mm, or rad / 1000): tens of um over the work space
-            per_kind = {"intercept": 0.01, "dT": 0.003, "mean": 0.003, "gradient": 0.002, "position": 3e-5,
-                        "pos_dT": 3e-6, "direction": 0.002}
+            per_kind = {
+                "intercept": 0.01,
+                "dT": 0.003,
+                "mean": 0.003,
+                "gradient": 0.002,
+                "position": 3e-5,
+                "pos_dT": 3e-6,
+                "direction": 0.002,
+            }
             size = np.array([per_kind[ft["kind"]] * (1e-3 if ft.get("power") == 2 else 1.0) for ft in feats])
             if axis in ("A", "B"):  # the joint coordinate is in rad, not mm
                 size *= np.array([300.0 if ft["kind"] in ("position", "pos_dT") else 1.0 for ft in feats])
-            coefs = (rng.normal(0, 1, len(feats)) * size
-                     * (1e-3 if prm in ("alpha", "beta", "gamma") else 1.0)).tolist()
-            terms.append({"element": element, "param": prm, "features": feats, "coefficients": coefs,
-                          "statistics": {"rmse_train": 0.001}})
+            coefs = (
+                rng.normal(0, 1, len(feats)) * size * (1e-3 if prm in ("alpha", "beta", "gamma") else 1.0)
+            ).tolist()
+            terms.append(
+                {
+                    "element": element,
+                    "param": prm,
+                    "features": feats,
+                    "coefficients": coefs,
+                    "statistics": {"rmse_train": 0.001},
+                }
+            )
     return {"machine": "bench", "version": 1, "inputs": inputs, "terms": terms}
 
 
@@ -92,7 +120,8 @@ def program_text(n: int, seed: int = 1, head: str = "%\n(benchmark)\nG90 G21 G1 
             out[starts[:, k] + j] = byte
         chars, clen = cols[k]
         dst = np.repeat(starts[:, k] + len(w), clen) + (
-            np.arange(chars.shape[0]) - np.repeat(np.cumsum(clen) - clen, clen))
+            np.arange(chars.shape[0]) - np.repeat(np.cumsum(clen) - clen, clen)
+        )
         out[dst] = chars
     out[starts[:, 5]] = 10
     return head.encode() + out.tobytes() + b"M30\n%\n"
@@ -146,8 +175,9 @@ def streaming(model: ErrorModel, temps: dict) -> dict:
     tmp.flush()
     # read in pieces, as `driftlab compensate --port` does (a piece is parsed when preparation reaches it)
     dec = decimals_for(0.0025, 0.001)
-    program = parse_pieces(program_pieces(tmp.name), scan_program(tmp.name, "stream.nc", dec), "stream.nc",
-                           min_decimals=dec)
+    program = parse_pieces(
+        program_pieces(tmp.name), scan_program(tmp.name, "stream.nc", dec), "stream.nc", min_decimals=dec
+    )
     # the controller runs 4x faster than real time (a 0.3 mm block at F2000 takes ~2 ms), still
     # slower than preparation, as on the machine: the link waits, and preparation uses the wait
     clock = WallClock(acceleration=SPEEDUP)

@@ -74,8 +74,13 @@ print(json.dumps({"kb": int(next(l for l in open("/proc/self/status") if l.start
 
 def child(code: str, program: Path, out: Path, model: Path, temps: Path, port: str = "") -> dict:
     """Run ``code`` in a fresh interpreter and return its JSON line."""
-    proc = subprocess.run([sys.executable, "-c", code, str(program), str(out), str(model), port, str(temps)],
-                          capture_output=True, text=True, check=True, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(program), str(out), str(model), port, str(temps)],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=ROOT,
+    )
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
@@ -96,8 +101,11 @@ def port_figures(program: Path, out: Path, model: Path, temps: Path, n: int) -> 
         wall = time.perf_counter() - t0
         blocks = sim.accepted_seq
     label = label_of(n)
-    return {f"compensate_port_{label}_lines_mb": round(run["kb"] / 1024, 1),
-            f"compensate_port_{label}_lines_s": round(wall, 1), f"compensate_port_{label}_blocks": blocks}
+    return {
+        f"compensate_port_{label}_lines_mb": round(run["kb"] / 1024, 1),
+        f"compensate_port_{label}_lines_s": round(wall, 1),
+        f"compensate_port_{label}_blocks": blocks,
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -130,13 +138,18 @@ def main(argv: list[str] | None = None) -> None:
                 figures.update(port_figures(program, out, model, temps, n))
             program.unlink()
         figures["baseline_import_mb"] = round(child(IMPORT_ONLY, program, out, model, temps)["kb"] / 1024, 1)
-    figures["growth_10k_to_1M_mb"] = round(float(figures["compensate_1M_lines_mb"])  # type: ignore[arg-type]
-                                           - float(figures["compensate_10k_lines_mb"]), 1)  # type: ignore[arg-type]
+    figures["growth_10k_to_1M_mb"] = round(
+        float(figures["compensate_1M_lines_mb"])  # type: ignore[arg-type]
+        - float(figures["compensate_10k_lines_mb"]),
+        1,
+    )  # type: ignore[arg-type]
     ports = [n for n in SIZES if n <= args.port_max_lines]
     if len(ports) > 1:
         figures[f"growth_port_10k_to_{label_of(ports[-1])}_mb"] = round(
             float(figures[f"compensate_port_{label_of(ports[-1])}_lines_mb"])  # type: ignore[arg-type]
-            - float(figures["compensate_port_10k_lines_mb"]), 1)  # type: ignore[arg-type]
+            - float(figures["compensate_port_10k_lines_mb"]),
+            1,
+        )  # type: ignore[arg-type]
     figures["target_1M_under_mb"] = 200
     print(json.dumps(figures))
 

@@ -60,14 +60,28 @@ SCENARIO = ROOT / "examples" / "scenarios" / "clean.yaml"
 
 def bench_plan() -> Plan:
     """Return the benchmark plan: one spindle stage, 10 Hz scans, a 10-point Z sweep every minute."""
-    return parse_plan({
-        "name": "bench-daq", "machine": {"id": "vmc-5ax-01", "channels": "from scenario"},
-        "scan_interval_s": SCAN_S, "state_every": 10,
-        "stages": [{"name": "spindle-10k", "axis": "Z", "duration_s": SIM_S,
+    return parse_plan(
+        {
+            "name": "bench-daq",
+            "machine": {"id": "vmc-5ax-01", "channels": "from scenario"},
+            "scan_interval_s": SCAN_S,
+            "state_every": 10,
+            "stages": [
+                {
+                    "name": "spindle-10k",
+                    "axis": "Z",
+                    "duration_s": SIM_S,
                     "heat": [{"kind": "spindle", "rpm": 10000}],
-                    "sweep": {"positions": [-250, -190, -125, -60, 0], "interval_s": SWEEP_S, "point_s": 3.0,
-                              "term": "dz"}}],
-    })
+                    "sweep": {
+                        "positions": [-250, -190, -125, -60, 0],
+                        "interval_s": SWEEP_S,
+                        "point_s": 3.0,
+                        "term": "dz",
+                    },
+                }
+            ],
+        }
+    )
 
 
 def daemon_run(url: str, prefix: str, speed: float) -> dict:
@@ -137,9 +151,12 @@ def instruments_only(n_blocks: int = 30, block: int = 200) -> dict:
     for k in range(n_blocks):
         vm.temperatures_block(times + k * block * SCAN_S)
     vm_cpu = time.process_time() - c0
-    return {"instruments_block_scans": block, "instruments_scans_per_s": round(n_blocks * block / dt, 1),
-            "instruments_cpu_scans_per_s": round(n_blocks * block / cpu, 1),
-            "vm_block_cpu_scans_per_s": round(n_blocks * block / vm_cpu, 1)}
+    return {
+        "instruments_block_scans": block,
+        "instruments_scans_per_s": round(n_blocks * block / dt, 1),
+        "instruments_cpu_scans_per_s": round(n_blocks * block / cpu, 1),
+        "vm_block_cpu_scans_per_s": round(n_blocks * block / vm_cpu, 1),
+    }
 
 
 def blocks_from_vm(n: int, block: int) -> tuple[list[str], list[ScanBlock]]:
@@ -148,8 +165,16 @@ def blocks_from_vm(n: int, block: int) -> tuple[list[str], list[ScanBlock]]:
     vm = VirtualMachine(plan_scenario(plan, load_scenario(SCENARIO)))
     channels = list(scenario_meta(None)["channels"])
     vals = vm.temperatures_block(np.arange(n) * SCAN_S, channels)
-    blocks = [ScanBlock(k, np.arange(k, min(n, k + block)) * SCAN_S, tuple(channels), vals[k:k + block],
-                        np.isnan(vals[k:k + block])) for k in range(0, n, block)]
+    blocks = [
+        ScanBlock(
+            k,
+            np.arange(k, min(n, k + block)) * SCAN_S,
+            tuple(channels),
+            vals[k : k + block],
+            np.isnan(vals[k : k + block]),
+        )
+        for k in range(0, n, block)
+    ]
     return channels, blocks
 
 
@@ -170,8 +195,11 @@ def store_only(url: str, prefix: str, blocks: list[ScanBlock]) -> dict:
         lat.append(time.perf_counter() - c0)
     dt = time.perf_counter() - t0
     engine.dispose()
-    return {f"{prefix}_scans_per_s": round(n / dt, 1), f"{prefix}_rows_per_s": round(n * 50 / dt),
-            f"{prefix}_commit_p99_ms": round(percentile(lat, 99) * 1e3, 3)}
+    return {
+        f"{prefix}_scans_per_s": round(n / dt, 1),
+        f"{prefix}_rows_per_s": round(n * 50 / dt),
+        f"{prefix}_commit_p99_ms": round(percentile(lat, 99) * 1e3, 3),
+    }
 
 
 def raw_baseline_sqlite(tmp: Path, blocks: list[ScanBlock]) -> dict:
@@ -179,8 +207,10 @@ def raw_baseline_sqlite(tmp: Path, blocks: list[ScanBlock]) -> dict:
     con = sqlite3.connect(tmp / "raw.sqlite", isolation_level=None)
     con.execute("PRAGMA journal_mode=WAL")
     con.execute("PRAGMA synchronous=NORMAL")
-    con.execute("CREATE TABLE t (campaign_id INTEGER, channel_id INTEGER, time_s REAL, value REAL, "
-                "PRIMARY KEY (campaign_id, channel_id, time_s)) WITHOUT ROWID")
+    con.execute(
+        "CREATE TABLE t (campaign_id INTEGER, channel_id INTEGER, time_s REAL, value REAL, "
+        "PRIMARY KEY (campaign_id, channel_id, time_s)) WITHOUT ROWID"
+    )
     lat = []
     n = sum(len(b) for b in blocks)
     t0 = time.perf_counter()
@@ -194,8 +224,11 @@ def raw_baseline_sqlite(tmp: Path, blocks: list[ScanBlock]) -> dict:
         lat.append(time.perf_counter() - c0)
     dt = time.perf_counter() - t0
     con.close()
-    return {"baseline_raw_sqlite_scans_per_s": round(n / dt, 1), "baseline_raw_sqlite_rows_per_s": round(n * 50 / dt),
-            "baseline_raw_sqlite_commit_p99_ms": round(percentile(lat, 99) * 1e3, 3)}
+    return {
+        "baseline_raw_sqlite_scans_per_s": round(n / dt, 1),
+        "baseline_raw_sqlite_rows_per_s": round(n * 50 / dt),
+        "baseline_raw_sqlite_commit_p99_ms": round(percentile(lat, 99) * 1e3, 3),
+    }
 
 
 def raw_baseline_pg(url: str, blocks: list[ScanBlock]) -> dict:
@@ -208,8 +241,10 @@ def raw_baseline_pg(url: str, blocks: list[ScanBlock]) -> dict:
     lat = []
     n = sum(len(b) for b in blocks)
     with psycopg.connect(dsn) as con:
-        con.execute("CREATE TABLE t (campaign_id int4, channel_id int4, time_s float8, value float8, "
-                    "campaign_start_day int4, PRIMARY KEY (campaign_id, channel_id, time_s, campaign_start_day))")
+        con.execute(
+            "CREATE TABLE t (campaign_id int4, channel_id int4, time_s float8, value float8, "
+            "campaign_start_day int4, PRIMARY KEY (campaign_id, channel_id, time_s, campaign_start_day))"
+        )
         con.commit()
         t0 = time.perf_counter()
         for b in blocks:
@@ -222,17 +257,29 @@ def raw_baseline_pg(url: str, blocks: list[ScanBlock]) -> dict:
             con.commit()
             lat.append(time.perf_counter() - c0)
         dt = time.perf_counter() - t0
-    return {"baseline_raw_pg_copy_scans_per_s": round(n / dt, 1), "baseline_raw_pg_copy_rows_per_s": round(n * 50 / dt),
-            "baseline_raw_pg_copy_commit_p99_ms": round(percentile(lat, 99) * 1e3, 3)}
+    return {
+        "baseline_raw_pg_copy_scans_per_s": round(n / dt, 1),
+        "baseline_raw_pg_copy_rows_per_s": round(n * 50 / dt),
+        "baseline_raw_pg_copy_commit_p99_ms": round(percentile(lat, 99) * 1e3, 3),
+    }
 
 
 def main() -> None:
     """Run every part and print one JSON line."""
     required = SPEED / SCAN_S
-    figures: dict = {"benchmark": "daq", "channels": 50, "scan_hz": 1 / SCAN_S, "sweep_every_s": SWEEP_S,
-                     "sweep_points": len(bench_plan().sweep_points()), "speed_x": SPEED, "sim_s": SIM_S,
-                     "required_scans_per_s": required, "required_rows_per_s": required * 50,
-                     "load_avg_1m": load_average(), "cores": os.cpu_count()}
+    figures: dict = {
+        "benchmark": "daq",
+        "channels": 50,
+        "scan_hz": 1 / SCAN_S,
+        "sweep_every_s": SWEEP_S,
+        "sweep_points": len(bench_plan().sweep_points()),
+        "speed_x": SPEED,
+        "sim_s": SIM_S,
+        "required_scans_per_s": required,
+        "required_rows_per_s": required * 50,
+        "load_avg_1m": load_average(),
+        "cores": os.cpu_count(),
+    }
     channels, blocks = blocks_from_vm(12000, 200)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -247,7 +294,8 @@ def main() -> None:
         figures.update(store_only(f"sqlite:///{tmp / 'store.sqlite'}", "store_sqlite", blocks))
         figures.update(raw_baseline_sqlite(tmp, blocks))
     figures["store_sqlite_vs_raw"] = round(
-        figures["store_sqlite_rows_per_s"] / figures["baseline_raw_sqlite_rows_per_s"], 3)
+        figures["store_sqlite_rows_per_s"] / figures["baseline_raw_sqlite_rows_per_s"], 3
+    )
     pg = None
     if os.environ.get("DAQ_NO_PG") != "1":
         try:
@@ -267,22 +315,27 @@ def main() -> None:
             figures.update(store_only(pg.create_database(), "store_pg", blocks))
             figures.update(raw_baseline_pg(pg.create_database(), blocks))
             figures["store_pg_vs_raw"] = round(
-                figures["store_pg_rows_per_s"] / figures["baseline_raw_pg_copy_rows_per_s"], 3)
+                figures["store_pg_rows_per_s"] / figures["baseline_raw_pg_copy_rows_per_s"], 3
+            )
         finally:
             pg.stop()
     reach = {}
-    for db, raw_key, run_key in (("sqlite", "baseline_raw_sqlite_scans_per_s", "sqlite_flat_out_scans_per_s"),
-                                 ("postgresql", "baseline_raw_pg_copy_scans_per_s", "pg_flat_out_scans_per_s")):
+    for db, raw_key, run_key in (
+        ("sqlite", "baseline_raw_sqlite_scans_per_s", "sqlite_flat_out_scans_per_s"),
+        ("postgresql", "baseline_raw_pg_copy_scans_per_s", "pg_flat_out_scans_per_s"),
+    ):
         if raw_key in figures:
-            reach[db] = {"raw_ceiling_scans_per_s": figures[raw_key],
-                         "target_physically_reachable": figures[raw_key] >= required,
-                         "daemon_reached": figures.get(run_key, 0) >= required,
-                         "daemon_fraction_of_target": round(figures.get(run_key, 0) / required, 3)}
+            reach[db] = {
+                "raw_ceiling_scans_per_s": figures[raw_key],
+                "target_physically_reachable": figures[raw_key] >= required,
+                "daemon_reached": figures.get(run_key, 0) >= required,
+                "daemon_fraction_of_target": round(figures.get(run_key, 0) / required, 3),
+            }
     figures["reachable"] = reach
     figures["reachable_note"] = (
         f"36,000 scans/s = {required * 50:,.0f} rows/s. Raw ceilings measured in this run (same rows, same "
-        "batches, this shared machine): " + "; ".join(
-            f"{db} {r['raw_ceiling_scans_per_s']:,.0f} scans/s" for db, r in reach.items())
+        "batches, this shared machine): "
+        + "; ".join(f"{db} {r['raw_ceiling_scans_per_s']:,.0f} scans/s" for db, r in reach.items())
         + ". A target above a database's raw ceiling is not reachable by any daemon on that database here; "
         "the instrument path alone (block scans, no store) is the instruments_* figure."
     )

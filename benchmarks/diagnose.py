@@ -44,39 +44,47 @@ def _baseline_lstsq(bundle: Bundle) -> float:
 
 def main() -> None:
     """Simulate the campaign, diagnose it, print one JSON line of figures."""
-    hidden = [HiddenEffect(kind="thermal_lag", axis="Z", term="dz", channels=["T34"], params={"tau_s": 2400.0}),
-              HiddenEffect(kind="reversal", axis="X", term="dx", params={"magnitude_mm": 0.003})]
-    sc = Scenario(seed=1, hours=72.0, scan_interval_s=60.0, sweep_interval_s=600.0, points_per_axis=11,
-                  hidden=hidden)
+    hidden = [
+        HiddenEffect(kind="thermal_lag", axis="Z", term="dz", channels=["T34"], params={"tau_s": 2400.0}),
+        HiddenEffect(kind="reversal", axis="X", term="dx", params={"magnitude_mm": 0.003}),
+    ]
+    sc = Scenario(seed=1, hours=72.0, scan_interval_s=60.0, sweep_interval_s=600.0, points_per_axis=11, hidden=hidden)
     t0 = time.perf_counter()
     sim = simulate_campaign(sc)
     t_sim = time.perf_counter() - t0
-    bundle = Bundle(name="bench-72h", meta=_as_meta(sim.meta), temperatures=sim.temperatures,
-                    conditions=sim.conditions, errors=sim.errors)
+    bundle = Bundle(
+        name="bench-72h",
+        meta=_as_meta(sim.meta),
+        temperatures=sim.temperatures,
+        conditions=sim.conditions,
+        errors=sim.errors,
+    )
     wall0, cpu0 = time.perf_counter(), time.process_time()
     res = diagnose_bundle(bundle)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     t_json = time.perf_counter()
     res.to_json_dict()
     t_json = time.perf_counter() - t_json
-    _common.emit({
-        "benchmark": "diagnose",
-        "hours": sc.hours,
-        "channels": sim.temperatures.shape[1] - 1,
-        "scans": len(sim.temperatures),
-        "error_rows": len(sim.errors),
-        "terms": len(res.terms),
-        "hypotheses": res.n_hypotheses,
-        "effects_found": [f"{e.kind}:{e.axis}/{e.term}" for e in res.effects],
-        "phase_s": {k: round(v, 3) for k, v in res.timings_s.items()},
-        "diagnose_wall_s": round(wall, 3),
-        "diagnose_cpu_s": round(cpu, 3),
-        "report_json_s": round(t_json, 3),
-        "baseline_lstsq_standard_models_s": round(_common.timeit_best(lambda: _baseline_lstsq(bundle), 3), 3),
-        "simulate_s": round(t_sim, 3),
-        "target_s": 30.0,
-        "load_average": _common.load_average(),
-    })
+    _common.emit(
+        {
+            "benchmark": "diagnose",
+            "hours": sc.hours,
+            "channels": sim.temperatures.shape[1] - 1,
+            "scans": len(sim.temperatures),
+            "error_rows": len(sim.errors),
+            "terms": len(res.terms),
+            "hypotheses": res.n_hypotheses,
+            "effects_found": [f"{e.kind}:{e.axis}/{e.term}" for e in res.effects],
+            "phase_s": {k: round(v, 3) for k, v in res.timings_s.items()},
+            "diagnose_wall_s": round(wall, 3),
+            "diagnose_cpu_s": round(cpu, 3),
+            "report_json_s": round(t_json, 3),
+            "baseline_lstsq_standard_models_s": round(_common.timeit_best(lambda: _baseline_lstsq(bundle), 3), 3),
+            "simulate_s": round(t_sim, 3),
+            "target_s": 30.0,
+            "load_average": _common.load_average(),
+        }
+    )
 
 
 if __name__ == "__main__":

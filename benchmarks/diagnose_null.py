@@ -34,10 +34,17 @@ def main(n: int = 200) -> dict:
         if res.effects:
             with_finding += 1
             kinds.update(e.kind for e in res.effects)
-    out = {"benchmark": "diagnose_null", "bundles": n, "bundles_with_any_finding": with_finding,
-           "rate": with_finding / n, "target_rate": 0.05, "meets_target": with_finding / n <= 0.05,
-           "findings_by_kind": dict(kinds), "rho_range": [round(min(rhos), 3), round(max(rhos), 3)],
-           "wall_s": round(time.perf_counter() - t0, 1)}
+    out = {
+        "benchmark": "diagnose_null",
+        "bundles": n,
+        "bundles_with_any_finding": with_finding,
+        "rate": with_finding / n,
+        "target_rate": 0.05,
+        "meets_target": with_finding / n <= 0.05,
+        "findings_by_kind": dict(kinds),
+        "rho_range": [round(min(rhos), 3), round(max(rhos), 3)],
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
     return out
 
 

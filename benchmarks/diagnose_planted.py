@@ -23,11 +23,25 @@ from driftlab.models.diagnosis import diagnose_bundle  # noqa: E402
 from driftlab.testing.openworld import OpenPlanted as P  # noqa: E402
 from driftlab.testing.openworld import openworld_case  # noqa: E402
 
-SAME_BODY = {"T7": {"T7", "T8"}, "T8": {"T7", "T8"}, "T5": {"T5", "T6"}, "T6": {"T5", "T6"},
-             "T1": {"T1", "T2"}, "T2": {"T1", "T2"}, "T3": {"T3", "T4"}, "T4": {"T3", "T4"}}
-SCALE_KEY = {"reversal": "magnitude", "screw_expansion": "coef_per_mm_degC", "unmapped_channel": "coef_per_degC",
-             "thermal_lag": "coef_per_degC", "drift": "rate_per_day", "quadratic": "coef_per_degC2",
-             "operating_condition": "coef_per_unit"}
+SAME_BODY = {
+    "T7": {"T7", "T8"},
+    "T8": {"T7", "T8"},
+    "T5": {"T5", "T6"},
+    "T6": {"T5", "T6"},
+    "T1": {"T1", "T2"},
+    "T2": {"T1", "T2"},
+    "T3": {"T3", "T4"},
+    "T4": {"T3", "T4"},
+}
+SCALE_KEY = {
+    "reversal": "magnitude",
+    "screw_expansion": "coef_per_mm_degC",
+    "unmapped_channel": "coef_per_degC",
+    "thermal_lag": "coef_per_degC",
+    "drift": "rate_per_day",
+    "quadratic": "coef_per_degC2",
+    "operating_condition": "coef_per_unit",
+}
 
 CASES: dict[str, list[P]] = {
     "reversal A (theta_x alpha)": [P("reversal", "A", "alpha", "theta_x", "alpha", [], {"magnitude": 1e-6})],
@@ -38,12 +52,14 @@ CASES: dict[str, list[P]] = {
     "drift X/alpha (T3 alpha)": [P("drift", "X", "alpha", "T3", "alpha", [], {"rate_per_day": 1e-6})],
     "quadratic Z (T1 dz, T1)": [P("quadratic", "Z", "dz", "T1", "dz", ["T1"], {"coef_per_degC2": 1e-5})],
     "rpm^2 Z (T1 dz)": [P("operating_condition", "Z", "dz", "T1", "dz", [], {"power": 2, "coef_per_unit": -1e-10})],
-    "two: reversal Z + lag Z": [P("reversal", "Z", "dz", "phi_z", "dz", [], {"magnitude": 1e-3}),
-                                P("thermal_lag", "Z", "dz", "T2", "dz", ["T5"], {"tau_s": 3000.0,
-                                                                               "coef_per_degC": 1e-2})],
-    "two: screw X + rpm^2 Z": [P("screw_expansion", "X", "dx", "phi_x", "dx", ["T7"], {"coef_per_mm_degC": 1e-5}),
-                               P("operating_condition", "Z", "dz", "T1", "dz", [], {"power": 2,
-                                                                                  "coef_per_unit": -1e-10})],
+    "two: reversal Z + lag Z": [
+        P("reversal", "Z", "dz", "phi_z", "dz", [], {"magnitude": 1e-3}),
+        P("thermal_lag", "Z", "dz", "T2", "dz", ["T5"], {"tau_s": 3000.0, "coef_per_degC": 1e-2}),
+    ],
+    "two: screw X + rpm^2 Z": [
+        P("screw_expansion", "X", "dx", "phi_x", "dx", ["T7"], {"coef_per_mm_degC": 1e-5}),
+        P("operating_condition", "Z", "dz", "T1", "dz", [], {"power": 2, "coef_per_unit": -1e-10}),
+    ],
 }
 
 
@@ -93,15 +109,37 @@ def main(size: float = 3.0, seeds: int = 3) -> dict:
                 ok, got = _match(p, exp, res.effects)
                 total += 1
                 found += ok
-                rows.append({"case": name, "seed": seed, "kind": p.kind, "axis": p.axis, "term": p.term,
-                             "channels": p.channels, "planted": exp, "found": ok, "reported": got})
+                rows.append(
+                    {
+                        "case": name,
+                        "seed": seed,
+                        "kind": p.kind,
+                        "axis": p.axis,
+                        "term": p.term,
+                        "channels": p.channels,
+                        "planted": exp,
+                        "found": ok,
+                        "reported": got,
+                    }
+                )
                 if got:
                     hit_any.add((p.kind, p.axis, p.term))
             extra += sum(1 for e in res.effects if (e.kind, e.axis, e.term) not in hit_any)
-    return {"benchmark": "diagnose_planted", "size_x_noise": size, "planted": total, "found": found,
-            "other_findings": extra, "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
+    return {
+        "benchmark": "diagnose_planted",
+        "size_x_noise": size,
+        "planted": total,
+        "found": found,
+        "other_findings": extra,
+        "rows": rows,
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
 
 
 if __name__ == "__main__":
-    print(json.dumps(main(float(sys.argv[1]) if len(sys.argv) > 1 else 3.0,
-                          int(sys.argv[2]) if len(sys.argv) > 2 else 3), default=str))
+    print(
+        json.dumps(
+            main(float(sys.argv[1]) if len(sys.argv) > 1 else 3.0, int(sys.argv[2]) if len(sys.argv) > 2 else 3),
+            default=str,
+        )
+    )

@@ -58,27 +58,37 @@ def main() -> None:
     v = result.validation
     lengths = v[v["unit"] == "mm"]
     angles = v[v["unit"] == "rad"]
-    neural = [{"target": c.target, "status": c.status, "split": c.split,
-               "directions": [{k: d.to_dict()[k] for k in ("direction", "regression_test", "network_test",
-                                                            "max_excess_degC")} for d in c.directions]}
-              for c in result.neural]
-    emit({
-        "benchmark": "fit",
-        "hours": HOURS,
-        "channels": len(train.channels),
-        "error_points": int(len(train.errors) // 6),
-        "total_s": round(w1 - w0, 3),
-        "cpu_s": round(c1 - c0, 3),
-        "target_s": TARGET_S,
-        "ok": bool(w1 - w0 < TARGET_S),
-        "stages_s": result.timings_s,
-        "baseline_ols_all_channels_s": round(_baseline(train), 3),
-        "kept_channels": result.document.kept_channels,
-        "worst_rmse_holdout_mm": float(lengths["rmse_holdout"].max()),
-        "worst_rmse_holdout_rad": float(angles["rmse_holdout"].max()),
-        "neural_comparison": neural,
-        "load_average": load_average(),
-    })
+    neural = [
+        {
+            "target": c.target,
+            "status": c.status,
+            "split": c.split,
+            "directions": [
+                {k: d.to_dict()[k] for k in ("direction", "regression_test", "network_test", "max_excess_degC")}
+                for d in c.directions
+            ],
+        }
+        for c in result.neural
+    ]
+    emit(
+        {
+            "benchmark": "fit",
+            "hours": HOURS,
+            "channels": len(train.channels),
+            "error_points": int(len(train.errors) // 6),
+            "total_s": round(w1 - w0, 3),
+            "cpu_s": round(c1 - c0, 3),
+            "target_s": TARGET_S,
+            "ok": bool(w1 - w0 < TARGET_S),
+            "stages_s": result.timings_s,
+            "baseline_ols_all_channels_s": round(_baseline(train), 3),
+            "kept_channels": result.document.kept_channels,
+            "worst_rmse_holdout_mm": float(lengths["rmse_holdout"].max()),
+            "worst_rmse_holdout_rad": float(angles["rmse_holdout"].max()),
+            "neural_comparison": neural,
+            "load_average": load_average(),
+        }
+    )
 
 
 if __name__ == "__main__":

@@ -75,10 +75,15 @@ def campaign_bundle(m: int, k: int, args: argparse.Namespace) -> Bundle | None:
     hours = min(args.campaign_days, args.days - k * args.campaign_days) * 24.0
     if hours <= 0:
         return None
-    scenario = Scenario(name=f"{machine_id(m)}-c{k + 1:03d}", seed=1000 * m + k, hours=hours,
-                        scan_interval_s=args.scan_s, sweep_interval_s=args.sweep_h * 3600.0,
-                        started_at=start.isoformat().replace("+00:00", "Z"),
-                        machine=MachineInfo(id=machine_id(m), name=f"fleet machine {m + 1}"))
+    scenario = Scenario(
+        name=f"{machine_id(m)}-c{k + 1:03d}",
+        seed=1000 * m + k,
+        hours=hours,
+        scan_interval_s=args.scan_s,
+        sweep_interval_s=args.sweep_h * 3600.0,
+        started_at=start.isoformat().replace("+00:00", "Z"),
+        machine=MachineInfo(id=machine_id(m), name=f"fleet machine {m + 1}"),
+    )
     sim = simulate_campaign(scenario)
     temps = sim.temperatures
     if args.channels < temps.shape[1] - 1:
@@ -92,13 +97,19 @@ def campaign_bundle(m: int, k: int, args: argparse.Namespace) -> Bundle | None:
 
 
 RAW_COLUMNS = {
-    "temperature_samples": (("campaign_id", "channel_id", "time_s", "value", "campaign_start_day"),
-                            ("int4", "int4", "float8", "float8", "int4")),
-    "condition_samples": (("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
-                          ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4")),
+    "temperature_samples": (
+        ("campaign_id", "channel_id", "time_s", "value", "campaign_start_day"),
+        ("int4", "int4", "float8", "float8", "int4"),
+    ),
+    "condition_samples": (
+        ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
+        ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
+    ),
     # the simulator writes bundle v1 error logs (no pose, no setup): the import leaves those columns NULL
-    "error_samples": (ERROR_COLUMNS, ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8",
-                                      "int4", "int4", "int4")),
+    "error_samples": (
+        ERROR_COLUMNS,
+        ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4", "int4"),
+    ),
 }
 
 
@@ -106,8 +117,12 @@ def make_raw_tables(store: Store) -> None:
     """Create the baseline's scratch tables: each reading table's definition, partitioning and keys."""
     with store.engine.begin() as conn:
         for table in RAW_COLUMNS:
-            conn.execute(text(f"CREATE TABLE {RAW_PREFIX}{table} (LIKE {table} INCLUDING DEFAULTS "
-                              "INCLUDING CONSTRAINTS INCLUDING INDEXES) PARTITION BY RANGE (campaign_start_day)"))
+            conn.execute(
+                text(
+                    f"CREATE TABLE {RAW_PREFIX}{table} (LIKE {table} INCLUDING DEFAULTS "
+                    "INCLUDING CONSTRAINTS INCLUDING INDEXES) PARTITION BY RANGE (campaign_start_day)"
+                )
+            )
 
 
 def raw_copy(store: Store, day: int, rows: dict[str, list[tuple[Any, ...]]]) -> float:
@@ -135,8 +150,9 @@ def _none(values: np.ndarray) -> list[Any]:
     return [None if x != x else x for x in values.tolist()]
 
 
-def baseline_rows(campaign_id: int, first_channel_id: int, day: int,
-                  bundle: Bundle) -> dict[str, list[tuple[Any, ...]]]:
+def baseline_rows(
+    campaign_id: int, first_channel_id: int, day: int, bundle: Bundle
+) -> dict[str, list[tuple[Any, ...]]]:
     """Return the reading rows the import writes for a bundle (the same ids in a fresh database: campaigns
     and channels are numbered in import order), prepared as a raw client would hold them."""
     temps = bundle.temperatures
@@ -144,19 +160,36 @@ def baseline_rows(campaign_id: int, first_channel_id: int, day: int,
     n = len(t)
     out: dict[str, list[tuple[Any, ...]]] = {"temperature_samples": []}
     for ch, name in enumerate((c for c in temps.columns if c != "time_s"), start=first_channel_id):
-        out["temperature_samples"].extend(zip(repeat(campaign_id, n), repeat(ch, n), t,
-                                              _none(temps[name].to_numpy(dtype="f8")), repeat(day, n)))
+        out["temperature_samples"].extend(
+            zip(repeat(campaign_id, n), repeat(ch, n), t, _none(temps[name].to_numpy(dtype="f8")), repeat(day, n))
+        )
     cond = bundle.conditions
     assert cond is not None
-    out["condition_samples"] = list(zip(repeat(campaign_id), cond["time_s"].tolist(),
-                                        *[_none(cond[c].to_numpy(dtype="f8")) for c in CONDITION_VALUE_COLUMNS],
-                                        repeat(day, len(cond))))
+    out["condition_samples"] = list(
+        zip(
+            repeat(campaign_id),
+            cond["time_s"].tolist(),
+            *[_none(cond[c].to_numpy(dtype="f8")) for c in CONDITION_VALUE_COLUMNS],
+            repeat(day, len(cond)),
+        )
+    )
     err = bundle.errors
     assert not bundle.meta.v2
-    out["error_samples"] = list(zip(repeat(campaign_id), range(len(err)), err["time_s"].tolist(), err["axis"].tolist(),
-                                    err["term"].tolist(), err["position"].tolist(), err["direction"].tolist(),
-                                    err["value"].tolist(), sweep_numbers(err).tolist(), repeat(0),
-                                    repeat(day, len(err))))
+    out["error_samples"] = list(
+        zip(
+            repeat(campaign_id),
+            range(len(err)),
+            err["time_s"].tolist(),
+            err["axis"].tolist(),
+            err["term"].tolist(),
+            err["position"].tolist(),
+            err["direction"].tolist(),
+            err["value"].tolist(),
+            sweep_numbers(err).tolist(),
+            repeat(0),
+            repeat(day, len(err)),
+        )
+    )
     return out
 
 
@@ -197,15 +230,27 @@ def load(store: Store, args: argparse.Namespace, figures: dict[str, Any]) -> dic
             break
         k += 1
     rate = readings / import_s
-    figures.update({
-        "campaigns": sum(len(v) for v in ids.values()), "readings": readings, "error_samples": errors,
-        "condition_samples": conditions, "generate_s": round(gen_s, 1), "import_s": round(import_s, 1),
-        "import_readings_per_s": round(rate),
-    })
+    figures.update(
+        {
+            "campaigns": sum(len(v) for v in ids.values()),
+            "readings": readings,
+            "error_samples": errors,
+            "condition_samples": conditions,
+            "generate_s": round(gen_s, 1),
+            "import_s": round(import_s, 1),
+            "import_readings_per_s": round(rate),
+        }
+    )
     if args.baseline:
-        figures.update({"raw_copy_s": round(raw_s, 1), "raw_copy_rows_per_s": round(all_rows / raw_s),
-                        "import_rows_per_s": round(all_rows / import_s),
-                        "import_ratio_to_raw_copy": round(raw_s / import_s, 3), "import_ratio_target": 0.9})
+        figures.update(
+            {
+                "raw_copy_s": round(raw_s, 1),
+                "raw_copy_rows_per_s": round(all_rows / raw_s),
+                "import_rows_per_s": round(all_rows / import_s),
+                "import_ratio_to_raw_copy": round(raw_s / import_s, 3),
+                "import_ratio_target": 0.9,
+            }
+        )
     return ids
 
 
@@ -245,32 +290,52 @@ def drift_latency(store: Store, args: argparse.Namespace, figures: dict[str, Any
         t0 = time.perf_counter()
         store.drift(machine, axis, term, position=position, direction=1, start=start, end=end, interpolate=True)
         interp_s.append(time.perf_counter() - t0)
-    figures.update({
-        "drift_queries": len(queries), "drift_window_days": (end - start).days,
-        "campaigns_per_machine": len(store.list_campaigns(machine_id(0))),
-        "drift_points_per_query_median": int(statistics.median(points)),
-        "drift_api_median_ms": pct(api_s, 50), "drift_api_p99_ms": pct(api_s, 99),
-        "drift_store_median_ms": pct(store_s, 50), "drift_store_p99_ms": pct(store_s, 99),
-        "drift_interpolated_store_median_ms": pct(interp_s, 50), "drift_target_median_ms": 50.0,
-    })
+    figures.update(
+        {
+            "drift_queries": len(queries),
+            "drift_window_days": (end - start).days,
+            "campaigns_per_machine": len(store.list_campaigns(machine_id(0))),
+            "drift_points_per_query_median": int(statistics.median(points)),
+            "drift_api_median_ms": pct(api_s, 50),
+            "drift_api_p99_ms": pct(api_s, 99),
+            "drift_store_median_ms": pct(store_s, 50),
+            "drift_store_p99_ms": pct(store_s, 99),
+            "drift_interpolated_store_median_ms": pct(interp_s, 50),
+            "drift_target_median_ms": 50.0,
+        }
+    )
     figures["drift_ok"] = figures["drift_api_median_ms"] < 50.0
     # pruning: the drift query's per-campaign statement reads one partition of error_samples
     with store.engine.connect() as conn:
-        cid, started = conn.execute(select(sc.Campaign.id, sc.Campaign.started_at)
-                                    .where(sc.Campaign.machine_id == machine_id(0))
-                                    .order_by(sc.Campaign.started_at.desc())).first()
-        plan = conn.execute(text(
-            "EXPLAIN SELECT time_s, position, direction, sweep, value FROM error_samples WHERE campaign_id = :c "
-            "AND campaign_start_day = :day AND axis = 'Z' AND term = 'dz' AND direction = 1 AND position = 250.0"),
-            {"c": cid, "day": partitions.start_day(started)}).scalars().all()
+        cid, started = conn.execute(
+            select(sc.Campaign.id, sc.Campaign.started_at)
+            .where(sc.Campaign.machine_id == machine_id(0))
+            .order_by(sc.Campaign.started_at.desc())
+        ).first()
+        plan = (
+            conn.execute(
+                text(
+                    "EXPLAIN SELECT time_s, position, direction, sweep, value FROM error_samples "
+                    "WHERE campaign_id = :c AND campaign_start_day = :day "
+                    "AND axis = 'Z' AND term = 'dz' AND direction = 1 AND position = 250.0"
+                ),
+                {"c": cid, "day": partitions.start_day(started)},
+            )
+            .scalars()
+            .all()
+        )
         n_parts = len(partitions.partitions(conn, "error_samples"))
     scanned = sorted({m for line in plan for m in re.findall(r" on (error_samples_p\w+)", line)})
-    figures.update({"error_samples_partitions": n_parts, "drift_statement_partitions_read": len(scanned),
-                    "drift_statement_plan": " | ".join(line.strip() for line in plan)[:300]})
+    figures.update(
+        {
+            "error_samples_partitions": n_parts,
+            "drift_statement_partitions_read": len(scanned),
+            "drift_statement_plan": " | ".join(line.strip() for line in plan)[:300],
+        }
+    )
 
 
-def fit_throughput(store: Store, ids: dict[str, list[int]], args: argparse.Namespace,
-                   figures: dict[str, Any]) -> None:
+def fit_throughput(store: Store, ids: dict[str, list[int]], args: argparse.Namespace, figures: dict[str, Any]) -> None:
     """Queue fit jobs and run them with 1, 2, ... worker processes; fits per minute for each."""
     from driftlab.jobs import submit
     from driftlab.jobs.tasks import FIT
@@ -282,12 +347,25 @@ def fit_throughput(store: Store, ids: dict[str, list[int]], args: argparse.Names
         jobs = []
         for j in range(args.fit_jobs):
             m = machines[j % len(machines)]
-            jobs.append(submit(store, FIT, {"campaigns": ids[m][-args.fit_campaigns:], "network": False},
-                               machine_id=m, campaign_id=ids[m][-1]))
+            jobs.append(
+                submit(
+                    store,
+                    FIT,
+                    {"campaigns": ids[m][-args.fit_campaigns :], "network": False},
+                    machine_id=m,
+                    campaign_id=ids[m][-1],
+                )
+            )
         env = {**os.environ, "DRIFTLAB_DB_URL": url}
-        procs = [subprocess.Popen([sys.executable, "-m", "driftlab", "worker", "--until-idle", "--name", f"bench-{w}"],
-                                  env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-                 for w in range(workers)]
+        procs = [
+            subprocess.Popen(
+                [sys.executable, "-m", "driftlab", "worker", "--until-idle", "--name", f"bench-{w}"],
+                env=env,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            for w in range(workers)
+        ]
         for p in procs:
             p.wait()
         done = [store.get_job(j) for j in jobs]
@@ -298,26 +376,34 @@ def fit_throughput(store: Store, ids: dict[str, list[int]], args: argparse.Names
         last = max(j.finished_at for j in done)
         span = (last - first).total_seconds()
         each = [(j.finished_at - j.started_at).total_seconds() for j in done]
-        per[str(workers)] = {"fits": len(done), "span_s": round(span, 1),
-                             "fits_per_min": round(len(done) / span * 60, 2),
-                             "fit_s_median": round(statistics.median(each), 2)}
+        per[str(workers)] = {
+            "fits": len(done),
+            "span_s": round(span, 1),
+            "fits_per_min": round(len(done) / span * 60, 2),
+            "fit_s_median": round(statistics.median(each), 2),
+        }
     figures["fit_jobs"] = per
     base = per.get("1")
     if base:
-        figures["fit_speedup_vs_1_worker"] = {w: round(v["fits_per_min"] / base["fits_per_min"], 2)
-                                              for w, v in per.items()}
-    figures["fit_note"] = (f"{os.cpu_count()} cores: worker counts above the core count share the cores; "
-                           "the issue's 4-worker target needs a 4-core host")
+        figures["fit_speedup_vs_1_worker"] = {
+            w: round(v["fits_per_min"] / base["fits_per_min"], 2) for w, v in per.items()
+        }
+    figures["fit_note"] = (
+        f"{os.cpu_count()} cores: worker counts above the core count share the cores; "
+        "the issue's 4-worker target needs a 4-core host"
+    )
 
 
 def sizes(store: Store, figures: dict[str, Any]) -> None:
     """Record the database's size and the reading tables' partitions."""
     with store.engine.connect() as conn:
-        figures["database_gb"] = round(conn.execute(text("SELECT pg_database_size(current_database())")).scalar()
-                                       / 2**30, 2)
+        figures["database_gb"] = round(
+            conn.execute(text("SELECT pg_database_size(current_database())")).scalar() / 2**30, 2
+        )
         rows = partitions.describe(conn)
-    figures["temperature_samples_gb"] = round(sum(r["bytes"] for r in rows if r["table"] == "temperature_samples")
-                                              / 2**30, 2)
+    figures["temperature_samples_gb"] = round(
+        sum(r["bytes"] for r in rows if r["table"] == "temperature_samples") / 2**30, 2
+    )
     figures["partitions"] = sorted({r["partition"].rsplit("_p", 1)[1] for r in rows})
 
 
@@ -339,11 +425,17 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     args.workers = [int(w) for w in args.workers.split(",") if w.strip()]
     figures: dict[str, Any] = {
-        "benchmark": "fleet", "machines": args.machines, "days": args.days, "campaign_days": args.campaign_days,
-        "channels": args.channels, "scan_s": args.scan_s, "sweep_h": args.sweep_h, "cpus": os.cpu_count(),
+        "benchmark": "fleet",
+        "machines": args.machines,
+        "days": args.days,
+        "campaign_days": args.campaign_days,
+        "channels": args.channels,
+        "scan_s": args.scan_s,
+        "sweep_h": args.sweep_h,
+        "cpus": os.cpu_count(),
         "load_average_1m_at_start": load_average(),
         "postgres_settings": "throwaway cluster: fsync=off, synchronous_commit=off, full_page_writes=off, "
-                             "defaults else",
+        "defaults else",
     }
     if args.pg_dir:
         Path(args.pg_dir).mkdir(parents=True, exist_ok=True)
@@ -359,8 +451,9 @@ def main(argv: list[str] | None = None) -> int:
             figures["load_wall_s"] = round(time.perf_counter() - w0, 1)
             if args.baseline:
                 with store.engine.begin() as conn:
-                    conn.execute(text(", ".join(f"DROP TABLE {RAW_PREFIX}{t}" for t in RAW_COLUMNS)
-                                      .replace(", DROP TABLE", ",")))
+                    conn.execute(
+                        text(", ".join(f"DROP TABLE {RAW_PREFIX}{t}" for t in RAW_COLUMNS).replace(", DROP TABLE", ","))
+                    )
             with store.engine.connect().execution_options(isolation_level="AUTOCOMMIT") as conn:
                 conn.execute(text("VACUUM ANALYZE"))  # as after a while of autovacuum: every partition analysed
             sizes(store, figures)

@@ -78,8 +78,9 @@ print(json.dumps({{"kb": {HWM}, "lines": n}}))
 def child(code: str, bundle: Path, db: str) -> tuple[dict, float]:
     """Run ``code`` in a fresh interpreter; return its JSON line and its wall time (s)."""
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", code, str(bundle), db], capture_output=True, text=True,
-                          check=True, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(bundle), db], capture_output=True, text=True, check=True, cwd=ROOT
+    )
     return json.loads(proc.stdout.strip().splitlines()[-1]), time.perf_counter() - start
 
 
@@ -91,8 +92,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes-mb", type=float, nargs="+", default=[50.0, 200.0])
     ap.add_argument("--channels", type=int, default=50)
     args = ap.parse_args(argv)
-    figures: dict[str, object] = {"benchmark": "import_memory", "channels": args.channels,
-                                  "load_average_1m_at_start": _common.load_average()}
+    figures: dict[str, object] = {
+        "benchmark": "import_memory",
+        "channels": args.channels,
+        "load_average_1m_at_start": _common.load_average(),
+    }
     tmp = Path(tempfile.mkdtemp(prefix="driftlab-bench-"))
     try:
         for mb in args.sizes_mb:

@@ -47,8 +47,18 @@ def make_bundle(root: Path, hours: float, channels: int, seed: int = 0) -> Path:
         temps[name] = np.round(20.0 + (k % 7) * heat + 0.3 * np.sin(t / 3600.0 + k) + rng.normal(0, 0.02, n), 4)
     temperatures = pd.DataFrame(temps)
     temperatures.loc[rng.integers(0, n, 200), names[min(3, channels - 1)]] = np.nan  # a few missing readings
-    cond = pd.DataFrame({"time_s": t[::10], "spindle_rpm": np.where((t[::10] // 14400) % 2 == 0, 8000.0, 0.0),
-                         "feed_mm_min": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0})
+    cond = pd.DataFrame(
+        {
+            "time_s": t[::10],
+            "spindle_rpm": np.where((t[::10] // 14400) % 2 == 0, 8000.0, 0.0),
+            "feed_mm_min": 0.0,
+            "x": 0.0,
+            "y": 0.0,
+            "z": 0.0,
+            "a": 0.0,
+            "b": 0.0,
+        }
+    )
     positions = np.linspace(0.0, 500.0, 21)
     terms = ("dx", "dy", "dz", "alpha", "beta", "gamma")
     rows = []
@@ -67,10 +77,18 @@ def make_bundle(root: Path, hours: float, channels: int, seed: int = 0) -> Path:
         "started_at": "2026-03-02T08:00:00Z",
         "channels": {name: {"location": f"site {name}", "structure": "column"} for name in names},
         "room_channels": names[-2:],
-        "stages": [{"name": f"stage-{k}", "start_s": k * 14400.0, "end_s": min((k + 1) * 14400.0, n - 1.0),
-                    "heat_source": "spindle" if k % 2 == 0 else "none", "axis": "Z",
-                    "spindle_rpm": 8000.0 if k % 2 == 0 else 0.0, "feed_mm_min": 0.0}
-                   for k in range(int(np.ceil(n / 14400.0)))],
+        "stages": [
+            {
+                "name": f"stage-{k}",
+                "start_s": k * 14400.0,
+                "end_s": min((k + 1) * 14400.0, n - 1.0),
+                "heat_source": "spindle" if k % 2 == 0 else "none",
+                "axis": "Z",
+                "spindle_rpm": 8000.0 if k % 2 == 0 else 0.0,
+                "feed_mm_min": 0.0,
+            }
+            for k in range(int(np.ceil(n / 14400.0)))
+        ],
     }
     return write_bundle(root / "bench-bundle", meta, temperatures, cond, errors)
 
@@ -96,8 +114,11 @@ def raw_sqlite(store: Store, rows: list) -> float:
         raw = conn.connection.driver_connection
         start = time.perf_counter()
         raw.execute("BEGIN")
-        raw.executemany("INSERT INTO temperature_samples (campaign_id, channel_id, time_s, value, campaign_start_day) "
-                        "VALUES (?, ?, ?, ?, ?)", rows)
+        raw.executemany(
+            "INSERT INTO temperature_samples (campaign_id, channel_id, time_s, value, campaign_start_day) "
+            "VALUES (?, ?, ?, ?, ?)",
+            rows,
+        )
         raw.execute("COMMIT")
         elapsed = time.perf_counter() - start
         raw.execute("BEGIN")
@@ -114,8 +135,10 @@ def raw_postgres(store: Store, rows: list) -> float:
         raw.commit()
         start = time.perf_counter()
         with raw.cursor() as cur:
-            with cur.copy("COPY temperature_samples (campaign_id, channel_id, time_s, value, campaign_start_day) "
-                          "FROM STDIN (FORMAT BINARY)") as copy:
+            with cur.copy(
+                "COPY temperature_samples (campaign_id, channel_id, time_s, value, campaign_start_day) "
+                "FROM STDIN (FORMAT BINARY)"
+            ) as copy:
                 copy.set_types(["int4", "int4", "float8", "float8", "int4"])
                 for row in rows:
                     copy.write_row(row)
@@ -162,8 +185,11 @@ def run_backend(label: str, url: str, bundle_dir: Path, readings: int, n_scans: 
     t0 = pd.Timestamp("2026-03-02T08:00:00Z")
     drift_ms = median_ms(lambda: store.drift(MACHINE, "Z", "dz", position=mid, direction=1))
     interp_ms = median_ms(lambda: store.drift(MACHINE, "Z", "dz", position=mid, direction=1, interpolate=True))
-    window_ms = median_ms(lambda: store.drift(MACHINE, "Z", "dz", position=mid, start=t0 + pd.Timedelta(hours=10),
-                                              end=t0 + pd.Timedelta(hours=20)))
+    window_ms = median_ms(
+        lambda: store.drift(
+            MACHINE, "Z", "dz", position=mid, start=t0 + pd.Timedelta(hours=10), end=t0 + pd.Timedelta(hours=20)
+        )
+    )
     hist_ms = median_ms(lambda: store.temperature_history(campaign_id, "T7", buckets=1000))
     n_drift = len(store.drift(MACHINE, "Z", "dz", position=mid, direction=1))
     store.close()
@@ -192,8 +218,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-pg", action="store_true")
     args = ap.parse_args(argv)
     tmp = Path(tempfile.mkdtemp(prefix="driftlab-bench-"))
-    figures: dict = {"benchmark": "ingest", "hours": args.hours, "channels": args.channels,
-                     "load_average_1m_at_start": round(os.getloadavg()[0], 2), "cpus": os.cpu_count()}
+    figures: dict = {
+        "benchmark": "ingest",
+        "hours": args.hours,
+        "channels": args.channels,
+        "load_average_1m_at_start": round(os.getloadavg()[0], 2),
+        "cpus": os.cpu_count(),
+    }
     try:
         start = time.perf_counter()
         bundle_dir = make_bundle(tmp, args.hours, args.channels)
@@ -202,13 +233,15 @@ def main(argv: list[str] | None = None) -> int:
         readings = n_scans * args.channels
         figures["readings"] = readings
         figures["error_samples"] = sum(1 for _ in open(bundle_dir / "errors.csv")) - 1
-        figures.update(run_backend("sqlite", f"sqlite:///{tmp / 'bench.sqlite'}", bundle_dir, readings, n_scans,
-                                   args.channels))
+        figures.update(
+            run_backend("sqlite", f"sqlite:///{tmp / 'bench.sqlite'}", bundle_dir, readings, n_scans, args.channels)
+        )
         if not args.skip_pg and pg_binaries_available():
             with PgCluster() as pg:
                 figures["postgres_settings"] = "fsync=off, synchronous_commit=off (throwaway cluster)"
-                figures.update(run_backend("postgres", pg.create_database(), bundle_dir, readings, n_scans,
-                                           args.channels))
+                figures.update(
+                    run_backend("postgres", pg.create_database(), bundle_dir, readings, n_scans, args.channels)
+                )
         else:
             figures["postgres"] = "skipped"
     finally:

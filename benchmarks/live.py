@@ -195,17 +195,26 @@ def main() -> int:
             lags = list(pages.lags)
             first_paint, static = _first_paint(base)
     z, t = statistics.median(zero), statistics.median(twenty)
-    _common.emit({
-        "benchmark": "live",
-        "scans_per_s_0_pages": round(z, 1), "scans_per_s_20_pages": round(t, 1),
-        "cost_pct": round(100 * (z - t) / z, 1), "runs_0_pages": zero, "runs_20_pages": twenty,
-        "updates_per_page_flat_out": round(flat_updates / PAGES, 1),
-        "lag_ms_p50": _pct(lags, 0.5), "lag_ms_p95": _pct(lags, 0.95), "lag_ms_max": _pct(lags, 1.0),
-        "lag_events": len(lags),
-        "baseline_poll_lag_ms_p50": _pct(base_lags, 0.5), "baseline_poll_lag_ms_p95": _pct(base_lags, 0.95),
-        "first_paint_ms": first_paint, "baseline_static_page_ms": static,
-        "load_average": _common.load_average(),
-    })
+    _common.emit(
+        {
+            "benchmark": "live",
+            "scans_per_s_0_pages": round(z, 1),
+            "scans_per_s_20_pages": round(t, 1),
+            "cost_pct": round(100 * (z - t) / z, 1),
+            "runs_0_pages": zero,
+            "runs_20_pages": twenty,
+            "updates_per_page_flat_out": round(flat_updates / PAGES, 1),
+            "lag_ms_p50": _pct(lags, 0.5),
+            "lag_ms_p95": _pct(lags, 0.95),
+            "lag_ms_max": _pct(lags, 1.0),
+            "lag_events": len(lags),
+            "baseline_poll_lag_ms_p50": _pct(base_lags, 0.5),
+            "baseline_poll_lag_ms_p95": _pct(base_lags, 0.95),
+            "first_paint_ms": first_paint,
+            "baseline_static_page_ms": static,
+            "load_average": _common.load_average(),
+        }
+    )
     return 0
 
 

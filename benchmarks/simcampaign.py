@@ -42,22 +42,24 @@ def main() -> None:
         bundle = load_bundle(out)
         l1 = time.perf_counter()
         assert len(bundle.errors) == len(sim.errors)
-    emit({
-        "benchmark": "simcampaign",
-        "hours": HOURS,
-        "total_s": round(w2 - w0, 3),
-        "target_s": 20.0,
-        "simulate_s": round(w1 - w0, 3),
-        "write_s": round(w2 - w1, 3),
-        "cpu_s": round(c2 - c0, 3),
-        "baseline_pandas_to_csv_s": round(b1 - b0, 3),
-        "load_bundle_s": round(l1 - l0, 3),
-        "temperature_rows": len(sim.temperatures),
-        "error_rows": len(sim.errors),
-        "bytes": sum(sizes.values()),
-        "files": sizes,
-        "load_average": load_average(),
-    })
+    emit(
+        {
+            "benchmark": "simcampaign",
+            "hours": HOURS,
+            "total_s": round(w2 - w0, 3),
+            "target_s": 20.0,
+            "simulate_s": round(w1 - w0, 3),
+            "write_s": round(w2 - w1, 3),
+            "cpu_s": round(c2 - c0, 3),
+            "baseline_pandas_to_csv_s": round(b1 - b0, 3),
+            "load_bundle_s": round(l1 - l0, 3),
+            "temperature_rows": len(sim.temperatures),
+            "error_rows": len(sim.errors),
+            "bytes": sum(sizes.values()),
+            "files": sizes,
+            "load_average": load_average(),
+        }
+    )
 
 
 if __name__ == "__main__":

@@ -47,9 +47,28 @@ def main() -> int:
         db = f"sqlite:///{t / 'store.sqlite'}"
         (t / "open-t34.yaml").write_text(OPEN_T34)
         # about 3.5 h of the 7 h plan, then stopped: the store keeps it 'running' where it stopped
-        proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "daemon", "--plan", str(DEMO_PLAN), "--sim",
-                               str(t / "open-t34.yaml"), "--speed", "0", "--max-batch", "10", "--stop-after", "26",
-                               "--db", db], cwd=ROOT, stdout=subprocess.DEVNULL)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "driftlab.cli",
+                "daemon",
+                "--plan",
+                str(DEMO_PLAN),
+                "--sim",
+                str(t / "open-t34.yaml"),
+                "--speed",
+                "0",
+                "--max-batch",
+                "10",
+                "--stop-after",
+                "26",
+                "--db",
+                db,
+            ],
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+        )
         assert proc.returncode == 3, proc.returncode
         cli("sim", "campaign", "--scenario", str(ROOT / "examples/scenarios/lag-z.yaml"), "--out", str(t / "lagz"))
         cli("diagnose", str(t / "lagz"), "--json", str(t / "diag.json"), "--html", str(t / "diagnosis.html"))

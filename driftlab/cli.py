@@ -35,10 +35,20 @@ def build_parser() -> argparse.ArgumentParser:
         description="Measure, learn and cancel the thermal drift of a five-axis machine tool.",
     )
     parser.add_argument("--version", action="version", version=f"driftlab {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="log progress at INFO level (-vv: DEBUG, with the libraries' own lines)")
-    parser.add_argument("--log-file", type=Path, default=None, metavar="PATH",
-                        help="also append timestamped log lines (INFO and worse) to this file")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0,
+        help="log progress at INFO level (-vv: DEBUG, with the libraries' own lines)",
+    )
+    parser.add_argument(
+        "--log-file",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="also append timestamped log lines (INFO and worse) to this file",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for info in sorted(pkgutil.iter_modules(commands_pkg.__path__), key=lambda m: m.name):
         module = importlib.import_module(f"{commands_pkg.__name__}.{info.name}")

@@ -12,8 +12,14 @@ from typing import Any
 
 from driftlab.vocabulary import ROTATIONS as ANGLES
 
-TERM_WORDS = {"dx": "translation along X", "dy": "translation along Y", "dz": "translation along Z",
-              "alpha": "rotation about X", "beta": "rotation about Y", "gamma": "rotation about Z"}
+TERM_WORDS = {
+    "dx": "translation along X",
+    "dy": "translation along Y",
+    "dz": "translation along Z",
+    "alpha": "rotation about X",
+    "beta": "rotation about Y",
+    "gamma": "rotation about Z",
+}
 KIND_WORDS = {
     "reversal": "reversal (backlash): the error depends on the approach direction",
     "screw_expansion": "ballscrew expansion",
@@ -68,8 +74,13 @@ _FEATURE = [
     (re.compile(r"^days\[(?P<ax>[^\]]+)\]$"), "days since start ({ax} axis)"),
     (re.compile(r"^dir\[(?P<ax>[^\]]+)\]$"), "approach direction on {ax}"),
 ]
-_PLAIN = {"time_days": "days since start", "direction": "approach direction (+1 / -1)", "const": "constant",
-          "position": "position", "intercept": "constant"}
+_PLAIN = {
+    "time_days": "days since start",
+    "direction": "approach direction (+1 / -1)",
+    "const": "constant",
+    "position": "position",
+    "intercept": "constant",
+}
 
 
 def feature_label(name: str, tau_s: float | None = None) -> str:

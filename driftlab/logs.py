@@ -26,16 +26,17 @@ class _QuietLibraries(logging.Filter):
         if record.levelno >= logging.WARNING or not record.name.startswith(CHATTY):
             return True
         return record.name.startswith("alembic.runtime.migration") and record.getMessage().startswith(
-            ("Running upgrade", "Running downgrade"))
+            ("Running upgrade", "Running downgrade")
+        )
 
 
-class _CurrentStderr(logging.StreamHandler):  # type: ignore[type-arg]
+class _CurrentStderr(logging.StreamHandler):
     """A stream handler that writes to whatever ``sys.stderr`` is when a record is emitted."""
 
     def __init__(self) -> None:
         super().__init__(sys.stderr)
 
-    @property  # type: ignore[override]
+    @property
     def stream(self) -> object:
         """Return the current standard error."""
         return sys.stderr
@@ -59,8 +60,9 @@ def setup_logging(verbosity: int = 0, log_file: Path | None = None) -> None:
     if sys.stderr.isatty():
         from rich.logging import RichHandler
 
-        term: logging.Handler = RichHandler(console=console(), show_path=False, markup=False, rich_tracebacks=False,
-                                            log_time_format="[%H:%M:%S]")
+        term: logging.Handler = RichHandler(
+            console=console(), show_path=False, markup=False, rich_tracebacks=False, log_time_format="[%H:%M:%S]"
+        )
         term.setFormatter(logging.Formatter("%(name)s: %(message)s"))
     else:
         term = _CurrentStderr()

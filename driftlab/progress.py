@@ -43,8 +43,13 @@ def _columns(total: float | None) -> list[Any]:
     """Return the bar's columns: a count and time left when the total is known, a spinner otherwise."""
     if total is None:
         return [SpinnerColumn(), TextColumn("[bold]{task.description}"), TimeElapsedColumn()]
-    return [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-            TimeRemainingColumn()]
+    return [
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    ]
 
 
 @contextmanager
@@ -73,8 +78,9 @@ class _Task:
         if self._bar is not None:
             self._bar.advance(self._id, n)
 
-    def update(self, *, description: str | None = None, total: float | None = None,
-               completed: float | None = None) -> None:
+    def update(
+        self, *, description: str | None = None, total: float | None = None, completed: float | None = None
+    ) -> None:
         """Change the description, total or position of the bar."""
         if self._bar is not None:
             kw: dict[str, Any] = {}

@@ -37,8 +37,13 @@ from driftlab.testing.openworld import OpenPlanted
 TERMS_MM = ("dx", "dy", "dz")
 
 
-def Planted(kind: str, axis: str, term: str, channels: list[str] | None = None,  # noqa: N802 - reads as the type
-            params: dict[str, Any] | None = None) -> OpenPlanted:
+def Planted(
+    kind: str,
+    axis: str,
+    term: str,
+    channels: list[str] | None = None,  # noqa: N802 - reads as the type
+    params: dict[str, Any] | None = None,
+) -> OpenPlanted:
     """Return one hidden effect as the catalogue of the bundle spec states it (no element: planted on the term)."""
     return OpenPlanted(kind, axis, term, "", "", list(channels or []), dict(params or {}))
 
@@ -54,8 +59,9 @@ class Case:
     signal_rms: dict[int, float]  # planted effect index -> RMS of its contribution to the errors
 
 
-def _detectable_rms(add: np.ndarray, rp: np.ndarray, rt: np.ndarray, t: np.ndarray, readings: np.ndarray,
-                    model_idx: list[int]) -> float:
+def _detectable_rms(
+    add: np.ndarray, rp: np.ndarray, rt: np.ndarray, t: np.ndarray, readings: np.ndarray, model_idx: list[int]
+) -> float:
     """RMS of the part of a planted signal that the standard model (cubic + model dT) cannot absorb."""
     x = (rp - rp.mean()) / max(np.ptp(rp), 1e-9)
     cols = [np.ones_like(x), x, x**2, x**3]
@@ -68,11 +74,21 @@ def _detectable_rms(add: np.ndarray, rp: np.ndarray, rt: np.ndarray, t: np.ndarr
     return float(np.sqrt(np.mean(res * res)))
 
 
-def make_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, scan_s: float = 120.0,
-              sweep_s: float = 1200.0, terms: dict[str, list[str]] | None = None, n_channels: int = 10,
-              positions: int = 7, noise_mm: float = 5e-4, noise_rad: float = 5e-7,
-              model_channels: dict[str, list[str]] | None = None, with_model_channels: bool = True,
-              geometry_um: float = 8.0) -> Case:
+def make_case(
+    planted: list[OpenPlanted],
+    seed: int = 0,
+    hours: float = 36.0,
+    scan_s: float = 120.0,
+    sweep_s: float = 1200.0,
+    terms: dict[str, list[str]] | None = None,
+    n_channels: int = 10,
+    positions: int = 7,
+    noise_mm: float = 5e-4,
+    noise_rad: float = 5e-7,
+    model_channels: dict[str, list[str]] | None = None,
+    with_model_channels: bool = True,
+    geometry_um: float = 8.0,
+) -> Case:
     """Return a :class:`Case`: a bundle v1 with ``planted`` effects hidden in it, and the truth."""
     rng = np.random.default_rng(seed)
     terms = terms or {"X": ["dx"]}
@@ -93,12 +109,28 @@ def make_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, sc
         off = round(rng.uniform(2, 3) * 60) * 60.0
         level = rng.uniform(0.5, 1.0)
         u[(t >= cursor) & (t < cursor + on), s] = level
-        stages.append({"name": f"src{s}-{k}", "start_s": cursor, "end_s": min(cursor + on, t[-1]),
-                       "heat_source": ["spindle", "x_motor", "cabinet"][s], "axis": "X",
-                       "spindle_rpm": 8000.0 * level if s == 0 else 0.0, "feed_mm_min": 0.0})
-        stages.append({"name": f"rest-{k}", "start_s": min(cursor + on, t[-1]),
-                       "end_s": min(cursor + on + off, t[-1]), "heat_source": "none", "axis": "X",
-                       "spindle_rpm": 0.0, "feed_mm_min": 0.0})
+        stages.append(
+            {
+                "name": f"src{s}-{k}",
+                "start_s": cursor,
+                "end_s": min(cursor + on, t[-1]),
+                "heat_source": ["spindle", "x_motor", "cabinet"][s],
+                "axis": "X",
+                "spindle_rpm": 8000.0 * level if s == 0 else 0.0,
+                "feed_mm_min": 0.0,
+            }
+        )
+        stages.append(
+            {
+                "name": f"rest-{k}",
+                "start_s": min(cursor + on, t[-1]),
+                "end_s": min(cursor + on + off, t[-1]),
+                "heat_source": "none",
+                "axis": "X",
+                "spindle_rpm": 0.0,
+                "feed_mm_min": 0.0,
+            }
+        )
         cursor += on + off
         k += 1
     phase = rng.uniform(0, 2 * np.pi)
@@ -159,8 +191,11 @@ def make_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, sc
             x = (rp - 127.0) / 127.0
             y = geo[0] + geo[1] * x + geo[2] * x**2 + geo[3] * x**3
             coefs = {c: rng.choice([-1, 1]) * rng.uniform(1.5, 4.0) * scale for c in mc[axis]}
-            lagged = {p.channels[0]: p.params["tau_s"] for p in planted
-                      if p.kind == "thermal_lag" and p.axis == axis and p.term == term}
+            lagged = {
+                p.channels[0]: p.params["tau_s"]
+                for p in planted
+                if p.kind == "thermal_lag" and p.axis == axis and p.term == term
+            }
             for c, b in coefs.items():
                 j = names.index(c)
                 if c in lagged:
@@ -196,8 +231,11 @@ def make_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, sc
                 y = y + add
                 signal_rms[i] = _detectable_rms(add, rp, rt, t, readings, [names.index(c) for c in mc[axis]])
             y = y + rng.normal(0, unit_noise, y.size)
-            errors.append(pd.DataFrame({"time_s": rt, "axis": axis, "term": term, "position": rp,
-                                        "direction": rd.astype(int), "value": y}))
+            errors.append(
+                pd.DataFrame(
+                    {"time_s": rt, "axis": axis, "term": term, "position": rp, "direction": rd.astype(int), "value": y}
+                )
+            )
     temps = pd.DataFrame(np.round(readings, 4), columns=names)
     temps.insert(0, "time_s", t)
     err = pd.concat(errors, ignore_index=True).sort_values(["time_s", "axis", "term"], kind="stable")
@@ -206,9 +244,10 @@ def make_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, sc
         "format": "driftlab-bundle/1",
         "machine": {"id": "synthetic", "name": "generated for diagnosis tests", "resolution_mm": 0.0001},
         "started_at": "2026-03-02T08:00:00Z",
-        "channels": {c: {"location": "room air" if c in room else f"site {c}",
-                         "structure": "room" if c in room else "machine"}
-                     for c in names},
+        "channels": {
+            c: {"location": "room air" if c in room else f"site {c}", "structure": "room" if c in room else "machine"}
+            for c in names
+        },
         "room_channels": room,
         "stages": stages,
         "noise": noise,
@@ -233,9 +272,17 @@ class VMCase:
         return float(self.truth["hidden"][i].get("rms_beyond_standard_model", float("nan")))
 
 
-def vm_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, scan_s: float = 120.0,
-            sweep_s: float = 1200.0, points: int = 6, keep: list[tuple[str, str]] | None = None,
-            thermocouple_degC: float | None = None, stated_noise: bool = True) -> VMCase:
+def vm_case(
+    planted: list[OpenPlanted],
+    seed: int = 0,
+    hours: float = 36.0,
+    scan_s: float = 120.0,
+    sweep_s: float = 1200.0,
+    points: int = 6,
+    keep: list[tuple[str, str]] | None = None,
+    thermocouple_degC: float | None = None,
+    stated_noise: bool = True,
+) -> VMCase:
     """Return a :class:`VMCase`: the virtual machine's campaign with ``planted`` hidden, reduced to ``keep``.
 
     ``keep`` lists the (axis, term)s written to errors.csv (default: the planted ones, or Z/dz).
@@ -245,11 +292,21 @@ def vm_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, scan
     from driftlab.daq.sim.campaign import simulate_campaign
     from driftlab.daq.sim.scenario import HiddenEffect, Noise, Scenario
 
-    hidden = [HiddenEffect(kind=p.kind, axis=p.axis or None, term=p.term or None, channels=list(p.channels),
-                           params=dict(p.params)) for p in planted]
-    sc = Scenario(seed=seed, hours=hours, scan_interval_s=scan_s, sweep_interval_s=sweep_s,
-                  points_per_axis=points, hidden=hidden,
-                  noise=Noise() if thermocouple_degC is None else Noise(thermocouple_degC=thermocouple_degC))
+    hidden = [
+        HiddenEffect(
+            kind=p.kind, axis=p.axis or None, term=p.term or None, channels=list(p.channels), params=dict(p.params)
+        )
+        for p in planted
+    ]
+    sc = Scenario(
+        seed=seed,
+        hours=hours,
+        scan_interval_s=scan_s,
+        sweep_interval_s=sweep_s,
+        points_per_axis=points,
+        hidden=hidden,
+        noise=Noise() if thermocouple_degC is None else Noise(thermocouple_degC=thermocouple_degC),
+    )
     sim = simulate_campaign(sc)
     keep = keep or sorted({(p.axis, p.term) for p in planted if p.axis and p.term}) or [("Z", "dz")]
     err = sim.errors
@@ -260,8 +317,9 @@ def vm_case(planted: list[OpenPlanted], seed: int = 0, hours: float = 36.0, scan
     meta = dict(sim.meta)
     if not stated_noise:
         meta.pop("noise", None)
-    bundle = Bundle(name=f"vm-{seed}", meta=_as_meta(meta), temperatures=sim.temperatures,
-                    conditions=sim.conditions, errors=errors)
+    bundle = Bundle(
+        name=f"vm-{seed}", meta=_as_meta(meta), temperatures=sim.temperatures, conditions=sim.conditions, errors=errors
+    )
     return VMCase(bundle, planted, sim.truth, dict(sim.meta["noise"]))
 
 
@@ -275,8 +333,24 @@ def foreign(case: Case, seed: int = 0, nan_fraction: float = 0.01) -> Bundle:
     rng = np.random.default_rng(seed)
     b = case.bundle
     old = [c for c in b.temperatures.columns if c != "time_s"]
-    words = ["spindle_front", "spindle_rear", "ch_a", "ch_b", "column-top", "column_base", "x.nut", "y_motor",
-             "bed_left", "bed_right", "head", "table", "coolant", "frame_1", "frame_2", "frame_3"]
+    words = [
+        "spindle_front",
+        "spindle_rear",
+        "ch_a",
+        "ch_b",
+        "column-top",
+        "column_base",
+        "x.nut",
+        "y_motor",
+        "bed_left",
+        "bed_right",
+        "head",
+        "table",
+        "coolant",
+        "frame_1",
+        "frame_2",
+        "frame_3",
+    ]
     new = {c: (words[i] if i < len(words) else f"extra_{i}") for i, c in enumerate(old)}
     temps = b.temperatures.rename(columns=new).copy()
     t = temps["time_s"].to_numpy(dtype=float)
@@ -298,5 +372,4 @@ def foreign(case: Case, seed: int = 0, nan_fraction: float = 0.01) -> Bundle:
         meta["model_channels"] = {a: [new[c] for c in v] for a, v in meta["model_channels"].items()}
     meta.pop("stages", None)
     meta = {k: v for k, v in meta.items() if v is not None}
-    return Bundle(name=f"{b.name}-foreign", meta=_as_meta(meta), temperatures=temps, conditions=None,
-                  errors=b.errors)
+    return Bundle(name=f"{b.name}-foreign", meta=_as_meta(meta), temperatures=temps, conditions=None, errors=b.errors)

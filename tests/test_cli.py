@@ -14,9 +14,7 @@ def test_help_lists_subcommands(capsys):
 
 
 def test_unknown_subcommand_is_one_line_error():
-    proc = subprocess.run(
-        [sys.executable, "-m", "driftlab.cli", "frobnicate"], capture_output=True, text=True
-    )
+    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "frobnicate"], capture_output=True, text=True)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1

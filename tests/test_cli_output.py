@@ -56,8 +56,7 @@ def running(tmp_path: Path) -> tuple[str, int]:
     plan.write_text(PLAN)
     scen.write_text(OPEN)
     url = f"sqlite:///{tmp_path / 'store.sqlite'}"
-    r = run_daemon(load_plan(plan), db_url=url, scenario_path=scen, speed=math.inf, max_batch=10,
-                   stop_after_commits=4)
+    r = run_daemon(load_plan(plan), db_url=url, scenario_path=scen, speed=math.inf, max_batch=10, stop_after_commits=4)
     return url, r.campaign_id
 
 
@@ -84,9 +83,12 @@ def test_watch_command_ends_with_the_campaign(running, tmp_path: Path, capsys) -
     assert "[done]" in out and "100.0 %" in out
     assert main(["campaign", "status", "watch-test", "--db", url]) == 0  # without --watch: as before
     assert "watch-test" in capsys.readouterr().out
-    for argv, msg in ((["--watch"], "give its id or name"), (["nope", "--watch"], "no daemon campaign 'nope'"),
-                      ([str(cid), "--watch", "--json"], "--json prints the status once"),
-                      ([str(cid), "--watch", "--interval", "0"], "--interval must be positive")):
+    for argv, msg in (
+        (["--watch"], "give its id or name"),
+        (["nope", "--watch"], "no daemon campaign 'nope'"),
+        ([str(cid), "--watch", "--json"], "--json prints the status once"),
+        ([str(cid), "--watch", "--interval", "0"], "--interval must be positive"),
+    ):
         assert main(["campaign", "status", *argv, "--db", url]) != 0
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and msg in err[0], err
@@ -132,11 +134,14 @@ def test_labels_read_as_words() -> None:
     assert feature_label("grad[T34-T32]") == "gradient T34 - T32"
     assert feature_label("mean[spindle_arm]") == "mean temperature of the spindle arm"
     assert feature_label("dT_T7^2") == "square of the temperature rise of T7"
-    assert effect_label({"kind": "thermal_lag", "channels": ["T4"], "params": {"tau_s": 900.0}}) == \
-        "thermal lag of T4, tau 15 min"
-    assert effect_label({"kind": "sensor_fault", "channels": ["T34"],
-                         "params": {"start_s": 90000, "mode": "detached"}}) \
+    assert (
+        effect_label({"kind": "thermal_lag", "channels": ["T4"], "params": {"tau_s": 900.0}})
+        == "thermal lag of T4, tau 15 min"
+    )
+    assert (
+        effect_label({"kind": "sensor_fault", "channels": ["T34"], "params": {"start_s": 90000, "mode": "detached"}})
         == "faulty thermocouple T34 (detached) from 25.0 h into the campaign"
+    )
     assert duration(3725, clock=True) == "1:02:05" and duration(None) == "-" and duration(5 * 86400) == "5.0 days"
 
 
@@ -155,8 +160,16 @@ def test_stage_bar_never_runs_past_its_end() -> None:
     steps = fit_steps(network=False)
     bar = Stages(rec, "fitting", steps)
     assert rec.calls[-1] == {"description": "fitting: screening", "total": len(steps), "completed": 0}
-    for s in ["screening", "samples", "allocation_and_regression", "joint_adjustment", "validation", "surprise",
-              "virtual_sensors", "document"]:
+    for s in [
+        "screening",
+        "samples",
+        "allocation_and_regression",
+        "joint_adjustment",
+        "validation",
+        "surprise",
+        "virtual_sensors",
+        "document",
+    ]:
         bar.done(s)
         assert rec.calls[-1]["completed"] <= rec.calls[-1]["total"]
     assert rec.calls[-1] == {"description": "fitting: done", "total": len(steps) + 1, "completed": len(steps) + 1}

@@ -22,8 +22,15 @@ def demo_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_demo_writes_its_reports(demo_out: Path) -> None:
-    for name in ("demo-report.html", "demo-report.json", "diagnosis.html", "diagnosis.json", "fit-report.json",
-                 "driftlab.sqlite", "campaign-bundle/campaign.json"):
+    for name in (
+        "demo-report.html",
+        "demo-report.json",
+        "diagnosis.html",
+        "diagnosis.json",
+        "fit-report.json",
+        "driftlab.sqlite",
+        "campaign-bundle/campaign.json",
+    ):
         assert (demo_out / name).is_file(), name
     page = (demo_out / "demo-report.html").read_text()
     assert "Cutting test" in page and "data:image/png;base64," in page and 'href="diagnosis.html"' in page
@@ -51,8 +58,15 @@ def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
     assert worn["online_mm"] == rep["online"]["rmse_mm"]  # the top-level table is the thermal+wear case
     # every step is the real component, in order
     names = [s["name"] for s in rep["steps"]]
-    assert names == ["daemon", "fit", "export", "diagnose", "serve", "cutting test (thermal)",
-                     "cutting test (thermal+wear)"]
+    assert names == [
+        "daemon",
+        "fit",
+        "export",
+        "diagnose",
+        "serve",
+        "cutting test (thermal)",
+        "cutting test (thermal+wear)",
+    ]
     assert rep["steps"][0]["command"].startswith("driftlab daemon --plan")
     assert rep["campaign"]["finished"] is True and rep["campaign"]["points"] > 0
     # the model came from the API with an ETag, and a repeated request was answered 304
@@ -66,18 +80,27 @@ def test_demo_diagnosis_names_the_planted_effect(demo_out: Path) -> None:
     planted = load_scenario(ROOT / "examples" / "scenarios" / "demo-full.yaml").hidden
     assert rep["planted"] == [e.model_dump() for e in planted]
     (eff,) = planted
-    found = [f for f in rep["diagnosis"]["effects"]
-             if (f["kind"], f["axis"], f["term"]) == (eff.kind, eff.axis, eff.term)]
+    found = [
+        f for f in rep["diagnosis"]["effects"] if (f["kind"], f["axis"], f["term"]) == (eff.kind, eff.axis, eff.term)
+    ]
     assert found, rep["diagnosis"]
     mag = float(eff.params["magnitude_mm"])
     assert abs(found[0]["params"]["magnitude_mm"] - mag) < 0.25 * mag
 
 
-@pytest.mark.parametrize("bad", [["--passes", "10"], ["--forgetting", "0.3"], ["--age-days", "-1"],
-                                 ["--wear-um-per-day", "0"],
-                                 ["--plan", "no-such-plan.yaml"]])
-def test_demo_refuses_bad_options_before_any_work(tmp_path: Path, bad: list[str],
-                                                  capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(
+    "bad",
+    [
+        ["--passes", "10"],
+        ["--forgetting", "0.3"],
+        ["--age-days", "-1"],
+        ["--wear-um-per-day", "0"],
+        ["--plan", "no-such-plan.yaml"],
+    ],
+)
+def test_demo_refuses_bad_options_before_any_work(
+    tmp_path: Path, bad: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "out"
     assert main(["demo", "--out", str(out), *bad]) == 2
     err = capsys.readouterr().err

@@ -26,8 +26,29 @@ def test_fleet_benchmark_smoke(capsys: pytest.CaptureFixture[str]) -> None:
     sys.modules["fleet_benchmark"] = fleet
     try:
         spec.loader.exec_module(fleet)
-        assert fleet.main(["--machines", "1", "--days", "2", "--campaign-days", "1", "--sweep-h", "1",
-                           "--queries", "3", "--workers", "1", "--fit-jobs", "1", "--fit-campaigns", "1"]) == 0
+        assert (
+            fleet.main(
+                [
+                    "--machines",
+                    "1",
+                    "--days",
+                    "2",
+                    "--campaign-days",
+                    "1",
+                    "--sweep-h",
+                    "1",
+                    "--queries",
+                    "3",
+                    "--workers",
+                    "1",
+                    "--fit-jobs",
+                    "1",
+                    "--fit-campaigns",
+                    "1",
+                ]
+            )
+            == 0
+        )
     finally:
         sys.modules.pop("fleet_benchmark", None)
     line = capsys.readouterr().out.strip().splitlines()[-1]

@@ -31,7 +31,9 @@ def imported_modules(path: Path) -> set[str]:
 def _offenders(files: list[Path], forbidden: str) -> list[str]:
     return sorted(
         f"{p.relative_to(PKG.parent)} imports {m}"
-        for p in files for m in imported_modules(p) if m == forbidden or m.startswith(forbidden + ".")
+        for p in files
+        for m in imported_modules(p)
+        if m == forbidden or m.startswith(forbidden + ".")
     )
 
 
@@ -47,10 +49,13 @@ def test_cutting_test_reaches_the_virtual_machine_only_through_the_daemon():
     assert "driftlab.daemon.machining" in imported_modules(path)
 
 
-@pytest.mark.parametrize("source,expected", [
-    ("import driftlab.daq.sim.machine\n", "driftlab.daq.sim.machine"),
-    ("def f():\n    from driftlab.daq.sim import truth\n", "driftlab.daq.sim.truth"),
-])
+@pytest.mark.parametrize(
+    "source,expected",
+    [
+        ("import driftlab.daq.sim.machine\n", "driftlab.daq.sim.machine"),
+        ("def f():\n    from driftlab.daq.sim import truth\n", "driftlab.daq.sim.truth"),
+    ],
+)
 def test_the_import_scan_sees_local_and_from_imports(tmp_path, source, expected):
     p = tmp_path / "m.py"
     p.write_text(source)

@@ -25,22 +25,35 @@ ROOT = Path(__file__).resolve().parents[1]
 def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Return the --target directory driftlab's wheel was installed into."""
     wheels = tmp_path_factory.mktemp("wheels")
-    build = subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-q", "-w", str(wheels)],
-                           capture_output=True, text=True, cwd=wheels)
+    build = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-q", "-w", str(wheels)],
+        capture_output=True,
+        text=True,
+        cwd=wheels,
+    )
     if build.returncode != 0:
         pytest.fail(f"pip wheel failed: {build.stderr[-2000:]}")
     [wheel] = wheels.glob("driftlab-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
-    for expected in ("driftlab/migrations/env.py", "driftlab/migrations/script.py.mako",
-                     "driftlab/migrations/versions/0001_campaign_store_initial_schema.py",
-                     "driftlab/migrations/sql/procrastinate-3.10.0.sql",  # the job queue's schema (0006)
-                     "driftlab/examples/plans/demo-z.yaml", "driftlab/examples/scenarios/demo-drift.yaml",
-                     "driftlab/examples/programs/five_axis_finish.nc", "driftlab/__main__.py",
-                     "driftlab/api/static/vendor/swagger-ui/swagger-ui-bundle.js"):
+    for expected in (
+        "driftlab/migrations/env.py",
+        "driftlab/migrations/script.py.mako",
+        "driftlab/migrations/versions/0001_campaign_store_initial_schema.py",
+        "driftlab/migrations/sql/procrastinate-3.10.0.sql",  # the job queue's schema (0006)
+        "driftlab/examples/plans/demo-z.yaml",
+        "driftlab/examples/scenarios/demo-drift.yaml",
+        "driftlab/examples/programs/five_axis_finish.nc",
+        "driftlab/__main__.py",
+        "driftlab/api/static/vendor/swagger-ui/swagger-ui-bundle.js",
+    ):
         assert expected in names, expected
     target = tmp_path_factory.mktemp("site")
-    inst = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target),
-                           str(wheel)], capture_output=True, text=True, cwd=wheels)
+    inst = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
+        capture_output=True,
+        text=True,
+        cwd=wheels,
+    )
     if inst.returncode != 0:
         pytest.fail(f"pip install failed: {inst.stderr[-2000:]}")
     return target
@@ -56,8 +69,13 @@ def _run(target: Path, cwd: Path, *args: str, timeout: float = 600) -> subproces
 def test_wheel_installs_and_runs_outside_the_checkout(installed: Path, tmp_path: Path) -> None:
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    where = _run(installed, elsewhere, "-c", "import driftlab, driftlab.resources as r; "
-                 "print(driftlab.__file__); print(r.migrations_dir()); print(r.examples_dir())")
+    where = _run(
+        installed,
+        elsewhere,
+        "-c",
+        "import driftlab, driftlab.resources as r; "
+        "print(driftlab.__file__); print(r.migrations_dir()); print(r.examples_dir())",
+    )
     assert where.returncode == 0, where.stderr
     for line in where.stdout.split():
         assert line.startswith(str(installed)), where.stdout  # the installed copy, not the checkout
@@ -68,9 +86,14 @@ def test_wheel_installs_and_runs_outside_the_checkout(installed: Path, tmp_path:
     assert up.returncode == 0, up.stderr
     cur = _run(installed, elsewhere, "-m", "driftlab", "db", "current", "--db", db)
     assert cur.returncode == 0 and cur.stdout.strip(), cur.stderr
-    plan = _run(installed, elsewhere, "-c", "import driftlab.resources as r, sys; "
-                "from driftlab.cli import main; sys.exit(main(['plan', 'check', str(r.examples_dir() / 'plans' / "
-                "'demo-z.yaml')]))")
+    plan = _run(
+        installed,
+        elsewhere,
+        "-c",
+        "import driftlab.resources as r, sys; "
+        "from driftlab.cli import main; sys.exit(main(['plan', 'check', str(r.examples_dir() / 'plans' / "
+        "'demo-z.yaml')]))",
+    )
     assert plan.returncode == 0, plan.stderr
 
 
@@ -78,7 +101,6 @@ def test_wheel_installs_and_runs_outside_the_checkout(installed: Path, tmp_path:
 def test_demo_runs_from_the_wheel_outside_the_checkout(installed: Path, tmp_path: Path) -> None:
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    demo = _run(installed, elsewhere, "-m", "driftlab", "demo", "--out", "demo-out", "--passes", "120",
-                timeout=900)
+    demo = _run(installed, elsewhere, "-m", "driftlab", "demo", "--out", "demo-out", "--passes", "120", timeout=900)
     assert demo.returncode == 0, demo.stderr[-3000:]
     assert (elsewhere / "demo-out" / "demo-report.json").is_file()

@@ -52,18 +52,40 @@ def test_diagnosis_page_reads_as_words(lag_bundle: Path, tmp_path: Path, capsys)
 
 def test_demo_page_has_one_scale_per_map_in_um_and_no_json() -> None:
     rng = np.random.default_rng(0)
-    dev = {"uncompensated": rng.normal(0, 0.06, (99, 15)), "offline": rng.normal(0, 0.005, (99, 15)),
-           "online": rng.normal(0, 0.003, (99, 15))}
-    table = {k: {"rmse_mm": float(np.sqrt(np.mean(v ** 2))), "max_mm": float(np.max(np.abs(v)))}
-             for k, v in dev.items()}
-    diag = demo_report.diagnosis_summary({"effects": [
-        {"kind": "thermal_lag", "axis": "Z", "term": "dz", "channels": ["T34"], "params": {"tau_s": 3000.0},
-         "p_value": 1e-9, "cause": "the arm lags its thermocouple", "rmse_holdout_before": 0.004,
-         "rmse_holdout_after": 0.001}]})
-    report = demo_report.build_report(table=table, diagnosis=diag, steps=[
-        {"name": "fit", "command": "driftlab fit --campaign 1", "wall_s": 12.0}], extra={
-        "planted": [{"kind": "thermal_lag", "axis": "Z", "term": "dz", "channels": ["T34"], "params": {"tau_s": 3000}}],
-        "wall_s": 95.0})
+    dev = {
+        "uncompensated": rng.normal(0, 0.06, (99, 15)),
+        "offline": rng.normal(0, 0.005, (99, 15)),
+        "online": rng.normal(0, 0.003, (99, 15)),
+    }
+    table = {k: {"rmse_mm": float(np.sqrt(np.mean(v**2))), "max_mm": float(np.max(np.abs(v)))} for k, v in dev.items()}
+    diag = demo_report.diagnosis_summary(
+        {
+            "effects": [
+                {
+                    "kind": "thermal_lag",
+                    "axis": "Z",
+                    "term": "dz",
+                    "channels": ["T34"],
+                    "params": {"tau_s": 3000.0},
+                    "p_value": 1e-9,
+                    "cause": "the arm lags its thermocouple",
+                    "rmse_holdout_before": 0.004,
+                    "rmse_holdout_after": 0.001,
+                }
+            ]
+        }
+    )
+    report = demo_report.build_report(
+        table=table,
+        diagnosis=diag,
+        steps=[{"name": "fit", "command": "driftlab fit --campaign 1", "wall_s": 12.0}],
+        extra={
+            "planted": [
+                {"kind": "thermal_lag", "axis": "Z", "term": "dz", "channels": ["T34"], "params": {"tau_s": 3000}}
+            ],
+            "wall_s": 95.0,
+        },
+    )
     png = demo_report.surface_figure(dev)
     html = demo_report.to_html(report, png)
     text = re.sub(r'src="data:image/png;base64,[^"]+"', "", html)
@@ -79,5 +101,15 @@ def test_demo_page_has_one_scale_per_map_in_um_and_no_json() -> None:
         assert hi == pytest.approx(np.max(np.abs(v)) * 1e3) and lo == -hi  # its own symmetric scale, in um
         assert f"range {v.min() * 1e3:+.1f} .. {v.max() * 1e3:+.1f} um" in ax.get_title()
     # the JSON document keeps its keys
-    assert {"format", "uncompensated", "offline", "online", "diagnosis", "thesis", "ordering_holds", "steps",
-            "planted", "wall_s"} <= set(report)
+    assert {
+        "format",
+        "uncompensated",
+        "offline",
+        "online",
+        "diagnosis",
+        "thesis",
+        "ordering_holds",
+        "steps",
+        "planted",
+        "wall_s",
+    } <= set(report)

@@ -27,9 +27,16 @@ when no token is configured). Errors are RFC 9457 `application/problem+json`.
 """
 
 
-def create_app(db_url: str | None = None, token: str | None = None, *, store: Store | None = None,
-               run_jobs: bool = True, model_cache_ttl_s: float = 1.0, live_poll_s: float = 0.5,
-               max_body_bytes: int | None = None) -> FastAPI:
+def create_app(
+    db_url: str | None = None,
+    token: str | None = None,
+    *,
+    store: Store | None = None,
+    run_jobs: bool = True,
+    model_cache_ttl_s: float = 1.0,
+    live_poll_s: float = 0.5,
+    max_body_bytes: int | None = None,
+) -> FastAPI:
     """Return the API over the store at ``db_url`` (default DRIFTLAB_DB_URL) with write token ``token``.
 
     ``token`` defaults to DRIFTLAB_API_TOKEN; an empty token disables writes. Jobs are submitted
@@ -45,8 +52,12 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
     the_store = store if store is not None else connect(db_url or settings.resolved_db_url())
     models_cache = ModelCache(the_store, ttl_s=model_cache_ttl_s)
     # a fit run in this process drops the machine's cached model before its job reads "done"
-    state = ApiState(store=the_store, token=settings.api_token if token is None else token, models=models_cache,
-                     jobs=Jobs(the_store, run_here=run_jobs, on_model=models_cache.invalidate))
+    state = ApiState(
+        store=the_store,
+        token=settings.api_token if token is None else token,
+        models=models_cache,
+        jobs=Jobs(the_store, run_here=run_jobs, on_model=models_cache.invalidate),
+    )
     live_hub = live.LiveHub(the_store.engine, poll_s=live_poll_s)
 
     @asynccontextmanager
@@ -59,8 +70,9 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
             await live_hub.stop()
             state.jobs.stop()
 
-    app = FastAPI(title="driftlab", version=__version__, description=DESCRIPTION, lifespan=lifespan,
-                  docs_url=None, redoc_url=None)  # served from packaged assets by `pages`, not from a CDN
+    app = FastAPI(
+        title="driftlab", version=__version__, description=DESCRIPTION, lifespan=lifespan, docs_url=None, redoc_url=None
+    )  # served from packaged assets by `pages`, not from a CDN
     app.state.driftlab = state
     app.state.live_hub = live_hub
     problems.install_handlers(app)
@@ -85,8 +97,7 @@ def create_app(db_url: str | None = None, token: str | None = None, *, store: St
         if app.openapi_schema is None:
             from fastapi.openapi.utils import get_openapi
 
-            schema = get_openapi(title=app.title, version=app.version, description=app.description,
-                                 routes=app.routes)
+            schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
             app.openapi_schema = problems.declare_problems(schema)
         return app.openapi_schema
 

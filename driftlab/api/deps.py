@@ -29,8 +29,11 @@ def iso(dt: Any) -> str | None:
 def model_out(row: api_queries.ModelRow, with_document: bool = True) -> dict[str, Any]:
     """Return the JSON form of a registry row (ModelVersionOut, or ModelSummary without the document)."""
     out: dict[str, Any] = {
-        "machine_id": row.machine_id, "version": row.version, "status": row.status,
-        "created_at": iso(row.created_at), "retired_at": iso(row.retired_at),
+        "machine_id": row.machine_id,
+        "version": row.version,
+        "status": row.status,
+        "created_at": iso(row.created_at),
+        "retired_at": iso(row.retired_at),
         "source_campaigns": [int(c) for c in row.source_campaigns],
         "terms": len(row.document.get("terms", []) or []),
     }
@@ -151,7 +154,7 @@ class ApiState:
 
 def get_state(request: Request) -> ApiState:
     """Return the application's state."""
-    return request.app.state.driftlab  # type: ignore[no-any-return]
+    return request.app.state.driftlab
 
 
 def get_store(request: Request) -> Store:

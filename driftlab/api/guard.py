@@ -30,8 +30,11 @@ def token_problem(expected: str, authorization: str | None) -> tuple[int, str, d
     scheme, _, given = header.partition(" ")
     if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), expected.encode()):
         reason = "missing bearer token" if not header else "invalid bearer token"
-        return 401, f"{reason}: writes need Authorization: Bearer <DRIFTLAB_API_TOKEN>", {
-            "WWW-Authenticate": 'Bearer realm="driftlab"'}
+        return (
+            401,
+            f"{reason}: writes need Authorization: Bearer <DRIFTLAB_API_TOKEN>",
+            {"WWW-Authenticate": 'Bearer realm="driftlab"'},
+        )
     return None
 
 
@@ -39,8 +42,11 @@ async def _answer(send: Send, status: int, detail: str, path: str, headers: dict
     import json
 
     body = json.dumps(problem_body(status, detail, path)).encode()
-    raw = [(b"content-type", PROBLEM_MEDIA_TYPE.encode()), (b"content-length", str(len(body)).encode()),
-           (b"connection", b"close")]
+    raw = [
+        (b"content-type", PROBLEM_MEDIA_TYPE.encode()),
+        (b"content-length", str(len(body)).encode()),
+        (b"connection", b"close"),
+    ]
     raw += [(k.lower().encode(), v.encode()) for k, v in (headers or {}).items()]
     await send({"type": "http.response.start", "status": status, "headers": raw})
     await send({"type": "http.response.body", "body": body})
@@ -73,8 +79,12 @@ class FrontDoorMiddleware:
                 await _answer(send, 400, f"Content-Length {length[:30]!r} is not a byte count", path)
                 return
             if int(length) > self.max_body_bytes:
-                await _answer(send, 413, f"request body of {int(length)} bytes is larger than the limit of "
-                                         f"{self.max_body_bytes} bytes", path)
+                await _answer(
+                    send,
+                    413,
+                    f"request body of {int(length)} bytes is larger than the limit of {self.max_body_bytes} bytes",
+                    path,
+                )
                 return
         received = 0
         limit = self.max_body_bytes

@@ -149,9 +149,13 @@ class LiveHub:
                 if snap is None:
                     continue
                 temps, errs = snap["temperatures"], snap["errors"]
-                self.tracked[cid] = _Tracked(mark["status"], mark["updated_at"], q.channels(self.engine, cid),
-                                             max(temps["t"]) if temps["t"] else None,
-                                             max([seq, *errs["seq"]]))
+                self.tracked[cid] = _Tracked(
+                    mark["status"],
+                    mark["updated_at"],
+                    q.channels(self.engine, cid),
+                    max(temps["t"]) if temps["t"] else None,
+                    max([seq, *errs["seq"]]),
+                )
                 events.append(encode("campaign", {"campaign": snap, "server_time": _now()}))
                 continue
             if (mark["updated_at"], mark["status"]) == (tr.updated_at, tr.status):
@@ -196,7 +200,7 @@ def _now() -> str:
 
 def hub(request: Request) -> LiveHub:
     """Return the application's live hub."""
-    return request.app.state.live_hub  # type: ignore[no-any-return]
+    return request.app.state.live_hub
 
 
 @router.get("/live", include_in_schema=False, response_class=HTMLResponse)
@@ -234,13 +238,17 @@ async def live_events(request: Request) -> StreamingResponse:
         finally:
             h.unsubscribe(queue)
 
-    return StreamingResponse(stream(), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+    return StreamingResponse(
+        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+    )
 
 
-@router.get("/live/snapshot", summary="Running campaigns as the live page shows them",
-            response_description="every daemon campaign on show: stage, progress, latest scan, "
-                                 "temperature buckets of the last hours, recent error readings, instrument health")
+@router.get(
+    "/live/snapshot",
+    summary="Running campaigns as the live page shows them",
+    response_description="every daemon campaign on show: stage, progress, latest scan, "
+    "temperature buckets of the last hours, recent error readings, instrument health",
+)
 async def live_snapshot(request: Request) -> JSONResponse:
     """Return the same document as the first event of /live/events (for scripts; the page uses the stream)."""
     return JSONResponse(await run_in_threadpool(hub(request).snapshot))

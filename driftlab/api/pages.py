@@ -24,11 +24,14 @@ router = APIRouter(include_in_schema=False)
 @router.get("/docs", response_class=HTMLResponse)
 def swagger_ui() -> HTMLResponse:
     """Return Swagger UI on the packaged assets."""
-    return get_swagger_ui_html(openapi_url="/openapi.json", title="driftlab API",
-                               swagger_js_url=f"{SWAGGER}/swagger-ui-bundle.js",
-                               swagger_css_url=f"{SWAGGER}/swagger-ui.css",
-                               swagger_favicon_url=f"{SWAGGER}/favicon-32x32.png",
-                               oauth2_redirect_url="/docs/oauth2-redirect")
+    return get_swagger_ui_html(
+        openapi_url="/openapi.json",
+        title="driftlab API",
+        swagger_js_url=f"{SWAGGER}/swagger-ui-bundle.js",
+        swagger_css_url=f"{SWAGGER}/swagger-ui.css",
+        swagger_favicon_url=f"{SWAGGER}/favicon-32x32.png",
+        oauth2_redirect_url="/docs/oauth2-redirect",
+    )
 
 
 @router.get("/docs/oauth2-redirect", response_class=HTMLResponse)
@@ -40,9 +43,13 @@ def swagger_ui_redirect() -> HTMLResponse:
 @router.get("/redoc", response_class=HTMLResponse)
 def redoc() -> HTMLResponse:
     """Return ReDoc on the packaged assets (no web fonts: the system's are used)."""
-    return get_redoc_html(openapi_url="/openapi.json", title="driftlab API",
-                          redoc_js_url=f"{REDOC}/redoc.standalone.js",
-                          redoc_favicon_url=f"{SWAGGER}/favicon-32x32.png", with_google_fonts=False)
+    return get_redoc_html(
+        openapi_url="/openapi.json",
+        title="driftlab API",
+        redoc_js_url=f"{REDOC}/redoc.standalone.js",
+        redoc_favicon_url=f"{SWAGGER}/favicon-32x32.png",
+        with_google_fonts=False,
+    )
 
 
 def install(app: FastAPI) -> None:

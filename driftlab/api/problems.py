@@ -40,12 +40,19 @@ def problem_body(status: int, detail: str, instance: str, **extra: Any) -> dict[
         title = HTTPStatus(status).phrase
     except ValueError:
         title = "Error"
-    return {"type": problem_type(status), "title": title, "status": status, "detail": detail,
-            "instance": instance, **extra}
+    return {
+        "type": problem_type(status),
+        "title": title,
+        "status": status,
+        "detail": detail,
+        "instance": instance,
+        **extra,
+    }
 
 
-def problem_response(status: int, detail: str, instance: str, headers: dict[str, str] | None = None,
-                     **extra: Any) -> Response:
+def problem_response(
+    status: int, detail: str, instance: str, headers: dict[str, str] | None = None, **extra: Any
+) -> Response:
     """Return a problem+json response."""
     body = json.dumps(problem_body(status, detail, instance, **extra), allow_nan=False, default=str)
     return Response(body, status_code=status, media_type=PROBLEM_MEDIA_TYPE, headers=headers)
@@ -71,8 +78,9 @@ async def _validation_error(request: Request, exc: Exception) -> Response:
     # a malformed parameter (query, path, header) is a bad request (400); a body that parses but
     # does not meet its schema is unprocessable content (422)
     in_body = any(tuple(e.get("loc", ()))[:1] == ("body",) for e in exc.errors())
-    return problem_response(422 if in_body else 400, " ".join(detail.split())[:2000], _instance(request),
-                            errors=errors[:20])
+    return problem_response(
+        422 if in_body else 400, " ".join(detail.split())[:2000], _instance(request), errors=errors[:20]
+    )
 
 
 def allowed_methods(app: Any, path: str) -> list[str]:
@@ -107,8 +115,9 @@ async def _http_error(request: Request, exc: Exception) -> Response:
 
 async def _database_down(request: Request, exc: Exception) -> Response:
     log.warning("database unavailable: %s", " ".join(str(exc).split())[:300])
-    return problem_response(503, "the database is unavailable; try again later", _instance(request),
-                            headers={"Retry-After": "5"})
+    return problem_response(
+        503, "the database is unavailable; try again later", _instance(request), headers={"Retry-After": "5"}
+    )
 
 
 def install_handlers(app: FastAPI) -> None:
@@ -144,8 +153,9 @@ class CatchAllMiddleware:
             log.exception("unhandled error on %s %s", scope.get("method"), scope.get("path"))
             if started:
                 raise
-            response = problem_response(500, "internal server error; the traceback is in the server log",
-                                        scope.get("path", ""))
+            response = problem_response(
+                500, "internal server error; the traceback is in the server log", scope.get("path", "")
+            )
             await response(scope, receive, send)
 
 
@@ -183,11 +193,9 @@ def declare_problems(schema: dict[str, Any]) -> dict[str, Any]:
             if method in WRITE_METHODS:
                 statuses += WRITE_PROBLEMS
             for status in statuses:
-                entry = {"description": HTTPStatus(status).phrase,
-                         "content": {PROBLEM_MEDIA_TYPE: {"schema": ref}}}
+                entry = {"description": HTTPStatus(status).phrase, "content": {PROBLEM_MEDIA_TYPE: {"schema": ref}}}
                 if status == 401:
-                    entry["headers"] = {"WWW-Authenticate": {"schema": {"type": "string"},
-                                                             "description": "Bearer"}}
+                    entry["headers"] = {"WWW-Authenticate": {"schema": {"type": "string"}, "description": "Bearer"}}
                 op["responses"][str(status)] = entry
     schema.get("components", {}).get("schemas", {}).pop("HTTPValidationError", None)
     schema.get("components", {}).get("schemas", {}).pop("ValidationError", None)

@@ -279,11 +279,14 @@ class JobSubmit(_In):
 
     kind: JobKind
     machine_id: str | None = Field(default=None, pattern=ID_PATTERN)
-    campaign_ids: list[RowId] = Field(default_factory=list, max_length=200,
-                                    description="fit: the campaigns (default every campaign of the machine); "
-                                                "diagnose: exactly one")
-    holdout_fraction: float = Field(default=0.25, gt=0.0, lt=0.9,
-                                    description="diagnose: fraction of each (axis, term)'s rows held out")
+    campaign_ids: list[RowId] = Field(
+        default_factory=list,
+        max_length=200,
+        description="fit: the campaigns (default every campaign of the machine); diagnose: exactly one",
+    )
+    holdout_fraction: float = Field(
+        default=0.25, gt=0.0, lt=0.9, description="diagnose: fraction of each (axis, term)'s rows held out"
+    )
 
 
 class JobOut(_Out):
@@ -327,11 +330,15 @@ class ProbeIn(_In):
     dy: float = Field(ge=-10.0, le=10.0)
     dz: float = Field(ge=-10.0, le=10.0)
     # patternProperties alone would let any other key through in the schema: close it
-    temperatures: dict[ChannelName, TemperatureC] = Field(default_factory=dict, max_length=200,
-                                                          json_schema_extra={"additionalProperties": False},
-                                           description="degC per channel: at least the model's inputs")
-    forgetting: float | None = Field(default=None, gt=0.5, le=1.0,
-                                     description="forgetting factor lambda (only when the state starts)")
+    temperatures: dict[ChannelName, TemperatureC] = Field(
+        default_factory=dict,
+        max_length=200,
+        json_schema_extra={"additionalProperties": False},
+        description="degC per channel: at least the model's inputs",
+    )
+    forgetting: float | None = Field(
+        default=None, gt=0.5, le=1.0, description="forgetting factor lambda (only when the state starts)"
+    )
 
 
 class Vector3(_Out):
@@ -354,8 +361,9 @@ class OnlineOut(_Out):
     offline_prediction: Vector3 | None = None
     prior_error: Vector3 | None = None
     online_prediction: Vector3 | None = None
-    correction: Vector3 | None = Field(default=None, description="to add to the commanded position: "
-                                                                 "minus (off-line + on-line prediction)")
+    correction: Vector3 | None = Field(
+        default=None, description="to add to the commanded position: minus (off-line + on-line prediction)"
+    )
 
 
 class Health(_Out):

@@ -54,8 +54,9 @@ def refresh() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for name, pkg in doc["packages"].items():
             spec = f"{name}@{pkg['version']}"
-            out = subprocess.run(["npm", "pack", spec, "--json", "--pack-destination", tmp],
-                                 check=True, capture_output=True, text=True).stdout
+            out = subprocess.run(
+                ["npm", "pack", spec, "--json", "--pack-destination", tmp], check=True, capture_output=True, text=True
+            ).stdout
             info = json.loads(out)[0]
             tgz = Path(tmp) / info["filename"]
             algo, digest = pkg["integrity"].split("-", 1)

@@ -118,8 +118,7 @@ def open_campaign(
     """
     from driftlab.campaigns.partitions import ensure_partitions
 
-    handle = _open_campaign(engine, plan, channels, room_channels, resume=resume, origin=origin,
-                            extra_meta=extra_meta)
+    handle = _open_campaign(engine, plan, channels, room_channels, resume=resume, origin=origin, extra_meta=extra_meta)
     ensure_partitions(engine, [handle.start_day])
     return handle
 
@@ -151,32 +150,35 @@ def _open_campaign(
         if row is not None and (row.status == "running" or (resume and row.status == "done")):
             cid, cur = row.id, dict(row.cursor or {})
             if not resume:
-                raise ConflictError(
-                    f"campaign {plan.name!r} (id {cid}) is unfinished: continue it with --resume"
-                )
+                raise ConflictError(f"campaign {plan.name!r} (id {cid}) is unfinished: continue it with --resume")
             if cur.get("fingerprint") != fp:
                 raise ConflictError(
                     f"campaign {plan.name!r} (id {cid}) was started from a different plan timeline: "
                     "resume it with the plan it started with"
                 )
-            ids = dict(
-                conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all()
-            )
+            ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
             if row.status == "done":
                 log.info("campaign %s (id %d) is already complete", plan.name, cid)
-            return CampaignHandle(cid, Cursor(int(cur["next_scan"]), int(cur["next_point"])), ids, True, cur,
-                                  start_day(row.started_at))
+            return CampaignHandle(
+                cid, Cursor(int(cur["next_scan"]), int(cur["next_point"])), ids, True, cur, start_day(row.started_at)
+            )
         if resume:
             log.info("no unfinished campaign %s: starting it", plan.name)
         if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
             from driftlab.campaigns.ingest import insert_ignoring_duplicates
 
-            conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(
-            id=plan.machine.id, name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", ""))))
+            conn.execute(
+                insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(
+                    id=plan.machine.id,
+                    name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", "")),
+                )
+            )
         started = sc.utcnow()
         machine: dict[str, Any] = {
-            "id": plan.machine.id, "name": plan.machine.name,
-            **({"geometry": plan.machine.geometry.document()} if plan.machine.geometry else {})}
+            "id": plan.machine.id,
+            "name": plan.machine.name,
+            **({"geometry": plan.machine.geometry.document()} if plan.machine.geometry else {}),
+        }
         meta: dict[str, Any] = {  # campaign.json of the bundle
             # bundle v2: every reading is stored with its commanded pose and the setup that made it
             "format": "driftlab-bundle/2",
@@ -188,17 +190,28 @@ def _open_campaign(
             "stages": plan.bundle_stages(),
         }
         for key, value in (extra_meta or {}).items():
-            if key == "machine" and "geometry" in value and "geometry" in machine and \
-                    Geometry.model_validate(value["geometry"]) != plan.machine.geometry:
-                raise ValidationError(f"plan {plan.name!r} and the scenario state different geometries of machine "
-                                      f"{plan.machine.id!r}: state it once")
+            if (
+                key == "machine"
+                and "geometry" in value
+                and "geometry" in machine
+                and Geometry.model_validate(value["geometry"]) != plan.machine.geometry
+            ):
+                raise ValidationError(
+                    f"plan {plan.name!r} and the scenario state different geometries of machine "
+                    f"{plan.machine.id!r}: state it once"
+                )
             meta.setdefault(key, value) if key != "machine" else machine.update(
                 {k: v for k, v in value.items() if k != "id" and (k != "name" or not plan.machine.name)}
             )
         inserted = conn.execute(
             sc.Campaign.__table__.insert().values(
-                machine_id=plan.machine.id, name=plan.name, started_at=started, status="running",
-                source="daemon", meta=meta, conditions_columns=["time_s", *STATE_KEYS],
+                machine_id=plan.machine.id,
+                name=plan.name,
+                started_at=started,
+                status="running",
+                source="daemon",
+                meta=meta,
+                conditions_columns=["time_s", *STATE_KEYS],
             )
         ).inserted_primary_key
         assert inserted is not None  # a single-row insert of a table with a primary key
@@ -206,26 +219,54 @@ def _open_campaign(
         conn.execute(
             sc.Stage.__table__.insert(),
             [
-                {"campaign_id": cid, "ordinal": i, "name": r["name"], "heat_source": r["heat_source"],
-                 "axis": r["axis"], "spindle_rpm": r["spindle_rpm"], "feed_mm_min": r["feed_mm_min"],
-                 "start_s": r["start_s"], "end_s": r["end_s"], "status": "planned"}
+                {
+                    "campaign_id": cid,
+                    "ordinal": i,
+                    "name": r["name"],
+                    "heat_source": r["heat_source"],
+                    "axis": r["axis"],
+                    "spindle_rpm": r["spindle_rpm"],
+                    "feed_mm_min": r["feed_mm_min"],
+                    "start_s": r["start_s"],
+                    "end_s": r["end_s"],
+                    "status": "planned",
+                }
                 for i, r in enumerate(plan.bundle_stages())
             ],
         )
         conn.execute(
             sc.Channel.__table__.insert(),
             [
-                {"campaign_id": cid, "ordinal": i, "name": name, "location": info.get("location", ""),
-                 "structure": info.get("structure", ""), "is_room": name in room_channels}
+                {
+                    "campaign_id": cid,
+                    "ordinal": i,
+                    "name": name,
+                    "location": info.get("location", ""),
+                    "structure": info.get("structure", ""),
+                    "is_room": name in room_channels,
+                }
                 for i, (name, info) in enumerate(channels.items())
             ],
         )
-        cursor = {"next_scan": 0, "next_point": 0, "n_scans": plan.n_scans, "n_points": len(plan.sweep_points()),
-                  "total_s": plan.total_s, "fingerprint": fp, "plan": plan.name,
-                  "origin": dict(origin), "faults": 0, "recent_faults": []}
+        cursor = {
+            "next_scan": 0,
+            "next_point": 0,
+            "n_scans": plan.n_scans,
+            "n_points": len(plan.sweep_points()),
+            "total_s": plan.total_s,
+            "fingerprint": fp,
+            "plan": plan.name,
+            "origin": dict(origin),
+            "faults": 0,
+            "recent_faults": [],
+        }
         conn.execute(
             sc.AcquisitionProgress.__table__.insert().values(
-                campaign_id=cid, stage_ordinal=0, sweep=0, last_sample_time_s=None, cursor=cursor,
+                campaign_id=cid,
+                stage_ordinal=0,
+                sweep=0,
+                last_sample_time_s=None,
+                cursor=cursor,
                 updated_at=sc.utcnow(),
             )
         )
@@ -317,9 +358,16 @@ class StoreSink:
                 if not r.ok:
                     continue
                 row = {
-                    "campaign_id": self.cid, "seq": p.index * len(TERMS) + TERMS.index(term), "time_s": t,
-                    "axis": p.axis, "term": term, "position": p.position, "direction": p.direction,
-                    "value": r.value, "sweep": self.sweeps[(p.stage, p.sweep)], "flags": 0,
+                    "campaign_id": self.cid,
+                    "seq": p.index * len(TERMS) + TERMS.index(term),
+                    "time_s": t,
+                    "axis": p.axis,
+                    "term": term,
+                    "position": p.position,
+                    "direction": p.direction,
+                    "value": r.value,
+                    "sweep": self.sweeps[(p.stage, p.sweep)],
+                    "flags": 0,
                     "campaign_start_day": self.day,
                 }
                 row.update(self._setups[p.setup].full_pose(p.position))
@@ -356,11 +404,15 @@ class StoreSink:
         temps = self._temperature_rows(batch)
         wide = self._block_arrays(batch)
         errs = self._error_rows(batch)
-        conds = [{"campaign_id": self.cid, "time_s": t, **{k: s.get(k) for k in STATE_KEYS},
-                  "campaign_start_day": self.day} for t, s in batch.states]
+        conds = [
+            {"campaign_id": self.cid, "time_s": t, **{k: s.get(k) for k in STATE_KEYS}, "campaign_start_day": self.day}
+            for t, s in batch.states
+        ]
         missing = [
             Fault(t, f"point {p.index}", "laser", f"{term}: {r.flag}")
-            for p, t, values in batch.points for term, r in values.items() if not r.ok
+            for p, t, values in batch.points
+            for term, r in values.items()
+            if not r.ok
         ]
         faults = [*batch.faults, *missing]
         finished = batch.cursor.next_scan >= self.plan.n_scans and batch.cursor.next_point >= self.n_points
@@ -385,31 +437,54 @@ class StoreSink:
                 prog["datum"] = batch.datum
             last = _last_scan(batch)
             if last is not None:
-                prog["last_scan"] = {"t_s": last.t_s, "values": {
-                    k: (v if k not in last.flags and math.isfinite(v) else None) for k, v in last.values.items()}}
+                prog["last_scan"] = {
+                    "t_s": last.t_s,
+                    "values": {
+                        k: (v if k not in last.flags and math.isfinite(v) else None) for k, v in last.values.items()
+                    },
+                }
             if batch.points:
                 p, t, values = batch.points[-1]
-                prog["last_point"] = {"t_s": t, "axis": p.axis, "position": p.position, "direction": p.direction,
-                                      "values": {k: (r.value if r.ok else None) for k, r in values.items()}}
+                prog["last_point"] = {
+                    "t_s": t,
+                    "axis": p.axis,
+                    "position": p.position,
+                    "direction": p.direction,
+                    "values": {k: (r.value if r.ok else None) for k, r in values.items()},
+                }
                 prog["sweep"] = self.sweeps[(p.stage, p.sweep)]
-            progress = {"cursor": prog, "stage_ordinal": batch.stage, "sweep": int(prog.get("sweep", 0)),
-                        "updated_at": _utcnow()}
+            progress = {
+                "cursor": prog,
+                "stage_ordinal": batch.stage,
+                "sweep": int(prog.get("sweep", 0)),
+                "updated_at": _utcnow(),
+            }
             t_read = last_reading_s(batch)
             if t_read is not None:  # a batch of moves and faults alone stores no sample: the time stays
                 progress["last_sample_time_s"] = t_read
             conn.execute(self._t_prog.update().where(self._t_prog.c.campaign_id == self.cid).values(**progress))
             if batch.stage != self._stage:
-                conn.execute(self._t_stage.update().where(
-                    self._t_stage.c.campaign_id == self.cid, self._t_stage.c.ordinal < batch.stage,
-                    self._t_stage.c.status.in_(("planned", "running"))).values(status="done"))
-                conn.execute(self._t_stage.update().where(
-                    self._t_stage.c.campaign_id == self.cid, self._t_stage.c.ordinal == batch.stage).values(
-                    status="running"))
+                conn.execute(
+                    self._t_stage.update()
+                    .where(
+                        self._t_stage.c.campaign_id == self.cid,
+                        self._t_stage.c.ordinal < batch.stage,
+                        self._t_stage.c.status.in_(("planned", "running")),
+                    )
+                    .values(status="done")
+                )
+                conn.execute(
+                    self._t_stage.update()
+                    .where(self._t_stage.c.campaign_id == self.cid, self._t_stage.c.ordinal == batch.stage)
+                    .values(status="running")
+                )
                 self._stage = batch.stage
             if finished:
-                conn.execute(self._t_stage.update().where(
-                    self._t_stage.c.campaign_id == self.cid, self._t_stage.c.status.in_(("planned", "running"))
-                ).values(status="done"))
+                conn.execute(
+                    self._t_stage.update()
+                    .where(self._t_stage.c.campaign_id == self.cid, self._t_stage.c.status.in_(("planned", "running")))
+                    .values(status="done")
+                )
                 conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
         self._prog = prog  # only once committed: a failed batch leaves the in-memory cursor where the store's is
 

@@ -55,8 +55,16 @@ class ModelRow:
 
 
 def _model_row(r: Any) -> ModelRow:
-    return ModelRow(r.id, r.machine_id, r.version, r.status, r.created_at, r.retired_at,
-                    list(r.source_campaigns or []), dict(r.document or {}))
+    return ModelRow(
+        r.id,
+        r.machine_id,
+        r.version,
+        r.status,
+        r.created_at,
+        r.retired_at,
+        list(r.source_campaigns or []),
+        dict(r.document or {}),
+    )
 
 
 @contextmanager
@@ -99,11 +107,15 @@ def get_machine(store: Store, machine_id: str) -> MachineInfo:
 
 
 def _machines(conn: Connection, machine_id: str | None, limit: int, offset: int) -> list[MachineInfo]:
-    n_campaigns = (select(func.count()).select_from(sc.Campaign)
-                   .where(sc.Campaign.machine_id == sc.Machine.id).scalar_subquery())
-    current = (select(sc.ModelVersion.version)
-               .where(sc.ModelVersion.machine_id == sc.Machine.id, sc.ModelVersion.status == "current")
-               .limit(1).scalar_subquery())
+    n_campaigns = (
+        select(func.count()).select_from(sc.Campaign).where(sc.Campaign.machine_id == sc.Machine.id).scalar_subquery()
+    )
+    current = (
+        select(sc.ModelVersion.version)
+        .where(sc.ModelVersion.machine_id == sc.Machine.id, sc.ModelVersion.status == "current")
+        .limit(1)
+        .scalar_subquery()
+    )
     q = select(sc.Machine.__table__, n_campaigns.label("n"), current.label("cur")).order_by(sc.Machine.id)
     if machine_id is not None:
         q = q.where(sc.Machine.id == machine_id)
@@ -120,25 +132,37 @@ def campaign_detail(store: Store, campaign_id: int) -> tuple[Any, list[Any], lis
         row = conn.execute(select(sc.Campaign.__table__).where(sc.Campaign.id == campaign_id)).first()
         if row is None:
             raise NotFoundError(f"no campaign {campaign_id}")
-        stages = conn.execute(select(sc.Stage.__table__).where(sc.Stage.campaign_id == campaign_id)
-                              .order_by(sc.Stage.ordinal)).all()
-        channels = conn.execute(select(sc.Channel.__table__).where(sc.Channel.campaign_id == campaign_id)
-                                .order_by(sc.Channel.ordinal)).all()
+        stages = conn.execute(
+            select(sc.Stage.__table__).where(sc.Stage.campaign_id == campaign_id).order_by(sc.Stage.ordinal)
+        ).all()
+        channels = conn.execute(
+            select(sc.Channel.__table__).where(sc.Channel.campaign_id == campaign_id).order_by(sc.Channel.ordinal)
+        ).all()
         return row, list(stages), list(channels)
 
 
-def temperature_page(store: Store, campaign_id: int, channel: str, start_s: float | None, end_s: float | None,
-                     after_s: float | None, offset: int, limit: int) -> list[tuple[float, float | None]]:
+def temperature_page(
+    store: Store,
+    campaign_id: int,
+    channel: str,
+    start_s: float | None,
+    end_s: float | None,
+    after_s: float | None,
+    offset: int,
+    limit: int,
+) -> list[tuple[float, float | None]]:
     """Return up to ``limit`` (time_s, value) readings of a channel in time order, after ``after_s``."""
     with _read(store) as conn:
         day = _campaign_exists(conn, campaign_id)
-        ch = conn.execute(select(sc.Channel.id).where(sc.Channel.campaign_id == campaign_id,
-                                                      sc.Channel.name == channel)).scalar()
+        ch = conn.execute(
+            select(sc.Channel.id).where(sc.Channel.campaign_id == campaign_id, sc.Channel.name == channel)
+        ).scalar()
         if ch is None:
             raise NotFoundError(f"campaign {campaign_id} has no channel {channel!r}")
         t = sc.TemperatureSample
-        q = select(t.time_s, t.value).where(t.campaign_id == campaign_id, t.channel_id == ch,
-                                            t.campaign_start_day == day)
+        q = select(t.time_s, t.value).where(
+            t.campaign_id == campaign_id, t.channel_id == ch, t.campaign_start_day == day
+        )
         q = _time_window(q, t.time_s, start_s, end_s, after_s)
         rows = conn.execute(q.order_by(t.time_s).limit(limit).offset(offset)).all()
         return [(float(a), None if b is None else float(b)) for a, b in rows]
@@ -154,30 +178,49 @@ def latest_scan(store: Store, machine_id: str) -> tuple[int, datetime, float, di
     with _read(store) as conn:
         _machine_exists(conn, machine_id)
         campaigns = conn.execute(
-            select(sc.Campaign.id, sc.Campaign.started_at).where(sc.Campaign.machine_id == machine_id)
-            .order_by(sc.Campaign.started_at.desc(), sc.Campaign.id.desc())).all()
+            select(sc.Campaign.id, sc.Campaign.started_at)
+            .where(sc.Campaign.machine_id == machine_id)
+            .order_by(sc.Campaign.started_at.desc(), sc.Campaign.id.desc())
+        ).all()
         for cid, started in campaigns:
             day = start_day(started)
-            channels = conn.execute(select(sc.Channel.id, sc.Channel.name).where(sc.Channel.campaign_id == cid)
-                                    .order_by(sc.Channel.ordinal)).all()
-            last = [conn.execute(select(func.max(t.time_s)).where(t.campaign_id == cid, t.channel_id == ch,
-                                                                  t.campaign_start_day == day)).scalar()
-                    for ch, _ in channels]
+            channels = conn.execute(
+                select(sc.Channel.id, sc.Channel.name).where(sc.Channel.campaign_id == cid).order_by(sc.Channel.ordinal)
+            ).all()
+            last = [
+                conn.execute(
+                    select(func.max(t.time_s)).where(
+                        t.campaign_id == cid, t.channel_id == ch, t.campaign_start_day == day
+                    )
+                ).scalar()
+                for ch, _ in channels
+            ]
             times = [x for x in last if x is not None]
             if not times:
                 continue
             when = max(times)
             values: dict[str, float | None] = {}
             for ch, name in channels:
-                v = conn.execute(select(t.value).where(t.campaign_id == cid, t.channel_id == ch,
-                                                       t.time_s == when, t.campaign_start_day == day)).scalar()
+                v = conn.execute(
+                    select(t.value).where(
+                        t.campaign_id == cid, t.channel_id == ch, t.time_s == when, t.campaign_start_day == day
+                    )
+                ).scalar()
                 values[name] = None if v is None else float(v)
             return int(cid), started, float(when), values
         return None
 
 
-def condition_page(store: Store, campaign_id: int, columns: list[str], start_s: float | None, end_s: float | None,
-                   after_s: float | None, offset: int, limit: int) -> list[tuple[Any, ...]]:
+def condition_page(
+    store: Store,
+    campaign_id: int,
+    columns: list[str],
+    start_s: float | None,
+    end_s: float | None,
+    after_s: float | None,
+    offset: int,
+    limit: int,
+) -> list[tuple[Any, ...]]:
     """Return up to ``limit`` rows (time_s, *columns) of the machine-state log in time order."""
     for c in columns:
         if c not in CONDITION_VALUE_COLUMNS:
@@ -185,21 +228,32 @@ def condition_page(store: Store, campaign_id: int, columns: list[str], start_s: 
     with _read(store) as conn:
         day = _campaign_exists(conn, campaign_id)
         t = sc.ConditionSample
-        q = select(t.time_s, *[getattr(t, c) for c in columns]).where(t.campaign_id == campaign_id,
-                                                                     t.campaign_start_day == day)
+        q = select(t.time_s, *[getattr(t, c) for c in columns]).where(
+            t.campaign_id == campaign_id, t.campaign_start_day == day
+        )
         q = _time_window(q, t.time_s, start_s, end_s, after_s)
         return [tuple(r) for r in conn.execute(q.order_by(t.time_s).limit(limit).offset(offset)).all()]
 
 
-def error_page(store: Store, campaign_id: int, axis: str | None, term: str | None, direction: int | None,
-               start_s: float | None, end_s: float | None, after_seq: int | None, offset: int,
-               limit: int) -> list[Any]:
+def error_page(
+    store: Store,
+    campaign_id: int,
+    axis: str | None,
+    term: str | None,
+    direction: int | None,
+    start_s: float | None,
+    end_s: float | None,
+    after_seq: int | None,
+    offset: int,
+    limit: int,
+) -> list[Any]:
     """Return up to ``limit`` error samples in bundle order (seq), filtered by axis/term/direction/time."""
     with _read(store) as conn:
         day = _campaign_exists(conn, campaign_id)
         e = sc.ErrorSample
         q = select(e.seq, e.time_s, e.axis, e.term, e.position, e.direction, e.sweep, e.flags, e.value).where(
-            e.campaign_id == campaign_id, e.campaign_start_day == day)
+            e.campaign_id == campaign_id, e.campaign_start_day == day
+        )
         if axis is not None:
             q = q.where(e.axis == axis)
         if term is not None:
@@ -228,16 +282,22 @@ def _time_window(q: Any, col: Any, start_s: float | None, end_s: float | None, a
 def current_model(store: Store, machine_id: str) -> ModelRow | None:
     """Return the machine's current model row, or None when it has none."""
     with _read(store) as conn:
-        r = conn.execute(select(sc.ModelVersion.__table__).where(
-            sc.ModelVersion.machine_id == machine_id, sc.ModelVersion.status == "current")).first()
+        r = conn.execute(
+            select(sc.ModelVersion.__table__).where(
+                sc.ModelVersion.machine_id == machine_id, sc.ModelVersion.status == "current"
+            )
+        ).first()
         return None if r is None else _model_row(r)
 
 
 def model_version(store: Store, machine_id: str, version: int) -> ModelRow:
     """Return one model version of a machine; NotFoundError when there is no such version."""
     with _read(store) as conn:
-        r = conn.execute(select(sc.ModelVersion.__table__).where(
-            sc.ModelVersion.machine_id == machine_id, sc.ModelVersion.version == version)).first()
+        r = conn.execute(
+            select(sc.ModelVersion.__table__).where(
+                sc.ModelVersion.machine_id == machine_id, sc.ModelVersion.version == version
+            )
+        ).first()
         if r is None:
             raise NotFoundError(f"no model version {version} for machine {machine_id!r}")
         return _model_row(r)
@@ -283,8 +343,11 @@ def promote_model(store: Store, machine_id: str, version: int) -> ModelRow:
         if target.status != "current":
             now = sc.utcnow()
             # retire first: the partial unique index allows one current version per machine
-            conn.execute(update(mv).where(mv.machine_id == machine_id, mv.status == "current")
-                         .values(status="retired", retired_at=now))
+            conn.execute(
+                update(mv)
+                .where(mv.machine_id == machine_id, mv.status == "current")
+                .values(status="retired", retired_at=now)
+            )
             conn.execute(update(mv).where(mv.id == target.id).values(status="current", retired_at=None))
         return _model_row(conn.execute(select(mv.__table__).where(mv.id == target.id)).one())
 
@@ -305,8 +368,15 @@ def retire_model(store: Store, machine_id: str, version: int) -> ModelRow:
 # ----------------------------------------------------------------------------- jobs
 
 
-def list_jobs(store: Store, state: str | None, kind: str | None, machine_id: str | None, limit: int,
-              offset: int, kinds: tuple[str, ...] | None = None) -> list[JobInfo]:
+def list_jobs(
+    store: Store,
+    state: str | None,
+    kind: str | None,
+    machine_id: str | None,
+    limit: int,
+    offset: int,
+    kinds: tuple[str, ...] | None = None,
+) -> list[JobInfo]:
     """Return jobs (newest first), filtered by state (as reported), kind (or set of kinds) and machine."""
     with _read(store) as conn:
         jobs = jobs_select(conn.dialect.name).subquery()
@@ -330,9 +400,16 @@ def check_job_targets(store: Store, machine_id: str | None, campaign_ids: list[i
     with _read(store) as conn:
         if machine_id is not None:
             _machine_exists(conn, machine_id)
-        rows = {r.id: r.machine_id for r in conn.execute(
-            select(sc.Campaign.id, sc.Campaign.machine_id).where(sc.Campaign.id.in_(campaign_ids))).all()} \
-            if campaign_ids else {}
+        rows = (
+            {
+                r.id: r.machine_id
+                for r in conn.execute(
+                    select(sc.Campaign.id, sc.Campaign.machine_id).where(sc.Campaign.id.in_(campaign_ids))
+                ).all()
+            }
+            if campaign_ids
+            else {}
+        )
         for c in campaign_ids:
             if c not in rows:
                 raise NotFoundError(f"no campaign {c}")
@@ -342,9 +419,16 @@ def check_job_targets(store: Store, machine_id: str | None, campaign_ids: list[i
             return list(campaign_ids)
         if machine_id is None:
             return []
-        return [int(c) for c in conn.execute(
-            select(sc.Campaign.id).where(sc.Campaign.machine_id == machine_id)
-            .order_by(sc.Campaign.started_at, sc.Campaign.id)).scalars().all()]
+        return [
+            int(c)
+            for c in conn.execute(
+                select(sc.Campaign.id)
+                .where(sc.Campaign.machine_id == machine_id)
+                .order_by(sc.Campaign.started_at, sc.Campaign.id)
+            )
+            .scalars()
+            .all()
+        ]
 
 
 def ping(store: Store) -> bool:

@@ -68,18 +68,18 @@ MAX_ROTARY_POSITION_DEG = 720.0
 
 # Limits of what a bundle may hold (docs/bundle.md, "Limits"): each keeps memory and time bounded
 # or keeps a value inside what the store, pandas and the API can represent.
-MAX_JSON_BYTES = 1 << 20          # campaign.json: metadata, never bulk data
-MAX_JSON_DEPTH = 32               # the deepest valid document nests 5 levels (setups.*.reference.*)
-MAX_JSON_NUMBER_CHARS = 40        # longer literals carry no more binary64 precision (and >4300 digits crash int())
-MAX_CSV_BYTES = 512 << 20         # per CSV file (read a chunk at a time: staging.stage_bundle)
-MAX_LINE_BYTES = 1 << 20          # per CSV line (the scanner reads a line at a time)
-CSV_BLOCK_BYTES = 1 << 20         # CSV text read and parsed at a time, in whole lines (a chunk's working set)
-MAX_FIELD_CHARS = 256             # per CSV cell: numbers, axis/term/direction/setup names
-MAX_NAME_CHARS = 64               # machine id, channel names, setup ids (API path segments), stage names
-MAX_TEXT_CHARS = 200              # free text of campaign.json: machine name, channel location and structure
-MAX_TIME_S = 1e9                  # time_s and stage times: about 31.7 years after started_at
+MAX_JSON_BYTES = 1 << 20  # campaign.json: metadata, never bulk data
+MAX_JSON_DEPTH = 32  # the deepest valid document nests 5 levels (setups.*.reference.*)
+MAX_JSON_NUMBER_CHARS = 40  # longer literals carry no more binary64 precision (and >4300 digits crash int())
+MAX_CSV_BYTES = 512 << 20  # per CSV file (read a chunk at a time: staging.stage_bundle)
+MAX_LINE_BYTES = 1 << 20  # per CSV line (the scanner reads a line at a time)
+CSV_BLOCK_BYTES = 1 << 20  # CSV text read and parsed at a time, in whole lines (a chunk's working set)
+MAX_FIELD_CHARS = 256  # per CSV cell: numbers, axis/term/direction/setup names
+MAX_NAME_CHARS = 64  # machine id, channel names, setup ids (API path segments), stage names
+MAX_TEXT_CHARS = 200  # free text of campaign.json: machine name, channel location and structure
+MAX_TIME_S = 1e9  # time_s and stage times: about 31.7 years after started_at
 STARTED_AT_RANGE = (datetime(1970, 1, 1, tzinfo=UTC), datetime(2200, 1, 1, tzinfo=UTC))
-MAX_LINEAR_POSITION_MM = 1e5      # 100 m: positions and poses of X Y Z (a larger one is a units mistake)
+MAX_LINEAR_POSITION_MM = 1e5  # 100 m: positions and poses of X Y Z (a larger one is a units mistake)
 
 _DIRECTIONS = {"1": 1, "+1": 1, "1.0": 1, "+1.0": 1, "-1": -1, "-1.0": -1}
 # ASCII digits only: Python's \d and float() accept full-width and other Unicode digits, pyarrow does not
@@ -294,7 +294,7 @@ def _prescan_json(text: str, file: str) -> None:
             if keys:
                 keys.pop()
         elif tok[0] == '"':
-            rest = text[m.end():m.end() + 64].lstrip(" \t\r\n")
+            rest = text[m.end() : m.end() + 64].lstrip(" \t\r\n")
             if rest.startswith(":") and keys:
                 try:
                     key = json.loads(tok)
@@ -352,8 +352,12 @@ def parse_meta(text: str, file: str = CAMPAIGN_FILE) -> CampaignMeta:
 def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) -> CampaignMeta:
     """Validate a decoded campaign.json document, including references between its parts."""
     if isinstance(raw, dict) and "format" in raw and raw["format"] not in FORMATS:
-        raise _json_fail(file, lines, ("format",), f"unsupported format {_short(raw['format'])}, expected {FORMAT!r} "
-                         f"or {FORMAT_V2!r}")
+        raise _json_fail(
+            file,
+            lines,
+            ("format",),
+            f"unsupported format {_short(raw['format'])}, expected {FORMAT!r} or {FORMAT_V2!r}",
+        )
     try:
         meta = CampaignMeta.model_validate(raw)
     except PydanticValidationError as exc:
@@ -362,8 +366,11 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
     for name in meta.channels:
         if not _CHANNEL_NAME.match(name) or name == "time_s":
             raise _json_fail(
-                file, lines, ("channels", name), "channel names start with a letter or digit, then hold only "
-                f"letters, digits, '_', '.', '-' (at most {MAX_NAME_CHARS}), and may not be time_s"
+                file,
+                lines,
+                ("channels", name),
+                "channel names start with a letter or digit, then hold only "
+                f"letters, digits, '_', '.', '-' (at most {MAX_NAME_CHARS}), and may not be time_s",
             )
     seen: set[str] = set()
     for k, name in enumerate(meta.room_channels):
@@ -385,30 +392,41 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
     if meta.setups is not None and not meta.v2:
         raise _json_fail(file, lines, ("setups",), f"setups belong to {FORMAT_V2!r} bundles")
     if meta.v2 and not meta.setups:
-        raise _json_fail(file, lines, ("setups",) if meta.setups is not None else ("format",),
-                         "a bundle v2 needs setups: the instrument setup of every error reading")
+        raise _json_fail(
+            file,
+            lines,
+            ("setups",) if meta.setups is not None else ("format",),
+            "a bundle v2 needs setups: the instrument setup of every error reading",
+        )
     for sid, entry in (meta.setups or {}).items():
         if not _CHANNEL_NAME.match(sid) or len(sid) > 64:
-            raise _json_fail(file, lines, ("setups", sid), "setup ids may hold only letters, digits, '_', '.', '-' "
-                             "(at most 64)")
+            raise _json_fail(
+                file, lines, ("setups", sid), "setup ids may hold only letters, digits, '_', '.', '-' (at most 64)"
+            )
         if entry.axis is not None and any(not c.startswith(entry.axis + "/") for c in entry.terms):
-            raise _json_fail(file, lines, ("setups", sid, "terms"),
-                             f"setup {_short(sid)} measures the {entry.axis} axis "
-                             "but lists terms of another")
+            raise _json_fail(
+                file,
+                lines,
+                ("setups", sid, "terms"),
+                f"setup {_short(sid)} measures the {entry.axis} axis but lists terms of another",
+            )
     names_seen: set[str] = set()
     previous_end = -math.inf
     for k, stage in enumerate(meta.stages):
         if stage.end_s < stage.start_s:
             raise _json_fail(
-                file, lines, ("stages", k, "end_s"),
-                f"stage {_short(stage.name)} ends ({stage.end_s}) before it starts "
-                f"({stage.start_s})"
+                file,
+                lines,
+                ("stages", k, "end_s"),
+                f"stage {_short(stage.name)} ends ({stage.end_s}) before it starts ({stage.start_s})",
             )
         if stage.start_s < previous_end:
             raise _json_fail(
-                file, lines, ("stages", k, "start_s"),
+                file,
+                lines,
+                ("stages", k, "start_s"),
                 f"stage {_short(stage.name)} starts at {stage.start_s}, before the "
-                f"previous stage ends ({previous_end}): stages must be in order and not overlap"
+                f"previous stage ends ({previous_end}): stages must be in order and not overlap",
             )
         if stage.name in names_seen:
             raise _json_fail(file, lines, ("stages", k, "name"), f"stage name {_short(stage.name)} used twice")
@@ -501,12 +519,14 @@ def content_hash(
     meta: CampaignMeta, temperatures: pd.DataFrame, conditions: pd.DataFrame | None, errors: pd.DataFrame
 ) -> str:
     """Return the SHA-256 hex digest identifying a bundle's content."""
-    return table_hash(meta, FrameTable(temperatures), None if conditions is None else FrameTable(conditions),
-                      FrameTable(errors))
+    return table_hash(
+        meta, FrameTable(temperatures), None if conditions is None else FrameTable(conditions), FrameTable(errors)
+    )
 
 
-def table_hash(meta: CampaignMeta, temperatures: ColumnTable, conditions: ColumnTable | None,
-               errors: ColumnTable) -> str:
+def table_hash(
+    meta: CampaignMeta, temperatures: ColumnTable, conditions: ColumnTable | None, errors: ColumnTable
+) -> str:
     """Return ``content_hash`` of tables read a chunk at a time: the same bytes, column after column."""
     h = hashlib.sha256()
     h.update(json.dumps(meta.document(), sort_keys=True).encode())
@@ -557,8 +577,13 @@ def _check_file(root: Path, name: str, limit: int, required: bool) -> Path | Non
     except OSError as exc:
         raise BundleError(f"{name}: cannot read: {exc.strerror or exc}") from None
     if not stat.S_ISREG(st.st_mode):
-        kind = "a directory" if stat.S_ISDIR(st.st_mode) else "a FIFO" if stat.S_ISFIFO(st.st_mode) else (
-            "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "a socket")
+        kind = (
+            "a directory"
+            if stat.S_ISDIR(st.st_mode)
+            else "a FIFO"
+            if stat.S_ISFIFO(st.st_mode)
+            else ("a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "a socket")
+        )
         raise BundleError(f"{name}: not a regular file ({kind})")
     if st.st_size > limit:
         raise BundleError(f"{name}: {st.st_size} bytes, more than the limit of {limit} bytes")
@@ -592,8 +617,9 @@ def _read_line(fh: Any, file: str, lineno: int) -> bytes:
     return raw
 
 
-def _split(line: str, file: str, lineno: int, header: list[str] | None,
-           kinds: Mapping[str, str] | None = None) -> list[str]:
+def _split(
+    line: str, file: str, lineno: int, header: list[str] | None, kinds: Mapping[str, str] | None = None
+) -> list[str]:
     """Return a CSV line's fields; BundleError naming the column of an over-long text field."""
     cells = line.split(",") if '"' not in line else None
     if cells is None:
@@ -709,8 +735,9 @@ def _csv_pieces(path: Path, file: str, block_bytes: int) -> Iterator[bytes]:
             yield rest
 
 
-def _read_chunks(path: Path, file: str, header: list[str], kinds: Mapping[str, str],
-                  block_bytes: int = CSV_BLOCK_BYTES) -> Iterator[tuple[_Rows, pa.Table]]:
+def _read_chunks(
+    path: Path, file: str, header: list[str], kinds: Mapping[str, str], block_bytes: int = CSV_BLOCK_BYTES
+) -> Iterator[tuple[_Rows, pa.Table]]:
     """Yield the CSV as tables of consecutive rows parsed with explicit types, each with its place in the file.
 
     Each piece of about ``block_bytes`` of whole lines (``_csv_pieces``) is parsed on its own, so
@@ -722,13 +749,15 @@ def _read_chunks(path: Path, file: str, header: list[str], kinds: Mapping[str, s
     types = {name: (pa.float64() if kinds.get(name, "float") == "float" else pa.string()) for name in header}
     read = pacsv.ReadOptions(column_names=header)
     parse = pacsv.ParseOptions(newlines_in_values=False, ignore_empty_lines=False)
-    convert = pacsv.ConvertOptions(column_types=types, null_values=[""], strings_can_be_null=True,
-                                   quoted_strings_can_be_null=True)
+    convert = pacsv.ConvertOptions(
+        column_types=types, null_values=[""], strings_can_be_null=True, quoted_strings_can_be_null=True
+    )
     rows = 0
     for piece in _csv_pieces(path, file, block_bytes):
         try:
-            table = pacsv.read_csv(pa.BufferReader(piece), read_options=read, parse_options=parse,
-                                   convert_options=convert)
+            table = pacsv.read_csv(
+                pa.BufferReader(piece), read_options=read, parse_options=parse, convert_options=convert
+            )
         except (pa.ArrowInvalid, UnicodeDecodeError) as exc:
             raise _parse_failure(path, file, header, kinds, exc) from None
         del piece
@@ -757,8 +786,9 @@ def _check_text_lengths(table: pa.Table, place: _Rows, header: list[str], kinds:
             with np.errstate(invalid="ignore"):
                 k = place.first(np.nan_to_num(lengths.astype("f8"), nan=0.0) > MAX_FIELD_CHARS)
             if k is not None:
-                raise place.fail(k, f"column {name}: a cell of {int(lengths[k])} characters "
-                                    f"(at most {MAX_FIELD_CHARS})")
+                raise place.fail(
+                    k, f"column {name}: a cell of {int(lengths[k])} characters (at most {MAX_FIELD_CHARS})"
+                )
 
 
 @dataclass(frozen=True)
@@ -807,16 +837,16 @@ def _check_time(place: _Rows, t: np.ndarray, strict: bool, before: float | None)
         raise place.fail(k, f"time_s {float(t[k])!r} is negative (seconds since started_at)")
     k = place.first(t > MAX_TIME_S)
     if k is not None:
-        raise place.fail(k, f"time_s {float(t[k])!r} is beyond {MAX_TIME_S:.0e} s (about 31 years after "
-                            "started_at)")
+        raise place.fail(k, f"time_s {float(t[k])!r} is beyond {MAX_TIME_S:.0e} s (about 31 years after started_at)")
     prev = np.concatenate(([before], t[:-1])) if before is not None else t[:-1]
     step = t - prev if before is not None else np.diff(t)
     k = place.first(step <= 0 if strict else step < 0)
     if k is not None:
         row = k if before is not None else k + 1
         what = "not after" if strict else "before"
-        raise place.fail(row, f"time_s {float(t[row])!r} is {what} the previous row's {float(prev[k])!r}: "
-                              "rows must be in time order")
+        raise place.fail(
+            row, f"time_s {float(t[row])!r} is {what} the previous row's {float(prev[k])!r}: rows must be in time order"
+        )
 
 
 def _check_finite_nan_is_missing(table: pa.Table, place: _Rows, name: str) -> None:
@@ -861,8 +891,9 @@ def _temperature_chunks(path: Path, meta: CampaignMeta, block_bytes: int = CSV_B
             with np.errstate(invalid="ignore"):
                 k = place.first((v < lo) | (v > hi))
             if k is not None:
-                raise place.fail(k, f"column {name}: {float(v[k])!r} degC is outside {lo}..{hi}: temperatures must "
-                                    "be in degC")
+                raise place.fail(
+                    k, f"column {name}: {float(v[k])!r} degC is outside {lo}..{hi}: temperatures must be in degC"
+                )
         last = float(t[-1])
         yield frame
     if last is None:
@@ -911,8 +942,11 @@ def _check_condition(place: _Rows, name: str, v: np.ndarray) -> None:
         if name in ("x", "y", "z"):
             k = place.first(np.abs(v) > MAX_LINEAR_POSITION_MM)
             if k is not None:
-                raise place.fail(k, f"column {name}: {float(v[k])!r} mm is beyond {MAX_LINEAR_POSITION_MM:.0f} mm: "
-                                    "positions must be in mm")
+                raise place.fail(
+                    k,
+                    f"column {name}: {float(v[k])!r} mm is beyond {MAX_LINEAR_POSITION_MM:.0f} mm: "
+                    "positions must be in mm",
+                )
 
 
 def _errors_header(path: Path, meta: CampaignMeta | None) -> list[str]:
@@ -933,8 +967,9 @@ def _errors_header(path: Path, meta: CampaignMeta | None) -> list[str]:
 READING_KEY = ["time_s", "axis", "term", "position", "direction"]
 
 
-def _error_chunks(path: Path, meta: CampaignMeta | None = None,
-                  block_bytes: int = CSV_BLOCK_BYTES) -> Iterator[pd.DataFrame]:
+def _error_chunks(
+    path: Path, meta: CampaignMeta | None = None, block_bytes: int = CSV_BLOCK_BYTES
+) -> Iterator[pd.DataFrame]:
     """Yield errors.csv as validated frames of consecutive rows (order and duplicates checked across them)."""
     file = path.name
     header = _errors_header(path, meta)
@@ -991,17 +1026,22 @@ def _error_frame(table: pa.Table, place: _Rows, t: np.ndarray) -> pd.DataFrame:
         raise place.fail(k, f"column position: {float(position[k])!r} is not a rotary position in degrees")
     k = place.first(~is_rot_axis & (np.abs(position) > MAX_LINEAR_POSITION_MM))
     if k is not None:
-        raise place.fail(k, f"column position: {float(position[k])!r} mm is beyond {MAX_LINEAR_POSITION_MM:.0f} mm: "
-                            "positions must be in mm")
+        raise place.fail(
+            k,
+            f"column position: {float(position[k])!r} mm is beyond {MAX_LINEAR_POSITION_MM:.0f} mm: "
+            "positions must be in mm",
+        )
     is_trans = np.isin(term, np.asarray(TRANSLATION_TERMS, dtype=object))
     k = place.first(is_trans & (np.abs(value) > MAX_TRANSLATION_MM))
     if k is not None:
-        raise place.fail(k, f"column value: {float(value[k])!r} mm is implausibly large for a translation: values "
-                            "must be in mm")
+        raise place.fail(
+            k, f"column value: {float(value[k])!r} mm is implausibly large for a translation: values must be in mm"
+        )
     k = place.first(~is_trans & (np.abs(value) > MAX_ROTATION_RAD))
     if k is not None:
-        raise place.fail(k, f"column value: {float(value[k])!r} rad is implausibly large for a rotation: values "
-                            "must be in rad")
+        raise place.fail(
+            k, f"column value: {float(value[k])!r} rad is implausibly large for a rotation: values must be in rad"
+        )
     return pd.DataFrame(
         {
             "time_s": t,
@@ -1022,7 +1062,7 @@ def _check_duplicates(place: _Rows, frame: pd.DataFrame, tail: pd.DataFrame | No
     """
     keys = frame[READING_KEY]
     both = keys if tail is None else pd.concat([tail, keys], ignore_index=True)
-    dup = both.duplicated().to_numpy()[len(both) - len(keys):]
+    dup = both.duplicated().to_numpy()[len(both) - len(keys) :]
     k = place.first(dup)
     if k is not None:
         raise place.fail(k, "duplicate reading: same time_s, axis, term, position and direction as an earlier row")
@@ -1043,8 +1083,9 @@ def _load_pose_and_setup(place: _Rows, table: pa.Table, frame: pd.DataFrame, met
         bound = MAX_ROTARY_POSITION_DEG if name in ("a", "b") else MAX_LINEAR_POSITION_MM
         k = place.first(np.abs(v) > bound)
         if k is not None:
-            raise place.fail(k, f"column {name}: {float(v[k])!r} is beyond {bound:.0f} "
-                                f"({'degrees' if name in ('a', 'b') else 'mm'})")
+            raise place.fail(
+                k, f"column {name}: {float(v[k])!r} is beyond {bound:.0f} ({'degrees' if name in ('a', 'b') else 'mm'})"
+            )
         frame[name] = v
     axis = frame["axis"].to_numpy(dtype=object)
     term = frame["term"].to_numpy(dtype=object)
@@ -1054,8 +1095,9 @@ def _load_pose_and_setup(place: _Rows, table: pa.Table, frame: pd.DataFrame, met
     k = place.first(np.abs(moved - pos) > 1e-9 * np.maximum(1.0, np.abs(pos)))
     if k is not None:
         ax = axis[k]
-        raise place.fail(k, f"column {ax.lower()}: {moved[k]!r} differs from position {pos[k]!r} "
-                            f"of the moved axis {ax}")
+        raise place.fail(
+            k, f"column {ax.lower()}: {moved[k]!r} differs from position {pos[k]!r} of the moved axis {ax}"
+        )
     setup = np.asarray(table.column("setup").to_pylist(), dtype=object)
     setups = meta.setups or {}
     for k, (sid, ax, tm) in enumerate(zip(setup, axis, term)):
@@ -1064,8 +1106,10 @@ def _load_pose_and_setup(place: _Rows, table: pa.Table, frame: pd.DataFrame, met
             what = "missing" if sid is None else f"{_short(sid)} is not among campaign.json setups"
             raise place.fail(k, f"column setup: {what}")
         if f"{ax}/{tm}" not in entry.terms:
-            raise place.fail(k, f"column setup: setup {_short(sid)} does not deliver {ax}/{tm} "
-                                f"(it delivers {', '.join(entry.terms)})")
+            raise place.fail(
+                k,
+                f"column setup: setup {_short(sid)} does not deliver {ax}/{tm} (it delivers {', '.join(entry.terms)})",
+            )
     frame["setup"] = pd.array(setup.tolist(), dtype="str")
 
 
@@ -1225,4 +1269,3 @@ def write_bundle(
         {"axis": "str", "term": "str", "direction": "int", "setup": "str"},
     )
     return root
-

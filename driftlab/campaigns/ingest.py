@@ -23,8 +23,19 @@ from driftlab.campaigns.partitions import start_day
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
 TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value", "campaign_start_day")
 TEMPERATURE_TYPES = ("int4", "int4", "float8", "float8", "int4")
-ERROR_COLUMNS = ("campaign_id", "seq", "time_s", "axis", "term", "position", "direction", "value", "sweep", "flags",
-                 "campaign_start_day")
+ERROR_COLUMNS = (
+    "campaign_id",
+    "seq",
+    "time_s",
+    "axis",
+    "term",
+    "position",
+    "direction",
+    "value",
+    "sweep",
+    "flags",
+    "campaign_start_day",
+)
 
 
 class SweepCounter:
@@ -66,12 +77,17 @@ class SweepCounter:
 
 def sweep_numbers(errors: pd.DataFrame) -> np.ndarray:
     """Return a sweep number per error row (see SweepCounter) of a whole frame."""
-    return SweepCounter().numbers(errors["axis"].to_numpy(), errors["term"].to_numpy(),
-                                  errors["direction"].to_numpy(), errors["position"].to_numpy())
+    return SweepCounter().numbers(
+        errors["axis"].to_numpy(),
+        errors["term"].to_numpy(),
+        errors["direction"].to_numpy(),
+        errors["position"].to_numpy(),
+    )
 
 
-def _copy_rows(conn: Connection, table: str, columns: Sequence[str], types: Sequence[str],
-               rows: Iterable[Sequence[Any]]) -> None:
+def _copy_rows(
+    conn: Connection, table: str, columns: Sequence[str], types: Sequence[str], rows: Iterable[Sequence[Any]]
+) -> None:
     """Stream rows into a PostgreSQL table with binary COPY inside the current transaction."""
     raw = conn.connection.driver_connection
     cols = ", ".join(columns)
@@ -83,8 +99,14 @@ def _copy_rows(conn: Connection, table: str, columns: Sequence[str], types: Sequ
                 write(row)
 
 
-def bulk_insert(conn: Connection, table: str, columns: Sequence[str], pg_types: Sequence[str],
-                rows: Iterable[Sequence[Any]], into: str | None = None) -> None:
+def bulk_insert(
+    conn: Connection,
+    table: str,
+    columns: Sequence[str],
+    pg_types: Sequence[str],
+    rows: Iterable[Sequence[Any]],
+    into: str | None = None,
+) -> None:
     """Insert many rows fast in the connection's transaction: binary COPY or sqlite3 executemany.
 
     ``into`` names the partition of ``table`` every row belongs to, when known (PostgreSQL).
@@ -110,8 +132,13 @@ def _nullable(values: np.ndarray, postgres: bool) -> list[Any]:
     return obj.tolist()
 
 
-def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable,
-                     postgres: bool, start_day: int) -> Iterable[tuple[Any, ...]]:
+def temperature_rows(
+    campaign_id: int,
+    channel_ids: Sequence[int],
+    temperatures: pd.DataFrame | ColumnTable,
+    postgres: bool,
+    start_day: int,
+) -> Iterable[tuple[Any, ...]]:
     """Return (campaign, channel, time, value, start day) rows channel by channel: primary-key order, so appends.
 
     The rows are chained C-level zips (no Python frame per row): the per-row cost is the driver's.
@@ -135,10 +162,35 @@ def temperature_rows(campaign_id: int, channel_ids: Sequence[int], temperatures:
 # file header, then per row a field count and (length, big-endian value) per field, NULL as length -1.
 _PG_HEADER = b"PGCOPY\n\xff\r\n\x00" + (0).to_bytes(4, "big") + (0).to_bytes(4, "big")
 _PG_TRAILER = (-1).to_bytes(2, "big", signed=True)
-_ROW = np.dtype([("n", ">i2"), ("l1", ">i4"), ("c", ">i4"), ("l2", ">i4"), ("ch", ">i4"), ("l3", ">i4"),
-                 ("t", ">f8"), ("l4", ">i4"), ("v", ">f8"), ("l5", ">i4"), ("d", ">i4")])
-_ROW_NULL = np.dtype([("n", ">i2"), ("l1", ">i4"), ("c", ">i4"), ("l2", ">i4"), ("ch", ">i4"), ("l3", ">i4"),
-                      ("t", ">f8"), ("l4", ">i4"), ("l5", ">i4"), ("d", ">i4")])
+_ROW = np.dtype(
+    [
+        ("n", ">i2"),
+        ("l1", ">i4"),
+        ("c", ">i4"),
+        ("l2", ">i4"),
+        ("ch", ">i4"),
+        ("l3", ">i4"),
+        ("t", ">f8"),
+        ("l4", ">i4"),
+        ("v", ">f8"),
+        ("l5", ">i4"),
+        ("d", ">i4"),
+    ]
+)
+_ROW_NULL = np.dtype(
+    [
+        ("n", ">i2"),
+        ("l1", ">i4"),
+        ("c", ">i4"),
+        ("l2", ">i4"),
+        ("ch", ">i4"),
+        ("l3", ">i4"),
+        ("t", ">f8"),
+        ("l4", ">i4"),
+        ("l5", ">i4"),
+        ("d", ">i4"),
+    ]
+)
 
 
 def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray | None, start_day: int) -> bytes:
@@ -153,8 +205,14 @@ def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray
     return arr.tobytes()
 
 
-def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequence[int],
-                         temperatures: pd.DataFrame | ColumnTable, start_day: int, chunk_rows: int = 200_000) -> None:
+def copy_temperatures_pg(
+    conn: Connection,
+    campaign_id: int,
+    channel_ids: Sequence[int],
+    temperatures: pd.DataFrame | ColumnTable,
+    start_day: int,
+    chunk_rows: int = 200_000,
+) -> None:
     """Stream a wide temperature table into temperature_samples with binary COPY, in key order.
 
     ``start_day`` is the campaign's partition key (``partitions.start_day``); its partition must exist.
@@ -172,7 +230,7 @@ def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequen
                 for t_all, v_all in zip(table.column("time_s"), table.column(name), strict=True):
                     t_all, v_all = np.asarray(t_all, dtype="f8"), np.asarray(v_all, dtype="f8")
                     for lo in range(0, len(t_all), chunk_rows):
-                        t, v = t_all[lo:lo + chunk_rows], v_all[lo:lo + chunk_rows]
+                        t, v = t_all[lo : lo + chunk_rows], v_all[lo : lo + chunk_rows]
                         missing = np.isnan(v)
                         if not missing.any():
                             cp.write(_encode_rows(campaign_id, channel_id, t, v, start_day))
@@ -180,8 +238,9 @@ def copy_temperatures_pg(conn: Connection, campaign_id: int, channel_ids: Sequen
                         # rows keep key order: runs of present and missing values alternate
                         edges = np.flatnonzero(np.diff(missing.astype(np.int8))) + 1
                         for a, b in zip(np.r_[0, edges], np.r_[edges, len(v)], strict=True):
-                            cp.write(_encode_rows(campaign_id, channel_id, t[a:b], None if missing[a] else v[a:b],
-                                                  start_day))
+                            cp.write(
+                                _encode_rows(campaign_id, channel_id, t[a:b], None if missing[a] else v[a:b], start_day)
+                            )
             cp.write(_PG_TRAILER)
 
 
@@ -219,8 +278,9 @@ def rollups_pay_chunks(chunks: Iterable[Any]) -> bool:
     return bool(n_rows and n_minutes * ROLLUP_MIN_SCANS_PER_ROW <= n_rows)
 
 
-def rollup_rows(campaign_id: int, channel_ids: Sequence[int],
-                temperatures: pd.DataFrame | ColumnTable) -> Iterator[tuple[Any, ...]]:
+def rollup_rows(
+    campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable
+) -> Iterator[tuple[Any, ...]]:
     """Yield per channel and minute (count, present count, min, sum, max) rows of a wide table.
 
     Scans are in time order, so a minute is a run of consecutive rows; a run cut by the end of a
@@ -256,8 +316,16 @@ def _rollups(campaign_id: int, channel_id: int, minute: np.ndarray, v: np.ndarra
         vmax = np.fmax.reduceat(v, starts)
     vsum = np.add.reduceat(np.where(present, v, 0.0), starts)
     vsum[n_values == 0] = np.nan
-    yield from zip(repeat(campaign_id), repeat(channel_id), minute[starts].tolist(), n.tolist(), n_values.tolist(),
-                   _nullable(vmin, True), _nullable(vsum, True), _nullable(vmax, True))
+    yield from zip(
+        repeat(campaign_id),
+        repeat(channel_id),
+        minute[starts].tolist(),
+        n.tolist(),
+        n_values.tolist(),
+        _nullable(vmin, True),
+        _nullable(vsum, True),
+        _nullable(vmax, True),
+    )
 
 
 def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) -> Any:
@@ -293,8 +361,13 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     if machine is None:
         # ON CONFLICT DO NOTHING: two imports of a new machine at once both see no row; the second
         # insert then waits for the first to commit and keeps its row instead of failing on the key
-        values = dict(id=meta.machine.id, name=meta.machine.name, resolution_mm=meta.machine.resolution_mm,
-                      resolution_deg=meta.machine.resolution_deg, created_at=sc.utcnow())
+        values = dict(
+            id=meta.machine.id,
+            name=meta.machine.name,
+            resolution_mm=meta.machine.resolution_mm,
+            resolution_deg=meta.machine.resolution_deg,
+            created_at=sc.utcnow(),
+        )
         conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(**values))
     cond_cols = None if bundle.conditions is None else list(bundle.conditions.columns)
     temperatures = as_table(bundle.temperatures)
@@ -302,9 +375,16 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     campaign_id = conn.execute(
         insert(sc.Campaign)
         .values(
-            machine_id=meta.machine.id, name=bundle.name, started_at=meta.started_at, status="done",
-            source="import", content_hash=content_hash, meta=meta.document(), conditions_columns=cond_cols,
-            rollups_complete=rollups, created_at=sc.utcnow(),
+            machine_id=meta.machine.id,
+            name=bundle.name,
+            started_at=meta.started_at,
+            status="done",
+            source="import",
+            content_hash=content_hash,
+            meta=meta.document(),
+            conditions_columns=cond_cols,
+            rollups_complete=rollups,
+            created_at=sc.utcnow(),
         )
         .returning(sc.Campaign.id)
     ).scalar_one()
@@ -312,9 +392,18 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
         conn.execute(
             insert(sc.Stage),
             [
-                {"campaign_id": campaign_id, "ordinal": k, "name": s.name, "heat_source": s.heat_source,
-                 "axis": s.axis, "spindle_rpm": s.spindle_rpm, "feed_mm_min": s.feed_mm_min,
-                 "start_s": s.start_s, "end_s": s.end_s, "status": "done"}
+                {
+                    "campaign_id": campaign_id,
+                    "ordinal": k,
+                    "name": s.name,
+                    "heat_source": s.heat_source,
+                    "axis": s.axis,
+                    "spindle_rpm": s.spindle_rpm,
+                    "feed_mm_min": s.feed_mm_min,
+                    "start_s": s.start_s,
+                    "end_s": s.end_s,
+                    "status": "done",
+                }
                 for k, s in enumerate(meta.stages)
             ],
         )
@@ -323,9 +412,16 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     conn.execute(
         insert(sc.Channel),
         [
-            {"campaign_id": campaign_id, "ordinal": k, "name": name, "location": meta.channels[name].location,
-             "structure": meta.channels[name].structure, "is_room": name in room,
-             "calibration_slope": 1.0, "calibration_offset": 0.0}
+            {
+                "campaign_id": campaign_id,
+                "ordinal": k,
+                "name": name,
+                "location": meta.channels[name].location,
+                "structure": meta.channels[name].structure,
+                "is_room": name in room,
+                "calibration_slope": 1.0,
+                "calibration_offset": 0.0,
+            }
             for k, name in enumerate(names)
         ],
     )
@@ -335,31 +431,60 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     if postgres:
         copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
     else:
-        bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES,
-                    temperature_rows(campaign_id, channel_ids, temperatures, postgres, day))
+        bulk_insert(
+            conn,
+            "temperature_samples",
+            TEMPERATURE_COLUMNS,
+            TEMPERATURE_TYPES,
+            temperature_rows(campaign_id, channel_ids, temperatures, postgres, day),
+        )
 
     if rollups:
-        bulk_insert(conn, "temperature_rollups", ROLLUP_COLUMNS,
-                    ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
-                    rollup_rows(campaign_id, channel_ids, temperatures))
+        bulk_insert(
+            conn,
+            "temperature_rollups",
+            ROLLUP_COLUMNS,
+            ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
+            rollup_rows(campaign_id, channel_ids, temperatures),
+        )
 
     if bundle.conditions is not None:
         conditions = as_table(bundle.conditions)
         if conditions.n_rows:
-            bulk_insert(conn, "condition_samples",
-                        ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
-                        ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
-                        condition_rows(campaign_id, conditions, postgres, day),
-                        into=_into(conn, "condition_samples", day))
+            bulk_insert(
+                conn,
+                "condition_samples",
+                ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
+                ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
+                condition_rows(campaign_id, conditions, postgres, day),
+                into=_into(conn, "condition_samples", day),
+            )
 
     err_names: tuple[str, ...] = tuple(ERROR_COLUMNS)
-    types: tuple[str, ...] = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4",
-                              "int4", "int4")
+    types: tuple[str, ...] = (
+        "int4",
+        "int4",
+        "float8",
+        "varchar",
+        "varchar",
+        "float8",
+        "int2",
+        "float8",
+        "int4",
+        "int4",
+        "int4",
+    )
     if meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
         err_names += (*POSE_COLUMNS, "setup")
         types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
-    bulk_insert(conn, "error_samples", err_names, types, error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
-                into=_into(conn, "error_samples", day))
+    bulk_insert(
+        conn,
+        "error_samples",
+        err_names,
+        types,
+        error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
+        into=_into(conn, "error_samples", day),
+    )
     return int(campaign_id)
 
 
@@ -369,10 +494,15 @@ def condition_rows(campaign_id: int, conditions: ColumnTable, postgres: bool, da
     present = [c for c in CONDITION_VALUE_COLUMNS if c in conditions.columns]
     for chunk in conditions.chunks(["time_s", *present]):
         n = len(chunk["time_s"])
-        columns = [np.asarray(chunk[c], dtype="f8") if c in chunk else np.full(n, np.nan)
-                   for c in CONDITION_VALUE_COLUMNS]
-        yield from zip(repeat(campaign_id, n), np.asarray(chunk["time_s"], dtype="f8").tolist(),
-                       *[_nullable(c, postgres) for c in columns], repeat(day, n))
+        columns = [
+            np.asarray(chunk[c], dtype="f8") if c in chunk else np.full(n, np.nan) for c in CONDITION_VALUE_COLUMNS
+        ]
+        yield from zip(
+            repeat(campaign_id, n),
+            np.asarray(chunk["time_s"], dtype="f8").tolist(),
+            *[_nullable(c, postgres) for c in columns],
+            repeat(day, n),
+        )
 
 
 def error_rows(campaign_id: int, errors: ColumnTable, v2: bool, day: int) -> Iterator[tuple[Any, ...]]:
@@ -383,31 +513,53 @@ def error_rows(campaign_id: int, errors: ColumnTable, v2: bool, day: int) -> Ite
         n = len(chunk["time_s"])
         axis, term = [str(v) for v in chunk["axis"]], [str(v) for v in chunk["term"]]
         direction = np.asarray(chunk["direction"], dtype="i8")
-        numbers = sweeps.numbers(np.asarray(axis, dtype=object), np.asarray(term, dtype=object), direction,
-                                 np.asarray(chunk["position"], dtype="f8"))
+        numbers = sweeps.numbers(
+            np.asarray(axis, dtype=object),
+            np.asarray(term, dtype=object),
+            direction,
+            np.asarray(chunk["position"], dtype="f8"),
+        )
         columns: tuple[Any, ...] = (
-            repeat(campaign_id, n), range(seq, seq + n), np.asarray(chunk["time_s"], dtype="f8").tolist(), axis,
-            term, np.asarray(chunk["position"], dtype="f8").tolist(), direction.tolist(),
-            np.asarray(chunk["value"], dtype="f8").tolist(), numbers.tolist(), repeat(0, n), repeat(day, n),
+            repeat(campaign_id, n),
+            range(seq, seq + n),
+            np.asarray(chunk["time_s"], dtype="f8").tolist(),
+            axis,
+            term,
+            np.asarray(chunk["position"], dtype="f8").tolist(),
+            direction.tolist(),
+            np.asarray(chunk["value"], dtype="f8").tolist(),
+            numbers.tolist(),
+            repeat(0, n),
+            repeat(day, n),
         )
         if v2:
-            columns += (*(np.asarray(chunk[c], dtype="f8").tolist() for c in POSE_COLUMNS),
-                        [str(v) for v in chunk["setup"]])
+            columns += (
+                *(np.asarray(chunk[c], dtype="f8").tolist() for c in POSE_COLUMNS),
+                [str(v) for v in chunk["setup"]],
+            )
         yield from zip(*columns)
         seq += n
 
 
 def refresh_rollups(conn: Connection, campaign_id: int) -> int:
     """Recompute a campaign's per-minute rollups from its stored readings; return the row count."""
-    minute = "CAST(FLOOR(time_s / 60.0) AS INTEGER)" if conn.dialect.name == "postgresql" else (
-        "CAST(time_s / 60.0 AS INTEGER)")  # time_s >= 0: truncation is floor on SQLite
+    minute = (
+        "CAST(FLOOR(time_s / 60.0) AS INTEGER)"
+        if conn.dialect.name == "postgresql"
+        else ("CAST(time_s / 60.0 AS INTEGER)")
+    )  # time_s >= 0: truncation is floor on SQLite
     conn.execute(text("DELETE FROM temperature_rollups WHERE campaign_id = :c"), {"c": campaign_id})
     conn.execute(
-        text(f"INSERT INTO temperature_rollups ({', '.join(ROLLUP_COLUMNS)}) "
-             f"SELECT campaign_id, channel_id, {minute}, COUNT(*), COUNT(value), MIN(value), SUM(value), MAX(value) "
-             f"FROM temperature_samples WHERE campaign_id = :c GROUP BY campaign_id, channel_id, {minute}"),
+        text(
+            f"INSERT INTO temperature_rollups ({', '.join(ROLLUP_COLUMNS)}) "
+            f"SELECT campaign_id, channel_id, {minute}, COUNT(*), COUNT(value), MIN(value), SUM(value), MAX(value) "
+            f"FROM temperature_samples WHERE campaign_id = :c GROUP BY campaign_id, channel_id, {minute}"
+        ),
         {"c": campaign_id},
     )
     conn.execute(text("UPDATE campaigns SET rollups_complete = :t WHERE id = :c"), {"c": campaign_id, "t": True})
-    return int(conn.execute(text("SELECT COUNT(*) FROM temperature_rollups WHERE campaign_id = :c"),
-                            {"c": campaign_id}).scalar_one())
+    return int(
+        conn.execute(
+            text("SELECT COUNT(*) FROM temperature_rollups WHERE campaign_id = :c"), {"c": campaign_id}
+        ).scalar_one()
+    )

@@ -50,14 +50,17 @@ def live_marks(engine: Engine, recent_done: bool = True) -> dict[int, dict[str, 
         if recent_done and latest is not None:
             cond = or_(cond, sc.Campaign.id == latest)
         rows = s.execute(
-            select(sc.Campaign.id, sc.Campaign.status, sc.AcquisitionProgress.updated_at,
-                   sc.AcquisitionProgress.last_sample_time_s)
+            select(
+                sc.Campaign.id,
+                sc.Campaign.status,
+                sc.AcquisitionProgress.updated_at,
+                sc.AcquisitionProgress.last_sample_time_s,
+            )
             .join(sc.AcquisitionProgress, sc.AcquisitionProgress.campaign_id == sc.Campaign.id)
             .where(and_(sc.Campaign.source == "daemon", cond))
             .order_by(sc.Campaign.id)
         ).all()
-    return {r.id: {"status": r.status, "updated_at": _iso(r.updated_at), "time_s": r.last_sample_time_s}
-            for r in rows}
+    return {r.id: {"status": r.status, "updated_at": _iso(r.updated_at), "time_s": r.last_sample_time_s} for r in rows}
 
 
 def find_campaign(engine: Engine, campaign: str | int) -> int | None:
@@ -83,8 +86,11 @@ def header(engine: Engine, campaign_id: int) -> dict[str, Any] | None:
         if row is None:
             return None
         camp, prog = row
-        stages = s.execute(select(sc.Stage).where(sc.Stage.campaign_id == campaign_id)
-                           .order_by(sc.Stage.ordinal)).scalars().all()
+        stages = (
+            s.execute(select(sc.Stage).where(sc.Stage.campaign_id == campaign_id).order_by(sc.Stage.ordinal))
+            .scalars()
+            .all()
+        )
         return _header(camp, prog, list(stages))
 
 
@@ -103,11 +109,20 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
     stage_rows: list[dict[str, Any]] = []
     for st in stages:
         extra = meta_stages[st.ordinal] if st.ordinal < len(meta_stages) else {}
-        stage_rows.append({
-            "ordinal": st.ordinal, "name": st.name, "heat_source": st.heat_source, "axis": st.axis,
-            "spindle_rpm": st.spindle_rpm, "feed_mm_min": st.feed_mm_min, "start_s": st.start_s,
-            "end_s": st.end_s, "status": st.status, "setup": _setup(extra.get("setup"), setups),
-        })
+        stage_rows.append(
+            {
+                "ordinal": st.ordinal,
+                "name": st.name,
+                "heat_source": st.heat_source,
+                "axis": st.axis,
+                "spindle_rpm": st.spindle_rpm,
+                "feed_mm_min": st.feed_mm_min,
+                "start_s": st.start_s,
+                "end_s": st.end_s,
+                "status": st.status,
+                "setup": _setup(extra.get("setup"), setups),
+            }
+        )
     current = next((r for r in stage_rows if r["ordinal"] == prog.stage_ordinal), None)
     # simulated campaigns run at `speed` campaign seconds per wall second; real ones at 1
     speed = origin.get("speed") if origin.get("mode") == "sim" else 1.0
@@ -123,22 +138,39 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
         total_left = 0.0 if camp.status == "done" else total_left
     started = camp.started_at
     return {
-        "campaign_id": camp.id, "name": camp.name, "machine": camp.machine_id, "status": camp.status,
-        "mode": origin.get("mode"), "speed": speed, "scenario": origin.get("scenario"),
-        "started_at": _iso(started), "updated_at": _iso(prog.updated_at),
-        "stages": stage_rows, "stage": current,
+        "campaign_id": camp.id,
+        "name": camp.name,
+        "machine": camp.machine_id,
+        "status": camp.status,
+        "mode": origin.get("mode"),
+        "speed": speed,
+        "scenario": origin.get("scenario"),
+        "started_at": _iso(started),
+        "updated_at": _iso(prog.updated_at),
+        "stages": stage_rows,
+        "stage": current,
         "progress": {
-            "scans": scans, "n_scans": n_scans, "points": points, "n_points": n_points,
+            "scans": scans,
+            "n_scans": n_scans,
+            "points": points,
+            "n_points": n_points,
             "fraction": round((scans + points) / (n_scans + n_points), 6) if n_scans + n_points else 0.0,
-            "time_s": t, "total_s": total_s, "stage_fraction": stage_frac,
-            "stage_left_s": stage_left, "total_left_s": total_left,
+            "time_s": t,
+            "total_s": total_s,
+            "stage_fraction": stage_frac,
+            "stage_left_s": stage_left,
+            "total_left_s": total_left,
             "stage_left_wall_s": None if stage_left is None or not speed else stage_left / speed,
             "total_left_wall_s": None if total_left is None or not speed else total_left / speed,
         },
-        "latest": None if not last_scan else {
-            "time_s": last_scan.get("t_s"), "values": dict(last_scan.get("values") or {}),
+        "latest": None
+        if not last_scan
+        else {
+            "time_s": last_scan.get("t_s"),
+            "values": dict(last_scan.get("values") or {}),
             "at": _iso(started + timedelta(seconds=float(last_scan["t_s"])))
-            if started and last_scan.get("t_s") is not None else None,
+            if started and last_scan.get("t_s") is not None
+            else None,
         },
         "last_point": cur.get("last_point"),
         "health": _health(cur, last_scan),
@@ -176,21 +208,40 @@ def _health(cur: dict[str, Any], last_scan: dict[str, Any] | None) -> dict[str, 
         timeouts += any(w in str(f.get("message", "")).lower() for w in TIMEOUT_WORDS)
     values = (last_scan or {}).get("values") or {}
     open_tc = sorted((k for k, v in values.items() if v is None), key=_natural)
-    return {"faults": int(cur.get("faults", 0)), "by_instrument": by_inst, "timeouts": timeouts,
-            "counted_over": len(recent), "retries": cur.get("retries"), "open": open_tc, "recent": recent[-5:]}
+    return {
+        "faults": int(cur.get("faults", 0)),
+        "by_instrument": by_inst,
+        "timeouts": timeouts,
+        "counted_over": len(recent),
+        "retries": cur.get("retries"),
+        "open": open_tc,
+        "recent": recent[-5:],
+    }
 
 
 def channels(engine: Engine, campaign_id: int) -> list[dict[str, Any]]:
     """Return the campaign's thermocouples in scan order: name, location, structure, room flag, id."""
     with Session(engine) as s:
-        rows = s.execute(select(sc.Channel).where(sc.Channel.campaign_id == campaign_id)
-                         .order_by(sc.Channel.ordinal)).scalars().all()
-        return [{"id": c.id, "name": c.name, "location": c.location, "structure": c.structure or "unspecified",
-                 "room": bool(c.is_room)} for c in rows]
+        rows = (
+            s.execute(select(sc.Channel).where(sc.Channel.campaign_id == campaign_id).order_by(sc.Channel.ordinal))
+            .scalars()
+            .all()
+        )
+        return [
+            {
+                "id": c.id,
+                "name": c.name,
+                "location": c.location,
+                "structure": c.structure or "unspecified",
+                "room": bool(c.is_room),
+            }
+            for c in rows
+        ]
 
 
-def temperature_buckets(engine: Engine, campaign_id: int, chans: list[dict[str, Any]], after_s: float | None,
-                        width_s: float) -> dict[str, Any]:
+def temperature_buckets(
+    engine: Engine, campaign_id: int, chans: list[dict[str, Any]], after_s: float | None, width_s: float
+) -> dict[str, Any]:
     """Return the mean temperature of each channel per bucket of ``width_s`` after ``after_s`` (None: all).
 
     ``{"width_s", "b": [...], "t": [...], "values": {channel: [...]}}`` with buckets in time order;
@@ -202,8 +253,9 @@ def temperature_buckets(engine: Engine, campaign_id: int, chans: list[dict[str, 
         return out
     ts = sc.TemperatureSample
     b = func.floor(ts.time_s / width_s)
-    q = (select(ts.channel_id, b.label("b"), func.max(ts.time_s), func.avg(ts.value))
-         .where(ts.campaign_id == campaign_id, ts.channel_id.in_(list(ids))))
+    q = select(ts.channel_id, b.label("b"), func.max(ts.time_s), func.avg(ts.value)).where(
+        ts.campaign_id == campaign_id, ts.channel_id.in_(list(ids))
+    )
     if after_s is not None:
         q = q.where(ts.time_s > after_s)
     q = q.group_by(ts.channel_id, b)
@@ -223,8 +275,13 @@ def temperature_buckets(engine: Engine, campaign_id: int, chans: list[dict[str, 
     return out
 
 
-def error_readings(engine: Engine, campaign_id: int, after_seq: int | None = None, since_s: float | None = None,
-                   limit: int = MAX_ERRORS) -> dict[str, list[Any]]:
+def error_readings(
+    engine: Engine,
+    campaign_id: int,
+    after_seq: int | None = None,
+    since_s: float | None = None,
+    limit: int = MAX_ERRORS,
+) -> dict[str, list[Any]]:
     """Return the error readings after ``after_seq`` (or from campaign time ``since_s``), at most ``limit``,
     latest kept.
 
@@ -232,7 +289,8 @@ def error_readings(engine: Engine, campaign_id: int, after_seq: int | None = Non
     """
     es = sc.ErrorSample
     q = select(es.seq, es.time_s, es.axis, es.term, es.position, es.direction, es.value, es.sweep).where(
-        es.campaign_id == campaign_id)
+        es.campaign_id == campaign_id
+    )
     if after_seq is not None:
         q = q.where(es.seq > after_seq)
     if since_s is not None:
@@ -251,8 +309,9 @@ def latest_seq(engine: Engine, campaign_id: int) -> int:
     return -1 if v is None else int(v)
 
 
-def snapshot(engine: Engine, campaign_id: int, window_s: float = WINDOW_S,
-             max_points: int = MAX_POINTS) -> dict[str, Any] | None:
+def snapshot(
+    engine: Engine, campaign_id: int, window_s: float = WINDOW_S, max_points: int = MAX_POINTS
+) -> dict[str, Any] | None:
     """Return everything the live page draws for one campaign: header, channels, the strip-chart window, errors."""
     head = header(engine, campaign_id)
     if head is None:
@@ -265,13 +324,18 @@ def snapshot(engine: Engine, campaign_id: int, window_s: float = WINDOW_S,
     after = None if since is None or since <= 0 else math.floor(since / width) * width - 1e-9
     temps = temperature_buckets(engine, campaign_id, chans, after, width)
     errors = error_readings(engine, campaign_id, since_s=since)
-    return {**head, "window_s": window_s,
-            "channels": [{k: c[k] for k in ("name", "location", "structure", "room")} for c in chans],
-            "temperatures": temps, "errors": errors}
+    return {
+        **head,
+        "window_s": window_s,
+        "channels": [{k: c[k] for k in ("name", "location", "structure", "room")} for c in chans],
+        "temperatures": temps,
+        "errors": errors,
+    }
 
 
-def update(engine: Engine, campaign_id: int, chans: list[dict[str, Any]], after_s: float | None, after_seq: int,
-           width_s: float) -> dict[str, Any] | None:
+def update(
+    engine: Engine, campaign_id: int, chans: list[dict[str, Any]], after_s: float | None, after_seq: int, width_s: float
+) -> dict[str, Any] | None:
     """Return a campaign's header with the temperature buckets from the one holding ``after_s`` and errors
     after ``after_seq``."""
     head = header(engine, campaign_id)
@@ -279,8 +343,11 @@ def update(engine: Engine, campaign_id: int, chans: list[dict[str, Any]], after_
         return None
     # re-read the last bucket already sent (it may have gained scans): the reader replaces it
     start = None if after_s is None else math.floor(after_s / width_s) * width_s - 1e-9
-    return {**head, "temperatures": temperature_buckets(engine, campaign_id, chans, start, width_s),
-            "errors": error_readings(engine, campaign_id, after_seq=after_seq)}
+    return {
+        **head,
+        "temperatures": temperature_buckets(engine, campaign_id, chans, start, width_s),
+        "errors": error_readings(engine, campaign_id, after_seq=after_seq),
+    }
 
 
 def _iso(t: datetime | None) -> str | None:
@@ -293,7 +360,7 @@ def _iso(t: datetime | None) -> str | None:
 def _natural(name: str) -> tuple[Any, ...]:
     """Return a sort key that orders T2 before T10."""
     head = name.rstrip("0123456789")
-    tail = name[len(head):]
+    tail = name[len(head) :]
     return (head, int(tail) if tail else -1)
 
 

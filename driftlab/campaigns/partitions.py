@@ -100,9 +100,13 @@ class Partition:
 
 def partitions(conn: Connection, table: str) -> list[Partition]:
     """Return the partitions of a reading table (PostgreSQL), ordered by their lower bound."""
-    rows = conn.execute(text(
-        "SELECT c.relname, pg_get_expr(c.relpartbound, c.oid) FROM pg_inherits i "
-        "JOIN pg_class c ON c.oid = i.inhrelid WHERE i.inhparent = to_regclass(:t)"), {"t": table}).all()
+    rows = conn.execute(
+        text(
+            "SELECT c.relname, pg_get_expr(c.relpartbound, c.oid) FROM pg_inherits i "
+            "JOIN pg_class c ON c.oid = i.inhrelid WHERE i.inhparent = to_regclass(:t)"
+        ),
+        {"t": table},
+    ).all()
     out = []
     for name, bound in rows:
         m = _BOUND.search(bound or "")
@@ -146,8 +150,7 @@ def missing(conn: Connection, days: Iterable[int], tables: Iterable[str] = PARTI
     return out
 
 
-def create_partitions(conn: Connection, days: Iterable[int],
-                      tables: Iterable[str] = PARTITIONED_TABLES) -> list[str]:
+def create_partitions(conn: Connection, days: Iterable[int], tables: Iterable[str] = PARTITIONED_TABLES) -> list[str]:
     """Create, in the caller's transaction, the partitions missing for ``days``; return their names.
 
     Takes the partition advisory lock (held until the caller's transaction ends) and looks again
@@ -161,8 +164,9 @@ def create_partitions(conn: Connection, days: Iterable[int],
     for p in missing(conn, days, tables):
         # a plain table first, then ATTACH: SHARE UPDATE EXCLUSIVE on the parent instead of the
         # ACCESS EXCLUSIVE of CREATE TABLE ... PARTITION OF (which would queue behind every reader)
-        conn.execute(text(f"CREATE TABLE {p.name} (LIKE {p.table} INCLUDING DEFAULTS INCLUDING CONSTRAINTS "
-                          "INCLUDING STORAGE)"))
+        conn.execute(
+            text(f"CREATE TABLE {p.name} (LIKE {p.table} INCLUDING DEFAULTS INCLUDING CONSTRAINTS INCLUDING STORAGE)")
+        )
         conn.execute(text(f"ALTER TABLE {p.table} ATTACH PARTITION {p.name} FOR VALUES FROM ({p.lo}) TO ({p.hi})"))
         made.append(p.name)
     if made:
@@ -222,9 +226,15 @@ def analyze_new(conn: Connection, tables: Iterable[str]) -> list[str]:
     names = list(tables)
     if not names:
         return []
-    fresh = set(conn.execute(text(
-        "SELECT relname FROM pg_stat_user_tables WHERE relname = ANY(:names) "
-        "AND last_analyze IS NULL AND last_autoanalyze IS NULL"), {"names": names}).scalars())
+    fresh = set(
+        conn.execute(
+            text(
+                "SELECT relname FROM pg_stat_user_tables WHERE relname = ANY(:names) "
+                "AND last_analyze IS NULL AND last_autoanalyze IS NULL"
+            ),
+            {"names": names},
+        ).scalars()
+    )
     todo = [n for n in names if n in fresh]
     if todo:
         conn.execute(text(f"ANALYZE {', '.join(todo)}"))
@@ -242,7 +252,13 @@ def describe(conn: Connection) -> list[dict[str, Any]]:
     for table in PARTITIONED_TABLES:
         for p in partitions(conn, table):
             size = conn.execute(text("SELECT pg_total_relation_size(to_regclass(:n))"), {"n": p.name}).scalar()
-            out.append({"table": table, "partition": p.name,
-                        "from": None if p.lo is None else day_date(p.lo).isoformat(),
-                        "to": None if p.hi is None else day_date(p.hi).isoformat(), "bytes": int(size or 0)})
+            out.append(
+                {
+                    "table": table,
+                    "partition": p.name,
+                    "from": None if p.lo is None else day_date(p.lo).isoformat(),
+                    "to": None if p.hi is None else day_date(p.hi).isoformat(),
+                    "bytes": int(size or 0),
+                }
+            )
     return out

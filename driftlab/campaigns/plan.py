@@ -156,7 +156,8 @@ class Stage(_Strict):
     duration_s: float = Field(gt=0)
     sweep: Sweep | None = None
     setup: str | None = Field(
-        default=None, description="id of the plan's setup mounted in this stage (default: a laser for sweep.term)")
+        default=None, description="id of the plan's setup mounted in this stage (default: a laser for sweep.term)"
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> Stage:
@@ -243,9 +244,11 @@ class MachineRef(_Strict):
     channels: Literal["from scenario"] | dict[str, ChannelInfo] = FROM_SCENARIO
     room_channels: list[str] = Field(default_factory=list)
     travel: dict[Axis, tuple[float, float]] = Field(
-        default_factory=dict, description="travel limits per axis (mm; degrees for A, B): moves must stay inside")
+        default_factory=dict, description="travel limits per axis (mm; degrees for A, B): moves must stay inside"
+    )
     geometry: Geometry | None = Field(
-        default=None, description="the machine's stated lengths for table 6.3 (campaign.json machine.geometry)")
+        default=None, description="the machine's stated lengths for table 6.3 (campaign.json machine.geometry)"
+    )
 
     @model_validator(mode="after")
     def _rooms_known(self) -> MachineRef:
@@ -296,8 +299,9 @@ class Plan(_Strict):
                 known = ", ".join(sorted(self.setups)) or "none"
                 raise ValueError(f"{where}: setup {stage.setup!r} is not among the plan's setups ({known})")
             if setup.axis != stage.axis:
-                raise ValueError(f"{where}: setup {stage.setup!r} measures the {setup.axis} axis, "
-                                 f"the stage moves {stage.axis}")
+                raise ValueError(
+                    f"{where}: setup {stage.setup!r} measures the {setup.axis} axis, the stage moves {stage.axis}"
+                )
             if stage.sweep is None:
                 raise ValueError(f"{where}: setup {stage.setup!r} is mounted but the stage has no sweep")
             limit = setup.range_deg()
@@ -306,15 +310,17 @@ class Plan(_Strict):
                 if out:
                     raise ValueError(
                         f"{where}: sweep positions {', '.join(f'{p:g}' for p in out)} deg are beyond the angular "
-                        f"optics' +-{limit:g} deg (fig. 5.9; mount the counter-rotating table, fig. 5.10)")
+                        f"optics' +-{limit:g} deg (fig. 5.9; mount the counter-rotating table, fig. 5.10)"
+                    )
         for i, what, axis, values, lo, hi in self.travel_violations(self.machine.travel):
             stage = self.stages[i]
             where = f"stages[{i}] ({stage.name})"
             if what == "sweep":
                 raise ValueError(f"{where}: sweep positions {values} outside the {axis} travel {lo:g}..{hi:g}")
             if what == "pose":
-                raise ValueError(f"{where}: setup {stage.setup!r} stands {axis} at {values}, "
-                                 f"outside its travel {lo:g}..{hi:g}")
+                raise ValueError(
+                    f"{where}: setup {stage.setup!r} stands {axis} at {values}, outside its travel {lo:g}..{hi:g}"
+                )
             raise ValueError(f"{where}: {axis} oscillation {values} outside its travel {lo:g}..{hi:g}")
         return self
 
@@ -349,6 +355,7 @@ class Plan(_Strict):
         ``travel`` maps an axis to its (lo, hi) limits (mm; degrees for A, B); axes it lacks are not
         checked. Per stage: sweep positions, then the setup's stand of the other axes, then oscillations.
         """
+
         def inside(v: float, lim: tuple[float, float]) -> bool:
             return lim[0] - 1e-9 <= v <= lim[1] + 1e-9
 
@@ -359,7 +366,7 @@ class Plan(_Strict):
                 if out:
                     yield i, "sweep", stage.axis, ", ".join(f"{p:g}" for p in out), *lim
             setup = self.setups.get(stage.setup) if stage.setup else None
-            for ax, v in (setup.pose.items() if setup else ()):
+            for ax, v in setup.pose.items() if setup else ():
                 lim = travel.get(ax)
                 if lim is not None and not inside(v, lim):
                     yield i, "pose", ax, f"{v:g}", *lim
@@ -450,10 +457,18 @@ class Plan(_Strict):
                 for n, (pos, d) in enumerate(stage.sweep.points()):
                     out.append(
                         SweepPoint(
-                            index=len(out), t_s=t0 + n * stage.sweep.point_s, stage=i, sweep=m, axis=stage.axis,
-                            position=pos, direction=d, samples=stage.sweep.samples, term=setup.terms[0],
+                            index=len(out),
+                            t_s=t0 + n * stage.sweep.point_s,
+                            stage=i,
+                            sweep=m,
+                            axis=stage.axis,
+                            position=pos,
+                            direction=d,
+                            samples=stage.sweep.samples,
+                            term=setup.terms[0],
                             move_s=t0 + n * stage.sweep.point_s - stage.sweep.move_lead_s(),
-                            setup=setup_id, terms=tuple(setup.terms),
+                            setup=setup_id,
+                            terms=tuple(setup.terms),
                         )
                     )
                 m += 1
@@ -463,8 +478,13 @@ class Plan(_Strict):
         """Return the stages as bundle v1 campaign.json records."""
         return [
             {
-                "name": s.name, "start_s": a, "end_s": b, "heat_source": s.heat_label(), "axis": s.axis,
-                "spindle_rpm": s.spindle_rpm(), "feed_mm_min": s.feed_mm_min(),
+                "name": s.name,
+                "start_s": a,
+                "end_s": b,
+                "heat_source": s.heat_label(),
+                "axis": s.axis,
+                "spindle_rpm": s.spindle_rpm(),
+                "feed_mm_min": s.feed_mm_min(),
             }
             for s, (a, b) in zip(self.stages, self.stage_bounds())
         ]
@@ -591,7 +611,9 @@ def steps(plan: Plan, cursor: Cursor = Cursor(), points: list[SweepPoint] | None
         return iter(())
     t0 = cursor_time(plan, pts, cursor)
     streams: list[Iterator[Step]] = [
-        stage_starts(plan, t0), scans(plan, cursor.next_scan), sweep_points(pts, cursor.next_point),
+        stage_starts(plan, t0),
+        scans(plan, cursor.next_scan),
+        sweep_points(pts, cursor.next_point),
         moves(pts, cursor.next_point, t0),
     ]
     return heapq.merge(*streams, key=_step_key)

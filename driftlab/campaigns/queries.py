@@ -39,10 +39,18 @@ class CampaignSummary:
 
     def as_dict(self) -> dict[str, Any]:
         """Return the summary as a JSON-ready dict."""
-        return {"id": self.id, "machine_id": self.machine_id, "name": self.name,
-                "started_at": self.started_at.isoformat().replace("+00:00", "Z"), "status": self.status,
-                "source": self.source, "channels": self.channels, "scans": self.scans,
-                "error_samples": self.error_samples, "stages": self.stages}
+        return {
+            "id": self.id,
+            "machine_id": self.machine_id,
+            "name": self.name,
+            "started_at": self.started_at.isoformat().replace("+00:00", "Z"),
+            "status": self.status,
+            "source": self.source,
+            "channels": self.channels,
+            "scans": self.scans,
+            "error_samples": self.error_samples,
+            "stages": self.stages,
+        }
 
 
 def _campaign_row(conn: Connection, campaign_id: int) -> Any:
@@ -59,26 +67,45 @@ def list_campaigns(conn: Connection, machine_id: str | None = None) -> list[Camp
         q = q.where(sc.Campaign.machine_id == machine_id)
     out = []
     for c in conn.execute(q).all():
-        channels = conn.execute(
-            select(sc.Channel.id).where(sc.Channel.campaign_id == c.id).order_by(sc.Channel.ordinal)
-        ).scalars().all()
+        channels = (
+            conn.execute(select(sc.Channel.id).where(sc.Channel.campaign_id == c.id).order_by(sc.Channel.ordinal))
+            .scalars()
+            .all()
+        )
         scans = 0
         if channels:
             # one channel's key range (primary key prefix) counts the scans without a table scan
             scans = conn.execute(
-                select(func.count()).select_from(sc.TemperatureSample).where(
-                    sc.TemperatureSample.campaign_id == c.id, sc.TemperatureSample.channel_id == channels[0],
-                    sc.TemperatureSample.campaign_start_day == start_day(c.started_at))
+                select(func.count())
+                .select_from(sc.TemperatureSample)
+                .where(
+                    sc.TemperatureSample.campaign_id == c.id,
+                    sc.TemperatureSample.channel_id == channels[0],
+                    sc.TemperatureSample.campaign_start_day == start_day(c.started_at),
+                )
             ).scalar_one()
         errors = conn.execute(
-            select(func.count()).select_from(sc.ErrorSample).where(
-                sc.ErrorSample.campaign_id == c.id, sc.ErrorSample.campaign_start_day == start_day(c.started_at))
+            select(func.count())
+            .select_from(sc.ErrorSample)
+            .where(sc.ErrorSample.campaign_id == c.id, sc.ErrorSample.campaign_start_day == start_day(c.started_at))
         ).scalar_one()
         stages = conn.execute(
             select(func.count()).select_from(sc.Stage).where(sc.Stage.campaign_id == c.id)
         ).scalar_one()
-        out.append(CampaignSummary(c.id, c.machine_id, c.name, c.started_at, c.status, c.source,
-                                   len(channels), int(scans), int(errors), int(stages)))
+        out.append(
+            CampaignSummary(
+                c.id,
+                c.machine_id,
+                c.name,
+                c.started_at,
+                c.status,
+                c.source,
+                len(channels),
+                int(scans),
+                int(errors),
+                int(stages),
+            )
+        )
     return out
 
 
@@ -93,14 +120,27 @@ def _meta_from_tables(conn: Connection, campaign: Any) -> CampaignMeta:
     ).all()
     doc = {
         "format": "driftlab-bundle/1",
-        "machine": {"id": machine.id, "name": machine.name, "resolution_mm": machine.resolution_mm,
-                    "resolution_deg": machine.resolution_deg},
+        "machine": {
+            "id": machine.id,
+            "name": machine.name,
+            "resolution_mm": machine.resolution_mm,
+            "resolution_deg": machine.resolution_deg,
+        },
         "started_at": campaign.started_at,
         "channels": {c.name: {"location": c.location, "structure": c.structure} for c in channels},
         "room_channels": [c.name for c in channels if c.is_room],
-        "stages": [{"name": s.name, "start_s": s.start_s, "end_s": s.end_s if s.end_s is not None else s.start_s,
-                    "heat_source": s.heat_source, "axis": s.axis, "spindle_rpm": s.spindle_rpm,
-                    "feed_mm_min": s.feed_mm_min} for s in stages],
+        "stages": [
+            {
+                "name": s.name,
+                "start_s": s.start_s,
+                "end_s": s.end_s if s.end_s is not None else s.start_s,
+                "heat_source": s.heat_source,
+                "axis": s.axis,
+                "spindle_rpm": s.spindle_rpm,
+                "feed_mm_min": s.feed_mm_min,
+            }
+            for s in stages
+        ],
     }
     doc["machine"] = {k: v for k, v in doc["machine"].items() if v is not None}
     return CampaignMeta.model_validate(doc)
@@ -146,13 +186,24 @@ def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
             .order_by(sc.ConditionSample.time_s)
         ).all()
         arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(
-            len(rows), len(cols) + 1)
+            len(rows), len(cols) + 1
+        )
         conditions = pd.DataFrame(arr, columns=["time_s", *cols])
-    pose_cols = [sc.ErrorSample.x, sc.ErrorSample.y, sc.ErrorSample.z, sc.ErrorSample.a, sc.ErrorSample.b,
-                 sc.ErrorSample.setup] if meta.v2 else []
+    pose_cols = (
+        [sc.ErrorSample.x, sc.ErrorSample.y, sc.ErrorSample.z, sc.ErrorSample.a, sc.ErrorSample.b, sc.ErrorSample.setup]
+        if meta.v2
+        else []
+    )
     rows = conn.execute(
-        select(sc.ErrorSample.time_s, sc.ErrorSample.axis, sc.ErrorSample.term, sc.ErrorSample.position,
-               sc.ErrorSample.direction, sc.ErrorSample.value, *pose_cols)
+        select(
+            sc.ErrorSample.time_s,
+            sc.ErrorSample.axis,
+            sc.ErrorSample.term,
+            sc.ErrorSample.position,
+            sc.ErrorSample.direction,
+            sc.ErrorSample.value,
+            *pose_cols,
+        )
         .where(sc.ErrorSample.campaign_id == campaign_id, sc.ErrorSample.campaign_start_day == day)
         .order_by(sc.ErrorSample.seq)
     ).all()
@@ -205,7 +256,9 @@ def nearest_sql(directions: list[int]) -> str:
     """Return the statement of the drift at the nearest measured position, for these directions (+1/-1)."""
     candidates = "\n      UNION ALL".join(
         _NEAREST_CANDIDATES.format(where=_CAMPAIGN_TERM, d=int(d), op=op, order=order, alias=f"{alias}{k}")
-        for k, d in enumerate(directions) for op, order, alias in (("<=", "DESC", "below"), (">=", "", "above")))
+        for k, d in enumerate(directions)
+        for op, order, alias in (("<=", "DESC", "below"), (">=", "", "above"))
+    )
     return f"""
 SELECT time_s, position, direction, sweep, value FROM error_samples
 WHERE {_CAMPAIGN_TERM} AND direction IN ({", ".join(str(int(d)) for d in directions)})
@@ -245,8 +298,10 @@ def _directions(conn: Connection, params: dict[str, Any], direction: int | None)
     if direction is not None:
         return [direction]
     # direction is +1 or -1 (a check constraint): two index probes instead of a DISTINCT scan
-    probe = text("SELECT 1 FROM error_samples WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis "
-                 "AND term = :term AND direction = :d LIMIT 1")
+    probe = text(
+        "SELECT 1 FROM error_samples WHERE campaign_id = :c AND campaign_start_day = :day AND axis = :axis "
+        "AND term = :term AND direction = :d LIMIT 1"
+    )
     return [d for d in (-1, 1) if conn.execute(probe, {**params, "d": d}).first() is not None]
 
 
@@ -276,7 +331,8 @@ def drift(
     if conn.execute(select(sc.Machine.id).where(sc.Machine.id == machine_id)).first() is None:
         raise NotFoundError(f"no machine {machine_id!r}")
     campaigns = conn.execute(
-        select(sc.Campaign.id, sc.Campaign.started_at).where(sc.Campaign.machine_id == machine_id)
+        select(sc.Campaign.id, sc.Campaign.started_at)
+        .where(sc.Campaign.machine_id == machine_id)
         .order_by(sc.Campaign.started_at, sc.Campaign.id)
     ).all()
     dir_sql = "" if direction is None else "AND direction = :d"
@@ -286,8 +342,15 @@ def drift(
         t1 = np.inf if end is None else _seconds(end - started)
         if t1 < 0:
             continue
-        params: dict[str, Any] = {"c": cid, "day": start_day(started), "axis": axis, "term": term, "d": direction,
-                                  "t0": max(t0, -1e300), "t1": min(t1, 1e300)}
+        params: dict[str, Any] = {
+            "c": cid,
+            "day": start_day(started),
+            "axis": axis,
+            "term": term,
+            "d": direction,
+            "t0": max(t0, -1e300),
+            "t1": min(t1, 1e300),
+        }
         data: list[tuple[Any, ...]] = []
         if position is None:
             rows = conn.execute(text(_ALL_POSITIONS_SQL.format(dir=dir_sql)), params).all()
@@ -296,13 +359,17 @@ def drift(
             params["p"] = p = float(position)
             for d in _directions(conn, params, direction):
                 q = {**params, "d": d}
-                brackets = [r for r in conn.execute(text(_BRACKETS_SQL), q).all()
-                            if r[1] is not None and r[2] is not None]
+                brackets = [
+                    r for r in conn.execute(text(_BRACKETS_SQL), q).all() if r[1] is not None and r[2] is not None
+                ]
                 if not brackets:
                     continue
                 wanted = sorted({r[1] for r in brackets} | {r[2] for r in brackets})
-                at = {(sw, pos): (t, v) for w in wanted
-                      for sw, pos, t, v in conn.execute(text(_ROWS_AT_SQL), {**q, "pos": w})}
+                at = {
+                    (sw, pos): (t, v)
+                    for w in wanted
+                    for sw, pos, t, v in conn.execute(text(_ROWS_AT_SQL), {**q, "pos": w})
+                }
                 for sweep, lo, hi in brackets:
                     (ta, va), (th, vh) = at[(sweep, lo)], at[(sweep, hi)]
                     f = 0.0 if hi == lo else (p - lo) / (hi - lo)
@@ -324,21 +391,32 @@ def _drift_frame(parts: list[tuple[int, list[tuple[Any, ...]]]]) -> pd.DataFrame
     """Return the drift rows as one DataFrame: campaigns in start order, then time, position, direction."""
     rows = [(k, offset, *r) for k, (offset, data) in enumerate(parts) for r in data]
     if not rows:
-        return pd.DataFrame({
-            "campaign_id": np.array([], dtype="i8"), "time": pd.DatetimeIndex([], tz="UTC"),
-            "time_s": np.array([], dtype="f8"), "position": np.array([], dtype="f8"),
-            "direction": np.array([], dtype="i8"), "sweep": np.array([], dtype="i8"), "value": np.array([], dtype="f8"),
-        })
+        return pd.DataFrame(
+            {
+                "campaign_id": np.array([], dtype="i8"),
+                "time": pd.DatetimeIndex([], tz="UTC"),
+                "time_s": np.array([], dtype="f8"),
+                "position": np.array([], dtype="f8"),
+                "direction": np.array([], dtype="i8"),
+                "sweep": np.array([], dtype="i8"),
+                "value": np.array([], dtype="f8"),
+            }
+        )
     k, offset, cid, t, p, d, sw, v = (np.asarray(col) for col in zip(*rows, strict=True))
     t, p, v = t.astype("f8"), p.astype("f8"), v.astype("f8")
     order = np.lexsort((d, p, t, k))
     ns = offset.astype("i8")[order] + np.round(t[order] * 1e9).astype("i8")
-    return pd.DataFrame({
-        "campaign_id": cid.astype("i8")[order],
-        "time": pd.DatetimeIndex(ns.astype("datetime64[ns]")).tz_localize("UTC"),
-        "time_s": t[order], "position": p[order], "direction": d.astype("i8")[order],
-        "sweep": sw.astype("i8")[order], "value": v[order],
-    })
+    return pd.DataFrame(
+        {
+            "campaign_id": cid.astype("i8")[order],
+            "time": pd.DatetimeIndex(ns.astype("datetime64[ns]")).tz_localize("UTC"),
+            "time_s": t[order],
+            "position": p[order],
+            "direction": d.astype("i8")[order],
+            "sweep": sw.astype("i8")[order],
+            "value": v[order],
+        }
+    )
 
 
 # ----------------------------------------------------------------------------- histories
@@ -347,7 +425,8 @@ def _drift_frame(parts: list[tuple[int, list[tuple[Any, ...]]]]) -> pd.DataFrame
 def _channel_id(conn: Connection, campaign_id: int, channel: str) -> tuple[int, int]:
     """Return a campaign's channel id and the campaign's partition key (start day)."""
     row = conn.execute(
-        select(sc.Channel.id, sc.Campaign.started_at).join(sc.Campaign, sc.Campaign.id == sc.Channel.campaign_id)
+        select(sc.Channel.id, sc.Campaign.started_at)
+        .join(sc.Campaign, sc.Campaign.id == sc.Channel.campaign_id)
         .where(sc.Channel.campaign_id == campaign_id, sc.Channel.name == channel)
     ).first()
     if row is None:
@@ -366,13 +445,24 @@ def _range(conn: Connection, table: str, where: str, params: dict[str, Any]) -> 
     return float(lo), float(lo if hi is None else hi)
 
 
-def _history(conn: Connection, table: str, where: str, params: dict[str, Any], columns: list[str],
-             start_s: float | None, end_s: float | None, buckets: int | None) -> pd.DataFrame:
+def _history(
+    conn: Connection,
+    table: str,
+    where: str,
+    params: dict[str, Any],
+    columns: list[str],
+    start_s: float | None,
+    end_s: float | None,
+    buckets: int | None,
+) -> pd.DataFrame:
     """Return raw samples, or min/mean/max per equal-width time bucket computed in SQL."""
     span = _range(conn, table, where, params)
     if span is None:
-        cols = ["time_s", *columns] if not buckets else ["time_s", "t_end_s", "n"] + [
-            f"{c}_{s}" for c in columns for s in ("min", "mean", "max")]
+        cols = (
+            ["time_s", *columns]
+            if not buckets
+            else ["time_s", "t_end_s", "n"] + [f"{c}_{s}" for c in columns for s in ("min", "mean", "max")]
+        )
         return pd.DataFrame({c: pd.Series(dtype="f8") for c in cols})
     t0 = span[0] if start_s is None else float(start_s)
     t1 = span[1] if end_s is None else float(end_s)
@@ -380,11 +470,14 @@ def _history(conn: Connection, table: str, where: str, params: dict[str, Any], c
         raise ValidationError(f"time range ends ({t1}) before it starts ({t0})")
     params = {**params, "t0": t0, "t1": t1}
     if not buckets:
-        sql = (f"SELECT time_s, {', '.join(columns)} FROM {table} WHERE {where} "
-               "AND time_s >= :t0 AND time_s <= :t1 ORDER BY time_s")
+        sql = (
+            f"SELECT time_s, {', '.join(columns)} FROM {table} WHERE {where} "
+            "AND time_s >= :t0 AND time_s <= :t1 ORDER BY time_s"
+        )
         rows = conn.execute(text(sql), params).all()
         arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(
-            len(rows), len(columns) + 1)
+            len(rows), len(columns) + 1
+        )
         return pd.DataFrame(arr, columns=["time_s", *columns])
     if buckets < 1:
         raise ValidationError("buckets must be at least 1")
@@ -392,22 +485,26 @@ def _history(conn: Connection, table: str, where: str, params: dict[str, Any], c
     # Bucket k holds t0 + k*w <= time_s < t0 + (k+1)*w; the last one also holds time_s = t1.
     params.update(w=width, nb=buckets, t1x=math.nextafter(t1, math.inf))
     aggs = ", ".join(f"MIN({c}), AVG({c}), MAX({c})" for c in columns)
-    bounds = ("time_s >= :t0 + k.i * :w AND time_s < CASE WHEN k.i = :nb - 1 THEN :t1x "
-              "ELSE :t0 + (k.i + 1) * :w END")
+    bounds = "time_s >= :t0 + k.i * :w AND time_s < CASE WHEN k.i = :nb - 1 THEN :t1x ELSE :t0 + (k.i + 1) * :w END"
     if conn.dialect.name == "postgresql":
         # One range scan of the primary key, hash-aggregated by bucket (the same bucket bounds,
         # as an index). work_mem is raised for this transaction so the aggregate stays in memory.
         conn.execute(text("SET LOCAL work_mem = '64MB'"))
-        sql = (f"SELECT LEAST(CAST(FLOOR((time_s - :t0) / :w) AS integer), :nb - 1) AS b, COUNT(*), {aggs} "
-               f"FROM {table} WHERE {where} AND time_s >= :t0 AND time_s <= :t1 GROUP BY 1 ORDER BY 1")
+        sql = (
+            f"SELECT LEAST(CAST(FLOOR((time_s - :t0) / :w) AS integer), :nb - 1) AS b, COUNT(*), {aggs} "
+            f"FROM {table} WHERE {where} AND time_s >= :t0 AND time_s <= :t1 GROUP BY 1 ORDER BY 1"
+        )
     else:
         # One primary-key range scan per bucket: no per-row bucket arithmetic, no sort of the samples.
-        sql = (f"WITH RECURSIVE k(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM k WHERE i < :nb - 1) "
-               f"SELECT k.i, COUNT(*), {aggs} FROM k JOIN {table} ON {where} AND {bounds} "
-               "GROUP BY k.i ORDER BY k.i")
+        sql = (
+            f"WITH RECURSIVE k(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM k WHERE i < :nb - 1) "
+            f"SELECT k.i, COUNT(*), {aggs} FROM k JOIN {table} ON {where} AND {bounds} "
+            "GROUP BY k.i ORDER BY k.i"
+        )
     rows = conn.execute(text(sql), params).all()
     data = np.array([[np.nan if v is None else float(v) for v in r] for r in rows], dtype="f8").reshape(
-        len(rows), 2 + 3 * len(columns))
+        len(rows), 2 + 3 * len(columns)
+    )
     b = data[:, 0]
     out = {"time_s": t0 + b * width, "t_end_s": t0 + (b + 1) * width, "n": data[:, 1].astype("i8")}
     for k, c in enumerate(columns):
@@ -424,8 +521,9 @@ GROUP BY 1 ORDER BY 1
 """
 
 
-def _rollup_history(conn: Connection, campaign_id: int, channel_id: int, t0: float, t1: float,
-                    buckets: int) -> pd.DataFrame | None:
+def _rollup_history(
+    conn: Connection, campaign_id: int, channel_id: int, t0: float, t1: float, buckets: int
+) -> pd.DataFrame | None:
     """Return buckets aggregated from the per-minute rollups (edges snapped out to whole minutes),
     or None when the buckets would be narrower than two minutes."""
     width = (t1 - t0) / buckets
@@ -436,13 +534,27 @@ def _rollup_history(conn: Connection, campaign_id: int, channel_id: int, t0: flo
     rows = conn.execute(text(_ROLLUP_SQL), {"c": campaign_id, "ch": channel_id, "m0": m0, "m1": m1, "wm": wm}).all()
     data = np.array([[np.nan if v is None else float(v) for v in r] for r in rows], dtype="f8").reshape(len(rows), 5)
     start = m0 * ROLLUP_S + data[:, 0] * wm * ROLLUP_S
-    return pd.DataFrame({"time_s": start, "t_end_s": start + wm * ROLLUP_S, "n": data[:, 1].astype("i8"),
-                         "value_min": data[:, 2], "value_mean": data[:, 3], "value_max": data[:, 4]})
+    return pd.DataFrame(
+        {
+            "time_s": start,
+            "t_end_s": start + wm * ROLLUP_S,
+            "n": data[:, 1].astype("i8"),
+            "value_min": data[:, 2],
+            "value_mean": data[:, 3],
+            "value_max": data[:, 4],
+        }
+    )
 
 
-def temperature_history(conn: Connection, campaign_id: int, channel: str, start_s: float | None = None,
-                        end_s: float | None = None, buckets: int | None = None,
-                        rollups: bool = True) -> pd.DataFrame:
+def temperature_history(
+    conn: Connection,
+    campaign_id: int,
+    channel: str,
+    start_s: float | None = None,
+    end_s: float | None = None,
+    buckets: int | None = None,
+    rollups: bool = True,
+) -> pd.DataFrame:
     """Return a channel's readings (time_s, value) in a time range, or per bucket
     (time_s, t_end_s, n, value_min, value_mean, value_max) when ``buckets`` is given.
 
@@ -452,8 +564,10 @@ def temperature_history(conn: Connection, campaign_id: int, channel: str, start_
     t0 + k (t1 - t0) / buckets.
     """
     channel_id, day = _channel_id(conn, campaign_id, channel)
-    where, params = "campaign_id = :c AND channel_id = :ch AND campaign_start_day = :day", {
-        "c": campaign_id, "ch": channel_id, "day": day}
+    where, params = (
+        "campaign_id = :c AND channel_id = :ch AND campaign_start_day = :day",
+        {"c": campaign_id, "ch": channel_id, "day": day},
+    )
     if buckets and rollups:
         if buckets < 1:
             raise ValidationError("buckets must be at least 1")
@@ -471,14 +585,27 @@ def temperature_history(conn: Connection, campaign_id: int, channel: str, start_
     return _history(conn, "temperature_samples", where, params, ["value"], start_s, end_s, buckets)
 
 
-def condition_history(conn: Connection, campaign_id: int, columns: list[str] | None = None,
-                      start_s: float | None = None, end_s: float | None = None,
-                      buckets: int | None = None) -> pd.DataFrame:
+def condition_history(
+    conn: Connection,
+    campaign_id: int,
+    columns: list[str] | None = None,
+    start_s: float | None = None,
+    end_s: float | None = None,
+    buckets: int | None = None,
+) -> pd.DataFrame:
     """Return machine-state values in a time range, raw or min/mean/max per bucket."""
     day = start_day(_campaign_row(conn, campaign_id).started_at)
     cols = list(columns or CONDITION_VALUE_COLUMNS)
     for c in cols:
         if c not in CONDITION_VALUE_COLUMNS:
             raise ValidationError(f"unknown condition {c!r}: expected some of {', '.join(CONDITION_VALUE_COLUMNS)}")
-    return _history(conn, "condition_samples", "campaign_id = :c AND campaign_start_day = :day",
-                    {"c": campaign_id, "day": day}, cols, start_s, end_s, buckets)
+    return _history(
+        conn,
+        "condition_samples",
+        "campaign_id = :c AND campaign_start_day = :day",
+        {"c": campaign_id, "day": day},
+        cols,
+        start_s,
+        end_s,
+        buckets,
+    )

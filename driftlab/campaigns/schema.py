@@ -264,8 +264,16 @@ class ErrorSample(Base):
         # The unique key refuses a re-inserted reading and serves the drift query
         # (WHERE campaign_id = ? AND axis = ? AND term = ? [AND direction = ?] ORDER BY position/time;
         # with campaign_start_day = ? the query reads one partition).
-        UniqueConstraint("campaign_id", "axis", "term", "direction", "position", "time_s", "campaign_start_day",
-                         name="uq_error_samples_reading"),
+        UniqueConstraint(
+            "campaign_id",
+            "axis",
+            "term",
+            "direction",
+            "position",
+            "time_s",
+            "campaign_start_day",
+            name="uq_error_samples_reading",
+        ),
         # The interpolating drift query: per (direction, sweep) the positions bracketing P
         # (MAX(position) <= P, MIN(position) >= P) and their rows, each one seek.
         Index("ix_error_samples_sweep", "campaign_id", "axis", "term", "direction", "sweep", "position"),

@@ -51,8 +51,9 @@ LASER_ANGLES = {ax: tuple(t for t in ("alpha", "beta", "gamma") if t != OWN_ROTA
 #: Table 5.3: the straightness optics see the two translations perpendicular to a linear axis
 STRAIGHTNESS = {ax: tuple(t for t in ("dx", "dy", "dz") if t != OWN_TRANSLATION[ax]) for ax in LINEAR}
 #: Table 5.3 (Prox / Ref.): a rotary axis' run-outs (three translations) and tilts (the other two angles)
-ROTARY_PROXIMITY = {ax: ("dx", "dy", "dz", *(t for t in ("alpha", "beta", "gamma") if t != OWN_ROTATION[ax]))
-                    for ax in ROTARY}
+ROTARY_PROXIMITY = {
+    ax: ("dx", "dy", "dz", *(t for t in ("alpha", "beta", "gamma") if t != OWN_ROTATION[ax])) for ax in ROTARY
+}
 #: fig. 5.9: the angular optics lose the beam beyond +-10 deg of rotation (degrees)
 ANGULAR_OPTICS_RANGE_DEG = 10.0
 #: squareness pairs (ch. 5.5, Table 5.3 "Reference"): stored as the angle error of the axis that carries
@@ -115,11 +116,14 @@ class Setup(BaseModel):
     axis: Axis
     terms: list[Term] = Field(min_length=1, description="the error terms of `axis` this setup is read for")
     counter_rotating: bool = Field(
-        default=False, description="angular optics on the counter-rotating table (fig. 5.10): full rotary travel")
+        default=False, description="angular optics on the counter-rotating table (fig. 5.10): full rotary travel"
+    )
     pose: dict[Axis, float] = Field(
-        default_factory=dict, description="where the other axes stand while this setup measures (mm, deg; default 0)")
+        default_factory=dict, description="where the other axes stand while this setup measures (mm, deg; default 0)"
+    )
     reference: dict[str, Any] = Field(
-        default_factory=dict, description="where the instrument sat, the artefact, its stated uncertainty")
+        default_factory=dict, description="where the instrument sat, the artefact, its stated uncertainty"
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> Setup:
@@ -136,7 +140,8 @@ class Setup(BaseModel):
         if bad:
             raise ValueError(
                 f"{self.instrument} with {kind} cannot deliver {', '.join(cell(self.axis, t) for t in bad)} "
-                f"(it delivers {', '.join(cell(self.axis, t) for t in can)}; table 5.3)")
+                f"(it delivers {', '.join(cell(self.axis, t) for t in can)}; table 5.3)"
+            )
         if len(set(self.terms)) != len(self.terms):
             raise ValueError("a term is listed twice")
         if self.instrument == "laser" and len(self.terms) != 1:
@@ -163,8 +168,12 @@ class Setup(BaseModel):
 
     def range_deg(self) -> float | None:
         """Return the rotary range the setup sees either side of 0 (None: the whole travel)."""
-        if (self.instrument == "laser" and self.optics == "angular" and self.axis in ROTARY
-                and not self.counter_rotating):
+        if (
+            self.instrument == "laser"
+            and self.optics == "angular"
+            and self.axis in ROTARY
+            and not self.counter_rotating
+        ):
             return ANGULAR_OPTICS_RANGE_DEG
         return None
 
@@ -176,8 +185,12 @@ class Setup(BaseModel):
 
     def bundle_entry(self) -> dict[str, Any]:
         """Return the campaign.json ``setups`` entry of bundle v2."""
-        out: dict[str, Any] = {"instrument": self.instrument, "axis": self.axis, "terms": self.cells(),
-                               "datum": self.datum}
+        out: dict[str, Any] = {
+            "instrument": self.instrument,
+            "axis": self.axis,
+            "terms": self.cells(),
+            "datum": self.datum,
+        }
         out["optics" if self.instrument == "laser" else "fixture"] = self.kind
         if self.counter_rotating:
             out["counter_rotating"] = True
@@ -192,8 +205,9 @@ class Setup(BaseModel):
 def default_laser_setup(axis: str, term: str) -> Setup:
     """Return the laser setup that measures ``term`` of ``axis`` (plans written before setups existed)."""
     if axis in LINEAR:
-        optics = "linear" if term == OWN_TRANSLATION[axis] else (
-            "straightness" if term in STRAIGHTNESS[axis] else "angular")
+        optics = (
+            "linear" if term == OWN_TRANSLATION[axis] else ("straightness" if term in STRAIGHTNESS[axis] else "angular")
+        )
     else:
         optics = "angular"
     return Setup(instrument="laser", optics=optics, axis=axis, terms=[term])  # type: ignore[arg-type,list-item]

@@ -46,8 +46,13 @@ class StagedTable:
     a fixed vocabulary and read back as object arrays of str.
     """
 
-    def __init__(self, columns: Sequence[str], dtypes: Mapping[str, Any],
-                 vocabularies: Mapping[str, Sequence[str]] | None = None, directory: str | None = None) -> None:
+    def __init__(
+        self,
+        columns: Sequence[str],
+        dtypes: Mapping[str, Any],
+        vocabularies: Mapping[str, Sequence[str]] | None = None,
+        directory: str | None = None,
+    ) -> None:
         self.columns = list(columns)
         self._dtypes = {c: np.dtype(dtypes.get(c, "f8")) for c in self.columns}
         self._vocab = {c: np.asarray(list(v), dtype=object) for c, v in (vocabularies or {}).items()}

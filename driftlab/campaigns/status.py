@@ -28,33 +28,55 @@ def campaign_status(engine: Any, campaign: str | int | None = None) -> list[dict
         rows = conn.execute(q).all()
         for camp, prog in rows:
             stages = conn.execute(
-                select(sc.Stage.ordinal, sc.Stage.name, sc.Stage.heat_source, sc.Stage.start_s, sc.Stage.end_s,
-                       sc.Stage.status).where(sc.Stage.campaign_id == camp.id).order_by(sc.Stage.ordinal)
+                select(
+                    sc.Stage.ordinal,
+                    sc.Stage.name,
+                    sc.Stage.heat_source,
+                    sc.Stage.start_s,
+                    sc.Stage.end_s,
+                    sc.Stage.status,
+                )
+                .where(sc.Stage.campaign_id == camp.id)
+                .order_by(sc.Stage.ordinal)
             ).all()
             cur = dict(prog.cursor or {})
             n_scans, n_points = int(cur.get("n_scans", 0)), int(cur.get("n_points", 0))
             done = int(cur.get("next_scan", 0)) + int(cur.get("next_point", 0))
             total = n_scans + n_points
             stage = next((s for s in stages if s.ordinal == prog.stage_ordinal), None)
-            out.append({
-                "campaign_id": camp.id, "name": camp.name, "machine": camp.machine_id, "status": camp.status,
-                "mode": (cur.get("origin") or {}).get("mode"),
-                "stage": None if stage is None else {
-                    "ordinal": stage.ordinal, "name": stage.name, "heat_source": stage.heat_source,
-                    "start_s": stage.start_s, "end_s": stage.end_s, "status": stage.status,
-                },
-                "stages": len(stages),
-                "progress": {
-                    "scans": int(cur.get("next_scan", 0)), "n_scans": n_scans,
-                    "points": int(cur.get("next_point", 0)), "n_points": n_points,
-                    "fraction": round(done / total, 6) if total else 0.0,
-                    "time_s": prog.last_sample_time_s, "total_s": cur.get("total_s"),
-                },
-                "last_scan": cur.get("last_scan"),
-                "last_point": cur.get("last_point"),
-                "faults": {"count": int(cur.get("faults", 0)), "recent": list(cur.get("recent_faults", []))[-5:]},
-                "updated_at": prog.updated_at.isoformat() if prog.updated_at else None,
-            })
+            out.append(
+                {
+                    "campaign_id": camp.id,
+                    "name": camp.name,
+                    "machine": camp.machine_id,
+                    "status": camp.status,
+                    "mode": (cur.get("origin") or {}).get("mode"),
+                    "stage": None
+                    if stage is None
+                    else {
+                        "ordinal": stage.ordinal,
+                        "name": stage.name,
+                        "heat_source": stage.heat_source,
+                        "start_s": stage.start_s,
+                        "end_s": stage.end_s,
+                        "status": stage.status,
+                    },
+                    "stages": len(stages),
+                    "progress": {
+                        "scans": int(cur.get("next_scan", 0)),
+                        "n_scans": n_scans,
+                        "points": int(cur.get("next_point", 0)),
+                        "n_points": n_points,
+                        "fraction": round(done / total, 6) if total else 0.0,
+                        "time_s": prog.last_sample_time_s,
+                        "total_s": cur.get("total_s"),
+                    },
+                    "last_scan": cur.get("last_scan"),
+                    "last_point": cur.get("last_point"),
+                    "faults": {"count": int(cur.get("faults", 0)), "recent": list(cur.get("recent_faults", []))[-5:]},
+                    "updated_at": prog.updated_at.isoformat() if prog.updated_at else None,
+                }
+            )
     return out
 
 
@@ -86,11 +108,14 @@ def format_status(rows: list[dict[str, Any]]) -> str:
         if r["last_point"]:
             lp = r["last_point"]
             terms = ", ".join(f"{k} {v:.6g}" if v is not None else f"{k} -" for k, v in lp["values"].items())
-            lines.append(f"      last point t={lp['t_s']:.0f} s {lp['axis']}={lp['position']:g} "
-                         f"dir {lp['direction']:+d}: {terms}")
+            lines.append(
+                f"      last point t={lp['t_s']:.0f} s {lp['axis']}={lp['position']:g} "
+                f"dir {lp['direction']:+d}: {terms}"
+            )
         f = r["faults"]
         if f["count"]:
             last = f["recent"][-1]
-            lines.append(f"      faults {f['count']}, last at t={last['t_s']:.0f} s: {last['instrument']}: "
-                         f"{last['message']}")
+            lines.append(
+                f"      faults {f['count']}, last at t={last['t_s']:.0f} s: {last['instrument']}: {last['message']}"
+            )
     return "\n".join(lines)

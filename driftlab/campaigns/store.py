@@ -105,14 +105,29 @@ class StaleOnlineState(ConflictError):
 
 
 def _online(row: Any) -> OnlineStateInfo:
-    return OnlineStateInfo(row.machine_id, row.model_version_id, int(row.model_version), float(row.lam),
-                           int(row.n_updates), dict(row.theta or {}), dict(row.p or {}), row.updated_at,
-                           int(row.version))
+    return OnlineStateInfo(
+        row.machine_id,
+        row.model_version_id,
+        int(row.model_version),
+        float(row.lam),
+        int(row.n_updates),
+        dict(row.theta or {}),
+        dict(row.p or {}),
+        row.updated_at,
+        int(row.version),
+    )
 
 
 #: procrastinate's job statuses as the job states driftlab reports (queued, running, done, failed)
-QUEUE_STATES = {"todo": "queued", "doing": "running", "aborting": "running", "succeeded": "done",
-                "failed": "failed", "cancelled": "failed", "aborted": "failed"}
+QUEUE_STATES = {
+    "todo": "queued",
+    "doing": "running",
+    "aborting": "running",
+    "succeeded": "done",
+    "failed": "failed",
+    "cancelled": "failed",
+    "aborted": "failed",
+}
 _QUEUE_JOBS = table("procrastinate_jobs", column("id"), column("status"))
 
 
@@ -129,8 +144,9 @@ def jobs_select(dialect: str) -> Select[Any]:
     status = cast(_QUEUE_JOBS.c.status, Text)
     by_queue = [(status == k, v) for k, v in QUEUE_STATES.items()]
     state = case((sc.Job.state.in_(("done", "failed")), sc.Job.state), *by_queue, else_=sc.Job.state)
-    return (select(*cols, state.label("state"), status.label("queue_status"))
-            .select_from(sc.Job.__table__.outerjoin(_QUEUE_JOBS, _QUEUE_JOBS.c.id == sc.Job.queue_job_id)))
+    return select(*cols, state.label("state"), status.label("queue_status")).select_from(
+        sc.Job.__table__.outerjoin(_QUEUE_JOBS, _QUEUE_JOBS.c.id == sc.Job.queue_job_id)
+    )
 
 
 def job_info(row: Any) -> JobInfo:
@@ -138,14 +154,29 @@ def job_info(row: Any) -> JobInfo:
     error = row.error
     if row.state == "failed" and error is None and row.queue_status in ("failed", "cancelled", "aborted"):
         error = f"the job queue reports it {row.queue_status} (see the worker's log)"
-    return JobInfo(row.id, row.kind, row.state, row.params or {}, row.result, error, row.worker, row.attempts,
-                   row.machine_id, row.campaign_id, row.created_at, row.started_at, row.finished_at,
-                   row.queue_job_id, row.queue_status)
+    return JobInfo(
+        row.id,
+        row.kind,
+        row.state,
+        row.params or {},
+        row.result,
+        error,
+        row.worker,
+        row.attempts,
+        row.machine_id,
+        row.campaign_id,
+        row.created_at,
+        row.started_at,
+        row.finished_at,
+        row.queue_job_id,
+        row.queue_status,
+    )
 
 
 def _model(row: Any) -> ModelVersionInfo:
-    return ModelVersionInfo(row.id, row.machine_id, row.version, row.created_at, list(row.source_campaigns or []),
-                            row.document, row.status)
+    return ModelVersionInfo(
+        row.id, row.machine_id, row.version, row.created_at, list(row.source_campaigns or []), row.document, row.status
+    )
 
 
 class Store:
@@ -209,9 +240,7 @@ class Store:
         partitions.ensure_partitions(self.engine, [day])
         try:
             with db.write_transaction(self.engine) as conn:
-                existing = conn.execute(
-                    select(sc.Campaign.id).where(sc.Campaign.content_hash == content_hash)
-                ).scalar()
+                existing = conn.execute(select(sc.Campaign.id).where(sc.Campaign.content_hash == content_hash)).scalar()
                 if existing is not None:
                     raise ConflictError(
                         f"bundle {bundle.name!r} is already stored as campaign {existing} (same content hash "
@@ -299,17 +328,31 @@ class Store:
 
     # ------------------------------------------------------------------ queries
 
-    def drift(self, machine_id: str, axis: str, term: str, position: float | None = None,
-              direction: int | None = None, start: datetime | None = None, end: datetime | None = None,
-              interpolate: bool = False) -> pd.DataFrame:
+    def drift(
+        self,
+        machine_id: str,
+        axis: str,
+        term: str,
+        position: float | None = None,
+        direction: int | None = None,
+        start: datetime | None = None,
+        end: datetime | None = None,
+        interpolate: bool = False,
+    ) -> pd.DataFrame:
         """Return the error history of (axis, term) across a machine's campaigns (see queries.drift)."""
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
             return queries.drift(conn, machine_id, axis, term, position, direction, start, end, interpolate)
 
-    def temperature_history(self, campaign_id: int, channel: str, start_s: float | None = None,
-                            end_s: float | None = None, buckets: int | None = None,
-                            rollups: bool = True) -> pd.DataFrame:
+    def temperature_history(
+        self,
+        campaign_id: int,
+        channel: str,
+        start_s: float | None = None,
+        end_s: float | None = None,
+        buckets: int | None = None,
+        rollups: bool = True,
+    ) -> pd.DataFrame:
         """Return a channel's readings, or min/mean/max per bucket computed in SQL (see queries)."""
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
@@ -323,8 +366,14 @@ class Store:
                 raise NotFoundError(f"no campaign {campaign_id}")
             return ingest.refresh_rollups(conn, campaign_id)
 
-    def condition_history(self, campaign_id: int, columns: list[str] | None = None, start_s: float | None = None,
-                          end_s: float | None = None, buckets: int | None = None) -> pd.DataFrame:
+    def condition_history(
+        self,
+        campaign_id: int,
+        columns: list[str] | None = None,
+        start_s: float | None = None,
+        end_s: float | None = None,
+        buckets: int | None = None,
+    ) -> pd.DataFrame:
         """Return machine-state values, raw or min/mean/max per bucket computed in SQL."""
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
@@ -332,8 +381,9 @@ class Store:
 
     # ------------------------------------------------------------------ model registry
 
-    def register_model(self, machine_id: str, document: dict[str, Any],
-                       source_campaigns: list[int] | None = None) -> ModelVersionInfo:
+    def register_model(
+        self, machine_id: str, document: dict[str, Any], source_campaigns: list[int] | None = None
+    ) -> ModelVersionInfo:
         """Store a new model version as the machine's current one, retiring the previous current."""
         self.ensure_schema()
         with db.write_transaction(self.engine) as conn:
@@ -352,10 +402,16 @@ class Store:
                 .values(status="retired", retired_at=now)
             )
             new_id = conn.execute(
-                insert(sc.ModelVersion).values(
-                    machine_id=machine_id, version=(last or 0) + 1, created_at=now,
-                    source_campaigns=list(source_campaigns or []), document=document, status="current",
-                ).returning(sc.ModelVersion.id)
+                insert(sc.ModelVersion)
+                .values(
+                    machine_id=machine_id,
+                    version=(last or 0) + 1,
+                    created_at=now,
+                    source_campaigns=list(source_campaigns or []),
+                    document=document,
+                    status="current",
+                )
+                .returning(sc.ModelVersion.id)
             ).scalar_one()
             row = conn.execute(select(sc.ModelVersion.__table__).where(sc.ModelVersion.id == new_id)).one()
             return _model(row)
@@ -365,8 +421,9 @@ class Store:
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
             row = conn.execute(
-                select(sc.ModelVersion.__table__).where(sc.ModelVersion.machine_id == machine_id,
-                                              sc.ModelVersion.status == "current")
+                select(sc.ModelVersion.__table__).where(
+                    sc.ModelVersion.machine_id == machine_id, sc.ModelVersion.status == "current"
+                )
             ).first()
             return None if row is None else _model(row)
 
@@ -375,7 +432,8 @@ class Store:
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
             rows = conn.execute(
-                select(sc.ModelVersion.__table__).where(sc.ModelVersion.machine_id == machine_id)
+                select(sc.ModelVersion.__table__)
+                .where(sc.ModelVersion.machine_id == machine_id)
                 .order_by(sc.ModelVersion.version)
             ).all()
             return [_model(r) for r in rows]
@@ -390,18 +448,33 @@ class Store:
     # The queue itself is driftlab.jobs (procrastinate on PostgreSQL, in-process on SQLite); these
     # rows are what a job was asked to do and what came of it.
 
-    def record_job(self, kind: str, params: dict[str, Any] | None = None, machine_id: str | None = None,
-                   campaign_id: int | None = None) -> int:
+    def record_job(
+        self,
+        kind: str,
+        params: dict[str, Any] | None = None,
+        machine_id: str | None = None,
+        campaign_id: int | None = None,
+    ) -> int:
         """Record a new job, queued, and return its id."""
         self.ensure_schema()
         if not kind:
             raise ValidationError("a job needs a kind")
         with db.write_transaction(self.engine) as conn:
-            return int(conn.execute(
-                insert(sc.Job).values(kind=kind, state="queued", params=params or {}, machine_id=machine_id,
-                                      campaign_id=campaign_id, attempts=0, created_at=sc.utcnow())
-                .returning(sc.Job.id)
-            ).scalar_one())
+            return int(
+                conn.execute(
+                    insert(sc.Job)
+                    .values(
+                        kind=kind,
+                        state="queued",
+                        params=params or {},
+                        machine_id=machine_id,
+                        campaign_id=campaign_id,
+                        attempts=0,
+                        created_at=sc.utcnow(),
+                    )
+                    .returning(sc.Job.id)
+                ).scalar_one()
+            )
 
     def link_queue_job(self, job_id: int, queue_job_id: int) -> None:
         """Record the queue's id of a job (procrastinate_jobs.id)."""
@@ -422,9 +495,9 @@ class Store:
             if only_if_queued:
                 cond.append(sc.Job.state == "queued")
             n = conn.execute(
-                update(sc.Job).where(*cond)
-                .values(state="running", worker=worker, started_at=now, finished_at=None,
-                        attempts=sc.Job.attempts + 1)
+                update(sc.Job)
+                .where(*cond)
+                .values(state="running", worker=worker, started_at=now, finished_at=None, attempts=sc.Job.attempts + 1)
             ).rowcount
             if not n:
                 if only_if_queued:
@@ -470,8 +543,10 @@ class Store:
         self.ensure_schema()
         with self.engine.connect() as conn:
             row = conn.execute(
-                select(sc.Job.result).where(sc.Job.kind == kind, sc.Job.machine_id == machine_id, sc.Job.state == "done")
-                .order_by(sc.Job.id.desc()).limit(1)
+                select(sc.Job.result)
+                .where(sc.Job.kind == kind, sc.Job.machine_id == machine_id, sc.Job.state == "done")
+                .order_by(sc.Job.id.desc())
+                .limit(1)
             ).first()
         return None if row is None else row[0]
 
@@ -496,7 +571,8 @@ class Store:
         with self.engine.connect() as conn, conn.begin():
             models = conn.execute(
                 select(sc.ModelVersion.machine_id, sc.ModelVersion.version, sc.ModelVersion.source_campaigns)
-                .where(sc.ModelVersion.status == "current").order_by(sc.ModelVersion.machine_id)
+                .where(sc.ModelVersion.status == "current")
+                .order_by(sc.ModelVersion.machine_id)
             ).all()
             for m in models:
                 sources = [int(c) for c in (m.source_campaigns or [])]
@@ -519,10 +595,12 @@ class Store:
                     .where(sc.Job.machine_id == m.machine_id, sc.Job.kind == "fit", sc.Job.state == "done")
                     .order_by(sc.Job.id.desc())
                 ).all()
-                params = next((dict(f.params or {}) for f in fits
-                               if (f.result or {}).get("model_version") == m.version), {})
-                out.append(RefitCandidate(m.machine_id, int(m.version), [c for c in sources if c in started] + new,
-                                          params))
+                params = next(
+                    (dict(f.params or {}) for f in fits if (f.result or {}).get("model_version") == m.version), {}
+                )
+                out.append(
+                    RefitCandidate(m.machine_id, int(m.version), [c for c in sources if c in started] + new, params)
+                )
         return out
 
     # ------------------------------------------------------------------ on-line state
@@ -531,14 +609,22 @@ class Store:
         """Return the machine's on-line state row (whatever model version it belongs to), or None."""
         self.ensure_schema()
         with self.engine.connect() as conn, conn.begin():
-            row = conn.execute(
-                select(sc.OnlineState.__table__).where(sc.OnlineState.machine_id == machine_id)
-            ).first()
+            row = conn.execute(select(sc.OnlineState.__table__).where(sc.OnlineState.machine_id == machine_id)).first()
             return None if row is None else _online(row)
 
-    def save_online_state(self, machine_id: str, seen_version: int | None, *, model_version_id: int | None,
-                          model_version: int, lam: float, n_updates: int, theta: dict[str, Any], p: dict[str, Any],
-                          probes: Sequence[dict[str, Any]] = ()) -> tuple[OnlineStateInfo, list[int]]:
+    def save_online_state(
+        self,
+        machine_id: str,
+        seen_version: int | None,
+        *,
+        model_version_id: int | None,
+        model_version: int,
+        lam: float,
+        n_updates: int,
+        theta: dict[str, Any],
+        p: dict[str, Any],
+        probes: Sequence[dict[str, Any]] = (),
+    ) -> tuple[OnlineStateInfo, list[int]]:
         """Write a new on-line state and its probe measurements in one transaction; return it and the probe ids.
 
         ``seen_version`` is the state's version the update was computed from (None: there was none).
@@ -549,8 +635,15 @@ class Store:
         """
         self.ensure_schema()
         now = sc.utcnow()
-        values = {"model_version_id": model_version_id, "model_version": int(model_version), "lam": float(lam),
-                  "n_updates": int(n_updates), "theta": theta, "p": p, "updated_at": now}
+        values = {
+            "model_version_id": model_version_id,
+            "model_version": int(model_version),
+            "lam": float(lam),
+            "n_updates": int(n_updates),
+            "theta": theta,
+            "p": p,
+            "updated_at": now,
+        }
         with db.write_transaction(self.engine) as conn:
             lock = select(sc.Machine.id).where(sc.Machine.id == machine_id)
             if conn.dialect.name == "postgresql":
@@ -560,38 +653,64 @@ class Store:
             st = sc.OnlineState
             current = conn.execute(select(st.version).where(st.machine_id == machine_id)).scalar()
             if current != seen_version:
-                raise StaleOnlineState(f"machine {machine_id!r}: the on-line state moved on (version {current}, "
-                                       f"computed from {seen_version}); retry")
+                raise StaleOnlineState(
+                    f"machine {machine_id!r}: the on-line state moved on (version {current}, "
+                    f"computed from {seen_version}); retry"
+                )
             if seen_version is None:
                 conn.execute(insert(st).values(machine_id=machine_id, version=1, **values))
             else:
-                n = conn.execute(update(st).where(st.machine_id == machine_id, st.version == seen_version)
-                                 .values(version=seen_version + 1, **values)).rowcount
+                n = conn.execute(
+                    update(st)
+                    .where(st.machine_id == machine_id, st.version == seen_version)
+                    .values(version=seen_version + 1, **values)
+                ).rowcount
                 if n != 1:  # pragma: no cover - the machine lock (or SQLite's writer lock) rules this out
                     raise StaleOnlineState(f"machine {machine_id!r}: the on-line state moved on; retry")
             ids = []
             for pr in probes:
-                clash = conn.execute(select(sc.ProbeMeasurement.id).where(
-                    sc.ProbeMeasurement.machine_id == machine_id,
-                    sc.ProbeMeasurement.measured_at == pr["measured_at"])).first()
+                clash = conn.execute(
+                    select(sc.ProbeMeasurement.id).where(
+                        sc.ProbeMeasurement.machine_id == machine_id,
+                        sc.ProbeMeasurement.measured_at == pr["measured_at"],
+                    )
+                ).first()
                 if clash is not None:
-                    raise ConflictError(f"machine {machine_id!r} already has a probe measurement at "
-                                        f"{pr['measured_at'].isoformat()}")
-                ids.append(int(conn.execute(insert(sc.ProbeMeasurement).values(
-                    machine_id=machine_id, model_version_id=model_version_id, **pr)
-                    .returning(sc.ProbeMeasurement.id)).scalar_one()))
+                    raise ConflictError(
+                        f"machine {machine_id!r} already has a probe measurement at {pr['measured_at'].isoformat()}"
+                    )
+                ids.append(
+                    int(
+                        conn.execute(
+                            insert(sc.ProbeMeasurement)
+                            .values(machine_id=machine_id, model_version_id=model_version_id, **pr)
+                            .returning(sc.ProbeMeasurement.id)
+                        ).scalar_one()
+                    )
+                )
             row = conn.execute(select(st.__table__).where(st.machine_id == machine_id)).one()
             return _online(row), ids
 
     # ------------------------------------------------------------------ acquisition progress
 
-    def save_progress(self, campaign_id: int, stage_ordinal: int, sweep: int, last_sample_time_s: float | None,
-                      cursor: dict[str, Any] | None = None) -> None:
+    def save_progress(
+        self,
+        campaign_id: int,
+        stage_ordinal: int,
+        sweep: int,
+        last_sample_time_s: float | None,
+        cursor: dict[str, Any] | None = None,
+    ) -> None:
         """Record the scheduler's resume point of a campaign (insert or update)."""
         self.ensure_schema()
         with db.write_transaction(self.engine) as conn:
-            values = {"stage_ordinal": stage_ordinal, "sweep": sweep, "last_sample_time_s": last_sample_time_s,
-                      "cursor": cursor, "updated_at": sc.utcnow()}
+            values = {
+                "stage_ordinal": stage_ordinal,
+                "sweep": sweep,
+                "last_sample_time_s": last_sample_time_s,
+                "cursor": cursor,
+                "updated_at": sc.utcnow(),
+            }
             n = conn.execute(
                 update(sc.AcquisitionProgress).where(sc.AcquisitionProgress.campaign_id == campaign_id).values(**values)
             ).rowcount
@@ -607,8 +726,9 @@ class Store:
             ).first()
             if row is None:
                 return None
-            return ProgressInfo(row.campaign_id, row.stage_ordinal, row.sweep, row.last_sample_time_s, row.cursor,
-                                row.updated_at)
+            return ProgressInfo(
+                row.campaign_id, row.stage_ordinal, row.sweep, row.last_sample_time_s, row.cursor, row.updated_at
+            )
 
     def check_writable(self) -> None:
         """Raise StoreError unless the store is at the head schema and accepts a write now.

@@ -70,13 +70,21 @@ def import_summary(campaign_id: int, bundle: Any) -> dict[str, Any]:
         terms.update(f"{a}/{b}" for a, b in set(zip(chunk["axis"], chunk["term"])))
     conditions = None if bundle.conditions is None else as_table(bundle.conditions)
     return {
-        "campaign_id": int(campaign_id), "name": bundle.name, "machine": meta.machine.id,
-        "started_at": meta.started_at.isoformat().replace("+00:00", "Z") if hasattr(meta.started_at, "isoformat")
+        "campaign_id": int(campaign_id),
+        "name": bundle.name,
+        "machine": meta.machine.id,
+        "started_at": meta.started_at.isoformat().replace("+00:00", "Z")
+        if hasattr(meta.started_at, "isoformat")
         else str(meta.started_at),
-        "channels": len(chans), "room_channels": len(meta.room_channels), "scans": int(temps.n_rows),
-        "temperature_readings": present, "missing_readings": temps.n_rows * len(chans) - present,
+        "channels": len(chans),
+        "room_channels": len(meta.room_channels),
+        "scans": int(temps.n_rows),
+        "temperature_readings": present,
+        "missing_readings": temps.n_rows * len(chans) - present,
         "condition_rows": 0 if conditions is None else int(conditions.n_rows),
-        "error_readings": int(errors.n_rows), "error_terms": sorted(terms), "stages": len(meta.stages),
+        "error_readings": int(errors.n_rows),
+        "error_terms": sorted(terms),
+        "stages": len(meta.stages),
         "span_s": t_max - t_min if temps.n_rows else 0.0,
     }
 
@@ -95,8 +103,11 @@ def _print_import(s: dict[str, Any]) -> None:
     t.add_row("started", s["started_at"])
     t.add_row("span", f"{duration(s['span_s'])} in {s['stages']} stage{'s' if s['stages'] != 1 else ''}")
     t.add_row("thermocouples", f"{s['channels']} ({s['room_channels']} in the room air)")
-    t.add_row("temperatures", f"{s['scans']} scans, {s['temperature_readings']} readings"
-              + (f", {s['missing_readings']} missing" if s["missing_readings"] else ""))
+    t.add_row(
+        "temperatures",
+        f"{s['scans']} scans, {s['temperature_readings']} readings"
+        + (f", {s['missing_readings']} missing" if s["missing_readings"] else ""),
+    )
     t.add_row("machine state", f"{s['condition_rows']} rows")
     t.add_row("errors", f"{s['error_readings']} readings of {', '.join(s['error_terms']) or 'no term'}")
     stdout_console().print(t)

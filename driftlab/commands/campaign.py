@@ -48,9 +48,12 @@ def add_watch(campsub: argparse._SubParsersAction) -> None:
     """Add `--watch` and `--interval` to the `campaign status` parser (registered with the daemon's command)."""
     st = campsub.choices["status"]
     plain = st.get_default("func")
-    st.add_argument("--watch", action="store_true",
-                    help="follow one campaign in the terminal until it ends (Ctrl-C to leave): stage, progress, "
-                         "latest temperatures and errors, instrument health")
+    st.add_argument(
+        "--watch",
+        action="store_true",
+        help="follow one campaign in the terminal until it ends (Ctrl-C to leave): stage, progress, "
+        "latest temperatures and errors, instrument health",
+    )
     st.add_argument("--interval", type=float, default=1.0, metavar="S", help="with --watch: seconds between reads")
 
     def _status_or_watch(args: argparse.Namespace) -> int:
@@ -85,8 +88,9 @@ def _watch(args: argparse.Namespace) -> int:
     return 0
 
 
-def watch(engine: Any, campaign_id: int, console: Any, interval_s: float = 1.0,
-          max_frames: int | None = None) -> dict[str, Any]:
+def watch(
+    engine: Any, campaign_id: int, console: Any, interval_s: float = 1.0, max_frames: int | None = None
+) -> dict[str, Any]:
     """Redraw the campaign every ``interval_s`` while it runs (at most ``max_frames`` times); return its last header."""
     import time
 
@@ -128,11 +132,19 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
     from driftlab.labels import duration
 
     p, st, h = head["progress"], head["stage"], head["health"]
-    title = Text.assemble((head["name"], "bold"), "  ", (f"[{head['status']}]", "green" if head["status"] == "running"
-                                                          else "cyan"),
-                          f"  campaign {head['campaign_id']}, machine {head['machine']}, "
-                          + ("instruments" if head["mode"] != "sim" else f"virtual machine x{head['speed']:g}"
-                             if head["speed"] else "virtual machine, as fast as it goes"))
+    title = Text.assemble(
+        (head["name"], "bold"),
+        "  ",
+        (f"[{head['status']}]", "green" if head["status"] == "running" else "cyan"),
+        f"  campaign {head['campaign_id']}, machine {head['machine']}, "
+        + (
+            "instruments"
+            if head["mode"] != "sim"
+            else f"virtual machine x{head['speed']:g}"
+            if head["speed"]
+            else "virtual machine, as fast as it goes"
+        ),
+    )
     top = Table.grid(padding=(0, 2))
     top.add_column(style="dim", justify="right")
     top.add_column()
@@ -143,8 +155,10 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
             extra.append(f"spindle {st['spindle_rpm']:.0f} rpm")
         if st["feed_mm_min"]:
             extra.append(f"feed {st['feed_mm_min']:.0f} mm/min")
-        top.add_row("stage", Text.assemble((st["name"], "bold"), f"  {st['ordinal'] + 1} of {len(head['stages'])}: ",
-                                           ", ".join(extra)))
+        top.add_row(
+            "stage",
+            Text.assemble((st["name"], "bold"), f"  {st['ordinal'] + 1} of {len(head['stages'])}: ", ", ".join(extra)),
+        )
         if st.get("setup"):
             top.add_row("setup", ", ".join(str(v) for v in st["setup"].values() if v))
         frac = p["stage_fraction"] or 0.0
@@ -152,12 +166,15 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
         if p["stage_left_wall_s"] is not None and head["speed"] not in (None, 1.0):
             left += f" (about {duration(p['stage_left_wall_s'])} wall-clock)"
         top.add_row("in stage", Text.assemble(_bar(frac), f" {100 * frac:.0f} % done, {left} of campaign time left"))
-    top.add_row("campaign", Text.assemble(_bar(p["fraction"]), f" {100 * p['fraction']:.1f} %, "
-                                          f"{duration(p['total_left_s'])} left"))
+    top.add_row(
+        "campaign",
+        Text.assemble(_bar(p["fraction"]), f" {100 * p['fraction']:.1f} %, {duration(p['total_left_s'])} left"),
+    )
     top.add_row("stored", f"{p['scans']} of {p['n_scans']} scans, {p['points']} of {p['n_points']} sweep points")
     latest = head["latest"] or {}
-    top.add_row("latest scan", f"{duration(latest.get('time_s'), clock=True)} into the campaign"
-                if latest else "none yet")
+    top.add_row(
+        "latest scan", f"{duration(latest.get('time_s'), clock=True)} into the campaign" if latest else "none yet"
+    )
     temps = Table(title="Latest temperatures (degC) by structure", title_justify="left", expand=False)
     temps.add_column("structure")
     temps.add_column("range", justify="right")
@@ -191,23 +208,34 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
     for (axis, term, d), (_, idx) in sorted(last.items()):
         scale, unit = (1e6, "urad") if term in ("alpha", "beta", "gamma") else (1e3, "um")
         pos_unit = "deg" if axis in ("A", "B") else "mm"
-        readings = "  ".join(f"{errs['position'][i]:g} {pos_unit}: {errs['value'][i] * scale:.1f}" for i in
-                             sorted(idx, key=lambda i: errs["position"][i]))
-        errors.add_row(f"{axis}/{term}", "+" if d > 0 else "-", f"{readings} {unit}",
-                       duration(errs["t"][idx[-1]], clock=True))
+        readings = "  ".join(
+            f"{errs['position'][i]:g} {pos_unit}: {errs['value'][i] * scale:.1f}"
+            for i in sorted(idx, key=lambda i: errs["position"][i])
+        )
+        errors.add_row(
+            f"{axis}/{term}", "+" if d > 0 else "-", f"{readings} {unit}", duration(errs["t"][idx[-1]], clock=True)
+        )
     if not last:
         errors.add_row("-", "-", "no error readings yet", "-")
     health = Table.grid(padding=(0, 2))
     health.add_column(style="dim", justify="right")
     health.add_column()
     health.add_row("faults", Text(str(h["faults"]), style="yellow" if h["faults"] else "green"))
-    health.add_row("timeouts", Text(f"{h['timeouts']}" + (f" (in the last {h['counted_over']} faults)"
-                                                         if h["counted_over"] < h["faults"] else ""),
-                                    style="yellow" if h["timeouts"] else "green"))
-    health.add_row("retries", ", ".join(f"{k} {v}" for k, v in h["retries"].items()) if h["retries"]
-                   else "not recorded by the daemon")
-    health.add_row("open thermocouples",
-                   Text(", ".join(h["open"]) or "none", style="bold red" if h["open"] else "green"))
+    health.add_row(
+        "timeouts",
+        Text(
+            f"{h['timeouts']}"
+            + (f" (in the last {h['counted_over']} faults)" if h["counted_over"] < h["faults"] else ""),
+            style="yellow" if h["timeouts"] else "green",
+        ),
+    )
+    health.add_row(
+        "retries",
+        ", ".join(f"{k} {v}" for k, v in h["retries"].items()) if h["retries"] else "not recorded by the daemon",
+    )
+    health.add_row(
+        "open thermocouples", Text(", ".join(h["open"]) or "none", style="bold red" if h["open"] else "green")
+    )
     for f in h["recent"][-3:]:
         health.add_row("", f"{duration(f['t_s'], clock=True)} {f['instrument']} ({f['step']}): {f['message']}")
     return Group(title, top, temps, errors, Text("Instrument health", style="bold"), health)

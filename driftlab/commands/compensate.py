@@ -29,12 +29,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--model", type=Path, help="model document JSON (as printed by `driftlab models show`)")
     src.add_argument("--api", help="driftlab API base URL: the machine's current model (hot-reloaded when streaming)")
     p.add_argument("--machine", help="machine id (required with --api)")
-    p.add_argument("--temps", type=Path,
-                   help="temperatures.csv (bundle v1 layout); default with --api: its latest scan")
+    p.add_argument(
+        "--temps", type=Path, help="temperatures.csv (bundle v1 layout); default with --api: its latest scan"
+    )
     p.add_argument("-o", "--out", type=Path, help="write the corrected program here (offline)")
     p.add_argument("--port", help="stream to the controller on this serial device or pyserial URL (socket://...)")
-    p.add_argument("--start", help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or "
-                   "the controller's position when streaming)")
+    p.add_argument(
+        "--start",
+        help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or "
+        "the controller's position when streaming)",
+    )
     p.add_argument("--resolution-mm", type=float, default=0.0025, help="linear positioning resolution (0.0025)")
     p.add_argument("--resolution-deg", type=float, default=0.001, help="rotary positioning resolution (0.001)")
     p.add_argument("--max-segment-mm", type=float, default=5.0, help="split G1 moves longer than this (5 mm)")
@@ -122,9 +126,16 @@ def _run(args: argparse.Namespace) -> int:
         else:
             raise ValidationError("offline compensation needs --temps CSV (or --api for the latest scan)")
         result = compensate_file(
-            args.program, model, temps, args.out, start=start,
-            resolution_mm=args.resolution_mm, resolution_deg=args.resolution_deg,
-            max_segment_mm=args.max_segment_mm, max_segment_deg=args.max_segment_deg, scan=scan,
+            args.program,
+            model,
+            temps,
+            args.out,
+            start=start,
+            resolution_mm=args.resolution_mm,
+            resolution_deg=args.resolution_deg,
+            max_segment_mm=args.max_segment_mm,
+            max_segment_deg=args.max_segment_deg,
+            scan=scan,
         )
         summary = {"out": str(args.out), **result.summary()}
         if args.json:
@@ -140,8 +151,9 @@ def _run(args: argparse.Namespace) -> int:
     return _stream(args, scan, start, decimals, token)
 
 
-def _stream(args: argparse.Namespace, scan: Any, start: tuple[float, ...] | None,
-            decimals: tuple[int, int], token: str | None) -> int:
+def _stream(
+    args: argparse.Namespace, scan: Any, start: tuple[float, ...] | None, decimals: tuple[int, int], token: str | None
+) -> int:
     """Stream the corrected program to the controller, reading it again a piece at a time (constant memory)."""
     from driftlab.compensator.compensate import ErrorModel, parse_pieces, program_pieces
     from driftlab.compensator.stream import ApiModel, ApiTemperatures, CsvTemperatures, StaticModel, Streamer
@@ -167,13 +179,25 @@ def _stream(args: argparse.Namespace, scan: Any, start: tuple[float, ...] | None
             pos = link.position()
             start = tuple(pos[a] for a in AXES)
         # the second pass of the offline path: pieces parsed with the state the lines before them leave
-        pieces = parse_pieces(program_pieces(args.program), scan, str(args.program), start=start,
-                              min_decimals=decimals, max_segment_mm=args.max_segment_mm,
-                              max_segment_deg=args.max_segment_deg)
+        pieces = parse_pieces(
+            program_pieces(args.program),
+            scan,
+            str(args.program),
+            start=start,
+            min_decimals=decimals,
+            max_segment_mm=args.max_segment_mm,
+            max_segment_deg=args.max_segment_deg,
+        )
         streamer = Streamer(
-            pieces, models, temps, resolution_mm=args.resolution_mm, resolution_deg=args.resolution_deg,
-            max_segment_mm=args.max_segment_mm, max_segment_deg=args.max_segment_deg,
-            max_age_s=args.max_age_s, refresh_s=min(args.refresh_s, args.max_age_s),
+            pieces,
+            models,
+            temps,
+            resolution_mm=args.resolution_mm,
+            resolution_deg=args.resolution_deg,
+            max_segment_mm=args.max_segment_mm,
+            max_segment_deg=args.max_segment_deg,
+            max_age_s=args.max_age_s,
+            refresh_s=min(args.refresh_s, args.max_age_s),
         )
         result = streamer.run(link, low_water=args.low_water, high_water=args.high_water)
     finally:

@@ -33,13 +33,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("daemon", help="run a campaign plan against the instruments, resumable")
     p.add_argument("--plan", type=Path, required=True, help="campaign plan YAML (examples/plans/)")
     p.add_argument("--sim", type=Path, default=None, metavar="SCENARIO", help="run on the virtual machine")
-    p.add_argument("--speed", type=float, default=3600.0,
-                   help="simulated seconds per wall-clock second with --sim (0 = as fast as possible)")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=3600.0,
+        help="simulated seconds per wall-clock second with --sim (0 = as fast as possible)",
+    )
     p.add_argument("--resume", action="store_true", help="continue the unfinished campaign of this plan")
     add_db_option(p)
     p.add_argument("--max-batch", type=int, default=200, help="most scans committed in one transaction")
-    p.add_argument("--stop-after", type=int, default=None, metavar="N",
-                   help="stop after N commits (testing and staged runs; resumable)")
+    p.add_argument(
+        "--stop-after",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stop after N commits (testing and staged runs; resumable)",
+    )
     p.add_argument("--stats-json", type=Path, default=None, help="write run statistics here")
     p.set_defaults(func=_daemon)
 
@@ -73,26 +82,41 @@ def _daemon(args: argparse.Namespace) -> int:
     old = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         result = run_daemon(
-            plan, db_url=args.db, scenario_path=args.sim, speed=speed, resume=args.resume, stop=stop,
-            max_batch=args.max_batch, stop_after_commits=args.stop_after,
+            plan,
+            db_url=args.db,
+            scenario_path=args.sim,
+            speed=speed,
+            resume=args.resume,
+            stop=stop,
+            max_batch=args.max_batch,
+            stop_after_commits=args.stop_after,
         )
     finally:
         for s, h in old.items():
             signal.signal(s, h)
     stats = result.stats
     summary = {
-        "campaign_id": result.campaign_id, "finished": stats.finished, "scans": stats.scans, "points": stats.points,
-        "faults": stats.faults, "commits": stats.commits, "wall_s": round(stats.wall_s, 3),
-        "scans_per_s": round(stats.scans_per_s(), 1), "p99_commit_ms": round(stats.p99_commit_s() * 1e3, 3),
+        "campaign_id": result.campaign_id,
+        "finished": stats.finished,
+        "scans": stats.scans,
+        "points": stats.points,
+        "faults": stats.faults,
+        "commits": stats.commits,
+        "wall_s": round(stats.wall_s, 3),
+        "scans_per_s": round(stats.scans_per_s(), 1),
+        "p99_commit_ms": round(stats.p99_commit_s() * 1e3, 3),
         "p99_reading_to_commit_ms": round(stats.p99_latency_s() * 1e3, 3),
-        "max_lag_s": round(stats.max_lag_s, 3), "next_scan": result.cursor.next_scan,
+        "max_lag_s": round(stats.max_lag_s, 3),
+        "next_scan": result.cursor.next_scan,
         "next_point": result.cursor.next_point,
     }
     if args.stats_json is not None:
         args.stats_json.write_text(json.dumps(summary) + "\n")
     if stats.finished:
-        print(f"campaign {plan.name} (id {result.campaign_id}) complete: {stats.scans} scans, "
-              f"{stats.points} sweep points stored in this run, {stats.faults} faults")
+        print(
+            f"campaign {plan.name} (id {result.campaign_id}) complete: {stats.scans} scans, "
+            f"{stats.points} sweep points stored in this run, {stats.faults} faults"
+        )
         return 0
     sys.stderr.write(
         f"driftlab: campaign {plan.name} (id {result.campaign_id}) stopped at scan {result.cursor.next_scan}/"

@@ -7,8 +7,9 @@ import argparse
 
 def add_db_option(parser: argparse.ArgumentParser) -> None:
     """Add the common ``--db URL`` option (default: DRIFTLAB_DB_URL or the embedded SQLite file)."""
-    parser.add_argument("--db", metavar="URL", default=None,
-                        help="database URL (default: DRIFTLAB_DB_URL or the embedded SQLite file)")
+    parser.add_argument(
+        "--db", metavar="URL", default=None, help="database URL (default: DRIFTLAB_DB_URL or the embedded SQLite file)"
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,8 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     cur.set_defaults(func=_current)
     part = dbsub.add_parser("partitions", help="create the reading tables' partitions ahead (PostgreSQL) and list them")
     add_db_option(part)
-    part.add_argument("--ahead", type=int, default=None, metavar="MONTHS",
-                      help="months after the current one to create (default: 2)")
+    part.add_argument(
+        "--ahead", type=int, default=None, metavar="MONTHS", help="months after the current one to create (default: 2)"
+    )
     part.set_defaults(func=_partitions)
 
 

@@ -42,23 +42,50 @@ CASES = ("thermal", "thermal+wear")
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `demo`."""
-    p = sub.add_parser("demo", help="run the whole pipeline on the virtual machine: campaign, fit, diagnosis, "
-                                    "API, compensated cutting test; write an HTML and JSON report")
+    p = sub.add_parser(
+        "demo",
+        help="run the whole pipeline on the virtual machine: campaign, fit, diagnosis, "
+        "API, compensated cutting test; write an HTML and JSON report",
+    )
     p.add_argument("--out", type=Path, default=Path("demo-out"), help="output directory (default demo-out)")
-    p.add_argument("--plan", type=Path, default=DEFAULT_PLAN,
-                   help="campaign plan (default examples/plans/demo-full.yaml: all thirty terms)")
-    p.add_argument("--scenario", type=Path, default=DEFAULT_SCENARIO,
-                   help="virtual-machine scenario with the hidden effect (default examples/scenarios/demo-full.yaml)")
-    p.add_argument("--speed", type=float, default=0.0,
-                   help="daemon speed: simulated seconds per wall second (0 = as fast as possible)")
-    p.add_argument("--passes", type=int, default=700,
-                   help="raster passes of the cutting program (700: about 80 min of cutting; at least 99)")
+    p.add_argument(
+        "--plan",
+        type=Path,
+        default=DEFAULT_PLAN,
+        help="campaign plan (default examples/plans/demo-full.yaml: all thirty terms)",
+    )
+    p.add_argument(
+        "--scenario",
+        type=Path,
+        default=DEFAULT_SCENARIO,
+        help="virtual-machine scenario with the hidden effect (default examples/scenarios/demo-full.yaml)",
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=0.0,
+        help="daemon speed: simulated seconds per wall second (0 = as fast as possible)",
+    )
+    p.add_argument(
+        "--passes",
+        type=int,
+        default=700,
+        help="raster passes of the cutting program (700: about 80 min of cutting; at least 99)",
+    )
     p.add_argument("--forgetting", type=float, default=0.9, help="on-line forgetting factor lambda (default 0.9)")
-    p.add_argument("--age-days", type=float, default=1.0,
-                   help="days from the campaign's start to the cutting test (the machine cooled down meanwhile)")
-    p.add_argument("--wear-um-per-day", type=float, default=30.0,
-                   help="wear of the Z slideways in the thermal+wear cutting test, um per day since the campaign "
-                        "started (default 30; catalogue: drift)")
+    p.add_argument(
+        "--age-days",
+        type=float,
+        default=1.0,
+        help="days from the campaign's start to the cutting test (the machine cooled down meanwhile)",
+    )
+    p.add_argument(
+        "--wear-um-per-day",
+        type=float,
+        default=30.0,
+        help="wear of the Z slideways in the thermal+wear cutting test, um per day since the campaign "
+        "started (default 30; catalogue: drift)",
+    )
     p.set_defaults(func=_demo)
 
 
@@ -82,8 +109,9 @@ class _Steps:
         (self.logs / f"{name}.log").write_text(f"$ {shown}\n{proc.stdout}\n--- stderr ---\n{proc.stderr}")
         if proc.returncode != 0:
             tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
-            raise DriftlabError(f"demo step {name} failed (exit {proc.returncode}): {tail}; "
-                                  f"see {self.logs / (name + '.log')}")
+            raise DriftlabError(
+                f"demo step {name} failed (exit {proc.returncode}): {tail}; see {self.logs / (name + '.log')}"
+            )
         self.done.append({"name": name, "command": shown, "wall_s": round(wall, 2)})
         for line in proc.stdout.strip().splitlines()[:2]:
             self.console.print(f"  {line}")
@@ -118,11 +146,25 @@ class ApiServer:
         self.url = f"http://127.0.0.1:{self.port}"
         self.token = token
         self._log = open(log_path, "w")  # noqa: SIM115 - closed in stop()
-        cmd = [sys.executable, "-m", "driftlab.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
-               "--db", db_url, "--no-jobs", "--log-level", "warning"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "serve",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(self.port),
+            "--db",
+            db_url,
+            "--no-jobs",
+            "--log-level",
+            "warning",
+        ]
         self.command = "driftlab " + " ".join(cmd[3:])
-        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT,
-                                     env=_env(DRIFTLAB_API_TOKEN=token))
+        self.proc = subprocess.Popen(
+            cmd, stdout=self._log, stderr=subprocess.STDOUT, env=_env(DRIFTLAB_API_TOKEN=token)
+        )
 
     def wait_ready(self, timeout_s: float = 60.0) -> None:
         """Return once /health answers ok; InstrumentError when the server died or never answered."""
@@ -186,8 +228,20 @@ def _demo(args: argparse.Namespace) -> int:
     # 1. the campaign, through the daemon
     console.rule("1. staged campaign on the virtual machine, through the daemon")
     stats = out / "daemon-stats.json"
-    steps.cli("daemon", "daemon", "--plan", str(args.plan), "--sim", str(args.scenario), "--speed", f"{args.speed:g}",
-              "--db", db_url, "--stats-json", str(stats))
+    steps.cli(
+        "daemon",
+        "daemon",
+        "--plan",
+        str(args.plan),
+        "--sim",
+        str(args.scenario),
+        "--speed",
+        f"{args.speed:g}",
+        "--db",
+        db_url,
+        "--stats-json",
+        str(stats),
+    )
     campaign_id = int(json.loads(stats.read_text())["campaign_id"])
 
     # 2. fit and register
@@ -203,8 +257,15 @@ def _demo(args: argparse.Namespace) -> int:
 
         shutil.rmtree(bundle)
     steps.cli("export", "export", str(campaign_id), str(bundle), "--db", db_url)
-    steps.cli("diagnose", "diagnose", str(bundle), "--json", str(out / "diagnosis.json"),
-              "--html", str(out / "diagnosis.html"))
+    steps.cli(
+        "diagnose",
+        "diagnose",
+        str(bundle),
+        "--json",
+        str(out / "diagnosis.json"),
+        "--html",
+        str(out / "diagnosis.html"),
+    )
     diag_report = json.loads((out / "diagnosis.json").read_text())
 
     # 4. serve, 5. cutting test
@@ -224,8 +285,12 @@ def _demo(args: argparse.Namespace) -> int:
             console.print(f"  case [bold]{case}[/]")
             tests[case], model_info = _cutting_test(args, machine_case, machine, server, console)
             program = tests[case].program
-            steps.record(f"cutting test ({case})", f"3 runs x {program.pose_written.shape[0]} blocks through the "
-                         f"machine link ({program.duration_s / 60:.0f} min of cutting each)", time.perf_counter() - t0)
+            steps.record(
+                f"cutting test ({case})",
+                f"3 runs x {program.pose_written.shape[0]} blocks through the "
+                f"machine link ({program.duration_s / 60:.0f} min of cutting each)",
+                time.perf_counter() - t0,
+            )
     finally:
         server.stop()
     test = tests["thermal+wear"]
@@ -236,25 +301,46 @@ def _demo(args: argparse.Namespace) -> int:
     table = test.table()
     diagnosis = rep.diagnosis_summary(diag_report)
     wall = time.perf_counter() - t_start
-    report = rep.build_report(table=table, diagnosis=diagnosis, steps=steps.done, extra={
-        "wall_s": round(wall, 1),
-        "campaign": {"id": campaign_id, "plan": str(args.plan), "scenario": str(args.scenario),
-                     **json.loads(stats.read_text())},
-        "planted": [e.model_dump() for e in scenario.hidden],
-        # what the campaign measured and what the fitted model holds, of the thirty motion-error terms
-        "coverage": {"measured": [c for c, st in plan.coverage().items() if st],
-                     "modelled": sorted({f"{t['axis']}/{t['term']}" for t in fit_report.get("terms", [])})},
-        "model": {**model_info, "kept_channels": fit_report.get("kept_channels", [])},
-        "program": {"blocks": int(test.program.pose_written.shape[0]), "passes": test.program.passes,
-                    "cutting_min": round(test.program.duration_s / 60, 1),
-                    "spindle_rpm": 10000, "feed_mm_min": 2000, "rotary_feed_deg_min": 300},
-        "online": {**table["online"], "forgetting": args.forgetting, "updates": test.runs["online"].probes},
-        # both cutting tests, RMSE of the normal deviation (mm): the campaign's machine, then worn
-        "cutting_tests": [{"case": case, **{f"{k}_mm": t.table()[k]["rmse_mm"] for k in rep.RUN_NAMES},
-                           **{f"{k}_max_mm": t.table()[k]["max_mm"] for k in rep.RUN_NAMES}}
-                          for case, t in tests.items()],
-        "wear_um_per_day": args.wear_um_per_day,
-    })
+    report = rep.build_report(
+        table=table,
+        diagnosis=diagnosis,
+        steps=steps.done,
+        extra={
+            "wall_s": round(wall, 1),
+            "campaign": {
+                "id": campaign_id,
+                "plan": str(args.plan),
+                "scenario": str(args.scenario),
+                **json.loads(stats.read_text()),
+            },
+            "planted": [e.model_dump() for e in scenario.hidden],
+            # what the campaign measured and what the fitted model holds, of the thirty motion-error terms
+            "coverage": {
+                "measured": [c for c, st in plan.coverage().items() if st],
+                "modelled": sorted({f"{t['axis']}/{t['term']}" for t in fit_report.get("terms", [])}),
+            },
+            "model": {**model_info, "kept_channels": fit_report.get("kept_channels", [])},
+            "program": {
+                "blocks": int(test.program.pose_written.shape[0]),
+                "passes": test.program.passes,
+                "cutting_min": round(test.program.duration_s / 60, 1),
+                "spindle_rpm": 10000,
+                "feed_mm_min": 2000,
+                "rotary_feed_deg_min": 300,
+            },
+            "online": {**table["online"], "forgetting": args.forgetting, "updates": test.runs["online"].probes},
+            # both cutting tests, RMSE of the normal deviation (mm): the campaign's machine, then worn
+            "cutting_tests": [
+                {
+                    "case": case,
+                    **{f"{k}_mm": t.table()[k]["rmse_mm"] for k in rep.RUN_NAMES},
+                    **{f"{k}_max_mm": t.table()[k]["max_mm"] for k in rep.RUN_NAMES},
+                }
+                for case, t in tests.items()
+            ],
+            "wear_um_per_day": args.wear_um_per_day,
+        },
+    )
     rep.write_json(out / "demo-report.json", report)
     figure = rep.surface_figure({k: r.deviation_mm for k, r in test.runs.items()})
     (out / "demo-report.html").write_text(rep.to_html(report, figure), encoding="utf-8")
@@ -265,14 +351,21 @@ def _demo(args: argparse.Namespace) -> int:
     for case, ct in tests.items():
         tab = ct.table()
         for k, name in rep.RUN_NAMES.items():
-            t.add_row(case if k == "uncompensated" else "", name, f"{tab[k]['rmse_mm'] * 1e3:.1f}",
-                      f"{tab[k]['max_mm'] * 1e3:.1f}", f"{rep.THESIS[k]['rmse_mm'] * 1e3:.0f}",
-                      f"{rep.THESIS[k]['max_mm'] * 1e3:.0f}")
+            t.add_row(
+                case if k == "uncompensated" else "",
+                name,
+                f"{tab[k]['rmse_mm'] * 1e3:.1f}",
+                f"{tab[k]['max_mm'] * 1e3:.1f}",
+                f"{rep.THESIS[k]['rmse_mm'] * 1e3:.0f}",
+                f"{rep.THESIS[k]['max_mm'] * 1e3:.0f}",
+            )
     console.print(t)
     named = ", ".join(diagnosis["named"]) or "nothing"
     console.print(f"diagnosis names: [bold]{named}[/]")
-    console.print(f"ordering uncompensated > off-line > on-line: "
-                  f"{'[green]holds[/]' if report['ordering_holds'] else '[red]does not hold[/]'}")
+    console.print(
+        f"ordering uncompensated > off-line > on-line: "
+        f"{'[green]holds[/]' if report['ordering_holds'] else '[red]does not hold[/]'}"
+    )
     console.print(f"report: {out / 'demo-report.html'} and {out / 'demo-report.json'} ({wall:.0f} s)")
     return 0
 
@@ -286,8 +379,9 @@ def with_wear(scenario: Any, um_per_day: float) -> Any:
     return scenario.model_copy(update={"hidden": [*scenario.hidden, wear]})
 
 
-def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server: ApiServer,
-                  console: Any) -> tuple[Any, dict[str, Any]]:
+def _cutting_test(
+    args: argparse.Namespace, scenario: Any, machine: str, server: ApiServer, console: Any
+) -> tuple[Any, dict[str, Any]]:
     """Run the three cutting runs against the API; return the test and what the API served."""
     import httpx
 
@@ -303,8 +397,9 @@ def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server:
         return src
 
     # each case starts the on-line model afresh, as after maintenance (DELETE /machines/{id}/online)
-    reset = httpx.delete(f"{server.url}/machines/{machine}/online", timeout=10.0,
-                         headers={"Authorization": f"Bearer {server.token}"})
+    reset = httpx.delete(
+        f"{server.url}/machines/{machine}/online", timeout=10.0, headers={"Authorization": f"Bearer {server.token}"}
+    )
     if reset.status_code not in (204, 404):
         raise DriftlabError(f"the API refused to reset the on-line model: HTTP {reset.status_code}")
     first = models()
@@ -313,10 +408,15 @@ def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server:
         raise DriftlabError(f"the API served no model for {machine}")
     document = first.document
     # a second request with the ETag must be answered 304 Not Modified
-    probe = httpx.get(f"{server.url}/machines/{machine}/model/current", headers={"If-None-Match": first.etag or ""},
-                      timeout=5.0)
-    info = {"version": document.get("version"), "etag": first.etag, "if_none_match_status": probe.status_code,
-            "terms": len(document.get("terms", []))}
+    probe = httpx.get(
+        f"{server.url}/machines/{machine}/model/current", headers={"If-None-Match": first.etag or ""}, timeout=5.0
+    )
+    info = {
+        "version": document.get("version"),
+        "etag": first.etag,
+        "if_none_match_status": probe.status_code,
+        "terms": len(document.get("terms", [])),
+    }
 
     def online() -> ApiRLS:
         """Return a fresh on-line model kept by the API."""
@@ -325,6 +425,7 @@ def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server:
     from driftlab.progress import progress
 
     with progress("cutting test", total=3) as bar:
+
         def done(key: str) -> None:
             """Advance the bar and say which run finished."""
             bar.advance()
@@ -333,9 +434,13 @@ def _cutting_test(args: argparse.Namespace, scenario: Any, machine: str, server:
         # the session's t = 0 in POSIX time: the campaign's start (the model's time origin) plus its age, so
         # time-dependent terms of the model are evaluated at each block's time on the simulated clock
         origin = document.get("time_origin")
-        epoch = None if not origin else (
-            datetime.fromisoformat(str(origin).replace("Z", "+00:00")).timestamp() + args.age_days * 86400.0)
-        test = run_cutting_test(scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0,
-                                on_run=done, epoch_s=epoch)
+        epoch = (
+            None
+            if not origin
+            else (datetime.fromisoformat(str(origin).replace("Z", "+00:00")).timestamp() + args.age_days * 86400.0)
+        )
+        test = run_cutting_test(
+            scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0, on_run=done, epoch_s=epoch
+        )
     info["loads_per_source"] = [src.reloads for src in sources]  # 1 each: every later poll was a 304
     return test, info

@@ -13,34 +13,58 @@ import numpy as np
 
 from driftlab.jsonsafe import strict_json
 
-RUN_NAMES = {"uncompensated": "without compensation", "offline": "off-line model",
-             "online": "off-line + on-line model"}
+RUN_NAMES = {"uncompensated": "without compensation", "offline": "off-line model", "online": "off-line + on-line model"}
 #: thesis ch. 7.3, mm
-THESIS = {"uncompensated": {"rmse_mm": 0.060, "max_mm": 0.082}, "offline": {"rmse_mm": 0.005, "max_mm": 0.015},
-          "online": {"rmse_mm": 0.003, "max_mm": 0.012}}
+THESIS = {
+    "uncompensated": {"rmse_mm": 0.060, "max_mm": 0.082},
+    "offline": {"rmse_mm": 0.005, "max_mm": 0.015},
+    "online": {"rmse_mm": 0.003, "max_mm": 0.012},
+}
 
 
 def diagnosis_summary(report: dict[str, Any]) -> dict[str, Any]:
     """Return the findings of a diagnosis report v1: accepted effects with their causes and gains."""
     effects = []
     for e in report.get("effects", []):
-        effects.append({k: e.get(k) for k in ("kind", "axis", "term", "channels", "params", "p_value", "cause",
-                                              "rmse_holdout_before", "rmse_holdout_after")})
-    names = [f"{e['kind']} {e.get('axis') or ''}/{e.get('term') or ''} {' '.join(e.get('channels') or [])}".strip()
-             for e in effects]
-    return {"effects": effects, "named": names, "flags": report.get("flags", []),
-            "baseline": report.get("baseline", [])}
+        effects.append(
+            {
+                k: e.get(k)
+                for k in (
+                    "kind",
+                    "axis",
+                    "term",
+                    "channels",
+                    "params",
+                    "p_value",
+                    "cause",
+                    "rmse_holdout_before",
+                    "rmse_holdout_after",
+                )
+            }
+        )
+    names = [
+        f"{e['kind']} {e.get('axis') or ''}/{e.get('term') or ''} {' '.join(e.get('channels') or [])}".strip()
+        for e in effects
+    ]
+    return {
+        "effects": effects,
+        "named": names,
+        "flags": report.get("flags", []),
+        "baseline": report.get("baseline", []),
+    }
 
 
-def build_report(*, table: dict[str, dict[str, Any]], diagnosis: dict[str, Any], steps: list[dict[str, Any]],
-                 extra: dict[str, Any]) -> dict[str, Any]:
+def build_report(
+    *, table: dict[str, dict[str, Any]], diagnosis: dict[str, Any], steps: list[dict[str, Any]], extra: dict[str, Any]
+) -> dict[str, Any]:
     """Return the demo-report.json document."""
     out: dict[str, Any] = {"format": "driftlab-demo/1"}
     out.update(table)
     out["diagnosis"] = diagnosis
     out["thesis"] = THESIS
-    out["ordering_holds"] = bool(table["uncompensated"]["rmse_mm"] > table["offline"]["rmse_mm"]
-                                 > table["online"]["rmse_mm"])
+    out["ordering_holds"] = bool(
+        table["uncompensated"]["rmse_mm"] > table["offline"]["rmse_mm"] > table["online"]["rmse_mm"]
+    )
     out["steps"] = steps
     out.update(extra)
     return strict_json(out)
@@ -80,8 +104,15 @@ def surface_axes(deviations: dict[str, np.ndarray]) -> Any:
     for ax, k in zip(axes, keys):
         um = deviations[k] * 1e3
         lim = float(np.nanmax(np.abs(um))) or 1.0
-        im = ax.imshow(um, aspect="auto", origin="lower", cmap="coolwarm", vmin=-lim, vmax=lim,
-                       extent=(0.5, um.shape[1] + 0.5, 0.5, um.shape[0] + 0.5))
+        im = ax.imshow(
+            um,
+            aspect="auto",
+            origin="lower",
+            cmap="coolwarm",
+            vmin=-lim,
+            vmax=lim,
+            extent=(0.5, um.shape[1] + 0.5, 0.5, um.shape[0] + 0.5),
+        )
         ax.set_title(f"{RUN_NAMES[k]}\nrange {np.nanmin(um):+.1f} .. {np.nanmax(um):+.1f} um", fontsize=10)
         ax.set_xlabel("across the part (15 CMM points)")
         fig.colorbar(im, ax=ax, label=f"normal deviation (um), scale +-{lim:.1f}", shrink=0.85)
@@ -109,25 +140,51 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
     e = html.escape
     rows = [_row(["case", "run", "RMSE (um)", "max (um)", "thesis RMSE (um)", "thesis max (um)", "verdict"], "th")]
     cases = report.get("cutting_tests") or [
-        {"case": "", **{f"{k}_mm": report[k]["rmse_mm"] for k in RUN_NAMES},
-         **{f"{k}_max_mm": report[k]["max_mm"] for k in RUN_NAMES}}]
+        {
+            "case": "",
+            **{f"{k}_mm": report[k]["rmse_mm"] for k in RUN_NAMES},
+            **{f"{k}_max_mm": report[k]["max_mm"] for k in RUN_NAMES},
+        }
+    ]
     for c in cases:
         for k, name in RUN_NAMES.items():
             t = THESIS[k]
             ok = c[f"{k}_mm"] <= t["rmse_mm"] * 1.5
-            rows.append(_row([e(c["case"]) if k == "uncompensated" else "", e(name), f"{c[f'{k}_mm'] * 1e3:.1f}",
-                              f"{c[f'{k}_max_mm'] * 1e3:.1f}", f"{t['rmse_mm'] * 1e3:.0f}", f"{t['max_mm'] * 1e3:.0f}",
-                              "as in the thesis" if ok else "worse than the thesis"]))
+            rows.append(
+                _row(
+                    [
+                        e(c["case"]) if k == "uncompensated" else "",
+                        e(name),
+                        f"{c[f'{k}_mm'] * 1e3:.1f}",
+                        f"{c[f'{k}_max_mm'] * 1e3:.1f}",
+                        f"{t['rmse_mm'] * 1e3:.0f}",
+                        f"{t['max_mm'] * 1e3:.0f}",
+                        "as in the thesis" if ok else "worse than the thesis",
+                    ]
+                )
+            )
     diag = report.get("diagnosis", {})
-    findings = "".join(
-        f"<li><b>{e(effect_label(f))}</b> on {e(str(f.get('axis')))}/{e(str(f.get('term')))}: "
-        f"{e(str(f.get('cause') or ''))} (held-out RMSE {1e3 * (f.get('rmse_holdout_before') or 0):.2f} &rarr; "
-        f"{1e3 * (f.get('rmse_holdout_after') or 0):.2f} um)</li>"
-        for f in diag.get("effects", [])) or "<li>no effect accepted</li>"
-    steps = "".join(_row([e(s["name"]), f"<code>{e(s.get('command', ''))}</code>", e(duration(s["wall_s"]))])
-                    for s in report.get("steps", []))
-    fig = (f'<p><img style="max-width:100%" alt="machined surface errors of the three runs, each with its own colour '
-           f'scale" src="data:image/png;base64,{figure_png}"></p>') if figure_png else ""
+    findings = (
+        "".join(
+            f"<li><b>{e(effect_label(f))}</b> on {e(str(f.get('axis')))}/{e(str(f.get('term')))}: "
+            f"{e(str(f.get('cause') or ''))} (held-out RMSE {1e3 * (f.get('rmse_holdout_before') or 0):.2f} &rarr; "
+            f"{1e3 * (f.get('rmse_holdout_after') or 0):.2f} um)</li>"
+            for f in diag.get("effects", [])
+        )
+        or "<li>no effect accepted</li>"
+    )
+    steps = "".join(
+        _row([e(s["name"]), f"<code>{e(s.get('command', ''))}</code>", e(duration(s["wall_s"]))])
+        for s in report.get("steps", [])
+    )
+    fig = (
+        (
+            f'<p><img style="max-width:100%" alt="machined surface errors of the three runs, each with its own colour '
+            f'scale" src="data:image/png;base64,{figure_png}"></p>'
+        )
+        if figure_png
+        else ""
+    )
     planted = report.get("planted", [])
     planted_html = "".join(f"<li>{e(_planted_text(p))}</li>" for p in planted) or "<li>nothing hidden</li>"
     ordering = "holds" if report.get("ordering_holds") else "does NOT hold"
@@ -139,12 +196,12 @@ code{{font-size:85%}}</style></head><body>
 <h1>driftlab demo</h1>
 <p>A staged campaign on the virtual machine through the daemon, a fitted and registered model, its diagnosis,
 the model served over the API, and the cutting test of thesis ch. 7.3 streamed through the compensator.
-Total wall time {e(duration(report.get('wall_s', 0)))}. Lengths in micrometres (um).</p>
+Total wall time {e(duration(report.get("wall_s", 0)))}. Lengths in micrometres (um).</p>
 <h2>Cutting tests (ch. 7.3): normal deviation of the machined surface, CMM 15 x 99 points</h2>
 <p>"thermal": the campaign's machine, cut cold a day after the campaign started; "thermal+wear": the same cut
-with the Z slideways worn ({e(str(report.get('wear_um_per_day', '')))} um a day), which no campaign saw. The maps
+with the Z slideways worn ({e(str(report.get("wear_um_per_day", "")))} um a day), which no campaign saw. The maps
 below are of the thermal+wear case.</p>
-<table>{''.join(rows)}</table>
+<table>{"".join(rows)}</table>
 <p>Ordering uncompensated &gt; off-line &gt; off-line + on-line: <b>{ordering}</b>.</p>
 {fig}
 <h2>Diagnosis of the campaign</h2>
@@ -152,6 +209,6 @@ below are of the thermal+wear case.</p>
 <p>Planted in the scenario (the truth, not seen by the pipeline):</p><ul>{planted_html}</ul>
 <p>The campaign overview, every finding's plot and the per-term tables: <a href="diagnosis.html">diagnosis.html</a>.</p>
 <h2>Steps</h2>
-<table>{_row(['step', 'command', 'wall time'], 'th')}{steps}</table>
+<table>{_row(["step", "command", "wall time"], "th")}{steps}</table>
 </body></html>
 """

@@ -15,15 +15,26 @@ log = logging.getLogger(__name__)
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `diagnose (BUNDLE_DIR | --campaign ID [--db URL]) --json REPORT.json [--html REPORT.html]`."""
     p = sub.add_parser("diagnose", help="diagnose a campaign bundle: simulation vs data, effects, held-out gain")
-    p.add_argument("bundle", type=Path, nargs="?", default=None, metavar="BUNDLE_DIR",
-                   help="campaign bundle v1 directory (or --campaign for a stored campaign)")
+    p.add_argument(
+        "bundle",
+        type=Path,
+        nargs="?",
+        default=None,
+        metavar="BUNDLE_DIR",
+        help="campaign bundle v1 directory (or --campaign for a stored campaign)",
+    )
     p.add_argument("--campaign", type=int, default=None, metavar="ID", help="diagnose a campaign in the store")
-    p.add_argument("--db", default=None, metavar="URL",
-                   help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
+    p.add_argument(
+        "--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)"
+    )
     p.add_argument("--json", type=Path, required=True, metavar="REPORT.json", help="write the report v1 here")
     p.add_argument("--html", type=Path, default=None, metavar="REPORT.html", help="also write an HTML page")
-    p.add_argument("--holdout-fraction", type=float, default=0.25,
-                   help="fraction of each (axis, term)'s rows, last in time, held out (default 0.25)")
+    p.add_argument(
+        "--holdout-fraction",
+        type=float,
+        default=0.25,
+        help="fraction of each (axis, term)'s rows, last in time, held out (default 0.25)",
+    )
     p.set_defaults(func=_diagnose)
 
 
@@ -56,8 +67,10 @@ def _diagnose(args: argparse.Namespace) -> int:
         args.html.write_text(to_html(result, bundle), encoding="utf-8")  # with the campaign overview
     print_findings(doc)
     n = len(result.effects)
-    print(f"diagnosed {bundle.name}: {n} effect{'s' if n != 1 else ''} accepted; report {args.json}"
-          + (f", page {args.html}" if args.html is not None else ""))
+    print(
+        f"diagnosed {bundle.name}: {n} effect{'s' if n != 1 else ''} accepted; report {args.json}"
+        + (f", page {args.html}" if args.html is not None else "")
+    )
     return 0
 
 
@@ -71,37 +84,72 @@ def print_findings(doc: dict) -> None:
     con = stdout_console()
     effects = doc.get("effects", [])
     if effects:
-        t = Table(title=f"Findings: what the standard model misses ({doc.get('holdout', {}).get('method', 'held out')} "
-                        "held out)", title_justify="left")
+        t = Table(
+            title=f"Findings: what the standard model misses ({doc.get('holdout', {}).get('method', 'held out')} "
+            "held out)",
+            title_justify="left",
+        )
         widest = max(len(effect_label(e)) for e in effects)
-        for col, just in (("#", "right"), ("effect", "left"), ("on", "left"), ("cause", "left"),
-                          ("held-out RMSE before", "right"), ("after", "right"), ("gain", "right"), ("p", "right")):
+        for col, just in (
+            ("#", "right"),
+            ("effect", "left"),
+            ("on", "left"),
+            ("cause", "left"),
+            ("held-out RMSE before", "right"),
+            ("after", "right"),
+            ("gain", "right"),
+            ("p", "right"),
+        ):
             # the effect's name stays on one line; the cause wraps
-            t.add_column(col, justify=just, overflow="fold",  # type: ignore[arg-type]
-                         min_width=min(widest, 48) if col == "effect" else None)
+            t.add_column(
+                col,
+                justify=just,  # type: ignore[arg-type]  # rich types it as a Literal; ours are its values
+                overflow="fold",
+                min_width=min(widest, 48) if col == "effect" else None,
+            )
         for i, e in enumerate(effects, 1):
             k, unit = display_unit(str(e.get("term")))
             b, a = e.get("rmse_holdout_before"), e.get("rmse_holdout_after")
-            gain = (f"[green]{100 * (1 - a / b):.0f} %[/]" if a <= b else f"[red]{100 * (1 - a / b):.0f} %[/]") \
-                if b and a is not None else "-"
+            gain = (
+                (f"[green]{100 * (1 - a / b):.0f} %[/]" if a <= b else f"[red]{100 * (1 - a / b):.0f} %[/]")
+                if b and a is not None
+                else "-"
+            )
             where = f"{e.get('axis')}/{e.get('term')}" if e.get("axis") else "temperatures"
-            t.add_row(str(i), effect_label(e), where, str(e.get("cause") or ""),
-                      f"{b * k:.2f} {unit}" if b is not None else "-", f"{a * k:.2f} {unit}" if a is not None else "-",
-                      gain, f"{e['p_value']:.2g}" if e.get("p_value") is not None else "-")
+            t.add_row(
+                str(i),
+                effect_label(e),
+                where,
+                str(e.get("cause") or ""),
+                f"{b * k:.2f} {unit}" if b is not None else "-",
+                f"{a * k:.2f} {unit}" if a is not None else "-",
+                gain,
+                f"{e['p_value']:.2g}" if e.get("p_value") is not None else "-",
+            )
         con.print(t)
     else:
         con.print("No effect of the catalogue is supported by the data: the standard model stands.")
     base = doc.get("baseline", [])
     if base:
         t = Table(title="Standard model per term: held-out RMSE before and after the findings", title_justify="left")
-        for col, just in (("axis/term", "left"), ("model thermocouples", "left"), ("train", "right"),
-                          ("held out", "right"), ("with findings", "right")):
+        for col, just in (
+            ("axis/term", "left"),
+            ("model thermocouples", "left"),
+            ("train", "right"),
+            ("held out", "right"),
+            ("with findings", "right"),
+        ):
             t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
         ext = {(x.get("axis"), x.get("term")): x for x in doc.get("extended", [])}
         for r in base:
             k, unit = display_unit(str(r.get("term")))
             x = ext.get((r.get("axis"), r.get("term")), {})
             fmt = lambda v, k=k, unit=unit: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
-            t.add_row(f"{r.get('axis')}/{r.get('term')}", " ".join(r.get("channels") or []), fmt(r.get("rmse_train")),
-                      fmt(r.get("rmse_holdout")), fmt(x.get("rmse_holdout")))
+            t.add_row(
+                f"{r.get('axis')}/{r.get('term')}",
+                " ".join(r.get("channels") or []),
+                fmt(r.get("rmse_train")),
+                fmt(r.get("rmse_holdout")),
+                fmt(x.get("rmse_holdout")),
+            )
         con.print(t)

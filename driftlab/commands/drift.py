@@ -35,8 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--machine", required=True, help="machine id")
     p.add_argument("--axis", required=True, help="X Y Z A B")
     p.add_argument("--term", required=True, help="dx dy dz alpha beta gamma")
-    p.add_argument("--position", type=float, default=None,
-                   help="at this position: the nearest measured one (or interpolated with --interpolate)")
+    p.add_argument(
+        "--position",
+        type=float,
+        default=None,
+        help="at this position: the nearest measured one (or interpolated with --interpolate)",
+    )
     p.add_argument("--interpolate", action="store_true", help="interpolate linearly along position in each sweep")
     p.add_argument("--direction", type=_direction, default=None, help="+1 or -1 (default: both)")
     p.add_argument("--from", dest="start", type=_when, default=None, help="ISO 8601 start time (UTC if no zone)")
@@ -53,8 +57,9 @@ def _drift(args: argparse.Namespace) -> int:
     if args.start and args.end and args.end < args.start:
         raise ValidationError("--to is before --from")
     with connect(args.db) as store:
-        frame = store.drift(args.machine, args.axis, args.term, args.position, args.direction, args.start,
-                            args.end, args.interpolate)
+        frame = store.drift(
+            args.machine, args.axis, args.term, args.position, args.direction, args.start, args.end, args.interpolate
+        )
     frame = frame.copy()
     frame["time"] = frame["time"].map(lambda t: t.isoformat().replace("+00:00", "Z"))
     if args.csv:

@@ -14,14 +14,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Register `export-comp --model VERSION|FILE (--temps CSV | --api URL) --format F --axis X -o FILE`."""
     from driftlab.compensator.exports import FORMATS
 
-    p = sub.add_parser("export-comp", help="write the model's correction of an axis as a controller compensation table",
-                       description="LinuxCNC axis comp file, Siemens 840D LEC/CEC part program, Heidenhain .COM "
-                       "table, Fanuc pitch error parameter tape (docs/exports.md).")
-    p.add_argument("--model", required=True, metavar="VERSION|FILE",
-                   help="a registered model version (number or 'current', with --machine) or a model document JSON")
+    p = sub.add_parser(
+        "export-comp",
+        help="write the model's correction of an axis as a controller compensation table",
+        description="LinuxCNC axis comp file, Siemens 840D LEC/CEC part program, Heidenhain .COM "
+        "table, Fanuc pitch error parameter tape (docs/exports.md).",
+    )
+    p.add_argument(
+        "--model",
+        required=True,
+        metavar="VERSION|FILE",
+        help="a registered model version (number or 'current', with --machine) or a model document JSON",
+    )
     p.add_argument("--machine", default=None, help="machine id (for a registered version, and with --api)")
-    p.add_argument("--db", default=None, metavar="URL",
-                   help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
+    p.add_argument(
+        "--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)"
+    )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--temps", type=Path, metavar="CSV", help="temperatures.csv: its latest scan is used")
     src.add_argument("--api", metavar="URL", help="driftlab API base URL: the machine's latest scan")
@@ -29,8 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--axis", required=True, help="X Y Z A B")
     p.add_argument("--range", required=True, metavar="FROM,TO", help="axis travel covered by the table (mm or deg)")
     p.add_argument("--step", type=float, default=None, help="spacing of the table's points (default 10 mm / 5 deg)")
-    p.add_argument("--pose", default="0,0,0,0,0", metavar="X,Y,Z,A,B",
-                   help="where the other axes stand (mm, deg; default home)")
+    p.add_argument(
+        "--pose", default="0,0,0,0,0", metavar="X,Y,Z,A,B", help="where the other axes stand (mm, deg; default home)"
+    )
     p.add_argument("--reference", type=float, default=0.0, help="fanuc: the reference position (a grid point; 0)")
     p.add_argument("--detection-unit", type=float, default=0.0001, help="fanuc: detection unit (0.0001 mm, IS-C)")
     p.add_argument("-o", "--out", type=Path, required=True, metavar="FILE")
@@ -117,9 +126,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary))
     else:
-        print(f"wrote {args.out}: {args.fmt} table of {axis}, {table.positions.size} points "
-              f"{table.positions[0]:g}..{table.positions[-1]:g} {table.unit}, model {table.model}; "
-              f"largest correction {max(summary['max_forward'], summary['max_reverse']):.6f} {table.unit}")
+        print(
+            f"wrote {args.out}: {args.fmt} table of {axis}, {table.positions.size} points "
+            f"{table.positions[0]:g}..{table.positions[-1]:g} {table.unit}, model {table.model}; "
+            f"largest correction {max(summary['max_forward'], summary['max_reverse']):.6f} {table.unit}"
+        )
         for k, v in export.settings.items():
             print(f"  {k} = {v}")
     return 0

@@ -8,8 +8,16 @@ import math
 from pathlib import Path
 from typing import Any
 
-STAGES = ("screening", "samples", "allocation_and_regression", "joint_adjustment", "validation", "network",
-          "virtual_sensors", "document")
+STAGES = (
+    "screening",
+    "samples",
+    "allocation_and_regression",
+    "joint_adjustment",
+    "validation",
+    "network",
+    "virtual_sensors",
+    "document",
+)
 
 
 def fit_steps(network: bool = True) -> list[str]:
@@ -19,25 +27,43 @@ def fit_steps(network: bool = True) -> list[str]:
 
 def _db(parser: argparse.ArgumentParser) -> None:
     """Add the common ``--db URL`` option."""
-    parser.add_argument("--db", metavar="URL", default=None,
-                        help="database URL (default: DRIFTLAB_DB_URL or the embedded SQLite file)")
+    parser.add_argument(
+        "--db", metavar="URL", default=None, help="database URL (default: DRIFTLAB_DB_URL or the embedded SQLite file)"
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `fit`, `models` and `online`."""
     fit = sub.add_parser("fit", help="fit a model from stored campaigns and register it as a new version")
-    fit.add_argument("--campaign", type=int, action="append", default=[], metavar="ID",
-                     help="campaign id (repeat for several campaigns of one machine)")
+    fit.add_argument(
+        "--campaign",
+        type=int,
+        action="append",
+        default=[],
+        metavar="ID",
+        help="campaign id (repeat for several campaigns of one machine)",
+    )
     _db(fit)
     fit.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the fit report here")
     fit.add_argument("--no-network", action="store_true", help="skip the neural-network comparison (ch. 6.6)")
-    fit.add_argument("--findings", type=Path, default=None, metavar="REPORT.json",
-                     help="a diagnosis report (driftlab diagnose --json): fold its effects into this fit")
-    fit.add_argument("--force-findings", action="store_true",
-                     help="with --findings: force the findings' terms in (default: offer them as candidates)")
-    fit.add_argument("--enqueue", action="store_true",
-                     help="only queue the fit job and print its id (`driftlab worker` runs it on PostgreSQL, "
-                          "`driftlab serve` on SQLite)")
+    fit.add_argument(
+        "--findings",
+        type=Path,
+        default=None,
+        metavar="REPORT.json",
+        help="a diagnosis report (driftlab diagnose --json): fold its effects into this fit",
+    )
+    fit.add_argument(
+        "--force-findings",
+        action="store_true",
+        help="with --findings: force the findings' terms in (default: offer them as candidates)",
+    )
+    fit.add_argument(
+        "--enqueue",
+        action="store_true",
+        help="only queue the fit job and print its id (`driftlab worker` runs it on PostgreSQL, "
+        "`driftlab serve` on SQLite)",
+    )
     fit.set_defaults(func=_fit)
 
     models = sub.add_parser("models", help="list or show registered model versions")
@@ -56,13 +82,27 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     online = sub.add_parser("online", help="update the on-line model (RLS, eqs. 6.10-6.13) with probe measurements")
     online.add_argument("--machine", required=True)
-    online.add_argument("--probe", type=Path, required=True, metavar="FILE.csv",
-                        help="time_s,x,y,z,a,b,dx,dy,dz plus one column per model channel "
-                             "(optional measured_at: ISO times of the probings)")
-    online.add_argument("--lambda", dest="lam", type=float, default=None,
-                        help="forgetting factor of a new on-line state (default 0.98; fixed once the state starts)")
-    online.add_argument("--start", default=None, metavar="ISO",
-                        help="wall-clock time of time_s = 0 (default: the last row was measured now)")
+    online.add_argument(
+        "--probe",
+        type=Path,
+        required=True,
+        metavar="FILE.csv",
+        help="time_s,x,y,z,a,b,dx,dy,dz plus one column per model channel "
+        "(optional measured_at: ISO times of the probings)",
+    )
+    online.add_argument(
+        "--lambda",
+        dest="lam",
+        type=float,
+        default=None,
+        help="forgetting factor of a new on-line state (default 0.98; fixed once the state starts)",
+    )
+    online.add_argument(
+        "--start",
+        default=None,
+        metavar="ISO",
+        help="wall-clock time of time_s = 0 (default: the last row was measured now)",
+    )
     online.add_argument("--json", action="store_true", help="print the report as JSON")
     _db(online)
     online.set_defaults(func=_online)
@@ -85,8 +125,9 @@ def _fit(args: argparse.Namespace) -> int:
             findings = load_findings(args.findings)
         elif args.force_findings:
             raise ValidationError("--force-findings needs --findings REPORT.json")
-        job_id = submit_fit(store, args.campaign, network=not args.no_network, findings=findings,
-                            force_findings=args.force_findings)
+        job_id = submit_fit(
+            store, args.campaign, network=not args.no_network, findings=findings, force_findings=args.force_findings
+        )
         if args.enqueue:
             print(json.dumps({"job": job_id, "state": "queued"}))
             return 0
@@ -115,8 +156,12 @@ def _reference(store: Any, campaign_ids: list[int]) -> dict[str, Any]:
     import math
 
     res_deg = machine.get("resolution_deg") or 0.001
-    return {"noise_mm": noise.get("length_mm"), "noise_rad": noise.get("angle_rad"),
-            "resolution_mm": machine.get("resolution_mm") or 0.0025, "resolution_rad": math.radians(res_deg)}
+    return {
+        "noise_mm": noise.get("length_mm"),
+        "noise_rad": noise.get("angle_rad"),
+        "resolution_mm": machine.get("resolution_mm") or 0.0025,
+        "resolution_rad": math.radians(res_deg),
+    }
 
 
 def verdict(rmse: float | None, term: str, ref: dict[str, Any]) -> tuple[str, str, str]:
@@ -149,22 +194,38 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
     ref = ref or {"noise_mm": None, "noise_rad": None, "resolution_mm": 0.0025, "resolution_rad": 1.7453e-05}
     con = stdout_console()
     kept = report.get("kept_channels", [])
-    con.print(f"machine {report.get('machine')}: model version {report.get('model_version')} registered; "
-              f"{len(kept)} thermocouples kept: {' '.join(kept)}")
+    con.print(
+        f"machine {report.get('machine')}: model version {report.get('model_version')} registered; "
+        f"{len(kept)} thermocouples kept: {' '.join(kept)}"
+    )
     stated = []
     if ref.get("noise_mm"):
         stated.append(f"{ref['noise_mm'] * 1e3:.2g} um")
     if ref.get("noise_rad"):
         stated.append(f"{ref['noise_rad'] * 1e6:.2g} urad")
-    t = Table(title="Per-link models (thesis tables 6.1-6.2): RMSE of the work-space error" + (
-        f"; stated noise {', '.join(stated)}" if stated
-        else "; no noise stated: judged against the machine's resolution"),
-        title_justify="left")
-    for col, just in (("axis", "left"), ("term", "left"), ("measurement", "left"), ("link", "left"), ("form", "left"),
-                      ("unit", "left"),
-                      ("RMSE train", "right"),
-                      ("RMSE held out", "right"), ("R2", "right"), ("F", "right"), ("held out vs", "right"),
-                      ("verdict", "left")):
+    t = Table(
+        title="Per-link models (thesis tables 6.1-6.2): RMSE of the work-space error"
+        + (
+            f"; stated noise {', '.join(stated)}"
+            if stated
+            else "; no noise stated: judged against the machine's resolution"
+        ),
+        title_justify="left",
+    )
+    for col, just in (
+        ("axis", "left"),
+        ("term", "left"),
+        ("measurement", "left"),
+        ("link", "left"),
+        ("form", "left"),
+        ("unit", "left"),
+        ("RMSE train", "right"),
+        ("RMSE held out", "right"),
+        ("R2", "right"),
+        ("F", "right"),
+        ("held out vs", "right"),
+        ("verdict", "left"),
+    ):
         t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
     for r in report.get("terms", []):
         k, unit = display_unit(r["term"])
@@ -173,20 +234,35 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         def num(v: Any, fmt: str, scale: float = 1.0) -> str:
             return format(v * scale, fmt) if isinstance(v, (int, float)) else "-"
 
-        t.add_row(r["axis"], r["term"], str(r.get("measurement", "")), str(r["link"]), str(r.get("form", "link")), unit,
-                  num(r.get("rmse_train"), ".2f", k),
-                  num(r.get("rmse_holdout"), ".2f", k), num(r.get("r2"), ".3f"), num(r.get("f"), ".4g"), ratio,
-                  f"[{style}]{word}[/]")
+        t.add_row(
+            r["axis"],
+            r["term"],
+            str(r.get("measurement", "")),
+            str(r["link"]),
+            str(r.get("form", "link")),
+            unit,
+            num(r.get("rmse_train"), ".2f", k),
+            num(r.get("rmse_holdout"), ".2f", k),
+            num(r.get("r2"), ".3f"),
+            num(r.get("f"), ".4g"),
+            ratio,
+            f"[{style}]{word}[/]",
+        )
     con.print(t)
     phys = report.get("physical", [])
     check = report.get("physical_check") or {}
     if check and check.get("status") != "compared":
         # no stated geometry: say so instead of comparing with lengths that are not this machine's
-        con.print(f"Regression against physical coefficients (thesis table 6.3): {check.get('status')}: "
-                  f"{check.get('note', '')}")
+        con.print(
+            f"Regression against physical coefficients (thesis table 6.3): {check.get('status')}: "
+            f"{check.get('note', '')}"
+        )
     elif phys:
-        pt = Table(title="Regression against physical coefficients (thesis table 6.3)" + (
-            f"; {check['note']}" if check.get("note") else ""), title_justify="left")
+        pt = Table(
+            title="Regression against physical coefficients (thesis table 6.3)"
+            + (f"; {check['note']}" if check.get("note") else ""),
+            title_justify="left",
+        )
         for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
             pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
 
@@ -196,10 +272,14 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         for p in phys:
             elem, _, feat = str(p["term"]).partition(" ")
             status = str(p.get("status", "compared"))
-            pt.add_row(f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
-                       finite_num(p.get("regression"), ".4g"), finite_num(p.get("physical"), ".4g"),
-                       finite_num(p.get("ratio"), ".2f"), str(p.get("unit", "")),
-                       str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"))
+            pt.add_row(
+                f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
+                finite_num(p.get("regression"), ".4g"),
+                finite_num(p.get("physical"), ".4g"),
+                finite_num(p.get("ratio"), ".2f"),
+                str(p.get("unit", "")),
+                str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"),
+            )
         con.print(pt)
     for f in report.get("findings", []):
         what = f"{effect_label(f)} on {f.get('axis')}/{f.get('term')}"
@@ -209,27 +289,46 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             con.print(f"finding {what}: {', '.join(f.get('substituted', []))} replaced by its virtual sensor")
         else:
             kept_terms = [f"{feature_label(n)} in {'+'.join(m)}" for n, m in f.get("entered", {}).items() if m]
-            con.print(f"finding {what}: {'; '.join(kept_terms) or 'no term entered'}"
-                      f"{' (forced)' if f.get('forced') else ''}")
+            con.print(
+                f"finding {what}: {'; '.join(kept_terms) or 'no term entered'}{' (forced)' if f.get('forced') else ''}"
+            )
     for c in report.get("neural_comparison") or []:
         # ch. 6.6: least squares and the network on the same inputs, each extrapolation direction
         if c.get("status") != "compared":
             con.print(f"neural comparison on {c['target']} (ch. 6.6): {c.get('status')}: {c.get('note', '')}")
             continue
         k, unit = display_unit(c["target"].partition("/")[2])
-        nt = Table(title=f"Neural network against least squares on the same inputs, {c['target']} (ch. 6.6; split by "
-                         f"{c['split']}; {len(c.get('channels', []))} channels)", title_justify="left")
-        for col in ("direction", "train", "test", f"regression test ({unit})", f"network test ({unit})",
-                    f"regression train ({unit})", f"network train ({unit})", "test beyond range"):
+        nt = Table(
+            title=f"Neural network against least squares on the same inputs, {c['target']} (ch. 6.6; split by "
+            f"{c['split']}; {len(c.get('channels', []))} channels)",
+            title_justify="left",
+        )
+        for col in (
+            "direction",
+            "train",
+            "test",
+            f"regression test ({unit})",
+            f"network test ({unit})",
+            f"regression train ({unit})",
+            f"network train ({unit})",
+            "test beyond range",
+        ):
             nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
 
         def val(v: Any, k: float = k) -> str:
             return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
 
         for d in c.get("directions", []):
-            nt.add_row(d["direction"], d["train"], d["test"], val(d["regression_test"]), val(d["network_test"]),
-                       val(d["regression_train"]), val(d["network_train"]),
-                       f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC")
+            nt.add_row(
+                d["direction"],
+                d["train"],
+                d["test"],
+                val(d["regression_test"]),
+                val(d["network_test"]),
+                val(d["regression_train"]),
+                val(d["network_train"]),
+                f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC",
+            )
         con.print(nt)
         for what, why in (c.get("excluded") or {}).items():
             con.print(f"  not a target: {what}: {why}")
@@ -247,8 +346,10 @@ def _list(args: argparse.Namespace) -> int:
         return 0
     print(f"{'machine':16} {'version':>7} {'status':8} {'created':26} {'terms':>5} campaigns")
     for r in rows:
-        print(f"{r['machine']:16} {r['version']:>7} {r['status']:8} {r['created_at'] or '':26} {r['terms']:>5} "
-              f"{','.join(str(c) for c in r['source_campaigns'])}")
+        print(
+            f"{r['machine']:16} {r['version']:>7} {r['status']:8} {r['created_at'] or '':26} {r['terms']:>5} "
+            f"{','.join(str(c) for c in r['source_campaigns'])}"
+        )
     return 0
 
 
@@ -296,6 +397,8 @@ def _online(args: argparse.Namespace) -> int:
         return 0
     print(f"machine {report.machine}, model version {report.model_version}: {report.n} probe measurements")
     for term, t in report.terms.items():
-        print(f"  {term}: off-line residual {t['offline_rms_mm']:.4f} mm rms, on-line {t['online_rms_mm']:.4f} mm rms, "
-              f"correction now {t['correction_mm']:+.4f} mm")
+        print(
+            f"  {term}: off-line residual {t['offline_rms_mm']:.4f} mm rms, on-line {t['online_rms_mm']:.4f} mm rms, "
+            f"correction now {t['correction_mm']:+.4f} mm"
+        )
     return 0

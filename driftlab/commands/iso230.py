@@ -12,14 +12,18 @@ from driftlab.errors import ValidationError
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `iso230 (BUNDLE | --campaign ID) --part 2|3 [--axis X] [--json OUT] [--html OUT]`."""
-    p = sub.add_parser("iso230", help="ISO 230-2 positioning figures of an axis, or ISO 230-3 thermal tests",
-                       description="ISO 230-2 (--part 2 --axis X): A, B, E, M, R per direction from bidirectional "
-                       "runs. ISO 230-3 (--part 3): ETVE, spindle-rotation and linear-motion thermal distortion "
-                       "from the campaign's stages.")
+    p = sub.add_parser(
+        "iso230",
+        help="ISO 230-2 positioning figures of an axis, or ISO 230-3 thermal tests",
+        description="ISO 230-2 (--part 2 --axis X): A, B, E, M, R per direction from bidirectional "
+        "runs. ISO 230-3 (--part 3): ETVE, spindle-rotation and linear-motion thermal distortion "
+        "from the campaign's stages.",
+    )
     p.add_argument("bundle", type=Path, nargs="?", default=None, metavar="BUNDLE_DIR", help="campaign bundle directory")
     p.add_argument("--campaign", type=int, default=None, metavar="ID", help="a stored campaign instead of a bundle")
-    p.add_argument("--db", default=None, metavar="URL",
-                   help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)")
+    p.add_argument(
+        "--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)"
+    )
     p.add_argument("--part", type=int, choices=(2, 3), required=True, help="2: positioning accuracy; 3: thermal tests")
     p.add_argument("--axis", default=None, help="axis for part 2 (X Y Z A B)")
     p.add_argument("--term", default=None, help="part 2: term to evaluate (default the axis' positioning term)")
@@ -66,8 +70,10 @@ def _run(args: argparse.Namespace) -> int:
         res = iso230_2.from_bundle_errors(errors, args.axis, args.term)
         doc: dict[str, Any] = res.to_json_dict()
         page = report.iso230_2_html(res, f"ISO 230-2: {bundle.name}, axis {res.axis}") if args.html else ""
-        lines.append(f"ISO 230-2 {bundle.name} axis {res.axis} ({res.unit}, {res.runs} runs, {res.targets.size} "
-                     "targets): " + " ".join(f"{k} {res.figures[k]:.6g}" for k in iso230_2.FIGURES))
+        lines.append(
+            f"ISO 230-2 {bundle.name} axis {res.axis} ({res.unit}, {res.runs} runs, {res.targets.size} "
+            "targets): " + " ".join(f"{k} {res.figures[k]:.6g}" for k in iso230_2.FIGURES)
+        )
     else:
         if args.stage is not None:
             raise ValidationError("--stage is for --part 2 (part 3 evaluates every stage)")

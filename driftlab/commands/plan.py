@@ -15,8 +15,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     plan = sub.add_parser("plan", help="campaign plans")
     plansub = plan.add_subparsers(dest="plan_command", metavar="PLANCOMMAND", required=True)
     chk = plansub.add_parser(
-        "check", help="validate a plan (setups deliver their terms, moves within travel and optics range) "
-                      "and print its coverage of the thirty motion-error terms")
+        "check",
+        help="validate a plan (setups deliver their terms, moves within travel and optics range) "
+        "and print its coverage of the thirty motion-error terms",
+    )
     chk.add_argument("plan", help="plan YAML file")
     chk.add_argument("--json", action="store_true", help="the report as one JSON object")
     chk.set_defaults(func=_check)
@@ -41,12 +43,16 @@ def format_report(report: dict[str, Any]) -> str:
     """Return the report as a coverage table (axis x term: the first stage measuring it) and a summary."""
     table = coverage_table(report["coverage"])
     widths = [max(len(row[i]) for row in table) for i in range(len(TERMS) + 1)]
-    lines = [f"plan {report['plan']}: {report['stages']} stages, {report['duration_s'] / 3600:.1f} h, "
-             f"{report['sweep_points']} sweep points, {len(report['setups'])} setups"]
+    lines = [
+        f"plan {report['plan']}: {report['stages']} stages, {report['duration_s'] / 3600:.1f} h, "
+        f"{report['sweep_points']} sweep points, {len(report['setups'])} setups"
+    ]
     lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in table]
     n = len(report["measured"])
-    lines.append(f"{n}/30 motion-error terms measured"
-                 + (f"; the model will lack {', '.join(report['missing'])}" if report["missing"] else ""))
+    lines.append(
+        f"{n}/30 motion-error terms measured"
+        + (f"; the model will lack {', '.join(report['missing'])}" if report["missing"] else "")
+    )
     return "\n".join(lines)
 
 

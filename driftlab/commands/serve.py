@@ -17,11 +17,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default=None, help="bind address (default: DRIFTLAB_API_HOST or 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="port (default: DRIFTLAB_API_PORT or 8765)")
     add_db_option(p)
-    p.add_argument("--no-jobs", action="store_true",
-                   help="do not run fit/diagnosis jobs in this process: leave them to `driftlab worker` processes "
-                        "(PostgreSQL; on SQLite they then wait for a server that runs jobs)")
-    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
-                   help="uvicorn log level (default info)")
+    p.add_argument(
+        "--no-jobs",
+        action="store_true",
+        help="do not run fit/diagnosis jobs in this process: leave them to `driftlab worker` processes "
+        "(PostgreSQL; on SQLite they then wait for a server that runs jobs)",
+    )
+    p.add_argument(
+        "--log-level",
+        default="info",
+        choices=["critical", "error", "warning", "info", "debug"],
+        help="uvicorn log level (default info)",
+    )
     p.set_defaults(func=_serve)
 
 

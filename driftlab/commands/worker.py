@@ -9,14 +9,19 @@ from driftlab.commands.db import add_db_option
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `worker [--db URL] [--concurrency N] [--until-idle] [--name NAME]`."""
-    p = sub.add_parser("worker",
-                       help="run queued fit/diagnose/refit jobs (PostgreSQL store; start as many as you like)")
+    p = sub.add_parser(
+        "worker", help="run queued fit/diagnose/refit jobs (PostgreSQL store; start as many as you like)"
+    )
     add_db_option(p)
-    p.add_argument("--concurrency", type=int, default=1, metavar="N",
-                   help="jobs run at once by this process, each in a thread (default 1; fits are CPU-bound: "
-                        "prefer more worker processes)")
-    p.add_argument("--until-idle", action="store_true",
-                   help="exit once no job is runnable instead of waiting for more")
+    p.add_argument(
+        "--concurrency",
+        type=int,
+        default=1,
+        metavar="N",
+        help="jobs run at once by this process, each in a thread (default 1; fits are CPU-bound: "
+        "prefer more worker processes)",
+    )
+    p.add_argument("--until-idle", action="store_true", help="exit once no job is runnable instead of waiting for more")
     p.add_argument("--name", default=None, help="the worker's name in the job records (default host:pid)")
     p.set_defaults(func=_worker)
 
@@ -33,9 +38,11 @@ def _worker(args: argparse.Namespace) -> int:
         raise ValidationError(f"--concurrency must be at least 1, got {args.concurrency}")
     with connect(args.db) as store:
         if store.dialect != "postgresql":
-            raise ValidationError("driftlab worker needs the PostgreSQL store "
-                                  "(DRIFTLAB_DB_URL=postgresql+psycopg://...): "
-                                  "on the embedded SQLite store jobs run inside `driftlab serve` and `driftlab fit`")
+            raise ValidationError(
+                "driftlab worker needs the PostgreSQL store "
+                "(DRIFTLAB_DB_URL=postgresql+psycopg://...): "
+                "on the embedded SQLite store jobs run inside `driftlab serve` and `driftlab fit`"
+            )
         store.ensure_schema()  # brings the queue's schema too (revision 0006)
         logging.getLogger(__name__).info("worker on %s, concurrency %d", store.url, args.concurrency)
         run_worker(store, concurrency=args.concurrency, wait=not args.until_idle, name=args.name)

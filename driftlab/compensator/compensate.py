@@ -73,8 +73,11 @@ class ErrorModel:
         doc = documents.validate_document(document)
         name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
         return cls(
-            predict=_checked_predict(doc), dims=documents.document_dims(doc), label=name,
-            channels=tuple(doc.inputs), machine=doc.machine,
+            predict=_checked_predict(doc),
+            dims=documents.document_dims(doc),
+            label=name,
+            channels=tuple(doc.inputs),
+            machine=doc.machine,
         )
 
 
@@ -108,8 +111,9 @@ def fast_predict(doc: Any) -> Predict:
             has_lag |= f.kind == "lag"
         terms.append((t.element, PARAMS.index(t.param), feats, [float(c) for c in t.coefficients]))
 
-    def predict(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: Any = None
-                ) -> kinematics.ElementErrors:
+    def predict(
+        q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: Any = None
+    ) -> kinematics.ElementErrors:
         """Return the (N, 6) errors of every modelled element at poses ``q`` (no term here depends on ``at``)."""
         n = q.shape[0]
         if isinstance(temps, pd.DataFrame):
@@ -181,8 +185,9 @@ def _checked_predict(doc: Any) -> Predict:
     direction = rng.choice([-1.0, 1.0], size=(6, 5))
     temps = {c: r.reference + 3.0 * (k % 3) - 2.0 for k, (c, r) in enumerate(doc.inputs.items())}
 
-    def slow(q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: Any = None
-             ) -> kinematics.ElementErrors:
+    def slow(
+        q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: Any = None
+    ) -> kinematics.ElementErrors:
         """Return the registry's prediction (time-dependent terms at ``at``, POSIX s; now when None)."""
         if at is None:
             return documents.predict_element_errors(doc, temps, q, direction)
@@ -192,9 +197,7 @@ def _checked_predict(doc: Any) -> Predict:
         try:
             want = slow(q, temps, direction)
             got = fast(q, temps, direction)
-            same = set(want) == set(got) and all(
-                np.allclose(got[e], want[e], rtol=1e-9, atol=1e-12) for e in want
-            )
+            same = set(want) == set(got) and all(np.allclose(got[e], want[e], rtol=1e-9, atol=1e-12) for e in want)
         except ValidationError:
             same = False
         if same:
@@ -237,6 +240,7 @@ def resolution_units(program: Program, resolution_mm: float, resolution_deg: flo
 
 def decimals_for(resolution_mm: float, resolution_deg: float) -> tuple[int, int]:
     """Return the decimals needed to write positions at these resolutions (linear, rotary)."""
+
     def dec(x: float) -> int:
         e = Decimal(repr(float(x))).normalize().as_tuple().exponent
         return max(0, -int(e))
@@ -314,8 +318,10 @@ def rotary_lever(q: np.ndarray, dims: Mapping[str, Any], delta: np.ndarray) -> n
     (the spindle origin) then moves by ``-delta * axis x origin``; X, Y, Z move the part along the
     spindle axes, so the offsets are ``delta * axis x origin`` (first order in the small errors).
     """
-    t = {k: np.asarray(dims[k], dtype=float) if k in dims else np.asarray(kinematics.TABLE_A1[k], dtype=float)
-         for k in ("T1", "T2", "T3", "T4", "T5")}
+    t = {
+        k: np.asarray(dims[k], dtype=float) if k in dims else np.asarray(kinematics.TABLE_A1[k], dtype=float)
+        for k in ("T1", "T2", "T3", "T4", "T5")
+    }
     m = q[:, :3] + (t["T1"] + t["T2"] + t["T3"] + t["T4"])[None, :]
     ca, sa = np.cos(q[:, 3]), np.sin(q[:, 3])
     t5 = t["T5"]
@@ -348,8 +354,9 @@ def correct_points(
     q = program.to_q(points.nominal_int)
     start = program.start_int if prev_nominal is None else prev_nominal
     direction = directions(points.nominal_int, start, prev_direction)
-    errors = model.predict(q, temperatures, direction) if at is None else model.predict(
-        q, temperatures, direction, at=at)
+    errors = (
+        model.predict(q, temperatures, direction) if at is None else model.predict(q, temperatures, direction, at=at)
+    )
     result = kinematics.compensate(q, errors, model.dims)
     desired = result.q_cmd - q
     if not np.all(np.isfinite(desired)):
@@ -462,8 +469,12 @@ class OfflineResult:
     def summary(self) -> dict[str, Any]:
         """Return a JSON-ready summary."""
         return {
-            "blocks": self.blocks, "points": self.points, "max_correction": self.max_correction,
-            "singular_points": self.singular, "model": self.model, "temperatures": self.temperatures,
+            "blocks": self.blocks,
+            "points": self.points,
+            "max_correction": self.max_correction,
+            "singular_points": self.singular,
+            "model": self.model,
+            "temperatures": self.temperatures,
         }
 
 
@@ -504,8 +515,15 @@ def compensate_program(
         sub = Points(points.block[s : s + chunk_points], points.nominal_int[s : s + chunk_points])
         temps = per_point.nearest(times[s : s + chunk_points], model.channels) if per_point is not None else fixed
         corr = correct_points(
-            program, sub, model, temps, resolution_mm=resolution_mm, resolution_deg=resolution_deg,
-            state=state, prev_nominal=prev_nom, prev_direction=prev_dir,
+            program,
+            sub,
+            model,
+            temps,
+            resolution_mm=resolution_mm,
+            resolution_deg=resolution_deg,
+            state=state,
+            prev_nominal=prev_nom,
+            prev_direction=prev_dir,
         )
         sent[s : s + chunk_points] = corr.sent_int
         singular += int(corr.singular.sum())
@@ -518,9 +536,13 @@ def compensate_program(
     diff = np.abs(sent - points.nominal_int) * program.scale if points.n else np.zeros((1, 5))
     mx = diff.max(axis=0) if points.n else np.zeros(5)
     return OfflineResult(
-        text=text, blocks=program.n_blocks, points=points.n,
+        text=text,
+        blocks=program.n_blocks,
+        points=points.n,
         max_correction={a: float(round(v, 6)) for a, v in zip("XYZAB", mx)},
-        singular=singular, model=model.label, temperatures=how,
+        singular=singular,
+        model=model.label,
+        temperatures=how,
     )
 
 
@@ -566,8 +588,9 @@ def program_pieces(path: str | Path, chunk_bytes: int = STREAM_CHUNK_BYTES) -> I
             cut = text.rfind(b"\n") + 1
             if cut == 0:
                 if len(text) > MAX_LINE_BYTES:
-                    raise ValidationError(f"{path}:{lines + 1}: line longer than {MAX_LINE_BYTES} bytes; "
-                                          "program not accepted")
+                    raise ValidationError(
+                        f"{path}:{lines + 1}: line longer than {MAX_LINE_BYTES} bytes; program not accepted"
+                    )
                 rest = text
                 continue
             piece, rest = text[:cut], text[cut:]
@@ -578,8 +601,9 @@ def program_pieces(path: str | Path, chunk_bytes: int = STREAM_CHUNK_BYTES) -> I
             lines += piece.count(b"\n")
         if rest:
             if len(rest) > MAX_LINE_BYTES:
-                raise ValidationError(f"{path}:{lines + 1}: line longer than {MAX_LINE_BYTES} bytes; "
-                                      "program not accepted")
+                raise ValidationError(
+                    f"{path}:{lines + 1}: line longer than {MAX_LINE_BYTES} bytes; program not accepted"
+                )
             yield lines, rest
 
 
@@ -594,8 +618,9 @@ class ProgramScan:
     lines: int
 
 
-def scan_program(path: str | Path, name: str, min_decimals: tuple[int, int],
-                 chunk_bytes: int = STREAM_CHUNK_BYTES) -> ProgramScan:
+def scan_program(
+    path: str | Path, name: str, min_decimals: tuple[int, int], chunk_bytes: int = STREAM_CHUNK_BYTES
+) -> ProgramScan:
     """Check every line of a program file piece by piece (first pass); return what the second pass needs."""
     from driftlab.compensator.gcode import MAX_DECIMALS, decimals_of
 
@@ -606,8 +631,16 @@ def scan_program(path: str | Path, name: str, min_decimals: tuple[int, int],
     rot: list[tuple[float, np.ndarray]] = []
     blocks = lines = 0
     for offset, text in program_pieces(path, chunk_bytes):
-        piece = parse_program(text, name=name, min_decimals=min_decimals, initial_motion=motion,
-                              initial_dist=dist, eol=eol, line_offset=offset, residuals=True)
+        piece = parse_program(
+            text,
+            name=name,
+            min_decimals=min_decimals,
+            initial_motion=motion,
+            initial_dist=dist,
+            eol=eol,
+            line_offset=offset,
+            residuals=True,
+        )
         if eol is None:
             eol = piece.eol
         motion, dist = piece.end_motion, piece.end_dist
@@ -650,11 +683,24 @@ def parse_pieces(
     def parsed(offset: int, text: bytes) -> Iterator[Program]:
         """Yield the piece parsed with the state before it, halved while it makes too many points."""
         st = state
-        piece = parse_program(text, name=name, start=start, min_decimals=min_decimals, decimals=scan.decimals,
-                              start_int=st["pose"], initial_motion=st["motion"], initial_dist=st["dist"],
-                              initial_time_s=st["time_s"], eol=scan.eol, line_offset=offset)
-        if (max_points is not None and piece.n_lines > 1
-                and count_points(piece, max_segment_mm, max_segment_deg) > max_points):
+        piece = parse_program(
+            text,
+            name=name,
+            start=start,
+            min_decimals=min_decimals,
+            decimals=scan.decimals,
+            start_int=st["pose"],
+            initial_motion=st["motion"],
+            initial_dist=st["dist"],
+            initial_time_s=st["time_s"],
+            eol=scan.eol,
+            line_offset=offset,
+        )
+        if (
+            max_points is not None
+            and piece.n_lines > 1
+            and count_points(piece, max_segment_mm, max_segment_deg) > max_points
+        ):
             mid = piece.n_lines // 2  # long segments subdivided: keep the points of a piece bounded
             cut = int(piece.line_start[mid])
             del piece
@@ -738,15 +784,24 @@ def compensate_stream(
         assert first_piece is not None
         temps = temperatures.nearest(t, model.channels) if per_point else fixed  # type: ignore[union-attr]
         corr = correct_points(
-            first_piece, Points(np.zeros(n, dtype=np.int64), nom), model, temps, resolution_mm=resolution_mm,
-            resolution_deg=resolution_deg, state=carry["state"],
+            first_piece,
+            Points(np.zeros(n, dtype=np.int64), nom),
+            model,
+            temps,
+            resolution_mm=resolution_mm,
+            resolution_deg=resolution_deg,
+            state=carry["state"],
             prev_nominal=carry["prev_nom"] if carry["prev_nom"] is not None else first_piece.start_int,
             prev_direction=carry["prev_dir"],
         )
         sent_parts.append(corr.sent_int)
         corrected += n
-        carry.update(state=corr.steps[-1], prev_nom=nom[-1], prev_dir=corr.direction[-1],
-                     singular=carry["singular"] + int(corr.singular.sum()))
+        carry.update(
+            state=corr.steps[-1],
+            prev_nom=nom[-1],
+            prev_dir=corr.direction[-1],
+            singular=carry["singular"] + int(corr.singular.sum()),
+        )
 
     def flush() -> None:
         """Write every waiting piece whose points are all corrected."""
@@ -766,9 +821,16 @@ def compensate_stream(
             points_total += points.n
 
     scale = None
-    pieces = parse_pieces(program_pieces(program_path, chunk_bytes), scan, name, start=start, min_decimals=min_dec,
-                          max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
-                          max_points=max(chunk_points // 2, 1))
+    pieces = parse_pieces(
+        program_pieces(program_path, chunk_bytes),
+        scan,
+        name,
+        start=start,
+        min_decimals=min_dec,
+        max_segment_mm=max_segment_mm,
+        max_segment_deg=max_segment_deg,
+        max_points=max(chunk_points // 2, 1),
+    )
     for piece in pieces:
         points = subdivide(piece, max_segment_mm, max_segment_deg)
         scale = piece.scale
@@ -791,9 +853,13 @@ def compensate_stream(
         log.warning("%d point(s) near A = +/-90 deg: beta cannot be compensated there", singular)
     mx = biggest * scale if scale is not None and points_total else np.zeros(5)
     return OfflineResult(
-        text=b"", blocks=scan.blocks, points=points_total,
+        text=b"",
+        blocks=scan.blocks,
+        points=points_total,
         max_correction={a: float(round(v, 6)) for a, v in zip("XYZAB", mx)},
-        singular=singular, model=model.label, temperatures=how,
+        singular=singular,
+        model=model.label,
+        temperatures=how,
     )
 
 

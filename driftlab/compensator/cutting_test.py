@@ -89,8 +89,9 @@ class MouldSurface:
     def height(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Return the surface height z(u, v) (mm)."""
         W, L = self.width_mm, self.length_mm
-        return (self.h1_mm * np.sin(np.pi * v / L) * np.cos(0.8 * np.pi * (u - W / 2) / W)
-                + self.h2_mm * np.sin(2 * np.pi * v / L + np.pi * u / W))
+        return self.h1_mm * np.sin(np.pi * v / L) * np.cos(0.8 * np.pi * (u - W / 2) / W) + self.h2_mm * np.sin(
+            2 * np.pi * v / L + np.pi * u / W
+        )
 
     def gradient(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return (dz/du, dz/dv)."""
@@ -98,8 +99,9 @@ class MouldSurface:
         k = 0.8 * np.pi / W
         ph = 2 * np.pi * v / L + np.pi * u / W
         dzu = -self.h1_mm * np.sin(np.pi * v / L) * k * np.sin(k * (u - W / 2)) + self.h2_mm * np.pi / W * np.cos(ph)
-        dzv = (self.h1_mm * np.pi / L * np.cos(np.pi * v / L) * np.cos(k * (u - W / 2))
-               + self.h2_mm * 2 * np.pi / L * np.cos(ph))
+        dzv = self.h1_mm * np.pi / L * np.cos(np.pi * v / L) * np.cos(
+            k * (u - W / 2)
+        ) + self.h2_mm * 2 * np.pi / L * np.cos(ph)
         return dzu, dzv
 
     def point(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -115,8 +117,9 @@ class MouldSurface:
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
-def inverse_kinematics(centre: np.ndarray, axis: np.ndarray, dims: Mapping[str, Any] = kin.TABLE_A1,
-                       angle_step_deg: float = 0.001) -> np.ndarray:
+def inverse_kinematics(
+    centre: np.ndarray, axis: np.ndarray, dims: Mapping[str, Any] = kin.TABLE_A1, angle_step_deg: float = 0.001
+) -> np.ndarray:
     """Return (N, 5) joints putting the tool centre on ``centre`` with the tool along ``axis`` (part frame).
 
     The ideal chain (eq. 4.19) turns the part by ``Rx(A) Ry(B)``; the tool axis is the spindle z,
@@ -137,8 +140,9 @@ def inverse_kinematics(centre: np.ndarray, axis: np.ndarray, dims: Mapping[str, 
     return q
 
 
-def tool_centre(q: np.ndarray, errors: kin.ElementErrors | None = None,
-                dims: Mapping[str, Any] = kin.TABLE_A1) -> np.ndarray:
+def tool_centre(
+    q: np.ndarray, errors: kin.ElementErrors | None = None, dims: Mapping[str, Any] = kin.TABLE_A1
+) -> np.ndarray:
     """Return (N, 3) the tool centre (spindle origin) in the part frame for the chain at q (eq. 4.12)."""
     T = kin.machine_chain(q, errors, dims) if errors else kin.ideal_chain(q, dims)
     return kin.affine_inverse(T)[:, :3, 3]
@@ -185,8 +189,13 @@ class CuttingProgram:
         return self.text.splitlines()
 
 
-def make_program(surface: MouldSurface | None = None, passes: int = 700, *,
-                 part_origin: Sequence[float] | None = None, dims: Mapping[str, Any] = kin.TABLE_A1) -> CuttingProgram:
+def make_program(
+    surface: MouldSurface | None = None,
+    passes: int = 700,
+    *,
+    part_origin: Sequence[float] | None = None,
+    dims: Mapping[str, Any] = kin.TABLE_A1,
+) -> CuttingProgram:
     """Return the raster program: ``passes`` zig-zag passes across the part, 15 points each (5-axis G1).
 
     The part sits on the table so that the middle of the cut is in the middle of the X, Y, Z travel
@@ -225,20 +234,39 @@ def make_program(surface: MouldSurface | None = None, passes: int = 700, *,
     feed = np.clip(np.floor(feed * 10) / 10, 1.0, FEED_MM_MIN)
     block_s = np.where(lin > 0, 60.0 * lin / feed, 60.0 * rot / ROTARY_FEED_DEG_MIN)
     block_s[0] = 0.0
-    lines = ["%", "(driftlab cutting test, thesis ch. 7.3: freeform surface, ball nose r3)",
-             "G90", f"S{SPINDLE_RPM:.0f} M3",
-             "G0 " + _words(pose[0])]
+    lines = [
+        "%",
+        "(driftlab cutting test, thesis ch. 7.3: freeform surface, ball nose r3)",
+        "G90",
+        f"S{SPINDLE_RPM:.0f} M3",
+        "G0 " + _words(pose[0]),
+    ]
     lines += [f"G1 {_words(p)} F{f:.1f}" for p, f in zip(pose[1:], feed[1:])]
     lines += ["M5", "%"]
     rows = np.round(np.linspace(0, passes - 1, CMM_ALONG)).astype(int)
     cols = np.arange(CMM_ACROSS)
-    cmm = 1 + rows[:, None] * CMM_ACROSS + np.where(rows[:, None] % 2 == 0, cols[None, :],
-                                                    CMM_ACROSS - 1 - cols[None, :])
+    cmm = (
+        1 + rows[:, None] * CMM_ACROSS + np.where(rows[:, None] % 2 == 0, cols[None, :], CMM_ACROSS - 1 - cols[None, :])
+    )
     dur = block_s.sum() / 60.0
-    mean_feed = {a: float(np.abs(np.diff(pose[:, k])).sum() / dur) for k, a in enumerate(AXES)} if dur > 0 else {
-        a: 0.0 for a in AXES}
-    return CuttingProgram("\n".join(lines) + "\n", pose, c, n, np.column_stack([uf, vf]),
-                          np.asarray(part_origin, float), cmm, block_s, mean_feed, s, passes)
+    mean_feed = (
+        {a: float(np.abs(np.diff(pose[:, k])).sum() / dur) for k, a in enumerate(AXES)}
+        if dur > 0
+        else {a: 0.0 for a in AXES}
+    )
+    return CuttingProgram(
+        "\n".join(lines) + "\n",
+        pose,
+        c,
+        n,
+        np.column_stack([uf, vf]),
+        np.asarray(part_origin, float),
+        cmm,
+        block_s,
+        mean_feed,
+        s,
+        passes,
+    )
 
 
 def _words(p: np.ndarray) -> str:
@@ -260,8 +288,7 @@ class OnlineUpdater(Protocol):
 
     version: int
 
-    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float],
-               t_s: float) -> None:
+    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float], t_s: float) -> None:
         """Feed one probe measurement (work-space translation at pose X, Y, Z; A = B = 0)."""
 
     def predict(self, temperatures: Mapping[str, float]) -> np.ndarray:
@@ -284,12 +311,12 @@ class LocalRLS:
     def _phi(self, temps: Mapping[str, float]) -> np.ndarray:
         """Return the regressor vector of eq. 6.10."""
         if self.refs is None:
-            self.refs = {c: (self.doc.inputs[c].reference if c in self.doc.inputs else float(temps[c]))
-                         for c in self.channels}
+            self.refs = {
+                c: (self.doc.inputs[c].reference if c in self.doc.inputs else float(temps[c])) for c in self.channels
+            }
         return np.array([1.0, *[float(temps[c]) - self.refs[c] for c in self.channels]])
 
-    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float],
-               t_s: float) -> None:
+    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float], t_s: float) -> None:
         """Update the three fits with measured minus off-line predicted translation (eqs. 6.11-6.13)."""
         from driftlab.models import document as documents
         from driftlab.models.online import rls_update
@@ -342,8 +369,13 @@ class OnlineModelSource:
             errs["T1"] = t1
             return errs
 
-        return ErrorModel(predict=predict, dims=off.dims, label=f"{off.label} + on-line ({online.version} updates)",
-                          channels=off.channels, machine=off.machine)
+        return ErrorModel(
+            predict=predict,
+            dims=off.dims,
+            label=f"{off.label} + on-line ({online.version} updates)",
+            channels=off.channels,
+            machine=off.machine,
+        )
 
 
 # ----------------------------------------------------------------------------- a run
@@ -372,9 +404,14 @@ class RunResult:
 
     def summary(self) -> dict[str, Any]:
         """Return the JSON-ready figures of the run."""
-        return {"rmse_mm": round(self.rmse_mm, 6), "max_mm": round(self.max_mm, 6),
-                "duration_min": round(self.duration_s / 60.0, 2), "blocks": self.blocks,
-                "probe_cycles": len(self.probes), **({"stream": self.stream} if self.stream else {})}
+        return {
+            "rmse_mm": round(self.rmse_mm, 6),
+            "max_mm": round(self.max_mm, 6),
+            "duration_min": round(self.duration_s / 60.0, 2),
+            "blocks": self.blocks,
+            "probe_cycles": len(self.probes),
+            **({"stream": self.stream} if self.stream else {}),
+        }
 
 
 class CardTemperatures:
@@ -388,8 +425,9 @@ class CardTemperatures:
         return {c: float(v) for c, v in self.scanner.scan().values.items()}
 
 
-def measure_surface(vm: MachiningMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock],
-                    dims: Mapping[str, Any] = kin.TABLE_A1) -> np.ndarray:
+def measure_surface(
+    vm: MachiningMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock], dims: Mapping[str, Any] = kin.TABLE_A1
+) -> np.ndarray:
     """Return the (99, 15) normal deviations (mm) of the machined surface at the CMM points.
 
     Each CMM point is the end of one block: the tool centre there is placed by the real chain at
@@ -423,13 +461,27 @@ def approach_directions(start: np.ndarray, target: np.ndarray) -> np.ndarray:
 class CuttingBench:
     """The virtual machine, its simulated controller and the machine link for one cutting run."""
 
-    def __init__(self, scenario: Scenario, program: CuttingProgram, *, lead_s: float = 300.0,
-                 spheres: Mapping[str, SimSphere] | None = None, capacity: int = 16, age_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        scenario: Scenario,
+        program: CuttingProgram,
+        *,
+        lead_s: float = 300.0,
+        spheres: Mapping[str, SimSphere] | None = None,
+        capacity: int = 16,
+        age_s: float = 0.0,
+    ) -> None:
         self.program = program
         # the machine is switched on at t = 0 (soaked at room temperature) and cuts after lead_s
         self.clock, self.vm, self.ctrl, self.card = machining.open_bench(
-            scenario, lead_s, lead_s + program.duration_s, program.mean_feed,
-            spheres=spheres or machining.default_spheres(), capacity=capacity, age_s=age_s)
+            scenario,
+            lead_s,
+            lead_s + program.duration_s,
+            program.mean_feed,
+            spheres=spheres or machining.default_spheres(),
+            capacity=capacity,
+            age_s=age_s,
+        )
         self.lead_s = lead_s
         self.first_block = 0
         from driftlab.daq.machine_link import SerialMachineLink
@@ -438,9 +490,13 @@ class CuttingBench:
 
         # the 50 thermocouples of Table 5.1 on the simulated card, read through the real driver
         card_map = dict(enumerate(machining.CHANNELS))
-        self.temperatures = CardTemperatures(ThermocoupleCard(
-            LineChannel(open_port(machining.serial_url(self.card)), "thermocouple card"), card_map,
-            clock=self.clock.now))
+        self.temperatures = CardTemperatures(
+            ThermocoupleCard(
+                LineChannel(open_port(machining.serial_url(self.card)), "thermocouple card"),
+                card_map,
+                clock=self.clock.now,
+            )
+        )
         self.link = SerialMachineLink.open(machining.serial_url(self.ctrl), sleep=self.clock.sleep, poll_s=0.5)
 
     def close(self) -> None:
@@ -503,10 +559,17 @@ def run_uncompensated(bench: CuttingBench) -> RunResult:
     return _result("uncompensated", bench, t0)
 
 
-def run_compensated(bench: CuttingBench, models: Any, *, online: OnlineUpdater | None = None,
-                    interval_s: float = ONLINE_INTERVAL_S, name: str | None = None,
-                    max_segment_mm: float = 100.0, max_segment_deg: float = 30.0,
-                    epoch_s: float | None = None) -> RunResult:
+def run_compensated(
+    bench: CuttingBench,
+    models: Any,
+    *,
+    online: OnlineUpdater | None = None,
+    interval_s: float = ONLINE_INTERVAL_S,
+    name: str | None = None,
+    max_segment_mm: float = 100.0,
+    max_segment_deg: float = 30.0,
+    epoch_s: float | None = None,
+) -> RunResult:
     """Stream the program through the compensator (with the on-line model every ``interval_s`` when given).
 
     The blocks are short on the part already (8 mm); their machine-axis travel is longer through the
@@ -529,10 +592,19 @@ def run_compensated(bench: CuttingBench, models: Any, *, online: OnlineUpdater |
     for s, e in ranges:
         if online is not None:
             probes.append(bench.probe_cycle(online, temps.read()))
-        text = "\n".join(lines[g1[s - 1]: g1[e - 2] + 1]) + "\n"
+        text = "\n".join(lines[g1[s - 1] : g1[e - 2] + 1]) + "\n"
         prog = parse_program(text, name="cutting-test", start=pose, min_decimals=(4, 3))
-        streamer = Streamer(prog, source, temps, max_segment_mm=max_segment_mm, max_segment_deg=max_segment_deg,
-                            clock=bench.clock.now, sleep=bench.clock.sleep, timer=time.perf_counter, epoch_s=epoch_s)
+        streamer = Streamer(
+            prog,
+            source,
+            temps,
+            max_segment_mm=max_segment_mm,
+            max_segment_deg=max_segment_deg,
+            clock=bench.clock.now,
+            sleep=bench.clock.sleep,
+            timer=time.perf_counter,
+            epoch_s=epoch_s,
+        )
         res = streamer.run(bench.link, low_water=4)
         for k in stream:
             stream[k] += res.summary()[k]
@@ -545,7 +617,7 @@ def run_compensated(bench: CuttingBench, models: Any, *, online: OnlineUpdater |
 
 def _result(name: str, bench: CuttingBench, t0: float) -> RunResult:
     """Return the run's CMM figures from the controller's log."""
-    log_ = bench.ctrl.log[bench.first_block:]
+    log_ = bench.ctrl.log[bench.first_block :]
     dev = measure_surface(bench.vm, bench.program, log_)
     return RunResult(name, dev, (log_[-1].t_end_s - t0) if log_ else 0.0, len(log_))
 
@@ -571,14 +643,25 @@ class CuttingTest:
 
 
 #: the thesis' figures (ch. 7.3), mm
-THESIS_TABLE = {"uncompensated": {"rmse_mm": 0.060, "max_mm": 0.082}, "offline": {"rmse_mm": 0.005, "max_mm": 0.015},
-                "online": {"rmse_mm": 0.003, "max_mm": 0.012}}
+THESIS_TABLE = {
+    "uncompensated": {"rmse_mm": 0.060, "max_mm": 0.082},
+    "offline": {"rmse_mm": 0.005, "max_mm": 0.015},
+    "online": {"rmse_mm": 0.003, "max_mm": 0.012},
+}
 
 
-def run_cutting_test(scenario: Scenario, models: Callable[[], Any], online: Callable[[], OnlineUpdater], *,
-                     passes: int = 700, lead_s: float = 300.0, interval_s: float = ONLINE_INTERVAL_S,
-                     age_s: float = 0.0, on_run: Callable[[str], None] | None = None,
-                     epoch_s: float | None = None) -> CuttingTest:
+def run_cutting_test(
+    scenario: Scenario,
+    models: Callable[[], Any],
+    online: Callable[[], OnlineUpdater],
+    *,
+    passes: int = 700,
+    lead_s: float = 300.0,
+    interval_s: float = ONLINE_INTERVAL_S,
+    age_s: float = 0.0,
+    on_run: Callable[[str], None] | None = None,
+    epoch_s: float | None = None,
+) -> CuttingTest:
     """Return the three runs of the cutting test, each on a fresh, cold virtual machine.
 
     Each run switches the machine on, waits ``lead_s`` and cuts; ``age_s`` is how long after the
@@ -607,9 +690,16 @@ def run_cutting_test(scenario: Scenario, models: Callable[[], Any], online: Call
 def format_table(test: CuttingTest) -> list[tuple[str, str, str, str, str]]:
     """Return rows (run, RMSE, max, thesis RMSE, thesis max) in mm, for printing."""
     names = {"uncompensated": "without compensation", "offline": "off-line model", "online": "off-line + on-line"}
-    return [(names[k], f"{r.rmse_mm:.4f}", f"{r.max_mm:.4f}", f"{THESIS_TABLE[k]['rmse_mm']:.3f}",
-             f"{THESIS_TABLE[k]['max_mm']:.3f}") for k, r in test.runs.items()]
-
+    return [
+        (
+            names[k],
+            f"{r.rmse_mm:.4f}",
+            f"{r.max_mm:.4f}",
+            f"{THESIS_TABLE[k]['rmse_mm']:.3f}",
+            f"{THESIS_TABLE[k]['max_mm']:.3f}",
+        )
+        for k, r in test.runs.items()
+    ]
 
 
 class ApiRLS:
@@ -620,8 +710,16 @@ class ApiRLS:
     which the residual is predicted here for every block.
     """
 
-    def __init__(self, api: str, machine: str, *, token: str | None = None, forgetting: float = 0.9,
-                 client: Any | None = None, started_at: float | None = None) -> None:
+    def __init__(
+        self,
+        api: str,
+        machine: str,
+        *,
+        token: str | None = None,
+        forgetting: float = 0.9,
+        client: Any | None = None,
+        started_at: float | None = None,
+    ) -> None:
         import httpx
 
         self.url = f"{api.rstrip('/')}/machines/{machine}/online/probe"
@@ -633,8 +731,7 @@ class ApiRLS:
         self.replies: list[dict[str, Any]] = []
         self.epoch_s = time.time() if started_at is None else started_at
 
-    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float],
-               t_s: float) -> None:
+    def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float], t_s: float) -> None:
         """Post one probe measurement; keep the coefficients the API answers with."""
         import datetime as _dt
 
@@ -642,8 +739,15 @@ class ApiRLS:
 
         temps = {c: round(float(v), 4) for c, v in temperatures.items() if np.isfinite(v)}
         body: dict[str, Any] = {
-            "x": float(xyz[0]), "y": float(xyz[1]), "z": float(xyz[2]), "a_deg": 0.0, "b_deg": 0.0,
-            "dx": float(measured[0]), "dy": float(measured[1]), "dz": float(measured[2]), "temperatures": temps,
+            "x": float(xyz[0]),
+            "y": float(xyz[1]),
+            "z": float(xyz[2]),
+            "a_deg": 0.0,
+            "b_deg": 0.0,
+            "dx": float(measured[0]),
+            "dy": float(measured[1]),
+            "dz": float(measured[2]),
+            "temperatures": temps,
             "measured_at": _dt.datetime.fromtimestamp(self.epoch_s + t_s, _dt.UTC).isoformat(),
         }
         if self.version == 0:

@@ -118,7 +118,7 @@ class Program:
     def scale(self) -> np.ndarray:
         """Return (5,) size of one integer unit per axis (mm for X, Y, Z; deg for A, B)."""
         lin, rot = self.decimals
-        return np.where(ROTARY, 10.0 ** -rot, 10.0 ** -lin)
+        return np.where(ROTARY, 10.0**-rot, 10.0**-lin)
 
     @property
     def start_int_blocks(self) -> np.ndarray:
@@ -153,8 +153,13 @@ def _show(byte: int) -> str:
 
 
 def _strip_comments(
-    data: bytes, work: bytearray, lines: np.ndarray, line_start: np.ndarray, line_end: np.ndarray,
-    errors: list[tuple[int, str]], times: dict[int, float],
+    data: bytes,
+    work: bytearray,
+    lines: np.ndarray,
+    line_start: np.ndarray,
+    line_end: np.ndarray,
+    errors: list[tuple[int, str]],
+    times: dict[int, float],
 ) -> None:
     """Blank comments and ``%`` markers of the given lines in ``work``; collect times and errors."""
     for li in lines.tolist():
@@ -445,12 +450,28 @@ def parse_program(
         line_time = np.where(last >= 0, line_time[np.maximum(last, 0)], before)
 
     return Program(
-        data=data, name=name, decimals=(dec_lin, dec_rot),
-        line_start=line_start, line_end=line_end, has_newline=has_newline, eol=eol,
-        line_time_s=line_time, block_line=block_line, target_int=target, start_int=start_int,
-        present=present, word_int=word_int, num_start=num_start, num_end=num_end,
-        incremental=incremental, rapid=rapid, insert_at=insert_at, spaced=spaced, first_line=line_offset,
-        end_motion=int(motion[-1]) if n_lines else initial_motion, end_dist=int(dist[-1]) if n_lines else initial_dist,
+        data=data,
+        name=name,
+        decimals=(dec_lin, dec_rot),
+        line_start=line_start,
+        line_end=line_end,
+        has_newline=has_newline,
+        eol=eol,
+        line_time_s=line_time,
+        block_line=block_line,
+        target_int=target,
+        start_int=start_int,
+        present=present,
+        word_int=word_int,
+        num_start=num_start,
+        num_end=num_end,
+        incremental=incremental,
+        rapid=rapid,
+        insert_at=insert_at,
+        spaced=spaced,
+        first_line=line_offset,
+        end_motion=int(motion[-1]) if n_lines else initial_motion,
+        end_dist=int(dist[-1]) if n_lines else initial_dist,
         residuals=need,
     )
 
@@ -516,8 +537,9 @@ class Points:
         return int(self.block.shape[0])
 
 
-def _pieces(program: Program, max_mm: float, max_deg: float, b0: int, b1: int
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pieces(
+    program: Program, max_mm: float, max_deg: float, b0: int, b1: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (start, end, pieces) of blocks b0..b1: their poses and how many points each becomes."""
     if not (max_mm > 0 and max_deg > 0):
         raise ValidationError("subdivision lengths must be positive")
@@ -546,7 +568,9 @@ def count_points(program: Program, max_mm: float = 5.0, max_deg: float = 5.0) ->
 
 
 def subdivide(
-    program: Program, max_mm: float = 5.0, max_deg: float = 5.0,
+    program: Program,
+    max_mm: float = 5.0,
+    max_deg: float = 5.0,
     blocks: slice = slice(None),
 ) -> Points:
     """Return the points of ``blocks``: G1 segments longer than max_mm / max_deg split evenly (ch. 7.2).

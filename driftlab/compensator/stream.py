@@ -108,8 +108,12 @@ class ApiModel:
     """The machine's current model from the driftlab API, reloaded when its ETag changes."""
 
     def __init__(
-        self, api: str, machine: str, client: httpx.Client | None = None,
-        timeout_s: float = 5.0, token: str | None = None,
+        self,
+        api: str,
+        machine: str,
+        client: httpx.Client | None = None,
+        timeout_s: float = 5.0,
+        token: str | None = None,
     ) -> None:
         self.url = f"{api.rstrip('/')}/machines/{machine}/model/current"
         self.machine = machine
@@ -173,8 +177,12 @@ class ApiTemperatures:
     """
 
     def __init__(
-        self, api: str, machine: str, client: httpx.Client | None = None,
-        timeout_s: float = 5.0, token: str | None = None,
+        self,
+        api: str,
+        machine: str,
+        client: httpx.Client | None = None,
+        timeout_s: float = 5.0,
+        token: str | None = None,
     ) -> None:
         self.url = f"{api.rstrip('/')}/machines/{machine}/temperatures/latest"
         self.client = _client(client, timeout_s, token)
@@ -263,8 +271,11 @@ class StreamResult:
     def summary(self) -> dict[str, Any]:
         """Return a JSON-ready summary."""
         return {
-            "blocks_sent": self.blocks_sent, "recomputed": self.recomputed, "model_reloads": self.reloads,
-            "latency_ms_p50": round(self.latency_ms(50), 4), "latency_ms_p99": round(self.latency_ms(99), 4),
+            "blocks_sent": self.blocks_sent,
+            "recomputed": self.recomputed,
+            "model_reloads": self.reloads,
+            "latency_ms_p50": round(self.latency_ms(50), 4),
+            "latency_ms_p99": round(self.latency_ms(99), 4),
             "latency_ms_max": round(self.latency_ms(100), 4),
         }
 
@@ -421,8 +432,15 @@ class Streamer:
         rows: list[tuple[bytes, int, int]] = []
         if pts.n:
             corr = correct_points(
-                p, pts, model, self._temps, resolution_mm=self.resolution[0], resolution_deg=self.resolution[1],
-                state=cur.steps, prev_nominal=cur.nominal, prev_direction=cur.direction,
+                p,
+                pts,
+                model,
+                self._temps,
+                resolution_mm=self.resolution[0],
+                resolution_deg=self.resolution[1],
+                state=cur.steps,
+                prev_nominal=cur.nominal,
+                prev_direction=cur.direction,
                 at=None if self.epoch_s is None else self.epoch_s + made_at,
             )
             sent = corr.sent_int
@@ -436,8 +454,14 @@ class Streamer:
         if skip and pts.n:
             # the rest of a block whose line was already sent: only its new lines
             base = int(np.searchsorted(pts.block, pts.block[0], side="right"))
-            text = emit(p, Points(pts.block[:base], pts.nominal_int[:base]), sent[:base],
-                        prev_sent=cur.sent, lines=slice(l0 + 1, l0 + 1), resume=True)
+            text = emit(
+                p,
+                Points(pts.block[:base], pts.nominal_int[:base]),
+                sent[:base],
+                prev_sent=cur.sent,
+                lines=slice(l0 + 1, l0 + 1),
+                resume=True,
+            )
             # (a newline may lead them when the block's line ends the file without one)
             texts = [r for r in _rows(text) if r]
             carried = np.flatnonzero(extra[:base]).tolist()
@@ -468,12 +492,21 @@ class Streamer:
                 blk = pts.block[k]
                 last = k + 1 >= pts.n or pts.block[k + 1] != blk
                 done = k + 1 - int(np.searchsorted(pts.block, blk)) + (skip if blk == b0 else 0)
-                state = _Cursor(f + li + 1 if last else f + li, 0 if last else done,
-                                corr.steps[k], sent[k], pts.nominal_int[k], corr.direction[k])
+                state = _Cursor(
+                    f + li + 1 if last else f + li,
+                    0 if last else done,
+                    corr.steps[k],
+                    sent[k],
+                    pts.nominal_int[k],
+                    corr.direction[k],
+                )
             else:
                 j = int(np.searchsorted(point_line, li)) - 1 if pts.n else -1
-                state = (_Cursor(f + li + 1, 0, corr.steps[j], sent[j], pts.nominal_int[j], corr.direction[j])
-                         if j >= 0 else _Cursor(f + li + 1, 0, cur.steps, cur.sent, cur.nominal, cur.direction))
+                state = (
+                    _Cursor(f + li + 1, 0, corr.steps[j], sent[j], pts.nominal_int[j], corr.direction[j])
+                    if j >= 0
+                    else _Cursor(f + li + 1, 0, cur.steps, cur.sent, cur.nominal, cur.direction)
+                )
             self._ready.append(_Ready(text.decode("utf-8", "replace"), state, made_at, model.label))
         if pts.n:
             self._made = _Cursor(f + l1, 0, corr.steps[-1], sent[-1], pts.nominal_int[-1], corr.direction[-1])

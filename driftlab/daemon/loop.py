@@ -80,7 +80,6 @@ class Rig(Protocol):
         """Release the instruments."""
 
 
-
 # -- run statistics ---------------------------------------------------------------------------------
 
 

@@ -28,8 +28,18 @@ from driftlab.physics import kinematics as kin
 from driftlab.vocabulary import AXES, TERMS
 
 __all__ = [
-    "CHANNELS", "ExecutedBlock", "LoggingController", "MachiningMachine", "ManualClock", "Scenario", "SimSphere",
-    "default_spheres", "hidden_element_errors", "open_bench", "serial_url", "true_errors",
+    "CHANNELS",
+    "ExecutedBlock",
+    "LoggingController",
+    "MachiningMachine",
+    "ManualClock",
+    "Scenario",
+    "SimSphere",
+    "default_spheres",
+    "hidden_element_errors",
+    "open_bench",
+    "serial_url",
+    "true_errors",
     "true_workspace_translation",
 ]
 
@@ -47,13 +57,22 @@ class MachiningMachine(VirtualMachine):
     feed (the heat sources of the thermal network, normalised as in ``daq.sim.sites``).
     """
 
-    def __init__(self, scenario: Scenario, cut_start_s: float, cut_end_s: float,
-                 mean_feed: Mapping[str, float], spindle_rpm: float = SPINDLE_RPM, age_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        scenario: Scenario,
+        cut_start_s: float,
+        cut_end_s: float,
+        mean_feed: Mapping[str, float],
+        spindle_rpm: float = SPINDLE_RPM,
+        age_s: float = 0.0,
+    ) -> None:
         end = max(cut_end_s + 3600.0, scenario.duration_s)
-        base = scenario.model_copy(update={
-            "hours": end / 3600.0,
-            "stages": [Stage(name="powered", start_s=0.0, end_s=end, heat_source="idle")],
-        })
+        base = scenario.model_copy(
+            update={
+                "hours": end / 3600.0,
+                "stages": [Stage(name="powered", start_s=0.0, end_s=end, heat_source="idle")],
+            }
+        )
         self.cut_start_s, self.cut_end_s = float(cut_start_s), float(cut_end_s)
         self.mean_feed = dict(mean_feed)
         self.spindle_rpm = float(spindle_rpm)
@@ -74,8 +93,9 @@ class MachiningMachine(VirtualMachine):
         return u
 
 
-def hidden_element_errors(vm: VirtualMachine, t_s: np.ndarray, q: np.ndarray,
-                          direction: np.ndarray) -> dict[str, np.ndarray]:
+def hidden_element_errors(
+    vm: VirtualMachine, t_s: np.ndarray, q: np.ndarray, direction: np.ndarray
+) -> dict[str, np.ndarray]:
     """Return the scenario's hidden effects as errors of each effect's own joint at poses q (N, 5).
 
     Each effect is the work-space error of spec section 3 with its axis moved and the others at
@@ -145,8 +165,9 @@ class _LoggedQueue(deque):
         start = dict(c.pos)
         t0 = c._t_exec
         dur = c._duration(start, blk)
-        c.log.append(ExecutedBlock(blk.seq, tuple(blk.target[a] for a in AXES), tuple(start[a] for a in AXES),
-                                   t0, t0 + dur))
+        c.log.append(
+            ExecutedBlock(blk.seq, tuple(blk.target[a] for a in AXES), tuple(start[a] for a in AXES), t0, t0 + dur)
+        )
         return blk
 
 
@@ -161,14 +182,25 @@ class LoggingController(SimController):
 
 def default_spheres() -> dict[str, SimSphere]:
     """Return four reference spheres (radius 12.7 mm) at the extremes of the X, Y travel, low in Z."""
-    pts = {"s1": (15.0, 15.0, -235.0), "s2": (239.0, 15.0, -235.0), "s3": (15.0, 239.0, -235.0),
-           "s4": (239.0, 239.0, -235.0)}
+    pts = {
+        "s1": (15.0, 15.0, -235.0),
+        "s2": (239.0, 15.0, -235.0),
+        "s3": (15.0, 239.0, -235.0),
+        "s4": (239.0, 239.0, -235.0),
+    }
     return {k: SimSphere(c, 12.7) for k, c in pts.items()}
 
 
-def open_bench(scenario: Scenario, cut_start_s: float, cut_end_s: float, mean_feed: Mapping[str, float], *,
-               spheres: Mapping[str, SimSphere], capacity: int = 16, age_s: float = 0.0
-               ) -> tuple[ManualClock, MachiningMachine, LoggingController, SimThermocoupleCard]:
+def open_bench(
+    scenario: Scenario,
+    cut_start_s: float,
+    cut_end_s: float,
+    mean_feed: Mapping[str, float],
+    *,
+    spheres: Mapping[str, SimSphere],
+    capacity: int = 16,
+    age_s: float = 0.0,
+) -> tuple[ManualClock, MachiningMachine, LoggingController, SimThermocoupleCard]:
     """Return the started simulated bench of one cutting run: clock, machine, controller, thermocouple card.
 
     The machine is switched on at t = 0 (soaked at room temperature) and cuts between the two times;
@@ -177,8 +209,13 @@ def open_bench(scenario: Scenario, cut_start_s: float, cut_end_s: float, mean_fe
     """
     clock = ManualClock(0.0)
     vm = MachiningMachine(scenario, cut_start_s, cut_end_s, mean_feed, age_s=age_s)
-    ctrl = LoggingController(vm, clock, capacity=capacity, spheres=dict(spheres),
-                             sphere_offset=lambda t, c: true_workspace_translation(vm, t, c))
+    ctrl = LoggingController(
+        vm,
+        clock,
+        capacity=capacity,
+        spheres=dict(spheres),
+        sphere_offset=lambda t, c: true_workspace_translation(vm, t, c),
+    )
     ctrl.start()
     card = SimThermocoupleCard(vm, clock, dict(enumerate(CHANNELS))).start()
     return clock, vm, ctrl, card

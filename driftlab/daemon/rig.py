@@ -26,7 +26,6 @@ ROLL_CALIBRATION = ((5.0, 8.5), (5.1, 8.4))
 log = logging.getLogger(__name__)
 
 
-
 def stage_program(stage: Stage) -> list[str]:
     """Return the motion code that sets a stage's spindle (the heat cycles run as the controller's own program)."""
     rpm = stage.spindle_rpm()
@@ -127,8 +126,10 @@ class InstrumentRig:
     def machine_state(self) -> dict[str, float]:
         """Return the commanded spindle speed and feed with the controller's axis positions."""
         stage = self._stage
-        state = {"spindle_rpm": stage.spindle_rpm() if stage else 0.0,
-                 "feed_mm_min": stage.feed_mm_min() if stage else 0.0}
+        state = {
+            "spindle_rpm": stage.spindle_rpm() if stage else 0.0,
+            "feed_mm_min": stage.feed_mm_min() if stage else 0.0,
+        }
         if self.link is not None:
             pos = self._rest_positions
             if pos is None:
@@ -154,8 +155,10 @@ class InstrumentRig:
         if not laser.reference_lost:
             return
         saved = self._saved
-        if saved is not None and (saved.get("axis"), saved.get("term")) == (point.axis, point.term) and (
-            self.laser_server is not None and "error" in saved
+        if (
+            saved is not None
+            and (saved.get("axis"), saved.get("term")) == (point.axis, point.term)
+            and (self.laser_server is not None and "error" in saved)
         ):
             self.laser_server.restore_reference(saved["t_s"], saved["position"], saved["error"])
             laser.reference_lost = False
@@ -163,8 +166,12 @@ class InstrumentRig:
             self._saved = None
             return
         laser.reference(point.position)
-        datum: dict[str, Any] = {"axis": point.axis, "term": point.term, "position": point.position,
-                                 "t_s": self.clock.now()}
+        datum: dict[str, Any] = {
+            "axis": point.axis,
+            "term": point.term,
+            "position": point.position,
+            "t_s": self.clock.now(),
+        }
         ref = self.laser_server.datum() if self.laser_server is not None else None
         if ref is not None:
             datum.update(ref)
@@ -177,8 +184,14 @@ class InstrumentRig:
         if setup is None:
             raise ValidationError(f"sweep point names setup {setup_id!r}, which the plan does not have")
         if self._mounted != setup_id:
-            log.info("mount setup %s: %s %s on %s (%s)", setup_id, setup.instrument, setup.kind, setup.axis,
-                     ", ".join(setup.cells()))
+            log.info(
+                "mount setup %s: %s %s on %s (%s)",
+                setup_id,
+                setup.instrument,
+                setup.kind,
+                setup.axis,
+                ", ".join(setup.cells()),
+            )
             if self._mount is not None:
                 self._mount(setup)
             self._meter = None
@@ -218,7 +231,7 @@ class InstrumentRig:
             if hasattr(meter, "read_angle"):
                 reads.append({setup.terms[0]: meter.read_angle()})
             else:
-                got = meter.read()  # type: ignore[union-attr]
+                got = meter.read()
                 reads.append({t: got.get(t, Reading.missing("not_resolved")) for t in setup.terms})
         return term_means(reads)
 

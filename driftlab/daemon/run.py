@@ -19,7 +19,6 @@ from driftlab.daemon.simrig import build_sim_rig, scenario_meta, sim_meta
 log = logging.getLogger(__name__)
 
 
-
 @dataclass
 class DaemonResult:
     """The outcome of one daemon run."""
@@ -39,7 +38,8 @@ def check_rig_can_run(plan: Plan) -> None:
         if got is not None and got[1].instrument == "probe":
             raise ValidationError(
                 f"plan {plan.name}: stages[{i}] ({stage.name}): setup {got[0]!r} is a probe setup, which the daemon "
-                "does not drive (run it with the touch-probe cycle of the on-line model)")
+                "does not drive (run it with the touch-probe cycle of the on-line model)"
+            )
 
 
 def skip_missed(plan: Plan, cursor: Cursor, now_s: float) -> tuple[Cursor, int, int]:
@@ -84,8 +84,12 @@ def run_daemon(
     from driftlab.progress import progress
 
     check_rig_can_run(plan)
-    log.info("plan %s measures %d of the 30 motion-error terms%s", plan.name, 30 - len(plan.missing_terms()),
-             f"; the model will lack {', '.join(plan.missing_terms())}" if plan.missing_terms() else "")
+    log.info(
+        "plan %s measures %d of the 30 motion-error terms%s",
+        plan.name,
+        30 - len(plan.missing_terms()),
+        f"; the model will lack {', '.join(plan.missing_terms())}" if plan.missing_terms() else "",
+    )
     engine = engine if engine is not None else store_engine(db_url)
     stop = stop or threading.Event()
     scenario = None
@@ -94,9 +98,11 @@ def run_daemon(
 
         scenario = load_scenario(scenario_path)
     channels, rooms = resolve_channels(plan, scenario)
-    origin = {"mode": "sim" if scenario is not None else "real",
-              "scenario": str(scenario_path) if scenario_path is not None else None,
-              "speed": None if math.isinf(speed) else speed}
+    origin = {
+        "mode": "sim" if scenario is not None else "real",
+        "scenario": str(scenario_path) if scenario_path is not None else None,
+        "speed": None if math.isinf(speed) else speed,
+    }
     points = plan.sweep_points()
     if scenario is None:
         # open the instruments before touching the store: an unreachable instrument leaves no campaign behind
@@ -112,8 +118,9 @@ def run_daemon(
     cursor = handle.cursor
     if scenario is not None:
         clock = sim_clock(plan, cursor, speed)
-        rig = build_sim_rig(plan, scenario, clock, list(channels), datum=handle.progress.get("datum"), world=world,
-                            cursor=cursor)
+        rig = build_sim_rig(
+            plan, scenario, clock, list(channels), datum=handle.progress.get("datum"), world=world, cursor=cursor
+        )
     else:
         clock.started_epoch_s = _campaign_started_epoch(engine, handle.campaign_id)
         if handle.resumed:
@@ -134,8 +141,9 @@ def run_daemon(
                 if stop_after_commits is not None and commits[0] >= stop_after_commits:
                     stop.set()
 
-            sched = Scheduler(plan, rig, sink, clock, cursor, max_batch=max_batch, flush_s=flush_s,
-                              on_commit=on_commit, stop=stop)
+            sched = Scheduler(
+                plan, rig, sink, clock, cursor, max_batch=max_batch, flush_s=flush_s, on_commit=on_commit, stop=stop
+            )
             stats = sched.run()
     finally:
         rig.close()
@@ -183,10 +191,9 @@ def resolve_channels(plan: Plan, scenario: Any | None) -> tuple[dict[str, dict[s
                 )
         return chans, list(plan.machine.room_channels)
     if scenario is None:
-        raise ValidationError(
-            f"plan {plan.name}: machine.channels is 'from scenario' but no --sim scenario was given"
-        )
+        raise ValidationError(f"plan {plan.name}: machine.channels is 'from scenario' but no --sim scenario was given")
     meta = scenario_meta(scenario)
-    chans = {k: {"location": v.get("location", ""), "structure": v.get("structure", "")}
-             for k, v in meta["channels"].items()}
+    chans = {
+        k: {"location": v.get("location", ""), "structure": v.get("structure", "")} for k, v in meta["channels"].items()
+    }
     return chans, list(plan.machine.room_channels or meta.get("room_channels", []))

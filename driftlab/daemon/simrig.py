@@ -49,8 +49,13 @@ def _no_wait(_dt: float) -> None:
 
 
 def build_sim_rig(
-    plan: Plan, scenario: Any, clock: Any, channels: list[str], datum: Mapping[str, Any] | None = None,
-    world: Any | None = None, cursor: Cursor = Cursor(),
+    plan: Plan,
+    scenario: Any,
+    clock: Any,
+    channels: list[str],
+    datum: Mapping[str, Any] | None = None,
+    world: Any | None = None,
+    cursor: Cursor = Cursor(),
 ) -> InstrumentRig:
     """Return a rig whose real drivers talk to simulated servers reading the virtual machine at `clock`.
 
@@ -91,12 +96,12 @@ def build_sim_rig(
         rm = pyvisa.ResourceManager("@py")
         closers.append(rm.close)
         policy = RetryPolicy(attempts=3, base_delay_s=0.0)
-        card_io = LineChannel(VisaPort.open(visa_address(card), resource_manager=rm), "thermocouple card",
-                              policy, sleep=_no_wait)
+        card_io = LineChannel(
+            VisaPort.open(visa_address(card), resource_manager=rm), "thermocouple card", policy, sleep=_no_wait
+        )
         scanner = ThermocoupleCard(card_io, card_map, clock=clock.now)
         closers.append(card_io.close)
-        laser_io = LineChannel(VisaPort.open(visa_address(head), resource_manager=rm), "laser", policy,
-                               sleep=_no_wait)
+        laser_io = LineChannel(VisaPort.open(visa_address(head), resource_manager=rm), "laser", policy, sleep=_no_wait)
         closers.append(laser_io.close)
         laser = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20, burst=True)
         link = SerialMachineLink.open(serial_url(ctrl), sleep=_no_wait, max_idle_polls=2)
@@ -108,9 +113,19 @@ def build_sim_rig(
         for c in reversed(closers):
             c()
         raise
-    return InstrumentRig(plan, scanner, laser, link, clock=clock, datum=datum, laser_server=head, closers=closers,
-                         servers={"thermocouple": card, "laser": head, "controller": ctrl, "ad-card": ad},
-                         adcard=adcard, mount=sim_mounter(world, ctrl, head, ad))
+    return InstrumentRig(
+        plan,
+        scanner,
+        laser,
+        link,
+        clock=clock,
+        datum=datum,
+        laser_server=head,
+        closers=closers,
+        servers={"thermocouple": card, "laser": head, "controller": ctrl, "ad-card": ad},
+        adcard=adcard,
+        mount=sim_mounter(world, ctrl, head, ad),
+    )
 
 
 def sim_mounter(world: Any, stage: Any, head: Any, ad: Any) -> Callable[[Any], None]:
@@ -134,18 +149,24 @@ def sim_mounter(world: Any, stage: Any, head: Any, ad: Any) -> Callable[[Any], N
             return
         if any(v != 0.0 for v in setup.pose.values()):
             raise ValidationError(
-                f"setup on {setup.axis}: the virtual machine measures with the other axes at home (pose 0)")
+                f"setup on {setup.axis}: the virtual machine measures with the other axes at home (pose 0)"
+            )
         if setup.instrument == "laser":
             term = setup.terms[0]
             head.mount(LASER_TERMS[setup.axis][term], setup.axis, term, setup.range_deg())
         elif setup.fixture == "reference_edge":
             roll = setup.terms[0]
-            ad.wire([0, 1], roll_pair_source(world, stage, setup.axis, ROLL_GAP[setup.axis], roll,
-                                             ROLL_SEPARATION_MM, ROLL_CALIBRATION))
+            ad.wire(
+                [0, 1],
+                roll_pair_source(
+                    world, stage, setup.axis, ROLL_GAP[setup.axis], roll, ROLL_SEPARATION_MM, ROLL_CALIBRATION
+                ),
+            )
         else:
             array = a_axis_array() if setup.axis == "A" else b_axis_array()
-            ad.wire(list(range(len(array.calibration.sensors))),
-                    reference_surface_source(world, stage, setup.axis, array))
+            ad.wire(
+                list(range(len(array.calibration.sensors))), reference_surface_source(world, stage, setup.axis, array)
+            )
 
     return mount
 
@@ -156,8 +177,6 @@ def axis_positions(plan: Plan, cursor: Cursor) -> dict[str, tuple[float, int]]:
     for p in plan.sweep_points()[: cursor.next_point]:
         out[p.axis] = (p.position, p.direction)
     return out
-
-
 
 
 def scenario_stages(plan: Plan) -> list[dict[str, Any]]:
@@ -177,14 +196,18 @@ def scenario_stages(plan: Plan) -> list[dict[str, Any]]:
             raise ValidationError(
                 f"plan {plan.name}: stage {stage.name!r}: the virtual machine runs one oscillating axis at a time"
             )
-        source = {(): "idle", ("spindle",): "spindle", ("axis",): "feed", ("axis", "spindle"): "combined"}[
-            tuple(kinds)
-        ]
-        out.append({
-            "name": stage.name, "start_s": start, "end_s": end, "heat_source": source,
-            "axis": axes[0] if axes else (stage.axis if source == "spindle" else None),
-            "spindle_rpm": stage.spindle_rpm(), "feed_mm_min": stage.feed_mm_min(),
-        })
+        source = {(): "idle", ("spindle",): "spindle", ("axis",): "feed", ("axis", "spindle"): "combined"}[tuple(kinds)]
+        out.append(
+            {
+                "name": stage.name,
+                "start_s": start,
+                "end_s": end,
+                "heat_source": source,
+                "axis": axes[0] if axes else (stage.axis if source == "spindle" else None),
+                "spindle_rpm": stage.spindle_rpm(),
+                "feed_mm_min": stage.feed_mm_min(),
+            }
+        )
     return out
 
 
@@ -195,11 +218,15 @@ def check_travel(plan: Plan) -> None:
 
     for i, what, axis, values, lo, hi in plan.travel_violations(AXIS_RANGE):
         if what == "sweep":
-            raise ValidationError(f"plan {plan.name}: stages[{i}].sweep.positions: {values} outside "
-                                  f"the virtual machine's {axis} travel {lo:g}..{hi:g}")
+            raise ValidationError(
+                f"plan {plan.name}: stages[{i}].sweep.positions: {values} outside "
+                f"the virtual machine's {axis} travel {lo:g}..{hi:g}"
+            )
         if what == "heat":
-            raise ValidationError(f"plan {plan.name}: stages[{i}].heat: {axis} oscillation {values} "
-                                  f"outside the virtual machine's travel {lo:g}..{hi:g}")
+            raise ValidationError(
+                f"plan {plan.name}: stages[{i}].heat: {axis} oscillation {values} "
+                f"outside the virtual machine's travel {lo:g}..{hi:g}"
+            )
         # a setup standing the other axes away from home is refused when it is mounted (simrig.sim_mounter)
 
 

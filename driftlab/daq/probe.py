@@ -168,8 +168,9 @@ class TouchProbe:
             )
         return hit
 
-    def probe_points(self, nominal_centre: Sequence[float] | np.ndarray, radius_mm: float,
-                     normals: np.ndarray) -> np.ndarray:
+    def probe_points(
+        self, nominal_centre: Sequence[float] | np.ndarray, radius_mm: float, normals: np.ndarray
+    ) -> np.ndarray:
         """Return lobing-compensated stylus centres probed along the given outward normals."""
         c = np.asarray(nominal_centre, dtype=float)
         reach = radius_mm + self.stylus_radius_mm
@@ -232,8 +233,9 @@ def spindle_angles(gaps_mm: np.ndarray, spacing_mm: float) -> dict[str, np.ndarr
     }
 
 
-def table_tilt(centre_a: Sequence[float], centre_b: Sequence[float], ref_a: Sequence[float],
-               ref_b: Sequence[float]) -> float:
+def table_tilt(
+    centre_a: Sequence[float], centre_b: Sequence[float], ref_a: Sequence[float], ref_b: Sequence[float]
+) -> float:
     """Return the change (rad) of the table's tilt along the line of two spheres from their centres' Z drift."""
     a, b = np.asarray(centre_a, float), np.asarray(centre_b, float)
     ra, rb = np.asarray(ref_a, float), np.asarray(ref_b, float)

@@ -171,8 +171,9 @@ class ADCard:
         self.n_channels = n_channels
 
     @classmethod
-    def open(cls, address: str, n_channels: int = 16, timeout_s: float = 2.0,
-             policy: RetryPolicy | None = None) -> ADCard:
+    def open(
+        cls, address: str, n_channels: int = 16, timeout_s: float = 2.0, policy: RetryPolicy | None = None
+    ) -> ADCard:
         """Return a card on a VISA resource name or a serial device/URL."""
         return cls(LineChannel(open_port(address, timeout_s), "A/D card", policy), n_channels)
 

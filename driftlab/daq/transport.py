@@ -197,8 +197,9 @@ def visa_library_spec(library: str | None = None) -> str:
             raise ValidationError(f"VISA library {spec!r}: no such pyvisa-sim definitions file {path}")
         return spec
     if spec.startswith("@"):
-        raise ValidationError(f"VISA library {spec!r}: use @py, @sim, FILE.yaml@sim, @ivi or the path of a vendor "
-                              "VISA library")
+        raise ValidationError(
+            f"VISA library {spec!r}: use @py, @sim, FILE.yaml@sim, @ivi or the path of a vendor VISA library"
+        )
     if not Path(spec).is_file():
         raise ValidationError(f"VISA library {spec!r}: no such file (give the path of the vendor's VISA library)")
     return spec

@@ -48,8 +48,9 @@ class Jobs:
     its record reads done (the API drops its cached current model there).
     """
 
-    def __init__(self, store: Store, *, run_here: bool = True, on_model: OnModel | None = None,
-                 concurrency: int = 1) -> None:
+    def __init__(
+        self, store: Store, *, run_here: bool = True, on_model: OnModel | None = None, concurrency: int = 1
+    ) -> None:
         self.store = store
         self.run_here = run_here
         self.on_model = on_model
@@ -106,14 +107,28 @@ class Jobs:
                 self._app = app
             return self._app
 
-    def submit(self, kind: str, params: dict[str, Any], *, machine_id: str | None = None,
-               campaign_id: int | None = None, priority: int = PRIORITY_INTERACTIVE) -> int:
+    def submit(
+        self,
+        kind: str,
+        params: dict[str, Any],
+        *,
+        machine_id: str | None = None,
+        campaign_id: int | None = None,
+        priority: int = PRIORITY_INTERACTIVE,
+    ) -> int:
         """Record a job and queue it (PostgreSQL) or hand it to this process's runner (SQLite); return its id."""
         if _queued(self.store):
             from driftlab.jobs.queue import submit_to_queue
 
-            return submit_to_queue(self._deferrer(), self.store, kind, params, machine_id=machine_id,
-                                   campaign_id=campaign_id, priority=priority)
+            return submit_to_queue(
+                self._deferrer(),
+                self.store,
+                kind,
+                params,
+                machine_id=machine_id,
+                campaign_id=campaign_id,
+                priority=priority,
+            )
         from driftlab.jobs.local import LocalRunner
 
         job_id = self.store.record_job(kind, params, machine_id=machine_id, campaign_id=campaign_id)
@@ -122,8 +137,15 @@ class Jobs:
         return job_id
 
 
-def submit(store: Store, kind: str, params: dict[str, Any], *, machine_id: str | None = None,
-           campaign_id: int | None = None, priority: int = PRIORITY_INTERACTIVE) -> int:
+def submit(
+    store: Store,
+    kind: str,
+    params: dict[str, Any],
+    *,
+    machine_id: str | None = None,
+    campaign_id: int | None = None,
+    priority: int = PRIORITY_INTERACTIVE,
+) -> int:
     """Record and queue one job (nothing runs it here); return its id."""
     jobs = Jobs(store, run_here=False)
     try:
@@ -132,8 +154,9 @@ def submit(store: Store, kind: str, params: dict[str, Any], *, machine_id: str |
         jobs.stop()
 
 
-def submit_fit(store: Store, campaign_ids: list[int], *, network: bool = True, findings: Any = None,
-               force_findings: bool = False) -> int:
+def submit_fit(
+    store: Store, campaign_ids: list[int], *, network: bool = True, findings: Any = None, force_findings: bool = False
+) -> int:
     """Queue a fit of these campaigns (of one machine); return the job id.
 
     ``findings`` (``models.findings.Findings``) are kept in the job's parameters and folded in by the fit.

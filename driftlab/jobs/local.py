@@ -28,8 +28,9 @@ log = logging.getLogger(__name__)
 INTERRUPTED = "interrupted: the process running it stopped before it ended; submit it again"
 
 
-def _attempt(store: Store, job_id: int, worker: str, on_stage: OnStage | None,
-             on_model: OnModel | None) -> tuple[bool, float | None]:
+def _attempt(
+    store: Store, job_id: int, worker: str, on_stage: OnStage | None, on_model: OnModel | None
+) -> tuple[bool, float | None]:
     """Run one attempt of a queued job; return (it ran, seconds before its retry or None)."""
     wait: list[float | None] = [None]
 
@@ -38,8 +39,12 @@ def _attempt(store: Store, job_id: int, worker: str, on_stage: OnStage | None,
         return wait[0] is not None
 
     try:
-        ran = execute(store, job_id, worker, will_retry=will_retry, only_if_queued=True, on_stage=on_stage,
-                      on_model=on_model) is not None
+        ran = (
+            execute(
+                store, job_id, worker, will_retry=will_retry, only_if_queued=True, on_stage=on_stage, on_model=on_model
+            )
+            is not None
+        )
     except Exception:  # recorded by execute
         return True, wait[0]
     return ran, None

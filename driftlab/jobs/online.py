@@ -42,8 +42,12 @@ def _legacy_states(store: Store, machine: str, model_version: int | None) -> dic
 
 def _states_of(row: Any) -> dict[str, RLSState]:
     """Return the per-term states of an ``online_states`` row."""
-    return {k: RLSState(theta=np.asarray(row.theta[k], float), P=np.asarray(row.p[k], float), lam=row.lam,
-                        n_updates=row.n_updates) for k in row.theta}
+    return {
+        k: RLSState(
+            theta=np.asarray(row.theta[k], float), P=np.asarray(row.p[k], float), lam=row.lam, n_updates=row.n_updates
+        )
+        for k in row.theta
+    }
 
 
 def read_online_states(store: Store, machine: str, model_version: int | None) -> tuple[dict[str, RLSState], int | None]:
@@ -77,8 +81,15 @@ class StoredUpdate:
     attempts: int
 
 
-def store_update(store: Store, machine: str, probe: Any, measured_at: Sequence[Any], lam: float | None = None,
-                 temperatures: Sequence[Mapping[str, float]] | None = None, max_attempts: int = 50) -> StoredUpdate:
+def store_update(
+    store: Store,
+    machine: str,
+    probe: Any,
+    measured_at: Sequence[Any],
+    lam: float | None = None,
+    temperatures: Sequence[Mapping[str, float]] | None = None,
+    max_attempts: int = 50,
+) -> StoredUpdate:
     """Update the machine's on-line state with probe measurements; store the state and the probes together.
 
     Optimistic concurrency: the state is read with its version, the update computed, and both the
@@ -100,8 +111,10 @@ def store_update(store: Store, machine: str, probe: Any, measured_at: Sequence[A
         doc = validate_document(info.document).model_copy(update={"version": info.version})
         states, seen = read_online_states(store, machine, doc.version)
         if states and lam is not None and float(lam) != next(iter(states.values())).lam:
-            raise ConflictError(f"the on-line state of model version {doc.version} has forgetting factor "
-                                f"{next(iter(states.values())).lam}; it can only be chosen when the state starts")
+            raise ConflictError(
+                f"the on-line state of model version {doc.version} has forgetting factor "
+                f"{next(iter(states.values())).lam}; it can only be chosen when the state starts"
+            )
         _, residual = online_residuals(doc, probe)
         report, prior = online_update_document(doc, probe, states, DEFAULT_FORGETTING if lam is None else lam)
         for st in report.states.values():
@@ -110,21 +123,37 @@ def store_update(store: Store, machine: str, probe: Any, measured_at: Sequence[A
         rows = []
         for i, (_, r) in enumerate(probe.iterrows()):
             temps = dict(temperatures[i]) if temperatures is not None else {c: float(r[c]) for c in chans}
-            rows.append({"measured_at": measured_at[i], "x": float(r["x"]), "y": float(r["y"]), "z": float(r["z"]),
-                         "a_deg": float(r["a"]), "b_deg": float(r["b"]), "dx": float(r["dx"]), "dy": float(r["dy"]),
-                         "dz": float(r["dz"]), "temperatures": temps})
+            rows.append(
+                {
+                    "measured_at": measured_at[i],
+                    "x": float(r["x"]),
+                    "y": float(r["y"]),
+                    "z": float(r["z"]),
+                    "a_deg": float(r["a"]),
+                    "b_deg": float(r["b"]),
+                    "dx": float(r["dx"]),
+                    "dy": float(r["dy"]),
+                    "dz": float(r["dz"]),
+                    "temperatures": temps,
+                }
+            )
         first = report.states[PROBE_TERMS[0]]
         try:
             _, ids = store.save_online_state(
-                machine, seen, model_version_id=info.id, model_version=int(doc.version or 0), lam=first.lam,
-                n_updates=first.n_updates, theta={k: v.theta.tolist() for k, v in report.states.items()},
-                p={k: v.P.tolist() for k, v in report.states.items()}, probes=rows)
+                machine,
+                seen,
+                model_version_id=info.id,
+                model_version=int(doc.version or 0),
+                lam=first.lam,
+                n_updates=first.n_updates,
+                theta={k: v.theta.tolist() for k, v in report.states.items()},
+                p={k: v.P.tolist() for k, v in report.states.items()},
+                probes=rows,
+            )
         except StaleOnlineState:
             continue
         return StoredUpdate(report, prior, residual, ids, attempt)
     raise ConflictError(f"machine {machine!r}: the on-line state kept changing under {max_attempts} attempts; retry")
-
-
 
 
 def reset_online_state(store: Store, machine: str) -> bool:
@@ -139,8 +168,16 @@ def reset_online_state(store: Store, machine: str) -> bool:
         if row is None or not row.theta:
             return False
         try:
-            store.save_online_state(machine, row.version, model_version_id=row.model_version_id,
-                                    model_version=row.model_version, lam=row.lam, n_updates=0, theta={}, p={})
+            store.save_online_state(
+                machine,
+                row.version,
+                model_version_id=row.model_version_id,
+                model_version=row.model_version,
+                lam=row.lam,
+                n_updates=0,
+                theta={},
+                p={},
+            )
             return True
         except StaleOnlineState:
             continue

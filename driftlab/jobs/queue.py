@@ -77,16 +77,21 @@ def _store_of(context: JobContext) -> Store:
 
         store = connect(None)
         context.additional_context["store"] = store
-    return store  # type: ignore[no-any-return]
+    return store
 
 
 def _run_task(context: JobContext, job_id: int) -> None:
     """Run a fit or diagnosis job's record (the task of every job kind)."""
     extra = context.additional_context or {}
     attempts_done = context.job.attempts + 1
-    execute(_store_of(context), int(job_id), context.worker_name or default_worker_name(),
-            will_retry=lambda exc, _job: policy.retry_in_s(exc, attempts_done) is not None,
-            on_stage=extra.get("on_stage"), on_model=extra.get("on_model"))
+    execute(
+        _store_of(context),
+        int(job_id),
+        context.worker_name or default_worker_name(),
+        will_retry=lambda exc, _job: policy.retry_in_s(exc, attempts_done) is not None,
+        on_stage=extra.get("on_stage"),
+        on_model=extra.get("on_model"),
+    )
     # the result is in the job's record; procrastinate keeps no results
 
 
@@ -119,18 +124,22 @@ def build_app(url: str, *, pool_size: int = 4, refit_cron: str | None = None) ->
     app = App(connector=PsycopgConnector(conninfo=conninfo(url), min_size=1, max_size=max(2, pool_size)))
     retry = policy.RetryPolicy()
     for name in TASKS.values():
-        app.task(name=name, queue=policy.QUEUE, pass_context=True, retry=retry,
-                 priority=policy.PRIORITY_INTERACTIVE)(_run_task)
-    refit = app.task(name=REFIT_TASK, queue=policy.QUEUE, pass_context=True,
-                     priority=policy.PRIORITY_UPKEEP)(_refit_task)
+        app.task(name=name, queue=policy.QUEUE, pass_context=True, retry=retry, priority=policy.PRIORITY_INTERACTIVE)(
+            _run_task
+        )
+    refit = app.task(name=REFIT_TASK, queue=policy.QUEUE, pass_context=True, priority=policy.PRIORITY_UPKEEP)(
+        _refit_task
+    )
     cron = get_settings().refit_cron if refit_cron is None else refit_cron
     if cron:
         app.periodic(cron=cron, periodic_id="refit")(refit)
-    stalled = app.task(name=STALLED_TASK, queue=policy.QUEUE, pass_context=True,
-                       priority=policy.PRIORITY_UPKEEP)(_retry_stalled_task)
+    stalled = app.task(name=STALLED_TASK, queue=policy.QUEUE, pass_context=True, priority=policy.PRIORITY_UPKEEP)(
+        _retry_stalled_task
+    )
     app.periodic(cron=STALLED_CRON, periodic_id="stalled")(stalled)
-    parts = app.task(name=PARTITIONS_TASK, queue=policy.QUEUE, pass_context=True,
-                     priority=policy.PRIORITY_UPKEEP)(_partitions_task)
+    parts = app.task(name=PARTITIONS_TASK, queue=policy.QUEUE, pass_context=True, priority=policy.PRIORITY_UPKEEP)(
+        _partitions_task
+    )
     app.periodic(cron=PARTITIONS_CRON, periodic_id="partitions")(parts)
     return app
 
@@ -138,21 +147,38 @@ def build_app(url: str, *, pool_size: int = 4, refit_cron: str | None = None) ->
 # ----------------------------------------------------------------------------- deferring
 
 
-def defer(app: App, store: Store, job_id: int, kind: str, machine_id: str | None, *,
-          priority: int = policy.PRIORITY_INTERACTIVE, queueing_lock: str | None = None) -> int:
+def defer(
+    app: App,
+    store: Store,
+    job_id: int,
+    kind: str,
+    machine_id: str | None,
+    *,
+    priority: int = policy.PRIORITY_INTERACTIVE,
+    queueing_lock: str | None = None,
+) -> int:
     """Queue a recorded job on procrastinate (a fit under its machine's lock); link and return the queue's id."""
     if kind not in TASKS:
         raise ValidationError(f"unknown job kind {kind!r}")
     lock = policy.machine_lock(machine_id) if kind == FIT and machine_id else None
-    queue_id = app.configure_task(TASKS[kind], allow_unknown=False, lock=lock, priority=priority,
-                                  queueing_lock=queueing_lock).defer(job_id=job_id)
+    queue_id = app.configure_task(
+        TASKS[kind], allow_unknown=False, lock=lock, priority=priority, queueing_lock=queueing_lock
+    ).defer(job_id=job_id)
     store.link_queue_job(job_id, queue_id)
     return int(queue_id)
 
 
-def submit_to_queue(app: App, store: Store, kind: str, params: dict[str, Any], *, machine_id: str | None,
-                    campaign_id: int | None, priority: int = policy.PRIORITY_INTERACTIVE,
-                    queueing_lock: str | None = None) -> int:
+def submit_to_queue(
+    app: App,
+    store: Store,
+    kind: str,
+    params: dict[str, Any],
+    *,
+    machine_id: str | None,
+    campaign_id: int | None,
+    priority: int = policy.PRIORITY_INTERACTIVE,
+    queueing_lock: str | None = None,
+) -> int:
     """Record a job and queue it; return its id.
 
     AlreadyEnqueued (a job with the same queueing lock waits already) removes the record and is
@@ -181,9 +207,18 @@ def submit_refits(store: Store, app: App) -> list[int]:
         kept = {k: v for k, v in cand.params.items() if k in ("network", "findings", "force_findings")}
         params = {"network": False, **kept, "campaigns": cand.campaign_ids, "refit_of": cand.model_version}
         try:
-            ids.append(submit_to_queue(app, store, FIT, params, machine_id=cand.machine_id, campaign_id=None,
-                                       priority=policy.PRIORITY_REFIT,
-                                       queueing_lock=policy.refit_queueing_lock(cand.machine_id)))
+            ids.append(
+                submit_to_queue(
+                    app,
+                    store,
+                    FIT,
+                    params,
+                    machine_id=cand.machine_id,
+                    campaign_id=None,
+                    priority=policy.PRIORITY_REFIT,
+                    queueing_lock=policy.refit_queueing_lock(cand.machine_id),
+                )
+            )
         except AlreadyEnqueued:
             log.info("refit of %s: one is already waiting", cand.machine_id)
     return ids
@@ -192,16 +227,33 @@ def submit_refits(store: Store, app: App) -> list[int]:
 # ----------------------------------------------------------------------------- workers
 
 
-def _worker(app: App, store: Store, *, concurrency: int, wait: bool, name: str | None, signals: bool,
-            on_model: OnModel | None = None, on_stage: OnStage | None = None,
-            polling_s: float = 5.0) -> Worker:
-    return Worker(app=app, queues=[policy.QUEUE], name=name or default_worker_name(), concurrency=concurrency,
-                  wait=wait, install_signal_handlers=signals, fetch_job_polling_interval=polling_s,
-                  additional_context={"store": store, "on_model": on_model, "on_stage": on_stage})
+def _worker(
+    app: App,
+    store: Store,
+    *,
+    concurrency: int,
+    wait: bool,
+    name: str | None,
+    signals: bool,
+    on_model: OnModel | None = None,
+    on_stage: OnStage | None = None,
+    polling_s: float = 5.0,
+) -> Worker:
+    return Worker(
+        app=app,
+        queues=[policy.QUEUE],
+        name=name or default_worker_name(),
+        concurrency=concurrency,
+        wait=wait,
+        install_signal_handlers=signals,
+        fetch_job_polling_interval=polling_s,
+        additional_context={"store": store, "on_model": on_model, "on_stage": on_stage},
+    )
 
 
-def run_worker(store: Store, *, concurrency: int = 1, wait: bool = True, name: str | None = None,
-               on_stage: OnStage | None = None) -> None:
+def run_worker(
+    store: Store, *, concurrency: int = 1, wait: bool = True, name: str | None = None, on_stage: OnStage | None = None
+) -> None:
     """Run a worker in the foreground until SIGINT/SIGTERM (or, without ``wait``, until nothing is runnable).
 
     A stop lets the running jobs end first.
@@ -212,8 +264,9 @@ def run_worker(store: Store, *, concurrency: int = 1, wait: bool = True, name: s
 
     async def main() -> None:
         async with app.open_async():
-            await _worker(app, store, concurrency=concurrency, wait=wait, name=name, signals=True,
-                          on_stage=on_stage).run()
+            await _worker(
+                app, store, concurrency=concurrency, wait=wait, name=name, signals=True, on_stage=on_stage
+            ).run()
 
     asyncio.run(main())
 
@@ -235,8 +288,15 @@ def run_until_ended(store: Store, job_id: int, *, on_stage: OnStage | None = Non
 class QueueWorker(threading.Thread):
     """A procrastinate worker in a thread of this process, with its own event loop (`driftlab serve`)."""
 
-    def __init__(self, store: Store, *, concurrency: int = 1, name: str | None = None,
-                 on_model: OnModel | None = None, polling_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        store: Store,
+        *,
+        concurrency: int = 1,
+        name: str | None = None,
+        on_model: OnModel | None = None,
+        polling_s: float = 5.0,
+    ) -> None:
         super().__init__(name="driftlab-queue-worker", daemon=True)
         self.store = store
         self.concurrency = concurrency
@@ -263,8 +323,16 @@ class QueueWorker(threading.Thread):
     async def _main(self) -> None:
         app = build_app(store_url(self.store), pool_size=self.concurrency + 3)
         async with app.open_async():
-            worker = _worker(app, self.store, concurrency=self.concurrency, wait=True, name=self.worker_name,
-                             signals=False, on_model=self.on_model, polling_s=self.polling_s)
+            worker = _worker(
+                app,
+                self.store,
+                concurrency=self.concurrency,
+                wait=True,
+                name=self.worker_name,
+                signals=False,
+                on_model=self.on_model,
+                polling_s=self.polling_s,
+            )
             with self._lock:
                 if self._stopping:
                     return

@@ -17,8 +17,9 @@ if TYPE_CHECKING:
     from driftlab.campaigns.store import ModelVersionInfo, Store
 
 
-def register_model(store: Store, document: Mapping[str, Any] | ModelDocument,
-                   source_campaigns: Sequence[int] = ()) -> ModelDocument:
+def register_model(
+    store: Store, document: Mapping[str, Any] | ModelDocument, source_campaigns: Sequence[int] = ()
+) -> ModelDocument:
     """Store a document as its machine's new current version (the old one retired, still readable); return it."""
     doc = validate_document(document)
     stored = document_json(doc.model_copy(update={"version": None}))
@@ -32,8 +33,9 @@ def register_model(store: Store, document: Mapping[str, Any] | ModelDocument,
 def document_of(info: ModelVersionInfo) -> ModelDocument:
     """Return the document of a registry row with its version number and source campaigns filled in."""
     doc = validate_document(info.document)
-    return doc.model_copy(update={"version": int(info.version), "source_campaigns": list(info.source_campaigns)
-                                  or doc.source_campaigns})
+    return doc.model_copy(
+        update={"version": int(info.version), "source_campaigns": list(info.source_campaigns) or doc.source_campaigns}
+    )
 
 
 def list_models(store: Store, machine: str | None = None) -> list[dict[str, Any]]:

@@ -45,8 +45,9 @@ def one_line(exc: BaseException) -> str:
 # ----------------------------------------------------------------------------- bodies
 
 
-def fit_campaigns(store: Store, campaign_ids: Sequence[int], options: FitOptions | None = None,
-                  progress: OnStage | None = None) -> tuple[FitResult, ModelDocument]:
+def fit_campaigns(
+    store: Store, campaign_ids: Sequence[int], options: FitOptions | None = None, progress: OnStage | None = None
+) -> tuple[FitResult, ModelDocument]:
     """Fit the stored campaigns, register the model as the machine's current version; return both."""
     from driftlab.jobs.registry import register_model
     from driftlab.models.fitting import fit_bundles
@@ -74,8 +75,9 @@ def fit_options(params: dict[str, Any], source: str = "fit job") -> FitOptions:
     return opts
 
 
-def fit_job(store: Store, params: dict[str, Any], on_stage: OnStage | None = None,
-            on_model: OnModel | None = None) -> dict[str, Any]:
+def fit_job(
+    store: Store, params: dict[str, Any], on_stage: OnStage | None = None, on_model: OnModel | None = None
+) -> dict[str, Any]:
     """Fit and register a model; return the fit report with the registered ``model_version``."""
     result, doc = fit_campaigns(store, params.get("campaigns", []), fit_options(params), progress=on_stage)
     if on_model is not None:
@@ -85,8 +87,9 @@ def fit_job(store: Store, params: dict[str, Any], on_stage: OnStage | None = Non
     return report
 
 
-def diagnose_job(store: Store, params: dict[str, Any], on_stage: OnStage | None = None,
-                 on_model: OnModel | None = None) -> dict[str, Any]:
+def diagnose_job(
+    store: Store, params: dict[str, Any], on_stage: OnStage | None = None, on_model: OnModel | None = None
+) -> dict[str, Any]:
     """Diagnose one stored campaign; return ``{"campaign_id", "report"}`` (diagnosis report v1)."""
     from driftlab.models.diagnosis import diagnose_bundle
 
@@ -103,9 +106,16 @@ BODIES: dict[str, Callable[..., dict[str, Any]]] = {FIT: fit_job, DIAGNOSE: diag
 # ----------------------------------------------------------------------------- one recorded job
 
 
-def execute(store: Store, job_id: int, worker: str, *, will_retry: Callable[[BaseException, JobInfo], bool],
-            only_if_queued: bool = False, on_stage: OnStage | None = None,
-            on_model: OnModel | None = None) -> dict[str, Any] | None:
+def execute(
+    store: Store,
+    job_id: int,
+    worker: str,
+    *,
+    will_retry: Callable[[BaseException, JobInfo], bool],
+    only_if_queued: bool = False,
+    on_stage: OnStage | None = None,
+    on_model: OnModel | None = None,
+) -> dict[str, Any] | None:
     """Run a recorded job to its end and record how it ended; return its result.
 
     Returns None when ``only_if_queued`` and the record was not queued (another process has it).
@@ -122,10 +132,16 @@ def execute(store: Store, job_id: int, worker: str, *, will_retry: Callable[[Bas
         result = strict_json(body(store, dict(job.params), on_stage=on_stage, on_model=on_model))
     except Exception as exc:
         retry = will_retry(exc, job)
-        log.log(logging.INFO if isinstance(exc, DriftlabError) else logging.WARNING,
-                "job %s (%s, attempt %s) failed%s: %s", job_id, job.kind, job.attempts,
-                "; it will be retried" if retry else "", one_line(exc),
-                exc_info=not isinstance(exc, DriftlabError))
+        log.log(
+            logging.INFO if isinstance(exc, DriftlabError) else logging.WARNING,
+            "job %s (%s, attempt %s) failed%s: %s",
+            job_id,
+            job.kind,
+            job.attempts,
+            "; it will be retried" if retry else "",
+            one_line(exc),
+            exc_info=not isinstance(exc, DriftlabError),
+        )
         store.fail_job(job_id, one_line(exc), retry=retry)
         raise
     store.finish_job(job_id, result)

@@ -59,9 +59,15 @@ class Iso230_2Result:
         """Return the report document: exactly the axis figures plus ``targets`` (one row per target)."""
         rows = [
             {
-                "position": float(p), "xbar_up": float(self.xbar_up[j]), "xbar_down": float(self.xbar_down[j]),
-                "s_up": float(self.s_up[j]), "s_down": float(self.s_down[j]), "B": float(self.reversal[j]),
-                "xbar": float(self.xbar[j]), "R_up": float(self.R_up_j[j]), "R_down": float(self.R_down_j[j]),
+                "position": float(p),
+                "xbar_up": float(self.xbar_up[j]),
+                "xbar_down": float(self.xbar_down[j]),
+                "s_up": float(self.s_up[j]),
+                "s_down": float(self.s_down[j]),
+                "B": float(self.reversal[j]),
+                "xbar": float(self.xbar[j]),
+                "R_up": float(self.R_up_j[j]),
+                "R_down": float(self.R_down_j[j]),
                 "R": float(self.R_j[j]),
             }
             for j, p in enumerate(self.targets)
@@ -80,8 +86,9 @@ def split_runs(position: np.ndarray, direction: np.ndarray) -> list[tuple[int, n
     return [(int(d[s]), np.arange(s, e)) for s, e in zip(starts, ends)]
 
 
-def evaluate(position: np.ndarray, direction: np.ndarray, deviation: np.ndarray, *, axis: str = "X",
-             unit: str = "mm") -> Iso230_2Result:
+def evaluate(
+    position: np.ndarray, direction: np.ndarray, deviation: np.ndarray, *, axis: str = "X", unit: str = "mm"
+) -> Iso230_2Result:
     """Return the ISO 230-2 result of readings in measuring order (position, direction +1/-1, deviation)."""
     pos = np.round(np.asarray(position, dtype=float), _TARGET_DECIMALS)
     dev = np.asarray(deviation, dtype=float)
@@ -91,8 +98,9 @@ def evaluate(position: np.ndarray, direction: np.ndarray, deviation: np.ndarray,
     if not up or not down:
         raise PositioningRunError(f"{axis}: ISO 230-2 needs runs in both directions ({len(up)} up, {len(down)} down)")
     if len(up) != len(down):
-        raise PositioningRunError(f"{axis}: {len(up)} up runs but {len(down)} down runs: up and down runs pair "
-                                  "in time order")
+        raise PositioningRunError(
+            f"{axis}: {len(up)} up runs but {len(down)} down runs: up and down runs pair in time order"
+        )
     if len(up) < 2:
         raise PositioningRunError(f"{axis}: one run per direction: the standard uncertainty needs at least two")
     targets = np.unique(pos)  # every target any run visits
@@ -153,9 +161,24 @@ def _statistics(axis: str, unit: str, targets: np.ndarray, x_up: np.ndarray, x_d
         "R_up": float(r_up_j.max()),
         "R_down": float(r_down_j.max()),
     }
-    return Iso230_2Result(axis=axis, unit=unit, targets=targets, runs=x_up.shape[0], deviations_up=x_up,
-                          deviations_down=x_down, xbar_up=xbar_up, xbar_down=xbar_down, s_up=s_up, s_down=s_down,
-                          reversal=b_j, xbar=xbar, R_up_j=r_up_j, R_down_j=r_down_j, R_j=r_j, figures=figures)
+    return Iso230_2Result(
+        axis=axis,
+        unit=unit,
+        targets=targets,
+        runs=x_up.shape[0],
+        deviations_up=x_up,
+        deviations_down=x_down,
+        xbar_up=xbar_up,
+        xbar_down=xbar_down,
+        s_up=s_up,
+        s_down=s_down,
+        reversal=b_j,
+        xbar=xbar,
+        R_up_j=r_up_j,
+        R_down_j=r_down_j,
+        R_j=r_j,
+        figures=figures,
+    )
 
 
 def from_bundle_errors(errors: pd.DataFrame, axis: str, term: str | None = None) -> Iso230_2Result:
@@ -171,8 +194,13 @@ def from_bundle_errors(errors: pd.DataFrame, axis: str, term: str | None = None)
     is_rotation = term in ("alpha", "beta", "gamma")  # rad in a bundle, arcsec in the report
     scale = ARCSEC_PER_RAD if is_rotation else 1.0
     unit = "arcsec" if is_rotation else "mm"
-    return evaluate(rows["position"].to_numpy(float), rows["direction"].to_numpy(), rows["value"].to_numpy(float)
-                    * scale, axis=axis, unit=unit)
+    return evaluate(
+        rows["position"].to_numpy(float),
+        rows["direction"].to_numpy(),
+        rows["value"].to_numpy(float) * scale,
+        axis=axis,
+        unit=unit,
+    )
 
 
 def plot(result: Iso230_2Result) -> Any:
@@ -186,10 +214,24 @@ def plot(result: Iso230_2Result) -> Any:
     fig, ax = plt.subplots(figsize=(9, 5.2))
     p = result.targets
     for i in range(result.runs):
-        ax.plot(p, result.deviations_up[i], color="tab:blue", lw=0.6, alpha=0.45, marker=".",
-                label="runs, approached +" if i == 0 else None)
-        ax.plot(p, result.deviations_down[i], color="tab:red", lw=0.6, alpha=0.45, marker=".",
-                label="runs, approached -" if i == 0 else None)
+        ax.plot(
+            p,
+            result.deviations_up[i],
+            color="tab:blue",
+            lw=0.6,
+            alpha=0.45,
+            marker=".",
+            label="runs, approached +" if i == 0 else None,
+        )
+        ax.plot(
+            p,
+            result.deviations_down[i],
+            color="tab:red",
+            lw=0.6,
+            alpha=0.45,
+            marker=".",
+            label="runs, approached -" if i == 0 else None,
+        )
     ax.plot(p, result.xbar_up, color="tab:blue", lw=2, label="mean +")
     ax.plot(p, result.xbar_down, color="tab:red", lw=2, label="mean -")
     for mean, s, c in ((result.xbar_up, result.s_up, "tab:blue"), (result.xbar_down, result.s_down, "tab:red")):
@@ -202,8 +244,10 @@ def plot(result: Iso230_2Result) -> Any:
     ax.set_ylabel(f"deviation ({result.unit})")
     f = result.figures
     text = "  ".join(f"{k} {f[k]:.4g}" for k in FIGURES)
-    ax.set_title(f"ISO 230-2: axis {result.axis}, {result.runs} runs per direction, {p.size} targets ({result.unit})",
-                 fontsize=10)
+    ax.set_title(
+        f"ISO 230-2: axis {result.axis}, {result.runs} runs per direction, {p.size} targets ({result.unit})",
+        fontsize=10,
+    )
     fig.text(0.01, 0.01, text, fontsize=7.5, family="monospace")
     ax.legend(fontsize=7, loc="best")
     fig.subplots_adjust(bottom=0.16)

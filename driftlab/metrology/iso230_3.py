@@ -70,9 +70,14 @@ class StageTest:
 
     def to_json_dict(self) -> dict[str, Any]:
         """Return the test as a JSON-ready dict (no series)."""
-        out: dict[str, Any] = {"stage": self.stage, "start_s": self.start_s, "end_s": self.end_s,
-                               "duration_h": (self.end_s - self.start_s) / 3600.0, "figures": self.figures,
-                               "units": self.units}
+        out: dict[str, Any] = {
+            "stage": self.stage,
+            "start_s": self.start_s,
+            "end_s": self.end_s,
+            "duration_h": (self.end_s - self.start_s) / 3600.0,
+            "figures": self.figures,
+            "units": self.units,
+        }
         if self.room_range_degC is not None:
             out["room_range_degC"] = self.room_range_degC
         out.update(self.extra)
@@ -103,8 +108,17 @@ def drift_series(errors: pd.DataFrame, start_s: float, end_s: float) -> list[Dri
         scale, unit = _unit(str(term))
         v = g["value"].to_numpy(float) * scale
         # ISO 230-3 clauses 5 and 6: drift is relative to the reading at the start of the test
-        out.append(DriftSeries(str(axis), str(term), float(pos), int(d), unit,
-                               (g["time_s"].to_numpy(float) - start_s) / 3600.0, v - v[0]))
+        out.append(
+            DriftSeries(
+                str(axis),
+                str(term),
+                float(pos),
+                int(d),
+                unit,
+                (g["time_s"].to_numpy(float) - start_s) / 3600.0,
+                v - v[0],
+            )
+        )
     return out
 
 
@@ -120,8 +134,9 @@ def _per_term(series: list[DriftSeries], stat: str) -> tuple[dict[str, float], d
     return figures, units
 
 
-def etve_test(errors: pd.DataFrame, temperatures: pd.DataFrame | None, room_channels: list[str], stage: Any
-              ) -> StageTest:
+def etve_test(
+    errors: pd.DataFrame, temperatures: pd.DataFrame | None, room_channels: list[str], stage: Any
+) -> StageTest:
     """Return the ETVE of one stage without heat source: per AXIS/term the largest drift range (ISO 230-3 clause 5)."""
     series = drift_series(errors, stage.start_s, stage.end_s)
     figures, units = _per_term(series, "range")
@@ -142,8 +157,16 @@ def spindle_test(errors: pd.DataFrame, stage: Any) -> StageTest:
     series = drift_series(errors, stage.start_s, stage.end_s)
     figures, units = _per_term(series, "range")
     end, _ = _per_term(series, "end")
-    return StageTest("spindle", stage.name, stage.start_s, stage.end_s, figures, units, series,
-                     extra={"spindle_rpm": stage.spindle_rpm, "end_drift": end})
+    return StageTest(
+        "spindle",
+        stage.name,
+        stage.start_s,
+        stage.end_s,
+        figures,
+        units,
+        series,
+        extra={"spindle_rpm": stage.spindle_rpm, "end_drift": end},
+    )
 
 
 def linear_test(errors: pd.DataFrame, stage: Any) -> StageTest | None:
@@ -151,8 +174,9 @@ def linear_test(errors: pd.DataFrame, stage: Any) -> StageTest | None:
     not measured."""
     axis = stage.axis
     term = POSITIONING_TERM[axis]
-    series = [s for s in drift_series(errors[(errors["axis"] == axis) & (errors["term"] == term)], stage.start_s,
-                                      stage.end_s)]
+    series = [
+        s for s in drift_series(errors[(errors["axis"] == axis) & (errors["term"] == term)], stage.start_s, stage.end_s)
+    ]
     if not series:
         return None
     positions = sorted({s.position for s in series})
@@ -168,8 +192,16 @@ def linear_test(errors: pd.DataFrame, stage: Any) -> StageTest | None:
         # the largest change anywhere on the measured length: the axis' thermal expansion and drift together
         "drift_max": max(s.range for s in series),
     }
-    return StageTest("linear", stage.name, stage.start_s, stage.end_s, figures, {k: "mm" for k in figures}, series,
-                     extra={"axis": axis, "feed_mm_min": stage.feed_mm_min, "P1": p1, "P2": p2})
+    return StageTest(
+        "linear",
+        stage.name,
+        stage.start_s,
+        stage.end_s,
+        figures,
+        {k: "mm" for k in figures},
+        series,
+        extra={"axis": axis, "feed_mm_min": stage.feed_mm_min, "P1": p1, "P2": p2},
+    )
 
 
 def evaluate_bundle(bundle: Any) -> Iso230_3Result:
@@ -181,13 +213,20 @@ def evaluate_bundle(bundle: Any) -> Iso230_3Result:
     off = [s for s in stages if s.heat_source == "off"] or [s for s in stages if s.heat_source == "idle"]
     etve = [etve_test(errors, bundle.temperatures, list(bundle.meta.room_channels), s) for s in off]
     spindle = [spindle_test(errors, s) for s in stages if s.heat_source == "spindle"]
-    linear = [t for s in stages if s.heat_source == "feed" and s.axis in LINEAR_AXES
-              for t in [linear_test(errors, s)] if t is not None]
+    linear = [
+        t
+        for s in stages
+        if s.heat_source == "feed" and s.axis in LINEAR_AXES
+        for t in [linear_test(errors, s)]
+        if t is not None
+    ]
     etve = [t for t in etve if t.series]
     spindle = [t for t in spindle if t.series]
     if not (etve or spindle or linear):
-        raise ValidationError(f"{bundle.name}: no stage with readings is an ISO 230-3 test (no heat source, "
-                              "spindle, or feed of a linear axis)")
+        raise ValidationError(
+            f"{bundle.name}: no stage with readings is an ISO 230-3 test (no heat source, "
+            "spindle, or feed of a linear axis)"
+        )
     return Iso230_3Result(etve, spindle, linear)
 
 
@@ -204,11 +243,14 @@ def plot(test: StageTest) -> Any:
         p1, p2 = test.extra["P1"], test.extra["P2"]
         for s in test.series:
             if s.position in (p1, p2):
-                ax.plot(s.t_h, s.drift * 1e3,
-                        label=f"{s.axis} at {s.position:g} mm ({'+' if s.direction > 0 else '-'})")
+                ax.plot(
+                    s.t_h, s.drift * 1e3, label=f"{s.axis} at {s.position:g} mm ({'+' if s.direction > 0 else '-'})"
+                )
         ax.set_ylabel("change of positioning deviation (um)")
-        ax.set_title(f"ISO 230-3 linear motion: {test.stage}, axis {test.extra['axis']} at "
-                     f"{test.extra['feed_mm_min']:g} mm/min", fontsize=10)
+        ax.set_title(
+            f"ISO 230-3 linear motion: {test.stage}, axis {test.extra['axis']} at {test.extra['feed_mm_min']:g} mm/min",
+            fontsize=10,
+        )
     else:
         keys = sorted(test.figures, key=lambda k: -test.figures[k] / (1.0 if test.units[k] == "mm" else 1e3))[:6]
         for key in keys:
@@ -218,8 +260,11 @@ def plot(test: StageTest) -> Any:
             ax.plot(best.t_h, best.drift * scale, label=f"{key} at {best.position:g} ({unit})")
         what = "ETVE" if test.kind == "etve" else "spindle rotation"
         ax.set_ylabel("drift (um or arcsec)")
-        ax.set_title(f"ISO 230-3 {what}: {test.stage}" + (
-            f", room range {test.room_range_degC:.2f} degC" if test.room_range_degC is not None else ""), fontsize=10)
+        ax.set_title(
+            f"ISO 230-3 {what}: {test.stage}"
+            + (f", room range {test.room_range_degC:.2f} degC" if test.room_range_degC is not None else ""),
+            fontsize=10,
+        )
     ax.set_xlabel("time from the stage start (h)")
     ax.axhline(0.0, color="grey", lw=0.5)
     ax.legend(fontsize=7, loc="best")

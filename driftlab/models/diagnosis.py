@@ -108,8 +108,14 @@ class SimulationComparison:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the spec's ``simulation[]`` entry (angles: rad under the same key)."""
-        return {"axis": self.axis, "term": self.term, "rmse_mm": self.rmse, "gets_wrong": self.gets_wrong,
-                "unit": self.unit, "tau_s": self.tau_s}
+        return {
+            "axis": self.axis,
+            "term": self.term,
+            "rmse_mm": self.rmse,
+            "gets_wrong": self.gets_wrong,
+            "unit": self.unit,
+            "tau_s": self.tau_s,
+        }
 
 
 def _law_design(t: np.ndarray, x: np.ndarray, tau_s: float, with_position: bool) -> np.ndarray:
@@ -177,8 +183,10 @@ def simulation_sentences(td: TermData, prep: PreparedBundle, pred: np.ndarray, n
     stage_rows = _stage_rows(prep.stages, td.t)
     if stage_rows:
         worst = max(stage_rows, key=lambda sr: rmse(r[sr[1]]))
-        parts.append(f"residual RMS {_fmt(rmse(r), u)}, largest during stage {worst[0].get('name')} "
-                     f"({_fmt(rmse(r[worst[1]]), u)})")
+        parts.append(
+            f"residual RMS {_fmt(rmse(r), u)}, largest during stage {worst[0].get('name')} "
+            f"({_fmt(rmse(r[worst[1]]), u)})"
+        )
         # stages where the data and the law move in opposite directions (a cooling the law cannot show)
         best = None
         for st, idx in stage_rows:
@@ -192,8 +200,10 @@ def simulation_sentences(td: TermData, prep: PreparedBundle, pred: np.ndarray, n
             law = "stays flat" if abs(ds) < 0.25 * abs(dy) else ("keeps rising" if ds > 0 else "keeps falling")
             source = st.get("heat_source", "?")
             when = "when the heat sources stop" if source in ("none", "off", "") else f"under {source} heating"
-            parts.append(f"the error {verb} by {_fmt(abs(dy), u)} {when} (stage {st.get('name')}) "
-                         f"but the time-driven law {law} ({_fmt(ds, u)})")
+            parts.append(
+                f"the error {verb} by {_fmt(abs(dy), u)} {when} (stage {st.get('name')}) "
+                f"but the time-driven law {law} ({_fmt(ds, u)})"
+            )
     else:
         parts.append(f"residual RMS {_fmt(rmse(r), u)}")
     dirs = np.unique(td.direction)
@@ -219,16 +229,20 @@ def simulation_sentences(td: TermData, prep: PreparedBundle, pred: np.ndarray, n
                 j = int(np.argmax(cors))
                 if cors[j] > 0.7:
                     k = lstsq(np.column_stack([np.ones(S.size), Tm[:, j]]), S)[1]
-                    parts.append(f"the slope along the axis changes with temperature "
-                                 f"({_fmt(k * 1000, u)}/m per degC of {prep.channels[j]}, r = {cors[j]:.2f})")
+                    parts.append(
+                        f"the slope along the axis changes with temperature "
+                        f"({_fmt(k * 1000, u)}/m per degC of {prep.channels[j]}, r = {cors[j]:.2f})"
+                    )
     D = td.temps - td.temps[0]
     okc = np.all(np.isfinite(D), axis=0) & (np.ptp(np.nan_to_num(D), axis=0) > 0)
     if okc.any() and np.ptp(r) > 0:
         cors = np.array([abs(np.corrcoef(r, D[:, j])[0, 1]) if okc[j] else 0.0 for j in range(D.shape[1])])
         j = int(np.argmax(cors))
         if cors[j] > 0.5:
-            parts.append(f"what it misses follows the temperature of {prep.channels[j]} (r = {cors[j]:.2f}), "
-                         f"which a law in time alone cannot")
+            parts.append(
+                f"what it misses follows the temperature of {prep.channels[j]} (r = {cors[j]:.2f}), "
+                f"which a law in time alone cannot"
+            )
     text = "; ".join(parts)
     return text[0].upper() + text[1:] + "."
 
@@ -240,8 +254,17 @@ def compare_simulation(td: TermData, prep: PreparedBundle, noise: float) -> Simu
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # channels without readings: correlations NaN
         text = simulation_sentences(td, prep, pred, noise)
-    return SimulationComparison(td.axis, td.term, td.unit, rmse(td.y - pred), tau,
-                                dict(zip(names, (float(v) for v in b))), text, pred, td.y - pred)
+    return SimulationComparison(
+        td.axis,
+        td.term,
+        td.unit,
+        rmse(td.y - pred),
+        tau,
+        dict(zip(names, (float(v) for v in b))),
+        text,
+        pred,
+        td.y - pred,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -288,9 +311,17 @@ class Effect:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the spec's ``effects[]`` entry."""
-        return {"kind": self.kind, "axis": self.axis, "term": self.term, "channels": list(self.channels),
-                "params": self.params, "p_value": self.p_value, "cause": self.cause,
-                "rmse_holdout_before": self.rmse_holdout_before, "rmse_holdout_after": self.rmse_holdout_after}
+        return {
+            "kind": self.kind,
+            "axis": self.axis,
+            "term": self.term,
+            "channels": list(self.channels),
+            "params": self.params,
+            "p_value": self.p_value,
+            "cause": self.cause,
+            "rmse_holdout_before": self.rmse_holdout_before,
+            "rmse_holdout_after": self.rmse_holdout_after,
+        }
 
 
 @dataclass
@@ -308,15 +339,26 @@ class TermDiagnosis:
     def baseline_dict(self) -> dict[str, Any]:
         """Return the spec's ``baseline[]`` entry."""
         f = self.standard.fit
-        return {"axis": self.td.axis, "term": self.td.term, "rmse_train": f.rmse_train,
-                "rmse_holdout": f.rmse_holdout, "unit": self.td.unit, "channels": self.standard.channels,
-                "channel_source": self.standard.selection.source}
+        return {
+            "axis": self.td.axis,
+            "term": self.td.term,
+            "rmse_train": f.rmse_train,
+            "rmse_holdout": f.rmse_holdout,
+            "unit": self.td.unit,
+            "channels": self.standard.channels,
+            "channel_source": self.standard.selection.source,
+        }
 
     def extended_dict(self) -> dict[str, Any]:
         """Return the spec's ``extended[]`` entry."""
         f = self.extended
-        return {"axis": self.td.axis, "term": self.td.term, "rmse_train": f.rmse_train,
-                "rmse_holdout": f.rmse_holdout, "unit": self.td.unit}
+        return {
+            "axis": self.td.axis,
+            "term": self.td.term,
+            "rmse_train": f.rmse_train,
+            "rmse_holdout": f.rmse_holdout,
+            "unit": self.td.unit,
+        }
 
 
 @dataclass
@@ -447,8 +489,14 @@ def hac_maxlags(r: np.ndarray) -> int:
     return int(max(1, min(max(rule, 2 * memory), n // 4)))
 
 
-def robust_pvalue(X: np.ndarray, y: np.ndarray, td: TermData, new_cols: list[int],
-                  before_s: float | None = None, rows: np.ndarray | None = None) -> float:
+def robust_pvalue(
+    X: np.ndarray,
+    y: np.ndarray,
+    td: TermData,
+    new_cols: list[int],
+    before_s: float | None = None,
+    rows: np.ndarray | None = None,
+) -> float:
     """Return the p-value of ``new_cols`` on the training rows with inference robust to autocorrelation.
 
     The larger of two Wald tests (statsmodels): Newey-West HAC (Bartlett kernel,
@@ -538,8 +586,9 @@ def validation_rmse(X: np.ndarray, y: np.ndarray, folds: list[tuple[np.ndarray, 
     return rmse(np.concatenate(res)) if res else float("nan")
 
 
-def validation_gain(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
-                    folds: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float]:
+def validation_gain(
+    X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]
+) -> tuple[float, float]:
     """Return the validation RMSE (pooled over ``folds``) before and after a candidate's columns ``cols``.
 
     Time-ordered validation of the candidate itself: the current model's residual over the
@@ -568,9 +617,16 @@ def validation_gain(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.nd
     return rmse(np.concatenate(before)), rmse(np.concatenate(after))
 
 
-def validates(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
-              folds: list[tuple[np.ndarray, np.ndarray]], min_gain: float, min_explained: float,
-              noise: float) -> tuple[bool, str]:
+def validates(
+    X: np.ndarray,
+    cols: np.ndarray,
+    y: np.ndarray,
+    train: np.ndarray,
+    folds: list[tuple[np.ndarray, np.ndarray]],
+    min_gain: float,
+    min_explained: float,
+    noise: float,
+) -> tuple[bool, str]:
     """Return whether a candidate shows its gain in time-ordered validation inside the training part, and how.
 
     Two readings of "fit on the early part, score the block after it", both on training rows:
@@ -581,24 +637,41 @@ def validates(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
     standard model's collinear dT coefficients). Either must lower the validation RMSE by
     ``min_gain`` and explain ``min_explained`` x noise there.
     """
+
     def ok(before: float, after: float) -> bool:
-        return bool(np.isfinite(before) and np.isfinite(after) and after < (1.0 - min_gain) * before
-                    and before**2 - after**2 >= (min_explained * noise) ** 2)
+        return bool(
+            np.isfinite(before)
+            and np.isfinite(after)
+            and after < (1.0 - min_gain) * before
+            and before**2 - after**2 >= (min_explained * noise) ** 2
+        )
 
     return validation_check(X, cols, y, train, folds, min_gain, min_explained, noise)[:2]
 
 
-def validation_check(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray,
-                     folds: list[tuple[np.ndarray, np.ndarray]], min_gain: float, min_explained: float,
-                     noise: float) -> tuple[bool, str, float]:
+def validation_check(
+    X: np.ndarray,
+    cols: np.ndarray,
+    y: np.ndarray,
+    train: np.ndarray,
+    folds: list[tuple[np.ndarray, np.ndarray]],
+    min_gain: float,
+    min_explained: float,
+    noise: float,
+) -> tuple[bool, str, float]:
     """Return ``validates``' verdict and reason, and the extended model's validation RMSE (refitted per fold).
 
     The last figure compares candidates with one another: every candidate of a round extends the
     same model, so the one whose refitted model predicts the later blocks best is the best supported.
     """
+
     def ok(before: float, after: float) -> bool:
-        return bool(np.isfinite(before) and np.isfinite(after) and after < (1.0 - min_gain) * before
-                    and before**2 - after**2 >= (min_explained * noise) ** 2)
+        return bool(
+            np.isfinite(before)
+            and np.isfinite(after)
+            and after < (1.0 - min_gain) * before
+            and before**2 - after**2 >= (min_explained * noise) ** 2
+        )
 
     b1, a1 = validation_gain(X, cols, y, train, folds)
     b2, a2 = validation_rmse(X, y, folds), validation_rmse(np.column_stack([X, cols]), y, folds)
@@ -607,8 +680,15 @@ def validation_check(X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.n
     return ok(b2, a2), f"refitted model {b2:.4g} -> {a2:.4g} (own coefficients {b1:.4g} -> {a1:.4g})", a2
 
 
-def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], params: dict[str, Any],
-           coef: float, fault: FaultScan | None) -> str:
+def _cause(
+    kind: str,
+    td: TermData,
+    prep: PreparedBundle,
+    channels: list[str],
+    params: dict[str, Any],
+    coef: float,
+    fault: FaultScan | None,
+) -> str:
     """Return the plain-language cause of an effect, with its numbers and thesis section."""
     u = td.unit
     where = ""
@@ -618,42 +698,63 @@ def _cause(kind: str, td: TermData, prep: PreparedBundle, channels: list[str], p
         where = f"{ch}" + (f" ({loc})" if loc else "")
     sec = THESIS[kind]
     if kind == "reversal":
-        return (f"Backlash / reversal error: the {td.axis}-axis {td.term} reads "
-                f"{_fmt(abs(params['magnitude_' + u]), u)} differently depending on the approach direction: "
-                f"play in the ballscrew nut or drive train (thesis {sec}).")
+        return (
+            f"Backlash / reversal error: the {td.axis}-axis {td.term} reads "
+            f"{_fmt(abs(params['magnitude_' + u]), u)} differently depending on the approach direction: "
+            f"play in the ballscrew nut or drive train (thesis {sec})."
+        )
     if kind == "screw_expansion":
-        return (f"Ballscrew expansion: the {td.axis}-axis {td.term} grows along the axis in proportion to "
-                f"position x the temperature rise at {where} ({_fmt(coef, u)} per mm per degC): the screw "
-                f"pitch lengthens as the screw warms (thesis {sec}).")
+        return (
+            f"Ballscrew expansion: the {td.axis}-axis {td.term} grows along the axis in proportion to "
+            f"position x the temperature rise at {where} ({_fmt(coef, u)} per mm per degC): the screw "
+            f"pitch lengthens as the screw warms (thesis {sec})."
+        )
     if kind == "unmapped_channel":
-        return (f"A heat source outside the model reaches this link: {td.axis}/{td.term} follows {where}, "
-                f"which is not among the model channels ({_fmt(coef, u)} per degC) (thesis {sec}).")
+        return (
+            f"A heat source outside the model reaches this link: {td.axis}/{td.term} follows {where}, "
+            f"which is not among the model channels ({_fmt(coef, u)} per degC) (thesis {sec})."
+        )
     if kind == "thermal_lag":
-        return (f"Thermal lag: the deforming structure follows {where} with a first-order delay of "
-                f"{params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {sec}).")
+        return (
+            f"Thermal lag: the deforming structure follows {where} with a first-order delay of "
+            f"{params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {sec})."
+        )
     if kind == "sensor_fault":
         how = "its lead broke (open circuit)" if params["mode"] == "open" else "it came loose from the structure"
         if len(channels) > 1:
-            return (f"Sensor faults: thermocouples {', '.join(channels)} depart from their virtual sensors from "
-                    f"t = {params['start_s'] / 3600:.1f} h on (the first as if {how}); their readings no longer "
-                    f"describe the structure and the virtual-sensor estimates restore the model (thesis {sec}).")
+            return (
+                f"Sensor faults: thermocouples {', '.join(channels)} depart from their virtual sensors from "
+                f"t = {params['start_s'] / 3600:.1f} h on (the first as if {how}); their readings no longer "
+                f"describe the structure and the virtual-sensor estimates restore the model (thesis {sec})."
+            )
         nb = ", ".join(fault.neighbours[:4]) if fault else "its neighbours"
-        return (f"Sensor fault: thermocouple {where} departs from its virtual sensor (predicted from {nb}) "
-                f"from t = {params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
-                f"the structure and the virtual-sensor estimate restores the model (thesis {sec}).")
+        return (
+            f"Sensor fault: thermocouple {where} departs from its virtual sensor (predicted from {nb}) "
+            f"from t = {params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
+            f"the structure and the virtual-sensor estimate restores the model (thesis {sec})."
+        )
     if kind == "operating_condition":
         col, pw = params["column"], int(params["power"])
         what = {"spindle_rpm": "the spindle speed", "feed_mm_min": "the feed rate"}.get(col, col)
-        story = ("centrifugal and bearing growth of the spindle, which follows the speed at once, not through a "
-                 "temperature" if col == "spindle_rpm" else "a following error of the drives that follows the feed")
-        return (f"The {td.axis}/{td.term} error follows {what}{'^2' if pw == 2 else ''} directly "
-                f"({_fmt(coef, u)} per {col.replace('_', ' ')}{'^2' if pw == 2 else ''}; VIF against the thermal "
-                f"terms {params['vif']:.2g}): {story} (thesis {sec}).")
+        story = (
+            "centrifugal and bearing growth of the spindle, which follows the speed at once, not through a temperature"
+            if col == "spindle_rpm"
+            else "a following error of the drives that follows the feed"
+        )
+        return (
+            f"The {td.axis}/{td.term} error follows {what}{'^2' if pw == 2 else ''} directly "
+            f"({_fmt(coef, u)} per {col.replace('_', ' ')}{'^2' if pw == 2 else ''}; VIF against the thermal "
+            f"terms {params['vif']:.2g}): {story} (thesis {sec})."
+        )
     if kind == "drift":
-        return (f"A slow drift not explained by temperature of {_fmt(params['rate_per_day'], u)} per day: "
-                f"wear, settling or material instability (thesis {sec}).")
-    return (f"Nonlinear thermal response: {td.axis}/{td.term} grows with the square of the temperature rise at "
-            f"{where} ({_fmt(coef, u)} per degC^2) (thesis {sec}).")
+        return (
+            f"A slow drift not explained by temperature of {_fmt(params['rate_per_day'], u)} per day: "
+            f"wear, settling or material instability (thesis {sec})."
+        )
+    return (
+        f"Nonlinear thermal response: {td.axis}/{td.term} grows with the square of the temperature rise at "
+        f"{where} ({_fmt(coef, u)} per degC^2) (thesis {sec})."
+    )
 
 
 def _channel_location(prep: PreparedBundle, ch: str) -> str:
@@ -730,15 +831,27 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
     if k == "drift":
         return {"rate_per_day": c}, c
     if k == "operating_condition":
-        return {"column": hint["column"], "power": int(hint["power"]), "coef_per_unit": c,
-                "vif": float(hint.get("vif", float("nan"))),
-                "condition_number": float(hint.get("condition_number", float("nan")))}, c
+        return {
+            "column": hint["column"],
+            "power": int(hint["power"]),
+            "coef_per_unit": c,
+            "vif": float(hint.get("vif", float("nan"))),
+            "condition_number": float(hint.get("condition_number", float("nan"))),
+        }, c
     return {"coef_per_degC2": c}, c
 
 
-def _passes_denoised(cand: Candidate, hint: dict[str, Any], dctx: TermContext | None, dstate: _State | None,
-                     alpha_each: float, min_gain: float, noise: float, min_explained: float,
-                     min_explained_train: float) -> tuple[bool, np.ndarray | None]:
+def _passes_denoised(
+    cand: Candidate,
+    hint: dict[str, Any],
+    dctx: TermContext | None,
+    dstate: _State | None,
+    alpha_each: float,
+    min_gain: float,
+    noise: float,
+    min_explained: float,
+    min_explained_train: float,
+) -> tuple[bool, np.ndarray | None]:
     """Return whether ``cand`` also passes the cheap rules against the model on denoised readings.
 
     A thermocouple's scan noise is an error in the standard model's variables: a smoothed
@@ -811,8 +924,14 @@ def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[floa
     return float(vif), float(np.linalg.cond(E))
 
 
-def _repair_faults(ctx: TermContext, state: _State, scans: list[FaultScan], p_temp: float,
-                   dctx: TermContext | None, dstate: _State | None) -> tuple[Effect | None, _State, _State | None]:
+def _repair_faults(
+    ctx: TermContext,
+    state: _State,
+    scans: list[FaultScan],
+    p_temp: float,
+    dctx: TermContext | None,
+    dstate: _State | None,
+) -> tuple[Effect | None, _State, _State | None]:
     """Return the sensor_fault effect of repairing this term's faulty model channels, and the repaired models.
 
     The faults were accepted on the temperatures alone; here the channels' dT columns are
@@ -826,22 +945,50 @@ def _repair_faults(ctx: TermContext, state: _State, scans: list[FaultScan], p_te
     params, c = _params(cand, dict(cand.hint), fit.coef[new_idx], td)
     overlaps = bool(np.any(cand.cols != 0))
     before = state.fit.residual
-    eff = Effect("sensor_fault", td.axis, td.term, list(cand.channels), params, max(p_temp, 1e-300),
-                 _cause("sensor_fault", td, prep, cand.channels, params, c, ctx.faults.get(cand.channels[0])),
-                 state.fit.rmse_holdout if overlaps else float("nan"),
-                 fit.rmse_holdout if overlaps else float("nan"), float("nan"), float("nan"), p_temp,
-                 [f"fault_{ch}" for ch in cand.channels], cand.cols, td.t, before, before - fit.residual,
-                 td.pos, td.direction, td.train, replaces=", ".join(f"dT_{ch}" for ch, _ in cand.replace or []))
+    eff = Effect(
+        "sensor_fault",
+        td.axis,
+        td.term,
+        list(cand.channels),
+        params,
+        max(p_temp, 1e-300),
+        _cause("sensor_fault", td, prep, cand.channels, params, c, ctx.faults.get(cand.channels[0])),
+        state.fit.rmse_holdout if overlaps else float("nan"),
+        fit.rmse_holdout if overlaps else float("nan"),
+        float("nan"),
+        float("nan"),
+        p_temp,
+        [f"fault_{ch}" for ch in cand.channels],
+        cand.cols,
+        td.t,
+        before,
+        before - fit.residual,
+        td.pos,
+        td.direction,
+        td.train,
+        replaces=", ".join(f"dT_{ch}" for ch, _ in cand.replace or []),
+    )
     new_state = _State(X_new, names_new, fit, state.effects + [eff])
     new_dstate = _carry_denoised(dstate, dctx, cand, None) if dstate is not None and dctx is not None else None
     return eff, new_state, new_dstate
 
 
-def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_gain: float,
-                 max_effects: int, noise: float, min_explained: float = 1.0,
-                 min_explained_train: float = 0.5, top_k: int = 6, dctx: TermContext | None = None,
-                 dstd: StandardModel | None = None, faults_here: list[FaultScan] | None = None,
-                 fault_p: float = 1.0, broken: dict[str, FaultScan] | None = None) -> tuple[list[Effect], _State]:
+def _search_term(
+    ctx: TermContext,
+    std: StandardModel,
+    alpha_each: float,
+    min_gain: float,
+    max_effects: int,
+    noise: float,
+    min_explained: float = 1.0,
+    min_explained_train: float = 0.5,
+    top_k: int = 6,
+    dctx: TermContext | None = None,
+    dstd: StandardModel | None = None,
+    faults_here: list[FaultScan] | None = None,
+    fault_p: float = 1.0,
+    broken: dict[str, FaultScan] | None = None,
+) -> tuple[list[Effect], _State]:
     """Return the effects accepted for one (axis, term) by forward selection, and the final model.
 
     Every decision is made on the training rows alone (spec section 4): a candidate needs a
@@ -903,14 +1050,30 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             # a channel that predicts the later blocks clearly worse than one of the same kind already
             # validated (and refused by a later rule) is a stand-in for it, not a finding of its own
             if valid and after > (1.0 + STAND_IN_MARGIN) * best_of_kind.get(cand.kind, np.inf):
-                log.debug("%s/%s skip %s %s: validation %.4g, a validated candidate of its kind reached %.4g",
-                          td.axis, td.term, cand.kind, cand.channels, after, best_of_kind[cand.kind])
+                log.debug(
+                    "%s/%s skip %s %s: validation %.4g, a validated candidate of its kind reached %.4g",
+                    td.axis,
+                    td.term,
+                    cand.kind,
+                    cand.channels,
+                    after,
+                    best_of_kind[cand.kind],
+                )
                 continue
             if valid and np.isfinite(after):
                 best_of_kind[cand.kind] = min(best_of_kind.get(cand.kind, np.inf), after)
             expl_train = np.sqrt(max(state.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
-            log.debug("%s/%s try %s %s: p naive %.3g; validation %s: %s; explains %.3g noise on training",
-                      td.axis, td.term, cand.kind, cand.channels, sc.p_value, how, valid, expl_train / noise)
+            log.debug(
+                "%s/%s try %s %s: p naive %.3g; validation %s: %s; explains %.3g noise on training",
+                td.axis,
+                td.term,
+                cand.kind,
+                cand.channels,
+                sc.p_value,
+                how,
+                valid,
+                expl_train / noise,
+            )
             # (b) a gain in time-ordered validation inside the training part that explains at least the
             # measurement repeatability there (smaller gains are the model's own error shuffled around)
             if not valid:
@@ -918,8 +1081,9 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             # and on the training rows it must explain a real share of the repeatability
             if expl_train < min_explained_train * noise:
                 continue
-            ok_d, dcols = _passes_denoised(cand, hint, dctx, dstate, alpha_each, min_gain, noise, min_explained,
-                                           min_explained_train)
+            ok_d, dcols = _passes_denoised(
+                cand, hint, dctx, dstate, alpha_each, min_gain, noise, min_explained, min_explained_train
+            )
             if not ok_d:
                 continue
             # (a) significance robust to autocorrelated residuals, Bonferroni over the whole family
@@ -928,16 +1092,32 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             log.debug("   robust p %.3g (need < %.3g)", p_rob, alpha_each)
             if p >= alpha_each:
                 continue
-            if fault_start is not None and \
-                    robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
+            if fault_start is not None and robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
                 continue  # after a fault a further finding must also stand on the rows before it
             params, coef = _params(cand, hint, fit.coef[new_idx], td)
             before = state.fit.residual
-            eff = Effect(cand.kind, td.axis, td.term, list(cand.channels), params, p,
-                         _cause(cand.kind, td, prep, cand.channels, params, coef, None),
-                         float("nan"), float("nan"), sc.F, sc.p_value, p_rob,
-                         [names_new[i] for i in new_idx], X_new[:, new_idx], td.t, before, before - fit.residual,
-                         td.pos, td.direction, td.train)
+            eff = Effect(
+                cand.kind,
+                td.axis,
+                td.term,
+                list(cand.channels),
+                params,
+                p,
+                _cause(cand.kind, td, prep, cand.channels, params, coef, None),
+                float("nan"),
+                float("nan"),
+                sc.F,
+                sc.p_value,
+                p_rob,
+                [names_new[i] for i in new_idx],
+                X_new[:, new_idx],
+                td.t,
+                before,
+                before - fit.residual,
+                td.pos,
+                td.direction,
+                td.train,
+            )
             accepted = (eff, X_new, names_new, fit, cand, dcols)
             break
         if accepted is None:
@@ -951,8 +1131,10 @@ def _search_term(ctx: TermContext, std: StandardModel, alpha_each: float, min_ga
             if c is None:
                 continue
             c.taken.add(cand.key)
-            if cand.kind in ("unmapped_channel", "thermal_lag", "screw_expansion") \
-                    and cand.channels[0] not in c.model_channels:
+            if (
+                cand.kind in ("unmapped_channel", "thermal_lag", "screw_expansion")
+                and cand.channels[0] not in c.model_channels
+            ):
                 c.model_channels.append(cand.channels[0])
         log.info("accepted %s on %s/%s %s", cand.kind, td.axis, td.term, eff.params)
     _score_holdout_once(history)
@@ -995,8 +1177,9 @@ def _tau_grid(prep: PreparedBundle) -> np.ndarray:
     return np.exp(np.linspace(np.log(lo), np.log(hi), N_TAU)) if hi > lo else np.array([])
 
 
-def diagnose_bundle(bundle: Any, holdout_fraction: float = 0.25, alpha: float = 0.01, min_gain: float = 0.0,
-                    max_effects: int = 4) -> DiagnosisResult:
+def diagnose_bundle(
+    bundle: Any, holdout_fraction: float = 0.25, alpha: float = 0.01, min_gain: float = 0.0, max_effects: int = 4
+) -> DiagnosisResult:
     """Return the :class:`DiagnosisResult` of a bundle (a ``Bundle`` from a directory or from the store)."""
     # the matrices here are tall and thin: one BLAS thread is faster, and far faster on a busy machine
     with _single_blas_thread():
@@ -1015,8 +1198,7 @@ def _single_blas_thread() -> Iterator[None]:
         yield
 
 
-def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: float,
-              max_effects: int) -> DiagnosisResult:
+def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: float, max_effects: int) -> DiagnosisResult:
     """Run the diagnosis phases and time them (see :func:`diagnose_bundle`)."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -1037,8 +1219,11 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     prep_d = denoised_view(prep)
     faults = scan_sensor_faults(prep, smooth_T=prep_d.grid_T)
     taus = _tau_grid(prep)
-    usable = [c for j, c in enumerate(prep.channels)
-              if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0]
+    usable = [
+        c
+        for j, c in enumerate(prep.channels)
+        if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0
+    ]
     bank = lag_bank_for(prep, usable, taus)
     timings["features"] = time.perf_counter() - t1
 
@@ -1075,17 +1260,40 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
         p_here = max((f.p_value for f in here), default=1.0)
         fed |= {f.channel for f in here}
-        effects, state = _search_term(ctx, std, alpha_each, min_gain, max_effects, nz, dctx=dctx, dstd=dstd,
-                                      faults_here=here, fault_p=p_here, broken=broken)
+        effects, state = _search_term(
+            ctx,
+            std,
+            alpha_each,
+            min_gain,
+            max_effects,
+            nz,
+            dctx=dctx,
+            dstd=dstd,
+            faults_here=here,
+            fault_p=p_here,
+            broken=broken,
+        )
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
     # a broken channel that feeds no model is still a finding about the temperatures (no error gain)
-    loose = [_unfed_fault(prep, f) for ch, f in sorted(broken.items(), key=lambda kv: kv[1].start_s)
-             if ch not in fed]
+    loose = [_unfed_fault(prep, f) for ch, f in sorted(broken.items(), key=lambda kv: kv[1].start_s) if ch not in fed]
     timings["search"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     hold = min((td.holdout_start_s for td in prep.terms if np.isfinite(td.holdout_start_s)), default=float("nan"))
-    return DiagnosisResult(prep.name, holdout_fraction, hold, terms, prep.flags, alpha, n_hyp, min_gain,
-                           timings, faults, loose, alpha_each, alpha_fault)
+    return DiagnosisResult(
+        prep.name,
+        holdout_fraction,
+        hold,
+        terms,
+        prep.flags,
+        alpha,
+        n_hyp,
+        min_gain,
+        timings,
+        faults,
+        loose,
+        alpha_each,
+        alpha_fault,
+    )
 
 
 def _unfed_fault(prep: PreparedBundle, f: FaultScan) -> Effect:
@@ -1094,11 +1302,31 @@ def _unfed_fault(prep: PreparedBundle, f: FaultScan) -> Effect:
     nb = ", ".join(f.neighbours[:4])
     how = "its lead broke (open circuit)" if f.mode == "open" else "it came loose from the structure"
     loc = _channel_location(prep, f.channel)
-    cause = (f"Sensor fault: thermocouple {f.channel}{f' ({loc})' if loc else ''} departs from its virtual sensor "
-             f"(predicted from {nb}) from t = {f.start_s / 3600:.1f} h on, as if {how}; no model uses it "
-             f"(thesis {THESIS['sensor_fault']}).")
+    cause = (
+        f"Sensor fault: thermocouple {f.channel}{f' ({loc})' if loc else ''} departs from its virtual sensor "
+        f"(predicted from {nb}) from t = {f.start_s / 3600:.1f} h on, as if {how}; no model uses it "
+        f"(thesis {THESIS['sensor_fault']})."
+    )
     empty = np.empty(0)
-    return Effect("sensor_fault", None, None,  # type: ignore[arg-type]
-                  [f.channel], params, max(f.p_value, 1e-300), cause,
-                  float("nan"), float("nan"), float("nan"), float("nan"), f.p_value, [f"fault_{f.channel}"],
-                  np.empty((0, 1)), empty, empty, empty, empty, empty, np.empty(0, dtype=bool))
+    return Effect(
+        "sensor_fault",
+        None,  # type: ignore[arg-type]  # a sensor fault is on a channel, not on an (axis, term)
+        None,  # type: ignore[arg-type]
+        [f.channel],
+        params,
+        max(f.p_value, 1e-300),
+        cause,
+        float("nan"),
+        float("nan"),
+        float("nan"),
+        float("nan"),
+        f.p_value,
+        [f"fault_{f.channel}"],
+        np.empty((0, 1)),
+        empty,
+        empty,
+        empty,
+        empty,
+        empty,
+        np.empty(0, dtype=bool),
+    )

@@ -27,13 +27,18 @@ def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
         "baseline": [t.baseline_dict() for t in res.terms],
         "effects": [e.to_dict() for e in res.effects],
         "extended": [t.extended_dict() for t in res.terms],
-        "acceptance": {"alpha_family": res.alpha_family, "hypotheses": res.n_hypotheses,
-                       "correction": "bonferroni", "decided_on": "training part only",
-                       "alpha_per_candidate": res.alpha_each, "alpha_per_channel_fault": res.alpha_fault,
-                       "validation": "rolling origin inside the training part (origins at 2/3 and 5/6)",
-                       "min_validation_gain": res.min_gain,
-                       "robust_covariance": "max of HAC (Newey-West) and cluster (blocks of whole sweeps)",
-                       "sensor_fault": "temperature evidence alone (virtual-sensor departure change point)"},
+        "acceptance": {
+            "alpha_family": res.alpha_family,
+            "hypotheses": res.n_hypotheses,
+            "correction": "bonferroni",
+            "decided_on": "training part only",
+            "alpha_per_candidate": res.alpha_each,
+            "alpha_per_channel_fault": res.alpha_fault,
+            "validation": "rolling origin inside the training part (origins at 2/3 and 5/6)",
+            "min_validation_gain": res.min_gain,
+            "robust_covariance": "max of HAC (Newey-West) and cluster (blocks of whole sweeps)",
+            "sensor_fault": "temperature evidence alone (virtual-sensor departure change point)",
+        },
         "flags": [f.to_dict() for f in res.flags],
         "timings_s": res.timings_s,
     }
@@ -159,16 +164,22 @@ def _overview(bundle: Any) -> str:
             group = "room" if name in meta.room_channels else (ch.structure or "unspecified")
             groups.setdefault(group, []).append(name)
     keys = sorted({(a, t) for a, t in zip(errors["axis"], errors["term"])})
-    fig, axes = plt.subplots(2 + len(keys), 1, figsize=(11, 2.0 * (2 + len(keys))), sharex=True,
-                             gridspec_kw={"height_ratios": [0.5, 2] + [1.2] * len(keys)})
+    fig, axes = plt.subplots(
+        2 + len(keys),
+        1,
+        figsize=(11, 2.0 * (2 + len(keys))),
+        sharex=True,
+        gridspec_kw={"height_ratios": [0.5, 2] + [1.2] * len(keys)},
+    )
     ax = axes[0]
     span = max((st.end_s for st in meta.stages), default=1.0) or 1.0
     for i, st in enumerate(meta.stages):
         ax.axvspan(st.start_s / 3600, st.end_s / 3600, color=f"C{i % 10}", alpha=0.35)
         if (st.end_s - st.start_s) / span < 0.06:
             continue  # too narrow to name: the stage table above has it
-        ax.text((st.start_s + st.end_s) / 7200, 0.5, st.name, ha="center", va="center", fontsize=7, rotation=0,
-                clip_on=True)
+        ax.text(
+            (st.start_s + st.end_s) / 7200, 0.5, st.name, ha="center", va="center", fontsize=7, rotation=0, clip_on=True
+        )
     ax.set_yticks([])
     ax.set_ylabel("stage", fontsize=8)
     ax = axes[1]
@@ -219,27 +230,40 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
     from driftlab.labels import duration, effect_label
 
     e = html.escape
-    out = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
-           f"<title>driftlab diagnosis: {e(res.bundle)}</title>",
-           "<style>body{font-family:sans-serif;max-width:1150px;margin:auto;color:#1d2430}table{border-collapse:collapse}"
-           "td,th{border:1px solid #999;padding:2px 6px;font-size:13px}img{max-width:100%}"
-           ".good{color:#1f7a3a;font-weight:600}</style></head><body>",
-           f"<h1>Diagnosis of {e(res.bundle)}</h1>",
-           f"<p>Held out: the last {res.holdout_fraction * 100:g}% of each error term in time "
-           f"(from {duration(res.holdout_start_s)} into the campaign). Every decision is made on the training part "
-           f"alone: a finding must be significant there (Bonferroni over {res.n_hypotheses} hypotheses at family alpha "
-           f"{res.alpha_family}, with inference robust to autocorrelated residuals: HAC and blocks of sweeps) "
-           f"and lower "
-           f"the error by at least {res.min_gain * 100:g}% in time-ordered validation inside the training part. The "
-           f"held-out part is scored once, after the findings are final, and its figures are shown as they came out. "
-           f"A faulty thermocouple is decided on the temperatures alone. "
-           f"Lengths are in micrometres (um), angles in microradians (urad).</p>"]
+    out = [
+        f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
+        f"<title>driftlab diagnosis: {e(res.bundle)}</title>",
+        "<style>body{font-family:sans-serif;max-width:1150px;margin:auto;color:#1d2430}table{border-collapse:collapse}"
+        "td,th{border:1px solid #999;padding:2px 6px;font-size:13px}img{max-width:100%}"
+        ".good{color:#1f7a3a;font-weight:600}</style></head><body>",
+        f"<h1>Diagnosis of {e(res.bundle)}</h1>",
+        f"<p>Held out: the last {res.holdout_fraction * 100:g}% of each error term in time "
+        f"(from {duration(res.holdout_start_s)} into the campaign). Every decision is made on the training part "
+        f"alone: a finding must be significant there (Bonferroni over {res.n_hypotheses} hypotheses at family alpha "
+        f"{res.alpha_family}, with inference robust to autocorrelated residuals: HAC and blocks of sweeps) "
+        f"and lower "
+        f"the error by at least {res.min_gain * 100:g}% in time-ordered validation inside the training part. The "
+        f"held-out part is scored once, after the findings are final, and its figures are shown as they came out. "
+        f"A faulty thermocouple is decided on the temperatures alone. "
+        f"Lengths are in micrometres (um), angles in microradians (urad).</p>",
+    ]
     if bundle is not None:
         out.append("<h2>The campaign</h2>")
-        stages = [[e(st.name), e(st.heat_source), e(st.axis or "-"), f"{st.spindle_rpm:.0f}", f"{st.feed_mm_min:.0f}",
-                   f"{st.start_s / 3600:.2f}", f"{st.end_s / 3600:.2f}"] for st in bundle.meta.stages]
-        out.append(_table(stages, ["stage", "heat source", "axis", "spindle (rpm)", "feed (mm/min)", "from (h)",
-                                   "to (h)"]))
+        stages = [
+            [
+                e(st.name),
+                e(st.heat_source),
+                e(st.axis or "-"),
+                f"{st.spindle_rpm:.0f}",
+                f"{st.feed_mm_min:.0f}",
+                f"{st.start_s / 3600:.2f}",
+                f"{st.end_s / 3600:.2f}",
+            ]
+            for st in bundle.meta.stages
+        ]
+        out.append(
+            _table(stages, ["stage", "heat source", "axis", "spindle (rpm)", "feed (mm/min)", "from (h)", "to (h)"])
+        )
         out.append(_overview(bundle))
     effects = res.effects
     out.append(f"<h2>Findings ({len(effects)})</h2>")
@@ -252,40 +276,93 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
         if math.isfinite(eff.rmse_holdout_before) and math.isfinite(eff.rmse_holdout_after):
             g = eff.gain * 100
             verdict = f"{g:.0f}% better" if g >= 0 else f"{-g:.0f}% worse"
-            gain = (f"held-out RMSE {eff.rmse_holdout_before * k:.2f} &rarr; {eff.rmse_holdout_after * k:.2f} {lab} "
-                    f"(<span class='good'>{verdict}</span>)")
+            gain = (
+                f"held-out RMSE {eff.rmse_holdout_before * k:.2f} &rarr; {eff.rmse_holdout_after * k:.2f} {lab} "
+                f"(<span class='good'>{verdict}</span>)"
+            )
         else:
             gain = "no held-out figure (the channel feeds no model, or the fault starts after the last reading)"
         plot = _effect_plot(eff, unit) if eff.time_s.size else ""
-        out.append(f"<h3>{i}. {e(effect_label(eff.to_dict()))}, on {where}</h3>"
-                   f"<p><b>Cause.</b> {e(eff.cause)}</p>"
-                   f"<p>{_params_text(eff)}; p = {eff.p_value:.3g}; {gain}</p>{plot}")
+        out.append(
+            f"<h3>{i}. {e(effect_label(eff.to_dict()))}, on {where}</h3>"
+            f"<p><b>Cause.</b> {e(eff.cause)}</p>"
+            f"<p>{_params_text(eff)}; p = {eff.p_value:.3g}; {gain}</p>{plot}"
+        )
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
         b, x = t.standard.fit, t.extended
-        rows.append([e(t.td.axis), e(t.td.term), lab, e(", ".join(t.standard.channels)),
-                     e(t.standard.selection.source), f"{b.rmse_train * k:.2f}", f"{b.rmse_holdout * k:.2f}",
-                     f"{x.rmse_train * k:.2f}", f"{x.rmse_holdout * k:.2f}", str(len(t.effects))])
+        rows.append(
+            [
+                e(t.td.axis),
+                e(t.td.term),
+                lab,
+                e(", ".join(t.standard.channels)),
+                e(t.standard.selection.source),
+                f"{b.rmse_train * k:.2f}",
+                f"{b.rmse_holdout * k:.2f}",
+                f"{x.rmse_train * k:.2f}",
+                f"{x.rmse_holdout * k:.2f}",
+                str(len(t.effects)),
+            ]
+        )
     out.append("<h2>Standard model (baseline) and the model with the findings</h2>")
-    out.append(_table(rows, ["axis", "term", "unit", "model thermocouples", "thermocouples chosen by",
-                             "baseline train RMSE", "baseline held-out RMSE", "with findings, train",
-                             "with findings, held out", "findings"]))
+    out.append(
+        _table(
+            rows,
+            [
+                "axis",
+                "term",
+                "unit",
+                "model thermocouples",
+                "thermocouples chosen by",
+                "baseline train RMSE",
+                "baseline held-out RMSE",
+                "with findings, train",
+                "with findings, held out",
+                "findings",
+            ],
+        )
+    )
     out.append("<h2>Simulation (Appendix A time-driven laws, calibrated) against the data</h2>")
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
-        rows.append([e(t.td.axis), e(t.td.term), f"{t.simulation.rmse * k:.2f} {lab}",
-                     e(duration(t.simulation.tau_s)), e(t.simulation.gets_wrong)])
+        rows.append(
+            [
+                e(t.td.axis),
+                e(t.td.term),
+                f"{t.simulation.rmse * k:.2f} {lab}",
+                e(duration(t.simulation.tau_s)),
+                e(t.simulation.gets_wrong),
+            ]
+        )
     out.append(_table(rows, ["axis", "term", "RMSE", "time constant", "what it gets wrong"]))
     if res.terms:
         out.append(_sim_plots(res.terms))
     out.append("<h2>Flagged data</h2>")
     if res.flags:
-        out.append(_table([[e(f.series), str(f.spikes), str(f.out_of_range), str(f.held_scans),
-                            e(", ".join(duration(v, clock=True) for v in f.first_times_s))] for f in res.flags],
-                          ["series", "spikes rejected (MAD)", "out of range", "scans held across long gaps",
-                           "first flagged (h:mm:ss into the campaign)"]))
+        out.append(
+            _table(
+                [
+                    [
+                        e(f.series),
+                        str(f.spikes),
+                        str(f.out_of_range),
+                        str(f.held_scans),
+                        e(", ".join(duration(v, clock=True) for v in f.first_times_s)),
+                    ]
+                    for f in res.flags
+                ],
+                [
+                    "series",
+                    "spikes rejected (MAD)",
+                    "out of range",
+                    "scans held across long gaps",
+                    "first flagged (h:mm:ss into the campaign)",
+                ],
+            )
+        )
     else:
         out.append("<p>No spikes, out-of-range readings or long gaps.</p>")
     out.append("</body></html>")

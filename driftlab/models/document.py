@@ -66,8 +66,10 @@ class SubstitutionDoc(_Doc):
     def _shape(self) -> SubstitutionDoc:
         """Require one coefficient per neighbour plus the intercept, and an aware time."""
         if len(self.coef) != len(self.neighbours) + 1:
-            raise ValueError(f"substitution of {self.channel}: {len(self.neighbours)} neighbours need "
-                             f"{len(self.neighbours) + 1} coefficients")
+            raise ValueError(
+                f"substitution of {self.channel}: {len(self.neighbours)} neighbours need "
+                f"{len(self.neighbours) + 1} coefficients"
+            )
         if self.channel in self.neighbours:
             raise ValueError(f"substitution of {self.channel} reads itself")
         if self.since.tzinfo is None:
@@ -121,8 +123,9 @@ class TermDoc(_Doc):
     def _lengths(self) -> TermDoc:
         """Require one coefficient per feature."""
         if len(self.coefficients) != len(self.features):
-            raise ValueError(f"{self.element}.{self.param}: {len(self.features)} features, "
-                             f"{len(self.coefficients)} coefficients")
+            raise ValueError(
+                f"{self.element}.{self.param}: {len(self.features)} features, {len(self.coefficients)} coefficients"
+            )
         for f in self.features:
             f.feature()
         return self

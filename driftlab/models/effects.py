@@ -35,8 +35,16 @@ from scipy import optimize, stats
 from driftlab.models.standard_model import PreparedBundle, TermData, lstsq, robust_sigma
 from driftlab.physics.lag import first_order_lag_even
 
-KINDS = ("reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift",
-         "quadratic", "operating_condition")
+KINDS = (
+    "reversal",
+    "screw_expansion",
+    "unmapped_channel",
+    "thermal_lag",
+    "sensor_fault",
+    "drift",
+    "quadratic",
+    "operating_condition",
+)
 
 #: number of log-spaced time constants screened per channel for thermal_lag
 N_TAU = 16
@@ -128,8 +136,9 @@ def _dead_tail(raw: np.ndarray, min_len: int) -> int | None:
     return None
 
 
-def best_break(A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int,
-               A_post: np.ndarray | None = None) -> tuple[int, float]:
+def best_break(
+    A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int, A_post: np.ndarray | None = None
+) -> tuple[int, float]:
     """Return the cut k in [lo, hi] minimising RSS([0, k)) + RSS([k, n)) of ``y ~ A``, and the ratio
     RSS(one fit) / that minimum (a least-squares structural-break estimate).
 
@@ -149,8 +158,9 @@ def best_break(A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int,
     return _best_break_same(A, y, lo, hi, step)
 
 
-def _break_costs(A: np.ndarray, y: np.ndarray, lo: int, hi: int,
-                 step: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+def _break_costs(
+    A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """Return every cut in [lo, hi] (row by row) with the RSS of ``y ~ A`` before and after it (prefix sums)."""
     s = np.sqrt(np.mean(A * A, axis=0))
     A = A / np.where(s > 0, s, 1.0)
@@ -201,10 +211,10 @@ def _best_break_same(A: np.ndarray, y: np.ndarray, lo: int, hi: int, step: int) 
     a0 = max(lo, k0 - step)
     b0 = min(hi, k0 + step)
     base_b = a0 // step  # prefix sums up to the block boundary at or below a0, then row by row
-    rows = A[base_b * step: b0]
+    rows = A[base_b * step : b0]
     outer = np.cumsum(np.einsum("ni,nj->nij", rows, rows), axis=0)
-    xy = np.cumsum(rows * y[base_b * step: b0, None], axis=0)
-    yy = np.cumsum(y[base_b * step: b0] ** 2)
+    xy = np.cumsum(rows * y[base_b * step : b0, None], axis=0)
+    yy = np.cumsum(y[base_b * step : b0] ** 2)
     ks = np.arange(a0, b0 + 1)
     off = ks - base_b * step  # number of rows past the block boundary
     pre_xx = bxx[base_b] + np.where(off[:, None, None] > 0, outer[np.maximum(off - 1, 0)], 0.0)
@@ -234,8 +244,9 @@ def _neighbours(prep: PreparedBundle, j: int, order: list[int], n_max: int) -> l
     return (same + extra[: max(0, 4 - len(same))])[:n_max]
 
 
-def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
-                       smooth_T: np.ndarray | None = None) -> dict[str, FaultScan]:
+def scan_sensor_faults(
+    prep: PreparedBundle, n_neighbours: int = 16, smooth_T: np.ndarray | None = None
+) -> dict[str, FaultScan]:
     """Return a :class:`FaultScan` for every channel (two passes: faulty channels leave the neighbourhoods).
 
     The virtual sensor of channel j is a least-squares fit of its dT on the dT of
@@ -328,9 +339,14 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
                     gap_left = float(np.median(np.abs(T[settled, j] - air[settled]))) / max(gap_est, 1e-9)
                 else:
                     gap_left = float("inf")
-            plausible = rpost.size >= min_len and start >= min_pre and (
-                dead is not None or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6
-                                     and gap_left < 0.5))
+            plausible = (
+                rpost.size >= min_len
+                and start >= min_pre
+                and (
+                    dead is not None
+                    or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6 and gap_left < 0.5)
+                )
+            )
             if smooth_T is not None:
                 Ds = smooth_T - smooth_T[0]
                 A_s = np.column_stack([np.ones(n), Ds[:, nb]])
@@ -355,10 +371,20 @@ def scan_sensor_faults(prep: PreparedBundle, n_neighbours: int = 16,
                 # no reading, or one stuck value, from start to the end for at least 30 min: the card says
                 # so itself; this is an observation, not a statistical inference on the departure
                 p_temp = 0.0
-            out[prep.channels[j]] = FaultScan(prep.channels[j], float(t[min(start, n - 1)]), strength,
-                                              persistence, mode, p_temp if np.isfinite(p_temp) else 1.0,
-                                              replaced, bool(plausible),
-                                              [prep.channels[k] for k in nb], ratio, toward_air, gap_left)
+            out[prep.channels[j]] = FaultScan(
+                prep.channels[j],
+                float(t[min(start, n - 1)]),
+                strength,
+                persistence,
+                mode,
+                p_temp if np.isfinite(p_temp) else 1.0,
+                replaced,
+                bool(plausible),
+                [prep.channels[k] for k in nb],
+                ratio,
+                toward_air,
+                gap_left,
+            )
         excluded = {prep.channel_index(c) for c, f in out.items() if f.plausible}
         if not excluded:
             break
@@ -432,9 +458,14 @@ class TermContext:
     taken: set[tuple[str, tuple[str, ...]]]
 
 
-def build_context(prep: PreparedBundle, td: TermData, model_channels: list[str],
-                  faults: dict[str, FaultScan], lag_bank: dict[str, np.ndarray] | None,
-                  taus: np.ndarray | None) -> TermContext:
+def build_context(
+    prep: PreparedBundle,
+    td: TermData,
+    model_channels: list[str],
+    faults: dict[str, FaultScan],
+    lag_bank: dict[str, np.ndarray] | None,
+    taus: np.ndarray | None,
+) -> TermContext:
     """Return the :class:`TermContext` of ``td`` with dT columns and lag banks at its error times."""
     chan_cols: dict[str, np.ndarray] = {}
     for j, ch in enumerate(prep.channels):
@@ -481,8 +512,11 @@ def _fault_candidate(ctx: TermContext, scans: list[FaultScan]) -> Candidate:
         cols.append(rep - ctx.chan_cols[fs.channel])
         names.append(f"fault_{fs.channel}")
         reps.append((fs.channel, rep))
-    hint: dict[str, Any] = {"start_s": scans[0].start_s, "mode": scans[0].mode,
-                            "p_temp": min(1.0, min(f.p_value for f in scans) * len(scans))}
+    hint: dict[str, Any] = {
+        "start_s": scans[0].start_s,
+        "mode": scans[0].mode,
+        "p_temp": min(1.0, min(f.p_value for f in scans) * len(scans)),
+    }
     if len(scans) > 1:
         hint["start_s_by_channel"] = {f.channel: f.start_s for f in scans}
         hint["mode_by_channel"] = {f.channel: f.mode for f in scans}
@@ -518,8 +552,16 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             x = v**power
             if ("operating_condition", (label,)) in ctx.taken or np.ptp(x[td.train]) == 0:
                 continue
-            out.append(Candidate("operating_condition", [], x[:, None].astype(float), [label],
-                                 {"column": name, "power": power}, label=label))
+            out.append(
+                Candidate(
+                    "operating_condition",
+                    [],
+                    x[:, None].astype(float),
+                    [label],
+                    {"column": name, "power": power},
+                    label=label,
+                )
+            )
     for ch, (taus, at) in ctx.lag_cache.items():
         if ("thermal_lag", (ch,)) in ctx.taken:
             continue
@@ -569,10 +611,16 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     edges = np.concatenate([[0], np.cumsum(widths)])
     big = np.concatenate([c.cols[rows] for c in cands], axis=1)
     col_ok = np.all(np.isfinite(big), axis=0)
-    finite = [c for ci, c in enumerate(cands) if col_ok[edges[ci]:edges[ci + 1]].all()]
+    finite = [c for ci, c in enumerate(cands) if col_ok[edges[ci] : edges[ci + 1]].all()]
     if len(finite) < len(cands):
-        keep_cols = np.concatenate([np.arange(edges[ci], edges[ci + 1]) for ci, c in enumerate(cands)
-                                    if col_ok[edges[ci]:edges[ci + 1]].all()] or [np.zeros(0, dtype=int)])
+        keep_cols = np.concatenate(
+            [
+                np.arange(edges[ci], edges[ci + 1])
+                for ci, c in enumerate(cands)
+                if col_ok[edges[ci] : edges[ci + 1]].all()
+            ]
+            or [np.zeros(0, dtype=int)]
+        )
         big = big[:, keep_cols]
         widths = [c.cols.shape[1] for c in finite]
         edges = np.concatenate([[0], np.cumsum(widths)])
@@ -582,9 +630,9 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     big_r = big - Q @ (Q.T @ big)
     big_n2 = np.sum(big_r * big_r, axis=0)
     for ci, c in enumerate(finite):
-        C = big[:, edges[ci]:edges[ci + 1]]
-        RC = big_r[:, edges[ci]:edges[ci + 1]]
-        norm2 = big_n2[edges[ci]:edges[ci + 1]]
+        C = big[:, edges[ci] : edges[ci + 1]]
+        RC = big_r[:, edges[ci] : edges[ci + 1]]
+        norm2 = big_n2[edges[ci] : edges[ci + 1]]
         if c.kind == "thermal_lag":  # a bank: one column per tau, score each, keep the best
             ok = norm2 > 1e-10 * C.shape[0]
             with_col = c.hint.get("with")
@@ -600,8 +648,9 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
                 by = RC.T @ ry
                 det = norm2 * ww - bw * bw
                 good = ok & (det > 1e-10 * np.maximum(norm2 * ww, 1e-300))
-                drops = np.where(good, (ww * by * by - 2 * bw * by * wy + norm2 * wy * wy)
-                                 / np.where(good, det, 1.0), -1.0)
+                drops = np.where(
+                    good, (ww * by * by - 2 * bw * by * wy + norm2 * wy * wy) / np.where(good, det, 1.0), -1.0
+                )
                 k = 2
             i = int(np.argmax(drops))
             if drops[i] <= 0:
@@ -625,8 +674,9 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     return out
 
 
-def refine_tau(ctx: TermContext, channel: str, i_best: int, X: np.ndarray,
-               extra: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+def refine_tau(
+    ctx: TermContext, channel: str, i_best: int, X: np.ndarray, extra: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
     """Return the tau (s) minimising the training RSS of ``X`` + lag(dT_channel, tau) and its columns.
 
     The columns are the lag of dT started at rest on the first scan and

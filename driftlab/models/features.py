@@ -13,10 +13,22 @@ from driftlab.errors import ValidationError
 from driftlab.physics.lag import first_order_lag
 from driftlab.vocabulary import AXES
 
-Kind = Literal["intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad", "time",
-               "session"]
-KINDS: tuple[str, ...] = ("intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad",
-                          "time", "session")
+Kind = Literal[
+    "intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad", "time", "session"
+]
+KINDS: tuple[str, ...] = (
+    "intercept",
+    "position",
+    "direction",
+    "dT",
+    "lag",
+    "mean",
+    "gradient",
+    "pos_dT",
+    "quad",
+    "time",
+    "session",
+)
 #: kinds that read a joint coordinate or approach direction; their ``label`` names the axis
 AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT"})
 #: columns of a (N, 5) joint array

@@ -37,8 +37,16 @@ from driftlab.vocabulary import AXES, TERMS
 
 REPORT_FORMAT = "driftlab-diagnosis/1"
 #: the effect catalogue of the bundle spec (section 3)
-FINDING_KINDS: tuple[str, ...] = ("reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault",
-                                  "drift", "quadratic", "operating_condition")
+FINDING_KINDS: tuple[str, ...] = (
+    "reversal",
+    "screw_expansion",
+    "unmapped_channel",
+    "thermal_lag",
+    "sensor_fault",
+    "drift",
+    "quadratic",
+    "operating_condition",
+)
 #: kinds that name at least one thermocouple
 CHANNEL_KINDS = frozenset({"screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "quadratic"})
 #: parameters a finding must carry to be folded in (the others are reported but not needed)
@@ -59,8 +67,13 @@ class Finding:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form (the report's effect entry, reduced to what the fit uses)."""
-        return {"kind": self.kind, "axis": self.axis, "term": self.term, "channels": list(self.channels),
-                "params": dict(self.params)}
+        return {
+            "kind": self.kind,
+            "axis": self.axis,
+            "term": self.term,
+            "channels": list(self.channels),
+            "params": dict(self.params),
+        }
 
     def start_s(self, channel: str) -> float:
         """Return when a sensor fault of ``channel`` started (s since the report bundle's start)."""
@@ -183,13 +196,25 @@ class Substitution:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form kept in a model document (``substitutions``)."""
-        return {"channel": self.channel, "neighbours": list(self.neighbours), "coef": [float(c) for c in self.coef],
-                "since": self.since.isoformat(), "start_s": self.start_s, "mode": self.mode}
+        return {
+            "channel": self.channel,
+            "neighbours": list(self.neighbours),
+            "coef": [float(c) for c in self.coef],
+            "since": self.since.isoformat(),
+            "start_s": self.start_s,
+            "mode": self.mode,
+        }
 
 
-def fit_substitution(temperatures: pd.DataFrame, channel: str, start_s: float, exclude: Sequence[str] = (),
-                     n_neighbours: int = N_NEIGHBOURS, structures: Mapping[str, str] | None = None,
-                     room: Sequence[str] = ()) -> tuple[tuple[str, ...], tuple[float, ...]]:
+def fit_substitution(
+    temperatures: pd.DataFrame,
+    channel: str,
+    start_s: float,
+    exclude: Sequence[str] = (),
+    n_neighbours: int = N_NEIGHBOURS,
+    structures: Mapping[str, str] | None = None,
+    room: Sequence[str] = (),
+) -> tuple[tuple[str, ...], tuple[float, ...]]:
     """Return (neighbours, coefficients) of ``channel``'s virtual sensor, fitted on the scans before ``start_s``.
 
     The neighbours are the other sites of the channel's structure and the room air when the bundle
@@ -198,11 +223,15 @@ def fit_substitution(temperatures: pd.DataFrame, channel: str, start_s: float, e
     from driftlab.models.virtual_sensor import fit_virtual_sensors
 
     before = temperatures[temperatures["time_s"] < start_s]
-    others = [c for c in channel_columns(before) if c != channel and c not in exclude
-              and np.isfinite(before[c].to_numpy(float)).any()]
+    others = [
+        c
+        for c in channel_columns(before)
+        if c != channel and c not in exclude and np.isfinite(before[c].to_numpy(float)).any()
+    ]
     if before.shape[0] < 10 or not others:
-        raise ValidationError(f"findings: too few readings before t={start_s:.0f} s to estimate {channel} "
-                              f"from its neighbours")
+        raise ValidationError(
+            f"findings: too few readings before t={start_s:.0f} s to estimate {channel} from its neighbours"
+        )
     st = (structures or {}).get(channel, "")
     near = [c for c in others if st and st not in ("", "unspecified", "room") and (structures or {}).get(c) == st]
     if near:
@@ -210,13 +239,15 @@ def fit_substitution(temperatures: pd.DataFrame, channel: str, start_s: float, e
         n_neighbours = len(pool)
     else:
         pool = others
-    sensor = fit_virtual_sensors(before[["time_s", channel, *pool]], [channel, *pool],
-                                 n_neighbours=n_neighbours)[channel]
+    sensor = fit_virtual_sensors(before[["time_s", channel, *pool]], [channel, *pool], n_neighbours=n_neighbours)[
+        channel
+    ]
     return tuple(sensor.neighbours), tuple(float(c) for c in sensor.coef)
 
 
-def apply_substitutions(temperatures: pd.DataFrame, started_at: datetime,
-                        substitutions: Sequence[Substitution]) -> pd.DataFrame:
+def apply_substitutions(
+    temperatures: pd.DataFrame, started_at: datetime, substitutions: Sequence[Substitution]
+) -> pd.DataFrame:
     """Return the temperatures with each substituted channel replaced by its estimate from ``since`` on."""
     if not substitutions:
         return temperatures
@@ -298,12 +329,15 @@ def _report_bundle(findings: Findings, bundles: Sequence[Any]) -> Any:
     if len(bundles) == 1:
         return bundles[0]
     names = ", ".join(b.name for b in bundles)
-    raise ValidationError(f"findings: the report is of bundle {findings.bundle!r}, none of the campaigns ({names}); "
-                          f"its sensor-fault times cannot be placed")
+    raise ValidationError(
+        f"findings: the report is of bundle {findings.bundle!r}, none of the campaigns ({names}); "
+        f"its sensor-fault times cannot be placed"
+    )
 
 
-def plan_findings(findings: Findings, bundles: Sequence[Any], force: bool = False,
-                  measured: set[tuple[str, str]] | None = None) -> FindingsPlan:
+def plan_findings(
+    findings: Findings, bundles: Sequence[Any], force: bool = False, measured: set[tuple[str, str]] | None = None
+) -> FindingsPlan:
     """Return how the fit folds ``findings`` into the models of ``bundles`` (validated against them).
 
     A finding whose channel some campaign lacks is an error; one on an (axis, term) no campaign
@@ -322,13 +356,16 @@ def plan_findings(findings: Findings, bundles: Sequence[Any], force: bool = Fals
         for c in f.channels:
             lacking = [b.name for b in bundles if c not in b.temperatures.columns]
             if lacking:
-                raise ValidationError(f"findings: channel {c} of the {f.kind} finding on {f.axis}/{f.term} is not "
-                                      f"in campaign {lacking[0]!r}")
+                raise ValidationError(
+                    f"findings: channel {c} of the {f.kind} finding on {f.axis}/{f.term} is not "
+                    f"in campaign {lacking[0]!r}"
+                )
         if f.kind == "sensor_fault":
             for c in f.channels:
                 if c not in [x for x, _, _ in faults]:
-                    faults.append((c, f.start_s(c), str((f.params.get("mode_by_channel") or {}).get(
-                        c, f.params.get("mode", "")))))
+                    faults.append(
+                        (c, f.start_s(c), str((f.params.get("mode_by_channel") or {}).get(c, f.params.get("mode", ""))))
+                    )
             continue
         if f.kind == "operating_condition":
             skipped[i] = "a direct machine-state term: the fitting catalogue has no such feature yet (reported only)"
@@ -349,15 +386,22 @@ def plan_findings(findings: Findings, bundles: Sequence[Any], force: bool = Fals
         faulty = [c for c, _, _ in faults]
         for c, start_s, mode in faults:
             neighbours, coef = fit_substitution(
-                src.temperatures, c, start_s, exclude=faulty,
-                structures={k: ch.structure for k, ch in src.meta.channels.items()}, room=src.meta.room_channels)
+                src.temperatures,
+                c,
+                start_s,
+                exclude=faulty,
+                structures={k: ch.structure for k, ch in src.meta.channels.items()},
+                room=src.meta.room_channels,
+            )
             subs.append(Substitution(c, neighbours, coef, t0 + timedelta(seconds=start_s), start_s, mode))
             channels += [x for x in (c, *neighbours) if x not in channels]
         for c in channels:
             lacking = [b.name for b in bundles if c not in b.temperatures.columns]
             if lacking:
-                raise ValidationError(f"findings: channel {c} (a virtual sensor's neighbour) is not in campaign "
-                                      f"{lacking[0]!r}")
-        out_bundles = [replace(b, temperatures=apply_substitutions(b.temperatures, b.meta.started_at, subs))
-                       for b in bundles]
+                raise ValidationError(
+                    f"findings: channel {c} (a virtual sensor's neighbour) is not in campaign {lacking[0]!r}"
+                )
+        out_bundles = [
+            replace(b, temperatures=apply_substitutions(b.temperatures, b.meta.started_at, subs)) for b in bundles
+        ]
     return FindingsPlan(findings, out_bundles, extras, channels, list(dict.fromkeys(lags)), subs, skipped)

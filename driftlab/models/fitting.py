@@ -72,16 +72,31 @@ ANGLES = ("alpha", "beta", "gamma")
 SEED_KINDS = frozenset({"position", "direction", "pos_dT"})
 #: the element whose structure a thermocouple's structure belongs to (allocation of a chosen term)
 STRUCTURE_ELEMENT: Mapping[str, str] = {
-    "spindle": "T1", "spindle_arm": "T1", "z_column": "T2", "base": "T2", "z_screw": "phi_z", "z_motor": "phi_z",
-    "y_screw": "phi_y", "y_motor": "phi_y", "xy_carriage": "T3", "x_screw": "phi_x", "x_motor": "phi_x",
-    "x_table": "T4", "rotary_base": "theta_x", "a_drive": "theta_x", "b_table": "theta_y", "b_drive": "theta_y",
+    "spindle": "T1",
+    "spindle_arm": "T1",
+    "z_column": "T2",
+    "base": "T2",
+    "z_screw": "phi_z",
+    "z_motor": "phi_z",
+    "y_screw": "phi_y",
+    "y_motor": "phi_y",
+    "xy_carriage": "T3",
+    "x_screw": "phi_x",
+    "x_motor": "phi_x",
+    "x_table": "T4",
+    "rotary_base": "theta_x",
+    "a_drive": "theta_x",
+    "b_table": "theta_y",
+    "b_drive": "theta_y",
 }
 #: the element that carries terms of the room air alone: the frame (column on the base, eq. 3.3);
 #: it has no test of its own, so its terms are re-estimated on every test
 ROOM_ELEMENT = "T2"
 #: ballscrew sites of each translational joint (eq. 3.2: error ~ position x dT of the screw)
 SCREW_STRUCTURES: Mapping[str, tuple[str, ...]] = {
-    "phi_x": ("x_screw", "x_motor"), "phi_y": ("y_screw", "y_motor"), "phi_z": ("z_screw", "z_motor"),
+    "phi_x": ("x_screw", "x_motor"),
+    "phi_y": ("y_screw", "y_motor"),
+    "phi_z": ("z_screw", "z_motor"),
 }
 
 
@@ -280,8 +295,11 @@ def _assign_roles(pts: pd.DataFrame, stages: Sequence[Any], holdout_fraction: fl
         pts.loc[m, "role"] = role
         if role == "train" and m.any():
             ts = np.sort(t[m])
-            cut = ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)] \
-                if ts.size >= 8 and holdout_fraction > 0 else np.inf
+            cut = (
+                ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)]
+                if ts.size >= 8 and holdout_fraction > 0
+                else np.inf
+            )
             pts.loc[m & (t >= cut), "role"] = "holdout"
     if not stages:
         # no plan: everything is one stage allocated to the measured axis' joint
@@ -302,8 +320,9 @@ def _training_errors(errors: pd.DataFrame, stages: Sequence[Any], holdout_fracti
     return errors[np.isin(errors["time_s"].to_numpy(float), train)]
 
 
-def _keep_gradient_corners(screening: ScreeningResult, plain: ScreeningResult,
-                           chan_meta: Mapping[str, Mapping[str, str]]) -> None:
+def _keep_gradient_corners(
+    screening: ScreeningResult, plain: ScreeningResult, chan_meta: Mapping[str, Mapping[str, str]]
+) -> None:
     """Keep, in ``screening``, the corners spanning a structure's gradient that ``plain`` keeps (eqs. 3.4-3.5).
 
     The errors pick one stand-in per group of near-duplicate sites; a structure whose corners
@@ -444,8 +463,9 @@ def predict_models(models: Mapping[tuple[str, str], ElementModel], sample: Sampl
     return out
 
 
-def _measured_w(sample: Sample, known: Mapping[str, np.ndarray],
-                dims: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+def _measured_w(
+    sample: Sample, known: Mapping[str, np.ndarray], dims: Mapping[str, Any]
+) -> tuple[np.ndarray, np.ndarray]:
     """Return W (N, 6) with unmeasured terms filled by the known model, and the measured mask."""
     W = sample.frame[list(PARAMS)].to_numpy(float)
     mask = np.isfinite(W)
@@ -479,15 +499,19 @@ class Candidates:
                 out.append(e.feature)
         return out
 
-    def split_pool(self, pool: Sequence[Feature], axes: Sequence[str], param: str,
-                   keep: Callable[[Feature], bool]) -> tuple[list[Feature], list[Feature]]:
+    def split_pool(
+        self, pool: Sequence[Feature], axes: Sequence[str], param: str, keep: Callable[[Feature], bool]
+    ) -> tuple[list[Feature], list[Feature]]:
         """Return (forced terms, candidates): ``pool`` plus the findings' terms of (axes, param) that ``keep``
         admits."""
         forced: list[Feature] = []
         # a finding's lag at its measured tau replaces the pool's default-tau lags of that channel
         # (near-identical columns: the cruder one would mask the finding through the VIF rule)
-        lagged = {e.feature.channels[0] for e in self.extras
-                  if e.axis in axes and e.term == param and e.feature.kind == "lag" and keep(e.feature)}
+        lagged = {
+            e.feature.channels[0]
+            for e in self.extras
+            if e.axis in axes and e.term == param and e.feature.kind == "lag" and keep(e.feature)
+        }
         cands = [f for f in pool if not (f.kind == "lag" and f.channels[0] in lagged)]
         names = {f.name for f in cands}
         for e in self.extras:
@@ -505,13 +529,20 @@ class Candidates:
     def for_axes(self, axes: Sequence[str], allowed: Sequence[str] | None) -> list[Feature]:
         """Return the candidate terms for rows moving ``axes``, limited to ``allowed`` channels."""
         # the user's selection (bundle model_channels) is used as given; else the screened channels
-        chans = list(self.channels) if allowed is None else [
-            c for c in allowed if c in self.structures or c in self.room]
+        chans = (
+            list(self.channels) if allowed is None else [c for c in allowed if c in self.structures or c in self.room]
+        )
         members = {s: [c for c in cs if allowed is None or c in allowed] for s, cs in self.members.items()}
         return candidate_features(
-            chans, self.structures, axes=axes, screw_channels=self.screws, lag_taus_s=self.lag_taus_s,
-            lag_channels=[c for c in chans if c not in self.room], room_channels=[c for c in self.room if c in chans],
-            structure_members=members, locations=self.locations,
+            chans,
+            self.structures,
+            axes=axes,
+            screw_channels=self.screws,
+            lag_taus_s=self.lag_taus_s,
+            lag_channels=[c for c in chans if c not in self.room],
+            room_channels=[c for c in self.room if c in chans],
+            structure_members=members,
+            locations=self.locations,
         )
 
 
@@ -553,8 +584,9 @@ def fit_elements(
             allowed = sorted({c for a in axes for c in model_channels[a]})
         feats = cands.for_axes(axes, allowed)
         offsets = session_terms(sub.inputs.session, np.ones(len(sub.frame), bool))
-        X = design_matrix([INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sub.inputs, sub.q,
-                          _directions(sub))
+        X = design_matrix(
+            [INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sub.inputs, sub.q, _directions(sub)
+        )
         E = mask = None
         for k, param in enumerate(PARAMS):
             if k in (0, 3):
@@ -580,10 +612,16 @@ def fit_elements(
 
             forced, pool = cands.split_pool([f for f in feats if admit(f)], axes, param, admit)
             res = stepwise(
-                X[m_train].reset_index(drop=True), y[m_train], pool,
+                X[m_train].reset_index(drop=True),
+                y[m_train],
+                pool,
                 forced=[INTERCEPT, *session_terms(sub.inputs.session, m_train), *forced],
-                p_enter=options.p_enter, p_remove=options.p_remove, min_gain=options.min_gain,
-                max_terms=options.max_terms, vif_max=options.vif_max, tiered=options.tiered,
+                p_enter=options.p_enter,
+                p_remove=options.p_remove,
+                min_gain=options.min_gain,
+                max_terms=options.max_terms,
+                vif_max=options.vif_max,
+                tiered=options.tiered,
             )
             fit = TermFit(element, param, res)
             m_hold = hold & mask[:, k]
@@ -596,12 +634,17 @@ def fit_elements(
             for owner, fs in owners.items():
                 models.setdefault((owner, param), ElementModel(owner, param)).add(fit, fs)
         solved.append(element)
-        log_rows.append({
-            "element": element, "axes": axes, "n": int((sample.frame["element"] == element).sum()),
-            "n_cumulative": int(rows.sum()), "n_train": int(train.sum()),
-            "stages": sorted({int(s) for s in sub.frame["stage"]}),
-            "channels": "model_channels" if allowed is not None else "screened",
-        })
+        log_rows.append(
+            {
+                "element": element,
+                "axes": axes,
+                "n": int((sample.frame["element"] == element).sum()),
+                "n_cumulative": int(rows.sum()),
+                "n_train": int(train.sum()),
+                "stages": sorted({int(s) for s in sub.frame["stage"]}),
+                "channels": "model_channels" if allowed is not None else "screened",
+            }
+        )
         if on_element is not None:
             on_element(element)
     if options.global_lengths:
@@ -632,8 +675,11 @@ def _global_lengths(
     W, mask = _measured_w(sample, known, dims)
     E = allocate(W, sample.q, known, "T1", dims)  # every length error seen at the spindle
     axes = [a for a in AXES if (sample.frame["axis"] == a).any()]
-    allowed = sorted({c for a in axes for c in model_channels[a]}) if model_channels and all(
-        a in model_channels for a in axes) else None
+    allowed = (
+        sorted({c for a in axes for c in model_channels[a]})
+        if model_channels and all(a in model_channels for a in axes)
+        else None
+    )
     feats = cands.for_axes(axes, allowed)
     if model_channels:
         # a joint whose axis has the user's selection reads only those channels
@@ -643,8 +689,9 @@ def _global_lengths(
 
         feats = [f for f in feats if honoured(f)]
     offsets = session_terms(sample.inputs.session, np.ones(len(sample.frame), bool))
-    X = design_matrix([INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q,
-                      _directions(sample))
+    X = design_matrix(
+        [INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q, _directions(sample)
+    )
     chosen = 0
     for k, param in ((3, "dx"), (4, "dy"), (5, "dz")):
         m = train & mask[:, k]
@@ -652,10 +699,16 @@ def _global_lengths(
             continue
         forced, pool = cands.split_pool(feats, axes, param, lambda f: True)
         res = stepwise(
-            X[m].reset_index(drop=True), E[m, k], pool,
-            forced=[INTERCEPT, *session_terms(sample.inputs.session, m), *forced], p_enter=options.p_enter,
-            p_remove=options.p_remove, min_gain=options.min_gain / 4, max_terms=2 * options.max_terms,
-            vif_max=options.vif_max, tiered=options.tiered,
+            X[m].reset_index(drop=True),
+            E[m, k],
+            pool,
+            forced=[INTERCEPT, *session_terms(sample.inputs.session, m), *forced],
+            p_enter=options.p_enter,
+            p_remove=options.p_remove,
+            min_gain=options.min_gain / 4,
+            max_terms=2 * options.max_terms,
+            vif_max=options.vif_max,
+            tiered=options.tiered,
         )
         fit = TermFit("T1", param, res)
         owners: dict[str, list[Feature]] = {}
@@ -722,9 +775,10 @@ def joint_adjust(
         ok = mask[:, t]
         if not ok.any():
             continue
-        A = np.concatenate(
-            [jac[(key[0], PARAMS.index(key[1]))][ok, t][:, None] * F[ok] for key, F in blocks], axis=1
-        ) * w[t]
+        A = (
+            np.concatenate([jac[(key[0], PARAMS.index(key[1]))][ok, t][:, None] * F[ok] for key, F in blocks], axis=1)
+            * w[t]
+        )
         b = W[ok, t] * w[t]
         systems.append((A, b))
         AtA += A.T @ A
@@ -755,8 +809,12 @@ def joint_adjust(
         models[key].coef = [float(v) for v in c[i : i + k]]
         models[key].std_errors = [float(np.sqrt(max(v, 0.0))) for v in cov_diag[i : i + k]]
         i += k
-    return {"coefficients": P, "points": m_obs, "weighted_rms_before": float(np.sqrt(before / max(m_obs, 1))),
-            "weighted_rms_after": float(np.sqrt(after / max(m_obs, 1)))}
+    return {
+        "coefficients": P,
+        "points": m_obs,
+        "weighted_rms_before": float(np.sqrt(before / max(m_obs, 1))),
+        "weighted_rms_after": float(np.sqrt(after / max(m_obs, 1))),
+    }
 
 
 # ----------------------------------------------------------------------------- validation tables
@@ -783,12 +841,15 @@ def composed_errors(composed: Composed, sample: Sample) -> np.ndarray:
     for param, rows in composed.terms.items():
         feats = [f for f, *_ in rows]
         out[:, PARAMS.index(param)] = design_matrix(feats, sample.inputs, sample.q, d).to_numpy(float) @ np.array(
-            [c for _, c, *_ in rows])
+            [c for _, c, *_ in rows]
+        )
     return out
 
 
 def validation_table(
-    sample: Sample, models: Mapping[tuple[str, str], ElementModel], dims: Mapping[str, Any],
+    sample: Sample,
+    models: Mapping[tuple[str, str], ElementModel],
+    dims: Mapping[str, Any],
     composed: Composed | None = None,
 ) -> tuple[pd.DataFrame, np.ndarray]:
     """Return tables 6.1/6.2: per (axis, term) the work-space RMSE on training and held-out data, R^2 and F.
@@ -830,14 +891,24 @@ def validation_table(
             n = int(tr.sum())
             dof = n - n_terms - 1
             f = (r2 / max(n_terms, 1)) / ((1 - r2) / dof) if dof > 0 and n_terms and r2 < 1 else float("nan")
-            rows.append({
-                "axis": axis, "term": term, "link": "+".join(links) or "-",
-                "measurement": _measurement_name(axis, term), "unit": "rad" if term in ANGLES else "mm",
-                "rmse_train": rmse(col[tr] - W_hat[tr, k]), "rmse_holdout": rmse(col[ho] - W_hat[ho, k]),
-                "rmse_validation": rmse(col[va] - W_hat[va, k]), "r2": r2, "f": f,
-                "r2_holdout": r_squared(col[ho], W_hat[ho, k]) if ho.sum() > 2 else float("nan"),
-                "n_train": n, "n_holdout": int(ho.sum()), "n_validation": int(va.sum()),
-            })
+            rows.append(
+                {
+                    "axis": axis,
+                    "term": term,
+                    "link": "+".join(links) or "-",
+                    "measurement": _measurement_name(axis, term),
+                    "unit": "rad" if term in ANGLES else "mm",
+                    "rmse_train": rmse(col[tr] - W_hat[tr, k]),
+                    "rmse_holdout": rmse(col[ho] - W_hat[ho, k]),
+                    "rmse_validation": rmse(col[va] - W_hat[va, k]),
+                    "r2": r2,
+                    "f": f,
+                    "r2_holdout": r_squared(col[ho], W_hat[ho, k]) if ho.sum() > 2 else float("nan"),
+                    "n_train": n,
+                    "n_holdout": int(ho.sum()),
+                    "n_validation": int(va.sum()),
+                }
+            )
     return pd.DataFrame(rows), W_hat
 
 
@@ -925,8 +996,9 @@ def _fit_bundles(
     train_bundles = list(bundles)
 
     # 1. screening (ch. 5.4)
-    common = [c for c in channel_columns(train_bundles[0].temperatures)
-              if all(c in b.temperatures for b in train_bundles)]
+    common = [
+        c for c in channel_columns(train_bundles[0].temperatures) if all(c in b.temperatures for b in train_bundles)
+    ]
     temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in train_bundles], ignore_index=True)
     # the training errors choose among near-duplicate sites (held-out points never steer the choice)
     errs = [_training_errors(b.errors, b.meta.stages, opts.holdout_fraction) for b in train_bundles]
@@ -945,8 +1017,16 @@ def _fit_bundles(
             members.setdefault(st, []).append(c)
     members = {st: cs for st, cs in members.items() if len(cs) >= 2 and any(c in kept for c in cs)}
     screws = {ax: [c for c in kept if structures.get(c, "") in SCREW_STRUCTURES.get(AXIS_JOINT[ax], ())] for ax in AXES}
-    cands = Candidates(list(kept), structures, locations, members, screws, list(room), tuple(opts.lag_taus_s),
-                       list(plan.extras) if plan else [])
+    cands = Candidates(
+        list(kept),
+        structures,
+        locations,
+        members,
+        screws,
+        list(room),
+        tuple(opts.lag_taus_s),
+        list(plan.extras) if plan else [],
+    )
     chosen = [c for cs in model_channels.values() for c in cs if c in common]
     extra_chans = list(plan.channels) if plan else []
     channels = list(dict.fromkeys([*kept, *chosen, *(c for cs in members.values() for c in cs), *extra_chans]))
@@ -1004,8 +1084,17 @@ def _fit_bundles(
                 out.append(Feature("direction", label=axis))
             return out
 
-        lines = fit_lines(sample.frame, sample.q, _directions(sample), sample.inputs,
-                          sample.frame[list(PARAMS)].to_numpy(float), W_link, pool_of, opts, full_of=full_of)
+        lines = fit_lines(
+            sample.frame,
+            sample.q,
+            _directions(sample),
+            sample.inputs,
+            sample.frame[list(PARAMS)].to_numpy(float),
+            W_link,
+            pool_of,
+            opts,
+            full_of=full_of,
+        )
         composed = compose(lines, dims)
         lap("lines")
 
@@ -1027,9 +1116,16 @@ def _fit_bundles(
         for target in targets:
             # the user's sensor selection for the axis, else the screening's: the same for both models
             net_channels = [c for c in model_channels.get(str(target).partition("/")[0], []) if c in common] or kept
-            neural += neural_comparisons(bundles, [target], net_channels, split=opts.network_split,
-                                         hidden=opts.network_hidden, max_samples=opts.network_max_samples,
-                                         max_iter=opts.network_max_iter, seed=opts.seed)
+            neural += neural_comparisons(
+                bundles,
+                [target],
+                net_channels,
+                split=opts.network_split,
+                hidden=opts.network_hidden,
+                max_samples=opts.network_max_samples,
+                max_iter=opts.network_max_iter,
+                seed=opts.seed,
+            )
         lap("network")
 
     # 7. virtual sensors (ch. 6.6, fig. 6.9)
@@ -1052,23 +1148,36 @@ def _fit_bundles(
         keep = [i for i, f in enumerate(m.features) if f.kind != "session"]
         if not keep:
             continue
-        terms.append({
-            "element": element, "param": param, "axis": _axes_of(fit), "term": param,
-            "features": [m.features[i].to_dict() for i in keep],
-            "coefficients": [float(m.coef[i]) for i in keep],
-            "std_errors": [float(m.std_errors[i]) for i in keep],
-            "p_values": [float(m.p_values[i]) for i in keep],
-            "statistics": {
-                "rmse_train": res.rmse, "rmse_holdout": fit.rmse_holdout, "r2": res.rsquared, "f": res.fvalue,
-                "n_train": res.nobs, "n_holdout": fit.n_holdout, "condition_number": res.condition_number,
-            },
-            "steps": [{"stage_element": f.element, **st.to_dict()} for f in m.fits for st in f.result.steps],
-        })
+        terms.append(
+            {
+                "element": element,
+                "param": param,
+                "axis": _axes_of(fit),
+                "term": param,
+                "features": [m.features[i].to_dict() for i in keep],
+                "coefficients": [float(m.coef[i]) for i in keep],
+                "std_errors": [float(m.std_errors[i]) for i in keep],
+                "p_values": [float(m.p_values[i]) for i in keep],
+                "statistics": {
+                    "rmse_train": res.rmse,
+                    "rmse_holdout": fit.rmse_holdout,
+                    "r2": res.rsquared,
+                    "f": res.fvalue,
+                    "n_train": res.nobs,
+                    "n_holdout": fit.n_holdout,
+                    "condition_number": res.condition_number,
+                },
+                "steps": [{"stage_element": f.element, **st.to_dict()} for f in m.fits for st in f.result.steps],
+            }
+        )
     _merge_lines(terms, composed, validation)
     used = sorted({c for t in terms for f in t["features"] for c in f.get("channels", [])})
     substituted = {c for sub in (plan.substitutions if plan else []) for c in (sub.channel, *sub.neighbours)}
-    inputs = {c: {"reference": reference[c], "min": float(lo[c]), "max": float(hi[c])} for c in channels
-              if c in used or c in kept or c in substituted}
+    inputs = {
+        c: {"reference": reference[c], "min": float(lo[c]), "max": float(hi[c])}
+        for c in channels
+        if c in used or c in kept or c in substituted
+    }
     findings: list[dict[str, Any]] = []
     if plan is not None:
         entered: dict[str, list[str]] = {}
@@ -1110,8 +1219,14 @@ def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd
         if entry is None:
             on = validation[validation["term"] == param] if not validation.empty else validation
             entry = {
-                "element": LINE_ELEMENT, "param": param, "axis": None, "term": param, "features": [],
-                "coefficients": [], "std_errors": [], "p_values": [],
+                "element": LINE_ELEMENT,
+                "param": param,
+                "axis": None,
+                "term": param,
+                "features": [],
+                "coefficients": [],
+                "std_errors": [],
+                "p_values": [],
                 "statistics": {
                     "rmse_train": float(on["rmse_train"].max()) if len(on) else float("nan"),
                     "rmse_holdout": float(on["rmse_holdout"].max()) if len(on) else None,
@@ -1142,8 +1257,9 @@ def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:
     """Return a line's entry of the document: which form won, why, and its home deviation."""
     out = fit.to_dict()
     dev = composed.home_deviation.get((fit.axis, fit.term))
-    out["home_deviation"] = None if dev is None else {
-        "features": [f.to_dict() for f in dev[0]], "coefficients": [float(c) for c in dev[1]]}
+    out["home_deviation"] = (
+        None if dev is None else {"features": [f.to_dict() for f in dev[0]], "coefficients": [float(c) for c in dev[1]]}
+    )
     return out
 
 

@@ -71,18 +71,34 @@ class LineFit:
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form kept in the model document (``lines``)."""
         return {
-            "axis": self.axis, "term": self.term, "form": self.form, "why": self.why,
-            "checked_rmse": dict(self.checked), "n_fit": self.n_fit, "n_checked": self.n_checked,
-            "features": [f.to_dict() for f in self.features], "coefficients": [float(c) for c in self.coef],
+            "axis": self.axis,
+            "term": self.term,
+            "form": self.form,
+            "why": self.why,
+            "checked_rmse": dict(self.checked),
+            "n_fit": self.n_fit,
+            "n_checked": self.n_checked,
+            "features": [f.to_dict() for f in self.features],
+            "coefficients": [float(c) for c in self.coef],
         }
 
 
-def _correction(X: pd.DataFrame, y: np.ndarray, pool: Sequence[Feature], forced: Sequence[Feature],
-                options: Any) -> Any:
+def _correction(
+    X: pd.DataFrame, y: np.ndarray, pool: Sequence[Feature], forced: Sequence[Feature], options: Any
+) -> Any:
     """Return the stepwise fit of a line's residual (the options of the link models)."""
-    return stepwise(X.reset_index(drop=True), y, pool, forced=forced, p_enter=options.p_enter,
-                    p_remove=options.p_remove, min_gain=options.min_gain, max_terms=options.max_terms,
-                    vif_max=options.vif_max, tiered=options.tiered)
+    return stepwise(
+        X.reset_index(drop=True),
+        y,
+        pool,
+        forced=forced,
+        p_enter=options.p_enter,
+        p_remove=options.p_remove,
+        min_gain=options.min_gain,
+        max_terms=options.max_terms,
+        vif_max=options.vif_max,
+        tiered=options.tiered,
+    )
 
 
 def independent(A: np.ndarray, rtol: float = 1e-9) -> list[int]:
@@ -108,8 +124,15 @@ class _Form:
         return X[[f.name for f in self.features]].to_numpy(float) @ np.asarray(self.ols.params, float)
 
 
-def _fit_form(form: str, X: pd.DataFrame, y: np.ndarray, pool: Sequence[Feature], full: Sequence[Feature],
-              forced: Sequence[Feature], options: Any) -> _Form:
+def _fit_form(
+    form: str,
+    X: pd.DataFrame,
+    y: np.ndarray,
+    pool: Sequence[Feature],
+    full: Sequence[Feature],
+    forced: Sequence[Feature],
+    options: Any,
+) -> _Form:
     """Return a fitted form: ``stepwise`` over ``pool``, or ``full`` least squares on every term of ``full``."""
     if form == "stepwise":
         res = _correction(X, y, pool, forced, options)
@@ -156,7 +179,7 @@ def fit_line(
         fit_rows = np.zeros(n, bool)
         fit_rows[order[: int(lo * n)]] = True
         check = np.zeros(n, bool)
-        check[order[int(lo * n): int(hi * n)]] = True
+        check[order[int(lo * n) : int(hi * n)]] = True
         forced = [INTERCEPT, *session_terms(sessions, fit_rows)]
         # a session first seen in the checked block has no offset to predict it with: leave it out
         if sessions is not None:
@@ -182,8 +205,7 @@ def fit_line(
         ratio = min(out.checked[f] for f in forms) / out.checked["link"] if out.checked["link"] > 0 else 1.0
         out.why = f"no correction cuts the checked RMSE by {min_gain:.0%} (best factor {ratio:.2f})"
         return out
-    fitted = _fit_form(best, X, residual, pool, full, [INTERCEPT, *session_terms(sessions, np.ones(n, bool))],
-                       options)
+    fitted = _fit_form(best, X, residual, pool, full, [INTERCEPT, *session_terms(sessions, np.ones(n, bool))], options)
     keep = [i for i, f in enumerate(fitted.features) if f.kind != "session"]
     out.form = f"link+{best}"
     out.features = [fitted.features[i] for i in keep]
@@ -191,8 +213,10 @@ def fit_line(
     out.std_errors = np.asarray(fitted.ols.bse, float)[keep]
     out.p_values = np.asarray(fitted.ols.pvalues, float)[keep]
     out.n_fit = n
-    out.why = (f"{best} correction: checked RMSE {out.checked[best]:.3g} against {out.checked['link']:.3g} "
-               f"for the link models alone")
+    out.why = (
+        f"{best} correction: checked RMSE {out.checked[best]:.3g} against {out.checked['link']:.3g} "
+        f"for the link models alone"
+    )
     return out
 
 
@@ -242,17 +266,34 @@ def fit_lines(
         full = list(full_of(axis)) if full_of is not None else []
         names = {f.name for f in pool}
         sub = inputs.take(on)
-        X = design_matrix([INTERCEPT, *session_terms(sub.session, np.ones(int(on.sum()), bool)), *pool,
-                           *(f for f in full if f.name not in names)], sub, q[on], directions[on])
+        X = design_matrix(
+            [
+                INTERCEPT,
+                *session_terms(sub.session, np.ones(int(on.sum()), bool)),
+                *pool,
+                *(f for f in full if f.name not in names),
+            ],
+            sub,
+            q[on],
+            directions[on],
+        )
         for k in range(len(PARAMS)):
             ok = np.isfinite(W[on, k])
             if ok.sum() == 0:
                 continue
             rows = np.flatnonzero(ok)
             usable = [f for f in pool if np.ptp(X[f.name].to_numpy(float)[rows]) > 0]
-            fit = fit_line(axis, k, (W[on, k] - W_hat[on, k])[rows], t[on][rows], X.iloc[rows],
-                           usable, None if sub.session is None else sub.session[rows], options,
-                           full=[f for f in full if np.ptp(X[f.name].to_numpy(float)[rows]) > 0])
+            fit = fit_line(
+                axis,
+                k,
+                (W[on, k] - W_hat[on, k])[rows],
+                t[on][rows],
+                X.iloc[rows],
+                usable,
+                None if sub.session is None else sub.session[rows],
+                options,
+                full=[f for f in full if np.ptp(X[f.name].to_numpy(float)[rows]) > 0],
+            )
             out.append(fit)
             if on_line is not None:
                 on_line(f"{axis} {PARAMS[k]}")
@@ -349,8 +390,9 @@ def compose(lines: Sequence[LineFit], dims: Mapping[str, Any] = TABLE_A1) -> Com
     return Composed(terms, deviation)
 
 
-def home_deviation(composed: Composed, frame: pd.DataFrame, inputs: Inputs, q: np.ndarray,
-                   directions: np.ndarray) -> np.ndarray:
+def home_deviation(
+    composed: Composed, frame: pd.DataFrame, inputs: Inputs, q: np.ndarray, directions: np.ndarray
+) -> np.ndarray:
     """Return (N, 6): what each measured point's own line adds to the composed (compensator's) model."""
     out = np.zeros((q.shape[0], len(PARAMS)))
     axis_col = frame["axis"].to_numpy(str)

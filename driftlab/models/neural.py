@@ -240,8 +240,17 @@ def comparison_data(bundles: Sequence[Any], target: str, channels: Sequence[str]
     pos = data["position"].to_numpy(float)
     X = pd.DataFrame({"position": pos, "position^2": pos**2, "position^3": pos**3})
     X = pd.concat([X, data[[f"dT[{c}]" for c in chans]]], axis=1)
-    return ComparisonData(target, X, data["_y"].to_numpy(float), data["_t"].to_numpy(float),
-                          data["_c"].to_numpy(int), data["_g"].to_numpy(object), names, chans, reference)
+    return ComparisonData(
+        target,
+        X,
+        data["_y"].to_numpy(float),
+        data["_t"].to_numpy(float),
+        data["_c"].to_numpy(int),
+        data["_g"].to_numpy(object),
+        names,
+        chans,
+        reference,
+    )
 
 
 @dataclass
@@ -302,30 +311,56 @@ def _splits(data: ComparisonData, mode: str) -> tuple[str, list[Direction], dict
     zeroed = {g: c for g, c in zip(data.datum, data.campaign) if g != ABSOLUTE}
     if mode == "campaign" or (mode == "auto" and len(absolute) >= 2):
         if len(absolute) < 2:
-            kinds = {g: "laser zeroed at mount, datum: session" if "/" in g else "v1: zeroed at its start"
-                     for g in zeroed}
+            kinds = {
+                g: "laser zeroed at mount, datum: session" if "/" in g else "v1: zeroed at its start" for g in zeroed
+            }
             why = "; ".join(sorted(f"{g} ({kind})" for g, kind in kinds.items()))
-            raise ValidationError(f"neural comparison on {data.target}: a split by campaign needs two campaigns read "
-                                  f"against an absolute datum; zeroed: {why or 'none'}: a zeroed campaign is not an "
-                                  "absolute target")
-        excluded = {g: ("datum: session (laser zeroed at mount)" if "/" in g else "v1 campaign, zeroed at its start")
-                    + ": not an absolute target across campaigns" for g in sorted(zeroed)}
+            raise ValidationError(
+                f"neural comparison on {data.target}: a split by campaign needs two campaigns read "
+                f"against an absolute datum; zeroed: {why or 'none'}: a zeroed campaign is not an "
+                "absolute target"
+            )
+        excluded = {
+            g: ("datum: session (laser zeroed at mount)" if "/" in g else "v1 campaign, zeroed at its start")
+            + ": not an absolute target across campaigns"
+            for g in sorted(zeroed)
+        }
         first, last = absolute[0], absolute[-1]
         early = data.absolute & np.isin(data.campaign, absolute[:-1])
         late = data.absolute & np.isin(data.campaign, absolute[1:])
-        return "campaign", [
-            ("earlier -> later", early, data.absolute & (data.campaign == last),
-             ", ".join(names[c] for c in absolute[:-1]), names[last]),
-            ("later -> earlier", late, data.absolute & (data.campaign == first),
-             ", ".join(names[c] for c in absolute[1:]), names[first]),
-        ], excluded
+        return (
+            "campaign",
+            [
+                (
+                    "earlier -> later",
+                    early,
+                    data.absolute & (data.campaign == last),
+                    ", ".join(names[c] for c in absolute[:-1]),
+                    names[last],
+                ),
+                (
+                    "later -> earlier",
+                    late,
+                    data.absolute & (data.campaign == first),
+                    ", ".join(names[c] for c in absolute[1:]),
+                    names[first],
+                ),
+            ],
+            excluded,
+        )
     # by time, within each datum: its earlier half against its later half, both ways (times only, never values)
     early = np.zeros(data.y.size, bool)
     for g in set(data.datum.tolist()):
         m = data.datum == g
         early[m] = data.t_s[m] < np.median(data.t_s[m])
-    return "time", [("earlier -> later", early, ~early, "earlier half of each datum", "later half"),
-                    ("later -> earlier", ~early, early, "later half of each datum", "earlier half")], {}
+    return (
+        "time",
+        [
+            ("earlier -> later", early, ~early, "earlier half of each datum", "later half"),
+            ("later -> earlier", ~early, early, "later half of each datum", "earlier half"),
+        ],
+        {},
+    )
 
 
 @dataclass
@@ -372,8 +407,10 @@ def compare_models(
     _, term = _parse_target(data.target)
     unit = "rad" if term in ("alpha", "beta", "gamma") else "mm"
     if fit_net is None:
+
         def fit_net(X: pd.DataFrame, y: np.ndarray) -> NeuralModel:
             return fit_network(X, y, hidden=hidden, max_samples=max_samples, seed=seed, max_iter=max_iter)
+
     mode, directions, excluded = _splits(data, split)
     X = data.X
     offsets: list[str] = []
@@ -384,8 +421,18 @@ def compare_models(
         offsets = groups if data.absolute.any() else groups[1:]
         if offsets:
             X = pd.concat([X, pd.DataFrame({f"datum[{g}]": (data.datum == g).astype(float) for g in offsets})], axis=1)
-    out = NeuralComparison(data.target, "compared", unit, mode, list(data.channels), list(data.campaigns),
-                           excluded, offsets, [], list(hidden))
+    out = NeuralComparison(
+        data.target,
+        "compared",
+        unit,
+        mode,
+        list(data.channels),
+        list(data.campaigns),
+        excluded,
+        offsets,
+        [],
+        list(hidden),
+    )
     results = []
     for name, tr, te, tr_text, te_text in directions:
         if tr.sum() < min_rows or te.sum() < max(5, min_rows // 6):
@@ -403,12 +450,22 @@ def compare_models(
         lo, hi = B.min(axis=0), B.max(axis=0)
         temp = np.array([c.startswith("dT[") for c in keep], bool)
         excess = np.maximum(A - hi, lo - A)[:, temp] if temp.any() else np.zeros((len(A), 1))
-        results.append(DirectionResult(
-            name, tr_text, te_text, int(tr.sum()), int(te.sum()), keep,
-            rmse(ytr - reg.predict(Xtr)), rmse(ytr - net.predict(Xtr)),
-            rmse(yte - reg.predict(Xte)), rmse(yte - net.predict(Xte)),
-            float(((A < lo) | (A > hi)).any(axis=1).mean()), float(max(0.0, excess.max())),
-        ))
+        results.append(
+            DirectionResult(
+                name,
+                tr_text,
+                te_text,
+                int(tr.sum()),
+                int(te.sum()),
+                keep,
+                rmse(ytr - reg.predict(Xtr)),
+                rmse(ytr - net.predict(Xtr)),
+                rmse(yte - reg.predict(Xte)),
+                rmse(yte - net.predict(Xte)),
+                float(((A < lo) | (A > hi)).any(axis=1).mean()),
+                float(max(0.0, excess.max())),
+            )
+        )
     out.directions = results
     return out
 
@@ -432,6 +489,9 @@ def neural_comparisons(
         try:
             out.append(compare_models(comparison_data(bundles, target, channels), **kwargs))
         except ValidationError as exc:
-            out.append(NeuralComparison(str(target), "refused", note=str(exc),
-                                        network_hidden=list(kwargs.get("hidden", (30, 15, 7)))))
+            out.append(
+                NeuralComparison(
+                    str(target), "refused", note=str(exc), network_hidden=list(kwargs.get("hidden", (30, 15, 7)))
+                )
+            )
     return out

@@ -104,7 +104,7 @@ def online_regressors(n: int, dT: Mapping[str, np.ndarray] | None = None, channe
     return np.column_stack(cols)
 
 
-# ----------------------------------------------------------------------------- probe updates (stored by driftlab.jobs.online)
+# ------------------------------------------------------------- probe updates (stored by driftlab.jobs.online)
 
 ONLINE_JOB = "online"
 #: the forgetting factor of a new on-line state (eq. 6.12)
@@ -169,7 +169,7 @@ def online_residuals(document: Any, probe: Any) -> tuple[np.ndarray, np.ndarray]
 def online_update_document(
     document: Any, probe: Any, states: Mapping[str, RLSState] | None = None, lam: float = 0.98
 ) -> tuple[OnlineReport, dict[str, np.ndarray]]:
-    """Return the report and per-term one-step predictions of the on-line model (phi = [1], eq. 6.10) over the probe data."""
+    """Return the report and per-term one-step predictions of the on-line model (phi = [1], eq. 6.10) on the probes."""
     from driftlab.models.document import validate_document
 
     doc = validate_document(document)

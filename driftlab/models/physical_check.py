@@ -38,8 +38,19 @@ LINK_OF_NAME: Mapping[str, str] = GEOMETRY_LINKS
 NAME_OF_LINK: Mapping[str, str] = {v: k for k, v in LINK_OF_NAME.items()}
 #: the axis each translational joint drives
 JOINT_AXIS: Mapping[str, str] = {"phi_x": "X", "phi_y": "Y", "phi_z": "Z"}
-COLUMNS = ["term", "element", "param", "feature", "regression", "std_error", "physical", "unit", "relationship",
-           "ratio", "status"]
+COLUMNS = [
+    "term",
+    "element",
+    "param",
+    "feature",
+    "regression",
+    "std_error",
+    "physical",
+    "unit",
+    "relationship",
+    "ratio",
+    "status",
+]
 
 
 @dataclass
@@ -54,8 +65,13 @@ class PhysicalCheck:
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON summary kept beside the table (report and model document ``physical_check``)."""
         compared = int((self.table["status"] == STATUS_COMPARED).sum()) if len(self.table) else 0
-        return {"status": self.status, "note": self.note, "geometry": self.geometry, "rows": int(len(self.table)),
-                "compared": compared}
+        return {
+            "status": self.status,
+            "note": self.note,
+            "geometry": self.geometry,
+            "rows": int(len(self.table)),
+            "compared": compared,
+        }
 
 
 def _plain(geometry: Any) -> dict[str, Any] | None:
@@ -91,13 +107,21 @@ def machine_geometry(bundles: Sequence[Any]) -> tuple[str, dict[str, Any] | None
     stated = stated_geometries(bundles)
     machine = bundles[0].meta.machine.id if bundles else "?"
     if not stated:
-        return STATUS_NO_GEOMETRY, None, (
-            f"no campaign of machine {machine} states its geometry (machine.geometry in campaign.json): "
-            "the fitted coefficients are not compared with physical ones")
+        return (
+            STATUS_NO_GEOMETRY,
+            None,
+            (
+                f"no campaign of machine {machine} states its geometry (machine.geometry in campaign.json): "
+                "the fitted coefficients are not compared with physical ones"
+            ),
+        )
     if len(stated) > 1:
         who = "; ".join(", ".join(names) for _, names in stated.values())
-        return STATUS_CONFLICT, None, (f"campaigns of machine {machine} state different geometries ({who}): "
-                                       "nothing compared")
+        return (
+            STATUS_CONFLICT,
+            None,
+            (f"campaigns of machine {machine} state different geometries ({who}): nothing compared"),
+        )
     g, names = next(iter(stated.values()))
     src = f" ({g['source']})" if g.get("source") else ""
     return STATUS_COMPARED, g, f"geometry stated by {', '.join(names)}{src}"
@@ -143,11 +167,21 @@ def physical_table(
 
     def row(m: Any, feature: str, reg: float, se: float, phys: float, unit: str, rel: str, missing: str = "") -> None:
         ok = not missing and phys > 0
-        rows.append({"term": f"{m.element}.{m.param} {feature}", "element": m.element, "param": m.param,
-                     "feature": feature, "regression": float(reg), "std_error": float(se),
-                     "physical": float(phys) if ok else float("nan"), "unit": unit, "relationship": rel,
-                     "ratio": abs(float(reg)) / phys if ok else float("nan"),
-                     "status": STATUS_COMPARED if ok else f"not stated: {missing}"})
+        rows.append(
+            {
+                "term": f"{m.element}.{m.param} {feature}",
+                "element": m.element,
+                "param": m.param,
+                "feature": feature,
+                "regression": float(reg),
+                "std_error": float(se),
+                "physical": float(phys) if ok else float("nan"),
+                "unit": unit,
+                "relationship": rel,
+                "ratio": abs(float(reg)) / phys if ok else float("nan"),
+                "status": STATUS_COMPARED if ok else f"not stated: {missing}",
+            }
+        )
 
     for (element, param), m in models.items():
         own = JOINT_AXIS.get(element)
@@ -155,20 +189,31 @@ def physical_table(
         for f, coef, se in zip(m.features, m.coef, m.std_errors):
             if f.kind == "pos_dT" and own and param == "d" + own.lower() and f.label in ("", own):
                 row(m, f.name, coef, se, alpha_c, "mm/mm/degC", "alpha_c dT L, L = position (eq. 3.2)")
-            elif f.kind == "dT" and own and param == "d" + own.lower() and \
-                    structures.get(f.channels[0], "") in SCREW_STRUCTURES.get(element, ()):
+            elif (
+                f.kind == "dT"
+                and own
+                and param == "d" + own.lower()
+                and structures.get(f.channels[0], "") in SCREW_STRUCTURES.get(element, ())
+            ):
                 screw_sum += coef
                 screw_se = float(np.hypot(screw_se, se))
                 screw_names.append(f.channels[0])
             elif f.kind == "mean" and param in TRANSLATIONS and STRUCTURE_ELEMENT.get(f.label) == element:
                 if element not in links:
-                    row(m, f.name, coef, se, float("nan"), "mm/degC", "alpha_c dT L (eqs. 3.1, 3.3)",
-                        f"links_mm.{NAME_OF_LINK.get(element, element)}")
+                    row(
+                        m,
+                        f.name,
+                        coef,
+                        se,
+                        float("nan"),
+                        "mm/degC",
+                        "alpha_c dT L (eqs. 3.1, 3.3)",
+                        f"links_mm.{NAME_OF_LINK.get(element, element)}",
+                    )
                     continue
                 L = abs(float(links[element][TRANSLATIONS.index(param)]))
                 if L > 0:  # no extent along this translation: the relationship does not apply
-                    row(m, f.name, coef, se, alpha_c * L, "mm/degC",
-                        f"alpha_c dT L, L = {L:.0f} mm (eqs. 3.1, 3.3)")
+                    row(m, f.name, coef, se, alpha_c * L, "mm/degC", f"alpha_c dT L, L = {L:.0f} mm (eqs. 3.1, 3.3)")
             elif f.kind == "gradient" and not any(c in room for c in f.channels):
                 owners = {structures.get(c, "") for c in f.channels}
                 bent = bending.get(owners.pop()) if len(owners) == 1 else None
@@ -176,20 +221,49 @@ def physical_table(
                     continue  # a structure that states no bending, or a gradient along another direction
                 L, H = float(bent["length_mm"]), float(bent["height_mm"])
                 if param == bent.get("angle"):
-                    row(m, f.name, coef, se, alpha_c * L / H, "rad/degC",
-                        f"alpha_c dT L/H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.4)")
+                    row(
+                        m,
+                        f.name,
+                        coef,
+                        se,
+                        alpha_c * L / H,
+                        "rad/degC",
+                        f"alpha_c dT L/H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.4)",
+                    )
                 elif param == bent.get("deflection"):
-                    row(m, f.name, coef, se, alpha_c * L**2 / (2 * H), "mm/degC",
-                        f"alpha_c dT L^2/2H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.5)")
+                    row(
+                        m,
+                        f.name,
+                        coef,
+                        se,
+                        alpha_c * L**2 / (2 * H),
+                        "mm/degC",
+                        f"alpha_c dT L^2/2H, L = {L:.0f}, H = {H:.0f} mm (eq. 3.5)",
+                    )
         if screw_names:
             name = "+".join(f"dT[{c}]" for c in screw_names)
             if own in screws:
                 ell = float(screws[own])
-                row(m, name, screw_sum, screw_se, alpha_c * ell, "mm/degC",
-                    f"alpha_c dT l, l = {ell:.0f} mm non-travelled screw (eq. 3.2)")
+                row(
+                    m,
+                    name,
+                    screw_sum,
+                    screw_se,
+                    alpha_c * ell,
+                    "mm/degC",
+                    f"alpha_c dT l, l = {ell:.0f} mm non-travelled screw (eq. 3.2)",
+                )
             else:
-                row(m, name, screw_sum, screw_se, float("nan"), "mm/degC", "alpha_c dT l (eq. 3.2)",
-                    f"screw_fixed_mm.{own}")
+                row(
+                    m,
+                    name,
+                    screw_sum,
+                    screw_se,
+                    float("nan"),
+                    "mm/degC",
+                    "alpha_c dT l (eq. 3.2)",
+                    f"screw_fixed_mm.{own}",
+                )
     return pd.DataFrame(rows, columns=COLUMNS)
 
 

@@ -278,12 +278,28 @@ class TermFit:
         feats, coef = self.terms, self.coefficients
         mine = [i for i, f in enumerate(feats) if not belongs(f)]
         theirs = [i for i, f in enumerate(feats) if belongs(f)]
-        keep = TermFit(self.element, self.param, self.result, self.rmse_holdout, self.n_holdout,
-                       [feats[i] for i in mine], coef[mine], self.seeded_by)
+        keep = TermFit(
+            self.element,
+            self.param,
+            self.result,
+            self.rmse_holdout,
+            self.n_holdout,
+            [feats[i] for i in mine],
+            coef[mine],
+            self.seeded_by,
+        )
         if not theirs:
             return keep, None
-        other = TermFit(other_element, self.param, self.result, float("nan"), 0,
-                        [feats[i] for i in theirs], coef[theirs], seeded_by=self.element)
+        other = TermFit(
+            other_element,
+            self.param,
+            self.result,
+            float("nan"),
+            0,
+            [feats[i] for i in theirs],
+            coef[theirs],
+            seeded_by=self.element,
+        )
         return keep, other
 
 

@@ -92,7 +92,11 @@ def _explain(T: np.ndarray, j: int, pool: Sequence[int], k: int) -> tuple[float,
 
 
 def _gradient_partner(
-    c: str, structure: str, kept: Mapping[str, str], meta: Mapping[str, Mapping[str, str]], temps: pd.DataFrame,
+    c: str,
+    structure: str,
+    kept: Mapping[str, str],
+    meta: Mapping[str, Mapping[str, str]],
+    temps: pd.DataFrame,
     gradient_degC: float,
 ) -> tuple[str, float] | None:
     """Return (kept site, rms difference) when ``c`` is the second corner of a structure with a real gradient."""
@@ -131,8 +135,9 @@ def _segments(temps: pd.DataFrame, n: int) -> list[pd.DataFrame]:
     return [temps.iloc[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
 
 
-def _error_design(temps: pd.DataFrame, chans: Sequence[str],
-                  errors: pd.DataFrame | Sequence[pd.DataFrame]) -> _ErrorDesign | None:
+def _error_design(
+    temps: pd.DataFrame, chans: Sequence[str], errors: pd.DataFrame | Sequence[pd.DataFrame]
+) -> _ErrorDesign | None:
     """Return the regression statistics of the work-space errors on the channels (None: nothing usable)."""
     frames = [errors] if isinstance(errors, pd.DataFrame) else list(errors)
     segs = _segments(temps, len(frames)) if len(frames) > 1 else [temps]
@@ -152,16 +157,26 @@ def _error_design(temps: pd.DataFrame, chans: Sequence[str],
         X_parts.append(np.column_stack([np.interp(te, ts, np.nan_to_num(T[:, i])) for i in range(len(chans))]))
         pos = e["position"].to_numpy(float).round(6) if "position" in e else np.zeros(len(e))
         d = e["direction"].to_numpy() if "direction" in e else np.zeros(len(e))
-        keys.append(pd.DataFrame({"campaign": k, "axis": e["axis"].astype(str).to_numpy(),
-                                  "term": e["term"].astype(str).to_numpy(), "position": pos, "direction": d}))
+        keys.append(
+            pd.DataFrame(
+                {
+                    "campaign": k,
+                    "axis": e["axis"].astype(str).to_numpy(),
+                    "term": e["term"].astype(str).to_numpy(),
+                    "position": pos,
+                    "direction": d,
+                }
+            )
+        )
         y_parts.append(e["value"].to_numpy(float))
     if not X_parts:
         return None
     X = np.vstack(X_parts)
     y = np.concatenate(y_parts)
     key = pd.concat(keys, ignore_index=True)
-    group = key.groupby(["campaign", "axis", "term", "position", "direction"], sort=False,
-                        dropna=False).ngroup().to_numpy()
+    group = (
+        key.groupby(["campaign", "axis", "term", "position", "direction"], sort=False, dropna=False).ngroup().to_numpy()
+    )
     series = key.groupby(["axis", "term"], sort=False, dropna=False).ngroup().to_numpy()
     # deviations from each point's mean over the campaign: geometry out, thermal drift in
     Xd = X - pd.DataFrame(X).groupby(group).transform("mean").to_numpy()
@@ -206,8 +221,9 @@ def _partial_r2(des: _ErrorDesign, S: Sequence[int]) -> np.ndarray:
     return r2
 
 
-def _error_stepwise(des: _ErrorDesign, base: Sequence[int], cands: Sequence[int],
-                    r2_in: float, r2_out: float) -> dict[int, tuple[float, str]]:
+def _error_stepwise(
+    des: _ErrorDesign, base: Sequence[int], cands: Sequence[int], r2_in: float, r2_out: float
+) -> dict[int, tuple[float, str]]:
     """Return channel -> (share, series) for the sites the errors need beyond ``base``.
 
     Forward: the candidate whose entry most lowers the summed log residual of all series enters
@@ -323,16 +339,27 @@ def screen_channels(
         for i, (share, series) in sorted(need.items()):
             c = chans[i]
             st = meta.get(c, {}).get("structure", "")
-            others = [j for j in [*(idx[k] for k in kept_reason), *need] if j != i and (
-                chans[j] in room_channels or (st and meta.get(chans[j], {}).get("structure", "") == st)
-                or abs(float(np.nan_to_num(R.iloc[i, j]))) >= related_r)]
+            others = [
+                j
+                for j in [*(idx[k] for k in kept_reason), *need]
+                if j != i
+                and (
+                    chans[j] in room_channels
+                    or (st and meta.get(chans[j], {}).get("structure", "") == st)
+                    or abs(float(np.nan_to_num(R.iloc[i, j]))) >= related_r
+                )
+            ]
             resid, used = _explain(Tf, i, others, n_explain)
             tol = max(explained_degC, explained_fraction * std[i])
-            why = (f"explains the work-space errors: removes {100 * share:.0f}% of what the other kept sites "
-                   f"leave of {series}")
+            why = (
+                f"explains the work-space errors: removes {100 * share:.0f}% of what the other kept sites "
+                f"leave of {series}"
+            )
             if others and resid <= tol:  # its temperature is nearly another's: the difference is what moves the tool
-                why += (f", though its temperature follows {', '.join(chans[u] for u in used)} to {resid:.2f} degC rms "
-                        "(the best of its redundant group, or a gradient the errors need)")
+                why += (
+                    f", though its temperature follows {', '.join(chans[u] for u in used)} to {resid:.2f} degC rms "
+                    "(the best of its redundant group, or a gradient the errors need)"
+                )
             kept_reason[c] = why
         rest = [c for c in rest if c not in kept_reason]
     by_struct: dict[str, list[str]] = {}
@@ -358,17 +385,24 @@ def screen_channels(
     for c in order:
         # explainers: kept sites of the same structure, kept sites that rise and fall with it, the room
         st = meta.get(c, {}).get("structure", "")
-        pool = [idx[k] for k in kept_reason
-                if k in room_channels or (st and meta.get(k, {}).get("structure", "") == st)
-                or abs(float(np.nan_to_num(R.loc[c, k]))) >= related_r]
+        pool = [
+            idx[k]
+            for k in kept_reason
+            if k in room_channels
+            or (st and meta.get(k, {}).get("structure", "") == st)
+            or abs(float(np.nan_to_num(R.loc[c, k]))) >= related_r
+        ]
         resid, used = _explain(Tf, idx[c], pool, n_explain)
         tol = max(explained_degC, explained_fraction * std[idx[c]])
         names = [chans[u] for u in used]
         corner = corners.get(c) or (
-            _gradient_partner(c, st, kept_reason, meta, temps, gradient_degC) if des is None else None)
+            _gradient_partner(c, st, kept_reason, meta, temps, gradient_degC) if des is None else None
+        )
         if corner is not None:
-            kept_reason[c] = (f"corner of {st} spanning its gradient with {corner[0]} "
-                              f"({corner[1]:.2f} degC rms difference, eqs. 3.4-3.5)")
+            kept_reason[c] = (
+                f"corner of {st} spanning its gradient with {corner[0]} "
+                f"({corner[1]:.2f} degC rms difference, eqs. 3.4-3.5)"
+            )
         elif pool and resid <= tol:
             best = max(names, key=lambda k: abs(float(R.loc[c, k])))
             dropped[c] = (

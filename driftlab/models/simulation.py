@@ -185,8 +185,15 @@ def sinusoidal_program(t_s: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.n
     """
     rng = np.random.default_rng(seed)
     t = np.asarray(t_s, dtype=float)
-    travel = np.array([TABLE_A3["phi_x"][1], TABLE_A3["phi_y"][1], TABLE_A3["phi_z"][1], TABLE_A4["theta_x"][1],
-                       TABLE_A4["theta_y"][1]])
+    travel = np.array(
+        [
+            TABLE_A3["phi_x"][1],
+            TABLE_A3["phi_y"][1],
+            TABLE_A3["phi_z"][1],
+            TABLE_A4["theta_x"][1],
+            TABLE_A4["theta_y"][1],
+        ]
+    )
     period_s = np.array([25.0, 32.0, 39.0, 47.0, 55.0]) * 60.0
     phase = rng.uniform(0, 2 * np.pi, 5)
     arg = 2 * np.pi * t[:, None] / period_s[None, :] + phase[None, :]

@@ -79,8 +79,13 @@ class OutlierFlags:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form of the flags."""
-        return {"series": self.series, "spikes": self.spikes, "out_of_range": self.out_of_range,
-                "held_scans": self.held_scans, "first_times_s": list(self.first_times_s)}
+        return {
+            "series": self.series,
+            "spikes": self.spikes,
+            "out_of_range": self.out_of_range,
+            "held_scans": self.held_scans,
+            "first_times_s": list(self.first_times_s),
+        }
 
 
 def robust_sigma(x: np.ndarray) -> float:
@@ -317,8 +322,7 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
             grid_T[:, j] = np.nan
         if sp.any() or oor.any() or held:
             bad = ts[sp | oor]
-            flags.append(OutlierFlags(ch, int(sp.sum()), int(oor.sum()), held,
-                                      tuple(float(v) for v in bad[:5])))
+            flags.append(OutlierFlags(ch, int(sp.sum()), int(oor.sum()), held, tuple(float(v) for v in bad[:5])))
 
     # the held-out split is fixed on the rows' times alone (never their values), and the training and
     # held-out rows are cleaned apart: nothing in the held-out values can change a training decision
@@ -352,8 +356,15 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
         prv = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)
         in_gap = (ts[nxt] - ts[prv] > max_gap_s) | (t < ts[0]) | (t > ts[-1])
         if in_gap.any():
-            flags.append(OutlierFlags(f"{axis}/{term}: {int(in_gap.sum())} samples in scan gaps left out", 0,
-                                      0, 0, tuple(float(v) for v in t[in_gap][:5])))
+            flags.append(
+                OutlierFlags(
+                    f"{axis}/{term}: {int(in_gap.sum())} samples in scan gaps left out",
+                    0,
+                    0,
+                    0,
+                    tuple(float(v) for v in t[in_gap][:5]),
+                )
+            )
         keep = ~bad & ~in_gap
         t, pos, direction, y = t[keep], pos[keep], direction[keep], y[keep]
         if y.size < 12:  # too few to fit a cubic and temperatures and to hold a quarter out
@@ -368,8 +379,21 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
         # their values), the held-out rows' numbered after them
         sw_train = _sweep_ids(t[:n_train])
         sw_hold = _sweep_ids(t[n_train:]) + (int(sw_train.max()) + 1 if n_train else 0)
-        terms.append(TermData(str(axis), str(term), t, pos, direction, y, T_at, n_train,
-                              np.concatenate([sw_train, sw_hold]).astype(int), fl, conds))
+        terms.append(
+            TermData(
+                str(axis),
+                str(term),
+                t,
+                pos,
+                direction,
+                y,
+                T_at,
+                n_train,
+                np.concatenate([sw_train, sw_hold]).astype(int),
+                fl,
+                conds,
+            )
+        )
 
     mc_raw = _as_plain(meta_get(meta, "model_channels", None)) or {}
     model_channels = {str(a): [c for c in v if c in channels] for a, v in mc_raw.items()}
@@ -382,9 +406,22 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
     structures = {ch: str(meta_get(v, "structure", "") or "") for ch, v in info.items()}
     locations = {k: ("" if v.strip().lower() in unknown else v) for k, v in locations.items()}
     structures = {k: ("" if v.strip().lower() in unknown else v) for k, v in structures.items()}
-    return PreparedBundle(str(getattr(bundle, "name", "bundle")), channels, room, model_channels, stages,
-                          {k: float(v) for k, v in noise.items() if v is not None}, grid_t, grid_T,
-                          raw_grid, terms, flags, holdout_fraction, locations, structures)
+    return PreparedBundle(
+        str(getattr(bundle, "name", "bundle")),
+        channels,
+        room,
+        model_channels,
+        stages,
+        {k: float(v) for k, v in noise.items() if v is not None},
+        grid_t,
+        grid_T,
+        raw_grid,
+        terms,
+        flags,
+        holdout_fraction,
+        locations,
+        structures,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -444,8 +481,7 @@ def fit_columns(X: np.ndarray, y: np.ndarray, train: np.ndarray, names: list[str
     """Return the :class:`LinearFit` of ``y ~ X`` trained on ``train`` and scored on the rest."""
     beta = lstsq(X[train], y[train])
     r = y - X @ beta
-    return LinearFit(list(names), beta, rmse(r[train]), rmse(r[~train]), r, int(train.sum()),
-                     int((~train).sum()))
+    return LinearFit(list(names), beta, rmse(r[train]), rmse(r[~train]), r, int(train.sum()), int((~train).sum()))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -463,8 +499,9 @@ class ChannelSelection:
     skipped_collinear: list[str] = field(default_factory=list)
 
 
-def select_channels(td: TermData, prep: PreparedBundle, max_channels: int | None = None, alpha_in: float = 1e-2,
-                    alpha_out: float = 1e-6) -> ChannelSelection:
+def select_channels(
+    td: TermData, prep: PreparedBundle, max_channels: int | None = None, alpha_in: float = 1e-2, alpha_out: float = 1e-6
+) -> ChannelSelection:
     """Return a deterministic stepwise selection of channels for ``td`` by partial correlation (ch. 5.4, 6.4.2).
 
     Forward: from the position basis, add the channel whose dT has the largest
@@ -513,7 +550,8 @@ def select_channels(td: TermData, prep: PreparedBundle, max_channels: int | None
         Gs = G[np.ix_(idx, idx)] + ridge * np.eye(len(idx))
         b = np.linalg.solve(Gs, G[idx, nb + c])
         return 1.0 - max(float(G[nb + c, nb + c] - b @ G[idx, nb + c]), 0.0) / max(
-            float(G[nb + c, nb + c] - G[0, nb + c] ** 2 / G[0, 0]), 1e-300)
+            float(G[nb + c, nb + c] - G[0, nb + c] ** 2 / G[0, 0]), 1e-300
+        )
 
     chosen: list[int] = []  # indices into ``usable``
     skipped: list[str] = []
@@ -623,8 +661,13 @@ def fit_standard_model(td: TermData, prep: PreparedBundle) -> StandardModel:
     ok = np.all(np.isfinite(X), axis=0)
     if not ok.all():  # a channel with no reading at all cannot enter the model
         dropped = [n for n, good in zip(names, ok) if not good]
-        sel = ChannelSelection([c for c in sel.channels if f"dT_{c}" not in dropped], sel.partial_corr,
-                               sel.source, sel.max_channels, sel.skipped_collinear)
+        sel = ChannelSelection(
+            [c for c in sel.channels if f"dT_{c}" not in dropped],
+            sel.partial_corr,
+            sel.source,
+            sel.max_channels,
+            sel.skipped_collinear,
+        )
         X, names = standard_design(td, prep, sel.channels)
     return StandardModel(td, sel, X, names, fit_columns(X, td.y, td.train, names))
 

@@ -47,8 +47,9 @@ class VirtualSensor:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> VirtualSensor:
         """Rebuild a virtual sensor from its JSON form."""
-        return cls(str(d["channel"]), list(d["neighbours"]), np.asarray(d["coef"], float), float(d["sigma"]),
-                   float(d["band"]))
+        return cls(
+            str(d["channel"]), list(d["neighbours"]), np.asarray(d["coef"], float), float(d["sigma"]), float(d["band"])
+        )
 
 
 def fit_virtual_sensors(
@@ -92,8 +93,9 @@ def _greedy_neighbours(T: np.ndarray, j: int, n: int) -> list[int]:
         else:
             r, Cr = y, C
         norm2 = (Cr**2).sum(axis=0)
-        gain = np.where(norm2 > 1e-9 * max(float(norm2.max()), 1e-300),
-                        (Cr.T @ r) ** 2 / np.maximum(norm2, 1e-300), -1.0)
+        gain = np.where(
+            norm2 > 1e-9 * max(float(norm2.max()), 1e-300), (Cr.T @ r) ** 2 / np.maximum(norm2, 1e-300), -1.0
+        )
         gain[[j, *chosen]] = -1.0
         k = int(np.argmax(gain))
         if gain[k] <= 1e-6 * float(r @ r) or gain[k] <= 0:
@@ -121,8 +123,13 @@ class SensorFault:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the JSON form."""
-        return {"channel": self.channel, "since_s": self.since_s, "max_deviation_degC": self.max_deviation_degC,
-                "mode": self.mode, "message": self.message()}
+        return {
+            "channel": self.channel,
+            "since_s": self.since_s,
+            "max_deviation_degC": self.max_deviation_degC,
+            "mode": self.mode,
+            "message": self.message(),
+        }
 
 
 @dataclass
@@ -144,9 +151,7 @@ def _first_persistent(flags: np.ndarray, persist: int) -> int | None:
     return int(idx[0]) if idx.size else None
 
 
-def check_sensors(
-    sensors: Mapping[str, VirtualSensor], temperatures: pd.DataFrame, *, persist: int = 5
-) -> SensorCheck:
+def check_sensors(sensors: Mapping[str, VirtualSensor], temperatures: pd.DataFrame, *, persist: int = 5) -> SensorCheck:
     """Return the faults found and the record with each faulty channel replaced by its estimate.
 
     A channel is faulty from the start of the first run of ``persist`` scans outside its band (or

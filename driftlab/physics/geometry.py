@@ -19,7 +19,12 @@ from driftlab.vocabulary import LinearAxis, Rotation, Translation
 
 #: the fixed links of Table A.1 by the name a geometry block gives them (the HTM chain's T1..T6, ch. 4)
 GEOMETRY_LINKS: Mapping[str, str] = {
-    "spindle_head": "T1", "column": "T2", "carriage": "T3", "table": "T4", "rotary_support": "T5", "part_table": "T6",
+    "spindle_head": "T1",
+    "column": "T2",
+    "carriage": "T3",
+    "table": "T4",
+    "rotary_support": "T5",
+    "part_table": "T6",
 }
 LinkName = Literal["spindle_head", "column", "carriage", "table", "rotary_support", "part_table"]
 #: opposite sides of a structure a bending gradient may span (the words of the sites' locations)

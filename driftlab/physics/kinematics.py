@@ -31,15 +31,23 @@ from driftlab.vocabulary import AXES
 from driftlab.vocabulary import TERMS as PARAMS
 
 ELEMENTS: tuple[str, ...] = (
-    "T1", "phi_z", "T2", "phi_y", "T3", "phi_x", "T4", "theta_x", "T5", "theta_y", "T6",
+    "T1",
+    "phi_z",
+    "T2",
+    "phi_y",
+    "T3",
+    "phi_x",
+    "T4",
+    "theta_x",
+    "T5",
+    "theta_y",
+    "T6",
 )
 LINKS: tuple[str, ...] = ("T1", "T2", "T3", "T4", "T5", "T6")
 JOINTS: tuple[str, ...] = ("phi_z", "phi_y", "phi_x", "theta_x", "theta_y")
 #: columns of the joint array ``q``: X, Y, Z (mm), A = theta_x, B = theta_y (rad)
 #: joint element -> column of q that drives it
-JOINT_AXIS: Mapping[str, int] = MappingProxyType(
-    {"phi_x": 0, "phi_y": 1, "phi_z": 2, "theta_x": 3, "theta_y": 4}
-)
+JOINT_AXIS: Mapping[str, int] = MappingProxyType({"phi_x": 0, "phi_y": 1, "phi_z": 2, "theta_x": 3, "theta_y": 4})
 
 #: Table A.1: fixed link dimensions (a, b, c) in mm of the simulated machine.
 TABLE_A1: Mapping[str, tuple[float, float, float]] = MappingProxyType(
@@ -165,7 +173,9 @@ def _as_errors(errors: ElementErrors | None, n: int) -> dict[str, np.ndarray]:
     return out
 
 
-def element_htm(element: str, q: np.ndarray, p: np.ndarray | None = None, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+def element_htm(
+    element: str, q: np.ndarray, p: np.ndarray | None = None, dims: Mapping[str, Any] = TABLE_A1
+) -> np.ndarray:
     """Return the (N, 4, 4) HTM of one chain element with error ``p`` (eqs. 4.13-4.18)."""
     q = _as_q(q)
     n = q.shape[0]
@@ -347,7 +357,9 @@ def _post_rot(pre_rot: tuple, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: 
     return m, ub
 
 
-def _post_pos(pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols, dims: dict) -> tuple[tuple, np.ndarray]:
+def _post_pos(
+    pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: _Cols, dims: dict
+) -> tuple[tuple, np.ndarray]:
     """Return (rotation, position) of the full chain from the pre-chain (eqs. 4.12, 4.17, 4.18)."""
     m = _mul_rx(pre.rot, ca, sa)
     p: Any = pre.pos.copy()  # accumulated in place below; the pre-chain is reused by the caller
@@ -363,7 +375,7 @@ def _post_pos(pre: _PreChain, ca: _Comp, sa: _Comp, cb: _Comp, sb: _Comp, cols: 
             m = _mul_e(m, a, b, g)
         if name == "theta_y":
             m = _mul_ry(m, cb, sb)  # eq. 4.18: E(p) @ Ry, the translation applied before the turn
-    return m, p  # type: ignore[return-value]
+    return m, p
 
 
 def _ideal_parts(q: np.ndarray, dims: dict, s: int, t: int) -> tuple[tuple, tuple]:
@@ -505,7 +517,9 @@ def workspace_error(q: np.ndarray, errors: ElementErrors | None, dims: Mapping[s
     return htm_to_params(workspace_error_htm(q, errors, dims))
 
 
-def _chain_product(q: np.ndarray, errs: dict[str, np.ndarray], dims: Mapping[str, Any], names: tuple[str, ...]) -> np.ndarray:
+def _chain_product(
+    q: np.ndarray, errs: dict[str, np.ndarray], dims: Mapping[str, Any], names: tuple[str, ...]
+) -> np.ndarray:
     n = q.shape[0]
     out = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     for name in names:
@@ -513,7 +527,9 @@ def _chain_product(q: np.ndarray, errs: dict[str, np.ndarray], dims: Mapping[str
     return out
 
 
-def allocate(W: np.ndarray, q: np.ndarray, known_errors: ElementErrors | None, element: str, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+def allocate(
+    W: np.ndarray, q: np.ndarray, known_errors: ElementErrors | None, element: str, dims: Mapping[str, Any] = TABLE_A1
+) -> np.ndarray:
     """Return the (N, 6) error of ``element`` that explains the work-space error W (eq. 4.20).
 
     ``W`` is either the (N, 4, 4) matrix ``T_real @ inv(T_ideal)`` or its (N, 6) parameters
@@ -674,4 +690,4 @@ def _solve3(cols: tuple, v: np.ndarray) -> np.ndarray:
         _vec3(m02 * m21 - m01 * m22, m00 * m22 - m02 * m20, m01 * m20 - m00 * m21),
         _vec3(m01 * m12 - m02 * m11, m02 * m10 - m00 * m12, m00 * m11 - m01 * m10),
     )
-    return _matvec(inv_cols, tuple(v)) / det  # type: ignore[operator]
+    return _matvec(inv_cols, tuple(v)) / det

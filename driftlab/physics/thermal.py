@@ -37,8 +37,9 @@ def step_response(t_s: np.ndarray, gain: float, tau_s: float) -> np.ndarray:
     return np.where(t >= 0.0, gain * -np.expm1(-np.maximum(t, 0.0) / tau_s), 0.0)
 
 
-def propagate(y0: np.ndarray, tau_s: np.ndarray, d_s: np.ndarray, hold: np.ndarray, ramp0: np.ndarray,
-              slope: np.ndarray) -> np.ndarray:
+def propagate(
+    y0: np.ndarray, tau_s: np.ndarray, d_s: np.ndarray, hold: np.ndarray, ramp0: np.ndarray, slope: np.ndarray
+) -> np.ndarray:
     """Return T after an exact step of length d from y0 (held drive, ramp starting at ramp0 with slope)."""
     tau = np.asarray(tau_s, dtype=float)
     d = np.asarray(d_s, dtype=float)
@@ -48,8 +49,9 @@ def propagate(y0: np.ndarray, tau_s: np.ndarray, d_s: np.ndarray, hold: np.ndarr
     return a * y0 + one_minus_a * (hold + ramp0) + slope * d - tau * slope * one_minus_a
 
 
-def integrate(tau_s: np.ndarray, h_s: float, hold: np.ndarray, ramp: np.ndarray,
-              y0: np.ndarray | None = None) -> np.ndarray:
+def integrate(
+    tau_s: np.ndarray, h_s: float, hold: np.ndarray, ramp: np.ndarray, y0: np.ndarray | None = None
+) -> np.ndarray:
     """Return (N, n) node temperatures on a uniform grid of step h from drives hold (N, n), ramp (N, n).
 
     ``hold[k]`` acts over [t_k, t_k + h); ``ramp`` is linear between samples; ``y0`` defaults to the
@@ -134,8 +136,15 @@ class ThermalNetwork:
             done[ready] = True
         return out
 
-    def simulate(self, t0_s: float, h_s: float, sources: np.ndarray, exogenous: np.ndarray,
-                 y0: np.ndarray | None = None, local: np.ndarray | None = None) -> ThermalSolution:
+    def simulate(
+        self,
+        t0_s: float,
+        h_s: float,
+        sources: np.ndarray,
+        exogenous: np.ndarray,
+        y0: np.ndarray | None = None,
+        local: np.ndarray | None = None,
+    ) -> ThermalSolution:
         """Return the exact solution on the grid t0 + k h for held sources (N, m), exogenous ramps (N, e)
         and optional per-node ramped disturbances ``local`` (N, n)."""
         sources = np.asarray(sources, dtype=float)
@@ -155,8 +164,9 @@ class ThermalNetwork:
         return ThermalSolution(float(t0_s), float(h_s), self.tau_s.copy(), y, hold, ramp)
 
 
-def driven_node(ramp: np.ndarray, h_s: float, tau_s: float, t0_s: float = 0.0,
-                y0: np.ndarray | None = None) -> ThermalSolution:
+def driven_node(
+    ramp: np.ndarray, h_s: float, tau_s: float, t0_s: float = 0.0, y0: np.ndarray | None = None
+) -> ThermalSolution:
     """Return one network node (time constant tau) driven only by ``ramp`` (N,) or (N, k) on a step-h grid.
 
     This is how the simulator lags a continuous temperature exactly (the step above, with the input

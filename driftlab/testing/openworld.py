@@ -119,11 +119,22 @@ def _ar1(n: int, rho: float, sigma: float, rng: np.random.Generator) -> np.ndarr
     return np.concatenate([[e[0]], out])
 
 
-def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hours: float = 30.0,
-                   scan_s: float = 120.0, sweep_s: float = 1200.0, points: int = 6,
-                   keep: list[tuple[str, str]] | None = None, rho: float | None = None,
-                   noise_mm: float = 5e-4, noise_rad: float = 5e-7, glitches: bool = True, gaps: bool = True,
-                   lag_fraction: float | None = None, unmeasured_degC: float = 0.1) -> Case:
+def openworld_case(
+    planted: list[OpenPlanted] | None = None,
+    seed: int = 0,
+    hours: float = 30.0,
+    scan_s: float = 120.0,
+    sweep_s: float = 1200.0,
+    points: int = 6,
+    keep: list[tuple[str, str]] | None = None,
+    rho: float | None = None,
+    noise_mm: float = 5e-4,
+    noise_rad: float = 5e-7,
+    glitches: bool = True,
+    gaps: bool = True,
+    lag_fraction: float | None = None,
+    unmeasured_degC: float = 0.1,
+) -> Case:
     """Return an open-world :class:`Case` with ``planted`` effects hidden in element errors."""
     planted = list(planted or [])
     rng = np.random.default_rng(seed)
@@ -151,13 +162,28 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
             level = rng.uniform(0.6, 1.0)
             u[m, src] = level
             feed[m] = 2000.0 * level
-        stages.append({"name": f"{['spindle', 'x_motor', 'y_motor'][src]}-{k}", "start_s": cursor,
-                       "end_s": min(cursor + on, t[-1]), "heat_source": ["spindle", "x_motor", "y_motor"][src],
-                       "axis": "XYZ"[src], "spindle_rpm": float(rpm[m].max()) if m.any() else 0.0,
-                       "feed_mm_min": float(feed[m].max()) if m.any() else 0.0})
-        stages.append({"name": f"rest-{k}", "start_s": min(cursor + on, t[-1]),
-                       "end_s": min(cursor + on + off, t[-1]), "heat_source": "none", "axis": "X",
-                       "spindle_rpm": 0.0, "feed_mm_min": 0.0})
+        stages.append(
+            {
+                "name": f"{['spindle', 'x_motor', 'y_motor'][src]}-{k}",
+                "start_s": cursor,
+                "end_s": min(cursor + on, t[-1]),
+                "heat_source": ["spindle", "x_motor", "y_motor"][src],
+                "axis": "XYZ"[src],
+                "spindle_rpm": float(rpm[m].max()) if m.any() else 0.0,
+                "feed_mm_min": float(feed[m].max()) if m.any() else 0.0,
+            }
+        )
+        stages.append(
+            {
+                "name": f"rest-{k}",
+                "start_s": min(cursor + on, t[-1]),
+                "end_s": min(cursor + on + off, t[-1]),
+                "heat_source": "none",
+                "axis": "X",
+                "spindle_rpm": 0.0,
+                "feed_mm_min": 0.0,
+            }
+        )
         cursor += on + off
         k += 1
     phase = rng.uniform(0, 2 * np.pi)
@@ -196,8 +222,9 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
             k0 = int(np.argmax(after))
             target = room_air + 0.5
             dec = np.exp(-(t[after] - t[k0]) / 600.0)
-            readings[after, j] = target[after] + (readings[k0, j] - target[after]) * dec \
-                + rng.normal(0, 0.01, int(after.sum()))
+            readings[after, j] = (
+                target[after] + (readings[k0, j] - target[after]) * dec + rng.normal(0, 0.01, int(after.sum()))
+            )
 
     # laser sweeps: every axis, positions up then down, 10 s per point; a 1.5 h laser gap
     keep = keep or sorted({(p.axis, p.term) for p in planted if p.axis}) or [("Z", "dz")]
@@ -284,9 +311,18 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
             if glitches:  # single readings hit by EMI: 3 per series, 20-60 x the noise
                 hit = rng.choice(idx.size, size=3, replace=False)
                 y[hit] += rng.choice([-1, 1], 3) * rng.uniform(20, 60, 3) * sigma
-            errors.append(pd.DataFrame({"time_s": rt[idx], "axis": axis, "term": term,
-                                        "position": R["position"].to_numpy()[idx],
-                                        "direction": R["direction"].to_numpy()[idx].astype(int), "value": y}))
+            errors.append(
+                pd.DataFrame(
+                    {
+                        "time_s": rt[idx],
+                        "axis": axis,
+                        "term": term,
+                        "position": R["position"].to_numpy()[idx],
+                        "direction": R["direction"].to_numpy()[idx].astype(int),
+                        "value": y,
+                    }
+                )
+            )
     err = pd.concat(errors, ignore_index=True).sort_values(["time_s", "axis", "term"], kind="stable")
     err = err.reset_index(drop=True)
 
@@ -314,16 +350,18 @@ def openworld_case(planted: list[OpenPlanted] | None = None, seed: int = 0, hour
         "format": "driftlab-bundle/1",
         "machine": {"id": "open-world", "name": "open-world generator (tests)", "resolution_mm": 0.0001},
         "started_at": "2026-03-02T08:00:00Z",
-        "channels": {c: {"location": f"{SITES[c][0].replace('_', ' ')} site {c}", "structure": SITES[c][0]}
-                     for c in names},
+        "channels": {
+            c: {"location": f"{SITES[c][0].replace('_', ' ')} site {c}", "structure": SITES[c][0]} for c in names
+        },
         "room_channels": list(ROOM),
         "model_channels": {a: list(MODEL_CHANNELS) for a in axes},
         "stages": stages,
         "noise": {"length_mm": noise_mm, "angle_rad": noise_rad},
     }
     bundle = Bundle(name=f"open-{seed}", meta=_as_meta(meta), temperatures=temps, conditions=cond, errors=err)
-    return Case(bundle, planted, expected, {"length_mm": noise_mm, "angle_rad": noise_rad}, rho, beyond, signal,
-                beyond_model)
+    return Case(
+        bundle, planted, expected, {"length_mm": noise_mm, "angle_rad": noise_rad}, rho, beyond, signal, beyond_model
+    )
 
 
 def _beyond_span(w: np.ndarray, rows: pd.DataFrame, dT: np.ndarray, names: list[str]) -> float:
@@ -336,8 +374,17 @@ def _beyond_span(w: np.ndarray, rows: pd.DataFrame, dT: np.ndarray, names: list[
     return rmse(w - A @ b)
 
 
-def _expected_params(p: OpenPlanted, delta: np.ndarray, idx: np.ndarray, R: pd.DataFrame, dT_at: np.ndarray,
-                     names: list[str], rpm_at: np.ndarray, rt: np.ndarray, angle: bool) -> dict[str, Any]:
+def _expected_params(
+    p: OpenPlanted,
+    delta: np.ndarray,
+    idx: np.ndarray,
+    R: pd.DataFrame,
+    dT_at: np.ndarray,
+    names: list[str],
+    rpm_at: np.ndarray,
+    rt: np.ndarray,
+    angle: bool,
+) -> dict[str, Any]:
     """Return the catalogue parameters of a planted effect as observed through the chain on its (axis, term).
 
     The observed change ``delta`` is regressed on the catalogue's own regressor (direction,

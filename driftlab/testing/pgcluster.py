@@ -58,9 +58,7 @@ class PgCluster:
         if self._as_postgres:
             pw = pwd.getpwnam("postgres")
             os.chown(self.root, pw.pw_uid, pw.pw_gid)
-        init = self._run(
-            ["initdb", "-D", str(self.data), "-U", "postgres", "--auth=trust", "-E", "UTF8", "--no-sync"]
-        )
+        init = self._run(["initdb", "-D", str(self.data), "-U", "postgres", "--auth=trust", "-E", "UTF8", "--no-sync"])
         if init.returncode != 0:
             raise PgClusterError(f"initdb failed: {' '.join(init.stderr.split())[:300]}")
         options = f"-c listen_addresses=127.0.0.1 -c unix_socket_directories={self.root}"
@@ -70,8 +68,19 @@ class PgCluster:
         for _ in range(attempts):
             self.port = free_port()
             proc = self._run(
-                ["pg_ctl", "-D", str(self.data), "-l", str(self.root / "server.log"), "-w", "-t", "60",
-                 "-o", f"-p {self.port} {options}", "start"]
+                [
+                    "pg_ctl",
+                    "-D",
+                    str(self.data),
+                    "-l",
+                    str(self.root / "server.log"),
+                    "-w",
+                    "-t",
+                    "60",
+                    "-o",
+                    f"-p {self.port} {options}",
+                    "start",
+                ]
             )
             if proc.returncode == 0:
                 self._started = True
@@ -88,8 +97,7 @@ class PgCluster:
         import psycopg
 
         name = name or f"t_{uuid.uuid4().hex[:16]}"
-        with psycopg.connect(f"host=127.0.0.1 port={self.port} user=postgres dbname=postgres",
-                             autocommit=True) as conn:
+        with psycopg.connect(f"host=127.0.0.1 port={self.port} user=postgres dbname=postgres", autocommit=True) as conn:
             tmpl = f" TEMPLATE {template}" if template else ""
             conn.execute(f'CREATE DATABASE "{name}"{tmpl}')
         return self.url(name)

@@ -12,11 +12,19 @@ from urllib.parse import urlsplit
 import pytest
 
 CHROMIUM = os.environ.get("DRIFTLAB_CHROMIUM", "/usr/bin/chromium")
-ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        "--disable-dev-shm-usage",
-        # no name resolves but the loopback: a page that needs the internet fails here as it would offline
-        "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE localhost, EXCLUDE 127.0.0.1"]
+ARGS = [
+    "--headless=new",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-dev-shm-usage",
+    # no name resolves but the loopback: a page that needs the internet fails here as it would offline
+    "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE localhost, EXCLUDE 127.0.0.1",
+]
 LOCAL = {"127.0.0.1", "localhost", "::1"}
 
 
@@ -25,8 +33,11 @@ def require_chromium() -> str:
     path = CHROMIUM if os.path.exists(CHROMIUM) else shutil.which("chromium")
     if path:
         return path
-    required = os.environ.get("CI") or os.environ.get("DRIFTLAB_REQUIRE_BROWSER") == "1" or \
-        os.environ.get("DRIFTLAB_REQUIRE_PG") == "1"
+    required = (
+        os.environ.get("CI")
+        or os.environ.get("DRIFTLAB_REQUIRE_BROWSER") == "1"
+        or os.environ.get("DRIFTLAB_REQUIRE_PG") == "1"
+    )
     msg = f"no Chromium at {CHROMIUM}: `make setup` installs Debian's chromium"
     if required:
         pytest.fail(msg)

@@ -33,10 +33,24 @@ def small_meta(machine: str = MACHINE, started_at: str = "2026-03-02T08:00:00Z")
         "room_channels": ["T49", "T50"],
         "model_channels": {"Z": ["T1", "T2", "T49"]},
         "stages": [
-            {"name": "spindle-8k", "start_s": 0, "end_s": 1200, "heat_source": "spindle", "axis": "Z",
-             "spindle_rpm": 8000, "feed_mm_min": 0},
-            {"name": "cool", "start_s": 1200, "end_s": 2400, "heat_source": "none", "axis": "Z",
-             "spindle_rpm": 0, "feed_mm_min": 0},
+            {
+                "name": "spindle-8k",
+                "start_s": 0,
+                "end_s": 1200,
+                "heat_source": "spindle",
+                "axis": "Z",
+                "spindle_rpm": 8000,
+                "feed_mm_min": 0,
+            },
+            {
+                "name": "cool",
+                "start_s": 1200,
+                "end_s": 2400,
+                "heat_source": "none",
+                "axis": "Z",
+                "spindle_rpm": 0,
+                "feed_mm_min": 0,
+            },
         ],
     }
 
@@ -49,8 +63,18 @@ def small_frames(seed: int = 0, scans: int = 80, sweeps: int = 8) -> tuple[pd.Da
     for k, ch in enumerate(["T1", "T2", "T49", "T50"]):
         temps[ch] = 20.0 + k + 0.01 * t / 30 + rng.normal(0, 0.05, scans)
     temps.loc[3, "T2"] = np.nan
-    cond = pd.DataFrame({"time_s": t, "spindle_rpm": np.where(t < 1200, 8000.0, 0.0), "feed_mm_min": 0.0,
-                         "x": 0.0, "y": 0.0, "z": np.nan, "a": 0.0, "b": 0.0})
+    cond = pd.DataFrame(
+        {
+            "time_s": t,
+            "spindle_rpm": np.where(t < 1200, 8000.0, 0.0),
+            "feed_mm_min": 0.0,
+            "x": 0.0,
+            "y": 0.0,
+            "z": np.nan,
+            "a": 0.0,
+            "b": 0.0,
+        }
+    )
     rows = []
     positions = np.linspace(0.0, 400.0, 5)
     for s in range(sweeps):
@@ -70,17 +94,33 @@ def model_document(machine: str = MACHINE, coefficient: float = 0.002) -> dict[s
     """Return a small valid model document reading T1 and T2 (dz of the spindle link, dx of the Z joint)."""
     return {
         "machine": machine,
-        "inputs": {"T1": {"reference": 20.0, "min": 19.0, "max": 30.0},
-                   "T2": {"reference": 21.0, "min": 19.0, "max": 30.0}},
+        "inputs": {
+            "T1": {"reference": 20.0, "min": 19.0, "max": 30.0},
+            "T2": {"reference": 21.0, "min": 19.0, "max": 30.0},
+        },
         "kept_channels": ["T1", "T2"],
         "terms": [
-            {"element": "T1", "param": "dz", "axis": "Z", "term": "dz",
-             "features": [{"kind": "intercept", "name": "const"},
-                          {"kind": "dT", "name": "dT[T1]", "channels": ["T1"]}],
-             "coefficients": [0.001, coefficient], "statistics": {"rmse_train": 0.0005, "n_train": 80}},
-            {"element": "phi_z", "param": "dx", "axis": "Z", "term": "dx",
-             "features": [{"kind": "dT", "name": "dT[T2]", "channels": ["T2"]}],
-             "coefficients": [0.0005], "statistics": {"rmse_train": 0.0004, "n_train": 80}},
+            {
+                "element": "T1",
+                "param": "dz",
+                "axis": "Z",
+                "term": "dz",
+                "features": [
+                    {"kind": "intercept", "name": "const"},
+                    {"kind": "dT", "name": "dT[T1]", "channels": ["T1"]},
+                ],
+                "coefficients": [0.001, coefficient],
+                "statistics": {"rmse_train": 0.0005, "n_train": 80},
+            },
+            {
+                "element": "phi_z",
+                "param": "dx",
+                "axis": "Z",
+                "term": "dx",
+                "features": [{"kind": "dT", "name": "dT[T2]", "channels": ["T2"]}],
+                "coefficients": [0.0005],
+                "statistics": {"rmse_train": 0.0004, "n_train": 80},
+            },
         ],
     }
 
@@ -102,5 +142,3 @@ def seed(url: str, tmp_path: Path) -> Seeded:
         campaign_id = store.import_bundle(load_bundle(path))
         doc = model_registry.register_model(store, model_document(), source_campaigns=[campaign_id])
     return Seeded(url, campaign_id, int(doc.version or 0))
-
-

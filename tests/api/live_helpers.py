@@ -36,8 +36,9 @@ def serving(app: Any) -> Iterator[str]:
     import uvicorn
 
     port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
-                                           timeout_graceful_shutdown=1))
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", timeout_graceful_shutdown=1)
+    )
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
@@ -58,9 +59,24 @@ def serve_process(db_url: str, *extra: str) -> Iterator[str]:
     port = free_port()
     env = {**os.environ, "DRIFTLAB_DB_URL": db_url}
     env.pop("DRIFTLAB_API_TOKEN", None)
-    proc = subprocess.Popen([sys.executable, "-m", "driftlab.cli", "serve", "--port", str(port), "--log-level",
-                             "warning", "--no-jobs", *extra], env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "serve",
+            "--port",
+            str(port),
+            "--log-level",
+            "warning",
+            "--no-jobs",
+            *extra,
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 60
@@ -78,13 +94,30 @@ def serve_process(db_url: str, *extra: str) -> Iterator[str]:
         stop(proc)
 
 
-def start_daemon(db_url: str, speed: float, *extra: str, plan: Path = DEMO_PLAN,
-                 scenario: Path = CLEAN) -> subprocess.Popen[str]:
+def start_daemon(
+    db_url: str, speed: float, *extra: str, plan: Path = DEMO_PLAN, scenario: Path = CLEAN
+) -> subprocess.Popen[str]:
     """Start `driftlab daemon` on the virtual machine as a real subprocess."""
     env = {**os.environ, "DRIFTLAB_DB_URL": db_url}
-    return subprocess.Popen([sys.executable, "-m", "driftlab.cli", "daemon", "--plan", str(plan), "--sim",
-                             str(scenario), "--speed", "0" if math.isinf(speed) else str(speed), *extra],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "daemon",
+            "--plan",
+            str(plan),
+            "--sim",
+            str(scenario),
+            "--speed",
+            "0" if math.isinf(speed) else str(speed),
+            *extra,
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def stop(proc: subprocess.Popen[Any]) -> None:

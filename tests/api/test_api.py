@@ -47,7 +47,11 @@ async def test_machines_and_campaigns(client: httpx.AsyncClient, seeded: Seeded)
     stages = (await client.get(f"/campaigns/{seeded.campaign_id}/stages")).json()
     assert stages == d["stage_list"]
     assert [ch["is_room"] for ch in (await client.get(f"/campaigns/{seeded.campaign_id}/channels")).json()] == [
-        False, False, True, True]
+        False,
+        False,
+        True,
+        True,
+    ]
     assert_problem(await client.get("/campaigns/999"), 404)
     assert_problem(await client.get("/campaigns/abc"), 400)
 
@@ -88,8 +92,9 @@ async def test_temperature_history_paging_cursor_and_buckets(client: httpx.Async
 
 async def test_condition_and_error_histories(client: httpx.AsyncClient, seeded: Seeded) -> None:
     base = f"/campaigns/{seeded.campaign_id}"
-    r = (await client.get(f"{base}/conditions", params=[("column", "spindle_rpm"), ("column", "z"),
-                                                         ("limit", 3)])).json()
+    r = (
+        await client.get(f"{base}/conditions", params=[("column", "spindle_rpm"), ("column", "z"), ("limit", 3)])
+    ).json()
     assert r["columns"] == ["spindle_rpm", "z"]
     assert r["points"][0] == {"time_s": 0.0, "spindle_rpm": 8000.0, "z": None}
     assert r["next_cursor"]
@@ -126,17 +131,25 @@ async def test_latest_scan_of_the_machine(client: httpx.AsyncClient, seeded: See
 
 
 async def test_drift(client: httpx.AsyncClient, seeded: Seeded) -> None:
-    r = (await client.get(f"/machines/{MACHINE}/drift", params={"axis": "Z", "term": "dz", "position": 410,
-                                                                 "direction": 1})).json()
+    r = (
+        await client.get(
+            f"/machines/{MACHINE}/drift", params={"axis": "Z", "term": "dz", "position": 410, "direction": 1}
+        )
+    ).json()
     assert len(r["points"]) == 8 and all(p["position"] == 400.0 for p in r["points"])
     assert r["points"][0]["time"].startswith("2026-03-02T08:00")
     values = [p["value"] for p in r["points"]]
     assert values == sorted(values)  # the planted drift grows sweep after sweep
-    i = (await client.get(f"/machines/{MACHINE}/drift", params={"axis": "Z", "term": "dz", "position": 150,
-                                                                 "interpolate": True, "direction": 1})).json()
+    i = (
+        await client.get(
+            f"/machines/{MACHINE}/drift",
+            params={"axis": "Z", "term": "dz", "position": 150, "interpolate": True, "direction": 1},
+        )
+    ).json()
     assert len(i["points"]) == 8 and all(p["position"] == 150.0 for p in i["points"])
-    assert_problem(await client.get(f"/machines/{MACHINE}/drift", params={"axis": "Z", "term": "dz",
-                                                                           "interpolate": True}), 400)
+    assert_problem(
+        await client.get(f"/machines/{MACHINE}/drift", params={"axis": "Z", "term": "dz", "interpolate": True}), 400
+    )
     assert_problem(await client.get("/machines/ghost/drift", params={"axis": "Z", "term": "dz"}), 404)
 
 
@@ -166,8 +179,9 @@ async def test_current_model_etag_304_and_cache_invalidation(client: httpx.Async
     assert cache.loads == loads + 1
 
     # a new version changes the ETag at once (invalidation, not TTL)
-    new = await client.post(f"/machines/{MACHINE}/models", json={"document": model_document(coefficient=0.003)},
-                            headers=AUTH)
+    new = await client.post(
+        f"/machines/{MACHINE}/models", json={"document": model_document(coefficient=0.003)}, headers=AUTH
+    )
     assert new.status_code == 201 and new.json()["version"] == seeded.model_version + 1
     assert new.headers["location"].endswith(f"/models/{seeded.model_version + 1}")
     r2 = await client.get(url, headers={"If-None-Match": etag})
@@ -202,8 +216,12 @@ async def test_model_registration_is_validated(client: httpx.AsyncClient, store)
     assert_problem(await client.post(f"/machines/{MACHINE}/models", json={"doc": 1}, headers=AUTH), 422)
     nan = model_document()
     raw = json.dumps({"document": nan}).replace("0.002", "NaN")  # Python's parser would take it
-    body = assert_problem(await client.post(f"/machines/{MACHINE}/models", content=raw, headers={
-        **AUTH, "Content-Type": "application/json"}), 422)
+    body = assert_problem(
+        await client.post(
+            f"/machines/{MACHINE}/models", content=raw, headers={**AUTH, "Content-Type": "application/json"}
+        ),
+        422,
+    )
     assert "finite" in body["detail"]
     nul = model_document()
     nul["screening"] = {"note": "a\x00b"}
@@ -212,18 +230,23 @@ async def test_model_registration_is_validated(client: httpx.AsyncClient, store)
     assert store.table_counts() == before
 
 
-@pytest.mark.parametrize("headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": f"Basic {TOKEN}"},
-                                     {"Authorization": TOKEN}])
-async def test_writes_need_the_token_and_change_nothing(client: httpx.AsyncClient, store, seeded: Seeded,
-                                                        headers: dict) -> None:
+@pytest.mark.parametrize(
+    "headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": f"Basic {TOKEN}"}, {"Authorization": TOKEN}]
+)
+async def test_writes_need_the_token_and_change_nothing(
+    client: httpx.AsyncClient, store, seeded: Seeded, headers: dict
+) -> None:
     before = store.table_counts()
     writes = [
         ("POST", f"/machines/{MACHINE}/models", {"document": model_document()}),
         ("POST", f"/machines/{MACHINE}/models/1/promote", None),
         ("POST", f"/machines/{MACHINE}/models/1/retire", None),
         ("POST", "/jobs", {"kind": "diagnose", "campaign_ids": [seeded.campaign_id]}),
-        ("POST", f"/machines/{MACHINE}/online/probe", {"x": 0, "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0,
-                                                        "temperatures": {"T1": 21, "T2": 22}}),
+        (
+            "POST",
+            f"/machines/{MACHINE}/online/probe",
+            {"x": 0, "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0, "temperatures": {"T1": 21, "T2": 22}},
+        ),
         ("DELETE", f"/campaigns/{seeded.campaign_id}", None),
         ("DELETE", f"/machines/{MACHINE}/online", None),
     ]
@@ -292,9 +315,15 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
     last = None
     for k in range(30):
         t1 = 25.0 + 0.1 * (k % 5)
-        body = {"x": 100.0, "y": 50.0, "z": -200.0, "a_deg": 0.0, "b_deg": 0.0,
-                "temperatures": {"T1": t1, "T2": 23.0, "T49": 20.5},
-                "measured_at": f"2026-03-03T08:{k:02d}:00Z"}
+        body = {
+            "x": 100.0,
+            "y": 50.0,
+            "z": -200.0,
+            "a_deg": 0.0,
+            "b_deg": 0.0,
+            "temperatures": {"T1": t1, "T2": 23.0, "T49": 20.5},
+            "measured_at": f"2026-03-03T08:{k:02d}:00Z",
+        }
         if k == 0:
             body |= {"forgetting": 0.95}
         # measure exactly what the models predict plus the constant offset
@@ -330,18 +359,25 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
     # the same probing twice is refused and changes nothing; a channel change is refused
     dup = await client.post(url, json={**body}, headers=AUTH)
     assert_problem(dup, 409)
-    assert_problem(await client.post(url, json={**body, "measured_at": "2026-03-04T00:00:00Z", "forgetting": 0.9},
-                                     headers=AUTH), 409)
-    assert_problem(await client.post(url, json={**body, "measured_at": "2026-03-04T00:00:00Z",
-                                                "temperatures": {"T1": 25.0}}, headers=AUTH), 422)
+    assert_problem(
+        await client.post(url, json={**body, "measured_at": "2026-03-04T00:00:00Z", "forgetting": 0.9}, headers=AUTH),
+        409,
+    )
+    assert_problem(
+        await client.post(
+            url, json={**body, "measured_at": "2026-03-04T00:00:00Z", "temperatures": {"T1": 25.0}}, headers=AUTH
+        ),
+        422,
+    )
     assert store.table_counts() == counts
     # a reset (after maintenance) starts the next probe from the off-line model; the probe history stays
     assert (await client.delete(f"/machines/{MACHINE}/online", headers=AUTH)).status_code == 204
     assert_problem(await client.get(f"/machines/{MACHINE}/online"), 404)
     assert_problem(await client.delete(f"/machines/{MACHINE}/online", headers=AUTH), 404)
     assert store.table_counts()["probe_measurements"] == 30
-    fresh = await client.post(url, json={**body, "measured_at": "2026-03-05T00:00:00Z", "forgetting": 0.9},
-                              headers=AUTH)
+    fresh = await client.post(
+        url, json={**body, "measured_at": "2026-03-05T00:00:00Z", "forgetting": 0.9}, headers=AUTH
+    )
     assert fresh.status_code == 200 and fresh.json()["n_updates"] == 1 and fresh.json()["forgetting"] == 0.9
     # from P(0) = 1: theta_1 = r / (lambda + 1) of the first residual alone
     for c in ("dx", "dy", "dz"):

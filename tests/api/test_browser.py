@@ -42,8 +42,9 @@ def test_live_page_follows_a_running_campaign(tmp_path: Path) -> None:
             t_first = float(page.get_attribute('[data-live="latest-time"]', "data-seconds"))
             seen = {first}
             for _ in range(3):
-                page.wait_for_function(f"Number(document.querySelector('{SCANS}').textContent) > {max(seen)}",
-                                       timeout=30_000)
+                page.wait_for_function(
+                    f"Number(document.querySelector('{SCANS}').textContent) > {max(seen)}", timeout=30_000
+                )
                 seen.add(_scans(page))
             t_last = float(page.get_attribute('[data-live="latest-time"]', "data-seconds"))
             assert page.inner_text('[data-live="stage"]') in stages

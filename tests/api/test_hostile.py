@@ -45,60 +45,183 @@ def _deep(n: int) -> bytes:
 CASES: list[tuple[str, str, str, dict[str, Any], int, str]] = [
     # writes without a valid token: 401/403 before the body is looked at
     ("jobs-bad-json-no-token", "POST", "/jobs", {"content": BAD_JSON, "headers": JSON}, 401, "missing bearer token"),
-    ("models-bad-json-no-token", "POST", "/machines/{m}/models", {"content": BAD_JSON, "headers": JSON}, 401,
-     "missing bearer token"),
-    ("probe-bad-json-no-token", "POST", "/machines/{m}/online/probe", {"content": BAD_JSON, "headers": JSON}, 401,
-     "missing bearer token"),
+    (
+        "models-bad-json-no-token",
+        "POST",
+        "/machines/{m}/models",
+        {"content": BAD_JSON, "headers": JSON},
+        401,
+        "missing bearer token",
+    ),
+    (
+        "probe-bad-json-no-token",
+        "POST",
+        "/machines/{m}/online/probe",
+        {"content": BAD_JSON, "headers": JSON},
+        401,
+        "missing bearer token",
+    ),
     ("promote-no-token", "POST", "/machines/{m}/models/1/promote", {}, 401, "missing bearer token"),
-    ("retire-wrong-token", "POST", "/machines/{m}/models/1/retire", {"headers": {"Authorization": "Bearer nope"}},
-     401, "invalid bearer token"),
+    (
+        "retire-wrong-token",
+        "POST",
+        "/machines/{m}/models/1/retire",
+        {"headers": {"Authorization": "Bearer nope"}},
+        401,
+        "invalid bearer token",
+    ),
     ("delete-no-token", "DELETE", "/campaigns/{cid}", {}, 401, "missing bearer token"),
-    ("delete-basic-auth", "DELETE", "/campaigns/{cid}", {"headers": {"Authorization": "Basic dXNlcjpwdw=="}}, 401,
-     "invalid bearer token"),
-    ("jobs-empty-bearer", "POST", "/jobs", {"json": {"kind": "fit"}, "headers": {"Authorization": "Bearer "}}, 401,
-     "invalid bearer token"),
-    ("huge-body-no-token", "POST", "/jobs", {"content": b"x" * (LIMIT * 4), "headers": JSON}, 401,
-     "missing bearer token"),
+    (
+        "delete-basic-auth",
+        "DELETE",
+        "/campaigns/{cid}",
+        {"headers": {"Authorization": "Basic dXNlcjpwdw=="}},
+        401,
+        "invalid bearer token",
+    ),
+    (
+        "jobs-empty-bearer",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "fit"}, "headers": {"Authorization": "Bearer "}},
+        401,
+        "invalid bearer token",
+    ),
+    (
+        "huge-body-no-token",
+        "POST",
+        "/jobs",
+        {"content": b"x" * (LIMIT * 4), "headers": JSON},
+        401,
+        "missing bearer token",
+    ),
     # bodies over the limit, with the token
-    ("huge-body-with-token", "POST", "/jobs", {"content": b"x" * (LIMIT * 4), "headers": {**AUTH, **JSON}}, 413,
-     "larger than the limit"),
-    ("huge-model-document", "POST", "/machines/{m}/models",
-     {"json": {"document": {"pad": "p" * LIMIT}}, "headers": AUTH}, 413, "larger than the limit"),
+    (
+        "huge-body-with-token",
+        "POST",
+        "/jobs",
+        {"content": b"x" * (LIMIT * 4), "headers": {**AUTH, **JSON}},
+        413,
+        "larger than the limit",
+    ),
+    (
+        "huge-model-document",
+        "POST",
+        "/machines/{m}/models",
+        {"json": {"document": {"pad": "p" * LIMIT}}, "headers": AUTH},
+        413,
+        "larger than the limit",
+    ),
     # malformed bodies, with the token: 400/422, nothing stored
     ("jobs-bad-json", "POST", "/jobs", {"content": BAD_JSON, "headers": {**AUTH, **JSON}}, 422, "JSON"),
-    ("jobs-deep-json", "POST", "/jobs", {"content": _deep(20_000), "headers": {**AUTH, **JSON}}, 400,
-     "error parsing the body"),
-    ("probe-infinite-number", "POST", "/machines/{m}/online/probe",
-     {"content": b'{"x": 1e400, "y": 0, "z": 0}', "headers": {**AUTH, **JSON}}, 422, "finite"),
+    (
+        "jobs-deep-json",
+        "POST",
+        "/jobs",
+        {"content": _deep(20_000), "headers": {**AUTH, **JSON}},
+        400,
+        "error parsing the body",
+    ),
+    (
+        "probe-infinite-number",
+        "POST",
+        "/machines/{m}/online/probe",
+        {"content": b'{"x": 1e400, "y": 0, "z": 0}', "headers": {**AUTH, **JSON}},
+        422,
+        "finite",
+    ),
     ("jobs-unknown-kind", "POST", "/jobs", {"json": {"kind": "sing"}, "headers": AUTH}, 422, "kind"),
-    ("jobs-huge-campaign-id", "POST", "/jobs", {"json": {"kind": "diagnose", "campaign_ids": [10**40]},
-                                                "headers": AUTH}, 422, "campaign_ids"),
+    (
+        "jobs-huge-campaign-id",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": [10**40]}, "headers": AUTH},
+        422,
+        "campaign_ids",
+    ),
     ("delete-missing-campaign", "DELETE", "/campaigns/999999", {"headers": AUTH}, 404, "no campaign 999999"),
     # cursors: every malformed one is 400, huge integers included
-    ("cursor-huge-int-temperature", "GET", "/campaigns/{cid}/temperatures/T1",
-     {"params": {"cursor": _cursor({"k": "temperature", "after": 10**100})}}, 400, "not a valid temperature cursor"),
-    ("cursor-100-digits", "GET", "/campaigns/{cid}/errors",
-     {"params": {"cursor": base64.urlsafe_b64encode(b'{"k":"error","after":' + b"9" * 100 + b"}").decode()}}, 400,
-     "not a valid error cursor"),
-    ("cursor-huge-int-error", "GET", "/campaigns/{cid}/errors",
-     {"params": {"cursor": _cursor({"k": "error", "after": 2**63})}}, 400, "not a valid error cursor"),
-    ("cursor-negative-seq", "GET", "/campaigns/{cid}/errors",
-     {"params": {"cursor": _cursor({"k": "error", "after": -1})}},
-     400, "not a valid error cursor"),
-    ("cursor-float-seq", "GET", "/campaigns/{cid}/errors",
-     {"params": {"cursor": _cursor({"k": "error", "after": 1.5})}},
-     400, "not a valid error cursor"),
-    ("cursor-other-kind", "GET", "/campaigns/{cid}/conditions",
-     {"params": {"cursor": _cursor({"k": "error", "after": 1})}}, 400, "not a valid condition cursor"),
-    ("cursor-not-base64", "GET", "/campaigns/{cid}/temperatures/T1", {"params": {"cursor": "%%%"}}, 400,
-     "not a valid temperature cursor"),
-    ("cursor-deep-json", "GET", "/campaigns/{cid}/errors",
-     {"params": {"cursor": base64.urlsafe_b64encode(_deep(70)).decode()}}, 400, "not a valid error cursor"),
-    ("cursor-nan", "GET", "/campaigns/{cid}/temperatures/T1",
-     {"params": {"cursor": _cursor({"k": "temperature", "after": float("nan")})}}, 400, "not a valid"),
+    (
+        "cursor-huge-int-temperature",
+        "GET",
+        "/campaigns/{cid}/temperatures/T1",
+        {"params": {"cursor": _cursor({"k": "temperature", "after": 10**100})}},
+        400,
+        "not a valid temperature cursor",
+    ),
+    (
+        "cursor-100-digits",
+        "GET",
+        "/campaigns/{cid}/errors",
+        {"params": {"cursor": base64.urlsafe_b64encode(b'{"k":"error","after":' + b"9" * 100 + b"}").decode()}},
+        400,
+        "not a valid error cursor",
+    ),
+    (
+        "cursor-huge-int-error",
+        "GET",
+        "/campaigns/{cid}/errors",
+        {"params": {"cursor": _cursor({"k": "error", "after": 2**63})}},
+        400,
+        "not a valid error cursor",
+    ),
+    (
+        "cursor-negative-seq",
+        "GET",
+        "/campaigns/{cid}/errors",
+        {"params": {"cursor": _cursor({"k": "error", "after": -1})}},
+        400,
+        "not a valid error cursor",
+    ),
+    (
+        "cursor-float-seq",
+        "GET",
+        "/campaigns/{cid}/errors",
+        {"params": {"cursor": _cursor({"k": "error", "after": 1.5})}},
+        400,
+        "not a valid error cursor",
+    ),
+    (
+        "cursor-other-kind",
+        "GET",
+        "/campaigns/{cid}/conditions",
+        {"params": {"cursor": _cursor({"k": "error", "after": 1})}},
+        400,
+        "not a valid condition cursor",
+    ),
+    (
+        "cursor-not-base64",
+        "GET",
+        "/campaigns/{cid}/temperatures/T1",
+        {"params": {"cursor": "%%%"}},
+        400,
+        "not a valid temperature cursor",
+    ),
+    (
+        "cursor-deep-json",
+        "GET",
+        "/campaigns/{cid}/errors",
+        {"params": {"cursor": base64.urlsafe_b64encode(_deep(70)).decode()}},
+        400,
+        "not a valid error cursor",
+    ),
+    (
+        "cursor-nan",
+        "GET",
+        "/campaigns/{cid}/temperatures/T1",
+        {"params": {"cursor": _cursor({"k": "temperature", "after": float("nan")})}},
+        400,
+        "not a valid",
+    ),
     ("cursor-too-long", "GET", "/campaigns/{cid}/errors", {"params": {"cursor": "A" * 500}}, 400, "cursor"),
-    ("cursor-and-offset", "GET", "/campaigns/{cid}/errors",
-     {"params": {"cursor": _cursor({"k": "error", "after": 1}), "offset": 3}}, 400, "either offset or cursor"),
+    (
+        "cursor-and-offset",
+        "GET",
+        "/campaigns/{cid}/errors",
+        {"params": {"cursor": _cursor({"k": "error", "after": 1}), "offset": 3}},
+        400,
+        "either offset or cursor",
+    ),
     # other parameters
     ("limit-huge", "GET", "/campaigns", {"params": {"limit": str(10**30)}}, 400, "limit"),
     ("offset-negative", "GET", "/machines", {"params": {"offset": "-1"}}, 400, "offset"),
@@ -109,17 +232,41 @@ CASES: list[tuple[str, str, str, dict[str, Any], int, str]] = [
     ("machine-id-too-long", "GET", "/models", {"params": {"machine_id": "m" * 100}}, 400, "machine_id"),
     ("start-s-nan", "GET", "/campaigns/{cid}/temperatures/T1", {"params": {"start_s": "nan"}}, 400, "start_s"),
     ("start-s-1e300", "GET", "/campaigns/{cid}/conditions", {"params": {"start_s": "1e300"}}, 400, "start_s"),
-    ("time-range-backwards", "GET", "/campaigns/{cid}/errors", {"params": {"start_s": 10, "end_s": 5}}, 400,
-     "ends (5.0) before it starts"),
+    (
+        "time-range-backwards",
+        "GET",
+        "/campaigns/{cid}/errors",
+        {"params": {"start_s": 10, "end_s": 5}},
+        400,
+        "ends (5.0) before it starts",
+    ),
     ("buckets-zero", "GET", "/campaigns/{cid}/temperatures/T1", {"params": {"buckets": 0}}, 400, "buckets"),
     ("axis-unknown", "GET", "/campaigns/{cid}/errors", {"params": {"axis": "Q"}}, 400, "axis"),
     ("direction-zero", "GET", "/campaigns/{cid}/errors", {"params": {"direction": 0}}, 400, "direction"),
-    ("drift-bad-date", "GET", "/machines/{m}/drift", {"params": {"axis": "Z", "term": "dz", "start": "99999-01-01"}},
-     400, "start"),
-    ("drift-interpolate-without-position", "GET", "/machines/{m}/drift",
-     {"params": {"axis": "Z", "term": "dz", "interpolate": "true"}}, 400, "interpolation needs a position"),
-    ("condition-unknown", "GET", "/campaigns/{cid}/conditions", {"params": {"column": "torque"}}, 400,
-     "query.column.0: Input should be"),
+    (
+        "drift-bad-date",
+        "GET",
+        "/machines/{m}/drift",
+        {"params": {"axis": "Z", "term": "dz", "start": "99999-01-01"}},
+        400,
+        "start",
+    ),
+    (
+        "drift-interpolate-without-position",
+        "GET",
+        "/machines/{m}/drift",
+        {"params": {"axis": "Z", "term": "dz", "interpolate": "true"}},
+        400,
+        "interpolation needs a position",
+    ),
+    (
+        "condition-unknown",
+        "GET",
+        "/campaigns/{cid}/conditions",
+        {"params": {"column": "torque"}},
+        400,
+        "query.column.0: Input should be",
+    ),
     ("put-not-allowed", "PUT", "/campaigns/{cid}", {"content": BAD_JSON}, 405, "Method Not Allowed"),
 ]
 
@@ -148,8 +295,9 @@ async def test_hostile_request(case, small_client: httpx.AsyncClient, seeded: Se
     assert store.table_counts() == before
 
 
-async def _asgi(app: Any, method: str, path: str, headers: list[tuple[bytes, bytes]],
-                chunks: list[bytes]) -> tuple[int, dict[str, Any], int]:
+async def _asgi(
+    app: Any, method: str, path: str, headers: list[tuple[bytes, bytes]], chunks: list[bytes]
+) -> tuple[int, dict[str, Any], int]:
     """Call the app directly; return (status, problem, how many body chunks the app pulled)."""
     pulled = 0
     queue = list(chunks)
@@ -166,9 +314,21 @@ async def _asgi(app: Any, method: str, path: str, headers: list[tuple[bytes, byt
     async def send(message: dict[str, Any]) -> None:
         sent.append(message)
 
-    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": method, "scheme": "http",
-             "path": path, "raw_path": path.encode(), "query_string": b"", "headers": headers,
-             "server": ("test", 80), "client": ("127.0.0.1", 1), "root_path": "", "app": app}
+    scope = {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": method,
+        "scheme": "http",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": b"",
+        "headers": headers,
+        "server": ("test", 80),
+        "client": ("127.0.0.1", 1),
+        "root_path": "",
+        "app": app,
+    }
     await app(scope, receive, send)
     start = next(m for m in sent if m["type"] == "http.response.start")
     body = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
@@ -186,8 +346,9 @@ async def test_announced_and_streamed_bodies_over_the_limit(small_client: httpx.
     before = store.table_counts()
     auth = [(b"authorization", f"Bearer {TOKEN}".encode()), (b"content-type", b"application/json")]
     app = small_client.app  # type: ignore[attr-defined]
-    status, problem, pulled = await _asgi(app, "POST", "/jobs", [*auth, (b"content-length", str(LIMIT + 1).encode())],
-                                          [b" " * (LIMIT + 1)])
+    status, problem, pulled = await _asgi(
+        app, "POST", "/jobs", [*auth, (b"content-length", str(LIMIT + 1).encode())], [b" " * (LIMIT + 1)]
+    )
     assert (status, pulled) == (413, 0) and problem["status"] == 413
     # chunked (no Content-Length): refused once the count passes the limit, long before the end
     chunks = [b" " * 4096] * 1000
@@ -201,13 +362,15 @@ async def test_announced_and_streamed_bodies_over_the_limit(small_client: httpx.
 ADDRESSABLE_IDS = ["a", "Z", "9", "vmc.5ax:01", "a-b_c.d:e", "m" * 64, "a..", "x:", "A1-"]
 
 
-async def test_every_importable_machine_id_is_addressable(small_client: httpx.AsyncClient, store: Store,
-                                                          tmp_path: Path) -> None:
+async def test_every_importable_machine_id_is_addressable(
+    small_client: httpx.AsyncClient, store: Store, tmp_path: Path
+) -> None:
     """An id import accepts is reachable as /machines/{id} (and what the API could not address is refused)."""
     temps, cond, errors = small_frames(scans=8, sweeps=1)
     for k, machine in enumerate(ADDRESSABLE_IDS):
-        path = write_bundle(tmp_path / f"b{k}", small_meta(machine, f"2026-03-{k + 2:02d}T08:00:00Z"), temps, cond,
-                            errors)
+        path = write_bundle(
+            tmp_path / f"b{k}", small_meta(machine, f"2026-03-{k + 2:02d}T08:00:00Z"), temps, cond, errors
+        )
         store.import_bundle(load_bundle(path))
         r = await small_client.get(f"/machines/{quote(machine, safe='')}")
         assert r.status_code == 200 and r.json()["id"] == machine, (machine, r.text)
@@ -243,9 +406,14 @@ def test_concurrent_imports_of_a_new_machine(store: Store, tmp_path: Path) -> No
     temps, cond, errors = small_frames(scans=8, sweeps=1)
     for rnd in range(3):
         machine = f"race-{rnd}"
-        bundles = [load_bundle(write_bundle(tmp_path / f"r{rnd}-{i}",
-                                            small_meta(machine, f"2026-04-0{i + 1}T08:00:00Z"),
-                                            temps, cond, errors)) for i in range(4)]
+        bundles = [
+            load_bundle(
+                write_bundle(
+                    tmp_path / f"r{rnd}-{i}", small_meta(machine, f"2026-04-0{i + 1}T08:00:00Z"), temps, cond, errors
+                )
+            )
+            for i in range(4)
+        ]
         results = _race(4, lambda i, bundles=bundles: store.import_bundle(bundles[i]))
         assert all(isinstance(r, int) for r in results), results
         assert len(set(results)) == 4
@@ -263,8 +431,9 @@ def test_concurrent_imports_of_one_bundle(store: Store, tmp_path: Path) -> None:
     assert store.table_counts()["campaigns"] == before["campaigns"] + 1
 
 
-async def test_concurrent_deletes_of_one_campaign(small_client: httpx.AsyncClient, seeded: Seeded,
-                                                  store: Store) -> None:
+async def test_concurrent_deletes_of_one_campaign(
+    small_client: httpx.AsyncClient, seeded: Seeded, store: Store
+) -> None:
     """Four DELETEs of one campaign at once: exactly one 204, the others 404, every sample gone."""
     path = f"/campaigns/{seeded.campaign_id}"
     answers = await asyncio.gather(*(small_client.delete(path, headers=AUTH) for _ in range(4)))

@@ -39,8 +39,15 @@ EXTERNAL = re.compile(r"""(?:src|href)\s*=\s*["']?(?:https?:)?//""", re.I)
 
 def _daemon(db_url: str, plan: Path, commits: int, resume: bool) -> int:
     """Run the daemon in this process on the virtual machine for some commits; return the campaign id."""
-    return run_daemon(load_plan(plan), db_url=db_url, scenario_path=CLEAN, speed=math.inf, resume=resume,
-                      max_batch=5, stop_after_commits=commits).campaign_id
+    return run_daemon(
+        load_plan(plan),
+        db_url=db_url,
+        scenario_path=CLEAN,
+        speed=math.inf,
+        resume=resume,
+        max_batch=5,
+        stop_after_commits=commits,
+    ).campaign_id
 
 
 @pytest.fixture
@@ -63,7 +70,7 @@ def test_page_and_assets_are_served_by_the_package_without_a_token(db_url: str) 
         js = httpx.get(f"{base}/static/live.js").text
         for hook in ('"data-live": "stage"', '"data-live": "scans"', '"data-live": "latest-time"'):
             assert hook in js
-        assert "EventSource(\"/live/events\")" in js and "http" not in re.sub(r"http://www\.w3\.org/2000/svg", "", js)
+        assert 'EventSource("/live/events")' in js and "http" not in re.sub(r"http://www\.w3\.org/2000/svg", "", js)
         snap = httpx.get(f"{base}/live/snapshot")
         assert snap.status_code == 200 and snap.json()["campaigns"] == []
         assert httpx.post(f"{base}/live/snapshot").status_code == 405
@@ -74,8 +81,10 @@ def test_docs_pages_load_vendored_swagger_ui_and_redoc(db_url: str) -> None:
     assert vendor.verify() == []
     app = create_app(db_url, run_jobs=False)
     with serving(app) as base:
-        for path, assets in (("/docs", ("swagger-ui-bundle.js", "swagger-ui.css")),
-                             ("/redoc", ("redoc.standalone.js",))):
+        for path, assets in (
+            ("/docs", ("swagger-ui-bundle.js", "swagger-ui.css")),
+            ("/redoc", ("redoc.standalone.js",)),
+        ):
             html = httpx.get(base + path).text
             assert not EXTERNAL.search(html), path
             assert "fonts.googleapis" not in html and "cdn.jsdelivr" not in html
@@ -156,8 +165,11 @@ def _stored_scans(db_url: str, cid: int) -> int:
     eng = create_engine(normalise_url(db_url))
     try:
         with eng.connect() as c:
-            return int(c.execute(text("SELECT COUNT(DISTINCT time_s) FROM temperature_samples WHERE campaign_id = :c"),
-                                 {"c": cid}).scalar())
+            return int(
+                c.execute(
+                    text("SELECT COUNT(DISTINCT time_s) FROM temperature_samples WHERE campaign_id = :c"), {"c": cid}
+                ).scalar()
+            )
     finally:
         eng.dispose()
 

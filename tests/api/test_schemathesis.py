@@ -58,11 +58,13 @@ def valid_requests_pass_request_validation(ctx: Any, response: Any, case: schema
 
 
 @schema.parametrize()
-@settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True,
-          suppress_health_check=list(HealthCheck))
+@settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
 def test_api_conforms_to_its_schema(case: schemathesis.Case, seeded: Seeded) -> None:
     dialect = "sqlite" if seeded.url.startswith("sqlite") else "postgresql"
     calls[dialect] += 1
     operations.setdefault(dialect, set()).add(case.operation.label)
-    case.call_and_validate(headers=AUTH, excluded_checks=[positive_data_acceptance],
-                           additional_checks=[valid_requests_pass_request_validation])
+    case.call_and_validate(
+        headers=AUTH,
+        excluded_checks=[positive_data_acceptance],
+        additional_checks=[valid_requests_pass_request_validation],
+    )

@@ -34,9 +34,24 @@ def server(seeded: Seeded, tmp_path: Path) -> Iterator[str]:
     env = {**os.environ, "DRIFTLAB_API_TOKEN": TOKEN, "PYTHONPATH": str(ROOT)}
     log = (tmp_path / "serve.log").open("wb")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "driftlab.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
-         "--db", seeded.url, "--log-level", "warning"],
-        cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT,
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "serve",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--db",
+            seeded.url,
+            "--log-level",
+            "warning",
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
     )
     base = f"http://127.0.0.1:{port}"
     try:
@@ -90,8 +105,11 @@ def test_serve_reports_an_unreachable_database_in_one_line() -> None:
     url = "postgresql://nobody@127.0.0.1:1/none"
     r = subprocess.run(
         [sys.executable, "-m", "driftlab.cli", "serve", "--port", str(free_port()), "--db", url],
-        cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), "DRIFTLAB_API_TOKEN": TOKEN},
-        capture_output=True, text=True, timeout=120,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "DRIFTLAB_API_TOKEN": TOKEN},
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert r.returncode == 2
     assert r.stderr.startswith("driftlab: error:") and r.stderr.count("\n") == 1, r.stderr

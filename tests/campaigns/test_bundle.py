@@ -97,8 +97,14 @@ def test_floats_round_trip_bit_exactly(tmp_path_factory, meta_factory, temps, va
     tf = pd.DataFrame({"time_s": times, "T1": temps[:n], "T2": temps[n : 2 * n], "T49": 20.0, "T50": math.nan})
     k = min(len(values), len(positions))
     ef = pd.DataFrame(
-        {"time_s": np.arange(k) * 1.5, "axis": "X", "term": "dx", "position": positions[:k],
-         "direction": [1 if i % 2 else -1 for i in range(k)], "value": values[:k]}
+        {
+            "time_s": np.arange(k) * 1.5,
+            "axis": "X",
+            "term": "dx",
+            "position": positions[:k],
+            "direction": [1 if i % 2 else -1 for i in range(k)],
+            "value": values[:k],
+        }
     )
     out = write_bundle(tmp_path_factory.mktemp("rt"), meta_factory(), tf, None, ef)
     b = load_bundle(out)

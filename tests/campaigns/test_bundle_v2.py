@@ -18,8 +18,14 @@ from .conftest import make_bundle, small_frames, small_meta
 SETUPS = {
     "z-pos": {"instrument": "laser", "optics": "linear", "axis": "Z", "terms": ["Z/dz"], "datum": "session"},
     "z-str": {"instrument": "laser", "optics": "straightness", "axis": "Z", "terms": ["Z/dx"]},
-    "z-roll": {"instrument": "proximity", "fixture": "reference_edge", "axis": "Z", "terms": ["Z/gamma"],
-               "datum": "absolute", "reference": {"artefact": "parallel reference lines", "u_rad": 1e-7}},
+    "z-roll": {
+        "instrument": "proximity",
+        "fixture": "reference_edge",
+        "axis": "Z",
+        "terms": ["Z/gamma"],
+        "datum": "absolute",
+        "reference": {"artefact": "parallel reference lines", "u_rad": 1e-7},
+    },
 }
 
 
@@ -74,16 +80,27 @@ def _row_of(errors: pd.DataFrame, mask) -> int:
     return int(np.flatnonzero(mask)[0]) + 2  # header is line 1
 
 
-@pytest.mark.parametrize("name,edit_errors,edit_meta,message", [
-    ("unknown-setup", lambda e: e.assign(setup=e["setup"].where(e.index != 5, "nope")), None,
-     "column setup: 'nope' is not among campaign.json setups"),
-    ("term-not-in-setup", lambda e: e.assign(setup="z-pos"), None, "setup 'z-pos' does not deliver Z/dx"),
-    ("pose-mismatch", lambda e: e.assign(z=e["z"].where(e.index != 7, e["z"] + 1.0)), None,
-     "differs from position"),
-    ("missing-pose", lambda e: e.assign(b=e["b"].where(e.index != 3, np.nan)), None, "column b: missing value"),
-    ("bad-setup-term", None, lambda m: m["setups"]["z-pos"].update(terms=["Z/dw"]), "is not AXIS/term"),
-    ("setup-other-axis", None, lambda m: m["setups"]["z-pos"].update(terms=["X/dx"]), "lists terms of another"),
-])
+@pytest.mark.parametrize(
+    "name,edit_errors,edit_meta,message",
+    [
+        (
+            "unknown-setup",
+            lambda e: e.assign(setup=e["setup"].where(e.index != 5, "nope")),
+            None,
+            "column setup: 'nope' is not among campaign.json setups",
+        ),
+        ("term-not-in-setup", lambda e: e.assign(setup="z-pos"), None, "setup 'z-pos' does not deliver Z/dx"),
+        (
+            "pose-mismatch",
+            lambda e: e.assign(z=e["z"].where(e.index != 7, e["z"] + 1.0)),
+            None,
+            "differs from position",
+        ),
+        ("missing-pose", lambda e: e.assign(b=e["b"].where(e.index != 3, np.nan)), None, "column b: missing value"),
+        ("bad-setup-term", None, lambda m: m["setups"]["z-pos"].update(terms=["Z/dw"]), "is not AXIS/term"),
+        ("setup-other-axis", None, lambda m: m["setups"]["z-pos"].update(terms=["X/dx"]), "lists terms of another"),
+    ],
+)
 def test_v2_refusals_are_one_line(tmp_path, name, edit_errors, edit_meta, message):
     path = _v2(tmp_path, edit_errors=edit_errors, edit_meta=None)
     if edit_meta:
@@ -107,16 +124,40 @@ def test_a_daemon_campaign_exports_as_v2_with_every_setup(tmp_path):
     from driftlab.campaigns.plan import parse_plan
     from driftlab.daemon.run import run_daemon
 
-    plan = parse_plan({
-        "format": "driftlab-plan/1", "name": "v2-daemon", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 120,
-        "setups": {"b-run": {"instrument": "proximity", "fixture": "cylinder", "axis": "B",
-                             "terms": ["dx", "dy", "dz", "alpha", "gamma"]},
-                   "x-pos": {"instrument": "laser", "optics": "linear", "axis": "X", "terms": ["dx"]}},
-        "stages": [{"name": "b", "axis": "B", "setup": "b-run", "duration_s": 1800,
-                    "sweep": {"positions": [-20, 20], "interval_s": 900, "point_s": 6}},
-                   {"name": "x", "axis": "X", "setup": "x-pos", "duration_s": 1800,
-                    "sweep": {"positions": [0, 254], "interval_s": 900, "point_s": 6}}],
-    }, "p.yaml")
+    plan = parse_plan(
+        {
+            "format": "driftlab-plan/1",
+            "name": "v2-daemon",
+            "machine": {"id": "vmc-5ax-01"},
+            "scan_interval_s": 120,
+            "setups": {
+                "b-run": {
+                    "instrument": "proximity",
+                    "fixture": "cylinder",
+                    "axis": "B",
+                    "terms": ["dx", "dy", "dz", "alpha", "gamma"],
+                },
+                "x-pos": {"instrument": "laser", "optics": "linear", "axis": "X", "terms": ["dx"]},
+            },
+            "stages": [
+                {
+                    "name": "b",
+                    "axis": "B",
+                    "setup": "b-run",
+                    "duration_s": 1800,
+                    "sweep": {"positions": [-20, 20], "interval_s": 900, "point_s": 6},
+                },
+                {
+                    "name": "x",
+                    "axis": "X",
+                    "setup": "x-pos",
+                    "duration_s": 1800,
+                    "sweep": {"positions": [0, 254], "interval_s": 900, "point_s": 6},
+                },
+            ],
+        },
+        "p.yaml",
+    )
     db = f"sqlite:///{tmp_path / 'd.sqlite'}"
     root = Path(__file__).resolve().parents[2]
     res = run_daemon(plan, db_url=db, scenario_path=root / "examples" / "scenarios" / "clean.yaml", speed=math.inf)

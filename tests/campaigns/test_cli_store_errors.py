@@ -25,8 +25,18 @@ COMMANDS = [
     ("models-show", ["models", "show", "current", "--machine", "m1"]),
     ("diagnose", ["diagnose", "--campaign", "1", "--json", "{tmp}/r.json"]),
     ("import", ["import", "{bundle}"]),
-    ("daemon", ["daemon", "--plan", str(EXAMPLES / "plans" / "demo-z.yaml"), "--sim",
-                str(EXAMPLES / "scenarios" / "demo-drift.yaml"), "--speed", "0"]),
+    (
+        "daemon",
+        [
+            "daemon",
+            "--plan",
+            str(EXAMPLES / "plans" / "demo-z.yaml"),
+            "--sim",
+            str(EXAMPLES / "scenarios" / "demo-drift.yaml"),
+            "--speed",
+            "0",
+        ],
+    ),
 ]
 
 #: (id, url template): an unreachable PostgreSQL, a SQLite file under a path that cannot exist
@@ -66,8 +76,20 @@ def test_read_only_sqlite_store_at_a_fresh_start(tmp_path: Path, capsys) -> None
     path = tmp_path / "store.sqlite"
     assert main(["db", "upgrade", "--db", f"sqlite:///{path}"]) == 0
     url = f"sqlite:///file:{path}?mode=ro&uri=true"  # read-only even for root (chmod is not)
-    code, lines, err = _run(["daemon", "--plan", str(EXAMPLES / "plans" / "demo-z.yaml"), "--sim",
-                             str(EXAMPLES / "scenarios" / "demo-drift.yaml"), "--speed", "0", "--db", url], capsys)
+    code, lines, err = _run(
+        [
+            "daemon",
+            "--plan",
+            str(EXAMPLES / "plans" / "demo-z.yaml"),
+            "--sim",
+            str(EXAMPLES / "scenarios" / "demo-drift.yaml"),
+            "--speed",
+            "0",
+            "--db",
+            url,
+        ],
+        capsys,
+    )
     assert code != 0 and len(lines) == 1, err
     assert "cannot write to the store" in lines[0] and "readonly" in lines[0]
     empty = f"sqlite:///file:{tmp_path / 'none.sqlite'}?mode=ro&uri=true"
@@ -84,8 +106,20 @@ def test_read_only_postgresql_store(pg_cluster, capsys) -> None:
     dbname = url.rsplit("/", 1)[1]
     with psycopg.connect(url.replace("postgresql+psycopg://", "postgresql://"), autocommit=True) as conn:
         conn.execute(f'ALTER DATABASE "{dbname}" SET default_transaction_read_only = on')
-    code, lines, err = _run(["daemon", "--plan", str(EXAMPLES / "plans" / "demo-z.yaml"), "--sim",
-                             str(EXAMPLES / "scenarios" / "demo-drift.yaml"), "--speed", "0", "--db", url], capsys)
+    code, lines, err = _run(
+        [
+            "daemon",
+            "--plan",
+            str(EXAMPLES / "plans" / "demo-z.yaml"),
+            "--sim",
+            str(EXAMPLES / "scenarios" / "demo-drift.yaml"),
+            "--speed",
+            "0",
+            "--db",
+            url,
+        ],
+        capsys,
+    )
     assert code != 0 and len(lines) == 1, err
     assert "cannot write to the store" in lines[0] and "read-only" in lines[0]
 

@@ -55,22 +55,41 @@ def files(tmp_path: Path) -> tuple[Path, Path]:
 def _run(files: tuple[Path, Path], url: str, commits: int, resume: bool = False) -> int:
     """Run the daemon on the virtual machine for a number of commits; return the campaign id."""
     plan, scen = files
-    r = run_daemon(load_plan(plan), db_url=url, scenario_path=scen, speed=math.inf, resume=resume,
-                   max_batch=7, stop_after_commits=commits)
+    r = run_daemon(
+        load_plan(plan),
+        db_url=url,
+        scenario_path=scen,
+        speed=math.inf,
+        resume=resume,
+        max_batch=7,
+        stop_after_commits=commits,
+    )
     return r.campaign_id
 
 
 def _raw(engine, cid: int) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Return the stored temperatures (channel, time_s, value) and errors, read with plain SQL."""
     with engine.connect() as c:
-        temps = pd.DataFrame(c.execute(text(
-            "SELECT ch.name AS channel, s.time_s, s.value FROM temperature_samples s "
-            "JOIN channels ch ON ch.id = s.channel_id WHERE s.campaign_id = :c"), {"c": cid}).all(),
-            columns=["channel", "time_s", "value"])
-        errs = pd.DataFrame(c.execute(text(
-            "SELECT seq, time_s, axis, term, position, direction, value, sweep FROM error_samples "
-            "WHERE campaign_id = :c ORDER BY seq"), {"c": cid}).all(),
-            columns=["seq", "t", "axis", "term", "position", "direction", "value", "sweep"])
+        temps = pd.DataFrame(
+            c.execute(
+                text(
+                    "SELECT ch.name AS channel, s.time_s, s.value FROM temperature_samples s "
+                    "JOIN channels ch ON ch.id = s.channel_id WHERE s.campaign_id = :c"
+                ),
+                {"c": cid},
+            ).all(),
+            columns=["channel", "time_s", "value"],
+        )
+        errs = pd.DataFrame(
+            c.execute(
+                text(
+                    "SELECT seq, time_s, axis, term, position, direction, value, sweep FROM error_samples "
+                    "WHERE campaign_id = :c ORDER BY seq"
+                ),
+                {"c": cid},
+            ).all(),
+            columns=["seq", "t", "axis", "term", "position", "direction", "value", "sweep"],
+        )
     return temps, errs
 
 
@@ -104,8 +123,13 @@ def test_snapshot_is_what_the_store_holds(db_url: str, files) -> None:
     want = win.groupby(["b", "channel"]).value.mean().unstack()
     got = pd.DataFrame(snap["temperatures"]["values"], index=snap["temperatures"]["b"]).astype(float)
     assert list(got.index) == list(want.index)
-    pd.testing.assert_frame_equal(got[want.columns], want.rename_axis(None).rename_axis(None, axis=1),
-                                  check_exact=False, atol=1e-4, check_names=False)
+    pd.testing.assert_frame_equal(
+        got[want.columns],
+        want.rename_axis(None).rename_axis(None, axis=1),
+        check_exact=False,
+        atol=1e-4,
+        check_names=False,
+    )
     assert snap["temperatures"]["t"] == list(win.groupby("b").time_s.max())
     # error readings: every stored reading of the window, in order
     e_want = errs[errs.t >= tmax - window]
@@ -176,12 +200,20 @@ def test_a_finished_campaign_stays_on_show_until_a_newer_one(db_url: str, files)
 
 
 def test_health_counts_faults_by_instrument_and_timeouts() -> None:
-    cur = {"faults": 23, "recent_faults": [
-        {"t_s": 60.0, "step": "scan 1", "instrument": "thermocouple",
-         "message": "thermocouple card: no complete reply within 2 s (gave up after 3 attempts)"},
-        {"t_s": 70.0, "step": "point 3", "instrument": "laser", "message": "dz: beam"},
-        {"t_s": 80.0, "step": "point 4", "instrument": "laser", "message": "laser: timed out"}],
-        "retries": {"laser": 4}}
+    cur = {
+        "faults": 23,
+        "recent_faults": [
+            {
+                "t_s": 60.0,
+                "step": "scan 1",
+                "instrument": "thermocouple",
+                "message": "thermocouple card: no complete reply within 2 s (gave up after 3 attempts)",
+            },
+            {"t_s": 70.0, "step": "point 3", "instrument": "laser", "message": "dz: beam"},
+            {"t_s": 80.0, "step": "point 4", "instrument": "laser", "message": "laser: timed out"},
+        ],
+        "retries": {"laser": 4},
+    }
     h = live._health(cur, {"t_s": 80.0, "values": {"T10": None, "T2": None, "T1": 20.0}})
     assert h["by_instrument"] == {"thermocouple": 1, "laser": 2}
     assert h["timeouts"] == 2 and h["faults"] == 23 and h["counted_over"] == 3

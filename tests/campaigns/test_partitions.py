@@ -34,6 +34,7 @@ MACHINE = "vmc-test-01"
 #: campaigns of one machine over three months (the last one's readings run into April: same partition)
 STARTS = ("2026-01-20T06:00:00Z", "2026-02-03T23:30:00-02:00", "2026-03-31T23:50:00Z")
 
+
 def _rows(conn: Any, sql: str, **params: Any) -> list[Any]:
     return list(conn.execute(text(sql), params).all())
 
@@ -64,8 +65,12 @@ def _import_months(store: Store, bundle_factory) -> list[int]:
 def _where(store: Store, table: str, campaign_id: int) -> set[str]:
     """Return the partitions holding a campaign's rows of ``table``."""
     with store.engine.connect() as conn:
-        return set(conn.execute(text(f"SELECT DISTINCT tableoid::regclass::text FROM {table} WHERE campaign_id = :c"),
-                                {"c": campaign_id}).scalars())
+        return set(
+            conn.execute(
+                text(f"SELECT DISTINCT tableoid::regclass::text FROM {table} WHERE campaign_id = :c"),
+                {"c": campaign_id},
+            ).scalars()
+        )
 
 
 # ----------------------------------------------------------------------------- the key
@@ -75,7 +80,9 @@ def test_start_day_is_the_utc_date_of_the_start() -> None:
     assert start_day(datetime(1970, 1, 1, tzinfo=UTC)) == 0
     assert start_day(datetime.fromisoformat("2026-02-03T23:30:00-02:00")) == (date(2026, 2, 4) - date(1970, 1, 1)).days
     assert partitions.month_range(start_day(datetime(2026, 12, 31, 23, 59, tzinfo=UTC))) == (
-        (date(2026, 12, 1) - date(1970, 1, 1)).days, (date(2027, 1, 1) - date(1970, 1, 1)).days)
+        (date(2026, 12, 1) - date(1970, 1, 1)).days,
+        (date(2027, 1, 1) - date(1970, 1, 1)).days,
+    )
     with pytest.raises(ValueError):
         start_day(datetime(2026, 1, 1))
 
@@ -87,8 +94,13 @@ def test_every_reading_carries_its_campaign_start_day_on_both_databases(store_ur
             for cid, started in zip(ids, STARTS, strict=True):
                 want = start_day(datetime.fromisoformat(started.replace("Z", "+00:00")))
                 for table in partitions.PARTITIONED_TABLES:
-                    days = conn.execute(text(f"SELECT DISTINCT campaign_start_day FROM {table} WHERE campaign_id = :c"),
-                                        {"c": cid}).scalars().all()
+                    days = (
+                        conn.execute(
+                            text(f"SELECT DISTINCT campaign_start_day FROM {table} WHERE campaign_id = :c"), {"c": cid}
+                        )
+                        .scalars()
+                        .all()
+                    )
                     assert days == [want], table
 
 
@@ -105,8 +117,11 @@ def test_an_import_makes_its_month_partition_before_writing(pg: Store, bundle_fa
         assert not [p for p in partitions.partitions(conn, "temperature_samples") if p.lo is None]
     far = start_day(datetime(2091, 6, 1, tzinfo=UTC))
     with pytest.raises(Exception, match="no partition of relation"), pg.engine.begin() as conn:
-        conn.execute(sc.TemperatureSample.__table__.insert().values(
-            campaign_id=ids[0], channel_id=1, time_s=0.0, value=1.0, campaign_start_day=far))
+        conn.execute(
+            sc.TemperatureSample.__table__.insert().values(
+                campaign_id=ids[0], channel_id=1, time_s=0.0, value=1.0, campaign_start_day=far
+            )
+        )
 
 
 def test_the_daemon_makes_its_partition_when_it_opens_a_campaign(fresh_pg: Store) -> None:
@@ -119,8 +134,14 @@ def test_the_daemon_makes_its_partition_when_it_opens_a_campaign(fresh_pg: Store
     with fresh_pg.engine.begin() as conn:  # as if the periodic task had never run this month
         for table in partitions.PARTITIONED_TABLES:
             conn.execute(text(f"DROP TABLE {table}{name}"))
-    plan = parse_plan({"name": "live", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
-                       "stages": [{"name": "idle", "axis": "Z", "duration_s": 300}]})
+    plan = parse_plan(
+        {
+            "name": "live",
+            "machine": {"id": "vmc-5ax-01"},
+            "scan_interval_s": 60,
+            "stages": [{"name": "idle", "axis": "Z", "duration_s": 300}],
+        }
+    )
     handle = open_campaign(fresh_pg.engine, plan, {"T1": {}}, [], resume=False, origin={})
     assert handle.start_day in (this_day, start_day(datetime.now(UTC)))  # (a run across midnight)
     with fresh_pg.engine.connect() as conn:
@@ -187,19 +208,24 @@ def test_two_imports_into_a_new_month_at_once_both_land(fresh_pg: Store, bundle_
 def test_ensure_ahead_is_idempotent_and_fills_only_the_gaps(fresh_pg: Store) -> None:
     engine = fresh_pg.engine
     made = partitions.ensure_ahead(engine, months=2, today=date(2050, 11, 17))
-    assert sorted(made) == sorted(f"{t}_p{m}" for t in partitions.PARTITIONED_TABLES
-                                  for m in ("2050_11", "2050_12", "2051_01"))
+    assert sorted(made) == sorted(
+        f"{t}_p{m}" for t in partitions.PARTITIONED_TABLES for m in ("2050_11", "2050_12", "2051_01")
+    )
     assert partitions.ensure_ahead(engine, months=2, today=date(2050, 11, 30)) == []
     # a partition made by hand for the second half of a month: the rest of the month is made around it
     lo, hi = partitions.month_range(start_day(datetime(2052, 5, 1, tzinfo=UTC)))
     with engine.begin() as conn:
-        conn.execute(text(f"CREATE TABLE error_samples_manual PARTITION OF error_samples "
-                          f"FOR VALUES FROM ({lo + 15}) TO ({hi})"))
+        conn.execute(
+            text(f"CREATE TABLE error_samples_manual PARTITION OF error_samples FOR VALUES FROM ({lo + 15}) TO ({hi})")
+        )
     made = partitions.ensure_partitions(engine, [lo + 3, lo + 20])
     assert "error_samples_p2052_05" in made and "error_samples_p2052_05_16" not in made
     with engine.connect() as conn:
-        covering = {p.name: (p.lo, p.hi) for p in partitions.partitions(conn, "error_samples")
-                    if p.lo is not None and lo <= p.lo < hi}
+        covering = {
+            p.name: (p.lo, p.hi)
+            for p in partitions.partitions(conn, "error_samples")
+            if p.lo is not None and lo <= p.lo < hi
+        }
     assert covering == {"error_samples_p2052_05": (lo, lo + 15), "error_samples_manual": (lo + 15, hi)}
 
 
@@ -207,8 +233,9 @@ def test_the_workers_make_partitions_ahead_daily(fresh_pg: Store) -> None:
     from driftlab.jobs.queue import PARTITIONS_CRON, PARTITIONS_TASK, _partitions_task, build_app
 
     app = build_app("postgresql+psycopg://u@h/d")
-    assert (PARTITIONS_TASK, PARTITIONS_CRON) in {(p.task.name, p.cron)
-                                                  for p in app.periodic_registry.periodic_tasks.values()}
+    assert (PARTITIONS_TASK, PARTITIONS_CRON) in {
+        (p.task.name, p.cron) for p in app.periodic_registry.periodic_tasks.values()
+    }
     with fresh_pg.engine.begin() as conn:
         names = [p.name for p in partitions.partitions(conn, "condition_samples")]
         for table in partitions.PARTITIONED_TABLES:
@@ -262,8 +289,9 @@ def test_drift_statements_read_one_partition_each(pg: Store, bundle_factory) -> 
         lambda: pg.drift(MACHINE, "Z", "dz", position=130.0, direction=1),
         lambda: pg.drift(MACHINE, "Z", "dz", position=130.0),
         lambda: pg.drift(MACHINE, "Z", "dx", position=130.0, interpolate=True),
-        lambda: pg.drift(MACHINE, "Z", "gamma", start=datetime(2026, 2, 1, tzinfo=UTC),
-                         end=datetime(2026, 4, 1, tzinfo=UTC)),
+        lambda: pg.drift(
+            MACHINE, "Z", "gamma", start=datetime(2026, 2, 1, tzinfo=UTC), end=datetime(2026, 4, 1, tzinfo=UTC)
+        ),
     ]
     months = {"error_samples_p2026_01", "error_samples_p2026_02", "error_samples_p2026_03"}
     for case in cases:
@@ -287,8 +315,10 @@ def test_a_prepared_drift_statement_prunes_at_run_time(pg: Store, bundle_factory
         with raw.cursor() as cur:
             cur.execute("SET plan_cache_mode = force_generic_plan")
             cur.execute(f"PREPARE drift_near (int, int, text, text, float8, float8, float8) AS {sql}")
-            cur.execute("EXPLAIN (ANALYZE, COSTS OFF, TIMING OFF, SUMMARY OFF) EXECUTE drift_near "
-                        f"({ids[1]}, {start_day(started)}, 'Z', 'dz', -1e300, 1e300, 130.0)")
+            cur.execute(
+                "EXPLAIN (ANALYZE, COSTS OFF, TIMING OFF, SUMMARY OFF) EXECUTE drift_near "
+                f"({ids[1]}, {start_day(started)}, 'Z', 'dz', -1e300, 1e300, 130.0)"
+            )
             plan = "\n".join(r[0] for r in cur.fetchall())
         raw.rollback()
     assert "Subplans Removed" in plan, plan  # decided at run time, with the parameters' values
@@ -307,18 +337,29 @@ def test_sqlite_and_postgresql_answer_the_same(pg: Store, tmp_path: Path, bundle
         a, b = [pg.import_bundle(x) for x in bundles], [lite.import_bundle(x) for x in bundles]
         assert a == b
         win = dict(start=datetime(2026, 2, 4, 1, 35, tzinfo=UTC), end=datetime(2026, 4, 1, 0, 5, tzinfo=UTC))
-        for kwargs in [dict(position=130.0, direction=1), dict(position=100.0), dict(position=130.0, interpolate=True),
-                       dict(position=333.0, direction=-1, interpolate=True, **win), {}, dict(direction=-1, **win)]:
+        for kwargs in [
+            dict(position=130.0, direction=1),
+            dict(position=100.0),
+            dict(position=130.0, interpolate=True),
+            dict(position=333.0, direction=-1, interpolate=True, **win),
+            {},
+            dict(direction=-1, **win),
+        ]:
             for term in ("dx", "dz", "gamma"):
-                pd.testing.assert_frame_equal(pg.drift(MACHINE, "Z", term, **kwargs),
-                                              lite.drift(MACHINE, "Z", term, **kwargs))
+                pd.testing.assert_frame_equal(
+                    pg.drift(MACHINE, "Z", term, **kwargs), lite.drift(MACHINE, "Z", term, **kwargs)
+                )
         for cid in a:
             for kwargs in [{}, dict(start_s=60.0, end_s=600.0), dict(buckets=7), dict(buckets=3, rollups=False)]:
-                pd.testing.assert_frame_equal(pg.temperature_history(cid, "T2", **kwargs),
-                                              lite.temperature_history(cid, "T2", **kwargs), rtol=1e-12)
+                pd.testing.assert_frame_equal(
+                    pg.temperature_history(cid, "T2", **kwargs),
+                    lite.temperature_history(cid, "T2", **kwargs),
+                    rtol=1e-12,
+                )
             for kwargs in [{}, dict(buckets=4), dict(columns=["spindle_rpm", "z"], start_s=30.0, end_s=900.0)]:
-                pd.testing.assert_frame_equal(pg.condition_history(cid, **kwargs),
-                                              lite.condition_history(cid, **kwargs), rtol=1e-12)
+                pd.testing.assert_frame_equal(
+                    pg.condition_history(cid, **kwargs), lite.condition_history(cid, **kwargs), rtol=1e-12
+                )
             x, y = pg.load_campaign(cid), lite.load_campaign(cid)
             pd.testing.assert_frame_equal(x.temperatures, y.temperatures)
             pd.testing.assert_frame_equal(x.errors, y.errors)
@@ -335,8 +376,16 @@ def _at_0007(url: str, source: Store) -> Store:
     """Return a store at revision 0007 holding every row of ``source`` (readings without the key)."""
     old = connect(url, auto_upgrade=False)
     old.upgrade("0007")
-    order = ["machines", "campaigns", "stages", "channels", "temperature_samples", "temperature_rollups",
-             "condition_samples", "error_samples"]
+    order = [
+        "machines",
+        "campaigns",
+        "stages",
+        "channels",
+        "temperature_samples",
+        "temperature_rollups",
+        "condition_samples",
+        "error_samples",
+    ]
     with source.engine.connect() as src, db.write_transaction(old.engine) as dst:
         for name in order:
             table = sc.metadata.tables[name]
@@ -357,8 +406,9 @@ def _readings(store: Store, with_key: bool) -> dict[str, list[tuple[Any, ...]]]:
             table = sc.metadata.tables[name]
             cols = [c.name for c in table.c if with_key or c.name != partitions.PARTITION_KEY]
             key = [c.name for c in table.primary_key.columns if c.name in cols]
-            out[name] = [tuple(r) for r in conn.execute(text(f"SELECT {', '.join(cols)} FROM {name} "
-                                                             f"ORDER BY {', '.join(key)}"))]
+            out[name] = [
+                tuple(r) for r in conn.execute(text(f"SELECT {', '.join(cols)} FROM {name} ORDER BY {', '.join(key)}"))
+            ]
     return out
 
 

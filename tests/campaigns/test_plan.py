@@ -32,20 +32,38 @@ def _doc(**over: object) -> dict:
     """Return a small valid plan document with top-level overrides."""
     doc = {
         "name": "t",
-        "machine": {"id": "m1", "channels": {"T1": {"location": "x"}, "T49": {"location": "room"}},
-                    "room_channels": ["T49"]},
+        "machine": {
+            "id": "m1",
+            "channels": {"T1": {"location": "x"}, "T49": {"location": "room"}},
+            "room_channels": ["T49"],
+        },
         "scan_interval_s": 10,
         "stages": [
-            {"name": "sp", "axis": "Z", "duration_s": 100, "heat": [{"kind": "spindle", "rpm": 8000}],
-             "sweep": {"positions": [0, 50], "interval_s": 40, "point_s": 5}},
+            {
+                "name": "sp",
+                "axis": "Z",
+                "duration_s": 100,
+                "heat": [{"kind": "spindle", "rpm": 8000}],
+                "sweep": {"positions": [0, 50], "interval_s": 40, "point_s": 5},
+            },
             {"name": "cool", "axis": "Z", "duration_s": 60},
-            {"name": "z", "axis": "Z", "duration_s": 100,
-             "heat": [{"kind": "axis", "axis": "Z", "feed_mm_min": 3000, "to_pos": 400}],
-             "sweep": {"positions": [0, 50], "interval_s": 50, "point_s": 5}},
-            {"name": "both", "axis": "Z", "duration_s": 100,
-             "heat": [{"kind": "spindle", "rpm": 8000},
-                      {"kind": "axis", "axis": "Z", "feed_mm_min": 3000, "to_pos": 400}],
-             "sweep": {"positions": [0, 50], "interval_s": 50, "point_s": 5}},
+            {
+                "name": "z",
+                "axis": "Z",
+                "duration_s": 100,
+                "heat": [{"kind": "axis", "axis": "Z", "feed_mm_min": 3000, "to_pos": 400}],
+                "sweep": {"positions": [0, 50], "interval_s": 50, "point_s": 5},
+            },
+            {
+                "name": "both",
+                "axis": "Z",
+                "duration_s": 100,
+                "heat": [
+                    {"kind": "spindle", "rpm": 8000},
+                    {"kind": "axis", "axis": "Z", "feed_mm_min": 3000, "to_pos": 400},
+                ],
+                "sweep": {"positions": [0, 50], "interval_s": 50, "point_s": 5},
+            },
         ],
     }
     doc.update(over)
@@ -141,7 +159,14 @@ def test_sweep_points_both_directions_inside_their_stage() -> None:
     assert [p.t_s for p in pts] == sorted(p.t_s for p in pts)
     # stage 0: sweeps at 0, 40, 80 (80 + 20 s ends at the stage end); cool-down: none; stages 2, 3: +0, +50
     assert [(p.stage, p.sweep) for p in pts if p.direction == 1 and p.position == 0] == [
-        (0, 0), (0, 1), (0, 2), (2, 0), (2, 1), (3, 0), (3, 1)]
+        (0, 0),
+        (0, 1),
+        (0, 2),
+        (2, 0),
+        (2, 1),
+        (3, 0),
+        (3, 1),
+    ]
 
 
 def test_steps_are_in_time_order_and_cover_everything() -> None:
@@ -155,8 +180,7 @@ def test_steps_are_in_time_order_and_cover_everything() -> None:
     assert all(pts[m.point].t_s - m.t_s == pytest.approx(4.0) for m in moves)  # 0.8 x point_s
     assert [s.index for s in all_steps if isinstance(s, Scan)] == list(range(plan.n_scans)) == list(range(36))
     assert len([s for s in all_steps if isinstance(s, SweepPoint)]) == len(plan.sweep_points())
-    assert [(s.stage, s.t_s) for s in all_steps if isinstance(s, StageStart)] == [
-        (0, 0), (1, 100), (2, 160), (3, 260)]
+    assert [(s.stage, s.t_s) for s in all_steps if isinstance(s, StageStart)] == [(0, 0), (1, 100), (2, 160), (3, 260)]
     at_100 = [type(s).__name__ for s in all_steps if s.t_s == 100]
     assert at_100 == ["StageStart", "Scan"]
     assert {p.term for p in pts} == {"dz"}

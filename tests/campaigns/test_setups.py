@@ -20,10 +20,21 @@ DEMO_FULL = ROOT / "examples" / "plans" / "demo-full.yaml"
 
 def _plan(setup: dict, positions=(0.0, 100.0), travel=None, **stage) -> dict:
     doc = {
-        "format": "driftlab-plan/1", "name": "p", "machine": {"id": "m", "channels": {"T1": {"location": "a"}}},
-        "scan_interval_s": 60, "setups": {"s1": setup},
-        "stages": [{"name": "one", "axis": setup["axis"], "setup": "s1", "duration_s": 3600,
-                    "sweep": {"positions": list(positions), "interval_s": 600}, **stage}],
+        "format": "driftlab-plan/1",
+        "name": "p",
+        "machine": {"id": "m", "channels": {"T1": {"location": "a"}}},
+        "scan_interval_s": 60,
+        "setups": {"s1": setup},
+        "stages": [
+            {
+                "name": "one",
+                "axis": setup["axis"],
+                "setup": "s1",
+                "duration_s": 3600,
+                "sweep": {"positions": list(positions), "interval_s": 600},
+                **stage,
+            }
+        ],
     }
     if travel:
         doc["machine"]["travel"] = travel
@@ -41,12 +52,18 @@ def test_table_5_3_thirty_terms_each_have_a_setup():
     assert deliverable("proximity", "cylinder", "A") == ("dx", "dy", "dz", "beta", "gamma")
 
 
-@pytest.mark.parametrize("setup,message", [
-    ({"instrument": "laser", "optics": "linear", "axis": "X", "terms": ["alpha"]}, "cannot deliver X/alpha"),
-    ({"instrument": "laser", "optics": "angular", "axis": "X", "terms": ["beta", "gamma"]}, "one term per alignment"),
-    ({"instrument": "proximity", "fixture": "cylinder", "axis": "X", "terms": ["dx"]}, "measures nothing on the X"),
-    ({"instrument": "laser", "fixture": "cylinder", "axis": "X", "terms": ["dx"]}, "names its optics"),
-])
+@pytest.mark.parametrize(
+    "setup,message",
+    [
+        ({"instrument": "laser", "optics": "linear", "axis": "X", "terms": ["alpha"]}, "cannot deliver X/alpha"),
+        (
+            {"instrument": "laser", "optics": "angular", "axis": "X", "terms": ["beta", "gamma"]},
+            "one term per alignment",
+        ),
+        ({"instrument": "proximity", "fixture": "cylinder", "axis": "X", "terms": ["dx"]}, "measures nothing on the X"),
+        ({"instrument": "laser", "fixture": "cylinder", "axis": "X", "terms": ["dx"]}, "names its optics"),
+    ],
+)
 def test_a_setup_that_cannot_deliver_its_terms_is_refused(setup, message):
     with pytest.raises(ValidationError, match=message):
         parse_plan(_plan(setup), "p.yaml")
@@ -85,8 +102,18 @@ def test_unknown_setup_and_setup_on_another_axis_are_refused():
 
 
 def test_sweep_points_carry_their_setup_and_terms():
-    plan = parse_plan(_plan({"instrument": "proximity", "fixture": "cylinder", "axis": "B",
-                             "terms": ["dx", "dy", "dz", "alpha", "gamma"]}, positions=(-20.0, 20.0)), "p.yaml")
+    plan = parse_plan(
+        _plan(
+            {
+                "instrument": "proximity",
+                "fixture": "cylinder",
+                "axis": "B",
+                "terms": ["dx", "dy", "dz", "alpha", "gamma"],
+            },
+            positions=(-20.0, 20.0),
+        ),
+        "p.yaml",
+    )
     pts = plan.sweep_points()
     assert {p.setup for p in pts} == {"s1"} and pts[0].terms == ("dx", "dy", "dz", "alpha", "gamma")
     assert plan.missing_terms() == [c for c in all_cells() if c not in {"B/dx", "B/dy", "B/dz", "B/alpha", "B/gamma"}]
@@ -151,6 +178,12 @@ def test_plan_check_error_is_one_line_and_exit_1(tmp_path, capsys):
 def test_setup_entry_for_bundle_v2():
     s = Setup(instrument="proximity", fixture="reference_edge", axis="Z", terms=["gamma"], pose={"X": 127.0})
     e = s.bundle_entry()
-    assert e == {"instrument": "proximity", "axis": "Z", "terms": ["Z/gamma"], "datum": "absolute",
-                 "fixture": "reference_edge", "reference": {"pose": {"X": 127.0}}}
+    assert e == {
+        "instrument": "proximity",
+        "axis": "Z",
+        "terms": ["Z/gamma"],
+        "datum": "absolute",
+        "fixture": "reference_edge",
+        "reference": {"pose": {"X": 127.0}},
+    }
     assert s.full_pose(-50.0) == {"x": 127.0, "y": 0.0, "z": -50.0, "a": 0.0, "b": 0.0}

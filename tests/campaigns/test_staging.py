@@ -82,8 +82,9 @@ def test_content_hash_is_what_it_always_was(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("version", ["v1", "v2"])
-def test_a_staged_import_stores_exactly_what_an_import_in_memory_stores(store_url: str, tmp_path: Path,
-                                                                         version: str) -> None:
+def test_a_staged_import_stores_exactly_what_an_import_in_memory_stores(
+    store_url: str, tmp_path: Path, version: str
+) -> None:
     path = make_bundle(tmp_path / "v1", scans=300, sweeps=9) if version == "v1" else _v2(tmp_path)
     whole = load_bundle(path)
     other = connect(f"sqlite:///{tmp_path / 'memory.sqlite'}")
@@ -98,14 +99,21 @@ def test_a_staged_import_stores_exactly_what_an_import_in_memory_stores(store_ur
             pd.testing.assert_frame_equal(getattr(stored, name), getattr(whole, name), check_exact=True)
         assert stored.content_hash() == whole.content_hash()
         # every table row for row, rollups and sweep numbers included
-        for table, key in (("temperature_rollups", "channel_id, minute"), ("error_samples", "seq"),
-                           ("condition_samples", "time_s"), ("temperature_samples", "channel_id, time_s")):
+        for table, key in (
+            ("temperature_rollups", "channel_id, minute"),
+            ("error_samples", "seq"),
+            ("condition_samples", "time_s"),
+            ("temperature_samples", "channel_id, time_s"),
+        ):
             got = pd.read_sql(f"SELECT * FROM {table} WHERE campaign_id = {cid} ORDER BY {key}", store.engine)
             want = pd.read_sql(f"SELECT * FROM {table} ORDER BY {key}", other.engine)
             assert len(got) > 0
-            pd.testing.assert_frame_equal(got.drop(columns=["campaign_id", "channel_id"], errors="ignore"),
-                                          want.drop(columns=["campaign_id", "channel_id"], errors="ignore"),
-                                          check_exact=True, check_dtype=False)
+            pd.testing.assert_frame_equal(
+                got.drop(columns=["campaign_id", "channel_id"], errors="ignore"),
+                want.drop(columns=["campaign_id", "channel_id"], errors="ignore"),
+                check_exact=True,
+                check_dtype=False,
+            )
         assert reference.content_hash() == stored.content_hash()
     finally:
         store.close()
@@ -116,8 +124,9 @@ def _big_bundle(path: Path, scans: int, bad_last_row: bool = False) -> Path:
     """Write a bundle of 4 channels at 1 Hz (the last temperature row out of range when asked)."""
     t = np.arange(scans, dtype=float)
     rng = np.random.default_rng(0)
-    temps = pd.DataFrame({"time_s": t, **{c: np.round(20 + rng.normal(0, 0.1, scans), 3)
-                                          for c in ("T1", "T2", "T49", "T50")}})
+    temps = pd.DataFrame(
+        {"time_s": t, **{c: np.round(20 + rng.normal(0, 0.1, scans), 3) for c in ("T1", "T2", "T49", "T50")}}
+    )
     if bad_last_row:
         temps.loc[scans - 1, "T2"] = 295.4  # kelvin
     _, cond, errors = small_frames()
@@ -134,16 +143,19 @@ def test_a_bad_last_row_of_a_big_file_leaves_the_store_untouched(store_url: str,
         capsys.readouterr()
         assert main(["import", str(bad), "--db", store_url]) != 0
         err = capsys.readouterr().err.strip().splitlines()
-        assert err == ["driftlab: error: temperatures.csv:300001: column T2: 295.4 degC is outside -60.0..250.0: "
-                       "temperatures must be in degC"]
+        assert err == [
+            "driftlab: error: temperatures.csv:300001: column T2: 295.4 degC is outside -60.0..250.0: "
+            "temperatures must be in degC"
+        ]
         assert store.table_counts() == before
     finally:
         store.close()
 
 
 @pytest.mark.parametrize("boom", [RuntimeError("disk on fire"), KeyboardInterrupt()], ids=["error", "ctrl-c"])
-def test_a_failure_after_many_chunks_are_written_rolls_all_back(store_url: str, tmp_path: Path, monkeypatch,
-                                                                 boom) -> None:
+def test_a_failure_after_many_chunks_are_written_rolls_all_back(
+    store_url: str, tmp_path: Path, monkeypatch, boom
+) -> None:
     store = connect(store_url)
     try:
         store.import_bundle(load_bundle(make_bundle(tmp_path / "first")))
@@ -193,8 +205,13 @@ print(int(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).sp
 
 
 def _peak_rss_kb(bundle: Path, db: Path) -> int:
-    proc = subprocess.run([sys.executable, "-c", IMPORT_PROBE, str(bundle), f"sqlite:///{db}"], capture_output=True,
-                          text=True, cwd=ROOT, check=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", IMPORT_PROBE, str(bundle), f"sqlite:///{db}"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=True,
+    )
     return int(proc.stdout.split()[-1])
 
 

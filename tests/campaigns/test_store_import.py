@@ -38,8 +38,9 @@ def _assert_same_bundle(a, b) -> None:
     assert a.content_hash() == b.content_hash()
 
 
-def test_import_export_import_round_trips_exactly(store: Store, bundle_dir: Path, tmp_path: Path,
-                                                  store_url: str) -> None:
+def test_import_export_import_round_trips_exactly(
+    store: Store, bundle_dir: Path, tmp_path: Path, store_url: str
+) -> None:
     original = load_bundle(bundle_dir)
     cid = store.import_bundle(original)
     stored = store.load_campaign(cid)
@@ -73,7 +74,12 @@ def test_real_bundle_round_trips(store: Store, fl_thermal: Path) -> None:
     _assert_same_bundle(b, store.load_campaign(cid))
     [summary] = store.list_campaigns()
     assert (summary.id, summary.channels, summary.scans, summary.error_samples, summary.stages) == (
-        cid, 16, 11115, 33345, 16)
+        cid,
+        16,
+        11115,
+        33345,
+        16,
+    )
     counts = store.table_counts()
     assert counts["temperature_samples"] == 11115 * 16
     assert counts["condition_samples"] == 11115
@@ -123,12 +129,27 @@ def test_unique_keys_refuse_a_reinserted_reading(store: Store, bundle_dir: Path)
     with store.engine.connect() as conn:
         ch = conn.execute(sc.Channel.__table__.select().where(sc.Channel.campaign_id == cid)).first()
     for table, row in [
-        (sc.TemperatureSample, {"campaign_id": cid, "channel_id": ch.id, "time_s": 0.0, "value": 1.0,
-                                "campaign_start_day": day}),
+        (
+            sc.TemperatureSample,
+            {"campaign_id": cid, "channel_id": ch.id, "time_s": 0.0, "value": 1.0, "campaign_start_day": day},
+        ),
         (sc.ConditionSample, {"campaign_id": cid, "time_s": 0.0, "campaign_start_day": day}),
-        (sc.ErrorSample, {"campaign_id": cid, "seq": 10_000, "time_s": 0.0, "axis": "Z", "term": "dx",
-                          "position": 0.0, "direction": 1, "value": 0.0, "sweep": 0, "flags": 0,
-                          "campaign_start_day": day}),
+        (
+            sc.ErrorSample,
+            {
+                "campaign_id": cid,
+                "seq": 10_000,
+                "time_s": 0.0,
+                "axis": "Z",
+                "term": "dx",
+                "position": 0.0,
+                "direction": 1,
+                "value": 0.0,
+                "sweep": 0,
+                "flags": 0,
+                "campaign_start_day": day,
+            },
+        ),
     ]:
         with pytest.raises(IntegrityError), store.engine.begin() as conn:
             conn.execute(insert(table), row)

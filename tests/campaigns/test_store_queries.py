@@ -63,8 +63,15 @@ def test_drift_time_window_and_all_positions(store: Store, bundle_factory) -> No
     late = store.drift("vmc-test-01", "Z", "dx", start=datetime(2026, 3, 4, tzinfo=UTC))
     assert set(late["campaign_id"]) == {b}
     empty = store.drift("vmc-test-01", "Z", "dy")
-    assert empty.empty and list(empty.columns) == ["campaign_id", "time", "time_s", "position", "direction",
-                                                   "sweep", "value"]
+    assert empty.empty and list(empty.columns) == [
+        "campaign_id",
+        "time",
+        "time_s",
+        "position",
+        "direction",
+        "sweep",
+        "value",
+    ]
 
 
 def test_drift_interpolates_along_position_within_each_sweep(store: Store, bundle_factory) -> None:
@@ -74,7 +81,7 @@ def test_drift_interpolates_along_position_within_each_sweep(store: Store, bundl
     assert len(d) == 4 and (d["position"] == 250.0).all()
     sel = errors[(errors.term == "dx") & (errors.direction == -1)]
     for k, (_, row) in enumerate(d.iterrows()):
-        sweep = sel.iloc[5 * k:5 * k + 5].sort_values("position")
+        sweep = sel.iloc[5 * k : 5 * k + 5].sort_values("position")
         lo, hi = sweep[sweep.position == 200.0].iloc[0], sweep[sweep.position == 300.0].iloc[0]
         assert row["value"] == pytest.approx(lo.value + 0.5 * (hi.value - lo.value), rel=1e-12, abs=1e-18)
         assert row["time_s"] == pytest.approx(lo.time_s + 0.5 * (hi.time_s - lo.time_s))
@@ -99,8 +106,27 @@ def test_drift_refuses_bad_requests(store: Store, bundle_dir: Path) -> None:
 def test_drift_cli_csv_is_exact(store_url: str, bundle_dir: Path, capsys) -> None:
     assert main(["import", str(bundle_dir), "--db", store_url]) == 0
     capsys.readouterr()
-    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "gamma", "--position", "0",
-                 "--direction", "+1", "--csv", "--db", store_url]) == 0
+    assert (
+        main(
+            [
+                "drift",
+                "--machine",
+                "vmc-test-01",
+                "--axis",
+                "Z",
+                "--term",
+                "gamma",
+                "--position",
+                "0",
+                "--direction",
+                "+1",
+                "--csv",
+                "--db",
+                store_url,
+            ]
+        )
+        == 0
+    )
     got = pd.read_csv(io.StringIO(capsys.readouterr().out))
     errors = load_bundle(bundle_dir).errors
     want = errors[(errors.term == "gamma") & (errors.position == 0.0) & (errors.direction == 1)]
@@ -108,17 +134,59 @@ def test_drift_cli_csv_is_exact(store_url: str, bundle_dir: Path, capsys) -> Non
     assert got["time"].iloc[0] == "2026-03-02T08:00:00Z"
     assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dz", "--db", store_url]) == 0
     assert "campaign_id" in capsys.readouterr().out
-    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--position", "260",
-                 "--interpolate", "--direction", "-1", "--from", "2026-03-02T08:04:00", "--to",
-                 "2026-03-02T08:30:00Z", "--csv", "--db", store_url]) == 0
+    assert (
+        main(
+            [
+                "drift",
+                "--machine",
+                "vmc-test-01",
+                "--axis",
+                "Z",
+                "--term",
+                "dx",
+                "--position",
+                "260",
+                "--interpolate",
+                "--direction",
+                "-1",
+                "--from",
+                "2026-03-02T08:04:00",
+                "--to",
+                "2026-03-02T08:30:00Z",
+                "--csv",
+                "--db",
+                store_url,
+            ]
+        )
+        == 0
+    )
     got = pd.read_csv(io.StringIO(capsys.readouterr().out))
     assert len(got) == 3 and set(got["direction"]) == {-1} and set(got["position"]) == {260.0}
     with pytest.raises(SystemExit) as usage:
-        main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--direction", "0",
-              "--db", store_url])
+        main(
+            ["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--direction", "0", "--db", store_url]
+        )
     assert usage.value.code == 2
-    assert main(["drift", "--machine", "vmc-test-01", "--axis", "Z", "--term", "dx", "--from", "2026-03-03",
-                 "--to", "2026-03-02", "--db", store_url]) == 2
+    assert (
+        main(
+            [
+                "drift",
+                "--machine",
+                "vmc-test-01",
+                "--axis",
+                "Z",
+                "--term",
+                "dx",
+                "--from",
+                "2026-03-03",
+                "--to",
+                "2026-03-02",
+                "--db",
+                store_url,
+            ]
+        )
+        == 2
+    )
     assert "--to is before --from" in capsys.readouterr().err
 
 
@@ -164,11 +232,16 @@ def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path)
     # narrow buckets are never taken from rollups
     narrow = store.temperature_history(cid, "T2", buckets=20)
     assert narrow.equals(store.temperature_history(cid, "T2", buckets=20, rollups=False))
+
     # recomputing the rollups in SQL gives the rows the import wrote
     def rollups() -> list:
         with store.engine.connect() as conn:
-            return conn.execute(select(sc.TemperatureRollup.__table__).order_by(
-                sc.TemperatureRollup.channel_id, sc.TemperatureRollup.minute)).all()
+            return conn.execute(
+                select(sc.TemperatureRollup.__table__).order_by(
+                    sc.TemperatureRollup.channel_id, sc.TemperatureRollup.minute
+                )
+            ).all()
+
     written = rollups()
     assert len(written) == 4 * 20
     assert store.refresh_rollups(cid) == len(written)
@@ -180,7 +253,8 @@ def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path)
     with store.engine.begin() as conn:
         conn.execute(update(sc.Campaign).where(sc.Campaign.id == cid).values(rollups_complete=False))
     assert store.temperature_history(cid, "T2", buckets=3).equals(
-        store.temperature_history(cid, "T2", buckets=3, rollups=False))
+        store.temperature_history(cid, "T2", buckets=3, rollups=False)
+    )
     with pytest.raises(NotFoundError):
         store.refresh_rollups(99)
 
@@ -210,9 +284,17 @@ def test_model_registry_keeps_exactly_one_current(store: Store, bundle_dir: Path
     assert current is not None and current.version == 2 and current.document["nested"] == {"a": [1, None]}
     assert [m.status for m in store.model_versions("vmc-test-01")] == ["retired", "current"]
     with pytest.raises(IntegrityError), store.engine.begin() as conn:
-        conn.execute(insert(sc.ModelVersion), {"machine_id": "vmc-test-01", "version": 9, "document": {},
-                                               "source_campaigns": [], "status": "current",
-                                               "created_at": datetime.now(UTC)})
+        conn.execute(
+            insert(sc.ModelVersion),
+            {
+                "machine_id": "vmc-test-01",
+                "version": 9,
+                "document": {},
+                "source_campaigns": [],
+                "status": "current",
+                "created_at": datetime.now(UTC),
+            },
+        )
     with pytest.raises(NotFoundError):
         store.register_model("nope", {})
 
@@ -252,8 +334,12 @@ def test_acquisition_progress_upsert(store: Store, bundle_dir: Path) -> None:
     store.save_progress(cid, 0, 1, 30.0, {"next_scan": 2})
     store.save_progress(cid, 1, 4, 90.0, {"next_scan": 4})
     p = store.progress(cid)
-    assert p is not None and (p.stage_ordinal, p.sweep, p.last_sample_time_s, p.cursor) == (1, 4, 90.0,
-                                                                                             {"next_scan": 4})
+    assert p is not None and (p.stage_ordinal, p.sweep, p.last_sample_time_s, p.cursor) == (
+        1,
+        4,
+        90.0,
+        {"next_scan": 4},
+    )
     assert p.updated_at.tzinfo is not None
 
 

@@ -85,8 +85,8 @@ def fanuc(text: str, reference: float, detection_unit: float, p: np.ndarray, d: 
     inc = np.array([data[first + i] for i in range(m)], dtype=float)
     ref = ref_no - lo_no
     absolute = np.zeros(m)
-    absolute[ref + 1:] = np.cumsum(inc[ref + 1:])  # point n holds the change from n-1 to n
-    absolute[:ref] = -np.cumsum(inc[1:ref + 1][::-1])[::-1]
+    absolute[ref + 1 :] = np.cumsum(inc[ref + 1 :])  # point n holds the change from n-1 to n
+    absolute[:ref] = -np.cumsum(inc[1 : ref + 1][::-1])[::-1]
     if d < 0:
         absolute = absolute + par[3627]
     positions = reference + step * (np.arange(m) - ref)

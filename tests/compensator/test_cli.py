@@ -32,8 +32,21 @@ def files(tmp_path):
 def test_offline_compensation_writes_the_corrected_program(files, tmp_path, capsys):
     prog, model, temps = files
     out = tmp_path / "out.nc"
-    code = main(["compensate", str(prog), "--model", str(model), "--machine", "m1", "--temps", str(temps),
-                 "-o", str(out), "--json"])
+    code = main(
+        [
+            "compensate",
+            str(prog),
+            "--model",
+            str(model),
+            "--machine",
+            "m1",
+            "--temps",
+            str(temps),
+            "-o",
+            str(out),
+            "--json",
+        ]
+    )
     assert code == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["model"] == "m1 v4" and summary["temperatures"] == "nearest scan to each block's time"
@@ -52,9 +65,21 @@ def test_bad_block_is_one_line_error_and_nothing_is_written(files, tmp_path):
     prog.write_text(PROGRAM.replace("X4 Y2", "X4 Y2 I5"))
     out = tmp_path / "out.nc"
     proc = subprocess.run(
-        [sys.executable, "-m", "driftlab.cli", "compensate", str(prog), "--model", str(model), "--temps",
-         str(temps), "-o", str(out)],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "compensate",
+            str(prog),
+            "--model",
+            str(model),
+            "--temps",
+            str(temps),
+            "-o",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
@@ -92,12 +117,28 @@ def test_streaming_to_the_simulated_controller_through_the_api(capsys):
             with tempfile.TemporaryDirectory() as d:
                 prog = pathlib.Path(d) / "p.nc"
                 prog.write_text(prog_text)
-                code = main(["compensate", str(prog), "--api", api.url, "--machine", "m1",
-                             "--port", serial_url(sim), "--low-water", "2", "--high-water", "6", "--json"])
+                code = main(
+                    [
+                        "compensate",
+                        str(prog),
+                        "--api",
+                        api.url,
+                        "--machine",
+                        "m1",
+                        "--port",
+                        serial_url(sim),
+                        "--low-water",
+                        "2",
+                        "--high-water",
+                        "6",
+                        "--json",
+                    ]
+                )
                 bad = pathlib.Path(d) / "bad.nc"
                 bad.write_text("G1 X1\nG2 X2 Y2 R1\n")
-                code_bad = main(["compensate", str(bad), "--api", api.url, "--machine", "m1",
-                                 "--port", serial_url(sim)])
+                code_bad = main(
+                    ["compensate", str(bad), "--api", api.url, "--machine", "m1", "--port", serial_url(sim)]
+                )
             executed = list(sim.executed)
     finally:
         api.stop()
@@ -129,8 +170,11 @@ def _controller_program(lines: int, seed: int = 3) -> str:
             out.append(f"G0 Z{round(float(rng.uniform(5, 30)), 1)}")
         else:
             pose += rng.normal(0, [3.0, 3.0, 1.0, 0.5, 0.5])
-            words = [f"{a}{round(float(v), int(rng.integers(0, 4)))}" for a, v in zip("XYZAB", pose)
-                     if rng.random() < (0.8 if a in "XYZ" else 0.2)]
+            words = [
+                f"{a}{round(float(v), int(rng.integers(0, 4)))}"
+                for a, v in zip("XYZAB", pose)
+                if rng.random() < (0.8 if a in "XYZ" else 0.2)
+            ]
             feed = f" F{2000 + k % 7}" if r > 0.98 else ""
             out.append(("G1 " if r < 0.1 else "") + (" ".join(words) or "X1.5") + feed)
     return "\n".join(out + ["M30", "%"]) + "\n"
@@ -148,12 +192,16 @@ def test_port_sends_exactly_the_blocks_the_offline_path_writes(files, tmp_path, 
     assert prog.stat().st_size > STREAM_CHUNK_BYTES  # several pieces
     out = tmp_path / "out.nc"
     assert main(["compensate", str(prog), "--model", str(model), "--temps", str(temps), "-o", str(out)]) == 0
-    offline = [ln.strip() for ln in out.read_text().splitlines()
-               if ln.strip() and ln.strip() != "%" and not ln.strip().startswith("(")]
+    offline = [
+        ln.strip()
+        for ln in out.read_text().splitlines()
+        if ln.strip() and ln.strip() != "%" and not ln.strip().startswith("(")
+    ]
     # a controller that runs the blocks as fast as they come: the link never waits for the buffer to drain
     with SimController(TinyWorld(channels=2), WallClock(acceleration=1e9), capacity=256) as sim:
-        code = main(["compensate", str(prog), "--model", str(model), "--temps", str(temps),
-                     "--port", serial_url(sim), "--json"])
+        code = main(
+            ["compensate", str(prog), "--model", str(model), "--temps", str(temps), "--port", serial_url(sim), "--json"]
+        )
         executed = list(sim.executed)
     assert code == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

@@ -138,8 +138,13 @@ def test_streaming_in_pieces_equals_one_go():
     cut = pts.n // 2
     a = correct_points(p, Points(pts.block[:cut], pts.nominal_int[:cut]), model, {})
     b = correct_points(
-        p, Points(pts.block[cut:], pts.nominal_int[cut:]), model, {},
-        state=a.steps[-1], prev_nominal=pts.nominal_int[cut - 1], prev_direction=a.direction[-1],
+        p,
+        Points(pts.block[cut:], pts.nominal_int[cut:]),
+        model,
+        {},
+        state=a.steps[-1],
+        prev_nominal=pts.nominal_int[cut - 1],
+        prev_direction=a.direction[-1],
     )
     np.testing.assert_array_equal(np.vstack([a.sent_int, b.sent_int]), whole.sent_int)
     np.testing.assert_array_equal(np.vstack([a.direction, b.direction]), whole.direction)
@@ -214,8 +219,13 @@ def test_registry_document_drives_the_correction(tmp_path):
         "version": 3,
         "inputs": {"T9": {"reference": 20.0, "min": 15.0, "max": 40.0}},
         "terms": [
-            {"element": "T1", "param": "dz", "features": [{"kind": "dT", "name": "dT[T9]", "channels": ["T9"]}],
-             "coefficients": [0.01], "statistics": {"rmse_train": 0.001}},
+            {
+                "element": "T1",
+                "param": "dz",
+                "features": [{"kind": "dT", "name": "dT[T9]", "channels": ["T9"]}],
+                "coefficients": [0.01],
+                "statistics": {"rmse_train": 0.001},
+            },
         ],
     }
     model = ErrorModel.from_document(doc)
@@ -247,10 +257,20 @@ def _all_kinds_doc() -> dict:
     coefs = [0.003, 1e-5, -2e-8, 3e-11, 0.0012, 0.004, -0.002, 0.001, 0.0007, 1.5e-3, 0.0021]
     inputs = {c: {"reference": 20.0 + i, "min": 10.0, "max": 40.0} for i, c in enumerate(["T9", "T10", "T11"])}
     terms = [
-        {"element": "phi_x", "param": "dx", "features": feats, "coefficients": coefs,
-         "statistics": {"rmse_train": 0.0}},
-        {"element": "T2", "param": "beta", "features": feats[5:9], "coefficients": [1e-6, 2e-6, -1e-6, 5e-7],
-         "statistics": {"rmse_train": 0.0}},
+        {
+            "element": "phi_x",
+            "param": "dx",
+            "features": feats,
+            "coefficients": coefs,
+            "statistics": {"rmse_train": 0.0},
+        },
+        {
+            "element": "T2",
+            "param": "beta",
+            "features": feats[5:9],
+            "coefficients": [1e-6, 2e-6, -1e-6, 5e-7],
+            "statistics": {"rmse_train": 0.0},
+        },
     ]
     return {"machine": "m", "version": 1, "inputs": inputs, "terms": terms}
 

@@ -27,8 +27,7 @@ from driftlab.errors import ValidationError
 from driftlab.models.fitting import FitOptions, fit_bundles
 from driftlab.physics import kinematics as kin
 
-HIDDEN = HiddenEffect(kind="unmapped_channel", axis="Z", term="dz", channels=["T21"],
-                      params={"coef_per_degC": 0.006})
+HIDDEN = HiddenEffect(kind="unmapped_channel", axis="Z", term="dz", channels=["T21"], params={"coef_per_degC": 0.006})
 #: wear of the Z slideways: 30 um a day whatever the temperatures (the demo's hidden effect)
 WEAR = HiddenEffect(kind="drift", axis="Z", term="dz", params={"rate_per_day": 0.03})
 
@@ -106,8 +105,9 @@ def test_machining_heats_the_spindle_only_while_cutting() -> None:
 def offline_document(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Return a model fitted by the fitting pipeline on a simulated campaign of the same machine."""
     sim = simulate_campaign(_scenario(HIDDEN, WEAR))
-    path = write_bundle(tmp_path_factory.mktemp("campaign") / "bundle", sim.meta, sim.temperatures,
-                        sim.conditions, sim.errors)
+    path = write_bundle(
+        tmp_path_factory.mktemp("campaign") / "bundle", sim.meta, sim.temperatures, sim.conditions, sim.errors
+    )
     result = fit_bundles([load_bundle(path)], options=FitOptions(network=False, virtual_sensors=False))
     return result.document.model_dump(mode="json")
 
@@ -116,8 +116,11 @@ def test_cutting_test_orders_uncompensated_offline_online(offline_document: dict
     """A day after the campaign: the thermal drift of the cut is modelled, the day's wear is not."""
     doc = offline_document
     test = run_cutting_test(
-        _scenario(HIDDEN, WEAR), lambda: StaticModel(ErrorModel.from_document(doc)),
-        lambda: LocalRLS(doc, channels=[], forgetting=0.9), passes=150, age_s=86400.0,
+        _scenario(HIDDEN, WEAR),
+        lambda: StaticModel(ErrorModel.from_document(doc)),
+        lambda: LocalRLS(doc, channels=[], forgetting=0.9),
+        passes=150,
+        age_s=86400.0,
     )
     table = test.table()
     assert set(table) == {"uncompensated", "offline", "online"}
@@ -131,8 +134,11 @@ def test_cutting_test_orders_uncompensated_offline_online(offline_document: dict
     assert on.rmse_mm < 0.5 * off.rmse_mm  # the on-line model catches the wear from the probed spheres
     # and without the wear (the same day) the off-line model alone does most of the work
     same_day = run_cutting_test(
-        _scenario(HIDDEN, WEAR), lambda: StaticModel(ErrorModel.from_document(doc)),
-        lambda: LocalRLS(doc, channels=[], forgetting=0.9), passes=CMM_ALONG, age_s=0.0,
+        _scenario(HIDDEN, WEAR),
+        lambda: StaticModel(ErrorModel.from_document(doc)),
+        lambda: LocalRLS(doc, channels=[], forgetting=0.9),
+        passes=CMM_ALONG,
+        age_s=0.0,
     )
     assert same_day.runs["offline"].rmse_mm < 0.5 * same_day.runs["uncompensated"].rmse_mm
     assert len(on.probes) >= 2 and on.stream["model_reloads"] >= 2

@@ -129,8 +129,27 @@ def test_cli_export_comp_writes_each_format(fitted, tmp_path, capsys):
     pd.DataFrame([{"time_s": 0.0, **temps}]).to_csv(csv, index=False)
     for fmt in FORMATS:
         out = tmp_path / f"x.{fmt}"
-        assert main(["export-comp", "--model", str(root / "model.json"), "--temps", str(csv), "--format", fmt,
-                     "--axis", "X", "--range", "0,250", "-o", str(out), "--json"]) == 0
+        assert (
+            main(
+                [
+                    "export-comp",
+                    "--model",
+                    str(root / "model.json"),
+                    "--temps",
+                    str(csv),
+                    "--format",
+                    fmt,
+                    "--axis",
+                    "X",
+                    "--range",
+                    "0,250",
+                    "-o",
+                    str(out),
+                    "--json",
+                ]
+            )
+            == 0
+        )
         summary = json.loads(capsys.readouterr().out)
         assert summary["points"] == 26 and summary["format"] == fmt and out.read_text()
     # the file applies as the controller would, at the same temperatures
@@ -152,25 +171,60 @@ def test_cli_export_comp_from_a_registered_version(fitted, tmp_path, capsys):
     store.close()
     csv = root / "bundle" / "temperatures.csv"
     out = tmp_path / "x.com"
-    assert main(["export-comp", "--model", str(doc.version), "--machine", doc.machine, "--db", url, "--temps", str(csv),
-                 "--format", "heidenhain", "--axis", "Z", "--range=-250,0", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "export-comp",
+                "--model",
+                str(doc.version),
+                "--machine",
+                doc.machine,
+                "--db",
+                url,
+                "--temps",
+                str(csv),
+                "--format",
+                "heidenhain",
+                "--axis",
+                "Z",
+                "--range=-250,0",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "CfgAxisComp/Z/backLash" in capsys.readouterr().out
     assert out.read_text().startswith("BEGIN Z.COM MM")
 
 
-@pytest.mark.parametrize("extra,needle", [
-    (["--range", "250,0"], "the axis range 250..0 is empty"),
-    (["--range", "0,250", "--axis", "W"], "axis 'W' is not one of X Y Z A B"),
-    (["--range", "1,2,3"], "--range must be 2 numbers"),
-    (["--range", "5,250", "--format", "fanuc"], None),
-    (["--range", "0,250", "--model", "7"], "--model VERSION needs --machine ID"),
-    (["--range", "0,250", "--step", "0"], "the grid step must be positive"),
-])
+@pytest.mark.parametrize(
+    "extra,needle",
+    [
+        (["--range", "250,0"], "the axis range 250..0 is empty"),
+        (["--range", "0,250", "--axis", "W"], "axis 'W' is not one of X Y Z A B"),
+        (["--range", "1,2,3"], "--range must be 2 numbers"),
+        (["--range", "5,250", "--format", "fanuc"], None),
+        (["--range", "0,250", "--model", "7"], "--model VERSION needs --machine ID"),
+        (["--range", "0,250", "--step", "0"], "the grid step must be positive"),
+    ],
+)
 def test_cli_export_comp_one_line_errors_and_nothing_written(fitted, tmp_path, extra, needle):
     _, temps, root = fitted
     out = tmp_path / "x.tbl"
-    args = ["export-comp", "--model", str(root / "model.json"), "--temps", str(root / "bundle" / "temperatures.csv"),
-            "--format", "linuxcnc", "--axis", "X", "-o", str(out)]
+    args = [
+        "export-comp",
+        "--model",
+        str(root / "model.json"),
+        "--temps",
+        str(root / "bundle" / "temperatures.csv"),
+        "--format",
+        "linuxcnc",
+        "--axis",
+        "X",
+        "-o",
+        str(out),
+    ]
     if needle is None:  # fanuc: the reference position 0 must be a grid point of 5..250
         args += ["--reference", "-10"]
         needle = "fanuc: the reference position -10 is outside 5..250"

@@ -81,8 +81,9 @@ _word = st.one_of(
 _line = st.one_of(
     st.lists(_word, min_size=1, max_size=6, unique_by=lambda w: w[0].upper()).map(" ".join),
     st.lists(_word, min_size=1, max_size=4, unique_by=lambda w: w[0].upper()).map("".join),
-    st.text(alphabet=st.characters(min_codepoint=32, max_codepoint=126, exclude_characters="()"),
-            max_size=20).map(lambda t: f"({t})"),
+    st.text(alphabet=st.characters(min_codepoint=32, max_codepoint=126, exclude_characters="()"), max_size=20).map(
+        lambda t: f"({t})"
+    ),
     st.text(alphabet=st.characters(min_codepoint=32, max_codepoint=126), max_size=20).map(lambda t: f"; {t}"),
     st.sampled_from(["%", "", "   ", "G90", "G91", "M30"]),
 )
@@ -103,9 +104,15 @@ def test_generated_programs_round_trip(lines, eol, final_newline):
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.sampled_from(["G90", "G91"]), st.integers(-5000, 5000), st.integers(-5000, 5000)),
-                min_size=1, max_size=30),
-       st.integers(-3, 3), st.integers(-2, 2))
+@given(
+    st.lists(
+        st.tuples(st.sampled_from(["G90", "G91"]), st.integers(-5000, 5000), st.integers(-5000, 5000)),
+        min_size=1,
+        max_size=30,
+    ),
+    st.integers(-3, 3),
+    st.integers(-2, 2),
+)
 def test_corrected_program_reparses_to_commanded_pose(moves, cx, ca):
     text = "G1\n" + "".join(f"{g} X{x / 100} A{a / 100}\n" for g, x, a in moves)
     p = parse_program(text)
@@ -128,7 +135,15 @@ def test_subdivision_of_long_segments():
     # uncorrected subdivided program: the new lines carry the intermediate points
     out = emit_program(p, pts, pts.nominal_int).decode()
     assert out.splitlines() == [
-        "G1 X0 Y0", "X5.0 Y0", "X10.0", "X15.0", "X20.0", "G0 X100", "G1 A10.0", "A20.0", "A30.0",
+        "G1 X0 Y0",
+        "X5.0 Y0",
+        "X10.0",
+        "X15.0",
+        "X20.0",
+        "G0 X100",
+        "G1 A10.0",
+        "A20.0",
+        "A30.0",
     ]
 
 

@@ -44,11 +44,20 @@ def doc(coef: float, version: int) -> dict:
         "version": version,
         "inputs": {"T1": {"reference": 20.0, "min": 10.0, "max": 40.0}},
         "terms": [
-            {"element": "T1", "param": "dz", "features": [{"kind": "dT", "name": "dT[T1]", "channels": ["T1"]}],
-             "coefficients": [coef], "statistics": {"rmse_train": 0.0}},
-            {"element": "phi_x", "param": "dx",
-             "features": [{"kind": "pos_dT", "name": "pos*dT[T1]", "channels": ["T1"], "label": "X"}],
-             "coefficients": [2e-5], "statistics": {"rmse_train": 0.0}},
+            {
+                "element": "T1",
+                "param": "dz",
+                "features": [{"kind": "dT", "name": "dT[T1]", "channels": ["T1"]}],
+                "coefficients": [coef],
+                "statistics": {"rmse_train": 0.0},
+            },
+            {
+                "element": "phi_x",
+                "param": "dx",
+                "features": [{"kind": "pos_dT", "name": "pos*dT[T1]", "channels": ["T1"], "label": "X"}],
+                "coefficients": [2e-5],
+                "statistics": {"rmse_train": 0.0},
+            },
         ],
     }
 
@@ -138,8 +147,9 @@ def test_streamed_blocks_equal_offline_ones_even_when_recomputed(batch, lookahea
     model = ErrorModel.from_document(doc(0.01, 1))
     temps = {"T1": 25.0}
     offline = _sendable(compensate_program(p, model, temps, max_segment_mm=segment).text)
-    s = Streamer(p, StaticModel(model), FixedTemperatures(temps), batch_lines=batch, lookahead=lookahead,
-                 max_segment_mm=segment)
+    s = Streamer(
+        p, StaticModel(model), FixedTemperatures(temps), batch_lines=batch, lookahead=lookahead, max_segment_mm=segment
+    )
     s.prime()
     got = []
     rng = np.random.default_rng(batch)
@@ -166,8 +176,16 @@ def test_streaming_refills_at_low_water_and_hot_reloads_on_etag_change(caplog):
             link = _link(sim, clock)
             try:
                 p = parse_program(PROGRAM.replace("F6000", "F60"), start=tuple(link.position().values()))
-                s = Streamer(p, ApiModel(a.url, "m1"), ApiTemperatures(a.url, "m1"), refresh_s=2.0,
-                             clock=clock.now, sleep=clock.sleep, lookahead=16, batch_lines=4)
+                s = Streamer(
+                    p,
+                    ApiModel(a.url, "m1"),
+                    ApiTemperatures(a.url, "m1"),
+                    refresh_s=2.0,
+                    clock=clock.now,
+                    sleep=clock.sleep,
+                    lookahead=16,
+                    batch_lines=4,
+                )
                 link.sleep = s.idle
                 s.prime()
                 pulls: list[tuple[int, int]] = []
@@ -211,8 +229,16 @@ def test_streaming_refills_at_low_water_and_hot_reloads_on_etag_change(caplog):
 def test_api_outage_keeps_the_last_model_with_a_warning(api, caplog):
     p = parse_program(PROGRAM)
     now = [0.0]
-    s = Streamer(p, ApiModel(api.url, "m1"), ApiTemperatures(api.url, "m1"), refresh_s=1.0,
-                 clock=lambda: now[0], sleep=lambda d: None, lookahead=2, batch_lines=1)
+    s = Streamer(
+        p,
+        ApiModel(api.url, "m1"),
+        ApiTemperatures(api.url, "m1"),
+        refresh_s=1.0,
+        clock=lambda: now[0],
+        sleep=lambda d: None,
+        lookahead=2,
+        batch_lines=1,
+    )
     s.prime()
     it = s.lines()
     first = [next(it) for _ in range(3)]
@@ -246,8 +272,14 @@ def test_prepared_blocks_older_than_two_minutes_are_corrected_again():
         def read(self):
             return {"T1": 25.0 if now[0] < 100 else 30.0}
 
-    s = Streamer(p, StaticModel(ErrorModel.from_document(doc(0.01, 1))), Rising(), refresh_s=60.0,
-                 clock=lambda: now[0], sleep=lambda d: None)
+    s = Streamer(
+        p,
+        StaticModel(ErrorModel.from_document(doc(0.01, 1))),
+        Rising(),
+        refresh_s=60.0,
+        clock=lambda: now[0],
+        sleep=lambda d: None,
+    )
     s.prime()
     it = s.lines()
     assert next(it) == "G90 G1 F6000"
@@ -265,14 +297,16 @@ def _pieces(path, piece_bytes: int, start=None, segment: float = 5.0):
     """Return the pieces `driftlab compensate --port` streams: both passes, ``piece_bytes`` at a time."""
     dec = decimals_for(0.0025, 0.001)
     scan = scan_program(path, str(path), dec, piece_bytes)
-    return parse_pieces(program_pieces(path, piece_bytes), scan, str(path), start=start, min_decimals=dec,
-                        max_segment_mm=segment)
+    return parse_pieces(
+        program_pieces(path, piece_bytes), scan, str(path), start=start, min_decimals=dec, max_segment_mm=segment
+    )
 
 
 def _streamed(source, model, temps, segment: float, seed: int, discards: float) -> list[str]:
     """Return every line a streamer hands the link, with preparation thrown away at random (as reloads do)."""
-    s = Streamer(source, StaticModel(model), FixedTemperatures(temps), batch_lines=5, lookahead=7,
-                 max_segment_mm=segment)
+    s = Streamer(
+        source, StaticModel(model), FixedTemperatures(temps), batch_lines=5, lookahead=7, max_segment_mm=segment
+    )
     s.prime()
     rng = np.random.default_rng(seed)
     got = []
@@ -328,8 +362,15 @@ def test_the_program_is_read_a_piece_at_a_time_as_the_controller_takes_blocks(tm
                 yield piece
 
         try:
-            s = Streamer(pieces(), StaticModel(ErrorModel.from_document(doc(0.01, 1))), FixedTemperatures(
-                {"T1": 25.0}), clock=clock.now, sleep=clock.sleep, lookahead=lookahead, batch_lines=batch)
+            s = Streamer(
+                pieces(),
+                StaticModel(ErrorModel.from_document(doc(0.01, 1))),
+                FixedTemperatures({"T1": 25.0}),
+                clock=clock.now,
+                sleep=clock.sleep,
+                lookahead=lookahead,
+                batch_lines=batch,
+            )
             s.run(link, low_water=2)
         finally:
             link.close()

@@ -39,12 +39,14 @@ def _model() -> ErrorModel:
 
 def _table() -> TemperatureTable:
     t = np.arange(0.0, 7200.0 + 1, 300.0)
-    return TemperatureTable.from_frame(pd.DataFrame({
-        "time_s": t, "T9": 20 + t / 600, "T10": 21 + np.sin(t / 900), "T11": 22 + t / 1200}))
+    return TemperatureTable.from_frame(
+        pd.DataFrame({"time_s": t, "T9": 20 + t / 600, "T10": 21 + np.sin(t / 900), "T11": 22 + t / 1200})
+    )
 
 
-def generated_program(seed: int, lines: int, timed: bool = True, crlf: bool = False, final_newline: bool = True,
-                      rotary: bool = True) -> bytes:
+def generated_program(
+    seed: int, lines: int, timed: bool = True, crlf: bool = False, final_newline: bool = True, rotary: bool = True
+) -> bytes:
     """Return a random program using what the parser accepts: modes, comments, stamps, mixed decimals."""
     rng = np.random.default_rng(seed)
     out = ["%", "(generated)", "N1 G90 G21 G17 G94"]
@@ -88,8 +90,13 @@ def generated_program(seed: int, lines: int, timed: bool = True, crlf: bool = Fa
 
 def _reference(data: bytes, model: ErrorModel, temps, **kw) -> bytes:
     program = parse_program(data, "p.nc", start=kw.get("start"), min_decimals=decimals_for(0.0025, 0.001))
-    return compensate_program(program, model, temps, max_segment_mm=kw.get("max_segment_mm", 5.0),
-                              chunk_points=kw.get("chunk_points", 1 << 17)).text
+    return compensate_program(
+        program,
+        model,
+        temps,
+        max_segment_mm=kw.get("max_segment_mm", 5.0),
+        chunk_points=kw.get("chunk_points", 1 << 17),
+    ).text
 
 
 CASES = [
@@ -115,15 +122,25 @@ def test_streamed_output_is_byte_identical(name, data, kw, piece, tmp_path: Path
     for temps in (table, {"T9": 26.0, "T10": 21.5, "T11": 24.0}):
         want = _reference(data, model, temps, **kw)
         out = tmp_path / "out.nc"
-        result = compensate_file(src, model, temps, out, chunk_bytes=piece, start=kw.get("start"),
-                                 max_segment_mm=kw.get("max_segment_mm", 5.0),
-                                 chunk_points=kw.get("chunk_points", 1 << 17))
+        result = compensate_file(
+            src,
+            model,
+            temps,
+            out,
+            chunk_bytes=piece,
+            start=kw.get("start"),
+            max_segment_mm=kw.get("max_segment_mm", 5.0),
+            chunk_points=kw.get("chunk_points", 1 << 17),
+        )
         got = out.read_bytes()
         assert got == want, name
-        ref = compensate_program(parse_program(data, "p.nc", start=kw.get("start"),
-                                               min_decimals=decimals_for(0.0025, 0.001)),
-                                 model, temps, max_segment_mm=kw.get("max_segment_mm", 5.0),
-                                 chunk_points=kw.get("chunk_points", 1 << 17))
+        ref = compensate_program(
+            parse_program(data, "p.nc", start=kw.get("start"), min_decimals=decimals_for(0.0025, 0.001)),
+            model,
+            temps,
+            max_segment_mm=kw.get("max_segment_mm", 5.0),
+            chunk_points=kw.get("chunk_points", 1 << 17),
+        )
         assert result.summary() == ref.summary()
 
 
@@ -205,8 +222,20 @@ def test_bad_program_is_one_line_and_writes_nothing(case, tmp_path: Path, model_
     out = tmp_path / "out" / "o.nc"
     out.parent.mkdir()
     capsys.readouterr()
-    code = main(["compensate", str(src), "--model", str(model_file), "--machine", "m", "--temps", _temps(tmp_path),
-                 "-o", str(out)])
+    code = main(
+        [
+            "compensate",
+            str(src),
+            "--model",
+            str(model_file),
+            "--machine",
+            "m",
+            "--temps",
+            _temps(tmp_path),
+            "-o",
+            str(out),
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1 and err[0].startswith("driftlab: error: " + expected.format(p=src)), err
@@ -271,8 +300,13 @@ print(int(next(l for l in open("/proc/self/status") if l.startswith("VmHWM")).sp
 
 
 def _peak_rss_kb(program: Path, out: Path) -> int:
-    proc = subprocess.run([sys.executable, "-c", MEMORY_PROBE, str(program), str(out)], capture_output=True,
-                          text=True, cwd=ROOT, check=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", MEMORY_PROBE, str(program), str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=True,
+    )
     return int(proc.stdout.split()[-1])
 
 

@@ -20,10 +20,19 @@ PROGRAM = "G90 G1 X10 Y10 Z-10 F2000\nG1 X20 Y10 Z-10\nG1 X30 Y20 Z-12\n"
 
 def _doc() -> dict:
     return {
-        "machine": "m1", "version": 1, "time_origin": ORIGIN.isoformat(),
+        "machine": "m1",
+        "version": 1,
+        "time_origin": ORIGIN.isoformat(),
         "inputs": {"T1": {"reference": 20.0, "min": 10.0, "max": 40.0}},
-        "terms": [{"element": "phi_z", "param": "dz", "features": [Feature("time", label="Z").to_dict()],
-                   "coefficients": [RATE_MM_PER_DAY], "statistics": {"rmse_train": 0.0}}],
+        "terms": [
+            {
+                "element": "phi_z",
+                "param": "dz",
+                "features": [Feature("time", label="Z").to_dict()],
+                "coefficients": [RATE_MM_PER_DAY],
+                "statistics": {"rmse_train": 0.0},
+            }
+        ],
     }
 
 
@@ -43,8 +52,14 @@ def test_correct_points_evaluates_drift_at_the_given_time():
 def _streamed(epoch_s: float, start_s: float) -> list[str]:
     clock = ManualClock(start_s)
     prog = parse_program(PROGRAM, name="p")
-    s = Streamer(prog, StaticModel(ErrorModel.from_document(_doc())), FixedTemperatures({"T1": 20.0}),
-                 clock=clock.now, sleep=clock.sleep, epoch_s=epoch_s)
+    s = Streamer(
+        prog,
+        StaticModel(ErrorModel.from_document(_doc())),
+        FixedTemperatures({"T1": 20.0}),
+        clock=clock.now,
+        sleep=clock.sleep,
+        epoch_s=epoch_s,
+    )
     s.prime()
     return list(s.lines())
 

@@ -78,16 +78,30 @@ def _daemon(plan: Path, db: Path, *extra: str) -> subprocess.Popen:
     """Start `driftlab daemon` on the virtual machine as a real subprocess."""
     env = {**os.environ, "DRIFTLAB_DB_URL": f"sqlite:///{db}"}
     return subprocess.Popen(
-        [sys.executable, "-m", "driftlab.cli", "daemon", "--plan", str(plan), "--sim", str(SCENARIO),
-         "--speed", SPEED, *extra],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "daemon",
+            "--plan",
+            str(plan),
+            "--sim",
+            str(SCENARIO),
+            "--speed",
+            SPEED,
+            *extra,
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
 
 
 def _forked_daemon(plan: Path, db: Path, *extra: str) -> multiprocessing.Process:
     """Start `driftlab daemon` in a forked child process (a real process, without re-importing everything)."""
-    argv = ["daemon", "--plan", str(plan), "--sim", str(SCENARIO), "--speed", SPEED, "--db", f"sqlite:///{db}",
-            *extra]
+    argv = ["daemon", "--plan", str(plan), "--sim", str(SCENARIO), "--speed", SPEED, "--db", f"sqlite:///{db}", *extra]
     proc = multiprocessing.get_context("fork").Process(target=_child, args=(argv,), daemon=False)
     proc.start()
     return proc
@@ -126,13 +140,14 @@ def _rows(db: Path) -> dict[str, list[tuple]]:
         return {
             "temperatures": con.execute(
                 "SELECT c.name, t.time_s, t.value FROM temperature_samples t "
-                "JOIN channels c ON c.id = t.channel_id ORDER BY c.name, t.time_s").fetchall(),
+                "JOIN channels c ON c.id = t.channel_id ORDER BY c.name, t.time_s"
+            ).fetchall(),
             "errors": con.execute(
-                "SELECT seq, time_s, axis, term, position, direction, value, sweep FROM error_samples "
-                "ORDER BY seq").fetchall(),
+                "SELECT seq, time_s, axis, term, position, direction, value, sweep FROM error_samples ORDER BY seq"
+            ).fetchall(),
             "conditions": con.execute(
-                "SELECT time_s, spindle_rpm, feed_mm_min, x, y, z, a, b FROM condition_samples "
-                "ORDER BY time_s").fetchall(),
+                "SELECT time_s, spindle_rpm, feed_mm_min, x, y, z, a, b FROM condition_samples ORDER BY time_s"
+            ).fetchall(),
             "campaign": con.execute("SELECT name, status FROM campaigns").fetchall(),
             "stages": con.execute("SELECT ordinal, name, status FROM stages ORDER BY ordinal").fetchall(),
         }

@@ -20,21 +20,31 @@ from driftlab.errors import ConflictError, ValidationError
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "examples" / "plans" / "z-axis-demo.yaml"
-CHANNELS = {"T1": {"location": "X axis front left corner", "structure": "x_table"},
-            "T49": {"location": "room top", "structure": "room"}}
+CHANNELS = {
+    "T1": {"location": "X axis front left corner", "structure": "x_table"},
+    "T49": {"location": "room top", "structure": "room"},
+}
 
 
 def _plan():
     """Return a small plan with a sweep in its first stage."""
-    return parse_plan({
-        "name": "unit", "machine": {"id": "m-unit", "channels": {k: dict(v) for k, v in CHANNELS.items()}},
-        "scan_interval_s": 10,
-        "stages": [
-            {"name": "sp", "axis": "Z", "duration_s": 100, "heat": [{"kind": "spindle", "rpm": 8000}],
-             "sweep": {"positions": [0, 50], "interval_s": 50, "point_s": 5}},
-            {"name": "cool", "axis": "Z", "duration_s": 50},
-        ],
-    })
+    return parse_plan(
+        {
+            "name": "unit",
+            "machine": {"id": "m-unit", "channels": {k: dict(v) for k, v in CHANNELS.items()}},
+            "scan_interval_s": 10,
+            "stages": [
+                {
+                    "name": "sp",
+                    "axis": "Z",
+                    "duration_s": 100,
+                    "heat": [{"kind": "spindle", "rpm": 8000}],
+                    "sweep": {"positions": [0, 50], "interval_s": 50, "point_s": 5},
+                },
+                {"name": "cool", "axis": "Z", "duration_s": 50},
+            ],
+        }
+    )
 
 
 def _scan(t: float, base: float = 20.0) -> TemperatureScan:
@@ -54,9 +64,14 @@ def test_batches_commit_with_their_cursor_and_resume_from_it(db_url: str) -> Non
     assert h.cursor == Cursor() and not h.resumed and set(h.channel_ids) == {"T1", "T49"}
     sink = StoreSink(engine, plan, h)
     pts = plan.sweep_points()
-    b = Batch(scans=[(0, _scan(0.0)), (1, _scan(10.0))], states=[(0.0, {"spindle_rpm": 8000.0, "z": 0.0})],
-              points=[(pts[0], 0.0, {"dz": Reading(0.001)}), (pts[1], 5.0, {"dz": Reading.missing(FLAG_BEAM_BREAK)})],
-              cursor=Cursor(2, 2), stage=0, t_s=10.0)
+    b = Batch(
+        scans=[(0, _scan(0.0)), (1, _scan(10.0))],
+        states=[(0.0, {"spindle_rpm": 8000.0, "z": 0.0})],
+        points=[(pts[0], 0.0, {"dz": Reading(0.001)}), (pts[1], 5.0, {"dz": Reading.missing(FLAG_BEAM_BREAK)})],
+        cursor=Cursor(2, 2),
+        stage=0,
+        t_s=10.0,
+    )
     sink.commit(b)
     assert _count(engine, sc.TemperatureSample.__table__) == 4
     assert _count(engine, sc.ErrorSample.__table__) == 1  # the broken-beam term is a fault, not a row
@@ -94,12 +109,23 @@ def test_open_thermocouple_is_stored_as_missing_and_the_last_batch_closes_the_ca
     h = open_campaign(engine, plan, CHANNELS, [], resume=False, origin={})
     sink = StoreSink(engine, plan, h)
     scan = TemperatureScan(0.0, {"T1": math.nan, "T49": 20.0}, {"T1": FLAG_OPEN})
-    sink.commit(Batch(scans=[(0, scan)], faults=[Fault(0.0, "scan 0", "thermocouple", "x")],
-                      cursor=Cursor(plan.n_scans, len(plan.sweep_points())), stage=1, t_s=140.0))
+    sink.commit(
+        Batch(
+            scans=[(0, scan)],
+            faults=[Fault(0.0, "scan 0", "thermocouple", "x")],
+            cursor=Cursor(plan.n_scans, len(plan.sweep_points())),
+            stage=1,
+            t_s=140.0,
+        )
+    )
     with engine.connect() as conn:
-        vals = dict(conn.execute(
-            select(sc.Channel.name, sc.TemperatureSample.value)
-            .join(sc.Channel, sc.Channel.id == sc.TemperatureSample.channel_id)).all())
+        vals = dict(
+            conn.execute(
+                select(sc.Channel.name, sc.TemperatureSample.value).join(
+                    sc.Channel, sc.Channel.id == sc.TemperatureSample.channel_id
+                )
+            ).all()
+        )
         statuses = conn.execute(select(sc.Stage.status).order_by(sc.Stage.ordinal)).scalars().all()
         camp = conn.execute(select(sc.Campaign.status)).scalar_one()
     assert vals == {"T1": None, "T49": 20.0}
@@ -173,17 +199,29 @@ def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -
     from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
 
-    plan = parse_plan({
-        "name": "faulty", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
-        "stages": [{"name": "sp", "axis": "Z", "duration_s": 600, "heat": [{"kind": "spindle", "rpm": 9000}],
-                    "sweep": {"positions": [-100, 0], "interval_s": 300, "point_s": 5}}],
-    })
+    plan = parse_plan(
+        {
+            "name": "faulty",
+            "machine": {"id": "vmc-5ax-01"},
+            "scan_interval_s": 60,
+            "stages": [
+                {
+                    "name": "sp",
+                    "axis": "Z",
+                    "duration_s": 600,
+                    "heat": [{"kind": "spindle", "rpm": 9000}],
+                    "sweep": {"positions": [-100, 0], "interval_s": 300, "point_s": 5},
+                }
+            ],
+        }
+    )
     engine = store_engine(f"sqlite:///{tmp_path / 'f.sqlite'}")
     meta = scenario_meta(None)
     handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
     clock = sim_clock(plan, handle.cursor, math.inf)
-    rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
-                        list(meta["channels"]))
+    rig = build_sim_rig(
+        plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
+    )
     rig.servers["thermocouple"].inject("garble", "garble", "garble")  # every attempt of the first exchange
     rig.servers["laser"].break_beam()
     try:
@@ -221,15 +259,26 @@ def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> No
     ctrl = SimController(world, clock).start()
     head = SimLaser(world, clock, ctrl).start()
     try:
-        plan = parse_plan({
-            "name": "bench-top", "machine": {"id": "rig-1", "channels": {f"T{i}": {"location": f"site {i}"}
-                                                                          for i in range(1, 5)}},
-            "scan_interval_s": 0.1,
-            "instruments": {"thermocouple": visa_address(card), "laser": visa_address(head),
-                            "machine_link": serial_url(ctrl)},
-            "stages": [{"name": "idle", "axis": "X", "duration_s": 0.6,
-                        "sweep": {"positions": [0, 0.01], "directions": [1], "interval_s": 0.5, "point_s": 0.25}}],
-        })
+        plan = parse_plan(
+            {
+                "name": "bench-top",
+                "machine": {"id": "rig-1", "channels": {f"T{i}": {"location": f"site {i}"} for i in range(1, 5)}},
+                "scan_interval_s": 0.1,
+                "instruments": {
+                    "thermocouple": visa_address(card),
+                    "laser": visa_address(head),
+                    "machine_link": serial_url(ctrl),
+                },
+                "stages": [
+                    {
+                        "name": "idle",
+                        "axis": "X",
+                        "duration_s": 0.6,
+                        "sweep": {"positions": [0, 0.01], "directions": [1], "interval_s": 0.5, "point_s": 0.25},
+                    }
+                ],
+            }
+        )
         result = run_daemon(plan, db_url=f"sqlite:///{tmp_path / 'r.sqlite'}")
     finally:
         for server in (card, ctrl, head):
@@ -237,8 +286,11 @@ def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> No
     assert result.stats.finished and not result.resumed
     engine = store_engine(f"sqlite:///{tmp_path / 'r.sqlite'}")
     with engine.connect() as conn:
-        times = conn.execute(select(sc.TemperatureSample.time_s).distinct().order_by(sc.TemperatureSample.time_s)
-                             ).scalars().all()
+        times = (
+            conn.execute(select(sc.TemperatureSample.time_s).distinct().order_by(sc.TemperatureSample.time_s))
+            .scalars()
+            .all()
+        )
         errs = conn.execute(select(func.count()).select_from(sc.ErrorSample.__table__)).scalar_one()
     assert len(times) == plan.n_scans == 6
     assert all(b > a for a, b in zip(times, times[1:])) and times[0] >= 0.0  # real, increasing times
@@ -259,18 +311,31 @@ def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) 
     from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
 
-    plan = parse_plan({"name": "dup", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
-                       "stages": [{"name": "idle", "axis": "Z", "duration_s": 300}]})
+    plan = parse_plan(
+        {
+            "name": "dup",
+            "machine": {"id": "vmc-5ax-01"},
+            "scan_interval_s": 60,
+            "stages": [{"name": "idle", "axis": "Z", "duration_s": 300}],
+        }
+    )
     engine = store_engine(f"sqlite:///{tmp_path / 'dup.sqlite'}")
     meta = scenario_meta(None)
     handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
     with engine.begin() as conn:
-        conn.execute(sc.TemperatureSample.__table__.insert().values(
-            campaign_id=handle.campaign_id, channel_id=handle.channel_ids["T7"], time_s=0.0, value=1.0,
-            campaign_start_day=handle.start_day))
+        conn.execute(
+            sc.TemperatureSample.__table__.insert().values(
+                campaign_id=handle.campaign_id,
+                channel_id=handle.channel_ids["T7"],
+                time_s=0.0,
+                value=1.0,
+                campaign_start_day=handle.start_day,
+            )
+        )
     clock = sim_clock(plan, handle.cursor, math.inf)
-    rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
-                        list(meta["channels"]))
+    rig = build_sim_rig(
+        plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
+    )
     try:
         with pytest.raises(ConflictError, match="already holds a reading"):
             Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, handle.cursor).run()
@@ -291,9 +356,21 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
     from driftlab.daq.sim.scenario import load_scenario
 
     url = pg_cluster.create_database()
-    plan = parse_plan({"name": "blip", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 60,
-                       "stages": [{"name": "idle", "axis": "Z", "duration_s": 1800,
-                                   "sweep": {"positions": [-200, 0], "interval_s": 600, "point_s": 5}}]})
+    plan = parse_plan(
+        {
+            "name": "blip",
+            "machine": {"id": "vmc-5ax-01"},
+            "scan_interval_s": 60,
+            "stages": [
+                {
+                    "name": "idle",
+                    "axis": "Z",
+                    "duration_s": 1800,
+                    "sweep": {"positions": [-200, 0], "interval_s": 600, "point_s": 5},
+                }
+            ],
+        }
+    )
     engine = store_engine(url)
     meta = scenario_meta(None)
     handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
@@ -304,16 +381,23 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
     def drop_connections(batch, stats) -> None:
         if stats.commits in (2, 5):
             with admin.connect() as conn:
-                n = conn.execute(text("SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
-                                      "WHERE datname = :d AND pid <> pg_backend_pid()"), {"d": dbname}).scalar_one()
+                n = conn.execute(
+                    text(
+                        "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
+                        "WHERE datname = :d AND pid <> pg_backend_pid()"
+                    ),
+                    {"d": dbname},
+                ).scalar_one()
             dropped.append(n)
 
     clock = sim_clock(plan, handle.cursor, math.inf)
-    rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
-                        list(meta["channels"]))
+    rig = build_sim_rig(
+        plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
+    )
     try:
-        stats = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, handle.cursor,
-                          on_commit=drop_connections).run()
+        stats = Scheduler(
+            plan, rig, StoreSink(engine, plan, handle), clock, handle.cursor, on_commit=drop_connections
+        ).run()
     finally:
         rig.close()
         admin.dispose()
@@ -330,19 +414,32 @@ def test_block_reads_store_the_rows_of_scan_by_scan_reads(tmp_path: Path) -> Non
     from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
 
-    plan = parse_plan({
-        "name": "blocks", "machine": {"id": "vmc-5ax-01"}, "scan_interval_s": 10, "state_every": 3,
-        "stages": [{"name": "sp", "axis": "Z", "duration_s": 900, "heat": [{"kind": "spindle", "rpm": 9000}],
-                    "sweep": {"positions": [-100, 0], "interval_s": 300, "point_s": 5}}],
-    })
+    plan = parse_plan(
+        {
+            "name": "blocks",
+            "machine": {"id": "vmc-5ax-01"},
+            "scan_interval_s": 10,
+            "state_every": 3,
+            "stages": [
+                {
+                    "name": "sp",
+                    "axis": "Z",
+                    "duration_s": 900,
+                    "heat": [{"kind": "spindle", "rpm": 9000}],
+                    "sweep": {"positions": [-100, 0], "interval_s": 300, "point_s": 5},
+                }
+            ],
+        }
+    )
     meta = scenario_meta(None)
     rows = {}
     for mode, max_batch in (("single", 1), ("blocks", 40)):
         engine = store_engine(f"sqlite:///{tmp_path / (mode + '.sqlite')}")
         handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
         clock = sim_clock(plan, handle.cursor, math.inf)
-        rig = build_sim_rig(plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock,
-                            list(meta["channels"]))
+        rig = build_sim_rig(
+            plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
+        )
         try:
             sched = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, max_batch=max_batch)
             assert sched.block_scans() == max_batch
@@ -352,9 +449,11 @@ def test_block_reads_store_the_rows_of_scan_by_scan_reads(tmp_path: Path) -> Non
         assert stats.finished and stats.faults == 0 and stats.scans == plan.n_scans
         with engine.connect() as conn:
             rows[mode] = (
-                conn.execute(select(sc.TemperatureSample.channel_id, sc.TemperatureSample.time_s,
-                                    sc.TemperatureSample.value).order_by(sc.TemperatureSample.channel_id,
-                                                                         sc.TemperatureSample.time_s)).all(),
+                conn.execute(
+                    select(
+                        sc.TemperatureSample.channel_id, sc.TemperatureSample.time_s, sc.TemperatureSample.value
+                    ).order_by(sc.TemperatureSample.channel_id, sc.TemperatureSample.time_s)
+                ).all(),
                 conn.execute(select(sc.ConditionSample.__table__).order_by(sc.ConditionSample.time_s)).all(),
                 conn.execute(select(sc.ErrorSample.time_s, sc.ErrorSample.value).order_by(sc.ErrorSample.seq)).all(),
             )

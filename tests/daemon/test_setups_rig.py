@@ -20,25 +20,51 @@ SCENARIO = ROOT / "examples" / "scenarios" / "clean.yaml"
 
 
 def _plan(setups: dict, stages: list[dict]):
-    return parse_plan({"format": "driftlab-plan/1", "name": "rig", "machine": {"id": "vmc-5ax-01"},
-                       "scan_interval_s": 60, "setups": setups, "stages": stages}, "rig.yaml")
+    return parse_plan(
+        {
+            "format": "driftlab-plan/1",
+            "name": "rig",
+            "machine": {"id": "vmc-5ax-01"},
+            "scan_interval_s": 60,
+            "setups": setups,
+            "stages": stages,
+        },
+        "rig.yaml",
+    )
 
 
 def _stage(name, axis, setup, positions, **kw):
-    return {"name": name, "axis": axis, "setup": setup, "duration_s": 1800,
-            "sweep": {"positions": positions, "interval_s": 900, "point_s": 6}, **kw}
+    return {
+        "name": name,
+        "axis": axis,
+        "setup": setup,
+        "duration_s": 1800,
+        "sweep": {"positions": positions, "interval_s": 900, "point_s": 6},
+        **kw,
+    }
 
 
 @pytest.fixture
 def rig_and_world():
     plan = _plan(
-        {"x-roll": {"instrument": "proximity", "fixture": "reference_edge", "axis": "X", "terms": ["alpha"]},
-         "b-run": {"instrument": "proximity", "fixture": "cylinder", "axis": "B",
-                   "terms": ["dx", "dy", "dz", "alpha", "gamma"]},
-         "b-pos": {"instrument": "laser", "optics": "angular", "axis": "B", "terms": ["beta"]},
-         "x-str": {"instrument": "laser", "optics": "straightness", "axis": "X", "terms": ["dz"]}},
-        [_stage("roll", "X", "x-roll", [0, 127]), _stage("run", "B", "b-run", [-20, 20]),
-         _stage("pos", "B", "b-pos", [-10, 10]), _stage("str", "X", "x-str", [0, 254])])
+        {
+            "x-roll": {"instrument": "proximity", "fixture": "reference_edge", "axis": "X", "terms": ["alpha"]},
+            "b-run": {
+                "instrument": "proximity",
+                "fixture": "cylinder",
+                "axis": "B",
+                "terms": ["dx", "dy", "dz", "alpha", "gamma"],
+            },
+            "b-pos": {"instrument": "laser", "optics": "angular", "axis": "B", "terms": ["beta"]},
+            "x-str": {"instrument": "laser", "optics": "straightness", "axis": "X", "terms": ["dz"]},
+        },
+        [
+            _stage("roll", "X", "x-roll", [0, 127]),
+            _stage("run", "B", "b-run", [-20, 20]),
+            _stage("pos", "B", "b-pos", [-10, 10]),
+            _stage("str", "X", "x-str", [0, 254]),
+        ],
+    )
     scenario = load_scenario(SCENARIO)
     world = VirtualMachine(plan_scenario(plan, scenario))
     clock = SimClock(speed=math.inf, start_s=0.0)
@@ -103,8 +129,10 @@ def test_the_daemon_refuses_a_probe_setup_before_it_starts(tmp_path):
     from driftlab.daemon.run import run_daemon
     from driftlab.errors import ValidationError
 
-    plan = _plan({"sq": {"instrument": "probe", "fixture": "reference_square", "axis": "X", "terms": ["gamma"]}},
-                 [_stage("square", "X", "sq", [0, 127])])
+    plan = _plan(
+        {"sq": {"instrument": "probe", "fixture": "reference_square", "axis": "X", "terms": ["gamma"]}},
+        [_stage("square", "X", "sq", [0, 127])],
+    )
     db = tmp_path / "s.sqlite"
     with pytest.raises(ValidationError, match=r"stages\[0\] \(square\): setup 'sq' is a probe setup"):
         run_daemon(plan, db_url=f"sqlite:///{db}", scenario_path=SCENARIO, speed=math.inf)

@@ -74,8 +74,9 @@ def expected_protocol(
     """Yield ``factory(channel)`` on a ProtocolPort; on exit assert every pair was used."""
     port = ProtocolPort(pairs)
     recorded = sleeps if sleeps is not None else []
-    channel = LineChannel(port, name="dut", policy=policy or RetryPolicy(attempts=3, base_delay_s=0.01),
-                          sleep=recorded.append)
+    channel = LineChannel(
+        port, name="dut", policy=policy or RetryPolicy(attempts=3, base_delay_s=0.01), sleep=recorded.append
+    )
     yield factory(channel)
     assert not port._awaiting_read, "a reply was scripted but never read"
     assert port.index == len(port.pairs), (

@@ -351,7 +351,7 @@ def test_refused_visa_connection_is_one_line_instrument_error(rm):
 
 def test_controller_rejects_bad_blocks_without_changing_modal_state(world, clock):
     with SimController(world, clock) as sim:
-        assert sim.handle("BLK 1 G1 X10 F-5") .startswith("ERR SYNTAX")
+        assert sim.handle("BLK 1 G1 X10 F-5").startswith("ERR SYNTAX")
         assert sim.handle("BLK 1 G1 X10 Q3").startswith("ERR SYNTAX")
         assert sim.handle("BLK 3 G1 X10") == "ERR SEQ 0"
         assert sim.handle("BLK 1 G1 X10") == "ACK 1"

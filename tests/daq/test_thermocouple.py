@@ -158,8 +158,10 @@ def _emf_v(t, cj=24.0):
 def test_block_scan_exact_bytes_open_flag_and_times():
     from driftlab.daq.protocols import BlockScanner
 
-    rows = [[24.0, _emf_v(30.0), 9.9e37, _emf_v(99.0), _emf_v(50.0)],
-            [24.5, _emf_v(31.0, 24.5), _emf_v(40.0, 24.5), _emf_v(98.0, 24.5), _emf_v(51.0, 24.5)]]
+    rows = [
+        [24.0, _emf_v(30.0), 9.9e37, _emf_v(99.0), _emf_v(50.0)],
+        [24.5, _emf_v(31.0, 24.5), _emf_v(40.0, 24.5), _emf_v(98.0, 24.5), _emf_v(51.0, 24.5)],
+    ]
     pairs = [(b"PACE 0.1\n", b"OK\n"), (b"FETC? 0,3,7,2\n", f"7,2,{_block_hex(rows)}\n".encode())]
     with expected_protocol(_card, pairs) as card:
         assert isinstance(card, BlockScanner)
@@ -178,7 +180,8 @@ def test_block_scan_exact_bytes_open_flag_and_times():
 def test_block_scan_matches_the_single_scan_conversion():
     volts = np.array([[_emf_v(t) for t in (20.0, -50.0, 300.0, 25.0)]] * 3)
     temps, open_mask = __import__("driftlab.daq.thermocouple", fromlist=["x"]).card_block_to_temperature(
-        volts, np.full(3, 24.0))
+        volts, np.full(3, 24.0)
+    )
     single, _ = card_emf_to_temperature(volts[0], 24.0)
     assert not open_mask.any()
     assert np.array_equal(temps[1], single)  # the same arithmetic, element by element

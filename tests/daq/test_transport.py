@@ -124,11 +124,14 @@ def test_visa_backend_from_the_environment_reaches_a_simulated_card(tmp_path, mo
     assert scan.flags == {"T2": "open_thermocouple"}
 
 
-@pytest.mark.parametrize("spec,needle", [
-    ("@nope", "use @py, @sim, FILE.yaml@sim, @ivi"),
-    ("/no/such/libvisa.so", r"no such file \(give the path of the vendor.s VISA library\)"),
-    ("/no/such/defs.yaml@sim", "no such pyvisa-sim definitions file"),
-])
+@pytest.mark.parametrize(
+    "spec,needle",
+    [
+        ("@nope", "use @py, @sim, FILE.yaml@sim, @ivi"),
+        ("/no/such/libvisa.so", r"no such file \(give the path of the vendor.s VISA library\)"),
+        ("/no/such/defs.yaml@sim", "no such pyvisa-sim definitions file"),
+    ],
+)
 def test_bad_visa_library_settings_are_one_line_errors(spec, needle, monkeypatch):
     monkeypatch.setenv("DRIFTLAB_VISA_LIBRARY", spec)
     with pytest.raises(ValidationError, match=needle):

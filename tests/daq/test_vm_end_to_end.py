@@ -158,7 +158,7 @@ def test_temperatures_block_is_bit_identical_to_per_time_calls(vm):
         assert np.array_equal(block[i], np.array(list(vm.temperatures(float(t)).values())), equal_nan=True)
     assert np.isnan(block[times >= 7200, 33]).all() and not np.isnan(block[times < 7200, 33]).any()
     for n in (1, 3, 64):
-        parts = [vm.temperatures_block(times[i:i + n]) for i in range(0, len(times), n)]
+        parts = [vm.temperatures_block(times[i : i + n]) for i in range(0, len(times), n)]
         assert np.array_equal(np.concatenate(parts), block, equal_nan=True)
     cols = vm.temperatures_block(times[:5], ["T3", "nope", "T1"])
     assert np.array_equal(cols[:, 0], block[:5, 2]) and np.isnan(cols[:, 1]).all()
@@ -171,8 +171,11 @@ def test_buffered_block_scans_read_the_vm(rm, vm, transport):
     """PACE + FETC? through the real transports: each scan of a block is the VM's reading at k * interval."""
     clock = ManualClock()
     with SimThermocoupleCard(vm, clock, CHANNELS, cold_junction_c=22.5) as sim:
-        ch = _visa(rm, sim) if transport == "visa" else LineChannel(
-            SerialPort.open(f"socket://127.0.0.1:{sim.port}", 2.0), sim.name, FAST)
+        ch = (
+            _visa(rm, sim)
+            if transport == "visa"
+            else LineChannel(SerialPort.open(f"socket://127.0.0.1:{sim.port}", 2.0), sim.name, FAST)
+        )
         card = ThermocoupleCard(ch, CHANNELS, clock=clock.now)
         try:
             card.pace(0.1)

@@ -37,8 +37,9 @@ def test_a_fit_submitted_to_the_server_runs_in_its_thread_into_the_registry(sqli
     assert sqlite_store.current_model(MACHINE).source_campaigns == [cid]
 
 
-def test_a_failing_job_is_retried_in_process_then_reported_failed(sqlite_store: Store, monkeypatch,
-                                                                  no_retry_wait) -> None:
+def test_a_failing_job_is_retried_in_process_then_reported_failed(
+    sqlite_store: Store, monkeypatch, no_retry_wait
+) -> None:
     runs: list[int] = []
 
     def body(store: Store, params: dict, **kw: Any) -> dict:
@@ -90,13 +91,16 @@ def test_submit_refuses_an_unknown_kind_on_run(sqlite_store: Store) -> None:
     assert job.state == "failed" and "unknown job kind" in job.error
 
 
-@pytest.mark.parametrize("exc,retried", [
-    (OSError("disk"), True),
-    (OperationalError("SELECT 1", {}, Exception("gone")), True),
-    (StoreError("cannot open the store"), True),
-    (ValueError("singular matrix"), False),
-    (ValidationError("bad"), False),
-])
+@pytest.mark.parametrize(
+    "exc,retried",
+    [
+        (OSError("disk"), True),
+        (OperationalError("SELECT 1", {}, Exception("gone")), True),
+        (StoreError("cannot open the store"), True),
+        (ValueError("singular matrix"), False),
+        (ValidationError("bad"), False),
+    ],
+)
 def test_the_retry_policy(exc: BaseException, retried: bool, no_retry_wait, monkeypatch) -> None:
     assert (policy.retry_in_s(exc, 1) is not None) is retried
     assert policy.retry_in_s(exc, policy.MAX_ATTEMPTS) is None

@@ -32,8 +32,11 @@ pytestmark = pytest.mark.postgres
 def _queue_row(store: Store, queue_job_id: int) -> dict[str, Any]:
     """Return procrastinate's row of a job."""
     with psycopg.connect(conninfo(store_url(store))) as conn:
-        cur = conn.execute("SELECT status::text, attempts, lock, queueing_lock, priority, task_name "
-                           "FROM procrastinate_jobs WHERE id = %s", (queue_job_id,))
+        cur = conn.execute(
+            "SELECT status::text, attempts, lock, queueing_lock, priority, task_name "
+            "FROM procrastinate_jobs WHERE id = %s",
+            (queue_job_id,),
+        )
         names = [c.name for c in cur.description or []]
         row = cur.fetchone()
     assert row is not None, f"no procrastinate job {queue_job_id}"
@@ -42,8 +45,9 @@ def _queue_row(store: Store, queue_job_id: int) -> dict[str, Any]:
 
 def _set_queue_status(store: Store, queue_job_id: int, status: str) -> None:
     with psycopg.connect(conninfo(store_url(store)), autocommit=True) as conn:
-        conn.execute("UPDATE procrastinate_jobs SET status = %s::procrastinate_job_status WHERE id = %s",
-                     (status, queue_job_id))
+        conn.execute(
+            "UPDATE procrastinate_jobs SET status = %s::procrastinate_job_status WHERE id = %s", (status, queue_job_id)
+        )
 
 
 def _worker_env() -> dict[str, str]:
@@ -87,8 +91,12 @@ def test_driftlab_worker_process_runs_a_queued_fit_into_the_registry(pg_store: S
     assert row["task_name"] == "driftlab.fit"
     assert pg_store.current_model(MACHINE) is None
 
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "worker", "--db", url, "--until-idle"],
-                          capture_output=True, text=True, env=_worker_env())
+    proc = subprocess.run(
+        [sys.executable, "-m", "driftlab.cli", "worker", "--db", url, "--until-idle"],
+        capture_output=True,
+        text=True,
+        env=_worker_env(),
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     job = pg_store.get_job(job_id)
     assert job.state == "done", job.error
@@ -103,12 +111,18 @@ def test_driftlab_worker_process_runs_a_queued_fit_into_the_registry(pg_store: S
 def test_two_worker_processes_share_the_queue_and_run_each_job_once(pg_store: Store) -> None:
     """Two fits of each of two machines, two `driftlab worker` processes: every job once, each machine in order."""
     url = store_url(pg_store)
-    cids = {MACHINE: pg_store.import_bundle(bundle(MACHINE, seed=0)),
-            OTHER: pg_store.import_bundle(bundle(OTHER, seed=1))}
+    cids = {
+        MACHINE: pg_store.import_bundle(bundle(MACHINE, seed=0)),
+        OTHER: pg_store.import_bundle(bundle(OTHER, seed=1)),
+    }
     jobs = [submit_fit(pg_store, [cids[m]], network=False) for m in (MACHINE, OTHER, MACHINE, OTHER)]
     cmd = [sys.executable, "-m", "driftlab.cli", "worker", "--db", url, "--until-idle"]
-    procs = [subprocess.Popen([*cmd, "--name", f"w{k}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env=_worker_env()) for k in range(2)]
+    procs = [
+        subprocess.Popen(
+            [*cmd, "--name", f"w{k}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_worker_env()
+        )
+        for k in range(2)
+    ]
     outs = [p.communicate() for p in procs]
     assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
     # --until-idle leaves when nothing is runnable; a worker holding a machine's lock fetches again
@@ -199,8 +213,9 @@ def test_fits_of_two_machines_do_run_at_once(pg_store: Store, worker_thread, mon
     events = _instrumented_fit(monkeypatch, wait_for_other_s=600.0)
     a = pg_store.import_bundle(bundle(MACHINE, seed=0))
     b = pg_store.import_bundle(bundle(OTHER, seed=1))
-    jobs = [submit(pg_store, FIT, {"campaigns": [c], "network": False}, machine_id=m) for c, m in
-            ((a, MACHINE), (b, OTHER))]
+    jobs = [
+        submit(pg_store, FIT, {"campaigns": [c], "network": False}, machine_id=m) for c, m in ((a, MACHINE), (b, OTHER))
+    ]
     worker_thread(concurrency=2)
     infos = wait_ended(pg_store, jobs)
     assert [j.state for j in infos] == ["done", "done"], [j.error for j in infos]
@@ -226,8 +241,9 @@ def _failing_fit(monkeypatch: pytest.MonkeyPatch, failures: list[BaseException])
     return runs
 
 
-def test_a_failing_job_is_retried_then_reported_failed(pg_store: Store, worker_thread, monkeypatch,
-                                                       no_retry_wait) -> None:
+def test_a_failing_job_is_retried_then_reported_failed(
+    pg_store: Store, worker_thread, monkeypatch, no_retry_wait
+) -> None:
     runs = _failing_fit(monkeypatch, [OSError("scratch disk unavailable")] * policy.MAX_ATTEMPTS)
     cid = pg_store.import_bundle(bundle())
     job_id = submit(pg_store, FIT, {"campaigns": [cid], "network": False}, machine_id=MACHINE)
@@ -242,8 +258,9 @@ def test_a_failing_job_is_retried_then_reported_failed(pg_store: Store, worker_t
 
 
 @pytest.mark.slow
-def test_a_passing_failure_is_retried_and_the_job_ends_done(pg_store: Store, worker_thread, monkeypatch,
-                                                             no_retry_wait) -> None:
+def test_a_passing_failure_is_retried_and_the_job_ends_done(
+    pg_store: Store, worker_thread, monkeypatch, no_retry_wait
+) -> None:
     from sqlalchemy.exc import OperationalError
 
     runs = _failing_fit(monkeypatch, [OperationalError("SELECT 1", {}, Exception("server closed the connection"))])
@@ -296,8 +313,7 @@ def test_api_jobs_object_runs_a_diagnosis_on_its_worker_thread(pg_store: Store) 
     jobs = Jobs(pg_store, run_here=True, on_model=seen.append)
     jobs.start()
     try:
-        d = jobs.submit("diagnose", {"campaigns": [cid], "holdout_fraction": 0.25}, machine_id=MACHINE,
-                        campaign_id=cid)
+        d = jobs.submit("diagnose", {"campaigns": [cid], "holdout_fraction": 0.25}, machine_id=MACHINE, campaign_id=cid)
         f = jobs.submit(FIT, {"campaigns": [cid], "network": False}, machine_id=MACHINE)
         dj, fj = wait_ended(pg_store, [d, f])
     finally:
@@ -342,9 +358,10 @@ def test_the_refit_is_a_periodic_task_of_every_worker() -> None:
     periodic = {(p.task.name, p.cron) for p in app.periodic_registry.periodic_tasks.values()}
     assert ("driftlab.refit", "0 3 * * *") in periodic and ("driftlab.retry_stalled", "*/5 * * * *") in periodic
     assert {"driftlab.fit", "driftlab.diagnose"} <= set(app.tasks)
-    assert not any(p.task.name == "driftlab.refit"
-                   for p in build_app("postgresql+psycopg://u@h/d",
-                                      refit_cron="").periodic_registry.periodic_tasks.values())
+    assert not any(
+        p.task.name == "driftlab.refit"
+        for p in build_app("postgresql+psycopg://u@h/d", refit_cron="").periodic_registry.periodic_tasks.values()
+    )
 
 
 def test_submit_fit_records_the_campaigns_machine(pg_store: Store) -> None:

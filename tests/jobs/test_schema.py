@@ -16,7 +16,8 @@ def test_the_vendored_schema_is_the_installed_procrastinates() -> None:
     [vendored] = sorted((migrations_dir() / "sql").glob("procrastinate-*.sql"))
     installed = (resources.files("procrastinate.sql") / "schema.sql").read_text(encoding="utf-8")
     assert vendored.read_text(encoding="utf-8") == installed, (
-        f"procrastinate {version('procrastinate')}'s schema differs from {vendored.name}: add a migration")
+        f"procrastinate {version('procrastinate')}'s schema differs from {vendored.name}: add a migration"
+    )
 
 
 @pytest.mark.postgres

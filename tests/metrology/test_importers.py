@@ -15,11 +15,14 @@ from driftlab.metrology import iso230_2
 
 # ----------------------------------------------------------------------------- files made on the fly
 
+
 def rtx_bytes(samples: np.ndarray, rate: float = 1000.0, axis: str = "Z", extra: bytes = b"") -> bytes:
-    header = (f"Owner: CARTO-Capture\r\nVersion no: 4.13\r\nFile Type: rtx\r\nVelocity: 0\r\nSample rate: {rate:g}\r\n"
-              f"Sample no: {samples.size}\r\nTrigger point: 0\r\nTrigger interval: {1 / rate:g}\r\n"
-              f"Actual sample rate: {rate:g}\r\nFlags: 0 1 2 0 2\r\nMachine: vmc-01\r\nSerial No: 123\r\n"
-              f"Date: 10/02/2025 12:58:22\r\nBy: User\r\nAxis: {axis}\r\nLocation: table\r\n").encode()
+    header = (
+        f"Owner: CARTO-Capture\r\nVersion no: 4.13\r\nFile Type: rtx\r\nVelocity: 0\r\nSample rate: {rate:g}\r\n"
+        f"Sample no: {samples.size}\r\nTrigger point: 0\r\nTrigger interval: {1 / rate:g}\r\n"
+        f"Actual sample rate: {rate:g}\r\nFlags: 0 1 2 0 2\r\nMachine: vmc-01\r\nSerial No: 123\r\n"
+        f"Date: 10/02/2025 12:58:22\r\nBy: User\r\nAxis: {axis}\r\nLocation: table\r\n"
+    ).encode()
     return b"HEADER::\r\n" + header + extra + b"Data:\r\n" + samples.astype("<f8").tobytes() + b"EOF::\r\n"
 
 
@@ -27,8 +30,16 @@ def renishaw_csv(runs: int = 3, targets=(0.0, 100.0, 200.0, 300.0), axis: str = 
     """Return a CSV export (preamble + table, errors in um) and the readings it holds (target mm, direction,
     error mm)."""
     rng = np.random.default_rng(seed)
-    lines = [f"Axis,{axis}", "Machine,vmc-01", "Date,2026-03-02T08:00:00Z", "Test,linear", "Air temperature,20.4",
-             "Material temperature,21.1", "", "Run,Direction,Target (mm),Error (um)"]
+    lines = [
+        f"Axis,{axis}",
+        "Machine,vmc-01",
+        "Date,2026-03-02T08:00:00Z",
+        "Test,linear",
+        "Air temperature,20.4",
+        "Material temperature,21.1",
+        "",
+        "Run,Direction,Target (mm),Error (um)",
+    ]
     readings = []
     for r in range(1, runs + 1):
         for d, order in (("+", targets), ("-", targets[::-1])):
@@ -40,6 +51,7 @@ def renishaw_csv(runs: int = 3, targets=(0.0, 100.0, 200.0, 300.0), axis: str = 
 
 
 # ----------------------------------------------------------------------------- Renishaw CSV
+
 
 def test_renishaw_csv_becomes_a_bundle_and_iso230_2_reads_it(tmp_path, capsys):
     text, readings = renishaw_csv()
@@ -57,22 +69,38 @@ def test_renishaw_csv_becomes_a_bundle_and_iso230_2_reads_it(tmp_path, capsys):
     assert "wrote bundle" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("mutate,needle", [
-    (lambda t: t.replace("2,+,100.0,", "2,?,100.0,"), "x.csv:18: column Direction: '?' is not + or -"),
-    (lambda t: t.replace("1,+,200.0,", "1,+,200.0,abc#"), "x.csv:11: column Error (um): 'abc#"),
-    (lambda t: t.replace("Run,Direction,Target (mm),Error (um)", "Run,Dir,Target,Err"), "x.csv: no data table"),
-    (lambda t: t.replace("Error (um)", "Error (furlong)"), "x.csv:8: column Error (furlong): unit 'furlong'"),
-    (lambda t: t.replace("Axis,X", "Axis,Q"), "axis 'Q' is not one of X Y Z A B"),
-    (lambda t: t.replace("Error (um)", "Error (m)"), "mm is implausibly large for a translation"),
-    (lambda t: t.replace("Date,2026-03-02T08:00:00Z", "Date,yesterday"), "date 'yesterday' is neither ISO 8601"),
-])
+@pytest.mark.parametrize(
+    "mutate,needle",
+    [
+        (lambda t: t.replace("2,+,100.0,", "2,?,100.0,"), "x.csv:18: column Direction: '?' is not + or -"),
+        (lambda t: t.replace("1,+,200.0,", "1,+,200.0,abc#"), "x.csv:11: column Error (um): 'abc#"),
+        (lambda t: t.replace("Run,Direction,Target (mm),Error (um)", "Run,Dir,Target,Err"), "x.csv: no data table"),
+        (lambda t: t.replace("Error (um)", "Error (furlong)"), "x.csv:8: column Error (furlong): unit 'furlong'"),
+        (lambda t: t.replace("Axis,X", "Axis,Q"), "axis 'Q' is not one of X Y Z A B"),
+        (lambda t: t.replace("Error (um)", "Error (m)"), "mm is implausibly large for a translation"),
+        (lambda t: t.replace("Date,2026-03-02T08:00:00Z", "Date,yesterday"), "date 'yesterday' is neither ISO 8601"),
+    ],
+)
 def test_renishaw_csv_bad_files_are_one_line_errors_and_nothing_is_written(tmp_path, mutate, needle):
     text, _ = renishaw_csv()
     src = tmp_path / "x.csv"
     src.write_text(mutate(text))
     out = tmp_path / "bundle"
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "import-instrument", str(src), "--format",
-                           "renishaw-csv", "-o", str(out)], capture_output=True, text=True)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "import-instrument",
+            str(src),
+            "--format",
+            "renishaw-csv",
+            "-o",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
@@ -81,6 +109,7 @@ def test_renishaw_csv_bad_files_are_one_line_errors_and_nothing_is_written(tmp_p
 
 # ----------------------------------------------------------------------------- .rtx
 
+
 def test_rtx_capture_becomes_a_drift_record(tmp_path):
     rate = 1000.0
     t = np.arange(12000) / rate  # 12 s at 1 kHz: a slow drift of 0.5 um/s plus vibration
@@ -88,8 +117,25 @@ def test_rtx_capture_becomes_a_drift_record(tmp_path):
     src = tmp_path / "drift.rtx"
     src.write_bytes(rtx_bytes(samples, rate))
     out = tmp_path / "bundle"
-    assert main(["import-instrument", str(src), "--format", "rtx", "-o", str(out), "--air-temp", "20.5",
-                 "--position", "-120", "--interval-s", "2"]) == 0
+    assert (
+        main(
+            [
+                "import-instrument",
+                str(src),
+                "--format",
+                "rtx",
+                "-o",
+                str(out),
+                "--air-temp",
+                "20.5",
+                "--position",
+                "-120",
+                "--interval-s",
+                "2",
+            ]
+        )
+        == 0
+    )
     b = load_bundle(out)
     e = b.errors
     assert len(e) == 6 and set(e["axis"]) == {"Z"} and set(e["term"]) == {"dz"} and set(e["position"]) == {-120.0}
@@ -98,22 +144,46 @@ def test_rtx_capture_becomes_a_drift_record(tmp_path):
     assert b.meta.started_at.isoformat().startswith("2025-02-10T12:58:22")  # dd/mm/yyyy, as the header is written
 
 
-@pytest.mark.parametrize("make,needle", [
-    (lambda s: b"HEADR::\r\n" + rtx_bytes(s)[10:], "drift.rtx:1: not a Renishaw .rtx file"),
-    (lambda s: rtx_bytes(s)[:-7], "does not end with EOF::"),
-    (lambda s: rtx_bytes(s)[:-10] + b"EOF::\r\n", "not a whole number of float64 samples"),
-    (lambda s: rtx_bytes(s).replace(b"Actual sample rate: 1000", b"Actual sample rate: fast").replace(
-        b"Sample rate: 1000", b"Sample rate: fast"), "'Actual sample rate' is missing or not a positive number"),
-    (lambda s: rtx_bytes(s, extra=b"garbage line\r\n"), "drift.rtx:18: header line b'garbage line'"),
-    (lambda s: rtx_bytes(np.r_[s, np.nan]), "sample 3000 is not a finite number"),
-    (lambda s: rtx_bytes(s, axis=""), "axis '' is not one of X Y Z A B"),
-])
+@pytest.mark.parametrize(
+    "make,needle",
+    [
+        (lambda s: b"HEADR::\r\n" + rtx_bytes(s)[10:], "drift.rtx:1: not a Renishaw .rtx file"),
+        (lambda s: rtx_bytes(s)[:-7], "does not end with EOF::"),
+        (lambda s: rtx_bytes(s)[:-10] + b"EOF::\r\n", "not a whole number of float64 samples"),
+        (
+            lambda s: (
+                rtx_bytes(s)
+                .replace(b"Actual sample rate: 1000", b"Actual sample rate: fast")
+                .replace(b"Sample rate: 1000", b"Sample rate: fast")
+            ),
+            "'Actual sample rate' is missing or not a positive number",
+        ),
+        (lambda s: rtx_bytes(s, extra=b"garbage line\r\n"), "drift.rtx:18: header line b'garbage line'"),
+        (lambda s: rtx_bytes(np.r_[s, np.nan]), "sample 3000 is not a finite number"),
+        (lambda s: rtx_bytes(s, axis=""), "axis '' is not one of X Y Z A B"),
+    ],
+)
 def test_rtx_bad_files_are_one_line_errors(tmp_path, make, needle):
     src = tmp_path / "drift.rtx"
     src.write_bytes(make(np.zeros(3000)))
     out = tmp_path / "bundle"
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "import-instrument", str(src), "--format", "rtx",
-                           "-o", str(out), "--air-temp", "20"], capture_output=True, text=True)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "import-instrument",
+            str(src),
+            "--format",
+            "rtx",
+            "-o",
+            str(out),
+            "--air-temp",
+            "20",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
@@ -130,8 +200,14 @@ def test_rtx_without_a_temperature_asks_for_one(tmp_path, capsys):
 # ----------------------------------------------------------------------------- generic mapping
 
 MAPPING = {
-    "columns": {"time_s": "Elapsed", "axis": "Achse", "term": "Kind", "position": "Soll", "direction": "Dir",
-                "value": "Abw"},
+    "columns": {
+        "time_s": "Elapsed",
+        "axis": "Achse",
+        "term": "Kind",
+        "position": "Soll",
+        "direction": "Dir",
+        "value": "Abw",
+    },
     "units": {"time_s": "min", "position": "mm", "value": "um", "angle": "arcsec"},
     "directions": {"V": 1, "R": -1},
     "terms": {"Lin": "dx", "Gier": "gamma"},
@@ -149,11 +225,14 @@ def generic_csv() -> str:
     for run in range(2):
         for d, order in (("V", (0, 50, 100)), ("R", (100, 50, 0))):
             for p in order:
-                rows.append(f"{k};X;Lin;{p};{d};{p * 0.02 + (1 if d == 'V' else -1) + run * 0.1:.2f}".replace(".", ",")
-                            + f";{20 + k * 0.01:.2f}".replace(".", ","))
+                rows.append(
+                    f"{k};X;Lin;{p};{d};{p * 0.02 + (1 if d == 'V' else -1) + run * 0.1:.2f}".replace(".", ",")
+                    + f";{20 + k * 0.01:.2f}".replace(".", ",")
+                )
                 k += 1
-                rows.append(f"{k};X;Gier;{p};{d};{0.5:.1f}".replace(".", ",")
-                            + f";{20 + k * 0.01:.2f}".replace(".", ","))
+                rows.append(
+                    f"{k};X;Gier;{p};{d};{0.5:.1f}".replace(".", ",") + f";{20 + k * 0.01:.2f}".replace(".", ",")
+                )
                 k += 1
     return "\n".join(rows) + "\n"
 
@@ -176,14 +255,17 @@ def test_generic_mapping_with_units_vocabularies_and_temperatures(tmp_path):
     assert gier["value"].iloc[0] == pytest.approx(np.deg2rad(0.5 / 3600))  # arcsec -> rad
 
 
-@pytest.mark.parametrize("edit,needle", [
-    (lambda m: m["columns"].update(value="Nope"), "export.csv:1: no column 'Nope' (mapped to value in map.json)"),
-    (lambda m: m["directions"].pop("R"), "export.csv:8: column Dir: 'R' is not a direction"),
-    (lambda m: m["terms"].pop("Gier"), "export.csv:3: column Kind: 'Gier' is not a term"),
-    (lambda m: m.update(colums={}), "map.json: colums: Extra inputs are not permitted"),
-    (lambda m: m["columns"].pop("direction"), "map.json: no column or constant for 'direction'"),
-    (lambda m: m.update(decimal="."), "export.csv:2: column Abw: '1,00' is not a number"),
-])
+@pytest.mark.parametrize(
+    "edit,needle",
+    [
+        (lambda m: m["columns"].update(value="Nope"), "export.csv:1: no column 'Nope' (mapped to value in map.json)"),
+        (lambda m: m["directions"].pop("R"), "export.csv:8: column Dir: 'R' is not a direction"),
+        (lambda m: m["terms"].pop("Gier"), "export.csv:3: column Kind: 'Gier' is not a term"),
+        (lambda m: m.update(colums={}), "map.json: colums: Extra inputs are not permitted"),
+        (lambda m: m["columns"].pop("direction"), "map.json: no column or constant for 'direction'"),
+        (lambda m: m.update(decimal="."), "export.csv:2: column Abw: '1,00' is not a number"),
+    ],
+)
 def test_generic_mapping_errors_are_one_line(tmp_path, edit, needle):
     src = tmp_path / "export.csv"
     src.write_text(generic_csv())
@@ -192,8 +274,23 @@ def test_generic_mapping_errors_are_one_line(tmp_path, edit, needle):
     mp = tmp_path / "map.json"
     mp.write_text(json.dumps(m))
     out = tmp_path / "bundle"
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "import-instrument", str(src), "--format", "generic",
-                           "--mapping", str(mp), "-o", str(out)], capture_output=True, text=True)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "import-instrument",
+            str(src),
+            "--format",
+            "generic",
+            "--mapping",
+            str(mp),
+            "-o",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines

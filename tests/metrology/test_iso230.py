@@ -60,7 +60,8 @@ def reference_iso230_2(readings: list[tuple[float, int, float]]) -> dict:
         "R": max(Rj.values()),
     }
     out["A"] = max(max(xu[t] + 2 * su[t], xd[t] + 2 * sdn[t]) for t in targets) - min(
-        min(xu[t] - 2 * su[t], xd[t] - 2 * sdn[t]) for t in targets)
+        min(xu[t] - 2 * su[t], xd[t] - 2 * sdn[t]) for t in targets
+    )
     out["E"] = max(list(xu.values()) + list(xd.values())) - min(list(xu.values()) + list(xd.values()))
     out["targets"] = {t: (xu[t], xd[t], su[t], sdn[t], B[t], Rj[t]) for t in targets}
     return out
@@ -106,19 +107,30 @@ def test_iso230_2_rotary_axis_in_arcsec():
     for _ in range(3):
         for d, order in ((1, [0.0, 90.0, 180.0, 270.0]), (-1, [270.0, 180.0, 90.0, 0.0])):
             for p in order:
-                rows.append({"time_s": float(len(rows)), "axis": "A", "term": "alpha", "position": p, "direction": d,
-                             "value": 1e-5 * d + rng.normal(0, 1e-6)})
+                rows.append(
+                    {
+                        "time_s": float(len(rows)),
+                        "axis": "A",
+                        "term": "alpha",
+                        "position": p,
+                        "direction": d,
+                        "value": 1e-5 * d + rng.normal(0, 1e-6),
+                    }
+                )
     res = iso230_2.from_bundle_errors(pd.DataFrame(rows), "A")
     assert res.unit == "arcsec"
     assert res.figures["B"] == pytest.approx(2e-5 * iso230_2.ARCSEC_PER_RAD, rel=0.2)  # about 4.1 arcsec
 
 
-@pytest.mark.parametrize("mutate,needle", [
-    (lambda r: r[:-7], "5 up runs but 4 down runs"),
-    (lambda r: [x for i, x in enumerate(r) if i != 3], "up run 1 misses target 298.8"),
-    (lambda r: [x for x in r if x[1] > 0], "needs runs in both directions"),
-    (lambda r: r[:14], "one run per direction"),
-])
+@pytest.mark.parametrize(
+    "mutate,needle",
+    [
+        (lambda r: r[:-7], "5 up runs but 4 down runs"),
+        (lambda r: [x for i, x in enumerate(r) if i != 3], "up run 1 misses target 298.8"),
+        (lambda r: [x for x in r if x[1] > 0], "needs runs in both directions"),
+        (lambda r: r[:14], "one run per direction"),
+    ],
+)
 def test_iso230_2_refuses_readings_that_are_not_paired_runs(mutate, needle):
     readings = mutate(synthetic_runs(0))
     pos, d, x = (np.array(c) for c in zip(*readings))
@@ -177,11 +189,16 @@ def test_cli_iso230_part3_and_one_line_errors(vm_bundle, tmp_path):
     assert json.loads(out.read_text())["spindle"]
     assert page.read_text().count("data:image/png") >= 3
     bad = tmp_path / "bad.json"
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "iso230", str(path), "--part", "2",
-                           "--json", str(bad)],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "driftlab.cli", "iso230", str(path), "--part", "2", "--json", str(bad)],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2 and proc.stderr.strip() == "driftlab: error: --part 2 needs --axis (X Y Z A B)"
     assert not bad.exists()
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "iso230", str(tmp_path / "nope"), "--part", "2",
-                           "--axis", "X"], capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "driftlab.cli", "iso230", str(tmp_path / "nope"), "--part", "2", "--axis", "X"],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1

@@ -43,7 +43,7 @@ def test_standard_model_is_plain_ols_of_spec_section_2():
     # train = the rows before the time of the row at 75 % (the split depends on times, never values)
     hold_t = np.sort(case.bundle.errors["time_s"].to_numpy())[int(np.floor(0.75 * len(case.bundle.errors)))]
     assert td.n_train == int(np.sum(td.t < hold_t))
-    assert td.t[: td.n_train].max() < td.t[td.n_train:].min()
+    assert td.t[: td.n_train].max() < td.t[td.n_train :].min()
 
 
 def test_spikes_are_isolated_excursions_not_steps_or_fast_transients():
@@ -91,8 +91,11 @@ def test_channel_screening_without_model_channels_finds_the_drivers():
 
 
 def _find(res, p: Planted):
-    return [e for e in res.effects if e.kind == p.kind and e.axis == p.axis and e.term == p.term
-            and set(e.channels) == set(p.channels)]
+    return [
+        e
+        for e in res.effects
+        if e.kind == p.kind and e.axis == p.axis and e.term == p.term and set(e.channels) == set(p.channels)
+    ]
 
 
 def _close(value: float, truth: float, rel: float = 0.30) -> bool:
@@ -110,19 +113,33 @@ PLANTED = {
     "quadratic-Y-dz-T37": [Planted("quadratic", "Y", "dz", ["T37"], {"coef_per_degC2": 2e-5})],
     "fault-open-T35": [Planted("sensor_fault", "Z", "alpha", ["T35"], {"start_s": 18 * 3600.0, "mode": "open"})],
     "fault-detached-T26": [Planted("sensor_fault", "X", "dz", ["T26"], {"start_s": 12 * 3600.0, "mode": "detached"})],
-    "lag-outside-model-Z-dz-T21": [Planted("thermal_lag", "Z", "dz", ["T21"],
-                                           {"tau_s": 3000.0, "coef_per_degC": 0.006})],
-    "fault-in-held-out-part-T35": [Planted("sensor_fault", "Z", "alpha", ["T35"],
-                                           {"start_s": 31 * 3600.0, "mode": "open"})],
-    "fault-two-channels-rail": [Planted("sensor_fault", "Z", "alpha", ["T35", "T13"],
-                                        {"start_s": 14 * 3600.0, "mode": "open", "rail_degC": 0.0})],
-    "two-reversal-X-dx+lag-Z-dz": [Planted("reversal", "X", "dx", [], {"magnitude_mm": 0.004}),
-                                   Planted("thermal_lag", "Z", "dz", ["T34"], {"tau_s": 3000.0})],
-    "two-drift+screw-Y-dy": [Planted("drift", "Y", "dy", [], {"rate_per_day": 0.008}),
-                             Planted("screw_expansion", "Y", "dy", ["T20"], {"coef_per_mm_degC": 1.2e-5})],
+    "lag-outside-model-Z-dz-T21": [
+        Planted("thermal_lag", "Z", "dz", ["T21"], {"tau_s": 3000.0, "coef_per_degC": 0.006})
+    ],
+    "fault-in-held-out-part-T35": [
+        Planted("sensor_fault", "Z", "alpha", ["T35"], {"start_s": 31 * 3600.0, "mode": "open"})
+    ],
+    "fault-two-channels-rail": [
+        Planted(
+            "sensor_fault", "Z", "alpha", ["T35", "T13"], {"start_s": 14 * 3600.0, "mode": "open", "rail_degC": 0.0}
+        )
+    ],
+    "two-reversal-X-dx+lag-Z-dz": [
+        Planted("reversal", "X", "dx", [], {"magnitude_mm": 0.004}),
+        Planted("thermal_lag", "Z", "dz", ["T34"], {"tau_s": 3000.0}),
+    ],
+    "two-drift+screw-Y-dy": [
+        Planted("drift", "Y", "dy", [], {"rate_per_day": 0.008}),
+        Planted("screw_expansion", "Y", "dy", ["T20"], {"coef_per_mm_degC": 1.2e-5}),
+    ],
 }
-SEEDS = {"fault-open-T35": 3, "fault-detached-T26": 3, "lag-outside-model-Z-dz-T21": 3,
-         "fault-in-held-out-part-T35": 3, "fault-two-channels-rail": 3}
+SEEDS = {
+    "fault-open-T35": 3,
+    "fault-detached-T26": 3,
+    "lag-outside-model-Z-dz-T21": 3,
+    "fault-in-held-out-part-T35": 3,
+    "fault-two-channels-rail": 3,
+}
 
 
 @pytest.mark.parametrize("name", list(PLANTED))
@@ -130,9 +147,20 @@ def test_planted_effects_are_found_with_their_parameters(name):
     planted = PLANTED[name]
     keep = sorted({(p.axis, p.term) for p in planted})
     # a sensor fault belongs to the thermocouple: the bundle's term is where the test looks for it
-    case = gen.vm_case([Planted(p.kind, "" if p.kind == "sensor_fault" else p.axis,
-                                "" if p.kind == "sensor_fault" else p.term, p.channels, p.params)
-                        for p in planted], seed=SEEDS.get(name, 7), keep=keep)
+    case = gen.vm_case(
+        [
+            Planted(
+                p.kind,
+                "" if p.kind == "sensor_fault" else p.axis,
+                "" if p.kind == "sensor_fault" else p.term,
+                p.channels,
+                p.params,
+            )
+            for p in planted
+        ],
+        seed=SEEDS.get(name, 7),
+        keep=keep,
+    )
     for i, p in enumerate(planted):
         if p.kind != "sensor_fault":  # planted signals of about 3x the laser noise (RMS) and up
             noise = case.noise["angle_rad" if p.term in ("alpha", "beta", "gamma") else "length_mm"]
@@ -194,10 +222,10 @@ def test_virtual_machine_without_model_channels_screens_all_drivers_and_finds_no
     case = gen.vm_case([], seed=50, hours=30, points=5, keep=[("Z", "dz"), ("X", "dx")])
     b = case.bundle
     meta = b.meta.model_copy(update={"model_channels": None})
-    res = diagnose_bundle(type(b)(name=b.name, meta=meta, temperatures=b.temperatures, conditions=None,
-                                  errors=b.errors))
-    drivers = {"X": {"T9", "T10", "T45"},
-               "Z": {"T7", "T24", "T26", "T30", "T32", "T33", "T34", "T35", "T37", "T42"}}
+    res = diagnose_bundle(
+        type(b)(name=b.name, meta=meta, temperatures=b.temperatures, conditions=None, errors=b.errors)
+    )
+    drivers = {"X": {"T9", "T10", "T45"}, "Z": {"T7", "T24", "T26", "T30", "T32", "T33", "T34", "T35", "T37", "T42"}}
     for t in res.terms:
         assert t.standard.selection.source == "screening"
         assert drivers[t.td.axis] <= set(t.standard.channels)
@@ -228,8 +256,17 @@ def test_report_has_the_spec_keys_and_a_self_contained_page():
     assert set(doc["baseline"][0]) >= {"axis", "term", "rmse_train", "rmse_holdout"}
     assert set(doc["extended"][0]) >= {"axis", "term", "rmse_train", "rmse_holdout"}
     eff = doc["effects"][0]
-    assert set(eff) == {"kind", "axis", "term", "channels", "params", "p_value", "cause",
-                        "rmse_holdout_before", "rmse_holdout_after"}
+    assert set(eff) == {
+        "kind",
+        "axis",
+        "term",
+        "channels",
+        "params",
+        "p_value",
+        "cause",
+        "rmse_holdout_before",
+        "rmse_holdout_after",
+    }
     assert eff["kind"] == "drift" and eff["channels"] == []
     assert "thesis 3.2" in eff["cause"]
     page = res.to_html()
@@ -281,8 +318,7 @@ def test_noisy_thermocouples_give_no_false_findings(seed):
     # 0.05 degC scan noise (a raw thermocouple reading): the standard model's dT regressors carry it
     # (errors in variables) and, unguarded, a lag, a proxy channel or a drift "improves" the model
     # of these seeds (thermal_lag X/alpha T15, unmapped_channel X/dz T27, thermal_lag Z/dz T28 ...)
-    case = gen.vm_case([], seed=seed, hours=36, keep=[("X", "alpha"), ("Z", "dz"), ("X", "dz")],
-                       thermocouple_degC=0.05)
+    case = gen.vm_case([], seed=seed, hours=36, keep=[("X", "alpha"), ("Z", "dz"), ("X", "dz")], thermocouple_degC=0.05)
     res = diagnose_bundle(case.bundle)
     assert [e.to_dict() for e in res.effects] == []
 
@@ -317,11 +353,21 @@ def test_another_labs_bundle_runs_cleanly_and_stays_correct():
         found += [e.to_dict() for e in res.effects]
     assert found == []
     # a planted reversal is found, with model_channels and noise stated or not
-    case = gen.make_case([Planted("reversal", "X", "dx", [], {"magnitude_mm": 0.003})], seed=301, hours=24,
-                         n_channels=12, terms={"X": ["dx", "gamma"], "Z": ["dz"]})
+    case = gen.make_case(
+        [Planted("reversal", "X", "dx", [], {"magnitude_mm": 0.003})],
+        seed=301,
+        hours=24,
+        n_channels=12,
+        terms={"X": ["dx", "gamma"], "Z": ["dz"]},
+    )
     b = gen.foreign(case, seed=1)
-    bare = type(b)(name=b.name, meta=b.meta.model_copy(update={"model_channels": None, "noise": None}),
-                   temperatures=b.temperatures, conditions=None, errors=b.errors)
+    bare = type(b)(
+        name=b.name,
+        meta=b.meta.model_copy(update={"model_channels": None, "noise": None}),
+        temperatures=b.temperatures,
+        conditions=None,
+        errors=b.errors,
+    )
     for bundle in (b, bare):
         res = diagnose_bundle(bundle)
         assert [(e.kind, e.axis, e.term) for e in res.effects] == [("reversal", "X", "dx")]
@@ -330,8 +376,12 @@ def test_another_labs_bundle_runs_cleanly_and_stays_correct():
 
 def test_a_faulty_model_channel_is_one_sensor_fault_not_many_lags():
     # examples/scenarios/fault-t34.yaml on two terms: T34 (a model channel) comes loose at 25 h
-    case = gen.vm_case([Planted("sensor_fault", "", "", ["T34"], {"start_s": 90000.0, "mode": "detached"})],
-                       seed=5, hours=48, keep=[("Z", "dz"), ("X", "alpha")])
+    case = gen.vm_case(
+        [Planted("sensor_fault", "", "", ["T34"], {"start_s": 90000.0, "mode": "detached"})],
+        seed=5,
+        hours=48,
+        keep=[("Z", "dz"), ("X", "alpha")],
+    )
     res = diagnose_bundle(case.bundle)
     assert {(e.kind, tuple(e.channels)) for e in res.effects} == {("sensor_fault", ("T34",))}
     for e in res.effects:

@@ -19,8 +19,6 @@ from tests import effects_generator as gen
 FL_THERMAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "fl_thermal"  # ../shared beside the repo
 
 
-
-
 @pytest.fixture(scope="module")
 def lag_bundle(tmp_path_factory) -> Path:
     """A bundle directory from the virtual machine with a thermal lag hidden on Z/dz."""
@@ -37,7 +35,8 @@ def test_diagnose_writes_json_and_html(lag_bundle, tmp_path, capsys):
     assert doc["format"] == "driftlab-diagnosis/1"
     assert doc["bundle"] == "lag-z"
     assert [(e["kind"], e["axis"], e["term"], e["channels"]) for e in doc["effects"]] == [
-        ("thermal_lag", "Z", "dz", ["T34"])]
+        ("thermal_lag", "Z", "dz", ["T34"])
+    ]
     assert abs(doc["effects"][0]["params"]["tau_s"] - 2400) < 0.3 * 2400
     html = page.read_text()
     assert html.startswith("<!doctype html>") and "data:image/png;base64," in html
@@ -68,18 +67,26 @@ def test_holdout_fraction_option(lag_bundle, tmp_path):
     assert doc["holdout"]["method"] == "last 40% of time"
 
 
-@pytest.mark.parametrize("damage, expected", [
-    (lambda d: (d / "errors.csv").write_text((d / "errors.csv").read_text().replace(",Z,dz,", ",Z,dq,", 1)),
-     "errors.csv:2:"),
-    (lambda d: (d / "campaign.json").unlink(), "campaign.json: file missing"),
-    (lambda d: (d / "temperatures.csv").write_text("time_s,T1\n0,abc\n"), "temperatures.csv:"),
-])
+@pytest.mark.parametrize(
+    "damage, expected",
+    [
+        (
+            lambda d: (d / "errors.csv").write_text((d / "errors.csv").read_text().replace(",Z,dz,", ",Z,dq,", 1)),
+            "errors.csv:2:",
+        ),
+        (lambda d: (d / "campaign.json").unlink(), "campaign.json: file missing"),
+        (lambda d: (d / "temperatures.csv").write_text("time_s,T1\n0,abc\n"), "temperatures.csv:"),
+    ],
+)
 def test_malformed_bundle_is_one_line_error(lag_bundle, tmp_path, damage, expected):
     bad = tmp_path / "bad"
     shutil.copytree(lag_bundle, bad)
     damage(bad)
-    proc = subprocess.run([sys.executable, "-m", "driftlab.cli", "diagnose", str(bad), "--json",
-                           str(tmp_path / "r.json")], capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "driftlab.cli", "diagnose", str(bad), "--json", str(tmp_path / "r.json")],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode != 0
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
@@ -106,8 +113,14 @@ def test_real_data_effects_are_decided_on_training_and_scored_once(fl_result):
             assert t.effects[-1].rmse_holdout_after == pytest.approx(t.extended.rmse_holdout)
         for e in t.effects:
             assert np.isfinite(e.rmse_holdout_before) and np.isfinite(e.rmse_holdout_after)
-            assert e.kind in ("thermal_lag", "unmapped_channel", "quadratic", "drift", "sensor_fault",
-                              "operating_condition")
+            assert e.kind in (
+                "thermal_lag",
+                "unmapped_channel",
+                "quadratic",
+                "drift",
+                "sensor_fault",
+                "operating_condition",
+            )
             if e.kind == "operating_condition":
                 assert e.params["column"] == "spindle_rpm" and e.params["vif"] <= 10
             if e.kind == "thermal_lag":  # resolvable: between a few scans and a third of the training span

@@ -18,8 +18,16 @@ P = OpenPlanted
 
 
 def _signature(res):
-    return [(e.kind, e.axis, e.term, tuple(e.channels),
-             {k: (round(v, 12) if isinstance(v, float) else v) for k, v in e.params.items()}) for e in res.effects]
+    return [
+        (
+            e.kind,
+            e.axis,
+            e.term,
+            tuple(e.channels),
+            {k: (round(v, 12) if isinstance(v, float) else v) for k, v in e.params.items()},
+        )
+        for e in res.effects
+    ]
 
 
 def _garbage_in_held_out(bundle, seed=0):
@@ -31,22 +39,33 @@ def _garbage_in_held_out(bundle, seed=0):
         hold = ts[int(np.floor(0.75 * ts.size))]
         idx = g.index[g["time_s"].to_numpy() >= hold]
         errs.loc[idx, "value"] = rng.normal(0.0, 0.05, idx.size) + rng.choice([0, 1.0], idx.size, p=[0.9, 0.1])
-    return type(bundle)(name=bundle.name, meta=bundle.meta, temperatures=bundle.temperatures,
-                        conditions=bundle.conditions, errors=errs)
+    return type(bundle)(
+        name=bundle.name, meta=bundle.meta, temperatures=bundle.temperatures, conditions=bundle.conditions, errors=errs
+    )
 
 
 @pytest.mark.parametrize("which", ["virtual-machine", "open-world"])
 def test_held_out_values_do_not_change_the_effects(which):
     if which == "virtual-machine":
-        case = gen.vm_case([gen.Planted("reversal", "X", "dx", [], {"magnitude_mm": 0.004}),
-                            gen.Planted("thermal_lag", "Z", "dz", ["T34"], {"tau_s": 3000.0})],
-                           seed=7, hours=30, keep=[("X", "dx"), ("Z", "dz"), ("Y", "alpha")])
+        case = gen.vm_case(
+            [
+                gen.Planted("reversal", "X", "dx", [], {"magnitude_mm": 0.004}),
+                gen.Planted("thermal_lag", "Z", "dz", ["T34"], {"tau_s": 3000.0}),
+            ],
+            seed=7,
+            hours=30,
+            keep=[("X", "dx"), ("Z", "dz"), ("Y", "alpha")],
+        )
         bundle = case.bundle
     else:
-        bundle = openworld_case([P("reversal", "A", "alpha", "theta_x", "alpha", [], {"magnitude": 3e-6}),
-                                 P("sensor_fault", "", "", "", "", ["T7"], {"start_s": 26 * 3600.0,
-                                                                           "mode": "open"})],
-                                seed=11, keep=[("A", "alpha"), ("Z", "dz")]).bundle
+        bundle = openworld_case(
+            [
+                P("reversal", "A", "alpha", "theta_x", "alpha", [], {"magnitude": 3e-6}),
+                P("sensor_fault", "", "", "", "", ["T7"], {"start_s": 26 * 3600.0, "mode": "open"}),
+            ],
+            seed=11,
+            keep=[("A", "alpha"), ("Z", "dz")],
+        ).bundle
     a = diagnose_bundle(bundle)
     b = diagnose_bundle(_garbage_in_held_out(bundle))
     assert a.effects, "the bundle must have findings for the check to mean something"
@@ -74,9 +93,10 @@ OPEN_PLANTED = {
     "reversal-A-joint": [P("reversal", "A", "alpha", "theta_x", "alpha", [], {"magnitude": 3e-6})],
     "reversal-X-joint": [P("reversal", "X", "dx", "phi_x", "dx", [], {"magnitude": 0.003})],
     "screw-X": [P("screw_expansion", "X", "dx", "phi_x", "dx", ["T7"], {"coef_per_mm_degC": 2.0e-5})],
-    "two-on-Z: reversal + lag": [P("reversal", "Z", "dz", "phi_z", "dz", [], {"magnitude": 0.003}),
-                                 P("thermal_lag", "Z", "dz", "T2", "dz", ["T5"], {"tau_s": 3000.0,
-                                                                                "coef_per_degC": 0.02})],
+    "two-on-Z: reversal + lag": [
+        P("reversal", "Z", "dz", "phi_z", "dz", [], {"magnitude": 0.003}),
+        P("thermal_lag", "Z", "dz", "T2", "dz", ["T5"], {"tau_s": 3000.0, "coef_per_degC": 0.02}),
+    ],
     "rpm2-Z": [P("operating_condition", "Z", "dz", "T1", "dz", [], {"power": 2, "coef_per_unit": -3e-10})],
 }
 #: sensor sites on one body read nearly the same temperature: either names the effect
@@ -91,8 +111,13 @@ def test_open_world_planted_effects_are_found_through_the_chain(name):
     for p, exp, beyond in zip(planted, case.expected, case.beyond_model_rms):
         noise = case.noise["angle_rad" if p.term in ("alpha", "beta", "gamma") else "length_mm"]
         assert beyond >= 2.0 * noise  # what no standard model absorbs: about 3x the noise
-        hits = [e for e in res.effects if e.kind == p.kind and (e.axis, e.term) == (p.axis, p.term)
-                and all(set(e.channels) <= SAME_BODY.get(c, {c}) for c in p.channels)]
+        hits = [
+            e
+            for e in res.effects
+            if e.kind == p.kind
+            and (e.axis, e.term) == (p.axis, p.term)
+            and all(set(e.channels) <= SAME_BODY.get(c, {c}) for c in p.channels)
+        ]
         assert hits, (p.kind, [x.to_dict() for x in res.effects])
         e = hits[0]
         for key, truth in exp.items():
@@ -111,14 +136,18 @@ def _warm_start_s(seed: int, after_h: float, source: str) -> float:
     return float(st.start_s) + 3600.0
 
 
-@pytest.mark.parametrize("after_h, mode, channel, source", [(6.0, "detached", "T8", "x_motor"),
-                                                            (23.0, "detached", "T8", "x_motor"),
-                                                            (26.0, "open", "T1", "")])
+@pytest.mark.parametrize(
+    "after_h, mode, channel, source",
+    [(6.0, "detached", "T8", "x_motor"), (23.0, "detached", "T8", "x_motor"), (26.0, "open", "T1", "")],
+)
 def test_sensor_fault_is_found_on_the_temperatures_wherever_it_falls(after_h, mode, channel, source):
     # after 22.5 h of 30, the fault is inside the held-out part of the errors: the temperatures still show it
     start = _warm_start_s(11, after_h, source) if mode == "detached" else after_h * 3600.0
-    case = openworld_case([P("sensor_fault", "", "", "", "", [channel], {"start_s": start, "mode": mode})],
-                          seed=11, keep=[("Z", "dz"), ("X", "dx")])
+    case = openworld_case(
+        [P("sensor_fault", "", "", "", "", [channel], {"start_s": start, "mode": mode})],
+        seed=11,
+        keep=[("Z", "dz"), ("X", "dx")],
+    )
     res = diagnose_bundle(case.bundle)
     assert res.effects and {e.kind for e in res.effects} == {"sensor_fault"}, [e.to_dict() for e in res.effects]
     for e in res.effects:
@@ -135,8 +164,10 @@ def test_report_of_a_direct_speed_effect_and_of_a_fault_no_model_uses():
     from driftlab.models.findings import parse_findings, plan_findings
 
     # T9 (the Y motor) feeds no model of this bundle; its lead breaks at 20 h; and the spindle grows with rpm^2
-    planted = [P("operating_condition", "Z", "dz", "T1", "dz", [], {"power": 2, "coef_per_unit": -3e-10}),
-               P("sensor_fault", "", "", "", "", ["T9"], {"start_s": 20 * 3600.0, "mode": "open"})]
+    planted = [
+        P("operating_condition", "Z", "dz", "T1", "dz", [], {"power": 2, "coef_per_unit": -3e-10}),
+        P("sensor_fault", "", "", "", "", ["T9"], {"start_s": 20 * 3600.0, "mode": "open"}),
+    ]
     case = openworld_case(planted, seed=702, keep=[("Z", "dz")])
     res = diagnose_bundle(case.bundle)
     doc = res.to_json_dict()

@@ -76,8 +76,15 @@ def test_snapshot_inputs_take_settled_lag():
 def test_candidates_joint_vs_link():
     structs = {"T9": "x_screw", "T10": "x_motor", "T32": "arm", "T34": "arm", "T49": "room", "T50": "room"}
     chans = list(structs)
-    joint = candidate_features(chans, structs, axes=["X"], screw_channels={"X": ["T9"]}, lag_taus_s=[3600],
-                               room_channels=["T49", "T50"], structure_members={"arm": ["T32", "T33", "T34"]})
+    joint = candidate_features(
+        chans,
+        structs,
+        axes=["X"],
+        screw_channels={"X": ["T9"]},
+        lag_taus_s=[3600],
+        room_channels=["T49", "T50"],
+        structure_members={"arm": ["T32", "T33", "T34"]},
+    )
     names = [f.name for f in joint]
     assert {"pos[X]*dT[T9]", "dir[X]", "pos[X]^3", "grad[T34-T32]", "grad[T49-T50]", "lag3600[T9]"} <= set(names)
     assert "mean[arm]" in names and next(f for f in joint if f.kind == "mean").channels == ("T32", "T33", "T34")
@@ -90,8 +97,16 @@ def test_axis_labelled_features_read_their_column_of_q():
     inp = Inputs(dT=pd.DataFrame({"T9": [1.0, 2.0]}))
     q = np.array([[100.0, 0, 0, 0, 0], [0, 0, -50.0, 0, 0]])
     d = np.array([[1.0, 0, 0, 0, 0], [0, 0, -1.0, 0, 0]])
-    X = design_matrix([Feature("pos_dT", ("T9",), label="X"), Feature("position", power=2, label="Z"),
-                       Feature("direction", label="Z")], inp, q, d)
+    X = design_matrix(
+        [
+            Feature("pos_dT", ("T9",), label="X"),
+            Feature("position", power=2, label="Z"),
+            Feature("direction", label="Z"),
+        ],
+        inp,
+        q,
+        d,
+    )
     assert X.to_numpy().tolist() == [[100.0, 0.0, 0.0], [0.0, 2500.0, -1.0]]
     with pytest.raises(ValidationError):
         design_matrix([Feature("position")], inp, q)

@@ -20,8 +20,13 @@ from driftlab.physics.kinematics import TABLE_A1  # noqa: E402
 def _with_links(bundle: Bundle, column_mm: tuple[float, float, float]) -> Bundle:
     meta = bundle.meta.model_dump(exclude_none=True)
     meta["machine"]["geometry"] = {"links_mm": {"column": list(column_mm), "spindle_head": [0.0, -250.0, -150.0]}}
-    return Bundle(name=bundle.name, meta=_as_meta(meta), temperatures=bundle.temperatures,
-                  conditions=bundle.conditions, errors=bundle.errors)
+    return Bundle(
+        name=bundle.name,
+        meta=_as_meta(meta),
+        temperatures=bundle.temperatures,
+        conditions=bundle.conditions,
+        errors=bundle.errors,
+    )
 
 
 def test_stated_links_replace_table_a1_in_the_chain_and_the_document() -> None:

@@ -34,8 +34,9 @@ print(json.dumps({f"{e}.{p}": [[f.name for f in m.features], [round(float(c), 12
 
 def _fit(seed: str, mode: str) -> dict:
     env = {**os.environ, "PYTHONHASHSEED": seed}
-    proc = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, cwd=ROOT, env=env,
-                          timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", PROBE, mode], capture_output=True, text=True, cwd=ROOT, env=env, timeout=600
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 

@@ -56,12 +56,17 @@ def synthetic_bundle(seed=0, room_offset=0.0, hours=32.0):
             fz[m] = 1.0
     room = 20 + room_offset + 1.0 * np.sin(2 * np.pi * (h - 9) / 24)
     true = {
-        "T49": room + 0.4, "T50": room - 0.6,
-        "T32": room + _lag(2.5 * sp, t, 2100), "T34": room + _lag(6.5 * sp, t, 1800),
+        "T49": room + 0.4,
+        "T50": room - 0.6,
+        "T32": room + _lag(2.5 * sp, t, 2100),
+        "T34": room + _lag(6.5 * sp, t, 1800),
         "T37": room + _lag(20 * sp, t, 1200),
-        "T9": room + _lag(5 * fx, t, 1500), "T10": room + _lag(8 * fx, t, 720),
-        "T30": room + _lag(5 * fz + 0.5 * sp, t, 1500), "T31": room + _lag(7 * fz + 0.3 * sp, t, 720),
-        "T24": room + _lag(0.6 * sp + 0.4 * fz, t, 11000), "T26": room + _lag(0.2 * sp + 1.5, t, 13000),
+        "T9": room + _lag(5 * fx, t, 1500),
+        "T10": room + _lag(8 * fx, t, 720),
+        "T30": room + _lag(5 * fz + 0.5 * sp, t, 1500),
+        "T31": room + _lag(7 * fz + 0.3 * sp, t, 720),
+        "T24": room + _lag(0.6 * sp + 0.4 * fz, t, 11000),
+        "T26": room + _lag(0.2 * sp + 1.5, t, 13000),
         "T7": room + _lag(1.1 * fx, t, 5000),
     }
     for i in (1, 2, 3, 4):
@@ -102,25 +107,58 @@ def synthetic_bundle(seed=0, room_offset=0.0, hours=32.0):
         m = ax == term_axis
         for name in names:
             j = ("alpha", "beta", "gamma", "dx", "dy", "dz").index(name)
-            err.append(pd.DataFrame({"time_s": ts[m], "axis": term_axis, "term": name, "position": pos[m],
-                                     "direction": dr[m], "value": W[m, j]}))
+            err.append(
+                pd.DataFrame(
+                    {
+                        "time_s": ts[m],
+                        "axis": term_axis,
+                        "term": name,
+                        "position": pos[m],
+                        "direction": dr[m],
+                        "value": W[m, j],
+                    }
+                )
+            )
     errors = pd.concat(err).sort_values(["time_s", "axis", "term", "position"], kind="stable").reset_index(drop=True)
-    structures = {"T49": "room", "T50": "room", "T32": "spindle_arm", "T34": "spindle_arm", "T37": "spindle",
-                  "T9": "x_screw", "T10": "x_motor", "T30": "z_screw", "T31": "z_motor", "T24": "z_column",
-                  "T26": "z_column", "T7": "xy_carriage", "T1": "x_table", "T2": "x_table", "T3": "x_table",
-                  "T4": "x_table"}
-    locs = {"T9": "X axis ballscrew nut", "T10": "X axis motor", "T30": "Z axis ballscrew", "T31": "Z axis motor",
-            "T37": "Main spindle motor"}
-    meta = CampaignMeta.model_validate({
-        "format": "driftlab-bundle/1",
-        "machine": {"id": "vmc-test"},
-        "started_at": "2026-03-02T08:00:00Z",
-        "channels": {c: {"location": locs.get(c, c), "structure": s} for c, s in structures.items()},
-        "room_channels": ["T49", "T50"],
-        "stages": [{"name": nm, "start_s": a * 3600, "end_s": b * 3600, "heat_source": hs, "axis": ax_}
-                   for nm, a, b, hs, ax_ in STAGES],
-        "noise": {"length_mm": NOISE_MM},
-    })
+    structures = {
+        "T49": "room",
+        "T50": "room",
+        "T32": "spindle_arm",
+        "T34": "spindle_arm",
+        "T37": "spindle",
+        "T9": "x_screw",
+        "T10": "x_motor",
+        "T30": "z_screw",
+        "T31": "z_motor",
+        "T24": "z_column",
+        "T26": "z_column",
+        "T7": "xy_carriage",
+        "T1": "x_table",
+        "T2": "x_table",
+        "T3": "x_table",
+        "T4": "x_table",
+    }
+    locs = {
+        "T9": "X axis ballscrew nut",
+        "T10": "X axis motor",
+        "T30": "Z axis ballscrew",
+        "T31": "Z axis motor",
+        "T37": "Main spindle motor",
+    }
+    meta = CampaignMeta.model_validate(
+        {
+            "format": "driftlab-bundle/1",
+            "machine": {"id": "vmc-test"},
+            "started_at": "2026-03-02T08:00:00Z",
+            "channels": {c: {"location": locs.get(c, c), "structure": s} for c, s in structures.items()},
+            "room_channels": ["T49", "T50"],
+            "stages": [
+                {"name": nm, "start_s": a * 3600, "end_s": b * 3600, "heat_source": hs, "axis": ax_}
+                for nm, a, b, hs, ax_ in STAGES
+            ],
+            "noise": {"length_mm": NOISE_MM},
+        }
+    )
     return Bundle(name=f"synthetic-{seed}", meta=meta, temperatures=temps, conditions=None, errors=errors)
 
 
@@ -132,8 +170,12 @@ def fitted():
 def test_stage_elements_follow_the_heat_source_order():
     meta = synthetic_bundle(0).meta
     got = [(s.name, e, r) for s, e, r in stage_elements(meta.stages)]
-    assert got[:4] == [("spindle-10k", "T1", "train"), ("cool-1", "T1", "train"),
-                       ("feed-x", "phi_x", "train"), ("cool-2", "phi_x", "train")]
+    assert got[:4] == [
+        ("spindle-10k", "T1", "train"),
+        ("cool-1", "T1", "train"),
+        ("feed-x", "phi_x", "train"),
+        ("cool-2", "phi_x", "train"),
+    ]
     assert got[6] == ("spindle+z", None, "validation")
 
 
@@ -185,8 +227,9 @@ def test_document_predicts_like_the_fit_without_training_data(fitted):
 def test_model_channels_of_the_bundle_are_honoured():
     b = synthetic_bundle(0)
     meta = b.meta.model_copy(update={"model_channels": {"X": ["T10", "T49", "T50"]}})
-    res = fit_bundles([Bundle(b.name, meta, b.temperatures, None, b.errors)], FitOptions(network=False,
-                                                                                         virtual_sensors=False))
+    res = fit_bundles(
+        [Bundle(b.name, meta, b.temperatures, None, b.errors)], FitOptions(network=False, virtual_sensors=False)
+    )
     used = {c for f in res.models[("phi_x", "dx")].features for c in f.channels}
     assert used <= {"T10", "T49", "T50"} and "T10" in used
 
@@ -201,12 +244,22 @@ def test_table_6_3_compares_with_the_geometry_the_campaign_states(fitted):
     assert fitted.document.physical_check["status"] == "no geometry" and fitted.document.physical == []
     b = synthetic_bundle(0)
     doc = b.meta.document()
-    doc["machine"]["geometry"] = {"screw_fixed_mm": STATED_GEOMETRY["screw_fixed_mm"],
-                                  "bending": {"spindle_arm": {"length_mm": 400, "height_mm": 200,
-                                                              "across": "upper-lower",
-                                                              "deflection": "dz", "angle": "alpha"}}}
-    res = fit_bundles([Bundle(b.name, CampaignMeta.model_validate(doc), b.temperatures, None, b.errors)],
-                      FitOptions(network=False, virtual_sensors=False))
+    doc["machine"]["geometry"] = {
+        "screw_fixed_mm": STATED_GEOMETRY["screw_fixed_mm"],
+        "bending": {
+            "spindle_arm": {
+                "length_mm": 400,
+                "height_mm": 200,
+                "across": "upper-lower",
+                "deflection": "dz",
+                "angle": "alpha",
+            }
+        },
+    }
+    res = fit_bundles(
+        [Bundle(b.name, CampaignMeta.model_validate(doc), b.temperatures, None, b.errors)],
+        FitOptions(network=False, virtual_sensors=False),
+    )
     assert res.physical_check["status"] == "compared" and res.document.physical_check["geometry"]["screw_fixed_mm"]
     rows = res.physical.set_index("term")
     # the X ballscrew's truth is alpha_c x position x dT9 (eq. 3.2, L = position): ratio 1
@@ -278,8 +331,9 @@ def _vm_bundle(scenario):
     from driftlab.daq.sim.campaign import simulate_campaign
 
     sim = simulate_campaign(scenario)
-    return Bundle(scenario.name, CampaignMeta.model_validate(sim.meta), sim.temperatures, sim.conditions,
-                  sim.errors), sim
+    return Bundle(
+        scenario.name, CampaignMeta.model_validate(sim.meta), sim.temperatures, sim.conditions, sim.errors
+    ), sim
 
 
 @pytest.fixture(scope="module")
@@ -400,16 +454,21 @@ def test_vm_report_names_each_measurement_as_tables_6_1_and_6_2(vm_fit):
     assert [names[("X", t)] for t in ("beta", "gamma")] == ["Pitch", "Yaw"]
     assert [names[("Z", t)] for t in ("alpha", "beta")] == ["Pitch", "Yaw"]
     assert names[("A", "alpha")] == names[("B", "beta")] == "Positioning"
-    assert {names[("A", "beta")], names[("A", "gamma")], names[("B", "alpha")], names[("B", "gamma")]} == \
-        {"Beta Tilt", "Gamma Tilt", "Alpha Tilt"}
+    assert {names[("A", "beta")], names[("A", "gamma")], names[("B", "alpha")], names[("B", "gamma")]} == {
+        "Beta Tilt",
+        "Gamma Tilt",
+        "Alpha Tilt",
+    }
     assert names[("Z", "dz")] == "Position" and names[("Z", "dx")] == "X Straightness"
     assert names[("A", "dy")] == "Y Deflection"
     assert not any("Roll" in n for (a, _), n in names.items() if a in ("A", "B"))
 
 
 def test_fit_compares_only_the_targets_it_was_given():
-    res = fit_bundles([synthetic_bundle(0)], FitOptions(virtual_sensors=False, network_targets=("X/dy",),
-                                                        network_hidden=(8, 4), network_max_iter=50))
+    res = fit_bundles(
+        [synthetic_bundle(0)],
+        FitOptions(virtual_sensors=False, network_targets=("X/dy",), network_hidden=(8, 4), network_max_iter=50),
+    )
     assert [c.target for c in res.neural] == ["X/dy"] and res.neural[0].status == "compared"
     assert res.neural[0].unit == "mm" and len(res.neural[0].directions) == 2
 
@@ -424,12 +483,27 @@ def planted_vm(tmp_path_factory):
     from driftlab.daq.sim.scenario import HiddenEffect, Scenario
     from driftlab.models.diagnosis import diagnose_bundle
 
-    sc = Scenario(name="vm-t21", hours=36, seed=7, scan_interval_s=120, sweep_interval_s=1200, points_per_axis=6,
-                  hidden=[HiddenEffect(kind="unmapped_channel", axis="Z", term="dz", channels=["T21"],
-                                       params={"coef_per_degC": 0.005})])
+    sc = Scenario(
+        name="vm-t21",
+        hours=36,
+        seed=7,
+        scan_interval_s=120,
+        sweep_interval_s=1200,
+        points_per_axis=6,
+        hidden=[
+            HiddenEffect(
+                kind="unmapped_channel", axis="Z", term="dz", channels=["T21"], params={"coef_per_degC": 0.005}
+            )
+        ],
+    )
     bundle, _ = _vm_bundle(sc)
-    bundle = Bundle(bundle.name, bundle.meta, bundle.temperatures, bundle.conditions,
-                    bundle.errors[(bundle.errors.axis == "Z") & (bundle.errors.term == "dz")].reset_index(drop=True))
+    bundle = Bundle(
+        bundle.name,
+        bundle.meta,
+        bundle.temperatures,
+        bundle.conditions,
+        bundle.errors[(bundle.errors.axis == "Z") & (bundle.errors.term == "dz")].reset_index(drop=True),
+    )
     tmp = tmp_path_factory.mktemp("findings")
     url = f"sqlite:///{tmp / 'f.sqlite'}"
     with connect(url) as store:
@@ -453,8 +527,23 @@ def test_findings_fold_into_the_next_fit_and_lower_the_holdout_rmse(planted_vm, 
         return next(r["rmse_holdout"] for r in rep["terms"] if (r["axis"], r["term"]) == ("Z", "dz")), rep
 
     assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--json", str(tmp_path / "a.json")]) == 0
-    assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--json", str(tmp_path / "b.json"),
-                 "--findings", str(path)]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                "--campaign",
+                str(cid),
+                "--db",
+                url,
+                "--no-network",
+                "--json",
+                str(tmp_path / "b.json"),
+                "--findings",
+                str(path),
+            ]
+        )
+        == 0
+    )
     before, _ = holdout(tmp_path / "a.json")
     after, rep = holdout(tmp_path / "b.json")
     assert after < 0.8 * before, (before, after)
@@ -467,10 +556,13 @@ def test_findings_fold_into_the_next_fit_and_lower_the_holdout_rmse(planted_vm, 
     assert any(f.name == "dT[T21]" for t in doc.terms for f in t.features)
     # a bad report is a one-line error and no job
     bad = tmp_path / "bad.json"
-    for text in ('{"format": "driftlab-diagnosis/9", "effects": []}',
-                 '{"format": "driftlab-diagnosis/1", "effects": [{"kind": "gremlin", "axis": "Z", "term": "dz"}]}',
-                 '{"format": "driftlab-diagnosis/1", "effects": [{"kind": "thermal_lag", "axis": "Z", "term": "dz", '
-                 '"channels": ["T34"], "params": {}}]}', "not json"):
+    for text in (
+        '{"format": "driftlab-diagnosis/9", "effects": []}',
+        '{"format": "driftlab-diagnosis/1", "effects": [{"kind": "gremlin", "axis": "Z", "term": "dz"}]}',
+        '{"format": "driftlab-diagnosis/1", "effects": [{"kind": "thermal_lag", "axis": "Z", "term": "dz", '
+        '"channels": ["T34"], "params": {}}]}',
+        "not json",
+    ):
         bad.write_text(text)
         capsys.readouterr()
         assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--findings", str(bad)]) == 2
@@ -483,8 +575,13 @@ def test_forced_lag_finding_and_its_prediction_from_the_document():
     from driftlab.models.findings import Finding, Findings
 
     b = synthetic_bundle(0)
-    f = Findings(b.name, (Finding("thermal_lag", "Z", "dz", ("T24",), {"tau_s": 5000.0}),
-                          Finding("drift", "X", "dy", (), {"rate_per_day": 0.0})))
+    f = Findings(
+        b.name,
+        (
+            Finding("thermal_lag", "Z", "dz", ("T24",), {"tau_s": 5000.0}),
+            Finding("drift", "X", "dy", (), {"rate_per_day": 0.0}),
+        ),
+    )
     res = fit_bundles([b], FitOptions(network=False, virtual_sensors=False, findings=f, force_findings=True))
     doc = res.document
     names = {f.name for t in doc.terms for f in t.features}
@@ -515,14 +612,25 @@ def test_document_substitution_and_drift_are_evaluated_from_the_document():
     from driftlab.models.document import predict_element_errors
 
     doc = {
-        "machine": "m", "time_origin": "2026-03-02T00:00:00Z",
+        "machine": "m",
+        "time_origin": "2026-03-02T00:00:00Z",
         "inputs": {c: {"reference": 20.0, "min": 19.0, "max": 30.0} for c in ("T1", "T2", "T3")},
-        "substitutions": [{"channel": "T1", "neighbours": ["T2", "T3"], "coef": [1.0, 0.5, 0.5],
-                           "since": "2026-03-03T00:00:00Z"}],
-        "terms": [{"element": "phi_x", "param": "dx", "features": [
-            {"kind": "dT", "name": "dT[T1]", "channels": ["T1"]}, {"kind": "time", "name": "days[X]", "label": "X"},
-            {"kind": "quad", "name": "dT[T2]^2", "channels": ["T2"]}],
-            "coefficients": [0.001, 0.01, 1e-4], "statistics": {"rmse_train": 0.0}}],
+        "substitutions": [
+            {"channel": "T1", "neighbours": ["T2", "T3"], "coef": [1.0, 0.5, 0.5], "since": "2026-03-03T00:00:00Z"}
+        ],
+        "terms": [
+            {
+                "element": "phi_x",
+                "param": "dx",
+                "features": [
+                    {"kind": "dT", "name": "dT[T1]", "channels": ["T1"]},
+                    {"kind": "time", "name": "days[X]", "label": "X"},
+                    {"kind": "quad", "name": "dT[T2]^2", "channels": ["T2"]},
+                ],
+                "coefficients": [0.001, 0.01, 1e-4],
+                "statistics": {"rmse_train": 0.0},
+            }
+        ],
     }
     q = np.zeros((1, 5))
     temps = {"T1": 25.0, "T2": 22.0, "T3": 24.0}
@@ -540,12 +648,23 @@ def test_sensor_fault_finding_substitutes_the_channel_in_fit_and_prediction():
     from driftlab.daq.sim.scenario import HiddenEffect, Scenario
     from driftlab.models.findings import Finding, Findings
 
-    sc = Scenario(name="vm-t35", hours=36, seed=7, scan_interval_s=120, sweep_interval_s=1200, points_per_axis=6,
-                  hidden=[HiddenEffect(kind="sensor_fault", channels=["T35"],
-                                       params={"start_s": 64800.0, "mode": "open"})])
+    sc = Scenario(
+        name="vm-t35",
+        hours=36,
+        seed=7,
+        scan_interval_s=120,
+        sweep_interval_s=1200,
+        points_per_axis=6,
+        hidden=[HiddenEffect(kind="sensor_fault", channels=["T35"], params={"start_s": 64800.0, "mode": "open"})],
+    )
     b, _ = _vm_bundle(sc)
-    b = Bundle(b.name, b.meta, b.temperatures,
-               b.conditions, b.errors[(b.errors.axis == "Z") & (b.errors.term == "alpha")].reset_index(drop=True))
+    b = Bundle(
+        b.name,
+        b.meta,
+        b.temperatures,
+        b.conditions,
+        b.errors[(b.errors.axis == "Z") & (b.errors.term == "alpha")].reset_index(drop=True),
+    )
     f = Findings(b.name, (Finding("sensor_fault", "Z", "alpha", ("T35",), {"start_s": 64800.0, "mode": "open"}),))
     opts = FitOptions(network=False, virtual_sensors=False)
     r0 = fit_bundles([b], opts)
@@ -569,9 +688,22 @@ def test_joint_coordinates_follow_the_bundle_v2_pose():
     """A v2 reading states where every axis stood: the HTM chain is evaluated there, not at home (eq. 4.12)."""
     from driftlab.models.fitting import _points, _pose_q
 
-    e = pd.DataFrame({"time_s": [0.0, 0.0], "axis": ["X", "A"], "term": ["dx", "dy"], "position": [50.0, 30.0],
-                      "direction": [1, -1], "x": [50.0, 10.0], "y": [100.0, 0.0], "z": [-20.0, 0.0],
-                      "a": [0.0, 30.0], "b": [5.0, 0.0], "setup": ["s1", "s2"], "value": [1e-3, 2e-3]})
+    e = pd.DataFrame(
+        {
+            "time_s": [0.0, 0.0],
+            "axis": ["X", "A"],
+            "term": ["dx", "dy"],
+            "position": [50.0, 30.0],
+            "direction": [1, -1],
+            "x": [50.0, 10.0],
+            "y": [100.0, 0.0],
+            "z": [-20.0, 0.0],
+            "a": [0.0, 30.0],
+            "b": [5.0, 0.0],
+            "setup": ["s1", "s2"],
+            "value": [1e-3, 2e-3],
+        }
+    )
     q = _pose_q(_points(e).sort_values("axis").reset_index(drop=True))
     assert q[0] == pytest.approx([10.0, 0.0, 0.0, np.deg2rad(30.0), 0.0])
     assert q[1] == pytest.approx([50.0, 100.0, -20.0, 0.0, np.deg2rad(5.0)])

@@ -92,8 +92,13 @@ def test_the_document_alone_follows_every_session_up_to_its_datum(full_fit) -> N
     spread = pd.Series(r).groupby([e.setup, run, e.term]).transform(lambda x: x - x.mean())
     noise = np.where(e.term.str.startswith("d"), bundle.meta.noise.length_mm, bundle.meta.noise.angle_rad)
     # the combined spindle + feed stages at the end (ch. 6.4) are the validation the fit never trained on
-    stage_of = pd.cut(e.time_s, [s.start_s for s in bundle.meta.stages] + [np.inf], right=False,
-                      labels=[s.name for s in bundle.meta.stages], ordered=False)
+    stage_of = pd.cut(
+        e.time_s,
+        [s.start_s for s in bundle.meta.stages] + [np.inf],
+        right=False,
+        labels=[s.name for s in bundle.meta.stages],
+        ordered=False,
+    )
     combined = stage_of.astype(str).str.contains(r"\+|cool3", regex=True).to_numpy()
     z = (spread / noise).pow(2)
     per_cell = z[~combined].groupby([e.axis[~combined], e.term[~combined]]).mean().pow(0.5)

@@ -77,8 +77,12 @@ def _campaign(name, start_h, room, heat, *, datum=None, hours=24.0, seed=0, zero
     pos = np.tile([-200.0, -100.0, 0.0], t.size)
     tt = np.repeat(t, 3)
     ref = (T1[0], T2[0]) if zeroed_at_start else (20.0, 20.0)
-    value = (COEF["T1"] * (np.repeat(T1, 3) - ref[0]) + COEF["T2"] * (np.repeat(T2, 3) - ref[1])
-             + 1e-5 * pos + 0.0005 * rng.standard_normal(tt.size))
+    value = (
+        COEF["T1"] * (np.repeat(T1, 3) - ref[0])
+        + COEF["T2"] * (np.repeat(T2, 3) - ref[1])
+        + 1e-5 * pos
+        + 0.0005 * rng.standard_normal(tt.size)
+    )
     errors = pd.DataFrame({"time_s": tt, "axis": "Z", "term": "dz", "position": pos, "direction": 1, "value": value})
     meta = SimpleNamespace(started_at=T0 + timedelta(hours=start_h), setups=None)
     if datum is not None:
@@ -98,8 +102,11 @@ def test_both_models_are_given_the_very_same_matrix_in_both_directions():
         seen["network"].append((X.copy(), np.array(y)))
         return fit_network(X, y, hidden=(8, 4), max_iter=100)
 
-    data = comparison_data([_campaign("a", 0, 20.0, 4.0, datum="absolute"),
-                            _campaign("b", 48, 23.0, 6.0, datum="absolute", seed=1)], "Z/dz", ["T1", "T2"])
+    data = comparison_data(
+        [_campaign("a", 0, 20.0, 4.0, datum="absolute"), _campaign("b", 48, 23.0, 6.0, datum="absolute", seed=1)],
+        "Z/dz",
+        ["T1", "T2"],
+    )
     res = compare_models(data, fit_regression=rec_linear, fit_net=rec_net)
     assert [d.direction for d in res.directions] == ["earlier -> later", "later -> earlier"]
     assert res.split == "campaign" and [(d.train, d.test) for d in res.directions] == [("a", "b"), ("b", "a")]
@@ -115,9 +122,18 @@ def test_both_models_are_given_the_very_same_matrix_in_both_directions():
 
 
 def test_both_directions_are_scored_and_the_network_fails_beyond_its_range_either_way():
-    res = compare_models(comparison_data([_campaign("cold", 0, 20.0, 3.0, datum="absolute"),
-                                          _campaign("warm", 48, 23.5, 3.0, datum="absolute", seed=1)],
-                                         "Z/dz", ["T1", "T2"]), hidden=(12, 6), max_iter=300)
+    res = compare_models(
+        comparison_data(
+            [
+                _campaign("cold", 0, 20.0, 3.0, datum="absolute"),
+                _campaign("warm", 48, 23.5, 3.0, datum="absolute", seed=1),
+            ],
+            "Z/dz",
+            ["T1", "T2"],
+        ),
+        hidden=(12, 6),
+        max_iter=300,
+    )
     assert res.status == "compared" and len(res.directions) == 2
     for d in res.directions:  # train on one room, test on the other: up then down
         assert d.regression_test < 0.002, d  # the linear truth extrapolates (noise 0.5 um)
@@ -128,8 +144,10 @@ def test_both_directions_are_scored_and_the_network_fails_beyond_its_range_eithe
 
 
 def test_a_zeroed_campaign_is_refused_as_absolute_target():
-    laser = [_campaign("a", 0, 20.0, 4.0, datum="session"),
-             _campaign("b", 48, 23.0, 6.0, datum="session", seed=1, zeroed_at_start=True)]
+    laser = [
+        _campaign("a", 0, 20.0, 4.0, datum="session"),
+        _campaign("b", 48, 23.0, 6.0, datum="session", seed=1, zeroed_at_start=True),
+    ]
     data = comparison_data(laser, "Z/dz", ["T1", "T2"])
     with pytest.raises(ValidationError, match="zeroed campaign is not an absolute target"):
         compare_models(data, split="campaign")
@@ -145,8 +163,11 @@ def test_a_zeroed_campaign_is_refused_as_absolute_target():
     assert all("datum[b]" in d.inputs for d in res.directions)
     assert all(d.regression_test < 0.002 for d in res.directions)
     # an absolute campaign pair beside a zeroed one: the zeroed readings are excluded and listed
-    mixed = [_campaign("a", 0, 20.0, 4.0, datum="absolute"), _campaign("z", 24, 21.0, 4.0, datum="session", seed=2),
-             _campaign("b", 48, 23.0, 6.0, datum="absolute", seed=1)]
+    mixed = [
+        _campaign("a", 0, 20.0, 4.0, datum="absolute"),
+        _campaign("z", 24, 21.0, 4.0, datum="session", seed=2),
+        _campaign("b", 48, 23.0, 6.0, datum="absolute", seed=1),
+    ]
     res = compare_models(comparison_data(mixed, "Z/dz", ["T1", "T2"]), hidden=(8, 4), max_iter=100)
     assert res.split == "campaign" and list(res.excluded) == ["z/z-pos#0"]
     assert all(d.n_test == 289 * 3 for d in res.directions)  # a whole absolute campaign, never the zeroed one
@@ -160,7 +181,9 @@ def test_the_target_is_a_parameter_never_chosen_from_results():
         c.errors = pd.concat([c.errors, extra], ignore_index=True)
     [res] = neural_comparisons(camps, ["Z/dz"], ["T1", "T2"], hidden=(4,), max_iter=30)
     assert res.target == "Z/dz" and res.split == "time"
-    assert [r.target for r in neural_comparisons(camps, ["all"], ["T1", "T2"], hidden=(4,), max_iter=30)] == \
-        ["Z/dx", "Z/dz"]
+    assert [r.target for r in neural_comparisons(camps, ["all"], ["T1", "T2"], hidden=(4,), max_iter=30)] == [
+        "Z/dx",
+        "Z/dz",
+    ]
     [bad] = neural_comparisons(camps, ["Q/dz"], ["T1"], hidden=(4,), max_iter=30)
     assert bad.status == "refused" and "AXIS/term" in bad.note

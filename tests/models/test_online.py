@@ -66,8 +66,20 @@ def _probe_from_campaign(sim, positions=(0.0, 254.0)):
     t = wide["time_s"].to_numpy()
     temps = sim.temperatures
     cols = {c: np.interp(t, temps.time_s, temps[c]) for c in temps.columns if c != "time_s"}
-    return pd.DataFrame({"time_s": t, "x": wide["position"], "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0,
-                         "dx": wide["dx"], "dy": wide["dy"], "dz": wide["dz"], **cols})
+    return pd.DataFrame(
+        {
+            "time_s": t,
+            "x": wide["position"],
+            "y": 0.0,
+            "z": 0.0,
+            "a": 0.0,
+            "b": 0.0,
+            "dx": wide["dx"],
+            "dy": wide["dy"],
+            "dz": wide["dz"],
+            **cols,
+        }
+    )
 
 
 def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, capsys):
@@ -82,12 +94,19 @@ def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, c
 
     clean = simulate_campaign(Scenario(name="clean", hours=12, seed=7))
     rate = 0.01  # mm/day of wear on X (ch. 6.4.3)
-    worn = simulate_campaign(Scenario(name="worn", hours=36, seed=8, hidden=[
-        HiddenEffect(kind="drift", axis="X", term="dx", params={"rate_per_day": rate})]))
+    worn = simulate_campaign(
+        Scenario(
+            name="worn",
+            hours=36,
+            seed=8,
+            hidden=[HiddenEffect(kind="drift", axis="X", term="dx", params={"rate_per_day": rate})],
+        )
+    )
     url = f"sqlite:///{tmp_path / 'online.sqlite'}"
     store = connect(url)
-    cid = store.import_bundle(Bundle("clean", CampaignMeta.model_validate(clean.meta), clean.temperatures,
-                                     clean.conditions, clean.errors))
+    cid = store.import_bundle(
+        Bundle("clean", CampaignMeta.model_validate(clean.meta), clean.temperatures, clean.conditions, clean.errors)
+    )
     _, doc = fit_campaigns(store, [cid], FitOptions(network=False, virtual_sensors=False))
     probe = _probe_from_campaign(worn)
     report, pred = online_update_document(doc, probe, lam=0.98)
@@ -105,7 +124,7 @@ def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, c
     probe.iloc[: len(probe) // 2].to_csv(path, index=False)
     assert main(["online", "--machine", doc.machine, "--probe", str(path), "--db", url, "--json"]) == 0
     first = json.loads(capsys.readouterr().out)
-    probe.iloc[len(probe) // 2:].to_csv(path, index=False)
+    probe.iloc[len(probe) // 2 :].to_csv(path, index=False)
     assert main(["online", "--machine", doc.machine, "--probe", str(path), "--db", url, "--json"]) == 0
     second = json.loads(capsys.readouterr().out)
     assert second["states"]["dx"]["n_updates"] == first["states"]["dx"]["n_updates"] + second["n"]
@@ -142,8 +161,23 @@ def test_two_concurrent_updates_both_land(store_url):
     def worker(k: int) -> None:
         try:
             with connect(store_url) as s:
-                probe = pd.DataFrame([{"time_s": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0,
-                                       "dx": 0.001 * (k + 1), "dy": 0.0, "dz": 0.0, "T1": 21.0, "T2": 22.0}])
+                probe = pd.DataFrame(
+                    [
+                        {
+                            "time_s": 0.0,
+                            "x": 0.0,
+                            "y": 0.0,
+                            "z": 0.0,
+                            "a": 0.0,
+                            "b": 0.0,
+                            "dx": 0.001 * (k + 1),
+                            "dy": 0.0,
+                            "dz": 0.0,
+                            "T1": 21.0,
+                            "T2": 22.0,
+                        }
+                    ]
+                )
                 read = s.online_state
                 first = [True]
 
@@ -176,10 +210,29 @@ def test_two_concurrent_updates_both_land(store_url):
         from driftlab.campaigns.store import StaleOnlineState
 
         with pytest.raises(StaleOnlineState):
-            store.save_online_state(MACHINE, 1, model_version_id=None, model_version=doc.version, lam=0.98,
-                                    n_updates=9, theta=row.theta, p=row.p,
-                                    probes=[{"measured_at": t0 + timedelta(hours=5), "x": 0, "y": 0, "z": 0,
-                                             "a_deg": 0, "b_deg": 0, "dx": 0, "dy": 0, "dz": 0}])
+            store.save_online_state(
+                MACHINE,
+                1,
+                model_version_id=None,
+                model_version=doc.version,
+                lam=0.98,
+                n_updates=9,
+                theta=row.theta,
+                p=row.p,
+                probes=[
+                    {
+                        "measured_at": t0 + timedelta(hours=5),
+                        "x": 0,
+                        "y": 0,
+                        "z": 0,
+                        "a_deg": 0,
+                        "b_deg": 0,
+                        "dx": 0,
+                        "dy": 0,
+                        "dz": 0,
+                    }
+                ],
+            )
         assert store.table_counts()["probe_measurements"] == 2
 
 
@@ -203,8 +256,23 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
         job = store.record_job(ONLINE_JOB, {}, machine_id=MACHINE)
         store.start_job(job, "w")
         store.finish_job(job, {"model_version": doc.version, "states": old})
-        probe = pd.DataFrame([{"time_s": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0, "dx": 0.0, "dy": 0.0,
-                               "dz": 0.0, "T1": 21.0, "T2": 22.0}])
+        probe = pd.DataFrame(
+            [
+                {
+                    "time_s": 0.0,
+                    "x": 0.0,
+                    "y": 0.0,
+                    "z": 0.0,
+                    "a": 0.0,
+                    "b": 0.0,
+                    "dx": 0.0,
+                    "dy": 0.0,
+                    "dz": 0.0,
+                    "T1": 21.0,
+                    "T2": 22.0,
+                }
+            ]
+        )
         rep = online_update(store, MACHINE, probe, start=datetime(2026, 3, 3, tzinfo=UTC))
         assert rep.states["dx"].n_updates == 8 and rep.states["dx"].lam == 0.95
         assert store.online_state(MACHINE).n_updates == 8

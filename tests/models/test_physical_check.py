@@ -31,10 +31,26 @@ ROOT = Path(__file__).resolve().parents[2]
 ALPHA_C = 12.1e-6  # ch. 3.5: "a typical value for alpha_c is 12.1e-6 /degC"
 THESIS = dict(truth.STATED_GEOMETRY)
 
-STRUCTURES = {"T32": "spindle_arm", "T33": "spindle_arm", "T34": "spindle_arm", "T35": "spindle_arm",
-              "T9": "x_screw", "T10": "x_motor", "T24": "z_column", "T26": "z_column", "T49": "room", "T50": "room"}
-LOCATIONS = {"T32": "spindle arm lower front", "T33": "spindle arm upper back", "T34": "spindle arm upper front",
-             "T35": "spindle arm lower back", "T24": "Z column upper front", "T26": "Z column lower back"}
+STRUCTURES = {
+    "T32": "spindle_arm",
+    "T33": "spindle_arm",
+    "T34": "spindle_arm",
+    "T35": "spindle_arm",
+    "T9": "x_screw",
+    "T10": "x_motor",
+    "T24": "z_column",
+    "T26": "z_column",
+    "T49": "room",
+    "T50": "room",
+}
+LOCATIONS = {
+    "T32": "spindle arm lower front",
+    "T33": "spindle arm upper back",
+    "T34": "spindle arm upper front",
+    "T35": "spindle arm lower back",
+    "T24": "Z column upper front",
+    "T26": "Z column lower back",
+}
 ARM_UL = Feature("gradient", ("T33", "T34", "T32", "T35"), power=2, label="spindle_arm upper-lower")
 ARM_FB = Feature("gradient", ("T32", "T34", "T33", "T35"), power=2, label="spindle_arm front-back")
 
@@ -54,8 +70,13 @@ def _models():
     return {
         ("T1", "alpha"): _model("T1", "alpha", (ARM_UL, 2.3e-5), (ARM_FB, 4e-6)),
         ("T1", "dz"): _model("T1", "dz", (ARM_UL, 0.0045)),
-        ("phi_x", "dx"): _model("phi_x", "dx", (Feature("dT", ("T9",)), 0.0011), (Feature("dT", ("T10",)), 0.0007),
-                                (Feature("pos_dT", ("T9",), label="X"), 1.25e-5)),
+        ("phi_x", "dx"): _model(
+            "phi_x",
+            "dx",
+            (Feature("dT", ("T9",)), 0.0011),
+            (Feature("dT", ("T10",)), 0.0007),
+            (Feature("pos_dT", ("T9",), label="X"), 1.25e-5),
+        ),
         # eq. 3.2 acts along the screw: the X screw's temperature in a straightness term is no ballscrew growth
         ("phi_x", "dy"): _model("phi_x", "dy", (Feature("dT", ("T9",)), 0.0004)),
         ("T2", "dz"): _model("T2", "dz", (Feature("mean", ("T24", "T26"), label="z_column"), 0.0140)),
@@ -73,8 +94,11 @@ def test_with_the_thesis_geometry_every_ratio_is_the_hand_calculation():
     assert check.status == STATUS_COMPARED
     rows = _by_term(check.table)
     assert set(rows) == {
-        "T1.alpha grad[spindle_arm upper-lower]", "T1.dz grad[spindle_arm upper-lower]",
-        "phi_x.dx dT[T9]+dT[T10]", "phi_x.dx pos[X]*dT[T9]", "T2.dz mean[z_column]",
+        "T1.alpha grad[spindle_arm upper-lower]",
+        "T1.dz grad[spindle_arm upper-lower]",
+        "phi_x.dx dT[T9]+dT[T10]",
+        "phi_x.dx pos[X]*dT[T9]",
+        "T2.dz mean[z_column]",
     }
     # eq. 3.4: d(theta)/dT = alpha_c L / H = 12.1e-6 * 400 / 200 = 2.42e-5 rad/degC (0.0014 deg/degC, table 6.3)
     r = rows["T1.alpha grad[spindle_arm upper-lower]"]
@@ -99,9 +123,12 @@ def test_with_the_thesis_geometry_every_ratio_is_the_hand_calculation():
 
 def test_the_thesis_worked_example_of_ch_3_5_on_a_machine_with_other_lengths():
     """Ch. 3.5: a 1 degC gradient across 0.5 m over a 1 m length gives 0.0014 deg and 12.1 um."""
-    other = {**THESIS, "bending": {"spindle_arm": {"length_mm": 1000.0, "height_mm": 500.0, "angle": "alpha",
-                                                   "deflection": "dz"}},
-             "screw_fixed_mm": {"X": 300.0}, "links_mm": {"column": [0.0, 400.0, 800.0]}}
+    other = {
+        **THESIS,
+        "bending": {"spindle_arm": {"length_mm": 1000.0, "height_mm": 500.0, "angle": "alpha", "deflection": "dz"}},
+        "screw_fixed_mm": {"X": 300.0},
+        "links_mm": {"column": [0.0, 400.0, 800.0]},
+    }
     mine = _by_term(physical_check(_models(), STRUCTURES, geometry=THESIS, locations=LOCATIONS).table)
     theirs = _by_term(physical_check(_models(), STRUCTURES, geometry=other, locations=LOCATIONS).table)
     assert set(mine) == set(theirs)
@@ -114,8 +141,9 @@ def test_the_thesis_worked_example_of_ch_3_5_on_a_machine_with_other_lengths():
     for term in set(mine) - {"phi_x.dx pos[X]*dT[T9]", "T1.alpha grad[spindle_arm upper-lower]"}:
         assert theirs[term]["physical"] != pytest.approx(mine[term]["physical"], rel=0.05), term
         assert theirs[term]["regression"] == mine[term]["regression"]
-    assert theirs["T1.alpha grad[spindle_arm upper-lower]"]["physical"] == \
-        pytest.approx(mine["T1.alpha grad[spindle_arm upper-lower]"]["physical"])
+    assert theirs["T1.alpha grad[spindle_arm upper-lower]"]["physical"] == pytest.approx(
+        mine["T1.alpha grad[spindle_arm upper-lower]"]["physical"]
+    )
     stubby = {"bending": {"spindle_arm": {"length_mm": 400.0, "height_mm": 100.0, "angle": "alpha"}}}
     t = _by_term(physical_check(_models(), STRUCTURES, geometry=stubby, locations=LOCATIONS).table)
     assert t["T1.alpha grad[spindle_arm upper-lower]"]["physical"] == pytest.approx(ALPHA_C * 4)  # eq. 3.4, L/H = 4
@@ -126,10 +154,14 @@ def test_without_a_stated_geometry_the_check_says_so_and_compares_nothing():
     class B:
         def __init__(self, name, geometry=None):
             self.name = name
-            self.meta = CampaignMeta.model_validate({
-                "format": "driftlab-bundle/1",
-                "machine": {"id": "mill-7", **({"geometry": geometry} if geometry else {})},
-                "started_at": "2026-03-02T08:00:00Z", "channels": {"T9": {}}})
+            self.meta = CampaignMeta.model_validate(
+                {
+                    "format": "driftlab-bundle/1",
+                    "machine": {"id": "mill-7", **({"geometry": geometry} if geometry else {})},
+                    "started_at": "2026-03-02T08:00:00Z",
+                    "channels": {"T9": {}},
+                }
+            )
 
     check = physical_check(_models(), STRUCTURES, [B("a"), B("b")], locations=LOCATIONS)
     assert check.status == STATUS_NO_GEOMETRY == "no geometry"
@@ -195,8 +227,17 @@ def test_geometry_round_trips_through_the_store(tmp_path):
     store.close()
 
 
-@pytest.mark.parametrize("path", ["scenarios/thesis.yaml", "scenarios/demo-full.yaml", "scenarios/reference.yaml",
-                                  "scenarios/clean.yaml", "plans/thesis-full.yaml", "plans/demo-full.yaml"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "scenarios/thesis.yaml",
+        "scenarios/demo-full.yaml",
+        "scenarios/reference.yaml",
+        "scenarios/clean.yaml",
+        "plans/thesis-full.yaml",
+        "plans/demo-full.yaml",
+    ],
+)
 def test_the_shipped_thesis_machine_states_the_virtual_machines_geometry(path):
     """The demo and the thesis comparisons show table 6.3: their scenarios and plans state the lengths."""
     doc = yaml.safe_load((ROOT / "examples" / path).read_text())
@@ -217,5 +258,9 @@ def test_plan_and_scenario_stating_different_geometries_are_refused(tmp_path):
     p = tmp_path / "plan.yaml"
     p.write_text(yaml.safe_dump(doc))
     with pytest.raises(ValidationError, match="different geometries"):
-        run_daemon(load_plan(p), db_url=f"sqlite:///{tmp_path / 'd.sqlite'}",
-                   scenario_path=ROOT / "examples" / "scenarios" / "thesis.yaml", speed=math.inf)
+        run_daemon(
+            load_plan(p),
+            db_url=f"sqlite:///{tmp_path / 'd.sqlite'}",
+            scenario_path=ROOT / "examples" / "scenarios" / "thesis.yaml",
+            speed=math.inf,
+        )

@@ -84,8 +84,11 @@ def _vm(hours=48.0, seed=1):
     from driftlab.daq.sim.campaign import simulate_campaign
     from driftlab.daq.sim.scenario import Scenario
 
-    return simulate_campaign(Scenario(name="vm-screen", hours=hours, seed=seed, scan_interval_s=120,
-                                      sweep_interval_s=1200, points_per_axis=6))
+    return simulate_campaign(
+        Scenario(
+            name="vm-screen", hours=hours, seed=seed, scan_interval_s=120, sweep_interval_s=1200, points_per_axis=6
+        )
+    )
 
 
 def test_errors_choose_the_truth_channels_on_the_virtual_machine():

@@ -137,8 +137,9 @@ def test_gain_and_tau_scale_for_calibration():
 def test_contract_signature_with_dims():
     q = np.zeros((1, 5))
     np.testing.assert_allclose(sim.appendix_a_errors(0.0, q, kin.TABLE_A1)["T1"], sim.appendix_a_errors(0.0, q)["T1"])
-    np.testing.assert_allclose(sim.appendix_a_errors(0.0, q, dims=kin.TABLE_A1)["T2"],
-                               sim.appendix_a_errors(0.0, q)["T2"])
+    np.testing.assert_allclose(
+        sim.appendix_a_errors(0.0, q, dims=kin.TABLE_A1)["T2"], sim.appendix_a_errors(0.0, q)["T2"]
+    )
 
 
 def test_compensation_of_the_appendix_a_errors_themselves():

@@ -41,8 +41,9 @@ def _with_ar1(bundle: Bundle, rho: float, sigma: float, seed: int) -> Bundle:
         for i in range(1, len(rows)):
             e[i] = rho * e[i - 1] + shocks[i]
         err.loc[rows, "value"] = err.loc[rows, "value"].to_numpy(float) + e
-    return Bundle(name=bundle.name, meta=bundle.meta, temperatures=bundle.temperatures,
-                  conditions=bundle.conditions, errors=err)
+    return Bundle(
+        name=bundle.name, meta=bundle.meta, temperatures=bundle.temperatures, conditions=bundle.conditions, errors=err
+    )
 
 
 def _standard_bundle(seed: int) -> Bundle:
@@ -103,8 +104,9 @@ def test_the_compensator_reads_the_line_corrections(tmp_path: Path) -> None:
     temps = bundle.temperatures.set_index("time_s")
     t = err["time_s"].to_numpy(float)
     # readings at the error times, as the fit interpolates them
-    at = pd.DataFrame({c: np.interp(t, temps.index.to_numpy(float), temps[c].to_numpy(float))
-                       for c in doc.inputs}).assign(time_s=t)
+    at = pd.DataFrame(
+        {c: np.interp(t, temps.index.to_numpy(float), temps[c].to_numpy(float)) for c in doc.inputs}
+    ).assign(time_s=t)
     q = np.zeros((len(err), 5))
     q[:, 0] = err["position"].to_numpy(float)
     pred = predict_workspace_errors(doc, at, q, err["direction"].to_numpy(float))[:, 5]

@@ -80,8 +80,12 @@ def test_virtual_machine_detached_thermocouple_is_replaced():
     from driftlab.daq.sim.sites import CHANNELS
 
     t0 = 9 * 3600.0
-    sc = Scenario(name="fault", hours=14, seed=5, hidden=[
-        HiddenEffect(kind="sensor_fault", channels=["T34"], params={"start_s": t0, "mode": "detached"})])
+    sc = Scenario(
+        name="fault",
+        hours=14,
+        seed=5,
+        hidden=[HiddenEffect(kind="sensor_fault", channels=["T34"], params={"start_s": t0, "mode": "detached"})],
+    )
     sim = simulate_campaign(sc)
     temps = sim.temperatures
     chans = ["T24", "T26", "T30", "T32", "T34", "T35", "T37", "T49", "T50"]

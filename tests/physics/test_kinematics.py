@@ -180,8 +180,9 @@ def test_allocation_round_trip_recovers_planted_error(element):
     known = {e: v for e, v in errs.items() if e != element}
     np.testing.assert_allclose(k.allocate(W, q, known, element), errs[element], rtol=0, atol=1e-10)
     # its own entry is the unknown: ignored
-    np.testing.assert_allclose(k.allocate(W, q, errs | {element: 0 * errs[element]}, element), errs[element],
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        k.allocate(W, q, errs | {element: 0 * errs[element]}, element), errs[element], atol=1e-10
+    )
     # from the six measured parameters, when that element carries all the error
     w6 = k.workspace_error(q, {element: errs[element]})
     np.testing.assert_allclose(k.allocate(w6, q, None, element), errs[element], rtol=0, atol=1e-10)

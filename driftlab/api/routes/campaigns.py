@@ -26,26 +26,24 @@ CampaignId = Annotated[int, Path(ge=1, le=MAX_ID, description="campaign id")]
 
 
 def _stage(s: object) -> StageOut:
-    """Return the response model of a stage row."""
-    return StageOut(ordinal=s.ordinal, name=s.name, heat_source=s.heat_source, axis=s.axis,  # type: ignore[attr-defined]
-                    spindle_rpm=s.spindle_rpm, feed_mm_min=s.feed_mm_min, start_s=s.start_s,  # type: ignore[attr-defined]
-                    end_s=s.end_s, status=s.status)  # type: ignore[attr-defined]
+    """Return the response model of a stage row (read by attribute)."""
+    return StageOut.model_validate(s, from_attributes=True)
 
 
 def _channel(c: object) -> ChannelOut:
-    """Return the response model of a channel row."""
-    return ChannelOut(ordinal=c.ordinal, name=c.name, location=c.location, structure=c.structure,  # type: ignore[attr-defined]
-                      is_room=bool(c.is_room), calibration_slope=c.calibration_slope,  # type: ignore[attr-defined]
-                      calibration_offset=c.calibration_offset)  # type: ignore[attr-defined]
+    """Return the response model of a channel row (read by attribute)."""
+    return ChannelOut.model_validate(c, from_attributes=True)
 
 
 @router.get("/campaigns", response_model=CampaignList, summary="List campaigns")
-def list_campaigns(store: Annotated[Store, Depends(get_store)],
-                   machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
-                   limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                   offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> CampaignList:
+def list_campaigns(
+    store: Annotated[Store, Depends(get_store)],
+    machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+) -> CampaignList:
     """Return a page of campaigns (optionally of one machine), oldest first, with their sizes."""
-    rows = store.list_campaigns(machine_id)[offset:offset + limit]
+    rows = store.list_campaigns(machine_id)[offset : offset + limit]
     return CampaignList(items=[CampaignOut(**r.__dict__) for r in rows], limit=limit, offset=offset)
 
 
@@ -56,8 +54,12 @@ def get_campaign(campaign_id: CampaignId, store: Annotated[Store, Depends(get_st
     summary = next((s for s in store.list_campaigns(row.machine_id) if s.id == campaign_id), None)
     if summary is None:  # deleted between the two reads
         raise NotFoundError(f"no campaign {campaign_id}")
-    return CampaignDetail(**summary.__dict__, stage_list=[_stage(s) for s in stages],
-                          channel_list=[_channel(c) for c in channels], meta=row.meta)
+    return CampaignDetail(
+        **summary.__dict__,
+        stage_list=[_stage(s) for s in stages],
+        channel_list=[_channel(c) for c in channels],
+        meta=row.meta,
+    )
 
 
 @router.get("/campaigns/{campaign_id}/stages", response_model=list[StageOut], summary="List a campaign's stages")
@@ -67,16 +69,24 @@ def get_stages(campaign_id: CampaignId, store: Annotated[Store, Depends(get_stor
     return [_stage(s) for s in stages]
 
 
-@router.get("/campaigns/{campaign_id}/channels", response_model=list[ChannelOut],
-            summary="List a campaign's thermocouple channels")
+@router.get(
+    "/campaigns/{campaign_id}/channels",
+    response_model=list[ChannelOut],
+    summary="List a campaign's thermocouple channels",
+)
 def get_channels(campaign_id: CampaignId, store: Annotated[Store, Depends(get_store)]) -> list[ChannelOut]:
     """Return the channels of a campaign in card order."""
     _, _, channels = api_queries.campaign_detail(store, campaign_id)
     return [_channel(c) for c in channels]
 
 
-@router.delete("/campaigns/{campaign_id}", status_code=204, response_class=Response,
-               dependencies=[Depends(require_token)], summary="Delete a campaign and all its samples")
+@router.delete(
+    "/campaigns/{campaign_id}",
+    status_code=204,
+    response_class=Response,
+    dependencies=[Depends(require_token)],
+    summary="Delete a campaign and all its samples",
+)
 def delete_campaign(campaign_id: CampaignId, store: Annotated[Store, Depends(get_store)]) -> Response:
     """Delete a campaign with its samples, stages and channels in one transaction."""
     store.delete_campaign(campaign_id)

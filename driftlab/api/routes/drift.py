@@ -43,9 +43,24 @@ def drift(
     start, end = _aware(start), _aware(end)
     frame = store.drift(machine_id, axis, term, position, direction, start, end, interpolate)
     points = [
-        DriftPoint(campaign_id=int(r.campaign_id), time=r.time.to_pydatetime(), time_s=float(r.time_s),
-                   position=float(r.position), direction=int(r.direction), sweep=int(r.sweep), value=float(r.value))
-        for r in frame.itertuples(index=False) if math.isfinite(r.value) and math.isfinite(r.time_s)
+        DriftPoint(
+            campaign_id=int(r.campaign_id),
+            time=r.time.to_pydatetime(),
+            time_s=float(r.time_s),
+            position=float(r.position),
+            direction=int(r.direction),
+            sweep=int(r.sweep),
+            value=float(r.value),
+        )
+        for r in frame.itertuples(index=False)
+        if math.isfinite(r.value) and math.isfinite(r.time_s)
     ]
-    return DriftOut(machine_id=machine_id, axis=axis, term=term, position=position, direction=direction,
-                    interpolate=interpolate, points=points)
+    return DriftOut(
+        machine_id=machine_id,
+        axis=axis,
+        term=term,
+        position=position,
+        direction=direction,
+        interpolate=interpolate,
+        points=points,
+    )

@@ -86,22 +86,39 @@ def _paging(cursor: str | None, offset: int) -> None:
         raise BadRequestError("give either offset or cursor, not both")
 
 
-@router.get("/campaigns/{campaign_id}/temperatures/{channel}", response_model=TemperatureHistory,
-            response_model_exclude_unset=True, summary="Temperature history of a channel")
+@router.get(
+    "/campaigns/{campaign_id}/temperatures/{channel}",
+    response_model=TemperatureHistory,
+    response_model_exclude_unset=True,
+    summary="Temperature history of a channel",
+)
 def temperatures(
     campaign_id: CampaignId,
     channel: Annotated[str, Path(pattern=ID_PATTERN, description="channel name, e.g. T9")],
     store: Annotated[Store, Depends(get_store)],
-    start_s: StartS = None, end_s: EndS = None, buckets: Buckets = None,
-    limit: Limit = 1000, offset: Offset = 0, cursor: Cursor = None,
+    start_s: StartS = None,
+    end_s: EndS = None,
+    buckets: Buckets = None,
+    limit: Limit = 1000,
+    offset: Offset = 0,
+    cursor: Cursor = None,
 ) -> TemperatureHistory:
     """Return a channel's readings in a time range (paged), or min/mean/max per time bucket."""
     _range(start_s, end_s)
     _paging(cursor, offset)
     if buckets:
         frame = store.temperature_history(campaign_id, channel, start_s, end_s, buckets)
-        out = [Bucket(time_s=r.time_s, t_end_s=r.t_end_s, n=int(r.n), min=finite_or_none(r.value_min), mean=finite_or_none(r.value_mean),
-                      max=finite_or_none(r.value_max)) for r in frame.itertuples(index=False)]
+        out = [
+            Bucket(
+                time_s=r.time_s,
+                t_end_s=r.t_end_s,
+                n=int(r.n),
+                min=finite_or_none(r.value_min),
+                mean=finite_or_none(r.value_mean),
+                max=finite_or_none(r.value_max),
+            )
+            for r in frame.itertuples(index=False)
+        ]
         return TemperatureHistory(campaign_id=campaign_id, channel=channel, buckets=out)
     after = decode_cursor(cursor, "temperature")
     rows = api_queries.temperature_page(store, campaign_id, channel, start_s, end_s, after, offset, limit)
@@ -110,14 +127,22 @@ def temperatures(
     return TemperatureHistory(campaign_id=campaign_id, channel=channel, points=points, next_cursor=nxt)
 
 
-@router.get("/campaigns/{campaign_id}/conditions", response_model=ConditionHistory,
-            response_model_exclude_unset=True, summary="Machine-state history")
+@router.get(
+    "/campaigns/{campaign_id}/conditions",
+    response_model=ConditionHistory,
+    response_model_exclude_unset=True,
+    summary="Machine-state history",
+)
 def conditions(
     campaign_id: CampaignId,
     store: Annotated[Store, Depends(get_store)],
     column: Annotated[list[Condition] | None, Query(max_length=7, description="columns (default all seven)")] = None,
-    start_s: StartS = None, end_s: EndS = None, buckets: Buckets = None,
-    limit: Limit = 1000, offset: Offset = 0, cursor: Cursor = None,
+    start_s: StartS = None,
+    end_s: EndS = None,
+    buckets: Buckets = None,
+    limit: Limit = 1000,
+    offset: Offset = 0,
+    cursor: Cursor = None,
 ) -> ConditionHistory:
     """Return spindle, feed and axis positions over a time range (paged), or min/mean/max per bucket."""
     _range(start_s, end_s)
@@ -127,8 +152,17 @@ def conditions(
         frame = store.condition_history(campaign_id, cols, start_s, end_s, buckets)
         out = []
         for r in frame.to_dict("records"):
-            values = {c: Bucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), min=finite_or_none(r[f"{c}_min"]),
-                                mean=finite_or_none(r[f"{c}_mean"]), max=finite_or_none(r[f"{c}_max"])) for c in cols}
+            values = {
+                c: Bucket(
+                    time_s=r["time_s"],
+                    t_end_s=r["t_end_s"],
+                    n=int(r["n"]),
+                    min=finite_or_none(r[f"{c}_min"]),
+                    mean=finite_or_none(r[f"{c}_mean"]),
+                    max=finite_or_none(r[f"{c}_max"]),
+                )
+                for c in cols
+            }
             out.append(ConditionBucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), values=values))
         return ConditionHistory(campaign_id=campaign_id, columns=cols, buckets=out)
     after = decode_cursor(cursor, "condition")
@@ -138,15 +172,23 @@ def conditions(
     return ConditionHistory(campaign_id=campaign_id, columns=cols, points=points, next_cursor=nxt)
 
 
-@router.get("/campaigns/{campaign_id}/errors", response_model=ErrorHistory, response_model_exclude_unset=True,
-            summary="Measured error samples of a campaign")
+@router.get(
+    "/campaigns/{campaign_id}/errors",
+    response_model=ErrorHistory,
+    response_model_exclude_unset=True,
+    summary="Measured error samples of a campaign",
+)
 def errors(
     campaign_id: CampaignId,
     store: Annotated[Store, Depends(get_store)],
-    axis: Axis | None = None, term: Term | None = None,
+    axis: Axis | None = None,
+    term: Term | None = None,
     direction: Annotated[int | None, Query(ge=-1, le=1, description="+1 or -1")] = None,
-    start_s: StartS = None, end_s: EndS = None,
-    limit: Limit = 1000, offset: Offset = 0, cursor: Cursor = None,
+    start_s: StartS = None,
+    end_s: EndS = None,
+    limit: Limit = 1000,
+    offset: Offset = 0,
+    cursor: Cursor = None,
 ) -> ErrorHistory:
     """Return a page of error samples in measurement order, filtered by axis, term, direction and time."""
     _range(start_s, end_s)
@@ -155,20 +197,39 @@ def errors(
         raise BadRequestError("direction must be +1 or -1")
     after = decode_cursor(cursor, "error")
     rows = api_queries.error_page(store, campaign_id, axis, term, direction, start_s, end_s, after, offset, limit)
-    items = [ErrorSampleOut(seq=r.seq, time_s=r.time_s, axis=r.axis, term=r.term, position=r.position,
-                            direction=r.direction, sweep=r.sweep, flags=r.flags, value=r.value) for r in rows]
+    items = [
+        ErrorSampleOut(
+            seq=r.seq,
+            time_s=r.time_s,
+            axis=r.axis,
+            term=r.term,
+            position=r.position,
+            direction=r.direction,
+            sweep=r.sweep,
+            flags=r.flags,
+            value=r.value,
+        )
+        for r in rows
+    ]
     nxt = encode_cursor("error", rows[-1].seq) if len(rows) == limit else None
     return ErrorHistory(campaign_id=campaign_id, items=items, next_cursor=nxt)
 
 
-@router.get("/machines/{machine_id}/temperatures/latest", response_model=LatestTemperatures,
-            summary="The machine's latest thermocouple scan")
+@router.get(
+    "/machines/{machine_id}/temperatures/latest",
+    response_model=LatestTemperatures,
+    summary="The machine's latest thermocouple scan",
+)
 def latest_temperatures(machine_id: MachineId, store: Annotated[Store, Depends(get_store)]) -> LatestTemperatures:
     """Return the last scan of the machine's latest campaign with readings (degC per channel)."""
     found = api_queries.latest_scan(store, machine_id)
     if found is None:
         raise NotFoundError(f"machine {machine_id!r} has no temperature readings")
     campaign_id, started, time_s, values = found
-    return LatestTemperatures(machine_id=machine_id, campaign_id=campaign_id, time_s=time_s,
-                              time=started + timedelta(seconds=time_s),
-                              temperatures={c: finite_or_none(v) for c, v in values.items()})
+    return LatestTemperatures(
+        machine_id=machine_id,
+        campaign_id=campaign_id,
+        time_s=time_s,
+        time=started + timedelta(seconds=time_s),
+        temperatures={c: finite_or_none(v) for c, v in values.items()},
+    )

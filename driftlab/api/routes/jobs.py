@@ -25,13 +25,29 @@ router = APIRouter(tags=["jobs"])
 
 def job_out(j: JobInfo) -> JobOut:
     """Return the response model of a job."""
-    return JobOut(id=j.id, kind=j.kind, state=j.state, params=dict(j.params or {}), result=strict_json(j.result),
-                  error=j.error, machine_id=j.machine_id, campaign_id=j.campaign_id, attempts=j.attempts,
-                  created_at=j.created_at, started_at=j.started_at, finished_at=j.finished_at)
+    return JobOut(
+        id=j.id,
+        kind=j.kind,
+        state=j.state,
+        params=dict(j.params or {}),
+        result=strict_json(j.result),
+        error=j.error,
+        machine_id=j.machine_id,
+        campaign_id=j.campaign_id,
+        attempts=j.attempts,
+        created_at=j.created_at,
+        started_at=j.started_at,
+        finished_at=j.finished_at,
+    )
 
 
-@router.post("/jobs", response_model=JobOut, status_code=202, dependencies=[Depends(require_token)],
-             summary="Submit a fit or a diagnosis")
+@router.post(
+    "/jobs",
+    response_model=JobOut,
+    status_code=202,
+    dependencies=[Depends(require_token)],
+    summary="Submit a fit or a diagnosis",
+)
 def submit(body: JobSubmit, state: Annotated[ApiState, Depends(get_state)], response: Response) -> JobOut:
     """Queue a job after checking its machine and campaigns; poll GET /jobs/{id} for its state."""
     ids = list(dict.fromkeys(body.campaign_ids))
@@ -54,11 +70,14 @@ def submit(body: JobSubmit, state: Annotated[ApiState, Depends(get_state)], resp
 
 
 @router.get("/jobs", response_model=JobList, summary="List jobs")
-def list_jobs(store: Annotated[Store, Depends(get_store)],
-              state: JobState | None = None, kind: JobKind | None = None,
-              machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
-              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-              offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> JobList:
+def list_jobs(
+    store: Annotated[Store, Depends(get_store)],
+    state: JobState | None = None,
+    kind: JobKind | None = None,
+    machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+) -> JobList:
     """Return a page of fit and diagnosis jobs, newest first."""
     rows = api_queries.list_jobs(store, state, kind, machine_id, limit, offset, kinds=KINDS)
     return JobList(items=[job_out(r) for r in rows], limit=limit, offset=offset)

@@ -18,17 +18,27 @@ MachineId = Annotated[str, Path(pattern=ID_PATTERN, description="machine id (the
 
 def _out(m: api_queries.MachineInfo) -> MachineOut:
     """Return the response model of a machine."""
-    return MachineOut(id=m.id, name=m.name, resolution_mm=m.resolution_mm, resolution_deg=m.resolution_deg,
-                      created_at=m.created_at, campaigns=m.campaigns, current_model_version=m.current_model_version)
+    return MachineOut(
+        id=m.id,
+        name=m.name,
+        resolution_mm=m.resolution_mm,
+        resolution_deg=m.resolution_deg,
+        created_at=m.created_at,
+        campaigns=m.campaigns,
+        current_model_version=m.current_model_version,
+    )
 
 
 @router.get("/machines", response_model=MachineList, summary="List machines")
-def list_machines(store: Annotated[Store, Depends(get_store)],
-                  limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                  offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> MachineList:
+def list_machines(
+    store: Annotated[Store, Depends(get_store)],
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+) -> MachineList:
     """Return a page of machines ordered by id."""
-    return MachineList(items=[_out(m) for m in api_queries.list_machines(store, limit, offset)],
-                       limit=limit, offset=offset)
+    return MachineList(
+        items=[_out(m) for m in api_queries.list_machines(store, limit, offset)], limit=limit, offset=offset
+    )
 
 
 @router.get("/machines/{machine_id}", response_model=MachineOut, summary="Get a machine")

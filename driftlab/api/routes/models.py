@@ -74,8 +74,11 @@ class CurrentModelFastPath:
                         await send({"type": "http.response.start", "status": 304, "headers": headers})
                         await send({"type": "http.response.body", "body": b""})
                         return
-                    headers = [(b"content-length", str(len(entry.body)).encode()),
-                               (b"content-type", b"application/json"), *headers]
+                    headers = [
+                        (b"content-length", str(len(entry.body)).encode()),
+                        (b"content-type", b"application/json"),
+                        *headers,
+                    ]
                     await send({"type": "http.response.start", "status": 200, "headers": headers})
                     await send({"type": "http.response.body", "body": entry.body})
                     return
@@ -83,21 +86,26 @@ class CurrentModelFastPath:
 
 
 @router.get("/models", response_model=ModelList, summary="List model versions of every machine")
-def list_models(store: Annotated[Store, Depends(get_store)],
-                machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
-                status: ModelStatus | None = None,
-                limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> Any:
+def list_models(
+    store: Annotated[Store, Depends(get_store)],
+    machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
+    status: ModelStatus | None = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+) -> Any:
     """Return a page of model versions (without documents), by machine then version."""
     rows = api_queries.model_versions(store, machine_id, status, limit, offset)
     return {"items": [model_out(r, with_document=False) for r in rows], "limit": limit, "offset": offset}
 
 
 @router.get("/machines/{machine_id}/models", response_model=ModelList, summary="List a machine's model versions")
-def machine_models(machine_id: MachineId, store: Annotated[Store, Depends(get_store)],
-                   status: ModelStatus | None = None,
-                   limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                   offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> Any:
+def machine_models(
+    machine_id: MachineId,
+    store: Annotated[Store, Depends(get_store)],
+    status: ModelStatus | None = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+) -> Any:
     """Return a page of a machine's model versions, oldest first."""
     rows = api_queries.model_versions(store, machine_id, status, limit, offset)
     return {"items": [model_out(r, with_document=False) for r in rows], "limit": limit, "offset": offset}
@@ -129,20 +137,31 @@ async def current_model(
     return Response(entry.body, media_type="application/json", headers=headers)
 
 
-@router.get("/machines/{machine_id}/models/{version}", response_model=ModelVersionOut,
-            responses={200: {"headers": ETAG_HEADERS}}, summary="A given model version")
-def get_version(machine_id: MachineId, version: Version, store: Annotated[Store, Depends(get_store)],
-                response: Response) -> Any:
+@router.get(
+    "/machines/{machine_id}/models/{version}",
+    response_model=ModelVersionOut,
+    responses={200: {"headers": ETAG_HEADERS}},
+    summary="A given model version",
+)
+def get_version(
+    machine_id: MachineId, version: Version, store: Annotated[Store, Depends(get_store)], response: Response
+) -> Any:
     """Return one model version of a machine with its document."""
     row = api_queries.model_version(store, machine_id, version)
     response.headers["ETag"] = model_etag(row)
     return model_out(row)
 
 
-@router.post("/machines/{machine_id}/models", response_model=ModelVersionOut, status_code=201,
-             dependencies=[Depends(require_token)], summary="Register a new model version (made current)")
-def register(machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiState, Depends(get_state)],
-             response: Response) -> Any:
+@router.post(
+    "/machines/{machine_id}/models",
+    response_model=ModelVersionOut,
+    status_code=201,
+    dependencies=[Depends(require_token)],
+    summary="Register a new model version (made current)",
+)
+def register(
+    machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiState, Depends(get_state)], response: Response
+) -> Any:
     """Validate and store a model document as the machine's next version, current from now on."""
     from driftlab.jobs import registry as model_registry
     from driftlab.models import document as documents
@@ -159,8 +178,12 @@ def register(machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiS
     return model_out(row)
 
 
-@router.post("/machines/{machine_id}/models/{version}/promote", response_model=ModelVersionOut,
-             dependencies=[Depends(require_token)], summary="Make a version the current one")
+@router.post(
+    "/machines/{machine_id}/models/{version}/promote",
+    response_model=ModelVersionOut,
+    dependencies=[Depends(require_token)],
+    summary="Make a version the current one",
+)
 def promote(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
     """Make a version current (retiring the previous current one); compensators see a new ETag."""
     row = api_queries.promote_model(state.store, machine_id, version)
@@ -168,8 +191,12 @@ def promote(machine_id: MachineId, version: Version, state: Annotated[ApiState, 
     return model_out(row)
 
 
-@router.post("/machines/{machine_id}/models/{version}/retire", response_model=ModelVersionOut,
-             dependencies=[Depends(require_token)], summary="Retire a version")
+@router.post(
+    "/machines/{machine_id}/models/{version}/retire",
+    response_model=ModelVersionOut,
+    dependencies=[Depends(require_token)],
+    summary="Retire a version",
+)
 def retire(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
     """Retire a version; if it was current the machine has no current model until one is promoted."""
     row = api_queries.retire_model(state.store, machine_id, version)

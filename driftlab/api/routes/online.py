@@ -62,12 +62,22 @@ def _current(state: ApiState, machine_id: str) -> api_queries.ModelRow:
 def _out(machine_id: str, version: int, states: dict[str, online.RLSState], **extra: Any) -> OnlineOut:
     """Return the response model of an on-line state."""
     first = states[TERMS[0]]
-    return OnlineOut(machine_id=machine_id, model_version=version, forgetting=first.lam, n_updates=first.n_updates,
-                     theta={t: [float(x) for x in states[t].theta] for t in TERMS}, **extra)
+    return OnlineOut(
+        machine_id=machine_id,
+        model_version=version,
+        forgetting=first.lam,
+        n_updates=first.n_updates,
+        theta={t: [float(x) for x in states[t].theta] for t in TERMS},
+        **extra,
+    )
 
 
-@router.get("/machines/{machine_id}/online", response_model=OnlineOut, response_model_exclude_none=True,
-            summary="The machine's on-line (RLS) state")
+@router.get(
+    "/machines/{machine_id}/online",
+    response_model=OnlineOut,
+    response_model_exclude_none=True,
+    summary="The machine's on-line (RLS) state",
+)
 def get_online(machine_id: MachineId, state: Annotated[ApiState, Depends(get_state)]) -> OnlineOut:
     """Return the on-line state of the machine's current model version (404 before its first update)."""
     row = _current(state, machine_id)
@@ -77,8 +87,13 @@ def get_online(machine_id: MachineId, state: Annotated[ApiState, Depends(get_sta
     return _out(machine_id, row.version, states)
 
 
-@router.post("/machines/{machine_id}/online/probe", response_model=OnlineOut, response_model_exclude_none=True,
-             dependencies=[Depends(require_token)], summary="Post a probe measurement; returns the new correction")
+@router.post(
+    "/machines/{machine_id}/online/probe",
+    response_model=OnlineOut,
+    response_model_exclude_none=True,
+    dependencies=[Depends(require_token)],
+    summary="Post a probe measurement; returns the new correction",
+)
 def post_probe(machine_id: MachineId, body: ProbeIn, state: Annotated[ApiState, Depends(get_state)]) -> OnlineOut:
     """Update the machine's RLS state with one probe measurement and return the correction at that pose.
 
@@ -91,24 +106,55 @@ def post_probe(machine_id: MachineId, body: ProbeIn, state: Annotated[ApiState, 
     if clash:
         raise ValidationError(f"temperature channel name(s) {', '.join(clash)} clash with the probe columns")
     _current(state, machine_id)  # 404 for an unknown machine or one without a model
-    probe = pd.DataFrame([{"time_s": 0.0, "x": body.x, "y": body.y, "z": body.z, "a": body.a_deg, "b": body.b_deg,
-                           "dx": body.dx, "dy": body.dy, "dz": body.dz, **body.temperatures}])
-    done = online.store_update(state.store, machine_id, probe, [measured_at],
-                               None if body.forgetting is None else float(body.forgetting),
-                               [dict(body.temperatures)])
+    probe = pd.DataFrame(
+        [
+            {
+                "time_s": 0.0,
+                "x": body.x,
+                "y": body.y,
+                "z": body.z,
+                "a": body.a_deg,
+                "b": body.b_deg,
+                "dx": body.dx,
+                "dy": body.dy,
+                "dz": body.dz,
+                **body.temperatures,
+            }
+        ]
+    )
+    done = online.store_update(
+        state.store,
+        machine_id,
+        probe,
+        [measured_at],
+        None if body.forgetting is None else float(body.forgetting),
+        [dict(body.temperatures)],
+    )
     report = done.report
     residual = done.residual[0]
     measured = np.array([body.dx, body.dy, body.dz])
     offline = measured - residual
     on = np.array([float(report.states[t].theta @ np.ones(report.states[t].theta.size)) for t in TERMS])
     prior_error = residual - np.array([done.prior[t][0] for t in TERMS])
-    return _out(machine_id, int(report.model_version or 0), report.states, update_id=done.probe_ids[0],
-                offline_prediction=_vec(offline), prior_error=_vec(prior_error), online_prediction=_vec(on),
-                correction=_vec(-(offline + on)))
+    return _out(
+        machine_id,
+        int(report.model_version or 0),
+        report.states,
+        update_id=done.probe_ids[0],
+        offline_prediction=_vec(offline),
+        prior_error=_vec(prior_error),
+        online_prediction=_vec(on),
+        correction=_vec(-(offline + on)),
+    )
 
 
-@router.delete("/machines/{machine_id}/online", status_code=204, response_class=Response,
-               dependencies=[Depends(require_token)], summary="Start the on-line model afresh")
+@router.delete(
+    "/machines/{machine_id}/online",
+    status_code=204,
+    response_class=Response,
+    dependencies=[Depends(require_token)],
+    summary="Start the on-line model afresh",
+)
 def delete_online(machine_id: MachineId, state: Annotated[ApiState, Depends(get_state)]) -> Response:
     """Reset the machine's on-line (RLS) state, e.g. after maintenance: the next probe starts from the off-line model.
 

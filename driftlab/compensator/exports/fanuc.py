@@ -29,8 +29,14 @@ def _counts(values: np.ndarray, unit: float) -> np.ndarray:
     return np.rint(values / unit).astype(np.int64)
 
 
-def write(table: AxisTable, reference: float = 0.0, detection_unit: float = 0.0001, first_point: int | None = None,
-          axis_number: int | None = None, magnification: int = 1) -> Export:
+def write(
+    table: AxisTable,
+    reference: float = 0.0,
+    detection_unit: float = 0.0001,
+    first_point: int | None = None,
+    axis_number: int | None = None,
+    magnification: int = 1,
+) -> Export:
     """Return the parameter tape: the 36xx settings, No. 1850 and the pitch error data of both directions."""
     pos = table.positions
     k = "XYZAB".index(table.axis)
@@ -40,8 +46,10 @@ def write(table: AxisTable, reference: float = 0.0, detection_unit: float = 0.00
             raise ValidationError(f"fanuc: {pos.size} points per direction: at most 128 (use a coarser --step)")
     matches = np.flatnonzero(np.abs(pos - reference) < 1e-9 * max(1.0, abs(reference)))
     if matches.size == 0:
-        raise ValidationError(f"fanuc: the reference position {reference:g} is not a grid point "
-                              f"({pos[0]:g}..{pos[-1]:g} by {table.step:g})")
+        raise ValidationError(
+            f"fanuc: the reference position {reference:g} is not a grid point "
+            f"({pos[0]:g}..{pos[-1]:g} by {table.step:g})"
+        )
     ref = int(matches[0])
     unit = detection_unit * magnification
     m = pos.size
@@ -74,6 +82,9 @@ def write(table: AxisTable, reference: float = 0.0, detection_unit: float = 0.00
     lines += [f"N{10000 + first_point + i}P{int(v)}" for i, v in enumerate(blocks[0][1])]
     lines += [f"N{10000 + neg_first + i}P{int(v)}" for i, v in enumerate(blocks[1][1])]
     lines.append("%")
-    settings = {"detection_unit": detection_unit, "first_point_position": float(pos[0]),
-                **{f"No.{k}": v for k, v in params.items()}}
+    settings = {
+        "detection_unit": detection_unit,
+        "first_point_position": float(pos[0]),
+        **{f"No.{k}": v for k, v in params.items()},
+    }
     return Export("fanuc", "\n".join(lines) + "\n", settings)

@@ -50,8 +50,14 @@ class AxisTable:
         return float(self.positions[1] - self.positions[0])
 
 
-def axis_correction(model: ErrorModel, temperatures: Mapping[str, float], axis: str, positions: np.ndarray,
-                    direction: int, pose: tuple[float, ...] = (0.0,) * 5) -> np.ndarray:
+def axis_correction(
+    model: ErrorModel,
+    temperatures: Mapping[str, float],
+    axis: str,
+    positions: np.ndarray,
+    direction: int,
+    pose: tuple[float, ...] = (0.0,) * 5,
+) -> np.ndarray:
     """Return the model's correction (mm or deg) of ``axis`` at ``positions`` approached in ``direction`` (+1/-1)."""
     k = AXES.index(axis)
     p = np.asarray(positions, dtype=float)
@@ -84,8 +90,17 @@ def grid_positions(lo: float, hi: float, step: float, reference: float | None = 
     return np.round(first + step * np.arange(n), 9)
 
 
-def correction_table(model: ErrorModel, temperatures: Mapping[str, float], axis: str, lo: float, hi: float,
-                     step: float, *, pose: tuple[float, ...] = (0.0,) * 5, reference: float | None = None) -> AxisTable:
+def correction_table(
+    model: ErrorModel,
+    temperatures: Mapping[str, float],
+    axis: str,
+    lo: float,
+    hi: float,
+    step: float,
+    *,
+    pose: tuple[float, ...] = (0.0,) * 5,
+    reference: float | None = None,
+) -> AxisTable:
     """Return the model's correction of ``axis`` on a grid over [lo, hi] in both approach directions."""
     axis = axis.upper()
     if axis not in AXES:
@@ -104,6 +119,14 @@ def correction_table(model: ErrorModel, temperatures: Mapping[str, float], axis:
 
 def describe(table: AxisTable) -> dict[str, Any]:
     """Return a JSON-ready summary of a table (grid, largest corrections)."""
-    return {"axis": table.axis, "unit": table.unit, "points": int(table.positions.size), "step": table.step,
-            "from": float(table.positions[0]), "to": float(table.positions[-1]), "model": table.model,
-            "max_forward": float(np.abs(table.forward).max()), "max_reverse": float(np.abs(table.reverse).max())}
+    return {
+        "axis": table.axis,
+        "unit": table.unit,
+        "points": int(table.positions.size),
+        "step": table.step,
+        "from": float(table.positions[0]),
+        "to": float(table.positions[-1]),
+        "model": table.model,
+        "max_forward": float(np.abs(table.forward).max()),
+        "max_reverse": float(np.abs(table.reverse).max()),
+    }

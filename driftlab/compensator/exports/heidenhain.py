@@ -28,6 +28,5 @@ def write(table: AxisTable, name: str | None = None) -> Export:
     rows = [f"BEGIN {fname} {unit}", f"{'NR':<6}{ax:<14}D{ax}"]
     rows += [f"{i:<6}{p:<+14.4f}{v:+.6f}" for i, (p, v) in enumerate(zip(table.positions, mean))]
     rows.append("[END]")
-    settings = {f"CfgAxisComp/{ax}/backLash": round(backlash, 6),
-                "compensation assignment (*.CMA)": f"{ax}: {fname}"}
+    settings = {f"CfgAxisComp/{ax}/backLash": round(backlash, 6), "compensation assignment (*.CMA)": f"{ax}: {fname}"}
     return Export("heidenhain", "\n".join(rows) + "\n", settings)

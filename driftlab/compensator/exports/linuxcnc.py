@@ -18,9 +18,14 @@ DECIMALS = 7  # 0.1 nm (mm) / 1e-7 deg: far below any table's interpolation erro
 
 def write(table: AxisTable, joint: int | None = None) -> Export:
     """Return the COMP_FILE text (nominal, forward trim, reverse trim) and the INI settings."""
-    lines = [f"{p:.{DECIMALS}f} {f:.{DECIMALS}f} {r:.{DECIMALS}f}"
-             for p, f, r in zip(table.positions, table.forward, table.reverse)]
+    lines = [
+        f"{p:.{DECIMALS}f} {f:.{DECIMALS}f} {r:.{DECIMALS}f}"
+        for p, f, r in zip(table.positions, table.forward, table.reverse)
+    ]
     j = "XYZAB".index(table.axis) if joint is None else joint
-    settings = {f"[JOINT_{j}]COMP_FILE_TYPE": 1, f"[JOINT_{j}]COMP_FILE": "<this file>",
-                "comment": f"# driftlab thermal compensation of {table.axis}, model {table.model}"}
+    settings = {
+        f"[JOINT_{j}]COMP_FILE_TYPE": 1,
+        f"[JOINT_{j}]COMP_FILE": "<this file>",
+        "comment": f"# driftlab thermal compensation of {table.axis}, model {table.model}",
+    }
     return Export("linuxcnc", "\n".join(lines) + "\n", settings)

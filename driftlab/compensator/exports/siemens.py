@@ -38,19 +38,35 @@ def write(table: AxisTable, machine_axis: str | None = None, first_table: int = 
     mean = (table.forward + table.reverse) / 2.0
     lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
     modulo = 0
-    out = [f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}",
-           "; LEC: bidirectional mean; CEC: direction-dependent rest; values = axis error (-correction)"]
+    out = [
+        f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}",
+        "; LEC: bidirectional mean; CEC: direction-dependent rest; values = axis error (-correction)",
+    ]
     out += [f"$AA_ENC_COMP[0,{i},{ax}]={_num(-v)}" for i, v in enumerate(mean)]
-    out += [f"$AA_ENC_COMP_STEP[0,{ax}]={_num(step)}", f"$AA_ENC_COMP_MIN[0,{ax}]={_num(lo)}",
-            f"$AA_ENC_COMP_MAX[0,{ax}]={_num(hi)}", f"$AA_ENC_COMP_IS_MODULO[0,{ax}]={modulo}"]
+    out += [
+        f"$AA_ENC_COMP_STEP[0,{ax}]={_num(step)}",
+        f"$AA_ENC_COMP_MIN[0,{ax}]={_num(lo)}",
+        f"$AA_ENC_COMP_MAX[0,{ax}]={_num(hi)}",
+        f"$AA_ENC_COMP_IS_MODULO[0,{ax}]={modulo}",
+    ]
     for k, (values, direction) in enumerate(((table.forward - mean, 1), (table.reverse - mean, -1))):
         t = first_table + k
         out += [f"$AN_CEC[{t},{i}]={_num(-v)}" for i, v in enumerate(values)]
-        out += [f"$AN_CEC_INPUT_AXIS[{t}]={ax}", f"$AN_CEC_OUTPUT_AXIS[{t}]={ax}", f"$AN_CEC_STEP[{t}]={_num(step)}",
-                f"$AN_CEC_MIN[{t}]={_num(lo)}", f"$AN_CEC_MAX[{t}]={_num(hi)}", f"$AN_CEC_DIRECTION[{t}]={direction}",
-                f"$AN_CEC_MULT_BY_TABLE[{t}]=0", f"$AN_CEC_IS_MODULO[{t}]={modulo}"]
+        out += [
+            f"$AN_CEC_INPUT_AXIS[{t}]={ax}",
+            f"$AN_CEC_OUTPUT_AXIS[{t}]={ax}",
+            f"$AN_CEC_STEP[{t}]={_num(step)}",
+            f"$AN_CEC_MIN[{t}]={_num(lo)}",
+            f"$AN_CEC_MAX[{t}]={_num(hi)}",
+            f"$AN_CEC_DIRECTION[{t}]={direction}",
+            f"$AN_CEC_MULT_BY_TABLE[{t}]=0",
+            f"$AN_CEC_IS_MODULO[{t}]={modulo}",
+        ]
     out.append("M17")
-    settings = {f"$MA_ENC_COMP_ENABLE[0,{ax}]": 1, f"$MA_CEC_ENABLE[{ax}]": 1,
-                "$MN_MM_CEC_MAX_POINTS": int(np.asarray(table.positions).size),
-                f"$MA_MM_ENC_COMP_MAX_POINTS[0,{ax}]": int(np.asarray(table.positions).size)}
+    settings = {
+        f"$MA_ENC_COMP_ENABLE[0,{ax}]": 1,
+        f"$MA_CEC_ENABLE[{ax}]": 1,
+        "$MN_MM_CEC_MAX_POINTS": int(np.asarray(table.positions).size),
+        f"$MA_MM_ENC_COMP_MAX_POINTS[0,{ax}]": int(np.asarray(table.positions).size),
+    }
     return Export("siemens-cec", "\n".join(out) + "\n", settings)

@@ -86,18 +86,21 @@ def simulate_campaign(scenario: Scenario) -> SimulatedCampaign:
     val_all = np.empty((n, 6))
     for order, t, pos, d, values, axis in frames:
         t_all[order], pos_all[order], d_all[order], ax_all[order], val_all[order] = t, pos, d, axis, values
-    errors = pd.DataFrame({
-        "time_s": np.repeat(t_all, 6),
-        "axis": np.repeat(ax_all, 6),
-        "term": np.tile(np.array(TERMS, dtype=object), n),
-        "position": np.repeat(pos_all, 6),
-        "direction": np.repeat(d_all, 6),
-        "value": val_all.ravel(),
-    })
+    errors = pd.DataFrame(
+        {
+            "time_s": np.repeat(t_all, 6),
+            "axis": np.repeat(ax_all, 6),
+            "term": np.tile(np.array(TERMS, dtype=object), n),
+            "position": np.repeat(pos_all, 6),
+            "direction": np.repeat(d_all, 6),
+            "value": val_all.ravel(),
+        }
+    )
     errors["axis"] = errors["axis"].astype(str)
     errors["term"] = errors["term"].astype(str)
-    return SimulatedCampaign(campaign_meta(scenario, vm), temps, conditions, errors,
-                             _truth_record(scenario, vm, sweep_t))
+    return SimulatedCampaign(
+        campaign_meta(scenario, vm), temps, conditions, errors, _truth_record(scenario, vm, sweep_t)
+    )
 
 
 def _truth_record(scenario: Scenario, vm: VirtualMachine, sweep_t: np.ndarray) -> dict[str, Any]:

@@ -41,7 +41,6 @@ from driftlab.vocabulary import AXES, TRANSLATIONS
 log = logging.getLogger(__name__)
 
 
-
 # --------------------------------------------------------------------------- world and clock
 
 

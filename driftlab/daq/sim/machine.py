@@ -156,8 +156,9 @@ class VirtualMachine:
         phase = 2.0 * math.pi * (hour - r.peak_hour) / 24.0
         ceiling = r.mean_degC + 0.5 * r.ceiling_floor_degC + r.daily_amplitude_degC * np.cos(phase)
         # the floor swings less and later than the ceiling
-        floor = (r.mean_degC - 0.5 * r.ceiling_floor_degC
-                 + 0.6 * r.daily_amplitude_degC * np.cos(phase - 2 * math.pi / 24))
+        floor = (
+            r.mean_degC - 0.5 * r.ceiling_floor_degC + 0.6 * r.daily_amplitude_degC * np.cos(phase - 2 * math.pi / 24)
+        )
         return np.stack([ceiling, floor], axis=1)
 
     def local_air(self, n: int) -> np.ndarray:
@@ -188,8 +189,9 @@ class VirtualMachine:
         n = int(math.ceil((end + SOAK_S) / h - 1e-9)) + 2  # one step past: t = end is never the last point
         grid = -SOAK_S + h * np.arange(n)
         start = np.full(len(CHANNELS), self.scenario.room.mean_degC)
-        solution = self.network.simulate(-SOAK_S, h, self.sources(grid), self.hall(grid), y0=start,
-                                         local=self.local_air(n))
+        solution = self.network.simulate(
+            -SOAK_S, h, self.sources(grid), self.hall(grid), y0=start, local=self.local_air(n)
+        )
         self._lags = {}
         self._t0_true = solution.at(np.array([0.0]))[0]
         self._solution = solution
@@ -250,7 +252,8 @@ class VirtualMachine:
             return
         if eff.params["mode"] == "open":
             out[np.ix_(rows, np.array([SITE_INDEX[c] for c in eff.channels]))] = float(
-                eff.params.get("rail_degC", math.nan))
+                eff.params.get("rail_degC", math.nan)
+            )
             return
         tau = float(eff.params.get("tau_s", 300.0))
         at0 = self.true_temperatures_array(np.array([t0]))[0]
@@ -303,17 +306,24 @@ class VirtualMachine:
             w[:, TERMS.index(eff.term)] += truth.hidden_delta(eff, t, pos, d, ch_dT, lag)
         return w
 
-    def measure_errors_array(self, t_s: np.ndarray, axis: str, position: np.ndarray,
-                             direction: np.ndarray) -> np.ndarray:
+    def measure_errors_array(
+        self, t_s: np.ndarray, axis: str, position: np.ndarray, direction: np.ndarray
+    ) -> np.ndarray:
         """Return (N, 6) measured work-space errors: truth plus laser noise (ch. 5.5), per term."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         pos = np.broadcast_to(np.asarray(position, dtype=float), t.shape)
         d = np.broadcast_to(np.asarray(direction, dtype=float), t.shape)
         w = self.true_errors_array(t, axis, pos, d)
-        sigma = np.array([self.scenario.noise.angle_rad if term in ANGLE_TERMS else self.scenario.noise.length_mm
-                          for term in TERMS])
-        keys = (_ms(t)[:, None], np.full((t.size, 1), AXES.index(axis)), np.arange(6)[None, :],
-                np.rint(pos * 1e6).astype(np.int64)[:, None], (d > 0).astype(np.int64)[:, None])
+        sigma = np.array(
+            [self.scenario.noise.angle_rad if term in ANGLE_TERMS else self.scenario.noise.length_mm for term in TERMS]
+        )
+        keys = (
+            _ms(t)[:, None],
+            np.full((t.size, 1), AXES.index(axis)),
+            np.arange(6)[None, :],
+            np.rint(pos * 1e6).astype(np.int64)[:, None],
+            (d > 0).astype(np.int64)[:, None],
+        )
         return w + sigma * hash_normal(self.scenario.seed, _STREAM_LASER, *keys)
 
     # ------------------------------------------------------------------ scalar instrument API
@@ -359,7 +369,8 @@ class VirtualMachine:
         k = int(self.stage_index(np.array([t_s]))[0])
         st = self._plan.stages[k] if k >= 0 else None
         out: dict[str, float | str | None] = {
-            "stage": st.name if st else None, "heat_source": st.heat_source if st else "off",
+            "stage": st.name if st else None,
+            "heat_source": st.heat_source if st else "off",
         }
         out.update({c: float(v[0]) for c, v in self.state_array(np.array([t_s])).items()})
         return out

@@ -26,7 +26,13 @@ HeatSource = Literal["spindle", "feed", "combined", "idle", "off"]
 ANGLE_TERMS: frozenset[str] = frozenset(ROTATIONS)
 HEAT_SOURCES: tuple[str, ...] = ("spindle", "feed", "combined", "idle", "off")
 KINDS: tuple[str, ...] = (
-    "reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift", "quadratic",
+    "reversal",
+    "screw_expansion",
+    "unmapped_channel",
+    "thermal_lag",
+    "sensor_fault",
+    "drift",
+    "quadratic",
 )
 #: 0.1 arc-second (ch. 5.5 laser angle accuracy) in rad
 ARCSEC_0_1_RAD = 0.1 / 3600.0 * math.pi / 180.0
@@ -47,8 +53,13 @@ _OPTIONAL: dict[str, tuple[str, ...]] = {
     "sensor_fault": ("tau_s", "rail_degC"),  # detachment time constant; value an open card reports
 }
 _N_CHANNELS: dict[str, tuple[int, int]] = {
-    "reversal": (0, 0), "drift": (0, 0), "screw_expansion": (1, 1), "unmapped_channel": (1, 1),
-    "thermal_lag": (1, 1), "quadratic": (1, 1), "sensor_fault": (1, 50),
+    "reversal": (0, 0),
+    "drift": (0, 0),
+    "screw_expansion": (1, 1),
+    "unmapped_channel": (1, 1),
+    "thermal_lag": (1, 1),
+    "quadratic": (1, 1),
+    "sensor_fault": (1, 50),
 }
 
 
@@ -128,8 +139,9 @@ class Stage(_Strict):
 class HiddenEffect(_Strict):
     """An effect of the catalogue (spec section 3) planted in the truth but absent from the standard model."""
 
-    kind: Literal["reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift",
-                  "quadratic"]
+    kind: Literal[
+        "reversal", "screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "drift", "quadratic"
+    ]
     axis: Axis | None = None
     term: Term | None = None
     channels: list[str] = Field(default_factory=list)
@@ -198,8 +210,10 @@ class HiddenEffect(_Strict):
 
             assert self.axis is not None  # checked above: every kind but sensor_fault has an axis
             if self.channels[0] in MODEL_CHANNELS[self.axis]:
-                raise ValueError(f"{self.channels[0]} is a model channel of {self.axis}; unmapped_channel needs one "
-                                 f"outside model_channels (e.g. T11, T21, T31, T36, T47)")
+                raise ValueError(
+                    f"{self.channels[0]} is a model channel of {self.axis}; unmapped_channel needs one "
+                    f"outside model_channels (e.g. T11, T21, T31, T36, T47)"
+                )
         return self
 
 
@@ -263,12 +277,19 @@ class Scenario(_Strict):
 # one 24 h cycle of the staged plan (ch. 5.2 Fig. 5.1): (hours, heat_source, axis); an axis 1..3 is the
 # 1st..3rd linear axis in the cycle's order (_ORDERS)
 _CYCLE: tuple[tuple[float, HeatSource, Axis | int | None], ...] = (
-    (3.0, "spindle", "Z"), (1.5, "idle", None),
-    (2.0, "feed", 1), (1.0, "idle", None),
-    (2.0, "feed", 2), (1.0, "idle", None),
-    (2.0, "feed", 3), (1.0, "idle", None),
-    (1.5, "feed", "A"), (1.5, "feed", "B"), (1.0, "idle", None),
-    (2.5, "combined", "Z"), (4.0, "off", None),
+    (3.0, "spindle", "Z"),
+    (1.5, "idle", None),
+    (2.0, "feed", 1),
+    (1.0, "idle", None),
+    (2.0, "feed", 2),
+    (1.0, "idle", None),
+    (2.0, "feed", 3),
+    (1.0, "idle", None),
+    (1.5, "feed", "A"),
+    (1.5, "feed", "B"),
+    (1.0, "idle", None),
+    (2.5, "combined", "Z"),
+    (4.0, "off", None),
 )
 _ORDERS: tuple[tuple[Axis, Axis, Axis], ...] = (("X", "Y", "Z"), ("Z", "X", "Y"), ("Y", "Z", "X"))
 _RPM = (8000.0, 12000.0, 6000.0)
@@ -306,9 +327,17 @@ def default_plan(hours: float, step_s: float = 60.0) -> list[Stage]:
                 name = f"spindle-{rpm / 1000:.0f}k+feed-{ax.lower()}-{feed:.0f}"
             else:
                 name = "cool-down" if source == "idle" else "power-off"
-            stages.append(Stage(name=f"c{cycle + 1}.{j + 1}-{name}", start_s=t, end_s=end, heat_source=source,
-                                axis=ax if source != "idle" and source != "off" else None,
-                                spindle_rpm=rpm, feed_mm_min=feed))
+            stages.append(
+                Stage(
+                    name=f"c{cycle + 1}.{j + 1}-{name}",
+                    start_s=t,
+                    end_s=end,
+                    heat_source=source,
+                    axis=ax if source != "idle" and source != "off" else None,
+                    spindle_rpm=rpm,
+                    feed_mm_min=feed,
+                )
+            )
             t = end
         cycle += 1
     return stages

@@ -50,6 +50,7 @@ _JOINT_OF_AXIS = {"X": "phi_x", "Y": "phi_y", "Z": "phi_z", "A": "theta_x", "B":
 _SCALE = {"phi_x": 254.0, "phi_y": 254.0, "phi_z": 254.0, "theta_x": math.pi / 4, "theta_y": math.pi / 4}
 _U, _M = 1e-6, 1e-3  # rad, mm
 
+
 # Geometric shapes: per joint, per parameter (alpha, beta, gamma, dx, dy, dz), amplitudes of
 # s, s^2, s^3 with s = q / travel (s in [-1, 1]); magnitudes of Tables A.3/A.4 (a few um, urad).
 # The tilts of a linear joint perpendicular to its axis have no s^3: they act through the lever q.
@@ -57,26 +58,40 @@ def _shape(angles_urad: list[list[float]], lengths_um: list[list[float]]) -> np.
     return np.vstack([np.array(angles_urad) * _U, np.array(lengths_um) * _M * 1e-3])
 
 
-GEOMETRY: Mapping[str, np.ndarray] = MappingProxyType({
-    "phi_x": _shape([[3.0, -2.0, 1.5], [4.0, 2.5, 0.0], [-5.0, 2.0, 0.0]],
-                    [[9.0, -4.0, 2.5], [1.5, 3.0, -2.0], [-2.0, 2.5, 1.2]]),
-    "phi_y": _shape([[3.5, -1.5, 0.0], [2.0, 1.5, -1.0], [-3.0, 2.5, 0.0]],
-                    [[2.0, -2.5, 1.5], [7.0, 3.0, -2.0], [-1.5, 2.0, 1.0]]),
-    "phi_z": _shape([[-4.0, 2.0, 0.0], [3.0, -1.5, 0.0], [2.0, 1.0, -1.5]],
-                    [[2.5, 1.5, -1.0], [-2.0, 2.5, 1.5], [-8.0, 3.5, 2.0]]),
-    "theta_x": _shape([[12.0, -3.0, 4.0], [3.0, 2.0, -1.5], [-2.5, 1.5, 1.0]],
-                      [[1.5, -1.0, 0.8], [2.5, 1.5, -1.0], [-2.0, 1.0, 1.2]]),
-    "theta_y": _shape([[2.5, -1.5, 1.0], [10.0, 3.0, -3.0], [-2.0, 1.0, 1.5]],
-                      [[2.0, 1.0, -1.0], [-1.5, 1.2, 0.8], [1.8, -1.0, 0.9]]),
-})
+GEOMETRY: Mapping[str, np.ndarray] = MappingProxyType(
+    {
+        "phi_x": _shape(
+            [[3.0, -2.0, 1.5], [4.0, 2.5, 0.0], [-5.0, 2.0, 0.0]],
+            [[9.0, -4.0, 2.5], [1.5, 3.0, -2.0], [-2.0, 2.5, 1.2]],
+        ),
+        "phi_y": _shape(
+            [[3.5, -1.5, 0.0], [2.0, 1.5, -1.0], [-3.0, 2.5, 0.0]],
+            [[2.0, -2.5, 1.5], [7.0, 3.0, -2.0], [-1.5, 2.0, 1.0]],
+        ),
+        "phi_z": _shape(
+            [[-4.0, 2.0, 0.0], [3.0, -1.5, 0.0], [2.0, 1.0, -1.5]],
+            [[2.5, 1.5, -1.0], [-2.0, 2.5, 1.5], [-8.0, 3.5, 2.0]],
+        ),
+        "theta_x": _shape(
+            [[12.0, -3.0, 4.0], [3.0, 2.0, -1.5], [-2.5, 1.5, 1.0]],
+            [[1.5, -1.0, 0.8], [2.5, 1.5, -1.0], [-2.0, 1.0, 1.2]],
+        ),
+        "theta_y": _shape(
+            [[2.5, -1.5, 1.0], [10.0, 3.0, -3.0], [-2.0, 1.0, 1.5]],
+            [[2.0, 1.0, -1.0], [-1.5, 1.2, 0.8], [1.8, -1.0, 0.9]],
+        ),
+    }
+)
 #: constant assembly errors of the links (squareness, offsets): (alpha, beta, gamma, dx, dy, dz)
-LINK_CONSTANTS: Mapping[str, np.ndarray] = MappingProxyType({
-    "T2": np.array([-4.0 * _U, 6.0 * _U, 0.0, 0.0, 0.0, 0.0]),
-    "T3": np.array([0.0, 0.0, 3.0 * _U, 0.0, 0.0, 0.0]),
-    "T4": np.array([2.0 * _U, 0.0, 0.0, 0.0, 0.0, 0.0]),
-    "T5": np.array([1.0 * _U, -1.0 * _U, 0.5 * _U, 1.0 * _M, -1.0 * _M, 0.5 * _M]),
-    "T6": np.array([0.5 * _U, 1.0 * _U, -0.5 * _U, 0.5 * _M, 1.0 * _M, 2.0 * _M]),
-})
+LINK_CONSTANTS: Mapping[str, np.ndarray] = MappingProxyType(
+    {
+        "T2": np.array([-4.0 * _U, 6.0 * _U, 0.0, 0.0, 0.0, 0.0]),
+        "T3": np.array([0.0, 0.0, 3.0 * _U, 0.0, 0.0, 0.0]),
+        "T4": np.array([2.0 * _U, 0.0, 0.0, 0.0, 0.0, 0.0]),
+        "T5": np.array([1.0 * _U, -1.0 * _U, 0.5 * _U, 1.0 * _M, -1.0 * _M, 0.5 * _M]),
+        "T6": np.array([0.5 * _U, 1.0 * _U, -0.5 * _U, 0.5 * _M, 1.0 * _M, 2.0 * _M]),
+    }
+)
 
 # Dimensions for the thermal relationships (mm): the spindle head of Table A.1 (arm length L = 400,
 # height H = 200: eq. 3.4 then gives Table 6.3's 0.0014 deg/degC; eq. 3.5's tip deflection plus the
@@ -97,16 +112,30 @@ L_B_TABLE = 300.0
 #: thesis machine's links (Table A.1), the arm that bends under its upper-lower gradient (eqs. 3.4-3.5,
 #: alpha about X and dz at the tip) and the ballscrews' non-travelled length (eq. 3.2). The shipped
 #: scenarios and plans state the same (tests/daq/sim/test_geometry_stated.py).
-STATED_GEOMETRY: Mapping[str, object] = MappingProxyType({
-    "source": "thesis appendix A, Table A.1; ch. 3.5 (spindle arm L 400 mm, H 200 mm; ballscrews l 150 mm)",
-    "alpha_c_per_degC": ALPHA_C,
-    "links_mm": {"spindle_head": list(kin.TABLE_A1["T1"]), "column": list(kin.TABLE_A1["T2"]),
-                 "carriage": list(kin.TABLE_A1["T3"]), "table": list(kin.TABLE_A1["T4"]),
-                 "rotary_support": list(kin.TABLE_A1["T5"]), "part_table": list(kin.TABLE_A1["T6"])},
-    "screw_fixed_mm": {"X": L_SCREW_FIXED, "Y": L_SCREW_FIXED, "Z": L_SCREW_FIXED},
-    "bending": {"spindle_arm": {"length_mm": L_ARM, "height_mm": H_ARM, "across": "upper-lower",
-                                "angle": "alpha", "deflection": "dz"}},
-})
+STATED_GEOMETRY: Mapping[str, object] = MappingProxyType(
+    {
+        "source": "thesis appendix A, Table A.1; ch. 3.5 (spindle arm L 400 mm, H 200 mm; ballscrews l 150 mm)",
+        "alpha_c_per_degC": ALPHA_C,
+        "links_mm": {
+            "spindle_head": list(kin.TABLE_A1["T1"]),
+            "column": list(kin.TABLE_A1["T2"]),
+            "carriage": list(kin.TABLE_A1["T3"]),
+            "table": list(kin.TABLE_A1["T4"]),
+            "rotary_support": list(kin.TABLE_A1["T5"]),
+            "part_table": list(kin.TABLE_A1["T6"]),
+        },
+        "screw_fixed_mm": {"X": L_SCREW_FIXED, "Y": L_SCREW_FIXED, "Z": L_SCREW_FIXED},
+        "bending": {
+            "spindle_arm": {
+                "length_mm": L_ARM,
+                "height_mm": H_ARM,
+                "across": "upper-lower",
+                "angle": "alpha",
+                "deflection": "dz",
+            }
+        },
+    }
+)
 
 
 def _mean(structure: str) -> dict[str, float]:
@@ -123,13 +152,23 @@ THERMAL_TERMS: tuple[tuple[str, str, float, Mapping[str, float], str], ...] = (
     ("T1", "dy", ALPHA_C * L_HEAD, _mean("spindle_arm"), "eq. 3.1: arm growth along its length"),
     ("T1", "dz", -ALPHA_C * L_SPINDLE, {"T37": 1.0}, "eq. 3.1: spindle housing growth"),
     ("phi_z", "dz", ALPHA_C * L_SCREW_FIXED, {"T30": 1.0}, "eq. 3.2: fixed part of the Z ballscrew"),
-    ("T2", "dz", ALPHA_C * L_COLUMN, {"T24": 0.5, "T26": 0.5},
-     "eq. 3.3: column growth, mean of its upper-front and lower-back corners (ch. 5.4)"),
+    (
+        "T2",
+        "dz",
+        ALPHA_C * L_COLUMN,
+        {"T24": 0.5, "T26": 0.5},
+        "eq. 3.3: column growth, mean of its upper-front and lower-back corners (ch. 5.4)",
+    ),
     ("T2", "dy", ALPHA_C * L_BASE_Y, {"T13": 0.5, "T19": 0.5}, "eq. 3.1: base growth column-to-table, base extremes"),
     ("phi_y", "dy", ALPHA_C * L_SCREW_FIXED, {"T20": 1.0}, "eq. 3.2: fixed part of the Y ballscrew"),
     ("T3", "dz", ALPHA_C * H_CARRIAGE, {"T7": 1.0}, "eq. 3.1: carriage thickness (T7 stands for T1-T8, ch. 5.4)"),
-    ("phi_x", "dx", ALPHA_C * L_SCREW_FIXED, {"T9": 0.6, "T10": 0.4},
-     "eq. 3.2: fixed part of the X ballscrew; screw temperature from nut and motor (ch. 5.4)"),
+    (
+        "phi_x",
+        "dx",
+        ALPHA_C * L_SCREW_FIXED,
+        {"T9": 0.6, "T10": 0.4},
+        "eq. 3.2: fixed part of the X ballscrew; screw temperature from nut and motor (ch. 5.4)",
+    ),
     ("T4", "dz", ALPHA_C * H_TABLE, {"T7": 1.0}, "eq. 3.1: table thickness"),
     ("theta_x", "dz", ALPHA_C * H_ROTARY, {"T42": 1.0}, "eq. 3.1: rotary base height, seen by the A drive (ch. 5.4)"),
     ("theta_x", "dy", ALPHA_C * L_GEAR, {"T42": 1.0}, "eq. 3.1: A gear housing growth"),
@@ -137,13 +176,29 @@ THERMAL_TERMS: tuple[tuple[str, str, float, Mapping[str, float], str], ...] = (
 )
 
 #: channels that drive the base truth (the thesis' selection of ch. 5.4, with all four arm corners)
-DRIVERS: tuple[str, ...] = tuple(
-    c for c in CHANNELS if any(c in w for _, _, _, w, _ in THERMAL_TERMS)
-)
+DRIVERS: tuple[str, ...] = tuple(c for c in CHANNELS if any(c in w for _, _, _, w, _ in THERMAL_TERMS))
 #: the thesis' 18 selected thermocouples (ch. 5.4) plus the other two arm corners
 THESIS_SELECTION: tuple[str, ...] = (
-    "T7", "T9", "T10", "T13", "T19", "T20", "T21", "T24", "T26", "T30", "T31", "T32", "T33", "T34", "T35",
-    "T37", "T42", "T45", "T49", "T50",
+    "T7",
+    "T9",
+    "T10",
+    "T13",
+    "T19",
+    "T20",
+    "T21",
+    "T24",
+    "T26",
+    "T30",
+    "T31",
+    "T32",
+    "T33",
+    "T34",
+    "T35",
+    "T37",
+    "T42",
+    "T45",
+    "T49",
+    "T50",
 )
 #: the model channels written to campaign.json (the user's sensor selection per axis). Every axis's
 #: measurement carries every element's errors at home, so each list holds every driver; Z leaves
@@ -241,8 +296,11 @@ def base_coefficients() -> dict[str, dict[str, BaseTerm]]:
         out[axis] = {}
         for j, term in enumerate(kin.PARAMS):
             chans = {DRIVERS[i]: float(w_unit[i, j]) for i in range(len(drivers)) if w_unit[i, j] != 0.0}
-            out[axis][term] = {"poly": [float(c) for c in poly[:, j]], "channels": chans,
-                               "cubic_residual": float(resid[j])}
+            out[axis][term] = {
+                "poly": [float(c) for c in poly[:, j]],
+                "channels": chans,
+                "cubic_residual": float(resid[j]),
+            }
     return out
 
 
@@ -257,12 +315,19 @@ def lag_coefficient(effect: HiddenEffect) -> float:
     if abs(c) < scale:
         raise ValidationError(
             f"hidden thermal_lag on {effect.axis}/{effect.term}: {ch} has no base coefficient on this term; "
-            f"give params.coef_per_degC or choose a driving channel")
+            f"give params.coef_per_degC or choose a driving channel"
+        )
     return float(c)
 
 
-def hidden_delta(effect: HiddenEffect, t_s: np.ndarray, position: np.ndarray, direction: np.ndarray,
-                 dT: np.ndarray | None, lag_dT: np.ndarray | None = None) -> np.ndarray:
+def hidden_delta(
+    effect: HiddenEffect,
+    t_s: np.ndarray,
+    position: np.ndarray,
+    direction: np.ndarray,
+    dT: np.ndarray | None,
+    lag_dT: np.ndarray | None = None,
+) -> np.ndarray:
     """Return the planted work-space error of one effect on its (axis, term) (spec section 3).
 
     ``position`` in bundle units (mm; degrees for A/B), ``dT`` the true temperature change of the

@@ -21,11 +21,33 @@ POSITIONING_TERM = {"X": "dx", "Y": "dy", "Z": "dz", "A": "alpha", "B": "beta"}
 ROTATIONS = ("alpha", "beta", "gamma")
 #: factor to the bundle's units (mm for translations and linear positions, rad for rotations, deg for rotary positions)
 LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "µm": 1e-3, "micron": 1e-3, "nm": 1e-6, "m": 1e3, "in": 25.4, "inch": 25.4}
-ANGLE_UNITS = {"rad": 1.0, "mrad": 1e-3, "urad": 1e-6, "µrad": 1e-6, "arcsec": np.pi / 180.0 / 3600.0,
-               "deg": np.pi / 180.0}
+ANGLE_UNITS = {
+    "rad": 1.0,
+    "mrad": 1e-3,
+    "urad": 1e-6,
+    "µrad": 1e-6,
+    "arcsec": np.pi / 180.0 / 3600.0,
+    "deg": np.pi / 180.0,
+}
 POSITION_UNITS = {**LENGTH_UNITS, "deg": 1.0}
-DIRECTIONS = {"+": 1, "-": -1, "1": 1, "+1": 1, "-1": -1, "up": 1, "down": -1, "forward": 1, "backward": -1,
-              "forwards": 1, "backwards": -1, "reverse": -1, "pos": 1, "neg": -1, "positive": 1, "negative": -1}
+DIRECTIONS = {
+    "+": 1,
+    "-": -1,
+    "1": 1,
+    "+1": 1,
+    "-1": -1,
+    "up": 1,
+    "down": -1,
+    "forward": 1,
+    "backward": -1,
+    "forwards": 1,
+    "backwards": -1,
+    "reverse": -1,
+    "pos": 1,
+    "neg": -1,
+    "positive": 1,
+    "negative": -1,
+}
 
 
 class InstrumentFileError(ValidationError):
@@ -102,8 +124,14 @@ def channel_name(text: str) -> str:
     return name if name != "time_s" else "time_s_"
 
 
-def write_readings(readings: Readings, out: str | Path, *, machine: str | None = None,
-                   started_at: datetime | None = None, air_temp_degC: float | None = None) -> Path:
+def write_readings(
+    readings: Readings,
+    out: str | Path,
+    *,
+    machine: str | None = None,
+    started_at: datetime | None = None,
+    air_temp_degC: float | None = None,
+) -> Path:
     """Write the readings as a bundle v1 at ``out`` (validated by the bundle loader first; nothing left on an error)."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
@@ -125,8 +153,9 @@ def write_readings(readings: Readings, out: str | Path, *, machine: str | None =
         if air_temp_degC is not None:
             values["air"] = float(air_temp_degC)
         if not values:
-            raise InstrumentFileError(f"{src}: the file records no temperature: "
-                                      "give --air-temp DEGC (the room during the test)")
+            raise InstrumentFileError(
+                f"{src}: the file records no temperature: give --air-temp DEGC (the room during the test)"
+            )
         temps = pd.DataFrame({"time_s": [0.0], **{k: [v] for k, v in values.items()}})
     channels = [c for c in temps.columns if c != "time_s"]
     meta: dict[str, Any] = {
@@ -175,4 +204,3 @@ def check_axis(axis: str, where: str) -> str:
 def frame(rows: list[tuple[float, str, str, float, int, float]]) -> pd.DataFrame:
     """Return an errors frame from (time_s, axis, term, position, direction, value) tuples."""
     return pd.DataFrame(rows, columns=list(ERROR_COLUMNS))
-

@@ -69,7 +69,8 @@ def load_mapping(path: str | Path) -> Mapping:
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
         raise InstrumentFileError(
-            f"{path.name}:{(line or 0) + 1}: not YAML/JSON ({getattr(exc, 'problem', exc)})") from None
+            f"{path.name}:{(line or 0) + 1}: not YAML/JSON ({getattr(exc, 'problem', exc)})"
+        ) from None
     try:
         m = Mapping.model_validate(raw if raw is not None else {})
     except PydanticValidationError as exc:
@@ -98,8 +99,9 @@ def read_generic(path: str | Path, mapping: Mapping, mapping_name: str = "mappin
     path = Path(path)
     src = path.name
     try:
-        table = pd.read_csv(path, dtype=str, keep_default_na=False, sep=mapping.delimiter, skip_blank_lines=False,
-                            encoding="utf-8-sig")
+        table = pd.read_csv(
+            path, dtype=str, keep_default_na=False, sep=mapping.delimiter, skip_blank_lines=False, encoding="utf-8-sig"
+        )
     except FileNotFoundError:
         raise InstrumentFileError(f"{src}: no such file") from None
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
@@ -146,8 +148,9 @@ def read_generic(path: str | Path, mapping: Mapping, mapping_name: str = "mappin
     if bad.size:
         raise fail(int(bad[0]), "term", f"{term_text[bad[0]]!r} is not a term (map it under 'terms')")
     dir_text = cells("direction")
-    direction = np.array([mapping.directions[d] if d in mapping.directions else parse_direction(d) for d in dir_text],
-                         dtype=object)
+    direction = np.array(
+        [mapping.directions[d] if d in mapping.directions else parse_direction(d) for d in dir_text], dtype=object
+    )
     bad = np.flatnonzero(np.array([d is None for d in direction]))
     if bad.size:
         raise fail(int(bad[0]), "direction", f"{dir_text[bad[0]]!r} is not a direction (map it under 'directions')")
@@ -170,8 +173,16 @@ def read_generic(path: str | Path, mapping: Mapping, mapping_name: str = "mappin
         time_s = numbers("time_s") * TIME_UNITS[t_unit]
     else:
         time_s = np.arange(n, dtype=float)  # measuring order, one second apart
-    errors = pd.DataFrame({"time_s": time_s, "axis": axis, "term": term.astype(str), "position": position,
-                           "direction": direction.astype(int), "value": value})
+    errors = pd.DataFrame(
+        {
+            "time_s": time_s,
+            "axis": axis,
+            "term": term.astype(str),
+            "position": position,
+            "direction": direction.astype(int),
+            "value": value,
+        }
+    )
     temps = None
     if mapping.temperatures:
         cols = {}
@@ -179,8 +190,9 @@ def read_generic(path: str | Path, mapping: Mapping, mapping_name: str = "mappin
             v = pd.to_numeric(table[col].str.replace(mapping.decimal, ".", regex=False), errors="coerce")
             bad_rows = np.flatnonzero(v.isna().to_numpy() & (table[col].str.strip() != "").to_numpy())
             if bad_rows.size:
-                raise InstrumentFileError(f"{src}:{lines[bad_rows[0]]}: column {col}: {table[col].iat[bad_rows[0]]!r} "
-                                   "is not a number (degC)")
+                raise InstrumentFileError(
+                    f"{src}:{lines[bad_rows[0]]}: column {col}: {table[col].iat[bad_rows[0]]!r} is not a number (degC)"
+                )
             cols[channel_name(ch)] = v.to_numpy(float)
         temps = pd.DataFrame({"time_s": time_s, **cols}).drop_duplicates("time_s").reset_index(drop=True)
         temps = temps.sort_values("time_s", kind="stable").reset_index(drop=True)

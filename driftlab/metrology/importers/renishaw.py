@@ -41,8 +41,15 @@ RTX_DATA = b"Data:\r\n"
 RTX_EOF = b"EOF::\r\n"
 
 
-def read_rtx(path: str | Path, *, axis: str | None = None, position: float = 0.0, unit: str = "um",
-             interval_s: float = 1.0, term: str | None = None) -> Readings:
+def read_rtx(
+    path: str | Path,
+    *,
+    axis: str | None = None,
+    position: float = 0.0,
+    unit: str = "um",
+    interval_s: float = 1.0,
+    term: str | None = None,
+) -> Readings:
     """Return the readings of a ``.rtx`` capture: the samples averaged per ``interval_s``, at one position."""
     path = Path(path)
     src = path.name
@@ -56,7 +63,7 @@ def read_rtx(path: str | Path, *, axis: str | None = None, position: float = 0.0
     if end < 0:
         raise InstrumentFileError(f"{src}: no 'Data:' line after the header")
     header: dict[str, str] = {}
-    for lineno, line in enumerate(raw[len(RTX_HEADER):end].split(b"\r\n"), start=2):
+    for lineno, line in enumerate(raw[len(RTX_HEADER) : end].split(b"\r\n"), start=2):
         if not line.strip():
             continue
         key, sep, value = line.decode("latin-1").partition(": ")
@@ -65,13 +72,14 @@ def read_rtx(path: str | Path, *, axis: str | None = None, position: float = 0.0
         if not sep:
             raise InstrumentFileError(f"{src}:{lineno}: header line {line[:40]!r} is not 'Key: value'")
         header[key.strip()] = value.strip()
-    body = raw[end + len(RTX_DATA):]
+    body = raw[end + len(RTX_DATA) :]
     if not body.endswith(RTX_EOF):
         raise InstrumentFileError(f"{src}: the data block does not end with EOF:: (a truncated file?)")
     body = body[: -len(RTX_EOF)]
     if len(body) % 8:
         raise InstrumentFileError(
-            f"{src}: the data block holds {len(body)} bytes, not a whole number of float64 samples")
+            f"{src}: the data block holds {len(body)} bytes, not a whole number of float64 samples"
+        )
     samples = np.frombuffer(body, dtype="<f8")
     if samples.size == 0:
         raise InstrumentFileError(f"{src}: the capture holds no samples")
@@ -82,7 +90,8 @@ def read_rtx(path: str | Path, *, axis: str | None = None, position: float = 0.0
         rate = float("nan")
     if not (np.isfinite(rate) and rate > 0):
         raise InstrumentFileError(
-            f"{src}: header 'Actual sample rate' is missing or not a positive number ({rate_text!r})")
+            f"{src}: header 'Actual sample rate' is missing or not a positive number ({rate_text!r})"
+        )
     bad = np.flatnonzero(~np.isfinite(samples))
     if bad.size:
         raise InstrumentFileError(f"{src}: sample {int(bad[0])} is not a finite number")
@@ -97,8 +106,9 @@ def read_rtx(path: str | Path, *, axis: str | None = None, position: float = 0.0
         raise InstrumentFileError(f"{src}: {samples.size} samples are fewer than one {interval_s:g} s interval")
     means = samples[: n * per].reshape(n, per).mean(axis=1) * scale
     t = (np.arange(n) * per + (per - 1) / 2.0) / rate  # the middle of each averaging interval
-    errors = pd.DataFrame({"time_s": t, "axis": ax, "term": tm, "position": float(position), "direction": 1,
-                           "value": means})
+    errors = pd.DataFrame(
+        {"time_s": t, "axis": ax, "term": tm, "position": float(position), "direction": 1, "value": means}
+    )
     started = parse_time(header["Date"], f"{src}: header 'Date'") if header.get("Date") else None
     return Readings(src, errors, np.zeros(n, dtype=np.int64), machine=header.get("Machine", ""), started_at=started)
 
@@ -133,11 +143,13 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
         if cells and cells[0]:
             meta[cells[0].lower()] = cells[1] if len(cells) > 1 else ""
     if head is None:
-        raise InstrumentFileError(f"{src}: no data table: expected a header line with Run, Direction, "
-                                  "Target (unit), Error (unit)")
+        raise InstrumentFileError(
+            f"{src}: no data table: expected a header line with Run, Direction, Target (unit), Error (unit)"
+        )
     try:
-        table = pd.read_csv(io.StringIO("\n".join(lines[head:])), dtype=str, keep_default_na=False,
-                            skip_blank_lines=False)
+        table = pd.read_csv(
+            io.StringIO("\n".join(lines[head:])), dtype=str, keep_default_na=False, skip_blank_lines=False
+        )
     except (pd.errors.ParserError, ValueError) as exc:
         raise InstrumentFileError(f"{src}: cannot parse the data table ({' '.join(str(exc).split())})") from None
     cols: dict[str, tuple[str, str | None]] = {}
@@ -150,8 +162,10 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
     ax = check_axis(axis or meta.get("axis", ""), f"{src}: axis (preamble 'Axis' or --axis)")
     term = POSITIONING_TERM[ax]
     if test == "angular" and ax in ("X", "Y", "Z"):
-        raise InstrumentFileError(f"{src}: an angular test of linear axis {ax}: import it with the generic mapping "
-                           "(which names the term, e.g. pitch or yaw)")
+        raise InstrumentFileError(
+            f"{src}: an angular test of linear axis {ax}: import it with the generic mapping "
+            "(which names the term, e.g. pitch or yaw)"
+        )
     t_unit = cols["target"][1] or ("deg" if ax in ("A", "B") else "mm")
     e_unit = cols["error"][1] or ("arcsec" if term in ("alpha", "beta") else "um")
     p_scale = position_factor(t_unit, ax, f"{src}:{head + 1}: column {cols['target'][0]}")
@@ -166,8 +180,9 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
             raise InstrumentFileError(f"{src}:{lineno}: empty line inside the data table")
         d = parse_direction(cell["direction"])
         if d is None:
-            raise InstrumentFileError(f"{src}:{lineno}: column Direction: {cell['direction']!r} is not + or - "
-                               "(or forward/backward, up/down)")
+            raise InstrumentFileError(
+                f"{src}:{lineno}: column Direction: {cell['direction']!r} is not + or - (or forward/backward, up/down)"
+            )
         try:
             run = int(cell["run"])
         except ValueError:
@@ -186,8 +201,9 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
         lines_out.append(lineno)
     if not rows_out:
         raise InstrumentFileError(f"{src}: the data table has no rows")
-    errors = pd.DataFrame([r[:6] for r in rows_out], columns=["time_s", "axis", "term", "position", "direction",
-                                                              "value"])
+    errors = pd.DataFrame(
+        [r[:6] for r in rows_out], columns=["time_s", "axis", "term", "position", "direction", "value"]
+    )
     temps: dict[str, float] = {}
     for key in ("air temperature", "material temperature"):
         if key in meta and meta[key] != "":
@@ -197,5 +213,6 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
                 row = next(i for i, ln in enumerate(lines) if ln.lower().startswith(key)) + 1
                 raise InstrumentFileError(f"{src}:{row}: {key} {meta[key]!r} is not a number (degC)") from None
     started = parse_time(meta["date"], f"{src}: 'Date'") if meta.get("date") else None
-    return Readings(src, errors, np.array(lines_out), machine=meta.get("machine", ""), started_at=started,
-                    temperatures=temps)
+    return Readings(
+        src, errors, np.array(lines_out), machine=meta.get("machine", ""), started_at=started, temperatures=temps
+    )

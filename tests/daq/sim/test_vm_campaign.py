@@ -220,9 +220,20 @@ def test_cli_module_entry_point(tmp_path):
     scen = tmp_path / "s.yaml"
     scen.write_text("hours: 0.5\n")
     proc = subprocess.run(
-        [sys.executable, "-m", "driftlab.cli", "sim", "campaign", "--scenario", str(scen),
-         "--out", str(tmp_path / "b")],
-        capture_output=True, text=True, cwd=ROOT,
+        [
+            sys.executable,
+            "-m",
+            "driftlab.cli",
+            "sim",
+            "campaign",
+            "--scenario",
+            str(scen),
+            "--out",
+            str(tmp_path / "b"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
     )
     assert proc.returncode == 0, proc.stderr
     assert pd.read_csv(tmp_path / "b" / "errors.csv").shape[1] == 6

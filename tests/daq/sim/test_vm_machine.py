@@ -31,9 +31,11 @@ def test_deterministic_and_order_free():
     diff = c.true_temperatures_array(t) - a.true_temperatures_array(t)
     assert 0 < np.abs(diff).max() < 2.0
     from driftlab.daq.sim.scenario import Room
+
     calm = Room(local_sigma_degC=0.0)
-    np.testing.assert_array_equal(_vm(seed=4, room=calm).true_temperatures_array(t),
-                                  _vm(seed=3, room=calm).true_temperatures_array(t))
+    np.testing.assert_array_equal(
+        _vm(seed=4, room=calm).true_temperatures_array(t), _vm(seed=3, room=calm).true_temperatures_array(t)
+    )
     e1 = a.measure_error(3600.0, "Z", -127.0, 1)
     assert e1 == _vm(seed=3).measure_error(3600.0, "Z", -127.0, 1)
     assert set(e1) == {"alpha", "beta", "gamma", "dx", "dy", "dz"}
@@ -105,7 +107,8 @@ def test_sensor_faults_change_readings_not_the_structure():
     # the error field keeps following the true temperature
     for axis in ("X", "Z"):
         np.testing.assert_array_equal(
-            base.measure_errors_array(t, axis, 0.0, 1), faulty.measure_errors_array(t, axis, 0.0, 1))
+            base.measure_errors_array(t, axis, 0.0, 1), faulty.measure_errors_array(t, axis, 0.0, 1)
+        )
 
 
 def test_runs_past_the_scenario_and_refuses_negative_time():

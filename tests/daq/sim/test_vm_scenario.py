@@ -17,8 +17,17 @@ def test_default_plan_is_staged_and_contiguous():
         assert a.end_s == b.start_s
     assert len({s.name for s in plan}) == len(plan)
     kinds = {(s.heat_source, s.axis) for s in plan}
-    for want in [("spindle", "Z"), ("feed", "X"), ("feed", "Y"), ("feed", "Z"), ("feed", "A"), ("feed", "B"),
-                 ("combined", "Z"), ("idle", None), ("off", None)]:
+    for want in [
+        ("spindle", "Z"),
+        ("feed", "X"),
+        ("feed", "Y"),
+        ("feed", "Z"),
+        ("feed", "A"),
+        ("feed", "B"),
+        ("combined", "Z"),
+        ("idle", None),
+        ("off", None),
+    ]:
         assert want in kinds
     # intensities change from cycle to cycle, so heat-up histories are not copies of each other
     assert len({s.spindle_rpm for s in plan if s.heat_source == "spindle"}) == 3
@@ -50,12 +59,17 @@ def test_examples_load():
         ("hourz: 3\n", "hourz:"),
         ("hidden:\n  - {kind: drift, axis: X, term: dx, params: {}}\n", "hidden.0: drift needs param 'rate_per_day'"),
         ("hidden:\n  - {kind: warp, axis: X, term: dx}\n", "hidden.0.kind"),
-        ("hidden:\n  - {kind: unmapped_channel, axis: Z, term: dz, channels: [T34], params: {coef_per_degC: 1e-3}}\n",
-         "T34 is a model channel"),
+        (
+            "hidden:\n"
+            "  - {kind: unmapped_channel, axis: Z, term: dz, channels: [T34], params: {coef_per_degC: 1e-3}}\n",
+            "T34 is a model channel",
+        ),
         ("hidden:\n  - {kind: reversal, axis: A, term: alpha, params: {magnitude_mm: 0.004}}\n", "magnitude_rad"),
         ("hidden:\n  - {kind: sensor_fault, channels: [T9], params: {start_s: 10, mode: melted}}\n", "mode"),
-        ("hidden:\n  - {kind: quadratic, axis: X, term: dx, channels: [T99], params: {coef_per_degC2: 1}}\n",
-         "unknown channel 'T99'"),
+        (
+            "hidden:\n  - {kind: quadratic, axis: X, term: dx, channels: [T99], params: {coef_per_degC2: 1}}\n",
+            "unknown channel 'T99'",
+        ),
         ("hidden:\n  - {kind: drift, axis: X, term: dx, params: {rate_per_day: 1, speed: 2}}\n", "does not take"),
         ("stages:\n  - {name: a, start_s: 0, end_s: 60, heat_source: feed}\n", "stages.0: a feed stage needs an axis"),
         ("started_at: yesterday\n", "started_at"),
@@ -76,8 +90,10 @@ def test_bad_scenarios_fail_in_one_line(tmp_path, text, needle):
 
 def test_yaml_quirks(tmp_path):
     p = tmp_path / "q.yaml"
-    p.write_text("stages:\n  - {name: night, start_s: 0, end_s: 60, heat_source: off}\n"
-                 "hidden:\n  - {kind: drift, axis: X, term: dx, params: {rate_per_day: 1e-3}}\n")
+    p.write_text(
+        "stages:\n  - {name: night, start_s: 0, end_s: 60, heat_source: off}\n"
+        "hidden:\n  - {kind: drift, axis: X, term: dx, params: {rate_per_day: 1e-3}}\n"
+    )
     s = load_scenario(p)
     assert s.stages[0].heat_source == "off"  # not YAML 1.1's false
     assert s.hidden[0].params["rate_per_day"] == 1e-3  # not YAML 1.1's string "1e-3"
@@ -89,8 +105,9 @@ def test_missing_file_is_a_validation_error(tmp_path):
 
 
 def test_built_in_code():
-    s = Scenario(hours=2, seed=9,
-                 hidden=[HiddenEffect(kind="drift", axis="B", term="beta", params={"rate_per_day": 1e-6})])
+    s = Scenario(
+        hours=2, seed=9, hidden=[HiddenEffect(kind="drift", axis="B", term="beta", params={"rate_per_day": 1e-6})]
+    )
     assert s.plan()[-1].end_s == 7200
     assert s.model_copy(update={"hours": 3.0}).plan()[-1].end_s == 10800
     assert s.start_hour_of_day == 8.0

@@ -91,8 +91,9 @@ def test_hidden_delta_formulas():
     np.testing.assert_allclose(truth.hidden_delta(rev, t, pos, d, None), [0.002, -0.002, 0.002])
     drift = HiddenEffect(kind="drift", axis="B", term="beta", params={"rate_per_day": 2e-6})
     np.testing.assert_allclose(truth.hidden_delta(drift, t, pos, d, None), [0, 1e-6, 2e-6])
-    screw = HiddenEffect(kind="screw_expansion", axis="X", term="dx", channels=["T9"],
-                         params={"coef_per_mm_degC": 1e-5})
+    screw = HiddenEffect(
+        kind="screw_expansion", axis="X", term="dx", channels=["T9"], params={"coef_per_mm_degC": 1e-5}
+    )
     np.testing.assert_allclose(truth.hidden_delta(screw, t, pos, d, dT), [0, 1e-3, 4e-3])
     quad = HiddenEffect(kind="quadratic", axis="Z", term="dz", channels=["T37"], params={"coef_per_degC2": 1e-4})
     np.testing.assert_allclose(truth.hidden_delta(quad, t, pos, d, dT), [0, 1e-4, 4e-4])
