@@ -1,7 +1,7 @@
 """Per-block correction: model + latest temperatures -> link errors -> axis offsets (ch. 4.4, 7.2).
 
 For every point of the program (block targets, and points inside long segments) the model
-predicts the errors of the links and joints, ``models.kinematics.compensate`` solves the axis
+predicts the errors of the links and joints, ``physics.kinematics.compensate`` solves the axis
 commands that cancel them (angles first, then translations: eqs. 4.23-4.26), and the correction
 is quantised to the machine's resolution with the remainder carried over (ch. 7.2: small
 corrections are accumulated until they reach the positioning resolution instead of being sent).

@@ -4,7 +4,7 @@ A controller's axis compensation (LinuxCNC axis comp, Siemens LEC/CEC, Heidenhai
 error compensation, Fanuc pitch error compensation) adds to the commanded position of one axis a
 value read from a table over that axis' own position, per approach direction where the format has
 them. The model's correction of that axis is the axis component of the compensation solve of
-eqs. 4.23-4.26 (``models.kinematics.compensate``, the same solve the streaming compensator uses)
+eqs. 4.23-4.26 (``physics.kinematics.compensate``, the same solve the streaming compensator uses)
 with the other axes at a fixed pose and the temperatures of one scan.
 
 Units: linear axes in mm, rotary axes in degrees (the controllers' units); the correction is what
