@@ -40,8 +40,6 @@ OWN_ROTATION: dict[str, str] = {"X": "alpha", "Y": "beta", "Z": "gamma", "A": "a
 #: units of the stored values
 LENGTH_UNIT = "mm"
 ANGLE_UNIT = "rad"
-TEMPERATURE_UNIT = "degC"
-TIME_UNIT = "s"
 
 #: a channel's (or instrument setup's) name
 CHANNEL_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")

@@ -43,7 +43,7 @@ from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.errors import ValidationError
 from driftlab.physics.geometry import Geometry
-from driftlab.vocabulary import AXES, TERMS, Axis
+from driftlab.vocabulary import AXES, CHANNEL_NAME, TERMS, Axis, valid_channel_name
 from driftlab.vocabulary import TRANSLATIONS as TRANSLATION_TERMS
 
 FORMAT = "driftlab-bundle/1"
@@ -87,7 +87,6 @@ _NUMBER = re.compile(r"^[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?$")
 _NONFINITE = re.compile(r"^[+-]?(nan|inf|infinity)$", re.IGNORECASE)
 #: machine ids, channel names and setup ids: what the API accepts as a path segment (api.schemas.ID_PATTERN)
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
-_CHANNEL_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
 _CONTROL = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")
 
 
@@ -364,7 +363,7 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
         err = exc.errors()[0]
         raise _json_fail(file, lines, tuple(err["loc"]), err["msg"]) from None
     for name in meta.channels:
-        if not _CHANNEL_NAME.match(name) or name == "time_s":
+        if not valid_channel_name(name):
             raise _json_fail(
                 file,
                 lines,
@@ -399,7 +398,7 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
             "a bundle v2 needs setups: the instrument setup of every error reading",
         )
     for sid, entry in (meta.setups or {}).items():
-        if not _CHANNEL_NAME.match(sid) or len(sid) > 64:
+        if not CHANNEL_NAME.match(sid):
             raise _json_fail(
                 file, lines, ("setups", sid), "setup ids may hold only letters, digits, '_', '.', '-' (at most 64)"
             )

@@ -24,7 +24,7 @@ from driftlab.models.online import (
     OnlineReport,
     RLSState,
     online_residuals,
-    online_update_document,
+    online_update_residuals,
     probe_times,
 )
 
@@ -98,7 +98,6 @@ def store_update(
     ``lam`` is the forgetting factor of a new state (default 0.98); choosing another one for a
     running state is refused. ``measured_at`` gives each probe row's time (aware datetimes).
     """
-
     if len(measured_at) != len(probe):
         raise ValidationError(f"{len(measured_at)} measurement times for {len(probe)} probe rows")
     if len(set(measured_at)) != len(measured_at):
@@ -116,7 +115,9 @@ def store_update(
                 f"{next(iter(states.values())).lam}; it can only be chosen when the state starts"
             )
         _, residual = online_residuals(doc, probe)
-        report, prior = online_update_document(doc, probe, states, DEFAULT_FORGETTING if lam is None else lam)
+        report, prior = online_update_residuals(
+            doc.machine, doc.version, residual, states, DEFAULT_FORGETTING if lam is None else lam
+        )
         for st in report.states.values():
             if not (np.all(np.isfinite(st.theta)) and np.all(np.isfinite(st.P))):
                 raise ValidationError("the on-line update diverged (non-finite state); check the inputs")

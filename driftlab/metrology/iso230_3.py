@@ -25,10 +25,9 @@ import numpy as np
 import pandas as pd
 
 from driftlab.errors import ValidationError
-from driftlab.vocabulary import LINEAR_AXES
+from driftlab.vocabulary import LINEAR_AXES, ROTATIONS
 
 ARCSEC_PER_RAD = 180.0 / np.pi * 3600.0
-ROTATIONS = ("alpha", "beta", "gamma")
 POSITIONING_TERM = {"X": "dx", "Y": "dy", "Z": "dz"}
 
 

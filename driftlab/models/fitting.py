@@ -54,7 +54,8 @@ from driftlab.models.selection import ScreeningResult, screen_channels
 from driftlab.models.virtual_sensor import fit_virtual_sensors
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
 from driftlab.physics.thermal import ALPHA_C
-from driftlab.vocabulary import AXES
+from driftlab.vocabulary import AXES, term_unit
+from driftlab.vocabulary import ROTATIONS as ANGLES
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +68,6 @@ JOINT_OF: Mapping[str, str] = {j: a for a, j in AXIS_JOINT.items()}
 ROTATION_ABOUT: Mapping[str, str] = {"X": "alpha", "Y": "beta", "Z": "gamma", "A": "alpha", "B": "beta"}
 #: pitch and yaw of a linear axis (Table 5.3: what the angular optics see; roll is the rotation about the axis)
 PITCH_YAW: Mapping[str, tuple[str, str]] = {"X": ("beta", "gamma"), "Y": ("alpha", "gamma"), "Z": ("alpha", "beta")}
-ANGLES = ("alpha", "beta", "gamma")
 #: feature kinds that belong to a joint (position shape, reversal, ballscrew)
 SEED_KINDS = frozenset({"position", "direction", "pos_dT"})
 #: the element whose structure a thermocouple's structure belongs to (allocation of a chosen term)
@@ -897,7 +897,7 @@ def validation_table(
                     "term": term,
                     "link": "+".join(links) or "-",
                     "measurement": _measurement_name(axis, term),
-                    "unit": "rad" if term in ANGLES else "mm",
+                    "unit": term_unit(term),
                     "rmse_train": rmse(col[tr] - W_hat[tr, k]),
                     "rmse_holdout": rmse(col[ho] - W_hat[ho, k]),
                     "rmse_validation": rmse(col[va] - W_hat[va, k]),

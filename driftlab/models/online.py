@@ -174,6 +174,13 @@ def online_update_document(
 
     doc = validate_document(document)
     _, resid = online_residuals(doc, probe)
+    return online_update_residuals(doc.machine, doc.version, resid, states, lam)
+
+
+def online_update_residuals(
+    machine: str, model_version: int | None, resid: np.ndarray, states: Mapping[str, RLSState] | None, lam: float
+) -> tuple[OnlineReport, dict[str, np.ndarray]]:
+    """Return :func:`online_update_document`'s result from the probes' residuals (N, 3) against the off-line model."""
     out_states: dict[str, RLSState] = {}
     terms: dict[str, dict[str, float]] = {}
     preds: dict[str, np.ndarray] = {}
@@ -187,7 +194,7 @@ def online_update_document(
             "online_rms_mm": run.rmse_prior,
             "correction_mm": float(run.state.theta[0]),
         }
-    return OnlineReport(doc.machine, doc.version, len(resid), terms, out_states), preds
+    return OnlineReport(machine, model_version, len(resid), terms, out_states), preds
 
 
 def probe_times(probe: Any, start: Any = None) -> list[Any]:

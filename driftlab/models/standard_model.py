@@ -32,18 +32,12 @@ from scipy import stats
 
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
-
-ROTATIONS = ("alpha", "beta", "gamma")
+from driftlab.vocabulary import term_unit
 
 #: physically possible thermocouple readings on a machine tool (degC); outside = card error value
 TEMP_RANGE_C = (-40.0, 250.0)
 #: robust z beyond which an isolated sample is a spike (8 MAD-sigma: ~1e-15 for Gaussian noise)
 SPIKE_Z = 8.0
-
-
-def term_unit(term: str) -> str:
-    """Return ``"mm"`` for translations and ``"rad"`` for rotations."""
-    return "rad" if term in ROTATIONS else "mm"
 
 
 def meta_get(meta: Any, key: str, default: Any = None) -> Any:

@@ -14,11 +14,10 @@ import pandas as pd
 
 from driftlab.campaigns.bundle import ERROR_COLUMNS, BundleError, load_bundle, write_bundle
 from driftlab.errors import ValidationError
-from driftlab.vocabulary import AXES
+from driftlab.vocabulary import AXES, ROTATIONS
 
 #: the positioning term of each axis (its own translation or rotation)
 POSITIONING_TERM = {"X": "dx", "Y": "dy", "Z": "dz", "A": "alpha", "B": "beta"}
-ROTATIONS = ("alpha", "beta", "gamma")
 #: factor to the bundle's units (mm for translations and linear positions, rad for rotations, deg for rotary positions)
 LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "µm": 1e-3, "micron": 1e-3, "nm": 1e-6, "m": 1e3, "in": 25.4, "inch": 25.4}
 ANGLE_UNITS = {
