@@ -637,15 +637,6 @@ def validates(
     standard model's collinear dT coefficients). Either must lower the validation RMSE by
     ``min_gain`` and explain ``min_explained`` x noise there.
     """
-
-    def ok(before: float, after: float) -> bool:
-        return bool(
-            np.isfinite(before)
-            and np.isfinite(after)
-            and after < (1.0 - min_gain) * before
-            and before**2 - after**2 >= (min_explained * noise) ** 2
-        )
-
     return validation_check(X, cols, y, train, folds, min_gain, min_explained, noise)[:2]
 
 
