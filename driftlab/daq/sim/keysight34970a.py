@@ -151,6 +151,10 @@ class Sim34970A(LineServer):
         """Connect voltage sensors to ``channels`` (34970A channel numbers); ``source(t)`` gives their volts."""
         self._sources.append((list(channels), source))
 
+    def voltages(self, t: float) -> np.ndarray:
+        """Return the DC volts of the scan list's volt channels at ``t`` (unwired channels 0 V)."""
+        return np.array([self._volts(c, t) for c in self.scan_list if self.function.get(c, ("", ""))[0] == "VOLT"])
+
     def unwire(self) -> None:
         """Disconnect every voltage sensor (their channels read 0 V)."""
         self._sources.clear()
