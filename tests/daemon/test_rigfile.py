@@ -97,3 +97,48 @@ def test_bad_driver_options_and_missing_files_are_one_line_cli_errors(tmp_path, 
     assert "unknown option 'chanels'" in capsys.readouterr().err
     assert main(["rig", "check", str(tmp_path / "none.yaml")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_daemon_runs_a_plan_on_a_rig_file(tmp_path, capsys):
+    """`driftlab daemon --plan P --rig R`: the 34970A, the laser and LinuxCNC at the rig's addresses, wall clock."""
+    from sqlalchemy import func, select
+
+    from driftlab.campaigns import schema as sc
+    from driftlab.campaigns.db import store_engine
+    from driftlab.daq.sim.instruments import SimLaser, WallClock, serial_url, visa_address
+    from driftlab.daq.sim.keysight34970a import Sim34970A
+    from driftlab.daq.sim.linuxcnc import SimLinuxCNC
+    from driftlab.testing.tinyworld import TinyWorld
+
+    world, clock = TinyWorld(channels=4), WallClock(acceleration=1.0)
+    card = Sim34970A(world, clock, {101: "T1", 102: "T2", 103: "T3", 104: "T4", 105: "T5"}).start()
+    cnc = SimLinuxCNC(world, clock).start()
+    head = SimLaser(world, clock, cnc).start()
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(
+        "name: bench\ninstruments:\n"
+        f"  thermocouples: {{driver: keysight-34970a, resource: '{visa_address(card)}',"
+        " options: {channels: {101: T1, 102: T2, 103: T3, 104: T4, 105: T5}}}\n"
+        f"  laser: {{driver: thesis-laser, resource: '{visa_address(head)}'}}\n"
+        f"  machine: {{driver: linuxcnc, resource: '{serial_url(cnc)}'}}\n"
+    )
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(
+        "name: bench-rig\nmachine: {id: rig-1, channels: {T1: {location: a}, T2: {location: b}, T4: {location: d}}}\n"
+        "scan_interval_s: 0.1\nstages:\n  - name: idle\n    axis: X\n    duration_s: 0.6\n"
+        "    sweep: {positions: [0, 0.01], directions: [1], interval_s: 0.5, point_s: 0.25}\n"
+    )
+    db = f"sqlite:///{tmp_path / 'r.sqlite'}"
+    try:
+        assert main(["daemon", "--plan", str(plan), "--rig", str(rig), "--db", db]) == 0
+    finally:
+        for server in (card, cnc, head):
+            server.close()
+    with store_engine(db).connect() as conn:
+        n = conn.execute(select(func.count()).select_from(sc.TemperatureSample.__table__)).scalar_one()
+        errs = conn.execute(select(func.count()).select_from(sc.ErrorSample.__table__)).scalar_one()
+    assert n == 6 * 3 and errs == 2  # six scans of the plan's three channels (T3, T5 wired but not scanned)
+    assert "set mdi G01 X0.0000 F2000" in cnc.received  # the approach moves went to LinuxCNC as MDI
+    assert "ROUT:SCAN (@101:102,104)" in card.received
+    assert main(["daemon", "--plan", str(plan), "--rig", str(tmp_path / "none.yaml"), "--db", db]) == 2
+    assert "no such file" in capsys.readouterr().err
