@@ -87,8 +87,36 @@ def channel_list(channels: Iterable[int]) -> str:
     return "(@" + ",".join(parts) + ")"
 
 
+_POW10 = 10.0 ** np.arange(-99, 100)
+
+
+def _parse_fixed(raw: bytes, n: int) -> np.ndarray | None:
+    """Return n readings in the mainframe's own fixed form ``+2.13450000E+01`` decoded at once, None if not that form.
+
+    The User's Guide (ch. 5, Reading Format) gives readings as SD.DDDDDDDDESDD, 15 characters, comma
+    separated; a block of a thousand scans is decoded here in one pass instead of value by value.
+    """
+    if len(raw) != 16 * n - 1:
+        return None
+    a = np.frombuffer(raw + b",", dtype=np.uint8).reshape(n, 16)
+    digits = a[:, [1, 3, 4, 5, 6, 7, 8, 9, 10, 13, 14]].astype(np.int64) - 48
+    if (
+        not np.all((digits >= 0) & (digits <= 9))
+        or not np.all((a[:, 2] == 46) & (a[:, 11] == 69) & (a[:, 15] == 44))
+        or not np.all(((a[:, 0] == 43) | (a[:, 0] == 45)) & ((a[:, 12] == 43) | (a[:, 12] == 45)))
+    ):
+        return None
+    mantissa = digits[:, :9] @ (10 ** np.arange(8, -1, -1, dtype=np.int64))
+    exponent = (digits[:, 9] * 10 + digits[:, 10]) * np.where(a[:, 12] == 45, -1, 1) - 8
+    sign = np.where(a[:, 0] == 45, -1.0, 1.0)
+    return sign * mantissa * _POW10[exponent + 99]
+
+
 def parse_readings(text: str, expected: int) -> np.ndarray:
     """Return the ASCII readings of a reply (``+2.13450000E+01,...``) as floats; ValueError if not ``expected``."""
+    fast = _parse_fixed(text.encode("ascii"), expected) if expected > 0 else None
+    if fast is not None:
+        return fast
     values = np.array(text.split(","), dtype=float) if text else np.zeros(0)
     if values.size != expected:
         raise ValueError(f"expected {expected} readings, got {values.size}")

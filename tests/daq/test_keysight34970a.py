@@ -251,3 +251,20 @@ def test_driver_against_the_simulated_mainframe_timer_scan_and_reference_junctio
             io.close()
         finally:
             rm.close()
+
+
+def test_block_readings_decode_exactly_as_float_does_and_the_simulator_formats_as_the_mainframe():
+    from driftlab.daq.keysight34970a import parse_readings
+    from driftlab.daq.sim.keysight34970a import format_readings
+
+    rng = np.random.default_rng(7)
+    values = np.concatenate(
+        [20 + rng.random(300), rng.normal(0, 500, 300), [0.0, 9.9e37, 9.9999999996, 1e-5, -273.15, 1e-12]]
+    )
+    text = format_readings(values)
+    assert text == ",".join(f"{v:+.8E}" for v in values.tolist())  # the form of the guide's examples
+    np.testing.assert_allclose(parse_readings(text, values.size), [float(f) for f in text.split(",")], rtol=1e-15)
+    # any other valid number form still parses (the slow path), a wrong count does not
+    np.testing.assert_allclose(parse_readings("21.5,+2.2E+01,-3", 3), [21.5, 22.0, -3.0])
+    with pytest.raises(ValueError, match="expected 4 readings, got 3"):
+        parse_readings(text.rsplit(",", len(values) - 3)[0], 4)

@@ -52,6 +52,30 @@ TC_TYPES = ("B", "E", "J", "K", "N", "R", "S", "T")
 _RJ = {"INT": "INT", "INTERNAL": "INT", "EXT": "EXT", "EXTERNAL": "EXT", "FIX": "FIX", "FIXED": "FIX"}
 
 
+def format_readings(values: np.ndarray) -> str:
+    """Return readings in the mainframe's form ``+2.13450000E+01,...`` (``{:+.8E}`` of each), built at once."""
+    x = np.asarray(values, dtype=float).ravel()
+    if x.size == 0:
+        return ""
+    ax = np.abs(x)
+    exp = np.where(ax > 0, np.floor(np.log10(np.where(ax > 0, ax, 1.0))), 0).astype(np.int64)
+    digits = np.rint(ax / 10.0 ** (exp - 8)).astype(np.int64)
+    carry = digits >= 1_000_000_000  # 9.999999996 rounds up to 10.00000000
+    exp, digits = np.where(carry, exp + 1, exp), np.where(carry, digits // 10, digits)
+    small = (digits < 100_000_000) & (ax > 0)  # log10 rounding just below a power of ten
+    exp, digits = np.where(small, exp - 1, exp), np.where(small, np.rint(ax / 10.0 ** (exp - 9)), digits)
+    digits = digits.astype(np.int64)
+    out = np.empty((x.size, 16), dtype=np.uint8)
+    out[:, 0] = np.where(np.signbit(x), 45, 43)
+    for i, col in enumerate([1, 3, 4, 5, 6, 7, 8, 9, 10]):
+        out[:, col] = 48 + (digits // 10 ** (8 - i)) % 10
+    out[:, 2], out[:, 11], out[:, 15] = 46, 69, 44
+    out[:, 12] = np.where(exp < 0, 45, 43)
+    out[:, 13] = 48 + (np.abs(exp) // 10) % 10
+    out[:, 14] = 48 + np.abs(exp) % 10
+    return out.tobytes()[:-1].decode("ascii")
+
+
 class ScpiError(Exception):
     """A command error: its code and message go to the error queue."""
 
@@ -235,7 +259,7 @@ class Sim34970A(LineServer):
 
     @staticmethod
     def _format(values: np.ndarray) -> str:
-        return ",".join(map("{:+.8E}".format, values.tolist()))
+        return format_readings(values)
 
     # -- the command set
     def handle(self, line: str) -> str | None:
