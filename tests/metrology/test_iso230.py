@@ -182,6 +182,54 @@ def test_iso230_3_stages_of_a_staged_campaign(vm_bundle, tmp_path):
     assert set(doc) == {"etve", "spindle", "linear"}
 
 
+@pytest.mark.parametrize(
+    "spelling",
+    [
+        {"idle": "none", "feed": "axis", "combined": "spindle+axis"},  # campaigns stored before
+        {},  # the one vocabulary
+    ],
+)
+def test_iso230_3_reads_the_daemons_heat_words_and_the_old_spelling(vm_bundle, spelling):
+    """The daemon's stages (``Stage.heat_label``) and stored campaigns that spelt them none/axis/spindle+axis give
+    the same ETVE, spindle and linear tests as the simulator's words."""
+    _, bundle = vm_bundle
+    meta = bundle.meta.model_dump(mode="json")
+    for st in meta["stages"]:
+        st["heat_source"] = spelling.get(st["heat_source"], st["heat_source"])
+    relabelled = Bundle("old", CampaignMeta.model_validate(meta), bundle.temperatures, bundle.conditions, bundle.errors)
+    got = iso230_3.evaluate_bundle(relabelled)
+    want = iso230_3.evaluate_bundle(bundle)
+    assert [len(got.etve), len(got.spindle), len(got.linear)] == [len(want.etve), len(want.spindle), len(want.linear)]
+    assert got.etve and got.spindle and got.linear
+    assert got.linear[0].figures == want.linear[0].figures
+
+
+def test_the_daemons_plan_stages_use_the_one_vocabulary():
+    """The demo's plan gives its stages the words ISO 230-3 looks for: idle, spindle and feed stages."""
+    from driftlab.campaigns.plan import load_plan
+    from driftlab.resources import examples_dir
+    from driftlab.vocabulary import HEAT_SOURCES
+
+    plan = load_plan(examples_dir() / "plans" / "demo-full.yaml")
+    words = {r["heat_source"] for r in plan.bundle_stages()}
+    assert words <= set(HEAT_SOURCES) and {"idle", "spindle", "feed"} <= words
+
+
+def test_iso230_3_plots_one_unit_per_axis(vm_bundle):
+    """Lengths (µm) and angles (arcsec) never share an axis; the legend sits outside the data."""
+    _, bundle = vm_bundle
+    res = iso230_3.evaluate_bundle(bundle)
+    fig = iso230_3.plot(res.spindle[0])
+    labels = [ax.get_ylabel() for ax in fig.axes if ax.get_ylabel()]
+    assert labels == ["drift (µm)", "drift (arcsec)"]
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        assert legend is not None and legend.get_bbox_to_anchor().x0 >= ax.get_window_extent().x1 - 1
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
 def test_cli_iso230_part3_and_one_line_errors(vm_bundle, tmp_path):
     path, _ = vm_bundle
     out, page = tmp_path / "t.json", tmp_path / "t.html"
