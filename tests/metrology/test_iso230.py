@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -52,6 +53,8 @@ def reference_iso230_2(readings: list[tuple[float, int, float]]) -> dict:
         "A_up": max(xu[t] + 2 * su[t] for t in targets) - min(xu[t] - 2 * su[t] for t in targets),
         "A_down": max(xd[t] + 2 * sdn[t] for t in targets) - min(xd[t] - 2 * sdn[t] for t in targets),
         "B": max(abs(B[t]) for t in targets),
+        # ISO 230-2:2014 mean reversal value of an axis: the mean of the signed B_j over the targets
+        "B_mean": sum(B[t] for t in targets) / len(targets),
         "E_up": max(xu.values()) - min(xu.values()),
         "E_down": max(xd.values()) - min(xd.values()),
         "M": max(xb.values()) - min(xb.values()),
@@ -152,13 +155,64 @@ def test_cli_iso230_part2_json_and_html(vm_bundle, tmp_path, capsys):
     out, page = tmp_path / "x.json", tmp_path / "x.html"
     assert main(["iso230", str(path), "--part", "2", "--axis", "X", "--json", str(out), "--html", str(page)]) == 0
     doc = json.loads(out.read_text())
-    assert set(doc) == set(iso230_2.FIGURES) | {"targets"}
+    assert set(doc) == set(iso230_2.FIGURES) | {"targets", "drift_between_runs", "warning", "conditions"}
     rows = bundle.errors[(bundle.errors["axis"] == "X") & (bundle.errors["term"] == "dx")]
     ref = reference_iso230_2(list(zip(rows["position"], rows["direction"], rows["value"])))
     assert max(abs(doc[k] - ref[k]) for k in iso230_2.FIGURES) < 1e-9
     assert len(doc["targets"]) == 11  # points_per_axis
-    assert "data:image/png;base64," in page.read_text()
-    assert "ISO 230-2" in capsys.readouterr().out
+    text = page.read_text()
+    assert "data:image/png;base64," in text
+    # a metrologist's page: the conditions, values in µm without e-notation, the warning about thermal drift
+    assert "Test conditions" in text and "air temperature" in text and "B̄ (mean reversal value)" in text
+    assert "µm" in text and not re.search(r"\d[eE][-+]\d", text.split("data:image")[0] + text.split('">')[-1])
+    assert doc["warning"] and "thermal drift" in doc["warning"]
+    out_text = capsys.readouterr().out
+    assert "ISO 230-2" in out_text and "µm" in out_text and "warning: the runs span thermal drift" in out_text
+
+
+def _drifting(readings, drift_per_run: float):
+    """The same runs with a deviation that grows by ``drift_per_run`` from one pair of runs to the next."""
+    out, pair, last = [], -1, None
+    for pos, d, x in readings:
+        if d > 0 and last != d:
+            pair += 1
+        last = d
+        out.append((pos, d, x + drift_per_run * pair))
+    return out
+
+
+def test_iso230_2_warns_when_the_runs_span_thermal_drift():
+    readings = synthetic_runs(0, n_runs=8)
+    pos, d, x = (np.array(c) for c in zip(*readings))
+    steady = iso230_2.evaluate(pos, d, x)
+    assert steady.drift_warning is None
+    pos, d, x = (np.array(c) for c in zip(*_drifting(readings, 0.002)))
+    drifting = iso230_2.evaluate(pos, d, x)
+    # 2 um per pair of runs over 8 pairs: the runs' means wander by 14 um, and R carries it
+    assert drifting.drift == pytest.approx(steady.drift + 0.014, abs=0.002)
+    assert drifting.drift_warning and "thermal drift" in drifting.drift_warning
+    assert drifting.figures["R"] > steady.figures["R"]
+    # B-bar, the mean reversal value: the signed mean of B_j, not max |B_j|
+    assert drifting.figures["B_mean"] == pytest.approx(np.mean(drifting.reversal), abs=1e-15)
+
+
+def test_iso230_2_per_stage_and_per_window(vm_bundle, tmp_path, capsys):
+    path, bundle = vm_bundle
+    whole = iso230_2.from_bundle_errors(bundle.errors, "X")
+    per_stage = iso230_2.windows(bundle.errors, "X", stages=list(bundle.meta.stages))
+    assert len(per_stage) >= 2 and all(w.result.runs < whole.runs for w in per_stage)
+    # a stage's runs drift less than the whole campaign's
+    assert min(w.result.drift for w in per_stage) < whole.drift
+    hourly = iso230_2.windows(bundle.errors, "X", window_s=3 * 3600.0)
+    assert all(w.end_s - w.start_s == pytest.approx(3 * 3600.0) for w in hourly)
+    assert sum(w.result.runs for w in hourly) <= whole.runs
+    out, page = tmp_path / "w.json", tmp_path / "w.html"
+    argv = ["iso230", str(path), "--part", "2", "--axis", "X", "--per-stage", "--json", str(out), "--html", str(page)]
+    assert main(argv) == 0
+    doc = json.loads(out.read_text())
+    assert [w["label"] for w in doc["windows"]] == [w.label for w in per_stage]
+    assert page.read_text().count("Test conditions") == len(per_stage)
+    capsys.readouterr()
 
 
 def test_iso230_3_stages_of_a_staged_campaign(vm_bundle, tmp_path):
