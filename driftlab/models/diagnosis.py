@@ -199,7 +199,7 @@ def simulation_sentences(td: TermData, prep: PreparedBundle, pred: np.ndarray, n
             verb = "falls" if dy < 0 else "rises"
             law = "stays flat" if abs(ds) < 0.25 * abs(dy) else ("keeps rising" if ds > 0 else "keeps falling")
             source = st.get("heat_source", "?")
-            when = "when the heat sources stop" if source in ("none", "off", "") else f"under {source} heating"
+            when = "when the heat sources stop" if source in ("none", "off", "idle", "") else f"under {source} heating"
             parts.append(
                 f"the error {verb} by {_fmt(abs(dy), u)} {when} (stage {st.get('name')}) "
                 f"but the time-driven law {law} ({_fmt(ds, u)})"
