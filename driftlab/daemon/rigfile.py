@@ -41,6 +41,7 @@ DRIVERS: dict[str, tuple[str, str]] = {
         "Keysight/Agilent 34970A, 34972A, DAQ970A thermocouple channels, SCPI over VISA",
     ),
     "keysight-34970a-dcv": ("proximity", "DC-volt channels of a 34970A family mainframe, SCPI over VISA"),
+    "nidaqmx": ("proximity", "NI-DAQmx analog inputs through NI's nidaqmx package (resource Dev1/ai0:4)"),
     "linuxcnc": ("machine", "LinuxCNC through linuxcncrsh, TCP (host:port, default port 5007)"),
     "thesis-tc-card": ("thermocouples", "legacy: the thesis' DAS-TC card protocol (driftlab's own, CJC?/SCAN?/FETC?)"),
     "thesis-laser": ("laser", "legacy: the thesis' HP-IB laser processor protocol (driftlab's own, MODE/MEAS?)"),
@@ -236,6 +237,19 @@ def open_instrument(
             adc.close()
             raise
         return adc, adc.close
+    if spec.driver == "nidaqmx":
+        from driftlab.daq.nidaq import NIDaqVolts
+
+        _unknown(role, o, {"min_v", "max_v", "terminal", "samples", "rate_hz"})
+        daq = NIDaqVolts(
+            spec.resource,
+            min_v=float(o.get("min_v", 0.0)),
+            max_v=float(o.get("max_v", 10.0)),
+            terminal=str(o.get("terminal", "DEFAULT")),
+            samples=int(o.get("samples", 1)),
+            rate_hz=float(o.get("rate_hz", 1000.0)),
+        ).open()
+        return daq, daq.close
     if spec.driver == "linuxcnc":
         from driftlab.daq.linuxcnc import LinuxCNCLink
 
@@ -312,6 +326,8 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
                 else:
                     srv = SimThermocoupleCard(world, clock, cmap)
             elif role == "proximity":
+                if spec.driver == "nidaqmx":
+                    raise ValidationError("the virtual machine has no NI-DAQmx card: simulate keysight-34970a-dcv")
                 srv = Sim34970A(world, clock) if spec.driver == "keysight-34970a-dcv" else SimADCard(clock)
             elif role == "laser":
                 stage = servers.get("machine")
