@@ -191,3 +191,26 @@ def test_against_the_simulated_linuxcnc_over_tcp():
             assert "set mdi G01 Z-20 F1000" in sim.received and "hello EMC driftlab 1.1" in sim.received
         finally:
             link.close()
+
+
+def test_a_sphere_probed_through_linuxcnc_g38_is_found_where_the_machine_has_it():
+    from driftlab.daq.linuxcnc import LinuxCNCProbe
+    from driftlab.daq.protocols import Prober
+    from driftlab.daq.sim.instruments import ManualClock, SimSphere, serial_url
+    from driftlab.daq.sim.linuxcnc import SimLinuxCNC
+    from driftlab.testing.tinyworld import TinyWorld
+
+    clock = ManualClock()
+    drift = np.array([0.004, -0.002, 0.003])  # the machine's error at the sphere: what probing is for
+    spheres = {"s1": SimSphere((50.0, 20.0, -100.0), 12.7)}
+    with SimLinuxCNC(TinyWorld(channels=2), clock, spheres=spheres, sphere_offset=lambda t, c: drift) as sim:
+        link = LinuxCNCLink.open(serial_url(sim), timeout_s=2.0, sleep=clock.sleep)
+        try:
+            probe = LinuxCNCProbe(link, stylus_radius_mm=1.0, feed_mm_min=200.0)
+            assert isinstance(probe, Prober)
+            got = probe.probe_sphere("s1", (50.0, 20.0, -100.0), 12.7)
+        finally:
+            link.close()
+    np.testing.assert_allclose(got.centre, np.array([50.0, 20.0, -100.0]) + drift, atol=1e-5)
+    assert got.radius_mm == pytest.approx(12.7, abs=1e-5)
+    assert sum(1 for c in sim.mdi_log if c.startswith("G38.2")) == 5
