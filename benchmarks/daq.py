@@ -1,8 +1,9 @@
 """Daemon throughput on the virtual machine: 50 thermocouples at 10 Hz plus a sweep a minute at 3600x.
 
-Prints one JSON line. The end-to-end runs drive the real drivers against the simulated servers
-(buffered block scans: PACE/FETC?, laser bursts) and commit through the store exactly as
-`driftlab daemon` does; the figures are then taken apart so they say where the time goes:
+Prints one JSON line. The end-to-end runs drive the real drivers against the simulated instruments
+(a Keysight 34970A's timer scan removed from its reading memory with DATA:POINts?/DATA:REMove?,
+LinuxCNC through linuxcncrsh, laser bursts) and commit through the store exactly as `driftlab daemon`
+does; the figures are then taken apart so they say where the time goes:
 
 * ``<db>_paced_*``: the daemon at 3600x (does it keep up; reading-to-committed latency p99 = the
   write latency; commit p99);
@@ -12,7 +13,7 @@ Prints one JSON line. The end-to-end runs drive the real drivers against the sim
   wall clock (the machine is shared: wall figures also count waiting for a core; on PostgreSQL
   the server's own CPU is not in it);
 * ``demo_*``: the shipped Z-axis demo plan (60 s scans, sweeps every 15 min) at 3600x;
-* ``instruments_*``: block scans through pyvisa from the simulated card, no store;
+* ``instruments_*``: block scans through pyvisa from the simulated 34970A, no store;
 * ``store_*``: the scheduler's sink committing the same blocks in the same batches, no instruments;
 * ``baseline_raw_*``: in-run baselines on the same rows and batches: plain sqlite3 executemany into
   a table with the same key and WAL settings; psycopg binary COPY (numpy-encoded) on PostgreSQL.
@@ -136,10 +137,11 @@ def instruments_only(n_blocks: int = 30, block: int = 200) -> dict:
     rig = build_sim_rig(plan, scenario, clock, channels)
     try:
         rig.scanner.pace(SCAN_S)
-        clock.wait_until((n_blocks + 1) * block * SCAN_S)
+        clock.wait_until(block * SCAN_S)
         rig.scanner.scan_block(0, block)
         t0, c0 = time.perf_counter(), time.process_time()
         for k in range(1, n_blocks + 1):
+            clock.wait_until((k + 1) * block * SCAN_S)  # the mainframe's memory holds what was taken since
             rig.scanner.scan_block(k * block, block)
         dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     finally:

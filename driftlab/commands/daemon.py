@@ -58,6 +58,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_daemon)
 
 
+def _export_readers() -> dict[str, Any]:
+    """Return the export formats a laser-export follower reads (the importers, wired in here above both layers)."""
+    from driftlab.commands.rig import export_readers
+
+    return dict(export_readers())
+
+
 def _daemon(args: argparse.Namespace) -> int:
     """Run (or resume) the plan's campaign and return 0 when it completed, 3 when stopped early."""
     from driftlab.campaigns.plan import load_plan
@@ -91,6 +98,7 @@ def _daemon(args: argparse.Namespace) -> int:
             db_url=args.db,
             scenario_path=args.sim,
             rig_path=args.rig,
+            export_readers=_export_readers(),
             speed=speed,
             resume=args.resume,
             stop=stop,

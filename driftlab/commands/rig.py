@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from driftlab.resources import examples_dir
@@ -32,6 +33,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.set_defaults(func=_check)
     d = rs.add_parser("drivers", help="list the instrument drivers and their roles")
     d.set_defaults(func=_drivers)
+
+
+def export_readers() -> dict[str, Callable[[Path, str | None], list[tuple[str, str, float, int, float]]]]:
+    """Return the export-file formats a ``laser-export`` follower reads, from the importers (format -> reader)."""
+
+    def renishaw_csv(path: Path, axis: str | None) -> list[tuple[str, str, float, int, float]]:
+        from driftlab.metrology.importers.renishaw import read_renishaw_csv
+
+        e = read_renishaw_csv(path, axis=axis).errors
+        return [
+            (str(a), str(t), float(p), int(d), float(v))
+            for a, t, p, d, v in zip(e["axis"], e["term"], e["position"], e["direction"], e["value"], strict=True)
+        ]
+
+    return {"renishaw-csv": renishaw_csv}
 
 
 def _drivers(args: argparse.Namespace) -> int:
@@ -63,7 +79,7 @@ def _check(args: argparse.Namespace) -> int:
 
         scenario = args.sim if args.sim is not None else examples_dir() / "scenarios" / "clean.yaml"
         world, clock = VirtualMachine(load_scenario(scenario)), ManualClock(3600.0)
-    results = check_rig(rig, world=world, sim_clock=clock, simulate_all=args.sim is not None)
+    results = check_rig(rig, world=world, sim_clock=clock, simulate_all=args.sim is not None, readers=export_readers())
     rows = [("role", "driver", "resource", "identification", "reading")]
     for r in results:
         reading = ", ".join(f"{k}={_fmt(v)}" for k, v in list(r.reading.items())[:6])

@@ -277,7 +277,9 @@ def build_real_rig(plan: Plan, channels: list[str], clock: Any) -> InstrumentRig
     return InstrumentRig(plan, scanner, laser, link, clock=clock, closers=closers)
 
 
-def build_file_rig(plan: Plan, rig: Any, channels: list[str], clock: Any) -> InstrumentRig:
+def build_file_rig(
+    plan: Plan, rig: Any, channels: list[str], clock: Any, readers: Mapping[str, Callable[..., Any]] | None = None
+) -> InstrumentRig:
     """Return a rig on the instruments of a rig file (``driftlab daemon --rig``), scanning the plan's channels."""
     from driftlab.daemon.rigfile import open_rig, thermocouple_channels
 
@@ -303,7 +305,7 @@ def build_file_rig(plan: Plan, rig: Any, channels: list[str], clock: Any) -> Ins
     )
     if any(s.sweep is not None for s in plan.stages) and rig.role("laser") is None:
         raise ValidationError(f"plan {plan.name}: sweeps need a laser role in rig {rig.name}")
-    opened = open_rig(scoped, clock.now)
+    opened = open_rig(scoped, clock.now, readers=readers)
     inst = opened.instruments
     return InstrumentRig(
         plan,

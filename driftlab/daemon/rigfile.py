@@ -41,6 +41,8 @@ DRIVERS: dict[str, tuple[str, str]] = {
         "Keysight/Agilent 34970A, 34972A, DAQ970A thermocouple channels, SCPI over VISA",
     ),
     "keysight-34970a-dcv": ("proximity", "DC-volt channels of a 34970A family mainframe, SCPI over VISA"),
+    "nidaqmx": ("proximity", "NI-DAQmx analog inputs through NI's nidaqmx package (resource Dev1/ai0:4)"),
+    "laser-export": ("laser", "a laser's capture software followed through its live export file (resource: the file)"),
     "linuxcnc": ("machine", "LinuxCNC through linuxcncrsh, TCP (host:port, default port 5007)"),
     "thesis-tc-card": ("thermocouples", "legacy: the thesis' DAS-TC card protocol (driftlab's own, CJC?/SCAN?/FETC?)"),
     "thesis-laser": ("laser", "legacy: the thesis' HP-IB laser processor protocol (driftlab's own, MODE/MEAS?)"),
@@ -181,9 +183,18 @@ class OpenRig:
 
 
 def open_instrument(
-    role: str, spec: InstrumentSpec, rm_factory: Callable[[], Any], clock: Callable[[], float], fast: bool = False
+    role: str,
+    spec: InstrumentSpec,
+    rm_factory: Callable[[], Any],
+    clock: Callable[[], float],
+    fast: bool = False,
+    readers: Mapping[str, Callable[..., Any]] | None = None,
 ) -> tuple[Any, Callable[[], None]]:
-    """Return (driver, close) of one role's instrument, identified and configured; InstrumentError if unreachable."""
+    """Return (driver, close) of one role's instrument, identified and configured; InstrumentError if unreachable.
+
+    ``readers`` are the export-file formats a ``laser-export`` follower can read (format -> reader of
+    a file's rows), supplied by the commands from the importers.
+    """
     from driftlab.daq.retry import RetryPolicy
     from driftlab.daq.transport import LineChannel, VisaPort, open_port
 
@@ -236,6 +247,19 @@ def open_instrument(
             adc.close()
             raise
         return adc, adc.close
+    if spec.driver == "nidaqmx":
+        from driftlab.daq.nidaq import NIDaqVolts
+
+        _unknown(role, o, {"min_v", "max_v", "terminal", "samples", "rate_hz"})
+        daq = NIDaqVolts(
+            spec.resource,
+            min_v=float(o.get("min_v", 0.0)),
+            max_v=float(o.get("max_v", 10.0)),
+            terminal=str(o.get("terminal", "DEFAULT")),
+            samples=int(o.get("samples", 1)),
+            rate_hz=float(o.get("rate_hz", 1000.0)),
+        ).open()
+        return daq, daq.close
     if spec.driver == "linuxcnc":
         from driftlab.daq.linuxcnc import LinuxCNCLink
 
@@ -259,6 +283,28 @@ def open_instrument(
             io, _channel_map(role, o), _calibrations(role, o), clock=clock, tc_type=str(o.get("tc_type", "E"))
         )
         return tc, tc.close
+    if spec.driver == "laser-export":
+        from driftlab.daq.export_follower import ExportFollower
+
+        _unknown(role, o, {"format", "axis", "poll_s", "timeout_s", "position_tol"})
+        fmt = str(o.get("format", "renishaw-csv"))
+        known = dict(readers or {})
+        if fmt not in known:
+            raise ValidationError(
+                f"instruments.{role}.options.format {fmt!r}: one of {', '.join(known) or '(none available here)'}"
+            )
+        axis = o.get("axis")
+        reader = known[fmt]
+        follower = ExportFollower(
+            spec.resource,
+            lambda path: reader(path, axis),
+            fmt=fmt,
+            poll_s=float(o.get("poll_s", 1.0)),
+            timeout_s=float(o.get("timeout_s", 600.0)),
+            position_tol=float(o.get("position_tol", 1e-3)),
+        )
+        follower.rows()  # the file must exist when the rig is opened (the capture software has started)
+        return follower, follower.close
     if spec.driver == "thesis-laser":
         from driftlab.daq.laser import LaserInterferometer
 
@@ -312,8 +358,12 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
                 else:
                     srv = SimThermocoupleCard(world, clock, cmap)
             elif role == "proximity":
+                if spec.driver == "nidaqmx":
+                    raise ValidationError("the virtual machine has no NI-DAQmx card: simulate keysight-34970a-dcv")
                 srv = Sim34970A(world, clock) if spec.driver == "keysight-34970a-dcv" else SimADCard(clock)
             elif role == "laser":
+                if spec.driver == "laser-export":
+                    raise ValidationError("the virtual machine has no capture software: simulate thesis-laser")
                 stage = servers.get("machine")
                 if stage is None:
                     from driftlab.daq.sim.instruments import FixedStage
@@ -345,6 +395,7 @@ def open_rig(
     sim_clock: Any | None = None,
     simulate_all: bool = False,
     fast: bool = False,
+    readers: Mapping[str, Callable[..., Any]] | None = None,
 ) -> OpenRig:
     """Open the rig's instruments (``roles``, default all), starting simulated ones where asked or named ``sim``."""
     from driftlab.daq.transport import visa_resource_manager
@@ -427,6 +478,8 @@ def read_once(role: str, driver: Any) -> tuple[str | None, dict[str, Any]]:
         return idn, {k: float(v) for k, v in driver.position().items()}
     if role == "laser":
         idn = driver.identify()
+        if hasattr(driver, "status"):  # an export follower: what the file holds so far
+            return idn, dict(driver.status())
         env = driver.environment()
         return idn, {
             "air_c": float(env.t_c),
@@ -447,7 +500,11 @@ def _idn(driver: Any) -> str | None:
 
 
 def check_rig(
-    rig: RigSpec, world: Any | None = None, sim_clock: Any | None = None, simulate_all: bool = False
+    rig: RigSpec,
+    world: Any | None = None,
+    sim_clock: Any | None = None,
+    simulate_all: bool = False,
+    readers: Mapping[str, Callable[..., Any]] | None = None,
 ) -> list[RoleCheck]:
     """Return, for every role of the rig, what connecting, identifying and one reading gave (errors included)."""
     import time
@@ -458,7 +515,15 @@ def check_rig(
         check = RoleCheck(role, spec.driver, spec.resource)
         results.append(check)
         try:
-            opened = open_rig(rig, time.monotonic, [role], world=world, sim_clock=sim_clock, simulate_all=simulate_all)
+            opened = open_rig(
+                rig,
+                time.monotonic,
+                [role],
+                world=world,
+                sim_clock=sim_clock,
+                simulate_all=simulate_all,
+                readers=readers,
+            )
         except DriftlabError as exc:
             check.error = exc.one_line()
             continue

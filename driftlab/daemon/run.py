@@ -79,6 +79,7 @@ def run_daemon(
     engine: Any | None = None,
     world: Any | None = None,
     rig_path: Path | str | None = None,
+    export_readers: Any | None = None,
 ) -> DaemonResult:
     """Open (or resume) the plan's campaign in the store and run it on the simulated rig, a rig file's
     instruments (``rig_path``), or the instruments named in the plan."""
@@ -121,7 +122,7 @@ def run_daemon(
         if rig_spec is not None:
             from driftlab.daemon.rig import build_file_rig
 
-            rig = build_file_rig(plan, rig_spec, list(channels), clock)
+            rig = build_file_rig(plan, rig_spec, list(channels), clock, export_readers)
         else:
             rig = build_real_rig(plan, list(channels), clock)
     extra = sim_meta(plan, scenario) if scenario is not None else None

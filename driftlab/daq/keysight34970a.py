@@ -55,8 +55,8 @@ TC_TYPES = ("B", "E", "J", "K", "N", "R", "S", "T")
 REFERENCE_JUNCTIONS = {"INT": "INT", "INTERNAL": "INT", "EXT": "EXT", "EXTERNAL": "EXT", "FIX": "FIX", "FIXED": "FIX"}
 #: the overload value the mainframe returns for an open thermocouple (TC check on) or an overload
 OVERLOAD = 9.9e37
-#: reading memory of the 34970A/34972A (User's Guide ch. 5, Scan Memory Commands)
-MEMORY_READINGS = 50_000
+#: reading memory by model (34970A/34972A User's Guide ch. 5 Scan Memory Commands; DAQ970A Programming Guide)
+MEMORY_READINGS = {"34970A": 50_000, "34972A": 50_000, "DAQ970A": 100_000, "DAQ973A": 100_000}
 
 
 def check_channels(channels: Iterable[int]) -> list[int]:
@@ -226,6 +226,7 @@ class Keysight34970A(ScpiInstrument):
         self._taken = 0  # scans removed from reading memory so far
         self._cache_first = 0  # run scan number of the first row kept
         self._cache = np.zeros((0, len(chans)))
+        self._overflowed = False
 
     @classmethod
     def open(
@@ -308,6 +309,7 @@ class Keysight34970A(ScpiInstrument):
         self.setting("TRIG:COUN INF")
         self.setting("INIT")
         self._interval_s = float(interval_s)
+        self._overflowed = False
         self._origin = None
         self._taken = 0
         self._cache_first = 0
@@ -327,7 +329,18 @@ class Keysight34970A(ScpiInstrument):
     def _remove(self, scans: int) -> np.ndarray:
         """Return the ``scans`` oldest sweeps erased from memory, shaped (scans, channels)."""
         width = len(self._chans)
+        if self._overflowed:
+            raise InstrumentError("34970A: reading memory overflowed earlier; buffered scans are out of step")
         have = self.stored_readings()
+        model = self.idn.split(",")[1].strip().upper() if self.idn and self.idn.count(",") >= 1 else ""
+        if have > MEMORY_READINGS.get(model, 50_000) - width:
+            # full: the oldest readings were overwritten (the guide: the most recent are kept), so the count
+            # of scans removed no longer says which scan the next reading is - refuse rather than misplace
+            self._overflowed = True
+            raise InstrumentError(
+                f"34970A: reading memory full ({have} readings): older scans were overwritten; "
+                "stop and resume the daemon to restart the buffered scan"
+            )
         if have < scans * width:
             raise InstrumentError(f"34970A: {scans} scans asked for, {have // width} in memory (not taken yet)")
         try:

@@ -15,7 +15,9 @@ Physics
   reference lost: the head's count is no longer tied to the datum, so no later
   reading is returned until the reference is re-established (ch. 5.5, 5.6).
 
-Instrument protocol (ASCII over GPIB, ``\\n`` terminated, every command answered):
+Legacy protocol of the thesis' HP-IB laser processor, driftlab's own (rig driver ``thesis-laser``;
+no laser on the market speaks it; docs/instruments.md says which systems publish what). Instrument
+protocol (ASCII over GPIB, ``\\n`` terminated, every command answered):
 
 =====================  =========================================================
 ``*IDN?``              ``<maker>,<model>,<serial>,<firmware>``
@@ -187,7 +189,7 @@ def _parse_env(text: str) -> Environment:
 
 
 class LaserInterferometer:
-    """A GPIB laser interferometer on a line channel; an AngleMeter or DisplacementMeter by mode."""
+    """The thesis' HP-IB laser (legacy protocol) on a line channel; an AngleMeter or DisplacementMeter by mode."""
 
     def __init__(
         self,

@@ -33,6 +33,7 @@ import math
 import re
 import time
 from collections.abc import Callable, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -278,3 +279,55 @@ class LinuxCNCLink:
     def close(self) -> None:
         """Close the session (the controller keeps running)."""
         self._drop()
+
+
+class LinuxCNCProbe:
+    """A touch-trigger probe on LinuxCNC: each point a G38.2 move, the sphere fitted as ch. 5.6 does (a Prober).
+
+    Between points the probe retracts to its start, climbs to ``safe_z_mm`` above the sphere and
+    comes down over the next start, so no straight move between starts can cross the sphere.
+    """
+
+    def __init__(
+        self,
+        link: LinuxCNCLink,
+        stylus_radius_mm: float = 1.0,
+        feed_mm_min: float = 100.0,
+        clearance_mm: float = 3.0,
+        overtravel_mm: float = 3.0,
+        safe_z_mm: float = 10.0,
+    ) -> None:
+        from driftlab.daq.probe import LobingMap, TouchProbe
+
+        self.link = link
+        self.feed_mm_min, self.safe_z_mm = feed_mm_min, safe_z_mm
+        outer = self
+
+        class _Probe(TouchProbe):
+            def _probe_move(self, start: np.ndarray, u: np.ndarray, distance_mm: float) -> np.ndarray | None:
+                return outer._move(start, u, distance_mm)
+
+        self._probe = _Probe(None, stylus_radius_mm, LobingMap(), clearance_mm, overtravel_mm, link=link)  # type: ignore[arg-type]
+        self._top: float | None = None
+
+    def _move(self, start: np.ndarray, u: np.ndarray, distance_mm: float) -> np.ndarray | None:
+        top = self._top if self._top is not None else float(start[2])
+        here = self.link.position()
+        self.link.send_program(
+            [
+                f"G0 Z{max(top, here['Z']):.4f}",
+                f"G0 X{start[0]:.4f} Y{start[1]:.4f}",
+                f"G0 Z{start[2]:.4f}",
+            ]
+        )
+        hit = self.link.probe((start + distance_mm * u).tolist(), self.feed_mm_min)
+        self.link.send_program([f"G0 X{start[0]:.4f} Y{start[1]:.4f} Z{start[2]:.4f}"])
+        return hit
+
+    def probe_sphere(self, name: str, nominal_centre: Sequence[float], radius_mm: float) -> Any:
+        """Return the sphere's centre from five G38.2 points (ch. 5.6), moving round it at a safe height."""
+        self._top = float(nominal_centre[2]) + radius_mm + self._probe.stylus_radius_mm + self.safe_z_mm
+        try:
+            return self._probe.probe_sphere(name, nominal_centre, radius_mm)
+        finally:
+            self._top = None

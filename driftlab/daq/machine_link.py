@@ -8,7 +8,9 @@ queue has drained to the low-water mark, then tops it up to the high-water mark
 sending more data").  ``lines`` may be a lazy iterable: a compensator's generator is
 evaluated block by block at send time, with the latest temperatures.
 
-Controller protocol (ASCII, ``\\n`` terminated, every command answered):
+Legacy protocol of the thesis' RS-232 line, driftlab's own (rig driver ``thesis-rs232``; the
+compensator streams through it; a real controller: :mod:`driftlab.daq.linuxcnc`). Controller
+protocol (ASCII, ``\\n`` terminated, every command answered):
 
 ========================  ==========================================================
 ``STAT?``                 ``STAT <free> <capacity> <last executed seq>``
@@ -75,7 +77,7 @@ def _parse_pos(text: str) -> dict[str, float]:
 
 
 class SerialMachineLink:
-    """The controller link over pyserial (a COM port, or ``socket://`` for the simulator)."""
+    """The thesis' RS-232 controller link (legacy protocol) over pyserial (a COM port, or ``socket://``)."""
 
     def __init__(
         self,

@@ -160,13 +160,17 @@ class TouchProbe:
         u = np.asarray(direction, dtype=float)
         u = u / np.linalg.norm(u)
         s = np.asarray(start, dtype=float)
-        args = ",".join(f"{v + 0.0:.6f}" for v in (*s, *u, distance_mm))  # + 0.0: no "-0.000000"
-        hit = self._io.query(f"PRB {args}", _parse_hit)
+        hit = self._probe_move(s, u, distance_mm)
         if hit is None:
             raise InstrumentError(
                 f"probe: no trigger within {distance_mm:.3f} mm from {s[0]:.3f},{s[1]:.3f},{s[2]:.3f}"
             )
         return hit
+
+    def _probe_move(self, start: np.ndarray, u: np.ndarray, distance_mm: float) -> np.ndarray | None:
+        """Return the stylus centre latched on a probing move from ``start`` along ``u``, None without contact."""
+        args = ",".join(f"{v + 0.0:.6f}" for v in (*start, *u, distance_mm))  # + 0.0: no "-0.000000"
+        return self._io.query(f"PRB {args}", _parse_hit)
 
     def probe_points(
         self, nominal_centre: Sequence[float] | np.ndarray, radius_mm: float, normals: np.ndarray

@@ -164,7 +164,7 @@ def _in_range(volts: np.ndarray) -> np.ndarray:
 
 
 class ADCard:
-    """A DT2801 style A/D card on a line channel: reads voltages of a channel range."""
+    """The thesis' DT2801 A/D card (legacy protocol ``VOLT?``, rig driver thesis-ad-card): voltages of channels."""
 
     def __init__(self, channel: LineChannel, n_channels: int = 16) -> None:
         self._io = channel

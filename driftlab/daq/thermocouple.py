@@ -16,7 +16,9 @@ junction's EMF is E_total = E_meas + E(t_cj), then inverted.  Per-channel calibr
 (appendix B) scales and shifts the result: t = slope * t_raw + offset (example:
 slope 1.000414, offset -0.20638 degC).
 
-Card protocol (ASCII, one ``\\n``-terminated line each way; the simulated card in
+Legacy protocol of the thesis' DAS-TC card, driftlab's own (rig driver ``thesis-tc-card``; no
+instrument on the market speaks it; a shop's scanner: :mod:`driftlab.daq.keysight34970a`). Card
+protocol (ASCII, one ``\\n``-terminated line each way; the simulated card in
 ``driftlab.daq.sim.instruments`` answers the same):
 
 =================================  =============================================
@@ -456,7 +458,7 @@ def _parse_float(text: str) -> float:
 
 
 class ThermocoupleCard:
-    """A DAS-TC style scanner (type E by default; J, K, T too) on a line channel; satisfies TemperatureScanner."""
+    """The thesis' DAS-TC card (legacy protocol; type E by default, J, K, T too): a TemperatureScanner."""
 
     def __init__(
         self,

@@ -268,3 +268,13 @@ def test_block_readings_decode_exactly_as_float_does_and_the_simulator_formats_a
     np.testing.assert_allclose(parse_readings("21.5,+2.2E+01,-3", 3), [21.5, 22.0, -3.0])
     with pytest.raises(ValueError, match="expected 4 readings, got 3"):
         parse_readings(text.rsplit(",", len(values) - 3)[0], 4)
+
+
+def test_a_full_reading_memory_is_refused_never_misplaced():
+    pairs = [*config_pairs(), *pace_pairs(), (b"DATA:POIN?\n", b"+49998\n")]
+    with expected_protocol(lambda ch: Keysight34970A(ch, CHANS), pairs) as card:
+        card.pace(0.1)
+        with pytest.raises(InstrumentError, match="memory full"):
+            card.scan_block(0, 2)
+        with pytest.raises(InstrumentError, match="out of step"):  # and every later block, without a guess
+            card.scan_block(2, 2)

@@ -177,7 +177,7 @@ class Sim34970A(LineServer):
 
     def voltages(self, t: float) -> np.ndarray:
         """Return the DC volts of the scan list's volt channels at ``t`` (unwired channels 0 V)."""
-        return np.array([self._volts(c, t) for c in self.scan_list if self.function.get(c, ("", ""))[0] == "VOLT"])
+        return self._volts_at([c for c in self.scan_list if self.function.get(c, ("", ""))[0] == "VOLT"], t)
 
     def unwire(self) -> None:
         """Disconnect every voltage sensor (their channels read 0 V)."""
@@ -203,9 +203,10 @@ class Sim34970A(LineServer):
                 temps = temps + self.noise_c * self._rng.standard_normal(temps.shape)
             for col, i in enumerate(tc):
                 out[:, i] = self._thermocouple(chans[i], temps[:, col])
-        for i, c in enumerate(chans):
-            if self.function.get(c, ("", ""))[0] == "VOLT":
-                out[:, i] = [self._volts(c, t) for t in times.tolist()]
+        volt = [i for i, c in enumerate(chans) if self.function.get(c, ("", ""))[0] == "VOLT"]
+        if volt:
+            for row, t in enumerate(times.tolist()):
+                out[row, volt] = self._volts_at([chans[i] for i in volt], t)
         return out
 
     def _thermocouple(self, channel: int, true_c: np.ndarray) -> np.ndarray:
@@ -225,11 +226,16 @@ class Sim34970A(LineServer):
         bad = (open_ & self.check.get(channel, False)) | (rj == "EXT") | ~np.isfinite(t)
         return np.where(bad, OVERLOAD, t)
 
-    def _volts(self, channel: int, t: float) -> float:
-        for chans, source in self._sources:
-            if channel in chans:
-                return float(np.asarray(source(t))[chans.index(channel)])
-        return 0.0
+    def _volts_at(self, channels: list[int], t: float) -> np.ndarray:
+        """Return the volts of ``channels`` at ``t``: each wired source evaluated once, unwired channels 0 V."""
+        out = np.zeros(len(channels))
+        for wired, source in self._sources:
+            hit = [(i, wired.index(c)) for i, c in enumerate(channels) if c in wired]
+            if hit:
+                v = np.asarray(source(t), dtype=float)
+                for i, j in hit:
+                    out[i] = v[j]
+        return out
 
     def _taken(self, now: float) -> int:
         """Return the sweeps taken since INIT by ``now``."""
