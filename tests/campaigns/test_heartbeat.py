@@ -22,6 +22,7 @@ from driftlab.campaigns import live
 from driftlab.campaigns.db import store_engine
 from driftlab.campaigns.plan import load_plan
 from driftlab.campaigns.status import beat, campaign_status, format_status, stale_since
+from driftlab.cli import main
 from driftlab.commands.campaign import render
 from driftlab.daemon.run import run_daemon
 from tests.campaigns.test_live import PLAN, SCENARIO
@@ -42,7 +43,7 @@ def _text(head: dict) -> str:
     return console.export_text()
 
 
-def test_the_daemon_beats_while_it_runs_and_a_silent_one_is_stale(db_url: str, files) -> None:
+def test_the_daemon_beats_while_it_runs_and_a_silent_one_is_stale(db_url: str, files, capsys) -> None:
     plan, scen = files
     r = run_daemon(load_plan(plan), db_url=db_url, scenario_path=scen, speed=math.inf, stop_after_commits=3)
     engine = store_engine(db_url)
@@ -66,11 +67,31 @@ def test_the_daemon_beats_while_it_runs_and_a_silent_one_is_stale(db_url: str, f
     drawn = _text(head)
     assert "stale since" in drawn and "left" not in drawn
     assert live.live_marks(engine)[r.campaign_id]["stale"] is True
+    assert main(["health", "--daemon", "--db", db_url]) == 1  # the container healthcheck fails too
+    assert "health: the daemon stopped beating: live-test (stale since " in capsys.readouterr().err
     # a daemon that beats again (resumed) is not stale
     beat(engine, r.campaign_id)
     (row,) = campaign_status(engine, r.campaign_id)
     assert row["stale_since"] is None and "stale" not in format_status([row])
     assert live.live_marks(engine)[r.campaign_id]["stale"] is False
+    assert main(["health", "--daemon", "--db", db_url]) == 0
+    assert capsys.readouterr().out.strip() == "healthy"
+
+
+@pytest.mark.postgres
+def test_health_of_a_worker_and_of_a_database_that_does_not_answer(pg_cluster, capsys) -> None:
+    from driftlab.campaigns.store import connect
+
+    pg_url = pg_cluster.create_database()
+
+    with connect(pg_url) as store:
+        store.ensure_schema()
+    assert main(["health", "--db", pg_url]) == 0
+    code = main(["health", "--worker", "--db", pg_url])
+    err = capsys.readouterr().err
+    assert code == 1 and ("no worker is registered" in err or "heartbeat is" in err)
+    assert main(["health", "--db", "postgresql+psycopg://postgres@127.0.0.1:1/nowhere"]) == 1
+    assert capsys.readouterr().err.startswith("driftlab: error: database: ")
 
 
 def test_a_finished_campaign_reads_done_not_97_percent(db_url: str, files) -> None:
