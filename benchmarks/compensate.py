@@ -1,6 +1,8 @@
 """Compensator throughput: offline 1,000,000-block program, streaming per-block latency.
 
-Prints ONE JSON line. Offline: parse + predict + solve (eqs. 4.23-4.26) + quantise + emit of a
+Prints ONE JSON line. ``offline_file_*``: end to end as ``driftlab compensate P -o OUT`` runs (file in,
+first pass with the machine envelope, second pass, file out), beside the same without the envelope
+checks (``baseline_unguarded_file_*``). Offline: parse + predict + solve (eqs. 4.23-4.26) + quantise + emit of a
 1,000,000-block five-axis program, in blocks/s of wall time and of CPU time (the machine is shared:
 the CPU figure is what one core does); baseline in the same run: the forward chain
 ``kinematics.machine_chain`` over the same poses with the predicted errors. Streaming: per-block latency (time
@@ -94,7 +96,10 @@ def document() -> dict:
                     "statistics": {"rmse_train": 0.001},
                 }
             )
-    return {"machine": "bench", "version": 1, "inputs": inputs, "terms": terms}
+    # the machine envelope (issue 24): travel around the program's random walk, default largest corrections
+    travel = {"X": [-3000.0, 3000.0], "Y": [-3000.0, 3000.0], "Z": [-3000.0, 3000.0], "A": [-90.0, 90.0]}
+    envelope = {"travel": {**travel, "B": [-90.0, 90.0]}}
+    return {"machine": "bench", "version": 1, "inputs": inputs, "terms": terms, "envelope": envelope}
 
 
 def program_text(n: int, seed: int = 1, head: str = "%\n(benchmark)\nG90 G21 G1 F2000\n") -> bytes:
@@ -158,6 +163,34 @@ def offline(data: bytes, model: ErrorModel, temps: dict) -> dict:
     }
 
 
+def offline_file(data: bytes, model: ErrorModel, temps: dict) -> dict:
+    """Return the end-to-end figures of `driftlab compensate P -o OUT`'s path (file in, file out).
+
+    ``compensate_file`` with the envelope guard (a first pass checking every block's target and
+    correction, then the second pass correcting, checking every point and writing), beside the
+    same call without the guard in the same run (the in-run baseline of what the checks cost).
+    """
+    import tempfile
+
+    from driftlab.compensator.compensate import compensate_file
+    from driftlab.compensator.guard import Guard
+
+    wall, cpu = time.perf_counter, time.process_time
+    out: dict = {}
+    with tempfile.TemporaryDirectory() as d:
+        src = Path(d) / "bench.nc"
+        src.write_bytes(data)
+        for key, guard in (("baseline_unguarded_file", None), ("offline_file", Guard.for_model(model))):
+            w0, c0 = wall(), cpu()
+            result = compensate_file(src, model, temps, Path(d) / "out.nc", guard=guard)
+            w1, c1 = wall(), cpu()
+            out[f"{key}_s"] = round(w1 - w0, 3)
+            out[f"{key}_blocks_per_s"] = round(result.blocks / (w1 - w0))
+            out[f"{key}_blocks_per_cpu_s"] = round(result.blocks / (c1 - c0))
+    out["offline_file_guard_cost"] = round(out["offline_file_s"] / max(out["baseline_unguarded_file_s"], 1e-9), 2)
+    return out
+
+
 def streaming(model: ErrorModel, temps: dict) -> dict:
     """Return per-block latency figures of a run to the simulated controller."""
     import tempfile
@@ -213,6 +246,7 @@ def main() -> None:
     data = program_text(N_BLOCKS)
     figures = {"benchmark": "compensate", "load_average": _common.load_average()}
     figures.update(offline(data, model, temps))
+    figures.update(offline_file(data, model, temps))
     figures.update(streaming(model, temps))
     # wall time counts waiting for a core on a shared machine; CPU time is what one core does
     p99_ok = figures["stream_latency_ms_p99"] < 1.0

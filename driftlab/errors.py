@@ -44,6 +44,16 @@ class InstrumentError(DriftlabError):
     http_status = 503
 
 
+class ServiceError(DriftlabError):
+    """A service a long-running command depends on (the database) went away and did not come back.
+
+    Exit status 1, so that a supervisor (docker-compose ``restart: on-failure``, systemd) restarts it.
+    """
+
+    exit_code = 1
+    http_status = 503
+
+
 class KinematicsError(DriftlabError):
     """A pose the kinematic model cannot solve (e.g. the A = 90 deg singularity)."""
 

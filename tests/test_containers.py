@@ -94,3 +94,35 @@ def test_dockerfile_runs_as_a_user_with_a_port_and_an_entrypoint() -> None:
     for _, value in steps:
         assert "ENTRYPOINT []" not in value
     assert shlex.split(dict(steps)["FROM"])[0].startswith("python:")
+
+
+def test_compose_holds_no_password(compose: dict) -> None:
+    """Passwords come from the environment (or an .env file), never from this file (issue 24)."""
+    text = (ROOT / "docker-compose.yml").read_text()
+    for service in compose["services"].values():
+        env = service.get("environment") or {}
+        for key, value in env.items():
+            if "PASSWORD" in key:
+                assert str(value).startswith("${"), (key, value)
+            if key == "DRIFTLAB_DB_URL":
+                userinfo = str(value).split("://", 1)[1].split("@", 1)[0]
+                assert userinfo.split(":", 1)[1].startswith("${"), value
+    assert "driftlab:driftlab@" not in text
+
+
+def test_compose_healthchecks_of_portless_services_are_driftlab_health(compose: dict) -> None:
+    parser = build_parser()
+    for name, flag in (("daemon", "daemon"), ("worker", "worker")):
+        check = compose["services"][name]["healthcheck"]["test"]
+        assert check[:3] == ["CMD", "driftlab", "health"], name
+        args = parser.parse_args(check[2:])
+        assert args.func.__module__ == "driftlab.commands.health" and getattr(args, flag)
+    assert compose["services"]["migrate"]["healthcheck"] == {"disable": True}  # one-shot: checked by completion
+
+
+def test_compose_passes_the_daemons_instruments_through(compose: dict) -> None:
+    devices = compose["services"]["daemon"]["devices"]
+    inside = {d.rsplit(":", 1)[1] for d in devices}
+    assert {"/dev/driftlab-machine", "/dev/driftlab-probe", "/dev/gpib0", "/dev/driftlab-daq"} <= inside
+    assert all(d.startswith("${DRIFTLAB_") and ":-/dev/null}" in d for d in devices)  # unset: the demo's /dev/null
+    assert "dialout" in compose["services"]["daemon"]["group_add"]

@@ -56,6 +56,8 @@ class _Tracked:
     channels: list[dict[str, Any]]
     after_s: float | None
     after_seq: int
+    #: the daemon stopped beating (kill -9): pages are told once, when it happens
+    stale: bool = False
 
 
 @dataclass
@@ -155,15 +157,16 @@ class LiveHub:
                     q.channels(self.engine, cid),
                     max(temps["t"]) if temps["t"] else None,
                     max([seq, *errs["seq"]]),
+                    mark["stale"],
                 )
                 events.append(encode("campaign", {"campaign": snap, "server_time": _now()}))
                 continue
-            if (mark["updated_at"], mark["status"]) == (tr.updated_at, tr.status):
+            if (mark["updated_at"], mark["status"], mark["stale"]) == (tr.updated_at, tr.status, tr.stale):
                 continue
             upd = q.update(self.engine, cid, tr.channels, tr.after_s, tr.after_seq, self.width_s)
             if upd is None:
                 continue
-            tr.status, tr.updated_at = mark["status"], mark["updated_at"]
+            tr.status, tr.updated_at, tr.stale = mark["status"], mark["updated_at"], mark["stale"]
             if upd["temperatures"]["t"]:
                 tr.after_s = max(upd["temperatures"]["t"])
             if upd["errors"]["seq"]:

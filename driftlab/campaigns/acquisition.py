@@ -375,6 +375,12 @@ class StoreSink:
                 rows.append(row)
         return rows
 
+    def beat(self) -> None:
+        """Write the daemon's heartbeat of this campaign (``campaigns.status.beat``)."""
+        from driftlab.campaigns.status import beat
+
+        beat(self.engine, self.cid)
+
     def commit(self, batch: Batch) -> None:
         """Insert the batch's rows and move the cursor, stage status and fault log, all in one transaction.
 

@@ -38,7 +38,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, field_validator
 from pydantic import ValidationError as PydanticValidationError
 
 from driftlab.errors import ValidationError
@@ -109,8 +109,8 @@ class Machine(_Strict):
 
     id: str = Field(min_length=1, max_length=64, pattern=ID_PATTERN)
     name: str = Field(default="", max_length=MAX_TEXT_CHARS)
-    resolution_mm: float | None = Field(default=None, gt=0, allow_inf_nan=False)
-    resolution_deg: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    resolution_mm: StrictFloat | None = Field(default=None, gt=0, allow_inf_nan=False)
+    resolution_deg: StrictFloat | None = Field(default=None, gt=0, allow_inf_nan=False)
     #: optional stated dimensions (table 6.3's physical check); absent = "no geometry"
     geometry: Geometry | None = None
 
@@ -126,19 +126,19 @@ class Stage(_Strict):
     """One stage of the staged single-heat-source plan, as it was run."""
 
     name: str = Field(min_length=1, max_length=MAX_NAME_CHARS)
-    start_s: float = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
-    end_s: float = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
+    start_s: StrictFloat = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
+    end_s: StrictFloat = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
     heat_source: str = Field(min_length=1, max_length=MAX_NAME_CHARS)
     axis: Axis | None = None
-    spindle_rpm: float = Field(default=0.0, ge=0, allow_inf_nan=False)
-    feed_mm_min: float = Field(default=0.0, ge=0, allow_inf_nan=False)
+    spindle_rpm: StrictFloat = Field(default=0.0, ge=0, allow_inf_nan=False)
+    feed_mm_min: StrictFloat = Field(default=0.0, ge=0, allow_inf_nan=False)
 
 
 class Noise(_Strict):
     """Stated repeatability of the error measurement."""
 
-    length_mm: float | None = Field(default=None, ge=0, allow_inf_nan=False)
-    angle_rad: float | None = Field(default=None, ge=0, allow_inf_nan=False)
+    length_mm: StrictFloat | None = Field(default=None, ge=0, allow_inf_nan=False)
+    angle_rad: StrictFloat | None = Field(default=None, ge=0, allow_inf_nan=False)
 
 
 class SetupEntry(_Strict):
@@ -150,7 +150,7 @@ class SetupEntry(_Strict):
     axis: Axis | None = None
     terms: list[str] = Field(min_length=1)
     datum: Literal["session", "absolute"] = "session"
-    counter_rotating: bool = False
+    counter_rotating: StrictBool = False
     reference: dict[str, Any] = Field(default_factory=dict)
 
     @field_validator("terms")
@@ -562,9 +562,18 @@ def _check_file(root: Path, name: str, limit: int, required: bool) -> Path | Non
     """Return the path of a bundle file after checking it is a regular file within ``limit`` bytes.
 
     None when an optional file is absent. Nothing is opened: a FIFO or a device is refused before
-    a read could block or run without end.
+    a read could block or run without end, and a link leading out of the bundle (``-> /etc/passwd``,
+    ``-> ../x.json``) before anything of its target could be read or echoed.
     """
     path = root / name
+    if os.path.lexists(path):
+        # a link may point inside the bundle, never out of it: nothing of a foreign file is read or shown
+        try:
+            inside = path.resolve().is_relative_to(root.resolve())
+        except (OSError, RuntimeError):  # a loop of links: os.stat below names it
+            inside = True
+        if not inside:
+            raise BundleError(f"{name}: a link that leads out of the bundle; refused")
     try:
         st = os.stat(path)
     except FileNotFoundError:

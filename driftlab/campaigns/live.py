@@ -26,6 +26,7 @@ from sqlalchemy import Engine, and_, func, or_, select
 from sqlalchemy.orm import Session
 
 from driftlab.campaigns import schema as sc
+from driftlab.campaigns.status import stale_since
 
 WINDOW_S = 4 * 3600.0  #: the strip charts show the last four hours of campaign time
 MAX_POINTS = 240  #: at most this many points per channel and chart
@@ -39,7 +40,7 @@ def bucket_width(window_s: float = WINDOW_S, max_points: int = MAX_POINTS) -> fl
 
 
 def live_marks(engine: Engine, recent_done: bool = True) -> dict[int, dict[str, Any]]:
-    """Return, per daemon campaign on show, its status and the time of its last commit (change detection).
+    """Return, per daemon campaign on show, its status, last commit and staleness (change detection).
 
     On show: every running campaign and, with ``recent_done``, the latest daemon campaign whatever
     its status (so that a page opened after a run shows how it ended).
@@ -55,12 +56,22 @@ def live_marks(engine: Engine, recent_done: bool = True) -> dict[int, dict[str, 
                 sc.Campaign.status,
                 sc.AcquisitionProgress.updated_at,
                 sc.AcquisitionProgress.last_sample_time_s,
+                sc.AcquisitionProgress.heartbeat_at,
             )
             .join(sc.AcquisitionProgress, sc.AcquisitionProgress.campaign_id == sc.Campaign.id)
             .where(and_(sc.Campaign.source == "daemon", cond))
             .order_by(sc.Campaign.id)
         ).all()
-    return {r.id: {"status": r.status, "updated_at": _iso(r.updated_at), "time_s": r.last_sample_time_s} for r in rows}
+    return {
+        r.id: {
+            "status": r.status,
+            "updated_at": _iso(r.updated_at),
+            "time_s": r.last_sample_time_s,
+            # a campaign whose daemon stopped beating changes its mark, so the page is told
+            "stale": stale_since(r.status, r.heartbeat_at, r.updated_at) is not None,
+        }
+        for r in rows
+    }
 
 
 def find_campaign(engine: Engine, campaign: str | int) -> int | None:
@@ -133,15 +144,21 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
         stage_frac = min(max((t - c_start) / span, 0.0), 1.0)
         stage_left = max(c_end - t, 0.0)
     total_left = max(float(total_s) - t, 0.0) if total_s is not None and t is not None else None
-    if camp.status != "running":
-        stage_left = 0.0 if camp.status == "done" else stage_left
-        total_left = 0.0 if camp.status == "done" else total_left
+    fraction = round((scans + points) / (n_scans + n_points), 6) if n_scans + n_points else 0.0
+    stale = stale_since(camp.status, prog.heartbeat_at, prog.updated_at)
+    if camp.status == "done":  # finished: all of it, nothing left (not the last commit's 97 %)
+        stage_left = total_left = 0.0
+        stage_frac = fraction = 1.0
+    elif camp.status != "running" or stale is not None:  # nobody runs it: no time is "left"
+        stage_left = total_left = None
     started = camp.started_at
     return {
         "campaign_id": camp.id,
         "name": camp.name,
         "machine": camp.machine_id,
         "status": camp.status,
+        "stale_since": _iso(stale),
+        "heartbeat_at": _iso(prog.heartbeat_at),
         "mode": origin.get("mode"),
         "speed": speed,
         "scenario": origin.get("scenario"),
@@ -154,7 +171,7 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
             "n_scans": n_scans,
             "points": points,
             "n_points": n_points,
-            "fraction": round((scans + points) / (n_scans + n_points), 6) if n_scans + n_points else 0.0,
+            "fraction": fraction,
             "time_s": t,
             "total_s": total_s,
             "stage_fraction": stage_frac,

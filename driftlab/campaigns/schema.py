@@ -432,6 +432,9 @@ class AcquisitionProgress(Base):
     last_sample_time_s: Mapped[float | None] = mapped_column(Double)
     cursor: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
+    # the running daemon's last sign of life (every ``status.HEARTBEAT_S``, waiting or not): a running
+    # campaign whose heartbeat is older than ``status.STALE_AFTER_S`` has lost its daemon (kill -9, host down)
+    heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
 
 
 metadata = Base.metadata

@@ -1,9 +1,64 @@
-"""Status of the daemon's campaigns as stored: stage, progress, last readings, faults."""
+"""Status of the daemon's campaigns as stored: stage, progress, last readings, faults, and whether a daemon runs them.
+
+A running daemon writes a heartbeat (``beat``, every ``HEARTBEAT_S`` seconds, waiting or not). A
+campaign that reads ``running`` but whose heartbeat (or, for rows written before the heartbeat, last
+commit) is older than ``STALE_AFTER_S`` has lost its daemon (kill -9, a host that went down): status,
+/live and ``--watch`` then say "stale since ...", never a running campaign.
+"""
 
 from __future__ import annotations
 
 import math
+import os
+from datetime import UTC, datetime
 from typing import Any
+
+#: how often a running daemon writes its heartbeat (s)
+HEARTBEAT_S = 10.0
+#: a running campaign without a heartbeat for this long (s) is stale (DRIFTLAB_STALE_AFTER_S overrides)
+STALE_AFTER_S = 60.0
+
+
+def stale_after_s() -> float:
+    """Return the staleness threshold in seconds (DRIFTLAB_STALE_AFTER_S, else ``STALE_AFTER_S``)."""
+    try:
+        value = float(os.environ.get("DRIFTLAB_STALE_AFTER_S", STALE_AFTER_S))
+    except ValueError:
+        return STALE_AFTER_S
+    return value if math.isfinite(value) and value > 0 else STALE_AFTER_S
+
+
+def beat(engine: Any, campaign_id: int, at: datetime | None = None) -> None:
+    """Write the daemon's heartbeat of a campaign (one small transaction)."""
+    from sqlalchemy import update
+
+    from driftlab.campaigns import schema as sc
+    from driftlab.campaigns.db import write_transaction
+
+    with write_transaction(engine) as conn:
+        conn.execute(
+            update(sc.AcquisitionProgress.__table__)
+            .where(sc.AcquisitionProgress.__table__.c.campaign_id == campaign_id)
+            .values(heartbeat_at=at or datetime.now(UTC))
+        )
+
+
+def stale_since(
+    status: str, heartbeat_at: datetime | None, updated_at: datetime | None, now: datetime | None = None
+) -> datetime | None:
+    """Return when a ``running`` campaign's daemon last showed life, if that is too long ago (else None)."""
+    if status != "running":
+        return None
+    last = heartbeat_at or updated_at
+    if last is None:
+        return None
+    now = now or datetime.now(UTC)
+    return last if (now - last).total_seconds() > stale_after_s() else None
+
+
+def _iso(t: datetime | None) -> str | None:
+    """Return an aware time as ISO 8601 UTC with a Z (None stays None)."""
+    return None if t is None else t.astimezone(UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
 def campaign_status(engine: Any, campaign: str | int | None = None) -> list[dict[str, Any]]:
@@ -75,6 +130,8 @@ def campaign_status(engine: Any, campaign: str | int | None = None) -> list[dict
                     "last_point": cur.get("last_point"),
                     "faults": {"count": int(cur.get("faults", 0)), "recent": list(cur.get("recent_faults", []))[-5:]},
                     "updated_at": prog.updated_at.isoformat() if prog.updated_at else None,
+                    "heartbeat_at": _iso(prog.heartbeat_at),
+                    "stale_since": _iso(stale_since(camp.status, prog.heartbeat_at, prog.updated_at)),
                 }
             )
     return out
@@ -88,8 +145,9 @@ def format_status(rows: list[dict[str, Any]]) -> str:
     for r in rows:
         p = r["progress"]
         st = r["stage"] or {}
+        state = r["status"] if not r.get("stale_since") else f"running, stale since {r['stale_since']}: no daemon"
         lines.append(
-            f"{r['campaign_id']:>4}  {r['name']}  [{r['status']}]  machine {r['machine']}  "
+            f"{r['campaign_id']:>4}  {r['name']}  [{state}]  machine {r['machine']}  "
             f"{100 * p['fraction']:.1f}%  scans {p['scans']}/{p['n_scans']}  points {p['points']}/{p['n_points']}"
         )
         if st:

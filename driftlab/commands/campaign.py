@@ -133,10 +133,13 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
     from driftlab.labels import duration
 
     p, st, h = head["progress"], head["stage"], head["health"]
+    stale = head.get("stale_since")
     title = Text.assemble(
         (head["name"], "bold"),
         "  ",
-        (f"[{head['status']}]", "green" if head["status"] == "running" else "cyan"),
+        (f"[running, stale since {stale}: the daemon stopped beating]", "bold red")
+        if stale
+        else (f"[{head['status']}]", "green" if head["status"] == "running" else "cyan"),
         f"  campaign {head['campaign_id']}, machine {head['machine']}, "
         + (
             "instruments"
@@ -163,14 +166,24 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
         if st.get("setup"):
             top.add_row("setup", ", ".join(str(v) for v in st["setup"].values() if v))
         frac = p["stage_fraction"] or 0.0
-        left = duration(p["stage_left_s"])
-        if p["stage_left_wall_s"] is not None and head["speed"] not in (None, 1.0):
-            left += f" (about {duration(p['stage_left_wall_s'])} wall-clock)"
-        top.add_row("in stage", Text.assemble(_bar(frac), f" {100 * frac:.0f} % done, {left} of campaign time left"))
-    top.add_row(
-        "campaign",
-        Text.assemble(_bar(p["fraction"]), f" {100 * p['fraction']:.1f} %, {duration(p['total_left_s'])} left"),
+        if head["status"] == "done":
+            left = "campaign done"
+        elif p["stage_left_s"] is None:  # stale or stopped: nobody runs it, nothing is "left"
+            left = f"stale since {stale}" if stale else head["status"]
+        else:
+            left = duration(p["stage_left_s"])
+            if p["stage_left_wall_s"] is not None and head["speed"] not in (None, 1.0):
+                left += f" (about {duration(p['stage_left_wall_s'])} wall-clock)"
+            left += " of campaign time left"
+        top.add_row("in stage", Text.assemble(_bar(frac), f" {100 * frac:.0f} % done, {left}"))
+    total_left = (
+        "done"
+        if head["status"] == "done"
+        else f"{duration(p['total_left_s'])} left"
+        if p["total_left_s"] is not None
+        else "-"
     )
+    top.add_row("campaign", Text.assemble(_bar(p["fraction"]), f" {100 * p['fraction']:.1f} %, {total_left}"))
     top.add_row("stored", f"{p['scans']} of {p['n_scans']} scans, {p['points']} of {p['n_points']} sweep points")
     latest = head["latest"] or {}
     top.add_row(
@@ -230,10 +243,8 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
             style="yellow" if h["timeouts"] else "green",
         ),
     )
-    health.add_row(
-        "retries",
-        ", ".join(f"{k} {v}" for k, v in h["retries"].items()) if h["retries"] else "not recorded by the daemon",
-    )
+    if h["retries"]:  # real counts, or nothing
+        health.add_row("retries", ", ".join(f"{k} {v}" for k, v in h["retries"].items()))
     health.add_row(
         "open thermocouples", Text(", ".join(h["open"]) or "none", style="bold red" if h["open"] else "green")
     )

@@ -95,7 +95,7 @@ def _model_file(path: Path, machine: str | None) -> Any:
     return model
 
 
-def _machine_file(path: Path | None) -> Any:
+def machine_file_envelope(path: Path | None) -> Any:
     """Return the envelope of a machine file (JSON, or YAML), or None without one."""
     if path is None:
         return None
@@ -125,7 +125,9 @@ def _guard(model: Any, args: argparse.Namespace) -> Any:
     """Return the envelope guard of this run; refuse a model with no travel and no machine file."""
     from driftlab.compensator.guard import Guard
 
-    guard = Guard.for_model(model, _machine_file(args.machine_file), allow_extrapolation=args.allow_extrapolation)
+    guard = Guard.for_model(
+        model, machine_file_envelope(args.machine_file), allow_extrapolation=args.allow_extrapolation
+    )
     if guard.envelope is None or not guard.envelope.travel:
         raise ValidationError(
             f"model {model.label} carries no machine travel (documents fitted before the envelope have none): "

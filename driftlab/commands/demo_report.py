@@ -7,11 +7,10 @@ import html
 import io
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from driftlab.jsonsafe import strict_json
+if TYPE_CHECKING:
+    import numpy as np
 
 RUN_NAMES = {"uncompensated": "without compensation", "offline": "off-line model", "online": "off-line + on-line model"}
 #: thesis ch. 7.3, mm
@@ -67,6 +66,8 @@ def build_report(
     )
     out["steps"] = steps
     out.update(extra)
+    from driftlab.jsonsafe import strict_json
+
     return strict_json(out)
 
 
@@ -94,6 +95,7 @@ def surface_axes(deviations: dict[str, np.ndarray]) -> Any:
     scale would flatten the compensated runs, whose errors are ten times smaller.
     """
     import matplotlib
+    import numpy as np
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -47,6 +47,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     fit.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the fit report here")
     fit.add_argument("--no-network", action="store_true", help="skip the neural-network comparison (ch. 6.6)")
     fit.add_argument(
+        "--machine-file",
+        type=Path,
+        default=None,
+        help="machine envelope (JSON or YAML: travel, max_correction, extrapolation_margin_degC) "
+        "written into the model document for the compensator (docs/compensate.md)",
+    )
+    fit.add_argument(
         "--findings",
         type=Path,
         default=None,
@@ -125,8 +132,15 @@ def _fit(args: argparse.Namespace) -> int:
             findings = load_findings(args.findings)
         elif args.force_findings:
             raise ValidationError("--force-findings needs --findings REPORT.json")
+        from driftlab.commands.compensate import machine_file_envelope
+
         job_id = submit_fit(
-            store, args.campaign, network=not args.no_network, findings=findings, force_findings=args.force_findings
+            store,
+            args.campaign,
+            network=not args.no_network,
+            findings=findings,
+            force_findings=args.force_findings,
+            envelope=machine_file_envelope(args.machine_file),
         )
         if args.enqueue:
             print(json.dumps({"job": job_id, "state": "queued"}))

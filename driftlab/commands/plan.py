@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from driftlab.campaigns.plan import Plan, load_plan
-from driftlab.campaigns.setups import TERMS, all_cells, coverage_table
+if TYPE_CHECKING:  # the plan machinery (pydantic, the physics) loads only when a plan is checked
+    from driftlab.campaigns.plan import Plan
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -26,6 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def plan_report(plan: Plan) -> dict[str, Any]:
     """Return the check report of a valid plan: setups, coverage per term, missing terms, duration."""
+    from driftlab.campaigns.setups import all_cells
+
     cov = plan.coverage()
     return {
         "plan": plan.name,
@@ -41,6 +43,8 @@ def plan_report(plan: Plan) -> dict[str, Any]:
 
 def format_report(report: dict[str, Any]) -> str:
     """Return the report as a coverage table (axis x term: the first stage measuring it) and a summary."""
+    from driftlab.campaigns.setups import TERMS, coverage_table
+
     table = coverage_table(report["coverage"])
     widths = [max(len(row[i]) for row in table) for i in range(len(TERMS) + 1)]
     lines = [
@@ -58,6 +62,8 @@ def format_report(report: dict[str, Any]) -> str:
 
 def _check(args: argparse.Namespace) -> int:
     """Validate the plan and print its coverage; a plan error is one line naming the stage (exit 2)."""
+    from driftlab.campaigns.plan import load_plan
+
     report = plan_report(load_plan(args.plan))
     print(json.dumps(report) if args.json else format_report(report))
     return 0

@@ -1,4 +1,9 @@
-"""`driftlab worker`: run the fit, diagnose and refit jobs of the PostgreSQL job queue (procrastinate)."""
+"""`driftlab worker`: run the fit, diagnose and refit jobs of the PostgreSQL job queue (procrastinate).
+
+Exit status 0 after SIGINT/SIGTERM (running jobs end first) or, with ``--until-idle``, once nothing
+is runnable; 1 when the database stayed away longer than ``--reconnect-s`` (the worker reconnects
+by itself before that), so that ``restart: on-failure`` brings it back.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +13,7 @@ from driftlab.commands.db import add_db_option
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Register `worker [--db URL] [--concurrency N] [--until-idle] [--name NAME]`."""
+    """Register `worker [--db URL] [--concurrency N] [--until-idle] [--name NAME] [--reconnect-s S]`."""
     p = sub.add_parser(
         "worker", help="run queued fit/diagnose/refit jobs (PostgreSQL store; start as many as you like)"
     )
@@ -23,6 +28,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--until-idle", action="store_true", help="exit once no job is runnable instead of waiting for more")
     p.add_argument("--name", default=None, help="the worker's name in the job records (default host:pid)")
+    p.add_argument(
+        "--reconnect-s",
+        type=float,
+        default=300.0,
+        metavar="S",
+        help="when the database goes away, keep trying to reconnect this long, then exit with status 1 "
+        "so that a supervisor restarts the worker (default 300)",
+    )
     p.set_defaults(func=_worker)
 
 
@@ -36,6 +49,8 @@ def _worker(args: argparse.Namespace) -> int:
 
     if args.concurrency < 1:
         raise ValidationError(f"--concurrency must be at least 1, got {args.concurrency}")
+    if not args.reconnect_s >= 0:
+        raise ValidationError(f"--reconnect-s must be at least 0, got {args.reconnect_s}")
     with connect(args.db) as store:
         if store.dialect != "postgresql":
             raise ValidationError(
@@ -45,5 +60,8 @@ def _worker(args: argparse.Namespace) -> int:
             )
         store.ensure_schema()  # brings the queue's schema too (revision 0006)
         logging.getLogger(__name__).info("worker on %s, concurrency %d", store.url, args.concurrency)
-        run_worker(store, concurrency=args.concurrency, wait=not args.until_idle, name=args.name)
+        run_worker(
+            store, concurrency=args.concurrency, wait=not args.until_idle, name=args.name, reconnect_s=args.reconnect_s
+        )
+    # only a stop asked for (SIGINT/SIGTERM) or --until-idle gets here: a lost database raises ServiceError (1)
     return 0

@@ -47,6 +47,7 @@ import numpy as np
 from driftlab.campaigns.acquisition import Batch, Fault, Sink, StoreUnavailable
 from driftlab.campaigns.clock import Clock
 from driftlab.campaigns.plan import Cursor, Move, Plan, Scan, Stage, StageStart, SweepPoint, steps
+from driftlab.campaigns.status import HEARTBEAT_S
 from driftlab.daq.protocols import BlockScanner, Reading, ScanBlock, TemperatureScan, TemperatureScanner
 from driftlab.errors import InstrumentError
 
@@ -171,6 +172,8 @@ class Scheduler:
         on_commit: Callable[[Batch, RunStats], None] | None = None,
         stop: threading.Event | None = None,
         pipeline: bool = True,
+        heartbeat: Callable[[], None] | None = None,
+        heartbeat_s: float = HEARTBEAT_S,
     ) -> None:
         self.plan = plan
         self.rig = rig
@@ -189,6 +192,9 @@ class Scheduler:
         self._writer_error: BaseException | None = None
         self._abandon = False
         self._stage = plan.stage_at(0.0)
+        # the daemon's sign of life while it runs, waiting or not (``campaigns.status``): the sink's by default
+        self.heartbeat = heartbeat if heartbeat is not None else getattr(sink, "beat", None)
+        self.heartbeat_s = heartbeat_s
 
     def _flush(self, batch: Batch) -> Batch:
         """Commit `batch` (readings + cursor), or hand it to the writer thread, and return a fresh one."""
@@ -275,6 +281,7 @@ class Scheduler:
             writer = threading.Thread(target=self._writer, name="scheduler-writer", daemon=True)
             writer.start()
         clean = False
+        beating = self._start_heartbeat()
         try:
             it = _Lookahead(steps(self.plan, self.cursor, self.points))
             for step in it:
@@ -312,6 +319,8 @@ class Scheduler:
             batch = self._flush(batch)
             clean = True
         finally:
+            if beating is not None:
+                beating.set()
             if writer is not None and self._queue is not None:
                 self._abandon = not clean  # an error or a second interrupt: commit nothing more
                 self._queue.put(None)
@@ -326,6 +335,31 @@ class Scheduler:
             raise self._writer_error
         self.cursor = batch.cursor
         return self.stats
+
+    def _start_heartbeat(self) -> threading.Event | None:
+        """Start beating (at once, then every ``heartbeat_s``) in a thread; return the event that stops it."""
+        beat = self.heartbeat
+        if beat is None:
+            return None
+        done = threading.Event()
+
+        def run() -> None:
+            failing = False
+            while True:
+                try:
+                    beat()
+                    if failing:
+                        log.warning("heartbeat: written again")
+                    failing = False
+                except Exception as exc:  # the store may be away for a while: the readings' commits retry
+                    if not failing:
+                        log.warning("heartbeat: cannot write it (%s)", " ".join(str(exc).split())[:200])
+                    failing = True
+                if done.wait(self.heartbeat_s):
+                    return
+
+        threading.Thread(target=run, name="scheduler-heartbeat", daemon=True).start()
+        return done
 
     def _sweep_ended(self, batch: Batch) -> bool:
         """Return True when the batch holds the last point of a sweep (a finished sweep is committed at once)."""

@@ -155,11 +155,18 @@ def submit(
 
 
 def submit_fit(
-    store: Store, campaign_ids: list[int], *, network: bool = True, findings: Any = None, force_findings: bool = False
+    store: Store,
+    campaign_ids: list[int],
+    *,
+    network: bool = True,
+    findings: Any = None,
+    force_findings: bool = False,
+    envelope: Any = None,
 ) -> int:
     """Queue a fit of these campaigns (of one machine); return the job id.
 
-    ``findings`` (``models.findings.Findings``) are kept in the job's parameters and folded in by the fit.
+    ``findings`` (``models.findings.Findings``) are kept in the job's parameters and folded in by the fit;
+    ``envelope`` (``models.envelope.Envelope``) is written into the model document.
     """
     from driftlab.errors import ValidationError
 
@@ -171,6 +178,8 @@ def submit_fit(
     if findings is not None:
         params["findings"] = findings.to_dict()
         params["force_findings"] = bool(force_findings)
+    if envelope is not None:
+        params["envelope"] = envelope.model_dump(mode="json")
     return submit(store, FIT, params, machine_id=machine, campaign_id=ids[0])
 
 

@@ -40,7 +40,14 @@ log = logging.getLogger(__name__)
 TASKS = {FIT: "driftlab.fit", DIAGNOSE: "driftlab.diagnose"}
 REFIT_TASK = "driftlab.refit"
 STALLED_TASK = "driftlab.retry_stalled"
-STALLED_CRON = "*/5 * * * *"
+#: every minute: with procrastinate's 30 s without a heartbeat, a dead worker's job is queued again
+#: within 90 s (and at once by the next worker that starts, ``_retry_stalled``)
+STALLED_CRON = "* * * * *"
+#: a worker whose heartbeat (every 10 s) is older than this is dead: its running jobs are queued again
+STALLED_AFTER_S = 30.0
+#: how long a worker keeps trying to get its database back before it exits with status 1
+RECONNECT_S = 300.0
+RECONNECT_MAX_DELAY_S = 15.0
 PARTITIONS_TASK = "driftlab.partitions"
 #: daily; with partitions made two months ahead, a month of workers down still finds them there
 PARTITIONS_CRON = "41 3 * * *"
@@ -109,12 +116,20 @@ def _partitions_task(context: JobContext, timestamp: int) -> None:
     log.info("partitions at %s: %s", timestamp, ", ".join(made) if made else "none missing")
 
 
-async def _retry_stalled_task(context: JobContext, timestamp: int) -> None:
-    """Put back in the queue the jobs of workers that stopped beating (killed, host lost)."""
-    manager = context.app.job_manager
-    for job in await manager.get_stalled_jobs():
+async def _retry_stalled(app: App) -> int:
+    """Put back in the queue the jobs of workers that stopped beating (killed, host lost); return how many."""
+    manager = app.job_manager
+    count = 0
+    for job in await manager.get_stalled_jobs(seconds_since_heartbeat=STALLED_AFTER_S):
         log.warning("job %s of a lost worker: queued again", job.id)
         await manager.retry_job(job)
+        count += 1
+    return count
+
+
+async def _retry_stalled_task(context: JobContext, timestamp: int) -> None:
+    """Put back in the queue the jobs of workers that stopped beating (the periodic task)."""
+    await _retry_stalled(context.app)
 
 
 def build_app(url: str, *, pool_size: int = 4, refit_cron: str | None = None) -> App:
@@ -252,23 +267,106 @@ def _worker(
 
 
 def run_worker(
-    store: Store, *, concurrency: int = 1, wait: bool = True, name: str | None = None, on_stage: OnStage | None = None
+    store: Store,
+    *,
+    concurrency: int = 1,
+    wait: bool = True,
+    name: str | None = None,
+    on_stage: OnStage | None = None,
+    reconnect_s: float = RECONNECT_S,
 ) -> None:
     """Run a worker in the foreground until SIGINT/SIGTERM (or, without ``wait``, until nothing is runnable).
 
-    A stop lets the running jobs end first.
+    A stop lets the running jobs end first. When the database goes away (a restart, a network cut)
+    procrastinate's worker stops by itself; this one then opens the queue again, waiting 1, 2, 4 ..
+    15 s between attempts, and carries on where it was. After ``reconnect_s`` without the database
+    it raises ServiceError (exit status 1), so that its supervisor restarts it: it never ends quietly
+    while jobs wait. Each start first queues again the jobs of workers that stopped beating.
     """
     if concurrency < 1:
         raise ValidationError(f"concurrency must be at least 1, got {concurrency}")
-    app = build_app(store_url(store), pool_size=concurrency + 3)
+    from procrastinate.exceptions import ProcrastinateException
+    from psycopg import Error as PsycopgError
 
-    async def main() -> None:
+    from driftlab.errors import ServiceError
+
+    stop = threading.Event()  # a stop asked for (signal): never reconnect after it
+    current: dict[str, Any] = {}
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+        loop, worker, task = current.get("loop"), current.get("worker"), current.get("task")
+        if loop is not None and worker is not None:
+            loop.call_soon_threadsafe(worker.stop)  # running jobs end first
+        elif loop is not None and task is not None:
+            loop.call_soon_threadsafe(task.cancel)  # still connecting: nothing to finish
+
+    async def once() -> None:
+        current.update(loop=asyncio.get_running_loop(), task=asyncio.current_task())
+        # one plain connection first: a server that is down refuses it at once, where the queue's pool
+        # would keep trying for 30 s
+        from psycopg import AsyncConnection
+
+        probe = await AsyncConnection.connect(conninfo(store_url(store)), connect_timeout=10)
+        await probe.close()
+        app = build_app(store_url(store), pool_size=concurrency + 3)
         async with app.open_async():
-            await _worker(
-                app, store, concurrency=concurrency, wait=wait, name=name, signals=True, on_stage=on_stage
-            ).run()
+            requeued = await _retry_stalled(app)
+            if requeued:
+                log.warning("worker: %d job(s) of lost workers queued again", requeued)
+            worker = _worker(
+                app, store, concurrency=concurrency, wait=wait, name=name, signals=False, on_stage=on_stage
+            )
+            current.update(worker=worker)
+            try:
+                if not stop.is_set():
+                    current["connected"] = True
+                    await worker.run()
+            finally:
+                current.pop("worker", None)
 
-    asyncio.run(main())
+    import signal
+
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
+    try:
+        lost_since: float | None = None
+        delay = 1.0
+        while True:
+            began = time.monotonic()
+            connected = False
+            try:
+                asyncio.run(once())
+                if stop.is_set() or not wait:
+                    return
+                reason = "the queue's connection was lost"
+            except asyncio.CancelledError:
+                if stop.is_set():
+                    return
+                raise
+            except (PsycopgError, ProcrastinateException, OSError) as exc:
+                if stop.is_set():
+                    return
+                reason = one_line(exc)
+            finally:
+                connected = bool(current.get("connected"))
+                current.clear()
+            now = time.monotonic()
+            if connected and now - began > 2 * RECONNECT_MAX_DELAY_S:  # it worked a while: a new outage
+                lost_since, delay = None, 1.0
+            lost_since = now if lost_since is None else lost_since
+            if now - lost_since >= reconnect_s:
+                raise ServiceError(
+                    f"worker: no database for {now - lost_since:.0f} s ({reason}); exiting so that its "
+                    "supervisor restarts it"
+                )
+            log.warning("worker: %s; connecting again in %g s", reason, delay)
+            if stop.wait(delay):
+                return
+            delay = min(2 * delay, RECONNECT_MAX_DELAY_S)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def run_until_ended(store: Store, job_id: int, *, on_stage: OnStage | None = None, poll_s: float = 1.0) -> JobInfo:
@@ -311,9 +409,27 @@ class QueueWorker(threading.Thread):
         self._lock = threading.Lock()
 
     def run(self) -> None:
-        """Run the worker until stopped."""
+        """Run the worker until stopped; when the database goes away, open the queue again (1 .. 15 s apart)."""
+        from procrastinate.exceptions import ProcrastinateException
+        from psycopg import Error as PsycopgError
+
+        delay = 1.0
         try:
-            asyncio.run(self._main())
+            while True:
+                began = time.monotonic()
+                try:
+                    asyncio.run(self._main())
+                    reason = "the queue's connection was lost"
+                except (PsycopgError, ProcrastinateException, OSError) as exc:
+                    reason = one_line(exc)
+                with self._lock:
+                    if self._stopping:
+                        return
+                if time.monotonic() - began > 2 * RECONNECT_MAX_DELAY_S:
+                    delay = 1.0
+                log.warning("job queue worker: %s; connecting again in %g s", reason, delay)
+                time.sleep(delay)
+                delay = min(2 * delay, RECONNECT_MAX_DELAY_S)
         except BaseException as exc:  # reported, not raised: the thread has nobody to raise to
             self.error = exc
             log.exception("job queue worker stopped")
@@ -339,7 +455,11 @@ class QueueWorker(threading.Thread):
                 self._loop = asyncio.get_running_loop()
                 self._worker = worker
             self.ready.set()
-            await worker.run()
+            try:
+                await worker.run()
+            finally:
+                with self._lock:
+                    self._loop, self._worker = None, None
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """Ask the worker to stop once its running jobs end, and wait up to ``timeout_s`` for it."""

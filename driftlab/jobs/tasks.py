@@ -46,9 +46,16 @@ def one_line(exc: BaseException) -> str:
 
 
 def fit_campaigns(
-    store: Store, campaign_ids: Sequence[int], options: FitOptions | None = None, progress: OnStage | None = None
+    store: Store,
+    campaign_ids: Sequence[int],
+    options: FitOptions | None = None,
+    progress: OnStage | None = None,
+    envelope: Any = None,
 ) -> tuple[FitResult, ModelDocument]:
-    """Fit the stored campaigns, register the model as the machine's current version; return both."""
+    """Fit the stored campaigns, register the model as the machine's current version; return both.
+
+    ``envelope`` (a mapping of ``models.envelope.Envelope``) goes into the document: the compensator's limits.
+    """
     from driftlab.jobs.registry import register_model
     from driftlab.models.fitting import fit_bundles
 
@@ -57,7 +64,12 @@ def fit_campaigns(
         raise ValidationError("give at least one campaign")
     bundles = [store.load_campaign(c) for c in ids]
     result = fit_bundles(bundles, options, source_campaigns=ids, progress=progress)
-    doc = register_model(store, result.document, ids)
+    document = result.document
+    if envelope is not None:
+        from driftlab.models.envelope import envelope_from_mapping
+
+        document = document.model_copy(update={"envelope": envelope_from_mapping(envelope, "fit envelope")})
+    doc = register_model(store, document, ids)
     result.document = doc
     return result, doc
 
@@ -79,7 +91,9 @@ def fit_job(
     store: Store, params: dict[str, Any], on_stage: OnStage | None = None, on_model: OnModel | None = None
 ) -> dict[str, Any]:
     """Fit and register a model; return the fit report with the registered ``model_version``."""
-    result, doc = fit_campaigns(store, params.get("campaigns", []), fit_options(params), progress=on_stage)
+    result, doc = fit_campaigns(
+        store, params.get("campaigns", []), fit_options(params), progress=on_stage, envelope=params.get("envelope")
+    )
     if on_model is not None:
         on_model(doc.machine)
     report = result.report()

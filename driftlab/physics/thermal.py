@@ -25,7 +25,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 #: ch. 3.5: typical coefficient of thermal expansion of the machine's castings and steel (/degC)
 ALPHA_C = 12.1e-6
@@ -57,6 +56,8 @@ def integrate(
     ``hold[k]`` acts over [t_k, t_k + h); ``ramp`` is linear between samples; ``y0`` defaults to the
     steady state of the first sample.
     """
+    from scipy.signal import lfilter  # here: scipy.signal is large, and most users of ALPHA_C never filter
+
     tau = np.atleast_1d(np.asarray(tau_s, dtype=float))
     hold = np.asarray(hold, dtype=float).reshape(len(hold), -1)
     ramp = np.asarray(ramp, dtype=float).reshape(len(ramp), -1)

@@ -46,6 +46,7 @@ class PgCluster:
         self.fast = fast
         self._as_postgres = os.geteuid() == 0
         self._started = False
+        self._options = ""
 
     def _run(self, args: list[str]) -> subprocess.CompletedProcess[str]:
         cmd = ["runuser", "-u", "postgres", "--", *args] if self._as_postgres else args
@@ -64,29 +65,47 @@ class PgCluster:
         options = f"-c listen_addresses=127.0.0.1 -c unix_socket_directories={self.root}"
         if self.fast:
             options += " -c fsync=off -c synchronous_commit=off -c full_page_writes=off"
+        self._options = options
         last = ""
         for _ in range(attempts):
             self.port = free_port()
-            proc = self._run(
-                [
-                    "pg_ctl",
-                    "-D",
-                    str(self.data),
-                    "-l",
-                    str(self.root / "server.log"),
-                    "-w",
-                    "-t",
-                    "60",
-                    "-o",
-                    f"-p {self.port} {options}",
-                    "start",
-                ]
-            )
+            proc = self._pg_ctl_start()
             if proc.returncode == 0:
                 self._started = True
                 return self.url()
             last = " ".join((proc.stderr or proc.stdout).split())[:300]
         raise PgClusterError(f"pg_ctl start failed: {last}")
+
+    def _pg_ctl_start(self) -> subprocess.CompletedProcess[str]:
+        """Start the server on ``self.port`` and wait until it accepts connections."""
+        log = str(self.root / "server.log")
+        return self._run(
+            [
+                "pg_ctl",
+                "-D",
+                str(self.data),
+                "-l",
+                log,
+                "-w",
+                "-t",
+                "60",
+                "-o",
+                f"-p {self.port} {self._options}",
+                "start",
+            ]
+        )
+
+    def halt(self) -> None:
+        """Stop the server (fast shutdown: clients are disconnected) and keep its data, to ``resume`` it."""
+        proc = self._run(["pg_ctl", "-D", str(self.data), "-m", "fast", "-w", "stop"])
+        if proc.returncode != 0:
+            raise PgClusterError(f"pg_ctl stop failed: {' '.join((proc.stderr or proc.stdout).split())[:300]}")
+
+    def resume(self) -> None:
+        """Start a halted server again on the same port (what `pg_ctl stop; pg_ctl start` does to clients)."""
+        proc = self._pg_ctl_start()
+        if proc.returncode != 0:
+            raise PgClusterError(f"pg_ctl start failed: {' '.join((proc.stderr or proc.stdout).split())[:300]}")
 
     def url(self, database: str = "postgres") -> str:
         """Return the SQLAlchemy URL of a database of this cluster."""

@@ -747,7 +747,63 @@ def _extra_named_column(path: Path, name: str) -> None:
     path.write_text("".join(out))
 
 
+def _link_out(target: str):
+    """Replace the file by a link to ``target`` (relative to the bundle, or absolute)."""
+
+    def mutate(path: Path) -> None:
+        if target.startswith("../"):  # a valid copy outside the bundle: following it would succeed
+            (path.parent / target).write_bytes(path.read_bytes())
+        path.unlink()
+        path.symlink_to(target)
+
+    return mutate
+
+
+def _link_inside(path: Path) -> None:
+    """Move the file to a sub-directory of the bundle and link to it (allowed: the link stays inside)."""
+    (path.parent / "data").mkdir()
+    moved = path.parent / "data" / path.name
+    path.rename(moved)
+    path.symlink_to(Path("data") / path.name)
+
+
+# issue 24: campaign.json numbers are strict, and links never lead out of the bundle (nor echo a foreign file)
+STRICT_AND_LINKS = [
+    (
+        "spindle-rpm-boolean",
+        "campaign.json",
+        lambda p: _edit_json(p, lambda d: d["stages"][0].update(spindle_rpm=True)),
+        "stages[0].spindle_rpm: Input should be a valid number",
+    ),
+    (
+        "resolution-as-string",
+        "campaign.json",
+        lambda p: _edit_json(p, lambda d: d["machine"].update(resolution_mm="0.0025")),
+        "machine.resolution_mm: Input should be a valid number",
+    ),
+    (
+        "stage-end-as-string",
+        "campaign.json",
+        lambda p: _edit_json(p, lambda d: d["stages"][1].update(end_s="1200")),
+        "stages[1].end_s: Input should be a valid number",
+    ),
+    (
+        "campaign-json-links-out",
+        "campaign.json",
+        _link_out("../x.json"),
+        "campaign.json: a link that leads out of the bundle; refused",
+    ),
+    (
+        "temperatures-links-to-etc-passwd",
+        "temperatures.csv",
+        _link_out("/etc/passwd"),
+        "temperatures.csv: a link that leads out of the bundle; refused",
+    ),
+    ("errors-links-to-etc-hostname", "errors.csv", _link_out("/etc/hostname"), "errors.csv: a link that leads out"),
+]
+
 CORRUPTIONS += HOSTILE
+CORRUPTIONS += STRICT_AND_LINKS
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:

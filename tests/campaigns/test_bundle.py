@@ -26,6 +26,28 @@ def test_corrupted_bundle_is_named(bundle_dir: Path, corruption) -> None:
     assert isinstance(info.value, ValidationError)
 
 
+def test_no_refusal_shows_a_foreign_files_content(bundle_dir: Path) -> None:
+    """A link to /etc/passwd is refused by name: not a byte of the target is in the message."""
+    target = Path("/etc/passwd")
+    if not target.is_file():  # pragma: no cover - every Linux image has it
+        pytest.skip("no /etc/passwd")
+    (bundle_dir / "temperatures.csv").unlink()
+    (bundle_dir / "temperatures.csv").symlink_to(target)
+    with pytest.raises(BundleError) as info:
+        load_bundle(bundle_dir)
+    first = target.read_text().splitlines()[0]
+    assert first not in str(info.value) and "root" not in str(info.value)
+
+
+def test_a_link_inside_the_bundle_is_followed(bundle_dir: Path) -> None:
+    from tests.campaigns.conftest import _link_inside
+
+    before = load_bundle(bundle_dir)
+    _link_inside(bundle_dir / "temperatures.csv")
+    after = load_bundle(bundle_dir)
+    pd.testing.assert_frame_equal(before.temperatures, after.temperatures)
+
+
 def test_valid_small_bundle_loads(bundle_dir: Path) -> None:
     b = load_bundle(bundle_dir)
     assert b.channels == ["T1", "T2", "T49", "T50"]

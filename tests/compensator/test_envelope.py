@@ -318,3 +318,38 @@ def test_envelopes_merge_key_by_key():
     assert both.source == "doc, m.yaml"
     lo, hi, mc = both.limits()
     assert lo[:2] == [0.0, 0.0] and np.isinf(lo[2]) and mc[2] == 0.5
+
+
+# ----------------------------------------------------------------------------- the envelope travels with the model
+
+
+@pytest.mark.slow
+def test_fit_writes_the_machine_files_envelope_into_the_document(tmp_path, capsys):
+    """`fit --machine-file` puts the envelope in the registered document; compensate then needs no file."""
+    from driftlab.campaigns.store import connect
+    from tests.jobs.conftest import MACHINE, bundle
+
+    url = f"sqlite:///{tmp_path / 's.sqlite'}"
+    with connect(url) as store:
+        cid = store.import_bundle(bundle())
+    machine = tmp_path / "machine.yaml"
+    machine.write_text("travel:\n  X: [-10, 264]\n  Y: [-10, 264]\n  Z: [-264, 10]\nmax_correction:\n  Z: 0.5\n")
+    assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--machine-file", str(machine)]) == 0
+    capsys.readouterr()
+    assert main(["models", "show", "current", "--machine", MACHINE, "--db", url, "--json"]) == 0
+    document = json.loads(capsys.readouterr().out)
+    document = document.get("document", document)
+    assert document["envelope"]["travel"]["X"] == [-10.0, 264.0]
+    assert document["envelope"]["max_correction"]["Z"] == 0.5
+    model = tmp_path / "model.json"
+    model.write_text(json.dumps(document))
+    temps = tmp_path / "t.csv"
+    reference = {c: r["reference"] for c, r in document["inputs"].items()}
+    pd.DataFrame({"time_s": [0.0], **{c: [v] for c, v in reference.items()}}).to_csv(temps, index=False)
+    prog = tmp_path / "p.nc"
+    prog.write_text("G90\nG1 X10 Y10 Z-10 F1000\nG1 X999999\n")
+    args = ["compensate", str(prog), "--model", str(model), "--temps", str(temps), "-o", str(tmp_path / "o.nc")]
+    assert main(args) == 2  # no --machine-file: the document's own travel refuses the far target
+    assert "p.nc:3: target X 999999 mm is outside the travel -10..264 mm" in capsys.readouterr().err
+    prog.write_text("G90\nG1 X10 Y10 Z-10 F1000\nG1 X200\n")
+    assert main(args) == 0

@@ -356,7 +356,7 @@ def test_refit_queues_one_fit_per_machine_with_newer_campaigns(pg_store: Store, 
 def test_the_refit_is_a_periodic_task_of_every_worker() -> None:
     app = build_app("postgresql+psycopg://u@localhost/db", refit_cron="0 3 * * *")
     periodic = {(p.task.name, p.cron) for p in app.periodic_registry.periodic_tasks.values()}
-    assert ("driftlab.refit", "0 3 * * *") in periodic and ("driftlab.retry_stalled", "*/5 * * * *") in periodic
+    assert ("driftlab.refit", "0 3 * * *") in periodic and ("driftlab.retry_stalled", "* * * * *") in periodic
     assert {"driftlab.fit", "driftlab.diagnose"} <= set(app.tasks)
     assert not any(
         p.task.name == "driftlab.refit"

@@ -147,8 +147,11 @@ function stageBlock(h) {
     box.append(el("div", { class: "bar", title: `${(100 * f).toFixed(0)} % of the stage` },
       el("span", { style: `width:${(100 * f).toFixed(1)}%` })));
     const wall = p.stage_left_wall_s !== null && h.speed && h.speed !== 1 ? ` (about ${span(p.stage_left_wall_s)} of wall-clock time at \u00d7${h.speed})` : "";
-    box.append(el("p", { class: "sub num", "data-live": "stage-left",
-      text: `${(100 * f).toFixed(0)} % done, ${span(p.stage_left_s)} of campaign time left${wall}` }));
+    // a finished campaign is done; one nobody runs (stale, stopped) has no time "left"
+    const left = h.status === "done" ? "campaign done"
+      : h.stale_since ? `stale since ${h.stale_since}: the daemon stopped beating`
+      : p.stage_left_s === null ? `${h.status}` : `${span(p.stage_left_s)} of campaign time left${wall}`;
+    box.append(el("p", { class: "sub num", "data-live": "stage-left", text: `${(100 * f).toFixed(0)} % done, ${left}` }));
   }
   const tl = el("div", { class: "timeline", "aria-label": "stages" });
   const total = p.total_s || 1;
@@ -201,7 +204,7 @@ function healthBlock(h) {
   const add = (k, v, cls) => dl.append(el("dt", { text: k }), el("dd", { class: cls, "data-live": "health-" + k.split(" ")[0] }, v));
   add("faults", String(x.faults), x.faults ? "warn" : "ok");
   add("timeouts", `${x.timeouts}` + (x.counted_over < x.faults ? ` in the last ${x.counted_over} faults` : ""), x.timeouts ? "warn" : "ok");
-  add("retries", x.retries ? Object.entries(x.retries).map(([k, v]) => `${k} ${v}`).join(", ") : "not recorded by the daemon");
+  if (x.retries) add("retries", Object.entries(x.retries).map(([k, v]) => `${k} ${v}`).join(", "));
   add("open thermocouples", x.open.length ? x.open.join(", ") : "none", x.open.length ? "bad" : "ok");
   const by = Object.entries(x.by_instrument);
   if (by.length) add("by instrument", by.map(([k, v]) => `${k} ${v}`).join(", "));
@@ -292,7 +295,8 @@ function campaignSection(cur) {
   const h = cur.head;
   const sec = el("section", { class: "campaign", "data-campaign-id": String(h.campaign_id), "aria-label": `campaign ${h.name}` });
   const mode = h.mode === "sim" ? `virtual machine${h.speed ? ` at \u00d7${h.speed}` : ""}` : "instruments";
-  sec.append(el("h2", {}, `${h.name} `, el("span", { class: `badge ${h.status}`, "data-live": "status", text: h.status })));
+  const shown = h.stale_since ? `stale since ${h.stale_since}` : h.status;
+  sec.append(el("h2", {}, `${h.name} `, el("span", { class: `badge ${h.stale_since ? "stale" : h.status}`, "data-live": "status", text: shown })));
   sec.append(el("p", { class: "sub", text: `campaign ${h.campaign_id} \u00b7 machine ${h.machine} \u00b7 ${mode} \u00b7 started ${h.started_at ? new Date(h.started_at).toLocaleString() : "-"}` }));
   sec.append(el("div", { class: "grid" }, stageBlock(h), progressBlock(h), healthBlock(h)));
   sec.append(el("h4", { text: `Thermocouples, last ${span(cur.window_s)} by structure (latest scan in the legend)` }));
