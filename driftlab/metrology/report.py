@@ -184,6 +184,8 @@ def iso230_3_html(result: iso230_3.Iso230_3Result, title: str) -> str:
         for t in tests:
             rows = [[k, *iso230_2.display(v, t.units[k])] for k, v in sorted(t.figures.items())]
             extra = f", room range {t.room_range_degC:.2f} °C" if t.room_range_degC is not None else ""
+            if t.extra.get("follows_heat"):
+                extra += "; follows a heated stage: the drift includes the machine cooling down"
             parts.append(
                 f"<h3>{html.escape(t.stage)} ({(t.end_s - t.start_s) / 3600:.2f} h{extra})</h3>"
                 + _table(["figure", "value", "unit"], rows)
