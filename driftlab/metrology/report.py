@@ -65,18 +65,15 @@ def conditions(bundle: Any, axis: str, term: str | None, start_s: float, end_s: 
         if chans and len(rows):
             rise = (rows[chans].max() - rows[chans].min()).max()
             out.append(("machine temperatures", f"largest change of one sensor {rise:.2f} °C ({len(chans)} sensors)"))
-    setups = [
-        (name, st)
-        for name, st in (meta.setups or {}).items()
-        if (st.axis is None or st.axis == axis.upper()) and term in st.terms
-    ]
+    setups = [(name, st) for name, st in (meta.setups or {}).items() if f"{axis.upper()}/{term}" in st.terms]
     if setups:
         name, st = setups[0]
         what = (
             st.instrument + (f", {st.optics} optics" if st.optics else "") + (f", {st.fixture}" if st.fixture else "")
         )
         ref = st.reference or {}
-        extra = ", ".join(f"{k} {ref[k]}" for k in ("manufacturer", "model", "owner", "version") if ref.get(k))
+        keys = ("source", "owner", "version", "version_no", "serial_no")
+        extra = ", ".join(f"{k.replace('_', ' ')} {ref[k]}" for k in keys if ref.get(k))
         out.append(("instrument", f"{what} (setup {name}{'; ' + extra if extra else ''})"))
         feed = ref.get("velocity") or ref.get("feed")
         out.append(("feed", str(feed) if feed else "not recorded in campaign.json"))
