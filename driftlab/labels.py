@@ -1,7 +1,7 @@
 """Words and units a person reads: durations, error terms, model features and diagnosis findings.
 
-Inside the code lengths are mm and angles rad; people read micrometres (um) and microradians
-(urad), campaign time in h:mm:ss, and "lag of T4, tau 15 min" rather than ``lag_T4``.
+Inside the code lengths are mm and angles rad; people read micrometres (µm) and microradians
+(µrad), campaign time in h:mm:ss, and "lag of T4, tau 15 min" rather than ``lag_T4``.
 """
 
 from __future__ import annotations
@@ -47,8 +47,8 @@ def length_text(value: float, unit: str = "mm", digits: int = 2) -> str:
 
 
 def display_unit(term: str) -> tuple[float, str]:
-    """Return (factor from mm or rad, unit) for showing a term: um for lengths, urad for angles."""
-    return (1e6, "urad") if term in ANGLES else (1e3, "um")
+    """Return (factor from mm or rad, unit) for showing a term: µm for lengths, µrad for angles."""
+    return (1e6, URAD) if term in ANGLES else (1e3, UM)
 
 
 def term_label(axis: str | None, term: str | None) -> str:
