@@ -156,7 +156,7 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
         if st["spindle_rpm"]:
             extra.append(f"spindle {st['spindle_rpm']:.0f} rpm")
         if st["feed_mm_min"]:
-            extra.append(f"feed {st['feed_mm_min']:.0f} mm/min")
+            extra.append(f"feed {st['feed_mm_min']:.0f} {'deg/min' if st['axis'] in ('A', 'B') else 'mm/min'}")
         top.add_row(
             "stage",
             Text.assemble((st["name"], "bold"), f"  {st['ordinal'] + 1} of {len(head['stages'])}: ", ", ".join(extra)),
