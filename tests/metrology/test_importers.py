@@ -186,7 +186,7 @@ def test_rtx_unit_and_date_order_are_explicit_and_the_header_is_kept(tmp_path, c
     base = ["import-instrument", str(src), "--format", "rtx", "--air-temp", "20"]
     assert main([*base, "-o", str(tmp_path / "a")]) == 0
     out = capsys.readouterr().out
-    assert "assumed: the header states no unit: the samples are read as um (give --unit)" in out
+    assert "assumed: the header states no unit: the samples are read as µm (give --unit)" in out
     assert "assumed: date '10/02/2025 12:58:22' read day first (10 February 2025)" in out
     a = load_bundle(tmp_path / "a")
     assert a.meta.started_at.month == 2 and a.errors["value"].iloc[0] == pytest.approx(2.0e-3)

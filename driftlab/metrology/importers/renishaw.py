@@ -107,7 +107,8 @@ def read_rtx(
     assumptions: list[str] = []
     if unit is None:
         unit = "um" if tm not in ("alpha", "beta", "gamma") else "arcsec"
-        assumptions.append(f"the header states no unit: the samples are read as {unit} (give --unit)")
+        shown = "µm" if unit == "um" else unit
+        assumptions.append(f"the header states no unit: the samples are read as {shown} (give --unit)")
     scale = value_factor(unit, tm, f"{src}: --unit")
     if not (np.isfinite(interval_s) and interval_s > 0):
         raise InstrumentFileError(f"{src}: the averaging interval must be positive, got {interval_s!r}")
