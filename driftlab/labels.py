@@ -51,6 +51,30 @@ def display_unit(term: str) -> tuple[float, str]:
     return (1e6, URAD) if term in ANGLES else (1e3, UM)
 
 
+#: what one unit of each feature kind is (models.features.KINDS), for a coefficient's unit
+FEATURE_UNITS = {
+    "intercept": "",
+    "direction": "",
+    "session": "",
+    "position": "mm",
+    "dT": "°C",
+    "lag": "°C",
+    "mean": "°C",
+    "gradient": "°C",
+    "pos_dT": "mm °C",
+    "quad": "°C²",
+    "time": "day",
+}
+
+
+def coefficient_text(value: float, param: str, kind: str) -> str:
+    """Return a model coefficient with its unit, e.g. "1.234 µm/°C" for a dz coefficient of a dT feature."""
+    factor, unit = display_unit(param)
+    per = FEATURE_UNITS.get(kind, "")
+    per = f"/({per})" if " " in per else (f"/{per}" if per else "")
+    return f"{value * factor:.4g} {unit}{per}"
+
+
 def term_label(axis: str | None, term: str | None) -> str:
     """Return e.g. "Z axis, dz (translation along Z)"."""
     words = TERM_WORDS.get(term or "", term or "")
