@@ -67,10 +67,14 @@ FEATURE_UNITS = {
 }
 
 
-def coefficient_text(value: float, param: str, kind: str) -> str:
-    """Return a model coefficient with its unit, e.g. "1.234 µm/°C" for a dz coefficient of a dT feature."""
+def coefficient_text(value: float, param: str, kind: str, power: int = 1, axis: str | None = None) -> str:
+    """Return a model coefficient with its unit, e.g. "1.234 µm/°C" for a dz coefficient of a dT feature.
+
+    Positions are mm, or rad for a rotary axis (``axis`` A or B), raised to the feature's ``power``."""
     factor, unit = display_unit(param)
     per = FEATURE_UNITS.get(kind, "")
+    if kind == "position":
+        per = ("rad" if axis in ("A", "B") else "mm") + ("" if power == 1 else "²" if power == 2 else f"^{power}")
     per = f"/({per})" if " " in per else (f"/{per}" if per else "")
     return f"{value * factor:.4g} {unit}{per}"
 

@@ -18,3 +18,5 @@ def test_every_feature_kind_gives_its_coefficient_a_unit():
     assert labels.coefficient_text(1.21e-5, "dx", "pos_dT") == "0.0121 µm/(mm °C)"
     assert labels.coefficient_text(2e-6, "alpha", "quad") == "2 µrad/°C²"
     assert labels.coefficient_text(0.004, "dz", "intercept") == "4 µm"
+    assert labels.coefficient_text(-1.116e-3, "dz", "position", 2, "A") == "-1.116 µm/rad²"
+    assert labels.coefficient_text(-4.686e-6, "dz", "position", 1, "Y") == "-0.004686 µm/mm"

@@ -371,7 +371,8 @@ def _show(args: argparse.Namespace) -> int:
 
     for t in doc.terms:  # each coefficient with its unit: µm (µrad) per unit of its feature
         terms = " + ".join(
-            f"{coefficient_text(c, t.param, f.kind)} × {f.name}" for f, c in zip(t.features, t.coefficients)
+            f"{coefficient_text(c, t.param, f.kind, f.power, f.label)} × {f.name}"
+            for f, c in zip(t.features, t.coefficients)
         )
         print(f"  {t.element}.{t.param} = {terms}")
     return 0
