@@ -122,9 +122,8 @@ def _travel(args: argparse.Namespace, axis: str, model: Any = None) -> tuple[flo
         lo, hi = _numbers(args.travel, 2, "--travel")
         return lo, hi, "--travel"
     envelope = getattr(model, "envelope", None)
-    travel = dict(envelope.travel) if envelope is not None else {}
-    if axis in travel:
-        lo, hi = travel[axis]
+    if envelope is not None and axis in envelope.travel:
+        lo, hi = envelope.travel[axis]
         return float(lo), float(hi), f"the model's envelope{f' ({envelope.source})' if envelope.source else ''}"
     from driftlab.daq.sim.truth import AXIS_RANGE
 
