@@ -1,7 +1,7 @@
 """Words and units a person reads: durations, error terms, model features and diagnosis findings.
 
-Inside the code lengths are mm and angles rad; people read micrometres (um) and microradians
-(urad), campaign time in h:mm:ss, and "lag of T4, tau 15 min" rather than ``lag_T4``.
+Inside the code lengths are mm and angles rad; people read micrometres (µm) and microradians
+(µrad), campaign time in h:mm:ss, and "lag of T4, tau 15 min" rather than ``lag_T4``.
 """
 
 from __future__ import annotations
@@ -47,8 +47,36 @@ def length_text(value: float, unit: str = "mm", digits: int = 2) -> str:
 
 
 def display_unit(term: str) -> tuple[float, str]:
-    """Return (factor from mm or rad, unit) for showing a term: um for lengths, urad for angles."""
-    return (1e6, "urad") if term in ANGLES else (1e3, "um")
+    """Return (factor from mm or rad, unit) for showing a term: µm for lengths, µrad for angles."""
+    return (1e6, URAD) if term in ANGLES else (1e3, UM)
+
+
+#: what one unit of each feature kind is (models.features.KINDS), for a coefficient's unit
+FEATURE_UNITS = {
+    "intercept": "",
+    "direction": "",
+    "session": "",
+    "position": "mm",
+    "dT": "°C",
+    "lag": "°C",
+    "mean": "°C",
+    "gradient": "°C",
+    "pos_dT": "mm °C",
+    "quad": "°C²",
+    "time": "day",
+}
+
+
+def coefficient_text(value: float, param: str, kind: str, power: int = 1, axis: str | None = None) -> str:
+    """Return a model coefficient with its unit, e.g. "1.234 µm/°C" for a dz coefficient of a dT feature.
+
+    Positions are mm, or rad for a rotary axis (``axis`` A or B), raised to the feature's ``power``."""
+    factor, unit = display_unit(param)
+    per = FEATURE_UNITS.get(kind, "")
+    if kind == "position":
+        per = ("rad" if axis in ("A", "B") else "mm") + ("" if power == 1 else "²" if power == 2 else f"^{power}")
+    per = f"/({per})" if " " in per else (f"/{per}" if per else "")
+    return f"{value * factor:.4g} {unit}{per}"
 
 
 def term_label(axis: str | None, term: str | None) -> str:

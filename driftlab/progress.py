@@ -8,6 +8,7 @@ its end, and it shows the step in progress.
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
@@ -132,5 +133,12 @@ def track(items: Iterable[T], description: str, total: float | None = None) -> I
 
 
 def stdout_console() -> Console:
-    """Return a console for tables on stdout (120 columns when not a terminal, so piped tables do not wrap)."""
-    return Console() if sys.stdout.isatty() else Console(width=120, no_color=True)
+    """Return a console for tables on stdout: the terminal's width, or when piped ``COLUMNS`` (else 120, so piped
+    tables do not wrap)."""
+    if sys.stdout.isatty():
+        return Console()
+    try:
+        width = int(os.environ.get("COLUMNS", ""))
+    except ValueError:
+        width = 0
+    return Console(width=width if width >= 40 else 120, no_color=True)

@@ -192,3 +192,16 @@ def test_import_says_what_it_stored(tmp_path: Path, capsys) -> None:
     assert main(["import", str(tmp_path / "out"), "--json", "--db", f"sqlite:///{tmp_path / 't.sqlite'}"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["campaign_id"] == 1 and s["error_readings"] == len(errors) and s["span_s"] == 79 * 30.0
+
+
+def test_piped_tables_take_their_width_from_columns(monkeypatch) -> None:
+    """Piped (not a terminal): COLUMNS when it is set, else 120 so that tables do not wrap."""
+    from driftlab.progress import stdout_console
+
+    monkeypatch.setattr("sys.stdout", io.StringIO())
+    monkeypatch.setenv("COLUMNS", "88")
+    assert stdout_console().width == 88
+    monkeypatch.delenv("COLUMNS")
+    assert stdout_console().width == 120
+    monkeypatch.setenv("COLUMNS", "not a number")
+    assert stdout_console().width == 120

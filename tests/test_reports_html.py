@@ -1,4 +1,4 @@
-"""The HTML reports a person reads: the campaign overview, findings in words, um/urad, one colour scale per map,
+"""The HTML reports a person reads: the campaign overview, findings in words, µm/µrad, one colour scale for the maps,
 no JSON."""
 
 from __future__ import annotations
@@ -36,21 +36,21 @@ def test_diagnosis_page_reads_as_words(lag_bundle: Path, tmp_path: Path, capsys)
     [eff] = doc["effects"]
     tau_min = round(eff["params"]["tau_s"] / 60)
     # the terminal lists the finding, its cause and its held-out gain in um
-    assert f"thermal lag of T34, tau {tau_min} min" in out and " um " in out
+    assert f"thermal lag of T34, tau {tau_min} min" in out and " µm " in out
     assert "1 effect accepted" in out
     # the page: an overview of the campaign first (stage table, one figure), then the finding in words
     assert html.index("<h2>The campaign</h2>") < html.index("<h2>Findings (1)</h2>")
     assert all(st["name"] in html for st in json.loads((lag_bundle / "campaign.json").read_text())["stages"])
     assert 'alt="campaign overview: stages, temperatures and errors over time"' in html
     assert f"thermal lag of T34, tau {tau_min} min, on Z/dz" in html and f"time constant {tau_min} min" in html
-    assert "Lengths are in micrometres (um), angles in microradians (urad)" in html
+    assert "Lengths are in micrometres (µm), angles in microradians (µrad)" in html
     text = re.sub(r'src="data:image/png;base64,[^"]+"', "", html)
     assert not RAW_NAME.search(text), RAW_NAME.search(text)
     assert "{&quot;" not in text and '{"' not in text  # no raw JSON
     assert "(mm)" not in text.replace("feed (mm/min)", "")
 
 
-def test_demo_page_has_one_scale_per_map_in_um_and_no_json() -> None:
+def test_demo_page_has_one_scale_for_its_maps_in_um_and_no_json() -> None:
     rng = np.random.default_rng(0)
     dev = {
         "uncompensated": rng.normal(0, 0.06, (99, 15)),
@@ -89,17 +89,22 @@ def test_demo_page_has_one_scale_per_map_in_um_and_no_json() -> None:
     png = demo_report.surface_figure(dev)
     html = demo_report.to_html(report, png)
     text = re.sub(r'src="data:image/png;base64,[^"]+"', "", html)
-    assert "RMSE (um)" in text and f"{table['offline']['rmse_mm'] * 1e3:.1f}" in text
+    assert "RMSE (µm)" in text and f"{table['offline']['rmse_mm'] * 1e3:.1f}" in text and " um" not in text
+    # verdicts like with like: the uncompensated run is a baseline, a compensated one is judged by its reduction
+    assert "<td>as in the thesis" not in text and "baseline (the thesis&#x27; machine: 60 µm)" in text
+    ours = 1 - table["offline"]["rmse_mm"] / table["uncompensated"]["rmse_mm"]
+    assert f"removes {ours:.0%} of the error" in text and "(92%)" in text
     assert "thermal lag of T34, tau 50 min on Z/dz" in text  # the planted effect, in words
     assert "{" not in text.split("<body>")[1] and "tau_s" not in text
     assert base64.b64decode(png).startswith(b"\x89PNG")
     fig = demo_report.surface_axes(dev)
     maps = [ax for ax in fig.axes if ax.images]
-    assert len(maps) == 3 and len(fig.axes) == 6  # three maps, each with its own colour bar
+    assert len(maps) == 3 and len(fig.axes) == 4  # three maps, one colour bar
+    top = max(np.max(np.abs(v)) for v in dev.values()) * 1e3
     for ax, (_k, v) in zip(maps, dev.items()):
         lo, hi = ax.images[0].get_clim()
-        assert hi == pytest.approx(np.max(np.abs(v)) * 1e3) and lo == -hi  # its own symmetric scale, in um
-        assert f"range {v.min() * 1e3:+.1f} .. {v.max() * 1e3:+.1f} um" in ax.get_title()
+        assert hi == pytest.approx(top) and lo == -hi  # one symmetric scale for all, in µm
+        assert f"range {v.min() * 1e3:+.1f} .. {v.max() * 1e3:+.1f} µm" in ax.get_title()
     # the JSON document keeps its keys
     assert {
         "format",

@@ -98,7 +98,18 @@ def create_app(
             from fastapi.openapi.utils import get_openapi
 
             schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
-            app.openapi_schema = problems.declare_problems(schema)
+            schema = problems.declare_problems(schema)
+            # the bearer scheme the front door checks: /docs shows an Authorize button, and writes say they need it
+            schema.setdefault("components", {}).setdefault("securitySchemes", {})["bearer"] = {
+                "type": "http",
+                "scheme": "bearer",
+                "description": "the API token (DRIFTLAB_API_TOKEN); reads need none, every write needs it",
+            }
+            for item in schema.get("paths", {}).values():
+                for method, op in item.items():
+                    if isinstance(op, dict) and method in problems.WRITE_METHODS:
+                        op["security"] = [{"bearer": []}]
+            app.openapi_schema = schema
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

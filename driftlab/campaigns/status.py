@@ -13,6 +13,8 @@ import os
 from datetime import UTC, datetime
 from typing import Any
 
+from driftlab.labels import display_unit
+
 #: how often a running daemon writes its heartbeat (s)
 HEARTBEAT_S = 10.0
 #: a running campaign without a heartbeat for this long (s) is stale (DRIFTLAB_STALE_AFTER_S overrides)
@@ -162,10 +164,13 @@ def format_status(rows: list[dict[str, Any]]) -> str:
                 for k, v in list(vals.items())[:6]
             )
             more = f" (+{len(vals) - 6} more)" if len(vals) > 6 else ""
-            lines.append(f"      last scan t={r['last_scan']['t_s']:.0f} s: {shown}{more} degC")
+            lines.append(f"      last scan t={r['last_scan']['t_s']:.0f} s: {shown}{more} °C")
         if r["last_point"]:
             lp = r["last_point"]
-            terms = ", ".join(f"{k} {v:.6g}" if v is not None else f"{k} -" for k, v in lp["values"].items())
+            terms = ", ".join(
+                f"{k} {v * display_unit(k)[0]:.2f} {display_unit(k)[1]}" if v is not None else f"{k} -"
+                for k, v in lp["values"].items()
+            )
             lines.append(
                 f"      last point t={lp['t_s']:.0f} s {lp['axis']}={lp['position']:g} "
                 f"dir {lp['direction']:+d}: {terms}"

@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from driftlab.commands.db import add_db_option
+from driftlab.labels import display_unit
 from driftlab.vocabulary import heat_source
 
 
@@ -158,7 +159,7 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
         if st["spindle_rpm"]:
             extra.append(f"spindle {st['spindle_rpm']:.0f} rpm")
         if st["feed_mm_min"]:
-            extra.append(f"feed {st['feed_mm_min']:.0f} mm/min")
+            extra.append(f"feed {st['feed_mm_min']:.0f} {'deg/min' if st['axis'] in ('A', 'B') else 'mm/min'}")
         top.add_row(
             "stage",
             Text.assemble((st["name"], "bold"), f"  {st['ordinal'] + 1} of {len(head['stages'])}: ", ", ".join(extra)),
@@ -220,7 +221,7 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
             last[key] = (sw, [])
         last[key][1].append(i)
     for (axis, term, d), (_, idx) in sorted(last.items()):
-        scale, unit = (1e6, "urad") if term in ("alpha", "beta", "gamma") else (1e3, "um")
+        scale, unit = display_unit(term)
         pos_unit = "deg" if axis in ("A", "B") else "mm"
         readings = "  ".join(
             f"{errs['position'][i]:g} {pos_unit}: {errs['value'][i] * scale:.1f}"

@@ -104,7 +104,10 @@ class _Steps:
         shown = "driftlab " + " ".join(args)
         self.console.print(f"[bold cyan]>[/] {shown}")
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env or _env(), check=False)
+        # the step's tables are drawn for this terminal's width (COLUMNS), then shown whole
+        proc = subprocess.run(
+            cmd, capture_output=True, text=True, env=env or _env(COLUMNS=str(self.console.width)), check=False
+        )
         wall = time.perf_counter() - t0
         (self.logs / f"{name}.log").write_text(f"$ {shown}\n{proc.stdout}\n--- stderr ---\n{proc.stderr}")
         if proc.returncode != 0:
@@ -113,8 +116,8 @@ class _Steps:
                 f"demo step {name} failed (exit {proc.returncode}): {tail}; see {self.logs / (name + '.log')}"
             )
         self.done.append({"name": name, "command": shown, "wall_s": round(wall, 2)})
-        for line in proc.stdout.strip().splitlines()[:2]:
-            self.console.print(f"  {line}")
+        for line in proc.stdout.rstrip().splitlines():
+            self.console.print(f"  {line}", markup=False, highlight=False, crop=False, soft_wrap=True)
         return proc.stdout
 
     def record(self, name: str, command: str, wall_s: float) -> None:
@@ -345,7 +348,7 @@ def _demo(args: argparse.Namespace) -> int:
     figure = rep.surface_figure({k: r.deviation_mm for k, r in test.runs.items()})
     (out / "demo-report.html").write_text(rep.to_html(report, figure), encoding="utf-8")
 
-    t = Table(title="Cutting tests, ch. 7.3 (normal deviation of the machined surface, um)")
+    t = Table(title="Cutting tests, ch. 7.3 (normal deviation of the machined surface, µm)")
     for col in ("case", "run", "RMSE", "max", "thesis RMSE", "thesis max"):
         t.add_column(col, justify="left" if col in ("case", "run") else "right")
     for case, ct in tests.items():

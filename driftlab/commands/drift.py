@@ -71,5 +71,12 @@ def _drift(args: argparse.Namespace) -> int:
     if frame.empty:
         print("no measurements")
         return 0
-    print(frame.to_string(index=False))
+    from driftlab.labels import display_unit
+
+    # for people: the unit beside every value (the CSV keeps the store's mm / rad, exactly)
+    factor, unit = display_unit(args.term)
+    frame["value"] = frame["value"] * factor
+    pos_unit = "deg" if args.axis.upper() in ("A", "B") else "mm"
+    frame = frame.rename(columns={"value": f"value ({unit})", "position": f"position ({pos_unit})"})
+    print(frame.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     return 0

@@ -116,15 +116,27 @@ def _temperatures(args: argparse.Namespace, model: Any) -> dict[str, float]:
     return ApiTemperatures(args.api, machine, token=get_settings().api_token or None).read()
 
 
-def _travel(args: argparse.Namespace, axis: str) -> tuple[float, float, str]:
-    """Return the axis travel and where it comes from."""
+def _travel(args: argparse.Namespace, axis: str, model: Any = None) -> tuple[float, float, str]:
+    """Return the axis travel and where it comes from: --travel, the model's envelope, or the virtual machine."""
     if args.travel is not None:
         lo, hi = _numbers(args.travel, 2, "--travel")
         return lo, hi, "--travel"
+    envelope = getattr(model, "envelope", None)
+    if envelope is not None and axis in envelope.travel:
+        lo, hi = envelope.travel[axis]
+        return float(lo), float(hi), f"the model's envelope{f' ({envelope.source})' if envelope.source else ''}"
     from driftlab.daq.sim.truth import AXIS_RANGE
 
     lo, hi = AXIS_RANGE[axis]
     return lo, hi, "the virtual machine's travel (give --travel for another machine)"
+
+
+def _check_travel(lo: float, hi: float, travel: tuple[float, float, str], axis: str, unit: str) -> None:
+    t_lo, t_hi, t_src = travel
+    if not (t_lo - 1e-9 <= lo and hi <= t_hi + 1e-9):
+        raise ValidationError(
+            f"the range {lo:g}..{hi:g} {unit} lies outside the {axis} travel {t_lo:g}..{t_hi:g} {unit} ({t_src})"
+        )
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -140,17 +152,17 @@ def _run(args: argparse.Namespace) -> int:
     lo, hi = _numbers(args.range, 2, "--range")
     pose = _numbers(args.pose, 5, "--pose")
     unit = "deg" if axis in ROTARY else "mm"
-    t_lo, t_hi, t_src = _travel(args, axis)
-    if not (t_lo - 1e-9 <= lo and hi <= t_hi + 1e-9):
-        raise ValidationError(
-            f"the range {lo:g}..{hi:g} {unit} lies outside the {axis} travel {t_lo:g}..{t_hi:g} {unit} ({t_src})"
-        )
+    if args.travel is not None:  # a usage error costs nothing: checked before the model is loaded
+        _check_travel(lo, hi, _travel(args, axis), axis, unit)
     step = args.step if args.step is not None else (5.0 if axis in ROTARY else 10.0)
     # the grid is checked before the model is loaded: a usage error costs nothing
     grid = controller_grid(
         ctl.spacing, ctl.max_points, lo, hi, step, reference=args.reference, unit=args.detection_unit
     )
     model = _model(args)
+    travel = _travel(args, axis, model)
+    _check_travel(lo, hi, travel, axis, unit)
+    t_lo, t_hi, _ = travel
     temps = _temperatures(args, model)
     table = correction_table(model, temps, axis, grid.positions, pose=pose)
     options: dict[str, Any] = {}

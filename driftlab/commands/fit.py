@@ -381,8 +381,13 @@ def _show(args: argparse.Namespace) -> int:
         return 0
     print(f"machine {doc.machine} version {doc.version} created {doc.created_at} from campaigns {doc.source_campaigns}")
     print(f"inputs: {' '.join(doc.inputs)}")
-    for t in doc.terms:
-        terms = " + ".join(f"{c:.4g}*{f.name}" for f, c in zip(t.features, t.coefficients))
+    from driftlab.labels import coefficient_text
+
+    for t in doc.terms:  # each coefficient with its unit: µm (µrad) per unit of its feature
+        terms = " + ".join(
+            f"{coefficient_text(c, t.param, f.kind, f.power, f.label)} × {f.name}"
+            for f, c in zip(t.features, t.coefficients)
+        )
         print(f"  {t.element}.{t.param} = {terms}")
     return 0
 

@@ -29,7 +29,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--axis", default=None, help="rtx / renishaw-csv: the axis (overrides the file's)")
     p.add_argument("--position", type=float, default=0.0, help="rtx: where the capture was taken (mm or deg)")
-    p.add_argument("--unit", default="um", help="rtx: unit of the samples (um by default; mm, nm, arcsec, urad)")
+    p.add_argument(
+        "--unit",
+        default=None,
+        help="rtx: unit of the samples, which the header does not state (mm, um, nm, arcsec, urad; µm is assumed)",
+    )
+    p.add_argument(
+        "--date-order",
+        choices=("dmy", "mdy", "ymd"),
+        default=None,
+        help="rtx: order of the header's slashed date (day first is assumed when it could be either)",
+    )
     p.add_argument("--interval-s", type=float, default=1.0, help="rtx: average the samples over this (1 s)")
     p.set_defaults(func=_run)
 
@@ -50,7 +60,12 @@ def _run(args: argparse.Namespace) -> int:
         raise ValidationError(f"--mapping is for --format generic, not {args.fmt}")
     elif args.fmt == "rtx":
         readings = renishaw.read_rtx(
-            args.file, axis=args.axis, position=args.position, unit=args.unit, interval_s=args.interval_s
+            args.file,
+            axis=args.axis,
+            position=args.position,
+            unit=args.unit,
+            interval_s=args.interval_s,
+            date_order=args.date_order,
         )
     else:
         readings = renishaw.read_renishaw_csv(args.file, axis=args.axis)
@@ -61,4 +76,9 @@ def _run(args: argparse.Namespace) -> int:
     e = readings.errors
     cells = ", ".join(sorted({f"{a}/{t}" for a, t in zip(e["axis"], e["term"])}))
     print(f"wrote bundle {out}: {len(e)} readings of {cells} from {args.file.name}")
+    for note in readings.assumptions:
+        print(f"  assumed: {note}")
+    if readings.instrument is not None:
+        kept = ", ".join(k for k in readings.instrument if k not in ("instrument", "source"))
+        print(f"  campaign.json keeps the instrument's record (setup 'instrument'): {kept}")
     return 0

@@ -24,7 +24,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)"
     )
-    p.add_argument("--part", type=int, choices=(2, 3), required=True, help="2: positioning accuracy; 3: thermal tests")
+    p.add_argument(
+        "--part",
+        type=int,
+        choices=(2, 3, 4),
+        required=True,
+        help="2: positioning accuracy; 3: thermal tests; 4: circular test (BUNDLE_DIR is then a circle CSV)",
+    )
+    p.add_argument("--radius", type=float, default=None, help="part 4: the circle's nominal radius (mm)")
     p.add_argument("--axis", default=None, help="axis for part 2 (X Y Z A B)")
     p.add_argument("--term", default=None, help="part 2: term to evaluate (default the axis' positioning term)")
     p.add_argument("--stage", default=None, help="part 2: only the runs measured during this stage of the campaign")
@@ -58,12 +65,30 @@ def _write(path: Path | None, text: str) -> None:
         path.write_text(text, encoding="utf-8")
 
 
+def _circle(args: argparse.Namespace) -> int:
+    """ISO 230-4: read a circle CSV, print G, H and the findings, write the JSON."""
+    from driftlab.labels import UM
+    from driftlab.metrology import iso230_4
+
+    if args.bundle is None or args.radius is None:
+        raise ValidationError("--part 4 needs a circle CSV (angle_deg, direction, deviation_um) and --radius MM")
+    res = iso230_4.evaluate(*iso230_4.read_circle_csv(args.bundle), args.radius)
+    _write(args.json, json.dumps(res.to_json_dict(), indent=2, allow_nan=False) + "\n")
+    g = ", ".join(f"G({k}) {v * 1e3:.2f} {UM}" for k, v in res.G.items())
+    print(f"ISO 230-4 {args.bundle.name}, radius {res.radius_mm:g} mm: {g}, H {res.H * 1e3:.2f} {UM}")
+    for f in res.findings:
+        print(f"  {f['text']}")
+    return 0
+
+
 def _run(args: argparse.Namespace) -> int:
     """Evaluate, print a summary, write the JSON and HTML reports (nothing written on an error)."""
     from driftlab.metrology import iso230_2, iso230_3, report
 
     if args.part == 2 and not args.axis:
         raise ValidationError("--part 2 needs --axis (X Y Z A B)")
+    if args.part == 4:
+        return _circle(args)
     bundle = _load(args)
     lines: list[str] = []
     if args.part == 2:

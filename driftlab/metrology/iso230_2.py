@@ -298,10 +298,9 @@ def display(value: float, unit: str) -> tuple[str, str]:
     """Return a figure as people read it: mm shown in µm with 1 or 2 decimals, arcsec with 2; never e-notation."""
     from driftlab.labels import UM
 
-    if unit == "mm":
-        v = value * 1e3
-        return (f"{v:.2f}" if abs(v) < 100 else f"{v:.1f}"), UM
-    return f"{value:.2f}", unit
+    v, u = (value * 1e3, UM) if unit == "mm" else (value, unit)
+    text = f"{v:.2f}" if abs(v) < 100 else f"{v:.1f}"
+    return ("0.00" if text in ("-0.00", "-0.0") else text), u
 
 
 def plot(result: Iso230_2Result) -> Any:

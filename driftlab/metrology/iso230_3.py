@@ -3,7 +3,8 @@
 The three tests of the standard map onto the staged plan (thesis ch. 5.2, Fig. 5.1):
 
 * environmental temperature variation error (ETVE, ISO 230-3 clause 5): stages with no heat source
-  (``off``, else ``idle``); the machine stands still while the room temperature varies. For every
+  that do not follow a heated stage (else ``off``, else ``idle`` ones, marked ``follows_heat``); the
+  machine stands still while the room temperature varies. For every
   measured point (axis, term, position, direction) the drift is the reading minus its first reading
   in the stage; the ETVE of a term is the largest range (max - min) of that drift, beside the range
   of the room temperature over the same period.
@@ -134,7 +135,11 @@ def _per_term(series: list[DriftSeries], stat: str) -> tuple[dict[str, float], d
 
 
 def etve_test(
-    errors: pd.DataFrame, temperatures: pd.DataFrame | None, room_channels: list[str], stage: Any
+    errors: pd.DataFrame,
+    temperatures: pd.DataFrame | None,
+    room_channels: list[str],
+    stage: Any,
+    follows_heat: bool = False,
 ) -> StageTest:
     """Return the ETVE of one stage without heat source: per AXIS/term the largest drift range (ISO 230-3 clause 5)."""
     series = drift_series(errors, stage.start_s, stage.end_s)
@@ -147,7 +152,9 @@ def etve_test(
             mean_room = rows[room_channels].mean(axis=1, skipna=True).to_numpy(float)  # air temperature (clause 5)
             if np.isfinite(mean_room).any():
                 room = float(np.nanmax(mean_room) - np.nanmin(mean_room))
-    return StageTest("etve", stage.name, stage.start_s, stage.end_s, figures, units, series, room)
+    return StageTest(
+        "etve", stage.name, stage.start_s, stage.end_s, figures, units, series, room, {"follows_heat": follows_heat}
+    )
 
 
 def spindle_test(errors: pd.DataFrame, stage: Any) -> StageTest:
@@ -211,8 +218,17 @@ def evaluate_bundle(bundle: Any) -> Iso230_3Result:
     errors = bundle.errors
     # the daemon's and the simulator's words, and both spellings of stored campaigns (vocabulary.heat_source)
     heat = {id(s): heat_source(s.heat_source) for s in stages}
-    off = [s for s in stages if heat[id(s)] == "off"] or [s for s in stages if heat[id(s)] == "idle"]
-    etve = [etve_test(errors, bundle.temperatures, list(bundle.meta.room_channels), s) for s in off]
+    # ETVE (clause 5): stages without heat source, preferably not right after a heated one (a cool-down's
+    # drift is the machine's own heat leaving); else the power-off stages, else the idle ones, marked so
+    ordered = sorted(stages, key=lambda s: s.start_s)
+    after_heat = {id(s): i > 0 and heat[id(ordered[i - 1])] not in ("off", "idle") for i, s in enumerate(ordered)}
+    rest = [s for s in ordered if heat[id(s)] in ("off", "idle")]
+    off = (
+        [s for s in rest if not after_heat[id(s)]]
+        or [s for s in rest if heat[id(s)] == "off"]
+        or [s for s in rest if heat[id(s)] == "idle"]
+    )
+    etve = [etve_test(errors, bundle.temperatures, list(bundle.meta.room_channels), s, after_heat[id(s)]) for s in off]
     spindle = [spindle_test(errors, s) for s in stages if heat[id(s)] == "spindle"]
     linear = [
         t

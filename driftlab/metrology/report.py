@@ -65,18 +65,15 @@ def conditions(bundle: Any, axis: str, term: str | None, start_s: float, end_s: 
         if chans and len(rows):
             rise = (rows[chans].max() - rows[chans].min()).max()
             out.append(("machine temperatures", f"largest change of one sensor {rise:.2f} °C ({len(chans)} sensors)"))
-    setups = [
-        (name, st)
-        for name, st in (meta.setups or {}).items()
-        if (st.axis is None or st.axis == axis.upper()) and term in st.terms
-    ]
+    setups = [(name, st) for name, st in (meta.setups or {}).items() if f"{axis.upper()}/{term}" in st.terms]
     if setups:
         name, st = setups[0]
         what = (
             st.instrument + (f", {st.optics} optics" if st.optics else "") + (f", {st.fixture}" if st.fixture else "")
         )
         ref = st.reference or {}
-        extra = ", ".join(f"{k} {ref[k]}" for k in ("manufacturer", "model", "owner", "version") if ref.get(k))
+        keys = ("source", "owner", "version", "version_no", "serial_no")
+        extra = ", ".join(f"{k.replace('_', ' ')} {ref[k]}" for k in keys if ref.get(k))
         out.append(("instrument", f"{what} (setup {name}{'; ' + extra if extra else ''})"))
         feed = ref.get("velocity") or ref.get("feed")
         out.append(("feed", str(feed) if feed else "not recorded in campaign.json"))
@@ -184,6 +181,8 @@ def iso230_3_html(result: iso230_3.Iso230_3Result, title: str) -> str:
         for t in tests:
             rows = [[k, *iso230_2.display(v, t.units[k])] for k, v in sorted(t.figures.items())]
             extra = f", room range {t.room_range_degC:.2f} °C" if t.room_range_degC is not None else ""
+            if t.extra.get("follows_heat"):
+                extra += "; follows a heated stage: the drift includes the machine cooling down"
             parts.append(
                 f"<h3>{html.escape(t.stage)} ({(t.end_s - t.start_s) / 3600:.2f} h{extra})</h3>"
                 + _table(["figure", "value", "unit"], rows)

@@ -94,10 +94,10 @@ NON_PHYSICAL_KINDS = SENSOR_KINDS | {"datum_shift"}
 
 
 def _fmt(value: float, unit: str) -> str:
-    """Return a value in display units: um for mm, urad for rad."""
+    """Return a value in display units: µm for mm, µrad for rad."""
     if unit == "rad":
-        return f"{value * 1e6:.3g} urad"
-    return f"{value * 1e3:.3g} um"
+        return f"{value * 1e6:.3g} µrad"
+    return f"{value * 1e3:.3g} µm"
 
 
 # ---------------------------------------------------------------------------------------------

@@ -250,7 +250,7 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
         f"the error by at least {res.min_gain * 100:g}% in time-ordered validation inside the training part. The "
         f"held-out part is scored once, after the findings are final, and its figures are shown as they came out. "
         f"A faulty thermocouple is decided on the temperatures alone. "
-        f"Lengths are in micrometres (um), angles in microradians (urad).</p>",
+        f"Lengths are in micrometres (µm), angles in microradians (µrad).</p>",
     ]
     if bundle is not None:
         out.append("<h2>The campaign</h2>")

@@ -418,6 +418,15 @@ async def test_openapi_declares_every_operation_and_problem(client: httpx.AsyncC
                 assert PROBLEM in op["responses"][status]["content"], (method, path, status)
             if method in ("post", "delete"):
                 assert PROBLEM in op["responses"]["401"]["content"]
+                # the bearer scheme: /docs has an Authorize button and each write says it needs the token
+                assert op["security"] == [{"bearer": []}], (method, path)
+            else:
+                assert "security" not in op, (method, path)
+    assert schema["components"]["securitySchemes"]["bearer"] == {
+        "type": "http",
+        "scheme": "bearer",
+        "description": "the API token (DRIFTLAB_API_TOKEN); reads need none, every write needs it",
+    }
     assert (await client.get("/health")).json()["status"] == "ok"
 
 

@@ -356,3 +356,22 @@ def test_cli_export_comp_one_line_errors_and_nothing_written(fitted, tmp_path, c
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
     assert not out.exists()
+
+
+def test_cli_export_comp_takes_the_travel_from_the_models_envelope(fitted, tmp_path, capsys):
+    """A model document that states the machine's travel bounds the range; --travel overrides it."""
+    _, _, root = fitted
+    doc = json.loads((root / "model.json").read_text())
+    doc["envelope"] = {"travel": {"X": [0.0, 200.0]}, "source": "machine file"}
+    model = tmp_path / "model.json"
+    model.write_text(json.dumps(doc))
+    argv = ["export-comp", "--model", str(model), "--temps", str(root / "bundle" / "temperatures.csv")]
+    argv += ["--controller", "linuxcnc", "--axis", "X", "-o", str(tmp_path / "x.comp")]
+    assert main([*argv, "--range", "0,254"]) == 2
+    err = capsys.readouterr().err
+    assert "lies outside the X travel 0..200 mm (the model's envelope (machine file))" in err
+    assert not (tmp_path / "x.comp").exists()
+    assert main([*argv, "--range", "0,200", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["travel"] == [0.0, 200.0]
+    assert main([*argv, "--range", "0,254", "--travel", "0,300", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["to"] == 254.0

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -81,28 +79,23 @@ def test_renishaw_csv_becomes_a_bundle_and_iso230_2_reads_it(tmp_path, capsys):
         (lambda t: t.replace("Date,2026-03-02T08:00:00Z", "Date,yesterday"), "date 'yesterday' is neither ISO 8601"),
     ],
 )
-def test_renishaw_csv_bad_files_are_one_line_errors_and_nothing_is_written(tmp_path, mutate, needle):
+def test_renishaw_csv_bad_files_are_one_line_errors_and_nothing_is_written(tmp_path, capsys, mutate, needle):
     text, _ = renishaw_csv()
     src = tmp_path / "x.csv"
     src.write_text(mutate(text))
     out = tmp_path / "bundle"
-    proc = subprocess.run(
+    code = main(
         [
-            sys.executable,
-            "-m",
-            "driftlab.cli",
             "import-instrument",
             str(src),
             "--format",
             "renishaw-csv",
             "-o",
             str(out),
-        ],
-        capture_output=True,
-        text=True,
+        ]
     )
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
+    assert code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
     assert not out.exists() and not (tmp_path / "bundle.part").exists()
 
@@ -163,15 +156,12 @@ def test_rtx_capture_becomes_a_drift_record(tmp_path):
         (lambda s: rtx_bytes(s, axis=""), "axis '' is not one of X Y Z A B"),
     ],
 )
-def test_rtx_bad_files_are_one_line_errors(tmp_path, make, needle):
+def test_rtx_bad_files_are_one_line_errors(tmp_path, capsys, make, needle):
     src = tmp_path / "drift.rtx"
     src.write_bytes(make(np.zeros(3000)))
     out = tmp_path / "bundle"
-    proc = subprocess.run(
+    code = main(
         [
-            sys.executable,
-            "-m",
-            "driftlab.cli",
             "import-instrument",
             str(src),
             "--format",
@@ -180,14 +170,44 @@ def test_rtx_bad_files_are_one_line_errors(tmp_path, make, needle):
             str(out),
             "--air-temp",
             "20",
-        ],
-        capture_output=True,
-        text=True,
+        ]
     )
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
+    assert code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
     assert not out.exists()
+
+
+def test_rtx_unit_and_date_order_are_explicit_and_the_header_is_kept(tmp_path, capsys):
+    """No --unit: µm is assumed and said; an ambiguous date: day first, said; --date-order mdy reads it month
+    first; the header's owner, version, velocity and trigger are in campaign.json."""
+    src = tmp_path / "drift.rtx"
+    src.write_bytes(rtx_bytes(np.full(4000, 2.0)))
+    base = ["import-instrument", str(src), "--format", "rtx", "--air-temp", "20"]
+    assert main([*base, "-o", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out
+    assert "assumed: the header states no unit: the samples are read as µm (give --unit)" in out
+    assert "assumed: date '10/02/2025 12:58:22' read day first (10 February 2025)" in out
+    a = load_bundle(tmp_path / "a")
+    assert a.meta.started_at.month == 2 and a.errors["value"].iloc[0] == pytest.approx(2.0e-3)
+    ref = a.meta.setups["instrument"].reference
+    assert ref["owner"] == "CARTO-Capture" and ref["version_no"] == "4.13" and ref["velocity"] == "0"
+    assert ref["trigger_point"] == "0" and ref["unit"] == "um" and ref["unit_stated"] == "assumed"
+    assert a.meta.setups["instrument"].instrument == "laser" and a.meta.setups["instrument"].terms == ["Z/dz"]
+    assert main([*base, "-o", str(tmp_path / "b"), "--unit", "nm", "--date-order", "mdy"]) == 0
+    out = capsys.readouterr().out
+    assert "assumed:" not in out
+    b = load_bundle(tmp_path / "b")
+    assert b.meta.started_at.month == 10 and b.meta.started_at.day == 2
+    assert b.errors["value"].iloc[0] == pytest.approx(2.0e-6)
+    assert b.meta.setups["instrument"].reference["date_order"] == "mdy"
+    assert b.meta.setups["instrument"].reference["unit_stated"] == "--unit"
+    # ISO 230-2's test conditions name the instrument from that record
+    from driftlab.metrology import report
+
+    conds = dict(report.conditions(b, "Z", None, 0.0, 4.0))
+    assert conds["instrument"].startswith("laser (setup instrument; source Renishaw .rtx capture drift.rtx, owner")
+    assert "version no 4.13" in conds["instrument"] and conds["feed"] == "0"
 
 
 def test_rtx_without_a_temperature_asks_for_one(tmp_path, capsys):
@@ -266,7 +286,7 @@ def test_generic_mapping_with_units_vocabularies_and_temperatures(tmp_path):
         (lambda m: m.update(decimal="."), "export.csv:2: column Abw: '1,00' is not a number"),
     ],
 )
-def test_generic_mapping_errors_are_one_line(tmp_path, edit, needle):
+def test_generic_mapping_errors_are_one_line(tmp_path, capsys, edit, needle):
     src = tmp_path / "export.csv"
     src.write_text(generic_csv())
     m = json.loads(json.dumps(MAPPING))
@@ -274,11 +294,8 @@ def test_generic_mapping_errors_are_one_line(tmp_path, edit, needle):
     mp = tmp_path / "map.json"
     mp.write_text(json.dumps(m))
     out = tmp_path / "bundle"
-    proc = subprocess.run(
+    code = main(
         [
-            sys.executable,
-            "-m",
-            "driftlab.cli",
             "import-instrument",
             str(src),
             "--format",
@@ -287,12 +304,10 @@ def test_generic_mapping_errors_are_one_line(tmp_path, edit, needle):
             str(mp),
             "-o",
             str(out),
-        ],
-        capture_output=True,
-        text=True,
+        ]
     )
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
+    assert code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
     assert not out.exists()
 

@@ -304,3 +304,53 @@ def test_cli_iso230_part3_and_one_line_errors(vm_bundle, tmp_path):
         text=True,
     )
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+
+
+DAEMON_PLAN = """\
+format: driftlab-plan/1
+name: iso3-daemon
+machine: {id: vmc-5ax-01, channels: from scenario}
+scan_interval_s: 60
+stages:
+  - name: baseline
+    axis: Z
+    duration_s: 1800
+    sweep: &sw {positions: [-250, -125, 0], interval_s: 600, point_s: 6, term: dz}
+  - name: spindle-10k
+    heat: [{kind: spindle, rpm: 10000}]
+    axis: Z
+    duration_s: 2400
+    sweep: *sw
+  - name: cool-down
+    axis: Z
+    duration_s: 1200
+    sweep: *sw
+  - name: z-feed
+    heat: [{kind: axis, axis: Z, feed_mm_min: 5000, from_pos: 0, to_pos: -250}]
+    axis: Z
+    duration_s: 1800
+    sweep: *sw
+"""
+
+
+def test_iso230_3_on_a_campaign_the_daemon_recorded(tmp_path):
+    """The daemon's campaign (not the simulator's bundle) gives all three tests: ETVE from the baseline, not the
+    cool-down after the spindle; spindle; linear motion of Z."""
+    from driftlab.campaigns.bundle import load_bundle
+    from driftlab.resources import examples_dir
+
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(DAEMON_PLAN)
+    db = f"sqlite:///{tmp_path / 'd.sqlite'}"
+    scenario = examples_dir() / "scenarios" / "clean.yaml"
+    stats = tmp_path / "stats.json"
+    argv = ["daemon", "--plan", str(plan), "--sim", str(scenario), "--speed", "0", "--db", db]
+    assert main([*argv, "--stats-json", str(stats)]) == 0
+    campaign = json.loads(stats.read_text())["campaign_id"]
+    assert main(["export", str(campaign), str(tmp_path / "b"), "--db", db]) == 0
+    bundle = load_bundle(tmp_path / "b")
+    assert [s.heat_source for s in bundle.meta.stages] == ["idle", "spindle", "idle", "feed"]
+    res = iso230_3.evaluate_bundle(bundle)
+    assert [t.stage for t in res.etve] == ["baseline"] and not res.etve[0].extra["follows_heat"]
+    assert [t.stage for t in res.spindle] == ["spindle-10k"] and res.spindle[0].figures["Z/dz"] > 0.002
+    assert [t.extra["axis"] for t in res.linear] == ["Z"]

@@ -237,7 +237,7 @@ def test_simulation_sentences_come_from_the_residuals():
     res = diagnose_bundle(case.bundle)
     sim = res.terms[0].simulation
     assert "approach directions disagree by" in sim.gets_wrong
-    um = float(sim.gets_wrong.split("disagree by ")[1].split(" um")[0])
+    um = float(sim.gets_wrong.split("disagree by ")[1].split(" µm")[0])
     assert 3.0 < um < 5.0  # the planted 4 um span
     assert "largest during stage" in sim.gets_wrong
     assert sim.rmse > res.terms[0].standard.fit.rmse_train  # time alone explains less than temperatures

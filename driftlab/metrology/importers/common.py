@@ -12,7 +12,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from driftlab.campaigns.bundle import ERROR_COLUMNS, BundleError, load_bundle, write_bundle
+from driftlab.campaigns.bundle import (
+    ERROR_COLUMNS,
+    ERROR_COLUMNS_V2,
+    POSE_COLUMNS,
+    BundleError,
+    load_bundle,
+    write_bundle,
+)
 from driftlab.errors import ValidationError
 from driftlab.vocabulary import AXES, ROTATIONS
 
@@ -99,6 +106,42 @@ def parse_time(text: str, where: str) -> datetime:
     return dt if dt.tzinfo is not None else dt.replace(tzinfo=UTC)
 
 
+DATE_ORDERS = {
+    "dmy": ("%d/%m/%Y %H:%M:%S", "%d/%m/%Y %H:%M", "%d/%m/%Y"),
+    "mdy": ("%m/%d/%Y %H:%M:%S", "%m/%d/%Y %H:%M", "%m/%d/%Y"),
+    "ymd": ("%Y/%m/%d %H:%M:%S", "%Y/%m/%d %H:%M", "%Y/%m/%d"),
+}
+_SLASHED = re.compile(r"^\s*(\d{1,2})[/.-](\d{1,2})[/.-]\d{4}")
+
+
+def parse_date(text: str, where: str, order: str | None = None) -> tuple[datetime, str | None]:
+    """Return an aware datetime from ISO 8601 or a slashed date in ``order`` (dmy, mdy, ymd), and the assumption
+    made when no order was given and the day and month could be swapped (day first), else None."""
+    t = text.strip()
+    try:
+        dt = datetime.fromisoformat(t.replace("Z", "+00:00"))
+        return (dt if dt.tzinfo is not None else dt.replace(tzinfo=UTC)), None
+    except ValueError:
+        pass
+    if order is not None and order not in DATE_ORDERS:
+        raise InstrumentFileError(f"{where}: date order {order!r} is not one of {', '.join(DATE_ORDERS)}")
+    for fmt in DATE_ORDERS[order or "dmy"]:
+        try:
+            dt = datetime.strptime(t.replace(".", "/").replace("-", "/"), fmt)
+            break
+        except ValueError:
+            continue
+    else:
+        raise InstrumentFileError(
+            f"{where}: date {text!r} is neither ISO 8601 nor {(order or 'dmy')} with slashes (see --date-order)"
+        )
+    assumption = None
+    m = _SLASHED.match(t)
+    if order is None and m and int(m.group(1)) <= 12 and int(m.group(2)) <= 12 and m.group(1) != m.group(2):
+        assumption = f"date {t!r} read day first ({dt:%d %B %Y}); it could be month first: give --date-order dmy or mdy"
+    return dt.replace(tzinfo=UTC), assumption
+
+
 @dataclass
 class Readings:
     """What an importer extracted: error readings in bundle units, the source row of each, temperatures, metadata."""
@@ -111,6 +154,10 @@ class Readings:
     temperatures: dict[str, float] = field(default_factory=dict)  # channel -> degC (one scan at time 0)
     temperature_frame: pd.DataFrame | None = None  # or a time series (time_s + channels)
     noise_mm: float | None = None
+    #: the instrument's own record (header fields, unit, date order): kept as a bundle v2 setup's reference
+    instrument: dict[str, Any] | None = None
+    #: what the importer had to assume (said in the import summary)
+    assumptions: list[str] = field(default_factory=list)
 
 
 _ERRORS_ROW = re.compile(r"^errors\.csv:(\d+): (.*)$")
@@ -168,6 +215,24 @@ def write_readings(
         meta["noise"] = {"length_mm": readings.noise_mm}
     order = np.argsort(errors["time_s"].to_numpy(float), kind="stable")
     frame = errors.iloc[order].reset_index(drop=True)[list(ERROR_COLUMNS)]
+    if readings.instrument is not None:
+        # bundle v2: the instrument's record travels in campaign.json as its setup's reference
+        info = dict(readings.instrument)
+        kind = str(info.pop("instrument", "laser"))
+        axes = sorted(set(frame["axis"]))
+        meta["format"] = "driftlab-bundle/2"
+        meta["setups"] = {
+            "instrument": {
+                "instrument": kind,
+                "axis": axes[0] if len(axes) == 1 else None,
+                "terms": sorted({f"{a}/{t}" for a, t in zip(frame["axis"], frame["term"])}),
+                "reference": {k: v for k, v in info.items() if v not in (None, "")},
+            }
+        }
+        for name in POSE_COLUMNS:
+            frame[name] = np.where(frame["axis"] == name.upper(), frame["position"], 0.0)
+        frame["setup"] = "instrument"
+        frame = frame[list(ERROR_COLUMNS_V2)]
     rows = readings.source_rows[order]
     tmp = out.with_name(out.name + ".part")
     if tmp.exists():

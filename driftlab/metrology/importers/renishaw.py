@@ -6,7 +6,11 @@
 little-endian float64, and ``EOF::\\r\\n``. The samples are the displacement of the laser reading
 at one place over time: the bundle gets them as the axis' positioning term at ``position``,
 averaged over ``interval_s`` (a thermal drift record is minutes long, the capture runs at kHz).
-The header does not state the samples' unit; it is an argument (um by default).
+The header does not state the samples' unit: it is ``--unit``, else µm is assumed and the summary
+says so. Its date is ``dd/mm/yyyy`` or ``mm/dd/yyyy`` depending on the PC that wrote it: ``--date-order``,
+else day first, said in the summary when the day and month could be swapped. The header's fields
+(owner, version, velocity, trigger, serial number, ...) are kept in campaign.json, as the reference of
+the bundle's instrument setup (a bundle v2).
 
 CSV export: a preamble of ``key,value`` lines (``Axis``, ``Machine``, ``Date``, ``Test``
 (``linear`` or ``angular``), ``Air temperature``, ``Material temperature``), then the data table
@@ -20,6 +24,7 @@ from __future__ import annotations
 import io
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -30,6 +35,7 @@ from driftlab.metrology.importers.common import (
     Readings,
     channel_name,
     check_axis,
+    parse_date,
     parse_direction,
     parse_time,
     position_factor,
@@ -46,9 +52,10 @@ def read_rtx(
     *,
     axis: str | None = None,
     position: float = 0.0,
-    unit: str = "um",
+    unit: str | None = None,
     interval_s: float = 1.0,
     term: str | None = None,
+    date_order: str | None = None,
 ) -> Readings:
     """Return the readings of a ``.rtx`` capture: the samples averaged per ``interval_s``, at one position."""
     path = Path(path)
@@ -97,6 +104,11 @@ def read_rtx(
         raise InstrumentFileError(f"{src}: sample {int(bad[0])} is not a finite number")
     ax = check_axis(axis or header.get("Axis") or "", f"{src}: axis (header 'Axis' or --axis)")
     tm = term or POSITIONING_TERM[ax]
+    assumptions: list[str] = []
+    if unit is None:
+        unit = "um" if tm not in ("alpha", "beta", "gamma") else "arcsec"
+        shown = "µm" if unit == "um" else unit
+        assumptions.append(f"the header states no unit: the samples are read as {shown} (give --unit)")
     scale = value_factor(unit, tm, f"{src}: --unit")
     if not (np.isfinite(interval_s) and interval_s > 0):
         raise InstrumentFileError(f"{src}: the averaging interval must be positive, got {interval_s!r}")
@@ -109,8 +121,32 @@ def read_rtx(
     errors = pd.DataFrame(
         {"time_s": t, "axis": ax, "term": tm, "position": float(position), "direction": 1, "value": means}
     )
-    started = parse_time(header["Date"], f"{src}: header 'Date'") if header.get("Date") else None
-    return Readings(src, errors, np.zeros(n, dtype=np.int64), machine=header.get("Machine", ""), started_at=started)
+    started = None
+    if header.get("Date"):
+        started, assumed = parse_date(header["Date"], f"{src}: header 'Date'", date_order)
+        assumptions += [assumed] if assumed else []
+    record: dict[str, Any] = {
+        "instrument": "laser",
+        "source": f"Renishaw .rtx capture {src}",
+        **{_key(k): v for k, v in header.items() if v},
+        "unit": unit,
+        "unit_stated": "--unit" if not assumptions or "no unit" not in assumptions[0] else "assumed",
+        "date_order": date_order or "dmy (assumed)",
+    }
+    return Readings(
+        src,
+        errors,
+        np.zeros(n, dtype=np.int64),
+        machine=header.get("Machine", ""),
+        started_at=started,
+        instrument=record,
+        assumptions=assumptions,
+    )
+
+
+def _key(name: str) -> str:
+    """Return a header key as a JSON name: "Version no" -> "version_no"."""
+    return re.sub(r"[^a-z0-9]+", "_", name.strip().lower()).strip("_") or "field"
 
 
 _UNIT = re.compile(r"^\s*([^()\[\]]+?)\s*[\(\[]\s*([^()\[\]]+)\s*[\)\]]\s*$")
