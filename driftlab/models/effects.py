@@ -102,6 +102,7 @@ class FaultScan:
     toward_air: float = float("nan")  # share of the early departure pointing toward the room air
     gap_left: float = float("nan")  # |reading - air| / |virtual sensor - air| once settled (0: reads the air)
     rate_degC_per_day: float = float("nan")  # mode "drift" (sensor_drift): the reading's ramp from start_s
+    partners: list[str] = field(default_factory=list)  # drift: flagged channels that read one another
 
     @property
     def kind(self) -> str:
