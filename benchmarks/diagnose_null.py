@@ -10,7 +10,7 @@ the machine shapes of ``diagnose_openkinds.shape`` (renamed channels, 10 s / 60 
 scans, interleaved sweeps, random stages). Target (issue 22): at most 5 % of bundles with a
 physical finding (a sensor finding or a datum shift is not one).
 
-    .venv/bin/python benchmarks/diagnose_null.py [N]    # N bundles, default 200
+    .venv/bin/python benchmarks/diagnose_null.py [N] [FIRST]    # N bundles (default 200) from seed 50 000 + FIRST
 """
 
 from __future__ import annotations
@@ -58,30 +58,49 @@ def null_case(seed: int):
     return openworld_case(planted, seed=seed, hours=24, keep=KEEP, rho=float(rng.uniform(0.4, 0.9)), **kw)
 
 
-def main(n: int = 200) -> dict:
-    """Return the measured false-finding rate over ``n`` null bundles."""
+def main(n: int = 200, first: int = 0) -> dict:
+    """Return the measured false-finding rate over ``n`` null bundles (seeds 50 000 + first ...)."""
     t0 = time.perf_counter()
     physical, any_finding, kinds, rhos = 0, 0, Counter(), []
-    for i in range(n):
+    which: list[dict] = []
+    for i in range(first, first + n):
         case = null_case(50_000 + i)
         rhos.append(case.rho)
         res = diagnose_bundle(case.bundle)
         kinds.update(e.kind for e in res.effects)
         any_finding += bool(res.effects)
-        physical += any(e.kind not in NON_PHYSICAL_KINDS for e in res.effects)
+        phys = [
+            f"{e.kind} {e.axis}/{e.term} {' '.join(e.channels)}".strip()
+            for e in res.effects
+            if e.kind not in NON_PHYSICAL_KINDS
+        ]
+        physical += bool(phys)
+        if phys:
+            which.append(
+                {
+                    "seed": 50_000 + i,
+                    "planted": [p.kind for p in case.planted],
+                    "rho": round(case.rho, 2),
+                    "physical": phys,
+                }
+            )
     return {
         "benchmark": "diagnose_null",
         "bundles": n,
+        "seeds": [50_000 + first, 50_000 + first + n - 1],
         "bundles_with_a_physical_finding": physical,
         "rate": physical / n,
         "bundles_with_any_finding": any_finding,
         "target_rate": 0.05,
         "meets_target": physical / n <= 0.05,
         "findings_by_kind": dict(kinds),
+        "bundles_with_physical": which,
         "rho_range": [round(min(rhos), 3), round(max(rhos), 3)],
         "wall_s": round(time.perf_counter() - t0, 1),
     }
 
 
 if __name__ == "__main__":
-    print(json.dumps(main(int(sys.argv[1]) if len(sys.argv) > 1 else 200)))
+    print(
+        json.dumps(main(int(sys.argv[1]) if len(sys.argv) > 1 else 200, int(sys.argv[2]) if len(sys.argv) > 2 else 0))
+    )

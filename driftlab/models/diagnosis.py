@@ -950,6 +950,8 @@ def _materialise(sc: Scored, ctx: TermContext, state: _State) -> tuple[Candidate
     """Return the candidate with its final columns (refined tau for lags) and parameter hints."""
     cand = sc.cand
     hint = dict(cand.hint)
+    if cand.kind == "datum_shift" and "cuts" not in hint:
+        return cand, cand.cols, hint  # a stated re-zero: its moment is known
     if cand.kind == "datum_shift":
         i = sc.col_index
         hint["time_s"] = float(hint["cuts"][i])
@@ -1024,7 +1026,10 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
     if k == "drift":
         return {"rate_per_day": c}, c
     if k == "datum_shift":
-        return {"time_s": float(hint["time_s"]), f"step_{u}": c}, c
+        out_s: dict[str, Any] = {"time_s": float(hint["time_s"]), f"step_{u}": c}
+        if hint.get("stated"):
+            out_s["stated"] = True
+        return out_s, c
     if k == "unsensed_source":
         return {"source": str(hint["source"]), "tau_s": float(hint["tau_s"]), "coef": c}, c
     if k == "direction_thermal":
@@ -1265,7 +1270,9 @@ def _search_term(
                     continue  # the thermocouples read this heat input: it is not unsensed
             X_new, names_new, new_idx = _extension(cand, cols, state)
             fit = fit_columns(X_new, td.y, td.train, names_new)
-            if cand.kind == "datum_shift":
+            if cand.kind == "datum_shift" and hint.get("stated"):
+                valid, how, after = True, "stated by the bundle (a new session of a setup zeroed when mounted)", np.nan
+            elif cand.kind == "datum_shift":
                 # a measurement artefact, not a law to extrapolate: a step near the end of the training part
                 # cannot show in later blocks; it must be a step instead (sharp and lasting, see step_is_sharp)
                 step_fit = float(fit.coef[new_idx[0]])

@@ -602,6 +602,17 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
     if ("drift", ()) not in ctx.taken:
         days = (td.t - td.t[0]) / 86400.0
         out.append(Candidate("drift", [], days[:, None], ["time_days"]))
+    # the re-zero moments a bundle v2 states (a new session of a setup zeroed when mounted): one hypothesis each
+    tr_t = td.t[td.train]
+    for t0 in td.datum_times:
+        label = f"stated@{t0:.0f}"
+        n_before = int(np.sum(tr_t < t0))
+        if ("datum_shift", (label,)) in ctx.taken or n_before < 3 or tr_t.size - n_before < 3:
+            continue
+        col = (td.t >= t0).astype(float)[:, None]
+        out.append(
+            Candidate("datum_shift", [], col, ["datum_step"], {"time_s": float(t0), "stated": True}, label=label)
+        )
     steps = step_bank(td)
     if steps is not None and ("datum_shift", ()) not in ctx.taken:
         cuts, bank = steps
