@@ -125,3 +125,34 @@ def test_reports_say_worse_in_red_and_list_the_unexplained(capsys):
     print_findings(doc)
     out = capsys.readouterr().out
     assert "Unexplained" in out and "3.2 x" in out
+
+
+def test_the_fit_reads_a_report_with_the_new_kinds_and_says_what_it_does_not_fold():
+    from driftlab.models.findings import parse_findings, plan_findings
+
+    case = openworld_case([], seed=5, hours=12, keep=[("X", "dx")])
+    doc = {
+        "format": "driftlab-diagnosis/1",
+        "bundle": case.bundle.name,
+        "effects": [
+            {
+                "kind": "datum_shift",
+                "axis": "X",
+                "term": "dx",
+                "channels": [],
+                "params": {"time_s": 3600.0, "step_mm": 0.002},
+            },
+            {"kind": "sensor_drift", "axis": None, "term": None, "channels": ["T9"], "params": {"start_s": 0.0}},
+            {"kind": "unsensed_source", "axis": "X", "term": "dx", "channels": [], "params": {"source": "stage:pump"}},
+            {
+                "kind": "direction_thermal",
+                "axis": "X",
+                "term": "dx",
+                "channels": ["T7"],
+                "params": {"coef_per_degC": 1e-4},
+            },
+        ],
+    }
+    plan = plan_findings(parse_findings(doc), [case.bundle])
+    assert sorted(plan.skipped) == [0, 1, 2, 3]
+    assert all("reported only" in note for note in plan.skipped.values())
