@@ -95,7 +95,7 @@ def print_findings(doc: dict) -> None:
             ("effect", "left"),
             ("on", "left"),
             ("cause", "left"),
-            ("held-out RMSE before", "right"),
+            ("held out before", "right"),
             ("after", "right"),
             ("gain", "right"),
             ("p", "right"),
@@ -105,7 +105,8 @@ def print_findings(doc: dict) -> None:
                 col,
                 justify=just,  # type: ignore[arg-type]  # rich types it as a Literal; ours are its values
                 overflow="fold",
-                min_width=min(widest, 48) if col == "effect" else None,
+                no_wrap=col in ("gain", "held out before", "after", "p"),
+                min_width=min(widest, 30) if col == "effect" else None,
             )
         for i, e in enumerate(effects, 1):
             k, unit = display_unit(str(e.get("term")))

@@ -722,15 +722,31 @@ def validation_check(
     return ok2, f"refitted model {b2:.4g} -> {a2:.4g} (own coefficients {b1:.4g} -> {a1:.4g})", a2
 
 
-def final_block_gate(
-    X_base: np.ndarray, X_ext: np.ndarray, y: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]
-) -> tuple[bool, float, float]:
-    """Return whether the extended model predicts the last training block no worse than the baseline.
+#: the last-block gate refuses an extension only when it predicts the block worse by more than this many noise
+#: RMS (in quadrature): a smaller loss is within what the noise itself moves a block's RMSE
+GATE_NOISE = 1.0
 
-    The last gate of every acceptance (issue 22, "no harm"): the standard model and the extended
-    model (every effect accepted so far plus the candidate) are both fitted on the training rows
-    before the last block of the training part and scored on that block. Training rows only.
-    Returns (passes, baseline RMSE, extended RMSE) on the block.
+
+def final_block_gate(
+    X_base: np.ndarray,
+    X_ext: np.ndarray,
+    y: np.ndarray,
+    train: np.ndarray,
+    folds: list[tuple[np.ndarray, np.ndarray]],
+    noise: float = 0.0,
+) -> tuple[bool, float, float]:
+    """Return whether the extended model predicts the last training block no worse than ``X_base``.
+
+    The last gate of every acceptance (issue 22, "no harm"), on training rows only: the rows before
+    the last block of the training part fit, the block scores. Two readings, as in the validation
+    (``validation_check``): both models refitted (what they would predict), or the extension's own
+    part - every column of ``X_ext`` that ``X_base`` lacks or holds otherwise - with its coefficients
+    from the early rows, against the later part of ``X_base``'s training residual (immune to the
+    collinear dT coefficients moving along their near-null direction, which makes a true reversal
+    lose a refitted comparison at random). Either must not be worse by more than the noise: "worse"
+    means after^2 > before^2 + (``GATE_NOISE`` x noise)^2, a loss the measurement can tell from its own
+    scatter (effect sizes against the estimated noise). Returns (passes, before, after) of the
+    refitted reading.
     """
     if not folds:
         return True, float("nan"), float("nan")
@@ -740,22 +756,43 @@ def final_block_gate(
     rb = y[val] - X_base[val] @ lstsq(X_base[fit], y[fit])
     re_ = y[val] - X_ext[val] @ lstsq(X_ext[fit], y[fit])
     b, a = rmse(rb), rmse(re_)
-    return bool(a <= b), b, a
+    tol2 = (GATE_NOISE * noise) ** 2
+    if a * a <= b * b + tol2:
+        return True, b, a
+    k = X_base.shape[1]
+    same = [i for i in range(min(k, X_ext.shape[1])) if np.array_equal(X_ext[:, i], X_base[:, i])]
+    extra = [i for i in range(X_ext.shape[1]) if i not in same]
+    if not extra:
+        return False, b, a
+    before, after = _own_part_residuals(X_base, X_ext[:, extra], y, train, [folds[-1]])
+    if before and rmse(after[0]) ** 2 <= rmse(before[0]) ** 2 + tol2:
+        return True, b, a
+    return False, b, a
 
 
-#: a datum step must stand this many robust sigmas above the sweep-to-sweep changes of the residual
-STEP_Z = 6.0
+#: a datum step must stand this many standard errors above the noise of the sweep means of the residual
+STEP_Z = 5.0
+#: share of a datum step that the change between the two sweeps straddling the cut must carry
+STEP_SHARE = 0.7
 
 
-def step_is_sharp(r: np.ndarray, td: TermData, time_s: float, step: float, noise: float) -> tuple[bool, str]:
+def step_is_sharp(
+    r: np.ndarray, td: TermData, time_s: float, step: float, noise: float, stages: list[dict[str, Any]] | None = None
+) -> tuple[bool, str]:
     """Return whether the residual steps at ``time_s`` as a datum shift does (sharp and lasting), and why.
 
     A re-zeroed line moves every reading by one amount between two sweeps and stays there; a slow
     misfit (a lag, a drift, heat no sensor reads) that a step happens to fit best moves little
-    between the two sweeps around the cut. On the training rows: the sweep means of the current
-    residual; the jump from the median of the three sweeps before the cut to the median of the three
-    after it must be at least ``STEP_Z`` robust sigmas of the sweep-to-sweep changes, agree with the
-    fitted step within a factor of two, and exceed the noise.
+    between the two sweeps around the cut. ``r`` is the step's partial residual (the extended
+    model's residual plus the fitted step), so what the smooth dT columns absorbed of a real step
+    does not hide it. On the training rows: the sweep means of ``r``; the jump from the median of
+    the three sweeps before the cut to the median of the three after it must be at least ``STEP_Z``
+    standard errors (the sweep means' own scatter, 1.4826 MAD of their differences / sqrt 2; a median
+    of three has 1.57 / 3 of one mean's variance), agree with the fitted step within a factor of two,
+    and exceed the noise. And it must be a step, not a fast thermal rise: the change between the two
+    sweeps that straddle the cut carries at least ``STEP_SHARE`` of it, and no stage starts or ends
+    within two sweep spacings of the cut (a heat source switching on moves the errors fast too; such a
+    jump stays in ``unexplained``).
     """
     tr = td.train
     sw, t, rr = td.sweep[tr], td.t[tr], r[tr]
@@ -770,11 +807,20 @@ def step_is_sharp(r: np.ndarray, td: TermData, time_s: float, step: float, noise
     after = float(np.median(means[k : k + 3]))
     jump = after - before
     diffs = np.diff(means)
-    sigma = max(robust_sigma(diffs), 1e-300)
-    z = abs(jump) / sigma
+    s_mean = robust_sigma(diffs) / np.sqrt(2.0)
+    se = max(s_mean * np.sqrt(2.0 * 1.57 / 3.0), 1e-300)
+    z = abs(jump) / se
     agree = step != 0 and 0.5 < jump / step < 2.0
-    ok = bool(z >= STEP_Z and agree and abs(jump) > noise)
-    return ok, f"jump {jump:.4g} over 3 sweeps ({z:.1f} sigma of sweep changes), fitted step {step:.4g}"
+    one = float(means[k] - means[k - 1])
+    sharp = jump != 0 and one / jump >= STEP_SHARE
+    spacing = float(np.median(np.diff(starts))) if starts.size > 2 else 0.0
+    bounds = [float(st.get(key, np.nan)) for st in stages or [] for key in ("start_s", "end_s")]
+    at_stage = any(abs(b - time_s) <= 2.0 * spacing for b in bounds if np.isfinite(b))
+    ok = bool(z >= STEP_Z and agree and abs(jump) > noise and sharp and not at_stage)
+    return ok, (
+        f"jump {jump:.4g} over 3 sweeps ({z:.1f} standard errors), {one:.4g} between the two sweeps, "
+        f"fitted step {step:.4g}{', at a stage boundary' if at_stage else ''}"
+    )
 
 
 def _cause(
@@ -904,6 +950,8 @@ def _materialise(sc: Scored, ctx: TermContext, state: _State) -> tuple[Candidate
     """Return the candidate with its final columns (refined tau for lags) and parameter hints."""
     cand = sc.cand
     hint = dict(cand.hint)
+    if cand.kind == "datum_shift" and "cuts" not in hint:
+        return cand, cand.cols, hint  # a stated re-zero: its moment is known
     if cand.kind == "datum_shift":
         i = sc.col_index
         hint["time_s"] = float(hint["cuts"][i])
@@ -978,7 +1026,10 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
     if k == "drift":
         return {"rate_per_day": c}, c
     if k == "datum_shift":
-        return {"time_s": float(hint["time_s"]), f"step_{u}": c}, c
+        out_s: dict[str, Any] = {"time_s": float(hint["time_s"]), f"step_{u}": c}
+        if hint.get("stated"):
+            out_s["stated"] = True
+        return out_s, c
     if k == "unsensed_source":
         return {"source": str(hint["source"]), "tau_s": float(hint["tau_s"]), "coef": c}, c
     if k == "direction_thermal":
@@ -1219,11 +1270,15 @@ def _search_term(
                     continue  # the thermocouples read this heat input: it is not unsensed
             X_new, names_new, new_idx = _extension(cand, cols, state)
             fit = fit_columns(X_new, td.y, td.train, names_new)
-            if cand.kind == "datum_shift":
+            if cand.kind == "datum_shift" and hint.get("stated"):
+                valid, how, after = True, "stated by the bundle (a new session of a setup zeroed when mounted)", np.nan
+            elif cand.kind == "datum_shift":
                 # a measurement artefact, not a law to extrapolate: a step near the end of the training part
                 # cannot show in later blocks; it must be a step instead (sharp and lasting, see step_is_sharp)
+                step_fit = float(fit.coef[new_idx[0]])
+                # the partial residual of the step: the extended model's residual with the fitted step added back
                 valid, how = step_is_sharp(
-                    state.fit.residual, td, float(hint["time_s"]), float(fit.coef[new_idx[0]]), noise
+                    fit.residual + step_fit * cols[:, 0], td, float(hint["time_s"]), step_fit, noise, prep.stages
                 )
                 after = float("nan")
             else:
@@ -1270,9 +1325,10 @@ def _search_term(
             if not ok_d:
                 continue
             # no harm: the extended model must predict the last training block no worse than the baseline
-            gate_ok, gb, ga = final_block_gate(std.X, X_new, td.y, folds)
-            gate_cur, gc, _ = final_block_gate(state.X, X_new, td.y, folds)
-            if not (gate_ok and (gate_cur or cand.kind == "datum_shift")):
+            gate_ok, gb, ga = final_block_gate(std.X, X_new, td.y, td.train, folds, noise)
+            gate_cur, gc, _ = final_block_gate(state.X, X_new, td.y, td.train, folds, noise)
+            # (a datum shift corrects the readings, not the machine's law: it is held to its sharpness instead)
+            if not (cand.kind == "datum_shift" or (gate_ok and gate_cur)):
                 log.debug("   last training block: baseline %.4g, current %.4g, extended %.4g: refused", gb, gc, ga)
                 continue
             # (a) significance robust to autocorrelated residuals, Bonferroni over the whole family
@@ -1448,6 +1504,7 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     alpha_fault = 0.5 * alpha / max(n_ch, 1)
     # sensor faults are decided on the temperatures alone, before any error is looked at
     broken = {ch: f for ch, f in faults.items() if f.plausible and f.p_value < alpha_fault}
+    _resolve_drift_pairs(drifts, prep, contexts, standards)
     for ch, f in drifts.items():
         # a ramp that explains the departure better than a break does is a drifting calibration
         if f.plausible and f.p_value < alpha_fault and (ch not in broken or broken[ch].mode != "open"):
@@ -1498,6 +1555,55 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         alpha_fault,
         unexplained,
     )
+
+
+#: the errors decide between two drifting-sensor candidates only when one repair explains them clearly better
+PAIR_MARGIN = 0.02
+
+
+def _resolve_drift_pairs(
+    drifts: dict[str, FaultScan], prep: PreparedBundle, contexts: list[TermContext], standards: list[StandardModel]
+) -> None:
+    """Decide which of two junctions that read one another drifts, on the errors their models explain.
+
+    Each departs from a virtual sensor built on the other by one ramp of opposite sign; the
+    temperatures alone then lean on the rest of the structure and the room air (``sensor_drift``).
+    When the pair feeds models, the sensor finding must explain the error-side symptom: the channel
+    whose repaired reading (ramp removed) gives the lower training RSS summed over the terms that use
+    either is the drifting one (repairing the healthy one puts the ramp into both columns).
+    """
+    done: set[str] = set()
+    for ch, f in drifts.items():
+        if ch in done or not f.partners:
+            continue
+        group = [ch, *[c for c in f.partners if c in drifts]]
+        done |= set(group)
+        scores: dict[str, float] = {}
+        for c in group:
+            total, used = 0.0, False
+            for ctx, std in zip(contexts, standards):
+                names = list(std.names)
+                if not any(f"dT_{g}" in names for g in group):
+                    continue
+                used = True
+                X = std.X.copy()
+                k = names.index(f"dT_{c}") if f"dT_{c}" in names else -1
+                if k >= 0:
+                    rep = np.interp(ctx.td.t, prep.grid_t, drifts[c].replaced)
+                    X[:, k] = rep - rep[0]
+                tr = ctx.td.train
+                r = ctx.td.y[tr] - X[tr] @ lstsq(X[tr], ctx.td.y[tr])
+                total += float(r @ r) / max(float(np.var(ctx.td.y[tr])) * tr.sum(), 1e-300)
+            if used:
+                scores[c] = total
+        log.debug("drift pair %s: relative training RSS with each repaired %s", group, scores)
+        if len(scores) == len(group):
+            ranked = sorted(scores.values())
+            if ranked[1] - ranked[0] < PAIR_MARGIN * ranked[1]:
+                continue  # the errors cannot tell: the temperature rule stands
+            best = min(scores, key=lambda c: scores[c])
+            for c in group:
+                drifts[c].plausible = c == best and (drifts[c].plausible or any(drifts[g].plausible for g in group))
 
 
 def _unfed_fault(prep: PreparedBundle, f: FaultScan) -> Effect:

@@ -102,6 +102,7 @@ class FaultScan:
     toward_air: float = float("nan")  # share of the early departure pointing toward the room air
     gap_left: float = float("nan")  # |reading - air| / |virtual sensor - air| once settled (0: reads the air)
     rate_degC_per_day: float = float("nan")  # mode "drift" (sensor_drift): the reading's ramp from start_s
+    partners: list[str] = field(default_factory=list)  # drift: flagged channels that read one another
 
     @property
     def kind(self) -> str:
@@ -601,6 +602,17 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
     if ("drift", ()) not in ctx.taken:
         days = (td.t - td.t[0]) / 86400.0
         out.append(Candidate("drift", [], days[:, None], ["time_days"]))
+    # the re-zero moments a bundle v2 states (a new session of a setup zeroed when mounted): one hypothesis each
+    tr_t = td.t[td.train]
+    for t0 in td.datum_times:
+        label = f"stated@{t0:.0f}"
+        n_before = int(np.sum(tr_t < t0))
+        if ("datum_shift", (label,)) in ctx.taken or n_before < 3 or tr_t.size - n_before < 3:
+            continue
+        col = (td.t >= t0).astype(float)[:, None]
+        out.append(
+            Candidate("datum_shift", [], col, ["datum_step"], {"time_s": float(t0), "stated": True}, label=label)
+        )
     steps = step_bank(td)
     if steps is not None and ("datum_shift", ()) not in ctx.taken:
         cuts, bank = steps

@@ -46,9 +46,31 @@ FINDING_KINDS: tuple[str, ...] = (
     "drift",
     "quadratic",
     "operating_condition",
+    "sensor_drift",
+    "datum_shift",
+    "unsensed_source",
+    "direction_thermal",
 )
 #: kinds that name at least one thermocouple
-CHANNEL_KINDS = frozenset({"screw_expansion", "unmapped_channel", "thermal_lag", "sensor_fault", "quadratic"})
+CHANNEL_KINDS = frozenset(
+    {
+        "screw_expansion",
+        "unmapped_channel",
+        "thermal_lag",
+        "sensor_fault",
+        "quadratic",
+        "sensor_drift",
+        "direction_thermal",
+    }
+)
+#: kinds the fit does not fold in (yet): reported in the document's ``findings`` with the reason
+NOT_FOLDED: Mapping[str, str] = {
+    "operating_condition": "a direct machine-state term: the fitting catalogue has no such feature yet (reported only)",
+    "sensor_drift": "a drifting thermocouple: the fit has no ramp substitution yet (reported only)",
+    "datum_shift": "a measurement artefact (a re-zeroed line): not a term of the machine's model (reported only)",
+    "unsensed_source": "a lag of a heat-source schedule: the fitting catalogue has no such feature yet (reported only)",
+    "direction_thermal": "direction x temperature: the fitting catalogue has no such feature yet (reported only)",
+}
 #: parameters a finding must carry to be folded in (the others are reported but not needed)
 NEEDED_PARAMS: Mapping[str, tuple[str, ...]] = {"thermal_lag": ("tau_s",), "sensor_fault": ("start_s",)}
 #: neighbours of a virtual sensor that replaces a faulty channel
@@ -115,7 +137,7 @@ def parse_findings(data: Any, source: str = "findings") -> Findings:
         if kind not in FINDING_KINDS:
             raise bad(f"{where}: unknown kind {kind!r} (one of {', '.join(FINDING_KINDS)})")
         axis, term = e.get("axis"), e.get("term")
-        if kind == "sensor_fault" and axis is None and term is None:
+        if kind in ("sensor_fault", "sensor_drift") and axis is None and term is None:
             pass  # a broken channel that feeds no model: a finding about the temperatures only
         elif axis not in AXES:
             raise bad(f"{where}: axis must be one of {' '.join(AXES)}, got {axis!r}")
@@ -367,8 +389,8 @@ def plan_findings(
                         (c, f.start_s(c), str((f.params.get("mode_by_channel") or {}).get(c, f.params.get("mode", ""))))
                     )
             continue
-        if f.kind == "operating_condition":
-            skipped[i] = "a direct machine-state term: the fitting catalogue has no such feature yet (reported only)"
+        if f.kind in NOT_FOLDED:
+            skipped[i] = NOT_FOLDED[f.kind]
             continue
         if f.axis is None or f.term is None or (f.axis, f.term) not in measured:
             skipped[i] = f"no {f.axis}/{f.term} measurements in these campaigns"

@@ -68,14 +68,12 @@ def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) ->
     with np.errstate(all="ignore"):
         corr = np.nan_to_num(np.corrcoef(np.where(finite, D, 0.0).T))
     ex_idx = {prep.channel_index(c) for c in exclude if c in prep.channels}
-    out: dict[str, FaultScan] = {}
-    for j in range(m):
-        if not finite[j] or j in ex_idx:
-            continue
-        order = [k for k in np.argsort(-np.abs(corr[j])) if k != j and finite[k] and k not in ex_idx]
+
+    def scan_one(j: int, skip: set[int]) -> FaultScan | None:
+        order = [k for k in np.argsort(-np.abs(corr[j])) if k != j and finite[k] and k not in skip]
         nb = _neighbours(prep, j, order, 16)
         if not nb:
-            continue
+            return None
         A = np.column_stack([np.ones(n), D[:, nb]])
         s = np.sqrt(np.mean(A * A, axis=0))
         Q, R = np.linalg.qr(A / np.where(s > 0, s, 1.0))
@@ -90,7 +88,7 @@ def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) ->
         drops = np.where(ok, (RH.T @ ry) ** 2 / np.where(ok, nh, 1.0), -1.0)
         i = int(np.argmax(drops))
         if drops[i] <= 0 or rss0 <= 0:
-            continue
+            return None
         b = float((RH[:, i] @ ry) / nh[i])  # degC per day: the ramp's own coefficient (FWL)
         r1 = ry - b * RH[:, i]
         rss1 = max(float(r1 @ r1), 1e-300)
@@ -98,15 +96,14 @@ def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) ->
         size = abs(b) * (t[-1] - starts[i]) / 86400.0
         sigma = max(robust_sigma(np.diff(r1)) / np.sqrt(2.0), float(np.sqrt(rss1 / n)), 1e-6)
         plausible = bool(ratio > MIN_RATIO and size > MIN_SIZE_SIGMA * sigma and size > MIN_SIZE_DEGC)
-        replaced = T[:, j] - b * H[:, i]
-        out[prep.channels[j]] = FaultScan(
+        return FaultScan(
             prep.channels[j],
             float(starts[i]),
             size,
             1.0,
             "drift",
             1.0,
-            replaced,
+            T[:, j] - b * H[:, i],
             plausible,
             [prep.channels[k] for k in nb],
             ratio,
@@ -114,6 +111,30 @@ def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) ->
             float("nan"),
             rate_degC_per_day=b,
         )
+
+    out: dict[str, FaultScan] = {}
+    for j in range(m):
+        if finite[j] and j not in ex_idx:
+            f = scan_one(j, ex_idx)
+            if f is not None:
+                out[prep.channels[j]] = f
+    # two junctions that read one another: each departs from a virtual sensor built on the other by the same
+    # ramp of opposite sign. The one that drifts keeps its ramp when the other flagged channels leave its
+    # neighbours (it departs from the rest of its structure and the room air too); the healthy one loses it
+    flagged = [c for c, f in out.items() if f.plausible]
+    if len(flagged) > 1:
+        idx = {c: prep.channel_index(c) for c in flagged}
+        again: dict[str, float] = {}
+        for c in flagged:
+            f = scan_one(idx[c], ex_idx | {idx[o] for o in flagged if o != c})
+            again[c] = f.break_ratio if f is not None else 0.0
+        for c in flagged:
+            mates = [o for o in flagged if o != c and (o in out[c].neighbours or c in out[o].neighbours)]
+            mine = again[c]
+            theirs = [again[o] for o in mates]
+            out[c].partners = mates
+            if mates and mine < max(theirs):
+                out[c].plausible = False  # its partner drifts, not it (the diagnosis may overrule on the errors)
     _peer_test(out)
     return out
 

@@ -167,6 +167,7 @@ class TermData:
     sweep: np.ndarray  # sweep index of each row (consecutive rows closer than the sweep gap)
     flags: OutlierFlags
     conditions: dict[str, np.ndarray] = field(default_factory=dict)  # machine-state columns at the error times
+    datum_times: np.ndarray = field(default_factory=lambda: np.empty(0))  # bundle v2: stated re-zero moments
 
     @property
     def unit(self) -> str:
@@ -274,6 +275,28 @@ def _conditions_source(bundle: Any) -> dict[str, Any]:
     return out
 
 
+def _session_labels(errs: pd.DataFrame, setups: Any) -> pd.Series:
+    """Return each error row's instrument session ('' for readings against a stable artefact, and bundle v1).
+
+    Bundle v2 ``datum: session``: a laser is zeroed when it is set up, so its readings are relative
+    to that moment; a session is a maximal run, in time order over all readings, of one such setup
+    (the same definition as the fit's).
+    """
+    out = pd.Series("", index=errs.index, dtype=object)
+    if not setups or "setup" not in errs.columns:
+        return out
+    order = np.argsort(errs["time_s"].to_numpy(dtype=float), kind="stable")
+    sid = errs["setup"].astype(str).to_numpy(dtype=object)[order]
+    run = np.concatenate([[0], np.cumsum(sid[1:] != sid[:-1])]) if sid.size else np.zeros(0, dtype=int)
+    labels = np.full(sid.size, "", dtype=object)
+    for k, (s, r) in enumerate(zip(sid, run)):
+        entry = setups.get(s) if isinstance(setups, dict) else getattr(setups, s, None)
+        if entry is not None and str(meta_get(entry, "datum", "session")) == "session":
+            labels[k] = f"{s}.{r}"
+    out.iloc[order] = labels
+    return out
+
+
 def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float | None = None) -> PreparedBundle:
     """Return the cleaned, grid-aligned :class:`PreparedBundle` of a bundle (one pass, vectorised)."""
     if not 0.0 < holdout_fraction < 0.9:
@@ -323,12 +346,14 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
     # held-out rows are cleaned apart: nothing in the held-out values can change a training decision
     errs = errors.dropna(subset=["time_s", "position"])
     cond_at = _conditions_source(bundle)
+    session = _session_labels(errs, meta_get(meta, "setups", None))
     terms: list[TermData] = []
     for (axis, term), g in errs.groupby(["axis", "term"], sort=True):
         g = g.sort_values("time_s", kind="stable")
         t_all = g["time_s"].to_numpy(dtype=float)
         hold_t = float(t_all[int(math.floor((1.0 - holdout_fraction) * t_all.size))]) if t_all.size else np.inf
         g = g[np.isfinite(g["value"].to_numpy(dtype=float))]
+        sess_g = session.loc[g.index].to_numpy(dtype=object)
         y = g["value"].to_numpy(dtype=float)
         t = g["time_s"].to_numpy(dtype=float)
         pos = g["position"].to_numpy(dtype=float)
@@ -362,6 +387,10 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
             )
         keep = ~bad & ~in_gap
         t, pos, direction, y = t[keep], pos[keep], direction[keep], y[keep]
+        sess_g = sess_g[keep]
+        # a new session of a setup zeroed at its mounting (bundle v2 datum: session): a stated re-zero
+        new = np.flatnonzero((sess_g[1:] != sess_g[:-1]) & (sess_g[1:] != "")) + 1
+        datum_times = np.unique(t[new]) if new.size else np.empty(0)
         if y.size < 12:  # too few to fit a cubic and temperatures and to hold a quarter out
             flags.append(OutlierFlags(f"{axis}/{term}: {y.size} samples, too few to diagnose", 0))
             continue
@@ -387,6 +416,7 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
                 np.concatenate([sw_train, sw_hold]).astype(int),
                 fl,
                 conds,
+                datum_times,
             )
         )
 

@@ -20,6 +20,14 @@ the standard model: a cubic in position plus dT of the model channels, effects a
   measuring order), single-scan glitches in temperatures and errors (EMI on the card),
   logger gaps (scans missing for 15-50 min), a laser gap, scattered missing readings, and a
   machine-state log (spindle rpm, feed) in conditions.csv.
+- **Not shaped like ours** (issue 22), on request: other channel names (``channel_names``), other
+  scan rates (``scan_s``) or irregular scan times (``irregular``), sweeps of all axes interleaved
+  point by point (``interleave``), stages in random order and lengths (``random_stages``), and the
+  kinds outside the closed-world catalogue: a thermocouple whose calibration drifts
+  (``sensor_drift``, readings only), a re-zeroed measuring line (``datum_shift``: every reading
+  of the term steps at one moment), a heat input no thermocouple reads (``unsensed_source``: a
+  first-order lag of a heat source's input, not of its on/off schedule), and a reversal that
+  opens as a temperature rises (``direction_thermal``).
 """
 
 from __future__ import annotations
@@ -134,6 +142,10 @@ def openworld_case(
     gaps: bool = True,
     lag_fraction: float | None = None,
     unmeasured_degC: float = 0.1,
+    channel_names: dict[str, str] | None = None,
+    irregular: bool = False,
+    interleave: bool = False,
+    random_stages: bool = False,
 ) -> Case:
     """Return an open-world :class:`Case` with ``planted`` effects hidden in element errors."""
     planted = list(planted or [])
@@ -143,32 +155,47 @@ def openworld_case(
     n = int(hours * 3600 / scan_s) + 1
     t = np.arange(n) * scan_s
 
-    # staged single-heat-source plan (ch. 5.2): spindle at several speeds, X and Y motors, rests
-    u = np.zeros((n, 3))
+    # staged single-heat-source plan (ch. 5.2): spindle at several speeds, X and Y motors, rests; and any
+    # heat source that only an unsensed_source effect names (a coolant pump): its stages heat no sensor site
+    extra = sorted(
+        {
+            str(p.params["source"])
+            for p in planted
+            if p.kind == "unsensed_source" and str(p.params["source"]) not in ("spindle", "x_motor", "y_motor")
+        }
+    )
+    sources = ["spindle", "x_motor", "y_motor", *extra]
+    u = np.zeros((n, len(sources)))
     rpm = np.zeros(n)
     feed = np.zeros(n)
     stages = []
     cursor, k = 0.5 * 3600.0, 0
     while cursor < t[-1]:
-        src = k % 3
-        on = round(rng.uniform(3, 4.5) * 60) * 60.0
-        off = round(rng.uniform(1.5, 3) * 60) * 60.0
+        src = int(rng.integers(0, len(sources))) if random_stages else k % len(sources)
+        if random_stages:
+            on = round(rng.uniform(1.0, 6.0) * 60) * 60.0
+            off = round(rng.uniform(0.5, 4.0) * 60) * 60.0
+        else:
+            on = round(rng.uniform(3, 4.5) * 60) * 60.0
+            off = round(rng.uniform(1.5, 3) * 60) * 60.0
         m = (t >= cursor) & (t < cursor + on)
         if src == 0:
             speed = float(rng.choice([2000.0, 4000.0, 6000.0, 8000.0]))
             rpm[m] = speed
             u[m, 0] = (speed / 8000.0) ** 1.5  # bearing and motor losses grow faster than the speed
-        else:
+        elif src < 3:
             level = rng.uniform(0.6, 1.0)
             u[m, src] = level
             feed[m] = 2000.0 * level
+        else:
+            u[m, src] = rng.uniform(0.6, 1.0)
         stages.append(
             {
-                "name": f"{['spindle', 'x_motor', 'y_motor'][src]}-{k}",
+                "name": f"{sources[src]}-{k}",
                 "start_s": cursor,
                 "end_s": min(cursor + on, t[-1]),
-                "heat_source": ["spindle", "x_motor", "y_motor"][src],
-                "axis": "XYZ"[src],
+                "heat_source": sources[src],
+                "axis": "XYZ"[src] if src < 3 else "X",
                 "spindle_rpm": float(rpm[m].max()) if m.any() else 0.0,
                 "feed_mm_min": float(feed[m].max()) if m.any() else 0.0,
             }
@@ -196,12 +223,12 @@ def openworld_case(
             continue
         g = np.array(gains) * rng.uniform(0.8, 1.2, 3)
         tau = rng.uniform(20, 120) * 60
-        true[:, j] = first_order_lag_even(room_air + u @ g, scan_s, tau) + rng.uniform(-1, 1)
+        true[:, j] = first_order_lag_even(room_air + u[:, :3] @ g, scan_s, tau) + rng.uniform(-1, 1)
     dTs = true - true[0]
 
     # the bodies: a distributed field - a mix of sites, lagging them a little, plus heat no sensor reads
     frac = float(rng.uniform(0.01, 0.03)) if lag_fraction is None else float(lag_fraction)
-    hidden_heat = first_order_lag_even(u @ rng.uniform(0.3, 1.0, 3), scan_s, rng.uniform(2, 5) * 3600)
+    hidden_heat = first_order_lag_even(u[:, :3] @ rng.uniform(0.3, 1.0, 3), scan_s, rng.uniform(2, 5) * 3600)
     hidden_heat = unmeasured_degC * hidden_heat / max(float(np.abs(hidden_heat).max()), 1e-12)
     body: dict[str, np.ndarray] = {}
     for b, w in BODIES.items():
@@ -211,6 +238,11 @@ def openworld_case(
     body["arm_gradient"] = body["arm_upper"] - body["arm_lower"]
 
     readings = true + rng.normal(0, 0.01, true.shape)
+    for p in planted:  # a drifting calibration changes the readings only: appendix B
+        if p.kind == "sensor_drift":
+            j = names.index(p.channels[0])
+            t0 = float(p.params["start_s"])
+            readings[:, j] += float(p.params["rate_degC_per_day"]) * np.maximum(t - t0, 0.0) / 86400.0
     for p in planted:  # faults change the readings only: the bodies keep their true temperatures
         if p.kind != "sensor_fault":
             continue
@@ -236,6 +268,15 @@ def openworld_case(
     rows = []
     for s0 in sweep_t0:
         i = 0
+        if interleave:  # every axis at its k-th point before any axis moves on (a combined test)
+            grids = {a: np.linspace(*truth.AXIS_RANGE[a], points) for a in axes}
+            for d in (1, -1):
+                for kpt in range(points):
+                    for axis in axes:
+                        g = grids[axis] if d > 0 else grids[axis][::-1]
+                        rows.append((s0 + 10.0 * i, axis, float(g[kpt]), d))
+                        i += 1
+            continue
         for axis in axes:
             lo, hi = truth.AXIS_RANGE[axis]
             grid = np.linspace(lo, hi, points)
@@ -270,6 +311,12 @@ def openworld_case(
             return float(pr["rate_per_day"]) * days
         if p.kind == "operating_condition":  # centrifugal growth: coef x rpm^power (6.4.3)
             return float(pr["coef_per_unit"]) * rpm_at[idx] ** int(pr["power"])
+        if p.kind == "unsensed_source":  # heat no thermocouple reads: a lag of the source's input (5.2)
+            src = sources.index(str(pr["source"]))
+            heat = first_order_lag_even(u[:, src], scan_s, float(pr["tau_s"]))
+            return float(pr["coef"]) * np.interp(rt[idx], t, heat)
+        if p.kind == "datum_shift":  # added to the readings below, not to the machine
+            return np.zeros(idx.size)
         j = names.index(p.channels[0])
         dT = dT_at[idx, j]
         if p.kind == "screw_expansion":  # eq. 3.2: pitch growth with the screw temperature
@@ -278,6 +325,8 @@ def openworld_case(
             return float(pr["coef_per_degC"]) * dT
         if p.kind == "quadratic":
             return float(pr["coef_per_degC2"]) * dT * dT
+        if p.kind == "direction_thermal":  # the reversal opens as the nut warms (3.3 with 3.5): full span
+            return 0.5 * float(pr["coef_per_degC"]) * d * dT
         if p.kind == "thermal_lag":  # the body follows a lag of the site: c (lag(dT) - dT)
             lg = np.interp(rt[idx], t, first_order_lag_even(dTs[:, j], scan_s, float(pr["tau_s"])))
             return float(pr["coef_per_degC"]) * (lg - dT)
@@ -288,7 +337,7 @@ def openworld_case(
     signal = [0.0] * len(planted)
     beyond_model = [0.0] * len(planted)
     beyond: dict[str, float] = {}
-    effects = [p for p in planted if p.kind != "sensor_fault"]
+    effects = [p for p in planted if p.kind not in ("sensor_fault", "sensor_drift", "datum_shift")]
     for axis in axes:
         idx = np.flatnonzero((R["axis"] == axis).to_numpy())
         q = truth.axis_pose(axis, R["position"].to_numpy()[idx])
@@ -300,7 +349,7 @@ def openworld_case(
             sigma = noise_rad if angle else noise_mm
             beyond[f"{axis}/{term}"] = _beyond_span(W0[:, c], R.iloc[idx], dT_at[idx], names)
             for i, p in enumerate(planted):
-                if p.kind == "sensor_fault" or (p.axis, p.term) != (axis, term):
+                if p.kind in ("sensor_fault", "sensor_drift", "datum_shift") or (p.axis, p.term) != (axis, term):
                     continue
                 Wi = kin.workspace_error(q, element_errors(q, [p], idx))
                 delta = Wi[:, c] - W0[:, c]
@@ -308,6 +357,15 @@ def openworld_case(
                 beyond_model[i] = _beyond_span(delta, R.iloc[idx], dT_at[idx], names)
                 expected[i] = _expected_params(p, delta, idx, R, dT_at, names, rpm_at, rt, angle)
             y = W[:, c] + _ar1(idx.size, rho, sigma, rng)
+            for i, p in enumerate(planted):  # a re-zeroed line: every reading steps at one moment
+                if p.kind == "datum_shift" and (p.axis, p.term) == (axis, term):
+                    after_step = rt[idx] >= float(p.params["time_s"])
+                    y[after_step] += float(p.params["step"])
+                    signal[i] = rmse(float(p.params["step"]) * after_step)
+                    expected[i] = {
+                        "time_s": float(p.params["time_s"]),
+                        f"step_{'rad' if angle else 'mm'}": float(p.params["step"]),
+                    }
             if glitches:  # single readings hit by EMI: 3 per series, 20-60 x the noise
                 hit = rng.choice(idx.size, size=3, replace=False)
                 y[hit] += rng.choice([-1, 1], 3) * rng.uniform(20, 60, 3) * sigma
@@ -346,6 +404,17 @@ def openworld_case(
         vals = temps[names].to_numpy(copy=True)
         vals[rng.uniform(size=vals.shape) < 0.003] = np.nan
         temps[names] = vals
+    if irregular:  # scans at irregular times: each scan late or early by up to 40 % of the period
+        jitter = rng.uniform(-0.4, 0.4, len(temps)) * scan_s
+        tj = np.clip(temps["time_s"].to_numpy(dtype=float) + jitter, 0.0, t[-1])
+        tj = np.maximum.accumulate(tj + np.arange(tj.size) * 1e-3)
+        vals = temps[names].to_numpy(dtype=float)
+        for jj in range(len(names)):
+            ok = np.isfinite(vals[:, jj])
+            if ok.sum() > 1:
+                vals[ok, jj] = np.interp(tj[ok], temps["time_s"].to_numpy(dtype=float)[ok], vals[ok, jj])
+        temps["time_s"] = np.round(tj, 1)
+        temps[names] = np.round(vals, 4)
     meta = {
         "format": "driftlab-bundle/1",
         "machine": {"id": "open-world", "name": "open-world generator (tests)", "resolution_mm": 0.0001},
@@ -358,6 +427,16 @@ def openworld_case(
         "stages": stages,
         "noise": {"length_mm": noise_mm, "angle_rad": noise_rad},
     }
+    if channel_names:  # another lab's names for the same sites
+        cmap = {c: channel_names.get(c, c) for c in names}
+        temps = temps.rename(columns=cmap)
+        meta["channels"] = {cmap[c]: v for c, v in meta["channels"].items()}  # type: ignore[attr-defined]
+        meta["room_channels"] = [cmap[c] for c in ROOM]
+        meta["model_channels"] = {a: [cmap[c] for c in MODEL_CHANNELS] for a in axes}
+        planted = [
+            OpenPlanted(p.kind, p.axis, p.term, p.element, p.param, [cmap.get(c, c) for c in p.channels], p.params)
+            for p in planted
+        ]
     bundle = Bundle(name=f"open-{seed}", meta=_as_meta(meta), temperatures=temps, conditions=cond, errors=err)
     return Case(
         bundle, planted, expected, {"length_mm": noise_mm, "angle_rad": noise_rad}, rho, beyond, signal, beyond_model
@@ -403,6 +482,8 @@ def _expected_params(
         return {f"magnitude_{'rad' if angle else 'mm'}": 2.0 * coef(d)}
     if k == "drift":
         return {"rate_per_day": coef(rt[idx] / 86400.0)}
+    if k == "unsensed_source":
+        return {"source": str(p.params["source"]), "tau_s": float(p.params["tau_s"])}
     if k == "operating_condition":
         pw = int(p.params["power"])
         return {"column": "spindle_rpm", "power": pw, "coef_per_unit": coef(rpm_at[idx] ** pw)}
@@ -416,4 +497,6 @@ def _expected_params(
         return {"coef_per_degC2": coef(dT * dT)}
     if k == "thermal_lag":
         return {"tau_s": float(p.params["tau_s"])}
+    if k == "direction_thermal":
+        return {"coef_per_degC": 2.0 * coef(d * dT)}
     return {}

@@ -266,7 +266,11 @@ def test_report_has_the_spec_keys_and_a_self_contained_page():
         "cause",
         "rmse_holdout_before",
         "rmse_holdout_after",
+        "holdout_verdict",  # extras (issue 22): better / worse / same / null, and physics or not
+        "physical",
     }
+    assert eff["holdout_verdict"] in ("better", "worse", "same") and eff["physical"] is True
+    assert isinstance(doc["unexplained"], list)
     assert eff["kind"] == "drift" and eff["channels"] == []
     assert "thesis 3.2" in eff["cause"]
     page = res.to_html()
