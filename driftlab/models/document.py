@@ -103,6 +103,10 @@ class TermDoc(_Doc):
     p_values: list[float] = Field(default_factory=list)
     statistics: TermStatistics
     steps: list[dict[str, Any]] = Field(default_factory=list)
+    #: optional (documents before issue 21 have none): the coefficients' covariance (one row per feature)
+    #: and the residual variance of the parameter, for a prediction interval sqrt(x' C x + residual variance)
+    covariance: list[list[float]] | None = None
+    residual_variance: float | None = None
 
     @field_validator("element")
     @classmethod
@@ -129,6 +133,10 @@ class TermDoc(_Doc):
             )
         for f in self.features:
             f.feature()
+        if self.covariance is not None and (
+            len(self.covariance) != len(self.features) or any(len(r) != len(self.features) for r in self.covariance)
+        ):
+            raise ValueError(f"{self.element}.{self.param}: covariance must be one row and column per feature")
         return self
 
 
@@ -382,3 +390,48 @@ def input_ranges(doc: ModelDocument, temperatures: Mapping[str, float] | pd.Data
         if np.any(v < r.min) or np.any(v > r.max):
             out.append(c)
     return out
+
+
+def predict_workspace_sd(
+    document: Mapping[str, Any] | ModelDocument,
+    temperatures: Mapping[str, float] | pd.DataFrame,
+    q: np.ndarray,
+    direction: np.ndarray | None = None,
+    *,
+    at: Any = None,
+    residual: bool = True,
+) -> np.ndarray | None:
+    """Return the (N, 6) standard deviation of the predicted work-space errors, or None when the document has none.
+
+    Each term's variance x' C x (its ``covariance``) is carried to the work space through the chain
+    to first order (eq. 4.12: dW/dp_e at the pose, evaluated as in ``predict_workspace_errors``);
+    terms are taken independent of each other. With ``residual``, the largest residual variance of
+    the terms of each parameter is added (what the model leaves: the error of one reading, not of the
+    correction alone). A prediction interval is the prediction +- z times this.
+    """
+    doc = validate_document(document)
+    if not any(t.covariance is not None for t in doc.terms):
+        return None
+    q = np.atleast_2d(np.asarray(q, float))
+    n = q.shape[0]
+    inp = _inputs(doc, temperatures, n, at)
+    d = _directions(direction, n)
+    dims = document_dims(doc)
+    var = np.zeros((n, 6))
+    resid = np.zeros(6)
+    eps = 1e-6
+    for t in doc.terms:
+        k = PARAMS.index(t.param)
+        if t.residual_variance is not None:
+            resid[k] = max(resid[k], float(t.residual_variance))
+        if t.covariance is None:
+            continue
+        X = design_matrix([f.feature() for f in t.features], inp, q, d).to_numpy(float)
+        v = np.clip(np.einsum("ij,jk,ik->i", X, np.asarray(t.covariance, float), X), 0.0, None)
+        unit = np.zeros((n, 6))
+        unit[:, k] = eps
+        J = workspace_error(q, {t.element: unit}, dims) / eps
+        var += J**2 * v[:, None]
+    if residual:
+        var += resid[None, :]
+    return np.sqrt(var)

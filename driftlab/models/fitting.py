@@ -51,6 +51,7 @@ from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import physical_check, stated_geometries
 from driftlab.models.regression import TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
+from driftlab.models.uncertainty import JointFit, Pinning, ar1_inflation
 from driftlab.models.virtual_sensor import fit_virtual_sensors
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
 from driftlab.physics.thermal import ALPHA_C
@@ -127,6 +128,9 @@ class FitOptions:
     #: a correction per measured line over the standard terms, kept where validation in training shows it helps
     lines: bool = True
     seed: int = 0
+    #: the recast terms of ch. 3.5 that the stated geometry says act (arm bending eqs. 3.4-3.5, link growth
+    #: eqs. 3.1/3.3) enter the joint adjustment even where the staged selection chose a surrogate
+    physical_terms: bool = True
     #: diagnosis findings to fold in (``driftlab.models.findings.Findings``); forced in, or candidates
     findings: Any = None
     force_findings: bool = False
@@ -159,6 +163,10 @@ class FitResult:
     neural: list[NeuralComparison]  # ch. 6.6: one per target fixed in advance, both directions each
     timings_s: dict[str, float] = field(default_factory=dict)
     physical_check: dict[str, Any] = field(default_factory=dict)  # table 6.3's status: compared / no geometry
+    #: the joint adjustment's estimates and covariance (None without it): ``joint.cov_params()``, ``regressors``
+    joint: JointFit | None = None
+    #: per element model: VIF, condition number, the coefficients it trades off with
+    pinning: list[Pinning] = field(default_factory=list)
 
     def report(self) -> dict[str, Any]:
         """Return the JSON report of ``driftlab fit --json``."""
@@ -181,6 +189,21 @@ class FitResult:
             "physical_check": self.physical_check,
             "timings_s": self.timings_s,
         }
+        if self.pinning:
+            # the parts of the model the campaign pinned poorly, per link or joint
+            out["pinning"] = [p.to_dict() for p in self.pinning if p.poor]
+        if self.joint is not None:
+            out["serial_correlation_inflation"] = self.joint.inflation
+        adj: dict[str, Any] = next(
+            (a["joint_adjustment"] for a in self.document.allocation if "joint_adjustment" in a), {}
+        )
+        if adj.get("campaign_offsets"):
+            # several campaigns: the offsets of each later campaign's absolute readings, kept apart
+            names = list(self.document.source_campaigns)
+            out["campaign_offsets"] = [
+                {**o, "campaign": names[o["campaign"]] if o["campaign"] < len(names) else o["campaign"]}
+                for o in adj["campaign_offsets"]
+            ]
         if self.document.findings:
             out["findings"] = list(self.document.findings)
         if self.neural:
@@ -395,6 +418,9 @@ class ElementModel:
     std_errors: list[float] = field(default_factory=list)
     p_values: list[float] = field(default_factory=list)
     fits: list[TermFit] = field(default_factory=list)
+    #: the coefficients' covariance of the joint adjustment, and the residual variance of its parameter
+    cov: np.ndarray | None = None
+    residual_variance: float | None = None
 
     def add(self, fit: TermFit, features: Sequence[Feature]) -> None:
         """Add the chosen ``features`` of a stage fit (coefficients of a repeated term are summed)."""
@@ -723,27 +749,170 @@ def _global_lengths(
 #: prior spread of a link's constant error (angle rad, length mm), an order above Tables A.3/A.4's
 #: geometric errors: it decides only constants the measurements leave free (zeroed sessions)
 CONSTANT_PRIOR = (1e-5, 0.01)
+#: the prior's spread, as a fraction of CONSTANT_PRIOR, of a constant no cold absolute reading pins (1e-4:
+#: 1 nrad, 1 nm - held at zero)
+COLD_PRIOR = 1e-4
+#: a reading is "cold" when no kept channel has risen by more than this from the reference (degC)
+COLD_DT_DEGC = 1.0
+
+
+def _cold_absolute(sample: Sample, D: np.ndarray, train: np.ndarray) -> np.ndarray:
+    """Return (6,) bool: whether some absolute training reading of each term was taken cold (max |dT| < 1 degC)."""
+    dT = sample.inputs.dT.to_numpy(float)
+    cold_row = np.nanmax(np.abs(dT), axis=1) < COLD_DT_DEGC if dT.shape[1] else np.ones(len(sample.frame), bool)
+    W = sample.frame[list(PARAMS)].to_numpy(float)
+    return np.array([bool((train & cold_row & (D[:, k] < 0) & np.isfinite(W[:, k])).any()) for k in range(len(PARAMS))])
+
+
+def datum_rows(sample: Sample) -> np.ndarray:
+    """Return (N, 6): for each reading of a zeroed session, the row of its datum (-1 for absolute readings).
+
+    A laser zeroed when it is mounted reads the error less the error at that moment (ch. 5.5); the
+    moment is the session's first reading of the term (which reads 0). So a zeroed reading is the
+    model at its pose and time less the model at the datum's (eq. 4.12 at both): its offset is not a
+    free constant but what the model predicts at the datum, which pins the slow structures the free
+    offsets left to trade off (issue 21.2).
+    """
+    n = len(sample.frame)
+    D = np.full((n, len(PARAMS)), -1, dtype=int)
+    sess = sample.inputs.session
+    if sess is None:
+        return D
+    s = np.asarray(sess, dtype=object)
+    W = sample.frame[list(PARAMS)].to_numpy(float)
+    t = sample.frame["time_s"].to_numpy(float)
+    for label in dict.fromkeys(s.tolist()):
+        if not label:
+            continue
+        rows = np.flatnonzero(s == label)
+        for k in range(len(PARAMS)):
+            r = rows[np.isfinite(W[rows, k])]
+            if r.size:
+                D[r, k] = r[np.argmin(t[r])]
+    return D
+
+
+def at_datum(W_hat: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Return ``W_hat`` as the zeroed instruments read it: less its value at each reading's datum row."""
+    out = W_hat.copy()
+    i, k = np.nonzero(D >= 0)
+    out[i, k] -= W_hat[D[i, k], k]
+    return out
+
+
+#: the spread of a physical term's prior, as a fraction of its physical value (ch. 3.5's relationships hold
+#: to the precision of the stated lengths and alpha_c: table 6.3 finds fitted/physical within 0.7-1.3)
+PHYSICAL_PRIOR = 0.3
+
+
+def _physical_terms(
+    models: dict[tuple[str, str], ElementModel],
+    cands: Candidates,
+    bundles: Sequence[Any],
+    priors: dict[tuple[str, str, Feature], tuple[float, float]] | None = None,
+) -> list[str]:
+    """Add the recast terms the machine's stated geometry says act; return their names (in place).
+
+    The slow structures move together through a campaign (the arm warms with the spindle, the column
+    with the room), so the staged stepwise selection may explain the spindle link's deflection by a
+    lag of one site or the column's growth by a gradient: surrogates that hold during the campaign
+    and not during a cut. Where ``machine.geometry`` states them, the physical terms are added:
+    the bending gradient of a structure on its angle and its tip deflection (eqs. 3.4, 3.5), and the
+    mean of a link's structure on each translation the link extends along (eqs. 3.1, 3.3).
+    Each gets a prior (``priors``: mean, spread) at its physical value with spread ``PHYSICAL_PRIOR``:
+    alpha_c L / H on the angle, alpha_c L^2 / 2H on the deflection, alpha_c L (signed as the link's
+    extent) on the growth.
+    """
+    from driftlab.models.physical_check import machine_geometry
+
+    status, g, _ = machine_geometry(bundles)
+    if g is None:
+        return []
+    from driftlab.physics.geometry import GEOMETRY_LINKS
+
+    pool = {f.name: f for f in cands.for_axes(list(AXES), None)}
+    added: list[str] = []
+
+    alpha_c = float(g.get("alpha_c_per_degC", ALPHA_C))
+
+    def add(element: str, param: str, f: Feature, value: float) -> None:
+        m = models.setdefault((element, param), ElementModel(element, param))
+        if priors is not None and value != 0.0:
+            priors[(element, param, f)] = (value, PHYSICAL_PRIOR * abs(value))
+        if f in m.features:
+            return
+        m.features.append(f)
+        m.coef.append(0.0)
+        m.std_errors.append(0.0)
+        m.p_values.append(1.0)
+        added.append(f"{element}.{param} {f.name}")
+
+    for structure, bent in dict(g.get("bending") or {}).items():
+        across = str(bent.get("across", "upper-lower"))
+        f = pool.get(f"grad[{structure} {across}]")
+        element = STRUCTURE_ELEMENT.get(structure)
+        if f is None or element is None:
+            continue
+        L, H = float(bent["length_mm"]), float(bent["height_mm"])
+        if bent.get("angle") in PARAMS:
+            add(element, str(bent["angle"]), f, alpha_c * L / H)  # eq. 3.4
+        if bent.get("deflection") in PARAMS:
+            add(element, str(bent["deflection"]), f, alpha_c * L**2 / (2 * H))  # eq. 3.5
+    for name, extent in dict(g.get("links_mm") or {}).items():
+        element = GEOMETRY_LINKS.get(name)
+        for structure, owner in STRUCTURE_ELEMENT.items():
+            f = pool.get(f"mean[{structure}]")
+            if owner != element or f is None:
+                continue
+            for k, param in enumerate(("dx", "dy", "dz")):
+                length = float(list(extent)[k])
+                if abs(length) > 0:
+                    add(str(element), param, f, alpha_c * length)  # eqs. 3.1, 3.3
+    return added
+
+
+def _strip_sessions(models: Mapping[tuple[str, str], ElementModel]) -> int:
+    """Remove the zeroed sessions' free offsets from the models (in place); return how many."""
+    removed = 0
+    for m in models.values():
+        keep = [i for i, f in enumerate(m.features) if f.kind != "session"]
+        removed += len(m.features) - len(keep)
+        if len(keep) < len(m.features):
+            m.features = [m.features[i] for i in keep]
+            m.coef = [m.coef[i] for i in keep]
+            m.std_errors = [m.std_errors[i] for i in keep]
+            m.p_values = [m.p_values[i] for i in keep]
+    return removed
 
 
 def joint_adjust(
     sample: Sample,
-    models: Mapping[tuple[str, str], ElementModel],
+    models: dict[tuple[str, str], ElementModel],
     dims: Mapping[str, Any] = TABLE_A1,
     noise: Mapping[str, float] | None = None,
     ridge: float = 1e-9,
+    result: dict[str, Any] | None = None,
+    priors: Mapping[tuple[str, str, Feature], tuple[float, float]] | None = None,
 ) -> dict[str, Any]:
     """Re-estimate every coefficient of the allocated models together, on all training points.
+
+    With ``result`` (a dict), the estimates with their covariance (``uncertainty.JointFit``, key
+    ``joint``) and how well each element model was pinned (``pinning``) are put there.
 
     The terms and the elements they belong to stay as the staged allocation chose them; their
     coefficients are refined by one weighted least-squares solve through the linearised chain
     (W = sum_e Ad_e(q) p_e, eq. 4.12 to first order), each measured term weighted by its noise.
     Returns a summary (number of coefficients, weighted rms before and after).
     """
+    train = (sample.frame["role"] == "train").to_numpy()
+    # a zeroed reading is the model less the model at its datum: no free offset per session
+    D = datum_rows(sample)
+    offsets = _strip_sessions(models)
     keys = [k for k, m in models.items() if m.features]
     if not keys:
         return {"coefficients": 0}
-    train = (sample.frame["role"] == "train").to_numpy()
-    sub = sample.take(train)
+    # every row is evaluated (a datum may precede the training rows of its session); the solve reads the training rows
+    sub = sample
     n = len(sub.frame)
     W = sub.frame[list(PARAMS)].to_numpy(float)
     mask = np.isfinite(W)
@@ -766,21 +935,34 @@ def joint_adjust(
         blocks.append((key, F))
         cols += [(key, i) for i in range(F.shape[1])]
     P = len(cols)
-    AtA = np.zeros((P, P))
-    Atb = np.zeros(P)
-    c0 = np.concatenate([np.asarray(models[key].coef, float) for key, _ in blocks])
+    # several campaigns of one machine (seasons apart): each campaign's absolute readings get an offset
+    # of their own per term (its artefact re-mounted, its own datum), a nuisance kept apart and reported
+    camp = sample.frame["campaign"].to_numpy()
+    nuis: list[tuple[int, int]] = []
+    for t in range(6):
+        absolute = train & mask[:, t] & (D[:, t] < 0)
+        nuis += [(int(ci), t) for ci in sorted(set(camp[absolute].tolist()))[1:]]
+    Q = len(nuis)
+    AtA = np.zeros((P + Q, P + Q))
+    Atb = np.zeros(P + Q)
+    c0 = np.concatenate([np.asarray(models[key].coef, float) for key, _ in blocks] + [np.zeros(Q)])
     before = 0.0
     systems = []  # the weighted design and target of each work-space component, built once
     for t in range(6):
-        ok = mask[:, t]
+        ok = mask[:, t] & train
         if not ok.any():
             continue
-        A = (
-            np.concatenate([jac[(key[0], PARAMS.index(key[1]))][ok, t][:, None] * F[ok] for key, F in blocks], axis=1)
-            * w[t]
-        )
+        A_all = np.concatenate([jac[(key[0], PARAMS.index(key[1]))][:, t][:, None] * F for key, F in blocks], axis=1)
+        A = A_all[ok]
+        dz = D[ok, t]
+        A[dz >= 0] -= A_all[dz[dz >= 0]]
+        N = np.zeros((A.shape[0], Q))
+        for j, (ci, tt) in enumerate(nuis):
+            if tt == t:
+                N[:, j] = (camp[ok] == ci) & (dz < 0)
+        A = np.concatenate([A, N], axis=1) * w[t]
         b = W[ok, t] * w[t]
-        systems.append((A, b))
+        systems.append((t, A, b))
         AtA += A.T @ A
         Atb += A.T @ b
         before += float(np.sum((b - A @ c0) ** 2))
@@ -788,29 +970,96 @@ def joint_adjust(
     # any value of it. A weak prior (CONSTANT_PRIOR, far wider than any constant the data pin) sends
     # such constants to zero instead of to an arbitrary split between elements that cancels at the
     # measured poses and not at others.
+    # The thermal model is relative to the cold start (eq. 3.1: dT from the first readings): a constant
+    # is a geometric error, which only an absolute reading taken cold can tell from the slow structures
+    # (column growth, base lag, arm gradient are nearly constant through a warm stage). Where no such
+    # reading exists for a work-space component, its constants are held at zero (COLD_PRIOR) and the
+    # fit says so, rather than registering a constant that trades off with those structures.
+    cold = _cold_absolute(sub, D, train)
+    held: list[str] = []
     for i, (key, j) in enumerate(cols):
         if models[key].features[j].kind == "intercept":  # the prior's row: coefficient / spread (noise units above)
-            AtA[i, i] += CONSTANT_PRIOR[key[1].startswith("d")] ** -2
+            k = PARAMS.index(key[1])
+            free = bool(cold[k]) or not mask[train, k].any()
+            spread = CONSTANT_PRIOR[key[1].startswith("d")] * (1.0 if free else COLD_PRIOR)
+            if not free:
+                held.append(f"{key[0]}.{key[1]}")
+            AtA[i, i] += spread**-2
+    # physics-informed priors (``_physical_terms``): coefficient ~ N(physical value, spread^2), in the
+    # noise-weighted units of the rows above
+    for i, (key, j) in enumerate(cols):
+        prior = (priors or {}).get((key[0], key[1], models[key].features[j]))
+        if prior is not None and prior[1] > 0:
+            AtA[i, i] += prior[1] ** -2
+            Atb[i] += prior[0] / prior[1] ** 2
     scale = np.sqrt(np.maximum(np.diag(AtA), 1e-300))
-    M = AtA / np.outer(scale, scale) + ridge * np.eye(P)
+    M = AtA / np.outer(scale, scale) + ridge * np.eye(P + Q)
     c = np.linalg.solve(M, Atb / scale) / scale
     # second pass for the after-figure and the standard errors
     sse, m_obs = 0.0, 0
-    for A, b in systems:
+    residual_variance: dict[str, float] = {}
+    rho: dict[str, float] = {}
+    inflation_sum = 0.0
+    for t, A, b in systems:
         r = b - A @ c
         sse += float(r @ r)
         m_obs += len(b)
+        residual_variance[PARAMS[t]] = float(np.mean(r * r)) / w[t] ** 2
+        rho[PARAMS[t]], infl = ar1_inflation(r)
+        inflation_sum += infl * len(b)
     after = sse
     s2 = sse / max(m_obs - P, 1)
-    cov_diag = np.diag(np.linalg.inv(M)) / scale**2 * s2
+    # serial correlation of the laser residuals (AR(1): the HAC long-run variance, module uncertainty)
+    inflation = inflation_sum / max(m_obs, 1)
+    cov = np.linalg.inv(M) / np.outer(scale, scale) * s2 * inflation
+    cov = 0.5 * (cov + cov.T)
+    cov_diag = np.diag(cov)
     i = 0
+    columns: list[tuple[str, str, Feature]] = []
     for key, F in blocks:
         k = F.shape[1]
         models[key].coef = [float(v) for v in c[i : i + k]]
         models[key].std_errors = [float(np.sqrt(max(v, 0.0))) for v in cov_diag[i : i + k]]
+        models[key].cov = cov[i : i + k, i : i + k]
+        models[key].residual_variance = residual_variance.get(key[1])
+        columns += [(key[0], key[1], f) for f in models[key].features]
         i += k
+    columns += [("campaign", PARAMS[t], Feature("session", label=f"campaign {ci}")) for ci, t in nuis]
+    campaign_offsets = [
+        {
+            "campaign": ci,
+            "term": PARAMS[t],
+            "offset": float(c[P + j]),
+            "std_error": float(np.sqrt(max(cov_diag[P + j], 0))),
+        }
+        for j, (ci, t) in enumerate(nuis)
+    ]
+    joint = JointFit(
+        columns,
+        c,
+        cov,
+        residual_variance,
+        rho,
+        float(inflation),
+        m_obs,
+        design={PARAMS[t]: A for t, A, _ in systems},
+        weights={PARAMS[t]: float(w[t]) for t, _, _ in systems},
+    )
+    designs = {key: F[train] for key, F in blocks}
+    if result is not None:
+        result["campaign_offsets"] = campaign_offsets
+        result["joint"] = joint
+        result["pinning"] = joint.pinning(designs)
     return {
         "coefficients": P,
+        "session_offsets_replaced_by_datums": offsets,
+        "campaign_offsets": campaign_offsets,
+        "constants_held_at_zero": held,
+        "constants_held_why": (
+            "no absolute reading of the term at the cold start: a constant there trades off with the slow structures"
+            if held
+            else ""
+        ),
         "points": m_obs,
         "weighted_rms_before": float(np.sqrt(before / max(m_obs, 1))),
         "weighted_rms_after": float(np.sqrt(after / max(m_obs, 1))),
@@ -851,6 +1100,7 @@ def validation_table(
     models: Mapping[tuple[str, str], ElementModel],
     dims: Mapping[str, Any],
     composed: Composed | None = None,
+    campaign_offsets: Sequence[Mapping[str, Any]] = (),
 ) -> tuple[pd.DataFrame, np.ndarray]:
     """Return tables 6.1/6.2: per (axis, term) the work-space RMSE on training and held-out data, R^2 and F.
 
@@ -861,10 +1111,21 @@ def validation_table(
     (``models.lines``); ``line`` names the correction in the link column.
     """
     el = predict_models(models, sample)
+    W_link = workspace_error(sample.q, el, dims)
     if composed is not None and composed.terms:
         el = {k: v.copy() for k, v in el.items()}
         el[LINE_ELEMENT] = el.get(LINE_ELEMENT, np.zeros((sample.q.shape[0], 6))) + composed_errors(composed, sample)
-    W_hat = workspace_error(sample.q, el, dims)
+        W_hat = workspace_error(sample.q, el, dims)
+    else:
+        W_hat = W_link
+    # zeroed readings: the link models less their value at the datum (the lines carry their own session offsets)
+    D = datum_rows(sample)
+    W_hat = W_hat - (W_link - at_datum(W_link, D))
+    camp = sample.frame["campaign"].to_numpy()
+    for o in campaign_offsets:  # a later campaign's absolute readings carry its own offset (joint_adjust)
+        k = PARAMS.index(str(o["term"]))
+        on = (camp == o["campaign"]) & (D[:, k] < 0)
+        W_hat[on, k] += float(o["offset"])
     if composed is not None and composed.home_deviation:
         W_hat = W_hat + home_deviation(composed, sample.frame, sample.inputs, sample.q, _directions(sample))
     W = sample.frame[list(PARAMS)].to_numpy(float)
@@ -1045,6 +1306,11 @@ def _fit_bundles(
         raise ValidationError("no error term had enough training samples to fit")
     lap("allocation_and_regression")
     adjustment: dict[str, Any] = {}
+    joint_out: dict[str, Any] = {}
+    priors: dict[tuple[str, str, Feature], tuple[float, float]] = {}
+    physics_terms = _physical_terms(models, cands, bundles, priors) if opts.joint_adjust and opts.physical_terms else []
+    if physics_terms:
+        alloc.append({"physical_terms": physics_terms})
     if opts.joint_adjust:
         noise_meta = bundles[0].meta.noise
         noise = {}
@@ -1052,14 +1318,18 @@ def _fit_bundles(
             noise["len"] = float(noise_meta.length_mm)
         if noise_meta is not None and noise_meta.angle_rad:
             noise["ang"] = float(noise_meta.angle_rad)
-        adjustment = joint_adjust(sample, models, dims, noise)
+        adjustment = joint_adjust(sample, models, dims, noise, result=joint_out, priors=priors)
         lap("joint_adjustment")
 
     # 4b. what the link models leave along each measured line (the standard form), kept by validation
     lines: list[LineFit] = []
     composed = Composed({}, {})
     if opts.lines:
-        W_link = workspace_error(sample.q, predict_models(models, sample), dims)
+        D_rows = datum_rows(sample)
+        W_link = at_datum(workspace_error(sample.q, predict_models(models, sample), dims), D_rows)
+        for o in joint_out.get("campaign_offsets", []):
+            k = PARAMS.index(str(o["term"]))
+            W_link[(sample.frame["campaign"].to_numpy() == o["campaign"]) & (D_rows[:, k] < 0), k] += o["offset"]
 
         # a link shared by several axes reads the channels of all of them: a line must be able to
         # undo what the links put on it, so its pool holds those channels as well as its own
@@ -1107,7 +1377,8 @@ def _fit_bundles(
         lap("lines")
 
     # 5. validation tables
-    validation, W_hat = validation_table(sample, models, dims, composed)
+    offsets = list(joint_out.get("campaign_offsets", []))
+    validation, W_hat = validation_table(sample, models, dims, composed, offsets)
     # table 6.3 with the lengths the machine's campaigns state, or an explicit "no geometry"
     check = physical_check(models, structures, bundles, locations=locations, room=room)
     physical = check.table
@@ -1148,14 +1419,12 @@ def _fit_bundles(
     hi = temps[channels].max()
     terms: list[dict[str, Any]] = []  # the document's "terms" (registry.TermDoc)
     for (element, param), m in models.items():
-        if not m.features:
+        # a zeroed instrument's session offsets belong to the campaign, not to the machine
+        keep = [i for i, f in enumerate(m.features) if f.kind != "session"]
+        if not keep or not m.fits:
             continue
         fit = m.primary
         res = fit.result
-        # a zeroed instrument's session offsets belong to the campaign, not to the machine
-        keep = [i for i, f in enumerate(m.features) if f.kind != "session"]
-        if not keep:
-            continue
         terms.append(
             {
                 "element": element,
@@ -1166,6 +1435,9 @@ def _fit_bundles(
                 "coefficients": [float(m.coef[i]) for i in keep],
                 "std_errors": [float(m.std_errors[i]) for i in keep],
                 "p_values": [float(m.p_values[i]) for i in keep],
+                # what the compensator needs for a prediction interval: sqrt(x' C x + residual variance)
+                "covariance": None if m.cov is None else [[float(m.cov[i, j]) for j in keep] for i in keep],
+                "residual_variance": m.residual_variance,
                 "statistics": {
                     "rmse_train": res.rmse,
                     "rmse_holdout": fit.rmse_holdout,
@@ -1217,7 +1489,18 @@ def _fit_bundles(
     }
     document = validate_document(strict_json(doc))
     lap("document")
-    return FitResult(document, screening, models, validation, physical, neural, timings, check.to_dict())
+    return FitResult(
+        document,
+        screening,
+        models,
+        validation,
+        physical,
+        neural,
+        timings,
+        check.to_dict(),
+        joint_out.get("joint"),
+        list(joint_out.get("pinning", [])),
+    )
 
 
 def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd.DataFrame) -> None:
@@ -1247,6 +1530,9 @@ def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd
             terms.append(entry)
         taken = {f["name"]: Feature.from_dict(f) for f in entry["features"]}
         names = [f["name"] for f in entry["features"]]
+        # the lines' corrections are fitted apart from the link models: their variances add, no covariance
+        cov = entry.get("covariance")
+        C = np.asarray(cov, float) if cov is not None else np.diag(np.square(entry["std_errors"]))
         for f, c, se, p in rows:
             f = distinct(f, taken)
             if f.name in names:
@@ -1254,12 +1540,16 @@ def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd
                 entry["coefficients"][i] += c
                 entry["std_errors"][i] = float(np.hypot(entry["std_errors"][i], se))
                 entry["p_values"][i] = min(entry["p_values"][i], p)
+                C[i, i] += se**2
             else:
                 names.append(f.name)
                 entry["features"].append(f.to_dict())
                 entry["coefficients"].append(c)
                 entry["std_errors"].append(se)
                 entry["p_values"].append(p)
+                C = np.pad(C.reshape(len(names) - 1, len(names) - 1), ((0, 1), (0, 1)))
+                C[-1, -1] = se**2
+        entry["covariance"] = [[float(v) for v in r] for r in C]
 
 
 def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:

@@ -135,6 +135,8 @@ class _Form:
     #: per term, its standard error and p-value (the link models' projection is an identity: 0 and 0)
     bse: np.ndarray
     pvalues: np.ndarray
+    #: where ``ols``' parameters sit among ``features`` (None: one for one)
+    own: list[int] | None = None
 
     def predict(self, X: pd.DataFrame) -> np.ndarray:
         return X[[f.name for f in self.features]].to_numpy(float) @ self.coef
@@ -209,7 +211,34 @@ def _fit_form(
         bse[j], pv[j] = plain.bse[i], plain.pvalues[i]
     for c, j in zip(link_coef, kb):
         coef[feats.index(l_feats[j])] -= c
-    return _Form(feats, coef, plain.ols, bse, pv)
+    return _Form(feats, coef, plain.ols, bse, pv, [feats.index(f) for f in plain.features])
+
+
+#: lag-1 autocorrelation of a correction's residuals above which its standard errors are HAC (Newey-West)
+HAC_RHO = 0.1
+
+
+def _hac(fitted: _Form, n: int) -> None:
+    """Replace a fitted form's standard errors by Newey-West (HAC) ones where its residuals are autocorrelated.
+
+    The rows are the line's readings in time order; laser residuals are serially correlated from one
+    sweep to the next, which makes the iid standard errors too small. The lag window is the usual
+    floor(4 (n / 100)^(2/9)).
+    """
+    r = np.asarray(fitted.ols.resid, float)
+    if r.size < 10:
+        return
+    rho = float(np.dot(r[1:] - r.mean(), r[:-1] - r.mean()) / max(float(np.sum((r - r.mean()) ** 2)), 1e-300))
+    if rho <= HAC_RHO:
+        return
+    hac = fitted.ols.get_robustcov_results(cov_type="HAC", maxlags=int(4 * (n / 100.0) ** (2 / 9)))
+    scale = getattr(fitted.ols, "scale_of_columns", None)
+    bse = np.asarray(hac.bse, float) / (scale if scale is not None else 1.0)
+    own = fitted.own if fitted.own is not None else list(range(fitted.bse.size))
+    if len(own) == bse.size:
+        fitted.bse = fitted.bse.copy()
+        fitted.bse[own] = bse
+        fitted.ols = hac
 
 
 def stage_blocks(time_s: np.ndarray, groups: np.ndarray | None, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
@@ -363,6 +392,7 @@ def fit_line(
         measured,
         standard,
     )
+    _hac(fitted, n)
     keep = [i for i, f in enumerate(fitted.features) if f.kind != "session"]
     offsets = [i for i, f in enumerate(fitted.features) if f.kind == "session"]
     out.form = f"link+{best}"

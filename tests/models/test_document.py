@@ -124,3 +124,22 @@ def test_missing_or_out_of_range_inputs():
         predict_element_errors(doc, {"T9": 25.0, "T32": 22.0, "T34": 25.0}, np.zeros((1, 3)))
     assert input_ranges(doc, {"T9": 31.0, "T32": 22.0, "T34": 25.0}) == ["T9"]
     assert isinstance(doc, ModelDocument)
+
+
+def test_covariance_is_optional_checked_and_gives_a_prediction_interval():
+    """Issue 21.4: a document may carry each term's coefficient covariance and residual variance."""
+    from driftlab.models.document import predict_workspace_sd
+
+    old = validate_document(_doc())
+    assert old.terms[0].covariance is None
+    assert predict_workspace_sd(old, {"T9": 25.0, "T32": 22.0, "T34": 24.0}, np.zeros((1, 5))) is None
+    terms = _doc()["terms"]
+    terms[1] = {**terms[1], "covariance": [[1e-8, 0.0], [0.0, 4e-8]], "residual_variance": 2.5e-7}
+    doc = validate_document(_doc(terms=terms))
+    sd = predict_workspace_sd(doc, {"T9": 25.0, "T32": 22.0, "T34": 24.0}, np.zeros((1, 5)))
+    assert sd is not None and sd.shape == (1, 6)
+    # dz at home: grad = (24 - 21) - (22 - 20) = 1 degC, settled lag = 2 degC: 1e-8 + 4 * 4e-8, plus the residual
+    assert sd[0, 5] == pytest.approx(np.sqrt(1e-8 + 16e-8 + 2.5e-7), rel=1e-3)
+    bad = [dict(terms[0]), dict(terms[1], covariance=[[1.0]])]
+    with pytest.raises(ValidationError):
+        validate_document(_doc(terms=bad))
