@@ -1,4 +1,4 @@
-"""`driftlab plan check PLAN [--json]`: what a campaign plan measures, and what the model will lack.
+"""`driftlab plan check PLAN` and `driftlab plan advise --campaign ID`: what a plan measures, what to measure next.
 
 `driftlab plan advise --campaign ID [--hours H] -o PLAN.yaml`: the next stages that most reduce the
 predicted variance of the correction over the work space (``driftlab.models.advisor``), written as
