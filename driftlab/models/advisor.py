@@ -603,9 +603,35 @@ class Design:
         return float(np.trace(X)) * 1e6
 
 
-def reduction_um2(design: Design, info: np.ndarray, phi_um2: float, gram: np.ndarray) -> float:
-    """Return how much adding rows with Gram matrix ``gram`` (C^T C) cuts trace(F^-1 M), in um^2."""
-    return phi_um2 - design.variance_um2(info + gram)
+def reduction_um2(
+    design: Design, info: np.ndarray, phi_um2: float, rows: np.ndarray, step: Step | None = None
+) -> float:
+    """Return how much adding ``rows`` C (n, P) cuts trace(F^-1 M) of ``info``, in um^2.
+
+    With fewer rows than coefficients, through the Woodbury identity from the step's
+    ``S = F^-1`` and ``S M S``: trace((I + C S C^T)^-1 C S M S C^T); otherwise by solving again.
+    """
+    if rows.shape[0] == 0:
+        return 0.0
+    if step is not None and rows.shape[0] < rows.shape[1]:
+        SC = step.cov @ rows.T
+        K = np.eye(rows.shape[0]) + rows @ SC
+        return float(np.trace(np.linalg.solve(K, rows @ step.smss @ rows.T))) * 1e6
+    return phi_um2 - design.variance_um2(info + rows.T @ rows)
+
+
+@dataclass
+class Step:
+    """What one greedy step shares between its candidates: S = F^-1 and S M S."""
+
+    cov: np.ndarray
+    smss: np.ndarray
+
+    @classmethod
+    def of(cls, design: Design, info: np.ndarray) -> Step:
+        """Return the step's matrices for the information ``info``."""
+        cov = design.covariance(info)
+        return cls(cov, cov @ design.target @ cov)
 
 
 def advise(bundles: Sequence[Any], document: ModelDocument | None = None, **options: Any) -> Advice:
@@ -733,12 +759,13 @@ def advise_design(
     chosen: list[AdvisedStage] = []
     remaining = float(hours)
     weight = np.sqrt(max(1.0 - holdout_fraction, 0.0))
-    jac_cache: dict[str, list[tuple[int, np.ndarray]]] = {}
+    levers = _setup_levers(builder, setups, noise)
     while True:
         fits = [c for c in cands if c.hours <= remaining + 1e-9]
         if not fits:
             break
         sims: dict[tuple[str, float, float], tuple[np.ndarray, ThermalState]] = {}
+        step = Step.of(design, info)
         best: tuple[float, Candidate, np.ndarray, ThermalState] | None = None
         for c in fits:
             key = (c.source, c.heat_h, c.cool_h)
@@ -749,8 +776,8 @@ def advise_design(
                 inp, end = simulate(resp, state, [(c.heat_h * 3600.0, u), (c.cool_h * 3600.0, 0 * u)], times, lags)
                 sims[key] = (builder.time_part(inp), end)
             Ft, end = sims[key]
-            C = _candidate_rows(builder, setups[c.setup], Ft, noise, jac_cache) * weight
-            gain = reduction_um2(design, info, phi, C.T @ C)
+            C = _candidate_rows(setups[c.setup], Ft, levers[c.setup], builder) * weight
+            gain = reduction_um2(design, info, phi, C, step)
             score = gain / c.hours
             if best is None or score > best[0]:
                 best = (score, c, C, end)
@@ -942,28 +969,38 @@ def _grid(frame: pd.DataFrame, q: np.ndarray, levels: int) -> tuple[np.ndarray, 
     return gq, np.repeat(sign[:, None], 5, axis=1)
 
 
-def _candidate_rows(
-    builder: RowBuilder,
-    setup: SetupInfo,
-    Ft: np.ndarray,
-    noise: np.ndarray,
-    cache: dict[str, list[tuple[int, np.ndarray]]],
-) -> np.ndarray:
+def _setup_levers(
+    builder: RowBuilder, setups: Mapping[str, SetupInfo], noise: np.ndarray
+) -> dict[str, list[np.ndarray]]:
+    """Return, per setup, the weighted pose part x lever (n_points, P) of each term it reads (one chain pass)."""
+    poses = {}
+    for sid, st in setups.items():
+        pos = np.array(st.positions * 2)
+        q = _q(st.axis, pos, st.pose)
+        d = np.zeros_like(q)
+        d[:, AXES.index(st.axis)] = np.repeat([1.0, -1.0], len(st.positions))
+        poses[sid] = (q, d)
+    q_all = np.vstack([q for q, _ in poses.values()])
+    jac_all = jacobians(q_all, builder.keys, builder.dims)
+    out: dict[str, list[np.ndarray]] = {}
+    start = 0
+    for sid, (q, d) in poses.items():
+        sl = slice(start, start + q.shape[0])
+        start += q.shape[0]
+        jac = {k: v[sl] for k, v in jac_all.items()}
+        Fx = builder.pose_part(q, d)
+        comps = [PARAMS.index(x) for x in setups[sid].terms]
+        out[sid] = [Fx * builder.lever(jac, t) / noise[t] for t in comps]
+    return out
+
+
+def _candidate_rows(setup: SetupInfo, Ft: np.ndarray, levers: Sequence[np.ndarray], builder: RowBuilder) -> np.ndarray:
     """Return the weighted rows (n, P) a candidate's sweeps add: every point, both directions, every term.
 
     ``Ft`` is the temperature part of the terms at the sweeps' times (``RowBuilder.time_part``).
     """
-    if setup.name not in cache:
-        pos = np.array(setup.positions * 2)
-        dirs = np.repeat([1.0, -1.0], len(setup.positions))
-        q = _q(setup.axis, pos, setup.pose)
-        d = np.zeros_like(q)
-        d[:, AXES.index(setup.axis)] = dirs
-        jac = jacobians(q, builder.keys, builder.dims)
-        Fx = builder.pose_part(q, d)
-        cache[setup.name] = [(t, Fx * builder.lever(jac, t) / noise[t]) for t in (PARAMS.index(x) for x in setup.terms)]
     out = []
-    for _, lever in cache[setup.name]:
+    for lever in levers:
         r = builder.separable(Ft, lever)
         if setup.session:
             r = r - r.mean(axis=0)  # one zeroed mounting: the session offset takes the mean
