@@ -8,7 +8,8 @@
 3. The advised stages run as a continuation of the same campaign: one plan, demo-full's stages then
    the advised ones, on the same seed (``driftlab fit`` fits one campaign at a time here, so the
    advised stages are appended rather than recorded as a second campaign); ``driftlab fit``; the
-   same cutting figure.
+   same cutting figure. In-run baseline: the same hours of the campaign's own pattern (the Z
+   position setup through spindle, cool-down, Z drive, cool-down) appended instead.
 4. Advice for the 178.5 h thesis-full campaign (``examples/plans/thesis-full.yaml`` on the
    demo-full scenario) is timed (target < 60 s).
 
@@ -65,6 +66,35 @@ def campaign(plan: Path, scenario: Path, db: str, fit: bool = True) -> None:
         cli("fit", "--campaign", "1", "--db", db)
 
 
+def continuation(setups: dict, stages: list, path: Path) -> Path:
+    """Write demo-full followed by ``stages`` (their setups added) as one plan; return its path."""
+    base = yaml.safe_load((PLANS / "demo-full.yaml").read_text())
+    for sid, entry in setups.items():
+        base["setups"].setdefault(sid, entry)
+    base["stages"] += stages
+    base["name"] = "demo-full-continued"
+    path.write_text(yaml.safe_dump(base, sort_keys=False))
+    return path
+
+
+def control_stages(hours: float) -> list[dict]:
+    """Return ``hours`` of the Z position setup's staged test: spindle, cool-down, Z drive, cool-down."""
+    sweep = {"positions": [-254.0, -190.5, -127.0, -63.5, 0.0], "interval_s": 900.0, "point_s": 6, "samples": 10}
+    z = {"kind": "axis", "axis": "Z", "feed_mm_min": 4000, "from_pos": -254.0, "to_pos": 0.0}
+    parts = (("spindle", [{"kind": "spindle", "rpm": 10000}]), ("cool1", []), ("feed", [z]), ("cool2", []))
+    return [
+        {
+            "name": f"z-position.control.{n}",
+            "heat": h,
+            "axis": "Z",
+            "setup": "z-position",
+            "duration_s": hours * 900.0,
+            "sweep": sweep,
+        }
+        for n, h in parts
+    ]
+
+
 def offline_um(db: str, scenario_path: Path) -> float:
     """Return the demo's off-line cutting figure (um RMS) with the machine's current model in ``db``."""
     from driftlab.campaigns.store import connect
@@ -119,17 +149,16 @@ def main() -> None:
         cli("plan", "check", str(advice_yaml))
 
         # the advised stages as a continuation of the same campaign (same machine, same seed)
-        base = yaml.safe_load((PLANS / "demo-full.yaml").read_text())
         extra = yaml.safe_load(advice_yaml.read_text())
-        for sid, entry in extra["setups"].items():
-            base["setups"].setdefault(sid, entry)
-        base["stages"] += extra["stages"]
-        base["name"] = "demo-full-advised"
-        joined = work / "joined.yaml"
-        joined.write_text(yaml.safe_dump(base, sort_keys=False))
         after_db = f"sqlite:///{work / 'after.sqlite'}"
-        campaign(joined, scenario, after_db)
+        campaign(continuation(extra["setups"], extra["stages"], work / "joined.yaml"), scenario, after_db)
         after = offline_um(after_db, scenario)
+
+        # in-run baseline: as many hours more of the campaign's own pattern (the Z position setup through
+        # spindle, cool-down, its drive, cool-down: the test of fig. 5.1), not chosen by the advisor
+        control_db = f"sqlite:///{work / 'control.sqlite'}"
+        campaign(continuation({}, control_stages(HOURS), work / "control.yaml"), scenario, control_db)
+        control = offline_um(control_db, scenario)
 
         # advice time on the 178.5 h thesis-full campaign
         thesis_db = f"sqlite:///{work / 'thesis.sqlite'}"
@@ -160,6 +189,7 @@ def main() -> None:
             ],
             "predicted_rms_um": [round(advice["rms_before_um"], 3), round(advice["rms_after_um"], 3)],
             "offline_after_um": after,
+            "offline_after_control_um": control,
             "target_after_um": 3.0,
             # the whole command (start-up, loading the campaign from the store, advice, writing the plan)
             "advice_s": round(advice_s, 1),
@@ -169,6 +199,7 @@ def main() -> None:
             "thesis_full_target_s": 60.0,
             "thesis_full_stages": [r["stage"] for r in thesis["stages"]],
             "refit": "advised stages appended to demo-full in one campaign (continuation), then driftlab fit",
+            "control": f"{HOURS:g} h of the Z position setup's staged test appended instead",
             "load_average": load_average(),
         }
     )
