@@ -743,17 +743,6 @@ def advise_design(
         for h in durations_h
         if 2 * h <= hours + 1e-9
     ]
-
-    sweep_s = _sweep_interval(bundles)
-    heat = _heat_entries(bundles)
-    sources = [s for s in SOURCES if s in heat]
-    cands = [
-        Candidate(sid, src, float(h), float(h))
-        for sid in setups
-        for src in sources
-        for h in durations_h
-        if 2 * h <= hours + 1e-9
-    ]
     phi0 = design.variance_um2()
     phi = phi0
     chosen: list[AdvisedStage] = []
