@@ -19,7 +19,7 @@ demo: $(STAMP)
 	$(BIN)/driftlab demo --out demo-out
 
 # The code contracts of docs/architecture.md: lint, one format, types, the import layers, the module map.
-LINTED := driftlab tests benchmarks docs
+LINTED := driftlab tests benchmarks docs migrations examples
 lint: $(STAMP)
 	$(BIN)/ruff check $(LINTED)
 	$(BIN)/ruff format --check $(LINTED)

@@ -32,6 +32,20 @@ KIND_WORDS = {
 }
 
 
+#: the units people read (the micro sign, not "u")
+UM = "µm"
+URAD = "µrad"
+ARCSEC = "arcsec"
+ARCSEC_PER_DEG = 3600.0
+
+
+def length_text(value: float, unit: str = "mm", digits: int = 2) -> str:
+    """Return a small length (mm) as "12.34 µm", or a small angle (deg) as "1.23 arcsec", never in e-notation."""
+    if unit == "deg":
+        return f"{value * ARCSEC_PER_DEG:.{digits}f} {ARCSEC}"
+    return f"{value * 1e3:.{digits}f} {UM}"
+
+
 def display_unit(term: str) -> tuple[float, str]:
     """Return (factor from mm or rad, unit) for showing a term: um for lengths, urad for angles."""
     return (1e6, "urad") if term in ANGLES else (1e3, "um")

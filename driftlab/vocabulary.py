@@ -8,6 +8,10 @@ Defined once here; every module that spells an axis or a term list imports it fr
   eq. 4.8: ``(alpha, beta, gamma, dx, dy, dz)`` = rotations about X, Y, Z then translations.
 * Units inside driftlab: lengths in mm, angles in rad, temperatures in degC, times in s.
   People read um and urad (``labels.display_unit``). Rotary positions in files are degrees.
+* Heat sources of a stage (:data:`HEAT_SOURCES`), one word each for the daemon, the simulator and
+  every reader: ``off`` (machine off), ``idle`` (powered, no heat source), ``spindle``, ``feed`` (an
+  axis oscillating), ``combined`` (spindle and axis), ``motor_hold``. Campaigns stored before the
+  words were one used ``none``, ``axis``, ``spindle+axis``: :func:`heat_source` reads both.
 * Channels (thermocouples, bundle columns, instrument setup ids) are named by
   :data:`CHANNEL_NAME`: a letter or digit, then letters, digits, ``_ . -``, at most 64 in all.
 """
@@ -40,6 +44,25 @@ OWN_ROTATION: dict[str, str] = {"X": "alpha", "Y": "beta", "Z": "gamma", "A": "a
 #: units of the stored values
 LENGTH_UNIT = "mm"
 ANGLE_UNIT = "rad"
+
+#: the heat source of a stage (ISO 230-3's tests are chosen by it: off/idle ETVE, spindle, feed)
+HEAT_SOURCES: tuple[str, ...] = ("off", "idle", "spindle", "feed", "combined", "motor_hold")
+#: the plan's heat kinds (spindle, axis, motor_hold) and the spellings of campaigns stored before
+_HEAT_KIND = {"none": "idle", "": "idle", "axis": "feed", "spindle": "spindle", "motor_hold": "motor_hold"}
+
+
+def heat_source(label: str | None) -> str:
+    """Return the one word for a stage's heat source, from either spelling ("spindle+axis" -> "combined")."""
+    text = str(label or "").strip().lower()
+    if text in HEAT_SOURCES:
+        return text
+    kinds = {_HEAT_KIND.get(k.strip(), k.strip()) for k in text.split("+")} - {"idle"}
+    if not kinds:
+        return "idle"
+    if len(kinds) == 1:
+        return kinds.pop()
+    return "combined"
+
 
 #: a channel's (or instrument setup's) name
 CHANNEL_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")

@@ -1,1 +1,4 @@
-"""Example campaign plans, virtual-machine scenarios and motion-code programs (shipped in the package as driftlab.examples)."""
+"""Example campaign plans, virtual-machine scenarios and motion-code programs.
+
+Shipped in the package as driftlab.examples.
+"""

@@ -48,7 +48,7 @@ from driftlab.campaigns.bundle import ID_PATTERN
 from driftlab.campaigns.setups import Setup, all_cells, coverage, default_laser_setup
 from driftlab.errors import ValidationError
 from driftlab.physics.geometry import Geometry
-from driftlab.vocabulary import Axis, Term
+from driftlab.vocabulary import Axis, Term, heat_source
 
 PLAN_FORMAT: Final = "driftlab-plan/1"
 FROM_SCENARIO: Final = "from scenario"
@@ -195,10 +195,9 @@ class Stage(_Strict):
         return {0: "cool-down", 1: "single"}.get(len(self.heat), "combined")
 
     def heat_label(self) -> str:
-        """Return the heat-source label of bundle v1 stages: 'spindle', 'axis', 'spindle+axis', 'none'."""
-        if not self.heat:
-            return "none"
-        return "+".join(h.kind for h in self.heat)
+        """Return the stage's heat source in the one vocabulary (``vocabulary.HEAT_SOURCES``): idle, spindle, feed,
+        combined, motor_hold."""
+        return heat_source("+".join(h.kind for h in self.heat))
 
     def spindle_rpm(self) -> float:
         """Return the commanded spindle speed in this stage (0 when the spindle is off)."""

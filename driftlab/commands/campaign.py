@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from driftlab.commands.db import add_db_option
+from driftlab.vocabulary import heat_source
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -149,7 +150,7 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
     top.add_column(style="dim", justify="right")
     top.add_column()
     if st:
-        heat = st["heat_source"] if st["heat_source"] not in ("", "none") else "no heat source"
+        heat = st["heat_source"] if heat_source(st["heat_source"]) not in ("idle", "off") else "no heat source"
         extra = [f"axis {st['axis']}", heat]
         if st["spindle_rpm"]:
             extra.append(f"spindle {st['spindle_rpm']:.0f} rpm")

@@ -47,6 +47,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--high-water", type=int, default=None, help="fill the buffer up to this many blocks")
     p.add_argument("--refresh-s", type=float, default=30.0, help="poll model and temperatures this often (s)")
     p.add_argument("--max-age-s", type=float, default=120.0, help="correct a waiting block again after this (s)")
+    p.add_argument(
+        "--machine-file",
+        type=Path,
+        help="machine envelope (JSON or YAML: travel, max_correction, extrapolation_margin_degC); "
+        "needed when the model document carries no travel, and wins over the document's key by key",
+    )
+    p.add_argument(
+        "--allow-extrapolation",
+        action="store_true",
+        help="compensate even with temperatures beyond the fitted range plus the margin (logged and reported)",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     p.set_defaults(func=_run)
 
@@ -84,6 +95,45 @@ def _model_file(path: Path, machine: str | None) -> Any:
     return model
 
 
+def _machine_file(path: Path | None) -> Any:
+    """Return the envelope of a machine file (JSON, or YAML), or None without one."""
+    if path is None:
+        return None
+    from driftlab.models.envelope import envelope_from_mapping
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ValidationError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValidationError(f"{path}: cannot read the machine file ({type(exc).__name__})") from None
+    try:
+        if path.suffix.lower() == ".json":
+            body = json.loads(text)
+        else:
+            import yaml
+
+            body = yaml.safe_load(text)
+    except Exception as exc:  # json.JSONDecodeError, yaml.YAMLError: one line, the file's position only
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else f" line {getattr(exc, 'lineno', '?')}"
+        raise ValidationError(f"{path}: not a machine file (unreadable JSON/YAML at{where})") from None
+    return envelope_from_mapping(body, str(path))
+
+
+def _guard(model: Any, args: argparse.Namespace) -> Any:
+    """Return the envelope guard of this run; refuse a model with no travel and no machine file."""
+    from driftlab.compensator.guard import Guard
+
+    guard = Guard.for_model(model, _machine_file(args.machine_file), allow_extrapolation=args.allow_extrapolation)
+    if guard.envelope is None or not guard.envelope.travel:
+        raise ValidationError(
+            f"model {model.label} carries no machine travel (documents fitted before the envelope have none): "
+            "give --machine-file FILE with the axes' travel (docs/compensate.md)"
+        )
+    return guard
+
+
 def _run(args: argparse.Namespace) -> int:
     """Run the offline or streaming compensation."""
     from driftlab.compensator.compensate import (
@@ -91,7 +141,6 @@ def _run(args: argparse.Namespace) -> int:
         compensate_file,
         decimals_for,
         retain_freed_memory,
-        scan_program,
     )
     from driftlab.config import get_settings
 
@@ -102,9 +151,6 @@ def _run(args: argparse.Namespace) -> int:
     start = _start(args.start)
     token = get_settings().api_token or None
     decimals = decimals_for(args.resolution_mm, args.resolution_deg)
-    # the whole program is checked before any output is written or any block is sent, a piece at a
-    # time (constant memory whatever its length)
-    scan = scan_program(args.program, str(args.program), decimals)
 
     if args.port is None:
         if args.out is None:
@@ -125,6 +171,9 @@ def _run(args: argparse.Namespace) -> int:
             temps = ApiTemperatures(args.api, args.machine, token=token).read()
         else:
             raise ValidationError("offline compensation needs --temps CSV (or --api for the latest scan)")
+        guard = _guard(model, args)
+        # the whole program is checked (syntax, envelope, corrections, temperatures) before any output
+        # is opened, a piece at a time (constant memory whatever its length)
         result = compensate_file(
             args.program,
             model,
@@ -135,7 +184,7 @@ def _run(args: argparse.Namespace) -> int:
             resolution_deg=args.resolution_deg,
             max_segment_mm=args.max_segment_mm,
             max_segment_deg=args.max_segment_deg,
-            scan=scan,
+            guard=guard,
         )
         summary = {"out": str(args.out), **result.summary()}
         if args.json:
@@ -147,15 +196,25 @@ def _run(args: argparse.Namespace) -> int:
                 f"temperatures {result.temperatures}; largest correction X {mc['X']} Y {mc['Y']} Z {mc['Z']} mm, "
                 f"A {mc['A']} B {mc['B']} deg"
             )
+            _report_extrapolation(result.extrapolated)
         return 0
-    return _stream(args, scan, start, decimals, token)
+    return _stream(args, start, decimals, token)
+
+
+def _report_extrapolation(extrapolated: dict[str, Any]) -> None:
+    """Print one line per channel read beyond its fitted range (extrapolation allowed)."""
+    for channel, d in extrapolated.items():
+        print(
+            f"extrapolated: {channel} up to {d['value_degC']:g} degC, {d['beyond_degC']:g} degC outside "
+            f"its fitted range {d['min']:g}..{d['max']:g} degC"
+        )
 
 
 def _stream(
-    args: argparse.Namespace, scan: Any, start: tuple[float, ...] | None, decimals: tuple[int, int], token: str | None
+    args: argparse.Namespace, start: tuple[float, ...] | None, decimals: tuple[int, int], token: str | None
 ) -> int:
     """Stream the corrected program to the controller, reading it again a piece at a time (constant memory)."""
-    from driftlab.compensator.compensate import ErrorModel, parse_pieces, program_pieces
+    from driftlab.compensator.compensate import ErrorModel, FirstPass, parse_pieces, program_pieces, scan_program
     from driftlab.compensator.stream import ApiModel, ApiTemperatures, CsvTemperatures, StaticModel, Streamer
     from driftlab.daq.machine_link import SerialMachineLink
 
@@ -178,6 +237,21 @@ def _stream(
         if start is None:
             pos = link.position()
             start = tuple(pos[a] for a in AXES)
+        # the first pass, before any block is sent: the whole program from the controller's pose,
+        # against the envelope with the model and temperatures of now (the streamer checks every
+        # point again, and every new reading, as it goes)
+        models.refresh()
+        assert models.model is not None
+        guard = _guard(models.model, args)
+        scan = scan_program(
+            args.program,
+            str(args.program),
+            decimals,
+            start=start,
+            max_segment_mm=args.max_segment_mm,
+            max_segment_deg=args.max_segment_deg,
+            check=FirstPass(guard, models.model, temps.read()),
+        )
         # the second pass of the offline path: pieces parsed with the state the lines before them leave
         pieces = parse_pieces(
             program_pieces(args.program),
@@ -198,11 +272,14 @@ def _stream(
             max_segment_deg=args.max_segment_deg,
             max_age_s=args.max_age_s,
             refresh_s=min(args.refresh_s, args.max_age_s),
+            guard=guard,
         )
         result = streamer.run(link, low_water=args.low_water, high_water=args.high_water)
     finally:
         link.close()
     summary = result.summary()
+    if guard.extrapolated:
+        summary["extrapolated"] = guard.report()
     if args.json:
         print(json.dumps(summary))
     else:
@@ -210,4 +287,5 @@ def _stream(
             f"streamed {summary['blocks_sent']} blocks to {args.port}: {summary['model_reloads']} model load(s), "
             f"{summary['recomputed']} block(s) corrected again, latency p99 {summary['latency_ms_p99']} ms"
         )
+        _report_extrapolation(guard.report())
     return 0

@@ -1,12 +1,14 @@
 """`driftlab daemon`: run a campaign plan end to end, storing every reading as it arrives (resumable).
 
-`driftlab daemon --plan PLAN.yaml [--sim SCENARIO.yaml --speed 3600] [--resume] [--db URL]`
+`driftlab daemon --plan PLAN.yaml [--sim SCENARIO.yaml --speed 3600 | --rig RIG.yaml] [--resume] [--db URL]`
 
-Without --sim the instruments named in the plan's `instruments:` section are opened (GPIB
-laser, thermocouple card, RS-232 controller link). With --sim a virtual machine built from
-the scenario is served by the simulated instrument servers and the same drivers talk to
-them. SIGINT/SIGTERM stop it between two commits; `kill -9` at any moment loses nothing
-either: `--resume` continues from the last committed cursor.
+With --rig the instruments of a rig file are opened (examples/rigs/: a Keysight 34970A for the
+thermocouples, LinuxCNC through linuxcncrsh, ...; `driftlab rig check RIG` first). With --sim a
+virtual machine built from the scenario answers as those same instruments (34970A SCPI,
+linuxcncrsh) and the same drivers talk to it. With neither, the thesis' instruments named in
+the plan's `instruments:` section are opened (legacy protocols). SIGINT/SIGTERM stop it between
+two commits; `kill -9` at any moment loses nothing either: `--resume` continues from the last
+committed cursor.
 """
 
 from __future__ import annotations
@@ -33,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("daemon", help="run a campaign plan against the instruments, resumable")
     p.add_argument("--plan", type=Path, required=True, help="campaign plan YAML (examples/plans/)")
     p.add_argument("--sim", type=Path, default=None, metavar="SCENARIO", help="run on the virtual machine")
+    p.add_argument(
+        "--rig", type=Path, default=None, metavar="RIG", help="run on the instruments of a rig file (examples/rigs/)"
+    )
     p.add_argument(
         "--speed",
         type=float,
@@ -85,6 +90,7 @@ def _daemon(args: argparse.Namespace) -> int:
             plan,
             db_url=args.db,
             scenario_path=args.sim,
+            rig_path=args.rig,
             speed=speed,
             resume=args.resume,
             stop=stop,

@@ -111,7 +111,11 @@ def print_findings(doc: dict) -> None:
             k, unit = display_unit(str(e.get("term")))
             b, a = e.get("rmse_holdout_before"), e.get("rmse_holdout_after")
             gain = (
-                (f"[green]{100 * (1 - a / b):.0f} %[/]" if a <= b else f"[red]{100 * (1 - a / b):.0f} %[/]")
+                (
+                    f"[green]{100 * (1 - a / b):.0f} % better[/]"
+                    if a <= b
+                    else f"[red]{100 * (a / b - 1):.0f} % worse[/]"
+                )
                 if b and a is not None
                 else "-"
             )
@@ -145,11 +149,28 @@ def print_findings(doc: dict) -> None:
             k, unit = display_unit(str(r.get("term")))
             x = ext.get((r.get("axis"), r.get("term")), {})
             fmt = lambda v, k=k, unit=unit: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
+            ext_txt = fmt(x.get("rmse_holdout"))
+            if x.get("holdout_verdict") == "worse":
+                ext_txt = f"[red]{ext_txt} worse[/]"
             t.add_row(
                 f"{r.get('axis')}/{r.get('term')}",
                 " ".join(r.get("channels") or []),
                 fmt(r.get("rmse_train")),
                 fmt(r.get("rmse_holdout")),
-                fmt(x.get("rmse_holdout")),
+                ext_txt,
             )
         con.print(t)
+    left = doc.get("unexplained", [])
+    if left:
+        t = Table(title="Unexplained: training residual above 1.5 x the noise after the findings", title_justify="left")
+        for col, just in (("axis/term", "left"), ("residual / noise", "right"), ("hints", "left")):
+            t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+        for u in left:
+            t.add_row(
+                f"{u.get('axis')}/{u.get('term')}",
+                f"[red]{float(u.get('residual_over_noise', float('nan'))):.1f} x[/]",
+                "; ".join(u.get("hints") or []),
+            )
+        con.print(t)
+    elif doc.get("baseline"):
+        con.print("Every term is explained to its measurement noise (no unexplained residual).")

@@ -11,14 +11,14 @@ from driftlab.errors import ValidationError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Register `export-comp --model VERSION|FILE (--temps CSV | --api URL) --format F --axis X -o FILE`."""
-    from driftlab.compensator.exports import FORMATS
+    """Register `export-comp --model V (--temps CSV | --api URL) --controller C --axis X --range A,B -o FILE`."""
+    from driftlab.compensator.exports import ALIASES, CONTROLLERS
 
     p = sub.add_parser(
         "export-comp",
         help="write the model's correction of an axis as a controller compensation table",
-        description="LinuxCNC axis comp file, Siemens 840D LEC/CEC part program, Heidenhain .COM "
-        "table, Fanuc pitch error parameter tape (docs/exports.md).",
+        description="LinuxCNC axis comp file, SINUMERIK 840D sl / 828D / 808D LEC and CEC programs, "
+        "HEIDENHAIN TNC 640 / TNC 426 .COM table, FANUC 0i / 30i pitch error parameter tape (docs/exports.md).",
     )
     p.add_argument(
         "--model",
@@ -33,14 +33,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--temps", type=Path, metavar="CSV", help="temperatures.csv: its latest scan is used")
     src.add_argument("--api", metavar="URL", help="driftlab API base URL: the machine's latest scan")
-    p.add_argument("--format", required=True, choices=FORMATS, dest="fmt")
+    p.add_argument(
+        "--controller",
+        "--format",
+        required=True,
+        choices=[*CONTROLLERS, *ALIASES],
+        dest="controller",
+        help="the controller generation: " + ", ".join(CONTROLLERS),
+    )
     p.add_argument("--axis", required=True, help="X Y Z A B")
-    p.add_argument("--range", required=True, metavar="FROM,TO", help="axis travel covered by the table (mm or deg)")
-    p.add_argument("--step", type=float, default=None, help="spacing of the table's points (default 10 mm / 5 deg)")
+    p.add_argument(
+        "--range", required=True, metavar="FROM,TO", help="axis positions the table covers, exactly (mm or deg)"
+    )
+    p.add_argument(
+        "--travel",
+        default=None,
+        metavar="FROM,TO",
+        help="the axis travel the range must lie in (default: the virtual machine's, Tables A.3 and A.4)",
+    )
+    p.add_argument("--step", type=float, default=None, help="largest spacing of the table's points (10 mm / 5 deg)")
     p.add_argument(
         "--pose", default="0,0,0,0,0", metavar="X,Y,Z,A,B", help="where the other axes stand (mm, deg; default home)"
     )
     p.add_argument("--reference", type=float, default=0.0, help="fanuc: the reference position (a grid point; 0)")
+    p.add_argument(
+        "--reference-return",
+        choices=("+", "-"),
+        default="+",
+        help="fanuc: the direction of reference position return (No. 3627 is relative to it)",
+    )
+    p.add_argument("--first-point", type=int, default=None, help="fanuc: first compensation point number")
     p.add_argument("--detection-unit", type=float, default=0.0001, help="fanuc: detection unit (0.0001 mm, IS-C)")
     p.add_argument("-o", "--out", type=Path, required=True, metavar="FILE")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
@@ -94,43 +116,83 @@ def _temperatures(args: argparse.Namespace, model: Any) -> dict[str, float]:
     return ApiTemperatures(args.api, machine, token=get_settings().api_token or None).read()
 
 
+def _travel(args: argparse.Namespace, axis: str) -> tuple[float, float, str]:
+    """Return the axis travel and where it comes from."""
+    if args.travel is not None:
+        lo, hi = _numbers(args.travel, 2, "--travel")
+        return lo, hi, "--travel"
+    from driftlab.daq.sim.truth import AXIS_RANGE
+
+    lo, hi = AXIS_RANGE[axis]
+    return lo, hi, "the virtual machine's travel (give --travel for another machine)"
+
+
 def _run(args: argparse.Namespace) -> int:
-    """Evaluate the grid, write the table atomically, print the controller settings."""
-    from driftlab.compensator.exports import write
-    from driftlab.compensator.exports.grid import ROTARY, correction_table, describe, grid_positions
+    """Check the range and grid, evaluate the model there, write the file(s) atomically, print the settings."""
+    from driftlab.compensator.exports import controller, write
+    from driftlab.compensator.exports.grid import ROTARY, controller_grid, correction_table, describe
     from driftlab.vocabulary import AXES
 
     axis = args.axis.upper()
     if axis not in AXES:
         raise ValidationError(f"axis {args.axis!r} is not one of {' '.join(AXES)}")
+    ctl = controller(args.controller)
     lo, hi = _numbers(args.range, 2, "--range")
     pose = _numbers(args.pose, 5, "--pose")
+    unit = "deg" if axis in ROTARY else "mm"
+    t_lo, t_hi, t_src = _travel(args, axis)
+    if not (t_lo - 1e-9 <= lo and hi <= t_hi + 1e-9):
+        raise ValidationError(
+            f"the range {lo:g}..{hi:g} {unit} lies outside the {axis} travel {t_lo:g}..{t_hi:g} {unit} ({t_src})"
+        )
     step = args.step if args.step is not None else (5.0 if axis in ROTARY else 10.0)
     # the grid is checked before the model is loaded: a usage error costs nothing
-    grid = grid_positions(lo, hi, step, args.reference if args.fmt == "fanuc" else None)
-    if args.fmt == "fanuc" and not (abs(grid - args.reference) < 1e-9 * max(1.0, abs(args.reference))).any():
-        raise ValidationError(f"fanuc: the reference position {args.reference:g} is outside {lo:g}..{hi:g}")
+    grid = controller_grid(
+        ctl.spacing, ctl.max_points, lo, hi, step, reference=args.reference, unit=args.detection_unit
+    )
     model = _model(args)
     temps = _temperatures(args, model)
-    reference = args.reference if args.fmt == "fanuc" else None
-    table = correction_table(model, temps, axis, lo, hi, step, pose=pose, reference=reference)
+    table = correction_table(model, temps, axis, grid.positions, pose=pose)
     options: dict[str, Any] = {}
-    if args.fmt == "fanuc":
-        options = {"reference": args.reference, "detection_unit": args.detection_unit}
-    export = write(args.fmt, table, **options)
+    if ctl.family == "fanuc":
+        options = {
+            "reference": args.reference,
+            "detection_unit": args.detection_unit,
+            "first_point": args.first_point,
+            "reference_return": 1 if args.reference_return == "+" else -1,
+        }
+    export = write(ctl.name, table, **options)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".part")
-    tmp.write_text(export.text, encoding="ascii")
-    tmp.replace(args.out)
-    summary = {"out": str(args.out), "format": args.fmt, **describe(table), "settings": export.settings}
+    written = []
+    for suffix, text in export.files.items():
+        path = args.out if not suffix else args.out.with_name(args.out.stem + suffix + args.out.suffix)
+        tmp = path.with_name(path.name + ".part")
+        tmp.write_text(text, encoding="ascii")
+        tmp.replace(path)
+        written.append(str(path))
+    notes = [*grid.notes, *export.notes]
+    summary = {
+        "out": str(args.out),
+        "files": written,
+        "controller": ctl.name,
+        "format": ctl.name,
+        **describe(table),
+        "travel": [t_lo, t_hi],
+        "settings": export.settings,
+        "notes": notes,
+    }
     if args.json:
         print(json.dumps(summary))
     else:
+        from driftlab.labels import length_text
+
         print(
-            f"wrote {args.out}: {args.fmt} table of {axis}, {table.positions.size} points "
+            f"wrote {', '.join(written)}: {ctl.title} of {axis}, {table.positions.size} points "
             f"{table.positions[0]:g}..{table.positions[-1]:g} {table.unit}, model {table.model}; "
-            f"largest correction {max(summary['max_forward'], summary['max_reverse']):.6f} {table.unit}"
+            f"largest correction {length_text(max(summary['max_forward'], summary['max_reverse']), table.unit)}"
         )
+        for note in notes:
+            print(f"  note: {note}")
         for k, v in export.settings.items():
             print(f"  {k} = {v}")
     return 0

@@ -28,6 +28,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--axis", default=None, help="axis for part 2 (X Y Z A B)")
     p.add_argument("--term", default=None, help="part 2: term to evaluate (default the axis' positioning term)")
     p.add_argument("--stage", default=None, help="part 2: only the runs measured during this stage of the campaign")
+    win = p.add_mutually_exclusive_group()
+    win.add_argument(
+        "--per-stage", action="store_true", help="part 2: one evaluation per stage (runs taken while thermally stable)"
+    )
+    win.add_argument(
+        "--window", type=float, default=None, metavar="HOURS", help="part 2: one evaluation per time window"
+    )
     p.add_argument("--json", type=Path, default=None, metavar="OUT.json", help="write the figures here")
     p.add_argument("--html", type=Path, default=None, metavar="OUT.html", help="write the report page with its plots")
     p.set_defaults(func=_run)
@@ -60,6 +67,8 @@ def _run(args: argparse.Namespace) -> int:
     bundle = _load(args)
     lines: list[str] = []
     if args.part == 2:
+        from driftlab.metrology.iso230_2 import FIGURES, display
+
         errors = bundle.errors
         if args.stage is not None:
             stage = next((s for s in bundle.meta.stages if s.name == args.stage), None)
@@ -67,13 +76,52 @@ def _run(args: argparse.Namespace) -> int:
                 raise ValidationError(f"{bundle.name}: no stage {args.stage!r} in campaign.json")
             t = errors["time_s"]
             errors = errors[(t >= stage.start_s) & (t <= stage.end_s)]
+        if args.window is not None and not args.window > 0:
+            raise ValidationError(f"--window must be a positive number of hours, got {args.window:g}")
+
+        def summary(label: str, r: Any) -> str:
+            _, u = display(0.0, r.unit)
+            figs = " ".join(f"{k} {display(r.figures[k], r.unit)[0]}" for k in FIGURES)
+            return f"ISO 230-2 {label} axis {r.axis} ({r.runs} runs, {r.targets.size} targets, {u}): {figs}"
+
+        def span(r_errors: Any) -> tuple[float, float]:
+            t = r_errors["time_s"]
+            return float(t.min()), float(t.max())
+
         res = iso230_2.from_bundle_errors(errors, args.axis, args.term)
         doc: dict[str, Any] = res.to_json_dict()
-        page = report.iso230_2_html(res, f"ISO 230-2: {bundle.name}, axis {res.axis}") if args.html else ""
-        lines.append(
-            f"ISO 230-2 {bundle.name} axis {res.axis} ({res.unit}, {res.runs} runs, {res.targets.size} "
-            "targets): " + " ".join(f"{k} {res.figures[k]:.6g}" for k in iso230_2.FIGURES)
-        )
+        doc["drift_between_runs"] = res.drift
+        doc["warning"] = res.drift_warning
+        conds = report.conditions(bundle, args.axis, args.term, *span(errors))
+        doc["conditions"] = dict(conds)
+        wins = None
+        if args.per_stage or args.window is not None:
+            found = iso230_2.windows(
+                errors,
+                args.axis,
+                args.term,
+                window_s=args.window * 3600.0 if args.window is not None else None,
+                stages=list(bundle.meta.stages) if args.per_stage else None,
+            )
+            wins = [(w, report.conditions(bundle, args.axis, args.term, w.start_s, w.end_s)) for w in found]
+            doc["windows"] = [
+                {
+                    "label": w.label,
+                    "start_s": w.start_s,
+                    "end_s": w.end_s,
+                    **w.result.to_json_dict(),
+                    "drift_between_runs": w.result.drift,
+                    "warning": w.result.drift_warning,
+                }
+                for w in found
+            ]
+            lines += [summary(f"{bundle.name} {w.label}", w.result) for w in found]
+            lines += [f"  warning ({w.label}): {w.result.drift_warning}" for w in found if w.result.drift_warning]
+        else:
+            lines.append(summary(bundle.name, res))
+            if res.drift_warning:
+                lines.append(f"  warning: {res.drift_warning}")
+        page = report.iso230_2_html(res, f"ISO 230-2: {bundle.name}, axis {res.axis}", conds, wins) if args.html else ""
     else:
         if args.stage is not None:
             raise ValidationError("--stage is for --part 2 (part 3 evaluates every stage)")
@@ -83,7 +131,8 @@ def _run(args: argparse.Namespace) -> int:
         for kind in ("etve", "spindle", "linear"):
             for t in getattr(res3, kind):
                 top = max(t.figures, key=lambda k: t.figures[k] if t.units[k] == "mm" else 0.0)
-                lines.append(f"ISO 230-3 {kind} {t.stage}: largest {top} {t.figures[top]:.6g} {t.units[top]}")
+                value, unit = iso230_2.display(t.figures[top], t.units[top])
+                lines.append(f"ISO 230-3 {kind} {t.stage}: largest {top} {value} {unit}")
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
     _write(args.json, text)  # the reports first: a closed stdout loses only the summary
     _write(args.html, page)

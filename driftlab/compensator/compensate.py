@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
-from typing import Any, TypeAlias, TypedDict
+from typing import TYPE_CHECKING, Any, TypeAlias, TypedDict
 
 import numpy as np
 import pandas as pd
@@ -35,6 +35,10 @@ from driftlab.compensator.gcode import (
 )
 from driftlab.errors import ValidationError
 from driftlab.physics import kinematics
+
+if TYPE_CHECKING:
+    from driftlab.compensator.guard import Guard
+    from driftlab.models.envelope import Envelope
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +63,9 @@ class ErrorModel:
     label: str = "model"
     channels: tuple[str, ...] = ()
     machine: str = ""
+    #: the temperature range (degC) each input was fitted on, and the document's machine envelope
+    ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    envelope: Envelope | None = None
 
     @classmethod
     def from_document(cls, document: Mapping[str, Any] | Any, label: str | None = None) -> ErrorModel:
@@ -78,6 +85,8 @@ class ErrorModel:
             label=name,
             channels=tuple(doc.inputs),
             machine=doc.machine,
+            ranges={c: (r.min, r.max) for c, r in doc.inputs.items()},
+            envelope=doc.envelope,
         )
 
 
@@ -465,10 +474,12 @@ class OfflineResult:
     singular: int
     model: str
     temperatures: str
+    #: channels read beyond their fitted range by more than the margin (extrapolation allowed): see ``guard``
+    extrapolated: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
-        """Return a JSON-ready summary."""
-        return {
+        """Return a JSON-ready summary (``extrapolated`` only when something was)."""
+        out = {
             "blocks": self.blocks,
             "points": self.points,
             "max_correction": self.max_correction,
@@ -476,6 +487,9 @@ class OfflineResult:
             "model": self.model,
             "temperatures": self.temperatures,
         }
+        if self.extrapolated:
+            out["extrapolated"] = self.extrapolated
+        return out
 
 
 def compensate_program(
@@ -619,14 +633,32 @@ class ProgramScan:
 
 
 def scan_program(
-    path: str | Path, name: str, min_decimals: tuple[int, int], chunk_bytes: int = STREAM_CHUNK_BYTES
+    path: str | Path,
+    name: str,
+    min_decimals: tuple[int, int],
+    chunk_bytes: int = STREAM_CHUNK_BYTES,
+    *,
+    start: tuple[float, ...] | None = None,
+    max_segment_mm: float = 5.0,
+    max_segment_deg: float = 5.0,
+    check: FirstPass | None = None,
 ) -> ProgramScan:
-    """Check every line of a program file piece by piece (first pass); return what the second pass needs."""
+    """Check every line of a program file piece by piece (first pass); return what the second pass needs.
+
+    Besides the syntax (``gcode.parse_program``: bad words, feeds <= 0, ...) every block's
+    subdivision is counted (a segment needing more than 100000 points is refused here), and with
+    ``check`` (``FirstPass``) every block's target and correction is checked against the machine
+    envelope. Pieces are parsed from the pose, modal state and time stamp the lines before them
+    leave (``start``: the pose before the program), so G91 blocks are checked where they really go.
+    Nothing is kept but the state: memory does not grow with the program.
+    """
     from driftlab.compensator.gcode import MAX_DECIMALS, decimals_of
 
     eol: bytes | None = None
     motion, dist = -1, 0
     first_time = float("nan")
+    time_s = float("nan")
+    pose: tuple[float, ...] | None = start
     lin: list[tuple[float, np.ndarray]] = []
     rot: list[tuple[float, np.ndarray]] = []
     blocks = lines = 0
@@ -634,9 +666,11 @@ def scan_program(
         piece = parse_program(
             text,
             name=name,
+            start=pose,
             min_decimals=min_decimals,
             initial_motion=motion,
             initial_dist=dist,
+            initial_time_s=time_s,
             eol=eol,
             line_offset=offset,
             residuals=True,
@@ -646,6 +680,16 @@ def scan_program(
         motion, dist = piece.end_motion, piece.end_dist
         if not np.isfinite(first_time) and piece.n_lines and np.isfinite(piece.line_time_s).any():
             first_time = float(piece.line_time_s[np.flatnonzero(np.isfinite(piece.line_time_s))[0]])
+        if piece.n_lines:
+            time_s = float(piece.line_time_s[-1])
+        # targets first (a runaway is named as one), then the subdivision, then the corrections
+        if check is not None:
+            check.targets(piece)
+        count_points(piece, max_segment_mm, max_segment_deg)  # refuses a segment of too many points
+        if check is not None:
+            check.corrections(piece)
+        if piece.n_blocks:
+            pose = tuple((piece.target_int[-1] * piece.scale).tolist())
         assert piece.residuals is not None
         lin.append(piece.residuals[0])
         rot.append(piece.residuals[1])
@@ -655,6 +699,54 @@ def scan_program(
     if max(decimals) > MAX_DECIMALS:  # pragma: no cover - each piece has refused its own already
         raise ValidationError(f"{name}: more than {MAX_DECIMALS} decimals; program not accepted")
     return ProgramScan(decimals, eol or b"\n", first_time, blocks, lines)
+
+
+class FirstPass:
+    """The envelope check of the first pass (``scan_program(check=...)``): targets, corrections, temperatures.
+
+    Each block's correction is solved at its target (eqs. 4.23-4.26, not quantised) with the
+    temperatures the second pass gives it: the scan nearest the block's time when a table and a
+    timed block, else ``fixed`` (the latest scan, the given readings, or the streamer's first
+    reading). The block's target and its corrected target must stay inside the travel and the
+    correction under the largest plausible one; the temperatures used must not extrapolate.
+    """
+
+    def __init__(self, guard: Guard, model: ErrorModel, temperatures: TemperatureTable | Temperatures) -> None:
+        self.guard = guard
+        self.model = model
+        self.table = temperatures if isinstance(temperatures, TemperatureTable) else None
+        self.fixed: Temperatures = self.table.latest(model.channels) if self.table is not None else temperatures
+        guard.check_temperatures(self.fixed)
+        self.prev_direction: np.ndarray | None = None
+
+    def targets(self, piece: Program) -> None:
+        """Refuse the first block of a piece whose target is outside the travel."""
+        self.guard.check_positions(piece, np.arange(piece.n_blocks), piece.target_int * piece.scale, "target")
+
+    def corrections(self, piece: Program) -> None:
+        """Refuse the first block of a piece whose correction, or corrected target, leaves the envelope."""
+        if piece.n_blocks == 0:
+            return
+        blocks = np.arange(piece.n_blocks)
+        target = piece.target_int * piece.scale
+        times = piece.block_time_s()
+        temps: Temperatures = self.fixed
+        if self.table is not None and bool(np.isfinite(times).all()):
+            temps = self.table.nearest(times, self.model.channels)
+            self.guard.check_temperatures(temps)
+        q = piece.to_q(piece.target_int)
+        direction = directions(piece.target_int, piece.start_int, self.prev_direction)
+        self.prev_direction = direction[-1]
+        errors = self.model.predict(q, temps, direction)
+        solved = kinematics.compensate(q, errors, self.model.dims)
+        correction = solved.q_cmd - q
+        correction[:, 3:] = np.rad2deg(correction[:, 3:])
+        if not np.all(np.isfinite(correction)):
+            bad = int(np.flatnonzero(~np.isfinite(correction).all(axis=1))[0])
+            line = int(piece.block_line[bad]) + piece.first_line + 1
+            raise ValidationError(f"{piece.name}:{line}: the model predicts non-finite errors; program not accepted")
+        self.guard.check_corrections(piece, blocks, correction)
+        self.guard.check_positions(piece, blocks, target + correction, "corrected target")
 
 
 def parse_pieces(
@@ -731,6 +823,7 @@ def compensate_stream(
     chunk_bytes: int = STREAM_CHUNK_BYTES,
     chunk_points: int = 1 << 17,
     scan: ProgramScan | None = None,
+    guard: Guard | None = None,
 ) -> OfflineResult:
     """Correct a program file into the binary stream ``out`` in constant memory; return what was done.
 
@@ -740,11 +833,23 @@ def compensate_stream(
     (pose, modal G0/G1 and G90/G91, time stamp), corrects its points carrying the quantisation
     remainder and approach directions, and writes it. The output is byte for byte that of
     ``compensate_program`` on the whole text (``OfflineResult.text`` stays empty).
+
+    With a ``guard`` (``compensator.guard``) the first pass checks every block against the machine
+    envelope before anything is written, and every point is checked again just before it is written.
     """
     name = str(program_path)
     min_dec = decimals_for(resolution_mm, resolution_deg)
     if scan is None:
-        scan = scan_program(program_path, name, min_dec, chunk_bytes)
+        scan = scan_program(
+            program_path,
+            name,
+            min_dec,
+            chunk_bytes,
+            start=start,
+            max_segment_mm=max_segment_mm,
+            max_segment_deg=max_segment_deg,
+            check=None if guard is None else FirstPass(guard, model, temperatures),
+        )
     table = isinstance(temperatures, TemperatureTable)
     per_point = table and scan.blocks > 0 and bool(np.isfinite(scan.first_time_s))
     if table:
@@ -815,6 +920,8 @@ def compensate_stream(
             sent, rest = sent_all[: points.n], sent_all[points.n :]
             sent_parts = [rest] if rest.shape[0] else []
             corrected -= points.n
+            if guard is not None:
+                guard.check_sent(piece, points.block, points.nominal_int, sent)
             out.write(emit(piece, points, sent, prev_sent=sent_before))
             biggest = np.maximum(biggest, np.abs(sent - points.nominal_int).max(axis=0))
             sent_before = sent[-1]
@@ -860,6 +967,7 @@ def compensate_stream(
         singular=singular,
         model=model.label,
         temperatures=how,
+        extrapolated=guard.report() if guard is not None else {},
     )
 
 
@@ -874,6 +982,7 @@ class StreamOptions(TypedDict, total=False):
     chunk_bytes: int
     chunk_points: int
     scan: ProgramScan | None
+    guard: Guard | None
 
 
 def compensate_file(
@@ -885,11 +994,24 @@ def compensate_file(
 ) -> OfflineResult:
     """Parse, correct and write a program in constant memory (``compensate_stream`` with ``options``).
 
-    The text goes to ``OUT.part``, renamed to ``out_path`` only once the whole program is done:
-    nothing is written when the program does not parse or cannot be corrected.
+    The first pass (``scan_program``, with the ``guard``'s envelope checks) runs before ``OUT.part`` is
+    opened; the text goes to ``OUT.part``, renamed to ``out_path`` only once the whole program is done:
+    nothing is left behind when the program is refused or cannot be corrected.
     """
     out_path = Path(out_path)
     tmp = out_path.with_name(out_path.name + ".part")
+    if options.get("scan") is None:  # the first pass, before the output is even opened
+        guard = options.get("guard")
+        options["scan"] = scan_program(
+            program_path,
+            str(program_path),
+            decimals_for(options.get("resolution_mm", RESOLUTION_MM), options.get("resolution_deg", RESOLUTION_DEG)),
+            options.get("chunk_bytes", STREAM_CHUNK_BYTES),
+            start=options.get("start"),
+            max_segment_mm=options.get("max_segment_mm", 5.0),
+            max_segment_deg=options.get("max_segment_deg", 5.0),
+            check=None if guard is None else FirstPass(guard, model, temperatures),
+        )
     try:
         with tmp.open("wb") as fh:
             result = compensate_stream(program_path, model, temperatures, fh, **options)

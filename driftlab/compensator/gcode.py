@@ -10,7 +10,8 @@ Accepted language (one block per line, ISO 6983 style, as the thesis' controller
   stamps the block with a time (s) used to pick its temperatures.
 
 Refused with a one-line ``PROGRAM:LINE: problem``: ``G20`` (inch), ``G2``/``G3`` arcs (and their
-``I J K R`` words), other G-codes, axes the machine does not have, malformed numbers.
+``I J K R`` words), other G-codes, axes the machine does not have, malformed numbers, feeds ``F``
+that are not positive.
 
 Program coordinates are taken as the joint coordinates ``q`` of the kinematic chain.
 Positions are held as exact integers in units of ``10**-decimals`` (mm for X, Y, Z; deg for A, B),
@@ -331,6 +332,12 @@ def parse_program(
         else:
             msg = f"unsupported word '{ltr}'"
         errors.append((int(lid[i]), msg))
+
+    # feeds: F0 stalls the controller and a negative feed is no feed; both are refused here, not mid-run
+    fi = np.flatnonzero((letter == ord("F")) & valid)
+    for j in fi[~(value[fi] > 0)][:1000].tolist():
+        txt = bytes(buf[pos[j] + 1 : pos[j] + 1 + runlen[j]]).decode("ascii")
+        errors.append((int(lid[j]), f"feed 'F{txt}' must be positive"))
 
     # G codes
     gi = np.flatnonzero((kind == _K_G) & valid)

@@ -36,6 +36,7 @@ from driftlab.compensator.compensate import (
     correct_points,
 )
 from driftlab.compensator.gcode import Points, Program, emit, subdivide
+from driftlab.compensator.guard import Guard
 from driftlab.errors import InstrumentError, NotFoundError, ValidationError
 
 log = logging.getLogger(__name__)
@@ -316,6 +317,7 @@ class Streamer:
         sleep: Callable[[float], None] = time.sleep,
         timer: Callable[[], float] = time.perf_counter,
         epoch_s: float | None = None,
+        guard: Guard | None = None,
     ) -> None:
         if not 0 < refresh_s <= max_age_s:
             raise ValidationError("refresh interval must be positive and no longer than the maximum age")
@@ -338,6 +340,7 @@ class Streamer:
         if epoch_s is None and clock is time.monotonic:
             epoch_s = time.time() - time.monotonic()
         self.epoch_s = epoch_s
+        self.guard = guard
         zero = np.zeros(5, dtype=np.int64)
         pose = first.start_int.copy() if first is not None else zero
         start = _Cursor(first.first_line if first is not None else 0, 0, zero, pose, pose.copy(), None)
@@ -366,11 +369,7 @@ class Streamer:
                 self.result.reloads += 1
         if now - self._temps_at >= due:
             try:
-                self._temps = self.temperature_source.read()
-                self._temps_at = now
-                if not self._temps_ok:
-                    log.warning("temperatures available again")
-                self._temps_ok = True
+                temps = self.temperature_source.read()
             except (InstrumentError, ValidationError) as exc:
                 if self._temps is None:
                     raise
@@ -380,6 +379,14 @@ class Streamer:
                     self.result.warnings.append(msg)
                 self._temps_ok = False
                 self._temps_at = now
+                return
+            if self.guard is not None:  # readings it refuses are never used: the run stops here
+                self.guard.check_temperatures(temps)
+            self._temps = temps
+            self._temps_at = now
+            if not self._temps_ok:
+                log.warning("temperatures available again")
+            self._temps_ok = True
 
     def _discard(self) -> None:
         """Drop the prepared lines; preparation restarts after the last line sent."""
@@ -444,6 +451,8 @@ class Streamer:
                 at=None if self.epoch_s is None else self.epoch_s + made_at,
             )
             sent = corr.sent_int
+            if self.guard is not None:  # nothing outside the envelope is ever queued for the link
+                self.guard.check_sent(p, pts.block, pts.nominal_int, sent)
             prev = np.vstack([cur.sent[None, :], sent[:-1]])
             first = np.ones(pts.n, dtype=bool)
             first[1:] = pts.block[1:] != pts.block[:-1]

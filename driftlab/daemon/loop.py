@@ -365,7 +365,12 @@ class Scheduler:
         scanner = self.rig.scanner
         try:
             if not self._paced:
-                scanner.pace(self.plan.scan_interval_s)  # type: ignore[attr-defined]
+                # the pacer starts with the first scan it is to take (a timer scan's sweep 0 is taken at INIT)
+                set_time(run[0].t_s)
+                try:
+                    scanner.pace(self.plan.scan_interval_s)  # type: ignore[attr-defined]
+                finally:
+                    set_time(t_last)
                 self._paced = True
             blk = scanner.scan_block(first, n)  # type: ignore[attr-defined]
             times = np.array([s.t_s for s in run])

@@ -275,3 +275,42 @@ def build_real_rig(plan: Plan, channels: list[str], clock: Any) -> InstrumentRig
     if any(s.sweep is not None for s in plan.stages) and laser is None:
         raise ValidationError(f"plan {plan.name}: sweeps need instruments.laser without --sim")
     return InstrumentRig(plan, scanner, laser, link, clock=clock, closers=closers)
+
+
+def build_file_rig(plan: Plan, rig: Any, channels: list[str], clock: Any) -> InstrumentRig:
+    """Return a rig on the instruments of a rig file (``driftlab daemon --rig``), scanning the plan's channels."""
+    from driftlab.daemon.rigfile import open_rig, thermocouple_channels
+
+    spec = rig.role("thermocouples")
+    if spec is None:
+        raise ValidationError(f"rig {rig.name}: a campaign needs a thermocouples role")
+    wired = thermocouple_channels(rig)
+    missing = [c for c in channels if c not in wired]
+    if missing:
+        raise ValidationError(
+            f"rig {rig.name}: the plan's channel{'s' if len(missing) > 1 else ''} {', '.join(missing[:5])} "
+            "not wired in instruments.thermocouples.options.channels"
+        )
+    wanted = set(channels)
+    cmap = {k: v for k, v in spec.options["channels"].items() if str(v) in wanted}
+    scoped = rig.model_copy(
+        update={
+            "instruments": {
+                **rig.instruments,
+                "thermocouples": spec.model_copy(update={"options": {**spec.options, "channels": cmap}}),
+            }
+        }
+    )
+    if any(s.sweep is not None for s in plan.stages) and rig.role("laser") is None:
+        raise ValidationError(f"plan {plan.name}: sweeps need a laser role in rig {rig.name}")
+    opened = open_rig(scoped, clock.now)
+    inst = opened.instruments
+    return InstrumentRig(
+        plan,
+        inst["thermocouples"],
+        inst.get("laser"),
+        inst.get("machine"),
+        clock=clock,
+        closers=[opened.close],
+        adcard=inst.get("proximity"),
+    )

@@ -78,8 +78,10 @@ def run_daemon(
     stop_after_commits: int | None = None,
     engine: Any | None = None,
     world: Any | None = None,
+    rig_path: Path | str | None = None,
 ) -> DaemonResult:
-    """Open (or resume) the plan's campaign in the store and run it on the simulated or real rig."""
+    """Open (or resume) the plan's campaign in the store and run it on the simulated rig, a rig file's
+    instruments (``rig_path``), or the instruments named in the plan."""
     from driftlab.campaigns.clock import WallClock
     from driftlab.progress import progress
 
@@ -97,17 +99,31 @@ def run_daemon(
         from driftlab.daq.sim.scenario import load_scenario
 
         scenario = load_scenario(scenario_path)
-    channels, rooms = resolve_channels(plan, scenario)
+    rig_spec = None
+    if rig_path is not None:
+        from driftlab.daemon.rigfile import load_rig
+        from driftlab.errors import ValidationError
+
+        if scenario is not None:
+            raise ValidationError("give either --sim (the virtual machine's rig) or --rig, not both")
+        rig_spec = load_rig(rig_path)
+    channels, rooms = resolve_channels(plan, scenario, rig_spec)
     origin = {
         "mode": "sim" if scenario is not None else "real",
         "scenario": str(scenario_path) if scenario_path is not None else None,
+        "rig": rig_spec.name if rig_spec is not None else None,
         "speed": None if math.isinf(speed) else speed,
     }
     points = plan.sweep_points()
     if scenario is None:
         # open the instruments before touching the store: an unreachable instrument leaves no campaign behind
         clock: Any = WallClock()
-        rig = build_real_rig(plan, list(channels), clock)
+        if rig_spec is not None:
+            from driftlab.daemon.rig import build_file_rig
+
+            rig = build_file_rig(plan, rig_spec, list(channels), clock)
+        else:
+            rig = build_real_rig(plan, list(channels), clock)
     extra = sim_meta(plan, scenario) if scenario is not None else None
     try:
         handle = open_campaign(engine, plan, channels, rooms, resume=resume, origin=origin, extra_meta=extra)
@@ -175,9 +191,30 @@ def _campaign_started_epoch(engine: Any, campaign_id: int) -> float:
     return started.timestamp()
 
 
-def resolve_channels(plan: Plan, scenario: Any | None) -> tuple[dict[str, dict[str, str]], list[str]]:
-    """Return the channel map (name -> location, structure) and room channels of the plan or scenario."""
+def resolve_channels(
+    plan: Plan, scenario: Any | None, rig: Any | None = None
+) -> tuple[dict[str, dict[str, str]], list[str]]:
+    """Return the channel map (name -> location, structure) and room channels of the plan, scenario or rig.
+
+    A plan whose channels are 'from scenario' run on a rig file takes the rig's thermocouple names,
+    with the locations of the thesis' sites (Table 5.1) where the names are theirs.
+    """
     from driftlab.errors import ValidationError
+
+    if rig is not None and not isinstance(plan.machine.channels, dict):
+        from driftlab.daemon.rigfile import thermocouple_channels
+
+        names = thermocouple_channels(rig)
+        if not names:
+            raise ValidationError(f"rig {rig.name}: no thermocouples role: the plan's channels come from it")
+        sites = scenario_meta(None)
+        table = sites["channels"]
+        chans = {
+            n: {"location": table.get(n, {}).get("location", ""), "structure": table.get(n, {}).get("structure", "")}
+            for n in names
+        }
+        rooms = list(plan.machine.room_channels or [c for c in sites.get("room_channels", []) if c in chans])
+        return chans, rooms
 
     if isinstance(plan.machine.channels, dict):
         chans = {k: {"location": v.location, "structure": v.structure} for k, v in plan.machine.channels.items()}

@@ -57,58 +57,62 @@ def build_sim_rig(
     world: Any | None = None,
     cursor: Cursor = Cursor(),
 ) -> InstrumentRig:
-    """Return a rig whose real drivers talk to simulated servers reading the virtual machine at `clock`.
+    """Return a rig whose drivers talk to simulated instruments reading the virtual machine at `clock`.
+
+    The instruments are the ones a shop owns, answering their own command sets: a Keysight 34970A
+    scanning the thermocouples (SCPI), LinuxCNC through linuxcncrsh, a second 34970A's DC-volt
+    channels for the proximity sensors; the laser is the thesis' HP-IB processor.
 
     On a resume the simulated hardware is put back as the real hardware would have stayed while the
     PC restarted: each axis where its last sweep point left it, the laser head on its datum.
     """
     import pyvisa
 
+    from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts
     from driftlab.daq.laser import LaserInterferometer
-    from driftlab.daq.machine_link import SerialMachineLink
-    from driftlab.daq.proximity import ADCard
+    from driftlab.daq.linuxcnc import LinuxCNCLink
     from driftlab.daq.retry import RetryPolicy
-    from driftlab.daq.sim.instruments import (
-        SimADCard,
-        SimController,
-        SimLaser,
-        SimThermocoupleCard,
-        serial_url,
-        visa_address,
-    )
-    from driftlab.daq.thermocouple import ThermocoupleCard
-    from driftlab.daq.transport import LineChannel, VisaPort
+    from driftlab.daq.sim.instruments import SimLaser, serial_url, visa_address
+    from driftlab.daq.sim.keysight34970a import Sim34970A, sim_channel_map
+    from driftlab.daq.sim.linuxcnc import SimLinuxCNC
+    from driftlab.daq.transport import LineChannel, SerialPort, VisaPort
 
     if world is None:
         from driftlab.daq.sim.machine import VirtualMachine
 
         world = MemoWorld(VirtualMachine(plan_scenario(plan, scenario)))
-    card_map = dict(enumerate(channels))
-    card = SimThermocoupleCard(world, clock, card_map).start()
-    ctrl = SimController(world, clock)
+    card_map = sim_channel_map(channels)  # 34901A channels 101.., 201.., 301.. -> the plan's names
+    card = Sim34970A(world, clock, card_map).start()
+    ctrl = SimLinuxCNC(world, clock)
     for axis, (pos, direction) in axis_positions(plan, cursor).items():
         ctrl.pos[axis], ctrl.direction[axis] = pos, direction
     ctrl.start()
     head = SimLaser(world, clock, ctrl).start()
-    ad = SimADCard(clock).start()
+    ad = Sim34970A(world, clock).start()  # a second mainframe: its DC-volt channels read the proximity sensors
     closers: list[Callable[[], None]] = [card.close, ctrl.close, head.close, ad.close]
     try:
         rm = pyvisa.ResourceManager("@py")
         closers.append(rm.close)
         policy = RetryPolicy(attempts=3, base_delay_s=0.0)
-        card_io = LineChannel(
-            VisaPort.open(visa_address(card), resource_manager=rm), "thermocouple card", policy, sleep=_no_wait
-        )
-        scanner = ThermocoupleCard(card_io, card_map, clock=clock.now)
+        card_io = LineChannel(VisaPort.open(visa_address(card), resource_manager=rm), "34970A", policy, sleep=_no_wait)
         closers.append(card_io.close)
+        scanner = Keysight34970A(card_io, card_map, tc_type="E", reference_junction="INT", clock=clock.now)
+        scanner.identify()
+        scanner.configure()
         laser_io = LineChannel(VisaPort.open(visa_address(head), resource_manager=rm), "laser", policy, sleep=_no_wait)
         closers.append(laser_io.close)
         laser = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20, burst=True)
-        link = SerialMachineLink.open(serial_url(ctrl), sleep=_no_wait, max_idle_polls=2)
+        url = serial_url(ctrl)
+        link = LinuxCNCLink(lambda: SerialPort.open(url), sleep=_no_wait, max_idle_polls=2)
+        link.session()
         closers.append(link.close)
-        ad_io = LineChannel(VisaPort.open(visa_address(ad), resource_manager=rm), "A/D card", policy, sleep=_no_wait)
+        ad_io = LineChannel(
+            VisaPort.open(visa_address(ad), resource_manager=rm), "34970A volts", policy, sleep=_no_wait
+        )
         closers.append(ad_io.close)
-        adcard = ADCard(ad_io)
+        adcard = Keysight34970AVolts(ad_io, AD_CHANNELS)
+        adcard.identify()
+        adcard.configure()
     except Exception:
         for c in reversed(closers):
             c()
@@ -126,6 +130,10 @@ def build_sim_rig(
         adcard=adcard,
         mount=sim_mounter(world, ctrl, head, ad),
     )
+
+
+#: the proximity mainframe's DC-volt channels: A/D index i is channel AD_CHANNELS[i]
+AD_CHANNELS = [101, 102, 103, 104, 105]
 
 
 def sim_mounter(world: Any, stage: Any, head: Any, ad: Any) -> Callable[[Any], None]:
@@ -157,16 +165,15 @@ def sim_mounter(world: Any, stage: Any, head: Any, ad: Any) -> Callable[[Any], N
         elif setup.fixture == "reference_edge":
             roll = setup.terms[0]
             ad.wire(
-                [0, 1],
+                AD_CHANNELS[:2],
                 roll_pair_source(
                     world, stage, setup.axis, ROLL_GAP[setup.axis], roll, ROLL_SEPARATION_MM, ROLL_CALIBRATION
                 ),
             )
         else:
             array = a_axis_array() if setup.axis == "A" else b_axis_array()
-            ad.wire(
-                list(range(len(array.calibration.sensors))), reference_surface_source(world, stage, setup.axis, array)
-            )
+            n = len(array.calibration.sensors)
+            ad.wire(AD_CHANNELS[:n], reference_surface_source(world, stage, setup.axis, array))
 
     return mount
 

@@ -261,6 +261,24 @@ class LineChannel:
             before_retry=self.port.discard_input,
         )
 
+    def query_once(self, command: str, parse: Callable[[str], T]) -> T:
+        """Return ``parse(reply)`` for a query that must not be repeated (it changes the instrument's state,
+        e.g. SCPI ``DATA:REMove?``); any fault is one InstrumentError, never a retry."""
+        return call_with_retry(
+            lambda: self._exchange(command, parse),
+            what=f"{self.name} {command.split(' ', 1)[0]}",
+            policy=RetryPolicy(attempts=1),
+            sleep=self.sleep,
+        )
+
+    def write(self, command: str) -> None:
+        """Send a command that has no reply (SCPI settings); a failed write is retried, then InstrumentError."""
+
+        def send() -> None:
+            self.port.write(command.encode("ascii") + TERMINATOR)
+
+        call_with_retry(send, what=f"{self.name} {command.split(' ', 1)[0]}", policy=self.policy, sleep=self.sleep)
+
     def command(self, command: str, ok: str = "OK") -> None:
         """Send a setting command and require the acknowledgement ``ok``."""
 

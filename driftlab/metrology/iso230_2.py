@@ -22,7 +22,10 @@ import pandas as pd
 from driftlab.errors import ValidationError
 
 #: the axis figures of ISO 230-2:2014, in the order the report lists them
-FIGURES = ("A", "A_up", "A_down", "B", "E", "E_up", "E_down", "M", "R", "R_up", "R_down")
+FIGURES = ("A", "A_up", "A_down", "B", "B_mean", "E", "E_up", "E_down", "M", "R", "R_up", "R_down")
+#: how far the runs' mean deviations may wander, in pooled standard uncertainties, before the report warns that
+#: the runs span thermal drift (noise alone moves a run's mean by about s / sqrt(targets))
+DRIFT_WARNING_S = 2.0
 #: the term giving each axis' positioning deviation in a bundle (eq. 4.5: the axis' own translation/rotation)
 POSITIONING_TERM = {"X": "dx", "Y": "dy", "Z": "dz", "A": "alpha", "B": "beta"}
 ROTARY = ("A", "B")
@@ -54,6 +57,30 @@ class Iso230_2Result:
     R_down_j: np.ndarray
     R_j: np.ndarray
     figures: dict[str, float]
+    run_means: np.ndarray  # (n,) mean deviation of each pair of runs (up and down), in measuring order
+
+    @property
+    def drift(self) -> float:
+        """Return how far the pairs of runs' mean deviations wander (max - min): thermal drift between runs."""
+        return float(self.run_means.max() - self.run_means.min())
+
+    @property
+    def pooled_s(self) -> float:
+        """Return the pooled unidirectional standard uncertainty over targets and directions."""
+        return float(np.sqrt(np.mean(np.concatenate([self.s_up, self.s_down]) ** 2)))
+
+    @property
+    def drift_warning(self) -> str | None:
+        """Return a warning when the runs wander by more than DRIFT_WARNING_S pooled uncertainties, else None."""
+        if self.drift <= DRIFT_WARNING_S * self.pooled_s:
+            return None
+        value, unit = display(self.drift, self.unit)
+        return (
+            f"the runs span thermal drift: their mean deviations wander by {value} {unit}, "
+            f"{self.drift / max(self.pooled_s, 1e-300):.1f} times the standard uncertainty; R and A then hold the "
+            "drift, not the axis' repeatability: evaluate runs taken while the machine was thermally stable "
+            "(--stage, --per-stage or --window)"
+        )
 
     def to_json_dict(self) -> dict[str, Any]:
         """Return the report document: exactly the axis figures plus ``targets`` (one row per target)."""
@@ -148,6 +175,8 @@ def _statistics(axis: str, unit: str, targets: np.ndarray, x_up: np.ndarray, x_d
         "A_down": float((xbar_down + 2.0 * s_down).max() - (xbar_down - 2.0 * s_down).min()),
         # 'reversal value of an axis': B = max |B_j|
         "B": float(np.abs(b_j).max()),
+        # 'mean reversal value of an axis': B-bar = (1/m) sum_j B_j (signed)
+        "B_mean": float(b_j.mean()),
         # 'bidirectional systematic positional deviation of an axis': max - min of both directions' means
         "E": float(both.max() - both.min()),
         # 'unidirectional systematic positional deviation of an axis'
@@ -178,11 +207,33 @@ def _statistics(axis: str, unit: str, targets: np.ndarray, x_up: np.ndarray, x_d
         R_down_j=r_down_j,
         R_j=r_j,
         figures=figures,
+        run_means=(x_up.mean(axis=1) + x_down.mean(axis=1)) / 2.0,
     )
 
 
 def from_bundle_errors(errors: pd.DataFrame, axis: str, term: str | None = None) -> Iso230_2Result:
     """Return the ISO 230-2 result of one axis from a bundle's errors (the axis' positioning term by default)."""
+    rows, scale, unit = _rows(errors, axis, term)  # measuring order; rows at one time keep the file's order
+    return evaluate(
+        rows["position"].to_numpy(float),
+        rows["direction"].to_numpy(),
+        rows["value"].to_numpy(float) * scale,
+        axis=axis.upper(),
+        unit=unit,
+    )
+
+
+@dataclass(frozen=True)
+class Window:
+    """The runs of one stage or time window and their ISO 230-2 result."""
+
+    label: str
+    start_s: float
+    end_s: float
+    result: Iso230_2Result
+
+
+def _rows(errors: pd.DataFrame, axis: str, term: str | None) -> tuple[pd.DataFrame, float, str]:
     axis = axis.upper()
     if axis not in POSITIONING_TERM:
         raise ValidationError(f"axis {axis!r} is not one of {' '.join(POSITIONING_TERM)}")
@@ -190,65 +241,104 @@ def from_bundle_errors(errors: pd.DataFrame, axis: str, term: str | None = None)
     rows = errors[(errors["axis"] == axis) & (errors["term"] == term)]
     if rows.empty:
         raise ValidationError(f"the campaign has no {axis}/{term} readings")
-    rows = rows.sort_values("time_s", kind="stable")  # measuring order; rows at one time keep the file's order
-    is_rotation = term in ("alpha", "beta", "gamma")  # rad in a bundle, arcsec in the report
-    scale = ARCSEC_PER_RAD if is_rotation else 1.0
-    unit = "arcsec" if is_rotation else "mm"
-    return evaluate(
-        rows["position"].to_numpy(float),
-        rows["direction"].to_numpy(),
-        rows["value"].to_numpy(float) * scale,
-        axis=axis,
-        unit=unit,
-    )
+    rows = rows.sort_values("time_s", kind="stable")
+    is_rotation = term in ("alpha", "beta", "gamma")
+    return rows, (ARCSEC_PER_RAD if is_rotation else 1.0), ("arcsec" if is_rotation else "mm")
+
+
+def windows(
+    errors: pd.DataFrame,
+    axis: str,
+    term: str | None = None,
+    *,
+    window_s: float | None = None,
+    stages: list[Any] | None = None,
+) -> list[Window]:
+    """Return the ISO 230-2 result of the runs in each stage (``stages``) or each time window of ``window_s``.
+
+    Whole runs are grouped by the time of their first reading; a group with fewer than two pairs of
+    runs is left out. ValidationError when no group holds an evaluation."""
+    rows, scale, unit = _rows(errors, axis, term)
+    t = rows["time_s"].to_numpy(float)
+    runs = split_runs(rows["position"].to_numpy(float), rows["direction"].to_numpy())
+    groups: dict[tuple[float, float, str], list[np.ndarray]] = {}
+    for _d, idx in runs:
+        t0 = t[idx[0]]
+        if stages is not None:
+            st = next((s for s in stages if s.start_s <= t0 < s.end_s), None)
+            if st is None:
+                continue
+            key = (float(st.start_s), float(st.end_s), str(st.name))
+        else:
+            assert window_s is not None and window_s > 0
+            k = int((t0 - t[0]) // window_s)
+            lo = t[0] + k * window_s
+            key = (lo, lo + window_s, f"{(lo - t[0]) / 3600:.1f}-{(lo + window_s - t[0]) / 3600:.1f} h")
+        groups.setdefault(key, []).append(idx)
+    out: list[Window] = []
+    for (lo, hi, label), idx_runs in sorted(groups.items()):
+        idx = np.concatenate(idx_runs)
+        try:
+            res = evaluate(
+                rows["position"].to_numpy(float)[idx],
+                rows["direction"].to_numpy()[idx],
+                rows["value"].to_numpy(float)[idx] * scale,
+                axis=axis.upper(),
+                unit=unit,
+            )
+        except PositioningRunError:
+            continue  # fewer than two pairs of complete runs in this stage or window
+        out.append(Window(label, lo, hi, res))
+    if not out:
+        raise ValidationError(f"no stage or window holds two pairs of complete {axis.upper()} runs")
+    return out
+
+
+def display(value: float, unit: str) -> tuple[str, str]:
+    """Return a figure as people read it: mm shown in µm with 1 or 2 decimals, arcsec with 2; never e-notation."""
+    from driftlab.labels import UM
+
+    if unit == "mm":
+        v = value * 1e3
+        return (f"{v:.2f}" if abs(v) < 100 else f"{v:.1f}"), UM
+    return f"{value:.2f}", unit
 
 
 def plot(result: Iso230_2Result) -> Any:
-    """Return the standard's plot (matplotlib Figure): each run's deviations, the means and the +-2s bands
-    per direction."""
+    """Return the standard's plot (matplotlib Figure): each run's deviations, the means and the mean +- 2s
+    per direction, the figures beneath; the legend beside the plot, clear of the data."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 5.2))
+    scale = 1e3 if result.unit == "mm" else 1.0
+    _, unit = display(0.0, result.unit)
+    fig, ax = plt.subplots(figsize=(10, 5.6), layout="constrained")
     p = result.targets
     for i in range(result.runs):
-        ax.plot(
-            p,
-            result.deviations_up[i],
-            color="tab:blue",
-            lw=0.6,
-            alpha=0.45,
-            marker=".",
-            label="runs, approached +" if i == 0 else None,
-        )
-        ax.plot(
-            p,
-            result.deviations_down[i],
-            color="tab:red",
-            lw=0.6,
-            alpha=0.45,
-            marker=".",
-            label="runs, approached -" if i == 0 else None,
-        )
-    ax.plot(p, result.xbar_up, color="tab:blue", lw=2, label="mean +")
-    ax.plot(p, result.xbar_down, color="tab:red", lw=2, label="mean -")
-    for mean, s, c in ((result.xbar_up, result.s_up, "tab:blue"), (result.xbar_down, result.s_down, "tab:red")):
-        ax.plot(p, mean + 2 * s, color=c, lw=1, ls="--")
-        ax.plot(p, mean - 2 * s, color=c, lw=1, ls="--")
-    ax.plot(p, result.xbar, color="black", lw=1.2, ls=":", label="mean bidirectional")
+        for dev, c, name in ((result.deviations_up, "tab:blue", "+"), (result.deviations_down, "tab:red", "-")):
+            ax.plot(
+                p, dev[i] * scale, color=c, lw=0.5, alpha=0.35, marker=".", ms=3,
+                label=f"runs approached {name}" if i == 0 else None,
+            )  # fmt: skip
+    for mean, s, c, name in (
+        (result.xbar_up, result.s_up, "tab:blue", "+"),
+        (result.xbar_down, result.s_down, "tab:red", "-"),
+    ):
+        ax.plot(p, mean * scale, color=c, lw=2, label=f"mean {name}")
+        ax.plot(p, (mean + 2 * s) * scale, color=c, lw=1, ls="--", label=f"mean {name} ± 2s")
+        ax.plot(p, (mean - 2 * s) * scale, color=c, lw=1, ls="--")
+    ax.plot(p, result.xbar * scale, color="black", lw=1.2, ls=":", label="mean bidirectional")
     ax.axhline(0.0, color="grey", lw=0.5)
     unit_p = "deg" if result.axis in ROTARY else "mm"
     ax.set_xlabel(f"target position {result.axis} ({unit_p})")
-    ax.set_ylabel(f"deviation ({result.unit})")
+    ax.set_ylabel(f"positional deviation ({unit})")
+    ax.set_title(f"ISO 230-2: axis {result.axis}, {result.runs} runs per direction, {p.size} targets", fontsize=11)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     f = result.figures
-    text = "  ".join(f"{k} {f[k]:.4g}" for k in FIGURES)
-    ax.set_title(
-        f"ISO 230-2: axis {result.axis}, {result.runs} runs per direction, {p.size} targets ({result.unit})",
-        fontsize=10,
-    )
-    fig.text(0.01, 0.01, text, fontsize=7.5, family="monospace")
-    ax.legend(fontsize=7, loc="best")
-    fig.subplots_adjust(bottom=0.16)
+    names = {"B_mean": "B̄"}
+    cells = [f"{names.get(k, k)} = {display(f[k], result.unit)[0]}" for k in FIGURES]
+    text = "   ".join(cells[:6]) + "\n" + "   ".join(cells[6:]) + f"   ({unit})"
+    ax.text(0.0, -0.16, text, transform=ax.transAxes, fontsize=9.5, family="monospace", va="top")
     return fig

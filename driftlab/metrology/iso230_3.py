@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from driftlab.errors import ValidationError
-from driftlab.vocabulary import LINEAR_AXES, ROTATIONS
+from driftlab.vocabulary import LINEAR_AXES, ROTATIONS, heat_source
 
 ARCSEC_PER_RAD = 180.0 / np.pi * 3600.0
 POSITIONING_TERM = {"X": "dx", "Y": "dy", "Z": "dz"}
@@ -209,13 +209,15 @@ def evaluate_bundle(bundle: Any) -> Iso230_3Result:
     if not stages:
         raise ValidationError(f"{bundle.name}: campaign.json has no stages: ISO 230-3 tests are evaluated per stage")
     errors = bundle.errors
-    off = [s for s in stages if s.heat_source == "off"] or [s for s in stages if s.heat_source == "idle"]
+    # the daemon's and the simulator's words, and both spellings of stored campaigns (vocabulary.heat_source)
+    heat = {id(s): heat_source(s.heat_source) for s in stages}
+    off = [s for s in stages if heat[id(s)] == "off"] or [s for s in stages if heat[id(s)] == "idle"]
     etve = [etve_test(errors, bundle.temperatures, list(bundle.meta.room_channels), s) for s in off]
-    spindle = [spindle_test(errors, s) for s in stages if s.heat_source == "spindle"]
+    spindle = [spindle_test(errors, s) for s in stages if heat[id(s)] == "spindle"]
     linear = [
         t
         for s in stages
-        if s.heat_source == "feed" and s.axis in LINEAR_AXES
+        if heat[id(s)] == "feed" and s.axis in LINEAR_AXES
         for t in [linear_test(errors, s)]
         if t is not None
     ]
@@ -231,40 +233,50 @@ def evaluate_bundle(bundle: Any) -> Iso230_3Result:
 
 def plot(test: StageTest) -> Any:
     """Return the test's plot (matplotlib Figure): drift against time per term (ETVE, spindle) or per target
-    (linear)."""
+    (linear); lengths in µm and angles in arcsec on panels of their own, one unit per axis."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 4.6))
+    from driftlab.labels import ARCSEC, UM
+
     if test.kind == "linear":
+        fig, ax = plt.subplots(figsize=(9, 4.6), layout="constrained")
         p1, p2 = test.extra["P1"], test.extra["P2"]
         for s in test.series:
             if s.position in (p1, p2):
                 ax.plot(
                     s.t_h, s.drift * 1e3, label=f"{s.axis} at {s.position:g} mm ({'+' if s.direction > 0 else '-'})"
                 )
-        ax.set_ylabel("change of positioning deviation (um)")
+        ax.set_ylabel(f"change of positioning deviation ({UM})")
         ax.set_title(
             f"ISO 230-3 linear motion: {test.stage}, axis {test.extra['axis']} at {test.extra['feed_mm_min']:g} mm/min",
             fontsize=10,
         )
+        axes = [ax]
     else:
-        keys = sorted(test.figures, key=lambda k: -test.figures[k] / (1.0 if test.units[k] == "mm" else 1e3))[:6]
-        for key in keys:
-            axis, term = key.split("/")
-            best = max((s for s in test.series if s.axis == axis and s.term == term), key=lambda s: s.range)
-            scale, unit = (1e3, "um") if best.unit == "mm" else (1.0, "arcsec")
-            ax.plot(best.t_h, best.drift * scale, label=f"{key} at {best.position:g} ({unit})")
+        lengths = sorted((k for k in test.figures if test.units[k] == "mm"), key=lambda k: -test.figures[k])[:6]
+        angles = sorted((k for k in test.figures if test.units[k] != "mm"), key=lambda k: -test.figures[k])[:6]
+        panels = [(keys, unit) for keys, unit in ((lengths, UM), (angles, ARCSEC)) if keys]
+        fig, axs = plt.subplots(len(panels), 1, figsize=(9, 3.0 + 2.4 * len(panels)), sharex=True, layout="constrained")
+        axes = list(np.atleast_1d(axs))
+        for ax, (keys, unit) in zip(axes, panels):
+            for key in keys:
+                axis, term = key.split("/")
+                best = max((s for s in test.series if s.axis == axis and s.term == term), key=lambda s: s.range)
+                scale = 1e3 if best.unit == "mm" else 1.0
+                ax.plot(best.t_h, best.drift * scale, label=f"{key} at {best.position:g}")
+            ax.set_ylabel(f"drift ({unit})")
         what = "ETVE" if test.kind == "etve" else "spindle rotation"
-        ax.set_ylabel("drift (um or arcsec)")
-        ax.set_title(
+        axes[0].set_title(
             f"ISO 230-3 {what}: {test.stage}"
-            + (f", room range {test.room_range_degC:.2f} degC" if test.room_range_degC is not None else ""),
+            + (f", room range {test.room_range_degC:.2f} °C" if test.room_range_degC is not None else ""),
             fontsize=10,
         )
-    ax.set_xlabel("time from the stage start (h)")
-    ax.axhline(0.0, color="grey", lw=0.5)
-    ax.legend(fontsize=7, loc="best")
+    for ax in axes:
+        ax.axhline(0.0, color="grey", lw=0.5)
+        # the legend beside the plot, never over the data
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    axes[-1].set_xlabel("time from the stage start (h)")
     return fig

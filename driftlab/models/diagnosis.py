@@ -45,11 +45,13 @@ from driftlab.models.effects import (
     build_context,
     columns_like,
     lag_bank_for,
+    refine_source_tau,
     refine_tau,
     scan_sensor_faults,
     screen,
     tau_bounds,
 )
+from driftlab.models.sensor_drift import scan_sensor_drifts
 from driftlab.models.standard_model import (
     LinearFit,
     OutlierFlags,
@@ -64,6 +66,7 @@ from driftlab.models.standard_model import (
     refit_standard,
     robust_sigma,
 )
+from driftlab.models.unexplained import Unexplained, unexplained_term
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +81,16 @@ THESIS = {
     "drift": "3.2, 6.4.3",
     "quadratic": "6.4.2",
     "operating_condition": "6.4.3",
+    "sensor_drift": "6.4.2, 6.6, app. B",
+    "datum_shift": "5.5",
+    "unsensed_source": "5.2, 6.4.2",
+    "direction_thermal": "3.3, 3.5",
 }
+
+#: kinds that are findings about the instruments, not about the machine
+SENSOR_KINDS = frozenset({"sensor_fault", "sensor_drift"})
+#: kinds that are measurement artefacts or sensor findings: not physics
+NON_PHYSICAL_KINDS = SENSOR_KINDS | {"datum_shift"}
 
 
 def _fmt(value: float, unit: str) -> str:
@@ -199,7 +211,7 @@ def simulation_sentences(td: TermData, prep: PreparedBundle, pred: np.ndarray, n
             verb = "falls" if dy < 0 else "rises"
             law = "stays flat" if abs(ds) < 0.25 * abs(dy) else ("keeps rising" if ds > 0 else "keeps falling")
             source = st.get("heat_source", "?")
-            when = "when the heat sources stop" if source in ("none", "off", "") else f"under {source} heating"
+            when = "when the heat sources stop" if source in ("none", "off", "idle", "") else f"under {source} heating"
             parts.append(
                 f"the error {verb} by {_fmt(abs(dy), u)} {when} (stage {st.get('name')}) "
                 f"but the time-driven law {law} ({_fmt(ds, u)})"
@@ -309,8 +321,16 @@ class Effect:
             frame[name] = self.columns[:, i]
         return frame
 
+    @property
+    def verdict(self) -> str | None:
+        """Return ``better``, ``worse`` or ``same`` for the held-out RMSE after this effect; None without figures."""
+        b, a = self.rmse_holdout_before, self.rmse_holdout_after
+        if not (np.isfinite(b) and np.isfinite(a)):
+            return None
+        return "worse" if a > b else ("better" if a < b else "same")
+
     def to_dict(self) -> dict[str, Any]:
-        """Return the spec's ``effects[]`` entry."""
+        """Return the spec's ``effects[]`` entry (with ``holdout_verdict``: better / worse / same / null)."""
         return {
             "kind": self.kind,
             "axis": self.axis,
@@ -321,6 +341,8 @@ class Effect:
             "cause": self.cause,
             "rmse_holdout_before": self.rmse_holdout_before,
             "rmse_holdout_after": self.rmse_holdout_after,
+            "holdout_verdict": self.verdict,
+            "physical": self.kind not in NON_PHYSICAL_KINDS,
         }
 
 
@@ -350,14 +372,19 @@ class TermDiagnosis:
         }
 
     def extended_dict(self) -> dict[str, Any]:
-        """Return the spec's ``extended[]`` entry."""
+        """Return the spec's ``extended[]`` entry (``holdout_verdict`` against the baseline as an extra)."""
         f = self.extended
+        b = self.standard.fit.rmse_holdout
+        verdict = None
+        if np.isfinite(b) and np.isfinite(f.rmse_holdout) and self.effects:
+            verdict = "worse" if f.rmse_holdout > b else ("better" if f.rmse_holdout < b else "same")
         return {
             "axis": self.td.axis,
             "term": self.td.term,
             "rmse_train": f.rmse_train,
             "rmse_holdout": f.rmse_holdout,
             "unit": self.td.unit,
+            "holdout_verdict": verdict,
         }
 
 
@@ -378,6 +405,7 @@ class DiagnosisResult:
     unfed_faults: list[Effect] = field(default_factory=list)  # broken channels no model uses
     alpha_each: float = float("nan")  # per-candidate level of the error candidates
     alpha_fault: float = float("nan")  # per-channel level of the temperature (sensor_fault) tests
+    unexplained: list[Unexplained] = field(default_factory=list)  # terms whose residual stays above the noise
 
     @property
     def effects(self) -> list[Effect]:
@@ -575,15 +603,47 @@ def validation_folds(td: TermData) -> list[tuple[np.ndarray, np.ndarray]]:
     return folds
 
 
-def validation_rmse(X: np.ndarray, y: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]) -> float:
-    """Return the RMSE of ``y ~ X`` pooled over the validation blocks of ``folds`` (each fit on its own rows)."""
+#: require the validation gain in every fold, not only pooled. Off: on FL_THERMAL the first fold holds the
+#: first 5000 rpm start, which no model fitted on the slower stages before it predicts, and the rule then
+#: refused the spindle-casting lag (t4) that takes dx from 4.5 to 3.5 um held out. No harm is asked of the
+#: last training block instead (``final_block_gate``, against the baseline and against the current model).
+EVERY_FOLD = False
+
+
+def _fold_rmses(X: np.ndarray, y: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+    """Return, per fold, the residual of ``y ~ X`` fitted on the fold's rows and applied to its validation block."""
     res = []
     for fit, val in folds:
         if fit.sum() < X.shape[1] + 3:
             continue
         b = lstsq(X[fit], y[fit])
         res.append(y[val] - X[val] @ b)
+    return res
+
+
+def validation_rmse(X: np.ndarray, y: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """Return the RMSE of ``y ~ X`` pooled over the validation blocks of ``folds`` (each fit on its own rows)."""
+    res = _fold_rmses(X, y, folds)
     return rmse(np.concatenate(res)) if res else float("nan")
+
+
+def _own_part_residuals(
+    X: np.ndarray, cols: np.ndarray, y: np.ndarray, train: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Return, per fold, the later residual of the current model before and after the candidate's own part."""
+    b = lstsq(X[train], y[train])
+    r = y - X @ b
+    before, after = [], []
+    for fit, val in folds:
+        if fit.sum() < X.shape[1] + cols.shape[1] + 3:
+            continue
+        # the candidate's own part (beyond the current design) and its coefficient, from the early rows only
+        D = np.column_stack([lstsq(X[fit], cols[fit, k]) for k in range(cols.shape[1])])
+        cr = cols - X @ D
+        g = lstsq(cr[fit], r[fit])
+        before.append(r[val])
+        after.append(r[val] - cr[val] @ g)
+    return before, after
 
 
 def validation_gain(
@@ -600,18 +660,7 @@ def validation_gain(
     candidate orthogonal to them, a reversal, then moves them along their near-null direction
     and can "lose" in validation at random.) Training rows only: the held-out rows never enter.
     """
-    b = lstsq(X[train], y[train])
-    r = y - X @ b
-    before, after = [], []
-    for fit, val in folds:
-        if fit.sum() < X.shape[1] + cols.shape[1] + 3:
-            continue
-        # the candidate's own part (beyond the current design) and its coefficient, from the early rows only
-        D = np.column_stack([lstsq(X[fit], cols[fit, k]) for k in range(cols.shape[1])])
-        cr = cols - X @ D
-        g = lstsq(cr[fit], r[fit])
-        before.append(r[val])
-        after.append(r[val] - cr[val] @ g)
+    before, after = _own_part_residuals(X, cols, y, train, folds)
     if not before:
         return float("nan"), float("nan")
     return rmse(np.concatenate(before)), rmse(np.concatenate(after))
@@ -635,7 +684,7 @@ def validates(
     shows there as extrapolation error) or the candidate's own coefficients from the early rows
     against the later residual (``validation_gain``: immune to the extrapolation noise of the
     standard model's collinear dT coefficients). Either must lower the validation RMSE by
-    ``min_gain`` and explain ``min_explained`` x noise there.
+    ``min_gain`` (in every fold with ``EVERY_FOLD``) and explain ``min_explained`` x noise over the folds pooled.
     """
     return validation_check(X, cols, y, train, folds, min_gain, min_explained, noise)[:2]
 
@@ -652,23 +701,80 @@ def validation_check(
 ) -> tuple[bool, str, float]:
     """Return ``validates``' verdict and reason, and the extended model's validation RMSE (refitted per fold).
 
-    The last figure compares candidates with one another: every candidate of a round extends the
-    same model, so the one whose refitted model predicts the later blocks best is the best supported.
+    With ``EVERY_FOLD`` the gain must show in every fold, not only pooled. The last figure compares
+    candidates with one another: every candidate
+    of a round extends the same model, so the one whose refitted model predicts the later blocks
+    best is the best supported.
     """
 
-    def ok(before: float, after: float) -> bool:
-        return bool(
-            np.isfinite(before)
-            and np.isfinite(after)
-            and after < (1.0 - min_gain) * before
-            and before**2 - after**2 >= (min_explained * noise) ** 2
-        )
+    def ok(before: list[np.ndarray], after: list[np.ndarray]) -> tuple[bool, float, float]:
+        if not before or len(before) != len(after):
+            return False, float("nan"), float("nan")
+        b, a = rmse(np.concatenate(before)), rmse(np.concatenate(after))
+        every = not EVERY_FOLD or all(rmse(ai) < (1.0 - min_gain) * rmse(bi) for bi, ai in zip(before, after))
+        good = bool(np.isfinite(b) and np.isfinite(a) and every and b**2 - a**2 >= (min_explained * noise) ** 2)
+        return good, b, a
 
-    b1, a1 = validation_gain(X, cols, y, train, folds)
-    b2, a2 = validation_rmse(X, y, folds), validation_rmse(np.column_stack([X, cols]), y, folds)
-    if ok(b1, a1):
+    ok1, b1, a1 = ok(*_own_part_residuals(X, cols, y, train, folds))
+    ok2, b2, a2 = ok(_fold_rmses(X, y, folds), _fold_rmses(np.column_stack([X, cols]), y, folds))
+    if ok1:
         return True, f"own coefficients {b1:.4g} -> {a1:.4g}", a2
-    return ok(b2, a2), f"refitted model {b2:.4g} -> {a2:.4g} (own coefficients {b1:.4g} -> {a1:.4g})", a2
+    return ok2, f"refitted model {b2:.4g} -> {a2:.4g} (own coefficients {b1:.4g} -> {a1:.4g})", a2
+
+
+def final_block_gate(
+    X_base: np.ndarray, X_ext: np.ndarray, y: np.ndarray, folds: list[tuple[np.ndarray, np.ndarray]]
+) -> tuple[bool, float, float]:
+    """Return whether the extended model predicts the last training block no worse than the baseline.
+
+    The last gate of every acceptance (issue 22, "no harm"): the standard model and the extended
+    model (every effect accepted so far plus the candidate) are both fitted on the training rows
+    before the last block of the training part and scored on that block. Training rows only.
+    Returns (passes, baseline RMSE, extended RMSE) on the block.
+    """
+    if not folds:
+        return True, float("nan"), float("nan")
+    fit, val = folds[-1]
+    if fit.sum() < X_ext.shape[1] + 3:
+        return True, float("nan"), float("nan")
+    rb = y[val] - X_base[val] @ lstsq(X_base[fit], y[fit])
+    re_ = y[val] - X_ext[val] @ lstsq(X_ext[fit], y[fit])
+    b, a = rmse(rb), rmse(re_)
+    return bool(a <= b), b, a
+
+
+#: a datum step must stand this many robust sigmas above the sweep-to-sweep changes of the residual
+STEP_Z = 6.0
+
+
+def step_is_sharp(r: np.ndarray, td: TermData, time_s: float, step: float, noise: float) -> tuple[bool, str]:
+    """Return whether the residual steps at ``time_s`` as a datum shift does (sharp and lasting), and why.
+
+    A re-zeroed line moves every reading by one amount between two sweeps and stays there; a slow
+    misfit (a lag, a drift, heat no sensor reads) that a step happens to fit best moves little
+    between the two sweeps around the cut. On the training rows: the sweep means of the current
+    residual; the jump from the median of the three sweeps before the cut to the median of the three
+    after it must be at least ``STEP_Z`` robust sigmas of the sweep-to-sweep changes, agree with the
+    fitted step within a factor of two, and exceed the noise.
+    """
+    tr = td.train
+    sw, t, rr = td.sweep[tr], td.t[tr], r[tr]
+    ids, first = np.unique(sw, return_index=True)
+    order = np.argsort(t[first])
+    ids, starts = ids[order], t[first][order]
+    means = np.array([float(np.mean(rr[sw == i])) for i in ids])
+    k = int(np.searchsorted(starts, time_s, side="left"))
+    if k < 2 or ids.size - k < 2 or means.size < 6:
+        return False, "too few sweeps around the cut"
+    before = float(np.median(means[max(0, k - 3) : k]))
+    after = float(np.median(means[k : k + 3]))
+    jump = after - before
+    diffs = np.diff(means)
+    sigma = max(robust_sigma(diffs), 1e-300)
+    z = abs(jump) / sigma
+    agree = step != 0 and 0.5 < jump / step < 2.0
+    ok = bool(z >= STEP_Z and agree and abs(jump) > noise)
+    return ok, f"jump {jump:.4g} over 3 sweeps ({z:.1f} sigma of sweep changes), fitted step {step:.4g}"
 
 
 def _cause(
@@ -710,6 +816,16 @@ def _cause(
             f"Thermal lag: the deforming structure follows {where} with a first-order delay of "
             f"{params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {sec})."
         )
+    if kind == "sensor_drift":
+        rate = float(params.get("rate_degC_per_day", float("nan")))
+        names = ", ".join(channels)
+        return (
+            f"Sensor drift: thermocouple{'s' if len(channels) > 1 else ''} {where if len(channels) == 1 else names} "
+            f"depart{'s' if len(channels) == 1 else ''} from {'its' if len(channels) == 1 else 'their'} virtual sensor "
+            f"along a ramp of {rate:+.3g} degC per day from t = {params['start_s'] / 3600:.1f} h on while the "
+            f"neighbours agree: the calibration drifts (ageing junction, creeping mount), not the machine; the "
+            f"readings with the ramp removed restore the model (thesis {sec})."
+        )
     if kind == "sensor_fault":
         how = "its lead broke (open circuit)" if params["mode"] == "open" else "it came loose from the structure"
         if len(channels) > 1:
@@ -736,6 +852,27 @@ def _cause(
             f"The {td.axis}/{td.term} error follows {what}{'^2' if pw == 2 else ''} directly "
             f"({_fmt(coef, u)} per {col.replace('_', ' ')}{'^2' if pw == 2 else ''}; VIF against the thermal "
             f"terms {params['vif']:.2g}): {story} (thesis {sec})."
+        )
+    if kind == "datum_shift":
+        return (
+            f"Datum shift: every {td.axis}/{td.term} reading steps by {_fmt(params['step_' + u], u)} at "
+            f"t = {params['time_s'] / 3600:.2f} h and stays there: the measuring line was re-zeroed or its optic "
+            f"moved; a measurement artefact, not the machine (thesis {sec})."
+        )
+    if kind == "unsensed_source":
+        src = str(params["source"])
+        what = src.split(":", 1)[1] if ":" in src else src
+        how = "heat-source schedule" if src.startswith("stage:") else "machine-state column"
+        return (
+            f"Unsensed heat input: {td.axis}/{td.term} follows a first-order lag ({params['tau_s'] / 60:.0f} min) "
+            f"of the {what} {how} that no thermocouple of the model reads ({_fmt(coef, u)} per unit): heat "
+            f"reaches the link by a path without a sensor (thesis {sec})."
+        )
+    if kind == "direction_thermal":
+        return (
+            f"Reversal that grows with temperature: the {td.axis}-axis {td.term} reads differently depending on "
+            f"the approach direction, and the difference changes by {_fmt(abs(params['coef_per_degC']), u)} per "
+            f"degC at {where}: the nut or guide preload changes as it warms (thesis {sec})."
         )
     if kind == "drift":
         return (
@@ -767,6 +904,17 @@ def _materialise(sc: Scored, ctx: TermContext, state: _State) -> tuple[Candidate
     """Return the candidate with its final columns (refined tau for lags) and parameter hints."""
     cand = sc.cand
     hint = dict(cand.hint)
+    if cand.kind == "datum_shift":
+        i = sc.col_index
+        hint["time_s"] = float(hint["cuts"][i])
+        hint.pop("cuts", None)
+        cols = cand.cols[:, i : i + 1]
+        return replace(cand, cols=cols, hint=hint), cols, hint
+    if cand.kind == "unsensed_source":
+        tau, cols = refine_source_tau(ctx, cand.label, sc.col_index, state.X)
+        hint["tau_s"] = tau
+        hint.pop("taus", None)
+        return replace(cand, cols=cols), cols, hint
     if cand.kind == "thermal_lag":
         ch = cand.channels[0]
         outside = ch not in ctx.model_channels and ch in ctx.chan_cols
@@ -813,6 +961,14 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
         return {"coef_per_degC": c}, c
     if k == "thermal_lag":
         return {"tau_s": float(hint["tau_s"]), "coef_per_degC": c}, c
+    if k == "sensor_drift":
+        out_d: dict[str, Any] = {
+            "start_s": float(hint["start_s"]),
+            "rate_degC_per_day": float(hint["rate_degC_per_day"]),
+        }
+        if "rate_degC_per_day_by_channel" in hint:
+            out_d["rate_degC_per_day_by_channel"] = hint["rate_degC_per_day_by_channel"]
+        return out_d, c
     if k == "sensor_fault":
         out: dict[str, Any] = {"start_s": float(hint["start_s"]), "mode": hint["mode"]}
         for extra in ("start_s_by_channel", "mode_by_channel"):
@@ -821,6 +977,15 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
         return out, c
     if k == "drift":
         return {"rate_per_day": c}, c
+    if k == "datum_shift":
+        return {"time_s": float(hint["time_s"]), f"step_{u}": c}, c
+    if k == "unsensed_source":
+        return {"source": str(hint["source"]), "tau_s": float(hint["tau_s"]), "coef": c}, c
+    if k == "direction_thermal":
+        out_dt: dict[str, Any] = {"coef_per_degC": 2.0 * c}  # full span between the two directions
+        if coef.size > 1:
+            out_dt[f"magnitude_{u}"] = 2.0 * float(coef[1])
+        return out_dt, c
     if k == "operating_condition":
         return {
             "column": hint["column"],
@@ -853,7 +1018,7 @@ def _passes_denoised(
     on the denoised readings (the training one only for candidates built from a channel).
     Also returns the candidate's columns in that view (to carry the model along).
     """
-    if dctx is None or dstate is None or cand.kind == "sensor_fault":
+    if dctx is None or dstate is None or cand.kind in SENSOR_KINDS:
         return True, None
     cols = columns_like(cand, hint, dctx)
     if cols is None or not np.all(np.isfinite(cols)):
@@ -895,6 +1060,10 @@ STAND_IN_MARGIN = 0.10
 #: (The common VIF > 10 rule of thumb is about coefficient precision; a spindle's temperatures follow its
 #: speed, so the speed's VIF against them is typically near 10 even when it acts directly.)
 VIF_MAX = 100.0
+#: a heat input whose lag the model's thermocouples reproduce to R^2 > 0.9 is sensed, not unsensed: its
+#: own part is small and a large coefficient on it extrapolates badly when the campaign changes regime
+#: (FL_THERMAL: a 7 h lag of the spindle schedule took dz held-out from 2.5 to 8.3 um)
+VIF_UNSENSED = 10.0
 
 
 def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
@@ -937,13 +1106,13 @@ def _repair_faults(
     overlaps = bool(np.any(cand.cols != 0))
     before = state.fit.residual
     eff = Effect(
-        "sensor_fault",
+        cand.kind,
         td.axis,
         td.term,
         list(cand.channels),
         params,
         max(p_temp, 1e-300),
-        _cause("sensor_fault", td, prep, cand.channels, params, c, ctx.faults.get(cand.channels[0])),
+        _cause(cand.kind, td, prep, cand.channels, params, c, ctx.faults.get(cand.channels[0])),
         state.fit.rmse_holdout if overlaps else float("nan"),
         fit.rmse_holdout if overlaps else float("nan"),
         float("nan"),
@@ -997,8 +1166,13 @@ def _search_term(
     dstate = _State(dstd.X, list(dstd.names), dstd.fit, []) if dstd is not None and dctx is not None else None
     folds = validation_folds(td)
     history: list[tuple[Effect, LinearFit, LinearFit]] = []
-    if faults_here:
-        _, state, dstate = _repair_faults(ctx, state, faults_here, fault_p, dctx, dstate)
+    for kind in ("sensor_fault", "sensor_drift"):  # one sensor finding per kind and term
+        group = [f for f in faults_here or [] if f.kind == kind]
+        if group:
+            p_group = max(f.p_value for f in group)
+            _, state, dstate = _repair_faults(
+                ctx, state, group, max(p_group, fault_p if kind == "sensor_fault" else 0.0), dctx, dstate
+            )
     for ch, fs in (broken or {}).items():
         # no candidate is built from a broken channel's readings: from its fault on, its estimate stands in
         for c in (ctx, dctx):
@@ -1008,7 +1182,11 @@ def _search_term(
                 c.lag_cache.pop(ch, None)
     # a model channel the thermocouples show broken corrupts the rows after its break whether or not its
     # repair is good: other findings must then also stand on the rows before it (one explanation)
-    breaks = [f.start_s for ch, f in ctx.faults.items() if f.plausible and ch in ctx.model_channels]
+    breaks = [
+        f.start_s
+        for ch, f in (broken or {}).items()
+        if f.mode != "drift" and ch in ctx.model_channels  # a drift's repair is exact: no rows are lost
+    ]
     fault_start: float | None = min(breaks) if breaks else None
     for _round in range(max_effects):
         scored = screen(state.X, td.y, td.train, build_candidates(ctx))
@@ -1026,8 +1204,8 @@ def _search_term(
         best_of_kind: dict[str, float] = {}
         for sc in trials:
             cand, cols, hint = _materialise(sc, ctx, state)
-            if cand.kind == "thermal_lag":
-                taus = ctx.lag_cache[cand.channels[0]][0]
+            if cand.kind in ("thermal_lag", "unsensed_source"):
+                taus = ctx.lag_cache[cand.channels[0]][0] if cand.channels else ctx.sources[cand.label][0]
                 if not taus[0] * 1.02 < hint["tau_s"] < taus[-1] * 0.98:
                     continue  # the best lag sits on the edge of the resolvable range: not resolved
             if cand.kind == "operating_condition":
@@ -1035,9 +1213,23 @@ def _search_term(
                 hint["vif"], hint["condition_number"] = vif, cond
                 if vif > VIF_MAX:
                     continue  # the thermal terms already explain the column: nothing direct to claim
+            if cand.kind == "unsensed_source":
+                vif, _ = collinearity(cols[:, 0], state.X, td.train)
+                if vif > VIF_UNSENSED:
+                    continue  # the thermocouples read this heat input: it is not unsensed
             X_new, names_new, new_idx = _extension(cand, cols, state)
             fit = fit_columns(X_new, td.y, td.train, names_new)
-            valid, how, after = validation_check(state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise)
+            if cand.kind == "datum_shift":
+                # a measurement artefact, not a law to extrapolate: a step near the end of the training part
+                # cannot show in later blocks; it must be a step instead (sharp and lasting, see step_is_sharp)
+                valid, how = step_is_sharp(
+                    state.fit.residual, td, float(hint["time_s"]), float(fit.coef[new_idx[0]]), noise
+                )
+                after = float("nan")
+            else:
+                valid, how, after = validation_check(
+                    state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise
+                )
             # a channel that predicts the later blocks clearly worse than one of the same kind already
             # validated (and refused by a later rule) is a stand-in for it, not a finding of its own
             if valid and after > (1.0 + STAND_IN_MARGIN) * best_of_kind.get(cand.kind, np.inf):
@@ -1076,6 +1268,12 @@ def _search_term(
                 cand, hint, dctx, dstate, alpha_each, min_gain, noise, min_explained, min_explained_train
             )
             if not ok_d:
+                continue
+            # no harm: the extended model must predict the last training block no worse than the baseline
+            gate_ok, gb, ga = final_block_gate(std.X, X_new, td.y, folds)
+            gate_cur, gc, _ = final_block_gate(state.X, X_new, td.y, folds)
+            if not (gate_ok and (gate_cur or cand.kind == "datum_shift")):
+                log.debug("   last training block: baseline %.4g, current %.4g, extended %.4g: refused", gb, gc, ga)
                 continue
             # (a) significance robust to autocorrelated residuals, Bonferroni over the whole family
             p_rob = robust_pvalue(X_new, td.y, td, new_idx)
@@ -1122,6 +1320,8 @@ def _search_term(
             if c is None:
                 continue
             c.taken.add(cand.key)
+            if cand.kind == "direction_thermal" and cand.cols.shape[1] > 1:
+                c.taken.add(("reversal", ()))  # the plain direction came in with it
             if (
                 cand.kind in ("unmapped_channel", "thermal_lag", "screw_expansion")
                 and cand.channels[0] not in c.model_channels
@@ -1147,7 +1347,7 @@ def _carry_denoised(dstate: _State, dctx: TermContext, cand: Candidate, dcols: n
     """Return the denoised-view model with an accepted effect in (a fault: its channel replaced)."""
     td = dctx.td
     X, names = dstate.X, list(dstate.names)
-    if cand.kind == "sensor_fault":
+    if cand.kind in SENSOR_KINDS:
         X = X.copy()
         for ch, rep in cand.replace or []:
             if f"dT_{ch}" in names:
@@ -1209,6 +1409,9 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     # the same bundle on denoised readings: every candidate is also held to it (errors in variables)
     prep_d = denoised_view(prep)
     faults = scan_sensor_faults(prep, smooth_T=prep_d.grid_T)
+    # a thermocouple whose calibration drifts: its departure from its virtual sensor is a ramp (temperatures only)
+    dead = {ch for ch, f in faults.items() if f.plausible and f.mode == "open"}
+    drifts = scan_sensor_drifts(prep, exclude=dead)
     taus = _tau_grid(prep)
     usable = [
         c
@@ -1223,7 +1426,7 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     dviews: list[tuple[TermContext, StandardModel]] = []
     # the family: every candidate of every kind, channel, tau grid point and term, and every channel
     # scanned for a fault (the temperature evidence is one hypothesis per channel)
-    n_hyp = len(faults)
+    n_hyp = len(faults) + len(drifts)
     for i, (td, std) in enumerate(zip(prep.terms, standards)):
         lo, hi = tau_bounds(prep, td)
         keep = np.flatnonzero((taus >= lo * 0.999) & (taus <= hi * 1.001))
@@ -1240,12 +1443,17 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     n_hyp = max(n_hyp, 1)
     # Bonferroni over the union of two families that share the family alpha: the error candidates
     # (alpha / 2 over them) and the channels scanned for a fault on the temperatures (alpha / 2 over those)
-    n_ch = len(faults)
+    n_ch = len(faults) + len(drifts)
     alpha_each = 0.5 * alpha / max(n_hyp - n_ch, 1)
     alpha_fault = 0.5 * alpha / max(n_ch, 1)
     # sensor faults are decided on the temperatures alone, before any error is looked at
     broken = {ch: f for ch, f in faults.items() if f.plausible and f.p_value < alpha_fault}
+    for ch, f in drifts.items():
+        # a ramp that explains the departure better than a break does is a drifting calibration
+        if f.plausible and f.p_value < alpha_fault and (ch not in broken or broken[ch].mode != "open"):
+            broken[ch] = f
     terms: list[TermDiagnosis] = []
+    unexplained: list[Unexplained] = []
     fed: set[str] = set()
     for ctx, std, sim, nz, (dctx, dstd) in zip(contexts, standards, sims, noises, dviews):
         here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
@@ -1265,6 +1473,10 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
             broken=broken,
         )
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
+        in_model = [n[3:] for n in state.names if n.startswith("dT_")]
+        left = unexplained_term(ctx.td, state.fit.residual, prep, in_model, nz)
+        if left is not None:
+            unexplained.append(left)
     # a broken channel that feeds no model is still a finding about the temperatures (no error gain)
     loose = [_unfed_fault(prep, f) for ch, f in sorted(broken.items(), key=lambda kv: kv[1].start_s) if ch not in fed]
     timings["search"] = time.perf_counter() - t1
@@ -1284,23 +1496,33 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         loose,
         alpha_each,
         alpha_fault,
+        unexplained,
     )
 
 
 def _unfed_fault(prep: PreparedBundle, f: FaultScan) -> Effect:
     """Return the sensor_fault effect of a channel no model uses: axis and term null, no held-out figures."""
-    params = {"start_s": f.start_s, "mode": f.mode}
+    params: dict[str, Any] = {"start_s": f.start_s, "mode": f.mode}
     nb = ", ".join(f.neighbours[:4])
-    how = "its lead broke (open circuit)" if f.mode == "open" else "it came loose from the structure"
     loc = _channel_location(prep, f.channel)
-    cause = (
-        f"Sensor fault: thermocouple {f.channel}{f' ({loc})' if loc else ''} departs from its virtual sensor "
-        f"(predicted from {nb}) from t = {f.start_s / 3600:.1f} h on, as if {how}; no model uses it "
-        f"(thesis {THESIS['sensor_fault']})."
-    )
+    if f.mode == "drift":
+        params = {"start_s": f.start_s, "rate_degC_per_day": f.rate_degC_per_day}
+        cause = (
+            f"Sensor drift: thermocouple {f.channel}{f' ({loc})' if loc else ''} departs from its virtual sensor "
+            f"(predicted from {nb}) along a ramp of {f.rate_degC_per_day:+.3g} degC per day from "
+            f"t = {f.start_s / 3600:.1f} h on: its calibration drifts, not the machine; no model uses it "
+            f"(thesis {THESIS['sensor_drift']})."
+        )
+    how = "its lead broke (open circuit)" if f.mode == "open" else "it came loose from the structure"
+    if f.mode != "drift":
+        cause = (
+            f"Sensor fault: thermocouple {f.channel}{f' ({loc})' if loc else ''} departs from its virtual sensor "
+            f"(predicted from {nb}) from t = {f.start_s / 3600:.1f} h on, as if {how}; no model uses it "
+            f"(thesis {THESIS['sensor_fault']})."
+        )
     empty = np.empty(0)
     return Effect(
-        "sensor_fault",
+        f.kind,
         None,  # type: ignore[arg-type]  # a sensor fault is on a channel, not on an (axis, term)
         None,  # type: ignore[arg-type]
         [f.channel],

@@ -27,6 +27,7 @@ def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
         "baseline": [t.baseline_dict() for t in res.terms],
         "effects": [e.to_dict() for e in res.effects],
         "extended": [t.extended_dict() for t in res.terms],
+        "unexplained": [u.to_dict() for u in res.unexplained],
         "acceptance": {
             "alpha_family": res.alpha_family,
             "hypotheses": res.n_hypotheses,
@@ -34,10 +35,14 @@ def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
             "decided_on": "training part only",
             "alpha_per_candidate": res.alpha_each,
             "alpha_per_channel_fault": res.alpha_fault,
-            "validation": "rolling origin inside the training part (origins at 2/3 and 5/6)",
+            "validation": "rolling origin inside the training part (origins at 2/3 and 5/6), pooled",
+            "final_gate": "last training block: the extended model no worse than the baseline and the current model",
             "min_validation_gain": res.min_gain,
             "robust_covariance": "max of HAC (Newey-West) and cluster (blocks of whole sweeps)",
             "sensor_fault": "temperature evidence alone (virtual-sensor departure change point)",
+            "sensor_drift": "temperature evidence alone (a ramp of the virtual-sensor departure, peer test)",
+            "datum_shift": "a sharp, lasting step of the sweep means (not validated forward: an artefact)",
+            "unexplained_ratio": 1.5,
         },
         "flags": [f.to_dict() for f in res.flags],
         "timings_s": res.timings_s,
@@ -235,7 +240,7 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
         f"<title>driftlab diagnosis: {e(res.bundle)}</title>",
         "<style>body{font-family:sans-serif;max-width:1150px;margin:auto;color:#1d2430}table{border-collapse:collapse}"
         "td,th{border:1px solid #999;padding:2px 6px;font-size:13px}img{max-width:100%}"
-        ".good{color:#1f7a3a;font-weight:600}</style></head><body>",
+        ".good{color:#1f7a3a;font-weight:600}.worse{color:#b3261e;font-weight:600}</style></head><body>",
         f"<h1>Diagnosis of {e(res.bundle)}</h1>",
         f"<p>Held out: the last {res.holdout_fraction * 100:g}% of each error term in time "
         f"(from {duration(res.holdout_start_s)} into the campaign). Every decision is made on the training part "
@@ -275,10 +280,11 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
         where = f"{e(eff.axis)}/{e(eff.term)}" if eff.axis else "the temperatures (no model uses this channel)"
         if math.isfinite(eff.rmse_holdout_before) and math.isfinite(eff.rmse_holdout_after):
             g = eff.gain * 100
-            verdict = f"{g:.0f}% better" if g >= 0 else f"{-g:.0f}% worse"
+            worse = eff.rmse_holdout_after > eff.rmse_holdout_before
+            verdict = f"{-g:.0f}% worse" if worse else f"{g:.0f}% better"
             gain = (
                 f"held-out RMSE {eff.rmse_holdout_before * k:.2f} &rarr; {eff.rmse_holdout_after * k:.2f} {lab} "
-                f"(<span class='good'>{verdict}</span>)"
+                f"(<span class='{'worse' if worse else 'good'}'>{verdict}</span>)"
             )
         else:
             gain = "no held-out figure (the channel feeds no model, or the fault starts after the last reading)"
@@ -302,7 +308,11 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
                 f"{b.rmse_train * k:.2f}",
                 f"{b.rmse_holdout * k:.2f}",
                 f"{x.rmse_train * k:.2f}",
-                f"{x.rmse_holdout * k:.2f}",
+                (
+                    f"<span class='worse'>{x.rmse_holdout * k:.2f} (worse)</span>"
+                    if t.effects and x.rmse_holdout > b.rmse_holdout
+                    else f"{x.rmse_holdout * k:.2f}"
+                ),
                 str(len(t.effects)),
             ]
         )
@@ -324,6 +334,28 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
             ],
         )
     )
+    out.append(f"<h2>Unexplained ({len(res.unexplained)})</h2>")
+    if res.unexplained:
+        out.append(
+            "<p>Terms whose training residual, after the findings above, stays above 1.5 x the measurement noise: "
+            "the model does not explain them to their noise. The hints name the residual's signature.</p>"
+        )
+        urows = []
+        for u in res.unexplained:
+            k, lab = _scale("rad" if u.term in ("alpha", "beta", "gamma") else "mm")
+            urows.append(
+                [
+                    e(u.axis),
+                    e(u.term),
+                    f"<span class='worse'>{u.residual_over_noise:.1f} x</span>",
+                    f"{u.rmse_train * k:.2f} {lab}",
+                    f"{u.noise * k:.2f} {lab}",
+                    e("; ".join(u.hints)),
+                ]
+            )
+        out.append(_table(urows, ["axis", "term", "residual / noise", "training residual", "noise", "hints"]))
+    else:
+        out.append("<p>Every term is explained to its measurement noise (training residual at most 1.5 x noise).</p>")
     out.append("<h2>Simulation (Appendix A time-driven laws, calibrated) against the data</h2>")
     rows = []
     for t in res.terms:

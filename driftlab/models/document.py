@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from driftlab.errors import ValidationError
 from driftlab.jsonsafe import strict_json
+from driftlab.models.envelope import Envelope
 from driftlab.models.features import Feature, Inputs, design_matrix, required_lags
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
 from driftlab.physics.lag import first_order_lag
@@ -163,6 +164,8 @@ class ModelDocument(_Doc):
     findings: list[dict[str, Any]] = Field(default_factory=list)
     #: per measured line, the form that won (link models alone, or plus a line correction) and why
     lines: list[dict[str, Any]] = Field(default_factory=list)
+    #: where the machine may go and what a correction may be (``models.envelope``); None in older documents
+    envelope: Envelope | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> ModelDocument:

@@ -44,10 +44,18 @@ KINDS = (
     "drift",
     "quadratic",
     "operating_condition",
+    "sensor_drift",
+    "datum_shift",
+    "unsensed_source",
+    "direction_thermal",
 )
 
 #: number of log-spaced time constants screened per channel for thermal_lag
 N_TAU = 16
+#: candidate kinds screened as a bank of columns (one per tau or per cut), the best column kept
+BANK_KINDS = frozenset({"thermal_lag", "unsensed_source", "datum_shift"})
+#: at most this many cuts are screened for a datum step per term (sweep starts, evenly thinned)
+MAX_CUTS = 160
 
 
 # ---------------------------------------------------------------------------------------------
@@ -93,6 +101,12 @@ class FaultScan:
     break_ratio: float = float("nan")  # RSS of one virtual-sensor fit / RSS of the fits split at start_s
     toward_air: float = float("nan")  # share of the early departure pointing toward the room air
     gap_left: float = float("nan")  # |reading - air| / |virtual sensor - air| once settled (0: reads the air)
+    rate_degC_per_day: float = float("nan")  # mode "drift" (sensor_drift): the reading's ramp from start_s
+
+    @property
+    def kind(self) -> str:
+        """Return the catalogue kind of this sensor finding: ``sensor_drift`` or ``sensor_fault``."""
+        return "sensor_drift" if self.mode == "drift" else "sensor_fault"
 
 
 def _trimmed_fit(A: np.ndarray, y: np.ndarray, rows: np.ndarray, rounds: int = 3) -> np.ndarray:
@@ -456,6 +470,8 @@ class TermContext:
     lag_cache: dict[str, tuple[np.ndarray, np.ndarray]]  # channel -> (taus, (n, n_tau) lagged dT)
     faults: dict[str, FaultScan]
     taken: set[tuple[str, tuple[str, ...]]]
+    sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    # unsensed heat inputs: source -> (taus, (n, n_tau) lagged schedule at the error times, schedule on the grid)
 
 
 def build_context(
@@ -485,7 +501,54 @@ def build_context(
                 continue
             at = (bank[lo] * (1.0 - w) + bank[hi] * w)[inverse]
             lag_cache[ch] = (taus, at - at[0])
-    return TermContext(prep, td, list(model_channels), chan_cols, lag_cache, faults, set())
+    sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    if taus is not None and taus.size and lag_bank is not None:
+        for name, (sched, sbank) in source_banks(prep, taus).items():
+            at = np.column_stack([np.interp(td.t, prep.grid_t, sbank[:, i]) for i in range(taus.size)])
+            if np.ptp(at[td.train]) > 0:
+                sources[name] = (taus, at, sched)
+    return TermContext(prep, td, list(model_channels), chan_cols, lag_cache, faults, set(), sources)
+
+
+_SOURCE_CACHE: dict[int, tuple[Any, np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
+
+
+def source_schedules(prep: PreparedBundle) -> dict[str, np.ndarray]:
+    """Return the heat inputs no thermocouple need read, on the temperature grid (spec 3, ``unsensed_source``).
+
+    Each distinct ``heat_source`` of the campaign's stages (other than none/off) as its on/off
+    schedule (1 while a stage of that source runs), and each conditions.csv column (spindle_rpm,
+    feed_mm_min) scaled to its largest value (a state log: held between rows).
+    """
+    g = prep.grid_t
+    out: dict[str, np.ndarray] = {}
+    for st in prep.stages:
+        src = str(st.get("heat_source") or "").strip()
+        if not src or src.lower() in ("none", "off", "rest"):
+            continue
+        x = out.setdefault(f"stage:{src}", np.zeros(g.size))
+        x[(g >= float(st.get("start_s", 0.0))) & (g < float(st.get("end_s", 0.0)))] = 1.0
+    for name, v in prep.conditions_grid.items():
+        top = float(np.nanmax(np.abs(v))) if v.size else 0.0
+        if top > 0 and np.all(np.isfinite(v)):
+            out[f"conditions:{name}"] = v / top
+    return {k: v for k, v in out.items() if np.ptp(v) > 0}
+
+
+def source_banks(prep: PreparedBundle, taus: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Return, per heat input of ``source_schedules``, (schedule, (n_grid, n_tau) first-order lags of it)."""
+    key = id(prep)
+    hit = _SOURCE_CACHE.get(key)
+    if hit is not None and hit[0] is prep and np.array_equal(hit[1], taus):
+        return hit[2]
+    dt = float(prep.grid_t[1] - prep.grid_t[0]) if prep.grid_t.size > 1 else 60.0
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for name, x in source_schedules(prep).items():
+        bank = np.column_stack([first_order_lag_even(x, dt, float(tau)) for tau in taus])
+        out[name] = (x, bank)
+    _SOURCE_CACHE.clear()
+    _SOURCE_CACHE[key] = (prep, taus.copy(), out)
+    return out
 
 
 def lag_bank_for(prep: PreparedBundle, channels: list[str], taus: np.ndarray) -> dict[str, np.ndarray]:
@@ -515,12 +578,15 @@ def _fault_candidate(ctx: TermContext, scans: list[FaultScan]) -> Candidate:
     hint: dict[str, Any] = {
         "start_s": scans[0].start_s,
         "mode": scans[0].mode,
+        "rate_degC_per_day": scans[0].rate_degC_per_day,
         "p_temp": min(1.0, min(f.p_value for f in scans) * len(scans)),
     }
     if len(scans) > 1:
         hint["start_s_by_channel"] = {f.channel: f.start_s for f in scans}
         hint["mode_by_channel"] = {f.channel: f.mode for f in scans}
-    return Candidate("sensor_fault", [f.channel for f in scans], np.column_stack(cols), names, hint, replace=reps)
+    if len(scans) > 1 and scans[0].mode == "drift":
+        hint["rate_degC_per_day_by_channel"] = {f.channel: f.rate_degC_per_day for f in scans}
+    return Candidate(scans[0].kind, [f.channel for f in scans], np.column_stack(cols), names, hint, replace=reps)
 
 
 def build_candidates(ctx: TermContext) -> list[Candidate]:
@@ -535,6 +601,10 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
     if ("drift", ()) not in ctx.taken:
         days = (td.t - td.t[0]) / 86400.0
         out.append(Candidate("drift", [], days[:, None], ["time_days"]))
+    steps = step_bank(td)
+    if steps is not None and ("datum_shift", ()) not in ctx.taken:
+        cuts, bank = steps
+        out.append(Candidate("datum_shift", [], bank, ["datum_step"], {"cuts": cuts}, family_size=int(cuts.size)))
     for ch, col in ctx.chan_cols.items():
         in_model = ch in ctx.model_channels
         if n_pos > 1 and ("screw_expansion", (ch,)) not in ctx.taken:
@@ -545,6 +615,20 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             out.append(Candidate("unmapped_channel", [ch], col[:, None], [f"dT_{ch}"]))
         if in_model and ("quadratic", (ch,)) not in ctx.taken:
             out.append(Candidate("quadratic", [ch], (col * col)[:, None], [f"dT_{ch}^2"]))
+        if n_dirs > 1 and in_model and ("direction_thermal", (ch,)) not in ctx.taken:
+            # a reversal that opens as a nut or guide warms (3.3 with 3.5): direction x dT, with the plain
+            # direction when no reversal is in the model yet (the candidate nests it)
+            d = td.direction.astype(float)
+            plain = ("reversal", ()) not in ctx.taken
+            cols_dt = [d * col] + ([d] if plain else [])
+            out.append(
+                Candidate(
+                    "direction_thermal",
+                    [ch],
+                    np.column_stack(cols_dt),
+                    [f"direction*dT_{ch}"] + (["direction"] if plain else []),
+                )
+            )
     # the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)
     for name, v in td.conditions.items():
         for power in (1, 2):
@@ -562,6 +646,20 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
                     label=label,
                 )
             )
+    for name, (taus, at, _sched) in ctx.sources.items():
+        if ("unsensed_source", (name,)) in ctx.taken:
+            continue
+        out.append(
+            Candidate(
+                "unsensed_source",
+                [],
+                at - at[0],
+                [f"lag_{name}"],
+                {"taus": taus, "source": name},
+                family_size=int(taus.size),
+                label=name,
+            )
+        )
     for ch, (taus, at) in ctx.lag_cache.items():
         if ("thermal_lag", (ch,)) in ctx.taken:
             continue
@@ -633,7 +731,7 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
         C = big[:, edges[ci] : edges[ci + 1]]
         RC = big_r[:, edges[ci] : edges[ci + 1]]
         norm2 = big_n2[edges[ci] : edges[ci + 1]]
-        if c.kind == "thermal_lag":  # a bank: one column per tau, score each, keep the best
+        if c.kind in BANK_KINDS:  # a bank: one column per tau (or cut), score each, keep the best
             ok = norm2 > 1e-10 * C.shape[0]
             with_col = c.hint.get("with")
             if with_col is None:
@@ -672,6 +770,58 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
         F = (drop / k) / max((rss - drop) / dof, 1e-300)
         out.append(Scored(c, float(F), float(stats.f.sf(F, k, dof)), k, dof, drop, col_index))
     return out
+
+
+def step_bank(td: TermData) -> tuple[np.ndarray, np.ndarray] | None:
+    """Return the candidate cuts of a datum step (sweep starts inside the training part) and their step columns.
+
+    A step between two sweeps: 0 before the cut, 1 from it on. Cuts leave at least two sweeps and
+    8 readings on either side inside the training part; at most ``MAX_CUTS``, evenly thinned.
+    """
+    tr = td.train
+    sw = td.sweep[tr]
+    t = td.t[tr]
+    _, first = np.unique(sw, return_index=True)
+    starts = np.sort(t[first])
+    if starts.size < 6:
+        return None
+    cand = starts[2:-2]
+    n_before = np.searchsorted(t, cand, side="left")
+    ok = (n_before >= 8) & (t.size - n_before >= 8)
+    cand = cand[ok]
+    if cand.size == 0:
+        return None
+    if cand.size > MAX_CUTS:
+        cand = cand[np.unique(np.linspace(0, cand.size - 1, MAX_CUTS).round().astype(int))]
+    bank = (td.t[:, None] >= cand[None, :]).astype(float)
+    return cand, bank
+
+
+def refine_source_tau(ctx: TermContext, name: str, i_best: int, X: np.ndarray) -> tuple[float, np.ndarray]:
+    """Return the tau (s) minimising the training RSS of ``X`` + lag(source schedule, tau), and its column."""
+    td, prep = ctx.td, ctx.prep
+    taus, _, sched = ctx.sources[name]
+    dt = float(prep.grid_t[1] - prep.grid_t[0])
+    tr = td.train
+
+    def column(log_tau: float) -> np.ndarray:
+        g = first_order_lag_even(sched, dt, float(np.exp(log_tau)))
+        at = np.interp(td.t, prep.grid_t, g)
+        return (at - at[0])[:, None]
+
+    def rss(log_tau: float) -> float:
+        A = np.column_stack([X, column(log_tau)])
+        b = lstsq(A[tr], td.y[tr])
+        r = td.y[tr] - A[tr] @ b
+        return float(r @ r)
+
+    lo = np.log(taus[max(i_best - 1, 0)])
+    hi = np.log(taus[min(i_best + 1, taus.size - 1)])
+    if hi <= lo:
+        return float(taus[i_best]), column(np.log(taus[i_best]))
+    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
+    best = float(res.x) if rss(float(res.x)) <= rss(np.log(taus[i_best])) else float(np.log(taus[i_best]))
+    return float(np.exp(best)), column(best)
 
 
 def refine_tau(
@@ -751,4 +901,7 @@ def columns_like(cand: Candidate, hint: dict[str, Any], ctx: TermContext) -> np.
     if k == "thermal_lag":
         cols = lag_columns(ctx, ch, float(hint["tau_s"]))
         return cols if in_model else np.column_stack([cols, col])
+    if k == "direction_thermal":
+        d = td.direction.astype(float)
+        return np.column_stack([d * col] + ([d] if cand.cols.shape[1] > 1 else []))
     return None

@@ -1084,6 +1084,13 @@ def _fit_bundles(
                 out.append(Feature("direction", label=axis))
             return out
 
+        def standard_of(axis: str) -> list[Feature]:
+            # the standard model of the bundle spec (section 2): position^1..3 and dT of the line's
+            # model_channels (the screened channels where the bundle names none), nothing else
+            have = sample.inputs.dT.columns
+            chans = [c for c in (model_channels.get(axis) or kept) if c in have]
+            return [Feature("position", power=p, label=axis) for p in (1, 2, 3)] + [Feature("dT", (c,)) for c in chans]
+
         lines = fit_lines(
             sample.frame,
             sample.q,
@@ -1094,6 +1101,7 @@ def _fit_bundles(
             pool_of,
             opts,
             full_of=full_of,
+            standard_of=standard_of,
         )
         composed = compose(lines, dims)
         lap("lines")
@@ -1228,7 +1236,8 @@ def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd
                 "std_errors": [],
                 "p_values": [],
                 "statistics": {
-                    "rmse_train": float(on["rmse_train"].max()) if len(on) else float("nan"),
+                    # a parameter no measured line shows (an angle's lever on a length): n_train 0 says so
+                    "rmse_train": float(on["rmse_train"].max()) if len(on) else 0.0,
                     "rmse_holdout": float(on["rmse_holdout"].max()) if len(on) else None,
                     "n_train": int(on["n_train"].sum()) if len(on) else 0,
                     "n_holdout": int(on["n_holdout"].sum()) if len(on) else 0,

@@ -43,8 +43,12 @@ from driftlab.vocabulary import AXES
 LINE_ELEMENT = "T1"
 #: kinds that vary along a line (evaluated at the line axis' coordinate): the position-dependent part
 ALONG = frozenset({"position", "pos_dT", "direction"})
-#: rolling-origin folds inside the training part: (fit on rows before, check rows up to) as fractions
+#: rolling-origin folds inside the training part, within each stage in time order: (fit on the rows
+#: before, check the rows up to) as fractions of the stage's training rows. The held-out part is the
+#: last quarter of each stage, so the folds check what it checks: the late part of every stage.
 FOLDS: tuple[tuple[float, float], ...] = ((0.5, 0.75), (0.75, 1.0))
+#: the last fold is the final training block of the gate against the standard model
+FINAL_BLOCK = FOLDS[-1]
 
 
 @dataclass
@@ -63,6 +67,13 @@ class LineFit:
     n_fit: int = 0
     n_checked: int = 0
     why: str = ""
+    #: the final-block gate against plain least squares on the standard model: RMSE of each, and the verdict
+    gate: dict[str, Any] = field(default_factory=dict)
+    #: the line's zeroed-session offsets (campaign nuisances: validation adds them, the document does not)
+    session_features: list[Feature] = field(default_factory=list)
+    session_coef: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: the statsmodels result of the kept correction (its covariance: ``cov_params()``), None for ``link``
+    result: Any = None
 
     def along(self) -> list[int]:
         """Return the indices of the position-dependent terms (the rest is the line's home part)."""
@@ -78,6 +89,7 @@ class LineFit:
             "checked_rmse": dict(self.checked),
             "n_fit": self.n_fit,
             "n_checked": self.n_checked,
+            "gate": dict(self.gate),
             "features": [f.to_dict() for f in self.features],
             "coefficients": [float(c) for c in self.coef],
         }
@@ -115,13 +127,45 @@ def independent(A: np.ndarray, rtol: float = 1e-9) -> list[int]:
 
 @dataclass
 class _Form:
-    """One candidate form of a line's correction, fitted: its terms and the statsmodels result."""
+    """One candidate form of a line's correction, fitted: its terms, coefficients and statsmodels result."""
 
     features: list[Feature]
+    coef: np.ndarray
     ols: Any
+    #: per term, its standard error and p-value (the link models' projection is an identity: 0 and 0)
+    bse: np.ndarray
+    pvalues: np.ndarray
 
     def predict(self, X: pd.DataFrame) -> np.ndarray:
-        return X[[f.name for f in self.features]].to_numpy(float) @ np.asarray(self.ols.params, float)
+        return X[[f.name for f in self.features]].to_numpy(float) @ self.coef
+
+
+def scaled_lstsq(A: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Return least-squares coefficients of ``y`` on ``A``, solved on unit-norm columns.
+
+    Position^3 in mm reaches 1e8 where a dT column is 1: unscaled, the solver's rank cut-off drops
+    the small columns' information and the fit is off by far more than the noise.
+    """
+    s = np.linalg.norm(A, axis=0)
+    s[s == 0] = 1.0
+    return np.linalg.lstsq(A / s, y, rcond=None)[0] / s
+
+
+def _ols_form(features: list[Feature], A: np.ndarray, y: np.ndarray) -> _Form:
+    """Return plain least squares of ``y`` on the independent columns of ``A`` (its terms ``features``).
+
+    Solved on unit-norm columns (``scaled_lstsq``); the result's ``scale`` brings its parameters and
+    covariance back to the terms' units (params / scale, cov / outer(scale, scale)).
+    """
+    keep = independent(A)
+    feats = [features[j] for j in keep]
+    A = A[:, keep]
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    ols = sm.OLS(y, A / scale, hasconst=True).fit()
+    ols.scale_of_columns = scale
+    params = np.asarray(ols.params, float) / scale
+    return _Form(feats, params, ols, np.asarray(ols.bse, float) / scale, np.asarray(ols.pvalues, float))
 
 
 def _fit_form(
@@ -132,16 +176,54 @@ def _fit_form(
     full: Sequence[Feature],
     forced: Sequence[Feature],
     options: Any,
+    measured: np.ndarray | None = None,
+    standard: Sequence[Feature] = (),
 ) -> _Form:
-    """Return a fitted form: ``stepwise`` over ``pool``, or ``full`` least squares on every term of ``full``."""
+    """Return a fitted form of a line's correction of the link models' residual ``y``.
+
+    ``stepwise`` over ``pool``; ``full``: least squares on every term of ``full``; ``standard``: the
+    correction that turns the line's prediction into plain least squares on the standard model (spec
+    section 2) of the ``measured`` values: that fit less the link models' prediction
+    (``measured - y``) written in the line's terms (``full``, an identity when they hold what the
+    links read along the line).
+    """
     if form == "stepwise":
         res = _correction(X, y, pool, forced, options)
-        return _Form(list(res.features), res.ols)
-    feats = list(dict.fromkeys([*forced, *full]))
-    A = X[[f.name for f in feats]].to_numpy(float)
-    keep = independent(A)
-    feats = [feats[j] for j in keep]
-    return _Form(feats, sm.OLS(y, A[:, keep], hasconst=True).fit())
+        params = np.asarray(res.ols.params, float)
+        return _Form(list(res.features), params, res.ols, np.asarray(res.ols.bse, float), np.asarray(res.ols.pvalues))
+    if form == "full":
+        feats = list(dict.fromkeys([*forced, *full]))
+        return _ols_form(feats, X[[f.name for f in feats]].to_numpy(float), y)
+    assert measured is not None
+    s_feats = list(dict.fromkeys([*forced, *standard]))
+    plain = _ols_form(s_feats, X[[f.name for f in s_feats]].to_numpy(float), measured)
+    l_feats = list(dict.fromkeys([*forced, *full]))
+    B = X[[f.name for f in l_feats]].to_numpy(float)
+    kb = independent(B)
+    link_coef = scaled_lstsq(B[:, kb], measured - y)
+    feats = list(dict.fromkeys([*plain.features, *(l_feats[j] for j in kb)]))
+    coef, bse, pv = np.zeros(len(feats)), np.zeros(len(feats)), np.zeros(len(feats))
+    for i, f in enumerate(plain.features):
+        j = feats.index(f)
+        coef[j] += plain.coef[i]
+        bse[j], pv[j] = plain.bse[i], plain.pvalues[i]
+    for c, j in zip(link_coef, kb):
+        coef[feats.index(l_feats[j])] -= c
+    return _Form(feats, coef, plain.ols, bse, pv)
+
+
+def stage_blocks(time_s: np.ndarray, groups: np.ndarray | None, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return (fit rows, checked rows): within each group (stage) in time order, its first ``lo`` and next ``hi``."""
+    n = time_s.size
+    fit_rows, check = np.zeros(n, bool), np.zeros(n, bool)
+    g = np.zeros(n, dtype=object) if groups is None else np.asarray(groups, dtype=object)
+    for label in dict.fromkeys(g.tolist()):
+        idx = np.flatnonzero(g == label)
+        idx = idx[np.argsort(time_s[idx], kind="stable")]
+        m = idx.size
+        fit_rows[idx[: int(lo * m)]] = True
+        check[idx[int(lo * m) : int(hi * m)]] = True
+    return fit_rows, check
 
 
 def fit_line(
@@ -155,42 +237,75 @@ def fit_line(
     options: Any,
     full: Sequence[Feature] = (),
     min_gain: float = 0.10,
+    measured: np.ndarray | None = None,
+    standard: Sequence[Feature] = (),
+    stages: np.ndarray | None = None,
 ) -> LineFit:
     """Return the correction of one line's residual (training rows only), kept if validation shows it helps.
 
-    ``residual``, ``time_s``, ``X`` and ``sessions`` hold the line's training rows only. Two forms
-    are tried against the link models alone: a stepwise regression over ``pool`` (few terms, the
-    recast ones among them) and plain least squares on every term of ``full`` (the standard model
-    and what the links read: a drift linear in many correlated channels, which the stepwise
-    regression's collinearity rule would refuse). A form is kept only when it lowers the checked
-    RMSE by ``min_gain`` against the simpler one (link < stepwise < full).
+    ``residual``, ``time_s``, ``X``, ``sessions``, ``measured`` and ``stages`` hold the line's
+    training rows only. Two forms are tried against the link models alone: a stepwise regression
+    over ``pool`` (few terms, the recast ones among them) and plain least squares on every term of
+    ``full`` (the standard model and what the links read: a drift linear in many correlated
+    channels, which the stepwise regression's collinearity rule would refuse). A form is kept only
+    when it lowers the checked RMSE by ``min_gain`` against the simpler one (link < stepwise < full).
+    The checks are rolling-origin folds within each stage (``FOLDS``).
+
+    A last gate (with ``measured`` and ``standard``): on the final training block (``FINAL_BLOCK``,
+    the late part of every stage, never the held-out part) the chosen form is compared with plain
+    least squares on the standard model (spec section 2: ``standard`` = position^1..3 and dT of the
+    line's channels); where the standard model predicts the block better, the line falls back to it.
     """
     term = PARAMS[k]
     n = residual.size
-    order = np.argsort(time_s, kind="stable")
     out = LineFit(axis, term, "link")
     if n < 40:
         out.why = f"{n} training points: too few to check a correction"
         return out
+    gated = measured is not None and bool(standard)
     forms = ["stepwise", "full"] if full else ["stepwise"]
-    sse = {"link": 0.0, **{f: 0.0 for f in forms}}
+    checked_forms = [*forms, "standard"] if gated else forms
+    sse = {"link": 0.0, **{f: 0.0 for f in checked_forms}}
+    final: dict[str, float] = {}
     n_checked = 0
-    for lo, hi in FOLDS:
-        fit_rows = np.zeros(n, bool)
-        fit_rows[order[: int(lo * n)]] = True
-        check = np.zeros(n, bool)
-        check[order[int(lo * n) : int(hi * n)]] = True
+    sess = None if sessions is None else np.asarray(sessions, dtype=object)
+    for fold, (lo, hi) in enumerate(FOLDS):
+        fit_rows, check = stage_blocks(time_s, stages, lo, hi)
         forced = [INTERCEPT, *session_terms(sessions, fit_rows)]
         # a session first seen in the checked block has no offset to predict it with: leave it out
-        if sessions is not None:
-            seen = list(set(np.asarray(sessions, dtype=object)[fit_rows]))
-            check &= np.isin(np.asarray(sessions, dtype=object), seen)
-        if check.sum() < 5:
+        if sess is not None:
+            check &= np.isin(sess, list(set(sess[fit_rows])))
+        if check.sum() < 5 or fit_rows.sum() < 20:
             continue
+        last = fold == len(FOLDS) - 1
         sse["link"] += float(np.sum(residual[check] ** 2))
-        for form in forms:
-            fitted = _fit_form(form, X[fit_rows], residual[fit_rows], pool, full, forced, options)
-            sse[form] += float(np.sum((residual[check] - fitted.predict(X[check])) ** 2))
+        if last:
+            final["link"] = float(np.sum(residual[check] ** 2))
+        for form in checked_forms:
+            fitted = _fit_form(
+                form,
+                X[fit_rows],
+                residual[fit_rows],
+                pool,
+                full,
+                forced,
+                options,
+                None if measured is None else measured[fit_rows],
+                standard,
+            )
+            e = float(np.sum((residual[check] - fitted.predict(X[check])) ** 2))
+            sse[form] += e
+            if last:
+                final[form] = e
+                if form == "standard":
+                    # plain least squares on the standard model itself (the projection of the links aside)
+                    plain = _ols_form(
+                        [*forced, *standard],
+                        X[fit_rows][[f.name for f in [*forced, *standard]]].to_numpy(float),
+                        measured[fit_rows],  # type: ignore[index]
+                    )
+                    final["standard_plain"] = float(np.sum((measured[check] - plain.predict(X[check])) ** 2))  # type: ignore[index]
+                    final["n"] = float(check.sum())
         n_checked += int(check.sum())
     if n_checked == 0:
         out.why = "no checked block with a known datum"
@@ -201,22 +316,64 @@ def fit_line(
     for form in forms:
         if out.checked[form] <= (1.0 - min_gain) * out.checked[best]:
             best = form
+    why = ""
     if best == "link":
         ratio = min(out.checked[f] for f in forms) / out.checked["link"] if out.checked["link"] > 0 else 1.0
-        out.why = f"no correction cuts the checked RMSE by {min_gain:.0%} (best factor {ratio:.2f})"
+        why = (
+            f"no correction cuts the checked RMSE by {min_gain:.0%} (the best one's is {ratio:.2f}x "
+            f"the link models' alone)"
+        )
+    else:
+        why = (
+            f"{best} correction: checked RMSE {out.checked[best]:.3g} against {out.checked['link']:.3g} "
+            f"for the link models alone"
+        )
+    if gated and "n" in final:
+        nb = final["n"]
+        chosen = float(np.sqrt(final[best] / nb))
+        std = float(np.sqrt(final["standard"] / nb))
+        out.gate = {
+            "block_rows": int(nb),
+            "chosen": best,
+            "chosen_rmse": chosen,
+            "standard_rmse": std,
+            "standard_plain_rmse": float(np.sqrt(final["standard_plain"] / nb)),
+        }
+        if std < chosen:
+            out.gate["verdict"] = "standard"
+            why = (
+                f"plain least squares on the standard model predicts the final training block better "
+                f"({std:.3g} against {chosen:.3g} for {'the link models alone' if best == 'link' else best}): "
+                f"it replaces it"
+            )
+            best = "standard"
+        else:
+            out.gate["verdict"] = "kept"
+    out.why = why
+    if best == "link":
         return out
-    fitted = _fit_form(best, X, residual, pool, full, [INTERCEPT, *session_terms(sessions, np.ones(n, bool))], options)
+    fitted = _fit_form(
+        best,
+        X,
+        residual,
+        pool,
+        full,
+        [INTERCEPT, *session_terms(sessions, np.ones(n, bool))],
+        options,
+        measured,
+        standard,
+    )
     keep = [i for i, f in enumerate(fitted.features) if f.kind != "session"]
+    offsets = [i for i, f in enumerate(fitted.features) if f.kind == "session"]
     out.form = f"link+{best}"
     out.features = [fitted.features[i] for i in keep]
-    out.coef = np.asarray(fitted.ols.params, float)[keep]
-    out.std_errors = np.asarray(fitted.ols.bse, float)[keep]
-    out.p_values = np.asarray(fitted.ols.pvalues, float)[keep]
+    out.coef = fitted.coef[keep]
+    out.std_errors = fitted.bse[keep]
+    out.p_values = fitted.pvalues[keep]
+    out.session_features = [fitted.features[i] for i in offsets]
+    out.session_coef = fitted.coef[offsets]
+    out.result = fitted.ols
     out.n_fit = n
-    out.why = (
-        f"{best} correction: checked RMSE {out.checked[best]:.3g} against {out.checked['link']:.3g} "
-        f"for the link models alone"
-    )
     return out
 
 
@@ -247,15 +404,18 @@ def fit_lines(
     options: Any,
     on_line: Callable[[str], None] | None = None,
     full_of: Callable[[str], Sequence[Feature]] | None = None,
+    standard_of: Callable[[str], Sequence[Feature]] | None = None,
 ) -> list[LineFit]:
     """Return the correction of every measured line (moving axis, term) from the training rows alone.
 
     ``W`` holds the measured work-space errors (NaN where a term was not measured) and ``W_hat``
     what the link models predict at the same points; ``pool_of(axis)`` the candidate terms of a
-    line's stepwise correction, ``full_of(axis)`` those of its plain least-squares one.
+    line's stepwise correction, ``full_of(axis)`` those of its plain least-squares one,
+    ``standard_of(axis)`` the terms of the standard model (spec section 2) the final gate compares with.
     """
     role = frame["role"].to_numpy(object)
     axis_col = frame["axis"].to_numpy(str)
+    stage = frame["stage"].to_numpy() if "stage" in frame.columns else np.zeros(len(frame), int)
     t = inputs.days * 86400.0 if inputs.days is not None else frame["time_s"].to_numpy(float)
     out: list[LineFit] = []
     for axis in AXES:
@@ -264,6 +424,7 @@ def fit_lines(
             continue
         pool = list(pool_of(axis))
         full = list(full_of(axis)) if full_of is not None else []
+        standard = list(standard_of(axis)) if standard_of is not None else []
         names = {f.name for f in pool}
         sub = inputs.take(on)
         X = design_matrix(
@@ -272,6 +433,7 @@ def fit_lines(
                 *session_terms(sub.session, np.ones(int(on.sum()), bool)),
                 *pool,
                 *(f for f in full if f.name not in names),
+                *(f for f in standard if f.name not in names and f not in full),
             ],
             sub,
             q[on],
@@ -293,6 +455,9 @@ def fit_lines(
                 None if sub.session is None else sub.session[rows],
                 options,
                 full=[f for f in full if np.ptp(X[f.name].to_numpy(float)[rows]) > 0],
+                measured=W[on, k][rows],
+                standard=[f for f in standard if np.ptp(X[f.name].to_numpy(float)[rows]) > 0],
+                stages=stage[on][rows],
             )
             out.append(fit)
             if on_line is not None:
@@ -368,6 +533,8 @@ def compose(lines: Sequence[LineFit], dims: Mapping[str, Any] = TABLE_A1) -> Com
             own = {f: float(fit.coef[i]) for i, f in enumerate(fit.features) if i not in set(fit.along())}
             dev = {f: own.get(f, 0.0) - mean.get(f, 0.0) for f in dict.fromkeys([*own, *mean])}
             kept = {f: c for f, c in dev.items() if c != 0.0}
+            # the line's zeroed-session offsets: what a point of that session adds (a campaign nuisance)
+            kept.update({f: float(c) for f, c in zip(fit.session_features, fit.session_coef) if c != 0.0})
             if kept:
                 taken: dict[str, Feature] = {}
                 deviation[(fit.axis, term)] = ([distinct(f, taken) for f in kept], np.array(list(kept.values())))

@@ -213,6 +213,7 @@ class PreparedBundle:
     holdout_fraction: float = 0.25
     locations: dict[str, str] = field(default_factory=dict)  # channel -> stated location ('' = unknown)
     structures: dict[str, str] = field(default_factory=dict)  # channel -> structure ('' = unknown)
+    conditions_grid: dict[str, np.ndarray] = field(default_factory=dict)  # operating column -> value on grid_t
 
     def channel_index(self, name: str) -> int:
         """Return the column of channel ``name``."""
@@ -415,6 +416,7 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
         holdout_fraction,
         locations,
         structures,
+        {name: np.asarray(at(grid_t), dtype=float) for name, at in cond_at.items()},
     )
 
 

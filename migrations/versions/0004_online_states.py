@@ -36,10 +36,15 @@ def upgrade() -> None:
         sa.Column("p", _json(), nullable=False),
         sa.Column("updated_at", sa.DateTime(timezone=True), nullable=False),
         sa.Column("version", sa.Integer(), nullable=False),
-        sa.ForeignKeyConstraint(["machine_id"], ["machines.id"], name=op.f("fk_online_states_machine_id_machines"),
-                                ondelete="CASCADE"),
-        sa.ForeignKeyConstraint(["model_version_id"], ["model_versions.id"],
-                                name=op.f("fk_online_states_model_version_id_model_versions"), ondelete="SET NULL"),
+        sa.ForeignKeyConstraint(
+            ["machine_id"], ["machines.id"], name=op.f("fk_online_states_machine_id_machines"), ondelete="CASCADE"
+        ),
+        sa.ForeignKeyConstraint(
+            ["model_version_id"],
+            ["model_versions.id"],
+            name=op.f("fk_online_states_model_version_id_model_versions"),
+            ondelete="SET NULL",
+        ),
         sa.PrimaryKeyConstraint("machine_id", name=op.f("pk_online_states")),
     )
     with op.batch_alter_table("probe_measurements", schema=None) as batch_op:

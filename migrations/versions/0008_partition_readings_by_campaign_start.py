@@ -48,27 +48,35 @@ _DAY_SQL = {
 def _columns(table: str) -> list[sa.Column]:
     """Return the columns of a reading table as of revision 0007 (without the partition key)."""
     if table == "temperature_samples":
-        return [sa.Column("campaign_id", sa.Integer(), nullable=False),
-                sa.Column("channel_id", sa.Integer(), nullable=False),
-                sa.Column("time_s", sa.Double(), nullable=False),
-                sa.Column("value", sa.Double(), nullable=True)]
-    if table == "condition_samples":
-        return [sa.Column("campaign_id", sa.Integer(), nullable=False),
-                sa.Column("time_s", sa.Double(), nullable=False),
-                *[sa.Column(c, sa.Double(), nullable=True)
-                  for c in ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")]]
-    return [sa.Column("campaign_id", sa.Integer(), nullable=False),
-            sa.Column("seq", sa.Integer(), nullable=False),
+        return [
+            sa.Column("campaign_id", sa.Integer(), nullable=False),
+            sa.Column("channel_id", sa.Integer(), nullable=False),
             sa.Column("time_s", sa.Double(), nullable=False),
-            sa.Column("axis", sa.String(length=1), nullable=False),
-            sa.Column("term", sa.String(length=5), nullable=False),
-            sa.Column("position", sa.Double(), nullable=False),
-            sa.Column("direction", sa.SmallInteger(), nullable=False),
-            sa.Column("value", sa.Double(), nullable=False),
-            sa.Column("sweep", sa.Integer(), nullable=False),
-            sa.Column("flags", sa.Integer(), nullable=False),
-            *[sa.Column(c, sa.Double(), nullable=True) for c in ("x", "y", "z", "a", "b")],
-            sa.Column("setup", sa.String(length=64), nullable=True)]
+            sa.Column("value", sa.Double(), nullable=True),
+        ]
+    if table == "condition_samples":
+        return [
+            sa.Column("campaign_id", sa.Integer(), nullable=False),
+            sa.Column("time_s", sa.Double(), nullable=False),
+            *[
+                sa.Column(c, sa.Double(), nullable=True)
+                for c in ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
+            ],
+        ]
+    return [
+        sa.Column("campaign_id", sa.Integer(), nullable=False),
+        sa.Column("seq", sa.Integer(), nullable=False),
+        sa.Column("time_s", sa.Double(), nullable=False),
+        sa.Column("axis", sa.String(length=1), nullable=False),
+        sa.Column("term", sa.String(length=5), nullable=False),
+        sa.Column("position", sa.Double(), nullable=False),
+        sa.Column("direction", sa.SmallInteger(), nullable=False),
+        sa.Column("value", sa.Double(), nullable=False),
+        sa.Column("sweep", sa.Integer(), nullable=False),
+        sa.Column("flags", sa.Integer(), nullable=False),
+        *[sa.Column(c, sa.Double(), nullable=True) for c in ("x", "y", "z", "a", "b")],
+        sa.Column("setup", sa.String(length=64), nullable=True),
+    ]
 
 
 def _keys(table: str, partitioned: bool) -> tuple[list[str], list[str] | None]:
@@ -78,8 +86,7 @@ def _keys(table: str, partitioned: bool) -> tuple[list[str], list[str] | None]:
         return ["campaign_id", "channel_id", "time_s", *extra], None
     if table == "condition_samples":
         return ["campaign_id", "time_s", *extra], None
-    return (["campaign_id", "seq", *extra],
-            ["campaign_id", "axis", "term", "direction", "position", "time_s", *extra])
+    return (["campaign_id", "seq", *extra], ["campaign_id", "axis", "term", "direction", "position", "time_s", *extra])
 
 
 def _uq_name(partitioned: bool) -> str:
@@ -91,10 +98,11 @@ def _uq_name(partitioned: bool) -> str:
 def _checks(table: str) -> list[sa.CheckConstraint]:
     if table != "error_samples":
         return []
-    return [sa.CheckConstraint("axis IN ('X', 'Y', 'Z', 'A', 'B')", name=op.f("ck_error_samples_axis")),
-            sa.CheckConstraint("term IN ('alpha', 'beta', 'gamma', 'dx', 'dy', 'dz')",
-                               name=op.f("ck_error_samples_term")),
-            sa.CheckConstraint("direction IN (-1, 1)", name=op.f("ck_error_samples_direction"))]
+    return [
+        sa.CheckConstraint("axis IN ('X', 'Y', 'Z', 'A', 'B')", name=op.f("ck_error_samples_axis")),
+        sa.CheckConstraint("term IN ('alpha', 'beta', 'gamma', 'dx', 'dy', 'dz')", name=op.f("ck_error_samples_term")),
+        sa.CheckConstraint("direction IN (-1, 1)", name=op.f("ck_error_samples_direction")),
+    ]
 
 
 def _month(d: date) -> date:
@@ -104,8 +112,9 @@ def _month(d: date) -> date:
 def _months(bind: sa.Connection) -> list[date]:
     """Return the first day of every month a campaign started in, of this month and the two after it."""
     sql = f"SELECT DISTINCT {_DAY_SQL['postgresql']} FROM campaigns c"
-    starts = {(_EPOCH + timedelta(days=int(d))).replace(day=1)
-              for d in bind.execute(sa.text(sql)).scalars() if d is not None}
+    starts = {
+        (_EPOCH + timedelta(days=int(d))).replace(day=1) for d in bind.execute(sa.text(sql)).scalars() if d is not None
+    }
     m = datetime.now(UTC).date().replace(day=1)
     for _ in range(MONTHS_AHEAD + 1):
         starts.add(m)
@@ -129,25 +138,38 @@ def _rebuild(table: str, partitioned: bool) -> None:
     kwargs: dict[str, str | bool] = {"sqlite_with_rowid": False}
     if partitioned and pg:
         kwargs["postgresql_partition_by"] = f"RANGE ({KEY})"
-    op.create_table(new, *cols, *([sa.Column(KEY, sa.Integer(), nullable=False)] if partitioned else []),
-                    *keys, *_checks(table), **kwargs)
+    op.create_table(
+        new,
+        *cols,
+        *([sa.Column(KEY, sa.Integer(), nullable=False)] if partitioned else []),
+        *keys,
+        *_checks(table),
+        **kwargs,
+    )
     if partitioned and pg:
         for first in _months(bind):
             lo, hi = (first - _EPOCH).days, (_month(first) - _EPOCH).days
-            op.execute(f"CREATE TABLE {table}_p{first.year:04d}_{first.month:02d} PARTITION OF {new} "
-                       f"FOR VALUES FROM ({lo}) TO ({hi})")
+            op.execute(
+                f"CREATE TABLE {table}_p{first.year:04d}_{first.month:02d} PARTITION OF {new} "
+                f"FOR VALUES FROM ({lo}) TO ({hi})"
+            )
     before = bind.execute(sa.text(f"SELECT COUNT(*) FROM {table}")).scalar_one()
     if partitioned:
-        copied = bind.execute(sa.text(
-            f"INSERT INTO {new} ({names}, {KEY}) SELECT {', '.join('s.' + c.name for c in cols)}, {_DAY_SQL[dialect]} "
-            f"FROM {table} s JOIN campaigns c ON c.id = s.campaign_id")).rowcount
+        copied = bind.execute(
+            sa.text(
+                f"INSERT INTO {new} ({names}, {KEY}) "
+                f"SELECT {', '.join('s.' + c.name for c in cols)}, {_DAY_SQL[dialect]} "
+                f"FROM {table} s JOIN campaigns c ON c.id = s.campaign_id"
+            )
+        ).rowcount
     else:
         copied = bind.execute(sa.text(f"INSERT INTO {new} ({names}) SELECT {names} FROM {table}")).rowcount
     if copied != before:
         raise RuntimeError(
             f"{table}: {before - copied} of {before} rows belong to no stored campaign and have no partition to go "
             f"to; delete them (DELETE FROM {table} WHERE campaign_id NOT IN (SELECT id FROM campaigns)) "
-            "and upgrade again")
+            "and upgrade again"
+        )
     if table == "error_samples":
         op.drop_index("ix_error_samples_sweep", table_name=table)
     op.drop_table(table)
@@ -157,8 +179,9 @@ def _rebuild(table: str, partitioned: bool) -> None:
         if uq is not None:
             op.create_unique_constraint(op.f(_uq_name(partitioned)), table, uq)
     if table == "error_samples":
-        op.create_index("ix_error_samples_sweep", table,
-                        ["campaign_id", "axis", "term", "direction", "sweep", "position"])
+        op.create_index(
+            "ix_error_samples_sweep", table, ["campaign_id", "axis", "term", "direction", "sweep", "position"]
+        )
 
 
 def upgrade() -> None:

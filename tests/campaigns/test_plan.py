@@ -74,8 +74,8 @@ def test_example_plans_follow_the_thesis_order() -> None:
     """The shipped Z-axis plan runs spindle alone, Z feed alone, then both, with cool-downs between."""
     plan = load_plan(Z_TEST)
     kinds = [(s.kind, s.heat_label()) for s in plan.stages]
-    assert ("single", "spindle") in kinds and ("single", "axis") in kinds
-    assert kinds.index(("combined", "spindle+axis")) > kinds.index(("single", "axis"))
+    assert ("single", "spindle") in kinds and ("single", "feed") in kinds
+    assert kinds.index(("combined", "combined")) > kinds.index(("single", "feed"))
     assert any(k == "cool-down" for k, _ in kinds[1:])
     assert {s.axis for s in plan.stages} == {"Z"}
     assert plan.total_s >= 24 * 3600
@@ -90,8 +90,9 @@ def test_bundle_stages_are_back_to_back() -> None:
     recs = plan.bundle_stages()
     assert [r["start_s"] for r in recs] == [0, 100, 160, 260]
     assert recs[-1]["end_s"] == plan.total_s == 360
-    assert recs[3]["heat_source"] == "spindle+axis" and recs[3]["spindle_rpm"] == 8000
-    assert recs[1]["heat_source"] == "none" and recs[2]["feed_mm_min"] == 3000
+    # one vocabulary of heat sources with the simulator (vocabulary.HEAT_SOURCES)
+    assert recs[3]["heat_source"] == "combined" and recs[3]["spindle_rpm"] == 8000
+    assert recs[1]["heat_source"] == "idle" and recs[2]["feed_mm_min"] == 3000
 
 
 @pytest.mark.parametrize(

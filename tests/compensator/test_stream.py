@@ -36,6 +36,17 @@ from driftlab.daq.transport import LineChannel, SerialPort
 from driftlab.errors import InstrumentError
 from driftlab.testing.tinyworld import TinyWorld
 
+#: the machine envelope of the test documents: travel with room around the programs' moves
+ENVELOPE = {
+    "travel": {
+        "X": [-300.0, 300.0],
+        "Y": [-300.0, 300.0],
+        "Z": [-300.0, 300.0],
+        "A": [-120.0, 120.0],
+        "B": [-360.0, 360.0],
+    }
+}
+
 
 def doc(coef: float, version: int) -> dict:
     """Return a model document: the spindle head grows coef mm per degC of T1 above 20 degC."""
@@ -43,6 +54,7 @@ def doc(coef: float, version: int) -> dict:
         "machine": "m1",
         "version": version,
         "inputs": {"T1": {"reference": 20.0, "min": 10.0, "max": 40.0}},
+        "envelope": ENVELOPE,
         "terms": [
             {
                 "element": "T1",

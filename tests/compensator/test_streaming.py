@@ -188,6 +188,18 @@ BAD_PROGRAMS = [
     ("error-far-down", _lines() * 3000 + b"G2 X1 Y1 R1\n", "{p}:21001: G2: circular interpolation"),
     ("line-too-long", b"G1 X1.0\n(" + b"c" * (1 << 21) + b")\n", "{p}:2: line longer than 1048576 bytes"),
     ("huge-subdivision", _lines((3, "X1000000.0")), "{p}:3: segment would need more than 100000 subdivisions"),
+    ("feed-zero", _lines((2, "G90 G21 G1 F0")), "{p}:2: feed 'F0' must be positive"),
+    ("feed-negative", _lines((4, "X2.0 A5.0 F-100")), "{p}:4: feed 'F-100' must be positive"),
+    (
+        "beyond-travel",
+        _lines((4, "X2.0 A5000000.0")),
+        "{p}:4: target A 5e+06 deg is outside the travel -2e+06..2e+06 deg",
+    ),
+    (
+        "g91-runaway",
+        b"G91 G1 F100\n" + b"X99999.0\n" * 2000,
+        "{p}:22: target X 2.09998e+06 mm is outside the travel -2e+06..2e+06 mm",
+    ),
     ("missing-file", None, "{p}: no such file"),
     ("directory", "dir", "{p}: not a regular file"),
     ("fifo", "fifo", "{p}: not a regular file"),
@@ -208,7 +220,9 @@ def _make(path: Path, data) -> None:
 @pytest.fixture
 def model_file(tmp_path: Path) -> Path:
     path = tmp_path / "model.json"
-    path.write_text(json.dumps(_all_kinds_doc()))
+    # travel wide enough for every program of the corpus: each case meets its own refusal first
+    wide = {a: [-2e6, 2e6] for a in "XYZAB"}
+    path.write_text(json.dumps({**_all_kinds_doc(), "envelope": {"travel": wide}}))
     return path
 
 

@@ -222,10 +222,10 @@ def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -
     rig = build_sim_rig(
         plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
     )
-    rig.servers["thermocouple"].inject("garble", "garble", "garble")  # every attempt of the first exchange
+    rig.servers["thermocouple"].inject("garble", "garble", "garble", on="READ?")  # every attempt of the first scan
     rig.servers["laser"].break_beam()
     try:
-        stats = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock).run()
+        stats = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, max_batch=1).run()  # scan by scan
     finally:
         rig.close()
     assert stats.finished

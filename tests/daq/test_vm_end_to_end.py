@@ -7,6 +7,7 @@ import threading
 
 import numpy as np
 import pytest
+import pyvisa
 
 from driftlab.daq.laser import LaserInterferometer
 from driftlab.daq.machine_link import SerialMachineLink
@@ -14,6 +15,8 @@ from driftlab.daq.probe import TouchProbe
 from driftlab.daq.protocols import FLAG_OPEN
 from driftlab.daq.proximity import ADCard, ReferenceSurfaceMeter, b_axis_array
 from driftlab.daq.retry import RetryPolicy
+from driftlab.daq.sim import machine
+from driftlab.daq.sim import scenario as scenario_mod
 from driftlab.daq.sim.instruments import (
     FixedStage,
     ManualClock,
@@ -31,9 +34,6 @@ from driftlab.daq.sim.instruments import (
 from driftlab.daq.thermocouple import ThermocoupleCard
 from driftlab.daq.transport import LineChannel, SerialPort, VisaPort
 
-machine = pytest.importorskip("driftlab.daq.sim.machine")
-scenario_mod = pytest.importorskip("driftlab.daq.sim.scenario")
-
 FAST = RetryPolicy(attempts=3, base_delay_s=0.0)
 CHANNELS = {k: f"T{k + 1}" for k in range(50)}
 
@@ -49,7 +49,6 @@ def vm():
 
 @pytest.fixture(scope="module")
 def rm():
-    pyvisa = pytest.importorskip("pyvisa")
     manager = pyvisa.ResourceManager("@py")
     yield manager
     manager.close()

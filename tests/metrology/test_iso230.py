@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -52,6 +53,8 @@ def reference_iso230_2(readings: list[tuple[float, int, float]]) -> dict:
         "A_up": max(xu[t] + 2 * su[t] for t in targets) - min(xu[t] - 2 * su[t] for t in targets),
         "A_down": max(xd[t] + 2 * sdn[t] for t in targets) - min(xd[t] - 2 * sdn[t] for t in targets),
         "B": max(abs(B[t]) for t in targets),
+        # ISO 230-2:2014 mean reversal value of an axis: the mean of the signed B_j over the targets
+        "B_mean": sum(B[t] for t in targets) / len(targets),
         "E_up": max(xu.values()) - min(xu.values()),
         "E_down": max(xd.values()) - min(xd.values()),
         "M": max(xb.values()) - min(xb.values()),
@@ -152,13 +155,64 @@ def test_cli_iso230_part2_json_and_html(vm_bundle, tmp_path, capsys):
     out, page = tmp_path / "x.json", tmp_path / "x.html"
     assert main(["iso230", str(path), "--part", "2", "--axis", "X", "--json", str(out), "--html", str(page)]) == 0
     doc = json.loads(out.read_text())
-    assert set(doc) == set(iso230_2.FIGURES) | {"targets"}
+    assert set(doc) == set(iso230_2.FIGURES) | {"targets", "drift_between_runs", "warning", "conditions"}
     rows = bundle.errors[(bundle.errors["axis"] == "X") & (bundle.errors["term"] == "dx")]
     ref = reference_iso230_2(list(zip(rows["position"], rows["direction"], rows["value"])))
     assert max(abs(doc[k] - ref[k]) for k in iso230_2.FIGURES) < 1e-9
     assert len(doc["targets"]) == 11  # points_per_axis
-    assert "data:image/png;base64," in page.read_text()
-    assert "ISO 230-2" in capsys.readouterr().out
+    text = page.read_text()
+    assert "data:image/png;base64," in text
+    # a metrologist's page: the conditions, values in µm without e-notation, the warning about thermal drift
+    assert "Test conditions" in text and "air temperature" in text and "B̄ (mean reversal value)" in text
+    assert "µm" in text and not re.search(r"\d[eE][-+]\d", text.split("data:image")[0] + text.split('">')[-1])
+    assert doc["warning"] and "thermal drift" in doc["warning"]
+    out_text = capsys.readouterr().out
+    assert "ISO 230-2" in out_text and "µm" in out_text and "warning: the runs span thermal drift" in out_text
+
+
+def _drifting(readings, drift_per_run: float):
+    """The same runs with a deviation that grows by ``drift_per_run`` from one pair of runs to the next."""
+    out, pair, last = [], -1, None
+    for pos, d, x in readings:
+        if d > 0 and last != d:
+            pair += 1
+        last = d
+        out.append((pos, d, x + drift_per_run * pair))
+    return out
+
+
+def test_iso230_2_warns_when_the_runs_span_thermal_drift():
+    readings = synthetic_runs(0, n_runs=8)
+    pos, d, x = (np.array(c) for c in zip(*readings))
+    steady = iso230_2.evaluate(pos, d, x)
+    assert steady.drift_warning is None
+    pos, d, x = (np.array(c) for c in zip(*_drifting(readings, 0.002)))
+    drifting = iso230_2.evaluate(pos, d, x)
+    # 2 um per pair of runs over 8 pairs: the runs' means wander by 14 um, and R carries it
+    assert drifting.drift == pytest.approx(steady.drift + 0.014, abs=0.002)
+    assert drifting.drift_warning and "thermal drift" in drifting.drift_warning
+    assert drifting.figures["R"] > steady.figures["R"]
+    # B-bar, the mean reversal value: the signed mean of B_j, not max |B_j|
+    assert drifting.figures["B_mean"] == pytest.approx(np.mean(drifting.reversal), abs=1e-15)
+
+
+def test_iso230_2_per_stage_and_per_window(vm_bundle, tmp_path, capsys):
+    path, bundle = vm_bundle
+    whole = iso230_2.from_bundle_errors(bundle.errors, "X")
+    per_stage = iso230_2.windows(bundle.errors, "X", stages=list(bundle.meta.stages))
+    assert len(per_stage) >= 2 and all(w.result.runs < whole.runs for w in per_stage)
+    # a stage's runs drift less than the whole campaign's
+    assert min(w.result.drift for w in per_stage) < whole.drift
+    hourly = iso230_2.windows(bundle.errors, "X", window_s=3 * 3600.0)
+    assert all(w.end_s - w.start_s == pytest.approx(3 * 3600.0) for w in hourly)
+    assert sum(w.result.runs for w in hourly) <= whole.runs
+    out, page = tmp_path / "w.json", tmp_path / "w.html"
+    argv = ["iso230", str(path), "--part", "2", "--axis", "X", "--per-stage", "--json", str(out), "--html", str(page)]
+    assert main(argv) == 0
+    doc = json.loads(out.read_text())
+    assert [w["label"] for w in doc["windows"]] == [w.label for w in per_stage]
+    assert page.read_text().count("Test conditions") == len(per_stage)
+    capsys.readouterr()
 
 
 def test_iso230_3_stages_of_a_staged_campaign(vm_bundle, tmp_path):
@@ -180,6 +234,54 @@ def test_iso230_3_stages_of_a_staged_campaign(vm_bundle, tmp_path):
     assert res.etve[0].room_range_degC is not None
     doc = res.to_json_dict()
     assert set(doc) == {"etve", "spindle", "linear"}
+
+
+@pytest.mark.parametrize(
+    "spelling",
+    [
+        {"idle": "none", "feed": "axis", "combined": "spindle+axis"},  # campaigns stored before
+        {},  # the one vocabulary
+    ],
+)
+def test_iso230_3_reads_the_daemons_heat_words_and_the_old_spelling(vm_bundle, spelling):
+    """The daemon's stages (``Stage.heat_label``) and stored campaigns that spelt them none/axis/spindle+axis give
+    the same ETVE, spindle and linear tests as the simulator's words."""
+    _, bundle = vm_bundle
+    meta = bundle.meta.model_dump(mode="json")
+    for st in meta["stages"]:
+        st["heat_source"] = spelling.get(st["heat_source"], st["heat_source"])
+    relabelled = Bundle("old", CampaignMeta.model_validate(meta), bundle.temperatures, bundle.conditions, bundle.errors)
+    got = iso230_3.evaluate_bundle(relabelled)
+    want = iso230_3.evaluate_bundle(bundle)
+    assert [len(got.etve), len(got.spindle), len(got.linear)] == [len(want.etve), len(want.spindle), len(want.linear)]
+    assert got.etve and got.spindle and got.linear
+    assert got.linear[0].figures == want.linear[0].figures
+
+
+def test_the_daemons_plan_stages_use_the_one_vocabulary():
+    """The demo's plan gives its stages the words ISO 230-3 looks for: idle, spindle and feed stages."""
+    from driftlab.campaigns.plan import load_plan
+    from driftlab.resources import examples_dir
+    from driftlab.vocabulary import HEAT_SOURCES
+
+    plan = load_plan(examples_dir() / "plans" / "demo-full.yaml")
+    words = {r["heat_source"] for r in plan.bundle_stages()}
+    assert words <= set(HEAT_SOURCES) and {"idle", "spindle", "feed"} <= words
+
+
+def test_iso230_3_plots_one_unit_per_axis(vm_bundle):
+    """Lengths (µm) and angles (arcsec) never share an axis; the legend sits outside the data."""
+    _, bundle = vm_bundle
+    res = iso230_3.evaluate_bundle(bundle)
+    fig = iso230_3.plot(res.spindle[0])
+    labels = [ax.get_ylabel() for ax in fig.axes if ax.get_ylabel()]
+    assert labels == ["drift (µm)", "drift (arcsec)"]
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        assert legend is not None and legend.get_bbox_to_anchor().x0 >= ax.get_window_extent().x1 - 1
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
 
 
 def test_cli_iso230_part3_and_one_line_errors(vm_bundle, tmp_path):

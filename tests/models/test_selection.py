@@ -120,7 +120,14 @@ def test_errors_choose_the_truth_channels_on_the_virtual_machine():
 def test_errors_none_or_empty_keep_the_temperature_screening():
     temps, meta = _campaign()
     base = screen_channels(temps, meta, ["T49", "T50"])
-    empty = pd.DataFrame(columns=["time_s", "axis", "term", "position", "direction", "value"])
-    for errs in (None, empty):
+    cols = ["time_s", "axis", "term", "position", "direction", "value"]
+    # a live errors frame changes the screening: an X error that follows T3 (a table corner the
+    # temperatures alone drop) keeps T3, so the comparisons below can tell the two paths apart
+    t = temps["time_s"].to_numpy()
+    live = pd.DataFrame({"time_s": t, "axis": "X", "term": "dx", "position": 0.0, "direction": 0,
+                         "value": 0.004 * (temps["T3"] - temps["T3"].mean())})  # fmt: skip
+    with_errors = screen_channels(temps, meta, ["T49", "T50"], errors=live)
+    assert "T3" not in base.kept and "T3" in with_errors.kept
+    for errs in (None, pd.DataFrame(columns=cols), live.iloc[:0]):
         res = screen_channels(temps, meta, ["T49", "T50"], errors=errs)
         assert res.kept == base.kept and res.dropped == base.dropped

@@ -135,11 +135,22 @@ def test_gain_and_tau_scale_for_calibration():
 
 
 def test_contract_signature_with_dims():
-    q = np.zeros((1, 5))
-    np.testing.assert_allclose(sim.appendix_a_errors(0.0, q, kin.TABLE_A1)["T1"], sim.appendix_a_errors(0.0, q)["T1"])
+    t = np.full(3, 4 * H)
+    q = np.zeros((3, 5))
+    moving = np.ones((3, 5))
+    # with a direction the backlash law adds to the joint errors: the two calls below must differ
+    assert not np.allclose(sim.appendix_a_errors(t, q, moving)["phi_x"], sim.appendix_a_errors(t, q)["phi_x"])
+    # the contract's third positional argument may be the link dimensions: read as dims, not a direction
+    np.testing.assert_allclose(sim.appendix_a_errors(t, q, kin.TABLE_A1)["phi_x"], sim.appendix_a_errors(t, q)["phi_x"])
     np.testing.assert_allclose(
-        sim.appendix_a_errors(0.0, q, dims=kin.TABLE_A1)["T2"], sim.appendix_a_errors(0.0, q)["T2"]
+        sim.appendix_a_errors(t, q, moving, dims=kin.TABLE_A1)["phi_x"], sim.appendix_a_errors(t, q, moving)["phi_x"]
     )
+    # dims are validated, positional or keyword
+    bad = {**kin.TABLE_A1, "T3": (1.0, float("nan"), 0.0)}
+    with pytest.raises(kin.KinematicsError, match="T3"):
+        sim.appendix_a_errors(t, q, bad)
+    with pytest.raises(kin.KinematicsError, match="lack"):
+        sim.appendix_a_errors(t, q, dims={"T1": (0, 0, 0)})
 
 
 def test_compensation_of_the_appendix_a_errors_themselves():

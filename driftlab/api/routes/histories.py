@@ -10,6 +10,8 @@ from __future__ import annotations
 import base64
 import json
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import timedelta
 from typing import Annotated, Any
 
@@ -76,14 +78,48 @@ def decode_cursor(cursor: str | None, kind: str) -> Any:
     return after
 
 
-def _range(start_s: float | None, end_s: float | None) -> None:
+@dataclass(frozen=True)
+class Window:
+    """The time range and page of a history request, checked once for every history endpoint."""
+
+    start_s: float | None
+    end_s: float | None
+    limit: int
+    offset: int
+    cursor: str | None
+
+    def after(self, kind: str) -> Any:
+        """Return the position this page starts after (decoded cursor), or None."""
+        return decode_cursor(self.cursor, kind)
+
+
+def window(
+    start_s: StartS = None, end_s: EndS = None, limit: Limit = 1000, offset: Offset = 0, cursor: Cursor = None
+) -> Window:
+    """Return the request's Window; BadRequestError (400) for a reversed range or offset with cursor."""
     if start_s is not None and end_s is not None and end_s < start_s:
         raise BadRequestError(f"time range ends ({end_s}) before it starts ({start_s})")
-
-
-def _paging(cursor: str | None, offset: int) -> None:
     if cursor is not None and offset:
         raise BadRequestError("give either offset or cursor, not both")
+    return Window(start_s, end_s, limit, offset, cursor)
+
+
+Paging = Annotated[Window, Depends(window)]
+
+
+def _bucket(time_s: float, t_end_s: float, n: Any, lo: Any, mean: Any, hi: Any) -> Bucket:
+    return Bucket(
+        time_s=time_s,
+        t_end_s=t_end_s,
+        n=int(n),
+        min=finite_or_none(lo),
+        mean=finite_or_none(mean),
+        max=finite_or_none(hi),
+    )
+
+
+def _next(kind: str, rows: Sequence[Any], page: Window, last: Any) -> str | None:
+    return encode_cursor(kind, last) if rows and len(rows) == page.limit else None
 
 
 @router.get(
@@ -96,34 +132,22 @@ def temperatures(
     campaign_id: CampaignId,
     channel: Annotated[str, Path(pattern=ID_PATTERN, description="channel name, e.g. T9")],
     store: Annotated[Store, Depends(get_store)],
-    start_s: StartS = None,
-    end_s: EndS = None,
+    page: Paging,
     buckets: Buckets = None,
-    limit: Limit = 1000,
-    offset: Offset = 0,
-    cursor: Cursor = None,
 ) -> TemperatureHistory:
     """Return a channel's readings in a time range (paged), or min/mean/max per time bucket."""
-    _range(start_s, end_s)
-    _paging(cursor, offset)
     if buckets:
-        frame = store.temperature_history(campaign_id, channel, start_s, end_s, buckets)
+        frame = store.temperature_history(campaign_id, channel, page.start_s, page.end_s, buckets)
         out = [
-            Bucket(
-                time_s=r.time_s,
-                t_end_s=r.t_end_s,
-                n=int(r.n),
-                min=finite_or_none(r.value_min),
-                mean=finite_or_none(r.value_mean),
-                max=finite_or_none(r.value_max),
-            )
+            _bucket(r.time_s, r.t_end_s, r.n, r.value_min, r.value_mean, r.value_max)
             for r in frame.itertuples(index=False)
         ]
         return TemperatureHistory(campaign_id=campaign_id, channel=channel, buckets=out)
-    after = decode_cursor(cursor, "temperature")
-    rows = api_queries.temperature_page(store, campaign_id, channel, start_s, end_s, after, offset, limit)
+    rows = api_queries.temperature_page(
+        store, campaign_id, channel, page.start_s, page.end_s, page.after("temperature"), page.offset, page.limit
+    )
     points = [TemperaturePoint(time_s=t, value=finite_or_none(v)) for t, v in rows]
-    nxt = encode_cursor("temperature", rows[-1][0]) if len(rows) == limit else None
+    nxt = _next("temperature", rows, page, rows[-1][0] if rows else None)
     return TemperatureHistory(campaign_id=campaign_id, channel=channel, points=points, next_cursor=nxt)
 
 
@@ -136,39 +160,25 @@ def temperatures(
 def conditions(
     campaign_id: CampaignId,
     store: Annotated[Store, Depends(get_store)],
+    page: Paging,
     column: Annotated[list[Condition] | None, Query(max_length=7, description="columns (default all seven)")] = None,
-    start_s: StartS = None,
-    end_s: EndS = None,
     buckets: Buckets = None,
-    limit: Limit = 1000,
-    offset: Offset = 0,
-    cursor: Cursor = None,
 ) -> ConditionHistory:
     """Return spindle, feed and axis positions over a time range (paged), or min/mean/max per bucket."""
-    _range(start_s, end_s)
-    _paging(cursor, offset)
     cols: list[str] = list(dict.fromkeys(column)) if column else list(CONDITION_VALUE_COLUMNS)
     if buckets:
-        frame = store.condition_history(campaign_id, cols, start_s, end_s, buckets)
+        frame = store.condition_history(campaign_id, cols, page.start_s, page.end_s, buckets)
         out = []
         for r in frame.to_dict("records"):
-            values = {
-                c: Bucket(
-                    time_s=r["time_s"],
-                    t_end_s=r["t_end_s"],
-                    n=int(r["n"]),
-                    min=finite_or_none(r[f"{c}_min"]),
-                    mean=finite_or_none(r[f"{c}_mean"]),
-                    max=finite_or_none(r[f"{c}_max"]),
-                )
-                for c in cols
-            }
+            span = (r["time_s"], r["t_end_s"], r["n"])
+            values = {c: _bucket(*span, r[f"{c}_min"], r[f"{c}_mean"], r[f"{c}_max"]) for c in cols}
             out.append(ConditionBucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), values=values))
         return ConditionHistory(campaign_id=campaign_id, columns=cols, buckets=out)
-    after = decode_cursor(cursor, "condition")
-    rows = api_queries.condition_page(store, campaign_id, cols, start_s, end_s, after, offset, limit)
+    rows = api_queries.condition_page(
+        store, campaign_id, cols, page.start_s, page.end_s, page.after("condition"), page.offset, page.limit
+    )
     points = [ConditionRow(time_s=r[0], **{c: finite_or_none(v) for c, v in zip(cols, r[1:])}) for r in rows]
-    nxt = encode_cursor("condition", rows[-1][0]) if len(rows) == limit else None
+    nxt = _next("condition", rows, page, rows[-1][0] if rows else None)
     return ConditionHistory(campaign_id=campaign_id, columns=cols, points=points, next_cursor=nxt)
 
 
@@ -181,22 +191,18 @@ def conditions(
 def errors(
     campaign_id: CampaignId,
     store: Annotated[Store, Depends(get_store)],
+    page: Paging,
     axis: Axis | None = None,
     term: Term | None = None,
     direction: Annotated[int | None, Query(ge=-1, le=1, description="+1 or -1")] = None,
-    start_s: StartS = None,
-    end_s: EndS = None,
-    limit: Limit = 1000,
-    offset: Offset = 0,
-    cursor: Cursor = None,
 ) -> ErrorHistory:
     """Return a page of error samples in measurement order, filtered by axis, term, direction and time."""
-    _range(start_s, end_s)
-    _paging(cursor, offset)
     if direction == 0:
         raise BadRequestError("direction must be +1 or -1")
-    after = decode_cursor(cursor, "error")
-    rows = api_queries.error_page(store, campaign_id, axis, term, direction, start_s, end_s, after, offset, limit)
+    rows = api_queries.error_page(
+        store, campaign_id, axis, term, direction, page.start_s, page.end_s, page.after("error"), page.offset,
+        page.limit,
+    )  # fmt: skip
     items = [
         ErrorSampleOut(
             seq=r.seq,
@@ -211,7 +217,7 @@ def errors(
         )
         for r in rows
     ]
-    nxt = encode_cursor("error", rows[-1].seq) if len(rows) == limit else None
+    nxt = _next("error", rows, page, rows[-1].seq if rows else None)
     return ErrorHistory(campaign_id=campaign_id, items=items, next_cursor=nxt)
 
 

@@ -13,6 +13,7 @@ the controller adds to the command (``q_cmd - q``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,6 +26,7 @@ from driftlab.physics import kinematics
 from driftlab.vocabulary import AXES
 
 ROTARY = ("A", "B")
+MAX_POINTS = 4096  # no controller here holds more
 
 
 @dataclass(frozen=True)
@@ -74,40 +76,109 @@ def axis_correction(
     return np.rad2deg(corr) if axis in ROTARY else corr
 
 
-def grid_positions(lo: float, hi: float, step: float, reference: float | None = None) -> np.ndarray:
-    """Return equally spaced positions covering [lo, hi] by ``step``, one of them at ``reference`` if given."""
+@dataclass(frozen=True)
+class Grid:
+    """The table's points for one controller, and what was changed to meet its rules (said to the user)."""
+
+    positions: np.ndarray
+    notes: tuple[str, ...] = ()
+
+
+def _check_range(lo: float, hi: float, step: float) -> None:
     if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
         raise ValidationError(f"the axis range {lo:g}..{hi:g} is empty")
     if not (np.isfinite(step) and step > 0):
         raise ValidationError(f"the grid step must be positive, got {step:g}")
-    origin = lo if reference is None else reference
-    first = origin - np.floor((origin - lo) / step + 1e-9) * step
-    n = int(np.ceil((hi - first) / step - 1e-9)) + 1
-    if n < 2:
-        raise ValidationError(f"a step of {step:g} leaves fewer than two grid points on {lo:g}..{hi:g}")
-    if n > 4096:
-        raise ValidationError(f"{n} grid points: use a coarser --step (controllers hold a few hundred)")
-    return np.round(first + step * np.arange(n), 9)
+
+
+def grid_positions(lo: float, hi: float, step: float, max_points: int = MAX_POINTS) -> Grid:
+    """Return equal intervals from exactly ``lo`` to exactly ``hi``, none longer than ``step``."""
+    _check_range(lo, hi, step)
+    n = max(1, int(np.ceil((hi - lo) / step - 1e-9)))
+    if n + 1 > max_points:
+        raise ValidationError(
+            f"{n + 1} points: a table holds at most {max_points}; use --step {(hi - lo) / (max_points - 1):.6g} or more"
+        )
+    actual = (hi - lo) / n
+    pos = lo + actual * np.arange(n + 1)
+    pos[-1] = hi
+    notes: tuple[str, ...] = ()
+    if abs(actual - step) > 1e-9 * max(1.0, step):
+        notes = (f"the step {step:g} does not divide {lo:g}..{hi:g}: {n} intervals of {actual:.6g} instead",)
+    return Grid(np.round(pos, 9), notes)
+
+
+def unit_grid(lo: float, hi: float, step: float, unit: float, reference: float, max_points: int = MAX_POINTS) -> Grid:
+    """Return points from ``lo`` to ``hi`` an integer number of ``unit`` apart, one of them at ``reference``."""
+    _check_range(lo, hi, step)
+    counts = [(v - lo) / unit for v in (hi, reference)]
+    if any(abs(c - round(c)) > 1e-6 for c in counts) or abs(lo / unit - round(lo / unit)) > 1e-6:
+        raise ValidationError(
+            f"the range {lo:g}..{hi:g} and the reference {reference:g} must be whole units of {unit:g}"
+        )
+    length, ref = (int(round(c)) for c in counts)
+    if not 0 <= ref <= length:
+        raise ValidationError(f"the reference position {reference:g} is outside {lo:g}..{hi:g}")
+    g = math.gcd(length, ref)  # the interval must divide both the range and the reference's offset
+    want = max(1, int(np.floor(step / unit + 1e-9)))
+    d = max((k for k in _divisors(g) if k <= want), default=1)
+    n = length // d + 1
+    if n > max_points:
+        raise ValidationError(
+            f"{n} points: a table holds at most {max_points}, and the largest interval that divides "
+            f"{lo:g}..{hi:g} with a point at {reference:g} and is at most {step:g} is {d * unit:g}; "
+            "choose another --range or --reference"
+        )
+    notes: tuple[str, ...] = ()
+    if d != want or abs(want * unit - step) > 1e-9 * max(1.0, step):
+        notes = (f"the interval is {d * unit:g} (whole detection units, a point at the reference {reference:g})",)
+    return Grid(np.round(lo + d * unit * np.arange(n), 9), notes)
+
+
+def power_of_two_grid(lo: float, hi: float, step: float, unit: float = 1e-4, max_points: int = MAX_POINTS) -> Grid:
+    """Return points from ``lo`` spaced by the largest 2^k x ``unit`` not above ``step``, reaching ``hi``."""
+    _check_range(lo, hi, step)
+    if step < unit:
+        raise ValidationError(f"the grid step {step:g} is below the smallest spacing {unit:g}")
+    k = int(np.floor(np.log2(step / unit) + 1e-12))
+    s = unit * 2.0**k
+    n = int(np.ceil((hi - lo) / s - 1e-9)) + 1
+    if n > max_points:
+        raise ValidationError(
+            f"{n} points: a table holds at most {max_points} at a spacing of 2^{k} x {unit:g} = {s:g}; "
+            "use a larger --step"
+        )
+    pos = np.round(lo + s * np.arange(n), 9)
+    notes = [f"the spacing is 2^{k} x {unit:g} = {s:g} (the control needs a power of two)"]
+    if pos[-1] > hi + 1e-9:
+        notes.append(
+            f"the last point lies at {pos[-1]:g}, {pos[-1] - hi:.6g} beyond the range: the axis never gets there"
+        )
+    return Grid(pos, tuple(notes))
+
+
+def _divisors(n: int) -> list[int]:
+    if n == 0:
+        return []
+    small = [k for k in range(1, int(math.isqrt(n)) + 1) if n % k == 0]
+    return sorted(set(small + [n // k for k in small]))
 
 
 def correction_table(
     model: ErrorModel,
     temperatures: Mapping[str, float],
     axis: str,
-    lo: float,
-    hi: float,
-    step: float,
+    positions: np.ndarray,
     *,
     pose: tuple[float, ...] = (0.0,) * 5,
-    reference: float | None = None,
 ) -> AxisTable:
-    """Return the model's correction of ``axis`` on a grid over [lo, hi] in both approach directions."""
+    """Return the model's correction of ``axis`` at ``positions`` in both approach directions."""
     axis = axis.upper()
     if axis not in AXES:
         raise ValidationError(f"axis {axis!r} is not one of {' '.join(AXES)}")
     if len(pose) != 5:
         raise ValidationError("the pose of the other axes needs five values X,Y,Z,A,B")
-    pos = grid_positions(lo, hi, step, reference)
+    pos = np.asarray(positions, dtype=float)
     temps = {c: float(temperatures[c]) for c in model.channels if c in temperatures} or dict(temperatures)
     missing = [c for c in model.channels if c not in temperatures]
     if missing:
@@ -130,3 +201,21 @@ def describe(table: AxisTable) -> dict[str, Any]:
         "max_forward": float(np.abs(table.forward).max()),
         "max_reverse": float(np.abs(table.reverse).max()),
     }
+
+
+def controller_grid(
+    spacing: str,
+    max_points: int,
+    lo: float,
+    hi: float,
+    step: float,
+    *,
+    reference: float = 0.0,
+    unit: float = 1e-4,
+) -> Grid:
+    """Return the points of a table over [lo, hi] that meet a controller's spacing rule and point limit."""
+    if spacing == "detection-unit":
+        return unit_grid(lo, hi, step, unit, reference, max_points)
+    if spacing == "power-of-two":
+        return power_of_two_grid(lo, hi, step, 1e-4, max_points)
+    return grid_positions(lo, hi, step, max_points)

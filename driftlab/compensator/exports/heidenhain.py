@@ -1,32 +1,64 @@
-"""Heidenhain TNC nonlinear axis error compensation table (``*.COM``) and the backlash value.
+"""HEIDENHAIN TNC nonlinear axis error compensation tables (``*.COM``), per generation.
 
-The compensation value table lists, for datum points of the axis at equal spacing, the
-compensation value the control adds to the nominal position of the axis (``NR`` the line
-number, then the axis position, then ``D<axis>``); between datum points the control interpolates
-linearly. The table has no direction: the difference between the approach directions (the
-model's reversal, a constant along the axis for driftlab's models) goes into the axis' backlash
-compensation (``CfgAxisComp/backLash``, MP710 on older TNCs), which the control splits half and
-half on either side of the table value when the direction reverses. The file is activated through
-the compensation assignment table (``*.CMA``) of the axis.
+* ``tnc640`` (the 620 generation: TNC 640/620, MANUALplus 620): columns ``NR``, ``AXISPOS`` (the
+  compensation points, from the machine datum), a column named after the axis (the compensation
+  value of the positive direction) and ``BACKLASH`` ("the compensation values measured in the
+  negative direction of traverse"): both directions live in the table; the control interpolates
+  linearly between points. The axis' ``backLash`` machine parameter is left as it is.
+* ``tnc426`` (TNC 426/430 and the 407/415/425 before them): columns ``NR``, the axis (the points)
+  and ``D<axis>``; at most 256 entries, the points a power of two apart; activated through MP730.
+  The table holds the positive direction, and the reversal, constant along the axis for driftlab's
+  models, goes into the backlash MP710, which "the TNC adds to or subtracts from the encoder signal
+  after a reversal": the full value at every reversal, not half on either side.
+
+Each table is assigned to its axis in the compensation assignment table (``*.CMA``). The value is
+what the control adds to the nominal position, i.e. driftlab's correction (sign: docs/exports.md).
+
+Sources: HEIDENHAIN Technical Manual MANUALplus 620, January 2012, section 6.10.3 (pp. 713-718:
+the columns, the CMA table) and p. 708 (backlash added at every reversal); Technical Manual TNC
+426/430, section 6.4.1 (p. 6-36, MP710); Technical Manual TNC 407/415/425, 01.98, section 1.6.4
+(p. 4-28: power-of-two spacing, 2^16 = 6.5536 mm) and module 9095 (error 3: more than 256 entries).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from driftlab.compensator.exports import Export
+from driftlab.compensator.exports import Controller, Export
 from driftlab.compensator.exports.grid import AxisTable
+from driftlab.errors import ValidationError
+
+#: the largest variation of the reversal along the axis one backlash value may stand for (mm, deg)
+REVERSAL_SPREAD = 0.25e-3
 
 
-def write(table: AxisTable, name: str | None = None) -> Export:
-    """Return the ``.COM`` table (bidirectional mean) and the backlash setting (mean reversal)."""
+def write(table: AxisTable, ctl: Controller, name: str | None = None) -> Export:
+    """Return the ``.COM`` table of the generation and the settings that go with it."""
     ax = table.axis
     unit = "MM" if table.unit == "mm" else "DEG"
     fname = (name or f"{ax}.COM").upper()
-    mean = (table.forward + table.reverse) / 2.0
-    backlash = float(np.mean(table.forward - table.reverse))
+    cma = {"compensation assignment (*.CMA)": f"column {ax}: {fname}, ACTIVE *"}
+    if ctl.name == "tnc640":
+        rows = [f"BEGIN {fname} {unit}", f"{'NR':<6}{'AXISPOS':<14}{ax:<14}BACKLASH"]
+        rows += [
+            f"{i:<6}{p:<+14.4f}{f:<+14.6f}{r:+.6f}"
+            for i, (p, f, r) in enumerate(zip(table.positions, table.forward, table.reverse))
+        ]
+        rows.append("[END]")
+        return Export(ctl.name, {"": "\n".join(rows) + "\n"}, cma)
+    reversal = table.reverse - table.forward
+    r = float(np.mean(reversal))
+    spread = float(np.abs(reversal - r).max())
+    if spread > REVERSAL_SPREAD:
+        raise ValidationError(
+            f"{ctl.name}: the reversal varies by {spread * 1e3:.2f} µm along the axis; one backlash "
+            "value cannot hold it (use tnc640)"
+        )
     rows = [f"BEGIN {fname} {unit}", f"{'NR':<6}{ax:<14}D{ax}"]
-    rows += [f"{i:<6}{p:<+14.4f}{v:+.6f}" for i, (p, v) in enumerate(zip(table.positions, mean))]
+    rows += [f"{i:<6}{p:<+14.4f}{v:+.6f}" for i, (p, v) in enumerate(zip(table.positions, table.forward))]
     rows.append("[END]")
-    settings = {f"CfgAxisComp/{ax}/backLash": round(backlash, 6), "compensation assignment (*.CMA)": f"{ax}: {fname}"}
-    return Export("heidenhain", "\n".join(rows) + "\n", settings)
+    k = "XYZAB".index(ax)
+    # positive backlash: the encoder leads the table, which travels too short after a reversal; the
+    # negative direction's correction is the positive one minus the backlash
+    settings = {f"MP710.{k}": round(-r, 6), f"MP730 bit {k}": 1, **cma}
+    return Export(ctl.name, {"": "\n".join(rows) + "\n"}, settings)

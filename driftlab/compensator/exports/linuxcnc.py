@@ -6,17 +6,23 @@ forward trim while the joint moves in the positive direction, the reverse trim w
 the negative direction; between points motion interpolates linearly, beyond the first and last
 point the end trim holds. The loader stops at the first line that is not three numbers, so the
 file carries no comment lines (the model and temperatures go into the INI comment instead).
+
+Source: LinuxCNC ``src/emc/motion/usrmotintf.cc`` (``usrmotLoadComp``: ``sscanf("%lf %lf %lf")`` per
+line, stop at the first line that does not give three numbers; type 1 = trims), ``command.c``
+(``EMCMOT_SET_JOINT_COMP``: nominals must increase, at most ``EMCMOT_COMP_SIZE`` = 256 entries, from
+``motion.h``), ``control.c`` (``compute_screw_comp``: the forward trim while ``vel_cmd > 0``, the
+reverse trim while ``vel_cmd < 0``, linear between entries); docs/src/config/ini-config.adoc.
 """
 
 from __future__ import annotations
 
-from driftlab.compensator.exports import Export
+from driftlab.compensator.exports import Controller, Export
 from driftlab.compensator.exports.grid import AxisTable
 
 DECIMALS = 7  # 0.1 nm (mm) / 1e-7 deg: far below any table's interpolation error
 
 
-def write(table: AxisTable, joint: int | None = None) -> Export:
+def write(table: AxisTable, ctl: Controller, joint: int | None = None) -> Export:
     """Return the COMP_FILE text (nominal, forward trim, reverse trim) and the INI settings."""
     lines = [
         f"{p:.{DECIMALS}f} {f:.{DECIMALS}f} {r:.{DECIMALS}f}"
@@ -28,4 +34,4 @@ def write(table: AxisTable, joint: int | None = None) -> Export:
         f"[JOINT_{j}]COMP_FILE": "<this file>",
         "comment": f"# driftlab thermal compensation of {table.axis}, model {table.model}",
     }
-    return Export("linuxcnc", "\n".join(lines) + "\n", settings)
+    return Export(ctl.name, {"": "\n".join(lines) + "\n"}, settings)

@@ -1,72 +1,125 @@
-"""Siemens SINUMERIK 840D: leadscrew error compensation (LEC) and direction-dependent CEC tables.
+"""SINUMERIK 840D sl, 828D and 808D: leadscrew error compensation (LEC) and direction-dependent CEC tables.
 
-Written as a part program that sets the compensation system variables (load it, run it once, then
-set the enabling machine data and power on again, as the function manual prescribes):
+Written as the initialisation programs the function manual shows (load them with the enabling
+machine data at 0, set the machine data, power on again):
 
-* LEC (``$AA_ENC_COMP[0,N,AXn]``, ``$AA_ENC_COMP_STEP``, ``_MIN``, ``_MAX``, ``_IS_MODULO``): the
-  compensation values of the first measuring system, one per interpolation point from ``_MIN`` to
-  ``_MAX`` at ``_STEP``; enabled with MD32700 ``$MA_ENC_COMP_ENABLE[0] = 1``.
-* CEC tables (``$AN_CEC[t,N]``, ``$AN_CEC_INPUT_AXIS``, ``$AN_CEC_OUTPUT_AXIS``, ``_STEP``, ``_MIN``,
-  ``_MAX``, ``$AN_CEC_DIRECTION``, ``$AN_CEC_MULT_BY_TABLE``, ``$AN_CEC_IS_MODULO``): the axis is its own
-  base (input) and compensation (output) axis; table t holds the part of the correction that
-  differs between the directions, ``$AN_CEC_DIRECTION[t] = 1`` (positive travel only) and ``-1``
-  (negative only); enabled with MD32710 ``$MA_CEC_ENABLE = 1`` and MD18342 ``$MN_MM_CEC_MAX_POINTS``.
+* LEC, file ``%_N_AX_EEC_INI`` (``CHANDATA(1)``, ``$AA_ENC_COMP[0,N,AXn]``, ``$AA_ENC_COMP_STEP``,
+  ``_MIN``, ``_MAX``, ``_IS_MODULO``, ``M17``): one compensation value per interpolation point from
+  ``_MIN`` to ``_MAX`` at ``_STEP``, linear between points, the end values held beyond them;
+  enabled by MD32700 ``$MA_ENC_COMP_ENABLE[0] = 1`` once the axis is referenced.
+* CEC, file ``%_N_NC_CEC_INI`` (840D sl, 828D): two tables ``$AN_CEC[t,N]`` with the axis as its own
+  base and compensation axis (``$AN_CEC_INPUT_AXIS[t]=(AXn)``, ``$AN_CEC_OUTPUT_AXIS[t]=(AXn)``),
+  ``$AN_CEC_DIRECTION[t] = 1`` (positive travel only) and ``-1`` (negative only), holding what differs
+  between the directions; enabled by MD32710 ``$MA_CEC_ENABLE = 1`` and SD41300
+  ``$SN_CEC_TABLE_ENABLE[t] = 1``, sized on the 840D sl by MD18342 ``$MN_MM_CEC_MAX_POINTS[t]``
+  (the 828D has eight fixed tables of 200 points).
+* 808D: no CEC; the LEC holds the positive direction and the reversal, constant along the axis for
+  driftlab's models, is the backlash MD32450 ``$MA_BACKLASH[0]``.
 
-Values are the axis error to cancel, as the function manual has the measured error entered: the
-control corrects the actual value by them, so the machine moves by minus the value. driftlab's
-correction c (added to the command) is therefore written as -c. Between points the control
-interpolates linearly; beyond ``_MIN``/``_MAX`` the end value holds.
+Sign: "a positive compensation value causes the corresponding machine axis to move in the negative
+direction" (LEC): the value is the axis error, so driftlab's correction c (added to the command) is
+written as -c. The CEC tables are written the same way (unverified, docs/exports.md).
+
+Sources: SINUMERIK Function Manual Extended Functions, 03/2013, 6FC5397-1BP40-3BA1, K3 section 4.4
+(p. 237 interpolation, loading; p. 242 LEC example; pp. 248-249 CEC table parameters, direction;
+p. 264 direction-dependent example, MD18342[0]/[1], the 828D's tables); SINUMERIK 808D Function
+Manual 01/2017 p. 106 (200 points, the sign); SINUMERIK 802D sl Function Manual 11/2012,
+6FC5397-1CP10-5BA0, p. 222 (``%_N_NC_CEC_INI``, ``CHANDATA(1)``, ``=(AX2)``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from driftlab.compensator.exports import Export
+from driftlab.compensator.exports import Controller, Export
 from driftlab.compensator.exports.grid import AxisTable
+from driftlab.errors import ValidationError
 
 DECIMALS = 7
+#: the largest variation of the reversal along the axis one backlash value may stand for (mm, deg)
+REVERSAL_SPREAD = 0.25e-3
 
 
 def _num(v: float) -> str:
     return f"{v:.{DECIMALS}f}"
 
 
-def write(table: AxisTable, machine_axis: str | None = None, first_table: int = 0) -> Export:
-    """Return the part program (LEC with the bidirectional mean, CEC tables with the direction-dependent rest)."""
-    ax = machine_axis or f"AX{'XYZAB'.index(table.axis) + 1}"
-    mean = (table.forward + table.reverse) / 2.0
+def _lec(table: AxisTable, ax: str, values: np.ndarray, what: str) -> str:
     lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
-    modulo = 0
     out = [
+        "%_N_AX_EEC_INI",
+        "CHANDATA(1)",
         f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}",
-        "; LEC: bidirectional mean; CEC: direction-dependent rest; values = axis error (-correction)",
+        f"; LEC: {what}; values = axis error (-correction), {table.unit}",
     ]
-    out += [f"$AA_ENC_COMP[0,{i},{ax}]={_num(-v)}" for i, v in enumerate(mean)]
+    out += [f"$AA_ENC_COMP[0,{i},{ax}]={_num(-v)}" for i, v in enumerate(values)]
     out += [
         f"$AA_ENC_COMP_STEP[0,{ax}]={_num(step)}",
         f"$AA_ENC_COMP_MIN[0,{ax}]={_num(lo)}",
         f"$AA_ENC_COMP_MAX[0,{ax}]={_num(hi)}",
-        f"$AA_ENC_COMP_IS_MODULO[0,{ax}]={modulo}",
+        f"$AA_ENC_COMP_IS_MODULO[0,{ax}]=0",
+        "M17",
     ]
-    for k, (values, direction) in enumerate(((table.forward - mean, 1), (table.reverse - mean, -1))):
+    return "\n".join(out) + "\n"
+
+
+def _cec(table: AxisTable, ax: str, parts: list[tuple[np.ndarray, int]], first_table: int) -> str:
+    lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
+    out = [
+        "%_N_NC_CEC_INI",
+        "CHANDATA(1)",
+        f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}",
+        "; CEC: the direction-dependent rest of the correction; values = axis error (-correction)",
+    ]
+    for k, (values, direction) in enumerate(parts):
         t = first_table + k
         out += [f"$AN_CEC[{t},{i}]={_num(-v)}" for i, v in enumerate(values)]
         out += [
-            f"$AN_CEC_INPUT_AXIS[{t}]={ax}",
-            f"$AN_CEC_OUTPUT_AXIS[{t}]={ax}",
+            f"$AN_CEC_INPUT_AXIS[{t}]=({ax})",
+            f"$AN_CEC_OUTPUT_AXIS[{t}]=({ax})",
             f"$AN_CEC_STEP[{t}]={_num(step)}",
             f"$AN_CEC_MIN[{t}]={_num(lo)}",
             f"$AN_CEC_MAX[{t}]={_num(hi)}",
             f"$AN_CEC_DIRECTION[{t}]={direction}",
             f"$AN_CEC_MULT_BY_TABLE[{t}]=0",
-            f"$AN_CEC_IS_MODULO[{t}]={modulo}",
+            f"$AN_CEC_IS_MODULO[{t}]=0",
         ]
     out.append("M17")
-    settings = {
-        f"$MA_ENC_COMP_ENABLE[0,{ax}]": 1,
-        f"$MA_CEC_ENABLE[{ax}]": 1,
-        "$MN_MM_CEC_MAX_POINTS": int(np.asarray(table.positions).size),
-        f"$MA_MM_ENC_COMP_MAX_POINTS[0,{ax}]": int(np.asarray(table.positions).size),
-    }
-    return Export("siemens-cec", "\n".join(out) + "\n", settings)
+    return "\n".join(out) + "\n"
+
+
+def write(table: AxisTable, ctl: Controller, machine_axis: str | None = None, first_table: int = 0) -> Export:
+    """Return the LEC program (and the CEC program where the directions differ) and the machine data to set."""
+    ax = machine_axis or f"AX{'XYZAB'.index(table.axis) + 1}"
+    n = int(table.positions.size)
+    reversal = table.reverse - table.forward
+    notes: list[str] = ["load with MD32700 (and MD32710) at 0, then set them and power on again"]
+    if ctl.name == "808d":
+        r = float(np.mean(reversal))
+        spread = float(np.abs(reversal - r).max())
+        if spread > REVERSAL_SPREAD:
+            raise ValidationError(
+                f"808d: the reversal varies by {spread * 1e3:.2f} um along the axis; the 808D has no "
+                "direction-dependent table (use 828d or 840d-sl)"
+            )
+        files = {"": _lec(table, ax, table.forward, "positive direction")}
+        backlash = {
+            f"MD32700 $MA_ENC_COMP_ENABLE[0,{ax}]": 1,
+            f"MD32450 $MA_BACKLASH[0,{ax}]": round(r, DECIMALS),
+        }
+        return Export(ctl.name, files, backlash, tuple(notes))
+    mean = (table.forward + table.reverse) / 2.0
+    files = {"": _lec(table, ax, mean, "the mean of both directions")}
+    settings: dict[str, object] = {f"MD32700 $MA_ENC_COMP_ENABLE[0,{ax}]": 1}
+    if ctl.name == "840d-sl":
+        settings[f"MD38000 $MA_MM_ENC_COMP_MAX_POINTS[0,{ax}]"] = n
+    if np.abs(reversal).max() > 1e-9:
+        files["_CEC"] = _cec(table, ax, [(table.forward - mean, 1), (table.reverse - mean, -1)], first_table)
+        settings[f"MD32710 $MA_CEC_ENABLE[{ax}]"] = 1
+        for t in (first_table, first_table + 1):
+            if ctl.name == "840d-sl":
+                settings[f"MD18342 $MN_MM_CEC_MAX_POINTS[{t}]"] = n
+            settings[f"SD41300 $SN_CEC_TABLE_ENABLE[{t}]"] = 1
+    else:
+        notes.append("the directions do not differ: no CEC table")
+    return Export(ctl.name, files, settings, tuple(notes))

@@ -207,9 +207,10 @@ class LineServer(ABC):
         self.close()
 
     def inject(self, *faults: str, on: str = "") -> None:
-        """Queue faults for the next replies (to commands starting with ``on``): ``"timeout"`` or ``"garble"``."""
+        """Queue faults for the next replies (to commands starting with ``on``): ``"timeout"``, ``"garble"``, or
+        ``"drop"`` (the connection is closed instead of the reply, after the command took effect)."""
         for f in faults:
-            if f not in ("timeout", "garble"):
+            if f not in ("timeout", "garble", "drop"):
                 raise ValueError(f"unknown fault {f!r}")
             self._faults.append((f, on))
 
@@ -219,6 +220,18 @@ class LineServer(ABC):
                 del self._faults[i]
                 return kind
         return None
+
+    def on_connect(self) -> None:
+        """Reset per-session state when a client connects (servers whose sessions have state override it)."""
+        return None
+
+    def drop(self) -> None:
+        """Close every open connection at once (a cable pulled): the next read of the driver fails."""
+        for c in list(self._conns):
+            try:
+                c.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
 
     @abstractmethod
     def handle(self, line: str) -> str | None:
@@ -237,6 +250,8 @@ class LineServer(ABC):
                 log.exception("%s: handling %r failed", self.name, text)
                 reply = f"ERR INTERNAL {type(exc).__name__}"
             fault = self._take_fault(text)
+        if fault == "drop":
+            return b""
         if reply is None or fault == "timeout":
             return None
         if fault == "garble":
@@ -252,6 +267,8 @@ class LineServer(ABC):
             except OSError:
                 break
             conn.settimeout(0.05)
+            with self._lock:
+                self.on_connect()
             self._conns.append(conn)
             t = threading.Thread(target=self._serve, args=(conn,), name=f"sim-{self.name}-conn", daemon=True)
             t.start()
@@ -273,6 +290,12 @@ class LineServer(ABC):
                 while b"\n" in buf:
                     line, buf = buf.split(b"\n", 1)
                     reply = self._reply(line)
+                    if reply == b"":  # a dropped connection
+                        try:
+                            conn.shutdown(socket.SHUT_RDWR)
+                        except OSError:
+                            pass
+                        return
                     if reply is not None:
                         try:
                             conn.sendall(reply)

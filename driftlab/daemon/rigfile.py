@@ -1,0 +1,475 @@
+"""Rig files: which instrument plays each role of a machine, where it is and how it is wired; open and check them.
+
+A rig file (YAML, ``examples/rigs/``) names one instrument per role::
+
+    name: shop-34970a-linuxcnc
+    visa_library: "@py"                 # optional: @py, @ivi, FILE.yaml@sim (relative to the rig file)
+    instruments:
+      thermocouples:                    # role
+        driver: keysight-34970a         # DRIVERS below
+        resource: GPIB0::9::INSTR       # VISA resource, serial URL or host:port; "sim": the virtual machine's
+        options: {tc_type: E, reference_junction: INT, channels: {101: T1, 102: T2}}
+      machine:
+        driver: linuxcnc
+        resource: cnc-host:5007
+
+Plans keep the stages; rigs say what hardware (``driftlab daemon --plan P --rig R``), and
+``driftlab rig check R`` connects to every instrument, identifies it and reads it once. A role
+whose resource is ``sim`` (or every role, with ``--sim SCENARIO``) is answered by the virtual
+machine's simulated instrument for that driver, speaking the same command set.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ValidationError as PydanticError
+
+from driftlab.errors import DriftlabError, ValidationError
+
+ROLES = ("thermocouples", "proximity", "laser", "machine")
+
+#: driver name -> (role, what it drives and over what)
+DRIVERS: dict[str, tuple[str, str]] = {
+    "keysight-34970a": (
+        "thermocouples",
+        "Keysight/Agilent 34970A, 34972A, DAQ970A thermocouple channels, SCPI over VISA",
+    ),
+    "keysight-34970a-dcv": ("proximity", "DC-volt channels of a 34970A family mainframe, SCPI over VISA"),
+    "linuxcnc": ("machine", "LinuxCNC through linuxcncrsh, TCP (host:port, default port 5007)"),
+    "thesis-tc-card": ("thermocouples", "legacy: the thesis' DAS-TC card protocol (driftlab's own, CJC?/SCAN?/FETC?)"),
+    "thesis-laser": ("laser", "legacy: the thesis' HP-IB laser processor protocol (driftlab's own, MODE/MEAS?)"),
+    "thesis-ad-card": ("proximity", "legacy: the thesis' DT2801 A/D card protocol (driftlab's own, VOLT?)"),
+    "thesis-rs232": ("machine", "legacy: the thesis' RS-232 block-streaming link (driftlab's own, STAT?/BLK/POS?)"),
+}
+SIM = "sim"
+
+
+class InstrumentSpec(BaseModel):
+    """One role's instrument: driver, where it is, its options."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    driver: str
+    resource: str = Field(min_length=1)
+    timeout_s: float = Field(default=5.0, gt=0)
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class RigSpec(BaseModel):
+    """A rig file: a name, the VISA library, and the instrument of each role."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1)
+    description: str = ""
+    visa_library: str | None = None
+    instruments: dict[str, InstrumentSpec]
+
+    def role(self, role: str) -> InstrumentSpec | None:
+        """Return the instrument playing ``role`` (None if the rig has none)."""
+        return self.instruments.get(role)
+
+
+def parse_rig(doc: Any, where: str = "rig", base: Path | None = None) -> RigSpec:
+    """Return a checked rig from a parsed YAML document; ValidationError (one line) otherwise."""
+    if not isinstance(doc, dict):
+        raise ValidationError(f"{where}: a rig file is a mapping with name and instruments")
+    try:
+        rig = RigSpec.model_validate(doc)
+    except PydanticError as exc:
+        first = exc.errors()[0]
+        loc = ".".join(str(p) for p in first["loc"])
+        raise ValidationError(f"{where}: {loc}: {first['msg']}") from None
+    for role, spec in rig.instruments.items():
+        if role not in ROLES:
+            raise ValidationError(f"{where}: instruments.{role}: unknown role (roles: {', '.join(ROLES)})")
+        if spec.driver not in DRIVERS:
+            raise ValidationError(
+                f"{where}: instruments.{role}.driver {spec.driver!r} is not one of {', '.join(DRIVERS)}"
+            )
+        if DRIVERS[spec.driver][0] != role:
+            raise ValidationError(
+                f"{where}: instruments.{role}: driver {spec.driver} plays the {DRIVERS[spec.driver][0]} role"
+            )
+    lib = rig.visa_library
+    if lib and base is not None and lib.endswith("@sim") and not Path(lib[:-4]).is_absolute():
+        rig = rig.model_copy(update={"visa_library": f"{base / lib[:-4]}@sim"})
+    return rig
+
+
+def load_rig(path: Path | str) -> RigSpec:
+    """Return the rig of a YAML file; ValidationError (one line) for a missing or malformed file."""
+    import yaml
+
+    p = Path(path)
+    try:
+        doc = yaml.safe_load(p.read_text())
+    except FileNotFoundError:
+        raise ValidationError(f"rig file {p}: no such file") from None
+    except yaml.YAMLError as exc:
+        raise ValidationError(f"rig file {p}: not YAML ({' '.join(str(exc).split())[:80]})") from None
+    return parse_rig(doc, f"rig {p.name}", p.parent)
+
+
+# ----------------------------------------------------------------------------------- options
+
+
+def _channel_map(role: str, options: Mapping[str, Any]) -> dict[int, str]:
+    raw = options.get("channels")
+    if not isinstance(raw, dict) or not raw:
+        raise ValidationError(f"instruments.{role}.options.channels: a mapping of channel number to name")
+    try:
+        return {int(k): str(v) for k, v in raw.items()}
+    except (TypeError, ValueError):
+        raise ValidationError(f"instruments.{role}.options.channels: keys are channel numbers") from None
+
+
+def _calibrations(role: str, options: Mapping[str, Any]) -> dict[str, Any]:
+    from driftlab.daq.thermocouple import ChannelCalibration
+
+    out = {}
+    for name, cal in (options.get("calibrations") or {}).items():
+        try:
+            out[str(name)] = ChannelCalibration(float(cal.get("slope", 1.0)), float(cal.get("offset_c", 0.0)))
+        except (AttributeError, TypeError, ValueError):
+            raise ValidationError(f"instruments.{role}.options.calibrations.{name}: slope and offset_c") from None
+    return out
+
+
+def _unknown(role: str, options: Mapping[str, Any], allowed: set[str]) -> None:
+    extra = sorted(set(options) - allowed)
+    if extra:
+        raise ValidationError(
+            f"instruments.{role}.options: unknown option {extra[0]!r} (takes {', '.join(sorted(allowed))})"
+        )
+
+
+def thermocouple_channels(rig: RigSpec) -> list[str]:
+    """Return the thermocouple channel names the rig wires, in scan order."""
+    spec = rig.role("thermocouples")
+    if spec is None:
+        return []
+    cmap = _channel_map("thermocouples", spec.options)
+    return [cmap[c] for c in sorted(cmap)]
+
+
+# ----------------------------------------------------------------------------------- opening
+
+
+@dataclass
+class OpenRig:
+    """The opened instruments of a rig by role, and how to close them (and any simulated servers)."""
+
+    instruments: dict[str, Any] = field(default_factory=dict)
+    servers: dict[str, Any] = field(default_factory=dict)
+    closers: list[Callable[[], None]] = field(default_factory=list)
+
+    def close(self) -> None:
+        """Close every instrument, then stop the simulated servers."""
+        for close in reversed(self.closers):
+            try:
+                close()
+            except Exception:  # noqa: BLE001 - closing must not mask the outcome
+                pass
+        self.closers.clear()
+
+
+def open_instrument(
+    role: str, spec: InstrumentSpec, rm_factory: Callable[[], Any], clock: Callable[[], float], fast: bool = False
+) -> tuple[Any, Callable[[], None]]:
+    """Return (driver, close) of one role's instrument, identified and configured; InstrumentError if unreachable."""
+    from driftlab.daq.retry import RetryPolicy
+    from driftlab.daq.transport import LineChannel, VisaPort, open_port
+
+    o = dict(spec.options)
+    policy = RetryPolicy(attempts=3, base_delay_s=0.0) if fast else None
+    nowait: dict[str, Any] = {"sleep": lambda _s: None} if fast else {}
+
+    def port() -> Any:
+        if "::" in spec.resource:
+            return VisaPort.open(spec.resource, timeout_s=spec.timeout_s, resource_manager=rm_factory())
+        return open_port(spec.resource, spec.timeout_s)
+
+    if spec.driver == "keysight-34970a":
+        from driftlab.daq.keysight34970a import Keysight34970A
+
+        _unknown(
+            role, o, {"channels", "tc_type", "reference_junction", "fixed_junction_c", "open_check", "calibrations"}
+        )
+        card = Keysight34970A(
+            LineChannel(port(), "34970A", policy, **nowait),
+            _channel_map(role, o),
+            tc_type=str(o.get("tc_type", "E")),
+            reference_junction=str(o.get("reference_junction", "INT")),
+            fixed_junction_c=o.get("fixed_junction_c"),
+            open_check=bool(o.get("open_check", True)),
+            calibrations=_calibrations(role, o),
+            clock=clock,
+        )
+        try:
+            card.identify()
+            card.configure()
+        except BaseException:
+            card.close()
+            raise
+        return card, card.close
+    if spec.driver == "keysight-34970a-dcv":
+        from driftlab.daq.keysight34970a import Keysight34970AVolts
+
+        _unknown(role, o, {"channels", "range_v"})
+        chans = o.get("channels")
+        if not isinstance(chans, list) or not chans:
+            raise ValidationError(f"instruments.{role}.options.channels: a list of channel numbers")
+        adc = Keysight34970AVolts(
+            LineChannel(port(), "34970A volts", policy, **nowait), chans, float(o.get("range_v", 10.0))
+        )
+        try:
+            adc.identify()
+            adc.configure()
+        except BaseException:
+            adc.close()
+            raise
+        return adc, adc.close
+    if spec.driver == "linuxcnc":
+        from driftlab.daq.linuxcnc import LinuxCNCLink
+
+        _unknown(role, o, {"password", "enable_password", "client", "poll_s"})
+        link = LinuxCNCLink.open(
+            spec.resource,
+            timeout_s=spec.timeout_s,
+            password=str(o.get("password", "EMC")),
+            enable_password=str(o.get("enable_password", "EMCTOO")),
+            client=str(o.get("client", "driftlab")),
+            poll_s=float(o.get("poll_s", 0.2)),
+            **({"sleep": lambda _s: None, "max_idle_polls": 2} if fast else {}),
+        )
+        return link, link.close
+    if spec.driver == "thesis-tc-card":
+        from driftlab.daq.thermocouple import ThermocoupleCard
+
+        _unknown(role, o, {"channels", "tc_type", "calibrations"})
+        io = LineChannel(port(), "thermocouple card", policy, **nowait)
+        tc = ThermocoupleCard(
+            io, _channel_map(role, o), _calibrations(role, o), clock=clock, tc_type=str(o.get("tc_type", "E"))
+        )
+        return tc, tc.close
+    if spec.driver == "thesis-laser":
+        from driftlab.daq.laser import LaserInterferometer
+
+        _unknown(role, o, set())
+        io = LineChannel(port(), "laser", policy, **nowait)
+        laser = (
+            LaserInterferometer(io, sleep=lambda _s: None, max_settle_polls=20, burst=True)
+            if fast
+            else LaserInterferometer(io)
+        )
+        return laser, laser.close
+    if spec.driver == "thesis-ad-card":
+        from driftlab.daq.proximity import ADCard
+
+        _unknown(role, o, {"n_channels"})
+        ad = ADCard(LineChannel(port(), "A/D card", policy, **nowait), int(o.get("n_channels", 16)))
+        return ad, ad.close
+    if spec.driver == "thesis-rs232":
+        from driftlab.daq.machine_link import SerialMachineLink
+
+        _unknown(role, o, set())
+        link2 = (
+            SerialMachineLink.open(spec.resource, timeout_s=spec.timeout_s, sleep=lambda _s: None, max_idle_polls=2)
+            if fast
+            else SerialMachineLink.open(spec.resource, timeout_s=spec.timeout_s)
+        )
+        return link2, link2.close
+    raise ValidationError(f"driver {spec.driver!r} has no opener")  # pragma: no cover - parse_rig refuses it
+
+
+def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> tuple[RigSpec, dict[str, Any]]:
+    """Start the virtual machine's instrument for each of ``roles`` and return the rig pointing at them."""
+    from driftlab.daq.sim.instruments import SimADCard, SimLaser, SimThermocoupleCard, serial_url, visa_address
+    from driftlab.daq.sim.keysight34970a import Sim34970A
+    from driftlab.daq.sim.linuxcnc import SimLinuxCNC
+
+    servers: dict[str, Any] = {}
+    specs = dict(rig.instruments)
+    try:
+        if "machine" in roles:
+            m = specs["machine"]
+            ctrl: Any = (SimLinuxCNC(world, clock) if m.driver == "linuxcnc" else _sim_controller(world, clock)).start()
+            servers["machine"] = ctrl
+            specs["machine"] = m.model_copy(update={"resource": serial_url(ctrl)})
+        for role in roles:
+            spec = specs[role]
+            if role == "thermocouples":
+                cmap = _channel_map(role, spec.options)
+                if spec.driver == "keysight-34970a":
+                    srv: Any = Sim34970A(world, clock, cmap)
+                else:
+                    srv = SimThermocoupleCard(world, clock, cmap)
+            elif role == "proximity":
+                srv = Sim34970A(world, clock) if spec.driver == "keysight-34970a-dcv" else SimADCard(clock)
+            elif role == "laser":
+                stage = servers.get("machine")
+                if stage is None:
+                    from driftlab.daq.sim.instruments import FixedStage
+
+                    stage = FixedStage()
+                srv = SimLaser(world, clock, stage)
+            else:
+                continue
+            servers[role] = srv.start()
+            specs[role] = spec.model_copy(update={"resource": visa_address(srv)})
+    except BaseException:
+        for s in servers.values():
+            s.close()
+        raise
+    return rig.model_copy(update={"instruments": specs, "visa_library": "@py"}), servers
+
+
+def _sim_controller(world: Any, clock: Any) -> Any:
+    from driftlab.daq.sim.instruments import SimController
+
+    return SimController(world, clock)
+
+
+def open_rig(
+    rig: RigSpec,
+    clock: Callable[[], float],
+    roles: list[str] | None = None,
+    world: Any | None = None,
+    sim_clock: Any | None = None,
+    simulate_all: bool = False,
+    fast: bool = False,
+) -> OpenRig:
+    """Open the rig's instruments (``roles``, default all), starting simulated ones where asked or named ``sim``."""
+    from driftlab.daq.transport import visa_resource_manager
+
+    wanted = [r for r in ROLES if r in rig.instruments and (roles is None or r in roles)]
+    sim_roles = [r for r in wanted if simulate_all or rig.instruments[r].resource == SIM]
+    opened = OpenRig()
+    if sim_roles:
+        if world is None or sim_clock is None:
+            raise ValidationError(
+                f"rig {rig.name}: roles {', '.join(sim_roles)} are simulated: give a scenario (--sim)"
+            )
+        rig, servers = start_simulated(rig, world, sim_clock, sim_roles)
+        opened.servers.update(servers)
+        opened.closers.extend(s.close for s in servers.values())
+    managers: list[Any] = []
+
+    def rm_factory() -> Any:
+        if not managers:
+            managers.append(visa_resource_manager(rig.visa_library))
+            opened.closers.append(managers[0].close)
+        return managers[0]
+
+    try:
+        for role in wanted:
+            driver, close = open_instrument(
+                role, rig.instruments[role], rm_factory, clock, fast=fast or role in sim_roles
+            )
+            opened.instruments[role] = driver
+            opened.closers.append(close)
+    except BaseException:
+        opened.close()
+        raise
+    return opened
+
+
+# ----------------------------------------------------------------------------------- checking
+
+
+@dataclass
+class RoleCheck:
+    """What ``rig check`` found for one role."""
+
+    role: str
+    driver: str
+    resource: str
+    idn: str | None = None
+    reading: dict[str, Any] = field(default_factory=dict)
+    error: str | None = None
+
+    def as_json(self) -> dict[str, Any]:
+        """Return the check as the ``rig check --json`` entry (NaN readings as null)."""
+        from driftlab.jsonsafe import finite_or_none
+
+        out: dict[str, Any] = {
+            "role": self.role,
+            "driver": self.driver,
+            "resource": self.resource,
+            "idn": self.idn,
+            "reading": {k: finite_or_none(v) if isinstance(v, float) else v for k, v in self.reading.items()},
+        }
+        if self.error is not None:
+            out["error"] = self.error
+        return out
+
+
+def read_once(role: str, driver: Any) -> tuple[str | None, dict[str, Any]]:
+    """Return (identification, one reading by name) of an opened instrument."""
+    if role == "thermocouples":
+        idn = getattr(driver, "idn", None) or _idn(driver)
+        scan = driver.scan()
+        return idn, dict(scan.values)
+    if role == "proximity":
+        idn = getattr(driver, "idn", None) or _idn(driver)
+        n = int(getattr(driver, "n_channels", 1))
+        volts = driver.read_volts(list(range(n)))
+        return idn, {f"ch{i}_v": float(v) for i, v in enumerate(volts)}
+    if role == "machine":
+        idn = driver.identify() if hasattr(driver, "identify") else "thesis RS-232 link"
+        return idn, {k: float(v) for k, v in driver.position().items()}
+    if role == "laser":
+        idn = driver.identify()
+        env = driver.environment()
+        return idn, {
+            "air_c": float(env.t_c),
+            "pressure_pa": float(env.pressure_pa),
+            "rh_percent": float(env.rh_percent),
+        }
+    raise ValidationError(f"no reading for role {role}")  # pragma: no cover
+
+
+def _idn(driver: Any) -> str | None:
+    ident = getattr(driver, "identify", None)
+    if callable(ident):
+        return str(ident())
+    io = getattr(driver, "_io", None)
+    if io is not None:
+        return str(io.query("*IDN?", lambda t: t))
+    return None
+
+
+def check_rig(
+    rig: RigSpec, world: Any | None = None, sim_clock: Any | None = None, simulate_all: bool = False
+) -> list[RoleCheck]:
+    """Return, for every role of the rig, what connecting, identifying and one reading gave (errors included)."""
+    import time
+
+    results: list[RoleCheck] = []
+    for role in [r for r in ROLES if r in rig.instruments]:
+        spec = rig.instruments[role]
+        check = RoleCheck(role, spec.driver, spec.resource)
+        results.append(check)
+        try:
+            opened = open_rig(rig, time.monotonic, [role], world=world, sim_clock=sim_clock, simulate_all=simulate_all)
+        except DriftlabError as exc:
+            check.error = exc.one_line()
+            continue
+        try:
+            check.idn, check.reading = read_once(role, opened.instruments[role])
+        except DriftlabError as exc:
+            check.error = exc.one_line()
+        finally:
+            opened.close()
+        if check.error is None and role == "thermocouples":
+            bad = [k for k, v in check.reading.items() if isinstance(v, float) and not math.isfinite(v)]
+            if bad:
+                check.error = f"open thermocouple{'s' if len(bad) > 1 else ''}: {', '.join(bad)}"
+    return results

@@ -1,0 +1,131 @@
+"""Thermocouples whose calibration drifts: decided on the temperatures alone (spec section 3, ``sensor_drift``).
+
+An ageing junction or a creeping mount makes a reading depart from what its structure does,
+slowly and steadily (thesis 6.4.2 and appendix B: a thermocouple's calibration is not forever).
+Seen from the errors alone, such a channel looks like a machine drift on every term whose model
+reads it; seen from the temperatures it is plain: the channel departs from its virtual sensor
+(thesis 6.6: the channel predicted from the others on its structure and the room air) along a
+ramp in time, from some moment on, while its neighbours agree with one another.
+
+``scan_sensor_drifts`` fits, per channel, the virtual sensor jointly with a hinge
+``max(t - t0, 0)`` in days for every candidate start ``t0`` (one projection for all starts),
+and keeps the start that explains most of the departure. A drift is plausible when the ramp
+explains most of the departure (RSS ratio), is large against the departure that is left, lasts
+at least a quarter of the campaign (a short ramp is a transient, not an ageing junction), and
+stands out among all channels' ratios (a peer test, as for sensor faults). The repair subtracts
+the ramp from the reading; the result has the same form as a sensor fault's scan
+(:class:`~driftlab.models.effects.FaultScan` with ``mode="drift"``) so the diagnosis repairs
+the terms that read it the same way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from driftlab.models.effects import FaultScan, _neighbours
+from driftlab.models.standard_model import PreparedBundle, robust_sigma
+
+#: the ramp must explain this share of the departure from the virtual sensor: RSS without / with it
+MIN_RATIO = 8.0
+#: ... and reach this many sigmas of what is left of the departure at the end of the campaign
+MIN_SIZE_SIGMA = 10.0
+#: ... and this much in degC (a thermocouple's stated tolerance is 0.5-1 degC; a drift below 0.05 degC
+#: over a campaign is no finding about the sensor)
+MIN_SIZE_DEGC = 0.05
+#: the ramp must last at least this share of the campaign
+MIN_SPAN_FRACTION = 0.25
+#: floor of the peers' spread of log ratios (healthy channels can agree to a few percent)
+PEER_MAD_FLOOR = 0.25
+
+
+def _hinge_bank(t: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Return the (n, k) hinges max(t - t0, 0) in days for every start ``t0``."""
+    return np.maximum(t[:, None] - starts[None, :], 0.0) / 86400.0
+
+
+def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) -> dict[str, FaultScan]:
+    """Return a :class:`FaultScan` (``mode="drift"``) per channel: the best ramp of its virtual-sensor departure.
+
+    ``start_s`` is where the ramp begins, ``strength`` the ramp's size at the end in degC,
+    ``break_ratio`` the RSS of the virtual sensor without the ramp over the RSS with it,
+    ``replaced`` the reading with the ramp removed, ``p_value`` the peer test's one-sided normal
+    p-value of the log ratio among all channels. Channels in ``exclude`` (faults already found)
+    are neither scanned nor used as neighbours.
+    """
+    exclude = exclude or set()
+    T = prep.grid_T
+    t = prep.grid_t
+    n, m = T.shape
+    if m < 3 or n < 60:
+        return {}
+    finite = np.all(np.isfinite(T), axis=0) & (np.ptp(np.nan_to_num(T), axis=0) > 0)
+    span = float(t[-1] - t[0])
+    # candidate starts every ~1/48 of the campaign, up to where a quarter of it is left
+    starts = np.linspace(t[0], t[0] + (1.0 - MIN_SPAN_FRACTION) * span, 37)
+    H = _hinge_bank(t, starts)
+    D = T - T[0]
+    with np.errstate(all="ignore"):
+        corr = np.nan_to_num(np.corrcoef(np.where(finite, D, 0.0).T))
+    ex_idx = {prep.channel_index(c) for c in exclude if c in prep.channels}
+    out: dict[str, FaultScan] = {}
+    for j in range(m):
+        if not finite[j] or j in ex_idx:
+            continue
+        order = [k for k in np.argsort(-np.abs(corr[j])) if k != j and finite[k] and k not in ex_idx]
+        nb = _neighbours(prep, j, order, 16)
+        if not nb:
+            continue
+        A = np.column_stack([np.ones(n), D[:, nb]])
+        s = np.sqrt(np.mean(A * A, axis=0))
+        Q, R = np.linalg.qr(A / np.where(s > 0, s, 1.0))
+        keep = np.abs(np.diag(R)) > 1e-10 * np.abs(np.diag(R)).max()
+        Q = Q[:, keep]
+        y = D[:, j]
+        ry = y - Q @ (Q.T @ y)
+        rss0 = float(ry @ ry)
+        RH = H - Q @ (Q.T @ H)
+        nh = np.sum(RH * RH, axis=0)
+        ok = nh > 1e-12
+        drops = np.where(ok, (RH.T @ ry) ** 2 / np.where(ok, nh, 1.0), -1.0)
+        i = int(np.argmax(drops))
+        if drops[i] <= 0 or rss0 <= 0:
+            continue
+        b = float((RH[:, i] @ ry) / nh[i])  # degC per day: the ramp's own coefficient (FWL)
+        r1 = ry - b * RH[:, i]
+        rss1 = max(float(r1 @ r1), 1e-300)
+        ratio = rss0 / rss1
+        size = abs(b) * (t[-1] - starts[i]) / 86400.0
+        sigma = max(robust_sigma(np.diff(r1)) / np.sqrt(2.0), float(np.sqrt(rss1 / n)), 1e-6)
+        plausible = bool(ratio > MIN_RATIO and size > MIN_SIZE_SIGMA * sigma and size > MIN_SIZE_DEGC)
+        replaced = T[:, j] - b * H[:, i]
+        out[prep.channels[j]] = FaultScan(
+            prep.channels[j],
+            float(starts[i]),
+            size,
+            1.0,
+            "drift",
+            1.0,
+            replaced,
+            plausible,
+            [prep.channels[k] for k in nb],
+            ratio,
+            float("nan"),
+            float("nan"),
+            rate_degC_per_day=b,
+        )
+    _peer_test(out)
+    return out
+
+
+def _peer_test(scans: dict[str, FaultScan]) -> None:
+    """Set every scan's p-value: the one-sided normal p of its log ratio's robust z among all channels."""
+    ratios = np.array([f.break_ratio for f in scans.values() if np.isfinite(f.break_ratio) and f.break_ratio > 0])
+    if ratios.size < 5:
+        return
+    logs = np.log(ratios)
+    med = float(np.median(logs))
+    mad = max(1.4826 * float(np.median(np.abs(logs - med))), PEER_MAD_FLOOR)
+    for f in scans.values():
+        z = (np.log(max(f.break_ratio, 1e-300)) - med) / mad
+        f.p_value = float(stats.norm.sf(z))
