@@ -48,6 +48,8 @@ STALLED_AFTER_S = 30.0
 #: how long a worker keeps trying to get its database back before it exits with status 1
 RECONNECT_S = 300.0
 RECONNECT_MAX_DELAY_S = 15.0
+#: longest wait for a connection of the queue's pool (procrastinate's own writes; jobs use the store's engine)
+POOL_TIMEOUT_S = 10.0
 PARTITIONS_TASK = "driftlab.partitions"
 #: daily; with partitions made two months ahead, a month of workers down still finds them there
 PARTITIONS_CRON = "41 3 * * *"
@@ -136,7 +138,13 @@ def build_app(url: str, *, pool_size: int = 4, refit_cron: str | None = None) ->
     """Return a procrastinate App over the store's database with driftlab's tasks (not opened)."""
     from driftlab.config import get_settings
 
-    app = App(connector=PsycopgConnector(conninfo=conninfo(url), min_size=1, max_size=max(2, pool_size)))
+    # a connection the pool cannot give within POOL_TIMEOUT_S means the database is away: the worker
+    # then stops and reconnects (run_worker) instead of waiting 30 s per pending write
+    app = App(
+        connector=PsycopgConnector(
+            conninfo=conninfo(url), min_size=1, max_size=max(2, pool_size), timeout=POOL_TIMEOUT_S
+        )
+    )
     retry = policy.RetryPolicy()
     for name in TASKS.values():
         app.task(name=name, queue=policy.QUEUE, pass_context=True, retry=retry, priority=policy.PRIORITY_INTERACTIVE)(
