@@ -62,10 +62,11 @@ def test_the_import_scan_sees_local_and_from_imports(tmp_path, source, expected)
     assert expected in imported_modules(p)
 
 
-#: the pure bottom of the package (docs/architecture.md): physics and the shared words
+#: the pure bottom of the package (docs/architecture.md): physics, the shared words and their units for people
 BASE = {
     "driftlab.physics",
     "driftlab.vocabulary",
+    "driftlab.labels",
     "driftlab.readings",
     "driftlab.jsonsafe",
     "driftlab.metrics",

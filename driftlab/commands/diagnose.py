@@ -89,25 +89,24 @@ def print_findings(doc: dict) -> None:
             "held out)",
             title_justify="left",
         )
-        widest = max(len(effect_label(e)) for e in effects)
+        # narrow enough for an 80-column terminal: the effect wraps, the figures and the verdict
+        # ("12 % worse") never do; each finding's cause follows the table as a numbered line
         for col, just in (
             ("#", "right"),
             ("effect", "left"),
             ("on", "left"),
-            ("cause", "left"),
             ("held out before", "right"),
             ("after", "right"),
             ("gain", "right"),
-            ("p", "right"),
         ):
-            # the effect's name stays on one line; the cause wraps
             t.add_column(
                 col,
                 justify=just,  # type: ignore[arg-type]  # rich types it as a Literal; ours are its values
                 overflow="fold",
-                no_wrap=col in ("gain", "held out before", "after", "p"),
-                min_width=min(widest, 30) if col == "effect" else None,
+                no_wrap=col in ("gain", "held out before", "after"),
+                min_width=len("100 % better") if col == "gain" else 16 if col == "effect" else None,
             )
+        causes = []
         for i, e in enumerate(effects, 1):
             k, unit = display_unit(str(e.get("term")))
             b, a = e.get("rmse_holdout_before"), e.get("rmse_holdout_after")
@@ -125,13 +124,15 @@ def print_findings(doc: dict) -> None:
                 str(i),
                 effect_label(e),
                 where,
-                str(e.get("cause") or ""),
                 f"{b * k:.2f} {unit}" if b is not None else "-",
                 f"{a * k:.2f} {unit}" if a is not None else "-",
                 gain,
-                f"{e['p_value']:.2g}" if e.get("p_value") is not None else "-",
             )
+            p = f" (p = {e['p_value']:.2g})" if e.get("p_value") is not None else ""
+            causes.append(f"{i}. {e.get('cause') or '-'}{p}")
         con.print(t)
+        for line in causes:
+            con.print(line, markup=False)
     else:
         con.print("No effect of the catalogue is supported by the data: the standard model stands.")
     base = doc.get("baseline", [])
