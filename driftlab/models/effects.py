@@ -26,6 +26,7 @@ statistics of the candidates that pass.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -809,17 +810,15 @@ def step_bank(td: TermData) -> tuple[np.ndarray, np.ndarray] | None:
     return cand, bank
 
 
-def refine_source_tau(ctx: TermContext, name: str, i_best: int, X: np.ndarray) -> tuple[float, np.ndarray]:
-    """Return the tau (s) minimising the training RSS of ``X`` + lag(source schedule, tau), and its column."""
-    td, prep = ctx.td, ctx.prep
-    taus, _, sched = ctx.sources[name]
-    dt = float(prep.grid_t[1] - prep.grid_t[0])
-    tr = td.train
+def _search_tau(
+    td: TermData, X: np.ndarray, taus: np.ndarray, i_best: int, column: Callable[[float], np.ndarray]
+) -> tuple[float, np.ndarray]:
+    """Return the tau (s) minimising the training RSS of ``X`` + ``column(log tau)``, and its columns.
 
-    def column(log_tau: float) -> np.ndarray:
-        g = first_order_lag_even(sched, dt, float(np.exp(log_tau)))
-        at = np.interp(td.t, prep.grid_t, g)
-        return (at - at[0])[:, None]
+    A bounded 1-D search (scipy) on log tau between the grid neighbours of the best grid point,
+    kept only where it beats that grid point.
+    """
+    tr = td.train
 
     def rss(log_tau: float) -> float:
         A = np.column_stack([X, column(log_tau)])
@@ -834,6 +833,20 @@ def refine_source_tau(ctx: TermContext, name: str, i_best: int, X: np.ndarray) -
     res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
     best = float(res.x) if rss(float(res.x)) <= rss(np.log(taus[i_best])) else float(np.log(taus[i_best]))
     return float(np.exp(best)), column(best)
+
+
+def refine_source_tau(ctx: TermContext, name: str, i_best: int, X: np.ndarray) -> tuple[float, np.ndarray]:
+    """Return the tau (s) minimising the training RSS of ``X`` + lag(source schedule, tau), and its column."""
+    td, prep = ctx.td, ctx.prep
+    taus, _, sched = ctx.sources[name]
+    dt = float(prep.grid_t[1] - prep.grid_t[0])
+
+    def column(log_tau: float) -> np.ndarray:
+        g = first_order_lag_even(sched, dt, float(np.exp(log_tau)))
+        at = np.interp(td.t, prep.grid_t, g)
+        return (at - at[0])[:, None]
+
+    return _search_tau(td, X, taus, i_best, column)
 
 
 def refine_tau(
@@ -852,7 +865,6 @@ def refine_tau(
     j = prep.channel_index(channel)
     dt = float(prep.grid_t[1] - prep.grid_t[0])
     x = prep.grid_T[:, j]
-    tr = td.train
 
     def column(log_tau: float) -> np.ndarray:
         tau = float(np.exp(log_tau))
@@ -862,19 +874,7 @@ def refine_tau(
 
     base = X if extra is None else np.column_stack([X, extra])  # ``extra`` enters every fit of the search
 
-    def rss(log_tau: float) -> float:
-        A = np.column_stack([base, column(log_tau)])
-        b = lstsq(A[tr], td.y[tr])
-        r = td.y[tr] - A[tr] @ b
-        return float(r @ r)
-
-    lo = np.log(taus[max(i_best - 1, 0)])
-    hi = np.log(taus[min(i_best + 1, taus.size - 1)])
-    if hi <= lo:
-        return float(taus[i_best]), column(np.log(taus[i_best]))
-    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
-    best = float(res.x) if rss(float(res.x)) <= rss(np.log(taus[i_best])) else float(np.log(taus[i_best]))
-    return float(np.exp(best)), column(best)
+    return _search_tau(td, base, taus, i_best, column)
 
 
 def lag_columns(ctx: TermContext, channel: str, tau_s: float) -> np.ndarray:
