@@ -89,6 +89,8 @@ def print_findings(doc: dict) -> None:
             "held out)",
             title_justify="left",
         )
+        # the effect's name on one line where the terminal is wide enough, wrapped on a narrow one
+        effect_width = min(max(len(effect_label(e)) for e in effects), 30) if con.width >= 100 else 16
         # narrow enough for an 80-column terminal: the effect wraps, the figures and the verdict
         # ("12 % worse") never do; each finding's cause follows the table as a numbered line
         for col, just in (
@@ -104,7 +106,7 @@ def print_findings(doc: dict) -> None:
                 justify=just,  # type: ignore[arg-type]  # rich types it as a Literal; ours are its values
                 overflow="fold",
                 no_wrap=col in ("gain", "held out before", "after"),
-                min_width=len("100 % better") if col == "gain" else 16 if col == "effect" else None,
+                min_width=len("100 % better") if col == "gain" else effect_width if col == "effect" else None,
             )
         causes = []
         for i, e in enumerate(effects, 1):

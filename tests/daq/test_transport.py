@@ -45,6 +45,7 @@ class _Server:
         self.port = self.sock.getsockname()[1]
         self.chunks = chunks
         self.close = close
+        self.sent = threading.Event()  # every chunk handed to the socket
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
@@ -53,6 +54,7 @@ class _Server:
         for pause, data in self.chunks:
             time.sleep(pause)
             conn.sendall(data)
+        self.sent.set()
         if self.close:
             conn.close()
         else:
@@ -73,6 +75,7 @@ def test_serial_lines_arrive_whole_from_pieces_and_batches():
 def test_serial_timeout_names_the_partial_line_and_a_closed_peer_is_reported():
     server = _Server([(0.0, b"12.5,")])
     port = SerialPort.open(f"socket://127.0.0.1:{server.port}", timeout_s=0.2)
+    assert server.sent.wait(10.0)  # the partial line is there before the 0.2 s wait starts, however loaded the host
     with pytest.raises(TransportTimeout, match=r"timeout waiting for reply \(partial b'12.5,'\)"):
         port.read_line()
     port.close()
