@@ -27,7 +27,8 @@ def lag_bundle(tmp_path_factory) -> Path:
     return write_bundle(tmp_path_factory.mktemp("bundles") / "lag-z", b.meta, b.temperatures, b.conditions, b.errors)
 
 
-def test_diagnosis_page_reads_as_words(lag_bundle: Path, tmp_path: Path, capsys) -> None:
+def test_diagnosis_page_reads_as_words(lag_bundle: Path, tmp_path: Path, capsys, monkeypatch) -> None:
+    monkeypatch.setenv("COLUMNS", "120")  # a wide terminal keeps each effect's name on one line (80: it wraps)
     js, page = tmp_path / "r.json", tmp_path / "r.html"
     assert main(["diagnose", str(lag_bundle), "--json", str(js), "--html", str(page)]) == 0
     out = capsys.readouterr().out
