@@ -34,6 +34,7 @@ def test_demo_writes_its_reports(demo_out: Path) -> None:
         assert (demo_out / name).is_file(), name
     page = (demo_out / "demo-report.html").read_text()
     assert "Cutting test" in page and "data:image/png;base64," in page and 'href="diagnosis.html"' in page
+    assert "off-line model predicted RMSE" in page and "of the CMM points inside their interval" in page
 
 
 def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
@@ -56,6 +57,10 @@ def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
     assert worn["uncompensated_mm"] > thermal["uncompensated_mm"]
     assert worn["offline_mm"] > 2 * worn["online_mm"]
     assert worn["online_mm"] == rep["online"]["rmse_mm"]  # the top-level table is the thermal+wear case
+    # beside each measured off-line cut, the model's own predicted spread of it (issue 21.4)
+    for c in (thermal, worn):
+        p = c["offline_predicted"]
+        assert p["measured_rmse_mm"] == c["offline_mm"] and p["predicted_rmse_mm"] > 0 and 0 <= p["inside"] <= 1
     # every step is the real component, in order
     names = [s["name"] for s in rep["steps"]]
     assert names == [

@@ -338,6 +338,8 @@ def _demo(args: argparse.Namespace) -> int:
                     "case": case,
                     **{f"{k}_mm": t.table()[k]["rmse_mm"] for k in rep.RUN_NAMES},
                     **{f"{k}_max_mm": t.table()[k]["max_mm"] for k in rep.RUN_NAMES},
+                    # the off-line model's own predicted spread of this cut (issue 21.4), beside the measured
+                    **({"offline_predicted": t.offline_predicted} if t.offline_predicted else {}),
                 }
                 for case, t in tests.items()
             ],
@@ -363,6 +365,9 @@ def _demo(args: argparse.Namespace) -> int:
                 f"{rep.THESIS[k]['max_mm'] * 1e3:.0f}",
             )
     console.print(t)
+    for case, ct in tests.items():
+        if ct.offline_predicted:
+            console.print(f"  {case}: {rep.interval_text(ct.offline_predicted)}")
     named = ", ".join(diagnosis["named"]) or "nothing"
     console.print(f"diagnosis names: [bold]{named}[/]")
     console.print(
@@ -445,5 +450,8 @@ def _cutting_test(
         test = run_cutting_test(
             scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0, on_run=done, epoch_s=epoch
         )
+    from driftlab.compensator.cutting_test import offline_interval
+
+    test.offline_predicted = offline_interval(document, test.runs["offline"], epoch_s=epoch)
     info["loads_per_source"] = [src.reloads for src in sources]  # 1 each: every later poll was a 304
     return test, info

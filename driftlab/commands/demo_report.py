@@ -140,6 +140,25 @@ def verdict(run: str, rmse_mm: float, uncompensated_mm: float) -> str:
     return f"removes {ours:.0%} of the error, {word} ({theirs:.0%})"
 
 
+def interval_text(p: dict[str, Any]) -> str:
+    """Return the off-line model's predicted interval of a cut beside the measured figure, in words (µm)."""
+    from driftlab.labels import UM
+
+    return (
+        f"off-line model predicted RMSE {p['predicted_rmse_mm'] * 1e3:.1f} {UM} "
+        f"({round(100 * (1 - 2 * (1 - _normal_cdf(p['z']))))}% interval +/- {p['mean_half_width_mm'] * 1e3:.1f} {UM} "
+        f"on average), measured {p['measured_rmse_mm'] * 1e3:.1f} {UM}; "
+        f"{p['inside'] * 100:.0f}% of the CMM points inside their interval"
+    )
+
+
+def _normal_cdf(z: float) -> float:
+    """Return the standard normal distribution function at z."""
+    import math
+
+    return 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))
+
+
 def _row(cells: list[str], tag: str = "td") -> str:
     """Return one HTML table row."""
     return "<tr>" + "".join(f"<{tag}>{c}</{tag}>" for c in cells) + "</tr>"
@@ -208,6 +227,11 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
     planted = report.get("planted", [])
     planted_html = "".join(f"<li>{e(_planted_text(p))}</li>" for p in planted) or "<li>nothing hidden</li>"
     ordering = "holds" if report.get("ordering_holds") else "does NOT hold"
+    intervals = "".join(
+        f"<p>{e(c['case'])}: {e(interval_text(c['offline_predicted']))}.</p>"
+        for c in cases
+        if c.get("offline_predicted")
+    )
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>driftlab demo</title>
 <style>body{{font-family:sans-serif;max-width:70em;margin:2em auto;color:#1d2430}}table{{border-collapse:collapse}}
@@ -222,6 +246,7 @@ Total wall time {e(duration(report.get("wall_s", 0)))}. Lengths in micrometres (
 with the Z slideways worn ({e(str(report.get("wear_um_per_day", "")))} {UM} a day), which no campaign saw. The maps
 below are of the thermal+wear case.</p>
 <table>{"".join(rows)}</table>
+{intervals}
 <p>Ordering uncompensated &gt; off-line &gt; off-line + on-line: <b>{ordering}</b>.</p>
 {fig}
 <h2>Diagnosis of the campaign</h2>

@@ -35,6 +35,7 @@ from driftlab.compensator.gcode import (
 )
 from driftlab.errors import ValidationError
 from driftlab.physics import kinematics
+from driftlab.physics.lag import LaggedReadings
 
 if TYPE_CHECKING:
     from driftlab.compensator.guard import Guard
@@ -66,6 +67,9 @@ class ErrorModel:
     #: the temperature range (degC) each input was fitted on, and the document's machine envelope
     ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     envelope: Envelope | None = None
+    #: the time constants (s) of the model's lagged terms (ch. 5.3): a live compensator keeps these
+    #: lags of every reading between scans (``physics.lag.LagState``) and hands them with each scan
+    lag_taus: tuple[float, ...] = ()
 
     @classmethod
     def from_document(cls, document: Mapping[str, Any] | Any, label: str | None = None) -> ErrorModel:
@@ -87,6 +91,9 @@ class ErrorModel:
             machine=doc.machine,
             ranges={c: (r.min, r.max) for c, r in doc.inputs.items()},
             envelope=doc.envelope,
+            lag_taus=tuple(
+                sorted({float(f.tau_s) for t in doc.terms for f in t.features if f.kind == "lag" and f.tau_s})
+            ),
         )
 
 
@@ -116,7 +123,7 @@ def fast_predict(doc: Any) -> Predict:
             col = AXES.index(f.label) if f.label in AXES else None
             if f.kind in axis_kinds and col is None:
                 raise ValidationError(f"{t.element}.{t.param}: feature {f.name} names no axis")
-            feats.append((f.kind, tuple(f.channels), int(f.power), col))
+            feats.append((f.kind, tuple(f.channels), int(f.power), col, float(f.tau_s or 0.0)))
             has_lag |= f.kind == "lag"
         terms.append((t.element, PARAMS.index(t.param), feats, [float(c) for c in t.coefficients]))
 
@@ -125,8 +132,10 @@ def fast_predict(doc: Any) -> Predict:
     ) -> kinematics.ElementErrors:
         """Return the (N, 6) errors of every modelled element at poses ``q`` (no term here depends on ``at``)."""
         n = q.shape[0]
+        history: Mapping[tuple[str, float], Any] = {}  # (channel, tau) -> lagged reading(s)
         if isinstance(temps, pd.DataFrame):
-            if has_lag and len(temps) > 1 and "time_s" in temps.columns:
+            history = temps.attrs.get("lagged") or {}  # the lags of a table's history (TemperatureTable.nearest)
+            if has_lag and not history and len(temps) > 1 and "time_s" in temps.columns:
                 return documents.predict_element_errors(doc, temps, q, direction)
             missing = [c for c in refs if c not in temps.columns]
             if missing:
@@ -141,6 +150,7 @@ def fast_predict(doc: Any) -> Predict:
             if missing:
                 raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
             dT = {c: float(temps[c]) - r for c, r in refs.items()}
+            history = getattr(temps, "lagged", None) or {}  # a live scan's lags (physics.lag.LaggedReadings)
         if not all(np.all(np.isfinite(v)) for v in dT.values()):
             raise ValidationError("temperatures contain missing readings: substitute virtual-sensor estimates first")
         d = None if direction is None else np.asarray(direction, dtype=float)
@@ -149,7 +159,7 @@ def fast_predict(doc: Any) -> Predict:
             const: Any = 0.0  # everything that does not vary along the path (scalars for a snapshot)
             lin: dict[int, Any] = {}  # axis -> coefficient of its coordinate
             acc: Any = 0.0  # remaining (N,) columns
-            for (kind, ch, power, col), c in zip(feats, coefs):
+            for (kind, ch, power, col, tau), c in zip(feats, coefs):
                 if kind == "intercept":
                     const = const + c
                 elif kind == "position":
@@ -161,6 +171,9 @@ def fast_predict(doc: Any) -> Predict:
                 elif kind == "direction":
                     if d is not None:
                         acc = acc + c * (d[:, col] if d.ndim == 2 else d)
+                elif kind == "lag" and (ch[0], tau) in history:  # ch. 5.3: first-order lag of the reading
+                    lag = np.asarray(history[(ch[0], tau)], dtype=float) - refs[ch[0]]
+                    const = const + c * (float(lag) if lag.ndim == 0 else lag)
                 elif kind in ("dT", "lag"):  # a snapshot carries no history: a settled lag equals dT
                     const = const + c * dT[ch[0]]
                 elif kind == "pos_dT":
@@ -396,6 +409,8 @@ class TemperatureTable:
 
     time_s: np.ndarray
     values: pd.DataFrame  # columns = channels, missing readings carried forward from the last scan
+    #: tau -> (scans, channels) first-order lags of the readings over the whole table (``lag_history``)
+    _lags: dict[float, np.ndarray] = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def read_csv(cls, path: str | Path) -> TemperatureTable:
@@ -430,14 +445,44 @@ class TemperatureTable:
         values = numeric.drop(columns=["time_s"]).ffill().reset_index(drop=True)
         return cls(time_s=t, values=values)
 
-    def latest(self, channels: tuple[str, ...] = ()) -> dict[str, float]:
-        """Return the latest reading of every channel (the last valid one where the last scan lacks it)."""
+    def lag_history(self, taus_s: tuple[float, ...]) -> dict[tuple[str, float], np.ndarray]:
+        """Return {(channel, tau): lag of its readings at every scan} over the whole table (ch. 5.3).
+
+        The lag runs from the table's first scan (settled there, ``physics.lag.first_order_lag``), so
+        a block's lagged temperature holds the history before it however the program is batched. A
+        channel's lag starts at its first valid reading.
+        """
+        from driftlab.physics.lag import first_order_lag
+
+        cols = list(self.values.columns)
+        out: dict[tuple[str, float], np.ndarray] = {}
+        for tau in taus_s:
+            if tau not in self._lags:
+                self._lags[tau] = first_order_lag(self.values.bfill().to_numpy(float), self.time_s, float(tau))
+            out.update({(c, float(tau)): self._lags[tau][:, k] for k, c in enumerate(cols)})
+        return out
+
+    def latest(self, channels: tuple[str, ...] = (), taus_s: tuple[float, ...] = ()) -> dict[str, float]:
+        """Return the latest reading of every channel (the last valid one where the last scan lacks it).
+
+        With ``taus_s`` (a model's lag time constants) the readings carry their lags at the last scan
+        (``physics.lag.LaggedReadings``).
+        """
         row = self.values.iloc[-1]
         self._require(channels, row)
-        return {c: float(v) for c, v in row.items()}
+        readings = {c: float(v) for c, v in row.items()}
+        if not taus_s:
+            return readings
+        return LaggedReadings(readings, {k: float(v[-1]) for k, v in self.lag_history(taus_s).items()})
 
-    def nearest(self, times_s: np.ndarray, channels: tuple[str, ...] = ()) -> pd.DataFrame:
-        """Return one row per time (the scan nearest to it), with ``time_s`` set to those times."""
+    def nearest(
+        self, times_s: np.ndarray, channels: tuple[str, ...] = (), taus_s: tuple[float, ...] = ()
+    ) -> pd.DataFrame:
+        """Return one row per time (the scan nearest to it), with ``time_s`` set to those times.
+
+        With ``taus_s`` the frame carries the lags of those scans over the table's history in
+        ``attrs["lagged"]`` ({(channel, tau): array}), which the model's lagged terms then take.
+        """
         t = self.time_s
         i = np.clip(np.searchsorted(t, times_s), 1, max(len(t) - 1, 1))
         if len(t) > 1:
@@ -447,6 +492,8 @@ class TemperatureTable:
         rows = self.values.iloc[i].reset_index(drop=True)
         self._require(channels, rows.iloc[-1] if len(rows) else self.values.iloc[-1])
         rows.insert(0, "time_s", np.asarray(times_s, dtype=float))
+        if taus_s:
+            rows.attrs["lagged"] = {k: v[i] for k, v in self.lag_history(taus_s).items()}
         return rows
 
     @staticmethod
@@ -517,7 +564,7 @@ def compensate_program(
         if points.n > 0 and bool(np.isfinite(times).all()):
             per_point = temperatures
         how = "nearest scan to each block's time" if per_point is not None else "latest scan"
-        fixed = None if per_point is not None else temperatures.latest(model.channels)
+        fixed = None if per_point is not None else temperatures.latest(model.channels, model.lag_taus)
     else:
         how, fixed = "given", temperatures
     sent = np.empty_like(points.nominal_int)
@@ -527,7 +574,11 @@ def compensate_program(
     prev_dir = None
     for s in range(0, points.n, chunk_points):
         sub = Points(points.block[s : s + chunk_points], points.nominal_int[s : s + chunk_points])
-        temps = per_point.nearest(times[s : s + chunk_points], model.channels) if per_point is not None else fixed
+        temps = (
+            per_point.nearest(times[s : s + chunk_points], model.channels, model.lag_taus)
+            if per_point is not None
+            else fixed
+        )
         corr = correct_points(
             program,
             sub,
@@ -715,7 +766,9 @@ class FirstPass:
         self.guard = guard
         self.model = model
         self.table = temperatures if isinstance(temperatures, TemperatureTable) else None
-        self.fixed: Temperatures = self.table.latest(model.channels) if self.table is not None else temperatures
+        self.fixed: Temperatures = (
+            self.table.latest(model.channels, model.lag_taus) if self.table is not None else temperatures
+        )
         guard.check_temperatures(self.fixed)
         self.prev_direction: np.ndarray | None = None
 
@@ -732,7 +785,7 @@ class FirstPass:
         times = piece.block_time_s()
         temps: Temperatures = self.fixed
         if self.table is not None and bool(np.isfinite(times).all()):
-            temps = self.table.nearest(times, self.model.channels)
+            temps = self.table.nearest(times, self.model.channels, self.model.lag_taus)
             self.guard.check_temperatures(temps)
         q = piece.to_q(piece.target_int)
         direction = directions(piece.target_int, piece.start_int, self.prev_direction)
@@ -854,7 +907,7 @@ def compensate_stream(
     per_point = table and scan.blocks > 0 and bool(np.isfinite(scan.first_time_s))
     if table:
         how = "nearest scan to each block's time" if per_point else "latest scan"
-        fixed = None if per_point else temperatures.latest(model.channels)  # type: ignore[union-attr]
+        fixed = None if per_point else temperatures.latest(model.channels, model.lag_taus)  # type: ignore[union-attr]
     else:
         how, fixed = "given", temperatures
     # Points are corrected in batches of ``chunk_points`` counted over the whole program, as
@@ -887,7 +940,7 @@ def compensate_stream(
         nominal, times = ([rest_nom], [rest_t]) if rest_nom.shape[0] else ([], [])
         queued -= n
         assert first_piece is not None
-        temps = temperatures.nearest(t, model.channels) if per_point else fixed  # type: ignore[union-attr]
+        temps = temperatures.nearest(t, model.channels, model.lag_taus) if per_point else fixed  # type: ignore[union-attr]
         corr = correct_points(
             first_piece,
             Points(np.zeros(n, dtype=np.int64), nom),

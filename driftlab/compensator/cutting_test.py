@@ -57,6 +57,7 @@ from driftlab.daemon.machining import ExecutedBlock, MachiningMachine, Scenario,
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
 from driftlab.physics import kinematics as kin
+from driftlab.physics.lag import LaggedReadings, LagState
 from driftlab.vocabulary import AXES
 
 log = logging.getLogger(__name__)
@@ -322,7 +323,7 @@ class LocalRLS:
         from driftlab.models.online import rls_update
 
         q = np.array([[xyz[0], xyz[1], xyz[2], 0.0, 0.0]])
-        offline = documents.predict_workspace_errors(self.doc, dict(temperatures), q)[0, 3:]
+        offline = documents.predict_workspace_errors(self.doc, temperatures, q)[0, 3:]
         phi = self._phi(temperatures)
         self.states = [rls_update(st, phi, float(measured[k] - offline[k]))[0] for k, st in enumerate(self.states)]
         self.version += 1
@@ -375,6 +376,9 @@ class OnlineModelSource:
             label=f"{off.label} + on-line ({online.version} updates)",
             channels=off.channels,
             machine=off.machine,
+            ranges=off.ranges,
+            envelope=off.envelope,
+            lag_taus=off.lag_taus,
         )
 
 
@@ -391,6 +395,9 @@ class RunResult:
     blocks: int
     probes: list[dict[str, Any]] = field(default_factory=list)
     stream: dict[str, Any] = field(default_factory=dict)
+    #: where and when the CMM points were cut, and the card's readings then (channel -> (N,) degC)
+    cmm: CmmPoints | None = None
+    readings: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def rmse_mm(self) -> float:
@@ -425,6 +432,30 @@ class CardTemperatures:
         return {c: float(v) for c, v in self.scanner.scan().values.items()}
 
 
+@dataclass(frozen=True)
+class CmmPoints:
+    """Where and when the CMM points were machined: the end of one block each, in CMM grid order."""
+
+    q: np.ndarray  # (N, 5) joint coordinates reached (mm, rad)
+    t_s: np.ndarray  # (N,) time each block ended (s, bench clock)
+    direction: np.ndarray  # (N, 5) approach direction of each axis (+1/-1)
+    normal: np.ndarray  # (N, 3) design surface normal (part frame)
+
+
+def cmm_points(program: CuttingProgram, log_: Sequence[ExecutedBlock]) -> CmmPoints:
+    """Return the CMM points of a run from the controller's log (one executed block per program block)."""
+    n_prog = program.pose_written.shape[0]
+    if len(log_) != n_prog:
+        raise ValidationError(f"the controller executed {len(log_)} blocks, the program has {n_prog}")
+    idx = program.cmm_block.ravel()
+    all_target = np.array([b.target for b in log_])
+    all_start = np.array([b.start for b in log_])
+    q = all_target[idx].copy()
+    q[:, 3:] = np.deg2rad(q[:, 3:])
+    t_end = np.array([log_[i].t_end_s for i in idx])
+    return CmmPoints(q, t_end, approach_directions(all_start, all_target)[idx], program.normal[idx])
+
+
 def measure_surface(
     vm: MachiningMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock], dims: Mapping[str, Any] = kin.TABLE_A1
 ) -> np.ndarray:
@@ -433,19 +464,10 @@ def measure_surface(
     Each CMM point is the end of one block: the tool centre there is placed by the real chain at
     the pose the controller reached, with the true errors of the moment it got there.
     """
-    n_prog = program.pose_written.shape[0]
-    if len(log_) != n_prog:
-        raise ValidationError(f"the controller executed {len(log_)} blocks, the program has {n_prog}")
     idx = program.cmm_block.ravel()
-    all_target = np.array([b.target for b in log_])
-    all_start = np.array([b.start for b in log_])
-    target = all_target[idx]
-    t_end = np.array([log_[i].t_end_s for i in idx])
-    q = target.copy()
-    q[:, 3:] = np.deg2rad(q[:, 3:])
-    direction = approach_directions(all_start, all_target)[idx]
-    real = tool_centre(q, true_errors(vm, t_end, q, direction), dims)
-    dev = np.einsum("ij,ij->i", real - program.centre[idx], program.normal[idx])
+    pts = cmm_points(program, log_)
+    real = tool_centre(pts.q, true_errors(vm, pts.t_s, pts.q, pts.direction), dims)
+    dev = np.einsum("ij,ij->i", real - program.centre[idx], pts.normal)
     return dev.reshape(program.cmm_block.shape)
 
 
@@ -589,9 +611,13 @@ def run_compensated(
     probes: list[dict[str, Any]] = []
     stream: dict[str, Any] = {"blocks_sent": 0, "recomputed": 0, "model_reloads": 0}
     pose = bench.program.start_pose
+    # the lags of the readings (ch. 5.3) for the model's lagged terms, kept over the whole run
+    lags = LagState(models.model.lag_taus if models.model is not None else ())
     for s, e in ranges:
         if online is not None:
-            probes.append(bench.probe_cycle(online, temps.read()))
+            scan = temps.read()
+            lags.update(bench.clock.now(), scan)
+            probes.append(bench.probe_cycle(online, LaggedReadings(scan, lags.values())))
         text = "\n".join(lines[g1[s - 1] : g1[e - 2] + 1]) + "\n"
         prog = parse_program(text, name="cutting-test", start=pose, min_decimals=(4, 3))
         streamer = Streamer(
@@ -604,6 +630,7 @@ def run_compensated(
             sleep=bench.clock.sleep,
             timer=time.perf_counter,
             epoch_s=epoch_s,
+            lags=lags,
         )
         res = streamer.run(bench.link, low_water=4)
         for k in stream:
@@ -619,7 +646,48 @@ def _result(name: str, bench: CuttingBench, t0: float) -> RunResult:
     """Return the run's CMM figures from the controller's log."""
     log_ = bench.ctrl.log[bench.first_block :]
     dev = measure_surface(bench.vm, bench.program, log_)
-    return RunResult(name, dev, (log_[-1].t_end_s - t0) if log_ else 0.0, len(log_))
+    pts = cmm_points(bench.program, log_)
+    # the thermocouple card's readings at each CMM point (what the compensator read then)
+    scans = bench.vm.readings_array(pts.t_s)
+    readings = {c: scans[:, k] for k, c in enumerate(machining.CHANNELS)}
+    return RunResult(name, dev, (log_[-1].t_end_s - t0) if log_ else 0.0, len(log_), cmm=pts, readings=readings)
+
+
+def offline_interval(
+    document: Mapping[str, Any], run: RunResult, *, epoch_s: float | None = None, z: float = 1.96
+) -> dict[str, Any] | None:
+    """Return the off-line model's predicted interval of the cut beside what the CMM measured, or None.
+
+    The document's term covariances and residual variances (``models.document.predict_workspace_sd``,
+    issue 21.4) give the standard deviation of the work-space translation at each CMM point, at the
+    readings of that moment; projected on the surface normal (components taken independent) it is the
+    predicted spread of the normal deviation there. Returned: the predicted RMSE (the root mean square
+    of those), the mean half-width of the ``z`` interval, and the share of CMM points whose measured
+    deviation lies inside their interval (0.95 for an honest model at z = 1.96).
+    """
+    import pandas as pd
+
+    from driftlab.models.document import predict_workspace_sd
+
+    if run.cmm is None or not run.readings:
+        return None
+    pts = run.cmm
+    order = np.argsort(pts.t_s, kind="stable")  # lagged terms read the readings in time order
+    frame = pd.DataFrame({"time_s": pts.t_s[order], **{c: v[order] for c, v in run.readings.items()}})
+    at = None if epoch_s is None else epoch_s + pts.t_s[order]
+    sd = predict_workspace_sd(document, frame, pts.q[order], pts.direction[order], at=at)
+    if sd is None:
+        return None
+    sd_n = np.empty(len(order))
+    sd_n[order] = np.sqrt(np.sum((pts.normal[order] * sd[:, 3:]) ** 2, axis=1))
+    dev = run.deviation_mm.ravel()
+    return {
+        "z": z,
+        "predicted_rmse_mm": round(float(np.sqrt(np.mean(sd_n**2))), 6),
+        "mean_half_width_mm": round(float(np.mean(z * sd_n)), 6),
+        "measured_rmse_mm": round(run.rmse_mm, 6),
+        "inside": round(float(np.mean(np.abs(dev) <= z * sd_n)), 3),
+    }
 
 
 # ----------------------------------------------------------------------------- the test
@@ -631,6 +699,8 @@ class CuttingTest:
 
     runs: dict[str, RunResult]
     program: CuttingProgram
+    #: the off-line model's predicted interval beside the measured cut (``offline_interval``), when known
+    offline_predicted: dict[str, Any] | None = None
 
     def table(self) -> dict[str, dict[str, Any]]:
         """Return {run: {rmse_mm, max_mm, ...}} for uncompensated, offline and online."""

@@ -38,6 +38,7 @@ from driftlab.compensator.compensate import (
 from driftlab.compensator.gcode import Points, Program, emit, subdivide
 from driftlab.compensator.guard import Guard
 from driftlab.errors import InstrumentError, NotFoundError, ValidationError
+from driftlab.physics.lag import LaggedReadings, LagState
 
 log = logging.getLogger(__name__)
 
@@ -318,6 +319,7 @@ class Streamer:
         timer: Callable[[], float] = time.perf_counter,
         epoch_s: float | None = None,
         guard: Guard | None = None,
+        lags: LagState | None = None,
     ) -> None:
         if not 0 < refresh_s <= max_age_s:
             raise ValidationError("refresh interval must be positive and no longer than the maximum age")
@@ -348,6 +350,9 @@ class Streamer:
         self._made = start  # just after the last line prepared
         self._ready: deque[_Ready] = deque()
         self._temps: dict[str, float] | None = None
+        # the lags of every reading (ch. 5.3) kept from scan to scan for the model's lagged terms;
+        # pass one LagState to successive streamers of one run to keep its history across them
+        self.lags = lags if lags is not None else LagState()
         self._temps_at = -np.inf
         self._temps_ok = True
         self._model_at = -np.inf
@@ -382,7 +387,11 @@ class Streamer:
                 return
             if self.guard is not None:  # readings it refuses are never used: the run stops here
                 self.guard.check_temperatures(temps)
-            self._temps = temps
+            model = self.models.model
+            if model is not None:
+                self.lags.track(model.lag_taus)
+            self.lags.update(now, temps)
+            self._temps = LaggedReadings(temps, self.lags.values())
             self._temps_at = now
             if not self._temps_ok:
                 log.warning("temperatures available again")

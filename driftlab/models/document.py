@@ -290,10 +290,18 @@ def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame
             _substitute(doc, readings, times if len(frame) == n else (None if times is None else times[:1]))
         dT = pd.DataFrame({c: readings[c] - ref[c] for c in ref})
         lagged: dict[tuple[str, float], np.ndarray] = {}
+        # the lags of a longer history than these rows (compensator.TemperatureTable.nearest), else
+        # the lags over the rows themselves (ch. 5.3); a substituted channel is lagged on its estimate
+        history = frame.attrs.get("lagged") or {}
+        if lags and history:
+            for c, tau in lags:
+                if (c, tau) in history and c not in subs:
+                    lagged[(c, tau)] = np.asarray(history[(c, tau)], float) - ref[c]
         if lags and "time_s" in frame.columns and len(frame) > 1:
             t = frame["time_s"].to_numpy(float)
             for c, tau in lags:
-                lagged[(c, tau)] = first_order_lag(dT[c].to_numpy(), t, tau)
+                if (c, tau) not in lagged:
+                    lagged[(c, tau)] = first_order_lag(dT[c].to_numpy(), t, tau)
     else:
         missing = [c for c in ref if c not in temperatures and c not in optional]
         if missing:
@@ -302,7 +310,15 @@ def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame
         if subs:
             _substitute(doc, readings, None if times is None else times[:1])
         dT = pd.DataFrame({c: readings[c] - ref[c] for c in ref})
-        lagged = {}
+        # a scan that carries its history's lags (physics.lag.LaggedReadings, kept by a live
+        # compensator); a plain snapshot has none and its lags are taken settled. A substituted
+        # channel's lag is not its faulty reading's: it stays settled on the estimate.
+        history = getattr(temperatures, "lagged", None) or {}
+        lagged = {
+            (c, tau): np.array([float(history[(c, tau)]) - ref[c]])
+            for c, tau in lags
+            if (c, tau) in history and c not in subs
+        }
     if not np.all(np.isfinite(dT.to_numpy(float))):
         raise ValidationError("temperatures contain missing readings: substitute virtual-sensor estimates first")
     if len(dT) == 1 and n > 1:

@@ -19,6 +19,9 @@ The filter starts settled (``L = u`` at the first sample) unless a start value i
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
+
 import numpy as np
 
 
@@ -64,3 +67,71 @@ def first_order_lag_even(u: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray
     """Return :func:`first_order_lag` of samples ``u`` taken every ``dt_s`` seconds (settled start)."""
     x = np.asarray(u, dtype=float)
     return first_order_lag(x, np.arange(x.shape[0]) * float(dt_s), tau_s)
+
+
+class LagState:
+    """:func:`first_order_lag` one scan at a time: the state a live compensator keeps between readings.
+
+    Each scan ``u`` at time ``t`` advances every tracked lag by the exact step of the module docstring,
+    ``L <- a L + (1 - a) u`` with ``a = exp(-(t - t_prev) / tau)``, so a run of :meth:`update` calls
+    gives what :func:`first_order_lag` gives over the same samples. A lag starts settled (``L = u``)
+    at the first scan after its time constant is asked for (:meth:`track`), as the filter does at
+    its first sample.
+    """
+
+    def __init__(self, taus_s: tuple[float, ...] = ()) -> None:
+        self._taus: set[float] = set()
+        self._values: dict[tuple[str, float], float] = {}
+        self._t: float | None = None
+        self._last: dict[str, float] = {}
+        self.track(taus_s)
+
+    def track(self, taus_s: tuple[float, ...] | set[float]) -> None:
+        """Follow these time constants too (each channel's lag starts settled at its latest reading)."""
+        for tau in taus_s:
+            if not tau > 0:
+                raise ValueError(f"LagState: time constant must be positive, got {tau}")
+            tau = float(tau)
+            if tau not in self._taus:
+                self._taus.add(tau)
+                for c, u in self._last.items():
+                    self._values[(c, tau)] = u
+
+    def update(self, t_s: float, readings: Mapping[str, float]) -> None:
+        """Advance every lag to scan time ``t_s`` with the scan's ``readings`` (held since the previous scan)."""
+        t = float(t_s)
+        if self._t is not None and t < self._t:
+            raise ValueError("LagState: times must not decrease")
+        d = 0.0 if self._t is None else t - self._t
+        for c, raw in readings.items():
+            u = float(raw)
+            if not math.isfinite(u):
+                continue  # a missing reading: the lag keeps its state (the input is unknown)
+            for tau in self._taus:
+                key = (c, tau)
+                prev = self._values.get(key)
+                if prev is None:
+                    self._values[key] = u
+                else:
+                    a = math.exp(-d / tau)
+                    self._values[key] = a * prev + (1.0 - a) * u
+            self._last[c] = u
+        self._t = t
+
+    def values(self) -> dict[tuple[str, float], float]:
+        """Return {(channel, tau): lagged reading} as of the last scan."""
+        return dict(self._values)
+
+
+class LaggedReadings(dict[str, float]):
+    """One scan of readings (channel -> degC) that also carries the lags of its channels up to it.
+
+    ``lagged`` maps (channel, tau_s) to the lagged reading (same units as the readings), as a
+    :class:`LagState` kept over the scans before it gives. A model's ``lag`` term evaluated on a
+    plain snapshot has no history and takes the lag as settled (equal to the reading); on these
+    readings it takes the lag the history gives.
+    """
+
+    def __init__(self, readings: Mapping[str, float], lagged: Mapping[tuple[str, float], float]) -> None:
+        super().__init__(readings)
+        self.lagged: dict[tuple[str, float], float] = dict(lagged)

@@ -182,6 +182,45 @@ def test_latest_scan_or_nearest_scan_per_block_time(tmp_path):
     assert out.temperatures == "latest scan"
 
 
+def _lag_document() -> dict:
+    """Return a document whose head grows 0.01 mm per degC of the one-hour lag of T9 (ch. 5.3)."""
+    return {
+        "machine": "m1",
+        "inputs": {"T9": {"reference": 20.0, "min": 10.0, "max": 40.0}},
+        "terms": [
+            {
+                "element": "T1",
+                "param": "dz",
+                "features": [{"kind": "lag", "name": "lag3600[T9]", "channels": ["T9"], "tau_s": 3600.0}],
+                "coefficients": [0.01],
+                "statistics": {"rmse_train": 0.0},
+            }
+        ],
+    }
+
+
+def test_a_lagged_term_takes_the_lag_of_the_whole_temperature_log_however_the_program_is_batched():
+    """The scans before the program (the machine warming since 0 s) set the lag at its first block."""
+    from driftlab.physics.lag import first_order_lag
+
+    t = np.arange(0.0, 7201.0, 60.0)
+    temps = 20.0 + t / 720.0  # 5 degC per hour since the log began
+    table = TemperatureTable.from_frame(pd.DataFrame({"time_s": t, "T9": temps}))
+    timed = "".join(f"(T={3600 + 60 * k})\nG1 X{k} Z0\n" for k in range(40))
+    model = ErrorModel.from_document(_lag_document())
+    one = compensate_program(parse_program(timed), model, table, max_segment_mm=500).text
+    small = compensate_program(parse_program(timed), model, table, max_segment_mm=500, chunk_points=3).text
+    assert one == small
+    lag = first_order_lag(temps, t, 3600.0)
+    first = one.decode().splitlines()[1]
+    # at 3600 s the lagged T9 is about 21.9 degC, not the 25 degC it reads: Z-0.0187 at the 0.0025 mm step
+    want = -0.01 * (lag[60] - 20.0)
+    assert first == f"G1 X0 Z{round(want / RES_MM) * RES_MM:.4f}"
+    assert abs(want) < 0.02  # the settled lag would be -0.05
+    latest = table.latest(model.channels, model.lag_taus)
+    assert latest.lagged[("T9", 3600.0)] == pytest.approx(lag[-1])  # type: ignore[attr-defined]
+
+
 @pytest.mark.parametrize(
     "content,needle",
     [

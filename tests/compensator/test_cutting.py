@@ -131,8 +131,11 @@ def test_cutting_test_orders_uncompensated_offline_online(offline_document: dict
     assert test.ordered(), table
     assert unc.rmse_mm > 0.015  # the machine warms up during the cut
     # the day's wear (about 25 um of this cut) is not in the off-line model, so off-line cannot go far below
-    # 0.45 of uncompensated here; measured 0.70 (fit of 248bd64) and 0.73 (datum-aware fit of issue 21)
-    assert off.rmse_mm < 0.75 * unc.rmse_mm
+    # 0.45 of uncompensated here; measured 0.70 (fit of 248bd64) and 0.73 (datum-aware fit of issue 21) while
+    # the stream took every lagged term as settled; 0.77 since it lags the readings as the fit did (ch. 5.3).
+    # The fit explains the campaign's wear by some 30 one-hour lags, which a cut with another heating
+    # pattern does not follow (issue 21: lag selection); the bound comes back down when that is fixed.
+    assert off.rmse_mm < 0.80 * unc.rmse_mm
     assert on.rmse_mm < 0.5 * off.rmse_mm  # the on-line model catches the wear from the probed spheres
     # and without the wear (the same day) the off-line model alone does most of the work
     same_day = run_cutting_test(
@@ -142,7 +145,10 @@ def test_cutting_test_orders_uncompensated_offline_online(offline_document: dict
         passes=CMM_ALONG,
         age_s=0.0,
     )
-    assert same_day.runs["offline"].rmse_mm < 0.5 * same_day.runs["uncompensated"].rmse_mm
+    # measured 0.38 (fit of 248bd64) and 0.47 (issue-21 fit) with lags taken settled; 0.54 with the lags of
+    # the readings' history as the fit computed them (the same fit without lag candidates: 0.59). The hidden
+    # T21 heat on Z, which no Z model channel reads, is what the off-line model cannot cancel here.
+    assert same_day.runs["offline"].rmse_mm < 0.6 * same_day.runs["uncompensated"].rmse_mm
     assert len(on.probes) >= 2 and on.stream["model_reloads"] >= 2
     assert off.stream["blocks_sent"] == unc.blocks - 1  # the rapid to the start is not compensated
 
@@ -154,3 +160,46 @@ def test_approach_direction_is_the_last_move_of_each_axis() -> None:
     assert d[:, 0].tolist() == [1, 1, -1, -1]  # X: +, held, -, held
     assert d[:, 2].tolist() == [1, 1, 1, -1]  # Z: none yet (+1), then +, then -
     assert (d[:, 1] == 1).all()
+
+
+def test_offline_interval_states_the_models_own_spread_and_how_many_points_it_covers() -> None:
+    """A model whose stated spread is right covers 95% of the points at z = 1.96; a too-confident one far fewer."""
+    from driftlab.compensator.cutting_test import CmmPoints, RunResult, offline_interval
+
+    rng = np.random.default_rng(21)
+    n = CMM_ALONG * CMM_ACROSS
+    sd_coef, resid = 0.002, 0.003**2  # mm: the constant's standard error, the residual variance of dz
+
+    def document(scale: float) -> dict:
+        return {
+            "machine": "m1",
+            "inputs": {"T1": {"reference": 20.0, "min": 10.0, "max": 40.0}},
+            "terms": [
+                {
+                    "element": "T1",
+                    "param": "dz",
+                    "features": [{"kind": "intercept", "name": "const"}],
+                    "coefficients": [0.0],
+                    "covariance": [[(scale * sd_coef) ** 2]],
+                    "residual_variance": scale**2 * resid,
+                    "statistics": {"rmse_train": 0.0},
+                }
+            ],
+        }
+
+    normal = np.tile([0.0, 0.0, 1.0], (n, 1))
+    pts = CmmPoints(np.zeros((n, 5)), np.arange(n, dtype=float), np.ones((n, 5)), normal)
+    want = float(np.sqrt(sd_coef**2 + resid))
+    dev = rng.normal(0.0, want, n).reshape(CMM_ALONG, CMM_ACROSS)
+    run = RunResult("off-line", dev, 1.0, n, cmm=pts, readings={"T1": np.full(n, 25.0)})
+    honest = offline_interval(document(1.0), run)
+    assert honest is not None
+    assert honest["predicted_rmse_mm"] == pytest.approx(want, abs=1e-6)  # rounded to the nm
+    assert 0.93 < honest["inside"] < 0.97
+    assert honest["measured_rmse_mm"] == pytest.approx(want, rel=0.05)
+    confident = offline_interval(document(0.3), run)
+    assert confident is not None and confident["inside"] < 0.5
+    # a document without covariances states no interval
+    bare = document(1.0)
+    del bare["terms"][0]["covariance"]
+    assert offline_interval(bare, run) is None

@@ -302,6 +302,82 @@ def test_prepared_blocks_older_than_two_minutes_are_corrected_again():
     assert "Z-0.1" in line  # prepared again with the fresh temperatures (30 degC)
 
 
+def _spindle_doc() -> dict:
+    """Return doc(0.01) with its spindle-head term alone."""
+    d = doc(0.01, 1)
+    d["terms"] = d["terms"][:1]
+    return d
+
+
+def _lag_doc() -> dict:
+    """Return doc(0.01)'s spindle term alone, on the one-hour lag of T1 (ch. 5.3) instead of T1 itself."""
+    d = _spindle_doc()
+    d["terms"][0]["features"] = [{"kind": "lag", "name": "lag3600[T1]", "channels": ["T1"], "tau_s": 3600.0}]
+    return d
+
+
+def test_a_lagged_term_is_corrected_with_the_lag_of_the_readings_not_the_latest_reading():
+    """A live stream keeps each reading's lag from scan to scan: a warming machine's lagged term is behind."""
+    from driftlab.physics.lag import first_order_lag
+
+    now = [0.0]
+
+    class Ramp:  # the machine warms at 10 degC per hour
+        def read(self):
+            return {"T1": 20.0 + now[0] / 360.0}
+
+    lagged = Streamer(
+        parse_program(PROGRAM),
+        StaticModel(ErrorModel.from_document(_lag_doc())),
+        Ramp(),
+        refresh_s=60.0,
+        clock=lambda: now[0],
+        sleep=lambda d: None,
+    )
+    times = np.arange(0.0, 3601.0, 60.0)
+    for t in times:
+        now[0] = float(t)
+        lagged.refresh()
+    lagged.prime()
+    got = list(lagged.lines())
+    # the same program with the plain T1 term, fed the lag the history gives (batch filter, eq. of ch. 5.3)
+    lag_t1 = float(first_order_lag(20.0 + times / 360.0, times, 3600.0)[-1])
+    assert 20.0 + 3600.0 / 360.0 - lag_t1 > 3.0  # a settled lag would be 3.7 degC too warm
+    plain = Streamer(
+        parse_program(PROGRAM),
+        StaticModel(ErrorModel.from_document(_spindle_doc())),
+        FixedTemperatures({"T1": lag_t1}),
+        clock=lambda: now[0],
+        sleep=lambda d: None,
+    )
+    plain.prime()
+    assert got == list(plain.lines())
+
+
+def test_the_fast_prediction_of_a_lagged_term_equals_the_registry_over_the_history():
+    """ErrorModel on one scan with its lags = models.document over the frame of scans, at the last one."""
+    import pandas as pd
+
+    from driftlab.models.document import predict_element_errors
+    from driftlab.physics.lag import LaggedReadings, LagState
+
+    rng = np.random.default_rng(3)
+    t = np.cumsum(np.r_[0.0, rng.uniform(20.0, 90.0, 120)])
+    temps = 20.0 + 6.0 * (1.0 - np.exp(-t / 2000.0)) + rng.normal(0.0, 0.05, t.size)
+    state = LagState((3600.0,))
+    for tk, uk in zip(t, temps):
+        state.update(float(tk), {"T1": float(uk)})
+    q = np.array([[10.0, -5.0, 3.0, 0.0, 0.0]])
+    model = ErrorModel.from_document(_lag_doc())
+    fast = model.predict(q, LaggedReadings({"T1": float(temps[-1])}, state.values()), None)
+    frame = pd.DataFrame({"time_s": t, "T1": temps})
+    registry = predict_element_errors(_lag_doc(), frame, np.repeat(q, t.size, axis=0))
+    assert model.lag_taus == (3600.0,)
+    np.testing.assert_allclose(fast["T1"][0], registry["T1"][-1], atol=1e-12)
+    settled = model.predict(q, {"T1": float(temps[-1])}, None)
+    assert abs(settled["T1"][0, 5] - fast["T1"][0, 5]) > 0.005  # the history matters here (mm)
+
+
 # ----------------------------------------------------------------------------- a program read in pieces
 
 

@@ -75,3 +75,38 @@ def test_sampled_lag_follows_the_simulators_continuous_lag_within_half_a_step():
     continuous = driven_node(u, h, tau).y[:, 0]
     slope = np.abs(np.gradient(u, t)).max()
     assert np.abs(sampled - continuous).max() <= 0.5 * h * slope * 1.05
+
+
+def test_lag_state_scan_by_scan_is_the_batch_filter():
+    """A live compensator's lag, advanced one scan at a time, is first_order_lag over the same scans."""
+    from driftlab.physics.lag import LagState
+
+    rng = np.random.default_rng(8)
+    t = np.cumsum(np.r_[0.0, rng.uniform(10.0, 120.0, 150)])
+    u = {"T1": 20.0 + np.sin(t / 1500.0) * 4.0, "T2": 21.0 + t / 3600.0}
+    state = LagState((3600.0,))
+    for k in range(t.size):
+        state.update(float(t[k]), {c: float(v[k]) for c, v in u.items()})
+        if k == 60:
+            state.track((600.0,))  # a model with a new time constant arrives mid-run: settled from here
+    got = state.values()
+    for c, v in u.items():
+        assert got[(c, 3600.0)] == pytest.approx(first_order_lag(v, t, 3600.0)[-1], abs=1e-9)
+        assert got[(c, 600.0)] == pytest.approx(first_order_lag(v[60:], t[60:], 600.0)[-1], abs=1e-9)
+    # a ramp lags behind its reading: the settled value would be wrong by about slope * tau
+    assert u["T2"][-1] - got[("T2", 3600.0)] > 0.5
+
+
+def test_lag_state_keeps_its_state_through_a_missing_reading_and_refuses_time_going_back():
+    from driftlab.physics.lag import LagState
+
+    state = LagState((100.0,))
+    state.update(0.0, {"T1": 0.0})
+    state.update(100.0, {"T1": float("nan")})
+    assert state.values()[("T1", 100.0)] == 0.0
+    state.update(200.0, {"T1": 1.0})
+    assert state.values()[("T1", 100.0)] == pytest.approx(1.0 - np.exp(-1.0))  # held at the newer reading
+    with pytest.raises(ValueError, match="must not decrease"):
+        state.update(150.0, {"T1": 1.0})
+    with pytest.raises(ValueError, match="positive"):
+        state.track((0.0,))
