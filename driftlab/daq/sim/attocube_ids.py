@@ -22,7 +22,9 @@ measurement error, as the head's ``resetError`` describes: displacement reads wa
 ``resetError`` is called, even after the beam is back.
 
 Beams: the linear and straightness set-ups use beam ``displacement_axis``; the angle set-up two
-beams ``angle_spacing_mm`` apart, which on a linear axis both see the travel.
+beams ``angle_spacing_mm`` apart, which on a linear axis both see the travel. A beam the mounted
+optics do not use has no signal (``getAxisSignalQuality`` warns), so a driver asking for angle
+optics while linear optics are mounted reads a lost beam.
 """
 
 from __future__ import annotations
@@ -192,6 +194,10 @@ class SimIDS3010(SimHead):
             self.fault = True
         return BEAM_LOST if self.fault else None
 
+    def _lit(self) -> tuple[int, ...]:
+        """Return the beams the mounted optics use."""
+        return self.angle_axes if self.mode == "ANG" else (self.displacement_axis,)
+
     def _displacements(self, t: float) -> list[int]:
         """Return the three beams' displacements (pm) since the datum."""
         rel, travel = self._relative(t)
@@ -216,6 +222,8 @@ class SimIDS3010(SimHead):
         if fn == "getAxisSignalQuality":
             if self.state != "measurement running" or self.mounted is None or self.beam == "broken":
                 return [NO_SIGNAL, 0, 0]
+            if int(axis) not in self._lit():  # type: ignore[arg-type]
+                return [NO_SIGNAL, 0, 0]  # a beam the mounted optics do not use sees no reflector
             contrast = 40.0 if self.beam == "weak" else self.contrast_permille
             return [0, contrast, 500]
         if fn in ("getAxesDisplacement", "getAxisDisplacement"):
