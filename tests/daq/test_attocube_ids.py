@@ -339,3 +339,13 @@ def test_driver_on_the_simulator_follows_the_world_and_survives_a_drop_and_a_tim
             assert env.pressure_pa == pytest.approx(101325.0) and ids.refractive_index() > 1.00027
         finally:
             ids.close()
+
+
+def test_rig_options_of_the_ids3010_are_checked_in_one_line():
+    from driftlab.daemon.rigfile import ids_optics
+
+    assert ids_optics("laser", {"angle_axes": [1, 2], "angle_spacing_mm": 25}).angle_axes == (1, 2)
+    with pytest.raises(ValidationError, match=r"instruments.laser.options: displacement_axis a beam 0..2, angle_axes two beams"):
+        ids_optics("laser", {"angle_axes": [1]})
+    with pytest.raises(ValidationError, match=r"instruments.laser.options: IDS3010 optics: beams are axes"):
+        ids_optics("laser", {"displacement_axis": 3})
