@@ -345,7 +345,7 @@ def test_rig_options_of_the_ids3010_are_checked_in_one_line():
     from driftlab.daemon.rigfile import ids_optics
 
     assert ids_optics("laser", {"angle_axes": [1, 2], "angle_spacing_mm": 25}).angle_axes == (1, 2)
-    with pytest.raises(ValidationError, match=r"instruments.laser.options: displacement_axis a beam 0..2, angle_axes two beams"):
+    with pytest.raises(ValidationError, match=r"options: displacement_axis a beam 0..2, angle_axes two beams"):
         ids_optics("laser", {"angle_axes": [1]})
     with pytest.raises(ValidationError, match=r"instruments.laser.options: IDS3010 optics: beams are axes"):
         ids_optics("laser", {"displacement_axis": 3})
