@@ -48,6 +48,10 @@ DRIVERS: dict[str, tuple[str, str]] = {
         "attocube IDS3010 displacement interferometer, its JSON-RPC interface over TCP (host[:port], default 9090)",
     ),
     "linuxcnc": ("machine", "LinuxCNC through linuxcncrsh, TCP (host:port, default port 5007)"),
+    "heidenhain-lsv2": (
+        "machine",
+        "Heidenhain TNC through LSV2 (pyLSV2), TCP (host:port, default 19000): reads positions, moves nothing",
+    ),
     "thesis-tc-card": ("thermocouples", "legacy: the thesis' DAS-TC card protocol (driftlab's own, CJC?/SCAN?/FETC?)"),
     "thesis-laser": ("laser", "legacy: the thesis' HP-IB laser processor protocol (driftlab's own, MODE/MEAS?)"),
     "thesis-ad-card": ("proximity", "legacy: the thesis' DT2801 A/D card protocol (driftlab's own, VOLT?)"),
@@ -307,6 +311,21 @@ def open_instrument(
             **({"sleep": lambda _s: None, "max_idle_polls": 2} if fast else {}),
         )
         return link, link.close
+    if spec.driver == "heidenhain-lsv2":
+        from driftlab.daq.heidenhain import HeidenhainLink
+
+        _unknown(role, o, {"axes"})
+        axes = o.get("axes")
+        if axes is not None and not isinstance(axes, dict):
+            raise ValidationError(
+                f"instruments.{role}.options.axes: a mapping of X Y Z A B to the control's axis names"
+            )
+        tnc = HeidenhainLink.open(
+            spec.resource,
+            timeout_s=spec.timeout_s,
+            axes={str(k): str(v) for k, v in axes.items()} if axes else None,
+        )
+        return tnc, tnc.close
     if spec.driver == "thesis-tc-card":
         from driftlab.daq.thermocouple import ThermocoupleCard
 
@@ -391,7 +410,15 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
     servers: dict[str, Any] = {}
     specs = dict(rig.instruments)
     try:
-        if "machine" in roles:
+        if "machine" in roles and specs["machine"].driver == "heidenhain-lsv2":
+            from driftlab.daq.sim.heidenhain import SimLSV2, lsv2_resource
+            from driftlab.vocabulary import AXES
+
+            names = specs["machine"].options.get("axes") or {}
+            tnc = SimLSV2(clock, axes=tuple(str(v) for v in names.values()) or AXES).start()
+            servers["machine"] = tnc
+            specs["machine"] = specs["machine"].model_copy(update={"resource": lsv2_resource(tnc)})
+        elif "machine" in roles:
             m = specs["machine"]
             ctrl: Any = (SimLinuxCNC(world, clock) if m.driver == "linuxcnc" else _sim_controller(world, clock)).start()
             servers["machine"] = ctrl
