@@ -13,7 +13,7 @@ does; the figures are then taken apart so they say where the time goes:
   wall clock (the machine is shared: wall figures also count waiting for a core; on PostgreSQL
   the server's own CPU is not in it);
 * ``laser_*``: flat out through the IDS3010 beside the thesis' legacy laser head (bursts) in the same run
-  (``DAQ_PARTS=laser`` runs only this comparison);
+  (``DAQ_PARTS=laser`` runs only this comparison, ``DAQ_LASER_ROUNDS`` alternating rounds of each);
 * ``demo_*``: the shipped Z-axis demo plan (60 s scans, sweeps every 15 min) at 3600x;
 * ``instruments_*``: block scans through pyvisa from the simulated 34970A, no store;
 * ``store_*``: the scheduler's sink committing the same blocks in the same batches, no instruments;
@@ -114,7 +114,7 @@ def daemon_run(url: str, prefix: str, speed: float, sim_laser: str = "attocube-i
     return out
 
 
-def laser_paths(tmp: Path, rounds: int = 2) -> dict:
+def laser_paths(tmp: Path, rounds: int = int(os.environ.get("DAQ_LASER_ROUNDS", 2))) -> dict:
     """Return flat-out scans/s through the IDS3010 (JSON-RPC, a point = signal check + 12 reads) beside the
     thesis' legacy head (one burst per point) in the same run, alternating, median of ``rounds`` each."""
     runs: dict[str, list[float]] = {"ids3010": [], "legacy": []}

@@ -46,7 +46,9 @@ Optics (table 5.3 terms, as the thesis' processor): linear (LIN) and straightnes
 head facing a straightedge along the travel, ISO 230-1's straightedge method) read the displacement
 of one axis (beam); angle (ANG) reads two beams ``angle_spacing_mm`` apart, asin(difference /
 spacing). Each point is the mean of ``readings_per_point`` readings after the axis has settled
-(ch. 5.5); a lost beam flags the sample and marks the reference lost until :meth:`reference`.
+(ch. 5.5), asked for back to back in one exchange with the contrast check and two settle readings
+(attocube's client keeps several requests in flight on one connection and matches replies by id);
+a lost beam flags the sample and marks the reference lost until :meth:`reference`.
 
 The count lives in the head: a dropped TCP connection is reopened and, if the head still reports
 "measurement running", the datum is kept and a read-only call is repeated; a command (reset,
@@ -166,21 +168,32 @@ class AttocubeIDS:
         return ids
 
     # -- JSON-RPC exchange
-    def _send(self, method: str, params: list[Any]) -> list[Any]:
+    def _send_many(self, calls: list[tuple[str, list[Any]]]) -> list[list[Any]]:
+        """Write the requests back to back, then collect their replies by id (replies to other ids are skipped)."""
         if self._port is None:
             raise TransientError("not connected")
-        self._id += 1
-        self._port.write(request_line(method, params, self._id))
-        for _ in range(16):  # replies to earlier (timed-out) requests are skipped, as ACS.py buffers them
+        ids: dict[int, str] = {}
+        data = b""
+        for method, params in calls:
+            self._id += 1
+            ids[self._id] = method
+            data += request_line(method, params, self._id)
+        self._port.write(data)
+        results: dict[int, list[Any]] = {}
+        for _ in range(len(calls) + 16):  # replies to earlier (timed-out) requests are skipped, as ACS.py buffers them
+            if len(results) == len(ids):
+                return [results[i] for i in ids]
             raw = self._port.read_line()
             try:
                 reply = json.loads(raw.decode("ascii"))
             except (UnicodeDecodeError, ValueError) as exc:
-                raise GarbledReply(f"undecodable reply to {method}: {raw[:40]!r}") from exc
+                raise GarbledReply(f"undecodable reply: {raw[:40]!r}") from exc
             if not isinstance(reply, dict):
-                raise GarbledReply(f"reply to {method} is not a JSON object")
-            if reply.get("id") != self._id:
+                raise GarbledReply("a reply that is not a JSON object")
+            rid = reply.get("id")
+            if not isinstance(rid, int) or rid not in ids or rid in results:
                 continue
+            method = ids[rid]
             if "error" in reply:
                 err = reply["error"]
                 text = err.get("message", err) if isinstance(err, dict) else err
@@ -188,27 +201,39 @@ class AttocubeIDS:
             result = reply.get("result")
             if not isinstance(result, list) or not result or not isinstance(result[0], int):
                 raise GarbledReply(f"reply to {method} has no result list")
-            return result
-        raise GarbledReply(f"no reply with id {self._id} to {method}")
+            results[rid] = result
+        if len(results) == len(ids):
+            return [results[i] for i in ids]
+        raise GarbledReply(f"no reply to {ids[min(set(ids) - set(results))]}")
 
-    def call(self, method: str, *params: Any, repeat: bool = True) -> list[Any]:
-        """Return the result list of ``method``; after a dropped line reconnect, and repeat it only if ``repeat``."""
+    def _send(self, method: str, params: list[Any]) -> list[Any]:
+        return self._send_many([(method, params)])[0]
+
+    def call_many(self, calls: list[tuple[str, list[Any]]], repeat: bool = True) -> list[list[Any]]:
+        """Return the result lists of several calls sent back to back (attocube's client keeps several requests
+        in flight on one connection, matching replies by id); after a dropped line reconnect and repeat them
+        only if ``repeat``."""
+        what = calls[0][0] if len(calls) == 1 else f"{calls[-1][0]} (x{len(calls)})"
         try:
             if self._port is None:
                 self.session()
-            return self._send(method, list(params))
+            return self._send_many(calls)
         except TransientError as exc:
             reason = " ".join(str(exc).split())
             self._drop()
             if not repeat:
-                raise InstrumentError(f"IDS3010 {method}: {reason}; not repeated (its effect is unknown)") from exc
+                raise InstrumentError(f"IDS3010 {what}: {reason}; not repeated (its effect is unknown)") from exc
             try:
                 self.session()
                 self.reconnects += 1
-                return self._send(method, list(params))
+                return self._send_many(calls)
             except TransientError as exc2:
                 self._drop()
-                raise InstrumentError(f"IDS3010 {method}: {' '.join(str(exc2).split())}") from exc2
+                raise InstrumentError(f"IDS3010 {what}: {' '.join(str(exc2).split())}") from exc2
+
+    def call(self, method: str, *params: Any, repeat: bool = True) -> list[Any]:
+        """Return the result list of ``method``; after a dropped line reconnect, and repeat it only if ``repeat``."""
+        return self.call_many([(method, list(params))], repeat=repeat)[0]
 
     def command(self, method: str, *params: Any) -> list[Any]:
         """Call a function that changes the head's state; a non-zero error number is an InstrumentError (its text)."""
@@ -319,9 +344,9 @@ class AttocubeIDS:
         self._fault = True
         return Reading.missing(FLAG_BEAM_BREAK)
 
-    def _value(self) -> float | None:
-        """Return one reading (mm or rad) of the configured optics, None when the head reports a measurement warning."""
-        result = self.call(f"{self.ns}.displacement.getAxesDisplacement")
+    def _value_of(self, result: list[Any]) -> float | None:
+        """Return one reading (mm or rad) of the configured optics from a getAxesDisplacement result, None when the
+        head reports a measurement warning."""
         if result[0] != 0:
             return None
         if len(result) != 4 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in result[1:]):
@@ -335,40 +360,55 @@ class AttocubeIDS:
             return math.asin(ratio)
         return d[self.optics.displacement_axis]
 
-    def _signal_ok(self) -> bool:
-        for beam in self._beams():
-            result = self.call(f"{self.ns}.displacement.getAxisSignalQuality", beam)
-            if result[0] != 0 or len(result) < 2 or float(result[1]) < self.min_contrast_permille:
-                return False
-        return True
+    def _readings(self, n: int) -> list[float] | None:
+        """Return ``n`` readings taken back to back (one pipelined exchange), None if any warns."""
+        calls: list[tuple[str, list[Any]]] = [(f"{self.ns}.displacement.getAxesDisplacement", [])] * n
+        values = [self._value_of(r) for r in self.call_many(calls)]
+        return None if any(v is None for v in values) else [float(v) for v in values if v is not None]
 
     def read(self) -> Reading:
-        """Return the settled mean of ``readings_per_point`` readings in mm or rad; flagged missing on a lost beam."""
+        """Return the settled mean of ``readings_per_point`` readings in mm or rad; flagged missing on a lost beam.
+
+        One exchange asks for the signal contrast of the optics' beams and two settle readings plus the
+        readings to average, back to back; only when those two disagree (the axis still moving) does it
+        poll with pauses until two agree, then take the readings (ch. 5.5: the mean of ten readings taken
+        after the axis has settled).
+        """
         if self.mode is None:
             raise ValidationError("laser not configured: call configure(axis, term) first")
         if self.reference_lost:
             return Reading.missing(FLAG_REFERENCE_LOST)
-        if not self._signal_ok():
+        n = self.readings_per_point
+        beams = self._beams()
+        calls = [(f"{self.ns}.displacement.getAxisSignalQuality", [b]) for b in beams]
+        calls += [(f"{self.ns}.displacement.getAxesDisplacement", [])] * (2 + n)
+        results = self.call_many(calls)
+        for q in results[: len(beams)]:
+            if q[0] != 0 or len(q) < 2 or float(q[1]) < self.min_contrast_permille:
+                return self._lose_reference()
+        got = [self._value_of(r) for r in results[len(beams) :]]
+        values = [v for v in got if v is not None]
+        if len(values) != len(got):
             return self._lose_reference()
         tol = self.settle_tolerance_rad if self.mode == "ANG" else self.settle_tolerance_mm
-        previous: float | None = None
+        first, second = values[0], values[1]
+        if abs(second - first) <= tol:
+            return Reading(float(np.mean(values[2:])))
+        previous: float | None = None  # still moving: poll until it settles
         for _ in range(self.max_settle_polls):
-            value = self._value()
-            if value is None:
-                return self._lose_reference()
-            if previous is not None and abs(value - previous) <= tol:
-                break
-            previous = value
             self.sleep(self.settle_poll_s)
+            poll = self._readings(1)
+            if poll is None:
+                return self._lose_reference()
+            if previous is not None and abs(poll[0] - previous) <= tol:
+                break
+            previous = poll[0]
         else:
             raise InstrumentError(f"IDS3010: axis did not settle within {self.max_settle_polls} polls")
-        values = []
-        for _ in range(self.readings_per_point):
-            value = self._value()
-            if value is None:
-                return self._lose_reference()
-            values.append(value)
-        return Reading(float(np.mean(values)))
+        settled = self._readings(n)
+        if settled is None:
+            return self._lose_reference()
+        return Reading(float(np.mean(settled)))
 
     def read_displacement(self) -> Reading:
         """Return the displacement (mm) with linear or straightness optics (DisplacementMeter)."""

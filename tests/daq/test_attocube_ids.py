@@ -46,6 +46,17 @@ class Conversation:
         self.pairs.append((request_line(method, params, self.rid), reply))
         return self
 
+    def batch(self, calls: list[tuple[str, list, list]]) -> Conversation:
+        """Requests written back to back in one write, then their replies read one by one (in order here)."""
+        data, replies = b"", []
+        for method, params, result in calls:
+            self.rid += 1
+            data += request_line(method, params, self.rid)
+            replies.append(json.dumps({"jsonrpc": "2.0", "result": result, "id": self.rid}).encode() + b"\r\n")
+        self.pairs.append((data, replies[0]))
+        self.pairs.extend((None, r) for r in replies[1:])
+        return self
+
 
 def running(c: Conversation) -> Conversation:
     return c(f"{SEN}.system.getCurrentMode", [], [0, "measurement running"])
@@ -120,11 +131,10 @@ def test_environment_falls_back_to_the_manual_values_without_an_ecu():
 
 
 def point(c: Conversation, displacements: list[list[int]], beams=(0,), contrast=880) -> Conversation:
-    for b in beams:
-        c(f"{SEN}.displacement.getAxisSignalQuality", [b], [0, contrast, 500])
-    for d in displacements:
-        c(f"{SEN}.displacement.getAxesDisplacement", [], [0, *d])
-    return c
+    """One point's exchange: the beams' contrast, then two settle readings and the readings to average."""
+    calls = [(f"{SEN}.displacement.getAxisSignalQuality", [b], [0, contrast, 500]) for b in beams]
+    calls += [(f"{SEN}.displacement.getAxesDisplacement", [], d if len(d) == 4 else [0, *d]) for d in displacements]
+    return c.batch(calls)
 
 
 def test_linear_point_mean_of_ten_after_settling():
@@ -139,6 +149,24 @@ def test_linear_point_mean_of_ten_after_settling():
     sample = ids.measure_error("X", "dx", 100.0, -1)
     assert isinstance(ids, ErrorMeter)
     assert sample.flag is None and sample.value == pytest.approx(np.mean(travel_pm) * 1e-9 - 100.0, abs=1e-12)
+    all_used(ports)
+
+
+def test_a_moving_axis_is_polled_until_it_settles():
+    c = running(Conversation())
+    c(f"{SEN}.system.resetAxes", [], [0])
+    point(c, [[5000, 0, 0], [9000, 0, 0]] + [[9500, 0, 0]] * 10)  # still moving: the batch is not used
+    for d in (9800, 9900, 9900):
+        c(f"{SEN}.displacement.getAxesDisplacement", [], [0, d, 0, 0])
+    c.batch([(f"{SEN}.displacement.getAxesDisplacement", [], [0, 9900 + k, 0, 0]) for k in range(10)])
+    sleeps: list[float] = []
+    ids, ports = ids_on(c, settle_tolerance_mm=5e-8)
+    ids.sleep = sleeps.append
+    ids.session()
+    ids.configure("X", "dx")
+    ids.reference()
+    assert ids.read().value == pytest.approx((9900 + 4.5) * 1e-9, abs=1e-15)
+    assert sleeps == [0.5] * 3
     all_used(ports)
 
 
@@ -159,8 +187,7 @@ def test_angle_point_from_two_beams():
 def test_lost_beam_flags_the_point_and_the_next_datum_clears_the_error_first():
     c = running(Conversation())
     c(f"{SEN}.system.resetAxes", [], [0])
-    point(c, [])
-    c(f"{SEN}.displacement.getAxesDisplacement", [], [42, 0, 0, 0])  # a measurement warning
+    point(c, [[42, 0, 0, 0]] + [[0, 0, 0]] * 11)  # a measurement warning on the first reading
     c(f"{SEN}.system.resetError", [False], [0])
     c(f"{SEN}.system.resetAxes", [], [0])
     point(c, [[7000, 0, 0]] * 12)
@@ -178,7 +205,7 @@ def test_lost_beam_flags_the_point_and_the_next_datum_clears_the_error_first():
 def test_weak_signal_is_a_beam_break():
     c = running(Conversation())
     c(f"{SEN}.system.resetAxes", [], [0])
-    point(c, [], contrast=40)
+    point(c, [[0, 0, 0]] * 12, contrast=40)
     ids, ports = ids_on(c)
     ids.session()
     ids.configure("X", "dx")
@@ -214,12 +241,13 @@ def test_json_rpc_error_object_is_one_line():
 def test_timeout_reconnects_repeats_a_read_and_keeps_the_datum():
     first = running(Conversation())
     first(f"{SEN}.system.resetAxes", [], [0])
-    first(f"{SEN}.displacement.getAxisSignalQuality", [0], TIMEOUT)
+    point(first, [[1000, 0, 0]] * 12)
+    first.pairs[-12:] = []  # the first reply never comes: the whole exchange times out
+    first.pairs[-1] = (first.pairs[-1][0], TIMEOUT)
     second = Conversation()
     second.rid = first.rid  # request ids go on counting on the new connection
     running(second)  # the head still measures: the count (and the datum) live in the head
-    point(second, [], beams=(0,))
-    point(second, [[1000, 0, 0]] * 12, beams=())
+    point(second, [[1000, 0, 0]] * 12)  # the same reads, repeated
     ids, ports = ids_on(first, second)
     ids.session()
     ids.configure("X", "dy")
