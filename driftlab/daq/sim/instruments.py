@@ -293,19 +293,24 @@ class LineServer(ABC):
                     break
                 buf += data
                 frames, buf = self.split_frames(buf)
+                out = b""  # the replies to every command of this chunk go out in one send (no Nagle stalls)
                 for line in frames:
                     reply = self._reply(line)
-                    if reply == b"":  # a dropped connection
+                    if reply == b"":  # a dropped connection: what was answered before it still goes out
                         try:
+                            if out:
+                                conn.sendall(out)
                             conn.shutdown(socket.SHUT_RDWR)
                         except OSError:
                             pass
                         return
                     if reply is not None:
-                        try:
-                            conn.sendall(reply)
-                        except OSError:
-                            return
+                        out += reply
+                if out:
+                    try:
+                        conn.sendall(out)
+                    except OSError:
+                        return
 
     def close(self) -> None:
         """Stop the server and join its threads."""
