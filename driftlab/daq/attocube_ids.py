@@ -162,6 +162,9 @@ class AttocubeIDS:
         ids = cls(lambda: SerialPort.open(url, timeout_s=timeout_s), **options)
         try:
             ids.session()
+        except TransientError as exc:
+            ids.close()
+            raise InstrumentError(f"IDS3010 {resource}: {' '.join(str(exc).split())}") from exc
         except BaseException:
             ids.close()
             raise

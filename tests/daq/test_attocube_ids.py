@@ -377,3 +377,11 @@ def test_rig_options_of_the_ids3010_are_checked_in_one_line():
         ids_optics("laser", {"angle_axes": [1]})
     with pytest.raises(ValidationError, match=r"instruments.laser.options: IDS3010 optics: beams are axes"):
         ids_optics("laser", {"displacement_axis": 3})
+
+
+def test_a_head_that_never_answers_is_one_line_at_open():
+    world, clock = TinyWorld(channels=2), ManualClock()
+    with SimIDS3010(world, clock, FixedStage()) as sim:
+        sim.inject("timeout", on=f"{SEN}.system.getCurrentMode")
+        with pytest.raises(InstrumentError, match=r"IDS3010 127.0.0.1:\d+: timeout waiting for reply"):
+            AttocubeIDS.open(ids_resource(sim), timeout_s=0.3)
