@@ -2,7 +2,7 @@
 
 Prints one JSON line. The end-to-end runs drive the real drivers against the simulated instruments
 (a Keysight 34970A's timer scan removed from its reading memory with DATA:POINts?/DATA:REMove?,
-LinuxCNC through linuxcncrsh, laser bursts) and commit through the store exactly as `driftlab daemon`
+LinuxCNC through linuxcncrsh, the attocube IDS3010's JSON-RPC) and commit through the store exactly as `driftlab daemon`
 does; the figures are then taken apart so they say where the time goes:
 
 * ``<db>_paced_*``: the daemon at 3600x (does it keep up; reading-to-committed latency p99 = the
@@ -12,6 +12,8 @@ does; the figures are then taken apart so they say where the time goes:
   it sustains (= scans/s x 0.1 s); ``*_cpu_*`` divide by this process's CPU time instead of the
   wall clock (the machine is shared: wall figures also count waiting for a core; on PostgreSQL
   the server's own CPU is not in it);
+* ``laser_*``: flat out through the IDS3010 beside the thesis' legacy laser head (bursts) in the same run
+  (``DAQ_PARTS=laser`` runs only this comparison, ``DAQ_LASER_ROUNDS`` alternating rounds of each);
 * ``demo_*``: the shipped Z-axis demo plan (60 s scans, sweeps every 15 min) at 3600x;
 * ``instruments_*``: block scans through pyvisa from the simulated 34970A, no store;
 * ``store_*``: the scheduler's sink committing the same blocks in the same batches, no instruments;
@@ -85,11 +87,11 @@ def bench_plan() -> Plan:
     )
 
 
-def daemon_run(url: str, prefix: str, speed: float) -> dict:
+def daemon_run(url: str, prefix: str, speed: float, sim_laser: str = "attocube-ids3010") -> dict:
     """Run the daemon path on the virtual machine at `speed` into the store at `url`; return its figures."""
     plan = bench_plan()
     c0 = time.process_time()
-    s = run_daemon(plan, db_url=url, scenario_path=SCENARIO, speed=speed).stats
+    s = run_daemon(plan, db_url=url, scenario_path=SCENARIO, speed=speed, sim_laser=sim_laser).stats
     cpu = time.process_time() - c0
     out = {
         f"{prefix}_finished": s.finished,
@@ -110,6 +112,26 @@ def daemon_run(url: str, prefix: str, speed: float) -> dict:
         out[f"{prefix}_keeps_up"] = s.finished and s.max_lag_s < SWEEP_S
         out[f"{prefix}_max_lag_sim_s"] = round(s.max_lag_s, 2)
     return out
+
+
+def laser_paths(tmp: Path, rounds: int = int(os.environ.get("DAQ_LASER_ROUNDS", 2))) -> dict:
+    """Return flat-out scans/s through the IDS3010 (JSON-RPC, a point = signal check + 12 reads) beside the
+    thesis' legacy head (one burst per point) in the same run, alternating, median of ``rounds`` each."""
+    runs: dict[str, list[float]] = {"ids3010": [], "legacy": []}
+    points = {}
+    for k in range(rounds):
+        for name, laser in (("ids3010", "attocube-ids3010"), ("legacy", "thesis-laser")):
+            got = daemon_run(f"sqlite:///{tmp / f'laser-{name}-{k}.sqlite'}", "r", math.inf, sim_laser=laser)
+            runs[name].append(got["r_scans_per_s"])
+            points[name] = got["r_sweep_points"]
+    ids, legacy = (float(np.median(runs[n])) for n in ("ids3010", "legacy"))
+    return {
+        "laser_ids3010_flat_out_scans_per_s": ids,
+        "laser_legacy_flat_out_scans_per_s": legacy,
+        "laser_ids3010_vs_legacy": round(ids / legacy, 3),
+        "laser_sweep_points": points["ids3010"],
+        "laser_runs": runs,
+    }
 
 
 def demo_plan_run(tmp: Path) -> dict:
@@ -282,9 +304,15 @@ def main() -> None:
         "load_avg_1m": load_average(),
         "cores": os.cpu_count(),
     }
+    if os.environ.get("DAQ_PARTS") == "laser":  # only the laser paths' same-run comparison
+        with tempfile.TemporaryDirectory() as d:
+            figures.update(laser_paths(Path(d)))
+        emit(figures)
+        return
     channels, blocks = blocks_from_vm(12000, 200)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
+        figures.update(laser_paths(tmp))
         figures.update(daemon_run(f"sqlite:///{tmp / 'paced.sqlite'}", "sqlite_paced", SPEED))
         figures.update(daemon_run(f"sqlite:///{tmp / 'flat.sqlite'}", "sqlite_flat_out", math.inf))
         # paced at half the speed it just sustained flat out: does it keep up there, with what write latency?

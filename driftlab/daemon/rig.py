@@ -286,6 +286,12 @@ def build_file_rig(
     spec = rig.role("thermocouples")
     if spec is None:
         raise ValidationError(f"rig {rig.name}: a campaign needs a thermocouples role")
+    machine = rig.role("machine")
+    if machine is not None and machine.driver == "heidenhain-lsv2":
+        raise ValidationError(
+            f"rig {rig.name}: heidenhain-lsv2 reads the control but cannot move the machine or start its spindle; "
+            "a campaign needs linuxcnc or thesis-rs232 (or no machine role); `driftlab rig check` reads the TNC"
+        )
     wired = thermocouple_channels(rig)
     missing = [c for c in channels if c not in wired]
     if missing:

@@ -43,7 +43,15 @@ DRIVERS: dict[str, tuple[str, str]] = {
     "keysight-34970a-dcv": ("proximity", "DC-volt channels of a 34970A family mainframe, SCPI over VISA"),
     "nidaqmx": ("proximity", "NI-DAQmx analog inputs through NI's nidaqmx package (resource Dev1/ai0:4)"),
     "laser-export": ("laser", "a laser's capture software followed through its live export file (resource: the file)"),
+    "attocube-ids3010": (
+        "laser",
+        "attocube IDS3010 displacement interferometer, its JSON-RPC interface over TCP (host[:port], default 9090)",
+    ),
     "linuxcnc": ("machine", "LinuxCNC through linuxcncrsh, TCP (host:port, default port 5007)"),
+    "heidenhain-lsv2": (
+        "machine",
+        "Heidenhain TNC through LSV2 (pyLSV2), TCP (host:port, default 19000): reads positions, moves nothing",
+    ),
     "thesis-tc-card": ("thermocouples", "legacy: the thesis' DAS-TC card protocol (driftlab's own, CJC?/SCAN?/FETC?)"),
     "thesis-laser": ("laser", "legacy: the thesis' HP-IB laser processor protocol (driftlab's own, MODE/MEAS?)"),
     "thesis-ad-card": ("proximity", "legacy: the thesis' DT2801 A/D card protocol (driftlab's own, VOLT?)"),
@@ -150,6 +158,35 @@ def _unknown(role: str, options: Mapping[str, Any], allowed: set[str]) -> None:
         raise ValidationError(
             f"instruments.{role}.options: unknown option {extra[0]!r} (takes {', '.join(sorted(allowed))})"
         )
+
+
+IDS_OPTIONS = {
+    "displacement_axis",
+    "angle_axes",
+    "angle_spacing_mm",
+    "api_namespace",
+    "min_contrast_permille",
+    "start_measurement",
+}
+
+
+def ids_optics(role: str, options: Mapping[str, Any]) -> Any:
+    """Return the IDS3010's beam layout from a rig's options (beams 0..2, the angle set-up's spacing)."""
+    from driftlab.daq.attocube_ids import IDSOptics
+
+    try:
+        axes = options.get("angle_axes", [0, 1])
+        return IDSOptics(
+            displacement_axis=int(options.get("displacement_axis", 0)),
+            angle_axes=(int(axes[0]), int(axes[1])),
+            angle_spacing_mm=float(options.get("angle_spacing_mm", 32.0)),
+        )
+    except (TypeError, ValueError, IndexError, KeyError):
+        raise ValidationError(
+            f"instruments.{role}.options: displacement_axis a beam 0..2, angle_axes two beams, angle_spacing_mm in mm"
+        ) from None
+    except ValidationError as exc:
+        raise ValidationError(f"instruments.{role}.options: {exc}") from None
 
 
 def thermocouple_channels(rig: RigSpec) -> list[str]:
@@ -274,6 +311,21 @@ def open_instrument(
             **({"sleep": lambda _s: None, "max_idle_polls": 2} if fast else {}),
         )
         return link, link.close
+    if spec.driver == "heidenhain-lsv2":
+        from driftlab.daq.heidenhain import HeidenhainLink
+
+        _unknown(role, o, {"axes"})
+        axes = o.get("axes")
+        if axes is not None and not isinstance(axes, dict):
+            raise ValidationError(
+                f"instruments.{role}.options.axes: a mapping of X Y Z A B to the control's axis names"
+            )
+        tnc = HeidenhainLink.open(
+            spec.resource,
+            timeout_s=spec.timeout_s,
+            axes={str(k): str(v) for k, v in axes.items()} if axes else None,
+        )
+        return tnc, tnc.close
     if spec.driver == "thesis-tc-card":
         from driftlab.daq.thermocouple import ThermocoupleCard
 
@@ -305,6 +357,20 @@ def open_instrument(
         )
         follower.rows()  # the file must exist when the rig is opened (the capture software has started)
         return follower, follower.close
+    if spec.driver == "attocube-ids3010":
+        from driftlab.daq.attocube_ids import AttocubeIDS
+
+        _unknown(role, o, IDS_OPTIONS)
+        ids = AttocubeIDS.open(
+            spec.resource,
+            timeout_s=spec.timeout_s,
+            optics=ids_optics(role, o),
+            api_namespace=str(o.get("api_namespace", "sen")),
+            min_contrast_permille=float(o.get("min_contrast_permille", 250.0)),
+            start_measurement=bool(o.get("start_measurement", True)),
+            **({"sleep": lambda _s: None, "max_settle_polls": 20} if fast else {}),
+        )
+        return ids, ids.close
     if spec.driver == "thesis-laser":
         from driftlab.daq.laser import LaserInterferometer
 
@@ -344,7 +410,15 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
     servers: dict[str, Any] = {}
     specs = dict(rig.instruments)
     try:
-        if "machine" in roles:
+        if "machine" in roles and specs["machine"].driver == "heidenhain-lsv2":
+            from driftlab.daq.sim.heidenhain import SimLSV2, lsv2_resource
+            from driftlab.vocabulary import AXES
+
+            names = specs["machine"].options.get("axes") or {}
+            tnc = SimLSV2(clock, axes=tuple(str(v) for v in names.values()) or AXES).start()
+            servers["machine"] = tnc
+            specs["machine"] = specs["machine"].model_copy(update={"resource": lsv2_resource(tnc)})
+        elif "machine" in roles:
             m = specs["machine"]
             ctrl: Any = (SimLinuxCNC(world, clock) if m.driver == "linuxcnc" else _sim_controller(world, clock)).start()
             servers["machine"] = ctrl
@@ -363,12 +437,28 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
                 srv = Sim34970A(world, clock) if spec.driver == "keysight-34970a-dcv" else SimADCard(clock)
             elif role == "laser":
                 if spec.driver == "laser-export":
-                    raise ValidationError("the virtual machine has no capture software: simulate thesis-laser")
+                    raise ValidationError("the virtual machine has no capture software: simulate attocube-ids3010")
                 stage = servers.get("machine")
                 if stage is None:
                     from driftlab.daq.sim.instruments import FixedStage
 
                     stage = FixedStage()
+                if spec.driver == "attocube-ids3010":
+                    from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource
+
+                    optics = ids_optics(role, spec.options)
+                    head = SimIDS3010(
+                        world,
+                        clock,
+                        stage,
+                        api_namespace=str(spec.options.get("api_namespace", "sen")),
+                        displacement_axis=optics.displacement_axis,
+                        angle_axes=optics.angle_axes,
+                        angle_spacing_mm=optics.angle_spacing_mm,
+                    )
+                    servers[role] = head.start()
+                    specs[role] = spec.model_copy(update={"resource": ids_resource(head)})
+                    continue
                 srv = SimLaser(world, clock, stage)
             else:
                 continue

@@ -80,9 +80,11 @@ def run_daemon(
     world: Any | None = None,
     rig_path: Path | str | None = None,
     export_readers: Any | None = None,
+    sim_laser: str = "attocube-ids3010",
 ) -> DaemonResult:
     """Open (or resume) the plan's campaign in the store and run it on the simulated rig, a rig file's
-    instruments (``rig_path``), or the instruments named in the plan."""
+    instruments (``rig_path``), or the instruments named in the plan; ``sim_laser`` picks the simulated
+    rig's laser (``thesis-laser``: the legacy head, a benchmark baseline)."""
     from driftlab.campaigns.clock import WallClock
     from driftlab.progress import progress
 
@@ -136,7 +138,14 @@ def run_daemon(
     if scenario is not None:
         clock = sim_clock(plan, cursor, speed)
         rig = build_sim_rig(
-            plan, scenario, clock, list(channels), datum=handle.progress.get("datum"), world=world, cursor=cursor
+            plan,
+            scenario,
+            clock,
+            list(channels),
+            datum=handle.progress.get("datum"),
+            world=world,
+            cursor=cursor,
+            laser=sim_laser,
         )
     else:
         clock.started_epoch_s = _campaign_started_epoch(engine, handle.campaign_id)

@@ -56,27 +56,35 @@ def build_sim_rig(
     datum: Mapping[str, Any] | None = None,
     world: Any | None = None,
     cursor: Cursor = Cursor(),
+    laser: str = "attocube-ids3010",
 ) -> InstrumentRig:
     """Return a rig whose drivers talk to simulated instruments reading the virtual machine at `clock`.
 
     The instruments are the ones a shop owns, answering their own command sets: a Keysight 34970A
     scanning the thermocouples (SCPI), LinuxCNC through linuxcncrsh, a second 34970A's DC-volt
-    channels for the proximity sensors; the laser is the thesis' HP-IB processor.
+    channels for the proximity sensors, an attocube IDS3010 laser interferometer (JSON-RPC).
 
     On a resume the simulated hardware is put back as the real hardware would have stayed while the
     PC restarted: each axis where its last sweep point left it, the laser head on its datum.
+
+    ``laser="thesis-laser"`` puts the thesis' legacy HP-IB processor (driftlab's own protocol, with
+    bursts) in the IDS3010's place: the benchmark's same-run baseline of the laser path.
     """
     import pyvisa
 
+    from driftlab.daq.attocube_ids import AttocubeIDS, ids_url
     from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts
     from driftlab.daq.laser import LaserInterferometer
     from driftlab.daq.linuxcnc import LinuxCNCLink
     from driftlab.daq.retry import RetryPolicy
+    from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource
     from driftlab.daq.sim.instruments import SimLaser, serial_url, visa_address
     from driftlab.daq.sim.keysight34970a import Sim34970A, sim_channel_map
     from driftlab.daq.sim.linuxcnc import SimLinuxCNC
     from driftlab.daq.transport import LineChannel, SerialPort, VisaPort
 
+    if laser not in ("attocube-ids3010", "thesis-laser"):
+        raise ValueError(f"simulated laser {laser!r}: attocube-ids3010 or thesis-laser")
     if world is None:
         from driftlab.daq.sim.machine import VirtualMachine
 
@@ -87,7 +95,9 @@ def build_sim_rig(
     for axis, (pos, direction) in axis_positions(plan, cursor).items():
         ctrl.pos[axis], ctrl.direction[axis] = pos, direction
     ctrl.start()
-    head = SimLaser(world, clock, ctrl).start()
+    head: Any = (
+        SimIDS3010(world, clock, ctrl) if laser == "attocube-ids3010" else SimLaser(world, clock, ctrl)
+    ).start()
     ad = Sim34970A(world, clock).start()  # a second mainframe: its DC-volt channels read the proximity sensors
     closers: list[Callable[[], None]] = [card.close, ctrl.close, head.close, ad.close]
     try:
@@ -99,9 +109,18 @@ def build_sim_rig(
         scanner = Keysight34970A(card_io, card_map, tc_type="E", reference_junction="INT", clock=clock.now)
         scanner.identify()
         scanner.configure()
-        laser_io = LineChannel(VisaPort.open(visa_address(head), resource_manager=rm), "laser", policy, sleep=_no_wait)
-        closers.append(laser_io.close)
-        laser = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20, burst=True)
+        meter: Any
+        if isinstance(head, SimIDS3010):
+            head_url = ids_url(ids_resource(head))
+            meter = AttocubeIDS(lambda: SerialPort.open(head_url), sleep=_no_wait, max_settle_polls=20)
+            closers.append(meter.close)
+            meter.session()
+        else:
+            laser_io = LineChannel(
+                VisaPort.open(visa_address(head), resource_manager=rm), "laser", policy, sleep=_no_wait
+            )
+            closers.append(laser_io.close)
+            meter = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20, burst=True)
         url = serial_url(ctrl)
         link = LinuxCNCLink(lambda: SerialPort.open(url), sleep=_no_wait, max_idle_polls=2)
         link.session()
@@ -120,7 +139,7 @@ def build_sim_rig(
     return InstrumentRig(
         plan,
         scanner,
-        laser,
+        meter,
         link,
         clock=clock,
         datum=datum,

@@ -11,6 +11,7 @@ import pytest
 from driftlab.campaigns.clock import SimClock
 from driftlab.campaigns.plan import parse_plan
 from driftlab.daemon.simrig import build_sim_rig, plan_scenario, scenario_meta
+from driftlab.daq.protocols import FLAG_BEAM_BREAK
 from driftlab.daq.sim.machine import VirtualMachine
 from driftlab.daq.sim.scenario import load_scenario
 from driftlab.errors import InstrumentError
@@ -103,17 +104,23 @@ def test_the_laser_answers_only_for_the_mounted_optics_and_within_their_range(ri
     b = next(p for p in pts if p.setup == "b-pos")
     assert set(_measure(plan, rig, clock, b)) == {"beta"}
     head = rig.servers["laser"]
-    # asking the mounted head for another term: the head has no such optics
+    # asking for angle optics while linear optics are mounted: the second beam sees no reflector
     rig.laser.configure("B", "beta")
     head.mount("LIN", "X", "dx")
-    with pytest.raises(InstrumentError):
-        rig.laser.reference(0.0)
+    rig.laser.reference(0.0)
+    assert rig.laser.read().flag == FLAG_BEAM_BREAK
     # beyond the +-10 deg of the angular optics (fig. 5.9) the beam is lost
     head.mount("ANG", "B", "beta", 10.0)
-    rig.servers["controller"].pos["B"] = 25.0
-    assert head.handle("MEAS?") == "ERR BEAM"
     rig.servers["controller"].pos["B"] = 5.0
-    assert head.handle("MEAS?").count(",") == 1
+    rig.laser.reference(5.0)  # clears the head's latched measurement error first
+    assert rig.laser.read().ok
+    rig.servers["controller"].pos["B"] = 25.0
+    assert rig.laser.read().flag == FLAG_BEAM_BREAK
+    rig.servers["controller"].pos["B"] = 5.0
+    with pytest.raises(InstrumentError, match="resetAxes"):
+        rig.laser.command("com.attocube.sen.system.resetAxes")  # the error stays latched until resetError
+    rig.laser.reference(5.0)
+    assert rig.laser.read().ok
 
 
 def test_a_fixture_taken_off_reads_out_of_range(rig_and_world):

@@ -233,6 +233,11 @@ class LineServer(ABC):
             except OSError:
                 pass
 
+    def split_frames(self, buf: bytes) -> tuple[list[bytes], bytes]:
+        """Return the complete commands in ``buf`` and the bytes left over (``\\n``-terminated lines here)."""
+        *frames, rest = buf.split(b"\n")
+        return frames, rest
+
     @abstractmethod
     def handle(self, line: str) -> str | None:
         """Return the reply to one command line (None: no reply)."""
@@ -287,20 +292,25 @@ class LineServer(ABC):
                 if not data:
                     break
                 buf += data
-                while b"\n" in buf:
-                    line, buf = buf.split(b"\n", 1)
+                frames, buf = self.split_frames(buf)
+                out = b""  # the replies to every command of this chunk go out in one send (no Nagle stalls)
+                for line in frames:
                     reply = self._reply(line)
-                    if reply == b"":  # a dropped connection
+                    if reply == b"":  # a dropped connection: what was answered before it still goes out
                         try:
+                            if out:
+                                conn.sendall(out)
                             conn.shutdown(socket.SHUT_RDWR)
                         except OSError:
                             pass
                         return
                     if reply is not None:
-                        try:
-                            conn.sendall(reply)
-                        except OSError:
-                            return
+                        out += reply
+                if out:
+                    try:
+                        conn.sendall(out)
+                    except OSError:
+                        return
 
     def close(self) -> None:
         """Stop the server and join its threads."""
@@ -441,8 +451,9 @@ class _LaserRef:
     error: float
 
 
-class SimLaser(LineServer):
-    """A laser head measuring the world's error field at the stage position (protocol: driftlab.daq.laser)."""
+class SimHead(LineServer):
+    """What every simulated laser head shares: the world's error field at the stage position, the optics
+    mounted, the beam's state and the datum the count starts from; subclasses speak a command set."""
 
     name = "laser"
 
@@ -524,6 +535,24 @@ class SimLaser(LineServer):
         position, direction = self.stage.where(self.axis, t)
         err = float(self.world.measure_error(t, self.axis, position, direction).get(self.term, 0.0))
         return position, err
+
+    def _relative(self, t: float) -> tuple[float, float]:
+        """Return (error - datum error, travel since the datum) of the configured measurement at ``t``.
+
+        Power-on (no datum yet): the count starts from wherever the axis is.
+        """
+        position, err = self._true_value(t)
+        if self._ref is None:
+            self._ref = _LaserRef(t, position, err)
+        return err - self._ref.error, position - self._ref.position
+
+    def _take_datum(self, t: float) -> None:
+        position, err = self._true_value(t)
+        self._ref = _LaserRef(t, position, err)
+
+
+class SimLaser(SimHead):
+    """The thesis' laser head (legacy protocol of driftlab.daq.laser) on the world's error field."""
 
     def handle(self, line: str) -> str | None:
         """Answer the laser protocol."""
