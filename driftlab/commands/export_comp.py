@@ -141,8 +141,9 @@ def _check_travel(lo: float, hi: float, travel: tuple[float, float, str], axis: 
 
 def _run(args: argparse.Namespace) -> int:
     """Check the range and grid, evaluate the model there, write the file(s) atomically, print the settings."""
-    from driftlab.compensator.exports import controller, write
+    from driftlab.compensator.exports import controller
     from driftlab.compensator.exports.grid import ROTARY, controller_grid, correction_table, describe
+    from driftlab.compensator.exports.writers import write
     from driftlab.vocabulary import AXES
 
     axis = args.axis.upper()

@@ -46,7 +46,8 @@ import pandas as pd
 from driftlab.errors import ValidationError
 from driftlab.models.document import ModelDocument
 from driftlab.models.features import Feature, Inputs, candidate_features, evaluate
-from driftlab.models.fitting import CONSTANT_PRIOR, STRUCTURE_ELEMENT, build_samples, chain_dims
+from driftlab.models.fitting import CONSTANT_PRIOR, build_samples, chain_dims
+from driftlab.models.structures import STRUCTURE_ELEMENT
 from driftlab.physics.kinematics import ELEMENTS, LINKS, PARAMS, workspace_error
 from driftlab.physics.lag import first_order_lag
 from driftlab.vocabulary import AXES
@@ -235,7 +236,7 @@ def advisor_parameters(
 ) -> list[Parameter]:
     """Return the coefficients to pin: the document's terms plus each link's recast structure terms.
 
-    Per link: its constant and, for every structure on it (``fitting.STRUCTURE_ELEMENT``), the
+    Per link: its constant and, for every structure on it (``structures.STRUCTURE_ELEMENT``), the
     mean over its sites (eq. 3.3) and the side-to-side gradients (eqs. 3.4-3.5), on all six
     parameters; the stepwise regression may have dropped exactly the ones a campaign left collinear.
     """

@@ -48,11 +48,13 @@ from driftlab.models.lines import (
     line_pool,
 )
 from driftlab.models.neural import NeuralComparison, neural_comparisons
-from driftlab.models.physical_check import physical_check, stated_geometries
+from driftlab.models.physical_check import machine_geometry, physical_check, stated_geometries
 from driftlab.models.regression import TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
+from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT
 from driftlab.models.uncertainty import JointFit, Pinning, ar1_inflation
 from driftlab.models.virtual_sensor import fit_virtual_sensors
+from driftlab.physics.geometry import GEOMETRY_LINKS
 from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
 from driftlab.physics.thermal import ALPHA_C
 from driftlab.vocabulary import AXES, term_unit
@@ -71,34 +73,9 @@ ROTATION_ABOUT: Mapping[str, str] = {"X": "alpha", "Y": "beta", "Z": "gamma", "A
 PITCH_YAW: Mapping[str, tuple[str, str]] = {"X": ("beta", "gamma"), "Y": ("alpha", "gamma"), "Z": ("alpha", "beta")}
 #: feature kinds that belong to a joint (position shape, reversal, ballscrew)
 SEED_KINDS = frozenset({"position", "direction", "pos_dT"})
-#: the element whose structure a thermocouple's structure belongs to (allocation of a chosen term)
-STRUCTURE_ELEMENT: Mapping[str, str] = {
-    "spindle": "T1",
-    "spindle_arm": "T1",
-    "z_column": "T2",
-    "base": "T2",
-    "z_screw": "phi_z",
-    "z_motor": "phi_z",
-    "y_screw": "phi_y",
-    "y_motor": "phi_y",
-    "xy_carriage": "T3",
-    "x_screw": "phi_x",
-    "x_motor": "phi_x",
-    "x_table": "T4",
-    "rotary_base": "theta_x",
-    "a_drive": "theta_x",
-    "b_table": "theta_y",
-    "b_drive": "theta_y",
-}
 #: the element that carries terms of the room air alone: the frame (column on the base, eq. 3.3);
 #: it has no test of its own, so its terms are re-estimated on every test
 ROOM_ELEMENT = "T2"
-#: ballscrew sites of each translational joint (eq. 3.2: error ~ position x dT of the screw)
-SCREW_STRUCTURES: Mapping[str, tuple[str, ...]] = {
-    "phi_x": ("x_screw", "x_motor"),
-    "phi_y": ("y_screw", "y_motor"),
-    "phi_z": ("z_screw", "z_motor"),
-}
 
 
 @dataclass
@@ -823,13 +800,9 @@ def _physical_terms(
     alpha_c L / H on the angle, alpha_c L^2 / 2H on the deflection, alpha_c L (signed as the link's
     extent) on the growth.
     """
-    from driftlab.models.physical_check import machine_geometry
-
     status, g, _ = machine_geometry(bundles)
     if g is None:
         return []
-    from driftlab.physics.geometry import GEOMETRY_LINKS
-
     pool = {f.name: f for f in cands.for_axes(list(AXES), None)}
     added: list[str] = []
 

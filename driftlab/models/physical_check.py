@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT
 from driftlab.physics.geometry import BENDING_SIDES, GEOMETRY_LINKS
 from driftlab.physics.thermal import ALPHA_C
 from driftlab.vocabulary import TRANSLATIONS
@@ -155,7 +156,6 @@ def physical_table(
     NaN and ``status`` "not stated: <what>".
     """
     # imported here: fitting imports this module (the structure maps are the pipeline's own)
-    from driftlab.models.fitting import SCREW_STRUCTURES, STRUCTURE_ELEMENT
 
     g = _plain(geometry) or {}
     alpha_c = float(g.get("alpha_c_per_degC", ALPHA_C))

@@ -12,8 +12,9 @@ import pytest
 from driftlab.campaigns.bundle import Bundle, CampaignMeta, write_bundle
 from driftlab.cli import main
 from driftlab.compensator.compensate import ErrorModel
-from driftlab.compensator.exports import FORMATS, controller, write
+from driftlab.compensator.exports import FORMATS, controller
 from driftlab.compensator.exports.grid import AxisTable, axis_correction, controller_grid, correction_table
+from driftlab.compensator.exports.writers import write
 from driftlab.daq.sim.campaign import simulate_campaign
 from driftlab.daq.sim.scenario import Scenario
 from driftlab.errors import ValidationError

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from driftlab.compensator.exports import Controller, Export
+from driftlab.compensator.exports.controllers import Controller, Export
 from driftlab.compensator.exports.grid import AxisTable
 from driftlab.errors import ValidationError
 

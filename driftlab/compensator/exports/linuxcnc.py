@@ -16,7 +16,7 @@ reverse trim while ``vel_cmd < 0``, linear between entries); docs/src/config/ini
 
 from __future__ import annotations
 
-from driftlab.compensator.exports import Controller, Export
+from driftlab.compensator.exports.controllers import Controller, Export
 from driftlab.compensator.exports.grid import AxisTable
 
 DECIMALS = 7  # 0.1 nm (mm) / 1e-7 deg: far below any table's interpolation error

@@ -17,6 +17,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic import ValidationError as PydanticValidationError
 
+from driftlab.daq.sim.sites import MODEL_CHANNELS, SITE_INDEX
 from driftlab.errors import ValidationError
 from driftlab.physics.geometry import Geometry
 from driftlab.vocabulary import ROTATIONS, Axis, Term
@@ -166,7 +167,6 @@ class HiddenEffect(_Strict):
     @field_validator("channels")
     @classmethod
     def _known_channels(cls, v: list[str]) -> list[str]:
-        from driftlab.daq.sim.sites import SITE_INDEX
 
         for ch in v:
             if ch not in SITE_INDEX:
@@ -206,8 +206,6 @@ class HiddenEffect(_Strict):
             if float(self.params.get("tau_s", 300.0)) <= 0:
                 raise ValueError("sensor_fault tau_s must be > 0")
         if k == "unmapped_channel":
-            from driftlab.daq.sim.truth import MODEL_CHANNELS
-
             assert self.axis is not None  # checked above: every kind but sensor_fault has an axis
             if self.channels[0] in MODEL_CHANNELS[self.axis]:
                 raise ValueError(

@@ -15,6 +15,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
+from driftlab.vocabulary import AXES
+
 #: heat sources of the network, in the column order of the source matrix
 SOURCES: tuple[str, ...] = (
     "spindle",
@@ -199,3 +201,34 @@ def structure_channels(structure: str) -> tuple[str, ...]:
 def channel_map() -> dict[str, dict[str, str]]:
     """Return the campaign.json ``channels`` object: channel -> {location, structure}."""
     return {s.name: {"location": s.location, "structure": s.structure} for s in SITES}
+
+
+#: the thesis' 18 selected thermocouples (ch. 5.4) plus the other two arm corners
+THESIS_SELECTION: tuple[str, ...] = (
+    "T7",
+    "T9",
+    "T10",
+    "T13",
+    "T19",
+    "T20",
+    "T21",
+    "T24",
+    "T26",
+    "T30",
+    "T31",
+    "T32",
+    "T33",
+    "T34",
+    "T35",
+    "T37",
+    "T42",
+    "T45",
+    "T49",
+    "T50",
+)
+#: the model channels written to campaign.json (the user's sensor selection per axis). Every axis's
+#: measurement carries every element's errors at home, so each list holds every driver; Z leaves
+#: out the Y motor T21, whose heat reaching the column is the catalogue's unmapped_channel story (ch. 4.3)
+MODEL_CHANNELS: Mapping[str, tuple[str, ...]] = MappingProxyType(
+    {ax: tuple(c for c in THESIS_SELECTION if not (ax == "Z" and c == "T21")) for ax in AXES}
+)

@@ -35,6 +35,8 @@ import numpy as np
 
 from driftlab.daq.sim.scenario import ANGLE_TERMS, HiddenEffect
 from driftlab.daq.sim.sites import CHANNELS, SITE_INDEX, structure_channels
+from driftlab.daq.sim.sites import MODEL_CHANNELS as MODEL_CHANNELS  # the model channels are part of the truth's story
+from driftlab.daq.sim.sites import THESIS_SELECTION as THESIS_SELECTION
 from driftlab.errors import ValidationError
 from driftlab.physics import kinematics as kin
 from driftlab.physics.thermal import ALPHA_C
@@ -177,35 +179,6 @@ THERMAL_TERMS: tuple[tuple[str, str, float, Mapping[str, float], str], ...] = (
 
 #: channels that drive the base truth (the thesis' selection of ch. 5.4, with all four arm corners)
 DRIVERS: tuple[str, ...] = tuple(c for c in CHANNELS if any(c in w for _, _, _, w, _ in THERMAL_TERMS))
-#: the thesis' 18 selected thermocouples (ch. 5.4) plus the other two arm corners
-THESIS_SELECTION: tuple[str, ...] = (
-    "T7",
-    "T9",
-    "T10",
-    "T13",
-    "T19",
-    "T20",
-    "T21",
-    "T24",
-    "T26",
-    "T30",
-    "T31",
-    "T32",
-    "T33",
-    "T34",
-    "T35",
-    "T37",
-    "T42",
-    "T45",
-    "T49",
-    "T50",
-)
-#: the model channels written to campaign.json (the user's sensor selection per axis). Every axis's
-#: measurement carries every element's errors at home, so each list holds every driver; Z leaves
-#: out the Y motor T21, whose heat reaching the column is the catalogue's unmapped_channel story (ch. 4.3)
-MODEL_CHANNELS: Mapping[str, tuple[str, ...]] = MappingProxyType(
-    {ax: tuple(c for c in THESIS_SELECTION if not (ax == "Z" and c == "T21")) for ax in AXES}
-)
 assert all(set(DRIVERS) <= set(chs) for chs in MODEL_CHANNELS.values())
 _PARAM = {p: i for i, p in enumerate(kin.PARAMS)}
 
