@@ -49,6 +49,7 @@ from driftlab.models.effects import (
     refine_tau,
     scan_sensor_faults,
     screen,
+    step_bank,
     tau_bounds,
 )
 from driftlab.models.sensor_drift import scan_sensor_drifts
@@ -1339,6 +1340,8 @@ def _search_term(
                 continue
             if fault_start is not None and robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
                 continue  # after a fault a further finding must also stand on the rows before it
+            if cand.kind in SLOW_KINDS and not _holds_beside_a_step(state.X, X_new, new_idx, td, alpha_each):
+                continue  # a step in the readings (a re-zeroed line) is never a drift or a lag
             params, coef = _params(cand, hint, fit.coef[new_idx], td)
             before = state.fit.residual
             eff = Effect(
@@ -1386,6 +1389,50 @@ def _search_term(
         log.info("accepted %s on %s/%s %s", cand.kind, td.axis, td.term, eff.params)
     _score_holdout_once(history)
     return state.effects, state
+
+
+#: kinds that are slow functions of time: what a datum step in the readings can pass for
+SLOW_KINDS = frozenset({"drift", "thermal_lag", "unsensed_source"})
+
+
+def _best_step(X: np.ndarray, td: TermData) -> np.ndarray | None:
+    """Return the step column (0 before, 1 from a sweep start on) that best fits the residual of ``X``.
+
+    The cuts of ``effects.step_bank`` (sweep starts inside the training part); decided on the
+    training rows. None when the term has too few sweeps for a step.
+    """
+    sb = step_bank(td)
+    if sb is None:
+        return None
+    _, bank = sb
+    tr = td.train
+    Q, _ = np.linalg.qr(X[tr] / np.maximum(np.sqrt(np.mean(X[tr] ** 2, axis=0)), 1e-300))
+    r = td.y[tr] - Q @ (Q.T @ td.y[tr])
+    B = bank[tr]
+    RB = B - Q @ (Q.T @ B)
+    nb = np.sum(RB * RB, axis=0)
+    drop = np.where(nb > 1e-12, (RB.T @ r) ** 2 / np.where(nb > 1e-12, nb, 1.0), -1.0)
+    k = int(np.argmax(drop))
+    return bank[:, k : k + 1] if drop[k] > 0 else None
+
+
+def _holds_beside_a_step(
+    X_cur: np.ndarray, X_new: np.ndarray, new_idx: list[int], td: TermData, alpha_each: float
+) -> bool:
+    """Return whether a slow candidate stays significant (robust test) with the best datum step beside it.
+
+    A re-zeroed line moves every later reading by one amount; a drift, a lag of many hours or a lag of
+    a heat source fitted across that moment takes the step for a slow change (the open-world nulls:
+    unclaimed steps became 8 h lags and drifts). The step that best fits the current model's residual is
+    put beside the candidate: a real slow effect keeps explaining the rows on both sides of it (a ramp
+    still ramps within each side, a lag still follows its input), a stand-in for a step has nothing left.
+    Without a step in the residual the best cut is a weak column and costs a real effect little power.
+    """
+    step = _best_step(X_cur, td)
+    if step is None:
+        return True
+    X_both = np.column_stack([X_new, step])
+    return robust_pvalue(X_both, td.y, td, new_idx) < alpha_each
 
 
 def _score_holdout_once(history: list[tuple[Effect, LinearFit, LinearFit]]) -> None:
