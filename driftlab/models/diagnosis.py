@@ -1286,6 +1286,35 @@ def _search_term(
                 valid, how, after = validation_check(
                     state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise
                 )
+            if valid and cand.kind == "operating_condition":
+                # rpm and rpm^2 are two laws of one column with one coefficient each: not nested, so the
+                # in-sample F cannot choose between them (the spindle's heat, which the thermocouples read
+                # late, leaves an rpm-like remainder); the one that predicts the later training blocks better
+                # is the law (both extend the same model, compared on the same folds)
+                alt = next(
+                    (
+                        o
+                        for o in scored
+                        if o.cand.kind == "operating_condition"
+                        and o.cand.hint["column"] == hint["column"]
+                        and o.cand.hint["power"] != hint["power"]
+                    ),
+                    None,
+                )
+                if alt is not None:
+                    a_valid, a_how, a_after = validation_check(
+                        state.X, alt.cand.cols, td.y, td.train, folds, min_gain, min_explained, noise
+                    )
+                    log.debug("   the other power %s: %s, %s", alt.cand.label, a_valid, a_how)
+                    if a_valid and a_after < after:
+                        sc, cand, cols, hint = alt, alt.cand, alt.cand.cols, dict(alt.cand.hint)
+                        valid, how, after = a_valid, a_how, a_after
+                        vif, cond = collinearity(cols[:, 0], state.X, td.train)
+                        hint["vif"], hint["condition_number"] = vif, cond
+                        if vif > VIF_MAX:
+                            continue
+                        X_new, names_new, new_idx = _extension(cand, cols, state)
+                        fit = fit_columns(X_new, td.y, td.train, names_new)
             # a channel that predicts the later blocks clearly worse than one of the same kind already
             # validated (and refused by a later rule) is a stand-in for it, not a finding of its own
             if valid and after > (1.0 + STAND_IN_MARGIN) * best_of_kind.get(cand.kind, np.inf):

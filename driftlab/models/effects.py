@@ -591,6 +591,11 @@ def _fault_candidate(ctx: TermContext, scans: list[FaultScan]) -> Candidate:
     return Candidate(scans[0].kind, [f.channel for f in scans], np.column_stack(cols), names, hint, replace=reps)
 
 
+#: the power of a machine-state column's direct effect in the catalogue's physical story (spec section 3,
+#: ``operating_condition``: centrifugal spindle growth with rpm^2, a feed-dependent following error)
+PHYSICAL_POWER = {"spindle_rpm": 2, "feed_mm_min": 1}
+
+
 def build_candidates(ctx: TermContext) -> list[Candidate]:
     """Return every catalogue candidate for the current model of ``ctx`` (kinds not yet taken)."""
     td = ctx.td
@@ -644,7 +649,13 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             )
     # the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)
     for name, v in td.conditions.items():
+        # a column with two values in the training rows (off and one speed) gives rpm^2 = c rpm: one law, whose
+        # power the data cannot tell; the catalogue's physical story names it (spec 3: centrifugal growth with
+        # rpm^2, a following error with the feed)
+        two_valued = np.unique(v[td.train][np.isfinite(v[td.train])]).size <= 2
         for power in (1, 2):
+            if two_valued and power != PHYSICAL_POWER.get(name, 1):
+                continue
             label = f"{name}^{power}"
             x = v**power
             if ("operating_condition", (label,)) in ctx.taken or np.ptp(x[td.train]) == 0:
