@@ -1287,10 +1287,9 @@ def _search_term(
                     state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise
                 )
             if valid and cand.kind == "operating_condition":
-                # rpm and rpm^2 are two laws of one column with one coefficient each: not nested, so the
-                # in-sample F cannot choose between them (the spindle's heat, which the thermocouples read
-                # late, leaves an rpm-like remainder); the one that predicts the later training blocks better
-                # is the law (both extend the same model, compared on the same folds)
+                # rpm and rpm^2 are two laws of one column with one coefficient each: not nested, and the
+                # in-sample F says only which fits the training rows better; the one that predicts the later
+                # training blocks better is the law (both extend the same model, compared on the same folds)
                 alt = next(
                     (
                         o
@@ -1435,7 +1434,8 @@ def _best_step(X: np.ndarray, td: TermData) -> np.ndarray | None:
         return None
     _, bank = sb
     tr = td.train
-    Q, _ = np.linalg.qr(X[tr] / np.maximum(np.sqrt(np.mean(X[tr] ** 2, axis=0)), 1e-300))
+    Q, R = np.linalg.qr(X[tr] / np.maximum(np.sqrt(np.mean(X[tr] ** 2, axis=0)), 1e-300))
+    Q = Q[:, np.abs(np.diag(R)) > 1e-10 * np.abs(np.diag(R)).max()]  # the design's own span, as ``screen``
     r = td.y[tr] - Q @ (Q.T @ td.y[tr])
     B = bank[tr]
     RB = B - Q @ (Q.T @ B)
