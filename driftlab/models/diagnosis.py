@@ -1368,8 +1368,10 @@ def _search_term(
                 continue
             if fault_start is not None and robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
                 continue  # after a fault a further finding must also stand on the rows before it
-            if cand.kind in SLOW_KINDS and not _holds_beside_a_step(state.X, X_new, new_idx, td, alpha_each):
-                continue  # a step in the readings (a re-zeroed line) is never a drift or a lag
+            if cand.kind not in NON_PHYSICAL_KINDS and not _holds_beside_a_step(
+                state.X, X_new, new_idx, td, alpha_each
+            ):
+                continue  # a step in the readings (a re-zeroed line) is never physics: no drift, lag, square ...
             params, coef = _params(cand, hint, fit.coef[new_idx], td)
             before = state.fit.residual
             eff = Effect(
@@ -1419,10 +1421,6 @@ def _search_term(
     return state.effects, state
 
 
-#: kinds that are slow functions of time: what a datum step in the readings can pass for
-SLOW_KINDS = frozenset({"drift", "thermal_lag", "unsensed_source"})
-
-
 def _best_step(X: np.ndarray, td: TermData) -> np.ndarray | None:
     """Return the step column (0 before, 1 from a sweep start on) that best fits the residual of ``X``.
 
@@ -1448,14 +1446,15 @@ def _best_step(X: np.ndarray, td: TermData) -> np.ndarray | None:
 def _holds_beside_a_step(
     X_cur: np.ndarray, X_new: np.ndarray, new_idx: list[int], td: TermData, alpha_each: float
 ) -> bool:
-    """Return whether a slow candidate stays significant (robust test) with the best datum step beside it.
+    """Return whether a physical candidate stays significant (robust test) with the best datum step beside it.
 
-    A re-zeroed line moves every later reading by one amount; a drift, a lag of many hours or a lag of
-    a heat source fitted across that moment takes the step for a slow change (the open-world nulls:
-    unclaimed steps became 8 h lags and drifts). The step that best fits the current model's residual is
-    put beside the candidate: a real slow effect keeps explaining the rows on both sides of it (a ramp
-    still ramps within each side, a lag still follows its input), a stand-in for a step has nothing left.
-    Without a step in the residual the best cut is a weak column and costs a real effect little power.
+    A re-zeroed line moves every later reading by one amount; a drift, a lag of many hours, a lag of a
+    heat source, or a square, a screw or a channel outside the model whose temperature moved across
+    that moment takes the step for physics (the open-world nulls: unclaimed steps became 8 h lags,
+    drifts, squares of a channel). The step that best fits the current model's residual is put beside
+    the candidate: a real effect keeps explaining the rows on both sides of it (a ramp still ramps
+    within each side, a lag still follows its input), a stand-in for a step has nothing left. Without a
+    step in the residual the best cut is a weak column and costs a real effect little power.
     """
     step = _best_step(X_cur, td)
     if step is None:
