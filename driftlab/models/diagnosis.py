@@ -49,6 +49,7 @@ from driftlab.models.effects import (
     refine_tau,
     scan_sensor_faults,
     screen,
+    step_bank,
     tau_bounds,
 )
 from driftlab.models.sensor_drift import scan_sensor_drifts
@@ -1285,6 +1286,34 @@ def _search_term(
                 valid, how, after = validation_check(
                     state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise
                 )
+            if valid and cand.kind == "operating_condition":
+                # rpm and rpm^2 are two laws of one column with one coefficient each: not nested, and the
+                # in-sample F says only which fits the training rows better; the one that predicts the later
+                # training blocks better is the law (both extend the same model, compared on the same folds)
+                alt = next(
+                    (
+                        o
+                        for o in scored
+                        if o.cand.kind == "operating_condition"
+                        and o.cand.hint["column"] == hint["column"]
+                        and o.cand.hint["power"] != hint["power"]
+                    ),
+                    None,
+                )
+                if alt is not None:
+                    a_valid, a_how, a_after = validation_check(
+                        state.X, alt.cand.cols, td.y, td.train, folds, min_gain, min_explained, noise
+                    )
+                    log.debug("   the other power %s: %s, %s", alt.cand.label, a_valid, a_how)
+                    if a_valid and a_after < after:
+                        sc, cand, cols, hint = alt, alt.cand, alt.cand.cols, dict(alt.cand.hint)
+                        valid, how, after = a_valid, a_how, a_after
+                        vif, cond = collinearity(cols[:, 0], state.X, td.train)
+                        hint["vif"], hint["condition_number"] = vif, cond
+                        if vif > VIF_MAX:
+                            continue
+                        X_new, names_new, new_idx = _extension(cand, cols, state)
+                        fit = fit_columns(X_new, td.y, td.train, names_new)
             # a channel that predicts the later blocks clearly worse than one of the same kind already
             # validated (and refused by a later rule) is a stand-in for it, not a finding of its own
             if valid and after > (1.0 + STAND_IN_MARGIN) * best_of_kind.get(cand.kind, np.inf):
@@ -1339,6 +1368,10 @@ def _search_term(
                 continue
             if fault_start is not None and robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
                 continue  # after a fault a further finding must also stand on the rows before it
+            if cand.kind not in NON_PHYSICAL_KINDS and not _holds_beside_a_step(
+                state.X, X_new, new_idx, td, alpha_each
+            ):
+                continue  # a step in the readings (a re-zeroed line) is never physics: no drift, lag, square ...
             params, coef = _params(cand, hint, fit.coef[new_idx], td)
             before = state.fit.residual
             eff = Effect(
@@ -1386,6 +1419,48 @@ def _search_term(
         log.info("accepted %s on %s/%s %s", cand.kind, td.axis, td.term, eff.params)
     _score_holdout_once(history)
     return state.effects, state
+
+
+def _best_step(X: np.ndarray, td: TermData) -> np.ndarray | None:
+    """Return the step column (0 before, 1 from a sweep start on) that best fits the residual of ``X``.
+
+    The cuts of ``effects.step_bank`` (sweep starts inside the training part); decided on the
+    training rows. None when the term has too few sweeps for a step.
+    """
+    sb = step_bank(td)
+    if sb is None:
+        return None
+    _, bank = sb
+    tr = td.train
+    Q, R = np.linalg.qr(X[tr] / np.maximum(np.sqrt(np.mean(X[tr] ** 2, axis=0)), 1e-300))
+    Q = Q[:, np.abs(np.diag(R)) > 1e-10 * np.abs(np.diag(R)).max()]  # the design's own span, as ``screen``
+    r = td.y[tr] - Q @ (Q.T @ td.y[tr])
+    B = bank[tr]
+    RB = B - Q @ (Q.T @ B)
+    nb = np.sum(RB * RB, axis=0)
+    drop = np.where(nb > 1e-12, (RB.T @ r) ** 2 / np.where(nb > 1e-12, nb, 1.0), -1.0)
+    k = int(np.argmax(drop))
+    return bank[:, k : k + 1] if drop[k] > 0 else None
+
+
+def _holds_beside_a_step(
+    X_cur: np.ndarray, X_new: np.ndarray, new_idx: list[int], td: TermData, alpha_each: float
+) -> bool:
+    """Return whether a physical candidate stays significant (robust test) with the best datum step beside it.
+
+    A re-zeroed line moves every later reading by one amount; a drift, a lag of many hours, a lag of a
+    heat source, or a square, a screw or a channel outside the model whose temperature moved across
+    that moment takes the step for physics (the open-world nulls: unclaimed steps became 8 h lags,
+    drifts, squares of a channel). The step that best fits the current model's residual is put beside
+    the candidate: a real effect keeps explaining the rows on both sides of it (a ramp still ramps
+    within each side, a lag still follows its input), a stand-in for a step has nothing left. Without a
+    step in the residual the best cut is a weak column and costs a real effect little power.
+    """
+    step = _best_step(X_cur, td)
+    if step is None:
+        return True
+    X_both = np.column_stack([X_new, step])
+    return robust_pvalue(X_both, td.y, td, new_idx) < alpha_each
 
 
 def _score_holdout_once(history: list[tuple[Effect, LinearFit, LinearFit]]) -> None:

@@ -591,6 +591,11 @@ def _fault_candidate(ctx: TermContext, scans: list[FaultScan]) -> Candidate:
     return Candidate(scans[0].kind, [f.channel for f in scans], np.column_stack(cols), names, hint, replace=reps)
 
 
+#: the power of a machine-state column's direct effect in the catalogue's physical story (spec section 3,
+#: ``operating_condition``: centrifugal spindle growth with rpm^2, a feed-dependent following error)
+PHYSICAL_POWER = {"spindle_rpm": 2, "feed_mm_min": 1}
+
+
 def build_candidates(ctx: TermContext) -> list[Candidate]:
     """Return every catalogue candidate for the current model of ``ctx`` (kinds not yet taken)."""
     td = ctx.td
@@ -644,7 +649,13 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             )
     # the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)
     for name, v in td.conditions.items():
+        # a column with two values in the training rows (off and one speed) gives rpm^2 = c rpm: one law, whose
+        # power the data cannot tell; the catalogue's physical story names it (spec 3: centrifugal growth with
+        # rpm^2, a following error with the feed)
+        two_valued = np.unique(v[td.train][np.isfinite(v[td.train])]).size <= 2
         for power in (1, 2):
+            if two_valued and power != PHYSICAL_POWER.get(name, 1):
+                continue
             label = f"{name}^{power}"
             x = v**power
             if ("operating_condition", (label,)) in ctx.taken or np.ptp(x[td.train]) == 0:
@@ -737,26 +748,31 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
         edges = np.concatenate([[0], np.cumsum(widths)])
     if not finite:
         return out
-    big = big / np.maximum(np.sqrt(np.mean(big * big, axis=0)), 1e-300)
-    big_r = big - Q @ (Q.T @ big)
-    big_n2 = np.sum(big_r * big_r, axis=0)
+    # the columns' parts outside the model, without forming them (the candidate bank is the largest array
+    # here): with unit-RMS columns C and ry, rw orthogonal to Q, (C - Q Q'C)' ry = C' ry and
+    # |C - Q Q'C|^2 = |C|^2 - |Q'C|^2 - one pass over the bank for its squares, one product with [Q, ry]
+    nrow = big.shape[0]
+    scale = 1.0 / np.maximum(np.sqrt(np.einsum("ij,ij->j", big, big) / nrow), 1e-300)
+    prod = (big.T @ np.column_stack([Q, ry])) * scale[:, None]  # rows: columns of the bank, unit RMS
+    G = prod[:, :-1]
+    big_y = prod[:, -1]
+    big_n2 = np.maximum(nrow - np.einsum("ij,ij->i", G, G), 0.0) * (np.isfinite(scale) & (scale < 1e300))
     for ci, c in enumerate(finite):
-        C = big[:, edges[ci] : edges[ci + 1]]
-        RC = big_r[:, edges[ci] : edges[ci + 1]]
-        norm2 = big_n2[edges[ci] : edges[ci + 1]]
+        sl = slice(edges[ci], edges[ci + 1])
+        norm2 = big_n2[sl]
         if c.kind in BANK_KINDS:  # a bank: one column per tau (or cut), score each, keep the best
-            ok = norm2 > 1e-10 * C.shape[0]
+            ok = norm2 > 1e-10 * nrow
             with_col = c.hint.get("with")
             if with_col is None:
-                drops = np.where(ok, (RC.T @ ry) ** 2 / np.maximum(norm2, 1e-300), -1.0)
+                drops = np.where(ok, big_y[sl] ** 2 / np.maximum(norm2, 1e-300), -1.0)
                 k = 1
             else:  # two columns per tau, [lag_tau, dT]: closed-form 2x2 least squares for every tau
                 w = with_col[train]
                 w = w / max(float(np.sqrt(np.mean(w * w))), 1e-300)
                 rw = w - Q @ (Q.T @ w)
                 ww, wy = float(rw @ rw), float(rw @ ry)
-                bw = RC.T @ rw
-                by = RC.T @ ry
+                bw = (big[:, sl].T @ rw) * scale[sl]
+                by = big_y[sl]
                 det = norm2 * ww - bw * bw
                 good = ok & (det > 1e-10 * np.maximum(norm2 * ww, 1e-300))
                 drops = np.where(
@@ -768,15 +784,17 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
                 continue
             drop, col_index = float(drops[i]), i
         else:
-            if np.any(norm2 <= 1e-10 * C.shape[0]):
+            if np.any(norm2 <= 1e-10 * nrow):
                 continue  # collinear with the model: nothing new
-            if RC.shape[1] == 1:
-                drop = float((RC[:, 0] @ ry) ** 2 / norm2[0])
+            width = edges[ci + 1] - edges[ci]
+            if width == 1:
+                drop = float(big_y[sl][0] ** 2 / norm2[0])
             else:
+                RC = big[:, sl] * scale[sl] - Q @ G[sl].T
                 b, *_ = np.linalg.lstsq(RC, ry, rcond=None)
                 fitted = RC @ b
                 drop = float(fitted @ fitted)
-            k, col_index = RC.shape[1], 0
+            k, col_index = width, 0
         dof = n - p - k
         if dof <= 0 or rss <= 0:
             continue

@@ -9,9 +9,13 @@ ramp in time, from some moment on, while its neighbours agree with one another.
 
 ``scan_sensor_drifts`` fits, per channel, the virtual sensor jointly with a hinge
 ``max(t - t0, 0)`` in days for every candidate start ``t0`` (one projection for all starts),
-and keeps the start that explains most of the departure. A drift is plausible when the ramp
-explains most of the departure (RSS ratio), is large against the departure that is left, lasts
-at least a quarter of the campaign (a short ramp is a transient, not an ageing junction), and
+and keeps the start that explains most of the departure. The virtual sensor is dynamic: the
+neighbours' readings, their first-order lags (15 and 45 min) and the lags (15 min to 2 h) of the
+heat inputs the bundle states (stage schedules, conditions columns), none longer than an eighth of
+the campaign, with the temperature coefficients summing to one (unit steady gain). A drift is
+plausible when the ramp explains most of the departure (RSS ratio), is large against the departure
+that is left, keeps its direction over its span (both halves' rates share its sign),
+lasts at least a quarter of the campaign (a short ramp is a transient, not an ageing junction), and
 stands out among all channels' ratios (a peer test, as for sensor faults). The repair subtracts
 the ramp from the reading; the result has the same form as a sensor fault's scan
 (:class:`~driftlab.models.effects.FaultScan` with ``mode="drift"``) so the diagnosis repairs
@@ -23,11 +27,12 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from driftlab.models.effects import FaultScan, _neighbours
+from driftlab.models.effects import FaultScan, _neighbours, source_schedules
 from driftlab.models.standard_model import PreparedBundle, robust_sigma
+from driftlab.physics.lag import first_order_lag
 
 #: the ramp must explain this share of the departure from the virtual sensor: RSS without / with it
-MIN_RATIO = 8.0
+MIN_RATIO = 4.0
 #: ... and reach this many sigmas of what is left of the departure at the end of the campaign
 MIN_SIZE_SIGMA = 10.0
 #: ... and this much in degC (a thermocouple's stated tolerance is 0.5-1 degC; a drift below 0.05 degC
@@ -37,6 +42,15 @@ MIN_SIZE_DEGC = 0.05
 MIN_SPAN_FRACTION = 0.25
 #: floor of the peers' spread of log ratios (healthy channels can agree to a few percent)
 PEER_MAD_FLOOR = 0.25
+#: time constants (s) of the neighbours' first-order lags in the dynamic virtual sensor: a thermocouple
+#: site follows its heat inputs as a first-order lag of tens of minutes to hours (thesis 2.4.2; 5.3, Fig.
+#: 5.4), so one site is a lagged mix of another's reading (see ``scan_sensor_drifts``)
+VS_TAUS_S = (900.0, 2700.0)
+#: time constants (s) of the stated heat inputs' lags in the virtual sensor (a site's own response to a source)
+SCHED_TAUS_S = (900.0, 2700.0, 7200.0)
+#: no lag of the virtual sensor is longer than this share of the campaign: none can build a ramp that lasts
+#: a quarter of it or more (a lag of a third of the campaign can mimic a trend)
+VS_TAU_MAX_FRACTION = 0.125
 
 
 def _hinge_bank(t: np.ndarray, starts: np.ndarray) -> np.ndarray:
@@ -68,18 +82,38 @@ def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) ->
     with np.errstate(all="ignore"):
         corr = np.nan_to_num(np.corrcoef(np.where(finite, D, 0.0).T))
     ex_idx = {prep.channel_index(c) for c in exclude if c in prep.channels}
+    # the dynamic virtual sensor (thesis 6.6 with the first-order site response of 2.4.2 and 5.3): two sites
+    # that follow the same heat input f with their own time constants, T_j = L_tj(f) and T_k = L_tk(f)
+    # (L: the lag filter, tau dL/dt = u - L), are related by T_j = L_tj(T_k + t_k dT_k/dt), which lies in
+    # the span of T_k and L_tj(T_k). A static regression on T_k leaves every stage's transient as a
+    # departure as large as a slow calibration drift; the lagged neighbours take it
+    dt_med = float(np.median(np.diff(t)))
+    lim = VS_TAU_MAX_FRACTION * span
+    D0 = np.where(finite, D, 0.0)
+    lagged = [first_order_lag(D0, t, tau) for tau in VS_TAUS_S if 3.0 * dt_med <= tau <= lim]
+    # the heat inputs the campaign states (stage schedules, conditions columns) through the same lags: a site
+    # that sees a source its neighbours barely see (5.3, Fig. 5.4: sites near a source change most) departs
+    # from them at every stage of that source, and that is no drift
+    sched = list(source_schedules(prep).values())
+    heat = [first_order_lag(np.column_stack(sched), t, tau) for tau in SCHED_TAUS_S if tau <= lim] if sched else []
 
     def scan_one(j: int, skip: set[int]) -> FaultScan | None:
         order = [k for k in np.argsort(-np.abs(corr[j])) if k != j and finite[k] and k not in skip]
         nb = _neighbours(prep, j, order, 16)
         if not nb:
             return None
-        A = np.column_stack([np.ones(n), D[:, nb]])
+        # unit steady gain: a uniform change of the machine and its room moves every reading alike (a uniform
+        # field solves the heat equation without sources; each lag has unit steady gain), so the temperature
+        # coefficients sum to one - written against a reference, the room air when the bundle names it
+        room = [k for k in nb if prep.channels[k] in prep.room_channels]
+        ref = room[0] if room else nb[0]
+        temps = np.column_stack([D[:, nb], *[L[:, nb] for L in lagged]]) - D[:, [ref]]
+        A = np.column_stack([np.ones(n), temps, *heat])
         s = np.sqrt(np.mean(A * A, axis=0))
         Q, R = np.linalg.qr(A / np.where(s > 0, s, 1.0))
         keep = np.abs(np.diag(R)) > 1e-10 * np.abs(np.diag(R)).max()
         Q = Q[:, keep]
-        y = D[:, j]
+        y = D[:, j] - D[:, ref]
         ry = y - Q @ (Q.T @ y)
         rss0 = float(ry @ ry)
         RH = H - Q @ (Q.T @ H)
@@ -95,7 +129,9 @@ def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) ->
         ratio = rss0 / rss1
         size = abs(b) * (t[-1] - starts[i]) / 86400.0
         sigma = max(robust_sigma(np.diff(r1)) / np.sqrt(2.0), float(np.sqrt(rss1 / n)), 1e-6)
-        plausible = bool(ratio > MIN_RATIO and size > MIN_SIZE_SIGMA * sigma and size > MIN_SIZE_DEGC)
+        plausible = bool(
+            ratio > MIN_RATIO and size > MIN_SIZE_SIGMA * sigma and size > MIN_SIZE_DEGC and steady(Q, ry, starts[i], b)
+        )
         return FaultScan(
             prep.channels[j],
             float(starts[i]),
@@ -111,6 +147,20 @@ def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) ->
             float("nan"),
             rate_degC_per_day=b,
         )
+
+    def steady(Q: np.ndarray, ry: np.ndarray, t0: float, b: float) -> bool:
+        """Return whether the ramp keeps its direction: fitted on each half of its span, both rates share its sign.
+
+        An ageing junction departs steadily one way; a virtual sensor's misfit of one stage's transient
+        (a fast site after the last heating, a neighbour's slow response) that a hinge happens to fit
+        rises and falls back. The halves' sizes are not compared: each half is pinned far less well than
+        the whole (a real 0.5 degC/day drift came out as 0.95 and 0.18 on the open world).
+        """
+        tm = 0.5 * (t0 + t[-1])
+        h = np.column_stack([np.clip(t - t0, 0.0, tm - t0), np.maximum(t - tm, 0.0)]) / 86400.0
+        Rh = h - Q @ (Q.T @ h)
+        ab = np.linalg.lstsq(Rh, ry, rcond=None)[0]
+        return bool(np.all(ab * b > 0))
 
     out: dict[str, FaultScan] = {}
     for j in range(m):
