@@ -174,7 +174,8 @@ def fast_predict(doc: Any) -> Predict:
             value = acc + const
             for col, c in lin.items():
                 value = value + c * q[:, col]
-            arr = out.setdefault(element, np.zeros((n, 6)))
+            # (N, 6) held column by column: the chain reads each error component as one row
+            arr = out.setdefault(element, np.zeros((6, n)).T)
             arr[:, param] += value
         return out
 
@@ -336,9 +337,13 @@ def rotary_lever(q: np.ndarray, dims: Mapping[str, Any], delta: np.ndarray) -> n
     t5 = t["T5"]
     # Rx(A) t5 and Rx(A) e_y
     mb = m + np.column_stack([np.full_like(ca, t5[0]), ca * t5[1] - sa * t5[2], sa * t5[1] + ca * t5[2]])
-    axis_b = np.column_stack([np.zeros_like(ca), ca, sa])
-    axis_a = np.array([1.0, 0.0, 0.0])
-    return delta[:, :1] * np.cross(axis_a, m) + delta[:, 1:2] * np.cross(axis_b, mb)
+    # the cross products written out: e_x x m = (0, -m_z, m_y); (0, c, s) x mb = (c mb_z - s mb_y, s mb_x, -c mb_x)
+    da, db = delta[:, 0], delta[:, 1]
+    out = np.empty_like(m)
+    out[:, 0] = db * (ca * mb[:, 2] - sa * mb[:, 1])
+    out[:, 1] = db * (sa * mb[:, 0]) - da * m[:, 2]
+    out[:, 2] = da * m[:, 1] - db * (ca * mb[:, 0])
+    return out
 
 
 def correct_points(
