@@ -288,10 +288,30 @@ def test_the_streamer_checks_every_point_it_prepares(tmp_path):
 
     program = parse_program("G90 G1 F1000\nX1\nX2\n", name="p.nc")
     streamer = Streamer(
-        program, StaticModel(model), FixedTemperatures({"T1": 25.0}), guard=Guard.for_model(model)
-    )  # 0.05 mm of Z correction
+        iter([program]), StaticModel(model), FixedTemperatures({"T1": 25.0}), guard=Guard.for_model(model)
+    )  # 0.05 mm of Z correction; pieces (an iterator) are not checked up front: the caller's first pass does
     with pytest.raises(ValidationError, match="p.nc:2: correction of Z -0.05 mm exceeds the largest plausible 0.02"):
         streamer.prime()
+    assert not streamer._ready
+
+
+def test_the_streamer_checks_a_whole_program_before_preparing_anything():
+    """Given a whole program and a guard, the streamer runs the first pass itself: a late block is refused first."""
+    model = ErrorModel.from_document(doc(0.01, 1))
+    from driftlab.compensator.gcode import parse_program
+
+    text = "G90 G1 F1000\n" + "".join(f"X{k}\n" for k in range(1, 301))  # X 265 on line 266: beyond 264
+    program = parse_program(text, name="p.nc")
+    guard = Guard(envelope_from_mapping({"travel": TRAVEL}), model.ranges)
+    streamer = Streamer(program, StaticModel(model), FixedTemperatures({"T1": 25.0}), lookahead=8, guard=guard)
+    with pytest.raises(ValidationError, match=r"p.nc:266: target X 265 mm is outside the travel -10..264 mm"):
+        streamer.prime()
+    assert not streamer._ready and streamer.result.blocks_sent == 0
+    # the same program within the travel streams (the check does not refuse what is inside)
+    ok = parse_program("G90 G1 F1000\n" + "".join(f"X{k}\n" for k in range(1, 200)), name="p.nc")
+    inside = Streamer(ok, StaticModel(model), FixedTemperatures({"T1": 25.0}), lookahead=8, guard=guard)
+    inside.prime()
+    assert len(inside._ready) >= 8  # a batch of lines prepared ahead
 
 
 # ----------------------------------------------------------------------------- pieces
