@@ -263,14 +263,14 @@ def parse_program(
 
     errors: list[tuple[int, str]] = []
     times: dict[int, float] = {}
-    cls = _CLS[buf]
+    cls = np.take(_CLS, buf)  # (a take of a 256-entry table: about twice as fast as indexing)
     counts = _class_counts(cls)
     if counts[_SPECIAL]:
         work = bytearray(data)
         lines = np.unique(np.searchsorted(nl, np.flatnonzero(cls == _SPECIAL)))
         _strip_comments(data, work, lines, line_start, line_end, errors, times)
         buf = np.frombuffer(bytes(work), dtype=np.uint8)
-        cls = _CLS[buf]
+        cls = np.take(_CLS, buf)  # (a take of a 256-entry table: about twice as fast as indexing)
         counts = _class_counts(cls)
     if counts[_OTHER] or counts[_SPECIAL]:
         other = np.flatnonzero((cls == _OTHER) | (cls == _SPECIAL))
