@@ -373,3 +373,23 @@ def test_fit_writes_the_machine_files_envelope_into_the_document(tmp_path, capsy
     assert "p.nc:3: target X 999999 mm is outside the travel -10..264 mm" in capsys.readouterr().err
     prog.write_text("G90\nG1 X10 Y10 Z-10 F1000\nG1 X200\n")
     assert main(args) == 0
+
+
+def test_kept_commands_still_name_the_first_bad_block(tmp_path):
+    """Offline, blocks are solved in runs spanning pieces: an early bad correction is still named before a later
+    target beyond the travel, and nothing is written."""
+    from driftlab.compensator.compensate import compensate_file
+
+    model = ErrorModel.from_document(doc(0.01, 1))  # X correction -1.2e-4 mm per mm of X at T1 = 26 degC
+    lines = ["G90 G1 F1000", *(f"X{k}" for k in range(1, 99)), "X210", *(f"X{k}" for k in range(100, 200)), "X300"]
+    prog = tmp_path / "p.nc"
+    prog.write_text("\n".join(lines) + "\n")
+    guard = Guard(envelope_from_mapping({"travel": TRAVEL, "max_correction": {"X": 0.025}}), model.ranges)
+    out = tmp_path / "out.nc"
+    with pytest.raises(ValidationError, match=r"p.nc:100: correction of X -0.0252 mm exceeds the largest plausible"):
+        compensate_file(prog, model, {"T1": 26.0}, out, chunk_bytes=256, guard=guard)
+    assert not out.exists() and not (tmp_path / "out.nc.part").exists()
+    # without the bad block the later target is named
+    prog.write_text("\n".join(ln for ln in lines if ln != "X210") + "\n")
+    with pytest.raises(ValidationError, match=r"p.nc:200: target X 300 mm is outside the travel"):
+        compensate_file(prog, model, {"T1": 26.0}, out, chunk_bytes=256, guard=guard)
