@@ -383,9 +383,12 @@ def parse_program(
         need = (_residuals(value[ai[~rot]], min_decimals[0]), _residuals(value[ai[rot]], min_decimals[1]))
     if decimals is not None:
         dec_lin, dec_rot = decimals
+    elif need is not None:  # the same residuals decide (``decimals_of`` of one piece is ``_decimals``)
+        dec_lin, dec_rot = decimals_of([need[0]], min_decimals[0]), decimals_of([need[1]], min_decimals[1])
     else:
         dec_lin = _decimals(value[ai[~rot]], min_decimals[0])
         dec_rot = _decimals(value[ai[rot]], min_decimals[1])
+    if decimals is None:
         for dec, sel in ((dec_lin, ~rot), (dec_rot, rot)):
             if dec > MAX_DECIMALS:
                 bad = ai[sel][~_whole(value[ai[sel]] * 10.0**MAX_DECIMALS)][0]
