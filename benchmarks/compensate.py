@@ -166,9 +166,10 @@ def offline(data: bytes, model: ErrorModel, temps: dict) -> dict:
 def offline_file(data: bytes, model: ErrorModel, temps: dict) -> dict:
     """Return the end-to-end figures of `driftlab compensate P -o OUT`'s path (file in, file out).
 
-    ``compensate_file`` with the envelope guard (a first pass checking every block's target and
-    correction, then the second pass correcting, checking every point and writing), beside the
-    same call without the guard in the same run (the in-run baseline of what the checks cost).
+    ``compensate_file`` with the envelope guard (a first pass checking every block's target, solving
+    and checking every point's correction and keeping the commands, then the second pass quantising,
+    checking every point again and writing), beside the same call without the guard in the same run
+    (the in-run baseline of what the checks cost: the second pass then solves every point itself).
     """
     import tempfile
 

@@ -178,6 +178,12 @@ def _open_campaign(
             "id": plan.machine.id,
             "name": plan.machine.name,
             **({"geometry": plan.machine.geometry.document()} if plan.machine.geometry else {}),
+            # the plan's travel goes with the campaign, so a model fitted on it carries its machine's limits
+            **(
+                {"travel": {a: [float(lo), float(hi)] for a, (lo, hi) in plan.machine.travel.items()}}
+                if plan.machine.travel
+                else {}
+            ),
         }
         meta: dict[str, Any] = {  # campaign.json of the bundle
             # bundle v2: every reading is stored with its commanded pose and the setup that made it

@@ -113,6 +113,18 @@ class Machine(_Strict):
     resolution_deg: StrictFloat | None = Field(default=None, gt=0, allow_inf_nan=False)
     #: optional stated dimensions (table 6.3's physical check); absent = "no geometry"
     geometry: Geometry | None = None
+    #: optional travel (soft limits) per axis, (low, high): mm for X Y Z, degrees for A B; a model fitted
+    #: on the campaign carries it into its envelope (``models.envelope``, docs/compensate.md)
+    travel: dict[Axis, tuple[StrictFloat, StrictFloat]] | None = None
+
+    @field_validator("travel")
+    @classmethod
+    def _travel(cls, value: dict[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]] | None:
+        """Require finite limits, low below high."""
+        for axis, (lo, hi) in (value or {}).items():
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"travel of {axis} must be two finite numbers, low < high (got {lo}, {hi})")
+        return value
 
 
 class Channel(_Strict):

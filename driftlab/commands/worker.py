@@ -13,7 +13,7 @@ from driftlab.commands.db import add_db_option
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Register `worker [--db URL] [--concurrency N] [--until-idle] [--name NAME] [--reconnect-s S]`."""
+    """Register `worker [--db URL] [--concurrency N] [--until-idle] [--name N] [--reconnect-s S] [--pulse-file P]`."""
     p = sub.add_parser(
         "worker", help="run queued fit/diagnose/refit jobs (PostgreSQL store; start as many as you like)"
     )
@@ -36,6 +36,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="when the database goes away, keep trying to reconnect this long, then exit with status 1 "
         "so that a supervisor restarts the worker (default 300)",
     )
+    p.add_argument(
+        "--pulse-file",
+        default=None,
+        metavar="PATH",
+        help="where this worker writes its liveness every 5 s for `driftlab health --worker` "
+        "(default $DRIFTLAB_WORKER_PULSE, else driftlab-worker.pulse.json in the temporary directory: "
+        "one per container; give each worker its own when several share a host)",
+    )
     p.set_defaults(func=_worker)
 
 
@@ -45,7 +53,7 @@ def _worker(args: argparse.Namespace) -> int:
 
     from driftlab.campaigns.store import connect
     from driftlab.errors import ValidationError
-    from driftlab.jobs.queue import run_worker
+    from driftlab.jobs.queue import default_pulse_file, run_worker
 
     if args.concurrency < 1:
         raise ValidationError(f"--concurrency must be at least 1, got {args.concurrency}")
@@ -61,7 +69,12 @@ def _worker(args: argparse.Namespace) -> int:
         store.ensure_schema()  # brings the queue's schema too (revision 0006)
         logging.getLogger(__name__).info("worker on %s, concurrency %d", store.url, args.concurrency)
         run_worker(
-            store, concurrency=args.concurrency, wait=not args.until_idle, name=args.name, reconnect_s=args.reconnect_s
+            store,
+            concurrency=args.concurrency,
+            wait=not args.until_idle,
+            name=args.name,
+            reconnect_s=args.reconnect_s,
+            pulse_file=args.pulse_file or default_pulse_file(),
         )
     # only a stop asked for (SIGINT/SIGTERM) or --until-idle gets here: a lost database raises ServiceError (1)
     return 0

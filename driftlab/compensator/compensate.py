@@ -187,7 +187,8 @@ def fast_predict(doc: Any) -> Predict:
             value = acc + const
             for col, c in lin.items():
                 value = value + c * q[:, col]
-            arr = out.setdefault(element, np.zeros((n, 6)))
+            # (N, 6) held column by column: the chain reads each error component as one row
+            arr = out.setdefault(element, np.zeros((6, n)).T)
             arr[:, param] += value
         return out
 
@@ -349,9 +350,13 @@ def rotary_lever(q: np.ndarray, dims: Mapping[str, Any], delta: np.ndarray) -> n
     t5 = t["T5"]
     # Rx(A) t5 and Rx(A) e_y
     mb = m + np.column_stack([np.full_like(ca, t5[0]), ca * t5[1] - sa * t5[2], sa * t5[1] + ca * t5[2]])
-    axis_b = np.column_stack([np.zeros_like(ca), ca, sa])
-    axis_a = np.array([1.0, 0.0, 0.0])
-    return delta[:, :1] * np.cross(axis_a, m) + delta[:, 1:2] * np.cross(axis_b, mb)
+    # the cross products written out: e_x x m = (0, -m_z, m_y); (0, c, s) x mb = (c mb_z - s mb_y, s mb_x, -c mb_x)
+    da, db = delta[:, 0], delta[:, 1]
+    out = np.empty_like(m)
+    out[:, 0] = db * (ca * mb[:, 2] - sa * mb[:, 1])
+    out[:, 1] = db * (sa * mb[:, 0]) - da * m[:, 2]
+    out[:, 2] = da * m[:, 1] - db * (ca * mb[:, 0])
+    return out
 
 
 def correct_points(
@@ -366,21 +371,32 @@ def correct_points(
     prev_nominal: np.ndarray | None = None,
     prev_direction: np.ndarray | None = None,
     at: float | None = None,
+    solved: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Correction:
     """Return the quantised corrections of ``points`` for these temperatures (and time ``at``, POSIX s).
 
     ``state`` carries the steps already sent (see ``quantise_carry``), ``prev_nominal`` and
     ``prev_direction`` the pose and approach directions before the first point, so a program can
-    be corrected in pieces (streaming) with the same result as in one go.
+    be corrected in pieces (streaming) with the same result as in one go. ``solved`` gives the axis
+    commands (P, 5) and singular flags (P,) of eqs. 4.23-4.26 already solved for exactly these
+    points, model and temperatures (the first pass's, ``KeptCommands``): they are used as they are
+    (``Correction.roll`` is then NaN, not kept).
     """
     q = program.to_q(points.nominal_int)
     start = program.start_int if prev_nominal is None else prev_nominal
     direction = directions(points.nominal_int, start, prev_direction)
-    errors = (
-        model.predict(q, temperatures, direction) if at is None else model.predict(q, temperatures, direction, at=at)
-    )
-    result = kinematics.compensate(q, errors, model.dims)
-    desired = result.q_cmd - q
+    if solved is None:
+        errors = (
+            model.predict(q, temperatures, direction)
+            if at is None
+            else model.predict(q, temperatures, direction, at=at)
+        )
+        result = kinematics.compensate(q, errors, model.dims)
+        q_cmd, singular, roll = result.q_cmd, result.singular, result.uncompensable_roll
+    else:
+        q_cmd, singular = solved
+        roll = np.full(q.shape[0], np.nan)
+    desired = q_cmd - q
     if not np.all(np.isfinite(desired)):
         raise ValidationError("the model predicts non-finite errors for these temperatures")
     s0 = np.zeros(5, dtype=np.int64) if state is None else np.asarray(state, dtype=np.int64)
@@ -390,14 +406,14 @@ def correct_points(
     whole = np.rint(ang)
     ang_steps = quantise_carry(np.where(np.abs(ang - whole) < 1e-6, whole, ang), s0[3:])
     # then translations (eq. 4.26), taking up what the angles on their grid leave at the tool
-    xyz = desired[:, :3] + rotary_lever(result.q_cmd, model.dims, ang_steps * step_rad - desired[:, 3:])
+    xyz = desired[:, :3] + rotary_lever(q_cmd, model.dims, ang_steps * step_rad - desired[:, 3:])
     lin = xyz / resolution_mm
     whole = np.rint(lin)
     xyz_steps = quantise_carry(np.where(np.abs(lin - whole) < 1e-6, whole, lin), s0[:3])
     steps = np.hstack([xyz_steps, ang_steps])
     step_int = resolution_units(program, resolution_mm, resolution_deg)
     sent = points.nominal_int + steps * step_int
-    return Correction(points, desired, steps, sent, result.singular, result.uncompensable_roll, direction)
+    return Correction(points, desired, steps, sent, singular, roll, direction)
 
 
 # ----------------------------------------------------------------------------- temperatures
@@ -611,6 +627,8 @@ def compensate_program(
     )
 
 
+#: the most points whose commands the first pass keeps for the second (48 bytes each, in a temporary file)
+KEEP_MAX_POINTS = 1 << 23
 #: bytes of program text parsed, corrected and written at a time by the streaming pipeline
 STREAM_CHUNK_BYTES = 1 << 18
 #: points corrected at once when every point takes the same temperatures (the result is the same
@@ -681,6 +699,8 @@ class ProgramScan:
     first_time_s: float
     blocks: int
     lines: int
+    #: the axis commands of every block solved by the first pass, when the second pass can use them as they are
+    solved: KeptCommands | None = None
 
 
 def scan_program(
@@ -734,11 +754,16 @@ def scan_program(
         if piece.n_lines:
             time_s = float(piece.line_time_s[-1])
         # targets first (a runaway is named as one), then the subdivision, then the corrections
+        try:
+            if check is not None:
+                check.targets(piece)
+            points = count_points(piece, max_segment_mm, max_segment_deg)  # refuses a segment of too many points
+        except ValidationError:
+            if check is not None:
+                check.finish()  # the blocks before this one are checked first: the first bad block is named
+            raise
         if check is not None:
-            check.targets(piece)
-        count_points(piece, max_segment_mm, max_segment_deg)  # refuses a segment of too many points
-        if check is not None:
-            check.corrections(piece)
+            check.corrections(piece, points, (max_segment_mm, max_segment_deg))
         if piece.n_blocks:
             pose = tuple((piece.target_int[-1] * piece.scale).tolist())
         assert piece.residuals is not None
@@ -749,7 +774,44 @@ def scan_program(
     decimals = (decimals_of(lin, min_decimals[0]), decimals_of(rot, min_decimals[1]))
     if max(decimals) > MAX_DECIMALS:  # pragma: no cover - each piece has refused its own already
         raise ValidationError(f"{name}: more than {MAX_DECIMALS} decimals; program not accepted")
-    return ProgramScan(decimals, eol or b"\n", first_time, blocks, lines)
+    solved = check.finish(decimals) if check is not None else None
+    return ProgramScan(decimals, eol or b"\n", first_time, blocks, lines, solved)
+
+
+class KeptCommands:
+    """The axis commands (eqs. 4.23-4.26) the first pass solved for every block, in order, for the second pass.
+
+    Kept in an unnamed temporary file (48 bytes a block: five commands and the singular flag as
+    float64), so memory does not grow with the program; ``read`` gives them back in order. They hold
+    for the second pass only when every block is one point, the temperatures are the same for every
+    point and each piece had the program's decimals (``FirstPass.finish`` decides).
+    """
+
+    def __init__(self) -> None:
+        import tempfile
+
+        self.fh = tempfile.TemporaryFile()
+        self.rows = 0
+
+    def write(self, q_cmd: np.ndarray, singular: np.ndarray) -> None:
+        """Append the commands (N, 5) and singular flags (N,) of the next blocks."""
+        self.fh.write(np.column_stack([q_cmd, singular.astype(np.float64)]).tobytes())
+        self.rows += q_cmd.shape[0]
+
+    def read(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return the next ``n`` blocks' commands (n, 5) and singular flags (n,) (from the start after ``rewind``)."""
+        rows = np.frombuffer(self.fh.read(n * 48), dtype=np.float64).reshape(-1, 6)
+        if rows.shape[0] != n:
+            raise RuntimeError("the first pass kept fewer commands than the second pass reads")
+        return rows[:, :5], rows[:, 5] > 0.5
+
+    def rewind(self) -> None:
+        """Read from the first block again."""
+        self.fh.seek(0)
+
+    def close(self) -> None:
+        """Drop the file."""
+        self.fh.close()
 
 
 class FirstPass:
@@ -760,9 +822,17 @@ class FirstPass:
     timed block, else ``fixed`` (the latest scan, the given readings, or the streamer's first
     reading). The block's target and its corrected target must stay inside the travel and the
     correction under the largest plausible one; the temperatures used must not extrapolate.
+
+    With ``keep`` (the offline path), while every block takes ``fixed``, blocks are solved in runs of
+    ``kinematics.CHUNK`` counted over the whole program (where the second pass's batches fall, so each
+    block's solution is the one the second pass would compute) and their commands are kept
+    (``KeptCommands``): the second pass then does not solve them again. Each piece is checked once all its
+    blocks are solved, and ``finish`` (at the end, and before any other refusal) checks the rest.
     """
 
-    def __init__(self, guard: Guard, model: ErrorModel, temperatures: TemperatureTable | Temperatures) -> None:
+    def __init__(
+        self, guard: Guard, model: ErrorModel, temperatures: TemperatureTable | Temperatures, *, keep: bool = False
+    ) -> None:
         self.guard = guard
         self.model = model
         self.table = temperatures if isinstance(temperatures, TemperatureTable) else None
@@ -771,35 +841,113 @@ class FirstPass:
         )
         guard.check_temperatures(self.fixed)
         self.prev_direction: np.ndarray | None = None
+        self.kept: KeptCommands | None = KeptCommands() if keep else None
+        self._decimals: set[tuple[int, int]] = set()
+        # blocks waiting to be solved: (piece, first block, q, direction); pieces waiting for their checks
+        self._queue: list[tuple[Program, int, np.ndarray, np.ndarray]] = []
+        self._queued = 0
+        self._waiting: list[tuple[Program, Points, list[np.ndarray]]] = []
 
     def targets(self, piece: Program) -> None:
         """Refuse the first block of a piece whose target is outside the travel."""
         self.guard.check_positions(piece, np.arange(piece.n_blocks), piece.target_int * piece.scale, "target")
 
-    def corrections(self, piece: Program) -> None:
-        """Refuse the first block of a piece whose correction, or corrected target, leaves the envelope."""
+    def corrections(self, piece: Program, points: int | None = None, segment: tuple[float, float] = (5.0, 5.0)) -> None:
+        """Refuse the first block of a piece whose correction, or corrected target, leaves the envelope.
+
+        ``points``: how many points the piece subdivides into with ``segment`` (mm, deg); while commands
+        are kept, every point is solved and checked (not only the blocks' targets).
+        """
         if piece.n_blocks == 0:
             return
-        blocks = np.arange(piece.n_blocks)
-        target = piece.target_int * piece.scale
         times = piece.block_time_s()
-        temps: Temperatures = self.fixed
-        if self.table is not None and bool(np.isfinite(times).all()):
-            temps = self.table.nearest(times, self.model.channels, self.model.lag_taus)
-            self.guard.check_temperatures(temps)
+        timed = self.table is not None and bool(np.isfinite(times).all())
+        if self.kept is not None and (timed or self.kept.rows + self._queued + (points or 0) > KEEP_MAX_POINTS):
+            self._drop_kept()  # temperatures per block, or too many points to keep: solved per piece
+        if self.kept is not None:
+            pts = subdivide(piece, *segment)
+            self._decimals.add(piece.decimals)
+            q = piece.to_q(pts.nominal_int)
+            direction = directions(pts.nominal_int, piece.start_int, self.prev_direction)
+            self.prev_direction = direction[-1]
+            self._queue.append((piece, 0, q, direction))
+            self._queued += pts.n
+            self._waiting.append((piece, pts, []))
+            if self._queued >= kinematics.CHUNK:
+                self._solve(self._queued // kinematics.CHUNK * kinematics.CHUNK)
+            return
         q = piece.to_q(piece.target_int)
         direction = directions(piece.target_int, piece.start_int, self.prev_direction)
         self.prev_direction = direction[-1]
-        errors = self.model.predict(q, temps, direction)
-        solved = kinematics.compensate(q, errors, self.model.dims)
-        correction = solved.q_cmd - q
+        temps: Temperatures = self.fixed
+        if timed:
+            assert self.table is not None
+            temps = self.table.nearest(times, self.model.channels, self.model.lag_taus)
+            self.guard.check_temperatures(temps)
+        solved = kinematics.compensate(q, self.model.predict(q, temps, direction), self.model.dims)
+        self._check(piece, np.arange(piece.n_blocks), piece.target_int, solved.q_cmd - q)
+
+    def finish(self, decimals: tuple[int, int] | None = None) -> KeptCommands | None:
+        """Solve and check every block still waiting; return the kept commands when the second pass may use them.
+
+        ``decimals``: the whole program's (the second pass parses with them); the commands hold only
+        when every piece had them.
+        """
+        if self._queued:
+            self._solve(self._queued)
+        if self.kept is None or decimals is None:
+            return None
+        if self._decimals - {decimals}:
+            self._drop_kept()
+            return None
+        self.kept.rewind()
+        return self.kept
+
+    def _drop_kept(self) -> None:
+        """Stop keeping commands (solve what waits first): the second pass solves every point itself."""
+        if self._queued:
+            self._solve(self._queued)
+        if self.kept is not None:
+            self.kept.close()
+            self.kept = None
+
+    def _solve(self, n: int) -> None:
+        """Solve the next ``n`` waiting blocks as one run, keep their commands, check the pieces they complete."""
+        q = np.concatenate([e[2] for e in self._queue])
+        direction = np.concatenate([e[3] for e in self._queue])
+        solved = kinematics.compensate(q[:n], self.model.predict(q[:n], self.fixed, direction[:n]), self.model.dims)
+        if self.kept is not None:
+            self.kept.write(solved.q_cmd, solved.singular)
+        correction = solved.q_cmd - q[:n]
+        # hand each piece its rows; a piece is checked once all its blocks are solved
+        rest: list[tuple[Program, int, np.ndarray, np.ndarray]] = []
+        done = 0
+        for piece, b0, pq, pdir in self._queue:
+            take = min(pq.shape[0], n - done)
+            if take:
+                for waiting, _, rows in self._waiting:
+                    if waiting is piece:
+                        rows.append(correction[done : done + take])
+                        break
+            if take < pq.shape[0]:
+                rest.append((piece, b0 + take, pq[take:], pdir[take:]))
+            done += take
+        self._queue = rest
+        self._queued -= n
+        while self._waiting and sum(r.shape[0] for r in self._waiting[0][2]) == self._waiting[0][1].n:
+            piece, pts, rows = self._waiting.pop(0)
+            self._check(piece, pts.block, pts.nominal_int, np.concatenate(rows))
+
+    def _check(self, piece: Program, block: np.ndarray, pose_int: np.ndarray, correction: np.ndarray) -> None:
+        """Refuse the first point (its block named) whose correction (N, 5; mm, rad) or corrected pose is outside."""
+        correction = correction.copy()
         correction[:, 3:] = np.rad2deg(correction[:, 3:])
         if not np.all(np.isfinite(correction)):
             bad = int(np.flatnonzero(~np.isfinite(correction).all(axis=1))[0])
-            line = int(piece.block_line[bad]) + piece.first_line + 1
+            line = int(piece.block_line[block[bad]]) + piece.first_line + 1
             raise ValidationError(f"{piece.name}:{line}: the model predicts non-finite errors; program not accepted")
-        self.guard.check_corrections(piece, blocks, correction)
-        self.guard.check_positions(piece, blocks, target + correction, "corrected target")
+        self.guard.check_corrections(piece, block, correction)
+        self.guard.check_positions(piece, block, pose_int * piece.scale + correction, "corrected target")
 
 
 def parse_pieces(
@@ -901,7 +1049,7 @@ def compensate_stream(
             start=start,
             max_segment_mm=max_segment_mm,
             max_segment_deg=max_segment_deg,
-            check=None if guard is None else FirstPass(guard, model, temperatures),
+            check=None if guard is None else FirstPass(guard, model, temperatures, keep=True),
         )
     table = isinstance(temperatures, TemperatureTable)
     per_point = table and scan.blocks > 0 and bool(np.isfinite(scan.first_time_s))
@@ -918,6 +1066,9 @@ def compensate_stream(
     # with their points) until every point of theirs is corrected, then are written.
     if not per_point:
         chunk_points = min(chunk_points, SNAPSHOT_BATCH_POINTS)
+    # the commands the first pass solved for every block (one point each, the same temperatures, solved
+    # in runs of kinematics.CHUNK where these batches fall): used as they are, not solved again
+    kept = scan.solved if not per_point and chunk_points % kinematics.CHUNK == 0 else None
     pending: list[tuple[Program, Points, bytes]] = []
     nominal: list[np.ndarray] = []  # points not yet corrected, in order
     times: list[np.ndarray] = []
@@ -951,6 +1102,7 @@ def compensate_stream(
             state=carry["state"],
             prev_nominal=carry["prev_nom"] if carry["prev_nom"] is not None else first_piece.start_int,
             prev_direction=carry["prev_dir"],
+            solved=kept.read(n) if kept is not None else None,
         )
         sent_parts.append(corr.sent_int)
         corrected += n
@@ -1008,6 +1160,8 @@ def compensate_stream(
         correct(queued)
     flush()
     assert not pending
+    if scan.solved is not None:
+        scan.solved.close()
     singular = carry["singular"]
     if singular:
         log.warning("%d point(s) near A = +/-90 deg: beta cannot be compensated there", singular)
@@ -1063,7 +1217,7 @@ def compensate_file(
             start=options.get("start"),
             max_segment_mm=options.get("max_segment_mm", 5.0),
             max_segment_deg=options.get("max_segment_deg", 5.0),
-            check=None if guard is None else FirstPass(guard, model, temperatures),
+            check=None if guard is None else FirstPass(guard, model, temperatures, keep=True),
         )
     try:
         with tmp.open("wb") as fh:
@@ -1072,4 +1226,8 @@ def compensate_file(
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    finally:
+        scan = options["scan"]
+        if scan is not None and scan.solved is not None:
+            scan.solved.close()
     return result

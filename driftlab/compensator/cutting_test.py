@@ -607,6 +607,7 @@ def run_compensated(
     g1 = [i for i, ln in enumerate(lines) if ln.startswith("G1")]
     ranges = _chunks(bench.program, interval_s) if online is not None else [(1, bench.program.pose_written.shape[0])]
     source = OnlineModelSource(models, online) if online is not None else models
+    guard = bench_guard(source)  # the envelope checks of `driftlab compensate`: nothing leaves unchecked
     t0 = bench.clock.now()
     probes: list[dict[str, Any]] = []
     stream: dict[str, Any] = {"blocks_sent": 0, "recomputed": 0, "model_reloads": 0}
@@ -631,6 +632,7 @@ def run_compensated(
             timer=time.perf_counter,
             epoch_s=epoch_s,
             lags=lags,
+            guard=guard,
         )
         res = streamer.run(bench.link, low_water=4)
         for k in stream:
@@ -640,6 +642,18 @@ def run_compensated(
     out.probes = probes
     out.stream = stream
     return out
+
+
+def bench_guard(source: Any) -> Any:
+    """Return the envelope guard of a model source on the bench: the model's envelope and fitted ranges,
+    the virtual machine's travel (Tables A.3, A.4) taking precedence."""
+    from driftlab.compensator.guard import Guard
+    from driftlab.models.envelope import Envelope
+
+    source.refresh()
+    if source.model is None:
+        raise ValidationError("no model to compensate with")
+    return Guard.for_model(source.model, Envelope(travel=machining.travel(), source="the virtual machine"))
 
 
 def _result(name: str, bench: CuttingBench, t0: float) -> RunResult:

@@ -263,14 +263,14 @@ def parse_program(
 
     errors: list[tuple[int, str]] = []
     times: dict[int, float] = {}
-    cls = _CLS[buf]
+    cls = np.take(_CLS, buf)  # (a take of a 256-entry table: about twice as fast as indexing)
     counts = _class_counts(cls)
     if counts[_SPECIAL]:
         work = bytearray(data)
         lines = np.unique(np.searchsorted(nl, np.flatnonzero(cls == _SPECIAL)))
         _strip_comments(data, work, lines, line_start, line_end, errors, times)
         buf = np.frombuffer(bytes(work), dtype=np.uint8)
-        cls = _CLS[buf]
+        cls = np.take(_CLS, buf)  # (a take of a 256-entry table: about twice as fast as indexing)
         counts = _class_counts(cls)
     if counts[_OTHER] or counts[_SPECIAL]:
         other = np.flatnonzero((cls == _OTHER) | (cls == _SPECIAL))
@@ -383,9 +383,12 @@ def parse_program(
         need = (_residuals(value[ai[~rot]], min_decimals[0]), _residuals(value[ai[rot]], min_decimals[1]))
     if decimals is not None:
         dec_lin, dec_rot = decimals
+    elif need is not None:  # the same residuals decide (``decimals_of`` of one piece is ``_decimals``)
+        dec_lin, dec_rot = decimals_of([need[0]], min_decimals[0]), decimals_of([need[1]], min_decimals[1])
     else:
         dec_lin = _decimals(value[ai[~rot]], min_decimals[0])
         dec_rot = _decimals(value[ai[rot]], min_decimals[1])
+    if decimals is None:
         for dec, sel in ((dec_lin, ~rot), (dec_rot, rot)):
             if dec > MAX_DECIMALS:
                 bad = ai[sel][~_whole(value[ai[sel]] * 10.0**MAX_DECIMALS)][0]

@@ -32,10 +32,11 @@ from driftlab.compensator.compensate import (
     RESOLUTION_DEG,
     RESOLUTION_MM,
     ErrorModel,
+    FirstPass,
     TemperatureTable,
     correct_points,
 )
-from driftlab.compensator.gcode import Points, Program, emit, subdivide
+from driftlab.compensator.gcode import Points, Program, count_points, emit, subdivide
 from driftlab.compensator.guard import Guard
 from driftlab.errors import InstrumentError, NotFoundError, ValidationError
 from driftlab.physics.lag import LaggedReadings, LagState
@@ -325,6 +326,9 @@ class Streamer:
             raise ValidationError("refresh interval must be positive and no longer than the maximum age")
         # a whole program, or its pieces in order (``parse_pieces``), read only as preparation needs them
         self._source: Iterator[Program] = iter([program] if isinstance(program, Program) else program)
+        # a whole program is checked against the guard's envelope in ``prime`` before anything is
+        # prepared (pieces of a file were checked by the caller's first pass, ``scan_program``)
+        self._whole = program if isinstance(program, Program) else None
         self._window: deque[Program] = deque()  # the pieces from the last line sent to the last prepared
         first = self._next_piece()
         self.models = models
@@ -538,8 +542,20 @@ class Streamer:
             pass
 
     def prime(self) -> None:
-        """Fetch model and temperatures and prepare the first lines (before streaming starts)."""
+        """Fetch model and temperatures, check a whole program, prepare the first lines (before streaming starts).
+
+        With a ``guard`` and a whole ``Program``, every block is checked first (``compensate.FirstPass``:
+        targets in the travel, subdivision, corrections with the first reading): a refusal raises here,
+        before any line is prepared or sent.
+        """
         self.refresh(due_s=0.0)
+        if self.guard is not None and self._whole is not None:
+            assert self.models.model is not None and self._temps is not None
+            check = FirstPass(self.guard, self.models.model, self._temps)
+            check.targets(self._whole)
+            count_points(self._whole, *self.segment)
+            check.corrections(self._whole)
+            self._whole = None  # checked once; the lines then go through ``guard.check_sent`` as prepared
         self._fill()
 
     def idle(self, seconds: float) -> None:

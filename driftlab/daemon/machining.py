@@ -25,7 +25,7 @@ from driftlab.daq.sim.machine import VirtualMachine
 from driftlab.daq.sim.scenario import Scenario, Stage
 from driftlab.daq.sim.sites import CHANNELS, FEED_REF_MM_MIN, SITE_INDEX, SOURCES, SPINDLE_REF_RPM
 from driftlab.physics import kinematics as kin
-from driftlab.vocabulary import AXES, TERMS
+from driftlab.vocabulary import AXES, TERMS, Axis
 
 __all__ = [
     "CHANNELS",
@@ -39,6 +39,7 @@ __all__ = [
     "hidden_element_errors",
     "open_bench",
     "serial_url",
+    "travel",
     "true_errors",
     "true_workspace_translation",
 ]
@@ -178,6 +179,27 @@ class LoggingController(SimController):
         super().__init__(*args, **kwargs)
         self.log: list[ExecutedBlock] = []
         self._queue = _LoggedQueue(self)
+
+
+#: the virtual controller's soft limits beyond the range its errors are known over (Tables A.3, A.4):
+#: a tenth of each axis' measured travel of overtravel on either side (a machine's soft limits lie
+#: outside the range its errors were measured on; the cutting test's part spans X -18..259 mm)
+OVERTRAVEL_FRACTION = 0.1
+
+
+def travel() -> dict[Axis, tuple[float, float]]:
+    """Return the virtual controller's soft limits per axis (mm for X, Y, Z; degrees for A, B).
+
+    The measured travel of Tables A.3, A.4 (``daq.sim.truth.AXIS_RANGE``) widened on either side by
+    ``OVERTRAVEL_FRACTION`` of it: what the compensator's envelope holds a program to on the bench.
+    """
+    out: dict[Axis, tuple[float, float]] = {}
+    axes: tuple[Axis, ...] = ("X", "Y", "Z", "A", "B")
+    for axis in axes:
+        lo, hi = truth.AXIS_RANGE[axis]
+        extra = OVERTRAVEL_FRACTION * (hi - lo)
+        out[axis] = (lo - extra, hi + extra)
+    return out
 
 
 def default_spheres() -> dict[str, SimSphere]:

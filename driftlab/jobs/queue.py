@@ -48,6 +48,71 @@ STALLED_AFTER_S = 30.0
 #: how long a worker keeps trying to get its database back before it exits with status 1
 RECONNECT_S = 300.0
 RECONNECT_MAX_DELAY_S = 15.0
+#: seconds between two writes of a worker's pulse file (``Pulse``)
+PULSE_S = 5.0
+
+
+def default_pulse_file() -> str:
+    """Return where `driftlab worker` writes its pulse by default: the container's own temporary directory."""
+    import tempfile
+
+    return os.environ.get("DRIFTLAB_WORKER_PULSE") or os.path.join(tempfile.gettempdir(), "driftlab-worker.pulse.json")
+
+
+class Pulse(threading.Thread):
+    """This worker process's liveness, written to a file every ``PULSE_S`` (read by `driftlab health --worker`).
+
+    One JSON object, replaced atomically: ``pid``, ``name``, ``worker_id`` (procrastinate's id of the
+    worker while it is connected, whose ``procrastinate_workers.last_heartbeat`` its event loop renews
+    every 10 s), ``lost_since`` (POSIX s since when the database is away, while reconnecting) and
+    ``written_at`` (POSIX s). A healthcheck in the same container can then tell this worker's state
+    from any other worker's: a process that is gone, hung, reconnecting for too long or no longer
+    beating in the queue. The file is removed when the worker ends.
+    """
+
+    def __init__(self, path: str, name: str, state: dict[str, Any]) -> None:
+        super().__init__(name="driftlab-worker-pulse", daemon=True)
+        self.path = path
+        self.worker_name = name
+        self.state = state  # run_worker's: "worker" (procrastinate Worker, while connected), "lost_since"
+        self.done = threading.Event()
+
+    def write(self) -> None:
+        """Write the pulse once (atomically: a reader never sees half a file)."""
+        import json
+
+        worker = self.state.get("worker")
+        body = {
+            "pid": os.getpid(),
+            "name": self.worker_name,
+            "worker_id": getattr(worker, "worker_id", None),
+            "lost_since": self.state.get("lost_since"),
+            "written_at": time.time(),
+        }
+        tmp = f"{self.path}.{os.getpid()}.tmp"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(body, fh)
+        os.replace(tmp, self.path)
+
+    def run(self) -> None:
+        """Write the pulse every PULSE_S until stopped (a write that fails is logged, the worker goes on)."""
+        while not self.done.is_set():
+            try:
+                self.write()
+            except OSError as exc:
+                log.warning("worker: cannot write the pulse file %s (%s)", self.path, exc.strerror or exc)
+            self.done.wait(PULSE_S)
+
+    def stop(self) -> None:
+        """Stop writing and remove the file."""
+        self.done.set()
+        self.join(timeout=5.0)
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass
+
+
 #: longest wait for a connection of the queue's pool (procrastinate's own writes; jobs use the store's engine)
 POOL_TIMEOUT_S = 10.0
 PARTITIONS_TASK = "driftlab.partitions"
@@ -282,6 +347,7 @@ def run_worker(
     name: str | None = None,
     on_stage: OnStage | None = None,
     reconnect_s: float = RECONNECT_S,
+    pulse_file: str | None = None,
 ) -> None:
     """Run a worker in the foreground until SIGINT/SIGTERM (or, without ``wait``, until nothing is runnable).
 
@@ -289,7 +355,8 @@ def run_worker(
     procrastinate's worker stops by itself; this one then opens the queue again, waiting 1, 2, 4 ..
     15 s between attempts, and carries on where it was. After ``reconnect_s`` without the database
     it raises ServiceError (exit status 1), so that its supervisor restarts it: it never ends quietly
-    while jobs wait. Each start first queues again the jobs of workers that stopped beating.
+    while jobs wait. Each start first queues again the jobs of workers that stopped beating. With
+    ``pulse_file`` its liveness is written there every PULSE_S while it runs (``Pulse``).
     """
     if concurrency < 1:
         raise ValidationError(f"concurrency must be at least 1, got {concurrency}")
@@ -300,6 +367,8 @@ def run_worker(
 
     stop = threading.Event()  # a stop asked for (signal): never reconnect after it
     current: dict[str, Any] = {}
+    health: dict[str, Any] = {"worker": None, "lost_since": None}  # what the pulse reports
+    pulse = Pulse(pulse_file, name or default_worker_name(), health) if pulse_file else None
 
     def on_signal(signum: int, frame: Any) -> None:
         stop.set()
@@ -326,17 +395,21 @@ def run_worker(
                 app, store, concurrency=concurrency, wait=wait, name=name, signals=False, on_stage=on_stage
             )
             current.update(worker=worker)
+            health.update(worker=worker, lost_since=None)
             try:
                 if not stop.is_set():
                     current["connected"] = True
                     await worker.run()
             finally:
                 current.pop("worker", None)
+                health["worker"] = None
 
     import signal
 
     in_main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
+    if pulse is not None:
+        pulse.start()
     try:
         lost_since: float | None = None
         delay = 1.0
@@ -362,7 +435,9 @@ def run_worker(
             now = time.monotonic()
             if connected and now - began > 2 * RECONNECT_MAX_DELAY_S:  # it worked a while: a new outage
                 lost_since, delay = None, 1.0
-            lost_since = now if lost_since is None else lost_since
+            if lost_since is None:
+                lost_since = now
+                health["lost_since"] = time.time()
             if now - lost_since >= reconnect_s:
                 raise ServiceError(
                     f"worker: no database for {now - lost_since:.0f} s ({reason}); exiting so that its "
@@ -373,6 +448,8 @@ def run_worker(
                 return
             delay = min(2 * delay, RECONNECT_MAX_DELAY_S)
     finally:
+        if pulse is not None:
+            pulse.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 

@@ -65,10 +65,11 @@ def fit_campaigns(
     bundles = [store.load_campaign(c) for c in ids]
     result = fit_bundles(bundles, options, source_campaigns=ids, progress=progress)
     document = result.document
-    if envelope is not None:
-        from driftlab.models.envelope import envelope_from_mapping
+    if envelope is not None:  # a machine file's keys win over the campaigns' travel, axis by axis
+        from driftlab.models.envelope import envelope_from_mapping, merge
 
-        document = document.model_copy(update={"envelope": envelope_from_mapping(envelope, "fit envelope")})
+        given = envelope_from_mapping(envelope, "fit envelope")
+        document = document.model_copy(update={"envelope": merge(document.envelope, given)})
     doc = register_model(store, document, ids)
     result.document = doc
     return result, doc

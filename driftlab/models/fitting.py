@@ -1163,6 +1163,23 @@ def _reference(bundles: Sequence[Any], channels: Sequence[str]) -> dict[str, flo
     return ref
 
 
+def campaign_travel(bundles: Sequence[Any]) -> dict[str, list[float]]:
+    """Return the axis travel the campaigns state (``machine.travel``, from their plans), per axis.
+
+    Campaigns of one machine state one travel; where they differ the narrowest holds (the
+    intersection: a limit any campaign states is never widened). Axes no campaign states are absent.
+    """
+    out: dict[str, list[float]] = {}
+    for b in bundles:
+        for axis, (lo, hi) in (getattr(b.meta.machine, "travel", None) or {}).items():
+            have = out.get(str(axis))
+            out[str(axis)] = [float(lo), float(hi)] if have is None else [max(have[0], lo), min(have[1], hi)]
+    for axis, (lo, hi) in out.items():
+        if not lo < hi:
+            raise ValidationError(f"the campaigns state travels of {axis} that do not overlap (machine.travel)")
+    return out
+
+
 def fit_bundles(
     bundles: Sequence[Any],
     options: FitOptions | None = None,
@@ -1460,6 +1477,9 @@ def _fit_bundles(
         "findings": findings,
         "lines": [_line_record(fit, composed) for fit in lines],
     }
+    travel = campaign_travel(bundles)
+    if travel:  # the machine's travel the campaigns state: the compensator's envelope (docs/compensate.md)
+        doc["envelope"] = {"travel": travel, "source": "campaigns"}
     document = validate_document(strict_json(doc))
     lap("document")
     return FitResult(

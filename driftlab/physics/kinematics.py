@@ -221,7 +221,14 @@ def _mul_e(m: tuple, a: _Comp, b: _Comp, g: _Comp) -> tuple:
     if m is _ID_COLS:
         return (_vec3(1.0, g, -b), _vec3(-g, 1.0, a), _vec3(b, -a, 1.0))  # eq. 4.8 columns
     c0, c1, c2 = m
-    # the three columns always share one shape, so each first product already has the result's
+    if _is_zero(a) and _is_zero(b) and _is_zero(g):
+        return m  # E(0, 0, 0) is the identity
+    if not (
+        c0.shape == c1.shape == c2.shape and all(type(x) is float or x.shape[-1] == c0.shape[-1] for x in (a, b, g))
+    ):
+        # columns of different shapes (some components constant): the same sums, out of place
+        return (c1 * g - c2 * b + c0, c2 * a - c0 * g + c1, c0 * b - c1 * a + c2)
+    # the three columns share one shape, so each first product already has the result's
     # shape and is a fresh array: accumulating into it in place is safe and saves temporaries
     n0 = c1 * g
     n0 -= c2 * b
@@ -292,7 +299,11 @@ def _chunk_cols(errs: dict[str, np.ndarray], s: int, t: int) -> _Cols:
         rows = e[s:t].T
         if rows.strides[1] != rows.itemsize:  # (N, 6) in C order: one in-cache copy per chunk
             rows = np.ascontiguousarray(rows)  # (column-major errors are read as they are)
-        out[name] = tuple(rows)
+        # a component that is exactly zero over the chunk (a parameter the model does not predict)
+        # is held as 0.0, so the products below skip it; for finite errors the result is the same
+        comps = tuple(r if r.any() else 0.0 for r in rows)
+        if any(not _is_zero(c) for c in comps):
+            out[name] = comps
     return out
 
 

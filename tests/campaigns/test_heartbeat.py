@@ -79,17 +79,65 @@ def test_the_daemon_beats_while_it_runs_and_a_silent_one_is_stale(db_url: str, f
 
 
 @pytest.mark.postgres
-def test_health_of_a_worker_and_of_a_database_that_does_not_answer(pg_cluster, capsys) -> None:
+def test_health_of_this_containers_worker_and_of_a_database_that_does_not_answer(pg_cluster, capsys, tmp_path) -> None:
+    """`health --worker` judges the worker of its own container (its pulse file), not any worker of the queue."""
     from driftlab.campaigns.store import connect
 
     pg_url = pg_cluster.create_database()
-
     with connect(pg_url) as store:
         store.ensure_schema()
     assert main(["health", "--db", pg_url]) == 0
-    code = main(["health", "--worker", "--db", pg_url])
-    err = capsys.readouterr().err
-    assert code == 1 and ("no worker is registered" in err or "heartbeat is" in err)
+    pulse = tmp_path / "worker.pulse.json"
+    check = ["health", "--worker", "--db", pg_url, "--pulse-file", str(pulse)]
+    assert main(check) == 1
+    assert "no worker pulse at" in capsys.readouterr().err  # no worker runs here
+
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    cmd = [
+        sys.executable,
+        "-m",
+        "driftlab.cli",
+        "worker",
+        "--db",
+        pg_url,
+        "--name",
+        "w-here",
+        "--pulse-file",
+        str(pulse),
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        for _ in range(600):  # a safety net of 60 s for the worker to register, not a timing assertion
+            body = json.loads(pulse.read_text()) if pulse.exists() else {}
+            if body.get("worker_id") is not None:
+                break
+            time.sleep(0.1)
+        assert body.get("worker_id") is not None and body["pid"] == proc.pid and body["name"] == "w-here"
+        capsys.readouterr()
+        assert main(check) == 0 and capsys.readouterr().out.strip() == "healthy"
+
+        # another pulse file in the same state but naming a worker the queue does not know: unhealthy,
+        # although a worker (the one above) beats in the queue
+        other = tmp_path / "other.json"
+        other.write_text(json.dumps({**body, "pid": os.getpid(), "worker_id": body["worker_id"] + 1000}))
+        assert main([*check[:-1], str(other)]) == 1
+        assert "is no longer registered in the job queue" in capsys.readouterr().err
+        # a process that is gone, a pulse that stopped, a worker without its database
+        dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+        other.write_text(json.dumps({**body, "pid": int(dead.stdout)}))
+        assert main([*check[:-1], str(other)]) == 1 and "is gone" in capsys.readouterr().err
+        other.write_text(json.dumps({**body, "pid": os.getpid(), "written_at": time.time() - 600}))
+        assert main([*check[:-1], str(other)]) == 1 and "wrote no pulse for 600 s" in capsys.readouterr().err
+        other.write_text(json.dumps({**body, "pid": os.getpid(), "worker_id": None, "lost_since": time.time() - 120}))
+        assert main([*check[:-1], str(other)]) == 1
+        assert "has been without its database for 120 s" in capsys.readouterr().err
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err[-2000:]
+    assert not pulse.exists()  # removed when the worker ends: the check fails again
+    assert main(check) == 1 and "no worker pulse at" in capsys.readouterr().err
     assert main(["health", "--db", "postgresql+psycopg://postgres@127.0.0.1:1/nowhere"]) == 1
     assert capsys.readouterr().err.startswith("driftlab: error: database: ")
 

@@ -10,16 +10,20 @@ from driftlab.compensator.compensate import ErrorModel
 from driftlab.compensator.cutting_test import (
     CMM_ACROSS,
     CMM_ALONG,
+    CuttingBench,
     LocalRLS,
     MouldSurface,
+    OnlineModelSource,
     approach_directions,
+    bench_guard,
     make_program,
+    run_compensated,
     run_cutting_test,
     tool_centre,
 )
 from driftlab.compensator.gcode import parse_program
 from driftlab.compensator.stream import StaticModel
-from driftlab.daemon.machining import MachiningMachine, hidden_element_errors, true_errors
+from driftlab.daemon.machining import MachiningMachine, hidden_element_errors, travel, true_errors
 from driftlab.daq.sim.campaign import simulate_campaign
 from driftlab.daq.sim.scenario import HiddenEffect, Scenario
 from driftlab.daq.sim.sites import SITE_INDEX
@@ -203,3 +207,25 @@ def test_offline_interval_states_the_models_own_spread_and_how_many_points_it_co
     bare = document(1.0)
     del bare["terms"][0]["covariance"]
     assert offline_interval(bare, run) is None
+
+
+def test_the_bench_streams_through_the_envelope_checks(offline_document: dict) -> None:
+    """The cutting test's stream goes through `driftlab compensate`'s guard: travel, corrections, temperatures.
+
+    The guard holds the model's fitted ranges (also through the on-line combination) and the virtual
+    controller's soft limits; a model fitted on temperatures far from the bench's is refused before
+    any compensated block runs (only the head and the rapid to the start, sent uncompensated, ran).
+    """
+    model = ErrorModel.from_document(offline_document)
+    guard = bench_guard(OnlineModelSource(StaticModel(model), LocalRLS(offline_document, channels=[])))
+    assert guard.ranges == dict(model.ranges) and guard.ranges
+    lo, hi = travel()["X"]
+    assert (guard.lo[0], guard.hi[0]) == (lo, hi) and lo < 0.0 and hi > 254.0
+    cold = dict(offline_document)
+    cold["inputs"] = {c: {**r, "min": r["min"] - 60.0, "max": r["max"] - 60.0} for c, r in cold["inputs"].items()}
+    program = make_program(passes=CMM_ALONG)
+    with CuttingBench(_scenario(HIDDEN), program) as bench:
+        with pytest.raises(ValidationError, match="degC above the range the model was fitted on"):
+            run_compensated(bench, StaticModel(ErrorModel.from_document(cold)))
+        ran = len(bench.ctrl.log) - bench.first_block
+    assert ran == 1  # the rapid to the start; no cutting block

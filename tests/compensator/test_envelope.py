@@ -288,10 +288,30 @@ def test_the_streamer_checks_every_point_it_prepares(tmp_path):
 
     program = parse_program("G90 G1 F1000\nX1\nX2\n", name="p.nc")
     streamer = Streamer(
-        program, StaticModel(model), FixedTemperatures({"T1": 25.0}), guard=Guard.for_model(model)
-    )  # 0.05 mm of Z correction
+        iter([program]), StaticModel(model), FixedTemperatures({"T1": 25.0}), guard=Guard.for_model(model)
+    )  # 0.05 mm of Z correction; pieces (an iterator) are not checked up front: the caller's first pass does
     with pytest.raises(ValidationError, match="p.nc:2: correction of Z -0.05 mm exceeds the largest plausible 0.02"):
         streamer.prime()
+    assert not streamer._ready
+
+
+def test_the_streamer_checks_a_whole_program_before_preparing_anything():
+    """Given a whole program and a guard, the streamer runs the first pass itself: a late block is refused first."""
+    model = ErrorModel.from_document(doc(0.01, 1))
+    from driftlab.compensator.gcode import parse_program
+
+    text = "G90 G1 F1000\n" + "".join(f"X{k}\n" for k in range(1, 301))  # X 265 on line 266: beyond 264
+    program = parse_program(text, name="p.nc")
+    guard = Guard(envelope_from_mapping({"travel": TRAVEL}), model.ranges)
+    streamer = Streamer(program, StaticModel(model), FixedTemperatures({"T1": 25.0}), lookahead=8, guard=guard)
+    with pytest.raises(ValidationError, match=r"p.nc:266: target X 265 mm is outside the travel -10..264 mm"):
+        streamer.prime()
+    assert not streamer._ready and streamer.result.blocks_sent == 0
+    # the same program within the travel streams (the check does not refuse what is inside)
+    ok = parse_program("G90 G1 F1000\n" + "".join(f"X{k}\n" for k in range(1, 200)), name="p.nc")
+    inside = Streamer(ok, StaticModel(model), FixedTemperatures({"T1": 25.0}), lookahead=8, guard=guard)
+    inside.prime()
+    assert len(inside._ready) >= 8  # a batch of lines prepared ahead
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -353,3 +373,23 @@ def test_fit_writes_the_machine_files_envelope_into_the_document(tmp_path, capsy
     assert "p.nc:3: target X 999999 mm is outside the travel -10..264 mm" in capsys.readouterr().err
     prog.write_text("G90\nG1 X10 Y10 Z-10 F1000\nG1 X200\n")
     assert main(args) == 0
+
+
+def test_kept_commands_still_name_the_first_bad_block(tmp_path):
+    """Offline, blocks are solved in runs spanning pieces: an early bad correction is still named before a later
+    target beyond the travel, and nothing is written."""
+    from driftlab.compensator.compensate import compensate_file
+
+    model = ErrorModel.from_document(doc(0.01, 1))  # X correction -1.2e-4 mm per mm of X at T1 = 26 degC
+    lines = ["G90 G1 F1000", *(f"X{k}" for k in range(1, 99)), "X210", *(f"X{k}" for k in range(100, 200)), "X300"]
+    prog = tmp_path / "p.nc"
+    prog.write_text("\n".join(lines) + "\n")
+    guard = Guard(envelope_from_mapping({"travel": TRAVEL, "max_correction": {"X": 0.025}}), model.ranges)
+    out = tmp_path / "out.nc"
+    with pytest.raises(ValidationError, match=r"p.nc:100: correction of X -0.0252 mm exceeds the largest plausible"):
+        compensate_file(prog, model, {"T1": 26.0}, out, chunk_bytes=256, guard=guard)
+    assert not out.exists() and not (tmp_path / "out.nc.part").exists()
+    # without the bad block the later target is named
+    prog.write_text("\n".join(ln for ln in lines if ln != "X210") + "\n")
+    with pytest.raises(ValidationError, match=r"p.nc:200: target X 300 mm is outside the travel"):
+        compensate_file(prog, model, {"T1": 26.0}, out, chunk_bytes=256, guard=guard)

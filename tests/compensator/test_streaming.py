@@ -144,6 +144,38 @@ def test_streamed_output_is_byte_identical(name, data, kw, piece, tmp_path: Path
         assert result.summary() == ref.summary()
 
 
+@pytest.mark.parametrize("name,data,kw", CASES, ids=[c[0] for c in CASES])
+def test_output_with_the_envelope_guard_is_byte_identical(name, data, kw, tmp_path: Path) -> None:
+    """With a guard the first pass solves every point and keeps the commands; the output stays the same.
+
+    The kept commands (``KeptCommands``) replace the second pass's own solve when every point takes
+    the same temperatures: the text must equal ``compensate_program``'s, which solves everything itself.
+    """
+    from driftlab.compensator.compensate import FirstPass, scan_program
+    from driftlab.compensator.guard import Guard
+    from driftlab.models.envelope import Envelope
+
+    src = tmp_path / "p.nc"
+    src.write_bytes(data)
+    model, table = _model(), _table()
+    axes = ("X", "Y", "Z", "A", "B")
+    envelope = Envelope(travel={a: (-1e6, 1e6) for a in axes}, max_correction={a: 1e6 for a in axes})
+    for temps in (table, {"T9": 26.0, "T10": 21.5, "T11": 24.0}):
+        want = _reference(data, model, temps, **kw)
+        out = tmp_path / "out.nc"
+        opts = {"start": kw.get("start"), "max_segment_mm": kw.get("max_segment_mm", 5.0)}
+        guard = Guard(envelope, model.ranges, allow_extrapolation=True)
+        chunks = kw.get("chunk_points", 1 << 17)
+        compensate_file(src, model, temps, out, chunk_bytes=700, chunk_points=chunks, guard=guard, **opts)
+        assert out.read_bytes() == want, name
+        if isinstance(temps, dict) and name.startswith("generated-long"):
+            # the case kept its commands (long segments subdivided: every point solved in the first pass)
+            check = FirstPass(guard, model, temps, keep=True)
+            scan = scan_program(src, "p.nc", decimals_for(0.0025, 0.001), 700, check=check, **opts)
+            assert scan.solved is not None and scan.solved.rows > scan.blocks
+            scan.solved.close()
+
+
 # ----------------------------------------------------------------------------- bad programs
 
 GOOD = "%\nG90 G21 G1 F2000\nX1.0 Y2.0 Z-3.0\nX2.0 A5.0\nG0 Z10.0\nM30\n%\n"

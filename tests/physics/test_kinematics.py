@@ -330,3 +330,34 @@ def test_property_compensation_residual_is_only_roll(q, seed):
     assert not res.singular[0]  # |A| <= 1.4 rad stays clear of 90 deg
     assert np.abs(res.residual[0, 3:]).max() < 1e-6
     assert np.abs(res.residual[0, :2]).max() < 1e-9
+
+
+def test_unpredicted_components_are_skipped_exactly():
+    """Components a model does not predict (all zero) are skipped; the result equals computing them.
+
+    The same errors with those zeros replaced by 1e-300 go through every product (a nonzero column is
+    never skipped) and must give the same commands bit for bit: the shortcut changes no rounding. Mixed
+    layouts (C order and column-major, as ``compensator.compensate.fast_predict`` returns) are covered.
+    """
+    rng = np.random.default_rng(7)
+    n = 3000
+    q = random_q(rng, n)
+    errors = random_errors(rng, n, ("T1", "T3", "phi_x", "theta_x", "theta_y", "T6"))
+    errors["T1"][:, [1, 4]] = 0.0  # beta, dy not predicted
+    errors["T3"][:, :5] = 0.0  # only dz
+    errors["theta_y"][:, 3:] = 0.0  # angles only
+    errors["T6"][:] = 0.0  # nothing at all
+    errors["phi_x"] = np.ascontiguousarray(errors["phi_x"].T).T  # column-major, as fast_predict gives
+    tiny = {e: np.where(v == 0.0, 1e-300, v) for e, v in errors.items()}
+    fast = k.compensate(q, errors)
+    full = k.compensate(q, tiny)
+    assert np.array_equal(fast.q_cmd, full.q_cmd)
+    assert np.array_equal(fast.singular, full.singular)
+    # and the chain itself: the same with the errors given as one constant row per element
+    const = {"T3": np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.05]), "theta_x": errors["theta_x"]}
+    assert np.allclose(
+        k.compensate(q, const).q_cmd,
+        k.compensate(q, {**const, "T3": np.tile(const["T3"], (n, 1))}).q_cmd,
+        rtol=0,
+        atol=1e-12,
+    )
