@@ -81,3 +81,22 @@ def term_unit(term: str) -> str:
 def valid_channel_name(name: str) -> bool:
     """Return True when ``name`` may name a channel (and is not the reserved ``time_s``)."""
     return bool(CHANNEL_NAME.match(name)) and name != "time_s"
+
+
+#: the effect catalogue of the bundle spec (sections 3 and 4): every kind a diagnosis may report, in
+#: the spec's order (``models.effects`` screens them, ``models.findings`` reads them back, the
+#: diagnosis cites each one's thesis sections)
+EFFECT_KINDS: tuple[str, ...] = (
+    "reversal",
+    "screw_expansion",
+    "unmapped_channel",
+    "thermal_lag",
+    "sensor_fault",
+    "drift",
+    "quadratic",
+    "operating_condition",
+    "sensor_drift",
+    "datum_shift",
+    "unsensed_source",
+    "direction_thermal",
+)

@@ -18,17 +18,14 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from driftlab.compensator.gcode import ROTARY, Program
 from driftlab.errors import ValidationError
-from driftlab.models.envelope import Envelope
+from driftlab.models.envelope import Envelope, merge
 from driftlab.vocabulary import AXES
-
-if TYPE_CHECKING:
-    from driftlab.compensator.compensate import ErrorModel
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +38,18 @@ def _unit(k: int) -> str:
 def _g(x: float) -> str:
     """Return a number for a message: short, exact enough to recognise."""
     return f"{x:.6g}"
+
+
+class Enveloped(Protocol):
+    """What a guard reads of a model (``compensate.ErrorModel``): its envelope and fitted temperature ranges."""
+
+    @property
+    def envelope(self) -> Envelope | None:
+        """The model document's machine envelope, if it has one."""
+
+    @property
+    def ranges(self) -> Mapping[str, tuple[float, float]]:
+        """The temperature range (degC) each input was fitted on."""
 
 
 class Guard:
@@ -66,11 +75,9 @@ class Guard:
 
     @classmethod
     def for_model(
-        cls, model: ErrorModel, envelope: Envelope | None = None, *, allow_extrapolation: bool = False
+        cls, model: Enveloped, envelope: Envelope | None = None, *, allow_extrapolation: bool = False
     ) -> Guard:
         """Return the guard of a model: its own envelope merged with ``envelope`` (which wins), its fitted ranges."""
-        from driftlab.models.envelope import merge
-
         return cls(merge(model.envelope, envelope), model.ranges, allow_extrapolation=allow_extrapolation)
 
     @property

@@ -68,6 +68,7 @@ from driftlab.models.standard_model import (
     robust_sigma,
 )
 from driftlab.models.unexplained import Unexplained, unexplained_term
+from driftlab.vocabulary import EFFECT_KINDS
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +88,7 @@ THESIS = {
     "unsensed_source": "5.2, 6.4.2",
     "direction_thermal": "3.3, 3.5",
 }
+assert tuple(THESIS) == EFFECT_KINDS  # every kind of the catalogue cites its thesis sections
 
 #: kinds that are findings about the instruments, not about the machine
 SENSOR_KINDS = frozenset({"sensor_fault", "sensor_drift"})

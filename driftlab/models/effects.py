@@ -35,21 +35,9 @@ from scipy import optimize, stats
 
 from driftlab.models.standard_model import PreparedBundle, TermData, lstsq, robust_sigma
 from driftlab.physics.lag import first_order_lag_even
+from driftlab.vocabulary import EFFECT_KINDS
 
-KINDS = (
-    "reversal",
-    "screw_expansion",
-    "unmapped_channel",
-    "thermal_lag",
-    "sensor_fault",
-    "drift",
-    "quadratic",
-    "operating_condition",
-    "sensor_drift",
-    "datum_shift",
-    "unsensed_source",
-    "direction_thermal",
-)
+KINDS = EFFECT_KINDS  # the catalogue (driftlab.vocabulary)
 
 #: number of log-spaced time constants screened per channel for thermal_lag
 N_TAU = 16

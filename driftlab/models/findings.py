@@ -33,24 +33,11 @@ import pandas as pd
 
 from driftlab.errors import ValidationError
 from driftlab.models.features import Feature, channel_columns, fill_gaps
-from driftlab.vocabulary import AXES, TERMS
+from driftlab.vocabulary import AXES, EFFECT_KINDS, TERMS
 
 REPORT_FORMAT = "driftlab-diagnosis/1"
 #: the effect catalogue of the bundle spec (section 3)
-FINDING_KINDS: tuple[str, ...] = (
-    "reversal",
-    "screw_expansion",
-    "unmapped_channel",
-    "thermal_lag",
-    "sensor_fault",
-    "drift",
-    "quadratic",
-    "operating_condition",
-    "sensor_drift",
-    "datum_shift",
-    "unsensed_source",
-    "direction_thermal",
-)
+FINDING_KINDS: tuple[str, ...] = EFFECT_KINDS
 #: kinds that name at least one thermocouple
 CHANNEL_KINDS = frozenset(
     {
