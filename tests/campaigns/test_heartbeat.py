@@ -122,26 +122,28 @@ def test_stale_since_needs_a_running_campaign_and_an_old_sign_of_life(monkeypatc
 
 
 @pytest.mark.slow
-def test_kill_9_of_the_daemon_process_reads_stale(tmp_path: Path, files) -> None:
-    """The real thing: `driftlab daemon` killed with SIGKILL; `campaign status` says stale, not running."""
+def test_kill_9_of_the_daemon_process_reads_stale(tmp_path: Path, files, monkeypatch, capsys) -> None:
+    """The real thing: `driftlab daemon` killed with SIGKILL; `campaign status` says stale, not running.
+
+    Until the daemon has committed, `campaign status --json` is asked in this process (the same command,
+    without a new interpreter per poll); the verdict after the kill comes from a `driftlab` process.
+    """
     plan, scen = files
     url = f"sqlite:///{tmp_path / 'd.sqlite'}"
     env = {**os.environ, "DRIFTLAB_STALE_AFTER_S": "1"}
     cmd = [sys.executable, "-m", "driftlab.cli", "daemon", "--plan", str(plan), "--sim", str(scen), "--db", url]
     with (tmp_path / "daemon.log").open("w") as log:
         proc = subprocess.Popen([*cmd, "--speed", "60"], stdout=log, stderr=subprocess.STDOUT, env=env)
+    monkeypatch.setenv("DRIFTLAB_STALE_AFTER_S", "3600")
     try:
         status: list = []
         for _ in range(6000):  # a safety net of polls until the daemon has committed (not a timing assertion)
             if proc.poll() is not None:
                 break
-            out = subprocess.run(
-                [sys.executable, "-m", "driftlab.cli", "campaign", "status", "--db", url, "--json"],
-                capture_output=True,
-                text=True,
-                env={**os.environ, "DRIFTLAB_STALE_AFTER_S": "3600"},
-            )
-            status = json.loads(out.stdout) if out.returncode == 0 and out.stdout.strip() else []
+            capsys.readouterr()
+            code = main(["campaign", "status", "--db", url, "--json"])
+            shown = capsys.readouterr().out
+            status = json.loads(shown) if code == 0 and shown.strip() else []
             if status and status[0]["progress"]["scans"] > 0:
                 break
             time.sleep(0.2)
