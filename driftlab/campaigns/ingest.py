@@ -9,7 +9,7 @@ driver as it is made, so memory holds a chunk whatever the bundle's size. What s
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
-from itertools import chain, repeat
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -132,30 +132,28 @@ def _nullable(values: np.ndarray, postgres: bool) -> list[Any]:
     return obj.tolist()
 
 
-def temperature_rows(
-    campaign_id: int,
-    channel_ids: Sequence[int],
-    temperatures: pd.DataFrame | ColumnTable,
-    postgres: bool,
-    start_day: int,
-) -> Iterable[tuple[Any, ...]]:
-    """Return (campaign, channel, time, value, start day) rows channel by channel: primary-key order, so appends.
+def insert_temperatures_sqlite(
+    conn: Connection, campaign_id: int, day: int, channels: Iterable[tuple[int, Iterable[tuple[Any, Any]]]]
+) -> None:
+    """Insert readings into temperature_samples on SQLite in the connection's transaction, channel by channel.
 
-    The rows are chained C-level zips (no Python frame per row): the per-row cost is the driver's.
-    A chunk's values become Python lists only when the driver reaches them.
+    ``channels`` gives per channel id its (times, values) pieces (sequences of floats, NaN or None
+    where no value: sqlite stores a bound NaN as NULL). The campaign, the channel and the start day
+    are the same for every row of a piece, so they are written into the statement as integer
+    literals and each row binds two values instead of five: the per-row cost is the driver's
+    binding, and this cuts it by more than half (the statement is prepared once per channel).
     """
-    table = as_table(temperatures)
-    names = [c for c in table.columns if c != "time_s"]
-
-    def per_chunk() -> Iterator[Iterable[tuple[Any, ...]]]:
-        for channel_id, name in zip(channel_ids, names, strict=True):
-            for times, values in zip(table.column("time_s"), table.column(name), strict=True):
-                n = len(times)
-                t = np.asarray(times, dtype="f8").tolist()
-                v = _nullable(np.asarray(values, dtype="f8"), postgres)
-                yield zip(repeat(campaign_id, n), repeat(channel_id, n), t, v, repeat(start_day, n))
-
-    return chain.from_iterable(per_chunk())
+    raw = conn.connection.driver_connection
+    cols = ", ".join(TEMPERATURE_COLUMNS)
+    cur = raw.cursor()  # type: ignore[union-attr]
+    try:
+        for channel_id, pieces in channels:
+            keys = f"{int(campaign_id)}, {int(channel_id)}"
+            sql = f"INSERT INTO temperature_samples ({cols}) VALUES ({keys}, ?, ?, {int(day)})"
+            for times, values in pieces:
+                cur.executemany(sql, zip(times, values))
+    finally:
+        cur.close()
 
 
 # PostgreSQL binary COPY of temperature rows, encoded by numpy (no Python object per row): the
@@ -431,12 +429,21 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     if postgres:
         copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
     else:
-        bulk_insert(
+        names = [c for c in temperatures.columns if c != "time_s"]
+        insert_temperatures_sqlite(
             conn,
-            "temperature_samples",
-            TEMPERATURE_COLUMNS,
-            TEMPERATURE_TYPES,
-            temperature_rows(campaign_id, channel_ids, temperatures, postgres, day),
+            campaign_id,
+            day,
+            (
+                (
+                    channel_id,
+                    (
+                        (np.asarray(t, dtype="f8").tolist(), np.asarray(v, dtype="f8").tolist())
+                        for t, v in zip(temperatures.column("time_s"), temperatures.column(name), strict=True)
+                    ),
+                )
+                for channel_id, name in zip(channel_ids, names, strict=True)
+            ),
         )
 
     if rollups:
