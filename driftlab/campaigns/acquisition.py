@@ -12,6 +12,7 @@ import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from itertools import chain, repeat
 from typing import Any, Protocol
 
 import numpy as np
@@ -331,7 +332,7 @@ class StoreSink:
 
     def _insert_blocks(self, conn: Any, arrays: tuple[list[int], list[str], np.ndarray, np.ndarray]) -> None:
         """Insert block readings with the store's bulk path, channel by channel (key order); NaN stored as NULL."""
-        from driftlab.campaigns.ingest import copy_temperatures_pg, insert_temperatures_sqlite
+        from driftlab.campaigns.ingest import copy_temperatures_pg, insert_scan_readings_sqlite
 
         ids, names, times, values = arrays
         if conn.dialect.name == "postgresql":
@@ -341,10 +342,10 @@ class StoreSink:
             frame.insert(0, "time_s", times)
             copy_temperatures_pg(conn, self.cid, ids, frame, self.day)  # numpy-encoded binary COPY
             return
-        # executemany over C-level zips, two values bound a row: no Python frame per row
-        t = times.tolist()
-        per_channel = ((ch, [(t, col)]) for ch, col in zip(ids, values.T.tolist(), strict=True))
-        insert_temperatures_sqlite(conn, self.cid, self.day, per_channel)
+        # executemany over C-level zips: no Python frame per row (sqlite stores a bound NaN as NULL)
+        n, t = len(times), times.tolist()
+        rows = chain.from_iterable(zip(repeat(ch, n), t, col) for ch, col in zip(ids, values.T.tolist(), strict=True))
+        insert_scan_readings_sqlite(conn, self.cid, self.day, rows)
 
     def _error_rows(self, batch: Batch) -> list[dict[str, Any]]:
         """Return the error rows of the batch; a flagged (missing) term is not stored (it is a fault)."""

@@ -156,6 +156,23 @@ def insert_temperatures_sqlite(
         cur.close()
 
 
+def insert_scan_readings_sqlite(
+    conn: Connection, campaign_id: int, day: int, rows: Iterable[tuple[int, float, float | None]]
+) -> None:
+    """Insert (channel, time, value) readings of one campaign into temperature_samples on SQLite, in one
+    executemany (a daemon's batch: few scans of many channels, so one call rather than one per channel);
+    the campaign and start day are integer literals of the statement, three values bound a row."""
+    raw = conn.connection.driver_connection
+    cols = ", ".join(TEMPERATURE_COLUMNS)
+    cur = raw.cursor()  # type: ignore[union-attr]
+    try:
+        cur.executemany(
+            f"INSERT INTO temperature_samples ({cols}) VALUES ({int(campaign_id)}, ?, ?, ?, {int(day)})", rows
+        )
+    finally:
+        cur.close()
+
+
 # PostgreSQL binary COPY of temperature rows, encoded by numpy (no Python object per row): the
 # file header, then per row a field count and (length, big-endian value) per field, NULL as length -1.
 _PG_HEADER = b"PGCOPY\n\xff\r\n\x00" + (0).to_bytes(4, "big") + (0).to_bytes(4, "big")
