@@ -17,7 +17,7 @@ import pandas as pd
 from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, as_table
+from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, FrameTable, as_table
 from driftlab.campaigns.partitions import start_day
 
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
@@ -154,6 +154,27 @@ def insert_temperatures_sqlite(
                 cur.executemany(sql, zip(times, values))
     finally:
         cur.close()
+
+
+def _channel_pieces(
+    channel_ids: Sequence[int], temperatures: ColumnTable
+) -> Iterator[tuple[int, Iterator[tuple[list[float], list[float]]]]]:
+    """Return per channel id its (times, values) pieces as Python float lists, for the driver.
+
+    A table in memory (one chunk) has its time column made a list once, for every channel; a staged
+    table's times are made again per channel and chunk, so that memory holds a chunk whatever the size.
+    """
+    names = [c for c in temperatures.columns if c != "time_s"]
+    shared = None
+    if isinstance(temperatures, FrameTable):
+        shared = [np.asarray(t, dtype="f8").tolist() for t in temperatures.column("time_s")]
+
+    def pieces(name: str) -> Iterator[tuple[list[float], list[float]]]:
+        times: Iterable[Any] = shared if shared is not None else temperatures.column("time_s")
+        for t, v in zip(times, temperatures.column(name), strict=True):
+            yield (t if shared is not None else np.asarray(t, dtype="f8").tolist()), np.asarray(v, dtype="f8").tolist()
+
+    return ((channel_id, pieces(name)) for channel_id, name in zip(channel_ids, names, strict=True))
 
 
 def insert_scan_readings_sqlite(
@@ -446,22 +467,7 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     if postgres:
         copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
     else:
-        names = [c for c in temperatures.columns if c != "time_s"]
-        insert_temperatures_sqlite(
-            conn,
-            campaign_id,
-            day,
-            (
-                (
-                    channel_id,
-                    (
-                        (np.asarray(t, dtype="f8").tolist(), np.asarray(v, dtype="f8").tolist())
-                        for t, v in zip(temperatures.column("time_s"), temperatures.column(name), strict=True)
-                    ),
-                )
-                for channel_id, name in zip(channel_ids, names, strict=True)
-            ),
-        )
+        insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
 
     if rollups:
         bulk_insert(
