@@ -338,7 +338,7 @@ class StoreSink:
 
     def _insert_blocks(self, conn: Any, arrays: tuple[list[int], list[str], np.ndarray, np.ndarray]) -> None:
         """Insert block readings with the store's bulk path, channel by channel (key order); NaN stored as NULL."""
-        from driftlab.campaigns.ingest import TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, bulk_insert, copy_temperatures_pg
+        from driftlab.campaigns.ingest import copy_temperatures_pg, insert_scan_readings_sqlite
 
         ids, names, times, values = arrays
         if conn.dialect.name == "postgresql":
@@ -350,11 +350,8 @@ class StoreSink:
             return
         # executemany over C-level zips: no Python frame per row (sqlite stores a bound NaN as NULL)
         n, t = len(times), times.tolist()
-        rows = chain.from_iterable(
-            zip(repeat(self.cid, n), repeat(ch, n), t, col, repeat(self.day, n))
-            for ch, col in zip(ids, values.T.tolist())
-        )
-        bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, rows)
+        rows = chain.from_iterable(zip(repeat(ch, n), t, col) for ch, col in zip(ids, values.T.tolist(), strict=True))
+        insert_scan_readings_sqlite(conn, self.cid, self.day, rows)
 
     def _error_rows(self, batch: Batch) -> list[dict[str, Any]]:
         """Return the error rows of the batch; a flagged (missing) term is not stored (it is a fault)."""

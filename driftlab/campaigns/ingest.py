@@ -9,7 +9,7 @@ driver as it is made, so memory holds a chunk whatever the bundle's size. What s
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
-from itertools import chain, repeat
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -17,7 +17,7 @@ import pandas as pd
 from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, as_table
+from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, FrameTable, as_table
 from driftlab.campaigns.partitions import start_day
 
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
@@ -132,30 +132,66 @@ def _nullable(values: np.ndarray, postgres: bool) -> list[Any]:
     return obj.tolist()
 
 
-def temperature_rows(
-    campaign_id: int,
-    channel_ids: Sequence[int],
-    temperatures: pd.DataFrame | ColumnTable,
-    postgres: bool,
-    start_day: int,
-) -> Iterable[tuple[Any, ...]]:
-    """Return (campaign, channel, time, value, start day) rows channel by channel: primary-key order, so appends.
+def insert_temperatures_sqlite(
+    conn: Connection, campaign_id: int, day: int, channels: Iterable[tuple[int, Iterable[tuple[Any, Any]]]]
+) -> None:
+    """Insert readings into temperature_samples on SQLite in the connection's transaction, channel by channel.
 
-    The rows are chained C-level zips (no Python frame per row): the per-row cost is the driver's.
-    A chunk's values become Python lists only when the driver reaches them.
+    ``channels`` gives per channel id its (times, values) pieces (sequences of floats, NaN or None
+    where no value: sqlite stores a bound NaN as NULL). The campaign, the channel and the start day
+    are the same for every row of a piece, so they are written into the statement as integer
+    literals and each row binds two values instead of five: the per-row cost is the driver's
+    binding, and this cuts it by more than half (the statement is prepared once per channel).
     """
-    table = as_table(temperatures)
-    names = [c for c in table.columns if c != "time_s"]
+    raw = conn.connection.driver_connection
+    cols = ", ".join(TEMPERATURE_COLUMNS)
+    cur = raw.cursor()  # type: ignore[union-attr]
+    try:
+        for channel_id, pieces in channels:
+            keys = f"{int(campaign_id)}, {int(channel_id)}"
+            sql = f"INSERT INTO temperature_samples ({cols}) VALUES ({keys}, ?, ?, {int(day)})"
+            for times, values in pieces:
+                cur.executemany(sql, zip(times, values))
+    finally:
+        cur.close()
 
-    def per_chunk() -> Iterator[Iterable[tuple[Any, ...]]]:
-        for channel_id, name in zip(channel_ids, names, strict=True):
-            for times, values in zip(table.column("time_s"), table.column(name), strict=True):
-                n = len(times)
-                t = np.asarray(times, dtype="f8").tolist()
-                v = _nullable(np.asarray(values, dtype="f8"), postgres)
-                yield zip(repeat(campaign_id, n), repeat(channel_id, n), t, v, repeat(start_day, n))
 
-    return chain.from_iterable(per_chunk())
+def _channel_pieces(
+    channel_ids: Sequence[int], temperatures: ColumnTable
+) -> Iterator[tuple[int, Iterator[tuple[list[float], list[float]]]]]:
+    """Return per channel id its (times, values) pieces as Python float lists, for the driver.
+
+    A table in memory (one chunk) has its time column made a list once, for every channel; a staged
+    table's times are made again per channel and chunk, so that memory holds a chunk whatever the size.
+    """
+    names = [c for c in temperatures.columns if c != "time_s"]
+    shared = None
+    if isinstance(temperatures, FrameTable):
+        shared = [np.asarray(t, dtype="f8").tolist() for t in temperatures.column("time_s")]
+
+    def pieces(name: str) -> Iterator[tuple[list[float], list[float]]]:
+        times: Iterable[Any] = shared if shared is not None else temperatures.column("time_s")
+        for t, v in zip(times, temperatures.column(name), strict=True):
+            yield (t if shared is not None else np.asarray(t, dtype="f8").tolist()), np.asarray(v, dtype="f8").tolist()
+
+    return ((channel_id, pieces(name)) for channel_id, name in zip(channel_ids, names, strict=True))
+
+
+def insert_scan_readings_sqlite(
+    conn: Connection, campaign_id: int, day: int, rows: Iterable[tuple[int, float, float | None]]
+) -> None:
+    """Insert (channel, time, value) readings of one campaign into temperature_samples on SQLite, in one
+    executemany (a daemon's batch: few scans of many channels, so one call rather than one per channel);
+    the campaign and start day are integer literals of the statement, three values bound a row."""
+    raw = conn.connection.driver_connection
+    cols = ", ".join(TEMPERATURE_COLUMNS)
+    cur = raw.cursor()  # type: ignore[union-attr]
+    try:
+        cur.executemany(
+            f"INSERT INTO temperature_samples ({cols}) VALUES ({int(campaign_id)}, ?, ?, ?, {int(day)})", rows
+        )
+    finally:
+        cur.close()
 
 
 # PostgreSQL binary COPY of temperature rows, encoded by numpy (no Python object per row): the
@@ -431,13 +467,7 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     if postgres:
         copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
     else:
-        bulk_insert(
-            conn,
-            "temperature_samples",
-            TEMPERATURE_COLUMNS,
-            TEMPERATURE_TYPES,
-            temperature_rows(campaign_id, channel_ids, temperatures, postgres, day),
-        )
+        insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
 
     if rollups:
         bulk_insert(

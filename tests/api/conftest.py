@@ -14,9 +14,10 @@ from tests.api.helpers import TOKEN, Seeded, seed
 
 
 @pytest.fixture
-def seeded(db_url: str, tmp_path: Path) -> Seeded:
-    """A fresh database (SQLite and PostgreSQL) with one campaign and one current model."""
-    return seed(db_url, tmp_path)
+def seeded(store_url: str, tmp_path: Path) -> Seeded:
+    """A database at the head schema (SQLite and PostgreSQL) with one campaign and one current model and
+    nothing else (``store_url``: emptied or copied, cheaper than a new database and its migrations)."""
+    return seed(store_url, tmp_path)
 
 
 @pytest.fixture

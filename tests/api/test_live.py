@@ -37,11 +37,11 @@ STATIC = Path(vendor.__file__).parent / "static"
 EXTERNAL = re.compile(r"""(?:src|href)\s*=\s*["']?(?:https?:)?//""", re.I)
 
 
-def _daemon(db_url: str, plan: Path, commits: int, resume: bool) -> int:
+def _daemon(store_url: str, plan: Path, commits: int, resume: bool) -> int:
     """Run the daemon in this process on the virtual machine for some commits; return the campaign id."""
     return run_daemon(
         load_plan(plan),
-        db_url=db_url,
+        db_url=store_url,
         scenario_path=CLEAN,
         speed=math.inf,
         resume=resume,
@@ -58,8 +58,8 @@ def plan(tmp_path: Path) -> Path:
     return p
 
 
-def test_page_and_assets_are_served_by_the_package_without_a_token(db_url: str) -> None:
-    app = create_app(db_url, token="secret-token-0123456789", run_jobs=False)
+def test_page_and_assets_are_served_by_the_package_without_a_token(store_url: str) -> None:
+    app = create_app(store_url, token="secret-token-0123456789", run_jobs=False)
     with serving(app) as base:
         page = httpx.get(f"{base}/live")
         assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
@@ -77,9 +77,9 @@ def test_page_and_assets_are_served_by_the_package_without_a_token(db_url: str) 
         assert "/live/snapshot" in httpx.get(f"{base}/openapi.json").json()["paths"]
 
 
-def test_docs_pages_load_vendored_swagger_ui_and_redoc(db_url: str) -> None:
+def test_docs_pages_load_vendored_swagger_ui_and_redoc(store_url: str) -> None:
     assert vendor.verify() == []
-    app = create_app(db_url, run_jobs=False)
+    app = create_app(store_url, run_jobs=False)
     with serving(app) as base:
         for path, assets in (
             ("/docs", ("swagger-ui-bundle.js", "swagger-ui.css")),
@@ -111,11 +111,11 @@ def test_vendored_files_are_checked_against_their_manifest(tmp_path: Path, monke
     assert any("LICENSE missing" in p for p in problems)
 
 
-def test_stream_sends_a_snapshot_then_each_commit(db_url: str, plan: Path) -> None:
+def test_stream_sends_a_snapshot_then_each_commit(store_url: str, plan: Path) -> None:
     import queue
 
-    cid = _daemon(db_url, plan, commits=3, resume=False)
-    app = create_app(db_url, run_jobs=False, live_poll_s=0.05)
+    cid = _daemon(store_url, plan, commits=3, resume=False)
+    app = create_app(store_url, run_jobs=False, live_poll_s=0.05)
     inbox: queue.Queue[tuple[str, dict]] = queue.Queue()
     with serving(app) as base, httpx.Client(timeout=20) as client:
         with client.stream("GET", f"{base}/live/events") as r:
@@ -130,8 +130,8 @@ def test_stream_sends_a_snapshot_then_each_commit(db_url: str, plan: Path) -> No
             t0 = max(camp["temperatures"]["t"])
             reader = threading.Thread(target=_pump, args=(stream, inbox), daemon=True)
             reader.start()
-            _daemon(db_url, plan, commits=4, resume=True)  # meanwhile the page follows
-            final = _stored_scans(db_url, cid)
+            _daemon(store_url, plan, commits=4, resume=True)  # meanwhile the page follows
+            final = _stored_scans(store_url, cid)
             seen_scans: list[int] = []
             new_seq: list[int] = []
             while not seen_scans or seen_scans[-1] < final:
@@ -156,13 +156,13 @@ def _pump(stream, inbox) -> None:
         return
 
 
-def _stored_scans(db_url: str, cid: int) -> int:
+def _stored_scans(store_url: str, cid: int) -> int:
     """Return the scans the store holds for the campaign (plain SQL)."""
     from sqlalchemy import create_engine, text
 
     from driftlab.campaigns.db import normalise_url
 
-    eng = create_engine(normalise_url(db_url))
+    eng = create_engine(normalise_url(store_url))
     try:
         with eng.connect() as c:
             return int(
@@ -175,9 +175,9 @@ def _stored_scans(db_url: str, cid: int) -> int:
 
 
 def test_twenty_pages_share_one_poller(tmp_path: Path, plan: Path) -> None:
-    db_url = f"sqlite:///{tmp_path / 'live.sqlite'}"
-    _daemon(db_url, plan, commits=2, resume=False)
-    app = create_app(db_url, run_jobs=False, live_poll_s=0.1)
+    store_url = f"sqlite:///{tmp_path / 'live.sqlite'}"
+    _daemon(store_url, plan, commits=2, resume=False)
+    app = create_app(store_url, run_jobs=False, live_poll_s=0.1)
     hub = app.state.live_hub
     got: list[int] = []
     lock = threading.Lock()
@@ -202,7 +202,7 @@ def test_twenty_pages_share_one_poller(tmp_path: Path, plan: Path) -> None:
         ready.wait()
         assert len(hub.subscribers) == 20
         polls0, t0 = hub.polls, time.monotonic()
-        _daemon(db_url, plan, commits=2, resume=True)
+        _daemon(store_url, plan, commits=2, resume=True)
         for t in pages:
             t.join(30)
         elapsed = time.monotonic() - t0

@@ -43,10 +43,10 @@ def _text(head: dict) -> str:
     return console.export_text()
 
 
-def test_the_daemon_beats_while_it_runs_and_a_silent_one_is_stale(db_url: str, files, capsys) -> None:
+def test_the_daemon_beats_while_it_runs_and_a_silent_one_is_stale(store_url: str, files, capsys) -> None:
     plan, scen = files
-    r = run_daemon(load_plan(plan), db_url=db_url, scenario_path=scen, speed=math.inf, stop_after_commits=3)
-    engine = store_engine(db_url)
+    r = run_daemon(load_plan(plan), db_url=store_url, scenario_path=scen, speed=math.inf, stop_after_commits=3)
+    engine = store_engine(store_url)
     with engine.connect() as c:
         beat_at = c.execute(
             text("SELECT heartbeat_at FROM acquisition_progress WHERE campaign_id = :c"), {"c": r.campaign_id}
@@ -67,14 +67,14 @@ def test_the_daemon_beats_while_it_runs_and_a_silent_one_is_stale(db_url: str, f
     drawn = _text(head)
     assert "stale since" in drawn and "left" not in drawn
     assert live.live_marks(engine)[r.campaign_id]["stale"] is True
-    assert main(["health", "--daemon", "--db", db_url]) == 1  # the container healthcheck fails too
+    assert main(["health", "--daemon", "--db", store_url]) == 1  # the container healthcheck fails too
     assert "health: the daemon stopped beating: live-test (stale since " in capsys.readouterr().err
     # a daemon that beats again (resumed) is not stale
     beat(engine, r.campaign_id)
     (row,) = campaign_status(engine, r.campaign_id)
     assert row["stale_since"] is None and "stale" not in format_status([row])
     assert live.live_marks(engine)[r.campaign_id]["stale"] is False
-    assert main(["health", "--daemon", "--db", db_url]) == 0
+    assert main(["health", "--daemon", "--db", store_url]) == 0
     assert capsys.readouterr().out.strip() == "healthy"
 
 
@@ -142,10 +142,10 @@ def test_health_of_this_containers_worker_and_of_a_database_that_does_not_answer
     assert capsys.readouterr().err.startswith("driftlab: error: database: ")
 
 
-def test_a_finished_campaign_reads_done_not_97_percent(db_url: str, files) -> None:
+def test_a_finished_campaign_reads_done_not_97_percent(store_url: str, files) -> None:
     plan, scen = files
-    r = run_daemon(load_plan(plan), db_url=db_url, scenario_path=scen, speed=math.inf)
-    engine = store_engine(db_url)
+    r = run_daemon(load_plan(plan), db_url=store_url, scenario_path=scen, speed=math.inf)
+    engine = store_engine(store_url)
     head = live.header(engine, r.campaign_id)
     assert head is not None and head["status"] == "done" and head["stale_since"] is None
     p = head["progress"]
@@ -170,26 +170,28 @@ def test_stale_since_needs_a_running_campaign_and_an_old_sign_of_life(monkeypatc
 
 
 @pytest.mark.slow
-def test_kill_9_of_the_daemon_process_reads_stale(tmp_path: Path, files) -> None:
-    """The real thing: `driftlab daemon` killed with SIGKILL; `campaign status` says stale, not running."""
+def test_kill_9_of_the_daemon_process_reads_stale(tmp_path: Path, files, monkeypatch, capsys) -> None:
+    """The real thing: `driftlab daemon` killed with SIGKILL; `campaign status` says stale, not running.
+
+    Until the daemon has committed, `campaign status --json` is asked in this process (the same command,
+    without a new interpreter per poll); the verdict after the kill comes from a `driftlab` process.
+    """
     plan, scen = files
     url = f"sqlite:///{tmp_path / 'd.sqlite'}"
     env = {**os.environ, "DRIFTLAB_STALE_AFTER_S": "1"}
     cmd = [sys.executable, "-m", "driftlab.cli", "daemon", "--plan", str(plan), "--sim", str(scen), "--db", url]
     with (tmp_path / "daemon.log").open("w") as log:
         proc = subprocess.Popen([*cmd, "--speed", "60"], stdout=log, stderr=subprocess.STDOUT, env=env)
+    monkeypatch.setenv("DRIFTLAB_STALE_AFTER_S", "3600")
     try:
         status: list = []
         for _ in range(6000):  # a safety net of polls until the daemon has committed (not a timing assertion)
             if proc.poll() is not None:
                 break
-            out = subprocess.run(
-                [sys.executable, "-m", "driftlab.cli", "campaign", "status", "--db", url, "--json"],
-                capture_output=True,
-                text=True,
-                env={**os.environ, "DRIFTLAB_STALE_AFTER_S": "3600"},
-            )
-            status = json.loads(out.stdout) if out.returncode == 0 and out.stdout.strip() else []
+            capsys.readouterr()
+            code = main(["campaign", "status", "--db", url, "--json"])
+            shown = capsys.readouterr().out
+            status = json.loads(shown) if code == 0 and shown.strip() else []
             if status and status[0]["progress"]["scans"] > 0:
                 break
             time.sleep(0.2)

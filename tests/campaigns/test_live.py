@@ -93,9 +93,9 @@ def _raw(engine, cid: int) -> tuple[pd.DataFrame, pd.DataFrame]:
     return temps, errs
 
 
-def test_snapshot_is_what_the_store_holds(db_url: str, files) -> None:
-    cid = _run(files, db_url, commits=6)
-    engine = store_engine(db_url)
+def test_snapshot_is_what_the_store_holds(store_url: str, files) -> None:
+    cid = _run(files, store_url, commits=6)
+    engine = store_engine(store_url)
     assert live.live_marks(engine)[cid]["status"] == "running"
     window, points = 1800.0, 15  # buckets of 120 s: two scans each
     snap = live.snapshot(engine, cid, window, points)
@@ -158,17 +158,17 @@ def _merge(cur: dict, upd: dict) -> None:
                 E[k].append(ne[k][i])
 
 
-def test_updates_rebuild_the_snapshot(db_url: str, files) -> None:
+def test_updates_rebuild_the_snapshot(store_url: str, files) -> None:
     """A snapshot plus every update since (one half-filled bucket re-sent each time) equals a later snapshot."""
-    cid = _run(files, db_url, commits=3)
-    engine = store_engine(db_url)
+    cid = _run(files, store_url, commits=3)
+    engine = store_engine(store_url)
     window, points = 6 * 3600.0, 60  # buckets of 360 s (6 scans): updates land mid-bucket
     width = live.bucket_width(window, points)
     cur = live.snapshot(engine, cid, window, points)
     after_s, after_seq = max(cur["temperatures"]["t"]), live.latest_seq(engine, cid)
     chans = live.channels(engine, cid)
     for _ in range(3):
-        _run(files, db_url, commits=2, resume=True)
+        _run(files, store_url, commits=2, resume=True)
         upd = live.update(engine, cid, chans, after_s, after_seq, width)
         assert upd["temperatures"]["t"] and min(upd["temperatures"]["t"]) > after_s - width
         assert all(s > after_seq for s in upd["errors"]["seq"])
@@ -184,10 +184,10 @@ def test_updates_rebuild_the_snapshot(db_url: str, files) -> None:
     assert cur["errors"] == later["errors"]
 
 
-def test_a_finished_campaign_stays_on_show_until_a_newer_one(db_url: str, files) -> None:
+def test_a_finished_campaign_stays_on_show_until_a_newer_one(store_url: str, files) -> None:
     plan, scen = files
-    r = run_daemon(load_plan(plan), db_url=db_url, scenario_path=scen, speed=math.inf)
-    engine = store_engine(db_url)
+    r = run_daemon(load_plan(plan), db_url=store_url, scenario_path=scen, speed=math.inf)
+    engine = store_engine(store_url)
     marks = live.live_marks(engine)
     assert marks == {r.campaign_id: marks[r.campaign_id]} and marks[r.campaign_id]["status"] == "done"
     head = live.header(engine, r.campaign_id)

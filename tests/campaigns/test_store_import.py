@@ -18,6 +18,7 @@ from driftlab.campaigns.partitions import start_day
 from driftlab.campaigns.store import Store, connect
 from driftlab.cli import main
 from driftlab.errors import ConflictError
+from tests.campaigns.conftest import make_bundle
 
 
 @pytest.fixture
@@ -155,11 +156,26 @@ def test_unique_keys_refuse_a_reinserted_reading(store: Store, bundle_dir: Path)
             conn.execute(insert(table), row)
 
 
-def test_corrupted_bundle_via_cli_changes_nothing(store_url: str, bundle_factory, corruption, capsys) -> None:
+@pytest.fixture(scope="module", params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def corpus_store_url(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> str:
+    """One store per engine for the whole corpus, holding one imported campaign: each case proves it
+    changed nothing (the row counts of every table), so the next case meets the same store as a fresh one."""
+    tmp = tmp_path_factory.mktemp("corpus")
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp / 'driftlab.sqlite'}"
+    else:
+        url = request.getfixturevalue("pg_cluster").create_database()
+    with connect(url) as store:
+        store.import_bundle(load_bundle(make_bundle(tmp / "stored", seed=5)))
+    return url
+
+
+def test_corrupted_bundle_via_cli_changes_nothing(corpus_store_url: str, bundle_factory, corruption, capsys) -> None:
+    store_url = corpus_store_url
     store = connect(store_url)
     try:
-        store.import_bundle(load_bundle(bundle_factory(seed=5)))
         before = store.table_counts()
+        assert before["campaigns"] == 1
         _, file, mutate, expected = corruption
         bad = bundle_factory(seed=6)
         mutate(bad / file)

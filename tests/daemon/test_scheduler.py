@@ -56,9 +56,9 @@ def _count(engine, table) -> int:
         return conn.execute(select(func.count()).select_from(table)).scalar_one()
 
 
-def test_batches_commit_with_their_cursor_and_resume_from_it(db_url: str) -> None:
+def test_batches_commit_with_their_cursor_and_resume_from_it(store_url: str) -> None:
     """Readings and cursor land together; a resumed open returns that cursor; stages and status follow."""
-    engine = store_engine(db_url)
+    engine = store_engine(store_url)
     plan = _plan()
     h = open_campaign(engine, plan, CHANNELS, ["T49"], resume=False, origin={"mode": "test"})
     assert h.cursor == Cursor() and not h.resumed and set(h.channel_ids) == {"T1", "T49"}
@@ -87,9 +87,9 @@ def test_batches_commit_with_their_cursor_and_resume_from_it(db_url: str) -> Non
     assert "unit" in format_status([st]) and "faults 1" in format_status([st])
 
 
-def test_a_failing_batch_stores_nothing_and_keeps_the_cursor(db_url: str) -> None:
+def test_a_failing_batch_stores_nothing_and_keeps_the_cursor(store_url: str) -> None:
     """A batch whose insert fails (a reading already stored) rolls back whole: no row, no cursor move."""
-    engine = store_engine(db_url)
+    engine = store_engine(store_url)
     plan = _plan()
     h = open_campaign(engine, plan, CHANNELS, [], resume=False, origin={})
     sink = StoreSink(engine, plan, h)
@@ -102,9 +102,9 @@ def test_a_failing_batch_stores_nothing_and_keeps_the_cursor(db_url: str) -> Non
     assert open_campaign(engine, plan, CHANNELS, [], resume=True, origin={}).cursor == Cursor(1, 0)
 
 
-def test_open_thermocouple_is_stored_as_missing_and_the_last_batch_closes_the_campaign(db_url: str) -> None:
+def test_open_thermocouple_is_stored_as_missing_and_the_last_batch_closes_the_campaign(store_url: str) -> None:
     """A flagged channel becomes NULL; the batch reaching the end marks stages and campaign done."""
-    engine = store_engine(db_url)
+    engine = store_engine(store_url)
     plan = _plan()
     h = open_campaign(engine, plan, CHANNELS, [], resume=False, origin={})
     sink = StoreSink(engine, plan, h)

@@ -1,7 +1,9 @@
 """A `driftlab worker` survives `pg_ctl stop; pg_ctl start`, exits 1 when the database stays away, and a job
 left running by a dead worker is queued again (issue 24).
 
-Each test has its own throwaway PostgreSQL server (``testing.pgcluster``), since it stops it.
+The tests that stop the server share one private throwaway PostgreSQL server (``testing.pgcluster``),
+started again after each of them if it was left down, and each gets its own fresh database there (a
+copy of a migrated template); the others use the session's cluster (``pg_store``), which nobody stops.
 """
 
 from __future__ import annotations
@@ -25,18 +27,37 @@ from tests.jobs.test_queue import _worker_env
 pytestmark = pytest.mark.postgres
 
 
-@pytest.fixture
-def own_cluster() -> Iterator[tuple[PgCluster, str]]:
-    """A private PostgreSQL server with one migrated, empty store database."""
+@pytest.fixture(scope="module")
+def _private_server() -> Iterator[PgCluster]:
+    """A private PostgreSQL server holding a migrated, empty store database ``head`` to copy."""
     cluster = PgCluster()
     cluster.start()
     try:
-        url = cluster.create_database()
-        with connect(url) as store:
+        with connect(cluster.create_database("head")) as store:
             store.ensure_schema()
-        yield cluster, url
+        yield cluster
     finally:
         cluster.stop()
+
+
+def _server_up(cluster: PgCluster) -> bool:
+    import psycopg
+
+    try:
+        with psycopg.connect(cluster.url().replace("postgresql+psycopg://", "postgresql://"), connect_timeout=10):
+            return True
+    except psycopg.OperationalError:
+        return False
+
+
+@pytest.fixture
+def own_cluster(_private_server: PgCluster) -> Iterator[tuple[PgCluster, str]]:
+    """The private server (the test may stop it) and a fresh migrated, empty store database on it."""
+    if not _server_up(_private_server):
+        _private_server.resume()
+    yield _private_server, _private_server.create_database(template="head")
+    if not _server_up(_private_server):
+        _private_server.resume()
 
 
 def _worker(url: str, log: Path, *extra: str) -> subprocess.Popen[str]:
@@ -115,14 +136,14 @@ def test_a_worker_exits_1_when_the_database_stays_away(own_cluster, tmp_path) ->
     assert last.startswith("driftlab: error: worker: no database for ") and "supervisor restarts it" in last
 
 
-def test_a_job_of_a_dead_worker_is_queued_again(own_cluster) -> None:
+def test_a_job_of_a_dead_worker_is_queued_again(pg_store, monkeypatch, capsys) -> None:
     """A worker killed mid-job (kill -9) leaves its job `doing`; the next worker to start queues it again."""
-    _, url = own_cluster
-    with connect(url) as store:
-        cid = store.import_bundle(bundle())
-        job_id = submit_fit(store, [cid], network=False)
-        queue_id = store.get_job(job_id).queue_job_id
-        dsn = store_url(store).replace("postgresql+psycopg://", "postgresql://")
+    store = pg_store
+    url = store_url(store)
+    cid = store.import_bundle(bundle())
+    job_id = submit_fit(store, [cid], network=False)
+    queue_id = store.get_job(job_id).queue_job_id
+    dsn = url.replace("postgresql+psycopg://", "postgresql://")
     import psycopg
 
     # what a worker killed 40 s ago leaves: a worker row whose heartbeat stopped, its job in `doing`
@@ -141,20 +162,17 @@ def test_a_job_of_a_dead_worker_is_queued_again(own_cluster) -> None:
     with psycopg.connect(dsn) as conn:
         status = conn.execute("SELECT status FROM procrastinate_jobs WHERE id = %s", (queue_id,)).fetchone()[0]  # type: ignore[index]
     assert status == "todo"
-    # and a worker runs it to the end
-    proc = subprocess.run(
-        [sys.executable, "-m", "driftlab.cli", "worker", "--db", url, "--until-idle"],
-        capture_output=True,
-        text=True,
-        env=_worker_env(),
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    # and a worker runs it to the end (`driftlab worker --until-idle`, in this process: no kill is involved)
+    from driftlab.cli import main
+
+    monkeypatch.setenv("DRIFTLAB_JOB_RETRY_WAIT_S", "0")
+    assert main(["worker", "--db", url, "--until-idle"]) == 0, capsys.readouterr().err[-2000:]
     _done(url, job_id)
 
 
-def test_the_worker_refuses_a_negative_reconnect_time(own_cluster, capsys) -> None:
+def test_the_worker_refuses_a_negative_reconnect_time(pg_store, capsys) -> None:
     from driftlab.cli import main
 
-    _, url = own_cluster
+    url = store_url(pg_store)
     assert main(["worker", "--db", url, "--reconnect-s", "-1"]) == 2
     assert "--reconnect-s must be at least 0" in capsys.readouterr().err
