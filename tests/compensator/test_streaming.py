@@ -161,8 +161,8 @@ def test_output_with_the_envelope_guard_is_byte_identical(name, data, kw, tmp_pa
     model, table = _model(), _table()
     axes = ("X", "Y", "Z", "A", "B")
     envelope = Envelope(travel={a: (-1e6, 1e6) for a in axes}, max_correction={a: 1e6 for a in axes})
-    for temps in (table, {"T9": 26.0, "T10": 21.5, "T11": 24.0}):
-        want = _reference(data, model, temps, **kw)
+    for temps_name, temps in (("table", table), ("fixed", {"T9": 26.0, "T10": 21.5, "T11": 24.0})):
+        want = _shared_reference(name, temps_name, data, model, temps, kw).text
         out = tmp_path / "out.nc"
         opts = {"start": kw.get("start"), "max_segment_mm": kw.get("max_segment_mm", 5.0)}
         guard = Guard(envelope, model.ranges, allow_extrapolation=True)
