@@ -66,8 +66,8 @@ from typing import Any
 
 import numpy as np
 
-from driftlab.daq.laser import LASER_TERMS, Environment
-from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, ErrorSample, Reading
+from driftlab.daq.laser import LASER_TERMS, Environment, LaserMeasures
+from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, Reading
 from driftlab.daq.retry import GarbledReply, TransientError
 from driftlab.daq.transport import RawPort, SerialPort
 from driftlab.errors import InstrumentError, ValidationError
@@ -115,7 +115,7 @@ class IDSOptics:
             raise ValidationError("IDS3010 optics: angle_spacing_mm must be positive")
 
 
-class AttocubeIDS:
+class AttocubeIDS(LaserMeasures):
     """An attocube IDS3010 on the network: an ErrorMeter of table 5.3's laser terms (rig driver attocube-ids3010)."""
 
     def __init__(
@@ -412,27 +412,6 @@ class AttocubeIDS:
         if settled is None:
             return self._lose_reference()
         return Reading(float(np.mean(settled)))
-
-    def read_displacement(self) -> Reading:
-        """Return the displacement (mm) with linear or straightness optics (DisplacementMeter)."""
-        if self.mode not in ("LIN", "STR"):
-            raise ValidationError("read_displacement needs linear or straightness optics")
-        return self.read()
-
-    def read_angle(self) -> Reading:
-        """Return the angle (rad) with angle optics (AngleMeter)."""
-        if self.mode != "ANG":
-            raise ValidationError("read_angle needs angle optics")
-        return self.read()
-
-    def measure_error(self, axis: str, term: str, position: float, direction: int) -> ErrorSample:
-        """Return the error at a commanded position: measured minus commanded travel for LIN, else the reading."""
-        mode = self.configure(axis, term)
-        reading = self.read()
-        value = reading.value
-        if reading.ok and mode == "LIN":
-            value -= position - self.reference_position
-        return ErrorSample(axis, term, float(position), int(direction), value, reading.flag)
 
     def close(self) -> None:
         """Close the connection (the head keeps measuring)."""

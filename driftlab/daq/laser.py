@@ -188,7 +188,48 @@ def _parse_env(text: str) -> Environment:
     return env
 
 
-class LaserInterferometer:
+class LaserMeasures:
+    """What every laser driver offers on top of its own ``configure``, ``read`` and datum (table 5.3).
+
+    A subclass sets ``mode`` (LIN, STR or ANG) in ``configure(axis, term)``, keeps the position of
+    its last datum in ``reference_position`` and returns one averaged point from ``read()``; this
+    gives it the DisplacementMeter / AngleMeter reads and the ErrorMeter's ``measure_error``.
+    """
+
+    mode: str | None
+    reference_position: float
+
+    def configure(self, axis: str, term: str) -> str:
+        """Set up the optics for (axis, term); return the mode."""
+        raise NotImplementedError
+
+    def read(self) -> Reading:
+        """Return one averaged point in the current mode."""
+        raise NotImplementedError
+
+    def read_displacement(self) -> Reading:
+        """Return the displacement (mm) in LIN or STR mode (DisplacementMeter)."""
+        if self.mode not in ("LIN", "STR"):
+            raise ValidationError("read_displacement needs linear or straightness optics")
+        return self.read()
+
+    def read_angle(self) -> Reading:
+        """Return the angle (rad) in ANG mode (AngleMeter)."""
+        if self.mode != "ANG":
+            raise ValidationError("read_angle needs angle optics")
+        return self.read()
+
+    def measure_error(self, axis: str, term: str, position: float, direction: int) -> ErrorSample:
+        """Return the error at a commanded position: measured minus commanded motion for LIN, else the reading."""
+        mode = self.configure(axis, term)
+        reading = self.read()
+        value = reading.value
+        if reading.ok and mode == "LIN":
+            value -= position - self.reference_position
+        return ErrorSample(axis, term, float(position), int(direction), value, reading.flag)
+
+
+class LaserInterferometer(LaserMeasures):
     """The thesis' HP-IB laser (legacy protocol) on a line channel; an AngleMeter or DisplacementMeter by mode."""
 
     def __init__(
@@ -329,27 +370,6 @@ class LaserInterferometer:
             return out
 
         return parse
-
-    def read_displacement(self) -> Reading:
-        """Return the displacement (mm) in LIN or STR mode (DisplacementMeter)."""
-        if self.mode not in ("LIN", "STR"):
-            raise ValidationError("read_displacement needs linear or straightness optics")
-        return self.read()
-
-    def read_angle(self) -> Reading:
-        """Return the angle (rad) in ANG mode (AngleMeter)."""
-        if self.mode != "ANG":
-            raise ValidationError("read_angle needs angle optics")
-        return self.read()
-
-    def measure_error(self, axis: str, term: str, position: float, direction: int) -> ErrorSample:
-        """Return the error at a commanded position: measured minus commanded motion for LIN, else the reading."""
-        mode = self.configure(axis, term)
-        reading = self.read()
-        value = reading.value
-        if reading.ok and mode == "LIN":
-            value -= position - self.reference_position
-        return ErrorSample(axis, term, float(position), int(direction), value, reading.flag)
 
 
 def _parse_idn(text: str) -> str:

@@ -20,21 +20,14 @@ from pydantic import ValidationError as PydanticValidationError
 from driftlab.daq.sim.sites import MODEL_CHANNELS, SITE_INDEX
 from driftlab.errors import ValidationError
 from driftlab.physics.geometry import Geometry
-from driftlab.vocabulary import ROTATIONS, Axis, Term
+from driftlab.vocabulary import EFFECT_KINDS, ROTATIONS, Axis, Term
 
 HeatSource = Literal["spindle", "feed", "combined", "idle", "off"]
 
 ANGLE_TERMS: frozenset[str] = frozenset(ROTATIONS)
 HEAT_SOURCES: tuple[str, ...] = ("spindle", "feed", "combined", "idle", "off")
-KINDS: tuple[str, ...] = (
-    "reversal",
-    "screw_expansion",
-    "unmapped_channel",
-    "thermal_lag",
-    "sensor_fault",
-    "drift",
-    "quadratic",
-)
+#: the catalogue's kinds the virtual machine can plant (the first seven of the spec's section 3)
+KINDS: tuple[str, ...] = EFFECT_KINDS[:7]
 #: 0.1 arc-second (ch. 5.5 laser angle accuracy) in rad
 ARCSEC_0_1_RAD = 0.1 / 3600.0 * math.pi / 180.0
 
