@@ -1061,7 +1061,7 @@ def _passes_denoised(
     noise: float,
     min_explained: float,
     min_explained_train: float,
-    raw_validation: float = float("nan"),
+    validate: bool = True,
 ) -> tuple[bool, np.ndarray | None]:
     """Return whether ``cand`` also passes the cheap rules against the model on denoised readings.
 
@@ -1073,11 +1073,10 @@ def _passes_denoised(
     on the denoised readings (the training one only for candidates built from a channel).
     Also returns the candidate's columns in that view (to carry the model along).
 
-    The validation rule is asked only of a denoised view that can predict the later training blocks
-    itself: where its own model, refitted on the early rows, predicts them more than
-    ``DENOISED_UNSTABLE`` times worse than the model on the readings (``raw_validation``: smoothing
-    every channel makes the thermal design near-collinear, and its extrapolation then says nothing
-    about the candidate), the candidate is held to the significance and effect size there alone.
+    The validation rule is asked only when ``validate``: a denoised view whose own model predicts the
+    later training blocks much worse than the model on the readings (``denoised_view_predicts``) has a
+    near-collinear thermal design (every channel smoothed), and its extrapolation says nothing about
+    the candidate; the candidate is then held to the significance and effect size there alone.
     """
     if dctx is None or dstate is None or cand.kind in SENSOR_KINDS:
         return True, None
@@ -1088,9 +1087,7 @@ def _passes_denoised(
     tr = td.train
     X = np.column_stack([dstate.X, cols])
     fit = fit_columns(X, td.y, tr, list(dstate.names) + [f"c{i}" for i in range(cols.shape[1])])
-    folds = validation_folds(td)
-    stable = not validation_rmse(dstate.X, td.y, folds) > DENOISED_UNSTABLE * raw_validation
-    if stable and not validates(dstate.X, cols, td.y, tr, folds, min_gain, min_explained, noise)[0]:
+    if validate and not validates(dstate.X, cols, td.y, tr, validation_folds(td), min_gain, min_explained, noise)[0]:
         return False, cols
     rss0 = dstate.fit.rmse_train**2 * dstate.fit.n_train
     rss1 = fit.rmse_train**2 * fit.n_train
@@ -1113,6 +1110,16 @@ def _passes_denoised(
 #: a denoised view whose own refitted model predicts the later training blocks more than this many times
 #: worse than the model on the readings does cannot judge a candidate by validation (``_passes_denoised``)
 DENOISED_UNSTABLE = 2.0
+
+
+def denoised_view_predicts(state_X: np.ndarray, dctx: TermContext | None, dstate: _State | None, td: TermData) -> bool:
+    """Return whether the model on denoised readings predicts the later training blocks within
+    ``DENOISED_UNSTABLE`` times the model on the readings (both refitted on each fold's early rows)."""
+    if dctx is None or dstate is None:
+        return True
+    raw = validation_rmse(state_X, td.y, validation_folds(td))
+    return not validation_rmse(dstate.X, dctx.td.y, validation_folds(dctx.td)) > DENOISED_UNSTABLE * raw
+
 
 #: a candidate whose refitted validation RMSE is more than this much above that of a candidate of the same
 #: kind validated earlier in the round (and refused by a later rule) is not tried: a site that only stands in
@@ -1267,7 +1274,7 @@ def _search_term(
         heads = list(firsts_by_kind.values())
         trials = heads + [sc for sc in scored if all(sc is not h for h in heads)][: max(0, top_k - len(heads))]
         accepted = None
-        raw_validation: float | None = None  # the current model's refitted validation RMSE (once a round)
+        denoised_validates: bool | None = None  # whether the denoised view may judge by validation
         # per kind, the refitted validation RMSE of the best candidate validated so far this round
         best_of_kind: dict[str, float] = {}
         for sc in trials:
@@ -1364,8 +1371,8 @@ def _search_term(
             # and on the training rows it must explain a real share of the repeatability
             if expl_train < min_explained_train * noise:
                 continue
-            if raw_validation is None:
-                raw_validation = validation_rmse(state.X, td.y, folds)
+            if denoised_validates is None:  # once a round: every candidate extends the same two models
+                denoised_validates = denoised_view_predicts(state.X, dctx, dstate, td)
             ok_d, dcols = _passes_denoised(
                 cand,
                 hint,
@@ -1376,7 +1383,7 @@ def _search_term(
                 noise,
                 min_explained,
                 min_explained_train,
-                raw_validation,
+                denoised_validates,
             )
             if not ok_d:
                 continue
