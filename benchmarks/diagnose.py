@@ -19,6 +19,7 @@ from driftlab.campaigns.bundle import Bundle, _as_meta  # noqa: E402
 from driftlab.daq.sim.campaign import simulate_campaign  # noqa: E402
 from driftlab.daq.sim.scenario import HiddenEffect, Scenario  # noqa: E402
 from driftlab.models.diagnosis import diagnose_bundle  # noqa: E402
+from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json  # noqa: E402
 
 
 def _baseline_lstsq(bundle: Bundle) -> float:
@@ -63,7 +64,7 @@ def main() -> None:
     res = diagnose_bundle(bundle)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     t_json = time.perf_counter()
-    res.to_json_dict()
+    diagnosis_json(res)
     t_json = time.perf_counter() - t_json
     _common.emit(
         {

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import signal
 import threading
 from collections.abc import Iterator
@@ -116,13 +117,19 @@ def write_transaction(engine: Engine) -> Iterator[Connection]:
 
 #: the job queue's tables (procrastinate, revision 0006): created from procrastinate's SQL, not the metadata
 QUEUE_TABLE_PREFIX = "procrastinate_"
+#: the range-partitioned reading tables on PostgreSQL (``campaigns.partitions`` makes their partitions)
+PARTITIONED_TABLES = ("temperature_samples", "condition_samples", "error_samples")
+_PARTITION_NAME = re.compile("^(" + "|".join(PARTITIONED_TABLES) + r")_p\d{4}_\d{2}(_\d{2})?$")
+
+
+def is_partition_name(name: str | None) -> bool:
+    """Return True for the name of one of our partitions (``<table>_pYYYY_MM[_DD]``)."""
+    return bool(name and _PARTITION_NAME.match(name))
 
 
 def include_name(name: str | None, type_: str, parent_names: Any) -> bool:
     """Return False for the job queue's tables and the reading tables' partitions (made at run time, not
     by a revision): Alembic's autogenerate compares the store's own declared schema only."""
-    from driftlab.campaigns.partitions import is_partition_name
-
     if type_ != "table":
         return True
     return not ((name or "").startswith(QUEUE_TABLE_PREFIX) or is_partition_name(name))

@@ -40,10 +40,11 @@ from typing import Any
 
 from sqlalchemy import Connection, Engine, text
 
+from driftlab.campaigns.db import PARTITIONED_TABLES, write_transaction
+
 log = logging.getLogger(__name__)
 
-#: the range-partitioned tables (PostgreSQL) and their partition key column
-PARTITIONED_TABLES = ("temperature_samples", "condition_samples", "error_samples")
+#: the range-partitioned tables (PostgreSQL: ``db.PARTITIONED_TABLES``) and their partition key column
 PARTITION_KEY = "campaign_start_day"
 #: months created ahead of the current one by ``ensure_ahead``
 MONTHS_AHEAD = 2
@@ -52,7 +53,6 @@ _EPOCH = date(1970, 1, 1)
 #: pg_advisory_xact_lock key of partition DDL (db.upgrade serialises itself on 727271)
 _LOCK_KEY = 727272
 _BOUND = re.compile(r"FOR VALUES FROM \((-?\d+)\) TO \((-?\d+)\)")
-_PARTITION_NAME = re.compile("^(" + "|".join(PARTITIONED_TABLES) + r")_p\d{4}_\d{2}(_\d{2})?$")
 
 
 def start_day(started_at: datetime) -> int:
@@ -77,11 +77,6 @@ def month_range(day: int) -> tuple[int, int]:
     first = d.replace(day=1)
     nxt = date(first.year + first.month // 12, first.month % 12 + 1, 1)
     return _day(first), _day(nxt)
-
-
-def is_partition_name(name: str | None) -> bool:
-    """Return True for the name of one of our partitions (``<table>_pYYYY_MM[_DD]``)."""
-    return bool(name and _PARTITION_NAME.match(name))
 
 
 @dataclass(frozen=True)
@@ -191,8 +186,6 @@ def ensure_partitions(engine: Engine, days: Iterable[int]) -> list[str]:
             conn.rollback()
             return []
         conn.rollback()
-    from driftlab.campaigns.db import write_transaction
-
     with write_transaction(engine) as conn:
         return create_partitions(conn, days)
 

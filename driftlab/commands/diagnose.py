@@ -42,6 +42,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     """Load and validate the bundle, diagnose it, write the report(s); 0 whatever was found."""
     from driftlab.campaigns.bundle import load_bundle
     from driftlab.models.diagnosis import diagnose_bundle
+    from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 
     if not 0.0 < args.holdout_fraction < 0.9:
         raise ValidationError(f"--holdout-fraction must be in (0, 0.9), got {args.holdout_fraction}")
@@ -57,7 +58,7 @@ def _diagnose(args: argparse.Namespace) -> int:
 
     with progress(f"diagnosing {bundle.name}") as _bar:  # a spinner: the search has no known length
         result = diagnose_bundle(bundle, holdout_fraction=args.holdout_fraction)
-    doc = result.to_json_dict()
+    doc = diagnosis_json(result)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
     if args.html is not None:

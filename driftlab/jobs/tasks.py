@@ -107,12 +107,13 @@ def diagnose_job(
 ) -> dict[str, Any]:
     """Diagnose one stored campaign; return ``{"campaign_id", "report"}`` (diagnosis report v1)."""
     from driftlab.models.diagnosis import diagnose_bundle
+    from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 
     ids = [int(c) for c in params.get("campaigns", [])]
     if len(ids) != 1:
         raise ValidationError("a diagnosis is of exactly one campaign")
     result = diagnose_bundle(store.load_campaign(ids[0]), holdout_fraction=float(params.get("holdout_fraction", 0.25)))
-    return {"campaign_id": ids[0], "report": result.to_json_dict()}
+    return {"campaign_id": ids[0], "report": diagnosis_json(result)}
 
 
 BODIES: dict[str, Callable[..., dict[str, Any]]] = {FIT: fit_job, DIAGNOSE: diagnose_job}

@@ -415,18 +415,6 @@ class DiagnosisResult:
         """Return every accepted effect, in (axis, term, acceptance) order, then faults of unused channels."""
         return [e for td in self.terms for e in td.effects] + list(self.unfed_faults)
 
-    def to_json_dict(self) -> dict[str, Any]:
-        """Return the diagnosis report v1 (spec section 4) as a JSON-ready dict."""
-        from driftlab.models.diagnosis_report import to_json_dict
-
-        return to_json_dict(self)
-
-    def to_html(self) -> str:
-        """Return a self-contained HTML page with the residual plot and cause of every finding."""
-        from driftlab.models.diagnosis_report import to_html
-
-        return to_html(self)
-
 
 def _curvature_residuals(x: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Return, for consecutive triples of ``(x, r)`` sorted by x, the departure of the middle ``r`` from the

@@ -10,6 +10,8 @@ import pytest
 import statsmodels.api as sm
 
 from driftlab.models.diagnosis import diagnose_bundle
+from driftlab.models.diagnosis_report import to_html as diagnosis_html
+from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 from driftlab.models.standard_model import fit_standard_model, prepare_bundle, spike_mask
 from tests import effects_generator as gen
 
@@ -71,7 +73,7 @@ def test_cleaning_flags_spikes_and_does_not_invent_effects():
     assert flags["T1"].spikes == 1
     assert flags["X/dx"].spikes == 1
     assert res.effects == []
-    doc = res.to_json_dict()
+    doc = diagnosis_json(res)
     assert any(f["series"] == "T1" for f in doc["flags"])
 
 
@@ -193,7 +195,7 @@ def test_planted_effects_are_found_with_their_parameters(name):
     for t in res.terms:
         if not any(e.kind == "sensor_fault" for e in t.effects):
             assert t.extended.rmse_holdout <= t.standard.fit.rmse_holdout + 1e-15
-    doc = res.to_json_dict()
+    doc = diagnosis_json(res)
     assert json.loads(json.dumps(doc, allow_nan=False)) == doc
 
 
@@ -246,7 +248,7 @@ def test_simulation_sentences_come_from_the_residuals():
 def test_report_has_the_spec_keys_and_a_self_contained_page():
     case = gen.vm_case([Planted("drift", "A", "gamma", [], {"rate_per_day": 7e-6})], seed=7)
     res = diagnose_bundle(case.bundle, holdout_fraction=0.3)
-    doc = res.to_json_dict()
+    doc = diagnosis_json(res)
     assert doc["format"] == "driftlab-diagnosis/1"
     assert doc["bundle"] == case.bundle.name
     assert doc["holdout"]["method"] == "last 30% of time"
@@ -273,7 +275,7 @@ def test_report_has_the_spec_keys_and_a_self_contained_page():
     assert isinstance(doc["unexplained"], list)
     assert eff["kind"] == "drift" and eff["channels"] == []
     assert "thesis 3.2" in eff["cause"]
-    page = res.to_html()
+    page = diagnosis_html(res)
     assert page.count("data:image/png;base64,") >= 2
     assert eff["cause"].split(":")[0] in page
     assert "http" not in page  # nothing fetched from elsewhere
@@ -298,8 +300,8 @@ def test_a_missing_channel_does_not_break_the_model():
     temps["T8"] = np.nan  # a channel that never read anything
     res = diagnose_bundle(type(b)(name=b.name, meta=b.meta, temperatures=temps, conditions=None, errors=b.errors))
     assert np.isfinite(res.terms[0].standard.fit.rmse_holdout)
-    assert isinstance(res.to_json_dict()["baseline"][0]["rmse_holdout"], float)
-    assert isinstance(pd.DataFrame(res.to_json_dict()["extended"]), pd.DataFrame)
+    assert isinstance(diagnosis_json(res)["baseline"][0]["rmse_holdout"], float)
+    assert isinstance(pd.DataFrame(diagnosis_json(res)["extended"]), pd.DataFrame)
 
 
 def test_too_few_samples_give_an_empty_report_not_a_crash():
@@ -307,10 +309,10 @@ def test_too_few_samples_give_an_empty_report_not_a_crash():
     b = case.bundle
     tiny = type(b)(name="tiny", meta=b.meta, temperatures=b.temperatures, conditions=None, errors=b.errors.head(5))
     res = diagnose_bundle(tiny)
-    doc = res.to_json_dict()
+    doc = diagnosis_json(res)
     assert doc["baseline"] == [] and doc["effects"] == [] and doc["holdout"]["start_s"] is None
     assert "too few to diagnose" in doc["flags"][0]["series"]
-    assert res.to_html().startswith("<!doctype html>")
+    assert diagnosis_html(res).startswith("<!doctype html>")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -353,7 +355,7 @@ def test_another_labs_bundle_runs_cleanly_and_stays_correct():
         res = diagnose_bundle(gen.foreign(case, seed=seed))
         assert len(res.terms) == 3
         assert any("scan gaps left out" in f.series for f in res.flags)
-        json.dumps(res.to_json_dict(), allow_nan=False)
+        json.dumps(diagnosis_json(res), allow_nan=False)
         found += [e.to_dict() for e in res.effects]
     assert found == []
     # a planted reversal is found, with model_channels and noise stated or not

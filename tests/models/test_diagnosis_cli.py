@@ -14,6 +14,7 @@ import pytest
 from driftlab.campaigns.bundle import load_bundle, write_bundle
 from driftlab.cli import main
 from driftlab.models.diagnosis import diagnose_bundle
+from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 from tests import effects_generator as gen
 
 FL_THERMAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "fl_thermal"  # ../shared beside the repo
@@ -125,7 +126,7 @@ def test_real_data_effects_are_decided_on_training_and_scored_once(fl_result):
                 assert e.params["column"] == "spindle_rpm" and e.params["vif"] <= 10
             if e.kind == "thermal_lag":  # resolvable: between a few scans and a third of the training span
                 assert 45 < e.params["tau_s"] < 46 * 3600 * 0.75 / 3
-    doc = res.to_json_dict()
+    doc = diagnosis_json(res)
     json.dumps(doc, allow_nan=False)
     # position is constant and one direction only: no reversal or screw can even be tested
     assert not any(e["kind"] in ("reversal", "screw_expansion") for e in doc["effects"])

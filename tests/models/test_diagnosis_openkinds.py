@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle
+from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 from driftlab.models.sensor_drift import scan_sensor_drifts
 from driftlab.models.standard_model import prepare_bundle
 from driftlab.testing.openworld import OpenPlanted, openworld_case
@@ -133,7 +134,7 @@ def test_reports_say_worse_in_red_and_list_the_unexplained(capsys, monkeypatch):
     res = diagnose_bundle(case.bundle)
     eff = res.effects[0]
     eff.rmse_holdout_after = 1.5 * eff.rmse_holdout_before  # as a finding that harms the held-out part would
-    doc = res.to_json_dict()
+    doc = diagnosis_json(res)
     assert doc["effects"][0]["holdout_verdict"] == "worse"
     page = to_html(res)
     assert "class='worse'>50% worse</span>" in page
@@ -144,7 +145,7 @@ def test_reports_say_worse_in_red_and_list_the_unexplained(capsys, monkeypatch):
     from driftlab.models.unexplained import Unexplained
 
     res.unexplained = [Unexplained("X", "dx", 3.2, 0.0016, 0.0005, ["depends on the approach direction"], {})]
-    doc = res.to_json_dict()
+    doc = diagnosis_json(res)
     assert doc["unexplained"][0]["residual_over_noise"] == 3.2
     assert "Unexplained (1)" in to_html(res) and "depends on the approach direction" in to_html(res)
     print_findings(doc)

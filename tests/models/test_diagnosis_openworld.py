@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from driftlab.models.diagnosis import diagnose_bundle
+from driftlab.models.diagnosis_report import to_html as diagnosis_html
+from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 from driftlab.testing.openworld import OpenPlanted, openworld_case
 from tests import effects_generator as gen
 
@@ -170,7 +172,7 @@ def test_report_of_a_direct_speed_effect_and_of_a_fault_no_model_uses():
     ]
     case = openworld_case(planted, seed=702, keep=[("Z", "dz")])
     res = diagnose_bundle(case.bundle)
-    doc = res.to_json_dict()
+    doc = diagnosis_json(res)
     assert json.loads(json.dumps(doc, allow_nan=False)) == doc
     by_kind = {e["kind"]: e for e in doc["effects"]}
     assert set(by_kind) == {"operating_condition", "sensor_fault"}, doc["effects"]
@@ -183,7 +185,7 @@ def test_report_of_a_direct_speed_effect_and_of_a_fault_no_model_uses():
     assert sf["rmse_holdout_before"] is None and sf["rmse_holdout_after"] is None
     assert abs(sf["params"]["start_s"] - 20 * 3600.0) <= 600.0 and sf["params"]["mode"] == "open"
     assert doc["acceptance"]["decided_on"] == "training part only"
-    page = res.to_html()
+    page = diagnosis_html(res)
     assert "direct effect of spindle rpm^2" in page and "no model uses this channel" in page
     # the fitting side reads the report: the fault substitutes the channel, the speed term is reported only
     findings = parse_findings(doc)

@@ -9,6 +9,7 @@ import pytest
 
 from driftlab.campaigns.bundle import Bundle, CampaignMeta
 from driftlab.errors import ValidationError
+from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 from driftlab.models.document import predict_workspace_errors
 from driftlab.models.features import Inputs
 from driftlab.models.fitting import FitOptions, fit_bundles, stage_elements
@@ -508,7 +509,7 @@ def planted_vm(tmp_path_factory):
     url = f"sqlite:///{tmp / 'f.sqlite'}"
     with connect(url) as store:
         cid = store.import_bundle(bundle)
-        report = diagnose_bundle(store.load_campaign(cid)).to_json_dict()
+        report = diagnosis_json(diagnose_bundle(store.load_campaign(cid)))
     path = tmp / "report.json"
     path.write_text(json.dumps(report))
     return url, cid, path, report
