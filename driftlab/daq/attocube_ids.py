@@ -69,7 +69,7 @@ import numpy as np
 from driftlab.daq.laser import LASER_TERMS, Environment, LaserMeasures
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, Reading
 from driftlab.daq.retry import GarbledReply, TransientError
-from driftlab.daq.transport import RawPort, SerialPort
+from driftlab.daq.transport import RawPort, SerialPort, close_quietly
 from driftlab.errors import InstrumentError, ValidationError
 
 DEFAULT_PORT = 9090  # ACS.py: TCP_PORT
@@ -263,12 +263,8 @@ class AttocubeIDS(LaserMeasures):
         return f"{result[1]} (error {number})" if len(result) > 1 and result[0] == 0 else f"error {number}"
 
     def _drop(self) -> None:
-        if self._port is not None:
-            try:
-                self._port.close()
-            except Exception:  # noqa: BLE001 - the line is gone anyway
-                pass
-        self._port = None
+        port, self._port = self._port, None
+        close_quietly(port)
 
     # -- session
     def session(self) -> None:

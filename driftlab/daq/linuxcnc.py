@@ -39,7 +39,7 @@ import numpy as np
 
 from driftlab.daq.protocols import StreamReport
 from driftlab.daq.retry import GarbledReply, TransientError
-from driftlab.daq.transport import RawPort, SerialPort
+from driftlab.daq.transport import RawPort, SerialPort, close_quietly
 from driftlab.errors import InstrumentError, ValidationError
 from driftlab.vocabulary import AXES
 
@@ -137,12 +137,8 @@ class LinuxCNCLink:
                 raise InstrumentError(f"linuxcncrsh {command!r}: {' '.join(str(exc2).split())}") from exc2
 
     def _drop(self) -> None:
-        if self._port is not None:
-            try:
-                self._port.close()
-            except Exception:  # noqa: BLE001 - the line is gone anyway
-                pass
-        self._port = None
+        port, self._port = self._port, None
+        close_quietly(port)
 
     def get(self, key: str, *args: str) -> list[str]:
         """Return the words after ``KEY`` of ``get <key> [args]``; InstrumentError on ``GET <KEY> NAK``."""

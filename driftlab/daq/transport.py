@@ -217,6 +217,16 @@ def visa_resource_manager(library: str | None = None) -> Any:
         raise InstrumentError(f"cannot load VISA library {spec!r}: {' '.join(str(exc).split())}{hint}") from exc
 
 
+def close_quietly(port: RawPort | None) -> None:
+    """Close a port whose line may already be gone (a dropped connection): a failing close is ignored."""
+    if port is None:
+        return
+    try:
+        port.close()
+    except Exception:  # noqa: BLE001 - the line is gone anyway
+        pass
+
+
 def open_port(address: str, timeout_s: float = 2.0) -> RawPort:
     """Return a RawPort for a VISA resource name (``GPIB0::..``, ``TCPIP0::..``) or a serial URL/device."""
     if "::" in address:
