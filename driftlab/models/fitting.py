@@ -810,6 +810,10 @@ def _physical_terms(
 
     def add(element: str, param: str, f: Feature, value: float) -> None:
         m = models.setdefault((element, param), ElementModel(element, param))
+        # the same structure's term already chosen from the screened channels (a mean or gradient of
+        # fewer of its sensors) is the same physical quantity: the prior goes on it, not on a second,
+        # nearly collinear copy whose free coefficient would undo the prior
+        f = next((h for h in m.features if h.kind == f.kind and h.label == f.label and h.power == f.power), f)
         if priors is not None and value != 0.0:
             priors[(element, param, f)] = (value, PHYSICAL_PRIOR * abs(value))
         if f in m.features:
