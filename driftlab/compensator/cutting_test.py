@@ -69,6 +69,12 @@ ROTARY_FEED_DEG_MIN = 300.0
 #: ch. 7.3 CMM grid: 15 points across the part, 99 along it (the direction of time)
 CMM_ACROSS = 15
 CMM_ALONG = 99
+#: ch. 7.3: "a single pass of the endmill up the centre of the part was done to provide a reference
+#: surface for aligning the part on the machine and later on the CMM"; it is cut first, this much below
+#: the design surface (the line "still noticeable in the surface" after the raster)
+REFERENCE_DEPTH_MM = 0.1
+#: the longest move of the hop from the reference pass to the raster (short enough to run as one block)
+HOP_STEP_MM = 40.0
 #: ch. 7.3: the on-line model was updated every 15 minutes
 ONLINE_INTERVAL_S = 900.0
 JOINT_OF_AXIS = {"X": "phi_x", "Y": "phi_y", "Z": "phi_z", "A": "theta_x", "B": "theta_y"}
@@ -168,6 +174,8 @@ class CuttingProgram:
     part_origin: np.ndarray
     #: (CMM_ALONG, CMM_ACROSS) block index whose end is each CMM point
     cmm_block: np.ndarray
+    #: (CMM_ALONG,) block index whose end is each CMM point of the reference pass (ch. 7.3), along v
+    reference_block: np.ndarray
     #: (B,) estimated duration of each block (s) at the programmed feeds
     block_s: np.ndarray
     #: mean |speed| of each axis over the cut, mm/min (deg/min for A, B)
@@ -197,11 +205,14 @@ def make_program(
     part_origin: Sequence[float] | None = None,
     dims: Mapping[str, Any] = kin.TABLE_A1,
 ) -> CuttingProgram:
-    """Return the raster program: ``passes`` zig-zag passes across the part, 15 points each (5-axis G1).
+    """Return the cutting program: the reference pass, then ``passes`` zig-zag passes across the part.
 
-    The part sits on the table so that the middle of the cut is in the middle of the X, Y, Z travel
-    (Tables A.3/A.4). Each G1 block's F makes the block last as long as the slower of 2000 mm/min
-    translation and 300 deg/min rotation (ch. 7.3).
+    Ch. 7.3: first a single pass up the centre of the part (``u = W/2``, 99 points along ``v``,
+    ``REFERENCE_DEPTH_MM`` deep), the reference the CMM aligns the part on; the tool then retracts to
+    a clearance height above the part and comes down 10 mm above the raster's first point; then the
+    raster, 15 points per pass (5-axis G1). The part sits on the table so that the middle of the cut is
+    in the middle of the X, Y, Z travel (Tables A.3/A.4). Each G1 block's F makes the block last as long
+    as the slower of 2000 mm/min translation and 300 deg/min rotation (ch. 7.3).
     """
     s = surface or MouldSurface()
     if passes < CMM_ALONG:
@@ -218,11 +229,29 @@ def make_program(
         q0 = inverse_kinematics(c, n, dims)
         target = np.array([127.0, 127.0, -127.0])
         part_origin = (q0[:, :3].min(axis=0) + q0[:, :3].max(axis=0)) / 2 - target
-    c = c + np.asarray(part_origin, float)
-    # block 0: the rapid to 10 mm above the first point along its normal; then the cut, point by point
-    c = np.vstack([c[:1] + 10.0 * n[:1], c])
-    n = np.vstack([n[:1], n])
-    uf, vf = np.r_[uf[0], uf], np.r_[vf[0], vf]
+    # the reference pass up the centre (ch. 7.3), its CMM points at the 99 stations along v
+    ru, rv = np.full(CMM_ALONG, s.width_mm / 2), np.linspace(0.0, s.length_mm, CMM_ALONG)
+    rn = s.normal(ru, rv)
+    rc = s.point(ru, rv) + (s.tool_radius_mm - REFERENCE_DEPTH_MM) * rn
+    # between the passes: up 10 mm along the normal, up to a clearance plane 10 mm above the part's highest
+    # point, across (in steps of at most HOP_STEP_MM, the tool turning on the way) to above the raster's
+    # first point, down to 10 mm above it along its normal
+    clear = float(s.h1_mm + s.h2_mm + s.tool_radius_mm + 10.0)
+    up = rc[-1] + 10.0 * rn[-1]
+    a, b = np.array([up[0], up[1], clear]), np.array([c[0, 0], c[0, 1], clear])
+    k = max(1, int(np.ceil(np.linalg.norm(b - a) / HOP_STEP_MM)))
+    w = np.linspace(0.0, 1.0, k + 1)[:, None]
+    across_n = (1 - w) * rn[-1] + w * n[0]
+    hop_c = np.vstack([up, a + w * (b - a), c[0] + 10.0 * n[0]])
+    hop_n = np.vstack([rn[-1], across_n / np.linalg.norm(across_n, axis=1, keepdims=True), n[0]])
+    hop_uv = np.vstack([[ru[-1], rv[-1]], (1 - w) * [ru[-1], rv[-1]] + w * [uf[0], vf[0]], [uf[0], vf[0]]])
+    # block 0: the rapid to 10 mm above the reference pass' first point; then the reference pass, the hop
+    # and the raster, point by point
+    c = np.vstack([rc[:1] + 10.0 * rn[:1], rc, hop_c, c]) + np.asarray(part_origin, float)
+    n = np.vstack([rn[:1], rn, hop_n, n])
+    uf = np.r_[ru[0], ru, hop_uv[:, 0], uf]
+    vf = np.r_[rv[0], rv, hop_uv[:, 1], vf]
+    first = 1 + CMM_ALONG + len(hop_c)  # block index of the raster's first point
     q = inverse_kinematics(c, n, dims)
     pose = q.copy()
     pose[:, 3:] = np.rad2deg(pose[:, 3:])
@@ -247,7 +276,9 @@ def make_program(
     rows = np.round(np.linspace(0, passes - 1, CMM_ALONG)).astype(int)
     cols = np.arange(CMM_ACROSS)
     cmm = (
-        1 + rows[:, None] * CMM_ACROSS + np.where(rows[:, None] % 2 == 0, cols[None, :], CMM_ACROSS - 1 - cols[None, :])
+        first
+        + rows[:, None] * CMM_ACROSS
+        + np.where(rows[:, None] % 2 == 0, cols[None, :], CMM_ACROSS - 1 - cols[None, :])
     )
     dur = block_s.sum() / 60.0
     mean_feed = (
@@ -263,6 +294,7 @@ def make_program(
         np.column_stack([uf, vf]),
         np.asarray(part_origin, float),
         cmm,
+        np.arange(1, 1 + CMM_ALONG),
         block_s,
         mean_feed,
         s,
@@ -398,6 +430,8 @@ class RunResult:
     #: where and when the CMM points were cut, and the card's readings then (channel -> (N,) degC)
     cmm: CmmPoints | None = None
     readings: dict[str, np.ndarray] = field(default_factory=dict)
+    #: (CMM_ALONG, CMM_ACROSS) normal deviation before the alignment on the reference pass (machine frame)
+    absolute_mm: np.ndarray | None = None
 
     @property
     def rmse_mm(self) -> float:
@@ -417,6 +451,7 @@ class RunResult:
             "duration_min": round(self.duration_s / 60.0, 2),
             "blocks": self.blocks,
             "probe_cycles": len(self.probes),
+            **({} if self.absolute_mm is None else {"unaligned_rmse_mm": round(rmse(self.absolute_mm), 6)}),
             **({"stream": self.stream} if self.stream else {}),
         }
 
@@ -456,19 +491,57 @@ def cmm_points(program: CuttingProgram, log_: Sequence[ExecutedBlock]) -> CmmPoi
     return CmmPoints(q, t_end, approach_directions(all_start, all_target)[idx], program.normal[idx])
 
 
+def _normal_deviations(
+    vm: MachiningMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock], idx: np.ndarray, dims: Mapping[str, Any]
+) -> np.ndarray:
+    """Return the normal deviations (mm) of the cut at the ends of blocks ``idx`` (controller's log)."""
+    all_start = np.array([b.start for b in log_])
+    all_target = np.array([b.target for b in log_])
+    q = all_target[idx].copy()
+    q[:, 3:] = np.deg2rad(q[:, 3:])
+    t_end = np.array([log_[i].t_end_s for i in idx])
+    direction = approach_directions(all_start, all_target)[idx]
+    real = tool_centre(q, true_errors(vm, t_end, q, direction), dims)
+    return np.einsum("ij,ij->i", real - program.centre[idx], program.normal[idx])
+
+
+def align_on_reference(deviation: np.ndarray, reference: np.ndarray, surface: MouldSurface) -> np.ndarray:
+    """Return the (99, 15) deviations as the CMM reports them, aligned on the reference pass (ch. 7.3).
+
+    The part is aligned on the CMM by the line cut up its centre: the height and the pitch of that
+    line (a straight line ``a + b v`` fitted by least squares to the reference pass' 99 normal
+    deviations along ``v``) define the part's datum, and are taken from every point. What the machine
+    did the same to the reference and to the surface (a constant offset, a tilt along the part) is the
+    part's set-up, not its form.
+    """
+    v = np.linspace(0.0, surface.length_mm, len(reference))
+    b, a = np.polyfit(v, reference, 1)
+    rows = np.linspace(0.0, surface.length_mm, deviation.shape[0])
+    return deviation - (a + b * rows)[:, None]
+
+
 def measure_surface(
-    vm: MachiningMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock], dims: Mapping[str, Any] = kin.TABLE_A1
+    vm: MachiningMachine,
+    program: CuttingProgram,
+    log_: Sequence[ExecutedBlock],
+    dims: Mapping[str, Any] = kin.TABLE_A1,
+    *,
+    aligned: bool = True,
 ) -> np.ndarray:
     """Return the (99, 15) normal deviations (mm) of the machined surface at the CMM points.
 
     Each CMM point is the end of one block: the tool centre there is placed by the real chain at
-    the pose the controller reached, with the true errors of the moment it got there.
+    the pose the controller reached, with the true errors of the moment it got there. With
+    ``aligned`` (the CMM of ch. 7.3), the deviations are relative to the reference pass
+    (``align_on_reference``); else they are from the design surface in the machine's own frame.
     """
-    idx = program.cmm_block.ravel()
-    pts = cmm_points(program, log_)
-    real = tool_centre(pts.q, true_errors(vm, pts.t_s, pts.q, pts.direction), dims)
-    dev = np.einsum("ij,ij->i", real - program.centre[idx], pts.normal)
-    return dev.reshape(program.cmm_block.shape)
+    if len(log_) != program.pose_written.shape[0]:
+        raise ValidationError(f"the controller executed {len(log_)} blocks, the program has {program.pose_written.shape[0]}")
+    dev = _normal_deviations(vm, program, log_, program.cmm_block.ravel(), dims).reshape(program.cmm_block.shape)
+    if not aligned:
+        return dev
+    ref = _normal_deviations(vm, program, log_, program.reference_block, dims)
+    return align_on_reference(dev, ref, program.surface)
 
 
 def approach_directions(start: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -659,12 +732,15 @@ def bench_guard(source: Any) -> Any:
 def _result(name: str, bench: CuttingBench, t0: float) -> RunResult:
     """Return the run's CMM figures from the controller's log."""
     log_ = bench.ctrl.log[bench.first_block :]
-    dev = measure_surface(bench.vm, bench.program, log_)
+    absolute = measure_surface(bench.vm, bench.program, log_, aligned=False)
+    ref = _normal_deviations(bench.vm, bench.program, log_, bench.program.reference_block, kin.TABLE_A1)
+    dev = align_on_reference(absolute, ref, bench.program.surface)
     pts = cmm_points(bench.program, log_)
     # the thermocouple card's readings at each CMM point (what the compensator read then)
     scans = bench.vm.readings_array(pts.t_s)
     readings = {c: scans[:, k] for k, c in enumerate(machining.CHANNELS)}
-    return RunResult(name, dev, (log_[-1].t_end_s - t0) if log_ else 0.0, len(log_), cmm=pts, readings=readings)
+    duration = (log_[-1].t_end_s - t0) if log_ else 0.0
+    return RunResult(name, dev, duration, len(log_), cmm=pts, readings=readings, absolute_mm=absolute)
 
 
 def offline_interval(
@@ -694,12 +770,14 @@ def offline_interval(
         return None
     sd_n = np.empty(len(order))
     sd_n[order] = np.sqrt(np.sum((pts.normal[order] * sd[:, 3:]) ** 2, axis=1))
-    dev = run.deviation_mm.ravel()
+    # the interval is of the error itself, before the CMM's alignment on the reference pass
+    absolute = run.deviation_mm if run.absolute_mm is None else run.absolute_mm
+    dev = absolute.ravel()
     return {
         "z": z,
         "predicted_rmse_mm": round(float(np.sqrt(np.mean(sd_n**2))), 6),
         "mean_half_width_mm": round(float(np.mean(z * sd_n)), 6),
-        "measured_rmse_mm": round(run.rmse_mm, 6),
+        "measured_rmse_mm": round(rmse(absolute), 6),
         "inside": round(float(np.mean(np.abs(dev) <= z * sd_n)), 3),
     }
 

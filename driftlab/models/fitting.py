@@ -51,7 +51,7 @@ from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import machine_geometry, physical_check, stated_geometries
 from driftlab.models.regression import TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
-from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT
+from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT, STRUCTURE_SPANS
 from driftlab.models.uncertainty import JointFit, Pinning, ar1_inflation
 from driftlab.models.virtual_sensor import fit_virtual_sensors
 from driftlab.physics.geometry import GEOMETRY_LINKS
@@ -782,11 +782,26 @@ def at_datum(W_hat: np.ndarray, D: np.ndarray) -> np.ndarray:
 PHYSICAL_PRIOR = 0.3
 
 
+@dataclass(frozen=True)
+class PhysicalPrior:
+    """A physical relationship's prior on a term: value ~ N(value, spread^2) (``_physical_terms``).
+
+    For a structure's mean (eqs. 3.1, 3.3) the prior is on the element's steady response to the
+    structure warming evenly by 1 degC: the mean's coefficient plus those of the single sites of the
+    structure (``sites``: dT or lag of one of them), which the staged selection may have chosen beside
+    it and which would otherwise take back what the prior pins.
+    """
+
+    value: float
+    spread: float
+    sites: tuple[str, ...] = ()
+
+
 def _physical_terms(
     models: dict[tuple[str, str], ElementModel],
     cands: Candidates,
     bundles: Sequence[Any],
-    priors: dict[tuple[str, str, Feature], tuple[float, float]] | None = None,
+    priors: dict[tuple[str, str, Feature], PhysicalPrior] | None = None,
 ) -> list[str]:
     """Add the recast terms the machine's stated geometry says act; return their names (in place).
 
@@ -815,7 +830,8 @@ def _physical_terms(
         # nearly collinear copy whose free coefficient would undo the prior
         f = next((h for h in m.features if h.kind == f.kind and h.label == f.label and h.power == f.power), f)
         if priors is not None and value != 0.0:
-            priors[(element, param, f)] = (value, PHYSICAL_PRIOR * abs(value))
+            sites = cands.members.get(f.label, list(f.channels)) if f.kind == "mean" else []
+            priors[(element, param, f)] = PhysicalPrior(value, PHYSICAL_PRIOR * abs(value), tuple(sites))
         if f in m.features:
             return
         m.features.append(f)
@@ -843,7 +859,7 @@ def _physical_terms(
                 continue
             for k, param in enumerate(("dx", "dy", "dz")):
                 length = float(list(extent)[k])
-                if abs(length) > 0:
+                if abs(length) > 0 and param in STRUCTURE_SPANS.get(structure, (param,)):
                     add(str(element), param, f, alpha_c * length)  # eqs. 3.1, 3.3
     return added
 
@@ -869,7 +885,7 @@ def joint_adjust(
     noise: Mapping[str, float] | None = None,
     ridge: float = 1e-9,
     result: dict[str, Any] | None = None,
-    priors: Mapping[tuple[str, str, Feature], tuple[float, float]] | None = None,
+    priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
 ) -> dict[str, Any]:
     """Re-estimate every coefficient of the allocated models together, on all training points.
 
@@ -962,13 +978,19 @@ def joint_adjust(
             if not free:
                 held.append(f"{key[0]}.{key[1]}")
             AtA[i, i] += spread**-2
-    # physics-informed priors (``_physical_terms``): coefficient ~ N(physical value, spread^2), in the
-    # noise-weighted units of the rows above
+    # physics-informed priors (``_physical_terms``): a' c ~ N(physical value, spread^2), in the noise-weighted
+    # units of the rows above; a picks the term and the single sites of its structure (``PhysicalPrior``)
     for i, (key, j) in enumerate(cols):
         prior = (priors or {}).get((key[0], key[1], models[key].features[j]))
-        if prior is not None and prior[1] > 0:
-            AtA[i, i] += prior[1] ** -2
-            Atb[i] += prior[0] / prior[1] ** 2
+        if prior is None or prior.spread <= 0:
+            continue
+        a = np.zeros(P + Q)
+        for i2, (key2, j2) in enumerate(cols):
+            g = models[key2].features[j2]
+            if i2 == i or (key2 == key and g.kind in ("dT", "lag") and g.channels[0] in prior.sites):
+                a[i2] = 1.0
+        AtA += np.outer(a, a) / prior.spread**2
+        Atb += a * prior.value / prior.spread**2
     scale = np.sqrt(np.maximum(np.diag(AtA), 1e-300))
     M = AtA / np.outer(scale, scale) + ridge * np.eye(P + Q)
     c = np.linalg.solve(M, Atb / scale) / scale
@@ -1301,7 +1323,7 @@ def _fit_bundles(
     lap("allocation_and_regression")
     adjustment: dict[str, Any] = {}
     joint_out: dict[str, Any] = {}
-    priors: dict[tuple[str, str, Feature], tuple[float, float]] = {}
+    priors: dict[tuple[str, str, Feature], PhysicalPrior] = {}
     physics_terms = _physical_terms(models, cands, bundles, priors) if opts.joint_adjust and opts.physical_terms else []
     if physics_terms:
         alloc.append({"physical_terms": physics_terms})
@@ -1413,37 +1435,9 @@ def _fit_bundles(
     hi = temps[channels].max()
     terms: list[dict[str, Any]] = []  # the document's "terms" (registry.TermDoc)
     for (element, param), m in models.items():
-        # a zeroed instrument's session offsets belong to the campaign, not to the machine
-        keep = [i for i, f in enumerate(m.features) if f.kind != "session"]
-        if not keep or not m.fits:
-            continue
-        fit = m.primary
-        res = fit.result
-        terms.append(
-            {
-                "element": element,
-                "param": param,
-                "axis": _axes_of(fit),
-                "term": param,
-                "features": [m.features[i].to_dict() for i in keep],
-                "coefficients": [float(m.coef[i]) for i in keep],
-                "std_errors": [float(m.std_errors[i]) for i in keep],
-                "p_values": [float(m.p_values[i]) for i in keep],
-                # what the compensator needs for a prediction interval: sqrt(x' C x + residual variance)
-                "covariance": None if m.cov is None else [[float(m.cov[i, j]) for j in keep] for i in keep],
-                "residual_variance": m.residual_variance,
-                "statistics": {
-                    "rmse_train": res.rmse,
-                    "rmse_holdout": fit.rmse_holdout,
-                    "r2": res.rsquared,
-                    "f": res.fvalue,
-                    "n_train": res.nobs,
-                    "n_holdout": fit.n_holdout,
-                    "condition_number": res.condition_number,
-                },
-                "steps": [{"stage_element": f.element, **st.to_dict()} for f in m.fits for st in f.result.steps],
-            }
-        )
+        term = _term_doc(element, param, m, int(adjustment.get("points", 0)))
+        if term is not None:
+            terms.append(term)
     _merge_lines(terms, composed, validation)
     used = sorted({c for t in terms for f in t["features"] for c in f.get("channels", [])})
     substituted = {c for sub in (plan.substitutions if plan else []) for c in (sub.channel, *sub.neighbours)}
@@ -1582,6 +1576,51 @@ def chain_dims(bundles: Sequence[Any]) -> dict[str, tuple[float, float, float]]:
         stated = here
     dims.update(stated or {})
     return dims
+
+
+def _term_doc(element: str, param: str, m: ElementModel, joint_points: int) -> dict[str, Any] | None:
+    """Return the document's term of one element model (``registry.TermDoc``), or None if it has no term.
+
+    A zeroed instrument's session offsets belong to the campaign, not to the machine: they are left out.
+    A model that only the stated geometry put there (``_physical_terms``: a link the staged allocation
+    gave nothing) was estimated in the joint adjustment with the rest and goes into the document like
+    them; leaving it out would apply a model other than the one fitted.
+    """
+    keep = [i for i, f in enumerate(m.features) if f.kind != "session"]
+    if not keep:
+        return None
+    if m.fits:
+        fit = m.primary
+        res = fit.result
+        axis = _axes_of(fit)
+        statistics: dict[str, Any] = {
+            "rmse_train": res.rmse,
+            "rmse_holdout": fit.rmse_holdout,
+            "r2": res.rsquared,
+            "f": res.fvalue,
+            "n_train": res.nobs,
+            "n_holdout": fit.n_holdout,
+            "condition_number": res.condition_number,
+        }
+    else:
+        axis = JOINT_OF.get(element)
+        rv = m.residual_variance
+        statistics = {"rmse_train": float(np.sqrt(rv)) if rv is not None else 0.0, "n_train": joint_points}
+    return {
+        "element": element,
+        "param": param,
+        "axis": axis,
+        "term": param,
+        "features": [m.features[i].to_dict() for i in keep],
+        "coefficients": [float(m.coef[i]) for i in keep],
+        "std_errors": [float(m.std_errors[i]) for i in keep],
+        "p_values": [float(m.p_values[i]) for i in keep],
+        # what the compensator needs for a prediction interval: sqrt(x' C x + residual variance)
+        "covariance": None if m.cov is None else [[float(m.cov[i, j]) for j in keep] for i in keep],
+        "residual_variance": m.residual_variance,
+        "statistics": statistics,
+        "steps": [{"stage_element": f.element, **st.to_dict()} for f in m.fits for st in f.result.steps],
+    }
 
 
 def _axes_of(fit: TermFit) -> str | None:

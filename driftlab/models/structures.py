@@ -34,3 +34,13 @@ SCREW_STRUCTURES: Mapping[str, tuple[str, ...]] = {
     "phi_y": ("y_screw", "y_motor"),
     "phi_z": ("z_screw", "z_motor"),
 }
+#: which translations of its link a structure's material spans (eqs. 3.1, 3.3): a link shared by two
+#: structures grows along each component with the structure that spans it, not twice (the column is the
+#: T2 link's 1200 mm of Z, the base its run along Y to the table; the arm is T1's 400 mm along Y, the
+#: spindle housing its Z). A structure not listed spans all of its link.
+STRUCTURE_SPANS: Mapping[str, tuple[str, ...]] = {
+    "z_column": ("dz",),
+    "base": ("dx", "dy"),
+    "spindle_arm": ("dx", "dy"),
+    "spindle": ("dz",),
+}

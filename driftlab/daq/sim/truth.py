@@ -148,10 +148,13 @@ def _mean(structure: str) -> dict[str, float]:
 _ARM_GRADIENT = {"T33": 0.5, "T34": 0.5, "T32": -0.5, "T35": -0.5}  # upper minus lower mean (T34-T32 of Table 6.3)
 
 #: (element, parameter, coefficient, channel weights, relationship): element error += coef * sum_k w_k dT_k
+#: A link that warms grows along its own vector in the chain (Table A.1, T_i = Trans(d_i) E(p_i)): its error
+#: is alpha_c dT d_i (eq. 3.1), so the arm (d_y = -400), the carriage and the table (d_z = -200) grow with
+#: the sign of their link vectors, as the column (d_z = +1200) does.
 THERMAL_TERMS: tuple[tuple[str, str, float, Mapping[str, float], str], ...] = (
     ("T1", "alpha", ALPHA_C * L_ARM / H_ARM, _ARM_GRADIENT, "eq. 3.4: arm bending angle from its gradient"),
     ("T1", "dz", ALPHA_C * L_ARM**2 / (2 * H_ARM), _ARM_GRADIENT, "eq. 3.5: arm tip deflection"),
-    ("T1", "dy", ALPHA_C * L_HEAD, _mean("spindle_arm"), "eq. 3.1: arm growth along its length"),
+    ("T1", "dy", -ALPHA_C * L_HEAD, _mean("spindle_arm"), "eq. 3.1: arm growth along its length"),
     ("T1", "dz", -ALPHA_C * L_SPINDLE, {"T37": 1.0}, "eq. 3.1: spindle housing growth"),
     ("phi_z", "dz", ALPHA_C * L_SCREW_FIXED, {"T30": 1.0}, "eq. 3.2: fixed part of the Z ballscrew"),
     (
@@ -163,7 +166,7 @@ THERMAL_TERMS: tuple[tuple[str, str, float, Mapping[str, float], str], ...] = (
     ),
     ("T2", "dy", ALPHA_C * L_BASE_Y, {"T13": 0.5, "T19": 0.5}, "eq. 3.1: base growth column-to-table, base extremes"),
     ("phi_y", "dy", ALPHA_C * L_SCREW_FIXED, {"T20": 1.0}, "eq. 3.2: fixed part of the Y ballscrew"),
-    ("T3", "dz", ALPHA_C * H_CARRIAGE, {"T7": 1.0}, "eq. 3.1: carriage thickness (T7 stands for T1-T8, ch. 5.4)"),
+    ("T3", "dz", -ALPHA_C * H_CARRIAGE, {"T7": 1.0}, "eq. 3.1: carriage thickness (T7 stands for T1-T8, ch. 5.4)"),
     (
         "phi_x",
         "dx",
@@ -171,7 +174,7 @@ THERMAL_TERMS: tuple[tuple[str, str, float, Mapping[str, float], str], ...] = (
         {"T9": 0.6, "T10": 0.4},
         "eq. 3.2: fixed part of the X ballscrew; screw temperature from nut and motor (ch. 5.4)",
     ),
-    ("T4", "dz", ALPHA_C * H_TABLE, {"T7": 1.0}, "eq. 3.1: table thickness"),
+    ("T4", "dz", -ALPHA_C * H_TABLE, {"T7": 1.0}, "eq. 3.1: table thickness"),
     ("theta_x", "dz", ALPHA_C * H_ROTARY, {"T42": 1.0}, "eq. 3.1: rotary base height, seen by the A drive (ch. 5.4)"),
     ("theta_x", "dy", ALPHA_C * L_GEAR, {"T42": 1.0}, "eq. 3.1: A gear housing growth"),
     ("theta_y", "dx", ALPHA_C * L_B_TABLE, {"T45": 1.0}, "eq. 3.1: B table growth along X"),
