@@ -24,12 +24,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
 import pandas as pd
 from scipy import stats
+from scipy.signal import savgol_filter
 
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
@@ -807,8 +808,6 @@ def denoise_series(x: np.ndarray, windows: tuple[int, ...] = DENOISE_WINDOWS) ->
     the noise, and at most about half a noise sigma of the signal. Noise-aware and
     scale-free: a quiet channel or a fast one is left nearly untouched.
     """
-    from scipy.signal import savgol_filter
-
     x = np.asarray(x, dtype=float)
     if x.size < 20 or not np.all(np.isfinite(x)):
         return x, 1
@@ -835,8 +834,6 @@ def denoised_view(prep: PreparedBundle) -> PreparedBundle:
     channel, even a drift) then "improves" the model without any physical effect.
     The effect search holds every candidate to this view as well (diagnosis.py).
     """
-    from dataclasses import replace as dc_replace
-
     G = prep.grid_T.copy()
     for j in range(G.shape[1]):
         G[:, j], _ = denoise_series(G[:, j])
@@ -845,8 +842,8 @@ def denoised_view(prep: PreparedBundle) -> PreparedBundle:
         T_at = np.empty_like(td.temps)
         for j in range(G.shape[1]):
             T_at[:, j] = np.interp(td.t, prep.grid_t, G[:, j])
-        terms.append(dc_replace(td, temps=T_at))
-    return dc_replace(prep, grid_T=G, terms=terms)
+        terms.append(replace(td, temps=T_at))
+    return replace(prep, grid_T=G, terms=terms)
 
 
 def refit_standard(td: TermData, prep: PreparedBundle, sel: ChannelSelection) -> StandardModel:
