@@ -38,7 +38,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, TypedDict, Unpack
+from typing import TYPE_CHECKING, Any, TypedDict, Unpack
 
 import numpy as np
 import pandas as pd
@@ -47,12 +47,15 @@ from threadpoolctl import threadpool_limits
 
 from driftlab.errors import ValidationError
 from driftlab.models.document import ModelDocument
-from driftlab.models.features import Feature, Inputs, candidate_features, evaluate
+from driftlab.models.features import Feature, Inputs, candidate_features, channel_columns, evaluate
 from driftlab.models.fitting import CONSTANT_PRIOR, build_samples, chain_dims
 from driftlab.models.structures import STRUCTURE_ELEMENT
 from driftlab.physics.kinematics import ELEMENTS, LINKS, PARAMS, workspace_error
 from driftlab.physics.lag import first_order_lag
 from driftlab.vocabulary import AXES
+
+if TYPE_CHECKING:
+    from driftlab.models.standard_model import BundleLike
 
 #: the heat sources of the staged tests (ch. 5.2): the spindle and each axis drive
 SOURCES: tuple[str, ...] = ("spindle", *AXES)
@@ -278,7 +281,9 @@ def advisor_parameters(
     return out
 
 
-def jacobians(q: np.ndarray, keys: Sequence[tuple[str, str]], dims: Mapping[str, Any]) -> dict[tuple[str, str], Any]:
+def jacobians(
+    q: np.ndarray, keys: Sequence[tuple[str, str]], dims: Mapping[str, tuple[float, float, float]]
+) -> dict[tuple[str, str], np.ndarray]:
     """Return dW/dp (N, 6) of every (element, parameter) at poses ``q`` (eq. 4.12 to first order)."""
     eps = 1e-6
     out = {}
@@ -292,7 +297,7 @@ def jacobians(q: np.ndarray, keys: Sequence[tuple[str, str]], dims: Mapping[str,
 class RowBuilder:
     """Builds rows of the linearised chain: component t of W at each pose, over all tracked coefficients."""
 
-    def __init__(self, params: Sequence[Parameter], dims: Mapping[str, Any]) -> None:
+    def __init__(self, params: Sequence[Parameter], dims: Mapping[str, tuple[float, float, float]]) -> None:
         self.params = list(params)
         self.dims = dims
         self.keys = list(dict.fromkeys((p.element, p.param) for p in self.params))
@@ -670,7 +675,7 @@ class AdviseKeywords(TypedDict, total=False):
 
 
 def advise(
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     document: ModelDocument | None = None,
     options: AdviseOptions | None = None,
     **keywords: Unpack[AdviseKeywords],
@@ -709,7 +714,7 @@ def _campaign(bundles: Sequence[Any], document: ModelDocument | None, structure_
     structures = {c: ch.structure for c, ch in chan_meta.items()}
     locations = {c: ch.location for c, ch in chan_meta.items()}
     room = [c for b in bundles for c in b.meta.room_channels]
-    channels = [c for c in last.channels if all(c in b.temperatures.columns for b in bundles)]
+    channels = [c for c in channel_columns(last.temperatures) if all(c in b.temperatures.columns for b in bundles)]
     if document is not None:
         channels = [c for c in channels if c in document.inputs or structures.get(c, "")]
     params = advisor_parameters(document, structures, locations, channels, room, structure_terms)
@@ -846,7 +851,7 @@ def _greedy(choice: _Choice, cands: Sequence[Candidate], opts: AdviseOptions) ->
 
 
 def advise_design(
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     document: ModelDocument | None = None,
     options: AdviseOptions | None = None,
     **keywords: Unpack[AdviseKeywords],

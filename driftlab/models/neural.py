@@ -5,7 +5,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol, TypedDict, Unpack
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict, Unpack
 
 import numpy as np
 import pandas as pd
@@ -16,6 +16,9 @@ from threadpoolctl import threadpool_limits
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
 from driftlab.vocabulary import AXES, TERMS
+
+if TYPE_CHECKING:
+    from driftlab.models.standard_model import BundleLike
 
 
 def scale_inputs(X: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -192,7 +195,7 @@ def _datum_groups(b: Any, name: str, e: pd.DataFrame) -> np.ndarray:
     return out
 
 
-def comparison_data(bundles: Sequence[Any], target: str, channels: Sequence[str]) -> ComparisonData:
+def comparison_data(bundles: Sequence[BundleLike], target: str, channels: Sequence[str]) -> ComparisonData:
     """Return the target's readings over the campaigns with the one feature matrix both models get."""
     axis, term = _parse_target(target)
     if not bundles:
@@ -522,7 +525,7 @@ def compare_models(
 
 
 def neural_comparisons(
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     targets: Sequence[str],
     channels: Sequence[str],
     **keywords: Unpack[ComparisonKeywords],

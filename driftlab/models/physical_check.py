@@ -33,6 +33,7 @@ from driftlab.vocabulary import TRANSLATIONS
 
 if TYPE_CHECKING:
     from driftlab.models.features import Feature
+    from driftlab.models.standard_model import BundleLike
 
 STATUS_COMPARED = "compared"
 STATUS_NO_GEOMETRY = "no geometry"
@@ -87,7 +88,7 @@ def _plain(geometry: Any) -> dict[str, Any] | None:
     return json.loads(json.dumps(dict(geometry)))
 
 
-def stated_geometries(bundles: Sequence[Any]) -> dict[str, tuple[dict[str, Any], list[str]]]:
+def stated_geometries(bundles: Sequence[BundleLike]) -> dict[str, tuple[dict[str, Any], list[str]]]:
     """Return every distinct geometry the campaigns state (``machine.geometry``), keyed by its JSON.
 
     Each value is (the geometry as plain JSON, the names of the campaigns that state it). This is
@@ -102,7 +103,7 @@ def stated_geometries(bundles: Sequence[Any]) -> dict[str, tuple[dict[str, Any],
     return stated
 
 
-def machine_geometry(bundles: Sequence[Any]) -> tuple[str, dict[str, Any] | None, str]:
+def machine_geometry(bundles: Sequence[BundleLike]) -> tuple[str, dict[str, Any] | None, str]:
     """Return (status, geometry, note): the one geometry the campaigns of a machine state.
 
     Campaigns that state none are fine beside one that does; two different stated geometries are
@@ -303,7 +304,7 @@ def physical_table(
 def physical_check(
     models: Mapping[tuple[str, str], CoefficientModel],
     structures: Mapping[str, str],
-    bundles: Sequence[Any] = (),
+    bundles: Sequence[BundleLike] = (),
     *,
     geometry: Any = None,
     locations: Mapping[str, str] | None = None,

@@ -300,9 +300,11 @@ def _session_labels(errs: pd.DataFrame, setups: Any) -> pd.Series:
 
 
 class BundleLike(Protocol):
-    """What the preparation reads of a bundle (``driftlab.campaigns.bundle.Bundle`` has it; ``conditions``
-    and ``name`` are read when present)."""
+    """What the models read of a campaign bundle (``driftlab.campaigns.bundle.Bundle`` has it; the
+    preparation reads ``conditions`` when present)."""
 
+    @property
+    def name(self) -> str: ...
     @property
     def meta(self) -> Any: ...  # the campaign metadata: a dict or a pydantic model (``meta_get`` reads both)
     @property
