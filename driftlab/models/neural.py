@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol, TypedDict, Unpack
 
 import numpy as np
@@ -97,15 +97,8 @@ class ExtrapolationResult:
     n: int
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the JSON form of the report's ``extrapolation`` field."""
-        return {
-            "regression_mm": self.regression_mm,
-            "network_mm": self.network_mm,
-            "regression_in_range_mm": self.regression_in_range_mm,
-            "network_in_range_mm": self.network_in_range_mm,
-            "shift_degC": self.shift_degC,
-            "n": self.n,
-        }
+        """Return the JSON form of the report's ``extrapolation`` field (the fields, in order)."""
+        return asdict(self)
 
 
 def extrapolation_errors(
