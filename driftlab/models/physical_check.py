@@ -34,6 +34,7 @@ from driftlab.vocabulary import TRANSLATIONS
 if TYPE_CHECKING:
     from driftlab.models.features import Feature
     from driftlab.models.standard_model import BundleLike
+    from driftlab.physics.geometry import Geometry
 
 STATUS_COMPARED = "compared"
 STATUS_NO_GEOMETRY = "no geometry"
@@ -79,7 +80,7 @@ class PhysicalCheck:
         }
 
 
-def _plain(geometry: Any) -> dict[str, Any] | None:
+def _plain(geometry: Geometry | Mapping[str, Any] | None) -> dict[str, Any] | None:
     """Return a stated geometry as a plain JSON dict (pydantic model or mapping), None when absent."""
     if geometry is None:
         return None
@@ -277,7 +278,7 @@ def _model_rows(ph: _Physics, m: CoefficientModel) -> list[dict[str, Any]]:
 def physical_table(
     models: Mapping[tuple[str, str], CoefficientModel],
     structures: Mapping[str, str],
-    geometry: Mapping[str, Any],
+    geometry: Geometry | Mapping[str, Any],
     *,
     locations: Mapping[str, str] | None = None,
     room: Sequence[str] = (),
@@ -306,7 +307,7 @@ def physical_check(
     structures: Mapping[str, str],
     bundles: Sequence[BundleLike] = (),
     *,
-    geometry: Any = None,
+    geometry: Geometry | Mapping[str, Any] | None = None,
     locations: Mapping[str, str] | None = None,
     room: Sequence[str] = (),
 ) -> PhysicalCheck:
