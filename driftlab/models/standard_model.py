@@ -42,7 +42,7 @@ TEMP_RANGE_C = (-40.0, 250.0)
 SPIKE_Z = 8.0
 
 
-def meta_get(meta: Any, key: str, default: Any = None) -> Any:
+def meta_get(meta: object, key: str, default: Any = None) -> Any:
     """Return ``meta[key]`` whether the campaign metadata is a dict or a pydantic model."""
     if meta is None:
         return default
