@@ -37,20 +37,25 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any, TypedDict, Unpack
 
 import numpy as np
 import pandas as pd
+from scipy.linalg import cho_factor, cho_solve
+from threadpoolctl import threadpool_limits
 
 from driftlab.errors import ValidationError
 from driftlab.models.document import ModelDocument
-from driftlab.models.features import Feature, Inputs, candidate_features, evaluate
+from driftlab.models.features import Feature, Inputs, candidate_features, channel_columns, evaluate
 from driftlab.models.fitting import CONSTANT_PRIOR, build_samples, chain_dims
 from driftlab.models.structures import STRUCTURE_ELEMENT
 from driftlab.physics.kinematics import ELEMENTS, LINKS, PARAMS, workspace_error
 from driftlab.physics.lag import first_order_lag
 from driftlab.vocabulary import AXES
+
+if TYPE_CHECKING:
+    from driftlab.models.standard_model import BundleLike
 
 #: the heat sources of the staged tests (ch. 5.2): the spindle and each axis drive
 SOURCES: tuple[str, ...] = ("spindle", *AXES)
@@ -276,7 +281,9 @@ def advisor_parameters(
     return out
 
 
-def jacobians(q: np.ndarray, keys: Sequence[tuple[str, str]], dims: Mapping[str, Any]) -> dict[tuple[str, str], Any]:
+def jacobians(
+    q: np.ndarray, keys: Sequence[tuple[str, str]], dims: Mapping[str, tuple[float, float, float]]
+) -> dict[tuple[str, str], np.ndarray]:
     """Return dW/dp (N, 6) of every (element, parameter) at poses ``q`` (eq. 4.12 to first order)."""
     eps = 1e-6
     out = {}
@@ -290,7 +297,7 @@ def jacobians(q: np.ndarray, keys: Sequence[tuple[str, str]], dims: Mapping[str,
 class RowBuilder:
     """Builds rows of the linearised chain: component t of W at each pose, over all tracked coefficients."""
 
-    def __init__(self, params: Sequence[Parameter], dims: Mapping[str, Any]) -> None:
+    def __init__(self, params: Sequence[Parameter], dims: Mapping[str, tuple[float, float, float]]) -> None:
         self.params = list(params)
         self.dims = dims
         self.keys = list(dict.fromkeys((p.element, p.param) for p in self.params))
@@ -594,8 +601,6 @@ class Design:
 
     def variance_um2(self, info: np.ndarray | None = None) -> float:
         """Return the integrated prediction variance trace(F^-1 M) in um^2 (F = A^T A + prior, eq. 6.9)."""
-        from scipy.linalg import cho_factor, cho_solve
-
         F = self.information if info is None else info
         # scaled to unit diagonal: F and M hold terms from constants to position^3 (many decades apart)
         d = 1.0 / np.sqrt(np.diag(F))
@@ -635,45 +640,71 @@ class Step:
         return cls(cov, cov @ design.target @ cov)
 
 
-def advise(bundles: Sequence[Any], document: ModelDocument | None = None, **options: Any) -> Advice:
+@dataclass(frozen=True)
+class AdviseOptions:
+    """What the advisor is asked: the budget, the candidates' durations, the target's operating states."""
+
+    #: machine time the advised stages may take, heating and cool-down included
+    hours: float = 8.0
+    #: the advice's campaign name ('' : the last bundle's)
+    campaign: str = ""
+    #: heating durations of a candidate stage (h), each followed by a cool-down as long
+    durations_h: Sequence[float] = DURATIONS_H
+    #: how long the target's warm-up under every source runs (h)
+    operating_h: float = 2.0
+    #: points per axis of the target's work-space grid
+    grid_levels: int = 3
+    holdout_fraction: float = 0.25
+    #: the greedy choice stops when the best stage cuts the integrated variance by less than this share
+    min_gain: float = MIN_GAIN
+    #: False: the document's terms alone (no recast structure terms beside them)
+    structure_terms: bool = True
+
+
+class AdviseKeywords(TypedDict, total=False):
+    """``AdviseOptions``' fields as keywords of ``advise`` and ``advise_design``."""
+
+    hours: float
+    campaign: str
+    durations_h: Sequence[float]
+    operating_h: float
+    grid_levels: int
+    holdout_fraction: float
+    min_gain: float
+    structure_terms: bool
+
+
+def advise(
+    bundles: Sequence[BundleLike],
+    document: ModelDocument | None = None,
+    options: AdviseOptions | None = None,
+    **keywords: Unpack[AdviseKeywords],
+) -> Advice:
     """Return the stages (setup, heat source, duration) that most cut the correction's integrated variance.
 
     See :func:`advise_design` for the options; one BLAS thread (the matrices are small and the
     machine is shared, as in ``fitting.fit_bundles``).
     """
-    from threadpoolctl import threadpool_limits
-
     with threadpool_limits(limits=1):
-        return advise_design(bundles, document, **options)
+        return advise_design(bundles, document, options, **keywords)
 
 
-def advise_design(
-    bundles: Sequence[Any],
-    document: ModelDocument | None = None,
-    *,
-    hours: float = 8.0,
-    campaign: str = "",
-    durations_h: Sequence[float] = DURATIONS_H,
-    operating_h: float = 2.0,
-    grid_levels: int = 3,
-    holdout_fraction: float = 0.25,
-    min_gain: float = MIN_GAIN,
-    structure_terms: bool = True,
-) -> Advice:
-    """Return the stages (setup, heat source, duration) that most cut the correction's integrated variance.
+@dataclass(frozen=True)
+class _Campaign:
+    """What the advisor reads of the campaigns: their setups and the coefficients to pin."""
 
-    ``bundles`` are the campaigns of one machine (bundle v2: their setups are what may be mounted
-    again); ``document`` the model fitted to them (None: the recast structure terms alone;
-    ``structure_terms=False``: the document's terms alone). The greedy choice stays within
-    ``hours`` of machine time, heating and cool-down included; it stops when the best stage cuts the
-    integrated variance by less than ``min_gain`` of it.
-    """
-    if not hours > 0 or not np.isfinite(hours):
-        raise ValidationError(f"--hours must be a positive number of hours, got {hours:g}")
+    setups: dict[str, SetupInfo]
+    params: list[Parameter]
+    #: the channels the parameters read, and the (channel, time constant) of their lags
+    read: list[str]
+    lags: list[tuple[str, float]]
+
+
+def _campaign(bundles: Sequence[Any], document: ModelDocument | None, structure_terms: bool) -> _Campaign:
+    """Return the campaigns' setups and the parameters to pin (ValidationError when there is nothing to do)."""
     if not bundles:
         raise ValidationError("no campaign to advise on")
     last = bundles[-1]
-    machine = last.meta.machine.id
     setups = _setups(bundles)
     if not setups:
         raise ValidationError(
@@ -683,7 +714,7 @@ def advise_design(
     structures = {c: ch.structure for c, ch in chan_meta.items()}
     locations = {c: ch.location for c, ch in chan_meta.items()}
     room = [c for b in bundles for c in b.meta.room_channels]
-    channels = [c for c in last.channels if all(c in b.temperatures.columns for b in bundles)]
+    channels = [c for c in channel_columns(last.temperatures) if all(c in b.temperatures.columns for b in bundles)]
     if document is not None:
         channels = [c for c in channels if c in document.inputs or structures.get(c, "")]
     params = advisor_parameters(document, structures, locations, channels, room, structure_terms)
@@ -693,20 +724,17 @@ def advise_design(
     lags = list(
         dict.fromkeys((p.feature.channels[0], float(p.feature.tau_s or 0)) for p in params if p.feature.kind == "lag")
     )
-    dims = chain_dims(bundles)
-    builder = RowBuilder(params, dims)
-    origin = min(b.meta.started_at for b in bundles)
-    sample = build_samples(bundles, read, None, lags, holdout_fraction, origin)
-    noise = _noise(bundles)
-    frame = sample.frame
-    train = (frame["role"] == "train").to_numpy()
-    sub = sample.take(train)
+    return _Campaign(setups, params, read, lags)
+
+
+def _information(builder: RowBuilder, sub: Any, noise: np.ndarray) -> np.ndarray:
+    """Return A^T A of the campaign's training points (each component weighted by its noise, sessions demeaned)."""
     d_sub = _directions(sub.frame, sub.q)
     rows = builder.rows(sub.inputs, sub.q, d_sub, range(6))
     W = sub.frame[list(PARAMS)].to_numpy(float)
     labels = sub.inputs.session if sub.inputs.session is not None else np.full(len(sub.frame), "", dtype=object)
     labels = np.asarray(labels, dtype=object)
-    P = len(params)
+    P = len(builder.params)
     info = np.zeros((P, P))
     for t in range(6):
         ok = np.isfinite(W[:, t])
@@ -714,89 +742,166 @@ def advise_design(
             continue
         A = session_demean(rows[t][ok], labels[ok]) / noise[t]
         info += A.T @ A
+    return info
+
+
+@dataclass(frozen=True)
+class _Thermal:
+    """The campaign's thermal response (ch. 5.3), its state at the campaign's end and what it was fitted on."""
+
+    resp: ThermalResponse
+    state: ThermalState
+    scan_s: float
+    lags: list[tuple[str, float]]
+
+
+def _design(
+    bundles: Sequence[Any], camp: _Campaign, opts: AdviseOptions, noise: np.ndarray
+) -> tuple[Design, _Thermal, int]:
+    """Return the campaign's design (information, target, prior), its thermal response and the grid's size."""
+    dims = chain_dims(bundles)
+    builder = RowBuilder(camp.params, dims)
+    origin = min(b.meta.started_at for b in bundles)
+    sample = build_samples(bundles, camp.read, None, camp.lags, opts.holdout_fraction, origin)
+    frame = sample.frame
+    sub = sample.take((frame["role"] == "train").to_numpy())
+    info = _information(builder, sub, noise)
     # the thermal response of every channel to every source, from the campaign's own stages (ch. 5.3)
-    resp, state, scan_s = _response(bundles, read, lags, origin)
+    resp, state, scan_s = _response(bundles, camp.read, camp.lags, origin)
     # the target: the work space within the measured travel, warming up under every source at once
-    grid_q, grid_d = _grid(frame, sample.q, grid_levels)
+    grid_q, grid_d = _grid(frame, sample.q, opts.grid_levels)
     cold = ThermalState({tau: np.zeros(len(SOURCES)) for tau in TAU_GRID_S}, {}, state.days)
     n_states = 9
-    at = np.linspace(0.0, operating_h * 3600.0, n_states)
-    op_inputs, _ = simulate(resp, cold, [(operating_h * 3600.0, _sources_on(bundles))], at, lags)
+    at = np.linspace(0.0, opts.operating_h * 3600.0, n_states)
+    op_inputs, _ = simulate(resp, cold, [(opts.operating_h * 3600.0, _sources_on(bundles))], at, camp.lags)
     jac_grid = jacobians(grid_q, builder.keys, dims)
     Ft_op, Fx_grid = builder.time_part(op_inputs), builder.pose_part(grid_q, grid_d)
     R = np.vstack([builder.separable(Ft_op, Fx_grid * builder.lever(jac_grid, t)) for t in (3, 4, 5)])
     target = R.T @ R / R.shape[0]
     # the prior: no term contributes more than about CONSTANT_PRIOR, in the campaign or in use
     rms_use = np.sqrt(np.mean(Ft_op**2, axis=0) * np.mean(Fx_grid**2, axis=0))
-    rms = np.maximum(builder.feature_rms(sub.inputs, sub.q, d_sub), rms_use)
-    spread = np.array([CONSTANT_PRIOR[0] if p.param in PARAMS[:3] else CONSTANT_PRIOR[1] for p in params])
+    rms = np.maximum(builder.feature_rms(sub.inputs, sub.q, _directions(sub.frame, sub.q)), rms_use)
+    spread = np.array([CONSTANT_PRIOR[0] if p.param in PARAMS[:3] else CONSTANT_PRIOR[1] for p in camp.params])
     prior = (np.maximum(rms, 1e-12) / spread) ** 2
     info += np.diag(prior)
-    design = Design(builder, info, target, prior)
+    return Design(builder, info, target, prior), _Thermal(resp, state, scan_s, camp.lags), int(grid_q.shape[0])
 
-    sweep_s = _sweep_interval(bundles)
-    heat = _heat_entries(bundles)
-    sources = [s for s in SOURCES if s in heat]
-    cands = [
-        Candidate(sid, src, float(h), float(h))
-        for sid in setups
-        for src in sources
-        for h in durations_h
-        if 2 * h <= hours + 1e-9
-    ]
-    phi0 = design.variance_um2()
-    phi = phi0
+
+@dataclass(frozen=True)
+class _Choice:
+    """The greedy selection's fixed inputs: the design, the candidates and how their rows are made."""
+
+    design: Design
+    thermal: _Thermal
+    setups: dict[str, SetupInfo]
+    levers: dict[str, list[np.ndarray]]
+    sweep_s: float
+    #: the share of a candidate's points that trains the model, as a weight on its rows
+    weight: float
+
+
+def _best(
+    choice: _Choice, fits: Sequence[Candidate], info: np.ndarray, state: ThermalState, phi: float
+) -> tuple[float, Candidate, np.ndarray, ThermalState] | None:
+    """Return (reduction per hour, candidate, its rows, the thermal state after it) of the best of ``fits``."""
+    design, builder, th = choice.design, choice.design.builder, choice.thermal
+    sims: dict[tuple[str, float, float], tuple[np.ndarray, ThermalState]] = {}
+    step = Step.of(design, info)
+    best: tuple[float, Candidate, np.ndarray, ThermalState] | None = None
+    for c in fits:
+        key = (c.source, c.heat_h, c.cool_h)
+        if key not in sims:
+            times = np.arange(0.0, c.hours * 3600.0 - 1e-6, choice.sweep_s)
+            u = np.zeros(len(SOURCES))
+            u[SOURCES.index(c.source)] = 1.0
+            inp, end = simulate(th.resp, state, [(c.heat_h * 3600.0, u), (c.cool_h * 3600.0, 0 * u)], times, th.lags)
+            sims[key] = (builder.time_part(inp), end)
+        Ft, end = sims[key]
+        C = _candidate_rows(choice.setups[c.setup], Ft, choice.levers[c.setup], builder) * choice.weight
+        gain = reduction_um2(design, info, phi, C, step)
+        score = gain / c.hours
+        if best is None or score > best[0]:
+            best = (score, c, C, end)
+    return best
+
+
+def _greedy(choice: _Choice, cands: Sequence[Candidate], opts: AdviseOptions) -> tuple[list[AdvisedStage], float]:
+    """Return the stages chosen greedily within the budget (largest variance cut per hour) and the variance left."""
+    info, state = choice.design.information, choice.thermal.state
+    phi = choice.design.variance_um2()
     chosen: list[AdvisedStage] = []
-    remaining = float(hours)
-    weight = np.sqrt(max(1.0 - holdout_fraction, 0.0))
-    levers = _setup_levers(builder, setups, noise)
+    remaining = float(opts.hours)
     while True:
         fits = [c for c in cands if c.hours <= remaining + 1e-9]
         if not fits:
             break
-        sims: dict[tuple[str, float, float], tuple[np.ndarray, ThermalState]] = {}
-        step = Step.of(design, info)
-        best: tuple[float, Candidate, np.ndarray, ThermalState] | None = None
-        for c in fits:
-            key = (c.source, c.heat_h, c.cool_h)
-            if key not in sims:
-                times = np.arange(0.0, c.hours * 3600.0 - 1e-6, sweep_s)
-                u = np.zeros(len(SOURCES))
-                u[SOURCES.index(c.source)] = 1.0
-                inp, end = simulate(resp, state, [(c.heat_h * 3600.0, u), (c.cool_h * 3600.0, 0 * u)], times, lags)
-                sims[key] = (builder.time_part(inp), end)
-            Ft, end = sims[key]
-            C = _candidate_rows(setups[c.setup], Ft, levers[c.setup], builder) * weight
-            gain = reduction_um2(design, info, phi, C, step)
-            score = gain / c.hours
-            if best is None or score > best[0]:
-                best = (score, c, C, end)
+        best = _best(choice, fits, info, state, phi)
         if best is None:
             break
         score, c, C, end = best
-        if score * c.hours < min_gain * phi:
+        if score * c.hours < opts.min_gain * phi:
             break
         info = info + C.T @ C
-        after = design.variance_um2(info)
+        after = choice.design.variance_um2(info)
         chosen.append(AdvisedStage(c, phi, after))
         phi = after
         state = end
         remaining -= c.hours
+    return chosen, phi
+
+
+def advise_design(
+    bundles: Sequence[BundleLike],
+    document: ModelDocument | None = None,
+    options: AdviseOptions | None = None,
+    **keywords: Unpack[AdviseKeywords],
+) -> Advice:
+    """Return the stages (setup, heat source, duration) that most cut the correction's integrated variance.
+
+    ``bundles`` are the campaigns of one machine (bundle v2: their setups are what may be mounted
+    again); ``document`` the model fitted to them (None: the recast structure terms alone;
+    ``structure_terms=False``: the document's terms alone). The greedy choice stays within
+    ``hours`` of machine time, heating and cool-down included; it stops when the best stage cuts the
+    integrated variance by less than ``min_gain`` of it. The options are ``options``
+    (``AdviseOptions``), each also accepted by keyword.
+    """
+    opts = replace(options or AdviseOptions(), **keywords)
+    hours = opts.hours
+    if not hours > 0 or not np.isfinite(hours):
+        raise ValidationError(f"--hours must be a positive number of hours, got {hours:g}")
+    camp = _campaign(bundles, document, opts.structure_terms)
+    noise = _noise(bundles)
+    design, thermal, n_grid = _design(bundles, camp, opts, noise)
+    sweep_s = _sweep_interval(bundles)
+    heat = _heat_entries(bundles)
+    sources = [s for s in SOURCES if s in heat]
+    setups = camp.setups
+    cands = [
+        Candidate(sid, src, float(h), float(h))
+        for sid in setups
+        for src in sources
+        for h in opts.durations_h
+        if 2 * h <= hours + 1e-9
+    ]
+    weight = float(np.sqrt(max(1.0 - opts.holdout_fraction, 0.0)))
+    levers = _setup_levers(design.builder, setups, noise)
+    chosen, phi = _greedy(_Choice(design, thermal, setups, levers, sweep_s, weight), cands, opts)
+    resp = thermal.resp
     return Advice(
-        campaign=campaign or last.name,
-        machine=machine,
+        campaign=opts.campaign or bundles[-1].name,
+        machine=bundles[-1].meta.machine.id,
         hours=float(hours),
         stages=chosen,
-        variance_before_um2=phi0,
+        variance_before_um2=design.variance_um2(),
         variance_after_um2=phi,
-        n_parameters=P,
+        n_parameters=len(camp.params),
         n_candidates=len(cands),
         setups=setups,
-        scan_interval_s=scan_s,
+        scan_interval_s=thermal.scan_s,
         sweep_interval_s=sweep_s,
         heat=heat,
         response_rmse_degC=float(np.sqrt(np.mean(resp.rmse_degC**2))) if resp.rmse_degC.size else 0.0,
-        details={"operating_h": operating_h, "grid_poses": int(grid_q.shape[0]), "durations_h": list(durations_h)},
+        details={"operating_h": opts.operating_h, "grid_poses": n_grid, "durations_h": list(opts.durations_h)},
         design=design,
     )
 

@@ -5,13 +5,13 @@ Pure: storing and listing versions is ``driftlab.jobs.registry``, which joins do
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
-from typing import Any, Final, Literal
+from typing import Any, Final, Literal, TypeAlias
 
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from driftlab.errors import ValidationError
 from driftlab.jsonsafe import strict_json
@@ -108,20 +108,13 @@ class TermDoc(_Doc):
     covariance: list[list[float]] | None = None
     residual_variance: float | None = None
 
-    @field_validator("element")
+    @field_validator("element", "param")
     @classmethod
-    def _element(cls, v: str) -> str:
-        """Require a chain element name."""
-        if v not in ELEMENTS:
-            raise ValueError(f"unknown element {v!r}")
-        return v
-
-    @field_validator("param")
-    @classmethod
-    def _param(cls, v: str) -> str:
-        """Require an error-parameter name."""
-        if v not in PARAMS:
-            raise ValueError(f"unknown parameter {v!r}")
+    def _known(cls, v: str, info: ValidationInfo) -> str:
+        """Require a chain element name (``element``) and an error-parameter name (``param``)."""
+        names, what = (ELEMENTS, "element") if info.field_name == "element" else (PARAMS, "parameter")
+        if v not in names:
+            raise ValueError(f"unknown {what} {v!r}")
         return v
 
     @model_validator(mode="after")
@@ -229,12 +222,19 @@ def now_iso() -> str:
 # ----------------------------------------------------------------------------- prediction
 
 
-def _times(at: Any, n: int) -> np.ndarray | None:
+#: when a prediction is made: a datetime (naive = UTC), an ISO 8601 text or POSIX seconds, one for all
+#: poses or one per pose (a sequence, array, Series or Index; numpy datetime64 taken as UTC); None: no time
+TimeLike: TypeAlias = (
+    datetime | str | float | np.floating | np.ndarray | pd.Series | pd.Index | Sequence[datetime | str | float] | None
+)
+
+
+def _times(at: TimeLike, n: int) -> np.ndarray | None:
     """Return POSIX seconds (n,) from a datetime, datetimes or POSIX seconds (None stays None)."""
     if at is None:
         return None
 
-    def stamp(x: Any) -> float:
+    def stamp(x: datetime | str | float | np.floating | np.integer) -> float:
         if isinstance(x, datetime):
             return (x if x.tzinfo else x.replace(tzinfo=UTC)).timestamp()
         if isinstance(x, str):
@@ -270,7 +270,9 @@ def _substitute(doc: ModelDocument, readings: dict[str, np.ndarray], times: np.n
             readings[s.channel] = np.where(times >= s.since.timestamp(), est, readings[s.channel])
 
 
-def _inputs(doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame, n: int, at: Any = None) -> Inputs:
+def _inputs(
+    doc: ModelDocument, temperatures: Mapping[str, float] | pd.DataFrame, n: int, at: TimeLike = None
+) -> Inputs:
     """Return the dT inputs (and lags over a frame's history, days for drift terms) for ``n`` poses."""
     ref = {c: r.reference for c, r in doc.inputs.items()}
     lags = sorted({lag for t in doc.terms for lag in required_lags(f.feature() for f in t.features)})
@@ -349,7 +351,7 @@ def predict_element_errors(
     q: np.ndarray,
     direction: np.ndarray | None = None,
     *,
-    at: Any = None,
+    at: TimeLike = None,
 ) -> dict[str, np.ndarray]:
     """Return the (N, 6) errors of every modelled link and joint at poses ``q`` (N, 5) and these temperatures.
 
@@ -390,7 +392,7 @@ def predict_workspace_errors(
     q: np.ndarray,
     direction: np.ndarray | None = None,
     *,
-    at: Any = None,
+    at: TimeLike = None,
 ) -> np.ndarray:
     """Return the (N, 6) work-space errors the model predicts at poses ``q`` (through the HTM chain, eq. 4.12)."""
     doc = validate_document(document)
@@ -414,7 +416,7 @@ def predict_workspace_sd(
     q: np.ndarray,
     direction: np.ndarray | None = None,
     *,
-    at: Any = None,
+    at: TimeLike = None,
     residual: bool = True,
 ) -> np.ndarray | None:
     """Return the (N, 6) standard deviation of the predicted work-space errors, or None when the document has none.

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal, TypedDict, Unpack, get_args
 
 import numpy as np
 import pandas as pd
@@ -16,19 +16,8 @@ from driftlab.vocabulary import AXES
 Kind = Literal[
     "intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad", "time", "session"
 ]
-KINDS: tuple[str, ...] = (
-    "intercept",
-    "position",
-    "direction",
-    "dT",
-    "lag",
-    "mean",
-    "gradient",
-    "pos_dT",
-    "quad",
-    "time",
-    "session",
-)
+#: the kinds, in the order of ``Kind``
+KINDS: tuple[str, ...] = get_args(Kind)
 #: kinds that read a joint coordinate or approach direction; their ``label`` names the axis
 AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT"})
 #: columns of a (N, 5) joint array
@@ -307,18 +296,46 @@ def _splits(channels: Sequence[str], locations: Mapping[str, str]) -> list[tuple
     return out
 
 
+@dataclass(frozen=True)
+class CandidateSpec:
+    """What the candidate terms of a link or joint are built from, beside its channels and their structures."""
+
+    #: the moving axes: their position shape, approach direction and ballscrew position x dT
+    axes: Sequence[str] = ()
+    #: axis -> its ballscrew channels (eq. 3.2)
+    screw_channels: Mapping[str, Sequence[str]] | None = None
+    #: the time constants of the first-order lags of dT
+    lag_taus_s: Sequence[float] = ()
+    #: the channels lagged (None: every channel)
+    lag_channels: Sequence[str] | None = None
+    #: the room's channels (ceiling first, floor second)
+    room_channels: Sequence[str] = ()
+    #: structure -> all its sites that read (a structure's mean is over them, eq. 3.3)
+    structure_members: Mapping[str, Sequence[str]] | None = None
+    #: channel -> its location text (opposite sides are recognised in it)
+    locations: Mapping[str, str] | None = None
+    #: the highest power of the position shape
+    max_power: int = 3
+
+
+class CandidateFields(TypedDict, total=False):
+    """``CandidateSpec``'s fields as keywords of ``candidate_features``."""
+
+    axes: Sequence[str]
+    screw_channels: Mapping[str, Sequence[str]] | None
+    lag_taus_s: Sequence[float]
+    lag_channels: Sequence[str] | None
+    room_channels: Sequence[str]
+    structure_members: Mapping[str, Sequence[str]] | None
+    locations: Mapping[str, str] | None
+    max_power: int
+
+
 def candidate_features(
     channels: Sequence[str],
     structures: Mapping[str, str],
-    *,
-    axes: Sequence[str] = (),
-    screw_channels: Mapping[str, Sequence[str]] | None = None,
-    lag_taus_s: Sequence[float] = (),
-    lag_channels: Sequence[str] | None = None,
-    room_channels: Sequence[str] = (),
-    structure_members: Mapping[str, Sequence[str]] | None = None,
-    locations: Mapping[str, str] | None = None,
-    max_power: int = 3,
+    spec: CandidateSpec | None = None,
+    **fields: Unpack[CandidateFields],
 ) -> list[Feature]:
     """Return the candidate terms of a link or joint error (ch. 6.4.2).
 
@@ -327,33 +344,36 @@ def candidate_features(
     channel, the mean of each structure over all its sites (eq. 3.3, from ``structure_members``),
     gradients between the kept sites of a structure and between its opposite sides (upper-lower,
     front-back, left-right from the sites' ``locations``; eqs. 3.4-3.5), the room's ceiling-floor
-    difference, and first-order lags of dT.
+    difference, and first-order lags of dT. The named inputs are ``spec``'s (``CandidateSpec``),
+    each also accepted by keyword.
     """
+    sp = replace(spec or CandidateSpec(), **fields)
+    room_channels = sp.room_channels
     out: list[Feature] = []
-    for ax in axes:
-        out += [Feature("position", power=p, label=ax) for p in range(1, max_power + 1)]
+    for ax in sp.axes:
+        out += [Feature("position", power=p, label=ax) for p in range(1, sp.max_power + 1)]
         out.append(Feature("direction", label=ax))
-        out += [Feature("pos_dT", (c,), label=ax) for c in (screw_channels or {}).get(ax, ()) if c in channels]
+        out += [Feature("pos_dT", (c,), label=ax) for c in (sp.screw_channels or {}).get(ax, ()) if c in channels]
     out += [Feature("dT", (c,)) for c in channels]
     by_struct: dict[str, list[str]] = {}
     for c in channels:
         s = structures.get(c, "")
         if s and c not in room_channels:
             by_struct.setdefault(s, []).append(c)
-    members = dict(structure_members or {})
+    members = dict(sp.structure_members or {})
     for s, cs in by_struct.items():
         group = [c for c in members.get(s, cs)]
         if len(group) >= 2:
             out.append(Feature("mean", tuple(group), label=s))
-        for side_a, side_b, a, b in _splits(group, locations or {}):
+        for side_a, side_b, a, b in _splits(group, sp.locations or {}):
             out.append(Feature("gradient", tuple(a + b), power=len(a), label=f"{s} {side_a}-{side_b}"))
         for i in range(len(cs)):
             for j in range(i + 1, len(cs)):
                 out.append(Feature("gradient", (cs[j], cs[i])))
     if len(room_channels) >= 2 and all(c in channels for c in room_channels[:2]):
         out.append(Feature("gradient", (room_channels[0], room_channels[1])))
-    for tau in lag_taus_s:
-        for c in lag_channels if lag_channels is not None else channels:
+    for tau in sp.lag_taus_s:
+        for c in sp.lag_channels if sp.lag_channels is not None else channels:
             if c in channels:
                 out.append(Feature("lag", (c,), tau_s=float(tau)))
     return out

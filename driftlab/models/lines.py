@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypedDict, Unpack
 
 import numpy as np
 import pandas as pd
@@ -35,9 +35,12 @@ import statsmodels.api as sm
 from scipy.linalg import qr
 
 from driftlab.models.features import INTERCEPT, Feature, Inputs, design_matrix, session_terms
-from driftlab.models.regression import stepwise
+from driftlab.models.regression import StepwiseOptions, stepwise
 from driftlab.physics.kinematics import PARAMS, TABLE_A1, allocate
 from driftlab.vocabulary import AXES
+
+if TYPE_CHECKING:
+    from driftlab.models.regression import StepwiseKnobs, StepwiseResult
 
 #: the element that carries the lines' corrections (its error reaches the tool through a fixed transform)
 LINE_ELEMENT = "T1"
@@ -96,21 +99,10 @@ class LineFit:
 
 
 def _correction(
-    X: pd.DataFrame, y: np.ndarray, pool: Sequence[Feature], forced: Sequence[Feature], options: Any
-) -> Any:
-    """Return the stepwise fit of a line's residual (the options of the link models)."""
-    return stepwise(
-        X.reset_index(drop=True),
-        y,
-        pool,
-        forced=forced,
-        p_enter=options.p_enter,
-        p_remove=options.p_remove,
-        min_gain=options.min_gain,
-        max_terms=options.max_terms,
-        vif_max=options.vif_max,
-        tiered=options.tiered,
-    )
+    X: pd.DataFrame, y: np.ndarray, pool: Sequence[Feature], forced: Sequence[Feature], rules: StepwiseOptions
+) -> StepwiseResult:
+    """Return the stepwise fit of a line's residual (the rules of the link models)."""
+    return stepwise(X.reset_index(drop=True), y, pool, forced=forced, options=rules)
 
 
 def independent(A: np.ndarray, rtol: float = 1e-9) -> list[int]:
@@ -170,36 +162,75 @@ def _ols_form(features: list[Feature], A: np.ndarray, y: np.ndarray) -> _Form:
     return _Form(feats, params, ols, np.asarray(ols.bse, float) / scale, np.asarray(ols.pvalues, float))
 
 
-def _fit_form(
-    form: str,
-    X: pd.DataFrame,
-    y: np.ndarray,
-    pool: Sequence[Feature],
-    full: Sequence[Feature],
-    forced: Sequence[Feature],
-    options: Any,
-    measured: np.ndarray | None = None,
-    standard: Sequence[Feature] = (),
-) -> _Form:
-    """Return a fitted form of a line's correction of the link models' residual ``y``.
+@dataclass(frozen=True)
+class LineRows:
+    """One measured line's training rows: what its correction is fitted to and checked on."""
 
-    ``stepwise`` over ``pool``; ``full``: least squares on every term of ``full``; ``standard``: the
-    correction that turns the line's prediction into plain least squares on the standard model (spec
-    section 2) of the ``measured`` values: that fit less the link models' prediction
-    (``measured - y``) written in the line's terms (``full``, an identity when they hold what the
-    links read along the line).
+    #: the link models' residual (measured less what they predict)
+    residual: np.ndarray
+    time_s: np.ndarray
+    #: the design matrix: the intercept, the session offsets and every term of the line's forms
+    X: pd.DataFrame
+    #: the campaign session of each row (None: one session)
+    sessions: np.ndarray | None = None
+    #: the measured values themselves (what the final gate's plain least squares fits)
+    measured: np.ndarray | None = None
+    #: the stage of each row (the folds run within each stage, in time order)
+    stages: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.residual.size)
+
+    def take(self, rows: np.ndarray) -> LineRows:
+        """Return the rows the boolean mask ``rows`` picks."""
+
+        def pick(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[rows]
+
+        return LineRows(
+            self.residual[rows],
+            self.time_s[rows],
+            self.X[rows],
+            pick(self.sessions),
+            pick(self.measured),
+            pick(self.stages),
+        )
+
+
+@dataclass(frozen=True)
+class LineTerms:
+    """The candidate terms of a line's correction, one set per form."""
+
+    #: the stepwise correction's candidates
+    pool: Sequence[Feature]
+    #: the plain least-squares correction's terms (empty: that form is not tried)
+    full: Sequence[Feature] = ()
+    #: the standard model's terms (spec section 2) that the final gate compares with (empty: no gate)
+    standard: Sequence[Feature] = ()
+
+
+def _fit_form(form: str, rows: LineRows, terms: LineTerms, forced: Sequence[Feature], rules: StepwiseOptions) -> _Form:
+    """Return a fitted form of a line's correction of the link models' residual (``rows.residual``).
+
+    ``stepwise`` over ``terms.pool``; ``full``: least squares on every term of ``terms.full``;
+    ``standard``: the correction that turns the line's prediction into plain least squares on the
+    standard model (spec section 2, ``terms.standard``) of the measured values: that fit less the
+    link models' prediction (``measured - residual``) written in the line's terms (``terms.full``,
+    an identity when they hold what the links read along the line).
     """
+    X, y = rows.X, rows.residual
     if form == "stepwise":
-        res = _correction(X, y, pool, forced, options)
+        res = _correction(X, y, terms.pool, forced, rules)
         params = np.asarray(res.ols.params, float)
         return _Form(list(res.features), params, res.ols, np.asarray(res.ols.bse, float), np.asarray(res.ols.pvalues))
     if form == "full":
-        feats = list(dict.fromkeys([*forced, *full]))
+        feats = list(dict.fromkeys([*forced, *terms.full]))
         return _ols_form(feats, X[[f.name for f in feats]].to_numpy(float), y)
+    measured = rows.measured
     assert measured is not None
-    s_feats = list(dict.fromkeys([*forced, *standard]))
+    s_feats = list(dict.fromkeys([*forced, *terms.standard]))
     plain = _ols_form(s_feats, X[[f.name for f in s_feats]].to_numpy(float), measured)
-    l_feats = list(dict.fromkeys([*forced, *full]))
+    l_feats = list(dict.fromkeys([*forced, *terms.full]))
     B = X[[f.name for f in l_feats]].to_numpy(float)
     kb = independent(B)
     link_coef = scaled_lstsq(B[:, kb], measured - y)
@@ -255,147 +286,102 @@ def stage_blocks(time_s: np.ndarray, groups: np.ndarray | None, lo: float, hi: f
     return fit_rows, check
 
 
-def fit_line(
-    axis: str,
-    k: int,
-    residual: np.ndarray,
-    time_s: np.ndarray,
-    X: pd.DataFrame,
-    pool: Sequence[Feature],
-    sessions: np.ndarray | None,
-    options: Any,
-    full: Sequence[Feature] = (),
-    min_gain: float = 0.10,
-    measured: np.ndarray | None = None,
-    standard: Sequence[Feature] = (),
-    stages: np.ndarray | None = None,
-) -> LineFit:
-    """Return the correction of one line's residual (training rows only), kept if validation shows it helps.
+@dataclass
+class _Checks:
+    """The rolling-origin checks of a line's forms: squared errors summed over the checked rows."""
 
-    ``residual``, ``time_s``, ``X``, ``sessions``, ``measured`` and ``stages`` hold the line's
-    training rows only. Two forms are tried against the link models alone: a stepwise regression
-    over ``pool`` (few terms, the recast ones among them) and plain least squares on every term of
-    ``full`` (the standard model and what the links read: a drift linear in many correlated
-    channels, which the stepwise regression's collinearity rule would refuse). A form is kept only
-    when it lowers the checked RMSE by ``min_gain`` against the simpler one (link < stepwise < full).
-    The checks are rolling-origin folds within each stage (``FOLDS``).
+    #: form -> squared error over every fold
+    sse: dict[str, float]
+    #: form -> squared error over the last fold (the final training block), plus ``standard_plain`` and ``n``
+    final: dict[str, float] = field(default_factory=dict)
+    n_checked: int = 0
 
-    A last gate (with ``measured`` and ``standard``): on the final training block (``FINAL_BLOCK``,
-    the late part of every stage, never the held-out part) the chosen form is compared with plain
-    least squares on the standard model (spec section 2: ``standard`` = position^1..3 and dT of the
-    line's channels); where the standard model predicts the block better, the line falls back to it.
-    """
-    term = PARAMS[k]
-    n = residual.size
-    out = LineFit(axis, term, "link")
-    if n < 40:
-        out.why = f"{n} training points: too few to check a correction"
-        return out
-    gated = measured is not None and bool(standard)
-    forms = ["stepwise", "full"] if full else ["stepwise"]
-    checked_forms = [*forms, "standard"] if gated else forms
-    sse = {"link": 0.0, **{f: 0.0 for f in checked_forms}}
-    final: dict[str, float] = {}
-    n_checked = 0
-    sess = None if sessions is None else np.asarray(sessions, dtype=object)
+
+def _standard_plain(train: LineRows, held: LineRows, terms: LineTerms, forced: Sequence[Feature]) -> float:
+    """Return the squared error on ``held`` of plain least squares on the standard model (the links aside)."""
+    feats = [*forced, *terms.standard]
+    assert train.measured is not None and held.measured is not None
+    plain = _ols_form(feats, train.X[[f.name for f in feats]].to_numpy(float), train.measured)
+    return float(np.sum((held.measured - plain.predict(held.X)) ** 2))
+
+
+def _check_forms(rows: LineRows, terms: LineTerms, rules: StepwiseOptions, forms: Sequence[str]) -> _Checks:
+    """Return the squared errors of the link models alone and of each of ``forms`` over the folds (``FOLDS``)."""
+    checks = _Checks({"link": 0.0, **{f: 0.0 for f in forms}})
+    sess = None if rows.sessions is None else np.asarray(rows.sessions, dtype=object)
     for fold, (lo, hi) in enumerate(FOLDS):
-        fit_rows, check = stage_blocks(time_s, stages, lo, hi)
-        forced = [INTERCEPT, *session_terms(sessions, fit_rows)]
+        fit_rows, check = stage_blocks(rows.time_s, rows.stages, lo, hi)
+        forced = [INTERCEPT, *session_terms(rows.sessions, fit_rows)]
         # a session first seen in the checked block has no offset to predict it with: leave it out
         if sess is not None:
             check &= np.isin(sess, list(set(sess[fit_rows])))
         if check.sum() < 5 or fit_rows.sum() < 20:
             continue
-        last = fold == len(FOLDS) - 1
-        sse["link"] += float(np.sum(residual[check] ** 2))
-        if last:
-            final["link"] = float(np.sum(residual[check] ** 2))
-        for form in checked_forms:
-            fitted = _fit_form(
-                form,
-                X[fit_rows],
-                residual[fit_rows],
-                pool,
-                full,
-                forced,
-                options,
-                None if measured is None else measured[fit_rows],
-                standard,
-            )
-            e = float(np.sum((residual[check] - fitted.predict(X[check])) ** 2))
-            sse[form] += e
-            if last:
-                final[form] = e
-                if form == "standard":
-                    # plain least squares on the standard model itself (the projection of the links aside)
-                    plain = _ols_form(
-                        [*forced, *standard],
-                        X[fit_rows][[f.name for f in [*forced, *standard]]].to_numpy(float),
-                        measured[fit_rows],  # type: ignore[index]
-                    )
-                    final["standard_plain"] = float(np.sum((measured[check] - plain.predict(X[check])) ** 2))  # type: ignore[index]
-                    final["n"] = float(check.sum())
-        n_checked += int(check.sum())
-    if n_checked == 0:
-        out.why = "no checked block with a known datum"
-        return out
-    out.checked = {f: float(np.sqrt(v / n_checked)) for f, v in sse.items()}
-    out.n_checked = n_checked
+        train, held = rows.take(fit_rows), rows.take(check)
+        errors = {"link": float(np.sum(held.residual**2))}
+        for form in forms:
+            fitted = _fit_form(form, train, terms, forced, rules)
+            errors[form] = float(np.sum((held.residual - fitted.predict(held.X)) ** 2))
+        for form, e in errors.items():
+            checks.sse[form] += e
+        if fold == len(FOLDS) - 1:
+            checks.final.update(errors)
+            if "standard" in forms:
+                checks.final["standard_plain"] = _standard_plain(train, held, terms, forced)
+                checks.final["n"] = float(check.sum())
+        checks.n_checked += int(check.sum())
+    return checks
+
+
+def _choose(checked: Mapping[str, float], forms: Sequence[str], min_gain: float) -> tuple[str, str]:
+    """Return (the form kept, why): a form is kept when it cuts the checked RMSE of the simpler one by ``min_gain``."""
     best = "link"
     for form in forms:
-        if out.checked[form] <= (1.0 - min_gain) * out.checked[best]:
+        if checked[form] <= (1.0 - min_gain) * checked[best]:
             best = form
-    why = ""
     if best == "link":
-        ratio = min(out.checked[f] for f in forms) / out.checked["link"] if out.checked["link"] > 0 else 1.0
-        why = (
+        ratio = min(checked[f] for f in forms) / checked["link"] if checked["link"] > 0 else 1.0
+        return best, (
             f"no correction cuts the checked RMSE by {min_gain:.0%} (the best one's is {ratio:.2f}x "
             f"the link models' alone)"
         )
-    else:
-        why = (
-            f"{best} correction: checked RMSE {out.checked[best]:.3g} against {out.checked['link']:.3g} "
-            f"for the link models alone"
-        )
-    if gated and "n" in final:
-        nb = final["n"]
-        chosen = float(np.sqrt(final[best] / nb))
-        std = float(np.sqrt(final["standard"] / nb))
-        out.gate = {
-            "block_rows": int(nb),
-            "chosen": best,
-            "chosen_rmse": chosen,
-            "standard_rmse": std,
-            "standard_plain_rmse": float(np.sqrt(final["standard_plain"] / nb)),
-        }
-        if std < chosen:
-            out.gate["verdict"] = "standard"
-            why = (
-                f"plain least squares on the standard model predicts the final training block better "
-                f"({std:.3g} against {chosen:.3g} for {'the link models alone' if best == 'link' else best}): "
-                f"it replaces it"
-            )
-            best = "standard"
-        else:
-            out.gate["verdict"] = "kept"
-    out.why = why
-    if best == "link":
-        return out
-    fitted = _fit_form(
-        best,
-        X,
-        residual,
-        pool,
-        full,
-        [INTERCEPT, *session_terms(sessions, np.ones(n, bool))],
-        options,
-        measured,
-        standard,
+    return best, (
+        f"{best} correction: checked RMSE {checked[best]:.3g} against {checked['link']:.3g} for the link models alone"
     )
+
+
+def _gate(out: LineFit, final: Mapping[str, float], best: str, why: str) -> tuple[str, str]:
+    """Return (the form kept, why) after the final-block gate against the standard model; record it in ``out.gate``."""
+    nb = final["n"]
+    chosen = float(np.sqrt(final[best] / nb))
+    std = float(np.sqrt(final["standard"] / nb))
+    out.gate = {
+        "block_rows": int(nb),
+        "chosen": best,
+        "chosen_rmse": chosen,
+        "standard_rmse": std,
+        "standard_plain_rmse": float(np.sqrt(final["standard_plain"] / nb)),
+    }
+    if std < chosen:
+        out.gate["verdict"] = "standard"
+        why = (
+            f"plain least squares on the standard model predicts the final training block better "
+            f"({std:.3g} against {chosen:.3g} for {'the link models alone' if best == 'link' else best}): "
+            f"it replaces it"
+        )
+        return "standard", why
+    out.gate["verdict"] = "kept"
+    return best, why
+
+
+def _keep(out: LineFit, form: str, rows: LineRows, terms: LineTerms, rules: StepwiseOptions) -> None:
+    """Fit ``form`` on all the line's training rows and record it in ``out`` (session offsets apart)."""
+    n = len(rows)
+    fitted = _fit_form(form, rows, terms, [INTERCEPT, *session_terms(rows.sessions, np.ones(n, bool))], rules)
     _hac(fitted, n)
     keep = [i for i, f in enumerate(fitted.features) if f.kind != "session"]
     offsets = [i for i, f in enumerate(fitted.features) if f.kind == "session"]
-    out.form = f"link+{best}"
+    out.form = f"link+{form}"
     out.features = [fitted.features[i] for i in keep]
     out.coef = fitted.coef[keep]
     out.std_errors = fitted.bse[keep]
@@ -404,6 +390,47 @@ def fit_line(
     out.session_coef = fitted.coef[offsets]
     out.result = fitted.ols
     out.n_fit = n
+
+
+def fit_line(
+    axis: str, k: int, rows: LineRows, terms: LineTerms, options: StepwiseKnobs, min_gain: float = 0.10
+) -> LineFit:
+    """Return the correction of one line's residual (training rows only), kept if validation shows it helps.
+
+    ``rows`` holds the line's training rows only. Two forms are tried against the link models
+    alone: a stepwise regression over ``terms.pool`` (few terms, the recast ones among them; the
+    stepwise rules of ``options``) and plain least squares on every term of ``terms.full`` (the
+    standard model and what the links read: a drift linear in many correlated channels, which the
+    stepwise regression's collinearity rule would refuse). A form is kept only when it lowers the
+    checked RMSE by ``min_gain`` against the simpler one (link < stepwise < full). The checks are
+    rolling-origin folds within each stage (``FOLDS``).
+
+    A last gate (with ``rows.measured`` and ``terms.standard``): on the final training block
+    (``FINAL_BLOCK``, the late part of every stage, never the held-out part) the chosen form is
+    compared with plain least squares on the standard model (spec section 2: position^1..3 and dT
+    of the line's channels); where the standard model predicts the block better, the line falls
+    back to it.
+    """
+    n = len(rows)
+    out = LineFit(axis, PARAMS[k], "link")
+    if n < 40:
+        out.why = f"{n} training points: too few to check a correction"
+        return out
+    gated = rows.measured is not None and bool(terms.standard)
+    forms = ["stepwise", "full"] if terms.full else ["stepwise"]
+    rules = StepwiseOptions.of(options)
+    checks = _check_forms(rows, terms, rules, [*forms, "standard"] if gated else forms)
+    if checks.n_checked == 0:
+        out.why = "no checked block with a known datum"
+        return out
+    out.checked = {f: float(np.sqrt(v / checks.n_checked)) for f, v in checks.sse.items()}
+    out.n_checked = checks.n_checked
+    best, why = _choose(out.checked, forms, min_gain)
+    if gated and "n" in checks.final:
+        best, why = _gate(out, checks.final, best, why)
+    out.why = why
+    if best != "link":
+        _keep(out, best, rows, terms, rules)
     return out
 
 
@@ -423,6 +450,22 @@ def line_pool(axis: str, channels: Sequence[str], recast: Sequence[Feature]) -> 
     return out
 
 
+class LineHooks(TypedDict, total=False):
+    """The optional keywords of ``fit_lines``."""
+
+    #: called with "<axis> <term>" after each line (progress)
+    on_line: Callable[[str], None] | None
+    #: the terms of a line's plain least-squares correction (None: that form is not tried)
+    full_of: Callable[[str], Sequence[Feature]] | None
+    #: the terms of the standard model (spec section 2) the final gate compares with (None: no gate)
+    standard_of: Callable[[str], Sequence[Feature]] | None
+
+
+def _varying(feats: Sequence[Feature], X: pd.DataFrame, rows: np.ndarray) -> list[Feature]:
+    """Return the terms of ``feats`` whose column varies over ``rows`` (a constant one cannot be fitted)."""
+    return [f for f in feats if np.ptp(X[f.name].to_numpy(float)[rows]) > 0]
+
+
 def fit_lines(
     frame: pd.DataFrame,
     q: np.ndarray,
@@ -431,18 +474,17 @@ def fit_lines(
     W: np.ndarray,
     W_hat: np.ndarray,
     pool_of: Callable[[str], Sequence[Feature]],
-    options: Any,
-    on_line: Callable[[str], None] | None = None,
-    full_of: Callable[[str], Sequence[Feature]] | None = None,
-    standard_of: Callable[[str], Sequence[Feature]] | None = None,
+    options: StepwiseKnobs,
+    **hooks: Unpack[LineHooks],
 ) -> list[LineFit]:
     """Return the correction of every measured line (moving axis, term) from the training rows alone.
 
     ``W`` holds the measured work-space errors (NaN where a term was not measured) and ``W_hat``
     what the link models predict at the same points; ``pool_of(axis)`` the candidate terms of a
-    line's stepwise correction, ``full_of(axis)`` those of its plain least-squares one,
-    ``standard_of(axis)`` the terms of the standard model (spec section 2) the final gate compares with.
+    line's stepwise correction (chosen by the stepwise rules of ``options``); ``hooks``: see
+    ``LineHooks``.
     """
+    on_line, full_of, standard_of = hooks.get("on_line"), hooks.get("full_of"), hooks.get("standard_of")
     role = frame["role"].to_numpy(object)
     axis_col = frame["axis"].to_numpy(str)
     stage = frame["stage"].to_numpy() if "stage" in frame.columns else np.zeros(len(frame), int)
@@ -474,28 +516,22 @@ def fit_lines(
             if ok.sum() == 0:
                 continue
             rows = np.flatnonzero(ok)
-            usable = [f for f in pool if np.ptp(X[f.name].to_numpy(float)[rows]) > 0]
-            fit = fit_line(
-                axis,
-                k,
+            line = LineRows(
                 (W[on, k] - W_hat[on, k])[rows],
                 t[on][rows],
                 X.iloc[rows],
-                usable,
                 None if sub.session is None else sub.session[rows],
-                options,
-                full=[f for f in full if np.ptp(X[f.name].to_numpy(float)[rows]) > 0],
-                measured=W[on, k][rows],
-                standard=[f for f in standard if np.ptp(X[f.name].to_numpy(float)[rows]) > 0],
-                stages=stage[on][rows],
+                W[on, k][rows],
+                stage[on][rows],
             )
-            out.append(fit)
+            terms = LineTerms(_varying(pool, X, rows), _varying(full, X, rows), _varying(standard, X, rows))
+            out.append(fit_line(axis, k, line, terms, options))
             if on_line is not None:
                 on_line(f"{axis} {PARAMS[k]}")
     return out
 
 
-def t1_map(dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+def t1_map(dims: Mapping[str, tuple[float, float, float]] = TABLE_A1) -> np.ndarray:
     """Return M (6, 6): the T1 error that produces a unit work-space error in each column (eq. 4.20).
 
     T1 is a fixed translation (eq. 4.13), so the map does not depend on the pose.
@@ -535,7 +571,7 @@ class Composed:
     home_deviation: dict[tuple[str, str], tuple[list[Feature], np.ndarray]]
 
 
-def compose(lines: Sequence[LineFit], dims: Mapping[str, Any] = TABLE_A1) -> Composed:
+def compose(lines: Sequence[LineFit], dims: Mapping[str, tuple[float, float, float]] = TABLE_A1) -> Composed:
     """Return the lines' corrections as T1 terms: position-dependent parts whole, home parts averaged."""
     M = t1_map(dims)
     by_term: dict[str, list[LineFit]] = {}

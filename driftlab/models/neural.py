@@ -2,17 +2,23 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import asdict, dataclass, field, replace
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict, Unpack
 
 import numpy as np
 import pandas as pd
+from sklearn.exceptions import ConvergenceWarning
 from sklearn.neural_network import MLPRegressor
+from threadpoolctl import threadpool_limits
 
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
 from driftlab.vocabulary import AXES, TERMS
+
+if TYPE_CHECKING:
+    from driftlab.models.standard_model import BundleLike
 
 
 def scale_inputs(X: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -34,8 +40,6 @@ class NeuralModel:
 
     def predict(self, X: pd.DataFrame) -> np.ndarray:
         """Return the network's estimate (eqs. 6.4-6.6) for the rows of ``X``."""
-        from threadpoolctl import threadpool_limits
-
         Z = scale_inputs(X[self.inputs].to_numpy(float), self.lo, self.hi)
         with threadpool_limits(limits=1):
             return self.y_mean + self.y_scale * self.net.predict(Z)
@@ -74,11 +78,6 @@ def fit_network(
         random_state=seed,
         tol=1e-7,
     )
-    import warnings
-
-    from sklearn.exceptions import ConvergenceWarning
-    from threadpoolctl import threadpool_limits
-
     # small dense products: one BLAS thread is fastest, and keeps a shared machine responsive
     with warnings.catch_warnings(), threadpool_limits(limits=1):
         warnings.simplefilter("ignore", ConvergenceWarning)
@@ -98,15 +97,8 @@ class ExtrapolationResult:
     n: int
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the JSON form of the report's ``extrapolation`` field."""
-        return {
-            "regression_mm": self.regression_mm,
-            "network_mm": self.network_mm,
-            "regression_in_range_mm": self.regression_in_range_mm,
-            "network_in_range_mm": self.network_in_range_mm,
-            "shift_degC": self.shift_degC,
-            "n": self.n,
-        }
+        """Return the JSON form of the report's ``extrapolation`` field (the fields, in order)."""
+        return asdict(self)
 
 
 def extrapolation_errors(
@@ -196,7 +188,7 @@ def _datum_groups(b: Any, name: str, e: pd.DataFrame) -> np.ndarray:
     return out
 
 
-def comparison_data(bundles: Sequence[Any], target: str, channels: Sequence[str]) -> ComparisonData:
+def comparison_data(bundles: Sequence[BundleLike], target: str, channels: Sequence[str]) -> ComparisonData:
     """Return the target's readings over the campaigns with the one feature matrix both models get."""
     axis, term = _parse_target(target)
     if not bundles:
@@ -384,43 +376,123 @@ def fit_linear(X: pd.DataFrame, y: np.ndarray) -> LinearModel:
     return LinearModel(list(X.columns), c / scale)
 
 
+class Predictor(Protocol):
+    """A fitted model of the comparison: least squares or the network."""
+
+    def predict(self, X: pd.DataFrame) -> np.ndarray: ...
+
+
+#: how a model of the comparison is fitted: the training frame and target in, a predictor out
+Fitter = Callable[[pd.DataFrame, np.ndarray], Predictor]
+
+
+@dataclass(frozen=True)
+class ComparisonOptions:
+    """How the ch. 6.6 comparison is run: the split, the network (ch. 6.6: 30-15-7 nodes) and the two fitters."""
+
+    #: "auto" (by campaign when two or more have absolute readings, else by time), "time" or "campaign"
+    split: str = "auto"
+    hidden: Sequence[int] = (30, 15, 7)
+    max_samples: int = 4000
+    max_iter: int = 300
+    seed: int = 0
+    #: the fewest training readings of a direction (its test side needs a sixth of it, at least 5)
+    min_rows: int = 30
+    fit_regression: Fitter = fit_linear
+    #: None: ``fit_network`` with ``hidden``, ``max_samples``, ``max_iter`` and ``seed``
+    fit_net: Fitter | None = None
+
+    def network_fitter(self) -> Fitter:
+        """Return the network's fitter."""
+        if self.fit_net is not None:
+            return self.fit_net
+
+        def fit_net(X: pd.DataFrame, y: np.ndarray) -> NeuralModel:
+            return fit_network(
+                X, y, hidden=self.hidden, max_samples=self.max_samples, seed=self.seed, max_iter=self.max_iter
+            )
+
+        return fit_net
+
+
+class ComparisonKeywords(TypedDict, total=False):
+    """``ComparisonOptions``' fields as keywords of ``compare_models`` and ``neural_comparisons``."""
+
+    split: str
+    hidden: Sequence[int]
+    max_samples: int
+    max_iter: int
+    seed: int
+    min_rows: int
+    fit_regression: Fitter
+    fit_net: Fitter | None
+
+
+def _with_offsets(data: ComparisonData, mode: str) -> tuple[pd.DataFrame, list[str]]:
+    """Return the matrix both models get and the datums given an offset column in it (time split only).
+
+    Each datum other than absolute carries its own unknown offset: one column for it (with no absolute
+    reading the intercept holds the first datum's).
+    """
+    if mode != "time":
+        return data.X, []
+    groups = list(dict.fromkeys(g for g in data.datum if g != ABSOLUTE))
+    offsets = groups if data.absolute.any() else groups[1:]
+    if not offsets:
+        return data.X, offsets
+    cols = pd.DataFrame({f"datum[{g}]": (data.datum == g).astype(float) for g in offsets})
+    return pd.concat([data.X, cols], axis=1), offsets
+
+
+def _direction(X: pd.DataFrame, y: np.ndarray, direction: Direction, fitters: tuple[Fitter, Fitter]) -> DirectionResult:
+    """Return both models trained on one side of ``direction`` and scored on both sides."""
+    name, tr, te, tr_text, te_text = direction
+    fit_regression, fit_net = fitters
+    # columns constant on the training side carry nothing either model could learn from
+    keep = [c for c in X.columns if float(X.loc[tr, c].std()) > 0]
+    Xtr = X.loc[tr, keep].reset_index(drop=True)
+    Xte = X.loc[te, keep].reset_index(drop=True)
+    ytr, yte = y[tr], y[te]
+    reg = fit_regression(Xtr, ytr)
+    net = fit_net(Xtr, ytr)
+    A, B = Xte.to_numpy(float), Xtr.to_numpy(float)
+    lo, hi = B.min(axis=0), B.max(axis=0)
+    temp = np.array([c.startswith("dT[") for c in keep], bool)
+    excess = np.maximum(A - hi, lo - A)[:, temp] if temp.any() else np.zeros((len(A), 1))
+    return DirectionResult(
+        name,
+        tr_text,
+        te_text,
+        int(tr.sum()),
+        int(te.sum()),
+        keep,
+        rmse(ytr - reg.predict(Xtr)),
+        rmse(ytr - net.predict(Xtr)),
+        rmse(yte - reg.predict(Xte)),
+        rmse(yte - net.predict(Xte)),
+        float(((A < lo) | (A > hi)).any(axis=1).mean()),
+        float(max(0.0, excess.max())),
+    )
+
+
 def compare_models(
-    data: ComparisonData,
-    *,
-    split: str = "auto",
-    hidden: Sequence[int] = (30, 15, 7),
-    max_samples: int = 4000,
-    max_iter: int = 300,
-    seed: int = 0,
-    min_rows: int = 30,
-    fit_regression: Callable[[pd.DataFrame, np.ndarray], Any] = fit_linear,
-    fit_net: Callable[[pd.DataFrame, np.ndarray], Any] | None = None,
+    data: ComparisonData, options: ComparisonOptions | None = None, **keywords: Unpack[ComparisonKeywords]
 ) -> NeuralComparison:
     """Return the comparison of least squares and the network on the same matrix, in both directions.
 
-    ``fit_regression`` and ``fit_net`` (default: ``fit_linear`` and ``fit_network`` with ``hidden``,
-    ``max_samples``, ``max_iter``, ``seed``) each get the very same training frame and target.
+    ``options`` (``ComparisonOptions``; each field also accepted by keyword): ``fit_regression`` and
+    ``fit_net`` (default: ``fit_linear`` and ``fit_network`` with ``hidden``, ``max_samples``,
+    ``max_iter``, ``seed``) each get the very same training frame and target.
     Raises ValidationError when the split asks for a zeroed campaign as an absolute target.
     """
-    if split not in SPLIT_MODES:
-        raise ValidationError(f"split {split!r}: one of {', '.join(SPLIT_MODES)}")
+    opts = replace(options or ComparisonOptions(), **keywords)
+    if opts.split not in SPLIT_MODES:
+        raise ValidationError(f"split {opts.split!r}: one of {', '.join(SPLIT_MODES)}")
     _, term = _parse_target(data.target)
     unit = "rad" if term in ("alpha", "beta", "gamma") else "mm"
-    if fit_net is None:
-
-        def fit_net(X: pd.DataFrame, y: np.ndarray) -> NeuralModel:
-            return fit_network(X, y, hidden=hidden, max_samples=max_samples, seed=seed, max_iter=max_iter)
-
-    mode, directions, excluded = _splits(data, split)
-    X = data.X
-    offsets: list[str] = []
-    if mode == "time":
-        # each datum other than absolute carries its own unknown offset: one column for it, in the matrix
-        # both models get (with no absolute reading the intercept holds the first datum's)
-        groups = list(dict.fromkeys(g for g in data.datum if g != ABSOLUTE))
-        offsets = groups if data.absolute.any() else groups[1:]
-        if offsets:
-            X = pd.concat([X, pd.DataFrame({f"datum[{g}]": (data.datum == g).astype(float) for g in offsets})], axis=1)
+    fitters = (opts.fit_regression, opts.network_fitter())
+    mode, directions, excluded = _splits(data, opts.split)
+    X, offsets = _with_offsets(data, mode)
     out = NeuralComparison(
         data.target,
         "compared",
@@ -431,67 +503,39 @@ def compare_models(
         excluded,
         offsets,
         [],
-        list(hidden),
+        list(opts.hidden),
     )
     results = []
-    for name, tr, te, tr_text, te_text in directions:
-        if tr.sum() < min_rows or te.sum() < max(5, min_rows // 6):
+    for direction in directions:
+        name, tr, te = direction[:3]
+        if tr.sum() < opts.min_rows or te.sum() < max(5, opts.min_rows // 6):
             out.status = "too few readings"
             out.note = f"{name}: {int(tr.sum())} training and {int(te.sum())} test readings"
             return out
-        # columns constant on the training side carry nothing either model could learn from
-        keep = [c for c in X.columns if float(X.loc[tr, c].std()) > 0]
-        Xtr = X.loc[tr, keep].reset_index(drop=True)
-        Xte = X.loc[te, keep].reset_index(drop=True)
-        ytr, yte = data.y[tr], data.y[te]
-        reg = fit_regression(Xtr, ytr)
-        net = fit_net(Xtr, ytr)
-        A, B = Xte.to_numpy(float), Xtr.to_numpy(float)
-        lo, hi = B.min(axis=0), B.max(axis=0)
-        temp = np.array([c.startswith("dT[") for c in keep], bool)
-        excess = np.maximum(A - hi, lo - A)[:, temp] if temp.any() else np.zeros((len(A), 1))
-        results.append(
-            DirectionResult(
-                name,
-                tr_text,
-                te_text,
-                int(tr.sum()),
-                int(te.sum()),
-                keep,
-                rmse(ytr - reg.predict(Xtr)),
-                rmse(ytr - net.predict(Xtr)),
-                rmse(yte - reg.predict(Xte)),
-                rmse(yte - net.predict(Xte)),
-                float(((A < lo) | (A > hi)).any(axis=1).mean()),
-                float(max(0.0, excess.max())),
-            )
-        )
+        results.append(_direction(X, data.y, direction, fitters))
     out.directions = results
     return out
 
 
 def neural_comparisons(
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     targets: Sequence[str],
     channels: Sequence[str],
-    **kwargs: Any,
+    **keywords: Unpack[ComparisonKeywords],
 ) -> list[NeuralComparison]:
     """Return one comparison per target fixed in advance ("all": every term the campaigns measured).
 
     A target the split cannot use honestly (only zeroed readings across campaigns) comes back
-    ``refused`` with the reason, not compared.
+    ``refused`` with the reason, not compared. ``keywords``: ``ComparisonOptions``' fields.
     """
+    opts = ComparisonOptions(**keywords)
     if list(targets) == ["all"]:
         seen = pd.concat([b.errors[["axis", "term"]] for b in bundles]).drop_duplicates()
         targets = [f"{a}/{t}" for a, t in sorted(map(tuple, seen.to_numpy().tolist()))]
     out = []
     for target in targets:
         try:
-            out.append(compare_models(comparison_data(bundles, target, channels), **kwargs))
+            out.append(compare_models(comparison_data(bundles, target, channels), opts))
         except ValidationError as exc:
-            out.append(
-                NeuralComparison(
-                    str(target), "refused", note=str(exc), network_hidden=list(kwargs.get("hidden", (30, 15, 7)))
-                )
-            )
+            out.append(NeuralComparison(str(target), "refused", note=str(exc), network_hidden=list(opts.hidden)))
     return out

@@ -8,14 +8,21 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from datetime import UTC
-from typing import Any
+from datetime import UTC, datetime, timedelta
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import pandas as pd
 
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
+from driftlab.models.document import predict_workspace_errors, validate_document
 from driftlab.vocabulary import TRANSLATIONS
+
+if TYPE_CHECKING:
+    import os
+
+    from driftlab.models.document import ModelDocument
 
 
 @dataclass
@@ -113,11 +120,9 @@ PROBE_TERMS: tuple[str, ...] = TRANSLATIONS
 PROBE_COLUMNS: tuple[str, ...] = ("time_s", "x", "y", "z", "a", "b", "dx", "dy", "dz")
 
 
-def read_probe_csv(path: Any) -> Any:
+def read_probe_csv(path: str | os.PathLike[str]) -> pd.DataFrame:
     """Return the probe measurements of a CSV (time_s, x, y, z, a, b in mm/deg, dx, dy, dz in mm, one column
     per channel)."""
-    import pandas as pd
-
     try:
         df = pd.read_csv(path)
     except (OSError, ValueError) as exc:
@@ -155,10 +160,8 @@ class OnlineReport:
         }
 
 
-def online_residuals(document: Any, probe: Any) -> tuple[np.ndarray, np.ndarray]:
+def online_residuals(document: Mapping[str, Any] | ModelDocument, probe: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """Return (time_s, (N, 3) measured minus off-line predicted dx, dy, dz) for probe measurements."""
-    from driftlab.models.document import predict_workspace_errors
-
     q = np.column_stack([probe["x"], probe["y"], probe["z"], np.deg2rad(probe["a"]), np.deg2rad(probe["b"])])
     temps = probe.drop(columns=[c for c in PROBE_COLUMNS if c != "time_s"])
     W = predict_workspace_errors(document, temps, q)
@@ -167,11 +170,12 @@ def online_residuals(document: Any, probe: Any) -> tuple[np.ndarray, np.ndarray]
 
 
 def online_update_document(
-    document: Any, probe: Any, states: Mapping[str, RLSState] | None = None, lam: float = 0.98
+    document: Mapping[str, Any] | ModelDocument,
+    probe: pd.DataFrame,
+    states: Mapping[str, RLSState] | None = None,
+    lam: float = 0.98,
 ) -> tuple[OnlineReport, dict[str, np.ndarray]]:
     """Return the report and per-term one-step predictions of the on-line model (phi = [1], eq. 6.10) on the probes."""
-    from driftlab.models.document import validate_document
-
     doc = validate_document(document)
     _, resid = online_residuals(doc, probe)
     return online_update_residuals(doc.machine, doc.version, resid, states, lam)
@@ -197,13 +201,9 @@ def online_update_residuals(
     return OnlineReport(machine, model_version, len(resid), terms, out_states), preds
 
 
-def probe_times(probe: Any, start: Any = None) -> list[Any]:
+def probe_times(probe: pd.DataFrame, start: datetime | None = None) -> list[datetime]:
     """Return each probe row's wall-clock time: a ``measured_at`` column, else ``start`` + time_s, else
     counted back from now (the last row measured now); rows sharing a time_s are 1 us apart."""
-    from datetime import datetime, timedelta
-
-    import pandas as pd
-
     if "measured_at" in probe.columns:
         try:
             ts = pd.to_datetime(probe["measured_at"], utc=True)
@@ -215,8 +215,8 @@ def probe_times(probe: Any, start: Any = None) -> list[Any]:
         origin = datetime.now(UTC) - timedelta(seconds=float(t.max()))
     else:
         origin = start if start.tzinfo else start.replace(tzinfo=UTC)
-    out: list[Any] = []
-    seen: set[Any] = set()
+    out: list[datetime] = []
+    seen: set[datetime] = set()
     for x in t:
         at = origin + timedelta(seconds=float(x))
         while at in seen:  # several poses probed in one cycle share a time stamp: keep them apart by 1 us

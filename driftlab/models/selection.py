@@ -272,22 +272,178 @@ def _error_stepwise(
     return out
 
 
+@dataclass(frozen=True)
+class ScreeningOptions:
+    """The thresholds of the screening (ch. 5.4); see ``screen_channels``."""
+
+    #: a channel is explained when the kept ones leave at most this much of it (degC rms) ...
+    explained_degC: float = 0.3
+    #: ... or this share of its own variation, whichever is larger
+    explained_fraction: float = 0.15
+    #: how many kept channels may explain one
+    n_explain: int = 3
+    #: kept sites correlated with a channel by at least this may explain it
+    related_r: float = 0.9
+    #: a structure's second corner is kept when it differs from the first by this much (degC rms)
+    gradient_degC: float = 0.8
+    #: with errors: a site enters when it removes this share of some series' remaining residual ...
+    error_r2_in: float = 0.03
+    #: ... and stays while it removes this share
+    error_r2_out: float = 0.02
+    #: channels kept whatever the screening finds (the user's model channels)
+    always_keep: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class _Channels:
+    """A campaign's channels as the screening reads them (gaps filled)."""
+
+    temps: pd.DataFrame
+    chans: list[str]
+    meta: dict[str, dict[str, str]]
+    room: Sequence[str]
+    #: the correlation matrix (eq. 6.1), rows and columns in ``chans`` order
+    R: pd.DataFrame
+    #: the readings, NaN as 0 (what the explaining fits read)
+    Tf: np.ndarray
+    #: the standard deviation of each channel's finite readings
+    std: np.ndarray
+    options: ScreeningOptions
+    #: channel -> its column
+    idx: dict[str, int] = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "idx", {c: i for i, c in enumerate(self.chans)})
+
+    def structure(self, c: str) -> str:
+        return self.meta.get(c, {}).get("structure", "")
+
+    def related(self, i: int, j: int) -> bool:
+        """Return True when channel j may explain channel i: the room, its structure, or correlated by related_r."""
+        st = self.structure(self.chans[i])
+        k = self.chans[j]
+        return bool(
+            k in self.room
+            or (st and self.structure(k) == st)
+            or abs(float(np.nan_to_num(self.R.iloc[i, j]))) >= self.options.related_r
+        )
+
+    def tolerance(self, i: int) -> float:
+        """Return the rms residual below which channel i counts as explained."""
+        return max(self.options.explained_degC, self.options.explained_fraction * self.std[i])
+
+
+def _first_sorting(ch: _Channels, finite: np.ndarray) -> tuple[dict[str, str], dict[str, str]]:
+    """Return (kept with why, dropped with why) before any channel is compared with another."""
+    kept_reason: dict[str, str] = {}
+    dropped: dict[str, str] = {}
+    for i, c in enumerate(ch.chans):
+        if not finite[:, i].any():
+            dropped[c] = "no readings"
+        elif c in ch.room:
+            kept_reason[c] = "room air: the room is a heat source and sink; both room channels are kept (ch. 5.4)"
+        elif ch.std[i] < 1e-6:
+            dropped[c] = "constant over the campaign: no information"
+        elif _is_heat_site(ch.meta.get(c, {}).get("location", "")):
+            kept_reason[c] = "on a heat source: " + ch.meta[c]["location"]
+    for c in ch.options.always_keep:
+        if c in ch.chans and c not in dropped and c not in kept_reason:
+            kept_reason[c] = "required by the user's model channels"
+    return kept_reason, dropped
+
+
+def _keep_error_sites(ch: _Channels, des: _ErrorDesign, kept_reason: dict[str, str], rest: Sequence[str]) -> None:
+    """Keep (in ``kept_reason``) the sites of ``rest`` that the work-space errors need, with why."""
+    idx, o = ch.idx, ch.options
+    need = _error_stepwise(des, [idx[c] for c in kept_reason], [idx[c] for c in rest], o.error_r2_in, o.error_r2_out)
+    for i, (share, series) in sorted(need.items()):
+        others = [j for j in [*(idx[k] for k in kept_reason), *need] if j != i and ch.related(i, j)]
+        resid, used = _explain(ch.Tf, i, others, o.n_explain)
+        why = (
+            f"explains the work-space errors: removes {100 * share:.0f}% of what the other kept sites leave of {series}"
+        )
+        if others and resid <= ch.tolerance(i):  # its temperature is nearly another's: the difference moves the tool
+            why += (
+                f", though its temperature follows {', '.join(ch.chans[u] for u in used)} to {resid:.2f} degC rms "
+                "(the best of its redundant group, or a gradient the errors need)"
+            )
+        kept_reason[ch.chans[i]] = why
+
+
+def _visit_order(
+    ch: _Channels, rest: Sequence[str], corners_rule: bool
+) -> tuple[list[str], dict[str, tuple[str, float]]]:
+    """Return the order the rest is visited in and the corners spanning a gradient (with ``corners_rule``).
+
+    Structure by structure: its most active site first, then each time the site farthest (in rms
+    difference) from those already ordered.
+    """
+    temps, idx = ch.temps, ch.idx
+    by_struct: dict[str, list[str]] = {}
+    for c in rest:
+        by_struct.setdefault(ch.structure(c) or c, []).append(c)
+    order: list[str] = []
+    corners: dict[str, tuple[str, float]] = {}
+    for members in by_struct.values():
+        first = max(members, key=lambda c: ch.std[idx[c]])
+        seq = [first]
+        left = [c for c in members if c != first]
+        while left:
+            nxt = max(left, key=lambda c: min(float(np.nanstd(temps[c] - temps[o])) for o in seq))
+            seq.append(nxt)
+            left.remove(nxt)
+        order += seq
+        if len(seq) >= 2 and corners_rule:
+            d = float(np.nanstd(temps[seq[0]].to_numpy(float) - temps[seq[1]].to_numpy(float)))
+            if d >= ch.options.gradient_degC:  # the structure bends: keep the two corners that span it
+                corners[seq[0]] = (seq[1], d)
+                corners[seq[1]] = (seq[0], d)
+    return order, corners
+
+
+def _judge(
+    ch: _Channels,
+    c: str,
+    verdicts: tuple[dict[str, str], dict[str, str]],
+    corner: tuple[str, float] | None,
+    errors_judged: bool,
+) -> None:
+    """Keep or drop channel ``c`` (into ``verdicts``: kept with why, dropped with why) against the kept ones.
+
+    ``corner``: the site it spans a gradient with (kept then); None: judged by what the kept ones
+    explain. ``errors_judged``: the work-space errors have already kept the sites they need.
+    """
+    kept_reason, dropped = verdicts
+    idx, st = ch.idx, ch.structure(c)
+    # explainers: kept sites of the same structure, kept sites that rise and fall with it, the room
+    pool = [idx[k] for k in kept_reason if ch.related(idx[c], idx[k])]
+    resid, used = _explain(ch.Tf, idx[c], pool, ch.options.n_explain)
+    names = [ch.chans[u] for u in used]
+    if corner is not None:
+        kept_reason[c] = (
+            f"corner of {st} spanning its gradient with {corner[0]} ({corner[1]:.2f} degC rms difference, eqs. 3.4-3.5)"
+        )
+    elif pool and resid <= ch.tolerance(idx[c]):
+        R = ch.R
+        best = max(names, key=lambda k: abs(float(R.loc[c, k])))
+        dropped[c] = (
+            f"no new information: explained by kept {', '.join(names)} to {resid:.3f} degC rms "
+            f"(r={R.loc[c, best]:.2f} with {best}) (ch. 5.4)"
+            + ("; the work-space errors need it no more than the kept sites" if errors_judged else "")
+        )
+    else:
+        kept_reason[c] = f"new information on {st or 'its site'}: {resid:.2f} degC rms not explained by the others"
+
+
 def screen_channels(
     temperatures: pd.DataFrame,
     channels: Mapping[str, Mapping[str, str]] | None = None,
     room_channels: Sequence[str] = (),
     *,
-    explained_degC: float = 0.3,
-    explained_fraction: float = 0.15,
-    n_explain: int = 3,
-    related_r: float = 0.9,
-    gradient_degC: float = 0.8,
-    always_keep: Sequence[str] = (),
     errors: pd.DataFrame | Sequence[pd.DataFrame] | None = None,
-    error_r2_in: float = 0.03,
-    error_r2_out: float = 0.02,
+    options: ScreeningOptions | None = None,
 ) -> ScreeningResult:
-    """Return the screening of all channels of a campaign (ch. 5.4).
+    """Return the screening of all channels of a campaign (ch. 5.4), by the thresholds of ``options``.
 
     Room channels and the sites of heat sources (motors, ballscrew nuts, gear trains, the spindle)
     are kept. Every other channel is then visited, structure by structure, starting in each
@@ -307,110 +463,29 @@ def screen_channels(
     whether or not their temperatures are explained by others (a gradient between near-duplicates
     moves the tool); the corners rule is then left to the errors.
     """
-    meta = {c: dict(v) for c, v in (channels or {}).items()}
     temps = fill_gaps(temperatures)
     chans = channel_columns(temps)
     if not chans:
         raise ValidationError("no temperature channels to screen")
-    R = correlation_matrix(temps)
     T = temps[chans].to_numpy(float)
     finite = np.isfinite(T)
     std = np.array([float(np.std(T[finite[:, i], i])) if finite[:, i].any() else 0.0 for i in range(len(chans))])
-    kept_reason: dict[str, str] = {}
-    dropped: dict[str, str] = {}
-    for i, c in enumerate(chans):
-        if not finite[:, i].any():
-            dropped[c] = "no readings"
-        elif c in room_channels:
-            kept_reason[c] = "room air: the room is a heat source and sink; both room channels are kept (ch. 5.4)"
-        elif std[i] < 1e-6:
-            dropped[c] = "constant over the campaign: no information"
-        elif _is_heat_site(meta.get(c, {}).get("location", "")):
-            kept_reason[c] = "on a heat source: " + meta[c]["location"]
-    for c in always_keep:
-        if c in chans and c not in dropped and c not in kept_reason:
-            kept_reason[c] = "required by the user's model channels"
+    meta = {c: dict(v) for c, v in (channels or {}).items()}
+    R = correlation_matrix(temps)
+    ch = _Channels(temps, chans, meta, room_channels, R, np.nan_to_num(T), std, options or ScreeningOptions())
+    kept_reason, dropped = _first_sorting(ch, finite)
     rest = [c for c in chans if c not in kept_reason and c not in dropped]
-    idx = {c: i for i, c in enumerate(chans)}
-    Tf = np.nan_to_num(T)
     des = _error_design(temps, chans, errors) if errors is not None else None
     if des is not None:
-        need = _error_stepwise(des, [idx[c] for c in kept_reason], [idx[c] for c in rest], error_r2_in, error_r2_out)
-        for i, (share, series) in sorted(need.items()):
-            c = chans[i]
-            st = meta.get(c, {}).get("structure", "")
-            others = [
-                j
-                for j in [*(idx[k] for k in kept_reason), *need]
-                if j != i
-                and (
-                    chans[j] in room_channels
-                    or (st and meta.get(chans[j], {}).get("structure", "") == st)
-                    or abs(float(np.nan_to_num(R.iloc[i, j]))) >= related_r
-                )
-            ]
-            resid, used = _explain(Tf, i, others, n_explain)
-            tol = max(explained_degC, explained_fraction * std[i])
-            why = (
-                f"explains the work-space errors: removes {100 * share:.0f}% of what the other kept sites "
-                f"leave of {series}"
-            )
-            if others and resid <= tol:  # its temperature is nearly another's: the difference is what moves the tool
-                why += (
-                    f", though its temperature follows {', '.join(chans[u] for u in used)} to {resid:.2f} degC rms "
-                    "(the best of its redundant group, or a gradient the errors need)"
-                )
-            kept_reason[c] = why
+        _keep_error_sites(ch, des, kept_reason, rest)
         rest = [c for c in rest if c not in kept_reason]
-    by_struct: dict[str, list[str]] = {}
-    for c in rest:
-        by_struct.setdefault(meta.get(c, {}).get("structure", "") or c, []).append(c)
-    order: list[str] = []
-    corners: dict[str, tuple[str, float]] = {}
-    for members in by_struct.values():
-        first = max(members, key=lambda c: std[chans.index(c)])
-        seq = [first]
-        left = [c for c in members if c != first]
-        while left:
-            # next: the site farthest (in rms difference) from those already ordered
-            nxt = max(left, key=lambda c: min(float(np.nanstd(temps[c] - temps[o])) for o in seq))
-            seq.append(nxt)
-            left.remove(nxt)
-        order += seq
-        if len(seq) >= 2 and des is None:  # with errors, the errors judge the gradients
-            d = float(np.nanstd(temps[seq[0]].to_numpy(float) - temps[seq[1]].to_numpy(float)))
-            if d >= gradient_degC:  # the structure bends: keep the two corners that span it
-                corners[seq[0]] = (seq[1], d)
-                corners[seq[1]] = (seq[0], d)
+    order, corners = _visit_order(ch, rest, corners_rule=des is None)  # with errors, the errors judge the gradients
     for c in order:
-        # explainers: kept sites of the same structure, kept sites that rise and fall with it, the room
-        st = meta.get(c, {}).get("structure", "")
-        pool = [
-            idx[k]
-            for k in kept_reason
-            if k in room_channels
-            or (st and meta.get(k, {}).get("structure", "") == st)
-            or abs(float(np.nan_to_num(R.loc[c, k]))) >= related_r
-        ]
-        resid, used = _explain(Tf, idx[c], pool, n_explain)
-        tol = max(explained_degC, explained_fraction * std[idx[c]])
-        names = [chans[u] for u in used]
         corner = corners.get(c) or (
-            _gradient_partner(c, st, kept_reason, meta, temps, gradient_degC) if des is None else None
+            _gradient_partner(c, ch.structure(c), kept_reason, meta, temps, ch.options.gradient_degC)
+            if des is None
+            else None
         )
-        if corner is not None:
-            kept_reason[c] = (
-                f"corner of {st} spanning its gradient with {corner[0]} "
-                f"({corner[1]:.2f} degC rms difference, eqs. 3.4-3.5)"
-            )
-        elif pool and resid <= tol:
-            best = max(names, key=lambda k: abs(float(R.loc[c, k])))
-            dropped[c] = (
-                f"no new information: explained by kept {', '.join(names)} to {resid:.3f} degC rms "
-                f"(r={R.loc[c, best]:.2f} with {best}) (ch. 5.4)"
-                + ("; the work-space errors need it no more than the kept sites" if des is not None else "")
-            )
-        else:
-            kept_reason[c] = f"new information on {st or 'its site'}: {resid:.2f} degC rms not explained by the others"
+        _judge(ch, c, (kept_reason, dropped), corner, errors_judged=des is not None)
     kept = [c for c in chans if c in kept_reason]
     return ScreeningResult(matrix=R, kept=kept, kept_reason=kept_reason, dropped=dropped)

@@ -120,7 +120,7 @@ def appendix_a_errors(
     q: np.ndarray,
     direction: np.ndarray | None = None,
     *,
-    dims: Mapping[str, Any] = TABLE_A1,
+    dims: Mapping[str, tuple[float, float, float]] = TABLE_A1,
     gain: Factor = 1.0,
     tau_scale: Factor = 1.0,
     backlash: bool = True,

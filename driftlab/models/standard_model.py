@@ -23,12 +23,14 @@ split depends on the rows' times only, never on their values), score = the rest.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
 
 import numpy as np
 import pandas as pd
 from scipy import stats
+from scipy.signal import savgol_filter
 
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
@@ -40,7 +42,7 @@ TEMP_RANGE_C = (-40.0, 250.0)
 SPIKE_Z = 8.0
 
 
-def meta_get(meta: Any, key: str, default: Any = None) -> Any:
+def meta_get(meta: object, key: str, default: Any = None) -> Any:
     """Return ``meta[key]`` whether the campaign metadata is a dict or a pydantic model."""
     if meta is None:
         return default
@@ -248,14 +250,14 @@ def _sweep_ids(t: np.ndarray) -> np.ndarray:
 OPERATING_COLUMNS = ("spindle_rpm", "feed_mm_min")
 
 
-def _conditions_source(bundle: Any) -> dict[str, Any]:
+def _conditions_source(bundle: object) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     """Return, per operating column of conditions.csv, a function giving its value at error times.
 
     The state log is a log of set points: a value holds until the next row (zero-order hold);
     unknown cells hold the last known value. Columns that never change are left out.
     """
     cond = getattr(bundle, "conditions", None)
-    out: dict[str, Any] = {}
+    out: dict[str, Callable[[np.ndarray], np.ndarray]] = {}
     if cond is None or len(cond) == 0 or "time_s" not in cond:
         return out
     c = cond.sort_values("time_s", kind="stable")
@@ -297,19 +299,35 @@ def _session_labels(errs: pd.DataFrame, setups: Any) -> pd.Series:
     return out
 
 
-def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float | None = None) -> PreparedBundle:
-    """Return the cleaned, grid-aligned :class:`PreparedBundle` of a bundle (one pass, vectorised)."""
-    if not 0.0 < holdout_fraction < 0.9:
-        raise ValidationError(f"--holdout-fraction must be in (0, 0.9), got {holdout_fraction}")
-    meta = bundle.meta
-    temps: pd.DataFrame = bundle.temperatures
-    errors: pd.DataFrame = bundle.errors
-    channels = [c for c in temps.columns if c != "time_s"]
-    if not channels:
-        raise ValidationError("temperatures.csv: no thermocouple channels")
-    if errors is None or len(errors) == 0:
-        raise ValidationError("errors.csv: no error samples")
+class BundleLike(Protocol):
+    """What the models read of a campaign bundle (``driftlab.campaigns.bundle.Bundle`` has it; the
+    preparation reads ``conditions`` when present)."""
 
+    @property
+    def name(self) -> str: ...
+    @property
+    def meta(self) -> Any: ...  # the campaign metadata: a dict or a pydantic model (``meta_get`` reads both)
+    @property
+    def temperatures(self) -> pd.DataFrame: ...
+    @property
+    def errors(self) -> pd.DataFrame: ...
+
+
+@dataclass(frozen=True)
+class _TemperatureGrid:
+    """The temperatures after cleaning, on a uniform scan grid, and what the cleaning did."""
+
+    #: the scan times, sorted
+    ts: np.ndarray
+    grid_t: np.ndarray
+    grid_T: np.ndarray
+    raw_grid: np.ndarray
+    flags: list[OutlierFlags]
+    max_gap_s: float
+
+
+def _clean_temperatures(temps: pd.DataFrame, channels: list[str], max_gap_s: float | None) -> _TemperatureGrid:
+    """Return the temperatures cleaned channel by channel (range, spikes, gaps) and put on a uniform grid."""
     ts = temps["time_s"].to_numpy(dtype=float)
     order = np.argsort(ts, kind="stable")
     ts = ts[order]
@@ -318,7 +336,6 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
     dt = float(np.median(dts[dts > 0])) if (dts > 0).any() else 1.0
     if max_gap_s is None:
         max_gap_s = max(5.0 * dt, 600.0)
-
     grid_t = np.arange(ts[0], ts[-1] + 0.5 * dt, dt)
     grid_T = np.empty((grid_t.size, len(channels)))
     raw_grid = np.empty_like(grid_T)
@@ -341,85 +358,99 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
         if sp.any() or oor.any() or held:
             bad = ts[sp | oor]
             flags.append(OutlierFlags(ch, int(sp.sum()), int(oor.sum()), held, tuple(float(v) for v in bad[:5])))
+    return _TemperatureGrid(ts, grid_t, grid_T, raw_grid, flags, max_gap_s)
 
-    # the held-out split is fixed on the rows' times alone (never their values), and the training and
-    # held-out rows are cleaned apart: nothing in the held-out values can change a training decision
-    errs = errors.dropna(subset=["time_s", "position"])
-    cond_at = _conditions_source(bundle)
-    session = _session_labels(errs, meta_get(meta, "setups", None))
-    terms: list[TermData] = []
-    for (axis, term), g in errs.groupby(["axis", "term"], sort=True):
-        g = g.sort_values("time_s", kind="stable")
-        t_all = g["time_s"].to_numpy(dtype=float)
-        hold_t = float(t_all[int(math.floor((1.0 - holdout_fraction) * t_all.size))]) if t_all.size else np.inf
-        g = g[np.isfinite(g["value"].to_numpy(dtype=float))]
-        sess_g = session.loc[g.index].to_numpy(dtype=object)
-        y = g["value"].to_numpy(dtype=float)
-        t = g["time_s"].to_numpy(dtype=float)
-        pos = g["position"].to_numpy(dtype=float)
-        direction = g["direction"].to_numpy(dtype=float) if "direction" in g else np.ones_like(y)
-        direction = np.where(np.isfinite(direction), direction, 1.0)
-        bad = np.zeros(y.size, dtype=bool)
-        keys = np.round(pos, 9) * 10 + direction
-        is_train = t < hold_t
-        for key in np.unique(keys):
-            for part in (is_train, ~is_train):
-                idx = np.flatnonzero((keys == key) & part)
-                if idx.size >= 10:
-                    bad[idx] = spike_mask(y[idx])
-        fl = OutlierFlags(f"{axis}/{term}", int(bad.sum()), 0, 0, tuple(float(v) for v in t[bad][:5]))
-        if bad.any():
-            flags.append(fl)
-        # an error sample inside a gap of the scans (the logger wrote nothing for longer than max_gap_s)
-        # has no temperatures: it is left out and counted
-        nxt = np.clip(np.searchsorted(ts, t, side="left"), 0, ts.size - 1)
-        prv = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)
-        in_gap = (ts[nxt] - ts[prv] > max_gap_s) | (t < ts[0]) | (t > ts[-1])
-        if in_gap.any():
-            flags.append(
-                OutlierFlags(
-                    f"{axis}/{term}: {int(in_gap.sum())} samples in scan gaps left out",
-                    0,
-                    0,
-                    0,
-                    tuple(float(v) for v in t[in_gap][:5]),
-                )
-            )
-        keep = ~bad & ~in_gap
-        t, pos, direction, y = t[keep], pos[keep], direction[keep], y[keep]
-        sess_g = sess_g[keep]
-        # a new session of a setup zeroed at its mounting (bundle v2 datum: session): a stated re-zero
-        new = np.flatnonzero((sess_g[1:] != sess_g[:-1]) & (sess_g[1:] != "")) + 1
-        datum_times = np.unique(t[new]) if new.size else np.empty(0)
-        if y.size < 12:  # too few to fit a cubic and temperatures and to hold a quarter out
-            flags.append(OutlierFlags(f"{axis}/{term}: {y.size} samples, too few to diagnose", 0))
-            continue
-        T_at = np.empty((t.size, len(channels)))
-        for j in range(len(channels)):
-            T_at[:, j] = np.interp(t, grid_t, grid_T[:, j])
-        n_train = int(np.sum(t < hold_t))
-        conds = {c: f(t) for c, f in cond_at.items()}
-        # sweeps of the training rows from their own times (which held-out rows survive cleaning depends on
-        # their values), the held-out rows' numbered after them
-        sw_train = _sweep_ids(t[:n_train])
-        sw_hold = _sweep_ids(t[n_train:]) + (int(sw_train.max()) + 1 if n_train else 0)
-        terms.append(
-            TermData(
-                str(axis),
-                str(term),
-                t,
-                pos,
-                direction,
-                y,
-                T_at,
-                n_train,
-                np.concatenate([sw_train, sw_hold]).astype(int),
-                fl,
-                conds,
-                datum_times,
-            )
-        )
 
+def _error_spikes(t: np.ndarray, pos: np.ndarray, direction: np.ndarray, y: np.ndarray, hold_t: float) -> np.ndarray:
+    """Return the spikes of one (axis, term) per (position, direction) series, training and held-out rows apart."""
+    bad = np.zeros(y.size, dtype=bool)
+    keys = np.round(pos, 9) * 10 + direction
+    is_train = t < hold_t
+    for key in np.unique(keys):
+        for part in (is_train, ~is_train):
+            idx = np.flatnonzero((keys == key) & part)
+            if idx.size >= 10:
+                bad[idx] = spike_mask(y[idx])
+    return bad
+
+
+def _in_scan_gaps(t: np.ndarray, ts: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """Return True for an error sample inside a gap of the scans (nothing written for longer than ``max_gap_s``)."""
+    nxt = np.clip(np.searchsorted(ts, t, side="left"), 0, ts.size - 1)
+    prv = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)
+    return (ts[nxt] - ts[prv] > max_gap_s) | (t < ts[0]) | (t > ts[-1])
+
+
+@dataclass(frozen=True)
+class _TermContext:
+    """What every (axis, term) of one bundle is prepared with."""
+
+    grid: _TemperatureGrid
+    #: each error row's instrument session ('' for none)
+    session: pd.Series
+    #: operating column -> its value at given times (``_conditions_source``)
+    cond_at: dict[str, Callable[[np.ndarray], np.ndarray]]
+    holdout_fraction: float
+
+
+def _term_data(axis: str, term: str, g: pd.DataFrame, ctx: _TermContext, flags: list[OutlierFlags]) -> TermData | None:
+    """Return the cleaned rows of one (axis, term) (None: too few left); append what the cleaning did to ``flags``."""
+    grid = ctx.grid
+    g = g.sort_values("time_s", kind="stable")
+    t_all = g["time_s"].to_numpy(dtype=float)
+    hold_t = float(t_all[int(math.floor((1.0 - ctx.holdout_fraction) * t_all.size))]) if t_all.size else np.inf
+    g = g[np.isfinite(g["value"].to_numpy(dtype=float))]
+    sess_g = ctx.session.loc[g.index].to_numpy(dtype=object)
+    y = g["value"].to_numpy(dtype=float)
+    t = g["time_s"].to_numpy(dtype=float)
+    pos = g["position"].to_numpy(dtype=float)
+    direction = g["direction"].to_numpy(dtype=float) if "direction" in g else np.ones_like(y)
+    direction = np.where(np.isfinite(direction), direction, 1.0)
+    bad = _error_spikes(t, pos, direction, y, hold_t)
+    fl = OutlierFlags(f"{axis}/{term}", int(bad.sum()), 0, 0, tuple(float(v) for v in t[bad][:5]))
+    if bad.any():
+        flags.append(fl)
+    # an error sample inside a gap of the scans has no temperatures: it is left out and counted
+    in_gap = _in_scan_gaps(t, grid.ts, grid.max_gap_s)
+    if in_gap.any():
+        first = tuple(float(v) for v in t[in_gap][:5])
+        flags.append(OutlierFlags(f"{axis}/{term}: {int(in_gap.sum())} samples in scan gaps left out", 0, 0, 0, first))
+    keep = ~bad & ~in_gap
+    t, pos, direction, y = t[keep], pos[keep], direction[keep], y[keep]
+    sess_g = sess_g[keep]
+    # a new session of a setup zeroed at its mounting (bundle v2 datum: session): a stated re-zero
+    new = np.flatnonzero((sess_g[1:] != sess_g[:-1]) & (sess_g[1:] != "")) + 1
+    datum_times = np.unique(t[new]) if new.size else np.empty(0)
+    if y.size < 12:  # too few to fit a cubic and temperatures and to hold a quarter out
+        flags.append(OutlierFlags(f"{axis}/{term}: {y.size} samples, too few to diagnose", 0))
+        return None
+    T_at = np.empty((t.size, grid.grid_T.shape[1]))
+    for j in range(grid.grid_T.shape[1]):
+        T_at[:, j] = np.interp(t, grid.grid_t, grid.grid_T[:, j])
+    n_train = int(np.sum(t < hold_t))
+    conds = {c: f(t) for c, f in ctx.cond_at.items()}
+    # sweeps of the training rows from their own times (which held-out rows survive cleaning depends on
+    # their values), the held-out rows' numbered after them
+    sw_train = _sweep_ids(t[:n_train])
+    sw_hold = _sweep_ids(t[n_train:]) + (int(sw_train.max()) + 1 if n_train else 0)
+    sweep = np.concatenate([sw_train, sw_hold]).astype(int)
+    return TermData(str(axis), str(term), t, pos, direction, y, T_at, n_train, sweep, fl, conds, datum_times)
+
+
+@dataclass(frozen=True)
+class _MetaView:
+    """What the preparation reads of the campaign metadata, as plain values."""
+
+    model_channels: dict[str, list[str]]
+    stages: list[dict[str, Any]]
+    noise: dict[str, float]
+    room: list[str]
+    locations: dict[str, str]
+    structures: dict[str, str]
+
+
+def _meta_view(meta: Any, channels: list[str]) -> _MetaView:
+    """Return the metadata the preparation keeps (channels it does not know are left out; 'unknown' is '')."""
     mc_raw = _as_plain(meta_get(meta, "model_channels", None)) or {}
     model_channels = {str(a): [c for c in v if c in channels] for a, v in mc_raw.items()}
     stages = [_as_plain(s) for s in (meta_get(meta, "stages", []) or [])]
@@ -429,24 +460,58 @@ def prepare_bundle(bundle: Any, holdout_fraction: float = 0.25, max_gap_s: float
     info = meta_get(meta, "channels", {}) or {}
     locations = {ch: str(meta_get(v, "location", "") or "") for ch, v in info.items()}
     structures = {ch: str(meta_get(v, "structure", "") or "") for ch, v in info.items()}
-    locations = {k: ("" if v.strip().lower() in unknown else v) for k, v in locations.items()}
-    structures = {k: ("" if v.strip().lower() in unknown else v) for k, v in structures.items()}
-    return PreparedBundle(
-        str(getattr(bundle, "name", "bundle")),
-        channels,
-        room,
+    return _MetaView(
         model_channels,
         stages,
         {k: float(v) for k, v in noise.items() if v is not None},
-        grid_t,
-        grid_T,
-        raw_grid,
+        room,
+        {k: ("" if v.strip().lower() in unknown else v) for k, v in locations.items()},
+        {k: ("" if v.strip().lower() in unknown else v) for k, v in structures.items()},
+    )
+
+
+def prepare_bundle(
+    bundle: BundleLike, holdout_fraction: float = 0.25, max_gap_s: float | None = None
+) -> PreparedBundle:
+    """Return the cleaned, grid-aligned :class:`PreparedBundle` of a bundle (one pass, vectorised)."""
+    if not 0.0 < holdout_fraction < 0.9:
+        raise ValidationError(f"--holdout-fraction must be in (0, 0.9), got {holdout_fraction}")
+    temps: pd.DataFrame = bundle.temperatures
+    errors: pd.DataFrame = bundle.errors
+    channels = [c for c in temps.columns if c != "time_s"]
+    if not channels:
+        raise ValidationError("temperatures.csv: no thermocouple channels")
+    if errors is None or len(errors) == 0:
+        raise ValidationError("errors.csv: no error samples")
+    grid = _clean_temperatures(temps, channels, max_gap_s)
+    flags = list(grid.flags)
+    # the held-out split is fixed on the rows' times alone (never their values), and the training and
+    # held-out rows are cleaned apart: nothing in the held-out values can change a training decision
+    errs = errors.dropna(subset=["time_s", "position"])
+    cond_at = _conditions_source(bundle)
+    ctx = _TermContext(grid, _session_labels(errs, meta_get(bundle.meta, "setups", None)), cond_at, holdout_fraction)
+    terms: list[TermData] = []
+    for (axis, term), g in errs.groupby(["axis", "term"], sort=True):
+        td = _term_data(str(axis), str(term), g, ctx, flags)
+        if td is not None:
+            terms.append(td)
+    mv = _meta_view(bundle.meta, channels)
+    return PreparedBundle(
+        str(getattr(bundle, "name", "bundle")),
+        channels,
+        mv.room,
+        mv.model_channels,
+        mv.stages,
+        mv.noise,
+        grid.grid_t,
+        grid.grid_T,
+        grid.raw_grid,
         terms,
         flags,
         holdout_fraction,
-        locations,
-        structures,
-        {name: np.asarray(at(grid_t), dtype=float) for name, at in cond_at.items()},
+        mv.locations,
+        mv.structures,
+        {name: np.asarray(at(grid.grid_t), dtype=float) for name, at in cond_at.items()},
     )
 
 
@@ -525,6 +590,100 @@ class ChannelSelection:
     skipped_collinear: list[str] = field(default_factory=list)
 
 
+class _ChannelSearch:
+    """The stepwise channel search of one (axis, term), on one Gram matrix of the centred, scaled columns.
+
+    Columns: the selection's base (position basis, maybe the direction), then each usable channel's
+    dT, then y. Every subset fit is a solve on a block of ``G``, so the search costs no refits.
+    """
+
+    def __init__(self, B: np.ndarray, D: np.ndarray, y: np.ndarray, names: list[str], limits: tuple[int, float, float]):
+        self.n, self.nb = y.size, B.shape[1]
+        Z = np.column_stack([B] + [D[:, [j]] for j in range(D.shape[1])] + [y[:, None]])
+        Z = Z / np.maximum(np.sqrt(np.mean(Z * Z, axis=0)), 1e-300)
+        self.G = Z.T @ Z
+        self.iy = self.G.shape[0] - 1
+        self.ridge = 1e-12 * self.n
+        self.names = names
+        self.max_channels, self.alpha_in, self.alpha_out = limits
+        self.chosen: list[int] = []  # indices into the usable channels
+        self.skipped: list[str] = []
+
+    def _solve(self, cols: Sequence[int], target: int) -> tuple[list[int], np.ndarray]:
+        """Return (the base and ``cols``' rows of G, the coefficients of column ``target`` on them)."""
+        idx = list(range(self.nb)) + [self.nb + c for c in cols]
+        Gs = self.G[np.ix_(idx, idx)] + self.ridge * np.eye(len(idx))
+        return idx, np.linalg.solve(Gs, self.G[idx, target])
+
+    def rss(self, cols: list[int]) -> float:
+        """Return the residual sum of squares of y on the base and the channels ``cols``."""
+        G, iy = self.G, self.iy
+        idx, b = self._solve(cols, iy)
+        return max(float(G[iy, iy] - b @ G[idx, iy]), 1e-300)
+
+    def explained(self, c: int, cols: list[int]) -> float:
+        """Return the R^2 of channel ``c`` on the base and the channels ``cols``."""
+        G, k = self.G, self.nb + c
+        idx, b = self._solve(cols, k)
+        return 1.0 - max(float(G[k, k] - b @ G[idx, k]), 0.0) / max(float(G[k, k] - G[0, k] ** 2 / G[0, 0]), 1e-300)
+
+    def forward(self) -> bool:
+        """Add channels while the best one's F test is significant (Bonferroni); return whether any was added."""
+        chosen, added = self.chosen, False
+        while len(chosen) < self.max_channels + 4:  # room to overshoot: backward() prunes the proxies
+            rest = [c for c in range(len(self.names)) if c not in chosen]
+            if not rest:
+                break
+            base = self.rss(chosen)
+            best, best_rss = None, base
+            for c in rest:
+                if self.explained(c, chosen) > 1.0 - 1e-5:
+                    if self.names[c] not in self.skipped:
+                        self.skipped.append(self.names[c])
+                    continue
+                r = self.rss(chosen + [c])
+                if r < best_rss * (1.0 - 1e-12):
+                    best, best_rss = c, r
+            dof = self.n - self.nb - len(chosen) - 1
+            if best is None or dof <= 0:
+                break
+            p = float(stats.f.sf((base - best_rss) / (best_rss / dof), 1, dof))
+            if p > self.alpha_in / len(rest):
+                break
+            chosen.append(best)
+            added = True
+        return added
+
+    def backward(self) -> bool:
+        """Remove the least significant channel while it is not significant or too many are in."""
+        chosen, removed = self.chosen, False
+        while chosen:
+            full = self.rss(chosen)
+            dof = self.n - self.nb - len(chosen)
+            worst, worst_p = None, -1.0
+            for c in chosen:
+                p = float(stats.f.sf((self.rss([k for k in chosen if k != c]) - full) / (full / dof), 1, dof))
+                if p > worst_p:
+                    worst, worst_p = c, p
+            if worst is None or (worst_p <= self.alpha_out and len(chosen) <= self.max_channels):
+                break
+            chosen.remove(worst)
+            removed = True
+        return removed
+
+    def partial_correlations(self) -> list[float]:
+        """Return the partial correlation of each chosen channel with y given all the others."""
+        G, iy, chosen = self.G, self.iy, self.chosen
+        pcs = []
+        full = self.rss(chosen)
+        for c in chosen:
+            without = self.rss([k for k in chosen if k != c])
+            idx, bxc = self._solve([k for k in chosen if k != c], self.nb + c)
+            cov = G[self.nb + c, iy] - bxc @ G[idx, iy]
+            pcs.append(float(np.sign(cov) * np.sqrt(max(0.0, 1.0 - full / without))))
+        return pcs
+
+
 def select_channels(
     td: TermData, prep: PreparedBundle, max_channels: int | None = None, alpha_in: float = 1e-2, alpha_out: float = 1e-6
 ) -> ChannelSelection:
@@ -557,93 +716,17 @@ def select_channels(
     usable = [j for j in range(D.shape[1]) if np.all(np.isfinite(D[:, j])) and np.ptp(D[:, j]) > 0]
     if max_channels is None:
         max_channels = int(np.clip(len(usable) // 2, 4, 12))
-    n = y.size
-    nb = B.shape[1]
-    Z = np.column_stack([B] + [D[:, [j]] for j in usable] + [y[:, None]])
-    Z = Z / np.maximum(np.sqrt(np.mean(Z * Z, axis=0)), 1e-300)
-    G = Z.T @ Z
-    iy = G.shape[0] - 1
-    ridge = 1e-12 * n
-
-    def rss(cols: list[int]) -> float:
-        idx = list(range(nb)) + [nb + c for c in cols]
-        Gs = G[np.ix_(idx, idx)] + ridge * np.eye(len(idx))
-        b = np.linalg.solve(Gs, G[idx, iy])
-        return max(float(G[iy, iy] - b @ G[idx, iy]), 1e-300)
-
-    def explained(c: int, cols: list[int]) -> float:
-        idx = list(range(nb)) + [nb + k for k in cols]
-        Gs = G[np.ix_(idx, idx)] + ridge * np.eye(len(idx))
-        b = np.linalg.solve(Gs, G[idx, nb + c])
-        return 1.0 - max(float(G[nb + c, nb + c] - b @ G[idx, nb + c]), 0.0) / max(
-            float(G[nb + c, nb + c] - G[0, nb + c] ** 2 / G[0, 0]), 1e-300
-        )
-
-    chosen: list[int] = []  # indices into ``usable``
-    skipped: list[str] = []
-
-    def forward() -> bool:
-        added = False
-        while len(chosen) < max_channels + 4:  # room to overshoot: backward() prunes the proxies
-            rest = [c for c in range(len(usable)) if c not in chosen]
-            if not rest:
-                break
-            base = rss(chosen)
-            best, best_rss = None, base
-            for c in rest:
-                if explained(c, chosen) > 1.0 - 1e-5:
-                    name = prep.channels[usable[c]]
-                    if name not in skipped:
-                        skipped.append(name)
-                    continue
-                r = rss(chosen + [c])
-                if r < best_rss * (1.0 - 1e-12):
-                    best, best_rss = c, r
-            dof = n - nb - len(chosen) - 1
-            if best is None or dof <= 0:
-                break
-            p = float(stats.f.sf((base - best_rss) / (best_rss / dof), 1, dof))
-            if p > alpha_in / len(rest):
-                break
-            chosen.append(best)
-            added = True
-        return added
-
-    def backward() -> bool:
-        removed = False
-        while chosen:
-            full = rss(chosen)
-            dof = n - nb - len(chosen)
-            worst, worst_p = None, -1.0
-            for c in chosen:
-                p = float(stats.f.sf((rss([k for k in chosen if k != c]) - full) / (full / dof), 1, dof))
-                if p > worst_p:
-                    worst, worst_p = c, p
-            if worst is None or (worst_p <= alpha_out and len(chosen) <= max_channels):
-                break
-            chosen.remove(worst)
-            removed = True
-        return removed
-
-    forward()
+    names = [prep.channels[j] for j in usable]
+    search = _ChannelSearch(B, D[:, usable], y, names, (max_channels, alpha_in, alpha_out))
+    search.forward()
     for _ in range(4):
-        if not backward():
+        if not search.backward():
             break
-        if not forward():
+        if not search.forward():
             break
-    backward()
-    pcs = []  # partial correlation of each kept channel given all the others
-    full = rss(chosen)
-    for c in chosen:
-        without = rss([k for k in chosen if k != c])
-        idx = list(range(nb)) + [nb + k for k in chosen if k != c]
-        Gs = G[np.ix_(idx, idx)] + ridge * np.eye(len(idx))
-        bxy = np.linalg.solve(Gs, G[idx, iy])
-        bxc = np.linalg.solve(Gs, G[idx, nb + c])
-        cov = G[nb + c, iy] - bxc @ G[idx, iy]
-        pcs.append(float(np.sign(cov) * np.sqrt(max(0.0, 1.0 - full / without))))
-        del bxy
-    return ChannelSelection([prep.channels[usable[c]] for c in chosen], pcs, "screening", max_channels, skipped)
+    search.backward()
+    pcs = search.partial_correlations()
+    return ChannelSelection([names[c] for c in search.chosen], pcs, "screening", max_channels, search.skipped)
 
 
 def model_channels_for(td: TermData, prep: PreparedBundle) -> ChannelSelection:
@@ -727,8 +810,6 @@ def denoise_series(x: np.ndarray, windows: tuple[int, ...] = DENOISE_WINDOWS) ->
     the noise, and at most about half a noise sigma of the signal. Noise-aware and
     scale-free: a quiet channel or a fast one is left nearly untouched.
     """
-    from scipy.signal import savgol_filter
-
     x = np.asarray(x, dtype=float)
     if x.size < 20 or not np.all(np.isfinite(x)):
         return x, 1
@@ -755,8 +836,6 @@ def denoised_view(prep: PreparedBundle) -> PreparedBundle:
     channel, even a drift) then "improves" the model without any physical effect.
     The effect search holds every candidate to this view as well (diagnosis.py).
     """
-    from dataclasses import replace as dc_replace
-
     G = prep.grid_T.copy()
     for j in range(G.shape[1]):
         G[:, j], _ = denoise_series(G[:, j])
@@ -765,8 +844,8 @@ def denoised_view(prep: PreparedBundle) -> PreparedBundle:
         T_at = np.empty_like(td.temps)
         for j in range(G.shape[1]):
             T_at[:, j] = np.interp(td.t, prep.grid_t, G[:, j])
-        terms.append(dc_replace(td, temps=T_at))
-    return dc_replace(prep, grid_T=G, terms=terms)
+        terms.append(replace(td, temps=T_at))
+    return replace(prep, grid_T=G, terms=terms)
 
 
 def refit_standard(td: TermData, prep: PreparedBundle, sel: ChannelSelection) -> StandardModel:

@@ -6,6 +6,7 @@ import pytest
 
 from driftlab.errors import ValidationError
 from driftlab.models.features import (
+    CandidateSpec,
     Feature,
     Inputs,
     build_inputs,
@@ -110,3 +111,16 @@ def test_axis_labelled_features_read_their_column_of_q():
     assert X.to_numpy().tolist() == [[100.0, 0.0, 0.0], [0.0, 2500.0, -1.0]]
     with pytest.raises(ValidationError):
         design_matrix([Feature("position")], inp, q)
+
+
+def test_candidates_from_a_spec_or_keywords_are_one_list():
+    """``CandidateSpec`` and the keywords name the same candidates; a keyword overrides the spec's field."""
+    structs = {"T9": "x_screw", "T32": "arm", "T34": "arm", "T49": "room", "T50": "room"}
+    chans = list(structs)
+    spec = CandidateSpec(axes=("X",), screw_channels={"X": ["T9"]}, lag_taus_s=(3600.0,), room_channels=("T49", "T50"))
+    by_spec = candidate_features(chans, structs, spec)
+    assert by_spec == candidate_features(
+        chans, structs, axes=["X"], screw_channels={"X": ["T9"]}, lag_taus_s=[3600.0], room_channels=["T49", "T50"]
+    )
+    assert "pos[X]^3" in {f.name for f in by_spec}
+    assert "pos[X]^3" not in {f.name for f in candidate_features(chans, structs, spec, max_power=2)}

@@ -7,7 +7,7 @@ import pytest
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
 from driftlab.models.features import INTERCEPT, Feature, Inputs, design_matrix
-from driftlab.models.regression import TermFit, r_squared, stepwise
+from driftlab.models.regression import StepwiseOptions, TermFit, r_squared, stepwise
 
 
 def _data(n=3000, seed=1):
@@ -75,3 +75,19 @@ def test_stepwise_rejects_bad_data():
     X = design_matrix([INTERCEPT, Feature("dT", ("A",))], inp)
     with pytest.raises(ValidationError):
         stepwise(X, np.ones(3), [Feature("dT", ("A",))], forced=[INTERCEPT])
+
+
+def test_stepwise_rules_as_options_or_keywords_are_one_fit():
+    """``StepwiseOptions`` and the older keywords give the same fit; a misspelt rule is refused."""
+    inp, pos, y = _data()
+    cands = [Feature("pos_dT", (c,)) for c in inp.dT.columns] + [Feature("gradient", ("T34", "T32"))]
+    X = design_matrix([INTERCEPT, *cands], inp, pos)
+    by_keywords = stepwise(X, y, cands, forced=[INTERCEPT], max_terms=2, tiered=False)
+    by_options = stepwise(X, y, cands, forced=[INTERCEPT], options=StepwiseOptions(max_terms=2, tiered=False))
+    assert by_keywords.names == by_options.names and len(by_options.names) == 2
+    # the keyword wins over the options it is given with
+    assert stepwise(X, y, cands, forced=[INTERCEPT], options=StepwiseOptions(max_terms=2), max_terms=3).names != (
+        by_options.names
+    )
+    with pytest.raises(TypeError, match="p_entre"):
+        stepwise(X, y, cands, forced=[INTERCEPT], p_entre=0.01)

@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from driftlab.errors import ValidationError
-from driftlab.models.selection import correlation_matrix, screen_channels
+from driftlab.models.selection import ScreeningOptions, correlation_matrix, screen_channels
 
 
 def _campaign(seed=0):
@@ -59,6 +59,18 @@ def test_screening_collapses_redundant_sites_and_keeps_physics():
     tab = res.table()
     assert list(tab.columns) == res.kept and (np.diag(tab) == 1).all()
     assert set(res.to_dict()) == {"kept", "kept_reason", "dropped", "correlation_kept"}
+
+
+def test_options_keep_the_users_channels_and_set_the_thresholds():
+    """``ScreeningOptions``: the user's model channels stay whatever the screening finds; a looser bar drops more."""
+    temps, meta = _campaign()
+    base = screen_channels(temps, meta, ["T49", "T50"])
+    assert "T33" in base.dropped
+    kept = screen_channels(temps, meta, ["T49", "T50"], options=ScreeningOptions(always_keep=("T33", "T99")))
+    assert kept.kept_reason["T33"] == "required by the user's model channels" and "T99" not in kept.kept
+    # the arm's corners differ by less than 10 degC rms: with that bar they are no gradient to keep
+    loose = screen_channels(temps, meta, ["T49", "T50"], options=ScreeningOptions(gradient_degC=10.0))
+    assert "corner of" in base.kept_reason["T34"] and "corner of" not in loose.kept_reason.get("T34", "")
 
 
 def test_correlation_matrix_is_eq_6_1():
