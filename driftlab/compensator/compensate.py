@@ -20,10 +20,10 @@ import stat
 import tempfile
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from decimal import Decimal
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO, TypeAlias, TypedDict
+from typing import TYPE_CHECKING, Any, BinaryIO, TypeAlias, TypedDict, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -49,6 +49,7 @@ from driftlab.physics.lag import LaggedReadings, first_order_lag
 from driftlab.vocabulary import AXES
 
 if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
     from numpy.typing import ArrayLike
 
     from driftlab.compensator.guard import Guard
@@ -56,6 +57,8 @@ if TYPE_CHECKING:
     from driftlab.models.envelope import Envelope
 
 log = logging.getLogger(__name__)
+
+_Options = TypeVar("_Options", bound="DataclassInstance")
 
 #: positioning resolution of the thesis machine (ch. 7.2; bundle v1 ``machine.resolution_*``)
 RESOLUTION_MM = 0.0025
@@ -420,7 +423,7 @@ class Grid:
     @classmethod
     def of(cls, options: Mapping[str, object]) -> Grid:
         """Return the grid named by keyword options (``resolution_mm`` ... ``max_segment_deg``; defaults otherwise)."""
-        return cls(**{f: options[f] for f in _GRID_FIELDS if f in options})  # type: ignore[arg-type]
+        return with_options(cls(), options)
 
     @property
     def segment(self) -> tuple[float, float]:
@@ -433,7 +436,12 @@ class Grid:
         return decimals_for(self.resolution_mm, self.resolution_deg)
 
 
-_GRID_FIELDS = ("resolution_mm", "resolution_deg", "max_segment_mm", "max_segment_deg")
+def with_options(base: _Options, options: Mapping[str, object]) -> _Options:
+    """Return the frozen dataclass ``base`` with the fields ``options`` names replaced (other keys are ignored).
+
+    How flat keyword options (``correct_points``, ``Streamer``) become the small dataclasses they group into.
+    """
+    return replace(base, **{f.name: options[f.name] for f in fields(base) if f.name in options})
 
 
 @dataclass(frozen=True)
