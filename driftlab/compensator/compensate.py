@@ -42,6 +42,7 @@ from driftlab.compensator.gcode import (
     parse_program,
     subdivide,
 )
+from driftlab.compensator.parsed import ParsedPieces, usable
 from driftlab.errors import ValidationError
 from driftlab.models import document as documents
 from driftlab.physics import kinematics
@@ -806,6 +807,15 @@ class ProgramScan:
     lines: int
     #: the axis commands of every block solved by the first pass, when the second pass can use them as they are
     solved: KeptCommands | None = None
+    #: the pieces the first pass parsed, when it kept them for the second pass (``Scanner``'s ``keep``)
+    parsed: ParsedPieces | None = None
+
+    def close(self) -> None:
+        """Drop what the first pass kept for the second."""
+        if self.solved is not None:
+            self.solved.close()
+        if self.parsed is not None:
+            self.parsed.close()
 
 
 def scan_program(
@@ -828,36 +838,79 @@ def scan_program(
     leave (``start``: the pose before the program), so G91 blocks are checked where they really go.
     Nothing is kept but the state: memory does not grow with the program.
     """
-    state = ParserState()
-    first_time = float("nan")
-    pose: tuple[float, ...] | None = start
-    lin: list[tuple[float, np.ndarray]] = []
-    rot: list[tuple[float, np.ndarray]] = []
-    blocks = lines = 0
-    for offset, text in program_pieces(path, chunk_bytes):
+    return Scanner(name, min_decimals, start, (max_segment_mm, max_segment_deg), check).scan(path, chunk_bytes)
+
+
+class Scanner:
+    """The first pass of ``scan_program``, a piece at a time; with ``keep`` the parsed pieces are kept on disk
+    (``parsed.ParsedPieces``) for the second pass, which then neither reads nor parses the file again."""
+
+    def __init__(
+        self,
+        name: str,
+        min_decimals: tuple[int, int],
+        start: tuple[float, ...] | None,
+        segment: tuple[float, float],
+        check: FirstPass | None = None,
+        keep: ParsedPieces | None = None,
+    ) -> None:
+        self.name, self.min_decimals, self.segment, self.check, self.keep = name, min_decimals, segment, check, keep
+        self.state = ParserState()
+        self.pose = start
+        self.first_time = float("nan")
+        self.residuals: list[tuple[tuple[float, np.ndarray], tuple[float, np.ndarray]]] = []
+        self.blocks = self.lines = 0
+
+    def scan(self, path: str | Path, chunk_bytes: int) -> ProgramScan:
+        """Check every piece of the file at ``path``; return what the second pass needs (the kept pieces with it)."""
+        try:
+            for offset, text in program_pieces(path, chunk_bytes):
+                self.add(offset, text)
+            return self.finish()
+        except BaseException:
+            if self.keep is not None:
+                self.keep.close()
+            raise
+
+    def add(self, offset: int, text: bytes) -> None:
+        """Parse and check the piece of ``text`` that starts after ``offset`` lines."""
         # each piece in its own decimals (the program's are known at the end), from the pose in mm / deg
-        piece = parse_program(text, name, pose, min_decimals, state=replace(state, line_offset=offset), residuals=True)
-        state = replace(piece.next_state(state), eol=piece.eol, pose_int=None)
-        if not np.isfinite(first_time) and piece.n_lines and np.isfinite(piece.line_time_s).any():
-            first_time = float(piece.line_time_s[np.flatnonzero(np.isfinite(piece.line_time_s))[0]])
-        _check_piece(piece, check, (max_segment_mm, max_segment_deg))
+        state = replace(self.state, line_offset=offset)
+        piece = parse_program(text, self.name, self.pose, self.min_decimals, state=state, residuals=True)
+        self.state = replace(piece.next_state(state), eol=piece.eol, pose_int=None)
+        if not np.isfinite(self.first_time) and piece.n_lines and np.isfinite(piece.line_time_s).any():
+            self.first_time = float(piece.line_time_s[np.flatnonzero(np.isfinite(piece.line_time_s))[0]])
+        points = _check_piece(piece, self.check, self.segment)
         if piece.n_blocks:
-            pose = tuple((piece.target_int[-1] * piece.scale).tolist())
+            self.pose = tuple((piece.target_int[-1] * piece.scale).tolist())
         assert piece.residuals is not None
-        lin.append(piece.residuals[0])
-        rot.append(piece.residuals[1])
-        blocks += piece.n_blocks
-        lines = offset + piece.n_lines
-    decimals = (decimals_of(lin, min_decimals[0]), decimals_of(rot, min_decimals[1]))
-    if max(decimals) > MAX_DECIMALS:  # pragma: no cover - each piece has refused its own already
-        raise ValidationError(f"{name}: more than {MAX_DECIMALS} decimals; program not accepted")
-    solved = check.finish(decimals) if check is not None else None
-    return ProgramScan(decimals, state.eol or b"\n", first_time, blocks, lines, solved)
+        self.residuals.append(piece.residuals)
+        self.blocks += piece.n_blocks
+        self.lines = offset + piece.n_lines
+        if self.keep is not None and ParsedPieces.fits(piece):
+            self.keep.write(replace(piece, residuals=None), points)
+        elif self.keep is not None:  # too large to keep: the second pass reads and parses the file again
+            self.keep.close()
+            self.keep = None
+
+    def finish(self) -> ProgramScan:
+        """Return what the second pass needs: the program's decimals, line terminator, first time stamp, ..."""
+        least = self.min_decimals
+        decimals = (
+            decimals_of([r[0] for r in self.residuals], least[0]),
+            decimals_of([r[1] for r in self.residuals], least[1]),
+        )
+        if max(decimals) > MAX_DECIMALS:  # pragma: no cover - each piece has refused its own already
+            raise ValidationError(f"{self.name}: more than {MAX_DECIMALS} decimals; program not accepted")
+        solved = self.check.finish(decimals) if self.check is not None else None
+        eol = self.state.eol or b"\n"
+        return ProgramScan(decimals, eol, self.first_time, self.blocks, self.lines, solved, self.keep)
 
 
-def _check_piece(piece: Program, check: FirstPass | None, segment: tuple[float, float]) -> None:
+def _check_piece(piece: Program, check: FirstPass | None, segment: tuple[float, float]) -> int:
     """Refuse a piece whose targets leave the travel, whose segments need too many points, or whose corrections
-    leave the envelope: targets first (a runaway is named as one), then the subdivision, then the corrections."""
+    leave the envelope (targets first: a runaway is named as one; then the subdivision, then the corrections);
+    return how many points it subdivides into."""
     try:
         if check is not None:
             check.targets(piece)
@@ -868,6 +921,7 @@ def _check_piece(piece: Program, check: FirstPass | None, segment: tuple[float, 
         raise
     if check is not None:
         check.corrections(piece, points, segment)
+    return points
 
 
 class KeptCommands:
@@ -1069,6 +1123,23 @@ def parse_pieces(
             yield piece
 
 
+def kept_pieces(scan: ProgramScan, parsed: ParsedPieces, reader: _PieceReader) -> Iterator[Program]:
+    """Yield the pieces the first pass kept, as ``parse_pieces`` would parse them (the second pass, offline).
+
+    A kept piece that does not read as the second pass parses it (``parsed.usable``), or would make too
+    many points, is parsed again from its kept text with the state the pieces before it leave.
+    """
+    state = ParserState(decimals=scan.decimals, time_s=scan.first_time_s, eol=scan.eol)
+    for kept in parsed.read(reader.name, scan.eol):
+        if usable(kept, state, reader.max_points):
+            pieces: Iterable[Program] = (kept.program,)
+        else:
+            pieces = reader.parsed(kept.program.data, replace(state, line_offset=kept.program.first_line))
+        for piece in pieces:
+            state = piece.next_state(state)
+            yield piece
+
+
 @dataclass(frozen=True)
 class _PieceReader:
     """How ``parse_pieces`` parses a piece: name, start pose, least decimals, subdivision, most points."""
@@ -1179,8 +1250,7 @@ class StreamCorrector:
             self._correct(self._nominal.n)
         self._write()
         assert not self._pending
-        if self.scan.solved is not None:
-            self.scan.solved.close()
+        self.scan.close()
         return self.result.outcome(self)
 
     def _correct(self, n: int) -> None:
@@ -1280,16 +1350,9 @@ def _first_pass(
     """Return the first pass over a program file (``scan_program``, with the guard's envelope checks when given)."""
     guard = options.get("guard")
     grid = Grid.of(options)
-    return scan_program(
-        program_path,
-        str(program_path),
-        grid.decimals,
-        options.get("chunk_bytes", STREAM_CHUNK_BYTES),
-        start=options.get("start"),
-        max_segment_mm=grid.max_segment_mm,
-        max_segment_deg=grid.max_segment_deg,
-        check=None if guard is None else FirstPass(guard, model, temperatures, keep=True),
-    )
+    check = None if guard is None else FirstPass(guard, model, temperatures, keep=True)
+    scanner = Scanner(str(program_path), grid.decimals, options.get("start"), grid.segment, check, ParsedPieces())
+    return scanner.scan(program_path, options.get("chunk_bytes", STREAM_CHUNK_BYTES))
 
 
 def compensate_stream(
@@ -1320,16 +1383,21 @@ def compensate_stream(
         scan,
         CorrectorOptions(grid, options.get("chunk_points", 1 << 17), options.get("guard")),
     )
-    pieces = parse_pieces(
-        program_pieces(program_path, options.get("chunk_bytes", STREAM_CHUNK_BYTES)),
-        scan,
-        str(program_path),
-        start=options.get("start"),
-        min_decimals=grid.decimals,
-        max_segment_mm=grid.max_segment_mm,
-        max_segment_deg=grid.max_segment_deg,
-        max_points=max(corrector.chunk_points // 2, 1),
-    )
+    max_points = max(corrector.chunk_points // 2, 1)
+    if scan.parsed is not None:  # the first pass kept what it parsed: the file is not read again
+        reader = _PieceReader(str(program_path), options.get("start"), grid.decimals, grid.segment, max_points)
+        pieces = kept_pieces(scan, scan.parsed, reader)
+    else:
+        pieces = parse_pieces(
+            program_pieces(program_path, options.get("chunk_bytes", STREAM_CHUNK_BYTES)),
+            scan,
+            str(program_path),
+            start=options.get("start"),
+            min_decimals=grid.decimals,
+            max_segment_mm=grid.max_segment_mm,
+            max_segment_deg=grid.max_segment_deg,
+            max_points=max_points,
+        )
     for piece in pieces:
         corrector.add(piece)
     return corrector.finish()
@@ -1361,6 +1429,6 @@ def compensate_file(
         raise
     finally:
         scan = options["scan"]
-        if scan is not None and scan.solved is not None:
-            scan.solved.close()
+        if scan is not None:
+            scan.close()
     return result

@@ -527,17 +527,23 @@ def _blocks(w: _Words, axes: _AxisWords, buf: np.ndarray) -> _Blocks:
     return _Blocks(block_line, present, word_int, num_start, num_end, a_end[last], spaced)
 
 
-def _targets(b: _Blocks, incremental: np.ndarray, start_int: np.ndarray) -> np.ndarray:
-    """Return (B, 5) the target of each block: absolute words set it, G91 words add to the one before."""
-    n_blocks = b.block_line.shape[0]
+def block_targets(
+    present: np.ndarray, word_int: np.ndarray, incremental: np.ndarray, start_int: np.ndarray
+) -> np.ndarray:
+    """Return (B, 5) the target of each block: absolute words set it, G91 words add to the one before.
+
+    ``present`` and ``word_int`` (B, 5): the blocks' axis words and their values; ``incremental`` (B,):
+    G91 in effect; ``start_int`` (5,): the pose before the first block (all in integer units).
+    """
+    n_blocks = present.shape[0]
     target = np.empty((n_blocks, 5), dtype=np.int64)
     ar = np.arange(n_blocks)
     for k in range(5):
-        reset = b.present[:, k] & ~incremental
-        inc = np.where(b.present[:, k] & incremental, b.word_int[:, k], 0)
+        reset = present[:, k] & ~incremental
+        inc = np.where(present[:, k] & incremental, word_int[:, k], 0)
         csum = np.cumsum(inc)
         r = np.maximum.accumulate(np.where(reset, ar, -1))
-        base = np.where(r >= 0, b.word_int[np.maximum(r, 0), k] - csum[np.maximum(r, 0)], start_int[k])
+        base = np.where(r >= 0, word_int[np.maximum(r, 0), k] - csum[np.maximum(r, 0)], start_int[k])
         target[:, k] = base + csum
     return target
 
@@ -606,7 +612,7 @@ def parse_program(
         eol=lines.eol,
         line_time_s=_line_times(times, lines.n, state.time_s),
         block_line=blocks.block_line,
-        target_int=_targets(blocks, incremental, start_int),
+        target_int=block_targets(blocks.present, blocks.word_int, incremental, start_int),
         start_int=start_int,
         present=blocks.present,
         word_int=blocks.word_int,
