@@ -1088,7 +1088,7 @@ class FirstPass:
         correction[:, 3:] = np.rad2deg(correction[:, 3:])
         if not np.all(np.isfinite(correction)):
             bad = int(np.flatnonzero(~np.isfinite(correction).all(axis=1))[0])
-            line = int(piece.block_line[block[bad]]) + piece.first_line + 1
+            line = piece.line_number(block[bad])
             raise ValidationError(f"{piece.name}:{line}: the model predicts non-finite errors; program not accepted")
         self.guard.check_corrections(piece, block, correction)
         self.guard.check_positions(piece, block, pose_int * piece.scale + correction, "corrected target")

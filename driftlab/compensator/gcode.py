@@ -135,6 +135,10 @@ class Program:
         q[:, 3:] = np.deg2rad(q[:, 3:])
         return q
 
+    def line_number(self, block: int) -> int:
+        """Return the line number (1-based, in the whole program) of block ``block`` of this text."""
+        return int(self.block_line[block]) + self.first_line + 1
+
     def block_time_s(self) -> np.ndarray:
         """Return (B,) time stamp of each block (NaN when the program carries none)."""
         return self.line_time_s[self.block_line]
@@ -709,7 +713,7 @@ def _pieces(
     if pieces.shape[0] and int(pieces.max()) > 100_000:
         b = b0 + int(np.argmax(pieces))
         raise ValidationError(
-            f"{program.name}:{int(program.block_line[b]) + program.first_line + 1}: segment would need more than "
+            f"{program.name}:{program.line_number(b)}: segment would need more than "
             "100000 subdivisions; raise the subdivision length"
         )
     return start, end, pieces

@@ -40,6 +40,11 @@ def _g(x: float) -> str:
     return f"{x:.6g}"
 
 
+def _refuse(program: Program, block: int, what: str) -> None:
+    """Raise the refusal of one block: ``PROGRAM:LINE: what; program not accepted``."""
+    raise ValidationError(f"{program.name}:{program.line_number(block)}: {what}; program not accepted")
+
+
 class Enveloped(Protocol):
     """What a guard reads of a model (``compensate.ErrorModel``): its envelope and fitted temperature ranges."""
 
@@ -94,10 +99,11 @@ class Guard:
         bad = (pose < self.lo - 1e-9) | (pose > self.hi + 1e-9)
         if bad.any():
             i, k = _first(bad)
-            line = int(program.block_line[block[i]]) + program.first_line + 1
-            raise ValidationError(
-                f"{program.name}:{line}: {what} {AXES[k]} {_g(pose[i, k])} {_unit(k)} is outside the travel "
-                f"{_g(self.lo[k])}..{_g(self.hi[k])} {_unit(k)}; program not accepted"
+            _refuse(
+                program,
+                block[i],
+                f"{what} {AXES[k]} {_g(pose[i, k])} {_unit(k)} is outside the travel "
+                f"{_g(self.lo[k])}..{_g(self.hi[k])} {_unit(k)}",
             )
 
     def check_corrections(self, program: Program, block: np.ndarray, correction: np.ndarray) -> None:
@@ -107,10 +113,11 @@ class Guard:
         bad = ~(np.abs(correction) <= self.max_correction + 1e-12)
         if bad.any():
             i, k = _first(bad)
-            line = int(program.block_line[block[i]]) + program.first_line + 1
-            raise ValidationError(
-                f"{program.name}:{line}: correction of {AXES[k]} {_g(correction[i, k])} {_unit(k)} exceeds the "
-                f"largest plausible {_g(self.max_correction[k])} {_unit(k)} (machine envelope); program not accepted"
+            _refuse(
+                program,
+                block[i],
+                f"correction of {AXES[k]} {_g(correction[i, k])} {_unit(k)} exceeds the "
+                f"largest plausible {_g(self.max_correction[k])} {_unit(k)} (machine envelope)",
             )
 
     def check_sent(self, program: Program, block: np.ndarray, nominal_int: np.ndarray, sent_int: np.ndarray) -> None:

@@ -23,11 +23,10 @@ from typing import Final
 
 import numpy as np
 
-from driftlab.compensator.gcode import ParserState, Program, block_targets
+from driftlab.compensator.gcode import ParserState, Program
 
 #: the arrays of ``Program`` kept, in order, with their shape: (5,), per line (L,), per block (B,), (B, 5).
-#: ``target_int`` is not kept (``gcode.block_targets`` makes it again from the words), ``num_end`` is kept as
-#: the numbers' lengths; integers are kept in the narrowest type that holds them
+#: ``num_end`` is kept as the numbers' lengths; integers are kept in the narrowest type that holds them
 _FIELDS: Final = (
     ("start_int", "pose"),
     ("line_start", "L"),
@@ -40,6 +39,7 @@ _FIELDS: Final = (
     ("insert_at", "B"),
     ("spaced", "B"),
     ("present", "B5"),
+    ("target_int", "B5"),
     ("word_int", "B5"),
     ("num_start", "B5"),
     ("num_end", "B5"),
@@ -113,7 +113,6 @@ class ParsedPieces:
             data = self.fh.read(n_data)
             sizes = {"pose": 5, "L": n_lines, "B": n_blocks, "B5": n_blocks * 5}
             got = {field: self._take(code, sizes[shape]) for (field, shape), code in zip(_FIELDS, head[_META:])}
-            start, incremental = got["start_int"], got["incremental"]
             present, word_int = got["present"].reshape(n_blocks, 5), got["word_int"].reshape(n_blocks, 5)
             num_start, num_len = got["num_start"].reshape(n_blocks, 5), got["num_end"].reshape(n_blocks, 5)
             program = Program(
@@ -126,13 +125,13 @@ class ParsedPieces:
                 eol=eol,
                 line_time_s=got["line_time_s"],
                 block_line=got["block_line"],
-                target_int=block_targets(present, word_int, incremental, start),
-                start_int=start,
+                target_int=got["target_int"].reshape(n_blocks, 5),
+                start_int=got["start_int"],
                 present=present,
                 word_int=word_int,
                 num_start=num_start,
                 num_end=np.where(num_start >= 0, num_start + num_len, -1),
-                incremental=incremental,
+                incremental=got["incremental"],
                 rapid=got["rapid"],
                 insert_at=got["insert_at"],
                 spaced=got["spaced"],

@@ -110,8 +110,11 @@ def _client(client: httpx.Client | None, timeout_s: float, token: str | None) ->
     return httpx.Client(timeout=timeout_s, headers=headers)
 
 
-class ApiModel:
-    """The machine's current model from the driftlab API, reloaded when its ETag changes."""
+class _ApiResource:
+    """One resource of a machine on the driftlab API: ``{api}/machines/{machine}/{path}``, read with ``client``
+    (default: a new one with the timeout and bearer token)."""
+
+    path = ""
 
     def __init__(
         self,
@@ -121,14 +124,21 @@ class ApiModel:
         timeout_s: float = 5.0,
         token: str | None = None,
     ) -> None:
-        self.url = f"{api.rstrip('/')}/machines/{machine}/model/current"
+        self.url = f"{api.rstrip('/')}/machines/{machine}/{self.path}"
         self.machine = machine
         self.client = _client(client, timeout_s, token)
-        self.model: ErrorModel | None = None
-        self.etag: str | None = None
-        self.document: dict[str, Any] | None = None
-        self.reachable = True
-        self.reloads = 0
+
+
+class ApiModel(_ApiResource):
+    """The machine's current model from the driftlab API, reloaded when its ETag changes."""
+
+    path = "model/current"
+    #: the model in use, its ETag and document; whether the API answered last time; models loaded
+    model: ErrorModel | None = None
+    etag: str | None = None
+    document: dict[str, Any] | None = None
+    reachable = True
+    reloads = 0
 
     def refresh(self) -> bool:
         """Fetch the model unless unchanged (304); keep the last good one when the API fails."""
@@ -175,23 +185,14 @@ class ApiModel:
         self.reachable = True
 
 
-class ApiTemperatures:
+class ApiTemperatures(_ApiResource):
     """The machine's latest scan from the driftlab API: ``GET {api}/machines/{id}/temperatures/latest``.
 
     Accepted replies: ``{"time_s": .., "temperatures": {channel: degC}}`` (also under ``values``
     or ``channels``), or a plain ``{channel: degC}`` object.
     """
 
-    def __init__(
-        self,
-        api: str,
-        machine: str,
-        client: httpx.Client | None = None,
-        timeout_s: float = 5.0,
-        token: str | None = None,
-    ) -> None:
-        self.url = f"{api.rstrip('/')}/machines/{machine}/temperatures/latest"
-        self.client = _client(client, timeout_s, token)
+    path = "temperatures/latest"
 
     def read(self) -> dict[str, float]:
         """Return the latest reading per channel; InstrumentError when the API cannot give one."""

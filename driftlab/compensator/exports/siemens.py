@@ -33,25 +33,23 @@ import numpy as np
 
 from driftlab.compensator.exports.controllers import Controller, Export
 from driftlab.compensator.exports.grid import AxisTable
-from driftlab.errors import ValidationError
 
 DECIMALS = 7
-#: the largest variation of the reversal along the axis one backlash value may stand for (mm, deg)
-REVERSAL_SPREAD = 0.25e-3
 
 
 def _num(v: float) -> str:
     return f"{v:.{DECIMALS}f}"
 
 
+def _head(program: str, table: AxisTable, ax: str, what: str) -> list[str]:
+    """Return the first lines of an initialisation program: its name, the channel, what it holds."""
+    about = f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}"
+    return [program, "CHANDATA(1)", about, f"; {what}"]
+
+
 def _lec(table: AxisTable, ax: str, values: np.ndarray, what: str) -> str:
     lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
-    out = [
-        "%_N_AX_EEC_INI",
-        "CHANDATA(1)",
-        f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}",
-        f"; LEC: {what}; values = axis error (-correction), {table.unit}",
-    ]
+    out = _head("%_N_AX_EEC_INI", table, ax, f"LEC: {what}; values = axis error (-correction), {table.unit}")
     out += [f"$AA_ENC_COMP[0,{i},{ax}]={_num(-v)}" for i, v in enumerate(values)]
     out += [
         f"$AA_ENC_COMP_STEP[0,{ax}]={_num(step)}",
@@ -65,12 +63,8 @@ def _lec(table: AxisTable, ax: str, values: np.ndarray, what: str) -> str:
 
 def _cec(table: AxisTable, ax: str, parts: list[tuple[np.ndarray, int]], first_table: int) -> str:
     lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
-    out = [
-        "%_N_NC_CEC_INI",
-        "CHANDATA(1)",
-        f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}",
-        "; CEC: the direction-dependent rest of the correction; values = axis error (-correction)",
-    ]
+    what = "CEC: the direction-dependent rest of the correction; values = axis error (-correction)"
+    out = _head("%_N_NC_CEC_INI", table, ax, what)
     for k, (values, direction) in enumerate(parts):
         t = first_table + k
         out += [f"$AN_CEC[{t},{i}]={_num(-v)}" for i, v in enumerate(values)]
@@ -95,13 +89,7 @@ def write(table: AxisTable, ctl: Controller, machine_axis: str | None = None, fi
     reversal = table.reverse - table.forward
     notes: list[str] = ["load with MD32700 (and MD32710) at 0, then set them and power on again"]
     if ctl.name == "808d":
-        r = float(np.mean(reversal))
-        spread = float(np.abs(reversal - r).max())
-        if spread > REVERSAL_SPREAD:
-            raise ValidationError(
-                f"808d: the reversal varies by {spread * 1e3:.2f} um along the axis; the 808D has no "
-                "direction-dependent table (use 828d or 840d-sl)"
-            )
+        r = table.uniform_reversal("808d", "the 808D has no direction-dependent table (use 828d or 840d-sl)")
         files = {"": _lec(table, ax, table.forward, "positive direction")}
         backlash = {
             f"MD32700 $MA_ENC_COMP_ENABLE[0,{ax}]": 1,
