@@ -42,7 +42,7 @@ from driftlab.compensator.gcode import (
     parse_program,
     subdivide,
 )
-from driftlab.compensator.parsed import ParsedPieces, usable
+from driftlab.compensator.parsed import KeptPiece, ParsedPieces, usable
 from driftlab.errors import ValidationError
 from driftlab.models import document as documents
 from driftlab.physics import kinematics
@@ -1009,7 +1009,7 @@ class FirstPass:
         if self.kept is not None and (timed or self.kept.rows + self._queued + (points or 0) > KEEP_MAX_POINTS):
             self._drop_kept()  # temperatures per block, or too many points to keep: solved per piece
         if self.kept is not None:
-            pts = subdivide(piece, *segment)
+            pts = subdivide(piece, *segment, count=points)
             self._decimals.add(piece.decimals)
             q = piece.to_q(pts.nominal_int)
             direction = directions(pts.nominal_int, piece.start_int, self.prev_direction)
@@ -1123,20 +1123,24 @@ def parse_pieces(
             yield piece
 
 
-def kept_pieces(scan: ProgramScan, parsed: ParsedPieces, reader: _PieceReader) -> Iterator[Program]:
+def kept_pieces(scan: ProgramScan, parsed: ParsedPieces, reader: _PieceReader) -> Iterator[KeptPiece]:
     """Yield the pieces the first pass kept, as ``parse_pieces`` would parse them (the second pass, offline).
 
     A kept piece that does not read as the second pass parses it (``parsed.usable``), or would make too
-    many points, is parsed again from its kept text with the state the pieces before it leave.
+    many points, is parsed again from its kept text with the state the pieces before it leave (and
+    comes without its count of points: ``KeptPiece.points`` None).
     """
     state = ParserState(decimals=scan.decimals, time_s=scan.first_time_s, eol=scan.eol)
     for kept in parsed.read(reader.name, scan.eol):
         if usable(kept, state, reader.max_points):
-            pieces: Iterable[Program] = (kept.program,)
+            pieces: Iterable[KeptPiece] = (kept,)
         else:
-            pieces = reader.parsed(kept.program.data, replace(state, line_offset=kept.program.first_line))
+            text = kept.program.data
+            pieces = (
+                KeptPiece(p, None) for p in reader.parsed(text, replace(state, line_offset=kept.program.first_line))
+            )
         for piece in pieces:
-            state = piece.next_state(state)
+            state = piece.program.next_state(state)
             yield piece
 
 
@@ -1231,9 +1235,10 @@ class StreamCorrector:
         self._nominal, self._times, self._sent = _Rows(), _Rows(), _Rows()
         self._first: Program | None = None
 
-    def add(self, piece: Program) -> None:
-        """Take the next piece: queue its points, correct every full batch, write the pieces that are done."""
-        points = subdivide(piece, *self.options.grid.segment)
+    def add(self, piece: Program, count: int | None = None) -> None:
+        """Take the next piece (``count``: its points, when the first pass counted them): queue its points,
+        correct every full batch, write the pieces that are done."""
+        points = subdivide(piece, *self.options.grid.segment, count=count)
         if self._first is None:
             self._first = piece
         if points.n:
@@ -1386,18 +1391,19 @@ def compensate_stream(
     max_points = max(corrector.chunk_points // 2, 1)
     if scan.parsed is not None:  # the first pass kept what it parsed: the file is not read again
         reader = _PieceReader(str(program_path), options.get("start"), grid.decimals, grid.segment, max_points)
-        pieces = kept_pieces(scan, scan.parsed, reader)
-    else:
-        pieces = parse_pieces(
-            program_pieces(program_path, options.get("chunk_bytes", STREAM_CHUNK_BYTES)),
-            scan,
-            str(program_path),
-            start=options.get("start"),
-            min_decimals=grid.decimals,
-            max_segment_mm=grid.max_segment_mm,
-            max_segment_deg=grid.max_segment_deg,
-            max_points=max_points,
-        )
+        for kept in kept_pieces(scan, scan.parsed, reader):
+            corrector.add(kept.program, kept.points)
+        return corrector.finish()
+    pieces = parse_pieces(
+        program_pieces(program_path, options.get("chunk_bytes", STREAM_CHUNK_BYTES)),
+        scan,
+        str(program_path),
+        start=options.get("start"),
+        min_decimals=grid.decimals,
+        max_segment_mm=grid.max_segment_mm,
+        max_segment_deg=grid.max_segment_deg,
+        max_points=max_points,
+    )
     for piece in pieces:
         corrector.add(piece)
     return corrector.finish()

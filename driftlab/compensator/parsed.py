@@ -68,7 +68,7 @@ class KeptPiece:
     """A piece read back: the program piece and how many points it subdivides into (counted by the first pass)."""
 
     program: Program
-    points: int
+    points: int | None
 
 
 class ParsedPieces:
@@ -161,7 +161,8 @@ class ParsedPieces:
 def usable(kept: KeptPiece, state: ParserState, max_points: int | None) -> bool:
     """Return whether a kept piece reads as the second pass parses it from ``state`` (see module docstring)."""
     piece = kept.program
-    if piece.decimals != state.decimals or (max_points is not None and piece.n_lines > 1 and kept.points > max_points):
+    too_many = max_points is not None and piece.n_lines > 1 and (kept.points is None or kept.points > max_points)
+    if piece.decimals != state.decimals or too_many:
         return False
     if state.pose_int is not None and not np.array_equal(piece.start_int, state.pose_int):
         return False
