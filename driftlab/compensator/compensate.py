@@ -90,7 +90,7 @@ class ErrorModel:
     lag_taus: tuple[float, ...] = ()
 
     @classmethod
-    def from_document(cls, document: Mapping[str, Any] | Any, label: str | None = None) -> ErrorModel:
+    def from_document(cls, document: Mapping[str, Any] | ModelDocument, label: str | None = None) -> ErrorModel:
         """Return the model of a registry document (the JSON of ``driftlab models show``).
 
         The document's terms are linear in dT, position and direction, so they are evaluated

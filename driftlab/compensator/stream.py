@@ -23,7 +23,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, TypedDict
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict
 
 import httpx
 import numpy as np
@@ -43,6 +43,9 @@ from driftlab.compensator.gcode import Points, Program, count_points, emit, subd
 from driftlab.compensator.guard import Guard
 from driftlab.errors import InstrumentError, NotFoundError, ValidationError
 from driftlab.physics.lag import LaggedReadings, LagState
+
+if TYPE_CHECKING:
+    from driftlab.daq.protocols import StreamReport
 
 log = logging.getLogger(__name__)
 
@@ -251,7 +254,7 @@ class StreamResult:
     #: per-block latency (s): all of them for up to LATENCY_SAMPLE blocks, then a uniform sample of them
     latency_s: list[float] = field(default_factory=list)
     latency_max_s: float = 0.0
-    link_report: Any = None
+    link_report: StreamReport | None = None
     warnings: list[str] = field(default_factory=list)
     _recorded: int = field(default=0, repr=False)
     _rng: random.Random = field(default_factory=lambda: random.Random(0), repr=False)
