@@ -835,7 +835,7 @@ class _Edits:
     def join(cls, parts: list[_Edits]) -> _Edits:
         """Return the edits of ``parts`` together, in byte order."""
         pos, end, prefix, value, axis, key = (
-            np.concatenate([getattr(p, f) for p in parts]).astype(np.int64) for f in _EDIT_FIELDS
+            np.concatenate([getattr(p, f) for p in parts]).astype(np.int64, copy=False) for f in _EDIT_FIELDS
         )
         if np.any(pos[1:] < pos[:-1]) or any(p.pos.shape[0] for p in parts[1:]):
             # edits are made in runs already in byte order, so a stable sort of one key is nearly free
