@@ -773,6 +773,14 @@ def format_fixed(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndar
     Always one digit before and at least one after the point (``-0.5``, ``12.0``): a bare
     integer means a count of least increments on some controllers.
     """
+    chars, start, length = _fixed_rows(values, decimals)
+    cols = np.arange(chars.shape[1])[None, :]
+    return chars[(cols >= start[:, None]) & (cols < (start + length)[:, None])], length
+
+
+def _fixed_rows(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (chars (M, W), start (M,), length (M,)): value k written as ``format_fixed`` writes it is
+    ``chars[k, start[k] : start[k] + length[k]]`` (the sign stands just before the first digit written)."""
     v = np.asarray(values, dtype=np.int64)
     m = v.shape[0]
     neg = v < 0
@@ -792,13 +800,8 @@ def format_fixed(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndar
     chars[:, 1 : 1 + n_int] = idig
     chars[:, 1 + n_int] = 46
     chars[:, 2 + n_int :] = fdig
-    cols = np.arange(width)
-    mask = np.empty((m, width), dtype=bool)
-    mask[:, 0] = neg
-    mask[:, 1 : 1 + n_int] = cols[None, 1 : 1 + n_int] - 1 >= first[:, None]
-    mask[:, 1 + n_int] = True
-    mask[:, 2 + n_int :] = cols[None, 2 + n_int :] - (2 + n_int) < keep_f[:, None]
-    return chars[mask], mask.sum(axis=1)
+    chars[np.flatnonzero(neg), first[neg]] = 45  # over a leading zero, or the first column
+    return chars, 1 + first - neg, neg + (n_int - first) + 1 + keep_f
 
 
 def _concat_pieces(sources: np.ndarray, start: np.ndarray, length: np.ndarray) -> bytes:
@@ -917,11 +920,11 @@ def _splice(program: Program, edits: _Edits, lo: int, hi: int) -> bytes:
     for axes_sel, dec in (((ax >= 0) & (ax < 3), program.decimals[0]), (ax >= 3, program.decimals[1])):
         sel = np.flatnonzero(axes_sel)
         if sel.shape[0]:
-            chars, lens = format_fixed(edits.value[sel], dec)
+            chars, first, lens = _fixed_rows(edits.value[sel], dec)
             num_len[sel] = lens
-            num_start[sel] = pool_off + np.cumsum(lens) - lens
-            pools.append(chars)
-            pool_off += chars.shape[0]
+            num_start[sel] = pool_off + np.arange(sel.shape[0]) * chars.shape[1] + first
+            pools.append(chars.ravel())
+            pool_off += chars.size
     prefix_text = [b""] + [a.encode() for a in AXES] + [b" " + a.encode() for a in AXES] + [program.eol]
     ptab = np.frombuffer(b"".join(prefix_text), dtype=np.uint8)
     plen = np.array([len(p) for p in prefix_text], dtype=np.int64)
