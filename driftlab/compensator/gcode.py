@@ -654,7 +654,10 @@ def _residuals(values: np.ndarray, least: int) -> tuple[float, np.ndarray]:
     """Return (largest |value|, worst residual at each of least..9 decimals): what ``_decimals`` decides on."""
     if values.shape[0] == 0:
         return 0.0, np.zeros(MAX_DECIMALS + 1 - least)
-    res = [float(np.abs(values * 10.0**d - np.rint(values * 10.0**d)).max()) for d in range(least, MAX_DECIMALS + 1)]
+    res = []
+    for d in range(least, MAX_DECIMALS + 1):
+        x = values * 10.0**d
+        res.append(float(np.abs(x - np.rint(x)).max()))
     return float(np.abs(values).max()), np.array(res)
 
 
