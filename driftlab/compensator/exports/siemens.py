@@ -47,33 +47,29 @@ def _head(program: str, table: AxisTable, ax: str, what: str) -> list[str]:
     return [program, "CHANDATA(1)", about, f"; {what}"]
 
 
+def _grid(table: AxisTable, name: str, index: str) -> list[str]:
+    """Return the lines that place a table on its axis: ``NAME_STEP[INDEX]``, ``_MIN``, ``_MAX``."""
+    lo, hi = float(table.positions[0]), float(table.positions[-1])
+    step = _num(table.step)
+    return [f"{name}_STEP[{index}]={step}", f"{name}_MIN[{index}]={_num(lo)}", f"{name}_MAX[{index}]={_num(hi)}"]
+
+
 def _lec(table: AxisTable, ax: str, values: np.ndarray, what: str) -> str:
-    lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
     out = _head("%_N_AX_EEC_INI", table, ax, f"LEC: {what}; values = axis error (-correction), {table.unit}")
     out += [f"$AA_ENC_COMP[0,{i},{ax}]={_num(-v)}" for i, v in enumerate(values)]
-    out += [
-        f"$AA_ENC_COMP_STEP[0,{ax}]={_num(step)}",
-        f"$AA_ENC_COMP_MIN[0,{ax}]={_num(lo)}",
-        f"$AA_ENC_COMP_MAX[0,{ax}]={_num(hi)}",
-        f"$AA_ENC_COMP_IS_MODULO[0,{ax}]=0",
-        "M17",
-    ]
+    out += _grid(table, "$AA_ENC_COMP", f"0,{ax}")
+    out += [f"$AA_ENC_COMP_IS_MODULO[0,{ax}]=0", "M17"]
     return "\n".join(out) + "\n"
 
 
 def _cec(table: AxisTable, ax: str, parts: list[tuple[np.ndarray, int]], first_table: int) -> str:
-    lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
     what = "CEC: the direction-dependent rest of the correction; values = axis error (-correction)"
     out = _head("%_N_NC_CEC_INI", table, ax, what)
     for k, (values, direction) in enumerate(parts):
         t = first_table + k
         out += [f"$AN_CEC[{t},{i}]={_num(-v)}" for i, v in enumerate(values)]
+        out += [f"$AN_CEC_INPUT_AXIS[{t}]=({ax})", f"$AN_CEC_OUTPUT_AXIS[{t}]=({ax})", *_grid(table, "$AN_CEC", str(t))]
         out += [
-            f"$AN_CEC_INPUT_AXIS[{t}]=({ax})",
-            f"$AN_CEC_OUTPUT_AXIS[{t}]=({ax})",
-            f"$AN_CEC_STEP[{t}]={_num(step)}",
-            f"$AN_CEC_MIN[{t}]={_num(lo)}",
-            f"$AN_CEC_MAX[{t}]={_num(hi)}",
             f"$AN_CEC_DIRECTION[{t}]={direction}",
             f"$AN_CEC_MULT_BY_TABLE[{t}]=0",
             f"$AN_CEC_IS_MODULO[{t}]=0",
