@@ -1,14 +1,16 @@
 """Compensator throughput: offline 1,000,000-block program, streaming per-block latency.
 
-Prints ONE JSON line. ``offline_file_*``: end to end as ``driftlab compensate P -o OUT`` runs (file in,
-first pass with the machine envelope, second pass, file out), beside the same without the envelope
-checks (``baseline_unguarded_file_*``). Offline: parse + predict + solve (eqs. 4.23-4.26) + quantise + emit of a
-1,000,000-block five-axis program, in blocks/s of wall time and of CPU time (the machine is shared:
-the CPU figure is what one core does); baseline in the same run: the forward chain
-``kinematics.machine_chain`` over the same poses with the predicted errors. Streaming: per-block latency (time
-from the link asking for a block to having it) while streaming to the simulated controller
-over a socket, the program read in pieces as `driftlab compensate --port` reads it, p50/p99/max
-in ms. Targets: >= 200,000 blocks/s offline, p99 < 1 ms.
+Prints ONE JSON line. ``offline_file_*`` (also ``end_to_end_*``, the figure of issues 24 and 26.5): end
+to end as ``driftlab compensate P -o OUT`` runs (file in, first pass with the machine envelope, feeds,
+G91 runaways and subdivision limits, second pass on the pieces the first pass kept, file out), beside
+the same without the envelope checks (``baseline_unguarded_file_*``) and the plain-numpy forward chain
+over the same poses (``baseline_numpy_chain_poses_per_cpu_s``). Offline (in memory): parse + predict +
+solve (eqs. 4.23-4.26) + quantise + emit of a 1,000,000-block five-axis program, in blocks/s of wall
+time and of CPU time (the machine is shared: the CPU figure is what one core does); baseline in the
+same run: the forward chain ``kinematics.machine_chain`` over the same poses with the predicted errors.
+Streaming: per-block latency (time from the link asking for a block to having it) while streaming to
+the simulated controller over a socket, the program read in pieces as `driftlab compensate --port`
+reads it, p50/p99/max in ms. Targets: >= 200,000 blocks/s end to end, p99 < 1 ms.
 """
 
 from __future__ import annotations
@@ -249,10 +251,21 @@ def main() -> None:
     figures.update(offline(data, model, temps))
     figures.update(offline_file(data, model, temps))
     figures.update(streaming(model, temps))
+    # the figure of issues 24 and 26.5: end to end as `driftlab compensate P -o OUT` runs, every safety check on
+    # (the envelope, feeds, G91 runaways, subdivision limits, all in the first pass), beside the plain-numpy
+    # forward chain over the same poses in the same run
+    figures["end_to_end_blocks_per_cpu_s"] = figures["offline_file_blocks_per_cpu_s"]
+    figures["end_to_end_blocks_per_s"] = figures["offline_file_blocks_per_s"]
+    figures["baseline_numpy_chain_poses_per_cpu_s"] = round(
+        figures["offline_points"] / max(figures["baseline_machine_chain_cpu_s"], 1e-9)
+    )
+    figures["end_to_end_over_numpy_chain"] = round(
+        figures["end_to_end_blocks_per_cpu_s"] / max(figures["baseline_numpy_chain_poses_per_cpu_s"], 1), 3
+    )
     # wall time counts waiting for a core on a shared machine; CPU time is what one core does
     p99_ok = figures["stream_latency_ms_p99"] < 1.0
-    figures["targets_met_wall"] = bool(figures["offline_blocks_per_s"] >= 200_000 and p99_ok)
-    figures["targets_met_cpu"] = bool(figures["offline_blocks_per_cpu_s"] >= 200_000 and p99_ok)
+    figures["targets_met_wall"] = bool(figures["end_to_end_blocks_per_s"] >= 200_000 and p99_ok)
+    figures["targets_met_cpu"] = bool(figures["end_to_end_blocks_per_cpu_s"] >= 200_000 and p99_ok)
     _common.emit(figures)
 
 

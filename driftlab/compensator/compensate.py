@@ -12,36 +12,54 @@ tool (``rotary_lever``), and go onto the linear grid the same way.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import logging
+import os
+import stat
+import tempfile
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from decimal import Decimal
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeAlias, TypedDict
+from typing import TYPE_CHECKING, Any, BinaryIO, TypeAlias, TypedDict, TypeVar
 
 import numpy as np
 import pandas as pd
 from typing_extensions import Unpack
 
 from driftlab.compensator.gcode import (
+    MAX_DECIMALS,
     ROTARY,
+    ParserState,
     Points,
     Program,
     count_points,
+    decimals_of,
     emit,
     emit_program,
     parse_program,
     subdivide,
 )
+from driftlab.compensator.parsed import KeptPiece, ParsedPieces, usable
 from driftlab.errors import ValidationError
+from driftlab.models import document as documents
 from driftlab.physics import kinematics
-from driftlab.physics.lag import LaggedReadings
+from driftlab.physics.lag import LaggedReadings, first_order_lag
+from driftlab.vocabulary import AXES
 
 if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+    from numpy.typing import ArrayLike
+
     from driftlab.compensator.guard import Guard
+    from driftlab.models.document import ModelDocument
     from driftlab.models.envelope import Envelope
 
 log = logging.getLogger(__name__)
+
+_Options = TypeVar("_Options", bound="DataclassInstance")
 
 #: positioning resolution of the thesis machine (ch. 7.2; bundle v1 ``machine.resolution_*``)
 RESOLUTION_MM = 0.0025
@@ -72,15 +90,13 @@ class ErrorModel:
     lag_taus: tuple[float, ...] = ()
 
     @classmethod
-    def from_document(cls, document: Mapping[str, Any] | Any, label: str | None = None) -> ErrorModel:
+    def from_document(cls, document: Mapping[str, Any] | ModelDocument, label: str | None = None) -> ErrorModel:
         """Return the model of a registry document (the JSON of ``driftlab models show``).
 
         The document's terms are linear in dT, position and direction, so they are evaluated
         here directly over numpy arrays (``fast_predict``); temperature frames with a history
         and lagged terms go through ``models.document.predict_element_errors``, which owns the lags.
         """
-        from driftlab.models import document as documents
-
         doc = documents.validate_document(document)
         name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
         return cls(
@@ -97,7 +113,111 @@ class ErrorModel:
         )
 
 
-def fast_predict(doc: Any) -> Predict:
+#: feature kinds ``fast_predict`` evaluates (the others go to the registry)
+_FAST_KINDS = ("intercept", "position", "direction", "dT", "lag", "pos_dT", "gradient", "mean")
+_AXIS_KINDS = ("position", "direction", "pos_dT")
+
+
+@dataclass(frozen=True)
+class _Feature:
+    """One feature of a term as ``fast_predict`` evaluates it: kind, channels, power, axis column, lag tau (s)."""
+
+    kind: str
+    channels: tuple[str, ...]
+    power: int
+    col: int | None
+    tau: float
+
+
+def _fast_terms(doc: ModelDocument) -> list[tuple[str, int, list[_Feature], list[float]]]:
+    """Return (element, parameter index, features, coefficients) of every term; refuse what the registry must do."""
+    if getattr(doc, "substitutions", None):
+        raise ValidationError("substituted channels are evaluated by the registry")
+    terms = []
+    for t in doc.terms:
+        feats = []
+        for f in t.features:
+            if f.kind not in _FAST_KINDS:
+                raise ValidationError(f"feature kind {f.kind} is evaluated by the registry")
+            col = AXES.index(f.label) if f.label in AXES else None
+            if f.kind in _AXIS_KINDS and col is None:
+                raise ValidationError(f"{t.element}.{t.param}: feature {f.name} names no axis")
+            feats.append(_Feature(f.kind, tuple(f.channels), int(f.power), col, float(f.tau_s or 0.0)))
+        terms.append((t.element, kinematics.PARAMS.index(t.param), feats, [float(c) for c in t.coefficients]))
+    return terms
+
+
+def _snapshot_deltas(
+    temps: Temperatures, refs: Mapping[str, float], n: int
+) -> tuple[dict[str, float | np.ndarray], Mapping[tuple[str, float], ArrayLike]]:
+    """Return dT of every model input (scalars for one reading, (N,) for a frame of N rows) and the lags it carries."""
+    if isinstance(temps, pd.DataFrame):
+        missing = [c for c in refs if c not in temps.columns]
+        if missing:
+            raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
+        if len(temps) not in (1, n):
+            raise ValidationError(f"{len(temps)} temperature rows for {n} poses (give 1 or {n})")
+        dT: dict[str, float | np.ndarray] = {c: temps[c].to_numpy(float) - r for c, r in refs.items()}
+        if len(temps) == 1:
+            dT = {c: float(np.asarray(v)[0]) for c, v in dT.items()}
+        history = temps.attrs.get("lagged") or {}  # the lags of a table's history (TemperatureTable.nearest)
+    else:
+        missing = [c for c in refs if c not in temps]
+        if missing:
+            raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
+        dT = {c: float(temps[c]) - r for c, r in refs.items()}
+        history = getattr(temps, "lagged", None) or {}  # a live scan's lags (physics.lag.LaggedReadings)
+    if not all(np.all(np.isfinite(v)) for v in dT.values()):
+        raise ValidationError("temperatures contain missing readings: substitute virtual-sensor estimates first")
+    return dT, history
+
+
+def _term_value(
+    feats: list[_Feature],
+    coefs: list[float],
+    q: np.ndarray,
+    d: np.ndarray | None,
+    dT: Mapping[str, float | np.ndarray],
+    history: Mapping[tuple[str, float], ArrayLike],
+    refs: Mapping[str, float],
+) -> float | np.ndarray:
+    """Return one term's value at poses ``q`` with directions ``d``: its features times their coefficients."""
+    const: float | np.ndarray = 0.0  # everything that does not vary along the path (scalars for a snapshot)
+    lin: dict[int, float | np.ndarray] = {}  # axis -> coefficient of its coordinate
+    acc: float | np.ndarray = 0.0  # remaining (N,) columns
+    for f, c in zip(feats, coefs):
+        ch = f.channels
+        if f.kind == "intercept":
+            const = const + c
+        elif f.kind == "position":
+            assert f.col is not None  # _fast_terms refused axis kinds that name no axis
+            if f.power == 1:
+                lin[f.col] = lin.get(f.col, 0.0) + c
+            else:
+                acc = acc + c * q[:, f.col] ** f.power
+        elif f.kind == "direction":
+            if d is not None:
+                acc = acc + c * (d[:, f.col] if d.ndim == 2 else d)
+        elif f.kind == "lag" and (ch[0], f.tau) in history:  # ch. 5.3: first-order lag of the reading
+            lag = np.asarray(history[(ch[0], f.tau)], dtype=float) - refs[ch[0]]
+            const = const + c * (float(lag) if lag.ndim == 0 else lag)
+        elif f.kind in ("dT", "lag"):  # a snapshot carries no history: a settled lag equals dT
+            const = const + c * dT[ch[0]]
+        elif f.kind == "pos_dT":
+            assert f.col is not None  # as above
+            lin[f.col] = lin.get(f.col, 0.0) + c * dT[ch[0]]
+        elif f.kind == "gradient":  # eqs. 3.4-3.5: mean of one side less mean of the other
+            a, b = ch[: f.power], ch[f.power :]
+            const = const + c * (sum(dT[x] for x in a) / len(a) - sum(dT[x] for x in b) / len(b))
+        else:  # structure mean (eq. 3.3)
+            const = const + c * (sum(dT[x] for x in ch) / len(ch))
+    value = acc + const
+    for col, k in lin.items():
+        value = value + k * q[:, col]
+    return value
+
+
+def fast_predict(doc: ModelDocument) -> Predict:
     """Return a predict callable equal to ``models.document.predict_element_errors`` for ``doc``, without pandas.
 
     Every feature kind of ``models.features`` is a product of at most one joint coordinate (or
@@ -105,100 +225,32 @@ def fast_predict(doc: Any) -> Predict:
     snapshot of temperatures each term is a short polynomial in the joint coordinates (the recast
     terms of ch. 6.4.2). Frames with a history and lagged terms go to the registry, which owns lags.
     """
-    from driftlab.models import document as documents
-    from driftlab.physics.kinematics import PARAMS
-    from driftlab.vocabulary import AXES
-
     refs = {c: r.reference for c, r in doc.inputs.items()}
-    axis_kinds = {"position", "direction", "pos_dT"}
-    terms = []
-    has_lag = False
-    if getattr(doc, "substitutions", None):
-        raise ValidationError("substituted channels are evaluated by the registry")
-    for t in doc.terms:
-        feats = []
-        for f in t.features:
-            if f.kind not in ("intercept", "position", "direction", "dT", "lag", "pos_dT", "gradient", "mean"):
-                raise ValidationError(f"feature kind {f.kind} is evaluated by the registry")
-            col = AXES.index(f.label) if f.label in AXES else None
-            if f.kind in axis_kinds and col is None:
-                raise ValidationError(f"{t.element}.{t.param}: feature {f.name} names no axis")
-            feats.append((f.kind, tuple(f.channels), int(f.power), col, float(f.tau_s or 0.0)))
-            has_lag |= f.kind == "lag"
-        terms.append((t.element, PARAMS.index(t.param), feats, [float(c) for c in t.coefficients]))
+    terms = _fast_terms(doc)
+    has_lag = any(f.kind == "lag" for _, _, feats, _ in terms for f in feats)
 
     def predict(
-        q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: Any = None
+        q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: float | None = None
     ) -> kinematics.ElementErrors:
         """Return the (N, 6) errors of every modelled element at poses ``q`` (no term here depends on ``at``)."""
         n = q.shape[0]
-        history: Mapping[tuple[str, float], Any] = {}  # (channel, tau) -> lagged reading(s)
-        if isinstance(temps, pd.DataFrame):
-            history = temps.attrs.get("lagged") or {}  # the lags of a table's history (TemperatureTable.nearest)
-            if has_lag and not history and len(temps) > 1 and "time_s" in temps.columns:
+        if isinstance(temps, pd.DataFrame) and has_lag and not temps.attrs.get("lagged"):
+            if len(temps) > 1 and "time_s" in temps.columns:
                 return documents.predict_element_errors(doc, temps, q, direction)
-            missing = [c for c in refs if c not in temps.columns]
-            if missing:
-                raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
-            if len(temps) not in (1, n):
-                raise ValidationError(f"{len(temps)} temperature rows for {n} poses (give 1 or {n})")
-            dT: dict[str, Any] = {c: temps[c].to_numpy(float) - r for c, r in refs.items()}
-            if len(temps) == 1:
-                dT = {c: float(v[0]) for c, v in dT.items()}
-        else:
-            missing = [c for c in refs if c not in temps]
-            if missing:
-                raise ValidationError(f"temperatures lack model input(s) {', '.join(missing)}")
-            dT = {c: float(temps[c]) - r for c, r in refs.items()}
-            history = getattr(temps, "lagged", None) or {}  # a live scan's lags (physics.lag.LaggedReadings)
-        if not all(np.all(np.isfinite(v)) for v in dT.values()):
-            raise ValidationError("temperatures contain missing readings: substitute virtual-sensor estimates first")
+        dT, history = _snapshot_deltas(temps, refs, n)
         d = None if direction is None else np.asarray(direction, dtype=float)
         out: dict[str, np.ndarray] = {}
         for element, param, feats, coefs in terms:
-            const: Any = 0.0  # everything that does not vary along the path (scalars for a snapshot)
-            lin: dict[int, Any] = {}  # axis -> coefficient of its coordinate
-            acc: Any = 0.0  # remaining (N,) columns
-            for (kind, ch, power, col, tau), c in zip(feats, coefs):
-                if kind == "intercept":
-                    const = const + c
-                elif kind == "position":
-                    assert col is not None  # fast_predict refused axis kinds that name no axis
-                    if power == 1:
-                        lin[col] = lin.get(col, 0.0) + c
-                    else:
-                        acc = acc + c * q[:, col] ** power
-                elif kind == "direction":
-                    if d is not None:
-                        acc = acc + c * (d[:, col] if d.ndim == 2 else d)
-                elif kind == "lag" and (ch[0], tau) in history:  # ch. 5.3: first-order lag of the reading
-                    lag = np.asarray(history[(ch[0], tau)], dtype=float) - refs[ch[0]]
-                    const = const + c * (float(lag) if lag.ndim == 0 else lag)
-                elif kind in ("dT", "lag"):  # a snapshot carries no history: a settled lag equals dT
-                    const = const + c * dT[ch[0]]
-                elif kind == "pos_dT":
-                    assert col is not None  # as above
-                    lin[col] = lin.get(col, 0.0) + c * dT[ch[0]]
-                elif kind == "gradient":  # eqs. 3.4-3.5: mean of one side less mean of the other
-                    a, b = ch[:power], ch[power:]
-                    const = const + c * (sum(dT[x] for x in a) / len(a) - sum(dT[x] for x in b) / len(b))
-                else:  # structure mean (eq. 3.3)
-                    const = const + c * (sum(dT[x] for x in ch) / len(ch))
-            value = acc + const
-            for col, c in lin.items():
-                value = value + c * q[:, col]
             # (N, 6) held column by column: the chain reads each error component as one row
             arr = out.setdefault(element, np.zeros((6, n)).T)
-            arr[:, param] += value
+            arr[:, param] += _term_value(feats, coefs, q, d, dT, history, refs)
         return out
 
     return predict
 
 
-def _checked_predict(doc: Any) -> Predict:
+def _checked_predict(doc: ModelDocument) -> Predict:
     """Return ``fast_predict(doc)`` if it reproduces the registry on probe poses, else the registry itself."""
-    from driftlab.models import document as documents
-
     try:
         fast = fast_predict(doc)
     except ValidationError:
@@ -209,7 +261,7 @@ def _checked_predict(doc: Any) -> Predict:
     temps = {c: r.reference + 3.0 * (k % 3) - 2.0 for k, (c, r) in enumerate(doc.inputs.items())}
 
     def slow(
-        q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: Any = None
+        q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: float | None = None
     ) -> kinematics.ElementErrors:
         """Return the registry's prediction (time-dependent terms at ``at``, POSIX s; now when None)."""
         if at is None:
@@ -236,9 +288,6 @@ def retain_freed_memory() -> None:
     returns them to the OS at once and every new one costs page faults again (about a third of
     the time of a million-block program on a virtual machine).
     """
-    import ctypes
-    import ctypes.util
-
     name = ctypes.util.find_library("c")
     try:
         libc = ctypes.CDLL(name) if name else None
@@ -331,6 +380,10 @@ class Correction:
     #: (P, 5) approach direction +1/-1 per axis, as given to the model
     direction: np.ndarray
 
+    def carry(self) -> Carry:
+        """Return what these points hand the points after them."""
+        return Carry(self.steps[-1], self.points.nominal_int[-1], self.direction[-1])
+
 
 def rotary_lever(q: np.ndarray, dims: Mapping[str, Any], delta: np.ndarray) -> np.ndarray:
     """Return (N, 3) X, Y, Z offsets (mm) that cancel turning A, B by ``delta`` (N, 2) rad at poses ``q``.
@@ -359,32 +412,102 @@ def rotary_lever(q: np.ndarray, dims: Mapping[str, Any], delta: np.ndarray) -> n
     return out
 
 
+@dataclass(frozen=True)
+class Grid:
+    """How a program's points are made and sent: the machine's resolution (ch. 7.2) and the subdivision lengths."""
+
+    resolution_mm: float = RESOLUTION_MM
+    resolution_deg: float = RESOLUTION_DEG
+    max_segment_mm: float = 5.0
+    max_segment_deg: float = 5.0
+
+    @classmethod
+    def of(cls, options: Mapping[str, object]) -> Grid:
+        """Return the grid named by keyword options (``resolution_mm`` ... ``max_segment_deg``; defaults otherwise)."""
+        return with_options(cls(), options)
+
+    @property
+    def segment(self) -> tuple[float, float]:
+        """Return the subdivision lengths (mm, deg)."""
+        return self.max_segment_mm, self.max_segment_deg
+
+    @property
+    def decimals(self) -> tuple[int, int]:
+        """Return the least decimals (linear, rotary) positions are written with at this resolution."""
+        return decimals_for(self.resolution_mm, self.resolution_deg)
+
+
+def with_options(base: _Options, options: Mapping[str, object]) -> _Options:
+    """Return the frozen dataclass ``base`` with the fields ``options`` names replaced (other keys are ignored).
+
+    How flat keyword options (``correct_points``, ``Streamer``) become the small dataclasses they group into.
+    """
+    return replace(base, **{f.name: options[f.name] for f in fields(base) if f.name in options})
+
+
+@dataclass(frozen=True)
+class Carry:
+    """What a run of points hands the next, so a program corrected in pieces comes out as in one go.
+
+    The whole steps sent per axis (``quantise_carry``'s state), the last nominal pose and the approach
+    directions there; None before the first point (no steps, the program's start pose, +1).
+    """
+
+    steps: np.ndarray | None = None
+    nominal: np.ndarray | None = None
+    direction: np.ndarray | None = None
+
+
+class CorrectKeywords(TypedDict, total=False):
+    """The keyword options of :func:`correct_points` (see there)."""
+
+    resolution_mm: float
+    resolution_deg: float
+    state: np.ndarray | None
+    prev_nominal: np.ndarray | None
+    prev_direction: np.ndarray | None
+    at: float | None
+    solved: tuple[np.ndarray, np.ndarray] | None
+
+
 def correct_points(
     program: Program,
     points: Points,
     model: ErrorModel,
     temperatures: Temperatures,
-    *,
-    resolution_mm: float = RESOLUTION_MM,
-    resolution_deg: float = RESOLUTION_DEG,
-    state: np.ndarray | None = None,
-    prev_nominal: np.ndarray | None = None,
-    prev_direction: np.ndarray | None = None,
+    **options: Unpack[CorrectKeywords],
+) -> Correction:
+    """Return the quantised corrections of ``points`` for these temperatures (``correct`` with keyword options).
+
+    ``state``, ``prev_nominal`` and ``prev_direction`` are the ``Carry`` of the points before,
+    ``resolution_mm`` / ``resolution_deg`` the ``Grid``'s, ``at`` and ``solved`` as in ``correct``.
+    """
+    carry = Carry(options.get("state"), options.get("prev_nominal"), options.get("prev_direction"))
+    grid = Grid.of(options)
+    return correct(program, points, model, temperatures, carry, grid, options.get("at"), options.get("solved"))
+
+
+def correct(
+    program: Program,
+    points: Points,
+    model: ErrorModel,
+    temperatures: Temperatures,
+    carry: Carry = Carry(),
+    grid: Grid = Grid(),
     at: float | None = None,
     solved: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Correction:
     """Return the quantised corrections of ``points`` for these temperatures (and time ``at``, POSIX s).
 
-    ``state`` carries the steps already sent (see ``quantise_carry``), ``prev_nominal`` and
-    ``prev_direction`` the pose and approach directions before the first point, so a program can
-    be corrected in pieces (streaming) with the same result as in one go. ``solved`` gives the axis
-    commands (P, 5) and singular flags (P,) of eqs. 4.23-4.26 already solved for exactly these
-    points, model and temperatures (the first pass's, ``KeptCommands``): they are used as they are
-    (``Correction.roll`` is then NaN, not kept).
+    ``carry`` is what the points before left (see ``Carry``), so a program can be corrected in pieces
+    (streaming) with the same result as in one go. ``solved`` gives the axis commands (P, 5) and
+    singular flags (P,) of eqs. 4.23-4.26 already solved for exactly these points, model and
+    temperatures (the first pass's, ``KeptCommands``): they are used as they are (``Correction.roll``
+    is then NaN, not kept).
     """
     q = program.to_q(points.nominal_int)
-    start = program.start_int if prev_nominal is None else prev_nominal
-    direction = directions(points.nominal_int, start, prev_direction)
+    start = program.start_int if carry.nominal is None else carry.nominal
+    direction = directions(points.nominal_int, start, carry.direction)
     if solved is None:
         errors = (
             model.predict(q, temperatures, direction)
@@ -399,19 +522,19 @@ def correct_points(
     desired = q_cmd - q
     if not np.all(np.isfinite(desired)):
         raise ValidationError("the model predicts non-finite errors for these temperatures")
-    s0 = np.zeros(5, dtype=np.int64) if state is None else np.asarray(state, dtype=np.int64)
-    step_rad = float(np.deg2rad(resolution_deg))
+    s0 = np.zeros(5, dtype=np.int64) if carry.steps is None else np.asarray(carry.steps, dtype=np.int64)
+    step_rad = float(np.deg2rad(grid.resolution_deg))
     # angles first (eq. 4.25): whole steps, the remainder carried over
     ang = desired[:, 3:] / step_rad
     whole = np.rint(ang)
     ang_steps = quantise_carry(np.where(np.abs(ang - whole) < 1e-6, whole, ang), s0[3:])
     # then translations (eq. 4.26), taking up what the angles on their grid leave at the tool
     xyz = desired[:, :3] + rotary_lever(q_cmd, model.dims, ang_steps * step_rad - desired[:, 3:])
-    lin = xyz / resolution_mm
+    lin = xyz / grid.resolution_mm
     whole = np.rint(lin)
     xyz_steps = quantise_carry(np.where(np.abs(lin - whole) < 1e-6, whole, lin), s0[:3])
     steps = np.hstack([xyz_steps, ang_steps])
-    step_int = resolution_units(program, resolution_mm, resolution_deg)
+    step_int = resolution_units(program, grid.resolution_mm, grid.resolution_deg)
     sent = points.nominal_int + steps * step_int
     return Correction(points, desired, steps, sent, singular, roll, direction)
 
@@ -468,8 +591,6 @@ class TemperatureTable:
         a block's lagged temperature holds the history before it however the program is batched. A
         channel's lag starts at its first valid reading.
         """
-        from driftlab.physics.lag import first_order_lag
-
         cols = list(self.values.columns)
         out: dict[tuple[str, float], np.ndarray] = {}
         for tau in taus_s:
@@ -585,9 +706,8 @@ def compensate_program(
         how, fixed = "given", temperatures
     sent = np.empty_like(points.nominal_int)
     singular = 0
-    state = None
-    prev_nom = None
-    prev_dir = None
+    carry = Carry()
+    grid = Grid(resolution_mm, resolution_deg)
     for s in range(0, points.n, chunk_points):
         sub = Points(points.block[s : s + chunk_points], points.nominal_int[s : s + chunk_points])
         temps = (
@@ -595,22 +715,11 @@ def compensate_program(
             if per_point is not None
             else fixed
         )
-        corr = correct_points(
-            program,
-            sub,
-            model,
-            temps,
-            resolution_mm=resolution_mm,
-            resolution_deg=resolution_deg,
-            state=state,
-            prev_nominal=prev_nom,
-            prev_direction=prev_dir,
-        )
+        assert temps is not None
+        corr = correct(program, sub, model, temps, carry, grid)
         sent[s : s + chunk_points] = corr.sent_int
         singular += int(corr.singular.sum())
-        state = corr.steps[-1]
-        prev_nom = sub.nominal_int[-1]
-        prev_dir = corr.direction[-1]
+        carry = corr.carry()
     if singular:
         log.warning("%d point(s) near A = +/-90 deg: beta cannot be compensated there", singular)
     text = emit_program(program, points, sent)
@@ -644,9 +753,6 @@ def program_pieces(path: str | Path, chunk_bytes: int = STREAM_CHUNK_BYTES) -> I
     ValidationError for a file that cannot be read, is not a regular file, or has a line longer
     than MAX_LINE_BYTES.
     """
-    import os
-    import stat
-
     path = Path(path)
     try:
         st = os.stat(path)
@@ -701,6 +807,15 @@ class ProgramScan:
     lines: int
     #: the axis commands of every block solved by the first pass, when the second pass can use them as they are
     solved: KeptCommands | None = None
+    #: the pieces the first pass parsed, when it kept them for the second pass (``Scanner``'s ``keep``)
+    parsed: ParsedPieces | None = None
+
+    def close(self) -> None:
+        """Drop what the first pass kept for the second."""
+        if self.solved is not None:
+            self.solved.close()
+        if self.parsed is not None:
+            self.parsed.close()
 
 
 def scan_program(
@@ -723,59 +838,90 @@ def scan_program(
     leave (``start``: the pose before the program), so G91 blocks are checked where they really go.
     Nothing is kept but the state: memory does not grow with the program.
     """
-    from driftlab.compensator.gcode import MAX_DECIMALS, decimals_of
+    return Scanner(name, min_decimals, start, (max_segment_mm, max_segment_deg), check).scan(path, chunk_bytes)
 
-    eol: bytes | None = None
-    motion, dist = -1, 0
-    first_time = float("nan")
-    time_s = float("nan")
-    pose: tuple[float, ...] | None = start
-    lin: list[tuple[float, np.ndarray]] = []
-    rot: list[tuple[float, np.ndarray]] = []
-    blocks = lines = 0
-    for offset, text in program_pieces(path, chunk_bytes):
-        piece = parse_program(
-            text,
-            name=name,
-            start=pose,
-            min_decimals=min_decimals,
-            initial_motion=motion,
-            initial_dist=dist,
-            initial_time_s=time_s,
-            eol=eol,
-            line_offset=offset,
-            residuals=True,
-        )
-        if eol is None:
-            eol = piece.eol
-        motion, dist = piece.end_motion, piece.end_dist
-        if not np.isfinite(first_time) and piece.n_lines and np.isfinite(piece.line_time_s).any():
-            first_time = float(piece.line_time_s[np.flatnonzero(np.isfinite(piece.line_time_s))[0]])
-        if piece.n_lines:
-            time_s = float(piece.line_time_s[-1])
-        # targets first (a runaway is named as one), then the subdivision, then the corrections
+
+class Scanner:
+    """The first pass of ``scan_program``, a piece at a time; with ``keep`` the parsed pieces are kept on disk
+    (``parsed.ParsedPieces``) for the second pass, which then neither reads nor parses the file again."""
+
+    def __init__(
+        self,
+        name: str,
+        min_decimals: tuple[int, int],
+        start: tuple[float, ...] | None,
+        segment: tuple[float, float],
+        check: FirstPass | None = None,
+        keep: ParsedPieces | None = None,
+    ) -> None:
+        self.name, self.min_decimals, self.segment, self.check, self.keep = name, min_decimals, segment, check, keep
+        self.state = ParserState()
+        self.pose = start
+        self.first_time = float("nan")
+        self.residuals: list[tuple[tuple[float, np.ndarray], tuple[float, np.ndarray]]] = []
+        self.blocks = self.lines = 0
+
+    def scan(self, path: str | Path, chunk_bytes: int) -> ProgramScan:
+        """Check every piece of the file at ``path``; return what the second pass needs (the kept pieces with it)."""
         try:
-            if check is not None:
-                check.targets(piece)
-            points = count_points(piece, max_segment_mm, max_segment_deg)  # refuses a segment of too many points
-        except ValidationError:
-            if check is not None:
-                check.finish()  # the blocks before this one are checked first: the first bad block is named
+            for offset, text in program_pieces(path, chunk_bytes):
+                self.add(offset, text)
+            return self.finish()
+        except BaseException:
+            if self.keep is not None:
+                self.keep.close()
             raise
-        if check is not None:
-            check.corrections(piece, points, (max_segment_mm, max_segment_deg))
+
+    def add(self, offset: int, text: bytes) -> None:
+        """Parse and check the piece of ``text`` that starts after ``offset`` lines."""
+        # each piece in its own decimals (the program's are known at the end), from the pose in mm / deg
+        state = replace(self.state, line_offset=offset)
+        piece = parse_program(text, self.name, self.pose, self.min_decimals, state=state, residuals=True)
+        self.state = replace(piece.next_state(state), eol=piece.eol, pose_int=None)
+        if not np.isfinite(self.first_time) and piece.n_lines and np.isfinite(piece.line_time_s).any():
+            self.first_time = float(piece.line_time_s[np.flatnonzero(np.isfinite(piece.line_time_s))[0]])
+        points = _check_piece(piece, self.check, self.segment)
         if piece.n_blocks:
-            pose = tuple((piece.target_int[-1] * piece.scale).tolist())
+            self.pose = tuple((piece.target_int[-1] * piece.scale).tolist())
         assert piece.residuals is not None
-        lin.append(piece.residuals[0])
-        rot.append(piece.residuals[1])
-        blocks += piece.n_blocks
-        lines = offset + piece.n_lines
-    decimals = (decimals_of(lin, min_decimals[0]), decimals_of(rot, min_decimals[1]))
-    if max(decimals) > MAX_DECIMALS:  # pragma: no cover - each piece has refused its own already
-        raise ValidationError(f"{name}: more than {MAX_DECIMALS} decimals; program not accepted")
-    solved = check.finish(decimals) if check is not None else None
-    return ProgramScan(decimals, eol or b"\n", first_time, blocks, lines, solved)
+        self.residuals.append(piece.residuals)
+        self.blocks += piece.n_blocks
+        self.lines = offset + piece.n_lines
+        if self.keep is not None and ParsedPieces.fits(piece):
+            self.keep.write(replace(piece, residuals=None), points)
+        elif self.keep is not None:  # too large to keep: the second pass reads and parses the file again
+            self.keep.close()
+            self.keep = None
+
+    def finish(self) -> ProgramScan:
+        """Return what the second pass needs: the program's decimals, line terminator, first time stamp, ..."""
+        least = self.min_decimals
+        decimals = (
+            decimals_of([r[0] for r in self.residuals], least[0]),
+            decimals_of([r[1] for r in self.residuals], least[1]),
+        )
+        if max(decimals) > MAX_DECIMALS:  # pragma: no cover - each piece has refused its own already
+            raise ValidationError(f"{self.name}: more than {MAX_DECIMALS} decimals; program not accepted")
+        solved = self.check.finish(decimals) if self.check is not None else None
+        eol = self.state.eol or b"\n"
+        return ProgramScan(decimals, eol, self.first_time, self.blocks, self.lines, solved, self.keep)
+
+
+def _check_piece(piece: Program, check: FirstPass | None, segment: tuple[float, float]) -> int:
+    """Refuse a piece whose targets leave the travel, whose segments need too many points, or whose corrections
+    leave the envelope (targets first: a runaway is named as one; then the subdivision, then the corrections);
+    return how many points it subdivides into."""
+    try:
+        if check is not None:
+            check.targets(piece)
+        points = count_points(piece, *segment)  # refuses a segment of too many points
+    except ValidationError:
+        if check is not None:
+            check.finish()  # the blocks before this one are checked first: the first bad block is named
+        raise
+    if check is not None:
+        check.corrections(piece, points, segment)
+    return points
 
 
 class KeptCommands:
@@ -788,8 +934,6 @@ class KeptCommands:
     """
 
     def __init__(self) -> None:
-        import tempfile
-
         self.fh = tempfile.TemporaryFile()
         self.rows = 0
 
@@ -865,7 +1009,7 @@ class FirstPass:
         if self.kept is not None and (timed or self.kept.rows + self._queued + (points or 0) > KEEP_MAX_POINTS):
             self._drop_kept()  # temperatures per block, or too many points to keep: solved per piece
         if self.kept is not None:
-            pts = subdivide(piece, *segment)
+            pts = subdivide(piece, *segment, count=points)
             self._decimals.add(piece.decimals)
             q = piece.to_q(pts.nominal_int)
             direction = directions(pts.nominal_int, piece.start_int, self.prev_direction)
@@ -944,7 +1088,7 @@ class FirstPass:
         correction[:, 3:] = np.rad2deg(correction[:, 3:])
         if not np.all(np.isfinite(correction)):
             bad = int(np.flatnonzero(~np.isfinite(correction).all(axis=1))[0])
-            line = int(piece.block_line[block[bad]]) + piece.first_line + 1
+            line = piece.line_number(block[bad])
             raise ValidationError(f"{piece.name}:{line}: the model predicts non-finite errors; program not accepted")
         self.guard.check_corrections(piece, block, correction)
         self.guard.check_positions(piece, block, pose_int * piece.scale + correction, "corrected target")
@@ -966,216 +1110,226 @@ def parse_pieces(
     The second pass of a streamed program, shared by the offline path (``compensate_stream``) and
     the machine link (``stream.Streamer``): every piece is parsed with the decimals, line terminator
     and first time stamp of the whole program (``scan``, the first pass) and starts from the pose,
-    modal G0/G1 and G90/G91 and time stamp the previous piece ended with, so its lines read exactly as
-    they would in the whole program. Pieces are read one at a time, when the consumer asks for the
-    next: memory holds the pieces the consumer keeps, not the program. With ``max_points`` a piece
-    that would subdivide into more points is halved (by lines) until it does not.
+    modal G0/G1 and G90/G91 and time stamp the previous piece ended with (``gcode.ParserState``), so
+    its lines read exactly as they would in the whole program. Pieces are read one at a time, when the
+    consumer asks for the next: memory holds the pieces the consumer keeps, not the program. With
+    ``max_points`` a piece that would subdivide into more points is halved (by lines) until it does not.
     """
-    state: dict[str, Any] = {"pose": None, "motion": -1, "dist": 0, "time_s": scan.first_time_s}
+    state = ParserState(decimals=scan.decimals, time_s=scan.first_time_s, eol=scan.eol)
+    reader = _PieceReader(name, start, min_decimals, (max_segment_mm, max_segment_deg), max_points)
+    for offset, text in pieces:
+        for piece in reader.parsed(text, replace(state, line_offset=offset)):
+            state = piece.next_state(state)
+            yield piece
 
-    def parsed(offset: int, text: bytes) -> Iterator[Program]:
-        """Yield the piece parsed with the state before it, halved while it makes too many points."""
-        st = state
-        piece = parse_program(
-            text,
-            name=name,
-            start=start,
-            min_decimals=min_decimals,
-            decimals=scan.decimals,
-            start_int=st["pose"],
-            initial_motion=st["motion"],
-            initial_dist=st["dist"],
-            initial_time_s=st["time_s"],
-            eol=scan.eol,
-            line_offset=offset,
-        )
-        if (
-            max_points is not None
-            and piece.n_lines > 1
-            and count_points(piece, max_segment_mm, max_segment_deg) > max_points
-        ):
+
+def kept_pieces(scan: ProgramScan, parsed: ParsedPieces, reader: _PieceReader) -> Iterator[KeptPiece]:
+    """Yield the pieces the first pass kept, as ``parse_pieces`` would parse them (the second pass, offline).
+
+    A kept piece that does not read as the second pass parses it (``parsed.usable``), or would make too
+    many points, is parsed again from its kept text with the state the pieces before it leave (and
+    comes without its count of points: ``KeptPiece.points`` None).
+    """
+    state = ParserState(decimals=scan.decimals, time_s=scan.first_time_s, eol=scan.eol)
+    for kept in parsed.read(reader.name, scan.eol):
+        if usable(kept, state, reader.max_points):
+            pieces: Iterable[KeptPiece] = (kept,)
+        else:
+            text = kept.program.data
+            pieces = (
+                KeptPiece(p, None) for p in reader.parsed(text, replace(state, line_offset=kept.program.first_line))
+            )
+        for piece in pieces:
+            state = piece.program.next_state(state)
+            yield piece
+
+
+@dataclass(frozen=True)
+class _PieceReader:
+    """How ``parse_pieces`` parses a piece: name, start pose, least decimals, subdivision, most points."""
+
+    name: str
+    start: tuple[float, ...] | None
+    min_decimals: tuple[int, int]
+    segment: tuple[float, float]
+    max_points: int | None
+
+    def parsed(self, text: bytes, state: ParserState) -> Iterator[Program]:
+        """Yield the piece parsed from ``state``, halved while it makes too many points (each half from the state
+        the lines before it leave)."""
+        piece = parse_program(text, self.name, self.start, self.min_decimals, state=state)
+        if self.max_points is not None and piece.n_lines > 1 and count_points(piece, *self.segment) > self.max_points:
             mid = piece.n_lines // 2  # long segments subdivided: keep the points of a piece bounded
             cut = int(piece.line_start[mid])
             del piece
-            yield from parsed(offset, text[:cut])
-            yield from parsed(offset + mid, text[cut:])
+            first = None
+            for first in self.parsed(text[:cut], state):
+                yield first
+            assert first is not None
+            yield from self.parsed(text[cut:], first.next_state(state))
             return
-        st["pose"] = piece.target_int[-1] if piece.n_blocks else piece.start_int
-        st["motion"], st["dist"] = piece.end_motion, piece.end_dist
-        if piece.n_lines:
-            st["time_s"] = float(piece.line_time_s[-1])
         yield piece
 
-    for offset, text in pieces:
-        yield from parsed(offset, text)
+
+class _Rows:
+    """Array rows in order: pushed in runs, taken in runs of any length."""
+
+    def __init__(self) -> None:
+        self._parts: list[np.ndarray] = []
+        self.n = 0
+
+    def push(self, rows: np.ndarray) -> None:
+        """Append ``rows``."""
+        self._parts.append(rows)
+        self.n += rows.shape[0]
+
+    def take(self, n: int) -> np.ndarray:
+        """Return the first ``n`` rows and drop them."""
+        whole = np.concatenate(self._parts) if len(self._parts) > 1 else self._parts[0]
+        head, rest = whole[:n], whole[n:]
+        self._parts = [rest] if rest.shape[0] else []
+        self.n -= n
+        return head
 
 
-def compensate_stream(
-    program_path: str | Path,
-    model: ErrorModel,
-    temperatures: TemperatureTable | Temperatures,
-    out: Any,
-    *,
-    start: tuple[float, ...] | None = None,
-    resolution_mm: float = RESOLUTION_MM,
-    resolution_deg: float = RESOLUTION_DEG,
-    max_segment_mm: float = 5.0,
-    max_segment_deg: float = 5.0,
-    chunk_bytes: int = STREAM_CHUNK_BYTES,
-    chunk_points: int = 1 << 17,
-    scan: ProgramScan | None = None,
-    guard: Guard | None = None,
-) -> OfflineResult:
-    """Correct a program file into the binary stream ``out`` in constant memory; return what was done.
+class StreamCorrector:
+    """The second pass of ``compensate_stream``: parsed pieces in, corrected text out, in constant memory.
 
-    Two passes over the file, each a generator of pieces of whole lines: the first checks every
-    line and learns what the pieces share (the decimals of the whole program, its line terminator,
-    its first time stamp); the second parses each piece with the state the lines before it left
-    (pose, modal G0/G1 and G90/G91, time stamp), corrects its points carrying the quantisation
-    remainder and approach directions, and writes it. The output is byte for byte that of
-    ``compensate_program`` on the whole text (``OfflineResult.text`` stays empty).
-
-    With a ``guard`` (``compensator.guard``) the first pass checks every block against the machine
-    envelope before anything is written, and every point is checked again just before it is written.
+    ``add`` takes the pieces in order; their points wait until a batch of ``chunk_points`` is
+    corrected (counted over the whole program, as ``compensate_program`` does: with temperatures per
+    point a model with lagged terms filters a batch's temperatures in time, so the batches must fall
+    where they always did for the output to stay the same; with one set of temperatures for every
+    point the result does not depend on the batches and smaller ones keep the working set small).
+    A piece is written once all its points are corrected, with the quantisation remainder and the
+    approach directions carried over (``Carry``). ``finish`` corrects the rest and returns what was done.
     """
-    name = str(program_path)
-    min_dec = decimals_for(resolution_mm, resolution_deg)
-    if scan is None:
-        scan = scan_program(
-            program_path,
-            name,
-            min_dec,
-            chunk_bytes,
-            start=start,
-            max_segment_mm=max_segment_mm,
-            max_segment_deg=max_segment_deg,
-            check=None if guard is None else FirstPass(guard, model, temperatures, keep=True),
-        )
-    table = isinstance(temperatures, TemperatureTable)
-    per_point = table and scan.blocks > 0 and bool(np.isfinite(scan.first_time_s))
-    if table:
-        how = "nearest scan to each block's time" if per_point else "latest scan"
-        fixed = None if per_point else temperatures.latest(model.channels, model.lag_taus)  # type: ignore[union-attr]
-    else:
-        how, fixed = "given", temperatures
-    # Points are corrected in batches of ``chunk_points`` counted over the whole program, as
-    # compensate_program does: with temperatures per point (a table and a timed program) a model with
-    # lagged terms filters a batch's temperatures in time, so the batches must fall where they always
-    # did for the output to stay the same. With one set of temperatures for every point the result
-    # does not depend on the batches: smaller ones keep the working set small. Pieces wait (parsed,
-    # with their points) until every point of theirs is corrected, then are written.
-    if not per_point:
-        chunk_points = min(chunk_points, SNAPSHOT_BATCH_POINTS)
-    # the commands the first pass solved for every block (one point each, the same temperatures, solved
-    # in runs of kinematics.CHUNK where these batches fall): used as they are, not solved again
-    kept = scan.solved if not per_point and chunk_points % kinematics.CHUNK == 0 else None
-    pending: list[tuple[Program, Points, bytes]] = []
-    nominal: list[np.ndarray] = []  # points not yet corrected, in order
-    times: list[np.ndarray] = []
-    queued = 0
-    sent_parts: list[np.ndarray] = []  # corrected points not yet written, in order
-    corrected = 0
-    carry: dict[str, Any] = {"state": None, "prev_nom": None, "prev_dir": None, "singular": 0}
-    sent_before: np.ndarray | None = None
-    biggest = np.zeros(5, dtype=np.int64)
-    points_total = 0
-    first_piece: Program | None = None
 
-    def correct(n: int) -> None:
-        """Correct the next ``n`` queued points as one batch."""
-        nonlocal nominal, times, queued, corrected
-        nom_all = np.concatenate(nominal) if len(nominal) > 1 else nominal[0]
-        t_all = np.concatenate(times) if len(times) > 1 else times[0]
-        nom, rest_nom = nom_all[:n], nom_all[n:]
-        t, rest_t = t_all[:n], t_all[n:]
-        nominal, times = ([rest_nom], [rest_t]) if rest_nom.shape[0] else ([], [])
-        queued -= n
-        assert first_piece is not None
-        temps = temperatures.nearest(t, model.channels, model.lag_taus) if per_point else fixed  # type: ignore[union-attr]
-        corr = correct_points(
-            first_piece,
-            Points(np.zeros(n, dtype=np.int64), nom),
-            model,
-            temps,
-            resolution_mm=resolution_mm,
-            resolution_deg=resolution_deg,
-            state=carry["state"],
-            prev_nominal=carry["prev_nom"] if carry["prev_nom"] is not None else first_piece.start_int,
-            prev_direction=carry["prev_dir"],
-            solved=kept.read(n) if kept is not None else None,
-        )
-        sent_parts.append(corr.sent_int)
-        corrected += n
-        carry.update(
-            state=corr.steps[-1],
-            prev_nom=nom[-1],
-            prev_dir=corr.direction[-1],
-            singular=carry["singular"] + int(corr.singular.sum()),
-        )
+    def __init__(
+        self,
+        model: ErrorModel,
+        temperatures: TemperatureTable | Temperatures,
+        out: BinaryIO,
+        scan: ProgramScan,
+        options: CorrectorOptions,
+    ) -> None:
+        self.model, self.out, self.options = model, out, options
+        table = temperatures if isinstance(temperatures, TemperatureTable) else None
+        timed = table is not None and scan.blocks > 0 and bool(np.isfinite(scan.first_time_s))
+        #: the table each point takes its nearest scan from; None: every point takes ``fixed``
+        self.per_point = table if timed else None
+        self.fixed: Temperatures | None = None
+        if table is not None:
+            self.how = "nearest scan to each block's time" if timed else "latest scan"
+            if not timed:
+                self.fixed = table.latest(model.channels, model.lag_taus)
+        else:
+            self.how, self.fixed = "given", temperatures
+        self.chunk_points = options.chunk_points if timed else min(options.chunk_points, SNAPSHOT_BATCH_POINTS)
+        # the commands the first pass solved for every block (one point each, the same temperatures, solved
+        # in runs of kinematics.CHUNK where these batches fall): used as they are, not solved again
+        self.kept = scan.solved if not timed and self.chunk_points % kinematics.CHUNK == 0 else None
+        self.scan = scan
+        self.carry = Carry()
+        self.result = _Totals()
+        self._pending: deque[tuple[Program, Points]] = deque()  # pieces waiting for their points
+        self._nominal, self._times, self._sent = _Rows(), _Rows(), _Rows()
+        self._first: Program | None = None
 
-    def flush() -> None:
-        """Write every waiting piece whose points are all corrected."""
-        nonlocal sent_parts, corrected, sent_before, biggest, points_total
-        while pending and pending[0][1].n <= corrected:
-            piece, points, text = pending.pop(0)
-            if points.n == 0:
-                out.write(text)
-                continue
-            sent_all = np.concatenate(sent_parts) if len(sent_parts) > 1 else sent_parts[0]
-            sent, rest = sent_all[: points.n], sent_all[points.n :]
-            sent_parts = [rest] if rest.shape[0] else []
-            corrected -= points.n
-            if guard is not None:
-                guard.check_sent(piece, points.block, points.nominal_int, sent)
-            out.write(emit(piece, points, sent, prev_sent=sent_before))
-            biggest = np.maximum(biggest, np.abs(sent - points.nominal_int).max(axis=0))
-            sent_before = sent[-1]
-            points_total += points.n
-
-    scale = None
-    pieces = parse_pieces(
-        program_pieces(program_path, chunk_bytes),
-        scan,
-        name,
-        start=start,
-        min_decimals=min_dec,
-        max_segment_mm=max_segment_mm,
-        max_segment_deg=max_segment_deg,
-        max_points=max(chunk_points // 2, 1),
-    )
-    for piece in pieces:
-        points = subdivide(piece, max_segment_mm, max_segment_deg)
-        scale = piece.scale
-        if first_piece is None:
-            first_piece = piece
+    def add(self, piece: Program, count: int | None = None) -> None:
+        """Take the next piece (``count``: its points, when the first pass counted them): queue its points,
+        correct every full batch, write the pieces that are done."""
+        points = subdivide(piece, *self.options.grid.segment, count=count)
+        if self._first is None:
+            self._first = piece
         if points.n:
-            nominal.append(points.nominal_int)
-            times.append(piece.line_time_s[piece.block_line[points.block]])
-            queued += points.n
-        pending.append((piece, points, piece.data))
-        while queued >= chunk_points:
-            correct(chunk_points)
-        flush()
-    if queued:
-        correct(queued)
-    flush()
-    assert not pending
-    if scan.solved is not None:
-        scan.solved.close()
-    singular = carry["singular"]
-    if singular:
-        log.warning("%d point(s) near A = +/-90 deg: beta cannot be compensated there", singular)
-    mx = biggest * scale if scale is not None and points_total else np.zeros(5)
-    return OfflineResult(
-        text=b"",
-        blocks=scan.blocks,
-        points=points_total,
-        max_correction={a: float(round(v, 6)) for a, v in zip("XYZAB", mx)},
-        singular=singular,
-        model=model.label,
-        temperatures=how,
-        extrapolated=guard.report() if guard is not None else {},
-    )
+            self._nominal.push(points.nominal_int)
+            self._times.push(piece.line_time_s[piece.block_line[points.block]])
+        self._pending.append((piece, points))
+        while self._nominal.n >= self.chunk_points:
+            self._correct(self.chunk_points)
+        self._write()
+
+    def finish(self) -> OfflineResult:
+        """Correct and write what waits; return what was done."""
+        if self._nominal.n:
+            self._correct(self._nominal.n)
+        self._write()
+        assert not self._pending
+        self.scan.close()
+        return self.result.outcome(self)
+
+    def _correct(self, n: int) -> None:
+        """Correct the next ``n`` queued points as one batch."""
+        assert self._first is not None
+        nom, t = self._nominal.take(n), self._times.take(n)
+        model = self.model
+        temps = self.per_point.nearest(t, model.channels, model.lag_taus) if self.per_point is not None else self.fixed
+        assert temps is not None
+        solved = self.kept.read(n) if self.kept is not None else None
+        points = Points(np.zeros(n, dtype=np.int64), nom)
+        first = self._first
+        carry = self.carry if self.carry.nominal is not None else replace(self.carry, nominal=first.start_int)
+        corr = correct(first, points, model, temps, carry, self.options.grid, None, solved)
+        self._sent.push(corr.sent_int)
+        self.carry = corr.carry()
+        self.result.singular += int(corr.singular.sum())
+
+    def _write(self) -> None:
+        """Write every waiting piece whose points are all corrected."""
+        while self._pending and self._pending[0][1].n <= self._sent.n:
+            piece, points = self._pending.popleft()
+            if points.n == 0:
+                self.out.write(piece.data)
+                continue
+            sent = self._sent.take(points.n)
+            if self.options.guard is not None:
+                self.options.guard.check_sent(piece, points.block, points.nominal_int, sent)
+            self.out.write(emit(piece, points, sent, prev_sent=self.result.last_sent))
+            self.result.add(piece, points, sent)
+
+
+@dataclass
+class _Totals:
+    """What ``StreamCorrector`` has written: points, the largest correction sent, singular points."""
+
+    points: int = 0
+    singular: int = 0
+    biggest: np.ndarray = field(default_factory=lambda: np.zeros(5, dtype=np.int64))
+    last_sent: np.ndarray | None = None
+    scale: np.ndarray | None = None
+
+    def add(self, piece: Program, points: Points, sent: np.ndarray) -> None:
+        """Count a written piece's points."""
+        self.biggest = np.maximum(self.biggest, np.abs(sent - points.nominal_int).max(axis=0))
+        self.last_sent = sent[-1]
+        self.points += points.n
+        self.scale = piece.scale
+
+    def outcome(self, corrector: StreamCorrector) -> OfflineResult:
+        """Return the result of the run."""
+        if self.singular:
+            log.warning("%d point(s) near A = +/-90 deg: beta cannot be compensated there", self.singular)
+        mx = self.biggest * self.scale if self.scale is not None and self.points else np.zeros(5)
+        guard = corrector.options.guard
+        return OfflineResult(
+            text=b"",
+            blocks=corrector.scan.blocks,
+            points=self.points,
+            max_correction={a: float(round(v, 6)) for a, v in zip("XYZAB", mx)},
+            singular=self.singular,
+            model=corrector.model.label,
+            temperatures=corrector.how,
+            extrapolated=guard.report() if guard is not None else {},
+        )
+
+
+@dataclass(frozen=True)
+class CorrectorOptions:
+    """The options of ``StreamCorrector``: the grid, the batch size (points), the envelope guard."""
+
+    grid: Grid = Grid()
+    chunk_points: int = 1 << 17
+    guard: Guard | None = None
 
 
 class StreamOptions(TypedDict, total=False):
@@ -1190,6 +1344,69 @@ class StreamOptions(TypedDict, total=False):
     chunk_points: int
     scan: ProgramScan | None
     guard: Guard | None
+
+
+def _first_pass(
+    program_path: str | Path,
+    model: ErrorModel,
+    temperatures: TemperatureTable | Temperatures,
+    options: StreamOptions,
+) -> ProgramScan:
+    """Return the first pass over a program file (``scan_program``, with the guard's envelope checks when given)."""
+    guard = options.get("guard")
+    grid = Grid.of(options)
+    check = None if guard is None else FirstPass(guard, model, temperatures, keep=True)
+    scanner = Scanner(str(program_path), grid.decimals, options.get("start"), grid.segment, check, ParsedPieces())
+    return scanner.scan(program_path, options.get("chunk_bytes", STREAM_CHUNK_BYTES))
+
+
+def compensate_stream(
+    program_path: str | Path,
+    model: ErrorModel,
+    temperatures: TemperatureTable | Temperatures,
+    out: BinaryIO,
+    **options: Unpack[StreamOptions],
+) -> OfflineResult:
+    """Correct a program file into the binary stream ``out`` in constant memory; return what was done.
+
+    Two passes over the file, each a generator of pieces of whole lines: the first checks every
+    line and learns what the pieces share (the decimals of the whole program, its line terminator,
+    its first time stamp); the second parses each piece with the state the lines before it left
+    (pose, modal G0/G1 and G90/G91, time stamp), corrects its points carrying the quantisation
+    remainder and approach directions, and writes it (``StreamCorrector``). The output is byte for
+    byte that of ``compensate_program`` on the whole text (``OfflineResult.text`` stays empty).
+
+    With a ``guard`` (``compensator.guard``) the first pass checks every block against the machine
+    envelope before anything is written, and every point is checked again just before it is written.
+    """
+    scan = options.get("scan") or _first_pass(program_path, model, temperatures, options)
+    grid = Grid.of(options)
+    corrector = StreamCorrector(
+        model,
+        temperatures,
+        out,
+        scan,
+        CorrectorOptions(grid, options.get("chunk_points", 1 << 17), options.get("guard")),
+    )
+    max_points = max(corrector.chunk_points // 2, 1)
+    if scan.parsed is not None:  # the first pass kept what it parsed: the file is not read again
+        reader = _PieceReader(str(program_path), options.get("start"), grid.decimals, grid.segment, max_points)
+        for kept in kept_pieces(scan, scan.parsed, reader):
+            corrector.add(kept.program, kept.points)
+        return corrector.finish()
+    pieces = parse_pieces(
+        program_pieces(program_path, options.get("chunk_bytes", STREAM_CHUNK_BYTES)),
+        scan,
+        str(program_path),
+        start=options.get("start"),
+        min_decimals=grid.decimals,
+        max_segment_mm=grid.max_segment_mm,
+        max_segment_deg=grid.max_segment_deg,
+        max_points=max_points,
+    )
+    for piece in pieces:
+        corrector.add(piece)
+    return corrector.finish()
 
 
 def compensate_file(
@@ -1208,17 +1425,7 @@ def compensate_file(
     out_path = Path(out_path)
     tmp = out_path.with_name(out_path.name + ".part")
     if options.get("scan") is None:  # the first pass, before the output is even opened
-        guard = options.get("guard")
-        options["scan"] = scan_program(
-            program_path,
-            str(program_path),
-            decimals_for(options.get("resolution_mm", RESOLUTION_MM), options.get("resolution_deg", RESOLUTION_DEG)),
-            options.get("chunk_bytes", STREAM_CHUNK_BYTES),
-            start=options.get("start"),
-            max_segment_mm=options.get("max_segment_mm", 5.0),
-            max_segment_deg=options.get("max_segment_deg", 5.0),
-            check=None if guard is None else FirstPass(guard, model, temperatures, keep=True),
-        )
+        options["scan"] = _first_pass(program_path, model, temperatures, options)
     try:
         with tmp.open("wb") as fh:
             result = compensate_stream(program_path, model, temperatures, fh, **options)
@@ -1228,6 +1435,6 @@ def compensate_file(
         raise
     finally:
         scan = options["scan"]
-        if scan is not None and scan.solved is not None:
-            scan.solved.close()
+        if scan is not None:
+            scan.close()
     return result

@@ -43,19 +43,32 @@ axes at home, produces exactly that work-space error (allocated by eq. 4.20).
 
 from __future__ import annotations
 
+import datetime as _dt
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import httpx
 import numpy as np
+import pandas as pd
 
 from driftlab.compensator.compensate import ErrorModel
+from driftlab.compensator.gcode import parse_program
+from driftlab.compensator.guard import Guard
+from driftlab.compensator.stream import Streamer
 from driftlab.daemon import machining
 from driftlab.daemon.machining import ExecutedBlock, MachiningMachine, Scenario, SimSphere, true_errors
-from driftlab.errors import ValidationError
+from driftlab.daq.machine_link import SerialMachineLink
+from driftlab.daq.thermocouple import ThermocoupleCard
+from driftlab.daq.transport import LineChannel, open_port
+from driftlab.errors import InstrumentError, ValidationError
 from driftlab.metrics import rmse
+from driftlab.models import document as documents
+from driftlab.models.document import predict_workspace_sd
+from driftlab.models.envelope import Envelope
+from driftlab.models.online import rls_init, rls_update
 from driftlab.physics import kinematics as kin
 from driftlab.physics.lag import LaggedReadings, LagState
 from driftlab.vocabulary import AXES
@@ -332,9 +345,6 @@ class LocalRLS:
     """The on-line RLS of eqs. 6.10-6.13 in process: one fit per translation on phi = [1, dT_k ...]."""
 
     def __init__(self, document: Any, channels: Sequence[str] = (), forgetting: float = 0.9, p0: float = 1.0) -> None:
-        from driftlab.models import document as documents
-        from driftlab.models.online import rls_init
-
         self.doc = documents.validate_document(document)
         self.channels = list(channels)
         self.refs: dict[str, float] | None = None
@@ -351,9 +361,6 @@ class LocalRLS:
 
     def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float], t_s: float) -> None:
         """Update the three fits with measured minus off-line predicted translation (eqs. 6.11-6.13)."""
-        from driftlab.models import document as documents
-        from driftlab.models.online import rls_update
-
         q = np.array([[xyz[0], xyz[1], xyz[2], 0.0, 0.0]])
         offline = documents.predict_workspace_errors(self.doc, temperatures, q)[0, 3:]
         phi = self._phi(temperatures)
@@ -579,10 +586,6 @@ class CuttingBench:
         )
         self.lead_s = lead_s
         self.first_block = 0
-        from driftlab.daq.machine_link import SerialMachineLink
-        from driftlab.daq.thermocouple import ThermocoupleCard
-        from driftlab.daq.transport import LineChannel, open_port
-
         # the 50 thermocouples of Table 5.1 on the simulated card, read through the real driver
         card_map = dict(enumerate(machining.CHANNELS))
         self.temperatures = CardTemperatures(
@@ -619,6 +622,7 @@ class CuttingBench:
 
     def probe_cycle(self, online: OnlineUpdater, temps: Mapping[str, float]) -> dict[str, Any]:
         """Probe every sphere, feed the on-line model, return what was measured (ch. 6.4.3)."""
+        # daq.probe loads scipy (+0.84 s of start-up, python -X importtime): only the on-line run probes
         from driftlab.daq.probe import TouchProbe
 
         probe = TouchProbe.on_link(self.link, stylus_radius_mm=self.ctrl.stylus_radius_mm, lobing=self.ctrl.lobing)
@@ -671,9 +675,6 @@ def run_compensated(
     rotary axes' levers, so the subdivision limits are set above it: one executed block per program
     block, which is how the CMM points are found in the controller's log.
     """
-    from driftlab.compensator.gcode import parse_program
-    from driftlab.compensator.stream import Streamer
-
     bench.rapid_to_start()
     temps = bench.temperatures
     lines = bench.program.lines()
@@ -720,9 +721,6 @@ def run_compensated(
 def bench_guard(source: Any) -> Any:
     """Return the envelope guard of a model source on the bench: the model's envelope and fitted ranges,
     the virtual machine's travel (Tables A.3, A.4) taking precedence."""
-    from driftlab.compensator.guard import Guard
-    from driftlab.models.envelope import Envelope
-
     source.refresh()
     if source.model is None:
         raise ValidationError("no model to compensate with")
@@ -755,10 +753,6 @@ def offline_interval(
     of those), the mean half-width of the ``z`` interval, and the share of CMM points whose measured
     deviation lies inside their interval (0.95 for an honest model at z = 1.96).
     """
-    import pandas as pd
-
-    from driftlab.models.document import predict_workspace_sd
-
     if run.cmm is None or not run.readings:
         return None
     pts = run.cmm
@@ -812,21 +806,28 @@ THESIS_TABLE = {
 }
 
 
+@dataclass(frozen=True)
+class CuttingSession:
+    """How each run of the cutting test goes: ``lead_s`` of warm-up before the cut, the on-line model's interval."""
+
+    lead_s: float = 300.0
+    interval_s: float = ONLINE_INTERVAL_S
+
+
 def run_cutting_test(
     scenario: Scenario,
     models: Callable[[], Any],
     online: Callable[[], OnlineUpdater],
     *,
     passes: int = 700,
-    lead_s: float = 300.0,
-    interval_s: float = ONLINE_INTERVAL_S,
     age_s: float = 0.0,
     on_run: Callable[[str], None] | None = None,
     epoch_s: float | None = None,
+    session: CuttingSession = CuttingSession(),
 ) -> CuttingTest:
     """Return the three runs of the cutting test, each on a fresh, cold virtual machine.
 
-    Each run switches the machine on, waits ``lead_s`` and cuts; ``age_s`` is how long after the
+    Each run switches the machine on, waits ``session.lead_s`` and cuts; ``age_s`` is how long after the
     campaign's start the runs take place (see ``MachiningMachine``).
 
     ``models()`` returns a fresh model source (``compensator.stream`` ModelSource: a StaticModel or
@@ -837,13 +838,15 @@ def run_cutting_test(
     program = make_program(passes=passes)
     runs: dict[str, RunResult] = {}
     for key in ("uncompensated", "offline", "online"):
-        with CuttingBench(scenario, program, lead_s=lead_s, age_s=age_s) as bench:
+        with CuttingBench(scenario, program, lead_s=session.lead_s, age_s=age_s) as bench:
             if key == "uncompensated":
                 runs[key] = run_uncompensated(bench)
             elif key == "offline":
                 runs[key] = run_compensated(bench, models(), name="off-line", epoch_s=epoch_s)
             else:
-                runs[key] = run_compensated(bench, models(), online=online(), interval_s=interval_s, epoch_s=epoch_s)
+                runs[key] = run_compensated(
+                    bench, models(), online=online(), interval_s=session.interval_s, epoch_s=epoch_s
+                )
         if on_run is not None:
             on_run(key)
     return CuttingTest(runs, program)
@@ -882,8 +885,6 @@ class ApiRLS:
         client: Any | None = None,
         started_at: float | None = None,
     ) -> None:
-        import httpx
-
         self.url = f"{api.rstrip('/')}/machines/{machine}/online/probe"
         self.forgetting = forgetting
         headers = {"Authorization": f"Bearer {token}"} if token else {}
@@ -895,10 +896,6 @@ class ApiRLS:
 
     def update(self, xyz: Sequence[float], measured: np.ndarray, temperatures: Mapping[str, float], t_s: float) -> None:
         """Post one probe measurement; keep the coefficients the API answers with."""
-        import datetime as _dt
-
-        from driftlab.errors import InstrumentError
-
         temps = {c: round(float(v), 4) for c, v in temperatures.items() if np.isfinite(v)}
         body: dict[str, Any] = {
             "x": float(xyz[0]),

@@ -21,7 +21,7 @@ so words that receive no correction are written back byte for byte.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -135,9 +135,24 @@ class Program:
         q[:, 3:] = np.deg2rad(q[:, 3:])
         return q
 
+    def line_number(self, block: int) -> int:
+        """Return the line number (1-based, in the whole program) of block ``block`` of this text."""
+        return int(self.block_line[block]) + self.first_line + 1
+
     def block_time_s(self) -> np.ndarray:
         """Return (B,) time stamp of each block (NaN when the program carries none)."""
         return self.line_time_s[self.block_line]
+
+    def next_state(self, state: ParserState) -> ParserState:
+        """Return the state these lines, parsed from ``state``, leave for the lines after them."""
+        return replace(
+            state,
+            pose_int=self.target_int[-1] if self.n_blocks else self.start_int,
+            motion=self.end_motion,
+            dist=self.end_dist,
+            time_s=float(self.line_time_s[-1]) if self.n_lines else state.time_s,
+            line_offset=self.first_line + self.n_lines,
+        )
 
 
 def _fail(name: str, errors: list[tuple[int, str]], line_offset: int = 0) -> None:
@@ -153,18 +168,78 @@ def _show(byte: int) -> str:
     return repr(ch) if ch.isprintable() and byte < 128 else f"byte 0x{byte:02x}"
 
 
+@dataclass(frozen=True, eq=False)
+class ParserState:
+    """What the lines before a text leave for it, so that a piece of a longer program reads as in the whole.
+
+    A whole program is parsed from the default state. The pieces of a streamed program
+    (``compensate.parse_pieces``) each start from the state the piece before leaves (``Program.next_state``).
+    """
+
+    #: decimals of the integer units (linear, rotary), fixed: the whole program's; None: chosen from this text
+    decimals: tuple[int, int] | None = None
+    #: the pose before the first line in those units; None: ``parse_program``'s ``start``
+    pose_int: np.ndarray | None = None
+    #: modal motion (-1 none yet, 0 G0, 1 G1) and distance (0 G90, 1 G91) modes in effect
+    motion: int = -1
+    dist: int = 0
+    #: the time stamp (s) in effect (NaN: none yet)
+    time_s: float = math.nan
+    #: the file's line terminator; None: taken from this text's first line
+    eol: bytes | None = None
+    #: lines before this text in the whole program (``Program.first_line``, error messages)
+    line_offset: int = 0
+
+
+_FRESH = ParserState()
+
+
+@dataclass(frozen=True)
+class _Lines:
+    """Where the lines of a text are: newlines, starts, ends (before ``\\n``), which carry a newline."""
+
+    nl: np.ndarray
+    start: np.ndarray
+    end: np.ndarray
+    has_newline: np.ndarray
+    eol: bytes
+
+    @property
+    def n(self) -> int:
+        """Return the number of lines."""
+        return int(self.start.shape[0])
+
+
+def _split_lines(buf: np.ndarray, eol: bytes | None) -> _Lines:
+    """Return the lines of ``buf``; the line terminator is the first line's unless ``eol`` is given."""
+    n = buf.shape[0]
+    nl = np.flatnonzero(buf == 10)
+    line_start = np.concatenate(([0], nl + 1)).astype(np.int64)
+    if line_start[-1] >= n:
+        line_start = line_start[:-1]
+    n_lines = line_start.shape[0]
+    line_end = np.empty(n_lines, dtype=np.int64)
+    line_end[: nl.shape[0]] = nl[:n_lines]
+    if nl.shape[0] < n_lines:
+        line_end[-1] = n
+    has_newline = np.zeros(n_lines, dtype=bool)
+    has_newline[: nl.shape[0]] = True
+    if eol is None:
+        eol = b"\r\n" if nl.shape[0] and nl[0] > 0 and buf[nl[0] - 1] == 13 else b"\n"
+    return _Lines(nl, line_start, line_end, has_newline, eol)
+
+
 def _strip_comments(
     data: bytes,
     work: bytearray,
-    lines: np.ndarray,
-    line_start: np.ndarray,
-    line_end: np.ndarray,
+    selected: np.ndarray,
+    lines: _Lines,
     errors: list[tuple[int, str]],
     times: dict[int, float],
 ) -> None:
-    """Blank comments and ``%`` markers of the given lines in ``work``; collect times and errors."""
-    for li in lines.tolist():
-        a, b = int(line_start[li]), int(line_end[li])
+    """Blank comments and ``%`` markers of the ``selected`` lines in ``work``; collect times and errors."""
+    for li in selected.tolist():
+        a, b = int(lines.start[li]), int(lines.end[li])
         text = data[a:b]
         i, n = 0, len(text)
         code_chars = []
@@ -178,17 +253,7 @@ def _strip_comments(
                 if text.find(b"(", i + 1, j) >= 0:
                     errors.append((li, "nested comment '('"))
                     break
-                body = text[i + 1 : j].strip()
-                if body[:1] in (b"T", b"t") and body[1:].lstrip().startswith(b"="):
-                    value = body[1:].lstrip()[1:].strip()
-                    try:
-                        t = float(value)
-                    except ValueError:
-                        t = math.nan
-                    if not math.isfinite(t):
-                        errors.append((li, f"bad time comment ({body.decode('ascii', 'replace')})"))
-                    else:
-                        times[li] = t
+                _time_comment(text[i + 1 : j].strip(), li, errors, times)
                 work[a + i : a + j + 1] = b" " * (j + 1 - i)
                 i = j + 1
             elif ch == 0x29:  # )
@@ -209,6 +274,20 @@ def _strip_comments(
                 work[a + pct[0]] = 0x20
 
 
+def _time_comment(body: bytes, li: int, errors: list[tuple[int, str]], times: dict[int, float]) -> None:
+    """Record the time stamp of a comment ``(T=123.0)`` on line ``li`` (other comments say nothing)."""
+    if body[:1] in (b"T", b"t") and body[1:].lstrip().startswith(b"="):
+        value = body[1:].lstrip()[1:].strip()
+        try:
+            t = float(value)
+        except ValueError:
+            t = math.nan
+        if not math.isfinite(t):
+            errors.append((li, f"bad time comment ({body.decode('ascii', 'replace')})"))
+        else:
+            times[li] = t
+
+
 def _class_counts(cls: np.ndarray) -> dict[int, int]:
     """Return whether bytes of the classes that need attention occur (the lowest and highest classes)."""
     if cls.shape[0] == 0:
@@ -216,80 +295,61 @@ def _class_counts(cls: np.ndarray) -> dict[int, int]:
     return {_OTHER: int(cls.min() == _OTHER), _SPECIAL: int(cls.max() == _SPECIAL)}
 
 
-def parse_program(
-    data: bytes | str,
-    name: str = "<program>",
-    start: tuple[float, ...] | np.ndarray | None = None,
-    min_decimals: tuple[int, int] = (4, 3),
-    *,
-    decimals: tuple[int, int] | None = None,
-    start_int: np.ndarray | None = None,
-    initial_motion: int = -1,
-    initial_dist: int = 0,
-    initial_time_s: float = math.nan,
-    eol: bytes | None = None,
-    line_offset: int = 0,
-    residuals: bool = False,
-) -> Program:
-    """Return the parsed program; raise ValidationError naming the first bad line otherwise.
-
-    ``start`` is the machine's pose before the first block (X, Y, Z mm; A, B deg; default home).
-    ``min_decimals`` sets the finest position unit (linear, rotary); it grows to the program's.
-
-    A piece of a longer program (streaming, see ``compensate.compensate_stream``) is parsed with
-    the state the lines before it leave: ``decimals`` (fixed, those of the whole program),
-    ``start_int`` (the pose, in those units), the modal motion and distance modes, the time stamp in
-    effect (``initial_time_s``), the file's line terminator ``eol`` and ``line_offset`` (lines before
-    it, for error messages). ``residuals`` records what choosing the decimals of the whole program
-    needs (``Program.residuals``).
-    """
-    if isinstance(data, str):
-        data = data.encode("utf-8")
+def _code_bytes(
+    data: bytes, lines: _Lines, errors: list[tuple[int, str]]
+) -> tuple[np.ndarray, np.ndarray, dict[int, float]]:
+    """Return the bytes with comments blanked, their classes and the lines' time stamps; note stray characters."""
     buf = np.frombuffer(data, dtype=np.uint8)
-    n = buf.shape[0]
-    nl = np.flatnonzero(buf == 10)
-    line_start = np.concatenate(([0], nl + 1)).astype(np.int64)
-    if line_start[-1] >= n:
-        line_start = line_start[:-1]
-    n_lines = line_start.shape[0]
-    line_end = np.empty(n_lines, dtype=np.int64)
-    line_end[: nl.shape[0]] = nl[:n_lines]
-    if nl.shape[0] < n_lines:
-        line_end[-1] = n
-    has_newline = np.zeros(n_lines, dtype=bool)
-    has_newline[: nl.shape[0]] = True
-    if eol is None:
-        eol = b"\r\n" if nl.shape[0] and nl[0] > 0 and buf[nl[0] - 1] == 13 else b"\n"
-
-    errors: list[tuple[int, str]] = []
     times: dict[int, float] = {}
     cls = np.take(_CLS, buf)  # (a take of a 256-entry table: about twice as fast as indexing)
     counts = _class_counts(cls)
     if counts[_SPECIAL]:
         work = bytearray(data)
-        lines = np.unique(np.searchsorted(nl, np.flatnonzero(cls == _SPECIAL)))
-        _strip_comments(data, work, lines, line_start, line_end, errors, times)
+        selected = np.unique(np.searchsorted(lines.nl, np.flatnonzero(cls == _SPECIAL)))
+        _strip_comments(data, work, selected, lines, errors, times)
         buf = np.frombuffer(bytes(work), dtype=np.uint8)
-        cls = np.take(_CLS, buf)  # (a take of a 256-entry table: about twice as fast as indexing)
+        cls = np.take(_CLS, buf)
         counts = _class_counts(cls)
     if counts[_OTHER] or counts[_SPECIAL]:
         other = np.flatnonzero((cls == _OTHER) | (cls == _SPECIAL))
         for p in other[:1000].tolist():
-            errors.append((int(np.searchsorted(nl, p)), f"unexpected character {_show(int(buf[p]))}"))
+            errors.append((int(np.searchsorted(lines.nl, p)), f"unexpected character {_show(int(buf[p]))}"))
+    return buf, cls, times
 
-    # words: a letter and the run of number characters right after it, which ends at the
-    # next byte that is not part of a number
+
+@dataclass(frozen=True)
+class _Words:
+    """The words of a text: a letter and the run of number characters right after it."""
+
+    #: (W,) byte offset of the letter; length of its number; line; letter (upper case); kind (``_KIND``)
+    pos: np.ndarray
+    runlen: np.ndarray
+    lid: np.ndarray
+    letter: np.ndarray
+    kind: np.ndarray
+    #: (W,) the number parsed; whether it did
+    valid: np.ndarray
+    value: np.ndarray
+    #: bytes that are not number characters (the rest belong to words, or stand alone)
+    n_nonnum: int
+
+
+def _words(buf: np.ndarray, cls: np.ndarray) -> _Words:
+    """Return the words of ``buf``: each ends at the next byte that is not part of a number."""
     nonnum = np.flatnonzero(cls != _NUM)
-    is_letter = cls[nonnum] == _LETTER
-    widx = np.flatnonzero(is_letter)
+    widx = np.flatnonzero(cls[nonnum] == _LETTER)
     pos = nonnum[widx]
-    runlen = np.append(nonnum, n)[widx + 1] - pos - 1
+    runlen = np.append(nonnum, buf.shape[0])[widx + 1] - pos - 1
     lid = np.cumsum(buf[nonnum] == 10)[widx]  # newlines before each letter
     letter = buf[pos] & 0xDF
-    kind = _KIND[letter]
-    n_words = pos.shape[0]
     valid = (runlen > 0) & (runlen < _W)
-    value = np.full(n_words, np.nan)
+    value = _numbers(buf, pos, runlen, valid)
+    return _Words(pos, runlen, lid, letter, _KIND[letter], valid, value, nonnum.shape[0])
+
+
+def _numbers(buf: np.ndarray, pos: np.ndarray, runlen: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Return the numbers after the letters at ``pos`` (NaN where none); clear ``valid`` where malformed."""
+    value = np.full(pos.shape[0], np.nan)
     padded = np.concatenate((buf, np.zeros(_W, dtype=np.uint8)))
     win = np.lib.stride_tricks.sliding_window_view(padded, _W)
     cols = np.arange(_W)
@@ -308,136 +368,178 @@ def parse_program(
                     value[k] = float(txt)
                 except ValueError:
                     valid[k] = False
+    return value
 
-    for i in np.flatnonzero(~valid)[:1000].tolist():
-        ltr = chr(letter[i])
-        if runlen[i] == 0:
-            errors.append((int(lid[i]), f"word '{ltr}' has no value"))
-        elif runlen[i] >= _W:
-            errors.append((int(lid[i]), f"number after '{ltr}' is too long"))
+
+def _word_errors(w: _Words, buf: np.ndarray, cls: np.ndarray, lines: _Lines, errors: list[tuple[int, str]]) -> None:
+    """Note words without a valid number, numbers without a letter, words of no accepted kind, bad feeds."""
+    for i in np.flatnonzero(~w.valid)[:1000].tolist():
+        ltr = chr(w.letter[i])
+        if w.runlen[i] == 0:
+            errors.append((int(w.lid[i]), f"word '{ltr}' has no value"))
+        elif w.runlen[i] >= _W:
+            errors.append((int(w.lid[i]), f"number after '{ltr}' is too long"))
         else:
-            txt = bytes(buf[pos[i] + 1 : pos[i] + 1 + runlen[i]]).decode("ascii")
-            errors.append((int(lid[i]), f"malformed number '{ltr}{txt}'"))
-    if int(runlen.sum()) != n - nonnum.shape[0]:  # every number character belongs to a word
-        per_line = np.bincount(np.searchsorted(nl, np.flatnonzero(cls == _NUM)), minlength=n_lines)
-        covered = np.bincount(lid, weights=runlen, minlength=n_lines)
+            errors.append((int(w.lid[i]), f"malformed number '{ltr}{_number_text(w, buf, i)}'"))
+    if int(w.runlen.sum()) != buf.shape[0] - w.n_nonnum:  # every number character belongs to a word
+        per_line = np.bincount(np.searchsorted(lines.nl, np.flatnonzero(cls == _NUM)), minlength=lines.n)
+        covered = np.bincount(w.lid, weights=w.runlen, minlength=lines.n)
         for li in np.flatnonzero(per_line != covered)[:1000].tolist():
             errors.append((int(li), "number without a letter"))
-    for i in np.flatnonzero(kind >= _K_ARC)[:1000].tolist():
-        ltr = chr(letter[i])
-        if kind[i] == _K_ARC:
+    for i in np.flatnonzero(w.kind >= _K_ARC)[:1000].tolist():
+        ltr = chr(w.letter[i])
+        if w.kind[i] == _K_ARC:
             msg = f"word '{ltr}' belongs to arcs, which are not supported (linearise G2/G3 first)"
-        elif kind[i] == _K_FOREIGN:
+        elif w.kind[i] == _K_FOREIGN:
             msg = f"axis '{ltr}' is not on this machine (X Y Z A B)"
         else:
             msg = f"unsupported word '{ltr}'"
-        errors.append((int(lid[i]), msg))
-
+        errors.append((int(w.lid[i]), msg))
     # feeds: F0 stalls the controller and a negative feed is no feed; both are refused here, not mid-run
-    fi = np.flatnonzero((letter == ord("F")) & valid)
-    for j in fi[~(value[fi] > 0)][:1000].tolist():
-        txt = bytes(buf[pos[j] + 1 : pos[j] + 1 + runlen[j]]).decode("ascii")
-        errors.append((int(lid[j]), f"feed 'F{txt}' must be positive"))
+    fi = np.flatnonzero((w.letter == ord("F")) & w.valid)
+    for j in fi[~(w.value[fi] > 0)][:1000].tolist():
+        errors.append((int(w.lid[j]), f"feed 'F{_number_text(w, buf, j)}' must be positive"))
 
-    # G codes
-    gi = np.flatnonzero((kind == _K_G) & valid)
-    g10 = np.rint(value[gi] * 10.0)
-    g_exact = np.abs(value[gi] * 10.0 - g10) < 1e-6
+
+def _number_text(w: _Words, buf: np.ndarray, i: int) -> str:
+    """Return the number of word ``i`` as written."""
+    return bytes(buf[w.pos[i] + 1 : w.pos[i] + 1 + w.runlen[i]]).decode("ascii")
+
+
+def _modes(w: _Words, n_lines: int, errors: list[tuple[int, str]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the G codes of each line: motion (-1 none, 0 G0, 1 G1), distance (-1, 0 G90, 1 G91), dwell."""
+    gi = np.flatnonzero((w.kind == _K_G) & w.valid)
+    g10 = np.rint(w.value[gi] * 10.0)
+    g_exact = np.abs(w.value[gi] * 10.0 - g10) < 1e-6
     g10 = g10.astype(np.int64)
     motion_line = np.full(n_lines, -1, dtype=np.int8)
     dist_line = np.full(n_lines, -1, dtype=np.int8)
     dwell_line = np.zeros(n_lines, dtype=bool)
-    for code, mode in _G_MOTION.items():
-        sel = gi[(g10 == code) & g_exact]
-        motion_line[lid[sel]] = mode
-    for code, mode in _G_DIST.items():
-        sel = gi[(g10 == code) & g_exact]
-        dist_line[lid[sel]] = mode
-    dwell_line[lid[gi[(g10 == 40) & g_exact]]] = True
+    for codes, per_line in ((_G_MOTION, motion_line), (_G_DIST, dist_line)):
+        for code, mode in codes.items():
+            per_line[w.lid[gi[(g10 == code) & g_exact]]] = mode
+    dwell_line[w.lid[gi[(g10 == 40) & g_exact]]] = True
     known = np.isin(g10, list(_G_MOTION) + list(_G_DIST) + list(_G_OK)) & g_exact
     for j in np.flatnonzero(~known)[:1000].tolist():
-        code = value[gi[j]]
-        text = f"G{code:g}"
+        text = f"G{w.value[gi[j]]:g}"
         if g_exact[j] and g10[j] in (20, 30):
             msg = f"{text}: circular interpolation is not supported (linearise arcs into G1 first)"
         elif g_exact[j] and g10[j] == 200:
             msg = "G20: inch units are not supported (the program must be in mm, G21)"
         else:
             msg = f"unsupported G-code {text}"
-        errors.append((int(lid[gi[j]]), msg))
+        errors.append((int(w.lid[gi[j]]), msg))
     for codes, what in ((_G_MOTION, "motion codes G0/G1"), (_G_DIST, "distance modes G90/G91")):
-        kinds = [np.bincount(lid[gi[(g10 == c) & g_exact]], minlength=n_lines) > 0 for c in codes]
+        kinds = [np.bincount(w.lid[gi[(g10 == c) & g_exact]], minlength=n_lines) > 0 for c in codes]
         for li in np.flatnonzero(np.sum(kinds, axis=0) > 1)[:1000].tolist():
             errors.append((int(li), f"conflicting {what} on one block"))
+    return motion_line, dist_line, dwell_line
 
-    # axis words
-    ai = np.flatnonzero((kind < 5) & valid)
-    a_axis = kind[ai].astype(np.int64)
-    a_lid = lid[ai]
+
+@dataclass(frozen=True)
+class _AxisWords:
+    """The axis words of a text, in byte order: index among the words, axis, line, value in integer units."""
+
+    index: np.ndarray
+    axis: np.ndarray
+    lid: np.ndarray
+    value_int: np.ndarray
+    decimals: tuple[int, int]
+    residuals: tuple[tuple[float, np.ndarray], tuple[float, np.ndarray]] | None
+
+
+def _axis_words(
+    w: _Words,
+    n_lines: int,
+    min_decimals: tuple[int, int],
+    state: ParserState,
+    residuals: bool,
+    errors: list[tuple[int, str]],
+) -> _AxisWords:
+    """Return the axis words in integer units of the decimals chosen (``state.decimals`` when fixed)."""
+    ai = np.flatnonzero((w.kind < 5) & w.valid)
+    a_axis = w.kind[ai].astype(np.int64)
+    a_lid = w.lid[ai]
     per_key = np.bincount(a_lid * 5 + a_axis, minlength=5 * n_lines)
     for k in np.flatnonzero(per_key > 1)[:1000].tolist():
         errors.append((int(k // 5), f"repeated word '{AXES[k % 5]}'"))
     rot = ROTARY[a_axis]
+    lin_values, rot_values = w.value[ai[~rot]], w.value[ai[rot]]
     need = None
     if residuals:
-        need = (_residuals(value[ai[~rot]], min_decimals[0]), _residuals(value[ai[rot]], min_decimals[1]))
-    if decimals is not None:
-        dec_lin, dec_rot = decimals
+        need = (_residuals(lin_values, min_decimals[0]), _residuals(rot_values, min_decimals[1]))
+    if state.decimals is not None:
+        dec_lin, dec_rot = state.decimals
     elif need is not None:  # the same residuals decide (``decimals_of`` of one piece is ``_decimals``)
         dec_lin, dec_rot = decimals_of([need[0]], min_decimals[0]), decimals_of([need[1]], min_decimals[1])
     else:
-        dec_lin = _decimals(value[ai[~rot]], min_decimals[0])
-        dec_rot = _decimals(value[ai[rot]], min_decimals[1])
-    if decimals is None:
-        for dec, sel in ((dec_lin, ~rot), (dec_rot, rot)):
+        dec_lin, dec_rot = _decimals(lin_values, min_decimals[0]), _decimals(rot_values, min_decimals[1])
+    if state.decimals is None:
+        for dec, values, lids in ((dec_lin, lin_values, a_lid[~rot]), (dec_rot, rot_values, a_lid[rot])):
             if dec > MAX_DECIMALS:
-                bad = ai[sel][~_whole(value[ai[sel]] * 10.0**MAX_DECIMALS)][0]
-                errors.append((int(lid[bad]), f"more than {MAX_DECIMALS} decimals"))
+                bad = np.flatnonzero(~_whole(values * 10.0**MAX_DECIMALS))[0]
+                errors.append((int(lids[bad]), f"more than {MAX_DECIMALS} decimals"))
         dec_lin, dec_rot = min(dec_lin, MAX_DECIMALS), min(dec_rot, MAX_DECIMALS)
-    unit = np.where(rot, 10.0**dec_rot, 10.0**dec_lin)
-    a_val = value[ai] * unit
+    a_val = w.value[ai] * np.where(rot, 10.0**dec_rot, 10.0**dec_lin)
     big = ~(np.abs(a_val) < 2.0**52)
     for j in np.flatnonzero(big)[:1000].tolist():
         errors.append((int(a_lid[j]), f"value of '{AXES[a_axis[j]]}' out of range"))
     a_int = np.rint(np.where(big, 0.0, a_val)).astype(np.int64)
+    return _AxisWords(ai, a_axis, a_lid, a_int, (dec_lin, dec_rot), need)
 
-    # modal state, line by line
-    idx = np.arange(n_lines)
-    last = np.maximum.accumulate(np.where(motion_line >= 0, idx, -1))
-    motion = np.where(last >= 0, motion_line[np.maximum(last, 0)], initial_motion)
-    last = np.maximum.accumulate(np.where(dist_line >= 0, idx, -1))
-    dist = np.where(last >= 0, dist_line[np.maximum(last, 0)], initial_dist)
 
+def _carry(per_line: np.ndarray, initial: int | float) -> np.ndarray:
+    """Return the value in effect on each line: the last one given on it or before, else ``initial``."""
+    idx = np.arange(per_line.shape[0])
+    last = np.maximum.accumulate(np.where(per_line >= 0, idx, -1))
+    return np.where(last >= 0, per_line[np.maximum(last, 0)], initial)
+
+
+@dataclass(frozen=True)
+class _Blocks:
+    """The per-block arrays of ``Program`` (see there) that come from the axis words."""
+
+    block_line: np.ndarray
+    present: np.ndarray
+    word_int: np.ndarray
+    num_start: np.ndarray
+    num_end: np.ndarray
+    insert_at: np.ndarray
+    spaced: np.ndarray
+
+
+def _blocks(w: _Words, axes: _AxisWords, buf: np.ndarray) -> _Blocks:
+    """Return the blocks (lines with axis words): which words each has, their values and where they are."""
     # words are in byte order, so lines of axis words are sorted
-    new_block = np.diff(a_lid, prepend=-1) != 0
-    block_line = a_lid[new_block]
-    for li in block_line[dwell_line[block_line]][:1000].tolist():
-        errors.append((int(li), "G4 dwell with axis words"))
-    for li in block_line[motion[block_line] < 0][:1000].tolist():
-        errors.append((int(li), "axis words before any G0/G1"))
-    _fail(name, errors, line_offset)
-
+    new_block = np.diff(axes.lid, prepend=-1) != 0
+    block_line = axes.lid[new_block]
     n_blocks = block_line.shape[0]
-    flat = (np.cumsum(new_block) - 1) * 5 + a_axis  # (block, axis) of each axis word
+    flat = (np.cumsum(new_block) - 1) * 5 + axes.axis  # (block, axis) of each axis word
     present = np.zeros((n_blocks, 5), dtype=bool)
     word_int = np.zeros((n_blocks, 5), dtype=np.int64)
     num_start = np.full((n_blocks, 5), -1, dtype=np.int64)
     num_end = np.full((n_blocks, 5), -1, dtype=np.int64)
-    a_start = pos[ai] + 1
-    a_end = a_start + runlen[ai]
+    a_start = w.pos[axes.index] + 1
+    a_end = a_start + w.runlen[axes.index]
     present.reshape(-1)[flat] = True
-    word_int.reshape(-1)[flat] = a_int
+    word_int.reshape(-1)[flat] = axes.value_int
     num_start.reshape(-1)[flat] = a_start
     num_end.reshape(-1)[flat] = a_end
-    # words are in byte order: a block's last axis word is the one before the next block's first
+    # a block's last axis word is the one before the next block's first
     last = np.append(np.flatnonzero(new_block)[1:], new_block.shape[0])[:n_blocks] - 1
-    insert_at = a_end[last]
-    last_word = a_start[last] - 1
-    spaced = buf[np.maximum(last_word - 1, 0)] == 32
+    spaced = buf[np.maximum(a_start[last] - 2, 0)] == 32
+    return _Blocks(block_line, present, word_int, num_start, num_end, a_end[last], spaced)
 
-    incremental = dist[block_line] == 1
-    rapid = motion[block_line] == 0
-    start_int = _start_int(start, dec_lin, dec_rot) if start_int is None else np.asarray(start_int, dtype=np.int64)
+
+def block_targets(
+    present: np.ndarray, word_int: np.ndarray, incremental: np.ndarray, start_int: np.ndarray
+) -> np.ndarray:
+    """Return (B, 5) the target of each block: absolute words set it, G91 words add to the one before.
+
+    ``present`` and ``word_int`` (B, 5): the blocks' axis words and their values; ``incremental`` (B,):
+    G91 in effect; ``start_int`` (5,): the pose before the first block (all in integer units).
+    """
+    n_blocks = present.shape[0]
     target = np.empty((n_blocks, 5), dtype=np.int64)
     ar = np.arange(n_blocks)
     for k in range(5):
@@ -447,42 +549,87 @@ def parse_program(
         r = np.maximum.accumulate(np.where(reset, ar, -1))
         base = np.where(r >= 0, word_int[np.maximum(r, 0), k] - csum[np.maximum(r, 0)], start_int[k])
         target[:, k] = base + csum
+    return target
 
+
+def _line_times(times: dict[int, float], n_lines: int, initial_time_s: float) -> np.ndarray:
+    """Return (L,) the time stamp in effect on each line (the lines before the first stamp take ``initial_time_s``)."""
     line_time = np.full(n_lines, initial_time_s)
     if times:
         tl = np.array(sorted(times))
         line_time[tl] = [times[t] for t in tl.tolist()]
         stamped = np.zeros(n_lines, dtype=bool)
         stamped[tl] = True
-        last = np.maximum.accumulate(np.where(stamped, idx, -1))
+        last = np.maximum.accumulate(np.where(stamped, np.arange(n_lines), -1))
         # lines before the first stamp take the time in effect (a whole program: its first stamp)
         before = initial_time_s if math.isfinite(initial_time_s) else line_time[tl[0]]
         line_time = np.where(last >= 0, line_time[np.maximum(last, 0)], before)
+    return line_time
 
+
+def parse_program(
+    data: bytes | str,
+    name: str = "<program>",
+    start: tuple[float, ...] | np.ndarray | None = None,
+    min_decimals: tuple[int, int] = (4, 3),
+    *,
+    state: ParserState = _FRESH,
+    residuals: bool = False,
+) -> Program:
+    """Return the parsed program; raise ValidationError naming the first bad line otherwise.
+
+    ``start`` is the machine's pose before the first block (X, Y, Z mm; A, B deg; default home).
+    ``min_decimals`` sets the finest position unit (linear, rotary); it grows to the program's.
+
+    A piece of a longer program (streaming, see ``compensate.parse_pieces``) is parsed with the
+    ``state`` the lines before it leave (``ParserState``: the decimals of the whole program, the pose,
+    modal modes, time stamp, line terminator and line number). ``residuals`` records what choosing the
+    decimals of the whole program needs (``Program.residuals``).
+    """
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    lines = _split_lines(np.frombuffer(data, dtype=np.uint8), state.eol)
+    errors: list[tuple[int, str]] = []
+    buf, cls, times = _code_bytes(data, lines, errors)
+    words = _words(buf, cls)
+    _word_errors(words, buf, cls, lines, errors)
+    motion_line, dist_line, dwell_line = _modes(words, lines.n, errors)
+    axes = _axis_words(words, lines.n, min_decimals, state, residuals, errors)
+    motion = _carry(motion_line, state.motion)
+    dist = _carry(dist_line, state.dist)
+    blocks = _blocks(words, axes, buf)
+    for li in blocks.block_line[dwell_line[blocks.block_line]][:1000].tolist():
+        errors.append((int(li), "G4 dwell with axis words"))
+    for li in blocks.block_line[motion[blocks.block_line] < 0][:1000].tolist():
+        errors.append((int(li), "axis words before any G0/G1"))
+    _fail(name, errors, state.line_offset)
+
+    incremental = dist[blocks.block_line] == 1
+    start_int = _start_int(start, *axes.decimals) if state.pose_int is None else np.asarray(state.pose_int, np.int64)
     return Program(
         data=data,
         name=name,
-        decimals=(dec_lin, dec_rot),
-        line_start=line_start,
-        line_end=line_end,
-        has_newline=has_newline,
-        eol=eol,
-        line_time_s=line_time,
-        block_line=block_line,
-        target_int=target,
+        decimals=axes.decimals,
+        line_start=lines.start,
+        line_end=lines.end,
+        has_newline=lines.has_newline,
+        eol=lines.eol,
+        line_time_s=_line_times(times, lines.n, state.time_s),
+        block_line=blocks.block_line,
+        target_int=block_targets(blocks.present, blocks.word_int, incremental, start_int),
         start_int=start_int,
-        present=present,
-        word_int=word_int,
-        num_start=num_start,
-        num_end=num_end,
+        present=blocks.present,
+        word_int=blocks.word_int,
+        num_start=blocks.num_start,
+        num_end=blocks.num_end,
         incremental=incremental,
-        rapid=rapid,
-        insert_at=insert_at,
-        spaced=spaced,
-        first_line=line_offset,
-        end_motion=int(motion[-1]) if n_lines else initial_motion,
-        end_dist=int(dist[-1]) if n_lines else initial_dist,
-        residuals=need,
+        rapid=motion[blocks.block_line] == 0,
+        insert_at=blocks.insert_at,
+        spaced=blocks.spaced,
+        first_line=state.line_offset,
+        end_motion=int(motion[-1]) if lines.n else state.motion,
+        end_dist=int(dist[-1]) if lines.n else state.dist,
+        residuals=axes.residuals,
     )
 
 
@@ -507,7 +654,10 @@ def _residuals(values: np.ndarray, least: int) -> tuple[float, np.ndarray]:
     """Return (largest |value|, worst residual at each of least..9 decimals): what ``_decimals`` decides on."""
     if values.shape[0] == 0:
         return 0.0, np.zeros(MAX_DECIMALS + 1 - least)
-    res = [float(np.abs(values * 10.0**d - np.rint(values * 10.0**d)).max()) for d in range(least, MAX_DECIMALS + 1)]
+    res = []
+    for d in range(least, MAX_DECIMALS + 1):
+        x = values * 10.0**d
+        res.append(float(np.abs(x - np.rint(x)).max()))
     return float(np.abs(values).max()), np.array(res)
 
 
@@ -566,7 +716,7 @@ def _pieces(
     if pieces.shape[0] and int(pieces.max()) > 100_000:
         b = b0 + int(np.argmax(pieces))
         raise ValidationError(
-            f"{program.name}:{int(program.block_line[b]) + program.first_line + 1}: segment would need more than "
+            f"{program.name}:{program.line_number(b)}: segment would need more than "
             "100000 subdivisions; raise the subdivision length"
         )
     return start, end, pieces
@@ -582,14 +732,18 @@ def subdivide(
     max_mm: float = 5.0,
     max_deg: float = 5.0,
     blocks: slice = slice(None),
+    count: int | None = None,
 ) -> Points:
     """Return the points of ``blocks``: G1 segments longer than max_mm / max_deg split evenly (ch. 7.2).
 
     Rapid (G0) moves are not cut: they are not cutting moves. Points follow the controller's
     joint-space linear interpolation, so the correction tracks the kinematic error along the
-    segment rather than only at its ends.
+    segment rather than only at its ends. ``count``: how many points all the program's blocks make
+    (``count_points`` with these lengths, when already known): one a block needs no measuring.
     """
     b0, b1, _ = blocks.indices(program.n_blocks)
+    if count is not None and count == program.n_blocks and (b0, b1) == (0, program.n_blocks):
+        return Points(block=np.arange(b0, b1), nominal_int=program.target_int.copy())
     start, end, pieces = _pieces(program, max_mm, max_deg, b0, b1)
     block = np.repeat(np.arange(b0, b1), pieces)
     if block.shape[0] == end.shape[0]:
@@ -622,6 +776,14 @@ def format_fixed(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndar
     Always one digit before and at least one after the point (``-0.5``, ``12.0``): a bare
     integer means a count of least increments on some controllers.
     """
+    chars, start, length = _fixed_rows(values, decimals)
+    cols = np.arange(chars.shape[1])[None, :]
+    return chars[(cols >= start[:, None]) & (cols < (start + length)[:, None])], length
+
+
+def _fixed_rows(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (chars (M, W), start (M,), length (M,)): value k written as ``format_fixed`` writes it is
+    ``chars[k, start[k] : start[k] + length[k]]`` (the sign stands just before the first digit written)."""
     v = np.asarray(values, dtype=np.int64)
     m = v.shape[0]
     neg = v < 0
@@ -641,13 +803,8 @@ def format_fixed(values: np.ndarray, decimals: int) -> tuple[np.ndarray, np.ndar
     chars[:, 1 : 1 + n_int] = idig
     chars[:, 1 + n_int] = 46
     chars[:, 2 + n_int :] = fdig
-    cols = np.arange(width)
-    mask = np.empty((m, width), dtype=bool)
-    mask[:, 0] = neg
-    mask[:, 1 : 1 + n_int] = cols[None, 1 : 1 + n_int] - 1 >= first[:, None]
-    mask[:, 1 + n_int] = True
-    mask[:, 2 + n_int :] = cols[None, 2 + n_int :] - (2 + n_int) < keep_f[:, None]
-    return chars[mask], mask.sum(axis=1)
+    chars[np.flatnonzero(neg), first[neg]] = 45  # over a leading zero, or the first column
+    return chars, 1 + first - neg, neg + (n_int - first) + 1 + keep_f
 
 
 def _concat_pieces(sources: np.ndarray, start: np.ndarray, length: np.ndarray) -> bytes:
@@ -663,6 +820,132 @@ def _concat_pieces(sources: np.ndarray, start: np.ndarray, length: np.ndarray) -
     step = np.ones(total, dtype=itype)
     step[off] = start - np.concatenate(([0], start[:-1] + length[:-1] - 1))
     return sources[np.cumsum(step, dtype=itype)].tobytes()
+
+
+@dataclass(frozen=True)
+class _Edits:
+    """Edits of a program's text in byte order: each writes a prefix (``_PREFIXES``) and a number at ``pos``.
+
+    ``end`` is where the text resumes after the edit (past the old number a replacement covers, else ``pos``).
+    """
+
+    pos: np.ndarray
+    end: np.ndarray
+    prefix: np.ndarray
+    value: np.ndarray
+    axis: np.ndarray  # -1: no number (a line end)
+    #: the sort key within one byte position (insertions at one place keep their order)
+    key: np.ndarray
+
+    @classmethod
+    def join(cls, parts: list[_Edits]) -> _Edits:
+        """Return the edits of ``parts`` together, in byte order."""
+        pos, end, prefix, value, axis, key = (
+            np.concatenate([getattr(p, f) for p in parts]).astype(np.int64, copy=False) for f in _EDIT_FIELDS
+        )
+        if np.any(pos[1:] < pos[:-1]) or any(p.pos.shape[0] for p in parts[1:]):
+            # edits are made in runs already in byte order, so a stable sort of one key is nearly free
+            order = np.argsort(pos * (1 << 20) + np.minimum(key, (1 << 20) - 1), kind="stable")
+            pos, end, prefix, value, axis, key = (a[order] for a in (pos, end, prefix, value, axis, key))
+        return cls(pos, end, prefix, value, axis, key)
+
+
+_EDIT_FIELDS = ("pos", "end", "prefix", "value", "axis", "key")
+
+
+def _point_lines(program: Program, points: Points, resume: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Return (P,) whether each point is its block's first (on the block's own line), and its number in the block."""
+    blk = points.block
+    first = np.ones(points.n, dtype=bool)
+    first[1:] = blk[1:] != blk[:-1]
+    first[0] = not resume
+    starts = first.copy()
+    starts[0] = True  # a resumed block counts its points from the first one given
+    fidx = np.flatnonzero(starts)
+    sub = np.arange(points.n) - np.repeat(fidx, np.diff(np.append(fidx, points.n))) + int(resume)
+    return first, sub
+
+
+def _word_edits(program: Program, fb: np.ndarray, fval: np.ndarray, moved: np.ndarray) -> list[_Edits]:
+    """Return the edits of the blocks' own lines: changed words replaced, words for axes that move inserted."""
+    present = program.present[fb]
+    r_b, r_a = np.nonzero(present & (fval != program.word_int[fb]))
+    replace_words = _Edits(
+        program.num_start[fb[r_b], r_a],
+        program.num_end[fb[r_b], r_a],
+        np.zeros_like(r_b),
+        fval[r_b, r_a],
+        r_a,
+        np.zeros_like(r_b),
+    )
+    i_b, i_a = np.nonzero(~present & moved)
+    at = program.insert_at[fb[i_b]]
+    prefix = 1 + i_a + 5 * program.spaced[fb[i_b]]
+    return [replace_words, _Edits(at, at, prefix, fval[i_b, i_a], i_a, 1 + i_a)]
+
+
+def _new_line_edits(
+    program: Program, blk: np.ndarray, gen: np.ndarray, value: np.ndarray, sub: np.ndarray
+) -> list[_Edits]:
+    """Return the lines of points after a block's first: their words and line ends, after the block's line.
+
+    A newline goes before them when the block's line is the last of a text without a final newline.
+    """
+    after = np.append(program.line_start[1:], len(program.data))
+    g_p, g_a = np.nonzero(gen)
+    at = after[program.block_line[blk[g_p]]]
+    lead = np.ones(g_p.shape[0], dtype=bool)
+    lead[1:] = g_p[1:] != g_p[:-1]
+    words = _Edits(at, at, 1 + g_a + 5 * ~lead, value[g_p, g_a], g_a, sub[g_p] * 8 + g_a)
+    gp = np.unique(g_p)
+    gpl = program.block_line[blk[gp]]
+    ends = after[gpl]
+    none = np.full(gp.shape[0], -1)
+    line_ends = _Edits(ends, ends, np.full(gp.shape[0], 11), np.zeros_like(none), none, sub[gp] * 8 + 6)
+    bare = np.unique(gpl[~program.has_newline[gpl]])
+    at = program.line_end[bare]
+    nobare = np.full(bare.shape[0], -1)
+    return [
+        words,
+        line_ends,
+        _Edits(at, at, np.full(bare.shape[0], 11), np.zeros_like(nobare), nobare, np.full(bare.shape[0], 7)),
+    ]
+
+
+def _splice(program: Program, edits: _Edits, lo: int, hi: int) -> bytes:
+    """Return the text from byte ``lo`` to ``hi`` with ``edits`` made (numbers written in the program's decimals)."""
+    data = np.frombuffer(program.data, dtype=np.uint8)
+    pos, ax, endp = edits.pos, edits.axis, edits.end
+    num_start = np.zeros(pos.shape[0], dtype=np.int64)
+    num_len = np.zeros(pos.shape[0], dtype=np.int64)
+    pools = []
+    pool_off = 0
+    for axes_sel, dec in (((ax >= 0) & (ax < 3), program.decimals[0]), (ax >= 3, program.decimals[1])):
+        sel = np.flatnonzero(axes_sel)
+        if sel.shape[0]:
+            chars, first, lens = _fixed_rows(edits.value[sel], dec)
+            num_len[sel] = lens
+            num_start[sel] = pool_off + np.arange(sel.shape[0]) * chars.shape[1] + first
+            pools.append(chars.ravel())
+            pool_off += chars.size
+    prefix_text = [b""] + [a.encode() for a in AXES] + [b" " + a.encode() for a in AXES] + [program.eol]
+    ptab = np.frombuffer(b"".join(prefix_text), dtype=np.uint8)
+    plen = np.array([len(p) for p in prefix_text], dtype=np.int64)
+    poff = np.cumsum(plen) - plen
+    base_pool = data.shape[0] + ptab.shape[0]
+    sources = np.concatenate([data, ptab] + pools)
+    kept_from = np.empty(pos.shape[0], dtype=np.int64)
+    kept_from[0] = lo
+    kept_from[1:] = endp[:-1]
+    e = pos.shape[0]
+    starts = np.empty((e, 3), dtype=np.int64)
+    lens = np.empty((e, 3), dtype=np.int64)
+    starts[:, 0], lens[:, 0] = kept_from, pos - kept_from
+    starts[:, 1], lens[:, 1] = data.shape[0] + poff[edits.prefix], plen[edits.prefix]
+    starts[:, 2], lens[:, 2] = base_pool + num_start, num_len
+    starts = np.append(starts.ravel(), endp[-1])
+    lens = np.append(lens.ravel(), hi - endp[-1])
+    return _concat_pieces(sources, starts, lens)
 
 
 def emit(
@@ -685,128 +968,28 @@ def emit(
     then starts right after that block's line) and only gets a new line of its own.
     """
     l0, l1, _ = lines.indices(program.n_lines)
-    data = np.frombuffer(program.data, dtype=np.uint8)
     lo = int(program.line_start[l0]) if l0 < program.n_lines else len(program.data)
     hi = int(program.line_start[l1]) if l1 < program.n_lines else len(program.data)
     if points is None or points.n == 0:
         return program.data[lo:hi]
-    if sent_int is None:
-        sent_int = points.nominal_int
-    sent_int = np.asarray(sent_int, dtype=np.int64)
+    sent_int = np.asarray(points.nominal_int if sent_int is None else sent_int, dtype=np.int64)
     blk = points.block
     lines_of = program.block_line[blk]
     first_line = l0 - 1 if resume else l0
     if lines_of[0] < first_line or lines_of[-1] >= max(l1, first_line + 1):
         raise ValueError("points outside the emitted lines")
-    first = np.ones(points.n, dtype=bool)
-    first[1:] = blk[1:] != blk[:-1]
-    first[0] = not resume
+    first, sub = _point_lines(program, points, resume)
     prev = np.empty_like(sent_int)
     prev[0] = program.start_int if prev_sent is None else prev_sent
     prev[1:] = sent_int[:-1]
-    inc = program.incremental[blk]
-    value = np.where(inc[:, None], sent_int - prev, sent_int)
+    value = np.where(program.incremental[blk][:, None], sent_int - prev, sent_int)
     moved = sent_int != prev
-
-    fb = blk[first]
-    fval = value[first]
-    present = program.present[fb]
-    replace = present & (fval != program.word_int[fb])
-    insert = ~present & moved[first]
-    gen = moved & ~first[:, None]
-
-    # sub-point number within its block (0 = the original line)
-    starts = first.copy()
-    starts[0] = True  # a resumed block counts its points from the first one given
-    fidx = np.flatnonzero(starts)
-    sub = np.arange(points.n) - np.repeat(fidx, np.diff(np.append(fidx, points.n))) + int(resume)
-
-    pos_l, key_l, pre_l, val_l, ax_l = [], [], [], [], []
-    # prefixes: 0 none, 1..5 'X'..'B', 6..10 ' X'..' B', 11 eol
-    r_b, r_a = np.nonzero(replace)
-    pos_l.append(program.num_start[fb[r_b], r_a])
-    key_l.append(np.zeros(r_b.shape[0], dtype=np.int64))
-    pre_l.append(np.zeros(r_b.shape[0], dtype=np.int64))
-    val_l.append(fval[r_b, r_a])
-    ax_l.append(r_a)
-    i_b, i_a = np.nonzero(insert)
-    pos_l.append(program.insert_at[fb[i_b]])
-    key_l.append(1 + i_a)
-    pre_l.append(1 + i_a + 5 * program.spaced[fb[i_b]])
-    val_l.append(fval[i_b, i_a])
-    ax_l.append(i_a)
-    g_p, g_a = np.nonzero(gen)
-    gl = program.block_line[blk[g_p]]
-    next_start = np.append(program.line_start[1:], len(program.data))[gl]
-    lead = np.ones(g_p.shape[0], dtype=bool)
-    lead[1:] = g_p[1:] != g_p[:-1]
-    pos_l.append(next_start)
-    key_l.append(sub[g_p] * 8 + g_a)
-    pre_l.append(1 + g_a + 5 * ~lead)
-    val_l.append(value[g_p, g_a])
-    ax_l.append(g_a)
-    # line ends of generated lines (one per point that got words), and a newline before them
-    # when the block's line is the last of a file without a final newline
-    gp = np.unique(g_p)
-    gpl = program.block_line[blk[gp]]
-    pos_l.append(np.append(program.line_start[1:], len(program.data))[gpl])
-    key_l.append(sub[gp] * 8 + 6)
-    pre_l.append(np.full(gp.shape[0], 11))
-    val_l.append(np.zeros(gp.shape[0], dtype=np.int64))
-    ax_l.append(np.full(gp.shape[0], -1))
-    bare = np.unique(gpl[~program.has_newline[gpl]])
-    pos_l.append(program.line_end[bare])
-    key_l.append(np.full(bare.shape[0], 7))
-    pre_l.append(np.full(bare.shape[0], 11))
-    val_l.append(np.zeros(bare.shape[0], dtype=np.int64))
-    ax_l.append(np.full(bare.shape[0], -1))
-
-    pos = np.concatenate(pos_l).astype(np.int64)
-    pre = np.concatenate(pre_l).astype(np.int64)
-    val = np.concatenate(val_l)
-    ax = np.concatenate(ax_l).astype(np.int64)
-    # replacements cover their old number; everything else is a pure insertion
-    endp = np.concatenate([program.num_end[fb[r_b], r_a]] + pos_l[1:]).astype(np.int64)
-    if pos.shape[0] != r_b.shape[0] or np.any(pos[1:] < pos[:-1]):
-        # edits are made in runs already in byte order, so a stable sort of one key is nearly free
-        key = np.concatenate(key_l).astype(np.int64)
-        order = np.argsort(pos * (1 << 20) + np.minimum(key, (1 << 20) - 1), kind="stable")
-        pos, pre, val, ax, endp = pos[order], pre[order], val[order], ax[order], endp[order]
-    if pos.shape[0] == 0:
+    parts = _word_edits(program, blk[first], value[first], moved[first])
+    parts += _new_line_edits(program, blk, moved & ~first[:, None], value, sub)
+    edits = _Edits.join(parts)
+    if edits.pos.shape[0] == 0:
         return program.data[lo:hi]
-
-    # number pool
-    num_start = np.zeros(pos.shape[0], dtype=np.int64)
-    num_len = np.zeros(pos.shape[0], dtype=np.int64)
-    pools = []
-    pool_off = 0
-    for axes_sel, dec in (((ax >= 0) & (ax < 3), program.decimals[0]), (ax >= 3, program.decimals[1])):
-        sel = np.flatnonzero(axes_sel)
-        if sel.shape[0]:
-            chars, lens = format_fixed(val[sel], dec)
-            num_len[sel] = lens
-            num_start[sel] = pool_off + np.cumsum(lens) - lens
-            pools.append(chars)
-            pool_off += chars.shape[0]
-    prefix_text = [b""] + [a.encode() for a in AXES] + [b" " + a.encode() for a in AXES] + [program.eol]
-    ptab = np.frombuffer(b"".join(prefix_text), dtype=np.uint8)
-    plen = np.array([len(p) for p in prefix_text], dtype=np.int64)
-    poff = np.cumsum(plen) - plen
-
-    base_pool = data.shape[0] + ptab.shape[0]
-    sources = np.concatenate([data, ptab] + pools)
-    kept_from = np.empty(pos.shape[0], dtype=np.int64)
-    kept_from[0] = lo
-    kept_from[1:] = endp[:-1]
-    e = pos.shape[0]
-    starts = np.empty((e, 3), dtype=np.int64)
-    lens = np.empty((e, 3), dtype=np.int64)
-    starts[:, 0], lens[:, 0] = kept_from, pos - kept_from
-    starts[:, 1], lens[:, 1] = data.shape[0] + poff[pre], plen[pre]
-    starts[:, 2], lens[:, 2] = base_pool + num_start, num_len
-    starts = np.append(starts.ravel(), endp[-1])
-    lens = np.append(lens.ravel(), hi - endp[-1])
-    return _concat_pieces(sources, starts, lens)
+    return _splice(program, edits, lo, hi)
 
 
 def emit_program(

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
 import numpy as np
@@ -38,6 +38,15 @@ def _unit(k: int) -> str:
 def _g(x: float) -> str:
     """Return a number for a message: short, exact enough to recognise."""
     return f"{x:.6g}"
+
+
+def _refuse_first(program: Program, block: np.ndarray, bad: np.ndarray, what: Callable[[int, int], str]) -> None:
+    """Refuse the first (point, axis) of ``bad`` (N, 5), if any: ``PROGRAM:LINE: what(point, axis); program not
+    accepted``, the line that of the point's block (``block`` (N,))."""
+    if bad.any():
+        i, k = _first(bad)
+        line = program.line_number(block[i])
+        raise ValidationError(f"{program.name}:{line}: {what(i, k)}; program not accepted")
 
 
 class Enveloped(Protocol):
@@ -91,27 +100,29 @@ class Guard:
         """Refuse the first pose (N, 5) in mm / deg outside the travel; ``block`` (N,) names its line."""
         if not self.limits_travel or pose.shape[0] == 0:
             return
-        bad = (pose < self.lo - 1e-9) | (pose > self.hi + 1e-9)
-        if bad.any():
-            i, k = _first(bad)
-            line = int(program.block_line[block[i]]) + program.first_line + 1
-            raise ValidationError(
-                f"{program.name}:{line}: {what} {AXES[k]} {_g(pose[i, k])} {_unit(k)} is outside the travel "
-                f"{_g(self.lo[k])}..{_g(self.hi[k])} {_unit(k)}; program not accepted"
-            )
+        _refuse_first(
+            program,
+            block,
+            (pose < self.lo - 1e-9) | (pose > self.hi + 1e-9),
+            lambda i, k: (
+                f"{what} {AXES[k]} {_g(pose[i, k])} {_unit(k)} is outside the travel "
+                f"{_g(self.lo[k])}..{_g(self.hi[k])} {_unit(k)}"
+            ),
+        )
 
     def check_corrections(self, program: Program, block: np.ndarray, correction: np.ndarray) -> None:
         """Refuse the first correction (N, 5) in mm / deg larger than the envelope's largest plausible one."""
         if correction.shape[0] == 0 or not np.isfinite(self.max_correction).any():
             return
-        bad = ~(np.abs(correction) <= self.max_correction + 1e-12)
-        if bad.any():
-            i, k = _first(bad)
-            line = int(program.block_line[block[i]]) + program.first_line + 1
-            raise ValidationError(
-                f"{program.name}:{line}: correction of {AXES[k]} {_g(correction[i, k])} {_unit(k)} exceeds the "
-                f"largest plausible {_g(self.max_correction[k])} {_unit(k)} (machine envelope); program not accepted"
-            )
+        _refuse_first(
+            program,
+            block,
+            ~(np.abs(correction) <= self.max_correction + 1e-12),
+            lambda i, k: (
+                f"correction of {AXES[k]} {_g(correction[i, k])} {_unit(k)} exceeds the "
+                f"largest plausible {_g(self.max_correction[k])} {_unit(k)} (machine envelope)"
+            ),
+        )
 
     def check_sent(self, program: Program, block: np.ndarray, nominal_int: np.ndarray, sent_int: np.ndarray) -> None:
         """Refuse points about to be written or sent: their correction, then their commanded pose."""

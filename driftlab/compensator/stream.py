@@ -23,23 +23,29 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict
 
 import httpx
 import numpy as np
+from typing_extensions import Unpack
 
 from driftlab.compensator.compensate import (
-    RESOLUTION_DEG,
-    RESOLUTION_MM,
+    Carry,
+    Correction,
     ErrorModel,
     FirstPass,
+    Grid,
     TemperatureTable,
-    correct_points,
+    correct,
+    with_options,
 )
 from driftlab.compensator.gcode import Points, Program, count_points, emit, subdivide
 from driftlab.compensator.guard import Guard
 from driftlab.errors import InstrumentError, NotFoundError, ValidationError
 from driftlab.physics.lag import LaggedReadings, LagState
+
+if TYPE_CHECKING:
+    from driftlab.daq.protocols import StreamReport
 
 log = logging.getLogger(__name__)
 
@@ -107,8 +113,11 @@ def _client(client: httpx.Client | None, timeout_s: float, token: str | None) ->
     return httpx.Client(timeout=timeout_s, headers=headers)
 
 
-class ApiModel:
-    """The machine's current model from the driftlab API, reloaded when its ETag changes."""
+class _ApiResource:
+    """One resource of a machine on the driftlab API: ``{api}/machines/{machine}/{path}``, read with ``client``
+    (default: a new one with the timeout and bearer token)."""
+
+    path = ""
 
     def __init__(
         self,
@@ -118,14 +127,21 @@ class ApiModel:
         timeout_s: float = 5.0,
         token: str | None = None,
     ) -> None:
-        self.url = f"{api.rstrip('/')}/machines/{machine}/model/current"
+        self.url = f"{api.rstrip('/')}/machines/{machine}/{self.path}"
         self.machine = machine
         self.client = _client(client, timeout_s, token)
-        self.model: ErrorModel | None = None
-        self.etag: str | None = None
-        self.document: dict[str, Any] | None = None
-        self.reachable = True
-        self.reloads = 0
+
+
+class ApiModel(_ApiResource):
+    """The machine's current model from the driftlab API, reloaded when its ETag changes."""
+
+    path = "model/current"
+    #: the model in use, its ETag and document; whether the API answered last time; models loaded
+    model: ErrorModel | None = None
+    etag: str | None = None
+    document: dict[str, Any] | None = None
+    reachable = True
+    reloads = 0
 
     def refresh(self) -> bool:
         """Fetch the model unless unchanged (304); keep the last good one when the API fails."""
@@ -172,23 +188,14 @@ class ApiModel:
         self.reachable = True
 
 
-class ApiTemperatures:
+class ApiTemperatures(_ApiResource):
     """The machine's latest scan from the driftlab API: ``GET {api}/machines/{id}/temperatures/latest``.
 
     Accepted replies: ``{"time_s": .., "temperatures": {channel: degC}}`` (also under ``values``
     or ``channels``), or a plain ``{channel: degC}`` object.
     """
 
-    def __init__(
-        self,
-        api: str,
-        machine: str,
-        client: httpx.Client | None = None,
-        timeout_s: float = 5.0,
-        token: str | None = None,
-    ) -> None:
-        self.url = f"{api.rstrip('/')}/machines/{machine}/temperatures/latest"
-        self.client = _client(client, timeout_s, token)
+    path = "temperatures/latest"
 
     def read(self) -> dict[str, float]:
         """Return the latest reading per channel; InstrumentError when the API cannot give one."""
@@ -247,7 +254,7 @@ class StreamResult:
     #: per-block latency (s): all of them for up to LATENCY_SAMPLE blocks, then a uniform sample of them
     latency_s: list[float] = field(default_factory=list)
     latency_max_s: float = 0.0
-    link_report: Any = None
+    link_report: StreamReport | None = None
     warnings: list[str] = field(default_factory=list)
     _recorded: int = field(default=0, repr=False)
     _rng: random.Random = field(default_factory=lambda: random.Random(0), repr=False)
@@ -297,6 +304,72 @@ def _sendable(text: str) -> bool:
     return bool(s) and s != "%" and not s.startswith(("(", ";"))
 
 
+@dataclass(frozen=True)
+class Pacing:
+    """How far ahead blocks are prepared and how old they may get (ch. 7.2: two minutes at the most)."""
+
+    max_age_s: float = MAX_AGE_S
+    refresh_s: float = 30.0
+    lookahead: int = 64
+    batch_lines: int = 32
+    inline_lines: int = 4
+
+
+@dataclass(frozen=True)
+class Clocks:
+    """The streamer's time: ``clock`` (s, monotonic), ``sleep``, ``timer`` (latencies), and ``epoch_s``, the POSIX
+    time at ``clock() == 0`` (None: now less ``time.monotonic()`` for the monotonic clock, else left to the model)."""
+
+    clock: Callable[[], float] = time.monotonic
+    sleep: Callable[[float], None] = time.sleep
+    timer: Callable[[], float] = time.perf_counter
+    epoch_s: float | None = None
+
+
+@dataclass(frozen=True)
+class StreamerSettings:
+    """The options of a ``Streamer``: its grid, pacing and clocks, the envelope guard, the readings' lags.
+
+    Pass one ``LagState`` (``lags``) to successive streamers of one run to keep its history across them.
+    """
+
+    grid: Grid = Grid()
+    pacing: Pacing = Pacing()
+    clocks: Clocks = Clocks()
+    guard: Guard | None = None
+    lags: LagState | None = None
+
+    def with_keywords(self, keywords: StreamerKeywords) -> StreamerSettings:
+        """Return these settings with the fields ``keywords`` names replaced (``StreamerKeywords``)."""
+        return StreamerSettings(
+            with_options(self.grid, keywords),
+            with_options(self.pacing, keywords),
+            with_options(self.clocks, keywords),
+            keywords.get("guard", self.guard),
+            keywords.get("lags", self.lags),
+        )
+
+
+class StreamerKeywords(TypedDict, total=False):
+    """The keyword options of ``Streamer``: the fields of ``Grid``, ``Pacing``, ``Clocks``, the guard and lags."""
+
+    resolution_mm: float
+    resolution_deg: float
+    max_segment_mm: float
+    max_segment_deg: float
+    max_age_s: float
+    refresh_s: float
+    lookahead: int
+    batch_lines: int
+    inline_lines: int
+    clock: Callable[[], float]
+    sleep: Callable[[float], None]
+    timer: Callable[[], float]
+    epoch_s: float | None
+    guard: Guard | None
+    lags: LagState | None
+
+
 class Streamer:
     """Prepares corrected blocks just in time for the machine link (see module docstring)."""
 
@@ -305,24 +378,14 @@ class Streamer:
         program: Program | Iterable[Program],
         models: ModelSource,
         temperatures: TemperatureSource,
-        *,
-        resolution_mm: float = RESOLUTION_MM,
-        resolution_deg: float = RESOLUTION_DEG,
-        max_segment_mm: float = 5.0,
-        max_segment_deg: float = 5.0,
-        max_age_s: float = MAX_AGE_S,
-        refresh_s: float = 30.0,
-        lookahead: int = 64,
-        batch_lines: int = 32,
-        inline_lines: int = 4,
-        clock: Callable[[], float] = time.monotonic,
-        sleep: Callable[[float], None] = time.sleep,
-        timer: Callable[[], float] = time.perf_counter,
-        epoch_s: float | None = None,
-        guard: Guard | None = None,
-        lags: LagState | None = None,
+        settings: StreamerSettings | None = None,
+        **keywords: Unpack[StreamerKeywords],
     ) -> None:
-        if not 0 < refresh_s <= max_age_s:
+        """Stream ``program`` (a whole one, or its pieces in order) with ``settings`` (the ``keywords`` replacing
+        the fields they name: ``StreamerKeywords``)."""
+        opts = (settings or StreamerSettings()).with_keywords(keywords)
+        pacing, clocks = opts.pacing, opts.clocks
+        if not 0 < pacing.refresh_s <= pacing.max_age_s:
             raise ValidationError("refresh interval must be positive and no longer than the maximum age")
         # a whole program, or its pieces in order (``parse_pieces``), read only as preparation needs them
         self._source: Iterator[Program] = iter([program] if isinstance(program, Program) else program)
@@ -333,20 +396,22 @@ class Streamer:
         first = self._next_piece()
         self.models = models
         self.temperature_source = temperatures
-        self.resolution = (resolution_mm, resolution_deg)
-        self.segment = (max_segment_mm, max_segment_deg)
-        self.max_age_s = max_age_s
-        self.refresh_s = refresh_s
-        self.lookahead = max(1, lookahead)
-        self.batch_lines = max(1, batch_lines)
-        self.inline_lines = max(1, inline_lines)
-        self.clock, self.sleep, self.timer = clock, sleep, timer
+        self.grid = opts.grid
+        self.resolution = (opts.grid.resolution_mm, opts.grid.resolution_deg)
+        self.segment = opts.grid.segment
+        self.max_age_s = pacing.max_age_s
+        self.refresh_s = pacing.refresh_s
+        self.lookahead = max(1, pacing.lookahead)
+        self.batch_lines = max(1, pacing.batch_lines)
+        self.inline_lines = max(1, pacing.inline_lines)
+        self.clock, self.sleep, self.timer = clocks.clock, clocks.sleep, clocks.timer
         # POSIX time at clock() == 0: each block is corrected for the time it is prepared, so that
         # time-dependent terms (drift, ch. 6.4.3) follow the program; None leaves it to the model (now)
-        if epoch_s is None and clock is time.monotonic:
+        epoch_s = clocks.epoch_s
+        if epoch_s is None and clocks.clock is time.monotonic:
             epoch_s = time.time() - time.monotonic()
         self.epoch_s = epoch_s
-        self.guard = guard
+        self.guard = opts.guard
         zero = np.zeros(5, dtype=np.int64)
         pose = first.start_int.copy() if first is not None else zero
         start = _Cursor(first.first_line if first is not None else 0, 0, zero, pose, pose.copy(), None)
@@ -356,7 +421,7 @@ class Streamer:
         self._temps: dict[str, float] | None = None
         # the lags of every reading (ch. 5.3) kept from scan to scan for the model's lagged terms;
         # pass one LagState to successive streamers of one run to keep its history across them
-        self.lags = lags if lags is not None else LagState()
+        self.lags = opts.lags if opts.lags is not None else LagState()
         self._temps_at = -np.inf
         self._temps_ok = True
         self._model_at = -np.inf
@@ -440,101 +505,35 @@ class Streamer:
             return False
         model = self.models.model
         assert model is not None and self._temps is not None
-        f = p.first_line  # cursors count lines over the whole program, the piece from its first
-        l0 = cur.line - f
-        l1 = min(p.n_lines, l0 + (n_lines or self.batch_lines))
+        made_at = self.clock()
+        batch = self._batch(p, cur, n_lines or self.batch_lines, made_at)
+        # rows in output order: (text, point carried or -1, program line)
+        rows = batch.resumed_rows(cur)
+        rows += batch.line_rows(cur, batch.l0 + 1 if batch.resumed() else batch.l0)
+        for text, k, li in rows:
+            after = batch.cursor_after(cur, k, li)
+            self._ready.append(_Ready(text.decode("utf-8", "replace"), after, made_at, model.label))
+        self._made = batch.end(cur)
+        return True
+
+    def _batch(self, p: Program, cur: _Cursor, n_lines: int, made_at: float) -> _Batch:
+        """Return lines ``cur.line`` on (at most ``n_lines``, within piece ``p``) with their points corrected."""
+        model = self.models.model
+        assert model is not None and self._temps is not None
+        l0 = cur.line - p.first_line  # cursors count lines over the whole program, the piece from its first
+        l1 = min(p.n_lines, l0 + n_lines)
         b0, b1 = (int(x) for x in np.searchsorted(p.block_line, [l0, l1]))
         pts = subdivide(p, *self.segment, blocks=slice(b0, b1))
         skip = cur.sub if (b0 < b1 and p.block_line[b0] == l0) else 0
         pts = Points(pts.block[skip:], pts.nominal_int[skip:])
-        made_at = self.clock()
-        # rows in output order: (text, point carried or -1, program line)
-        rows: list[tuple[bytes, int, int]] = []
+        corr = None
         if pts.n:
-            corr = correct_points(
-                p,
-                pts,
-                model,
-                self._temps,
-                resolution_mm=self.resolution[0],
-                resolution_deg=self.resolution[1],
-                state=cur.steps,
-                prev_nominal=cur.nominal,
-                prev_direction=cur.direction,
-                at=None if self.epoch_s is None else self.epoch_s + made_at,
-            )
-            sent = corr.sent_int
+            at = None if self.epoch_s is None else self.epoch_s + made_at
+            carry = Carry(cur.steps, cur.nominal, cur.direction)
+            corr = correct(p, pts, model, self._temps, carry, self.grid, at)
             if self.guard is not None:  # nothing outside the envelope is ever queued for the link
-                self.guard.check_sent(p, pts.block, pts.nominal_int, sent)
-            prev = np.vstack([cur.sent[None, :], sent[:-1]])
-            first = np.ones(pts.n, dtype=bool)
-            first[1:] = pts.block[1:] != pts.block[:-1]
-            first[0] = not skip
-            extra = ~first & (sent != prev).any(axis=1)  # later points of a block that get a line
-            point_line = p.block_line[pts.block]
-        base, start_line = 0, l0
-        if skip and pts.n:
-            # the rest of a block whose line was already sent: only its new lines
-            base = int(np.searchsorted(pts.block, pts.block[0], side="right"))
-            text = emit(
-                p,
-                Points(pts.block[:base], pts.nominal_int[:base]),
-                sent[:base],
-                prev_sent=cur.sent,
-                lines=slice(l0 + 1, l0 + 1),
-                resume=True,
-            )
-            # (a newline may lead them when the block's line ends the file without one)
-            texts = [r for r in _rows(text) if r]
-            carried = np.flatnonzero(extra[:base]).tolist()
-            if len(texts) != len(carried):
-                raise RuntimeError("emitted lines do not match the prepared points")
-            rows.extend((t, k, l0) for t, k in zip(texts, carried))
-            start_line = l0 + 1
-        if start_line < l1:
-            if pts.n > base:
-                part = Points(pts.block[base:], pts.nominal_int[base:])
-                prev_sent = cur.sent if base == 0 else sent[base - 1]
-                text = emit(p, part, sent[base:], prev_sent=prev_sent, lines=slice(start_line, l1))
-                carriers: dict[int, list[int]] = {}
-                for k in np.flatnonzero(first[base:] | extra[base:]).tolist():
-                    carriers.setdefault(int(point_line[base + k]), []).append(base + k)
-            else:
-                text = emit(p, None, lines=slice(start_line, l1))
-                carriers = {}
-            order = [(k, li) for li in range(start_line, l1) for k in carriers.get(li, [-1])]
-            texts = _rows(text)
-            if len(texts) != len(order):
-                raise RuntimeError("emitted lines do not match the program lines")
-            rows.extend((t, k, li) for t, (k, li) in zip(texts, order))
-        # the cursor after each row: where to resume, with the state of the last point before it
-        state = cur
-        for text, k, li in rows:
-            if k >= 0:
-                blk = pts.block[k]
-                last = k + 1 >= pts.n or pts.block[k + 1] != blk
-                done = k + 1 - int(np.searchsorted(pts.block, blk)) + (skip if blk == b0 else 0)
-                state = _Cursor(
-                    f + li + 1 if last else f + li,
-                    0 if last else done,
-                    corr.steps[k],
-                    sent[k],
-                    pts.nominal_int[k],
-                    corr.direction[k],
-                )
-            else:
-                j = int(np.searchsorted(point_line, li)) - 1 if pts.n else -1
-                state = (
-                    _Cursor(f + li + 1, 0, corr.steps[j], sent[j], pts.nominal_int[j], corr.direction[j])
-                    if j >= 0
-                    else _Cursor(f + li + 1, 0, cur.steps, cur.sent, cur.nominal, cur.direction)
-                )
-            self._ready.append(_Ready(text.decode("utf-8", "replace"), state, made_at, model.label))
-        if pts.n:
-            self._made = _Cursor(f + l1, 0, corr.steps[-1], sent[-1], pts.nominal_int[-1], corr.direction[-1])
-        else:
-            self._made = _Cursor(f + l1, 0, cur.steps, cur.sent, cur.nominal, cur.direction)
-        return True
+                self.guard.check_sent(p, pts.block, pts.nominal_int, corr.sent_int)
+        return _Batch(p, l0, l1, b0, skip, pts, corr)
 
     def _fill(self) -> None:
         """Prepare lines until the look-ahead is full or the program ends."""
@@ -602,3 +601,110 @@ class Streamer:
         self.prime()
         self.result.link_report = link.send_program(self.lines(), low_water=low_water, high_water=high_water, wait=wait)
         return self.result
+
+
+@dataclass(frozen=True)
+class _Batch:
+    """Lines ``l0:l1`` of piece ``p`` being prepared: their points (after ``skip`` already prepared) corrected."""
+
+    p: Program
+    l0: int
+    l1: int
+    b0: int
+    skip: int
+    pts: Points
+    corr: Correction | None
+
+    @property
+    def sent(self) -> np.ndarray:
+        """Return (P, 5) the commanded points."""
+        assert self.corr is not None
+        return self.corr.sent_int
+
+    def carried(self, cur: _Cursor) -> tuple[np.ndarray, np.ndarray]:
+        """Return (P,) whether each point is its block's first (on the block's line) and whether it gets a line."""
+        pts, sent = self.pts, self.sent
+        prev = np.vstack([cur.sent[None, :], sent[:-1]])
+        first = np.ones(pts.n, dtype=bool)
+        first[1:] = pts.block[1:] != pts.block[:-1]
+        first[0] = not self.skip
+        extra = ~first & (sent != prev).any(axis=1)  # later points of a block that get a line
+        return first, first | extra
+
+    def resumed_rows(self, cur: _Cursor) -> list[tuple[bytes, int, int]]:
+        """Return the rows of the rest of a block whose line was already sent: only its new lines."""
+        if not (self.skip and self.pts.n):
+            return []
+        pts, sent, l0 = self.pts, self.sent, self.l0
+        base = self.resumed()
+        text = emit(
+            self.p,
+            Points(pts.block[:base], pts.nominal_int[:base]),
+            sent[:base],
+            prev_sent=cur.sent,
+            lines=slice(l0 + 1, l0 + 1),
+            resume=True,
+        )
+        # (a newline may lead them when the block's line ends the file without one)
+        texts = [r for r in _rows(text) if r]
+        first, lines = self.carried(cur)
+        carried = np.flatnonzero((lines & ~first)[:base]).tolist()
+        if len(texts) != len(carried):
+            raise RuntimeError("emitted lines do not match the prepared points")
+        return [(t, k, l0) for t, k in zip(texts, carried)]
+
+    def resumed(self) -> int:
+        """Return how many points continue a block whose line was already sent."""
+        if not (self.skip and self.pts.n):
+            return 0
+        return int(np.searchsorted(self.pts.block, self.pts.block[0], side="right"))
+
+    def line_rows(self, cur: _Cursor, start_line: int) -> list[tuple[bytes, int, int]]:
+        """Return the rows of lines ``start_line:l1``: each line, and the new lines of its block's later points."""
+        if start_line >= self.l1:
+            return []
+        pts, base = self.pts, self.resumed()
+        carriers: dict[int, list[int]] = {}
+        if pts.n > base:
+            sent = self.sent
+            part = Points(pts.block[base:], pts.nominal_int[base:])
+            prev_sent = cur.sent if base == 0 else sent[base - 1]
+            text = emit(self.p, part, sent[base:], prev_sent=prev_sent, lines=slice(start_line, self.l1))
+            point_line = self.p.block_line[pts.block]
+            for k in np.flatnonzero(self.carried(cur)[1][base:]).tolist():
+                carriers.setdefault(int(point_line[base + k]), []).append(base + k)
+        else:
+            text = emit(self.p, None, lines=slice(start_line, self.l1))
+        order = [(k, li) for li in range(start_line, self.l1) for k in carriers.get(li, [-1])]
+        texts = _rows(text)
+        if len(texts) != len(order):
+            raise RuntimeError("emitted lines do not match the program lines")
+        return [(t, k, li) for t, (k, li) in zip(texts, order)]
+
+    def cursor_after(self, cur: _Cursor, k: int, li: int) -> _Cursor:
+        """Return where to resume after a row: after point ``k`` (-1: after line ``li``), with the state of the
+        last point before it."""
+        pts, f = self.pts, self.p.first_line
+        if k >= 0:
+            assert self.corr is not None
+            blk = pts.block[k]
+            last = k + 1 >= pts.n or pts.block[k + 1] != blk
+            done = k + 1 - int(np.searchsorted(pts.block, blk)) + (self.skip if blk == self.b0 else 0)
+            return self._cursor(f + li + 1 if last else f + li, 0 if last else done, k)
+        j = int(np.searchsorted(self.p.block_line[pts.block], li)) - 1 if pts.n else -1
+        if j < 0:
+            return _Cursor(f + li + 1, 0, cur.steps, cur.sent, cur.nominal, cur.direction)
+        return self._cursor(f + li + 1, 0, j)
+
+    def end(self, cur: _Cursor) -> _Cursor:
+        """Return where to resume after the batch: its last line, with its last point's state."""
+        line = self.p.first_line + self.l1
+        if self.pts.n:
+            return self._cursor(line, 0, self.pts.n - 1)
+        return _Cursor(line, 0, cur.steps, cur.sent, cur.nominal, cur.direction)
+
+    def _cursor(self, line: int, sub: int, k: int) -> _Cursor:
+        """Return a cursor at ``line`` (``sub`` points of its block prepared) with point ``k``'s state."""
+        corr = self.corr
+        assert corr is not None
+        return _Cursor(line, sub, corr.steps[k], corr.sent_int[k], self.pts.nominal_int[k], corr.direction[k])

@@ -25,6 +25,9 @@ from driftlab.errors import ValidationError
 from driftlab.physics import kinematics
 from driftlab.vocabulary import AXES
 
+#: the largest variation of the reversal along the axis one backlash value may stand for (mm, deg)
+REVERSAL_SPREAD = 0.25e-3
+
 ROTARY = ("A", "B")
 MAX_POINTS = 4096  # no controller here holds more
 
@@ -50,6 +53,19 @@ class AxisTable:
     def step(self) -> float:
         """Return the grid spacing (mm or deg)."""
         return float(self.positions[1] - self.positions[0])
+
+    def uniform_reversal(self, controller: str, why: str) -> float:
+        """Return the mean reversal (reverse less forward) for a controller that takes one backlash value.
+
+        ValidationError ``CONTROLLER: ...`` (``why``: what that controller lacks, what to use) when the
+        reversal varies along the axis by more than REVERSAL_SPREAD.
+        """
+        reversal = self.reverse - self.forward
+        r = float(np.mean(reversal))
+        spread = float(np.abs(reversal - r).max())
+        if spread > REVERSAL_SPREAD:
+            raise ValidationError(f"{controller}: the reversal varies by {spread * 1e3:.2f} um along the axis; {why}")
+        return r
 
 
 def axis_correction(

@@ -22,14 +22,8 @@ the columns, the CMA table) and p. 708 (backlash added at every reversal); Techn
 
 from __future__ import annotations
 
-import numpy as np
-
 from driftlab.compensator.exports.controllers import Controller, Export
 from driftlab.compensator.exports.grid import AxisTable
-from driftlab.errors import ValidationError
-
-#: the largest variation of the reversal along the axis one backlash value may stand for (mm, deg)
-REVERSAL_SPREAD = 0.25e-3
 
 
 def write(table: AxisTable, ctl: Controller, name: str | None = None) -> Export:
@@ -46,14 +40,7 @@ def write(table: AxisTable, ctl: Controller, name: str | None = None) -> Export:
         ]
         rows.append("[END]")
         return Export(ctl.name, {"": "\n".join(rows) + "\n"}, cma)
-    reversal = table.reverse - table.forward
-    r = float(np.mean(reversal))
-    spread = float(np.abs(reversal - r).max())
-    if spread > REVERSAL_SPREAD:
-        raise ValidationError(
-            f"{ctl.name}: the reversal varies by {spread * 1e3:.2f} µm along the axis; one backlash "
-            "value cannot hold it (use tnc640)"
-        )
+    r = table.uniform_reversal(ctl.name, "one backlash value cannot hold it (use tnc640)")
     rows = [f"BEGIN {fname} {unit}", f"{'NR':<6}{ax:<14}D{ax}"]
     rows += [f"{i:<6}{p:<+14.4f}{v:+.6f}" for i, (p, v) in enumerate(zip(table.positions, table.forward))]
     rows.append("[END]")

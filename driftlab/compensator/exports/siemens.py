@@ -33,53 +33,43 @@ import numpy as np
 
 from driftlab.compensator.exports.controllers import Controller, Export
 from driftlab.compensator.exports.grid import AxisTable
-from driftlab.errors import ValidationError
 
 DECIMALS = 7
-#: the largest variation of the reversal along the axis one backlash value may stand for (mm, deg)
-REVERSAL_SPREAD = 0.25e-3
 
 
 def _num(v: float) -> str:
     return f"{v:.{DECIMALS}f}"
 
 
+def _head(program: str, table: AxisTable, ax: str, what: str) -> list[str]:
+    """Return the first lines of an initialisation program: its name, the channel, what it holds."""
+    about = f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}"
+    return [program, "CHANDATA(1)", about, f"; {what}"]
+
+
+def _grid(table: AxisTable, name: str, index: str) -> list[str]:
+    """Return the lines that place a table on its axis: ``NAME_STEP[INDEX]``, ``_MIN``, ``_MAX``."""
+    lo, hi = float(table.positions[0]), float(table.positions[-1])
+    step = _num(table.step)
+    return [f"{name}_STEP[{index}]={step}", f"{name}_MIN[{index}]={_num(lo)}", f"{name}_MAX[{index}]={_num(hi)}"]
+
+
 def _lec(table: AxisTable, ax: str, values: np.ndarray, what: str) -> str:
-    lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
-    out = [
-        "%_N_AX_EEC_INI",
-        "CHANDATA(1)",
-        f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}",
-        f"; LEC: {what}; values = axis error (-correction), {table.unit}",
-    ]
+    out = _head("%_N_AX_EEC_INI", table, ax, f"LEC: {what}; values = axis error (-correction), {table.unit}")
     out += [f"$AA_ENC_COMP[0,{i},{ax}]={_num(-v)}" for i, v in enumerate(values)]
-    out += [
-        f"$AA_ENC_COMP_STEP[0,{ax}]={_num(step)}",
-        f"$AA_ENC_COMP_MIN[0,{ax}]={_num(lo)}",
-        f"$AA_ENC_COMP_MAX[0,{ax}]={_num(hi)}",
-        f"$AA_ENC_COMP_IS_MODULO[0,{ax}]=0",
-        "M17",
-    ]
+    out += _grid(table, "$AA_ENC_COMP", f"0,{ax}")
+    out += [f"$AA_ENC_COMP_IS_MODULO[0,{ax}]=0", "M17"]
     return "\n".join(out) + "\n"
 
 
 def _cec(table: AxisTable, ax: str, parts: list[tuple[np.ndarray, int]], first_table: int) -> str:
-    lo, hi, step = float(table.positions[0]), float(table.positions[-1]), table.step
-    out = [
-        "%_N_NC_CEC_INI",
-        "CHANDATA(1)",
-        f"; driftlab thermal compensation of {table.axis} ({ax}), model {table.model}",
-        "; CEC: the direction-dependent rest of the correction; values = axis error (-correction)",
-    ]
+    what = "CEC: the direction-dependent rest of the correction; values = axis error (-correction)"
+    out = _head("%_N_NC_CEC_INI", table, ax, what)
     for k, (values, direction) in enumerate(parts):
         t = first_table + k
         out += [f"$AN_CEC[{t},{i}]={_num(-v)}" for i, v in enumerate(values)]
+        out += [f"$AN_CEC_INPUT_AXIS[{t}]=({ax})", f"$AN_CEC_OUTPUT_AXIS[{t}]=({ax})", *_grid(table, "$AN_CEC", str(t))]
         out += [
-            f"$AN_CEC_INPUT_AXIS[{t}]=({ax})",
-            f"$AN_CEC_OUTPUT_AXIS[{t}]=({ax})",
-            f"$AN_CEC_STEP[{t}]={_num(step)}",
-            f"$AN_CEC_MIN[{t}]={_num(lo)}",
-            f"$AN_CEC_MAX[{t}]={_num(hi)}",
             f"$AN_CEC_DIRECTION[{t}]={direction}",
             f"$AN_CEC_MULT_BY_TABLE[{t}]=0",
             f"$AN_CEC_IS_MODULO[{t}]=0",
@@ -95,13 +85,7 @@ def write(table: AxisTable, ctl: Controller, machine_axis: str | None = None, fi
     reversal = table.reverse - table.forward
     notes: list[str] = ["load with MD32700 (and MD32710) at 0, then set them and power on again"]
     if ctl.name == "808d":
-        r = float(np.mean(reversal))
-        spread = float(np.abs(reversal - r).max())
-        if spread > REVERSAL_SPREAD:
-            raise ValidationError(
-                f"808d: the reversal varies by {spread * 1e3:.2f} um along the axis; the 808D has no "
-                "direction-dependent table (use 828d or 840d-sl)"
-            )
+        r = table.uniform_reversal("808d", "the 808D has no direction-dependent table (use 828d or 840d-sl)")
         files = {"": _lec(table, ax, table.forward, "positive direction")}
         backlash = {
             f"MD32700 $MA_ENC_COMP_ENABLE[0,{ax}]": 1,
