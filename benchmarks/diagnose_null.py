@@ -24,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common  # noqa: E402,F401  (pins BLAS to one thread before numpy loads)
 import numpy as np  # noqa: E402
-from diagnose_openkinds import shape  # noqa: E402
+from diagnose_openkinds import NAMES, shape  # noqa: E402
 
 from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle  # noqa: E402
 from driftlab.testing.openworld import OpenPlanted as P  # noqa: E402
@@ -61,7 +61,7 @@ def null_case(seed: int):
 def main(n: int = 200, first: int = 0) -> dict:
     """Return the measured false-finding rate over ``n`` null bundles (seeds 50 000 + first ...)."""
     t0 = time.perf_counter()
-    physical, any_finding, kinds, rhos = 0, 0, Counter(), []
+    physical, any_finding, kinds, rhos, false_sensor = 0, 0, Counter(), [], 0
     which: list[dict] = []
     for i in range(first, first + n):
         case = null_case(50_000 + i)
@@ -75,6 +75,9 @@ def main(n: int = 200, first: int = 0) -> dict:
             if e.kind not in NON_PHYSICAL_KINDS
         ]
         physical += bool(phys)
+        # a sensor drift on a channel whose calibration was not made to drift (the planted T9, renamed or not)
+        drifting = {n for p in case.planted if p.kind == "sensor_drift" for c in p.channels for n in (c, NAMES[c])}
+        false_sensor += len({c for e in res.effects if e.kind == "sensor_drift" for c in e.channels} - drifting)
         if phys:
             which.append(
                 {
@@ -94,6 +97,7 @@ def main(n: int = 200, first: int = 0) -> dict:
         "target_rate": 0.05,
         "meets_target": physical / n <= 0.05,
         "findings_by_kind": dict(kinds),
+        "false_sensor_drift_channels": false_sensor,
         "bundles_with_physical": which,
         "rho_range": [round(min(rhos), 3), round(max(rhos), 3)],
         "wall_s": round(time.perf_counter() - t0, 1),

@@ -33,6 +33,11 @@ from driftlab.physics.lag import first_order_lag
 
 #: the ramp must explain this share of the departure from the virtual sensor: RSS without / with it
 MIN_RATIO = 4.0
+#: ... counted on means over this many seconds, so the bar means the same at every scan rate: the bar was
+#: set on 60-120 s scans, where a block holds one or two readings; a logger scanning every 10 s puts twelve
+#: readings of independent thermocouple noise in the same time, which the ramp (a slow law) cannot explain
+#: and which made a real drift's ratio 2.3 instead of 13 (issue 22, open world seeds 901 and 905)
+RATIO_BLOCK_S = 120.0
 #: ... and reach this many sigmas of what is left of the departure at the end of the campaign
 MIN_SIZE_SIGMA = 10.0
 #: ... and this much in degC (a thermocouple's stated tolerance is 0.5-1 degC; a drift below 0.05 degC
@@ -51,6 +56,15 @@ SCHED_TAUS_S = (900.0, 2700.0, 7200.0)
 #: no lag of the virtual sensor is longer than this share of the campaign: none can build a ramp that lasts
 #: a quarter of it or more (a lag of a third of the campaign can mimic a trend)
 VS_TAU_MAX_FRACTION = 0.125
+
+
+def _block_means(r: np.ndarray, t: np.ndarray, block_s: float) -> np.ndarray:
+    """Return the means of ``r`` over consecutive blocks of ``block_s`` seconds of ``t``."""
+    k = np.floor((t - t[0]) / block_s).astype(int)
+    sums = np.bincount(k, weights=r)
+    cnt = np.bincount(k)
+    ok = cnt > 0
+    return sums[ok] / cnt[ok]
 
 
 def _hinge_bank(t: np.ndarray, starts: np.ndarray) -> np.ndarray:
@@ -126,7 +140,10 @@ def scan_sensor_drifts(prep: PreparedBundle, exclude: set[str] | None = None) ->
         b = float((RH[:, i] @ ry) / nh[i])  # degC per day: the ramp's own coefficient (FWL)
         r1 = ry - b * RH[:, i]
         rss1 = max(float(r1 @ r1), 1e-300)
-        ratio = rss0 / rss1
+        # the share of the departure the ramp explains, on means over RATIO_BLOCK_S: a thermocouple's noise is
+        # independent from reading to reading, and reading by reading a 10 s logger's ratio measures its noise
+        m0, m1 = _block_means(ry, t, RATIO_BLOCK_S), _block_means(r1, t, RATIO_BLOCK_S)
+        ratio = float(m0 @ m0) / max(float(m1 @ m1), 1e-300)
         size = abs(b) * (t[-1] - starts[i]) / 86400.0
         sigma = max(robust_sigma(np.diff(r1)) / np.sqrt(2.0), float(np.sqrt(rss1 / n)), 1e-6)
         plausible = bool(

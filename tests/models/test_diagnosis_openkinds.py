@@ -69,6 +69,20 @@ def test_a_drifting_thermocouple_without_a_twin_is_named_from_the_dynamic_virtua
     assert _physical(res) == []
 
 
+def test_a_drifting_thermocouple_logged_every_10_s_is_named_as_at_120_s():
+    # a 20 h campaign logged every 10 s: twelve readings of independent thermocouple noise where a 120 s logger
+    # has one. Counted reading by reading, that noise held the ramp's share of the departure at 2.6 (bar 4); on
+    # 120 s means it is the same law at any scan rate. Without the drift, no channel of the bundle is named
+    drift = P("sensor_drift", "", "", channels=["T7"], params={"start_s": 0.0, "rate_degC_per_day": 0.5})
+    kw = {"seed": 905, "hours": 20, "keep": [("X", "dx"), ("Z", "dz")], "scan_s": 10.0, "interleave": True}
+    scans = scan_sensor_drifts(prepare_bundle(openworld_case([drift], **kw).bundle))
+    assert scans["T7"].plausible and scans["T7"].rate_degC_per_day == pytest.approx(0.5, rel=0.1)
+    assert scans["T7"].break_ratio > 4.0
+    assert not any(f.plausible for c, f in scans.items() if c != "T7")
+    clean = scan_sensor_drifts(prepare_bundle(openworld_case([], **kw).bundle))
+    assert not any(f.plausible for f in clean.values())
+
+
 def _pair_bundle(seed: int, drift: bool):
     """Return an open-world bundle whose X-nut sites T7 and T8 are two junctions on one nut; T7 drifting."""
     case = openworld_case([], seed=seed, hours=24, keep=[("X", "dx"), ("Z", "dz")])
