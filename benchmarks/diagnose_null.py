@@ -76,7 +76,9 @@ def main(n: int = 200, first: int = 0) -> dict:
         ]
         physical += bool(phys)
         # a sensor drift on a channel whose calibration was not made to drift (the planted T9, renamed or not)
-        drifting = {n for p in case.planted if p.kind == "sensor_drift" for c in p.channels for n in (c, NAMES[c])}
+        drifting = {
+            n for p in case.planted if p.kind == "sensor_drift" for c in p.channels for n in (c, NAMES.get(c, c))
+        }
         false_sensor += len({c for e in res.effects if e.kind == "sensor_drift" for c in e.channels} - drifting)
         if phys:
             which.append(

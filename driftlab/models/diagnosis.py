@@ -1039,6 +1039,41 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
     return {"coef_per_degC2": c}, c
 
 
+def _better_sibling_lag(
+    sc: Scored,
+    after: float,
+    scored: list[Scored],
+    ctx: TermContext,
+    state: _State,
+    rule: tuple[list[tuple[np.ndarray, np.ndarray]], float, float, float],
+) -> tuple[Scored, Candidate, np.ndarray, dict[str, Any], str, float] | None:
+    """Return the lag of another site of the same structure that validates and predicts the later blocks better.
+
+    ``rule`` is the validation rule's (folds, min_gain, min_explained, noise). Only sites the bundle
+    places on one structure compete (``prep.structures``); the best-screened tau of each is refined first.
+    """
+    prep, td = ctx.prep, ctx.td
+    body = prep.structures.get(sc.cand.channels[0], "")
+    if not body or sc.cand.channels[0] in prep.room_channels:
+        return None  # no stated structure (or the room air, no body): no siblings to compare
+    best: tuple[Scored, Candidate, np.ndarray, dict[str, Any], str, float] | None = None
+    seen = {sc.cand.channels[0]}
+    for o in scored:
+        ch = o.cand.channels[0] if o.cand.kind == "thermal_lag" and o.cand.channels else ""
+        if not ch or ch in seen or prep.structures.get(ch, "") != body:
+            continue
+        seen.add(ch)
+        cand, cols, hint = _materialise(o, ctx, state)
+        taus = ctx.lag_cache[ch][0]
+        if not taus[0] * 1.02 < hint["tau_s"] < taus[-1] * 0.98:
+            continue
+        ok, how, a = validation_check(state.X, cols, td.y, td.train, *rule)
+        log.debug("   sibling lag %s: %s, %s", ch, ok, how)
+        if ok and a < (after if best is None else best[5]):
+            best = (o, cand, cols, hint, how, a)
+    return best
+
+
 def _passes_denoised(
     cand: Candidate,
     hint: dict[str, Any],
@@ -1126,6 +1161,9 @@ VIF_MAX = 100.0
 #: own part is small and a large coefficient on it extrapolates badly when the campaign changes regime
 #: (FL_THERMAL: a 7 h lag of the spindle schedule took dz held-out from 2.5 to 8.3 um)
 VIF_UNSENSED = 10.0
+#: a validated lag competes with the lags of the other sites of its structure on the later training blocks
+#: (``_better_sibling_lag``); False restores the choice by the in-sample F alone (for comparisons)
+SIBLING_LAGS = True
 
 
 def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
@@ -1325,6 +1363,15 @@ def _search_term(
                             continue
                         X_new, names_new, new_idx = _extension(cand, cols, state)
                         fit = fit_columns(X_new, td.y, td.train, names_new)
+            if valid and cand.kind == "thermal_lag" and SIBLING_LAGS:
+                # two sites of one body both lag the heat that reaches it: their lags are two non-nested laws
+                # (each with its own tau), and the in-sample F says only which fits the training rows better;
+                # the site whose lag predicts the later training blocks better is the law (as rpm vs rpm^2)
+                sib = _better_sibling_lag(sc, after, scored, ctx, state, (folds, min_gain, min_explained, noise))
+                if sib is not None:
+                    sc, cand, cols, hint, how, after = sib
+                    X_new, names_new, new_idx = _extension(cand, cols, state)
+                    fit = fit_columns(X_new, td.y, td.train, names_new)
             # a channel that predicts the later blocks clearly worse than one of the same kind already
             # validated (and refused by a later rule) is a stand-in for it, not a finding of its own
             if valid and after > (1.0 + STAND_IN_MARGIN) * best_of_kind.get(cand.kind, np.inf):

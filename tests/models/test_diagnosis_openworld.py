@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from driftlab.models import diagnosis
 from driftlab.models.diagnosis import diagnose_bundle
 from driftlab.models.diagnosis_report import to_html as diagnosis_html
 from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
@@ -191,3 +192,25 @@ def test_report_of_a_direct_speed_effect_and_of_a_fault_no_model_uses():
     findings = parse_findings(doc)
     plan = plan_findings(findings, [case.bundle])
     assert any("no such feature" in note for note in plan.skipped.values())
+
+
+@pytest.mark.parametrize("sibling", [True, False])
+def test_a_lag_is_named_on_the_site_whose_lag_predicts_the_later_blocks(sibling, monkeypatch):
+    # seed 701 (rho 0.77): the column's T5 lag at 3000 s reaching the column link, 3 x the noise beyond the
+    # standard model. T6, the column's other site, lagged by 5780 s fits the training rows as well (F p 1.9e-192
+    # against 1.5e-191) and took it on the in-sample F alone; on the later training blocks T5's lag predicts
+    # better (6.1 against 6.6 um refitted), and a lag of a site is the law only with its own tau
+    monkeypatch.setattr(diagnosis, "SIBLING_LAGS", sibling)
+    lag = P("thermal_lag", "Z", "dz", "T2", "dz", ["T5"], {"tau_s": 3000.0, "coef_per_degC": 1e-2})
+    probe = openworld_case([lag], seed=701, keep=[("Z", "dz")])
+    scale = 3.0 * probe.noise["length_mm"] / probe.beyond_model_rms[0]
+    lag.params["coef_per_degC"] *= scale
+    case = openworld_case([lag], seed=701, keep=[("Z", "dz")])
+    res = diagnose_bundle(case.bundle)
+    lags = [e for e in res.effects if e.kind == "thermal_lag"]
+    assert len(lags) == 1
+    if sibling:
+        assert lags[0].channels == ["T5"]
+        assert lags[0].params["tau_s"] == pytest.approx(case.expected[0]["tau_s"], rel=0.3)
+    else:  # the choice by the in-sample F alone: the sibling, at twice the time constant
+        assert lags[0].channels == ["T6"] and lags[0].params["tau_s"] > 1.5 * case.expected[0]["tau_s"]
