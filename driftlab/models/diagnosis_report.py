@@ -277,7 +277,7 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
     for i, eff in enumerate(effects, 1):
         unit = "rad" if eff.term in ("alpha", "beta", "gamma") else "mm"
         k, lab = _scale(unit)
-        where = f"{e(eff.axis)}/{e(eff.term)}" if eff.axis else "the temperatures (no model uses this channel)"
+        where = f"{e(eff.axis)}/{e(eff.term or '')}" if eff.axis else "the temperatures (no model uses this channel)"
         if math.isfinite(eff.rmse_holdout_before) and math.isfinite(eff.rmse_holdout_after):
             g = eff.gain * 100
             worse = eff.rmse_holdout_after > eff.rmse_holdout_before
