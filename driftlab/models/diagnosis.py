@@ -814,6 +814,166 @@ def step_is_sharp(
     )
 
 
+@dataclass(frozen=True)
+class _Why:
+    """What a finding's plain-language cause is written from."""
+
+    td: TermData
+    where: str  # the first channel, with its stated location
+    channels: list[str]
+    params: dict[str, Any]
+    coef: float
+    fault: FaultScan | None
+    sec: str  # the thesis sections of the kind
+
+    @property
+    def u(self) -> str:
+        """Return the unit of the term's values."""
+        return self.td.unit
+
+
+def _why_reversal(w: _Why) -> str:
+    """Return the cause of a reversal."""
+    return (
+        f"Backlash / reversal error: the {w.td.axis}-axis {w.td.term} reads "
+        f"{_fmt(abs(w.params['magnitude_' + w.u]), w.u)} differently depending on the approach direction: "
+        f"play in the ballscrew nut or drive train (thesis {w.sec})."
+    )
+
+
+def _why_screw(w: _Why) -> str:
+    """Return the cause of a screw expansion."""
+    return (
+        f"Ballscrew expansion: the {w.td.axis}-axis {w.td.term} grows along the axis in proportion to "
+        f"position x the temperature rise at {w.where} ({_fmt(w.coef, w.u)} per mm per degC): the screw "
+        f"pitch lengthens as the screw warms (thesis {w.sec})."
+    )
+
+
+def _why_unmapped(w: _Why) -> str:
+    """Return the cause of a channel outside the model."""
+    return (
+        f"A heat source outside the model reaches this link: {w.td.axis}/{w.td.term} follows {w.where}, "
+        f"which is not among the model channels ({_fmt(w.coef, w.u)} per degC) (thesis {w.sec})."
+    )
+
+
+def _why_lag(w: _Why) -> str:
+    """Return the cause of a thermal lag."""
+    return (
+        f"Thermal lag: the deforming structure follows {w.where} with a first-order delay of "
+        f"{w.params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {w.sec})."
+    )
+
+
+def _why_sensor_drift(w: _Why) -> str:
+    """Return the cause of a drifting thermocouple (or several)."""
+    rate = float(w.params.get("rate_degC_per_day", float("nan")))
+    one = len(w.channels) == 1
+    return (
+        f"Sensor drift: thermocouple{'' if one else 's'} {w.where if one else ', '.join(w.channels)} "
+        f"depart{'s' if one else ''} from {'its' if one else 'their'} virtual sensor "
+        f"along a ramp of {rate:+.3g} degC per day from t = {w.params['start_s'] / 3600:.1f} h on while the "
+        f"neighbours agree: the calibration drifts (ageing junction, creeping mount), not the machine; the "
+        f"readings with the ramp removed restore the model (thesis {w.sec})."
+    )
+
+
+def _why_sensor_fault(w: _Why) -> str:
+    """Return the cause of a broken or loose thermocouple (or several)."""
+    how = "its lead broke (open circuit)" if w.params["mode"] == "open" else "it came loose from the structure"
+    if len(w.channels) > 1:
+        return (
+            f"Sensor faults: thermocouples {', '.join(w.channels)} depart from their virtual sensors from "
+            f"t = {w.params['start_s'] / 3600:.1f} h on (the first as if {how}); their readings no longer "
+            f"describe the structure and the virtual-sensor estimates restore the model (thesis {w.sec})."
+        )
+    nb = ", ".join(w.fault.neighbours[:4]) if w.fault else "its neighbours"
+    return (
+        f"Sensor fault: thermocouple {w.where} departs from its virtual sensor (predicted from {nb}) "
+        f"from t = {w.params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
+        f"the structure and the virtual-sensor estimate restores the model (thesis {w.sec})."
+    )
+
+
+def _why_operating(w: _Why) -> str:
+    """Return the cause of an operating-condition effect."""
+    col, pw = w.params["column"], int(w.params["power"])
+    what = {"spindle_rpm": "the spindle speed", "feed_mm_min": "the feed rate"}.get(col, col)
+    story = (
+        "centrifugal and bearing growth of the spindle, which follows the speed at once, not through a temperature"
+        if col == "spindle_rpm"
+        else "a following error of the drives that follows the feed"
+    )
+    return (
+        f"The {w.td.axis}/{w.td.term} error follows {what}{'^2' if pw == 2 else ''} directly "
+        f"({_fmt(w.coef, w.u)} per {col.replace('_', ' ')}{'^2' if pw == 2 else ''}; VIF against the thermal "
+        f"terms {w.params['vif']:.2g}): {story} (thesis {w.sec})."
+    )
+
+
+def _why_datum(w: _Why) -> str:
+    """Return the cause of a datum shift."""
+    return (
+        f"Datum shift: every {w.td.axis}/{w.td.term} reading steps by {_fmt(w.params['step_' + w.u], w.u)} at "
+        f"t = {w.params['time_s'] / 3600:.2f} h and stays there: the measuring line was re-zeroed or its optic "
+        f"moved; a measurement artefact, not the machine (thesis {w.sec})."
+    )
+
+
+def _why_unsensed(w: _Why) -> str:
+    """Return the cause of an unsensed heat input."""
+    src = str(w.params["source"])
+    what = src.split(":", 1)[1] if ":" in src else src
+    how = "heat-source schedule" if src.startswith("stage:") else "machine-state column"
+    return (
+        f"Unsensed heat input: {w.td.axis}/{w.td.term} follows a first-order lag ({w.params['tau_s'] / 60:.0f} min) "
+        f"of the {what} {how} that no thermocouple of the model reads ({_fmt(w.coef, w.u)} per unit): heat "
+        f"reaches the link by a path without a sensor (thesis {w.sec})."
+    )
+
+
+def _why_direction_thermal(w: _Why) -> str:
+    """Return the cause of a reversal that grows with temperature."""
+    return (
+        f"Reversal that grows with temperature: the {w.td.axis}-axis {w.td.term} reads differently depending on "
+        f"the approach direction, and the difference changes by {_fmt(abs(w.params['coef_per_degC']), w.u)} per "
+        f"degC at {w.where}: the nut or guide preload changes as it warms (thesis {w.sec})."
+    )
+
+
+def _why_drift(w: _Why) -> str:
+    """Return the cause of a drift."""
+    return (
+        f"A slow drift not explained by temperature of {_fmt(w.params['rate_per_day'], w.u)} per day: "
+        f"wear, settling or material instability (thesis {w.sec})."
+    )
+
+
+def _why_quadratic(w: _Why) -> str:
+    """Return the cause of a nonlinear (squared) thermal response."""
+    return (
+        f"Nonlinear thermal response: {w.td.axis}/{w.td.term} grows with the square of the temperature rise at "
+        f"{w.where} ({_fmt(w.coef, w.u)} per degC^2) (thesis {w.sec})."
+    )
+
+
+#: the plain-language cause of each kind (``_cause``); any other kind reads as a square
+_WHY = {
+    "reversal": _why_reversal,
+    "screw_expansion": _why_screw,
+    "unmapped_channel": _why_unmapped,
+    "thermal_lag": _why_lag,
+    "sensor_drift": _why_sensor_drift,
+    "sensor_fault": _why_sensor_fault,
+    "operating_condition": _why_operating,
+    "datum_shift": _why_datum,
+    "unsensed_source": _why_unsensed,
+    "direction_thermal": _why_direction_thermal,
+    "drift": _why_drift,
+}
+
+
 def _cause(
     kind: str,
     td: TermData,
@@ -824,102 +984,13 @@ def _cause(
     fault: FaultScan | None,
 ) -> str:
     """Return the plain-language cause of an effect, with its numbers and thesis section."""
-    u = td.unit
     where = ""
     if channels:
         ch = channels[0]
         loc = _channel_location(prep, ch)
         where = f"{ch}" + (f" ({loc})" if loc else "")
-    sec = THESIS[kind]
-    if kind == "reversal":
-        return (
-            f"Backlash / reversal error: the {td.axis}-axis {td.term} reads "
-            f"{_fmt(abs(params['magnitude_' + u]), u)} differently depending on the approach direction: "
-            f"play in the ballscrew nut or drive train (thesis {sec})."
-        )
-    if kind == "screw_expansion":
-        return (
-            f"Ballscrew expansion: the {td.axis}-axis {td.term} grows along the axis in proportion to "
-            f"position x the temperature rise at {where} ({_fmt(coef, u)} per mm per degC): the screw "
-            f"pitch lengthens as the screw warms (thesis {sec})."
-        )
-    if kind == "unmapped_channel":
-        return (
-            f"A heat source outside the model reaches this link: {td.axis}/{td.term} follows {where}, "
-            f"which is not among the model channels ({_fmt(coef, u)} per degC) (thesis {sec})."
-        )
-    if kind == "thermal_lag":
-        return (
-            f"Thermal lag: the deforming structure follows {where} with a first-order delay of "
-            f"{params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {sec})."
-        )
-    if kind == "sensor_drift":
-        rate = float(params.get("rate_degC_per_day", float("nan")))
-        names = ", ".join(channels)
-        return (
-            f"Sensor drift: thermocouple{'s' if len(channels) > 1 else ''} {where if len(channels) == 1 else names} "
-            f"depart{'s' if len(channels) == 1 else ''} from {'its' if len(channels) == 1 else 'their'} virtual sensor "
-            f"along a ramp of {rate:+.3g} degC per day from t = {params['start_s'] / 3600:.1f} h on while the "
-            f"neighbours agree: the calibration drifts (ageing junction, creeping mount), not the machine; the "
-            f"readings with the ramp removed restore the model (thesis {sec})."
-        )
-    if kind == "sensor_fault":
-        how = "its lead broke (open circuit)" if params["mode"] == "open" else "it came loose from the structure"
-        if len(channels) > 1:
-            return (
-                f"Sensor faults: thermocouples {', '.join(channels)} depart from their virtual sensors from "
-                f"t = {params['start_s'] / 3600:.1f} h on (the first as if {how}); their readings no longer "
-                f"describe the structure and the virtual-sensor estimates restore the model (thesis {sec})."
-            )
-        nb = ", ".join(fault.neighbours[:4]) if fault else "its neighbours"
-        return (
-            f"Sensor fault: thermocouple {where} departs from its virtual sensor (predicted from {nb}) "
-            f"from t = {params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
-            f"the structure and the virtual-sensor estimate restores the model (thesis {sec})."
-        )
-    if kind == "operating_condition":
-        col, pw = params["column"], int(params["power"])
-        what = {"spindle_rpm": "the spindle speed", "feed_mm_min": "the feed rate"}.get(col, col)
-        story = (
-            "centrifugal and bearing growth of the spindle, which follows the speed at once, not through a temperature"
-            if col == "spindle_rpm"
-            else "a following error of the drives that follows the feed"
-        )
-        return (
-            f"The {td.axis}/{td.term} error follows {what}{'^2' if pw == 2 else ''} directly "
-            f"({_fmt(coef, u)} per {col.replace('_', ' ')}{'^2' if pw == 2 else ''}; VIF against the thermal "
-            f"terms {params['vif']:.2g}): {story} (thesis {sec})."
-        )
-    if kind == "datum_shift":
-        return (
-            f"Datum shift: every {td.axis}/{td.term} reading steps by {_fmt(params['step_' + u], u)} at "
-            f"t = {params['time_s'] / 3600:.2f} h and stays there: the measuring line was re-zeroed or its optic "
-            f"moved; a measurement artefact, not the machine (thesis {sec})."
-        )
-    if kind == "unsensed_source":
-        src = str(params["source"])
-        what = src.split(":", 1)[1] if ":" in src else src
-        how = "heat-source schedule" if src.startswith("stage:") else "machine-state column"
-        return (
-            f"Unsensed heat input: {td.axis}/{td.term} follows a first-order lag ({params['tau_s'] / 60:.0f} min) "
-            f"of the {what} {how} that no thermocouple of the model reads ({_fmt(coef, u)} per unit): heat "
-            f"reaches the link by a path without a sensor (thesis {sec})."
-        )
-    if kind == "direction_thermal":
-        return (
-            f"Reversal that grows with temperature: the {td.axis}-axis {td.term} reads differently depending on "
-            f"the approach direction, and the difference changes by {_fmt(abs(params['coef_per_degC']), u)} per "
-            f"degC at {where}: the nut or guide preload changes as it warms (thesis {sec})."
-        )
-    if kind == "drift":
-        return (
-            f"A slow drift not explained by temperature of {_fmt(params['rate_per_day'], u)} per day: "
-            f"wear, settling or material instability (thesis {sec})."
-        )
-    return (
-        f"Nonlinear thermal response: {td.axis}/{td.term} grows with the square of the temperature rise at "
-        f"{where} ({_fmt(coef, u)} per degC^2) (thesis {sec})."
-    )
+    why = _Why(td, where, list(channels), params, coef, fault, THESIS[kind])
+    return _WHY.get(kind, _why_quadratic)(why)
 
 
 def _channel_location(prep: PreparedBundle, ch: str) -> str:
@@ -1714,6 +1785,79 @@ def _single_blas_thread() -> Iterator[None]:
         yield
 
 
+@dataclass
+class _Features:
+    """The bundle-wide features of a diagnosis: the denoised view, the sensor scans and the lag bank."""
+
+    prep_d: PreparedBundle
+    faults: dict[str, FaultScan]
+    drifts: dict[str, FaultScan]
+    taus: np.ndarray
+    bank: dict[str, np.ndarray]
+
+
+def _features(prep: PreparedBundle) -> _Features:
+    """Return the denoised view, the fault and drift scans (temperatures only) and the lag bank of every channel."""
+    # the same bundle on denoised readings: every candidate is also held to it (errors in variables)
+    prep_d = denoised_view(prep)
+    faults = scan_sensor_faults(prep, smooth_T=prep_d.grid_T)
+    # a thermocouple whose calibration drifts: its departure from its virtual sensor is a ramp (temperatures only)
+    dead = {ch for ch, f in faults.items() if f.plausible and f.mode == "open"}
+    drifts = scan_sensor_drifts(prep, exclude=dead)
+    taus = _tau_grid(prep)
+    usable = [
+        c
+        for j, c in enumerate(prep.channels)
+        if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0
+    ]
+    return _Features(prep_d, faults, drifts, taus, lag_bank_for(prep, usable, taus))
+
+
+def _contexts(
+    prep: PreparedBundle, standards: list[StandardModel], feat: _Features
+) -> tuple[list[TermContext], list[tuple[TermContext, StandardModel]], int]:
+    """Return every term's context, its denoised view, and the size of the family of hypotheses.
+
+    The family: every candidate of every kind, channel, tau grid point and term, and every channel
+    scanned for a fault (the temperature evidence is one hypothesis per channel).
+    """
+    taus = feat.taus
+    contexts: list[TermContext] = []
+    dviews: list[tuple[TermContext, StandardModel]] = []
+    n_hyp = len(feat.faults) + len(feat.drifts)
+    for i, (td, std) in enumerate(zip(prep.terms, standards)):
+        lo, hi = tau_bounds(prep, td)
+        keep = np.flatnonzero((taus >= lo * 0.999) & (taus <= hi * 1.001))
+        sel = slice(int(keep[0]), int(keep[-1]) + 1) if keep.size else slice(0, 0)
+        sub_bank = {c: b[:, sel] for c, b in feat.bank.items()}  # views, no copies
+        ctx = build_context(prep, td, std.channels, feat.faults, sub_bank, taus[sel])
+        n_hyp += sum(c.family_size for c in build_candidates(ctx))
+        contexts.append(ctx)
+        td_d = feat.prep_d.terms[i]
+        dstd = refit_standard(td_d, feat.prep_d, std.selection)
+        # no lag bank: a lag is only ever rebuilt there at the tau found on the readings (columns_like)
+        dctx = build_context(feat.prep_d, td_d, std.channels, feat.faults, None, None)
+        dviews.append((dctx, dstd))
+    return contexts, dviews, max(n_hyp, 1)
+
+
+def _broken_channels(
+    feat: _Features,
+    alpha_fault: float,
+    prep: PreparedBundle,
+    contexts: list[TermContext],
+    standards: list[StandardModel],
+) -> dict[str, FaultScan]:
+    """Return the channels the temperatures show broken or drifting, decided before any error is looked at."""
+    broken = {ch: f for ch, f in feat.faults.items() if f.plausible and f.p_value < alpha_fault}
+    _resolve_drift_pairs(feat.drifts, prep, contexts, standards)
+    for ch, f in feat.drifts.items():
+        # a ramp that explains the departure better than a break does is a drifting calibration
+        if f.plausible and f.p_value < alpha_fault and (ch not in broken or broken[ch].mode != "open"):
+            broken[ch] = f
+    return broken
+
+
 def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: float, max_effects: int) -> DiagnosisResult:
     """Run the diagnosis phases and time them (see :func:`diagnose_bundle`)."""
     timings: dict[str, float] = {}
@@ -1731,62 +1875,27 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     timings["simulation"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
-    # the same bundle on denoised readings: every candidate is also held to it (errors in variables)
-    prep_d = denoised_view(prep)
-    faults = scan_sensor_faults(prep, smooth_T=prep_d.grid_T)
-    # a thermocouple whose calibration drifts: its departure from its virtual sensor is a ramp (temperatures only)
-    dead = {ch for ch, f in faults.items() if f.plausible and f.mode == "open"}
-    drifts = scan_sensor_drifts(prep, exclude=dead)
-    taus = _tau_grid(prep)
-    usable = [
-        c
-        for j, c in enumerate(prep.channels)
-        if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0
-    ]
-    bank = lag_bank_for(prep, usable, taus)
+    feat = _features(prep)
     timings["features"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
-    contexts: list[TermContext] = []
-    dviews: list[tuple[TermContext, StandardModel]] = []
-    # the family: every candidate of every kind, channel, tau grid point and term, and every channel
-    # scanned for a fault (the temperature evidence is one hypothesis per channel)
-    n_hyp = len(faults) + len(drifts)
-    for i, (td, std) in enumerate(zip(prep.terms, standards)):
-        lo, hi = tau_bounds(prep, td)
-        keep = np.flatnonzero((taus >= lo * 0.999) & (taus <= hi * 1.001))
-        sel = slice(int(keep[0]), int(keep[-1]) + 1) if keep.size else slice(0, 0)
-        sub_bank = {c: b[:, sel] for c, b in bank.items()}  # views, no copies
-        ctx = build_context(prep, td, std.channels, faults, sub_bank, taus[sel])
-        n_hyp += sum(c.family_size for c in build_candidates(ctx))
-        contexts.append(ctx)
-        td_d = prep_d.terms[i]
-        dstd = refit_standard(td_d, prep_d, std.selection)
-        # no lag bank: a lag is only ever rebuilt there at the tau found on the readings (columns_like)
-        dctx = build_context(prep_d, td_d, std.channels, faults, None, None)
-        dviews.append((dctx, dstd))
-    n_hyp = max(n_hyp, 1)
+    contexts, dviews, n_hyp = _contexts(prep, standards, feat)
     # Bonferroni over the union of two families that share the family alpha: the error candidates
     # (alpha / 2 over them) and the channels scanned for a fault on the temperatures (alpha / 2 over those)
-    n_ch = len(faults) + len(drifts)
+    n_ch = len(feat.faults) + len(feat.drifts)
     alpha_each = 0.5 * alpha / max(n_hyp - n_ch, 1)
     alpha_fault = 0.5 * alpha / max(n_ch, 1)
     # sensor faults are decided on the temperatures alone, before any error is looked at
-    broken = {ch: f for ch, f in faults.items() if f.plausible and f.p_value < alpha_fault}
-    _resolve_drift_pairs(drifts, prep, contexts, standards)
-    for ch, f in drifts.items():
-        # a ramp that explains the departure better than a break does is a drifting calibration
-        if f.plausible and f.p_value < alpha_fault and (ch not in broken or broken[ch].mode != "open"):
-            broken[ch] = f
+    broken = _broken_channels(feat, alpha_fault, prep, contexts, standards)
     terms: list[TermDiagnosis] = []
     unexplained: list[Unexplained] = []
     fed: set[str] = set()
-    for ctx, std, sim, nz, (dctx, dstd) in zip(contexts, standards, sims, noises, dviews):
+    for ctx, std, sim, nz, dview in zip(contexts, standards, sims, noises, dviews):
         here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
         p_here = max((f.p_value for f in here), default=1.0)
         fed |= {f.channel for f in here}
         cfg = SearchConfig(alpha_each, min_gain, max_effects, nz)
-        effects, state = _search_term(ctx, std, cfg, (dctx, dstd), TermFaults(here, p_here, broken))
+        effects, state = _search_term(ctx, std, cfg, dview, TermFaults(here, p_here, broken))
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
         in_model = [n[3:] for n in state.names if n.startswith("dT_")]
         left = unexplained_term(ctx.td, state.fit.residual, prep, in_model, nz)
@@ -1807,7 +1916,7 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         n_hyp,
         min_gain,
         timings,
-        faults,
+        feat.faults,
         loose,
         alpha_each,
         alpha_fault,
