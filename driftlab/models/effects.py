@@ -626,13 +626,10 @@ def _fault_candidate(ctx: TermContext, scans: list[FaultScan]) -> Candidate:
 PHYSICAL_POWER = {"spindle_rpm": 2, "feed_mm_min": 1}
 
 
-def build_candidates(ctx: TermContext) -> list[Candidate]:
-    """Return every catalogue candidate for the current model of ``ctx`` (kinds not yet taken)."""
+def _plain_candidates(ctx: TermContext, n_dirs: int) -> list[Candidate]:
+    """Return the candidates that hold no temperature: reversal, drift, stated re-zeros and the step bank."""
     td = ctx.td
     out: list[Candidate] = []
-    n_dirs = np.unique(td.direction[td.train]).size
-    n_pos = np.unique(np.round(td.pos[td.train], 9)).size
-
     if n_dirs > 1 and ("reversal", ()) not in ctx.taken:
         out.append(Candidate("reversal", [], td.direction[:, None].astype(float), ["direction"]))
     if ("drift", ()) not in ctx.taken:
@@ -653,6 +650,13 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
     if steps is not None and ("datum_shift", ()) not in ctx.taken:
         cuts, bank = steps
         out.append(Candidate("datum_shift", [], bank, ["datum_step"], {"cuts": cuts}, family_size=int(cuts.size)))
+    return out
+
+
+def _channel_candidates(ctx: TermContext, n_dirs: int, n_pos: int) -> list[Candidate]:
+    """Return the candidates built from each channel's dT: screw, unmapped channel, square, direction x dT."""
+    td = ctx.td
+    out: list[Candidate] = []
     for ch, col in ctx.chan_cols.items():
         in_model = ch in ctx.model_channels
         if n_pos > 1 and ("screw_expansion", (ch,)) not in ctx.taken:
@@ -669,15 +673,15 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             d = td.direction.astype(float)
             plain = ("reversal", ()) not in ctx.taken
             cols_dt = [d * col] + ([d] if plain else [])
-            out.append(
-                Candidate(
-                    "direction_thermal",
-                    [ch],
-                    np.column_stack(cols_dt),
-                    [f"direction*dT_{ch}"] + (["direction"] if plain else []),
-                )
-            )
-    # the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)
+            names_dt = [f"direction*dT_{ch}"] + (["direction"] if plain else [])
+            out.append(Candidate("direction_thermal", [ch], np.column_stack(cols_dt), names_dt))
+    return out
+
+
+def _condition_candidates(ctx: TermContext) -> list[Candidate]:
+    """Return the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)."""
+    td = ctx.td
+    out: list[Candidate] = []
     for name, v in td.conditions.items():
         # a column with two values in the training rows (off and one speed) gives rpm^2 = c rpm: one law, whose
         # power the data cannot tell; the catalogue's physical story names it (spec 3: centrifugal growth with
@@ -690,28 +694,21 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             x = v**power
             if ("operating_condition", (label,)) in ctx.taken or np.ptp(x[td.train]) == 0:
                 continue
-            out.append(
-                Candidate(
-                    "operating_condition",
-                    [],
-                    x[:, None].astype(float),
-                    [label],
-                    {"column": name, "power": power},
-                    label=label,
-                )
-            )
+            hint = {"column": name, "power": power}
+            out.append(Candidate("operating_condition", [], x[:, None].astype(float), [label], hint, label=label))
+    return out
+
+
+def _lag_candidates(ctx: TermContext) -> list[Candidate]:
+    """Return the lag banks: each stated heat input's (unsensed_source) and each channel's (thermal_lag)."""
+    out: list[Candidate] = []
     for name, (taus, at, _sched) in ctx.sources.items():
         if ("unsensed_source", (name,)) in ctx.taken:
             continue
+        hint_s = {"taus": taus, "source": name}
         out.append(
             Candidate(
-                "unsensed_source",
-                [],
-                at - at[0],
-                [f"lag_{name}"],
-                {"taus": taus, "source": name},
-                family_size=int(taus.size),
-                label=name,
+                "unsensed_source", [], at - at[0], [f"lag_{name}"], hint_s, family_size=int(taus.size), label=name
             )
         )
     for ch, (taus, at) in ctx.lag_cache.items():
@@ -722,6 +719,19 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             hint["with"] = ctx.chan_cols[ch]  # scored together with the channel's own dT
         out.append(Candidate("thermal_lag", [ch], at, [f"lag_{ch}"], hint, family_size=int(taus.size)))
     return out
+
+
+def build_candidates(ctx: TermContext) -> list[Candidate]:
+    """Return every catalogue candidate for the current model of ``ctx`` (kinds not yet taken)."""
+    td = ctx.td
+    n_dirs = np.unique(td.direction[td.train]).size
+    n_pos = np.unique(np.round(td.pos[td.train], 9)).size
+    return [
+        *_plain_candidates(ctx, n_dirs),
+        *_channel_candidates(ctx, n_dirs, n_pos),
+        *_condition_candidates(ctx),
+        *_lag_candidates(ctx),
+    ]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -739,6 +749,88 @@ class Scored:
     df_den: int
     rss_drop: float
     col_index: int = 0  # which column of a bank (thermal_lag: the best tau on the grid)
+
+
+@dataclass
+class _Bank:
+    """Every candidate column of a term at once, projected on the current model (``screen``).
+
+    ``big``: the training rows of the columns, side by side (``edges`` per candidate); ``scale``: 1 / their
+    RMS; ``G``: Q'C and ``big_y``: C'ry of the unit-RMS columns; ``big_n2``: |C - Q Q'C|^2.
+    """
+
+    cands: list[Candidate]
+    edges: np.ndarray
+    big: np.ndarray
+    scale: np.ndarray
+    G: np.ndarray
+    big_y: np.ndarray
+    big_n2: np.ndarray
+
+
+def _finite_bank(cands: list[Candidate], rows: slice | np.ndarray) -> tuple[list[Candidate], np.ndarray, np.ndarray]:
+    """Return the candidates whose columns are finite on the training rows, their columns and column edges."""
+    widths = [c.cols.shape[1] for c in cands]
+    edges = np.concatenate([[0], np.cumsum(widths)])
+    big = np.concatenate([c.cols[rows] for c in cands], axis=1)
+    col_ok = np.all(np.isfinite(big), axis=0)
+    finite = [c for ci, c in enumerate(cands) if col_ok[edges[ci] : edges[ci + 1]].all()]
+    if len(finite) < len(cands):
+        keep_cols = np.concatenate(
+            [
+                np.arange(edges[ci], edges[ci + 1])
+                for ci, c in enumerate(cands)
+                if col_ok[edges[ci] : edges[ci + 1]].all()
+            ]
+            or [np.zeros(0, dtype=int)]
+        )
+        big = big[:, keep_cols]
+        widths = [c.cols.shape[1] for c in finite]
+        edges = np.concatenate([[0], np.cumsum(widths)])
+    return finite, big, edges
+
+
+def _bank_drop(
+    bk: _Bank, ci: int, Q: np.ndarray, ry: np.ndarray, with_col: np.ndarray | None
+) -> tuple[float, int, int] | None:
+    """Return the best RSS drop of a bank candidate (one column per tau or cut), its column and its width.
+
+    With ``with_col`` (a channel outside the model, scored with its own dT) two columns per tau,
+    [lag_tau, dT]: closed-form 2x2 least squares for every tau. None: no column adds anything.
+    """
+    sl = slice(bk.edges[ci], bk.edges[ci + 1])
+    norm2 = bk.big_n2[sl]
+    ok = norm2 > 1e-10 * bk.big.shape[0]
+    if with_col is None:
+        drops = np.where(ok, bk.big_y[sl] ** 2 / np.maximum(norm2, 1e-300), -1.0)
+        k = 1
+    else:
+        w = with_col / max(float(np.sqrt(np.mean(with_col * with_col))), 1e-300)
+        rw = w - Q @ (Q.T @ w)
+        ww, wy = float(rw @ rw), float(rw @ ry)
+        bw = (bk.big[:, sl].T @ rw) * bk.scale[sl]
+        by = bk.big_y[sl]
+        det = norm2 * ww - bw * bw
+        good = ok & (det > 1e-10 * np.maximum(norm2 * ww, 1e-300))
+        drops = np.where(good, (ww * by * by - 2 * bw * by * wy + norm2 * wy * wy) / np.where(good, det, 1.0), -1.0)
+        k = 2
+    i = int(np.argmax(drops))
+    return None if drops[i] <= 0 else (float(drops[i]), i, k)
+
+
+def _set_drop(bk: _Bank, ci: int, Q: np.ndarray, ry: np.ndarray) -> tuple[float, int, int] | None:
+    """Return the RSS drop of a candidate's columns together, 0, and its width (None: collinear with the model)."""
+    sl = slice(bk.edges[ci], bk.edges[ci + 1])
+    norm2 = bk.big_n2[sl]
+    if np.any(norm2 <= 1e-10 * bk.big.shape[0]):
+        return None  # collinear with the model: nothing new
+    width = bk.edges[ci + 1] - bk.edges[ci]
+    if width == 1:
+        return float(bk.big_y[sl][0] ** 2 / norm2[0]), 0, 1
+    RC = bk.big[:, sl] * bk.scale[sl] - Q @ bk.G[sl].T
+    b, *_ = np.linalg.lstsq(RC, ry, rcond=None)
+    fitted = RC @ b
+    return float(fitted @ fitted), 0, width
 
 
 def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidate]) -> list[Scored]:
@@ -759,23 +851,7 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     rows = slice(0, n_tr) if train[:n_tr].all() else train  # training rows are the first ones: views
     if not cands:
         return out
-    widths = [c.cols.shape[1] for c in cands]
-    edges = np.concatenate([[0], np.cumsum(widths)])
-    big = np.concatenate([c.cols[rows] for c in cands], axis=1)
-    col_ok = np.all(np.isfinite(big), axis=0)
-    finite = [c for ci, c in enumerate(cands) if col_ok[edges[ci] : edges[ci + 1]].all()]
-    if len(finite) < len(cands):
-        keep_cols = np.concatenate(
-            [
-                np.arange(edges[ci], edges[ci + 1])
-                for ci, c in enumerate(cands)
-                if col_ok[edges[ci] : edges[ci + 1]].all()
-            ]
-            or [np.zeros(0, dtype=int)]
-        )
-        big = big[:, keep_cols]
-        widths = [c.cols.shape[1] for c in finite]
-        edges = np.concatenate([[0], np.cumsum(widths)])
+    finite, big, edges = _finite_bank(cands, rows)
     if not finite:
         return out
     # the columns' parts outside the model, without forming them (the candidate bank is the largest array
@@ -785,46 +861,17 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     scale = 1.0 / np.maximum(np.sqrt(np.einsum("ij,ij->j", big, big) / nrow), 1e-300)
     prod = (big.T @ np.column_stack([Q, ry])) * scale[:, None]  # rows: columns of the bank, unit RMS
     G = prod[:, :-1]
-    big_y = prod[:, -1]
     big_n2 = np.maximum(nrow - np.einsum("ij,ij->i", G, G), 0.0) * (np.isfinite(scale) & (scale < 1e300))
+    bk = _Bank(finite, edges, big, scale, G, prod[:, -1], big_n2)
     for ci, c in enumerate(finite):
-        sl = slice(edges[ci], edges[ci + 1])
-        norm2 = big_n2[sl]
         if c.kind in BANK_KINDS:  # a bank: one column per tau (or cut), score each, keep the best
-            ok = norm2 > 1e-10 * nrow
             with_col = c.hint.get("with")
-            if with_col is None:
-                drops = np.where(ok, big_y[sl] ** 2 / np.maximum(norm2, 1e-300), -1.0)
-                k = 1
-            else:  # two columns per tau, [lag_tau, dT]: closed-form 2x2 least squares for every tau
-                w = with_col[train]
-                w = w / max(float(np.sqrt(np.mean(w * w))), 1e-300)
-                rw = w - Q @ (Q.T @ w)
-                ww, wy = float(rw @ rw), float(rw @ ry)
-                bw = (big[:, sl].T @ rw) * scale[sl]
-                by = big_y[sl]
-                det = norm2 * ww - bw * bw
-                good = ok & (det > 1e-10 * np.maximum(norm2 * ww, 1e-300))
-                drops = np.where(
-                    good, (ww * by * by - 2 * bw * by * wy + norm2 * wy * wy) / np.where(good, det, 1.0), -1.0
-                )
-                k = 2
-            i = int(np.argmax(drops))
-            if drops[i] <= 0:
-                continue
-            drop, col_index = float(drops[i]), i
+            got = _bank_drop(bk, ci, Q, ry, None if with_col is None else with_col[train])
         else:
-            if np.any(norm2 <= 1e-10 * nrow):
-                continue  # collinear with the model: nothing new
-            width = edges[ci + 1] - edges[ci]
-            if width == 1:
-                drop = float(big_y[sl][0] ** 2 / norm2[0])
-            else:
-                RC = big[:, sl] * scale[sl] - Q @ G[sl].T
-                b, *_ = np.linalg.lstsq(RC, ry, rcond=None)
-                fitted = RC @ b
-                drop = float(fitted @ fitted)
-            k, col_index = width, 0
+            got = _set_drop(bk, ci, Q, ry)
+        if got is None:
+            continue
+        drop, col_index, k = got
         dof = n - p - k
         if dof <= 0 or rss <= 0:
             continue
