@@ -28,7 +28,7 @@ from diagnose_openkinds import NAMES, shape  # noqa: E402
 
 from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle  # noqa: E402
 from driftlab.testing.openworld import OpenPlanted as P  # noqa: E402
-from driftlab.testing.openworld import openworld_case  # noqa: E402
+from driftlab.testing.openworld import OpenWorld, openworld_case  # noqa: E402
 
 KEEP = [("Z", "dz"), ("X", "dx"), ("A", "alpha")]
 
@@ -55,7 +55,7 @@ def null_case(seed: int):
     kw = shape(seed)
     if kw["scan_s"] == 10.0 and seed % 8 != 1:
         kw["scan_s"] = 60.0  # 10 s scans in one bundle of 8 (cost)
-    return openworld_case(planted, seed=seed, hours=24, keep=KEEP, rho=float(rng.uniform(0.4, 0.9)), **kw)
+    return openworld_case(planted, OpenWorld(seed=seed, hours=24, keep=KEEP, rho=float(rng.uniform(0.4, 0.9)), **kw))
 
 
 def main(n: int = 200, first: int = 0) -> dict:

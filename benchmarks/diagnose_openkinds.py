@@ -35,7 +35,7 @@ import _common  # noqa: E402,F401  (pins BLAS to one thread before numpy loads)
 
 from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle  # noqa: E402
 from driftlab.testing.openworld import OpenPlanted as P  # noqa: E402
-from driftlab.testing.openworld import openworld_case  # noqa: E402
+from driftlab.testing.openworld import OpenWorld, openworld_case  # noqa: E402
 
 NAMES = {f"T{i}": n for i, n in enumerate(
     ["", "spindle_head_top", "spindle_head_side", "ram_front", "ram_rear", "column_left", "column_right",
@@ -84,7 +84,7 @@ def _case(planted: list[P], keep: list[tuple[str, str]], seed: int, size: float)
     hours = 30.0 if kw["scan_s"] >= 60 else 20.0
     pl = list(planted)
     if pl[0].kind in SCALE_KEY:
-        probe = openworld_case(pl, seed=seed, keep=keep, hours=hours, **kw)
+        probe = openworld_case(pl, OpenWorld(seed=seed, keep=keep, hours=hours, **kw))
         beyond = max(probe.beyond_model_rms[0], 1e-12)
         p = pl[0]
         params = dict(p.params)
@@ -93,7 +93,7 @@ def _case(planted: list[P], keep: list[tuple[str, str]], seed: int, size: float)
     if pl[0].kind == "datum_shift":
         p = pl[0]
         pl = [P(p.kind, p.axis, p.term, params={"time_s": (0.3 + 0.04 * (seed % 5)) * hours * 3600, "step": 3e-3})]
-    return openworld_case(pl, seed=seed, keep=keep, hours=hours, **kw)
+    return openworld_case(pl, OpenWorld(seed=seed, keep=keep, hours=hours, **kw))
 
 
 def main(seeds: int = 3, size: float = 3.0, first: int = 900) -> dict:

@@ -21,7 +21,7 @@ import _common  # noqa: E402,F401  (pins BLAS to one thread before numpy loads)
 
 from driftlab.models.diagnosis import diagnose_bundle  # noqa: E402
 from driftlab.testing.openworld import OpenPlanted as P  # noqa: E402
-from driftlab.testing.openworld import openworld_case  # noqa: E402
+from driftlab.testing.openworld import OpenWorld, openworld_case  # noqa: E402
 
 SAME_BODY = {
     "T7": {"T7", "T8"},
@@ -66,7 +66,7 @@ CASES: dict[str, list[P]] = {
 def _scaled(planted: list[P], seed: int, size: float) -> list[P]:
     """Return ``planted`` with each effect scaled so its part beyond the standard model is ``size`` x noise."""
     keep = sorted({(p.axis, p.term) for p in planted})
-    probe = openworld_case(planted, seed=seed, keep=keep)
+    probe = openworld_case(planted, OpenWorld(seed=seed, keep=keep))
     out = []
     for p, beyond in zip(planted, probe.beyond_model_rms):
         noise = probe.noise["angle_rad" if p.term in ("alpha", "beta", "gamma") else "length_mm"]
@@ -102,7 +102,7 @@ def main(size: float = 3.0, seeds: int = 3, first: int = 700) -> dict:
         for s in range(seeds):
             seed = first + s
             pl = _scaled(planted, seed, size)
-            case = openworld_case(pl, seed=seed, keep=sorted({(p.axis, p.term) for p in pl}))
+            case = openworld_case(pl, OpenWorld(seed=seed, keep=sorted({(p.axis, p.term) for p in pl})))
             res = diagnose_bundle(case.bundle)
             hit_any = set()
             for p, exp in zip(pl, case.expected):
