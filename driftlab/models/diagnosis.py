@@ -832,40 +832,6 @@ class _Why:
         return self.td.unit
 
 
-def _why_reversal(w: _Why) -> str:
-    """Return the cause of a reversal."""
-    return (
-        f"Backlash / reversal error: the {w.td.axis}-axis {w.td.term} reads "
-        f"{_fmt(abs(w.params['magnitude_' + w.u]), w.u)} differently depending on the approach direction: "
-        f"play in the ballscrew nut or drive train (thesis {w.sec})."
-    )
-
-
-def _why_screw(w: _Why) -> str:
-    """Return the cause of a screw expansion."""
-    return (
-        f"Ballscrew expansion: the {w.td.axis}-axis {w.td.term} grows along the axis in proportion to "
-        f"position x the temperature rise at {w.where} ({_fmt(w.coef, w.u)} per mm per degC): the screw "
-        f"pitch lengthens as the screw warms (thesis {w.sec})."
-    )
-
-
-def _why_unmapped(w: _Why) -> str:
-    """Return the cause of a channel outside the model."""
-    return (
-        f"A heat source outside the model reaches this link: {w.td.axis}/{w.td.term} follows {w.where}, "
-        f"which is not among the model channels ({_fmt(w.coef, w.u)} per degC) (thesis {w.sec})."
-    )
-
-
-def _why_lag(w: _Why) -> str:
-    """Return the cause of a thermal lag."""
-    return (
-        f"Thermal lag: the deforming structure follows {w.where} with a first-order delay of "
-        f"{w.params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {w.sec})."
-    )
-
-
 def _why_sensor_drift(w: _Why) -> str:
     """Return the cause of a drifting thermocouple (or several)."""
     rate = float(w.params.get("rate_degC_per_day", float("nan")))
@@ -912,15 +878,6 @@ def _why_operating(w: _Why) -> str:
     )
 
 
-def _why_datum(w: _Why) -> str:
-    """Return the cause of a datum shift."""
-    return (
-        f"Datum shift: every {w.td.axis}/{w.td.term} reading steps by {_fmt(w.params['step_' + w.u], w.u)} at "
-        f"t = {w.params['time_s'] / 3600:.2f} h and stays there: the measuring line was re-zeroed or its optic "
-        f"moved; a measurement artefact, not the machine (thesis {w.sec})."
-    )
-
-
 def _why_unsensed(w: _Why) -> str:
     """Return the cause of an unsensed heat input."""
     src = str(w.params["source"])
@@ -933,44 +890,54 @@ def _why_unsensed(w: _Why) -> str:
     )
 
 
-def _why_direction_thermal(w: _Why) -> str:
-    """Return the cause of a reversal that grows with temperature."""
-    return (
-        f"Reversal that grows with temperature: the {w.td.axis}-axis {w.td.term} reads differently depending on "
-        f"the approach direction, and the difference changes by {_fmt(abs(w.params['coef_per_degC']), w.u)} per "
-        f"degC at {w.where}: the nut or guide preload changes as it warms (thesis {w.sec})."
-    )
+#: the plain-language cause of the kinds told in one sentence: a template over the finding's figures (``_why_figures``)
+_WHY_TEMPLATE = {
+    "reversal": "Backlash / reversal error: the {axis}-axis {term} reads {magnitude} differently depending on the "
+    "approach direction: play in the ballscrew nut or drive train (thesis {sec}).",
+    "screw_expansion": "Ballscrew expansion: the {axis}-axis {term} grows along the axis in proportion to position x "
+    "the temperature rise at {where} ({coef} per mm per degC): the screw pitch lengthens as the screw warms "
+    "(thesis {sec}).",
+    "unmapped_channel": "A heat source outside the model reaches this link: {axis}/{term} follows {where}, which is "
+    "not among the model channels ({coef} per degC) (thesis {sec}).",
+    "thermal_lag": "Thermal lag: the deforming structure follows {where} with a first-order delay of {tau_min} min: "
+    "its thermal mass lags the thermocouple (thesis {sec}).",
+    "datum_shift": "Datum shift: every {axis}/{term} reading steps by {step} at t = {time_h} h and stays there: the "
+    "measuring line was re-zeroed or its optic moved; a measurement artefact, not the machine (thesis {sec}).",
+    "direction_thermal": "Reversal that grows with temperature: the {axis}-axis {term} reads differently depending "
+    "on the approach direction, and the difference changes by {per_degC} per degC at {where}: the nut or guide "
+    "preload changes as it warms (thesis {sec}).",
+    "drift": "A slow drift not explained by temperature of {rate} per day: wear, settling or material instability "
+    "(thesis {sec}).",
+    "quadratic": "Nonlinear thermal response: {axis}/{term} grows with the square of the temperature rise at {where} "
+    "({coef} per degC^2) (thesis {sec}).",
+}
 
 
-def _why_drift(w: _Why) -> str:
-    """Return the cause of a drift."""
-    return (
-        f"A slow drift not explained by temperature of {_fmt(w.params['rate_per_day'], w.u)} per day: "
-        f"wear, settling or material instability (thesis {w.sec})."
-    )
+def _why_figures(w: _Why) -> dict[str, str]:
+    """Return the figures a one-sentence cause may name, each formatted as the sentence shows it."""
+    p, u = w.params, w.u
+    out = {"axis": w.td.axis, "term": w.td.term, "where": w.where, "sec": w.sec, "coef": _fmt(w.coef, u)}
+    if f"magnitude_{u}" in p:
+        out["magnitude"] = _fmt(abs(p[f"magnitude_{u}"]), u)
+    if "tau_s" in p:
+        out["tau_min"] = f"{p['tau_s'] / 60:.0f}"
+    if f"step_{u}" in p:
+        out["step"] = _fmt(p[f"step_{u}"], u)
+    if "time_s" in p:
+        out["time_h"] = f"{p['time_s'] / 3600:.2f}"
+    if "coef_per_degC" in p:
+        out["per_degC"] = _fmt(abs(p["coef_per_degC"]), u)
+    if "rate_per_day" in p:
+        out["rate"] = _fmt(p["rate_per_day"], u)
+    return out
 
 
-def _why_quadratic(w: _Why) -> str:
-    """Return the cause of a nonlinear (squared) thermal response."""
-    return (
-        f"Nonlinear thermal response: {w.td.axis}/{w.td.term} grows with the square of the temperature rise at "
-        f"{w.where} ({_fmt(w.coef, w.u)} per degC^2) (thesis {w.sec})."
-    )
-
-
-#: the plain-language cause of each kind (``_cause``); any other kind reads as a square
+#: the plain-language cause of the kinds that need more than one template (``_cause``)
 _WHY = {
-    "reversal": _why_reversal,
-    "screw_expansion": _why_screw,
-    "unmapped_channel": _why_unmapped,
-    "thermal_lag": _why_lag,
     "sensor_drift": _why_sensor_drift,
     "sensor_fault": _why_sensor_fault,
     "operating_condition": _why_operating,
-    "datum_shift": _why_datum,
     "unsensed_source": _why_unsensed,
-    "direction_thermal": _why_direction_thermal,
-    "drift": _why_drift,
 }
 
 
@@ -990,7 +957,9 @@ def _cause(
         loc = _channel_location(prep, ch)
         where = f"{ch}" + (f" ({loc})" if loc else "")
     why = _Why(td, where, list(channels), params, coef, fault, THESIS[kind])
-    return _WHY.get(kind, _why_quadratic)(why)
+    if kind in _WHY:
+        return _WHY[kind](why)
+    return _WHY_TEMPLATE.get(kind, _WHY_TEMPLATE["quadratic"]).format(**_why_figures(why))
 
 
 def _channel_location(prep: PreparedBundle, ch: str) -> str:
