@@ -24,11 +24,11 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common  # noqa: E402,F401  (pins BLAS to one thread before numpy loads)
 import numpy as np  # noqa: E402
-from diagnose_openkinds import shape  # noqa: E402
+from diagnose_openkinds import NAMES, shape  # noqa: E402
 
 from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle  # noqa: E402
 from driftlab.testing.openworld import OpenPlanted as P  # noqa: E402
-from driftlab.testing.openworld import openworld_case  # noqa: E402
+from driftlab.testing.openworld import OpenWorld, openworld_case  # noqa: E402
 
 KEEP = [("Z", "dz"), ("X", "dx"), ("A", "alpha")]
 
@@ -55,13 +55,13 @@ def null_case(seed: int):
     kw = shape(seed)
     if kw["scan_s"] == 10.0 and seed % 8 != 1:
         kw["scan_s"] = 60.0  # 10 s scans in one bundle of 8 (cost)
-    return openworld_case(planted, seed=seed, hours=24, keep=KEEP, rho=float(rng.uniform(0.4, 0.9)), **kw)
+    return openworld_case(planted, OpenWorld(seed=seed, hours=24, keep=KEEP, rho=float(rng.uniform(0.4, 0.9)), **kw))
 
 
 def main(n: int = 200, first: int = 0) -> dict:
     """Return the measured false-finding rate over ``n`` null bundles (seeds 50 000 + first ...)."""
     t0 = time.perf_counter()
-    physical, any_finding, kinds, rhos = 0, 0, Counter(), []
+    physical, any_finding, kinds, rhos, false_sensor = 0, 0, Counter(), [], 0
     which: list[dict] = []
     for i in range(first, first + n):
         case = null_case(50_000 + i)
@@ -75,6 +75,11 @@ def main(n: int = 200, first: int = 0) -> dict:
             if e.kind not in NON_PHYSICAL_KINDS
         ]
         physical += bool(phys)
+        # a sensor drift on a channel whose calibration was not made to drift (the planted T9, renamed or not)
+        drifting = {
+            n for p in case.planted if p.kind == "sensor_drift" for c in p.channels for n in (c, NAMES.get(c, c))
+        }
+        false_sensor += len({c for e in res.effects if e.kind == "sensor_drift" for c in e.channels} - drifting)
         if phys:
             which.append(
                 {
@@ -94,6 +99,7 @@ def main(n: int = 200, first: int = 0) -> dict:
         "target_rate": 0.05,
         "meets_target": physical / n <= 0.05,
         "findings_by_kind": dict(kinds),
+        "false_sensor_drift_channels": false_sensor,
         "bundles_with_physical": which,
         "rho_range": [round(min(rhos), 3), round(max(rhos), 3)],
         "wall_s": round(time.perf_counter() - t0, 1),

@@ -6,7 +6,7 @@ scaled so that the part of it no standard model can absorb is ``SIZE`` x the las
 A row is "found" when an effect of the right kind, axis, term and channel (a site of the same body)
 is reported with its parameters within 30 % of what the chain shows on that term.
 
-    .venv/bin/python benchmarks/diagnose_planted.py [SIZE] [SEEDS]
+    .venv/bin/python benchmarks/diagnose_planted.py [SIZE] [SEEDS] [FIRST]    # seeds FIRST .. FIRST + SEEDS - 1
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import _common  # noqa: E402,F401  (pins BLAS to one thread before numpy loads)
 
 from driftlab.models.diagnosis import diagnose_bundle  # noqa: E402
 from driftlab.testing.openworld import OpenPlanted as P  # noqa: E402
-from driftlab.testing.openworld import openworld_case  # noqa: E402
+from driftlab.testing.openworld import OpenWorld, openworld_case  # noqa: E402
 
 SAME_BODY = {
     "T7": {"T7", "T8"},
@@ -66,7 +66,7 @@ CASES: dict[str, list[P]] = {
 def _scaled(planted: list[P], seed: int, size: float) -> list[P]:
     """Return ``planted`` with each effect scaled so its part beyond the standard model is ``size`` x noise."""
     keep = sorted({(p.axis, p.term) for p in planted})
-    probe = openworld_case(planted, seed=seed, keep=keep)
+    probe = openworld_case(planted, OpenWorld(seed=seed, keep=keep))
     out = []
     for p, beyond in zip(planted, probe.beyond_model_rms):
         noise = probe.noise["angle_rad" if p.term in ("alpha", "beta", "gamma") else "length_mm"]
@@ -94,15 +94,15 @@ def _match(p: P, exp: dict, effects: list) -> tuple[bool, dict]:
     return False, {}
 
 
-def main(size: float = 3.0, seeds: int = 3) -> dict:
+def main(size: float = 3.0, seeds: int = 3, first: int = 700) -> dict:
     """Return the found/planted table."""
     t0 = time.perf_counter()
     rows, found, total, extra = [], 0, 0, 0
     for name, planted in CASES.items():
         for s in range(seeds):
-            seed = 700 + s
+            seed = first + s
             pl = _scaled(planted, seed, size)
-            case = openworld_case(pl, seed=seed, keep=sorted({(p.axis, p.term) for p in pl}))
+            case = openworld_case(pl, OpenWorld(seed=seed, keep=sorted({(p.axis, p.term) for p in pl})))
             res = diagnose_bundle(case.bundle)
             hit_any = set()
             for p, exp in zip(pl, case.expected):
@@ -139,7 +139,11 @@ def main(size: float = 3.0, seeds: int = 3) -> dict:
 if __name__ == "__main__":
     print(
         json.dumps(
-            main(float(sys.argv[1]) if len(sys.argv) > 1 else 3.0, int(sys.argv[2]) if len(sys.argv) > 2 else 3),
+            main(
+                float(sys.argv[1]) if len(sys.argv) > 1 else 3.0,
+                int(sys.argv[2]) if len(sys.argv) > 2 else 3,
+                int(sys.argv[3]) if len(sys.argv) > 3 else 700,
+            ),
             default=str,
         )
     )

@@ -291,8 +291,8 @@ class Effect:
     """An accepted effect: what it is, its statistics, its held-out gain and the regressor it adds."""
 
     kind: str
-    axis: str
-    term: str
+    axis: str | None  # None: a sensor finding on a channel no model uses (not on an (axis, term))
+    term: str | None
     channels: list[str]
     params: dict[str, Any]
     p_value: float
@@ -814,6 +814,133 @@ def step_is_sharp(
     )
 
 
+@dataclass(frozen=True)
+class _Why:
+    """What a finding's plain-language cause is written from."""
+
+    td: TermData
+    where: str  # the first channel, with its stated location
+    channels: list[str]
+    params: dict[str, Any]
+    coef: float
+    fault: FaultScan | None
+    sec: str  # the thesis sections of the kind
+
+    @property
+    def u(self) -> str:
+        """Return the unit of the term's values."""
+        return self.td.unit
+
+
+def _why_sensor_drift(w: _Why) -> str:
+    """Return the cause of a drifting thermocouple (or several)."""
+    rate = float(w.params.get("rate_degC_per_day", float("nan")))
+    one = len(w.channels) == 1
+    return (
+        f"Sensor drift: thermocouple{'' if one else 's'} {w.where if one else ', '.join(w.channels)} "
+        f"depart{'s' if one else ''} from {'its' if one else 'their'} virtual sensor "
+        f"along a ramp of {rate:+.3g} degC per day from t = {w.params['start_s'] / 3600:.1f} h on while the "
+        f"neighbours agree: the calibration drifts (ageing junction, creeping mount), not the machine; the "
+        f"readings with the ramp removed restore the model (thesis {w.sec})."
+    )
+
+
+def _why_sensor_fault(w: _Why) -> str:
+    """Return the cause of a broken or loose thermocouple (or several)."""
+    how = "its lead broke (open circuit)" if w.params["mode"] == "open" else "it came loose from the structure"
+    if len(w.channels) > 1:
+        return (
+            f"Sensor faults: thermocouples {', '.join(w.channels)} depart from their virtual sensors from "
+            f"t = {w.params['start_s'] / 3600:.1f} h on (the first as if {how}); their readings no longer "
+            f"describe the structure and the virtual-sensor estimates restore the model (thesis {w.sec})."
+        )
+    nb = ", ".join(w.fault.neighbours[:4]) if w.fault else "its neighbours"
+    return (
+        f"Sensor fault: thermocouple {w.where} departs from its virtual sensor (predicted from {nb}) "
+        f"from t = {w.params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
+        f"the structure and the virtual-sensor estimate restores the model (thesis {w.sec})."
+    )
+
+
+def _why_operating(w: _Why) -> str:
+    """Return the cause of an operating-condition effect."""
+    col, pw = w.params["column"], int(w.params["power"])
+    what = {"spindle_rpm": "the spindle speed", "feed_mm_min": "the feed rate"}.get(col, col)
+    story = (
+        "centrifugal and bearing growth of the spindle, which follows the speed at once, not through a temperature"
+        if col == "spindle_rpm"
+        else "a following error of the drives that follows the feed"
+    )
+    return (
+        f"The {w.td.axis}/{w.td.term} error follows {what}{'^2' if pw == 2 else ''} directly "
+        f"({_fmt(w.coef, w.u)} per {col.replace('_', ' ')}{'^2' if pw == 2 else ''}; VIF against the thermal "
+        f"terms {w.params['vif']:.2g}): {story} (thesis {w.sec})."
+    )
+
+
+def _why_unsensed(w: _Why) -> str:
+    """Return the cause of an unsensed heat input."""
+    src = str(w.params["source"])
+    what = src.split(":", 1)[1] if ":" in src else src
+    how = "heat-source schedule" if src.startswith("stage:") else "machine-state column"
+    return (
+        f"Unsensed heat input: {w.td.axis}/{w.td.term} follows a first-order lag ({w.params['tau_s'] / 60:.0f} min) "
+        f"of the {what} {how} that no thermocouple of the model reads ({_fmt(w.coef, w.u)} per unit): heat "
+        f"reaches the link by a path without a sensor (thesis {w.sec})."
+    )
+
+
+#: the plain-language cause of the kinds told in one sentence: a template over the finding's figures (``_why_figures``)
+_WHY_TEMPLATE = {
+    "reversal": "Backlash / reversal error: the {axis}-axis {term} reads {magnitude} differently depending on the "
+    "approach direction: play in the ballscrew nut or drive train (thesis {sec}).",
+    "screw_expansion": "Ballscrew expansion: the {axis}-axis {term} grows along the axis in proportion to position x "
+    "the temperature rise at {where} ({coef} per mm per degC): the screw pitch lengthens as the screw warms "
+    "(thesis {sec}).",
+    "unmapped_channel": "A heat source outside the model reaches this link: {axis}/{term} follows {where}, which is "
+    "not among the model channels ({coef} per degC) (thesis {sec}).",
+    "thermal_lag": "Thermal lag: the deforming structure follows {where} with a first-order delay of {tau_min} min: "
+    "its thermal mass lags the thermocouple (thesis {sec}).",
+    "datum_shift": "Datum shift: every {axis}/{term} reading steps by {step} at t = {time_h} h and stays there: the "
+    "measuring line was re-zeroed or its optic moved; a measurement artefact, not the machine (thesis {sec}).",
+    "direction_thermal": "Reversal that grows with temperature: the {axis}-axis {term} reads differently depending "
+    "on the approach direction, and the difference changes by {per_degC} per degC at {where}: the nut or guide "
+    "preload changes as it warms (thesis {sec}).",
+    "drift": "A slow drift not explained by temperature of {rate} per day: wear, settling or material instability "
+    "(thesis {sec}).",
+    "quadratic": "Nonlinear thermal response: {axis}/{term} grows with the square of the temperature rise at {where} "
+    "({coef} per degC^2) (thesis {sec}).",
+}
+
+
+def _why_figures(w: _Why) -> dict[str, str]:
+    """Return the figures a one-sentence cause may name, each formatted as the sentence shows it."""
+    p, u = w.params, w.u
+    out = {"axis": w.td.axis, "term": w.td.term, "where": w.where, "sec": w.sec, "coef": _fmt(w.coef, u)}
+    if f"magnitude_{u}" in p:
+        out["magnitude"] = _fmt(abs(p[f"magnitude_{u}"]), u)
+    if "tau_s" in p:
+        out["tau_min"] = f"{p['tau_s'] / 60:.0f}"
+    if f"step_{u}" in p:
+        out["step"] = _fmt(p[f"step_{u}"], u)
+    if "time_s" in p:
+        out["time_h"] = f"{p['time_s'] / 3600:.2f}"
+    if "coef_per_degC" in p:
+        out["per_degC"] = _fmt(abs(p["coef_per_degC"]), u)
+    if "rate_per_day" in p:
+        out["rate"] = _fmt(p["rate_per_day"], u)
+    return out
+
+
+#: the plain-language cause of the kinds that need more than one template (``_cause``)
+_WHY = {
+    "sensor_drift": _why_sensor_drift,
+    "sensor_fault": _why_sensor_fault,
+    "operating_condition": _why_operating,
+    "unsensed_source": _why_unsensed,
+}
+
+
 def _cause(
     kind: str,
     td: TermData,
@@ -824,102 +951,15 @@ def _cause(
     fault: FaultScan | None,
 ) -> str:
     """Return the plain-language cause of an effect, with its numbers and thesis section."""
-    u = td.unit
     where = ""
     if channels:
         ch = channels[0]
         loc = _channel_location(prep, ch)
         where = f"{ch}" + (f" ({loc})" if loc else "")
-    sec = THESIS[kind]
-    if kind == "reversal":
-        return (
-            f"Backlash / reversal error: the {td.axis}-axis {td.term} reads "
-            f"{_fmt(abs(params['magnitude_' + u]), u)} differently depending on the approach direction: "
-            f"play in the ballscrew nut or drive train (thesis {sec})."
-        )
-    if kind == "screw_expansion":
-        return (
-            f"Ballscrew expansion: the {td.axis}-axis {td.term} grows along the axis in proportion to "
-            f"position x the temperature rise at {where} ({_fmt(coef, u)} per mm per degC): the screw "
-            f"pitch lengthens as the screw warms (thesis {sec})."
-        )
-    if kind == "unmapped_channel":
-        return (
-            f"A heat source outside the model reaches this link: {td.axis}/{td.term} follows {where}, "
-            f"which is not among the model channels ({_fmt(coef, u)} per degC) (thesis {sec})."
-        )
-    if kind == "thermal_lag":
-        return (
-            f"Thermal lag: the deforming structure follows {where} with a first-order delay of "
-            f"{params['tau_s'] / 60:.0f} min: its thermal mass lags the thermocouple (thesis {sec})."
-        )
-    if kind == "sensor_drift":
-        rate = float(params.get("rate_degC_per_day", float("nan")))
-        names = ", ".join(channels)
-        return (
-            f"Sensor drift: thermocouple{'s' if len(channels) > 1 else ''} {where if len(channels) == 1 else names} "
-            f"depart{'s' if len(channels) == 1 else ''} from {'its' if len(channels) == 1 else 'their'} virtual sensor "
-            f"along a ramp of {rate:+.3g} degC per day from t = {params['start_s'] / 3600:.1f} h on while the "
-            f"neighbours agree: the calibration drifts (ageing junction, creeping mount), not the machine; the "
-            f"readings with the ramp removed restore the model (thesis {sec})."
-        )
-    if kind == "sensor_fault":
-        how = "its lead broke (open circuit)" if params["mode"] == "open" else "it came loose from the structure"
-        if len(channels) > 1:
-            return (
-                f"Sensor faults: thermocouples {', '.join(channels)} depart from their virtual sensors from "
-                f"t = {params['start_s'] / 3600:.1f} h on (the first as if {how}); their readings no longer "
-                f"describe the structure and the virtual-sensor estimates restore the model (thesis {sec})."
-            )
-        nb = ", ".join(fault.neighbours[:4]) if fault else "its neighbours"
-        return (
-            f"Sensor fault: thermocouple {where} departs from its virtual sensor (predicted from {nb}) "
-            f"from t = {params['start_s'] / 3600:.1f} h on, as if {how}; its readings no longer describe "
-            f"the structure and the virtual-sensor estimate restores the model (thesis {sec})."
-        )
-    if kind == "operating_condition":
-        col, pw = params["column"], int(params["power"])
-        what = {"spindle_rpm": "the spindle speed", "feed_mm_min": "the feed rate"}.get(col, col)
-        story = (
-            "centrifugal and bearing growth of the spindle, which follows the speed at once, not through a temperature"
-            if col == "spindle_rpm"
-            else "a following error of the drives that follows the feed"
-        )
-        return (
-            f"The {td.axis}/{td.term} error follows {what}{'^2' if pw == 2 else ''} directly "
-            f"({_fmt(coef, u)} per {col.replace('_', ' ')}{'^2' if pw == 2 else ''}; VIF against the thermal "
-            f"terms {params['vif']:.2g}): {story} (thesis {sec})."
-        )
-    if kind == "datum_shift":
-        return (
-            f"Datum shift: every {td.axis}/{td.term} reading steps by {_fmt(params['step_' + u], u)} at "
-            f"t = {params['time_s'] / 3600:.2f} h and stays there: the measuring line was re-zeroed or its optic "
-            f"moved; a measurement artefact, not the machine (thesis {sec})."
-        )
-    if kind == "unsensed_source":
-        src = str(params["source"])
-        what = src.split(":", 1)[1] if ":" in src else src
-        how = "heat-source schedule" if src.startswith("stage:") else "machine-state column"
-        return (
-            f"Unsensed heat input: {td.axis}/{td.term} follows a first-order lag ({params['tau_s'] / 60:.0f} min) "
-            f"of the {what} {how} that no thermocouple of the model reads ({_fmt(coef, u)} per unit): heat "
-            f"reaches the link by a path without a sensor (thesis {sec})."
-        )
-    if kind == "direction_thermal":
-        return (
-            f"Reversal that grows with temperature: the {td.axis}-axis {td.term} reads differently depending on "
-            f"the approach direction, and the difference changes by {_fmt(abs(params['coef_per_degC']), u)} per "
-            f"degC at {where}: the nut or guide preload changes as it warms (thesis {sec})."
-        )
-    if kind == "drift":
-        return (
-            f"A slow drift not explained by temperature of {_fmt(params['rate_per_day'], u)} per day: "
-            f"wear, settling or material instability (thesis {sec})."
-        )
-    return (
-        f"Nonlinear thermal response: {td.axis}/{td.term} grows with the square of the temperature rise at "
-        f"{where} ({_fmt(coef, u)} per degC^2) (thesis {sec})."
-    )
+    why = _Why(td, where, list(channels), params, coef, fault, THESIS[kind])
+    if kind in _WHY:
+        return _WHY[kind](why)
+    return _WHY_TEMPLATE.get(kind, _WHY_TEMPLATE["quadratic"]).format(**_why_figures(why))
 
 
 def _channel_location(prep: PreparedBundle, ch: str) -> str:
@@ -1039,16 +1079,47 @@ def _params(cand: Candidate, hint: dict[str, Any], coef: np.ndarray, td: TermDat
     return {"coef_per_degC2": c}, c
 
 
+def _better_sibling_lag(
+    sc: Scored,
+    after: float,
+    scored: list[Scored],
+    ctx: TermContext,
+    state: _State,
+    rule: tuple[list[tuple[np.ndarray, np.ndarray]], float, float, float],
+) -> tuple[Scored, Candidate, np.ndarray, dict[str, Any], str, float] | None:
+    """Return the lag of another site of the same structure that validates and predicts the later blocks better.
+
+    ``rule`` is the validation rule's (folds, min_gain, min_explained, noise). Only sites the bundle
+    places on one structure compete (``prep.structures``); the best-screened tau of each is refined first.
+    """
+    prep, td = ctx.prep, ctx.td
+    body = prep.structures.get(sc.cand.channels[0], "")
+    if not body or sc.cand.channels[0] in prep.room_channels:
+        return None  # no stated structure (or the room air, no body): no siblings to compare
+    best: tuple[Scored, Candidate, np.ndarray, dict[str, Any], str, float] | None = None
+    seen = {sc.cand.channels[0]}
+    for o in scored:
+        ch = o.cand.channels[0] if o.cand.kind == "thermal_lag" and o.cand.channels else ""
+        if not ch or ch in seen or prep.structures.get(ch, "") != body:
+            continue
+        seen.add(ch)
+        cand, cols, hint = _materialise(o, ctx, state)
+        taus = ctx.lag_cache[ch][0]
+        if not taus[0] * 1.02 < hint["tau_s"] < taus[-1] * 0.98:
+            continue
+        ok, how, a = validation_check(state.X, cols, td.y, td.train, *rule)
+        log.debug("   sibling lag %s: %s, %s", ch, ok, how)
+        if ok and a < (after if best is None else best[5]):
+            best = (o, cand, cols, hint, how, a)
+    return best
+
+
 def _passes_denoised(
     cand: Candidate,
     hint: dict[str, Any],
     dctx: TermContext | None,
     dstate: _State | None,
-    alpha_each: float,
-    min_gain: float,
-    noise: float,
-    min_explained: float,
-    min_explained_train: float,
+    cfg: SearchConfig,
     validate: bool = True,
 ) -> tuple[bool, np.ndarray | None]:
     """Return whether ``cand`` also passes the cheap rules against the model on denoised readings.
@@ -1075,6 +1146,7 @@ def _passes_denoised(
     tr = td.train
     X = np.column_stack([dstate.X, cols])
     fit = fit_columns(X, td.y, tr, list(dstate.names) + [f"c{i}" for i in range(cols.shape[1])])
+    min_gain, min_explained, noise = cfg.validation_rule
     if validate and not validates(dstate.X, cols, td.y, tr, validation_folds(td), min_gain, min_explained, noise)[0]:
         return False, cols
     rss0 = dstate.fit.rmse_train**2 * dstate.fit.n_train
@@ -1083,7 +1155,7 @@ def _passes_denoised(
     # stand in for its denoised readings); a reversal or a drift holds no temperature, and the denoised
     # model absorbs more of a slow drift in sample (confounded with slow temperatures over a day)
     expl_train = np.sqrt(max(dstate.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
-    if cand.channels and expl_train < min_explained_train * noise:
+    if cand.channels and expl_train < cfg.min_explained_train * noise:
         return False, cols
     k = cols.shape[1]
     dof = fit.n_train - X.shape[1]
@@ -1092,7 +1164,7 @@ def _passes_denoised(
     from scipy import stats
 
     p = float(stats.f.sf(((rss0 - rss1) / k) / (rss1 / dof), k, dof))
-    return p < alpha_each, cols
+    return p < cfg.alpha_each, cols
 
 
 #: a denoised view whose own refitted model predicts the later training blocks more than this many times
@@ -1126,6 +1198,9 @@ VIF_MAX = 100.0
 #: own part is small and a large coefficient on it extrapolates badly when the campaign changes regime
 #: (FL_THERMAL: a 7 h lag of the spindle schedule took dz held-out from 2.5 to 8.3 um)
 VIF_UNSENSED = 10.0
+#: a validated lag competes with the lags of the other sites of its structure on the later training blocks
+#: (``_better_sibling_lag``); False restores the choice by the in-sample F alone (for comparisons)
+SIBLING_LAGS = True
 
 
 def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
@@ -1168,91 +1243,181 @@ def _repair_faults(
     overlaps = bool(np.any(cand.cols != 0))
     before = state.fit.residual
     eff = Effect(
-        cand.kind,
-        td.axis,
-        td.term,
-        list(cand.channels),
-        params,
-        max(p_temp, 1e-300),
-        _cause(cand.kind, td, prep, cand.channels, params, c, ctx.faults.get(cand.channels[0])),
-        state.fit.rmse_holdout if overlaps else float("nan"),
-        fit.rmse_holdout if overlaps else float("nan"),
-        float("nan"),
-        float("nan"),
-        p_temp,
-        [f"fault_{ch}" for ch in cand.channels],
-        cand.cols,
-        td.t,
-        before,
-        before - fit.residual,
-        td.pos,
-        td.direction,
-        td.train,
+        kind=cand.kind,
+        axis=td.axis,
+        term=td.term,
+        channels=list(cand.channels),
+        params=params,
+        p_value=max(p_temp, 1e-300),
+        cause=_cause(cand.kind, td, prep, cand.channels, params, c, ctx.faults.get(cand.channels[0])),
+        rmse_holdout_before=state.fit.rmse_holdout if overlaps else float("nan"),
+        rmse_holdout_after=fit.rmse_holdout if overlaps else float("nan"),
+        F=float("nan"),
+        p_naive=float("nan"),
+        p_robust=p_temp,
+        names=[f"fault_{ch}" for ch in cand.channels],
+        columns=cand.cols,
+        time_s=td.t,
+        residual_before=before,
+        contribution=before - fit.residual,
+        position=td.pos,
+        direction=td.direction,
+        train=td.train,
         replaces=", ".join(f"dT_{ch}" for ch, _ in cand.replace or []),
     )
+
     new_state = _State(X_new, names_new, fit, state.effects + [eff])
     new_dstate = _carry_denoised(dstate, dctx, cand, None) if dstate is not None and dctx is not None else None
     return eff, new_state, new_dstate
 
 
+@dataclass(frozen=True)
+class SearchConfig:
+    """The acceptance rules of one term's forward search (see :func:`_search_term`).
+
+    ``alpha_each``: the per-candidate level (Bonferroni over every hypothesis of the bundle);
+    ``min_gain``: the relative gain the time-ordered validation inside the training part must show,
+    explaining ``min_explained`` x ``noise`` there and ``min_explained_train`` x ``noise`` on the
+    training rows; at most ``max_effects`` effects, ``top_k`` candidates tried a round.
+    """
+
+    alpha_each: float
+    min_gain: float
+    max_effects: int
+    noise: float
+    min_explained: float = 1.0
+    min_explained_train: float = 0.5
+    top_k: int = 6
+
+    @property
+    def validation_rule(self) -> tuple[float, float, float]:
+        """Return (min_gain, min_explained, noise): the arguments of ``validation_check`` after the folds."""
+        return self.min_gain, self.min_explained, self.noise
+
+
+@dataclass(frozen=True)
+class TermFaults:
+    """What the temperatures say about a term before its search: its broken model channels and the bundle's.
+
+    ``here``: this term's model channels that the temperatures show broken or drifting (repaired first);
+    ``p``: the largest p-value among them; ``broken``: every broken channel of the bundle (no candidate is
+    built from its readings after its fault).
+    """
+
+    here: list[FaultScan] = field(default_factory=list)
+    p: float = 1.0
+    broken: dict[str, FaultScan] = field(default_factory=dict)
+
+
+@dataclass
+class _Trial:
+    """One candidate on its way through the acceptance rules of a round."""
+
+    sc: Scored
+    cand: Candidate
+    cols: np.ndarray
+    hint: dict[str, Any]
+    X_new: np.ndarray
+    names_new: list[str]
+    new_idx: list[int]
+    fit: LinearFit
+    valid: bool = False
+    how: str = ""
+    after: float = float("nan")
+
+
+@dataclass
+class _Round:
+    """What one round of the forward search shares between its candidates."""
+
+    scored: list[Scored]
+    best_of_kind: dict[str, float] = field(default_factory=dict)  # refitted validation RMSE per kind
+    denoised_validates: bool | None = None  # whether the denoised view may judge by validation (once a round)
+
+
 def _search_term(
     ctx: TermContext,
     std: StandardModel,
-    alpha_each: float,
-    min_gain: float,
-    max_effects: int,
-    noise: float,
-    min_explained: float = 1.0,
-    min_explained_train: float = 0.5,
-    top_k: int = 6,
-    dctx: TermContext | None = None,
-    dstd: StandardModel | None = None,
-    faults_here: list[FaultScan] | None = None,
-    fault_p: float = 1.0,
-    broken: dict[str, FaultScan] | None = None,
+    cfg: SearchConfig,
+    dview: tuple[TermContext, StandardModel] | None = None,
+    faults: TermFaults | None = None,
 ) -> tuple[list[Effect], _State]:
     """Return the effects accepted for one (axis, term) by forward selection, and the final model.
 
     Every decision is made on the training rows alone (spec section 4): a candidate needs a
     nested F test and a test robust to autocorrelation (``robust_pvalue``: HAC and blocks of
-    sweeps) below ``alpha_each`` (Bonferroni over every hypothesis of the bundle), a gain of
-    ``min_gain`` in the time-ordered validation inside the training part (``validation_folds``)
-    that explains ``min_explained`` x noise there, and ``min_explained_train`` x noise on the
+    sweeps) below ``cfg.alpha_each`` (Bonferroni over every hypothesis of the bundle), a gain of
+    ``cfg.min_gain`` in the time-ordered validation inside the training part (``validation_folds``)
+    that explains ``cfg.min_explained`` x noise there, and ``cfg.min_explained_train`` x noise on the
     training rows. The held-out rows are only scored, after the search.
-    ``faults_here``: this term's model channels that the temperatures show broken (accepted
-    before any error was looked at); they are repaired first. ``dctx``/``dstd``: the same term
-    on denoised readings; every candidate is held to it too (``_passes_denoised``).
+    ``faults.here``: this term's model channels that the temperatures show broken (accepted
+    before any error was looked at); they are repaired first. ``dview``: the same term (context and
+    standard model) on denoised readings; every candidate is held to it too (``_passes_denoised``).
     """
-    td, prep = ctx.td, ctx.prep
-    state = _State(std.X, list(std.names), std.fit, [])
-    dstate = _State(dstd.X, list(dstd.names), dstd.fit, []) if dstd is not None and dctx is not None else None
-    folds = validation_folds(td)
-    history: list[tuple[Effect, LinearFit, LinearFit]] = []
-    for kind in ("sensor_fault", "sensor_drift"):  # one sensor finding per kind and term
-        group = [f for f in faults_here or [] if f.kind == kind]
-        if group:
-            p_group = max(f.p_value for f in group)
-            _, state, dstate = _repair_faults(
-                ctx, state, group, max(p_group, fault_p if kind == "sensor_fault" else 0.0), dctx, dstate
-            )
-    for ch, fs in (broken or {}).items():
-        # no candidate is built from a broken channel's readings: from its fault on, its estimate stands in
-        for c in (ctx, dctx):
-            if c is not None and ch in c.chan_cols:
-                rep = np.interp(c.td.t, prep.grid_t, fs.replaced)
-                c.chan_cols[ch] = rep - rep[0]
-                c.lag_cache.pop(ch, None)
-    # a model channel the thermocouples show broken corrupts the rows after its break whether or not its
-    # repair is good: other findings must then also stand on the rows before it (one explanation)
-    breaks = [
-        f.start_s
-        for ch, f in (broken or {}).items()
-        if f.mode != "drift" and ch in ctx.model_channels  # a drift's repair is exact: no rows are lost
-    ]
-    fault_start: float | None = min(breaks) if breaks else None
-    for _round in range(max_effects):
+    return _TermSearch(ctx, std, cfg, dview, faults or TermFaults()).run()
+
+
+class _TermSearch:
+    """The forward search of one (axis, term): the current models on the readings and denoised, and the rules."""
+
+    def __init__(
+        self,
+        ctx: TermContext,
+        std: StandardModel,
+        cfg: SearchConfig,
+        dview: tuple[TermContext, StandardModel] | None,
+        faults: TermFaults,
+    ) -> None:
+        self.ctx, self.std, self.cfg = ctx, std, cfg
+        self.td = ctx.td
+        self.dctx: TermContext | None = dview[0] if dview is not None else None
+        self.state = _State(std.X, list(std.names), std.fit, [])
+        self.dstate = _State(dview[1].X, list(dview[1].names), dview[1].fit, []) if dview is not None else None
+        self.folds = validation_folds(self.td)
+        self.history: list[tuple[Effect, LinearFit, LinearFit]] = []
+        self.fault_start = self._repair(faults)
+
+    def _repair(self, faults: TermFaults) -> float | None:
+        """Repair the term's broken model channels; return the earliest break that costs rows (None: none)."""
+        ctx, dctx, prep = self.ctx, self.dctx, self.ctx.prep
+        for kind in ("sensor_fault", "sensor_drift"):  # one sensor finding per kind and term
+            group = [f for f in faults.here if f.kind == kind]
+            if group:
+                p_group = max(f.p_value for f in group)
+                _, self.state, self.dstate = _repair_faults(
+                    ctx, self.state, group, max(p_group, faults.p if kind == "sensor_fault" else 0.0), dctx, self.dstate
+                )
+        for ch, fs in faults.broken.items():
+            # no candidate is built from a broken channel's readings: from its fault on, its estimate stands in
+            for c in (ctx, dctx):
+                if c is not None and ch in c.chan_cols:
+                    rep = np.interp(c.td.t, prep.grid_t, fs.replaced)
+                    c.chan_cols[ch] = rep - rep[0]
+                    c.lag_cache.pop(ch, None)
+        # a model channel the thermocouples show broken corrupts the rows after its break whether or not its
+        # repair is good: other findings must then also stand on the rows before it (one explanation)
+        breaks = [
+            f.start_s
+            for ch, f in faults.broken.items()
+            if f.mode != "drift" and ch in ctx.model_channels  # a drift's repair is exact: no rows are lost
+        ]
+        return min(breaks) if breaks else None
+
+    def run(self) -> tuple[list[Effect], _State]:
+        """Return the accepted effects and the final model, the held-out part scored once after the search."""
+        for _round in range(self.cfg.max_effects):
+            accepted = self._round()
+            if accepted is None:
+                break
+            self._accept(*accepted)
+        _score_holdout_once(self.history)
+        return self.state.effects, self.state
+
+    def _round(self) -> tuple[Effect, _Trial, np.ndarray | None] | None:
+        """Return the first candidate of this round that passes every rule (None: the search ends)."""
+        ctx, td, state, cfg = self.ctx, self.td, self.state, self.cfg
         scored = screen(state.X, td.y, td.train, build_candidates(ctx))
-        scored = [s for s in scored if s.p_value < alpha_each and s.cand.key not in ctx.taken]
+        scored = [s for s in scored if s.p_value < cfg.alpha_each and s.cand.key not in ctx.taken]
         scored.sort(key=lambda s: (s.p_value, -np.nan_to_num(s.F)))
         # try the best candidate of every kind first: one kind's many near-identical channels must
         # not crowd out another kind
@@ -1260,174 +1425,223 @@ def _search_term(
         for sc in scored:
             firsts_by_kind.setdefault(sc.cand.kind, sc)
         heads = list(firsts_by_kind.values())
-        trials = heads + [sc for sc in scored if all(sc is not h for h in heads)][: max(0, top_k - len(heads))]
-        accepted = None
-        denoised_validates: bool | None = None  # whether the denoised view may judge by validation
-        # per kind, the refitted validation RMSE of the best candidate validated so far this round
-        best_of_kind: dict[str, float] = {}
+        rest = [sc for sc in scored if all(sc is not h for h in heads)]
+        trials = heads + rest[: max(0, cfg.top_k - len(heads))]
+        rnd = _Round(scored)
         for sc in trials:
-            cand, cols, hint = _materialise(sc, ctx, state)
-            if cand.kind in ("thermal_lag", "unsensed_source"):
-                taus = ctx.lag_cache[cand.channels[0]][0] if cand.channels else ctx.sources[cand.label][0]
-                if not taus[0] * 1.02 < hint["tau_s"] < taus[-1] * 0.98:
-                    continue  # the best lag sits on the edge of the resolvable range: not resolved
-            if cand.kind == "operating_condition":
-                vif, cond = collinearity(cols[:, 0], state.X, td.train)
-                hint["vif"], hint["condition_number"] = vif, cond
-                if vif > VIF_MAX:
-                    continue  # the thermal terms already explain the column: nothing direct to claim
-            if cand.kind == "unsensed_source":
-                vif, _ = collinearity(cols[:, 0], state.X, td.train)
-                if vif > VIF_UNSENSED:
-                    continue  # the thermocouples read this heat input: it is not unsensed
-            X_new, names_new, new_idx = _extension(cand, cols, state)
-            fit = fit_columns(X_new, td.y, td.train, names_new)
-            if cand.kind == "datum_shift" and hint.get("stated"):
-                valid, how, after = True, "stated by the bundle (a new session of a setup zeroed when mounted)", np.nan
-            elif cand.kind == "datum_shift":
-                # a measurement artefact, not a law to extrapolate: a step near the end of the training part
-                # cannot show in later blocks; it must be a step instead (sharp and lasting, see step_is_sharp)
-                step_fit = float(fit.coef[new_idx[0]])
-                # the partial residual of the step: the extended model's residual with the fitted step added back
-                valid, how = step_is_sharp(
-                    fit.residual + step_fit * cols[:, 0], td, float(hint["time_s"]), step_fit, noise, prep.stages
-                )
-                after = float("nan")
-            else:
-                valid, how, after = validation_check(
-                    state.X, cols, td.y, td.train, folds, min_gain, min_explained, noise
-                )
-            if valid and cand.kind == "operating_condition":
-                # rpm and rpm^2 are two laws of one column with one coefficient each: not nested, and the
-                # in-sample F says only which fits the training rows better; the one that predicts the later
-                # training blocks better is the law (both extend the same model, compared on the same folds)
-                alt = next(
-                    (
-                        o
-                        for o in scored
-                        if o.cand.kind == "operating_condition"
-                        and o.cand.hint["column"] == hint["column"]
-                        and o.cand.hint["power"] != hint["power"]
-                    ),
-                    None,
-                )
-                if alt is not None:
-                    a_valid, a_how, a_after = validation_check(
-                        state.X, alt.cand.cols, td.y, td.train, folds, min_gain, min_explained, noise
-                    )
-                    log.debug("   the other power %s: %s, %s", alt.cand.label, a_valid, a_how)
-                    if a_valid and a_after < after:
-                        sc, cand, cols, hint = alt, alt.cand, alt.cand.cols, dict(alt.cand.hint)
-                        valid, how, after = a_valid, a_how, a_after
-                        vif, cond = collinearity(cols[:, 0], state.X, td.train)
-                        hint["vif"], hint["condition_number"] = vif, cond
-                        if vif > VIF_MAX:
-                            continue
-                        X_new, names_new, new_idx = _extension(cand, cols, state)
-                        fit = fit_columns(X_new, td.y, td.train, names_new)
-            # a channel that predicts the later blocks clearly worse than one of the same kind already
-            # validated (and refused by a later rule) is a stand-in for it, not a finding of its own
-            if valid and after > (1.0 + STAND_IN_MARGIN) * best_of_kind.get(cand.kind, np.inf):
-                log.debug(
-                    "%s/%s skip %s %s: validation %.4g, a validated candidate of its kind reached %.4g",
-                    td.axis,
-                    td.term,
-                    cand.kind,
-                    cand.channels,
-                    after,
-                    best_of_kind[cand.kind],
-                )
-                continue
-            if valid and np.isfinite(after):
-                best_of_kind[cand.kind] = min(best_of_kind.get(cand.kind, np.inf), after)
-            expl_train = np.sqrt(max(state.fit.rmse_train**2 - fit.rmse_train**2, 0.0))
+            accepted = self._try(sc, rnd)
+            if accepted is not None:
+                return accepted
+        return None
+
+    def _trial(self, sc: Scored, cand: Candidate, cols: np.ndarray, hint: dict[str, Any]) -> _Trial:
+        """Return the trial of ``cand``'s columns: the extended design and its fit on the training rows."""
+        X_new, names_new, new_idx = _extension(cand, cols, self.state)
+        fit = fit_columns(X_new, self.td.y, self.td.train, names_new)
+        return _Trial(sc, cand, cols, hint, X_new, names_new, new_idx, fit)
+
+    def _admissible(self, cand: Candidate, cols: np.ndarray, hint: dict[str, Any]) -> bool:
+        """Return whether the candidate can be posed at all: a resolved tau, and not a column the design holds."""
+        ctx, td = self.ctx, self.td
+        if cand.kind in ("thermal_lag", "unsensed_source"):
+            taus = ctx.lag_cache[cand.channels[0]][0] if cand.channels else ctx.sources[cand.label][0]
+            if not taus[0] * 1.02 < hint["tau_s"] < taus[-1] * 0.98:
+                return False  # the best lag sits on the edge of the resolvable range: not resolved
+        if cand.kind == "operating_condition":
+            vif, cond = collinearity(cols[:, 0], self.state.X, td.train)
+            hint["vif"], hint["condition_number"] = vif, cond
+            if vif > VIF_MAX:
+                return False  # the thermal terms already explain the column: nothing direct to claim
+        if cand.kind == "unsensed_source":
+            vif, _ = collinearity(cols[:, 0], self.state.X, td.train)
+            if vif > VIF_UNSENSED:
+                return False  # the thermocouples read this heat input: it is not unsensed
+        return True
+
+    def _validate(self, tr: _Trial) -> None:
+        """Set the trial's validation verdict inside the training part (a datum shift: its sharpness instead)."""
+        td, cand, hint = self.td, tr.cand, tr.hint
+        if cand.kind == "datum_shift" and hint.get("stated"):
+            tr.valid, tr.how = True, "stated by the bundle (a new session of a setup zeroed when mounted)"
+            tr.after = np.nan
+        elif cand.kind == "datum_shift":
+            # a measurement artefact, not a law to extrapolate: a step near the end of the training part
+            # cannot show in later blocks; it must be a step instead (sharp and lasting, see step_is_sharp)
+            step_fit = float(tr.fit.coef[tr.new_idx[0]])
+            # the partial residual of the step: the extended model's residual with the fitted step added back
+            partial = tr.fit.residual + step_fit * tr.cols[:, 0]
+            tr.valid, tr.how = step_is_sharp(
+                partial, td, float(hint["time_s"]), step_fit, self.cfg.noise, self.ctx.prep.stages
+            )
+            tr.after = float("nan")
+        else:
+            tr.valid, tr.how, tr.after = self._validation(tr.cols)
+
+    def _validation(self, cols: np.ndarray) -> tuple[bool, str, float]:
+        """Return ``validation_check`` of ``cols`` against the current model."""
+        return validation_check(self.state.X, cols, self.td.y, self.td.train, self.folds, *self.cfg.validation_rule)
+
+    def _other_power(self, tr: _Trial, rnd: _Round) -> _Trial | None:
+        """Return the trial to go on with after comparing an operating column's two powers (None: refused).
+
+        rpm and rpm^2 are two laws of one column with one coefficient each: not nested, and the
+        in-sample F says only which fits the training rows better; the one that predicts the later
+        training blocks better is the law (both extend the same model, compared on the same folds).
+        """
+        hint = tr.hint
+        alt = next(
+            (
+                o
+                for o in rnd.scored
+                if o.cand.kind == "operating_condition"
+                and o.cand.hint["column"] == hint["column"]
+                and o.cand.hint["power"] != hint["power"]
+            ),
+            None,
+        )
+        if alt is None:
+            return tr
+        a_valid, a_how, a_after = self._validation(alt.cand.cols)
+        log.debug("   the other power %s: %s, %s", alt.cand.label, a_valid, a_how)
+        if not (a_valid and a_after < tr.after):
+            return tr
+        a_hint = dict(alt.cand.hint)
+        vif, cond = collinearity(alt.cand.cols[:, 0], self.state.X, self.td.train)
+        a_hint["vif"], a_hint["condition_number"] = vif, cond
+        if vif > VIF_MAX:
+            return None
+        out = self._trial(alt, alt.cand, alt.cand.cols, a_hint)
+        out.valid, out.how, out.after = a_valid, a_how, a_after
+        return out
+
+    def _compare_laws(self, tr: _Trial, rnd: _Round) -> _Trial | None:
+        """Return the trial after the non-nested comparisons (operating powers, sibling lags); None: refused."""
+        if tr.valid and tr.cand.kind == "operating_condition":
+            return self._other_power(tr, rnd)
+        if tr.valid and tr.cand.kind == "thermal_lag" and SIBLING_LAGS:
+            # two sites of one body both lag the heat that reaches it: their lags are two non-nested laws
+            # (each with its own tau), and the in-sample F says only which fits the training rows better;
+            # the site whose lag predicts the later training blocks better is the law (as rpm vs rpm^2)
+            rule = (self.folds, *self.cfg.validation_rule)
+            sib = _better_sibling_lag(tr.sc, tr.after, rnd.scored, self.ctx, self.state, rule)
+            if sib is not None:
+                sc, cand, cols, hint, how, after = sib
+                tr = self._trial(sc, cand, cols, hint)
+                tr.valid, tr.how, tr.after = True, how, after
+        return tr
+
+    def _try(self, sc: Scored, rnd: _Round) -> tuple[Effect, _Trial, np.ndarray | None] | None:
+        """Return the effect, its trial and its denoised columns when ``sc`` passes every rule, else None."""
+        td, cfg = self.td, self.cfg
+        cand, cols, hint = _materialise(sc, self.ctx, self.state)
+        if not self._admissible(cand, cols, hint):
+            return None
+        first = self._trial(sc, cand, cols, hint)
+        self._validate(first)
+        tr = self._compare_laws(first, rnd)
+        if tr is None:
+            return None
+        # a channel that predicts the later blocks clearly worse than one of the same kind already
+        # validated (and refused by a later rule) is a stand-in for it, not a finding of its own
+        kind = tr.cand.kind
+        if tr.valid and tr.after > (1.0 + STAND_IN_MARGIN) * rnd.best_of_kind.get(kind, np.inf):
             log.debug(
-                "%s/%s try %s %s: p naive %.3g; validation %s: %s; explains %.3g noise on training",
+                "%s/%s skip %s %s: validation %.4g, a validated candidate of its kind reached %.4g",
                 td.axis,
                 td.term,
-                cand.kind,
-                cand.channels,
-                sc.p_value,
-                how,
-                valid,
-                expl_train / noise,
+                kind,
+                tr.cand.channels,
+                tr.after,
+                rnd.best_of_kind[kind],
             )
-            # (b) a gain in time-ordered validation inside the training part that explains at least the
-            # measurement repeatability there (smaller gains are the model's own error shuffled around)
-            if not valid:
-                continue
-            # and on the training rows it must explain a real share of the repeatability
-            if expl_train < min_explained_train * noise:
-                continue
-            if denoised_validates is None:  # once a round: every candidate extends the same two models
-                denoised_validates = denoised_view_predicts(state.X, dctx, dstate, td)
-            ok_d, dcols = _passes_denoised(
-                cand,
-                hint,
-                dctx,
-                dstate,
-                alpha_each,
-                min_gain,
-                noise,
-                min_explained,
-                min_explained_train,
-                denoised_validates,
-            )
-            if not ok_d:
-                continue
-            # no harm: the extended model must predict the last training block no worse than the baseline
-            gate_ok, gb, ga = final_block_gate(std.X, X_new, td.y, td.train, folds, noise)
-            gate_cur, gc, _ = final_block_gate(state.X, X_new, td.y, td.train, folds, noise)
-            # (a datum shift corrects the readings, not the machine's law: it is held to its sharpness instead)
-            if not (cand.kind == "datum_shift" or (gate_ok and gate_cur)):
-                log.debug("   last training block: baseline %.4g, current %.4g, extended %.4g: refused", gb, gc, ga)
-                continue
-            # (a) significance robust to autocorrelated residuals, Bonferroni over the whole family
-            p_rob = robust_pvalue(X_new, td.y, td, new_idx)
-            p = max(sc.p_value, p_rob, 1e-300)  # below 1e-300 a p-value says nothing more
-            log.debug("   robust p %.3g (need < %.3g)", p_rob, alpha_each)
-            if p >= alpha_each:
-                continue
-            if fault_start is not None and robust_pvalue(X_new, td.y, td, new_idx, before_s=fault_start) >= alpha_each:
-                continue  # after a fault a further finding must also stand on the rows before it
-            if cand.kind not in NON_PHYSICAL_KINDS and not _holds_beside_a_step(
-                state.X, X_new, new_idx, td, alpha_each
-            ):
-                continue  # a step in the readings (a re-zeroed line) is never physics: no drift, lag, square ...
-            params, coef = _params(cand, hint, fit.coef[new_idx], td)
-            before = state.fit.residual
-            eff = Effect(
-                cand.kind,
-                td.axis,
-                td.term,
-                list(cand.channels),
-                params,
-                p,
-                _cause(cand.kind, td, prep, cand.channels, params, coef, None),
-                float("nan"),
-                float("nan"),
-                sc.F,
-                sc.p_value,
-                p_rob,
-                [names_new[i] for i in new_idx],
-                X_new[:, new_idx],
-                td.t,
-                before,
-                before - fit.residual,
-                td.pos,
-                td.direction,
-                td.train,
-            )
-            accepted = (eff, X_new, names_new, fit, cand, dcols)
-            break
-        if accepted is None:
-            break
-        eff, X_new, names_new, fit, cand, dcols = accepted
-        history.append((eff, state.fit, fit))
-        state = _State(X_new, names_new, fit, state.effects + [eff])
-        if dstate is not None and dctx is not None:
-            dstate = _carry_denoised(dstate, dctx, cand, dcols)
-        for c in (ctx, dctx):
+            return None
+        if tr.valid and np.isfinite(tr.after):
+            rnd.best_of_kind[kind] = min(rnd.best_of_kind.get(kind, np.inf), tr.after)
+        expl_train = np.sqrt(max(self.state.fit.rmse_train**2 - tr.fit.rmse_train**2, 0.0))
+        log.debug(
+            "%s/%s try %s %s: p naive %.3g; validation %s: %s; explains %.3g noise on training",
+            td.axis,
+            td.term,
+            kind,
+            tr.cand.channels,
+            tr.sc.p_value,
+            tr.how,
+            tr.valid,
+            expl_train / cfg.noise,
+        )
+        # (b) a gain in time-ordered validation inside the training part that explains at least the
+        # measurement repeatability there (smaller gains are the model's own error shuffled around)
+        # and, on the training rows, a real share of the repeatability
+        if not tr.valid or expl_train < cfg.min_explained_train * cfg.noise:
+            return None
+        return self._gates(tr, rnd)
+
+    def _gates(self, tr: _Trial, rnd: _Round) -> tuple[Effect, _Trial, np.ndarray | None] | None:
+        """Return the effect when the validated trial also passes the denoised view, the gate and the tests."""
+        td, cfg, state, cand = self.td, self.cfg, self.state, tr.cand
+        if rnd.denoised_validates is None:  # once a round: every candidate extends the same two models
+            rnd.denoised_validates = denoised_view_predicts(state.X, self.dctx, self.dstate, td)
+        ok_d, dcols = _passes_denoised(cand, tr.hint, self.dctx, self.dstate, cfg, rnd.denoised_validates)
+        if not ok_d:
+            return None
+        # no harm: the extended model must predict the last training block no worse than the baseline
+        gate_ok, gb, ga = final_block_gate(self.std.X, tr.X_new, td.y, td.train, self.folds, cfg.noise)
+        gate_cur, gc, _ = final_block_gate(state.X, tr.X_new, td.y, td.train, self.folds, cfg.noise)
+        # (a datum shift corrects the readings, not the machine's law: it is held to its sharpness instead)
+        if not (cand.kind == "datum_shift" or (gate_ok and gate_cur)):
+            log.debug("   last training block: baseline %.4g, current %.4g, extended %.4g: refused", gb, gc, ga)
+            return None
+        # (a) significance robust to autocorrelated residuals, Bonferroni over the whole family
+        p_rob = robust_pvalue(tr.X_new, td.y, td, tr.new_idx)
+        p = max(tr.sc.p_value, p_rob, 1e-300)  # below 1e-300 a p-value says nothing more
+        log.debug("   robust p %.3g (need < %.3g)", p_rob, cfg.alpha_each)
+        if p >= cfg.alpha_each:
+            return None
+        fs = self.fault_start
+        if fs is not None and robust_pvalue(tr.X_new, td.y, td, tr.new_idx, before_s=fs) >= cfg.alpha_each:
+            return None  # after a fault a further finding must also stand on the rows before it
+        if cand.kind not in NON_PHYSICAL_KINDS and not _holds_beside_a_step(
+            state.X, tr.X_new, tr.new_idx, td, cfg.alpha_each
+        ):
+            return None  # a step in the readings (a re-zeroed line) is never physics: no drift, lag, square ...
+        return self._effect(tr, p, p_rob), tr, dcols
+
+    def _effect(self, tr: _Trial, p: float, p_rob: float) -> Effect:
+        """Return the accepted effect of a trial (held-out figures are scored after the search)."""
+        td, cand = self.td, tr.cand
+        params, coef = _params(cand, tr.hint, tr.fit.coef[tr.new_idx], td)
+        before = self.state.fit.residual
+        return Effect(
+            kind=cand.kind,
+            axis=td.axis,
+            term=td.term,
+            channels=list(cand.channels),
+            params=params,
+            p_value=p,
+            cause=_cause(cand.kind, td, self.ctx.prep, cand.channels, params, coef, None),
+            rmse_holdout_before=float("nan"),
+            rmse_holdout_after=float("nan"),
+            F=tr.sc.F,
+            p_naive=tr.sc.p_value,
+            p_robust=p_rob,
+            names=[tr.names_new[i] for i in tr.new_idx],
+            columns=tr.X_new[:, tr.new_idx],
+            time_s=td.t,
+            residual_before=before,
+            contribution=before - tr.fit.residual,
+            position=td.pos,
+            direction=td.direction,
+            train=td.train,
+        )
+
+    def _accept(self, eff: Effect, tr: _Trial, dcols: np.ndarray | None) -> None:
+        """Extend the current models (readings and denoised) by the accepted effect."""
+        cand = tr.cand
+        self.history.append((eff, self.state.fit, tr.fit))
+        self.state = _State(tr.X_new, tr.names_new, tr.fit, self.state.effects + [eff])
+        if self.dstate is not None and self.dctx is not None:
+            self.dstate = _carry_denoised(self.dstate, self.dctx, cand, dcols)
+        for c in (self.ctx, self.dctx):
             if c is None:
                 continue
             c.taken.add(cand.key)
@@ -1438,9 +1652,7 @@ def _search_term(
                 and cand.channels[0] not in c.model_channels
             ):
                 c.model_channels.append(cand.channels[0])
-        log.info("accepted %s on %s/%s %s", cand.kind, td.axis, td.term, eff.params)
-    _score_holdout_once(history)
-    return state.effects, state
+        log.info("accepted %s on %s/%s %s", cand.kind, self.td.axis, self.td.term, eff.params)
 
 
 def _best_step(X: np.ndarray, td: TermData) -> np.ndarray | None:
@@ -1542,6 +1754,79 @@ def _single_blas_thread() -> Iterator[None]:
         yield
 
 
+@dataclass
+class _Features:
+    """The bundle-wide features of a diagnosis: the denoised view, the sensor scans and the lag bank."""
+
+    prep_d: PreparedBundle
+    faults: dict[str, FaultScan]
+    drifts: dict[str, FaultScan]
+    taus: np.ndarray
+    bank: dict[str, np.ndarray]
+
+
+def _features(prep: PreparedBundle) -> _Features:
+    """Return the denoised view, the fault and drift scans (temperatures only) and the lag bank of every channel."""
+    # the same bundle on denoised readings: every candidate is also held to it (errors in variables)
+    prep_d = denoised_view(prep)
+    faults = scan_sensor_faults(prep, smooth_T=prep_d.grid_T)
+    # a thermocouple whose calibration drifts: its departure from its virtual sensor is a ramp (temperatures only)
+    dead = {ch for ch, f in faults.items() if f.plausible and f.mode == "open"}
+    drifts = scan_sensor_drifts(prep, exclude=dead)
+    taus = _tau_grid(prep)
+    usable = [
+        c
+        for j, c in enumerate(prep.channels)
+        if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0
+    ]
+    return _Features(prep_d, faults, drifts, taus, lag_bank_for(prep, usable, taus))
+
+
+def _contexts(
+    prep: PreparedBundle, standards: list[StandardModel], feat: _Features
+) -> tuple[list[TermContext], list[tuple[TermContext, StandardModel]], int]:
+    """Return every term's context, its denoised view, and the size of the family of hypotheses.
+
+    The family: every candidate of every kind, channel, tau grid point and term, and every channel
+    scanned for a fault (the temperature evidence is one hypothesis per channel).
+    """
+    taus = feat.taus
+    contexts: list[TermContext] = []
+    dviews: list[tuple[TermContext, StandardModel]] = []
+    n_hyp = len(feat.faults) + len(feat.drifts)
+    for i, (td, std) in enumerate(zip(prep.terms, standards)):
+        lo, hi = tau_bounds(prep, td)
+        keep = np.flatnonzero((taus >= lo * 0.999) & (taus <= hi * 1.001))
+        sel = slice(int(keep[0]), int(keep[-1]) + 1) if keep.size else slice(0, 0)
+        sub_bank = {c: b[:, sel] for c, b in feat.bank.items()}  # views, no copies
+        ctx = build_context(prep, td, std.channels, feat.faults, sub_bank, taus[sel])
+        n_hyp += sum(c.family_size for c in build_candidates(ctx))
+        contexts.append(ctx)
+        td_d = feat.prep_d.terms[i]
+        dstd = refit_standard(td_d, feat.prep_d, std.selection)
+        # no lag bank: a lag is only ever rebuilt there at the tau found on the readings (columns_like)
+        dctx = build_context(feat.prep_d, td_d, std.channels, feat.faults, None, None)
+        dviews.append((dctx, dstd))
+    return contexts, dviews, max(n_hyp, 1)
+
+
+def _broken_channels(
+    feat: _Features,
+    alpha_fault: float,
+    prep: PreparedBundle,
+    contexts: list[TermContext],
+    standards: list[StandardModel],
+) -> dict[str, FaultScan]:
+    """Return the channels the temperatures show broken or drifting, decided before any error is looked at."""
+    broken = {ch: f for ch, f in feat.faults.items() if f.plausible and f.p_value < alpha_fault}
+    _resolve_drift_pairs(feat.drifts, prep, contexts, standards)
+    for ch, f in feat.drifts.items():
+        # a ramp that explains the departure better than a break does is a drifting calibration
+        if f.plausible and f.p_value < alpha_fault and (ch not in broken or broken[ch].mode != "open"):
+            broken[ch] = f
+    return broken
+
+
 def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: float, max_effects: int) -> DiagnosisResult:
     """Run the diagnosis phases and time them (see :func:`diagnose_bundle`)."""
     timings: dict[str, float] = {}
@@ -1559,73 +1844,27 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     timings["simulation"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
-    # the same bundle on denoised readings: every candidate is also held to it (errors in variables)
-    prep_d = denoised_view(prep)
-    faults = scan_sensor_faults(prep, smooth_T=prep_d.grid_T)
-    # a thermocouple whose calibration drifts: its departure from its virtual sensor is a ramp (temperatures only)
-    dead = {ch for ch, f in faults.items() if f.plausible and f.mode == "open"}
-    drifts = scan_sensor_drifts(prep, exclude=dead)
-    taus = _tau_grid(prep)
-    usable = [
-        c
-        for j, c in enumerate(prep.channels)
-        if np.all(np.isfinite(prep.grid_T[:, j])) and np.ptp(prep.grid_T[:, j]) > 0
-    ]
-    bank = lag_bank_for(prep, usable, taus)
+    feat = _features(prep)
     timings["features"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
-    contexts: list[TermContext] = []
-    dviews: list[tuple[TermContext, StandardModel]] = []
-    # the family: every candidate of every kind, channel, tau grid point and term, and every channel
-    # scanned for a fault (the temperature evidence is one hypothesis per channel)
-    n_hyp = len(faults) + len(drifts)
-    for i, (td, std) in enumerate(zip(prep.terms, standards)):
-        lo, hi = tau_bounds(prep, td)
-        keep = np.flatnonzero((taus >= lo * 0.999) & (taus <= hi * 1.001))
-        sel = slice(int(keep[0]), int(keep[-1]) + 1) if keep.size else slice(0, 0)
-        sub_bank = {c: b[:, sel] for c, b in bank.items()}  # views, no copies
-        ctx = build_context(prep, td, std.channels, faults, sub_bank, taus[sel])
-        n_hyp += sum(c.family_size for c in build_candidates(ctx))
-        contexts.append(ctx)
-        td_d = prep_d.terms[i]
-        dstd = refit_standard(td_d, prep_d, std.selection)
-        # no lag bank: a lag is only ever rebuilt there at the tau found on the readings (columns_like)
-        dctx = build_context(prep_d, td_d, std.channels, faults, None, None)
-        dviews.append((dctx, dstd))
-    n_hyp = max(n_hyp, 1)
+    contexts, dviews, n_hyp = _contexts(prep, standards, feat)
     # Bonferroni over the union of two families that share the family alpha: the error candidates
     # (alpha / 2 over them) and the channels scanned for a fault on the temperatures (alpha / 2 over those)
-    n_ch = len(faults) + len(drifts)
+    n_ch = len(feat.faults) + len(feat.drifts)
     alpha_each = 0.5 * alpha / max(n_hyp - n_ch, 1)
     alpha_fault = 0.5 * alpha / max(n_ch, 1)
     # sensor faults are decided on the temperatures alone, before any error is looked at
-    broken = {ch: f for ch, f in faults.items() if f.plausible and f.p_value < alpha_fault}
-    _resolve_drift_pairs(drifts, prep, contexts, standards)
-    for ch, f in drifts.items():
-        # a ramp that explains the departure better than a break does is a drifting calibration
-        if f.plausible and f.p_value < alpha_fault and (ch not in broken or broken[ch].mode != "open"):
-            broken[ch] = f
+    broken = _broken_channels(feat, alpha_fault, prep, contexts, standards)
     terms: list[TermDiagnosis] = []
     unexplained: list[Unexplained] = []
     fed: set[str] = set()
-    for ctx, std, sim, nz, (dctx, dstd) in zip(contexts, standards, sims, noises, dviews):
+    for ctx, std, sim, nz, dview in zip(contexts, standards, sims, noises, dviews):
         here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
         p_here = max((f.p_value for f in here), default=1.0)
         fed |= {f.channel for f in here}
-        effects, state = _search_term(
-            ctx,
-            std,
-            alpha_each,
-            min_gain,
-            max_effects,
-            nz,
-            dctx=dctx,
-            dstd=dstd,
-            faults_here=here,
-            fault_p=p_here,
-            broken=broken,
-        )
+        cfg = SearchConfig(alpha_each, min_gain, max_effects, nz)
+        effects, state = _search_term(ctx, std, cfg, dview, TermFaults(here, p_here, broken))
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
         in_model = [n[3:] for n in state.names if n.startswith("dT_")]
         left = unexplained_term(ctx.td, state.fit.residual, prep, in_model, nz)
@@ -1646,7 +1885,7 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         n_hyp,
         min_gain,
         timings,
-        faults,
+        feat.faults,
         loose,
         alpha_each,
         alpha_fault,
@@ -1725,24 +1964,24 @@ def _unfed_fault(prep: PreparedBundle, f: FaultScan) -> Effect:
         )
     empty = np.empty(0)
     return Effect(
-        f.kind,
-        None,  # type: ignore[arg-type]  # a sensor fault is on a channel, not on an (axis, term)
-        None,  # type: ignore[arg-type]
-        [f.channel],
-        params,
-        max(f.p_value, 1e-300),
-        cause,
-        float("nan"),
-        float("nan"),
-        float("nan"),
-        float("nan"),
-        f.p_value,
-        [f"fault_{f.channel}"],
-        np.empty((0, 1)),
-        empty,
-        empty,
-        empty,
-        empty,
-        empty,
-        np.empty(0, dtype=bool),
+        kind=f.kind,
+        axis=None,  # a sensor fault is on a channel, not on an (axis, term)
+        term=None,
+        channels=[f.channel],
+        params=params,
+        p_value=max(f.p_value, 1e-300),
+        cause=cause,
+        rmse_holdout_before=float("nan"),
+        rmse_holdout_after=float("nan"),
+        F=float("nan"),
+        p_naive=float("nan"),
+        p_robust=f.p_value,
+        names=[f"fault_{f.channel}"],
+        columns=np.empty((0, 1)),
+        time_s=empty,
+        residual_before=empty,
+        contribution=empty,
+        position=empty,
+        direction=empty,
+        train=np.empty(0, dtype=bool),
     )

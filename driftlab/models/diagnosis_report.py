@@ -9,6 +9,7 @@ import math
 from typing import TYPE_CHECKING, Any
 
 from driftlab.jsonsafe import strict_json
+from driftlab.labels import duration, effect_label, feature_label
 
 if TYPE_CHECKING:
     from driftlab.models.diagnosis import DiagnosisResult, Effect, TermDiagnosis
@@ -80,8 +81,6 @@ def _effect_plot(eff: Effect, unit: str) -> str:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from driftlab.labels import effect_label, feature_label
 
     k, lab = _scale(unit)
     sl = _thin(eff.time_s.size)
@@ -215,8 +214,6 @@ def _table(rows: list[list[str]], head: list[str]) -> str:
 
 def _params_text(eff: Effect) -> str:
     """Return an effect's parameters in words (durations, times into the campaign), never as JSON."""
-    from driftlab.labels import duration
-
     out = []
     for key, value in eff.params.items():
         if key == "tau_s" and isinstance(value, (int, float)):
@@ -230,12 +227,10 @@ def _params_text(eff: Effect) -> str:
     return "; ".join(html.escape(x) for x in out)
 
 
-def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
-    """Return the self-contained HTML report: an overview of the campaign (with ``bundle``), findings, tables, flags."""
-    from driftlab.labels import duration, effect_label
-
+def _html_head(res: DiagnosisResult) -> list[str]:
+    """Return the page's head, title and the paragraph on how the findings were decided."""
     e = html.escape
-    out = [
+    return [
         f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
         f"<title>driftlab diagnosis: {e(res.bundle)}</title>",
         "<style>body{font-family:sans-serif;max-width:1150px;margin:auto;color:#1d2430}table{border-collapse:collapse}"
@@ -252,48 +247,57 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
         f"A faulty thermocouple is decided on the temperatures alone. "
         f"Lengths are in micrometres (µm), angles in microradians (µrad).</p>",
     ]
-    if bundle is not None:
-        out.append("<h2>The campaign</h2>")
-        stages = [
-            [
-                e(st.name),
-                e(st.heat_source),
-                e(st.axis or "-"),
-                f"{st.spindle_rpm:.0f}",
-                f"{st.feed_mm_min:.0f}",
-                f"{st.start_s / 3600:.2f}",
-                f"{st.end_s / 3600:.2f}",
-            ]
-            for st in bundle.meta.stages
+
+
+def _html_campaign(bundle: Any) -> list[str]:
+    """Return the campaign's stages and overview (the bundle itself, when the page is given it)."""
+    e = html.escape
+    stages = [
+        [
+            e(st.name),
+            e(st.heat_source),
+            e(st.axis or "-"),
+            f"{st.spindle_rpm:.0f}",
+            f"{st.feed_mm_min:.0f}",
+            f"{st.start_s / 3600:.2f}",
+            f"{st.end_s / 3600:.2f}",
         ]
-        out.append(
-            _table(stages, ["stage", "heat source", "axis", "spindle (rpm)", "feed (mm/min)", "from (h)", "to (h)"])
+        for st in bundle.meta.stages
+    ]
+    return [
+        "<h2>The campaign</h2>",
+        _table(stages, ["stage", "heat source", "axis", "spindle (rpm)", "feed (mm/min)", "from (h)", "to (h)"]),
+        _overview(bundle),
+    ]
+
+
+def _html_finding(i: int, eff: Effect) -> str:
+    """Return one finding: its kind and place, cause, parameters, held-out gain or loss (in red) and its plot."""
+    e = html.escape
+    unit = "rad" if eff.term in ("alpha", "beta", "gamma") else "mm"
+    k, lab = _scale(unit)
+    where = f"{e(eff.axis)}/{e(eff.term or '')}" if eff.axis else "the temperatures (no model uses this channel)"
+    if math.isfinite(eff.rmse_holdout_before) and math.isfinite(eff.rmse_holdout_after):
+        g = eff.gain * 100
+        worse = eff.rmse_holdout_after > eff.rmse_holdout_before
+        verdict = f"{-g:.0f}% worse" if worse else f"{g:.0f}% better"
+        gain = (
+            f"held-out RMSE {eff.rmse_holdout_before * k:.2f} &rarr; {eff.rmse_holdout_after * k:.2f} {lab} "
+            f"(<span class='{'worse' if worse else 'good'}'>{verdict}</span>)"
         )
-        out.append(_overview(bundle))
-    effects = res.effects
-    out.append(f"<h2>Findings ({len(effects)})</h2>")
-    if not effects:
-        out.append("<p>No effect of the catalogue is supported by the data: the standard model stands.</p>")
-    for i, eff in enumerate(effects, 1):
-        unit = "rad" if eff.term in ("alpha", "beta", "gamma") else "mm"
-        k, lab = _scale(unit)
-        where = f"{e(eff.axis)}/{e(eff.term)}" if eff.axis else "the temperatures (no model uses this channel)"
-        if math.isfinite(eff.rmse_holdout_before) and math.isfinite(eff.rmse_holdout_after):
-            g = eff.gain * 100
-            worse = eff.rmse_holdout_after > eff.rmse_holdout_before
-            verdict = f"{-g:.0f}% worse" if worse else f"{g:.0f}% better"
-            gain = (
-                f"held-out RMSE {eff.rmse_holdout_before * k:.2f} &rarr; {eff.rmse_holdout_after * k:.2f} {lab} "
-                f"(<span class='{'worse' if worse else 'good'}'>{verdict}</span>)"
-            )
-        else:
-            gain = "no held-out figure (the channel feeds no model, or the fault starts after the last reading)"
-        plot = _effect_plot(eff, unit) if eff.time_s.size else ""
-        out.append(
-            f"<h3>{i}. {e(effect_label(eff.to_dict()))}, on {where}</h3>"
-            f"<p><b>Cause.</b> {e(eff.cause)}</p>"
-            f"<p>{_params_text(eff)}; p = {eff.p_value:.3g}; {gain}</p>{plot}"
-        )
+    else:
+        gain = "no held-out figure (the channel feeds no model, or the fault starts after the last reading)"
+    plot = _effect_plot(eff, unit) if eff.time_s.size else ""
+    return (
+        f"<h3>{i}. {e(effect_label(eff.to_dict()))}, on {where}</h3>"
+        f"<p><b>Cause.</b> {e(eff.cause)}</p>"
+        f"<p>{_params_text(eff)}; p = {eff.p_value:.3g}; {gain}</p>{plot}"
+    )
+
+
+def _html_models(res: DiagnosisResult) -> list[str]:
+    """Return the table of the standard model and the model with the findings, per term (worse in red)."""
+    e = html.escape
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
@@ -316,47 +320,43 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
                 str(len(t.effects)),
             ]
         )
-    out.append("<h2>Standard model (baseline) and the model with the findings</h2>")
-    out.append(
-        _table(
-            rows,
-            [
-                "axis",
-                "term",
-                "unit",
-                "model thermocouples",
-                "thermocouples chosen by",
-                "baseline train RMSE",
-                "baseline held-out RMSE",
-                "with findings, train",
-                "with findings, held out",
-                "findings",
-            ],
-        )
-    )
-    out.append(f"<h2>Unexplained ({len(res.unexplained)})</h2>")
-    if res.unexplained:
-        out.append(
-            "<p>Terms whose training residual, after the findings above, stays above 1.5 x the measurement noise: "
-            "the model does not explain them to their noise. The hints name the residual's signature.</p>"
-        )
-        urows = []
-        for u in res.unexplained:
-            k, lab = _scale("rad" if u.term in ("alpha", "beta", "gamma") else "mm")
-            urows.append(
-                [
-                    e(u.axis),
-                    e(u.term),
-                    f"<span class='worse'>{u.residual_over_noise:.1f} x</span>",
-                    f"{u.rmse_train * k:.2f} {lab}",
-                    f"{u.noise * k:.2f} {lab}",
-                    e("; ".join(u.hints)),
-                ]
-            )
-        out.append(_table(urows, ["axis", "term", "residual / noise", "training residual", "noise", "hints"]))
-    else:
+    head = ["axis", "term", "unit", "model thermocouples", "thermocouples chosen by", "baseline train RMSE"]
+    head += ["baseline held-out RMSE", "with findings, train", "with findings, held out", "findings"]
+    return ["<h2>Standard model (baseline) and the model with the findings</h2>", _table(rows, head)]
+
+
+def _html_unexplained(res: DiagnosisResult) -> list[str]:
+    """Return the unexplained terms with their hints (or that every term is explained to its noise)."""
+    e = html.escape
+    out = [f"<h2>Unexplained ({len(res.unexplained)})</h2>"]
+    if not res.unexplained:
         out.append("<p>Every term is explained to its measurement noise (training residual at most 1.5 x noise).</p>")
-    out.append("<h2>Simulation (Appendix A time-driven laws, calibrated) against the data</h2>")
+        return out
+    out.append(
+        "<p>Terms whose training residual, after the findings above, stays above 1.5 x the measurement noise: "
+        "the model does not explain them to their noise. The hints name the residual's signature.</p>"
+    )
+    urows = []
+    for u in res.unexplained:
+        k, lab = _scale("rad" if u.term in ("alpha", "beta", "gamma") else "mm")
+        urows.append(
+            [
+                e(u.axis),
+                e(u.term),
+                f"<span class='worse'>{u.residual_over_noise:.1f} x</span>",
+                f"{u.rmse_train * k:.2f} {lab}",
+                f"{u.noise * k:.2f} {lab}",
+                e("; ".join(u.hints)),
+            ]
+        )
+    out.append(_table(urows, ["axis", "term", "residual / noise", "training residual", "noise", "hints"]))
+    return out
+
+
+def _html_simulation(res: DiagnosisResult) -> list[str]:
+    """Return the calibrated simulation laws against the data, per term, with their plots."""
+    e = html.escape
+    out = ["<h2>Simulation (Appendix A time-driven laws, calibrated) against the data</h2>"]
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
@@ -372,30 +372,42 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
     out.append(_table(rows, ["axis", "term", "RMSE", "time constant", "what it gets wrong"]))
     if res.terms:
         out.append(_sim_plots(res.terms))
-    out.append("<h2>Flagged data</h2>")
-    if res.flags:
-        out.append(
-            _table(
-                [
-                    [
-                        e(f.series),
-                        str(f.spikes),
-                        str(f.out_of_range),
-                        str(f.held_scans),
-                        e(", ".join(duration(v, clock=True) for v in f.first_times_s)),
-                    ]
-                    for f in res.flags
-                ],
-                [
-                    "series",
-                    "spikes rejected (MAD)",
-                    "out of range",
-                    "scans held across long gaps",
-                    "first flagged (h:mm:ss into the campaign)",
-                ],
-            )
-        )
-    else:
-        out.append("<p>No spikes, out-of-range readings or long gaps.</p>")
+    return out
+
+
+def _html_flags(res: DiagnosisResult) -> list[str]:
+    """Return the table of flagged data (spikes, out-of-range readings, held scans)."""
+    e = html.escape
+    if not res.flags:
+        return ["<h2>Flagged data</h2>", "<p>No spikes, out-of-range readings or long gaps.</p>"]
+    rows = [
+        [
+            e(f.series),
+            str(f.spikes),
+            str(f.out_of_range),
+            str(f.held_scans),
+            e(", ".join(duration(v, clock=True) for v in f.first_times_s)),
+        ]
+        for f in res.flags
+    ]
+    head = ["series", "spikes rejected (MAD)", "out of range", "scans held across long gaps"]
+    head.append("first flagged (h:mm:ss into the campaign)")
+    return ["<h2>Flagged data</h2>", _table(rows, head)]
+
+
+def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
+    """Return the self-contained HTML report: an overview of the campaign (with ``bundle``), findings, tables, flags."""
+    out = _html_head(res)
+    if bundle is not None:
+        out += _html_campaign(bundle)
+    effects = res.effects
+    out.append(f"<h2>Findings ({len(effects)})</h2>")
+    if not effects:
+        out.append("<p>No effect of the catalogue is supported by the data: the standard model stands.</p>")
+    out += [_html_finding(i, eff) for i, eff in enumerate(effects, 1)]
+    out += _html_models(res)
+    out += _html_unexplained(res)
+    out += _html_simulation(res)
+    out += _html_flags(res)
     out.append("</body></html>")
     return "\n".join(out)

@@ -248,6 +248,143 @@ def _neighbours(prep: PreparedBundle, j: int, order: list[int], n_max: int) -> l
     return (same + extra[: max(0, 4 - len(same))])[:n_max]
 
 
+@dataclass
+class _FaultGrid:
+    """What every channel's fault scan shares: the temperature grid and the scan's limits (in scans)."""
+
+    prep: PreparedBundle
+    D: np.ndarray  # dT of every channel on the grid
+    dt: float
+    min_len: int  # a fault lasts at least 30 min
+    min_pre: int  # and starts after 5 % of the campaign (at least 30 scans)
+    step: int  # candidate cuts every 5 min, then refined to the scan
+    room_cols: list[int]
+    smooth_T: np.ndarray | None
+
+    @property
+    def n(self) -> int:
+        """Return the number of grid scans."""
+        return int(self.D.shape[0])
+
+
+def _fault_break(g: _FaultGrid, j: int, A: np.ndarray, dead: int | None) -> tuple[int, float]:
+    """Return the scan where channel ``j``'s relation to its neighbours ``A`` breaks, and the RSS ratio of the split.
+
+    A run of missing or stuck readings to the end (``dead``) fixes the start exactly; otherwise the
+    least-squares break, also with room air alone after the cut (a detached junction becomes an air
+    thermometer).
+    """
+    n, y = g.n, g.D[:, j]
+    if dead is not None:
+        return dead, float("inf")
+    start, ratio = best_break(A, y, g.min_pre, n - g.min_len, g.step)
+    if g.room_cols and j not in g.room_cols:
+        A_air = np.column_stack([np.ones(n), g.D[:, g.room_cols]])
+        k_air, r_air = best_break(A, y, g.min_pre, n - g.min_len, g.step, A_post=A_air)
+        if r_air > ratio:
+            start, ratio = k_air, r_air
+    return start, ratio
+
+
+def _toward_air(g: _FaultGrid, j: int, est: np.ndarray, start: int, m_early: int) -> tuple[float, float]:
+    """Return the share of the early window that departs toward the room air, and the gap left to it once settled.
+
+    A junction that came loose reads the air: its departure from the virtual sensor ``est`` points
+    toward the room temperature, and once settled it has closed at least half the gap between its
+    structure (the virtual sensor) and the air (judged on the early window after 30 min; a healthy site
+    whose relation to its neighbours changes at a stage change moves with its structure instead).
+    """
+    T = g.prep.grid_T
+    air = np.mean(T[:, g.room_cols], axis=1)
+    w = slice(start, start + m_early)
+    toward = np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w])
+    toward_air = float(np.mean(toward)) if m_early else 0.0
+    if not m_early:
+        return toward_air, float("inf")
+    settled = slice(start + min(max(1, int(1800.0 / g.dt)), m_early // 2), start + m_early)
+    gap_est = float(np.median(np.abs(est[settled] - air[settled])))
+    return toward_air, float(np.median(np.abs(T[settled, j] - air[settled]))) / max(gap_est, 1e-9)
+
+
+def _departure_p(g: _FaultGrid, r: np.ndarray, start: int, dead: int | None) -> float:
+    """Return the p-value that the departure grows after ``start`` (0 for a dead card: an observation).
+
+    One-sided Welch test on the log mean square of the departure in 30-min blocks (blocks tame the
+    autocorrelation of temperatures; the square catches a departure of either sign, e.g. a held reading
+    the structure warms past and cools back through, whose mean can be near zero).
+    """
+    if dead is not None:
+        # no reading, or one stuck value, from start to the end for at least 30 min: the card says
+        # so itself; this is an observation, not a statistical inference on the departure
+        return 0.0
+    blk = max(1, int(1800.0 / g.dt))
+    pre_b = np.log(_block_means(r[:start] ** 2, blk) + 1e-12)
+    post_b = np.log(_block_means(r[start:] ** 2, blk) + 1e-12)
+    if pre_b.size >= 2 and post_b.size >= 2 and np.ptp(np.concatenate([pre_b, post_b])) > 0:
+        p = float(stats.ttest_ind(post_b, pre_b, equal_var=False, alternative="greater").pvalue)
+        return p if np.isfinite(p) else 1.0
+    return 1.0
+
+
+def _scan_fault_channel(g: _FaultGrid, j: int, nb: list[int]) -> FaultScan:
+    """Return the fault scan of channel ``j`` against its virtual sensor on the neighbours ``nb``."""
+    prep, n, dt, T = g.prep, g.n, g.dt, g.prep.grid_T
+    A = np.column_stack([np.ones(n), g.D[:, nb]])
+    y = g.D[:, j]
+    dead = _dead_tail(prep.raw_grid_T[:, j], g.min_len)
+    start, ratio = _fault_break(g, j, A, dead)
+    rows = np.arange(n) < start
+    beta = _trimmed_fit(A, y, rows)
+    r = y - A @ beta
+    sigma = max(robust_sigma(r[:start]), 1e-6)
+    if dead is None:
+        # a detached sensor departs gradually: the break lands where the departure is already
+        # large, so walk back to where it began (last sample within 2 sigma of the sensor)
+        k = start
+        while k > g.min_pre and abs(r[k - 1]) > 2.0 * sigma and np.sign(r[k - 1]) == np.sign(r[start]):
+            k -= 1
+        start = k
+    rpost = r[start:]
+    strength = float(np.sqrt(np.mean(rpost * rpost)) / sigma) if rpost.size else 0.0
+    # persistence is judged on the first hours after the start: a detached junction reads the
+    # air, and agrees with its structure again whenever the structure cools to the air (a night)
+    early = rpost[: max(g.min_len, int(7200.0 / dt))]
+    persistence = float(np.mean(np.abs(early) > 3 * sigma)) if early.size else 0.0
+    toward_air, gap_left = 1.0, 0.0
+    if dead is None and g.room_cols and j not in g.room_cols:
+        toward_air, gap_left = _toward_air(g, j, T[0, j] + A @ beta, start, early.size)
+    plausible = (
+        rpost.size >= g.min_len
+        and start >= g.min_pre
+        and (
+            dead is not None
+            or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6 and gap_left < 0.5)
+        )
+    )
+    if g.smooth_T is not None:
+        Ds = g.smooth_T - g.smooth_T[0]
+        A_s = np.column_stack([np.ones(n), Ds[:, nb]])
+        virtual = T[0, j] + A_s @ _trimmed_fit(A_s, Ds[:, j], rows)
+    else:
+        virtual = T[0, j] + A @ beta
+    replaced = T[:, j].copy()
+    replaced[start:] = virtual[start:]
+    return FaultScan(
+        prep.channels[j],
+        float(prep.grid_t[min(start, n - 1)]),
+        strength,
+        persistence,
+        "open" if dead is not None else "detached",
+        _departure_p(g, r, start, dead),
+        replaced,
+        bool(plausible),
+        [prep.channels[k] for k in nb],
+        ratio,
+        toward_air,
+        gap_left,
+    )
+
+
 def scan_sensor_faults(
     prep: PreparedBundle, n_neighbours: int = 16, smooth_T: np.ndarray | None = None
 ) -> dict[str, FaultScan]:
@@ -276,119 +413,24 @@ def scan_sensor_faults(
     if m < 3 or n < 60:
         return {}
     dt = float(t[1] - t[0])
-    min_len = max(10, int(1800.0 / dt))
-    min_pre = max(30, int(0.05 * n))
-    step = max(1, int(300.0 / dt))  # candidate cuts every 5 min, then refined to the scan
     D = T - T[0]
+    room_cols = [prep.channel_index(c) for c in prep.room_channels if finite[prep.channel_index(c)]]
+    g = _FaultGrid(
+        prep, D, dt, max(10, int(1800.0 / dt)), max(30, int(0.05 * n)), max(1, int(300.0 / dt)), room_cols, smooth_T
+    )
     with np.errstate(all="ignore"):  # channels without readings have no correlation (NaN -> 0)
         corr = np.nan_to_num(np.corrcoef(np.where(finite, D, 0.0).T))
     excluded: set[int] = set()
     out: dict[str, FaultScan] = {}
-    room_cols = [prep.channel_index(c) for c in prep.room_channels if finite[prep.channel_index(c)]]
     for _pass in range(2):
         for j in range(m):
             if not finite[j]:
                 continue
             order = [k for k in np.argsort(-np.abs(corr[j])) if k != j and finite[k] and k not in excluded]
             nb = _neighbours(prep, j, order, n_neighbours)
-            if not nb or n - min_len <= min_pre:
+            if not nb or n - g.min_len <= g.min_pre:
                 continue
-            A = np.column_stack([np.ones(n), D[:, nb]])
-            y = D[:, j]
-            raw = prep.raw_grid_T[:, j]
-            dead = _dead_tail(raw, min_len)
-            ratio = float("inf")
-            if dead is not None:
-                start = dead
-            else:
-                start, ratio = best_break(A, y, min_pre, n - min_len, step)
-                if room_cols and j not in room_cols:
-                    # a detached junction becomes an air thermometer: after the cut, room air alone
-                    A_air = np.column_stack([np.ones(n), D[:, room_cols]])
-                    k_air, r_air = best_break(A, y, min_pre, n - min_len, step, A_post=A_air)
-                    if r_air > ratio:
-                        start, ratio = k_air, r_air
-            rows = np.arange(n) < start
-            beta = _trimmed_fit(A, y, rows)
-            r = y - A @ beta
-            sigma = max(robust_sigma(r[:start]), 1e-6)
-            if dead is None:
-                # a detached sensor departs gradually: the break lands where the departure is already
-                # large, so walk back to where it began (last sample within 2 sigma of the sensor)
-                k = start
-                while k > min_pre and abs(r[k - 1]) > 2.0 * sigma and np.sign(r[k - 1]) == np.sign(r[start]):
-                    k -= 1
-                start = k
-            rpost = r[start:]
-            strength = float(np.sqrt(np.mean(rpost * rpost)) / sigma) if rpost.size else 0.0
-            # persistence is judged on the first hours after the start: a detached junction reads the
-            # air, and agrees with its structure again whenever the structure cools to the air (a night)
-            early = rpost[: max(min_len, int(7200.0 / dt))]
-            persistence = float(np.mean(np.abs(early) > 3 * sigma)) if early.size else 0.0
-            toward_air, gap_left = 1.0, 0.0
-            if dead is None and room_cols and j not in room_cols:
-                # a junction that came loose reads the air: its departure from the virtual sensor points
-                # toward the room temperature, and once settled it has closed at least half the gap between
-                # its structure (the virtual sensor) and the air (judged on the early window after 30 min; a
-                # healthy site whose relation to its neighbours changes at a stage change moves with its
-                # structure instead)
-                air = np.mean(T[:, room_cols], axis=1)
-                est = T[0, j] + A @ beta
-                w = slice(start, start + early.size)
-                toward = np.sign(T[w, j] - est[w]) == np.sign(air[w] - est[w])
-                toward_air = float(np.mean(toward)) if early.size else 0.0
-                settled = slice(start + min(max(1, int(1800.0 / dt)), early.size // 2), start + early.size)
-                if early.size:
-                    gap_est = float(np.median(np.abs(est[settled] - air[settled])))
-                    gap_left = float(np.median(np.abs(T[settled, j] - air[settled]))) / max(gap_est, 1e-9)
-                else:
-                    gap_left = float("inf")
-            plausible = (
-                rpost.size >= min_len
-                and start >= min_pre
-                and (
-                    dead is not None
-                    or (ratio > 10.0 and strength > 5.0 and persistence > 0.6 and toward_air > 0.6 and gap_left < 0.5)
-                )
-            )
-            if smooth_T is not None:
-                Ds = smooth_T - smooth_T[0]
-                A_s = np.column_stack([np.ones(n), Ds[:, nb]])
-                virtual = T[0, j] + A_s @ _trimmed_fit(A_s, Ds[:, j], rows)
-            else:
-                virtual = T[0, j] + A @ beta
-            replaced = T[:, j].copy()
-            replaced[start:] = virtual[start:]
-            mode = "open" if dead is not None else "detached"
-            # the departure grows after the fault: one-sided Welch test on the log mean square of the
-            # departure in 30-min blocks (blocks tame the autocorrelation of temperatures; the square
-            # catches a departure of either sign, e.g. a held reading the structure warms past and cools
-            # back through, whose mean can be near zero)
-            blk = max(1, int(1800.0 / dt))
-            pre_b = np.log(_block_means(r[:start] ** 2, blk) + 1e-12)
-            post_b = np.log(_block_means(r[start:] ** 2, blk) + 1e-12)
-            if pre_b.size >= 2 and post_b.size >= 2 and np.ptp(np.concatenate([pre_b, post_b])) > 0:
-                p_temp = float(stats.ttest_ind(post_b, pre_b, equal_var=False, alternative="greater").pvalue)
-            else:
-                p_temp = 1.0
-            if dead is not None:
-                # no reading, or one stuck value, from start to the end for at least 30 min: the card says
-                # so itself; this is an observation, not a statistical inference on the departure
-                p_temp = 0.0
-            out[prep.channels[j]] = FaultScan(
-                prep.channels[j],
-                float(t[min(start, n - 1)]),
-                strength,
-                persistence,
-                mode,
-                p_temp if np.isfinite(p_temp) else 1.0,
-                replaced,
-                bool(plausible),
-                [prep.channels[k] for k in nb],
-                ratio,
-                toward_air,
-                gap_left,
-            )
+            out[prep.channels[j]] = _scan_fault_channel(g, j, nb)
         excluded = {prep.channel_index(c) for c, f in out.items() if f.plausible}
         if not excluded:
             break
@@ -584,13 +626,10 @@ def _fault_candidate(ctx: TermContext, scans: list[FaultScan]) -> Candidate:
 PHYSICAL_POWER = {"spindle_rpm": 2, "feed_mm_min": 1}
 
 
-def build_candidates(ctx: TermContext) -> list[Candidate]:
-    """Return every catalogue candidate for the current model of ``ctx`` (kinds not yet taken)."""
+def _plain_candidates(ctx: TermContext, n_dirs: int) -> list[Candidate]:
+    """Return the candidates that hold no temperature: reversal, drift, stated re-zeros and the step bank."""
     td = ctx.td
     out: list[Candidate] = []
-    n_dirs = np.unique(td.direction[td.train]).size
-    n_pos = np.unique(np.round(td.pos[td.train], 9)).size
-
     if n_dirs > 1 and ("reversal", ()) not in ctx.taken:
         out.append(Candidate("reversal", [], td.direction[:, None].astype(float), ["direction"]))
     if ("drift", ()) not in ctx.taken:
@@ -611,6 +650,13 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
     if steps is not None and ("datum_shift", ()) not in ctx.taken:
         cuts, bank = steps
         out.append(Candidate("datum_shift", [], bank, ["datum_step"], {"cuts": cuts}, family_size=int(cuts.size)))
+    return out
+
+
+def _channel_candidates(ctx: TermContext, n_dirs: int, n_pos: int) -> list[Candidate]:
+    """Return the candidates built from each channel's dT: screw, unmapped channel, square, direction x dT."""
+    td = ctx.td
+    out: list[Candidate] = []
     for ch, col in ctx.chan_cols.items():
         in_model = ch in ctx.model_channels
         if n_pos > 1 and ("screw_expansion", (ch,)) not in ctx.taken:
@@ -627,15 +673,15 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             d = td.direction.astype(float)
             plain = ("reversal", ()) not in ctx.taken
             cols_dt = [d * col] + ([d] if plain else [])
-            out.append(
-                Candidate(
-                    "direction_thermal",
-                    [ch],
-                    np.column_stack(cols_dt),
-                    [f"direction*dT_{ch}"] + (["direction"] if plain else []),
-                )
-            )
-    # the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)
+            names_dt = [f"direction*dT_{ch}"] + (["direction"] if plain else [])
+            out.append(Candidate("direction_thermal", [ch], np.column_stack(cols_dt), names_dt))
+    return out
+
+
+def _condition_candidates(ctx: TermContext) -> list[Candidate]:
+    """Return the machine state, directly: a column of conditions.csv to the power 1 or 2 (6.4.3)."""
+    td = ctx.td
+    out: list[Candidate] = []
     for name, v in td.conditions.items():
         # a column with two values in the training rows (off and one speed) gives rpm^2 = c rpm: one law, whose
         # power the data cannot tell; the catalogue's physical story names it (spec 3: centrifugal growth with
@@ -648,28 +694,21 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             x = v**power
             if ("operating_condition", (label,)) in ctx.taken or np.ptp(x[td.train]) == 0:
                 continue
-            out.append(
-                Candidate(
-                    "operating_condition",
-                    [],
-                    x[:, None].astype(float),
-                    [label],
-                    {"column": name, "power": power},
-                    label=label,
-                )
-            )
+            hint = {"column": name, "power": power}
+            out.append(Candidate("operating_condition", [], x[:, None].astype(float), [label], hint, label=label))
+    return out
+
+
+def _lag_candidates(ctx: TermContext) -> list[Candidate]:
+    """Return the lag banks: each stated heat input's (unsensed_source) and each channel's (thermal_lag)."""
+    out: list[Candidate] = []
     for name, (taus, at, _sched) in ctx.sources.items():
         if ("unsensed_source", (name,)) in ctx.taken:
             continue
+        hint_s = {"taus": taus, "source": name}
         out.append(
             Candidate(
-                "unsensed_source",
-                [],
-                at - at[0],
-                [f"lag_{name}"],
-                {"taus": taus, "source": name},
-                family_size=int(taus.size),
-                label=name,
+                "unsensed_source", [], at - at[0], [f"lag_{name}"], hint_s, family_size=int(taus.size), label=name
             )
         )
     for ch, (taus, at) in ctx.lag_cache.items():
@@ -680,6 +719,19 @@ def build_candidates(ctx: TermContext) -> list[Candidate]:
             hint["with"] = ctx.chan_cols[ch]  # scored together with the channel's own dT
         out.append(Candidate("thermal_lag", [ch], at, [f"lag_{ch}"], hint, family_size=int(taus.size)))
     return out
+
+
+def build_candidates(ctx: TermContext) -> list[Candidate]:
+    """Return every catalogue candidate for the current model of ``ctx`` (kinds not yet taken)."""
+    td = ctx.td
+    n_dirs = np.unique(td.direction[td.train]).size
+    n_pos = np.unique(np.round(td.pos[td.train], 9)).size
+    return [
+        *_plain_candidates(ctx, n_dirs),
+        *_channel_candidates(ctx, n_dirs, n_pos),
+        *_condition_candidates(ctx),
+        *_lag_candidates(ctx),
+    ]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -697,6 +749,88 @@ class Scored:
     df_den: int
     rss_drop: float
     col_index: int = 0  # which column of a bank (thermal_lag: the best tau on the grid)
+
+
+@dataclass
+class _Bank:
+    """Every candidate column of a term at once, projected on the current model (``screen``).
+
+    ``big``: the training rows of the columns, side by side (``edges`` per candidate); ``scale``: 1 / their
+    RMS; ``G``: Q'C and ``big_y``: C'ry of the unit-RMS columns; ``big_n2``: |C - Q Q'C|^2.
+    """
+
+    cands: list[Candidate]
+    edges: np.ndarray
+    big: np.ndarray
+    scale: np.ndarray
+    G: np.ndarray
+    big_y: np.ndarray
+    big_n2: np.ndarray
+
+
+def _finite_bank(cands: list[Candidate], rows: slice | np.ndarray) -> tuple[list[Candidate], np.ndarray, np.ndarray]:
+    """Return the candidates whose columns are finite on the training rows, their columns and column edges."""
+    widths = [c.cols.shape[1] for c in cands]
+    edges = np.concatenate([[0], np.cumsum(widths)])
+    big = np.concatenate([c.cols[rows] for c in cands], axis=1)
+    col_ok = np.all(np.isfinite(big), axis=0)
+    finite = [c for ci, c in enumerate(cands) if col_ok[edges[ci] : edges[ci + 1]].all()]
+    if len(finite) < len(cands):
+        keep_cols = np.concatenate(
+            [
+                np.arange(edges[ci], edges[ci + 1])
+                for ci, c in enumerate(cands)
+                if col_ok[edges[ci] : edges[ci + 1]].all()
+            ]
+            or [np.zeros(0, dtype=int)]
+        )
+        big = big[:, keep_cols]
+        widths = [c.cols.shape[1] for c in finite]
+        edges = np.concatenate([[0], np.cumsum(widths)])
+    return finite, big, edges
+
+
+def _bank_drop(
+    bk: _Bank, ci: int, Q: np.ndarray, ry: np.ndarray, with_col: np.ndarray | None
+) -> tuple[float, int, int] | None:
+    """Return the best RSS drop of a bank candidate (one column per tau or cut), its column and its width.
+
+    With ``with_col`` (a channel outside the model, scored with its own dT) two columns per tau,
+    [lag_tau, dT]: closed-form 2x2 least squares for every tau. None: no column adds anything.
+    """
+    sl = slice(bk.edges[ci], bk.edges[ci + 1])
+    norm2 = bk.big_n2[sl]
+    ok = norm2 > 1e-10 * bk.big.shape[0]
+    if with_col is None:
+        drops = np.where(ok, bk.big_y[sl] ** 2 / np.maximum(norm2, 1e-300), -1.0)
+        k = 1
+    else:
+        w = with_col / max(float(np.sqrt(np.mean(with_col * with_col))), 1e-300)
+        rw = w - Q @ (Q.T @ w)
+        ww, wy = float(rw @ rw), float(rw @ ry)
+        bw = (bk.big[:, sl].T @ rw) * bk.scale[sl]
+        by = bk.big_y[sl]
+        det = norm2 * ww - bw * bw
+        good = ok & (det > 1e-10 * np.maximum(norm2 * ww, 1e-300))
+        drops = np.where(good, (ww * by * by - 2 * bw * by * wy + norm2 * wy * wy) / np.where(good, det, 1.0), -1.0)
+        k = 2
+    i = int(np.argmax(drops))
+    return None if drops[i] <= 0 else (float(drops[i]), i, k)
+
+
+def _set_drop(bk: _Bank, ci: int, Q: np.ndarray, ry: np.ndarray) -> tuple[float, int, int] | None:
+    """Return the RSS drop of a candidate's columns together, 0, and its width (None: collinear with the model)."""
+    sl = slice(bk.edges[ci], bk.edges[ci + 1])
+    norm2 = bk.big_n2[sl]
+    if np.any(norm2 <= 1e-10 * bk.big.shape[0]):
+        return None  # collinear with the model: nothing new
+    width = bk.edges[ci + 1] - bk.edges[ci]
+    if width == 1:
+        return float(bk.big_y[sl][0] ** 2 / norm2[0]), 0, 1
+    RC = bk.big[:, sl] * bk.scale[sl] - Q @ bk.G[sl].T
+    b, *_ = np.linalg.lstsq(RC, ry, rcond=None)
+    fitted = RC @ b
+    return float(fitted @ fitted), 0, width
 
 
 def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidate]) -> list[Scored]:
@@ -717,23 +851,7 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     rows = slice(0, n_tr) if train[:n_tr].all() else train  # training rows are the first ones: views
     if not cands:
         return out
-    widths = [c.cols.shape[1] for c in cands]
-    edges = np.concatenate([[0], np.cumsum(widths)])
-    big = np.concatenate([c.cols[rows] for c in cands], axis=1)
-    col_ok = np.all(np.isfinite(big), axis=0)
-    finite = [c for ci, c in enumerate(cands) if col_ok[edges[ci] : edges[ci + 1]].all()]
-    if len(finite) < len(cands):
-        keep_cols = np.concatenate(
-            [
-                np.arange(edges[ci], edges[ci + 1])
-                for ci, c in enumerate(cands)
-                if col_ok[edges[ci] : edges[ci + 1]].all()
-            ]
-            or [np.zeros(0, dtype=int)]
-        )
-        big = big[:, keep_cols]
-        widths = [c.cols.shape[1] for c in finite]
-        edges = np.concatenate([[0], np.cumsum(widths)])
+    finite, big, edges = _finite_bank(cands, rows)
     if not finite:
         return out
     # the columns' parts outside the model, without forming them (the candidate bank is the largest array
@@ -743,46 +861,17 @@ def screen(X: np.ndarray, y: np.ndarray, train: np.ndarray, cands: list[Candidat
     scale = 1.0 / np.maximum(np.sqrt(np.einsum("ij,ij->j", big, big) / nrow), 1e-300)
     prod = (big.T @ np.column_stack([Q, ry])) * scale[:, None]  # rows: columns of the bank, unit RMS
     G = prod[:, :-1]
-    big_y = prod[:, -1]
     big_n2 = np.maximum(nrow - np.einsum("ij,ij->i", G, G), 0.0) * (np.isfinite(scale) & (scale < 1e300))
+    bk = _Bank(finite, edges, big, scale, G, prod[:, -1], big_n2)
     for ci, c in enumerate(finite):
-        sl = slice(edges[ci], edges[ci + 1])
-        norm2 = big_n2[sl]
         if c.kind in BANK_KINDS:  # a bank: one column per tau (or cut), score each, keep the best
-            ok = norm2 > 1e-10 * nrow
             with_col = c.hint.get("with")
-            if with_col is None:
-                drops = np.where(ok, big_y[sl] ** 2 / np.maximum(norm2, 1e-300), -1.0)
-                k = 1
-            else:  # two columns per tau, [lag_tau, dT]: closed-form 2x2 least squares for every tau
-                w = with_col[train]
-                w = w / max(float(np.sqrt(np.mean(w * w))), 1e-300)
-                rw = w - Q @ (Q.T @ w)
-                ww, wy = float(rw @ rw), float(rw @ ry)
-                bw = (big[:, sl].T @ rw) * scale[sl]
-                by = big_y[sl]
-                det = norm2 * ww - bw * bw
-                good = ok & (det > 1e-10 * np.maximum(norm2 * ww, 1e-300))
-                drops = np.where(
-                    good, (ww * by * by - 2 * bw * by * wy + norm2 * wy * wy) / np.where(good, det, 1.0), -1.0
-                )
-                k = 2
-            i = int(np.argmax(drops))
-            if drops[i] <= 0:
-                continue
-            drop, col_index = float(drops[i]), i
+            got = _bank_drop(bk, ci, Q, ry, None if with_col is None else with_col[train])
         else:
-            if np.any(norm2 <= 1e-10 * nrow):
-                continue  # collinear with the model: nothing new
-            width = edges[ci + 1] - edges[ci]
-            if width == 1:
-                drop = float(big_y[sl][0] ** 2 / norm2[0])
-            else:
-                RC = big[:, sl] * scale[sl] - Q @ G[sl].T
-                b, *_ = np.linalg.lstsq(RC, ry, rcond=None)
-                fitted = RC @ b
-                drop = float(fitted @ fitted)
-            k, col_index = width, 0
+            got = _set_drop(bk, ci, Q, ry)
+        if got is None:
+            continue
+        drop, col_index, k = got
         dof = n - p - k
         if dof <= 0 or rss <= 0:
             continue

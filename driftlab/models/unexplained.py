@@ -72,104 +72,144 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(a, b)[0, 1])
 
 
+@dataclass
+class _Residual:
+    """A term's training residual and what its hints are read against, with the hints found so far."""
+
+    td: TermData
+    prep: PreparedBundle
+    model_channels: list[str]
+    noise: float
+    rt: np.ndarray  # the residual on the training rows
+    tt: np.ndarray  # their times
+    hints: list[tuple[float, str]] = field(default_factory=list)  # (strength for the order, sentence)
+    fig: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def u(self) -> str:
+        """Return the unit of the term's values."""
+        return self.td.unit
+
+
+def _hint_source(res: _Residual) -> None:
+    """Hint at a stage's heat source or a machine-state column, through a first-order lag."""
+    prep = res.prep
+    if prep.grid_t.size <= 2:
+        return
+    step = float(prep.grid_t[1] - prep.grid_t[0])
+    best: tuple[float, str, float] | None = None
+    for name, x in source_schedules(prep).items():
+        for tau in HINT_TAUS:
+            lag = np.interp(res.tt, prep.grid_t, first_order_lag_even(x, step, tau))
+            c = _corr(res.rt, lag)
+            if best is None or abs(c) > abs(best[0]):
+                best = (c, name, tau)
+    if best is None or abs(best[0]) < MIN_R:
+        return
+    c, name, tau = best
+    what = name.split(":", 1)[1]
+    kind = "heat source" if name.startswith("stage:") else "machine-state column"
+    res.fig["source_r"] = c
+    res.fig["source_tau_s"] = tau
+    res.hints.append(
+        (abs(c), f"follows a {tau / 3600:.1f} h lag of the {what} {kind} (r = {c:.2f}): heat no model sensor reads")
+    )
+
+
+def _hint_direction(res: _Residual) -> None:
+    """Hint at a difference between the approach directions, and whether it follows a model channel."""
+    td, rt, tr = res.td, res.rt, res.td.train
+    dt_ = td.direction[tr].astype(float)
+    if np.unique(dt_).size <= 1:
+        return
+    a, b = rt[dt_ > 0], rt[dt_ < 0]
+    diff = float(np.mean(a) - np.mean(b))
+    se = float(np.sqrt(np.var(a) / max(a.size, 1) + np.var(b) / max(b.size, 1)))
+    z = abs(diff) / max(se, 1e-300)
+    if z > 5 and abs(diff) > 0.5 * res.noise:
+        res.fig["direction_difference"] = diff
+        res.hints.append(
+            (min(1.0, z / 20), f"depends on the approach direction ({_fmt(abs(diff), res.u)} between them)")
+        )
+    # does the direction difference follow a temperature?
+    prep = res.prep
+    cols = {ch: td.temps[tr, prep.channel_index(ch)] for ch in res.model_channels if ch in prep.channels}
+    best_c: tuple[float, str] | None = None
+    for ch, col in cols.items():
+        if not np.all(np.isfinite(col)):
+            continue
+        c = _corr(rt * dt_, col - col[0])
+        if best_c is None or abs(c) > abs(best_c[0]):
+            best_c = (c, ch)
+    if best_c is not None and abs(best_c[0]) >= MIN_R:
+        res.fig["direction_temperature_r"] = best_c[0]
+        res.hints.append((abs(best_c[0]), f"the direction difference grows with {best_c[1]} (r = {best_c[0]:.2f})"))
+
+
+def _hint_step(res: _Residual) -> None:
+    """Hint at a step between sweeps: the largest jump of the sweep means against their robust scatter."""
+    sw, rt, tt = res.td.sweep[res.td.train], res.rt, res.tt
+    ids, first = np.unique(sw, return_index=True)
+    if ids.size < 8:
+        return
+    order = np.argsort(tt[first])
+    means = np.array([float(np.mean(rt[sw == i])) for i in ids[order]])
+    starts = tt[first][order]
+    d = np.diff(means)
+    s = max(robust_sigma(d), 1e-300)
+    k = int(np.argmax(np.abs(d)))
+    z = abs(d[k]) / s
+    if z > 8 and abs(d[k]) > res.noise:
+        res.fig["step"] = float(d[k])
+        res.fig["step_time_s"] = float(starts[k + 1])
+        res.hints.append(
+            (min(1.0, z / 30), f"steps by {_fmt(d[k], res.u)} at t = {starts[k + 1] / 3600:.2f} h ({z:.0f} sigma)")
+        )
+
+
+def _hint_time(res: _Residual) -> None:
+    """Hint at a residual that grows with time."""
+    days = (res.tt - res.tt[0]) / 86400.0
+    c = _corr(res.rt, days)
+    if abs(c) >= MIN_R:
+        slope = float(np.polyfit(days, res.rt, 1)[0])
+        res.fig["time_r"] = c
+        res.fig["rate_per_day"] = slope
+        res.hints.append((abs(c), f"grows with time ({_fmt(slope, res.u)} per day, r = {c:.2f})"))
+
+
+def _hint_outside(res: _Residual) -> None:
+    """Hint at the channel outside the model the residual correlates with most."""
+    best_o: tuple[float, str] | None = None
+    for j, ch in enumerate(res.prep.channels):
+        if ch in res.model_channels:
+            continue
+        col = res.td.temps[res.td.train, j]
+        if not np.all(np.isfinite(col)):
+            continue
+        c = _corr(res.rt, col - col[0])
+        if best_o is None or abs(c) > abs(best_o[0]):
+            best_o = (c, ch)
+    if best_o is not None and abs(best_o[0]) >= MIN_R:
+        res.fig["outside_channel_r"] = best_o[0]
+        res.hints.append(
+            (abs(best_o[0]), f"correlates with {best_o[1]}, a channel outside the model (r = {best_o[0]:.2f})")
+        )
+
+
 def describe_residual(
     td: TermData, r: np.ndarray, prep: PreparedBundle, model_channels: list[str], noise: float
 ) -> tuple[list[str], dict[str, float]]:
     """Return hints (sentences) and figures on the training residual ``r`` of one term."""
-    u = td.unit
     tr = td.train
-    rt, tt, dt_ = r[tr], td.t[tr], td.direction[tr].astype(float)
-    hints: list[tuple[float, str]] = []
-    fig: dict[str, float] = {}
-    # a stage's heat source or a machine-state column, through a first-order lag
-    if prep.grid_t.size > 2:
-        step = float(prep.grid_t[1] - prep.grid_t[0])
-        best: tuple[float, str, float] | None = None
-        for name, x in source_schedules(prep).items():
-            for tau in HINT_TAUS:
-                lag = np.interp(tt, prep.grid_t, first_order_lag_even(x, step, tau))
-                c = _corr(rt, lag)
-                if best is None or abs(c) > abs(best[0]):
-                    best = (c, name, tau)
-        if best is not None and abs(best[0]) >= MIN_R:
-            c, name, tau = best
-            what = name.split(":", 1)[1]
-            kind = "heat source" if name.startswith("stage:") else "machine-state column"
-            fig["source_r"] = c
-            fig["source_tau_s"] = tau
-            hints.append(
-                (
-                    abs(c),
-                    f"follows a {tau / 3600:.1f} h lag of the {what} {kind} (r = {c:.2f}): heat no model sensor reads",
-                )
-            )
-    # the approach direction
-    if np.unique(dt_).size > 1:
-        a, b = rt[dt_ > 0], rt[dt_ < 0]
-        diff = float(np.mean(a) - np.mean(b))
-        se = float(np.sqrt(np.var(a) / max(a.size, 1) + np.var(b) / max(b.size, 1)))
-        z = abs(diff) / max(se, 1e-300)
-        if z > 5 and abs(diff) > 0.5 * noise:
-            fig["direction_difference"] = diff
-            hints.append((min(1.0, z / 20), f"depends on the approach direction ({_fmt(abs(diff), u)} between them)"))
-        # does the direction difference follow a temperature?
-        cols = {ch: td.temps[tr, prep.channel_index(ch)] for ch in model_channels if ch in prep.channels}
-        best_c: tuple[float, str] | None = None
-        for ch, col in cols.items():
-            if not np.all(np.isfinite(col)):
-                continue
-            c = _corr(rt * dt_, col - col[0])
-            if best_c is None or abs(c) > abs(best_c[0]):
-                best_c = (c, ch)
-        if best_c is not None and abs(best_c[0]) >= MIN_R:
-            fig["direction_temperature_r"] = best_c[0]
-            hints.append((abs(best_c[0]), f"the direction difference grows with {best_c[1]} (r = {best_c[0]:.2f})"))
-    # a step between sweeps
-    sw = td.sweep[tr]
-    ids, first = np.unique(sw, return_index=True)
-    if ids.size >= 8:
-        order = np.argsort(tt[first])
-        means = np.array([float(np.mean(rt[sw == i])) for i in ids[order]])
-        starts = tt[first][order]
-        d = np.diff(means)
-        s = max(robust_sigma(d), 1e-300)
-        k = int(np.argmax(np.abs(d)))
-        z = abs(d[k]) / s
-        if z > 8 and abs(d[k]) > noise:
-            fig["step"] = float(d[k])
-            fig["step_time_s"] = float(starts[k + 1])
-            hints.append(
-                (min(1.0, z / 30), f"steps by {_fmt(d[k], u)} at t = {starts[k + 1] / 3600:.2f} h ({z:.0f} sigma)")
-            )
-    # grows with time
-    days = (tt - tt[0]) / 86400.0
-    c = _corr(rt, days)
-    if abs(c) >= MIN_R:
-        slope = float(np.polyfit(days, rt, 1)[0])
-        fig["time_r"] = c
-        fig["rate_per_day"] = slope
-        hints.append((abs(c), f"grows with time ({_fmt(slope, u)} per day, r = {c:.2f})"))
-    # a channel outside the model
-    best_o: tuple[float, str] | None = None
-    for j, ch in enumerate(prep.channels):
-        if ch in model_channels:
-            continue
-        col = td.temps[tr, j]
-        if not np.all(np.isfinite(col)):
-            continue
-        c = _corr(rt, col - col[0])
-        if best_o is None or abs(c) > abs(best_o[0]):
-            best_o = (c, ch)
-    if best_o is not None and abs(best_o[0]) >= MIN_R:
-        fig["outside_channel_r"] = best_o[0]
-        hints.append(
-            (abs(best_o[0]), f"correlates with {best_o[1]}, a channel outside the model (r = {best_o[0]:.2f})")
-        )
-    hints.sort(key=lambda h: -h[0])
-    words = [h[1] for h in hints]
+    res = _Residual(td, prep, model_channels, noise, r[tr], td.t[tr])
+    for hint in (_hint_source, _hint_direction, _hint_step, _hint_time, _hint_outside):
+        hint(res)
+    res.hints.sort(key=lambda h: -h[0])
+    words = [h[1] for h in res.hints]
     if not words:
         words = ["no simple signature: noise larger than stated, or an effect outside the catalogue"]
-    return words, fig
+    return words, res.fig
 
 
 def unexplained_term(

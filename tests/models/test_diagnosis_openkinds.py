@@ -15,7 +15,7 @@ from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle
 from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 from driftlab.models.sensor_drift import scan_sensor_drifts
 from driftlab.models.standard_model import prepare_bundle
-from driftlab.testing.openworld import OpenPlanted, openworld_case
+from driftlab.testing.openworld import OpenPlanted, OpenWorld, openworld_case
 
 P = OpenPlanted
 
@@ -26,7 +26,7 @@ def _physical(res):
 
 def test_a_re_zeroed_line_is_a_datum_shift_never_a_drift_or_a_lag():
     step = P("datum_shift", "Z", "dz", params={"time_s": 9 * 3600.0, "step": 0.003})
-    case = openworld_case([step], seed=700, hours=24, keep=[("Z", "dz")])
+    case = openworld_case([step], OpenWorld(seed=700, hours=24, keep=[("Z", "dz")]))
     res = diagnose_bundle(case.bundle)
     on = [e for e in res.effects if (e.axis, e.term) == ("Z", "dz")]
     assert not any(e.kind in ("drift", "thermal_lag") for e in on)
@@ -42,7 +42,7 @@ def test_a_null_bundle_with_a_step_and_a_drifting_unused_sensor_has_no_physical_
         P("datum_shift", "X", "dx", params={"time_s": 11 * 3600.0, "step": -0.002}),
         P("sensor_drift", "", "", channels=["T9"], params={"start_s": 2 * 3600.0, "rate_degC_per_day": 0.5}),
     ]
-    case = openworld_case(planted, seed=1003, hours=24, keep=[("X", "dx"), ("Z", "dz")], rho=0.9)
+    case = openworld_case(planted, OpenWorld(seed=1003, hours=24, keep=[("X", "dx"), ("Z", "dz")], rho=0.9))
     res = diagnose_bundle(case.bundle)
     assert _physical(res) == []
 
@@ -52,7 +52,9 @@ def test_a_step_that_no_rule_claims_is_still_never_a_lag_or_a_drift():
     # interleaved sweeps; before the step-beside rule a 2-3 h lag of T1 stood in for it on Z/dz
     step = P("datum_shift", "Z", "dz", params={"time_s": 17092.19271867621, "step": -0.0024309721704030137})
     kw = {"scan_s": 120.0, "irregular": True, "interleave": True, "random_stages": True, "rho": 0.405}
-    case = openworld_case([step], seed=50018, hours=24, keep=[("Z", "dz"), ("X", "dx"), ("A", "alpha")], **kw)
+    case = openworld_case(
+        [step], OpenWorld(seed=50018, hours=24, keep=[("Z", "dz"), ("X", "dx"), ("A", "alpha")], **kw)
+    )
     res = diagnose_bundle(case.bundle)
     assert not any(e.kind in ("drift", "thermal_lag", "unsensed_source") for e in res.effects)
 
@@ -62,16 +64,30 @@ def test_a_drifting_thermocouple_without_a_twin_is_named_from_the_dynamic_virtua
     # screw with its own time constant and source mix: a static virtual sensor misses each stage's transient by
     # as much as the drift (ratio 2, not named before the dynamic virtual sensor)
     drift = P("sensor_drift", "", "", channels=["T7"], params={"start_s": 0.0, "rate_degC_per_day": 0.5})
-    case = openworld_case([drift], seed=900, hours=30, keep=[("X", "dx"), ("Z", "dz")], scan_s=120.0)
+    case = openworld_case([drift], OpenWorld(seed=900, hours=30, keep=[("X", "dx"), ("Z", "dz")], scan_s=120.0))
     res = diagnose_bundle(case.bundle)
     found = [e for e in res.effects if e.kind == "sensor_drift"]
     assert found and all(e.channels == ["T7"] and e.params["rate_degC_per_day"] > 0 for e in found)
     assert _physical(res) == []
 
 
+def test_a_drifting_thermocouple_logged_every_10_s_is_named_as_at_120_s():
+    # a 20 h campaign logged every 10 s: twelve readings of independent thermocouple noise where a 120 s logger
+    # has one. Counted reading by reading, that noise held the ramp's share of the departure at 2.6 (bar 4); on
+    # 120 s means it is the same law at any scan rate. Without the drift, no channel of the bundle is named
+    drift = P("sensor_drift", "", "", channels=["T7"], params={"start_s": 0.0, "rate_degC_per_day": 0.5})
+    kw = {"seed": 905, "hours": 20, "keep": [("X", "dx"), ("Z", "dz")], "scan_s": 10.0, "interleave": True}
+    scans = scan_sensor_drifts(prepare_bundle(openworld_case([drift], OpenWorld(**kw)).bundle))
+    assert scans["T7"].plausible and scans["T7"].rate_degC_per_day == pytest.approx(0.5, rel=0.1)
+    assert scans["T7"].break_ratio > 4.0
+    assert not any(f.plausible for c, f in scans.items() if c != "T7")
+    clean = scan_sensor_drifts(prepare_bundle(openworld_case([], OpenWorld(**kw)).bundle))
+    assert not any(f.plausible for f in clean.values())
+
+
 def _pair_bundle(seed: int, drift: bool):
     """Return an open-world bundle whose X-nut sites T7 and T8 are two junctions on one nut; T7 drifting."""
-    case = openworld_case([], seed=seed, hours=24, keep=[("X", "dx"), ("Z", "dz")])
+    case = openworld_case([], OpenWorld(seed=seed, hours=24, keep=[("X", "dx"), ("Z", "dz")]))
     temps = case.bundle.temperatures
     rng = np.random.default_rng(seed)
     temps["T8"] = temps["T7"] + 0.3 + rng.normal(0.0, 0.01, len(temps))
@@ -101,7 +117,7 @@ def test_no_drifting_thermocouple_in_the_same_bundle_without_drift():
 
 def test_a_reversal_that_opens_as_the_nut_warms_is_named_or_left_unexplained():
     p = P("direction_thermal", "X", "dx", "phi_x", "dx", ["T7"], {"coef_per_degC": 1.5e-3})
-    case = openworld_case([p], seed=700, hours=24, keep=[("X", "dx")])
+    case = openworld_case([p], OpenWorld(seed=700, hours=24, keep=[("X", "dx")]))
     res = diagnose_bundle(case.bundle)
     named = [e for e in res.effects if e.kind == "direction_thermal" and (e.axis, e.term) == ("X", "dx")]
     left = [u for u in res.unexplained if (u.axis, u.term) == ("X", "dx")]
@@ -113,7 +129,7 @@ def test_a_reversal_that_opens_as_the_nut_warms_is_named_or_left_unexplained():
 
 def test_an_unsensed_heat_input_is_named_or_left_unexplained_with_a_hint():
     p = P("unsensed_source", "X", "dx", "phi_x", "dx", [], {"source": "coolant_pump", "tau_s": 5400.0, "coef": 0.003})
-    case = openworld_case([p], seed=700, hours=30, keep=[("X", "dx")])
+    case = openworld_case([p], OpenWorld(seed=700, hours=30, keep=[("X", "dx")]))
     res = diagnose_bundle(case.bundle)
     named = [e for e in res.effects if e.kind == "unsensed_source"]
     left = [u for u in res.unexplained if (u.axis, u.term) == ("X", "dx")]
@@ -130,7 +146,7 @@ def test_reports_say_worse_in_red_and_list_the_unexplained(capsys, monkeypatch):
     from driftlab.models.diagnosis_report import to_html
 
     p = P("reversal", "X", "dx", "phi_x", "dx", [], {"magnitude": 0.004})
-    case = openworld_case([p], seed=701, hours=20, keep=[("X", "dx")])
+    case = openworld_case([p], OpenWorld(seed=701, hours=20, keep=[("X", "dx")]))
     res = diagnose_bundle(case.bundle)
     eff = res.effects[0]
     eff.rmse_holdout_after = 1.5 * eff.rmse_holdout_before  # as a finding that harms the held-out part would
@@ -156,7 +172,7 @@ def test_reports_say_worse_in_red_and_list_the_unexplained(capsys, monkeypatch):
 def test_the_fit_reads_a_report_with_the_new_kinds_and_says_what_it_does_not_fold():
     from driftlab.models.findings import parse_findings, plan_findings
 
-    case = openworld_case([], seed=5, hours=12, keep=[("X", "dx")])
+    case = openworld_case([], OpenWorld(seed=5, hours=12, keep=[("X", "dx")]))
     doc = {
         "format": "driftlab-diagnosis/1",
         "bundle": case.bundle.name,
