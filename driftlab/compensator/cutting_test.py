@@ -499,7 +499,11 @@ def cmm_points(program: CuttingProgram, log_: Sequence[ExecutedBlock]) -> CmmPoi
 
 
 def _normal_deviations(
-    vm: MachiningMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock], idx: np.ndarray, dims: Mapping[str, Any]
+    vm: MachiningMachine,
+    program: CuttingProgram,
+    log_: Sequence[ExecutedBlock],
+    idx: np.ndarray,
+    dims: Mapping[str, Any],
 ) -> np.ndarray:
     """Return the normal deviations (mm) of the cut at the ends of blocks ``idx`` (controller's log)."""
     all_start = np.array([b.start for b in log_])
@@ -543,7 +547,9 @@ def measure_surface(
     (``align_on_reference``); else they are from the design surface in the machine's own frame.
     """
     if len(log_) != program.pose_written.shape[0]:
-        raise ValidationError(f"the controller executed {len(log_)} blocks, the program has {program.pose_written.shape[0]}")
+        raise ValidationError(
+            f"the controller executed {len(log_)} blocks, the program has {program.pose_written.shape[0]}"
+        )
     dev = _normal_deviations(vm, program, log_, program.cmm_block.ravel(), dims).reshape(program.cmm_block.shape)
     if not aligned:
         return dev

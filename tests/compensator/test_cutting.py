@@ -10,12 +10,12 @@ from driftlab.compensator.compensate import ErrorModel
 from driftlab.compensator.cutting_test import (
     CMM_ACROSS,
     CMM_ALONG,
+    REFERENCE_DEPTH_MM,
     CuttingBench,
     LocalRLS,
     MouldSurface,
     OnlineModelSource,
     approach_directions,
-    REFERENCE_DEPTH_MM,
     bench_guard,
     make_program,
     run_compensated,

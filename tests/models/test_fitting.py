@@ -8,9 +8,9 @@ import pandas as pd
 import pytest
 
 from driftlab.campaigns.bundle import Bundle, CampaignMeta
+from driftlab.daq.sim.truth import SENSITIVITY
 from driftlab.errors import ValidationError
 from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
-from driftlab.daq.sim.truth import SENSITIVITY
 from driftlab.models.document import predict_element_errors, predict_workspace_errors
 from driftlab.models.features import Inputs
 from driftlab.models.fitting import FitOptions, fit_bundles, stage_elements
