@@ -155,7 +155,8 @@ def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
     # beside each measured off-line cut, the model's own predicted spread of it (issue 21.4)
     for c in (thermal, worn):
         p = c["offline_predicted"]
-        assert p["measured_rmse_mm"] == c["offline_unaligned_mm"] and p["predicted_rmse_mm"] > 0 and 0 <= p["inside"] <= 1
+        assert p["measured_rmse_mm"] == c["offline_unaligned_mm"]
+        assert p["predicted_rmse_mm"] > 0 and 0 <= p["inside"] <= 1
     # every step is the real component, in order
     names = [s["name"] for s in rep["steps"]]
     assert names == [

@@ -53,6 +53,22 @@ class FeatureDoc(_Doc):
         return Feature.from_dict(self.model_dump())
 
 
+class JointCovarianceDoc(_Doc):
+    """The covariance of the link models' coefficients across terms (the joint adjustment, issue 21.4)."""
+
+    #: one per coefficient: [element, param, feature name]
+    columns: list[tuple[str, str, str]]
+    matrix: list[list[float]]
+
+    @model_validator(mode="after")
+    def _square(self) -> JointCovarianceDoc:
+        """Require one row and one column per named coefficient."""
+        n = len(self.columns)
+        if len(self.matrix) != n or any(len(r) != n for r in self.matrix):
+            raise ValueError(f"joint_covariance: the matrix must be {n} x {n}, one row per column")
+        return self
+
+
 class SubstitutionDoc(_Doc):
     """A faulty channel replaced from ``since`` by a linear estimate from its neighbours (diagnosis sensor_fault)."""
 
@@ -167,6 +183,8 @@ class ModelDocument(_Doc):
     lines: list[dict[str, Any]] = Field(default_factory=list)
     #: where the machine may go and what a correction may be (``models.envelope``); None in older documents
     envelope: Envelope | None = None
+    #: the coefficients' covariance across terms (None in older documents: terms then taken independent)
+    joint_covariance: JointCovarianceDoc | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> ModelDocument:
@@ -421,35 +439,61 @@ def predict_workspace_sd(
 ) -> np.ndarray | None:
     """Return the (N, 6) standard deviation of the predicted work-space errors, or None when the document has none.
 
-    Each term's variance x' C x (its ``covariance``) is carried to the work space through the chain
-    to first order (eq. 4.12: dW/dp_e at the pose, evaluated as in ``predict_workspace_errors``);
-    terms are taken independent of each other. With ``residual``, the largest residual variance of
-    the terms of each parameter is added (what the model leaves: the error of one reading, not of the
-    correction alone). A prediction interval is the prediction +- z times this.
+    Each coefficient's effect is carried to the work space through the chain to first order (eq. 4.12:
+    dW/dp_e at the pose times the term's regressor, evaluated as in ``predict_workspace_errors``). With
+    the document's ``joint_covariance`` the coefficients of all terms are taken together (g' C g per
+    point and component); the terms' own covariances give what it does not cover (the lines'
+    corrections, fitted apart: independent), and documents without it are taken term by term,
+    independent of each other. With ``residual``, the largest residual variance of the terms of each
+    parameter is added (what the model leaves: the error of one reading, not of the correction alone).
+    A prediction interval is the prediction +- z times this.
     """
     doc = validate_document(document)
-    if not any(t.covariance is not None for t in doc.terms):
+    if not any(t.covariance is not None for t in doc.terms) and doc.joint_covariance is None:
         return None
     q = np.atleast_2d(np.asarray(q, float))
     n = q.shape[0]
     inp = _inputs(doc, temperatures, n, at)
     d = _directions(direction, n)
     dims = document_dims(doc)
+    joint = doc.joint_covariance
+    where = {tuple(c): i for i, c in enumerate(joint.columns)} if joint is not None else {}
+    G = np.zeros((n, 6, len(where)))  # dW / d coefficient of every jointly estimated column
+    C_joint = np.asarray(joint.matrix, float) if joint is not None else np.zeros((0, 0))
     var = np.zeros((n, 6))
     resid = np.zeros(6)
-    eps = 1e-6
     for t in doc.terms:
         k = PARAMS.index(t.param)
         if t.residual_variance is not None:
             resid[k] = max(resid[k], float(t.residual_variance))
+        X = design_matrix([f.feature() for f in t.features], inp, q, d).to_numpy(float)
+        J = _element_jacobian(q, t.element, k, dims)
+        cols = [where.get((t.element, t.param, f.name)) for f in t.features]
+        for j, c in enumerate(cols):
+            if c is not None:
+                G[:, :, c] += J * X[:, j : j + 1]
         if t.covariance is None:
             continue
-        X = design_matrix([f.feature() for f in t.features], inp, q, d).to_numpy(float)
-        v = np.clip(np.einsum("ij,jk,ik->i", X, np.asarray(t.covariance, float), X), 0.0, None)
-        unit = np.zeros((n, 6))
-        unit[:, k] = eps
-        J = workspace_error(q, {t.element: unit}, dims) / eps
+        C = np.asarray(t.covariance, float)
+        own = np.array([c is None for c in cols])
+        # what the joint covariance does not hold: the term's own coefficients apart from it, and what a
+        # line's correction added to a jointly estimated coefficient (its variance on the diagonal)
+        extra = np.where(own[:, None] & own[None, :], C, 0.0)
+        for j, c in enumerate(cols):
+            if c is not None:
+                extra[j, j] = max(C[j, j] - C_joint[c, c], 0.0)
+        v = np.clip(np.einsum("ij,jk,ik->i", X, extra, X), 0.0, None)
         var += J**2 * v[:, None]
+    if len(where):
+        var += np.clip(np.einsum("ncj,jk,nck->nc", G, C_joint, G, optimize=True), 0.0, None)
     if residual:
         var += resid[None, :]
     return np.sqrt(var)
+
+
+def _element_jacobian(q: np.ndarray, element: str, k: int, dims: Mapping[str, Any]) -> np.ndarray:
+    """Return (N, 6) dW / dp: the work-space error per unit of one parameter of one element (eq. 4.12, first order)."""
+    eps = 1e-6
+    unit = np.zeros((q.shape[0], 6))
+    unit[:, k] = eps
+    return workspace_error(q, {element: unit}, dims) / eps

@@ -1475,6 +1475,9 @@ def _fit_bundles(
         "findings": findings,
         "lines": [_line_record(fit, composed) for fit in lines],
     }
+    joint = joint_out.get("joint")
+    if joint is not None:  # the coefficients' covariance across terms, for the prediction interval (issue 21.4)
+        doc["joint_covariance"] = _joint_covariance(joint, terms)
     travel = campaign_travel(bundles)
     if travel:  # the machine's travel the campaigns state: the compensator's envelope (docs/compensate.md)
         doc["envelope"] = {"travel": travel, "source": "campaigns"}
@@ -1541,6 +1544,23 @@ def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd
                 C = np.pad(C.reshape(len(names) - 1, len(names) - 1), ((0, 1), (0, 1)))
                 C[-1, -1] = se**2
         entry["covariance"] = [[float(v) for v in r] for r in C]
+
+
+def _joint_covariance(joint: JointFit, terms: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Return the document's ``joint_covariance``: the joint adjustment's covariance of the terms' coefficients.
+
+    The link models are estimated together (``joint_adjust``), and where the campaign pins only a sum
+    (the column's growth against the carriage's, an angle constant against another) their coefficients
+    are strongly anti-correlated: taken independent, the prediction's spread would be many times the
+    real one. Columns are (element, param, feature name) of the document's terms, in the joint's order.
+    """
+    in_doc = {(t["element"], t["param"], f["name"]) for t in terms for f in t["features"]}
+    idx = [i for i, (e, p, f) in enumerate(joint.columns) if (e, p, f.name) in in_doc]
+    C = joint.cov[np.ix_(idx, idx)]
+    return {
+        "columns": [[joint.columns[i][0], joint.columns[i][1], joint.columns[i][2].name] for i in idx],
+        "matrix": [[float(v) for v in row] for row in C],
+    }
 
 
 def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:

@@ -143,3 +143,43 @@ def test_covariance_is_optional_checked_and_gives_a_prediction_interval():
     bad = [dict(terms[0]), dict(terms[1], covariance=[[1.0]])]
     with pytest.raises(ValidationError):
         validate_document(_doc(terms=bad))
+
+
+def test_joint_covariance_carries_the_trade_off_between_terms():
+    """Two constants the campaign pins only as a sum: the interval of the sum is small, not the parts' spread."""
+    from driftlab.models.document import predict_workspace_sd
+
+    sigma = 0.004  # mm: each constant alone
+    terms = [
+        {
+            "element": el,
+            "param": "dz",
+            "features": [{"kind": "intercept", "name": "const"}],
+            "coefficients": [0.0],
+            "covariance": [[sigma**2]],
+            "statistics": {"rmse_train": 0.0},
+        }
+        for el in ("T3", "T4")
+    ]
+    cols = [["T3", "dz", "const"], ["T4", "dz", "const"]]
+    temps, home = {"T9": 20.0}, np.zeros((1, 5))
+    inputs = {"T9": {"reference": 20.0, "min": 19.0, "max": 30.0}}
+
+    def sd(rho=None):
+        over = {"inputs": inputs, "terms": terms}
+        if rho is not None:
+            over["joint_covariance"] = {
+                "columns": cols,
+                "matrix": [[sigma**2, rho * sigma**2], [rho * sigma**2, sigma**2]],
+            }
+        out = predict_workspace_sd(validate_document(_doc(**over)), temps, home, residual=False)
+        assert out is not None
+        return float(out[0, 5])
+
+    # both translate the table along Z at home: taken independent sqrt(2) sigma, as the joint fit says 0 to 2 sigma
+    assert sd() == pytest.approx(np.sqrt(2) * sigma, rel=1e-3)
+    assert sd(0.0) == pytest.approx(np.sqrt(2) * sigma, rel=1e-3)
+    assert sd(-0.99) == pytest.approx(np.sqrt(0.02) * sigma, rel=1e-2)
+    assert sd(1.0) == pytest.approx(2 * sigma, rel=1e-3)
+    with pytest.raises(ValidationError):
+        validate_document(_doc(inputs=inputs, terms=terms, joint_covariance={"columns": cols, "matrix": [[1.0]]}))
