@@ -14,7 +14,6 @@ from driftlab.api import guard, live, pages, problems
 from driftlab.api.deps import ApiState, ModelCache, get_state
 from driftlab.api.routes import campaigns, drift, histories, jobs, machines, models, online
 from driftlab.api.schemas import Health
-from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import Store, connect
 from driftlab.jobs import Jobs
 
@@ -89,7 +88,7 @@ def create_app(
     @app.get("/health", response_model=Health, tags=["health"], summary="Liveness and database reachability")
     def health(st: Annotated[ApiState, Depends(get_state)]) -> Health:
         """Return ok when the database answers."""
-        api_queries.ping(st.store)
+        st.store.ping()
         return Health(status="ok", database=st.store.dialect)
 
     def openapi() -> dict[str, Any]:

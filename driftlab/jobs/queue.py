@@ -21,6 +21,7 @@ import os
 import socket
 import threading
 import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from procrastinate import App, JobContext, PsycopgConnector
@@ -252,7 +253,7 @@ def defer(
     queue_id = app.configure_task(
         TASKS[kind], allow_unknown=False, lock=lock, priority=priority, queueing_lock=queueing_lock
     ).defer(job_id=job_id)
-    store.link_queue_job(job_id, queue_id)
+    store.jobs.link_queue_job(job_id, queue_id)
     return int(queue_id)
 
 
@@ -272,14 +273,14 @@ def submit_to_queue(
     AlreadyEnqueued (a job with the same queueing lock waits already) removes the record and is
     re-raised; any other failure to queue leaves the record failed with the reason.
     """
-    job_id = store.record_job(kind, params, machine_id=machine_id, campaign_id=campaign_id)
+    job_id = store.jobs.record(kind, params, machine_id=machine_id, campaign_id=campaign_id)
     try:
         defer(app, store, job_id, kind, machine_id, priority=priority, queueing_lock=queueing_lock)
     except AlreadyEnqueued:
-        store.delete_job(job_id)
+        store.jobs.delete(job_id)
         raise
     except Exception as exc:
-        store.fail_job(job_id, f"could not be queued: {one_line(exc)}")
+        store.jobs.fail(job_id, f"could not be queued: {one_line(exc)}")
         raise
     return job_id
 
@@ -291,7 +292,7 @@ def submit_refits(store: Store, app: App) -> list[int]:
     model's campaigns plus the newer ones; at most one refit per machine waits in the queue.
     """
     ids = []
-    for cand in store.refit_candidates():
+    for cand in store.models.refit_candidates():
         kept = {k: v for k, v in cand.params.items() if k in ("network", "findings", "force_findings")}
         params = {"network": False, **kept, "campaigns": cand.campaign_ids, "refit_of": cand.model_version}
         try:
@@ -315,27 +316,31 @@ def submit_refits(store: Store, app: App) -> list[int]:
 # ----------------------------------------------------------------------------- workers
 
 
-def _worker(
-    app: App,
-    store: Store,
-    *,
-    concurrency: int,
-    wait: bool,
-    name: str | None,
-    signals: bool,
-    on_model: OnModel | None = None,
-    on_stage: OnStage | None = None,
-    polling_s: float = 5.0,
-) -> Worker:
+@dataclass(frozen=True)
+class WorkerOptions:
+    """How a procrastinate worker of driftlab runs: its job concurrency, whether it waits for jobs
+    (or ends once nothing is runnable), its name, whether it installs signal handlers, the callbacks
+    its tasks report to, and how often it polls the queue besides listening."""
+
+    concurrency: int = 1
+    wait: bool = True
+    name: str | None = None
+    signals: bool = False
+    on_model: OnModel | None = None
+    on_stage: OnStage | None = None
+    polling_s: float = 5.0
+
+
+def _worker(app: App, store: Store, options: WorkerOptions) -> Worker:
     return Worker(
         app=app,
         queues=[policy.QUEUE],
-        name=name or default_worker_name(),
-        concurrency=concurrency,
-        wait=wait,
-        install_signal_handlers=signals,
-        fetch_job_polling_interval=polling_s,
-        additional_context={"store": store, "on_model": on_model, "on_stage": on_stage},
+        name=options.name or default_worker_name(),
+        concurrency=options.concurrency,
+        wait=options.wait,
+        install_signal_handlers=options.signals,
+        fetch_job_polling_interval=options.polling_s,
+        additional_context={"store": store, "on_model": options.on_model, "on_stage": options.on_stage},
     )
 
 
@@ -391,9 +396,7 @@ def run_worker(
             requeued = await _retry_stalled(app)
             if requeued:
                 log.warning("worker: %d job(s) of lost workers queued again", requeued)
-            worker = _worker(
-                app, store, concurrency=concurrency, wait=wait, name=name, signals=False, on_stage=on_stage
-            )
+            worker = _worker(app, store, WorkerOptions(concurrency, wait, name, on_stage=on_stage))
             current.update(worker=worker)
             health.update(worker=worker, lost_since=None)
             try:
@@ -457,12 +460,12 @@ def run_worker(
 def run_until_ended(store: Store, job_id: int, *, on_stage: OnStage | None = None, poll_s: float = 1.0) -> JobInfo:
     """Run queued jobs in this process until job ``job_id`` has ended (another worker may run it); return it."""
     while True:
-        job = store.get_job(job_id)
+        job = store.jobs.get(job_id)
         if job.state in ("done", "failed"):
             return job
         if job.state == "queued":
             run_worker(store, wait=False, on_stage=on_stage)
-            job = store.get_job(job_id)
+            job = store.jobs.get(job_id)
             if job.state in ("done", "failed"):
                 return job
         time.sleep(poll_s)  # running elsewhere, held by its machine's lock, or waiting for its retry
@@ -524,16 +527,10 @@ class QueueWorker(threading.Thread):
     async def _main(self) -> None:
         app = build_app(store_url(self.store), pool_size=self.concurrency + 3)
         async with app.open_async():
-            worker = _worker(
-                app,
-                self.store,
-                concurrency=self.concurrency,
-                wait=True,
-                name=self.worker_name,
-                signals=False,
-                on_model=self.on_model,
-                polling_s=self.polling_s,
+            options = WorkerOptions(
+                self.concurrency, name=self.worker_name, on_model=self.on_model, polling_s=self.polling_s
             )
+            worker = _worker(app, self.store, options)
             with self._lock:
                 if self._stopping:
                     return

@@ -1,13 +1,20 @@
-"""Read queries of the campaign store: export, campaign list, drift and downsampled histories.
+"""The readings' repository: drift across campaigns, histories and their pages, the latest scan.
 
-Every query's SQL lives here (callers such as the API and the CLI get DataFrames or dataclasses).
+A machine's drift is read across its campaigns; a campaign's temperature, machine-state and error
+histories raw or downsampled in SQL, or a page at a time.
+
+Every reading table is keyed by campaign and partitioned by the campaign's start day
+(``partitions``): each query names that key, so on PostgreSQL it reads one partition. Pages are
+keyset pages on the tables' primary keys (``HistoryPage.after``), so a page costs one range scan
+whatever its offset in the history.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime, timedelta
+from datetime import datetime
 from typing import Any
 
 import numpy as np
@@ -15,227 +22,71 @@ import pandas as pd
 from sqlalchemy import Connection, func, select, text
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import Bundle, CampaignMeta
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS, ROLLUP_S
 from driftlab.campaigns.partitions import start_day
+from driftlab.campaigns.repository import Repository, campaign_day, campaign_row, machine_exists, time_window
 from driftlab.errors import BadRequestError, NotFoundError, ValidationError
 from driftlab.vocabulary import AXES, TERMS
 
 
 @dataclass(frozen=True)
-class CampaignSummary:
-    """One line of the campaign list."""
+class DriftQuery:
+    """What a drift query asks: (axis, term) of a machine, at a position (nearest measured, or
+    interpolated along position within each sweep) or at every position, one direction or both,
+    between two wall-clock times."""
 
-    id: int
     machine_id: str
-    name: str
+    axis: str
+    term: str
+    position: float | None = None
+    direction: int | None = None
+    start: datetime | None = None
+    end: datetime | None = None
+    interpolate: bool = False
+
+    def check(self) -> None:
+        """Raise ValidationError / BadRequestError for an unknown axis or term, a bad direction, or
+        interpolation without a position."""
+        if self.axis not in AXES:
+            raise ValidationError(f"unknown axis {self.axis!r}: expected one of {' '.join(AXES)}")
+        if self.term not in TERMS:
+            raise ValidationError(f"unknown term {self.term!r}: expected one of {' '.join(TERMS)}")
+        if self.direction not in (None, 1, -1):
+            raise ValidationError(f"direction must be +1 or -1, not {self.direction}")
+        if self.interpolate and self.position is None:
+            raise BadRequestError("interpolation needs a position")
+
+
+@dataclass(frozen=True)
+class HistoryPage:
+    """A page of a raw history: a time range, the keyset position to start after (a time, or an
+    error sample's seq), rows to skip and the page size."""
+
+    start_s: float | None = None
+    end_s: float | None = None
+    after: float | None = None
+    offset: int = 0
+    limit: int = 1000
+
+
+@dataclass(frozen=True)
+class ErrorFilter:
+    """Which error samples a page holds: of one axis, term and direction (None: any)."""
+
+    axis: str | None = None
+    term: str | None = None
+    direction: int | None = None
+
+
+@dataclass(frozen=True)
+class LatestScan:
+    """A machine's latest thermocouple scan: its campaign, the campaign's start, the scan's time and
+    the value per channel (None where the reading is missing)."""
+
+    campaign_id: int
     started_at: datetime
-    status: str
-    source: str
-    channels: int
-    scans: int
-    error_samples: int
-    stages: int
-
-    def as_dict(self) -> dict[str, Any]:
-        """Return the summary as a JSON-ready dict."""
-        return {
-            "id": self.id,
-            "machine_id": self.machine_id,
-            "name": self.name,
-            "started_at": self.started_at.isoformat().replace("+00:00", "Z"),
-            "status": self.status,
-            "source": self.source,
-            "channels": self.channels,
-            "scans": self.scans,
-            "error_samples": self.error_samples,
-            "stages": self.stages,
-        }
-
-
-def _campaign_row(conn: Connection, campaign_id: int) -> Any:
-    row = conn.execute(select(sc.Campaign.__table__).where(sc.Campaign.id == campaign_id)).first()
-    if row is None:
-        raise NotFoundError(f"no campaign {campaign_id}")
-    return row
-
-
-def list_campaigns(conn: Connection, machine_id: str | None = None) -> list[CampaignSummary]:
-    """Return every campaign (optionally of one machine) with its sizes, oldest first."""
-    q = select(sc.Campaign.__table__).order_by(sc.Campaign.started_at, sc.Campaign.id)
-    if machine_id is not None:
-        q = q.where(sc.Campaign.machine_id == machine_id)
-    out = []
-    for c in conn.execute(q).all():
-        channels = (
-            conn.execute(select(sc.Channel.id).where(sc.Channel.campaign_id == c.id).order_by(sc.Channel.ordinal))
-            .scalars()
-            .all()
-        )
-        scans = 0
-        if channels:
-            # one channel's key range (primary key prefix) counts the scans without a table scan
-            scans = conn.execute(
-                select(func.count())
-                .select_from(sc.TemperatureSample)
-                .where(
-                    sc.TemperatureSample.campaign_id == c.id,
-                    sc.TemperatureSample.channel_id == channels[0],
-                    sc.TemperatureSample.campaign_start_day == start_day(c.started_at),
-                )
-            ).scalar_one()
-        errors = conn.execute(
-            select(func.count())
-            .select_from(sc.ErrorSample)
-            .where(sc.ErrorSample.campaign_id == c.id, sc.ErrorSample.campaign_start_day == start_day(c.started_at))
-        ).scalar_one()
-        stages = conn.execute(
-            select(func.count()).select_from(sc.Stage).where(sc.Stage.campaign_id == c.id)
-        ).scalar_one()
-        out.append(
-            CampaignSummary(
-                c.id,
-                c.machine_id,
-                c.name,
-                c.started_at,
-                c.status,
-                c.source,
-                len(channels),
-                int(scans),
-                int(errors),
-                int(stages),
-            )
-        )
-    return out
-
-
-def _meta_from_tables(conn: Connection, campaign: Any) -> CampaignMeta:
-    """Return campaign.json rebuilt from the tables (for campaigns stored without a document)."""
-    machine = conn.execute(select(sc.Machine.__table__).where(sc.Machine.id == campaign.machine_id)).one()
-    channels = conn.execute(
-        select(sc.Channel.__table__).where(sc.Channel.campaign_id == campaign.id).order_by(sc.Channel.ordinal)
-    ).all()
-    stages = conn.execute(
-        select(sc.Stage.__table__).where(sc.Stage.campaign_id == campaign.id).order_by(sc.Stage.ordinal)
-    ).all()
-    doc = {
-        "format": "driftlab-bundle/1",
-        "machine": {
-            "id": machine.id,
-            "name": machine.name,
-            "resolution_mm": machine.resolution_mm,
-            "resolution_deg": machine.resolution_deg,
-        },
-        "started_at": campaign.started_at,
-        "channels": {c.name: {"location": c.location, "structure": c.structure} for c in channels},
-        "room_channels": [c.name for c in channels if c.is_room],
-        "stages": [
-            {
-                "name": s.name,
-                "start_s": s.start_s,
-                "end_s": s.end_s if s.end_s is not None else s.start_s,
-                "heat_source": s.heat_source,
-                "axis": s.axis,
-                "spindle_rpm": s.spindle_rpm,
-                "feed_mm_min": s.feed_mm_min,
-            }
-            for s in stages
-        ],
-    }
-    doc["machine"] = {k: v for k, v in doc["machine"].items() if v is not None}
-    return CampaignMeta.model_validate(doc)
-
-
-def load_campaign(conn: Connection, campaign_id: int) -> Bundle:
-    """Return a stored campaign as a Bundle (the exact values that were imported)."""
-    campaign = _campaign_row(conn, campaign_id)
-    meta = CampaignMeta.model_validate(campaign.meta) if campaign.meta else _meta_from_tables(conn, campaign)
-    channels = conn.execute(
-        select(sc.Channel.id, sc.Channel.name).where(sc.Channel.campaign_id == campaign_id).order_by(sc.Channel.ordinal)
-    ).all()
-    day = start_day(campaign.started_at)
-    raw = conn.connection.driver_connection
-    placeholder = "%s" if conn.dialect.name == "postgresql" else "?"
-    cur = raw.cursor()  # type: ignore[union-attr]
-    try:
-        series: dict[str, pd.Series] = {}
-        for channel_id, name in channels:
-            cur.execute(
-                "SELECT time_s, value FROM temperature_samples WHERE campaign_id = "
-                f"{placeholder} AND channel_id = {placeholder} AND campaign_start_day = {placeholder} ORDER BY time_s",
-                (campaign_id, channel_id, day),
-            )
-            rows = cur.fetchall()
-            t = np.fromiter((r[0] for r in rows), dtype="f8", count=len(rows))
-            v = np.fromiter((np.nan if r[1] is None else r[1] for r in rows), dtype="f8", count=len(rows))
-            series[name] = pd.Series(v, index=t)
-    finally:
-        cur.close()
-    if series and all(s.index.equals(next(iter(series.values())).index) for s in series.values()):
-        times = next(iter(series.values())).index.to_numpy()
-        temps = pd.DataFrame({"time_s": times, **{k: s.to_numpy() for k, s in series.items()}})
-    else:
-        wide = pd.DataFrame(series).sort_index()
-        temps = pd.concat([pd.Series(wide.index.to_numpy(), name="time_s"), wide.reset_index(drop=True)], axis=1)
-    conditions = None
-    if campaign.conditions_columns is not None:
-        cols = [c for c in campaign.conditions_columns if c != "time_s"]
-        rows = conn.execute(
-            select(sc.ConditionSample.time_s, *[getattr(sc.ConditionSample, c) for c in cols])
-            .where(sc.ConditionSample.campaign_id == campaign_id, sc.ConditionSample.campaign_start_day == day)
-            .order_by(sc.ConditionSample.time_s)
-        ).all()
-        arr = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype="f8").reshape(
-            len(rows), len(cols) + 1
-        )
-        conditions = pd.DataFrame(arr, columns=["time_s", *cols])
-    pose_cols = (
-        [sc.ErrorSample.x, sc.ErrorSample.y, sc.ErrorSample.z, sc.ErrorSample.a, sc.ErrorSample.b, sc.ErrorSample.setup]
-        if meta.v2
-        else []
-    )
-    rows = conn.execute(
-        select(
-            sc.ErrorSample.time_s,
-            sc.ErrorSample.axis,
-            sc.ErrorSample.term,
-            sc.ErrorSample.position,
-            sc.ErrorSample.direction,
-            sc.ErrorSample.value,
-            *pose_cols,
-        )
-        .where(sc.ErrorSample.campaign_id == campaign_id, sc.ErrorSample.campaign_start_day == day)
-        .order_by(sc.ErrorSample.seq)
-    ).all()
-    errors = pd.DataFrame(
-        {
-            "time_s": np.array([r[0] for r in rows], dtype="f8"),
-            "axis": pd.array([r[1] for r in rows], dtype="str"),
-            "term": pd.array([r[2] for r in rows], dtype="str"),
-            "position": np.array([r[3] for r in rows], dtype="f8"),
-            "direction": np.array([r[4] for r in rows], dtype="i8"),
-            "value": np.array([r[5] for r in rows], dtype="f8"),
-        }
-    )
-    if meta.v2:  # bundle v2: the commanded pose (mm, deg) and setup of every reading
-        for k, name in enumerate(("x", "y", "z", "a", "b")):
-            errors[name] = np.array([np.nan if r[6 + k] is None else r[6 + k] for r in rows], dtype="f8")
-        errors["setup"] = pd.array([r[11] for r in rows], dtype="str")
-    return Bundle(name=campaign.name, meta=meta, temperatures=temps, conditions=conditions, errors=errors)
-
-
-# ----------------------------------------------------------------------------- drift
-
-
-def _check_axis_term(axis: str, term: str) -> None:
-    if axis not in AXES:
-        raise ValidationError(f"unknown axis {axis!r}: expected one of {' '.join(AXES)}")
-    if term not in TERMS:
-        raise ValidationError(f"unknown term {term!r}: expected one of {' '.join(TERMS)}")
-
-
-def _seconds(delta: timedelta) -> float:
-    return delta.total_seconds()
+    time_s: float
+    values: dict[str, float | None]
 
 
 DRIFT_COLUMNS = ["campaign_id", "time", "time_s", "position", "direction", "sweep", "value"]
@@ -305,86 +156,71 @@ def _directions(conn: Connection, params: dict[str, Any], direction: int | None)
     return [d for d in (-1, 1) if conn.execute(probe, {**params, "d": d}).first() is not None]
 
 
-def drift(
-    conn: Connection,
-    machine_id: str,
-    axis: str,
-    term: str,
-    position: float | None = None,
-    direction: int | None = None,
-    start: datetime | None = None,
-    end: datetime | None = None,
-    interpolate: bool = False,
-) -> pd.DataFrame:
+def _drift(conn: Connection, q: DriftQuery) -> pd.DataFrame:
     """Return the error history of (axis, term) on a machine across its campaigns, in wall-clock time.
 
-    With ``position`` the history is taken at the nearest measured position of each campaign, or
+    With a position the history is taken at the nearest measured position of each campaign, or
     (``interpolate``) linearly interpolated along position within each sweep; without it every
     measured position is returned. Columns: campaign_id, time (UTC), time_s, position, direction,
     sweep, value.
     """
-    _check_axis_term(axis, term)
-    if direction not in (None, 1, -1):
-        raise ValidationError(f"direction must be +1 or -1, not {direction}")
-    if interpolate and position is None:
-        raise BadRequestError("interpolation needs a position")
-    if conn.execute(select(sc.Machine.id).where(sc.Machine.id == machine_id)).first() is None:
-        raise NotFoundError(f"no machine {machine_id!r}")
+    q.check()
+    machine_exists(conn, q.machine_id)
     campaigns = conn.execute(
         select(sc.Campaign.id, sc.Campaign.started_at)
-        .where(sc.Campaign.machine_id == machine_id)
+        .where(sc.Campaign.machine_id == q.machine_id)
         .order_by(sc.Campaign.started_at, sc.Campaign.id)
     ).all()
-    dir_sql = "" if direction is None else "AND direction = :d"
     frames = []
     for cid, started in campaigns:
-        t0 = -np.inf if start is None else _seconds(start - started)
-        t1 = np.inf if end is None else _seconds(end - started)
+        t0 = -np.inf if q.start is None else (q.start - started).total_seconds()
+        t1 = np.inf if q.end is None else (q.end - started).total_seconds()
         if t1 < 0:
             continue
         params: dict[str, Any] = {
             "c": cid,
             "day": start_day(started),
-            "axis": axis,
-            "term": term,
-            "d": direction,
+            "axis": q.axis,
+            "term": q.term,
+            "d": q.direction,
             "t0": max(t0, -1e300),
             "t1": min(t1, 1e300),
         }
-        data: list[tuple[Any, ...]] = []
-        if position is None:
+        rows: Sequence[Sequence[Any]]
+        if q.position is None:
+            dir_sql = "" if q.direction is None else "AND direction = :d"
             rows = conn.execute(text(_ALL_POSITIONS_SQL.format(dir=dir_sql)), params).all()
-            data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
-        elif interpolate:
-            params["p"] = p = float(position)
-            for d in _directions(conn, params, direction):
-                q = {**params, "d": d}
-                brackets = [
-                    r for r in conn.execute(text(_BRACKETS_SQL), q).all() if r[1] is not None and r[2] is not None
-                ]
-                if not brackets:
-                    continue
-                wanted = sorted({r[1] for r in brackets} | {r[2] for r in brackets})
-                at = {
-                    (sw, pos): (t, v)
-                    for w in wanted
-                    for sw, pos, t, v in conn.execute(text(_ROWS_AT_SQL), {**q, "pos": w})
-                }
-                for sweep, lo, hi in brackets:
-                    (ta, va), (th, vh) = at[(sweep, lo)], at[(sweep, hi)]
-                    f = 0.0 if hi == lo else (p - lo) / (hi - lo)
-                    t = ta + (th - ta) * f
-                    if t0 <= t <= t1:
-                        data.append((cid, t, p, d, sweep, va + (vh - va) * f))
+        elif q.interpolate:
+            rows = _interpolated(conn, {**params, "p": float(q.position)}, q.direction, (t0, t1))
         else:
-            params["p"] = float(position)
-            dirs = [-1, 1] if direction is None else [direction]
-            rows = conn.execute(text(nearest_sql(dirs)), params).all()
-            data = [(cid, t, p, d, s, v) for t, p, d, s, v in rows]
-        if data:
-            offset_ns = int(pd.Timestamp(started).value)
-            frames.append((offset_ns, data))
+            dirs = [-1, 1] if q.direction is None else [q.direction]
+            rows = conn.execute(text(nearest_sql(dirs)), {**params, "p": float(q.position)}).all()
+        if rows:
+            frames.append((int(pd.Timestamp(started).value), [(cid, *r) for r in rows]))
     return _drift_frame(frames)
+
+
+def _interpolated(
+    conn: Connection, params: dict[str, Any], direction: int | None, span: tuple[float, float]
+) -> list[tuple[Any, ...]]:
+    """Return one campaign's (time_s, position, direction, sweep, value) rows interpolated at ``params["p"]``
+    along position within each sweep, kept to the campaign's time span."""
+    p = params["p"]
+    out: list[tuple[Any, ...]] = []
+    for d in _directions(conn, params, direction):
+        q = {**params, "d": d}
+        brackets = [r for r in conn.execute(text(_BRACKETS_SQL), q).all() if r[1] is not None and r[2] is not None]
+        if not brackets:
+            continue
+        wanted = sorted({r[1] for r in brackets} | {r[2] for r in brackets})
+        at = {(sw, pos): (t, v) for w in wanted for sw, pos, t, v in conn.execute(text(_ROWS_AT_SQL), {**q, "pos": w})}
+        for sweep, lo, hi in brackets:
+            (ta, va), (th, vh) = at[(sweep, lo)], at[(sweep, hi)]
+            f = 0.0 if hi == lo else (p - lo) / (hi - lo)
+            t = ta + (th - ta) * f
+            if span[0] <= t <= span[1]:
+                out.append((t, p, d, sweep, va + (vh - va) * f))
+    return out
 
 
 def _drift_frame(parts: list[tuple[int, list[tuple[Any, ...]]]]) -> pd.DataFrame:
@@ -430,7 +266,7 @@ def _channel_id(conn: Connection, campaign_id: int, channel: str) -> tuple[int, 
         .where(sc.Channel.campaign_id == campaign_id, sc.Channel.name == channel)
     ).first()
     if row is None:
-        _campaign_row(conn, campaign_id)
+        campaign_row(conn, campaign_id)
         raise NotFoundError(f"campaign {campaign_id} has no channel {channel!r}")
     return int(row[0]), start_day(row[1])
 
@@ -546,7 +382,7 @@ def _rollup_history(
     )
 
 
-def temperature_history(
+def _temperature_history(
     conn: Connection,
     campaign_id: int,
     channel: str,
@@ -585,7 +421,7 @@ def temperature_history(
     return _history(conn, "temperature_samples", where, params, ["value"], start_s, end_s, buckets)
 
 
-def condition_history(
+def _condition_history(
     conn: Connection,
     campaign_id: int,
     columns: list[str] | None = None,
@@ -594,7 +430,7 @@ def condition_history(
     buckets: int | None = None,
 ) -> pd.DataFrame:
     """Return machine-state values in a time range, raw or min/mean/max per bucket."""
-    day = start_day(_campaign_row(conn, campaign_id).started_at)
+    day = campaign_day(conn, campaign_id)
     cols = list(columns or CONDITION_VALUE_COLUMNS)
     for c in cols:
         if c not in CONDITION_VALUE_COLUMNS:
@@ -609,3 +445,154 @@ def condition_history(
         end_s,
         buckets,
     )
+
+
+class ReadingRepository(Repository):
+    """The readings of the campaigns: drift across campaigns, histories, pages and the latest scan."""
+
+    def drift(
+        self,
+        machine_id: str,
+        axis: str,
+        term: str,
+        position: float | None = None,
+        direction: int | None = None,
+        start: datetime | None = None,
+        end: datetime | None = None,
+        interpolate: bool = False,
+    ) -> pd.DataFrame:
+        """Return the error history of (axis, term) across a machine's campaigns (see ``DriftQuery``).
+
+        Columns: campaign_id, time (UTC), time_s, position, direction, sweep, value.
+        """
+        return self.query_drift(DriftQuery(machine_id, axis, term, position, direction, start, end, interpolate))
+
+    def query_drift(self, query: DriftQuery) -> pd.DataFrame:
+        """Return the drift a ``DriftQuery`` asks for (as ``drift``)."""
+        with self.read() as conn:
+            return _drift(conn, query)
+
+    def temperature_history(
+        self,
+        campaign_id: int,
+        channel: str,
+        start_s: float | None = None,
+        end_s: float | None = None,
+        buckets: int | None = None,
+        rollups: bool = True,
+    ) -> pd.DataFrame:
+        """Return a channel's readings (time_s, value) in a time range, or per bucket
+        (time_s, t_end_s, n, value_min, value_mean, value_max) when ``buckets`` is given.
+
+        Buckets of two minutes or more are aggregated from the per-minute rollups when the campaign has
+        them (``rollups``): their edges are then snapped outward to whole minutes and time_s/t_end_s
+        give the exact bounds each figure covers. Otherwise the edges are exactly
+        t0 + k (t1 - t0) / buckets.
+        """
+        with self.read() as conn:
+            return _temperature_history(conn, campaign_id, channel, start_s, end_s, buckets, rollups)
+
+    def condition_history(
+        self,
+        campaign_id: int,
+        columns: list[str] | None = None,
+        start_s: float | None = None,
+        end_s: float | None = None,
+        buckets: int | None = None,
+    ) -> pd.DataFrame:
+        """Return machine-state values, raw or min/mean/max per bucket computed in SQL."""
+        with self.read() as conn:
+            return _condition_history(conn, campaign_id, columns, start_s, end_s, buckets)
+
+    def temperature_page(self, campaign_id: int, channel: str, page: HistoryPage) -> list[tuple[float, float | None]]:
+        """Return up to ``page.limit`` (time_s, value) readings of a channel in time order, after ``page.after``."""
+        t = sc.TemperatureSample
+        with self.read() as conn:
+            day = campaign_day(conn, campaign_id)
+            ch = conn.execute(
+                select(sc.Channel.id).where(sc.Channel.campaign_id == campaign_id, sc.Channel.name == channel)
+            ).scalar()
+            if ch is None:
+                raise NotFoundError(f"campaign {campaign_id} has no channel {channel!r}")
+            q = select(t.time_s, t.value).where(
+                t.campaign_id == campaign_id, t.channel_id == ch, t.campaign_start_day == day
+            )
+            rows = conn.execute(_paged(q, t.time_s, page)).all()
+            return [(float(a), None if b is None else float(b)) for a, b in rows]
+
+    def condition_page(self, campaign_id: int, columns: list[str], page: HistoryPage) -> list[tuple[Any, ...]]:
+        """Return up to ``page.limit`` rows (time_s, *columns) of the machine-state log in time order."""
+        for c in columns:
+            if c not in CONDITION_VALUE_COLUMNS:
+                raise BadRequestError(f"unknown condition {c!r}: expected some of {', '.join(CONDITION_VALUE_COLUMNS)}")
+        t = sc.ConditionSample
+        with self.read() as conn:
+            day = campaign_day(conn, campaign_id)
+            q = select(t.time_s, *[getattr(t, c) for c in columns]).where(
+                t.campaign_id == campaign_id, t.campaign_start_day == day
+            )
+            return [tuple(r) for r in conn.execute(_paged(q, t.time_s, page)).all()]
+
+    def error_page(self, campaign_id: int, where: ErrorFilter, page: HistoryPage) -> list[Any]:
+        """Return up to ``page.limit`` error samples in bundle order (seq) after the seq ``page.after``,
+        filtered by axis, term, direction and time."""
+        e = sc.ErrorSample
+        with self.read() as conn:
+            day = campaign_day(conn, campaign_id)
+            q = select(e.seq, e.time_s, e.axis, e.term, e.position, e.direction, e.sweep, e.flags, e.value).where(
+                e.campaign_id == campaign_id, e.campaign_start_day == day
+            )
+            if where.axis is not None:
+                q = q.where(e.axis == where.axis)
+            if where.term is not None:
+                q = q.where(e.term == where.term)
+            if where.direction is not None:
+                q = q.where(e.direction == where.direction)
+            q = time_window(q, e.time_s, page.start_s, page.end_s)
+            if page.after is not None:
+                q = q.where(e.seq > page.after)
+            return list(conn.execute(q.order_by(e.seq).limit(page.limit).offset(page.offset)).all())
+
+    def latest_scan(self, machine_id: str) -> LatestScan | None:
+        """Return the machine's latest thermocouple scan, or None when it has no reading.
+
+        The latest campaign of the machine that has readings, its last scan time (one primary-key seek
+        per channel for the maximum, then one per channel for the value).
+        """
+        with self.read() as conn:
+            machine_exists(conn, machine_id)
+            campaigns = conn.execute(
+                select(sc.Campaign.id, sc.Campaign.started_at)
+                .where(sc.Campaign.machine_id == machine_id)
+                .order_by(sc.Campaign.started_at.desc(), sc.Campaign.id.desc())
+            ).all()
+            for cid, started in campaigns:
+                found = _last_scan(conn, int(cid), start_day(started))
+                if found is not None:
+                    return LatestScan(int(cid), started, *found)
+            return None
+
+
+def _paged(q: Any, time_col: Any, page: HistoryPage) -> Any:
+    """Return a time-ordered history query kept to the page's time range, after its keyset position."""
+    q = time_window(q, time_col, page.start_s, page.end_s, page.after)
+    return q.order_by(time_col).limit(page.limit).offset(page.offset)
+
+
+def _last_scan(conn: Connection, campaign_id: int, day: int) -> tuple[float, dict[str, float | None]] | None:
+    """Return a campaign's last scan time and value per channel, or None when it has no reading."""
+    t = sc.TemperatureSample
+    channels = conn.execute(
+        select(sc.Channel.id, sc.Channel.name).where(sc.Channel.campaign_id == campaign_id).order_by(sc.Channel.ordinal)
+    ).all()
+    key = (t.campaign_id == campaign_id, t.campaign_start_day == day)
+    last = [conn.execute(select(func.max(t.time_s)).where(*key, t.channel_id == ch)).scalar() for ch, _ in channels]
+    times = [x for x in last if x is not None]
+    if not times:
+        return None
+    when = max(times)
+    values: dict[str, float | None] = {}
+    for ch, name in channels:
+        v = conn.execute(select(t.value).where(*key, t.channel_id == ch, t.time_s == when)).scalar()
+        values[name] = None if v is None else float(v)
+    return float(when), values
