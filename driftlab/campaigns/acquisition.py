@@ -131,77 +131,65 @@ def open_campaign(
     to resume one whose plan timeline has changed since it started. On PostgreSQL the partition of
     the campaign's start is made (if missing) before the handle is returned: before any reading.
     """
-    handle = _open_campaign(engine, plan, channels, room_channels, resume=resume, origin=origin, extra_meta=extra_meta)
+    fp = plan.fingerprint()
+    with write_transaction(engine) as conn:
+        handle = _resumable(conn, plan, fp, resume)
+        if handle is None:
+            if resume:
+                log.info("no unfinished campaign %s: starting it", plan.name)
+            started = sc.utcnow()
+            meta = _campaign_document(plan, channels, room_channels, started, extra_meta)
+            handle = _create_campaign(conn, plan, meta, started, origin, fp)
+    if not handle.resumed:
+        log.info("campaign %s created (id %d)", plan.name, handle.campaign_id)
     ensure_partitions(engine, [handle.start_day])
     return handle
 
 
-def _open_campaign(
-    engine: Any,
-    plan: Plan,
-    channels: Mapping[str, Mapping[str, str]],
-    room_channels: list[str],
-    *,
-    resume: bool,
-    origin: Mapping[str, Any],
-    extra_meta: Mapping[str, Any] | None = None,
+def _create_campaign(
+    conn: Connection, plan: Plan, meta: dict[str, Any], started: datetime, origin: Mapping[str, Any], fp: str
 ) -> CampaignHandle:
-    """Create or find the campaign row (see open_campaign)."""
-    fp = plan.fingerprint()
-    with write_transaction(engine) as conn:
-        found = _resumable(conn, plan, fp, resume)
-        if found is not None:
-            return found
-        if resume:
-            log.info("no unfinished campaign %s: starting it", plan.name)
-        if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
-            conn.execute(
-                insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(
-                    id=plan.machine.id,
-                    name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", "")),
-                )
-            )
-        started = sc.utcnow()
-        meta = _campaign_document(plan, channels, room_channels, started, extra_meta)
-        cid = _insert_campaign(conn, plan, meta, started)
+    """Insert a new daemon campaign (its machine when new, stages, channels, first cursor); return its handle."""
+    if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
         conn.execute(
-            sc.Channel.__table__.insert(),
-            [
-                {
-                    "campaign_id": cid,
-                    "ordinal": i,
-                    "name": name,
-                    "location": info.get("location", ""),
-                    "structure": info.get("structure", ""),
-                    "is_room": name in room_channels,
-                }
-                for i, (name, info) in enumerate(channels.items())
-            ],
-        )
-        cursor = {
-            "next_scan": 0,
-            "next_point": 0,
-            "n_scans": plan.n_scans,
-            "n_points": len(plan.sweep_points()),
-            "total_s": plan.total_s,
-            "fingerprint": fp,
-            "plan": plan.name,
-            "origin": dict(origin),
-            "faults": 0,
-            "recent_faults": [],
-        }
-        conn.execute(
-            sc.AcquisitionProgress.__table__.insert().values(
-                campaign_id=cid,
-                stage_ordinal=0,
-                sweep=0,
-                last_sample_time_s=None,
-                cursor=cursor,
-                updated_at=sc.utcnow(),
+            insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(
+                id=plan.machine.id, name=plan.machine.name or str(meta["machine"].get("name") or "")
             )
         )
-        ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
-    log.info("campaign %s created (id %d)", plan.name, cid)
+    cid = _insert_campaign(conn, plan, meta, started)
+    room = set(meta["room_channels"])
+    conn.execute(
+        sc.Channel.__table__.insert(),
+        [
+            {
+                "campaign_id": cid,
+                "ordinal": i,
+                "name": name,
+                "location": info.get("location", ""),
+                "structure": info.get("structure", ""),
+                "is_room": name in room,
+            }
+            for i, (name, info) in enumerate(meta["channels"].items())
+        ],
+    )
+    cursor = {
+        "next_scan": 0,
+        "next_point": 0,
+        "n_scans": plan.n_scans,
+        "n_points": len(plan.sweep_points()),
+        "total_s": plan.total_s,
+        "fingerprint": fp,
+        "plan": plan.name,
+        "origin": dict(origin),
+        "faults": 0,
+        "recent_faults": [],
+    }
+    conn.execute(
+        sc.AcquisitionProgress.__table__.insert().values(
+            campaign_id=cid, stage_ordinal=0, sweep=0, last_sample_time_s=None, cursor=cursor, updated_at=sc.utcnow()
+        )
+    )
+    ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
     return CampaignHandle(cid, Cursor(), ids, False, cursor, start_day(started))
 
 

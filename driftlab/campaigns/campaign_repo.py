@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from pydantic import BaseModel
 from sqlalchemy import Connection, delete, func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 
@@ -27,8 +28,7 @@ from driftlab.campaigns.staging import StagedBundle
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
 
 
-@dataclass(frozen=True)
-class CampaignSummary:
+class CampaignSummary(BaseModel):
     """One line of the campaign list."""
 
     id: int
@@ -44,7 +44,7 @@ class CampaignSummary:
 
     def as_dict(self) -> dict[str, Any]:
         """Return the summary as a JSON-ready dict."""
-        return {**self.__dict__, "started_at": self.started_at.isoformat().replace("+00:00", "Z")}
+        return {**dict(self), "started_at": self.started_at.isoformat().replace("+00:00", "Z")}
 
 
 @dataclass(frozen=True)

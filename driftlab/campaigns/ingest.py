@@ -198,35 +198,22 @@ def insert_scan_readings_sqlite(
 # file header, then per row a field count and (length, big-endian value) per field, NULL as length -1.
 _PG_HEADER = b"PGCOPY\n\xff\r\n\x00" + (0).to_bytes(4, "big") + (0).to_bytes(4, "big")
 _PG_TRAILER = (-1).to_bytes(2, "big", signed=True)
-_ROW = np.dtype(
-    [
-        ("n", ">i2"),
-        ("l1", ">i4"),
-        ("c", ">i4"),
-        ("l2", ">i4"),
-        ("ch", ">i4"),
-        ("l3", ">i4"),
-        ("t", ">f8"),
-        ("l4", ">i4"),
-        ("v", ">f8"),
-        ("l5", ">i4"),
-        ("d", ">i4"),
-    ]
-)
-_ROW_NULL = np.dtype(
-    [
-        ("n", ">i2"),
-        ("l1", ">i4"),
-        ("c", ">i4"),
-        ("l2", ">i4"),
-        ("ch", ">i4"),
-        ("l3", ">i4"),
-        ("t", ">f8"),
-        ("l4", ">i4"),
-        ("l5", ">i4"),
-        ("d", ">i4"),
-    ]
-)
+_ROW_FIELDS = [
+    ("n", ">i2"),
+    ("l1", ">i4"),
+    ("c", ">i4"),
+    ("l2", ">i4"),
+    ("ch", ">i4"),
+    ("l3", ">i4"),
+    ("t", ">f8"),
+    ("l4", ">i4"),
+    ("v", ">f8"),
+    ("l5", ">i4"),
+    ("d", ">i4"),
+]
+_ROW = np.dtype(_ROW_FIELDS)
+#: the same without the value (every value NULL: its length -1 and no bytes)
+_ROW_NULL = np.dtype([f for f in _ROW_FIELDS if f[0] != "v"])
 
 
 def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray | None, start_day: int) -> bytes:
@@ -385,6 +372,10 @@ def _into(conn: Connection, table: str, day: int) -> str:
     return leaf(conn, table, day) or table
 
 
+#: the PostgreSQL types of ERROR_COLUMNS (binary COPY)
+ERROR_TYPES = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4", "int4")
+
+
 def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> int:
     """Write a validated bundle (in memory, or staged) in the caller's transaction; return the new campaign id.
 
@@ -393,6 +384,56 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     meta = bundle.meta
     postgres = conn.dialect.name == "postgresql"
     day = start_day(meta.started_at)
+    _ensure_machine(conn, meta)
+    temperatures = as_table(bundle.temperatures)
+    rollups = rollups_pay_chunks(temperatures.column("time_s"))
+    campaign_id = _insert_campaign(conn, bundle, content_hash, rollups)
+    channel_ids = _insert_channels(conn, campaign_id, bundle)
+
+    if postgres:
+        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
+    else:
+        insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
+
+    if rollups:
+        bulk_insert(
+            conn,
+            "temperature_rollups",
+            ROLLUP_COLUMNS,
+            ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
+            rollup_rows(campaign_id, channel_ids, temperatures),
+        )
+
+    if bundle.conditions is not None:
+        conditions = as_table(bundle.conditions)
+        if conditions.n_rows:
+            bulk_insert(
+                conn,
+                "condition_samples",
+                ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
+                ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
+                condition_rows(campaign_id, conditions, postgres, day),
+                into=_into(conn, "condition_samples", day),
+            )
+
+    err_names: tuple[str, ...] = ERROR_COLUMNS
+    types: tuple[str, ...] = ERROR_TYPES
+    if meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
+        err_names += (*POSE_COLUMNS, "setup")
+        types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
+    bulk_insert(
+        conn,
+        "error_samples",
+        err_names,
+        types,
+        error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
+        into=_into(conn, "error_samples", day),
+    )
+    return int(campaign_id)
+
+
+def _ensure_machine(conn: Connection, meta: Any) -> None:
+    """Insert the bundle's machine unless it is stored already."""
     machine = conn.execute(select(sc.Machine.id).where(sc.Machine.id == meta.machine.id)).first()
     if machine is None:
         # ON CONFLICT DO NOTHING: two imports of a new machine at once both see no row; the second
@@ -405,9 +446,12 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
             created_at=sc.utcnow(),
         )
         conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(**values))
+
+
+def _insert_campaign(conn: Connection, bundle: Bundle | Any, content_hash: str, rollups: bool) -> int:
+    """Insert the imported campaign's row and its stages; return its id."""
+    meta = bundle.meta
     cond_cols = None if bundle.conditions is None else list(bundle.conditions.columns)
-    temperatures = as_table(bundle.temperatures)
-    rollups = rollups_pay_chunks(temperatures.column("time_s"))
     campaign_id = conn.execute(
         insert(sc.Campaign)
         .values(
@@ -443,6 +487,12 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
                 for k, s in enumerate(meta.stages)
             ],
         )
+    return int(campaign_id)
+
+
+def _insert_channels(conn: Connection, campaign_id: int, bundle: Bundle | Any) -> list[int]:
+    """Insert the bundle's channels (card order) and return their ids in that order."""
+    meta = bundle.meta
     names = bundle.channels
     room = set(meta.room_channels)
     conn.execute(
@@ -462,60 +512,7 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
         ],
     )
     ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == campaign_id)).all())
-    channel_ids = [ids[name] for name in names]
-
-    if postgres:
-        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
-    else:
-        insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
-
-    if rollups:
-        bulk_insert(
-            conn,
-            "temperature_rollups",
-            ROLLUP_COLUMNS,
-            ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
-            rollup_rows(campaign_id, channel_ids, temperatures),
-        )
-
-    if bundle.conditions is not None:
-        conditions = as_table(bundle.conditions)
-        if conditions.n_rows:
-            bulk_insert(
-                conn,
-                "condition_samples",
-                ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
-                ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
-                condition_rows(campaign_id, conditions, postgres, day),
-                into=_into(conn, "condition_samples", day),
-            )
-
-    err_names: tuple[str, ...] = tuple(ERROR_COLUMNS)
-    types: tuple[str, ...] = (
-        "int4",
-        "int4",
-        "float8",
-        "varchar",
-        "varchar",
-        "float8",
-        "int2",
-        "float8",
-        "int4",
-        "int4",
-        "int4",
-    )
-    if meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
-        err_names += (*POSE_COLUMNS, "setup")
-        types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
-    bulk_insert(
-        conn,
-        "error_samples",
-        err_names,
-        types,
-        error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
-        into=_into(conn, "error_samples", day),
-    )
-    return int(campaign_id)
+    return [ids[name] for name in names]
 
 
 def condition_rows(campaign_id: int, conditions: ColumnTable, postgres: bool, day: int) -> Iterator[tuple[Any, ...]]:

@@ -23,21 +23,6 @@ from driftlab.errors import ConflictError
 
 
 @dataclass(frozen=True)
-class OnlineStateInfo:
-    """A machine's stored on-line (RLS) state: per probed term theta and P, and the concurrency version."""
-
-    machine_id: str
-    model_version_id: int | None
-    model_version: int
-    lam: float
-    n_updates: int
-    theta: dict[str, Any]
-    p: dict[str, Any]
-    updated_at: datetime
-    version: int
-
-
-@dataclass(frozen=True)
 class OnlineUpdate:
     """A new on-line state to store: the model version it belongs to, the forgetting factor, the
     update count and per probed term theta and P (JSON-ready lists)."""
@@ -60,6 +45,16 @@ class OnlineUpdate:
             "p": self.p,
             "updated_at": now,
         }
+
+
+@dataclass(frozen=True)
+class OnlineStateInfo(OnlineUpdate):
+    """A machine's stored on-line (RLS) state: an ``OnlineUpdate`` with its machine, time and the
+    concurrency version."""
+
+    machine_id: str
+    updated_at: datetime
+    version: int
 
 
 class StaleOnlineState(ConflictError):

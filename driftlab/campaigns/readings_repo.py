@@ -382,71 +382,6 @@ def _rollup_history(
     )
 
 
-def _temperature_history(
-    conn: Connection,
-    campaign_id: int,
-    channel: str,
-    start_s: float | None = None,
-    end_s: float | None = None,
-    buckets: int | None = None,
-    rollups: bool = True,
-) -> pd.DataFrame:
-    """Return a channel's readings (time_s, value) in a time range, or per bucket
-    (time_s, t_end_s, n, value_min, value_mean, value_max) when ``buckets`` is given.
-
-    Buckets of two minutes or more are aggregated from the per-minute rollups when the campaign has
-    them (``rollups``): their edges are then snapped outward to whole minutes and time_s/t_end_s
-    give the exact bounds each figure covers. Otherwise the edges are exactly
-    t0 + k (t1 - t0) / buckets.
-    """
-    channel_id, day = _channel_id(conn, campaign_id, channel)
-    where, params = (
-        "campaign_id = :c AND channel_id = :ch AND campaign_start_day = :day",
-        {"c": campaign_id, "ch": channel_id, "day": day},
-    )
-    if buckets and rollups:
-        if buckets < 1:
-            raise ValidationError("buckets must be at least 1")
-        complete = conn.execute(select(sc.Campaign.rollups_complete).where(sc.Campaign.id == campaign_id)).scalar()
-        span = _range(conn, "temperature_samples", where, params) if complete else None
-        if span is not None:
-            t0 = span[0] if start_s is None else float(start_s)
-            t1 = span[1] if end_s is None else float(end_s)
-            if t1 < t0:
-                raise ValidationError(f"time range ends ({t1}) before it starts ({t0})")
-            if t1 > t0:
-                frame = _rollup_history(conn, campaign_id, channel_id, t0, t1, buckets)
-                if frame is not None:
-                    return frame
-    return _history(conn, "temperature_samples", where, params, ["value"], start_s, end_s, buckets)
-
-
-def _condition_history(
-    conn: Connection,
-    campaign_id: int,
-    columns: list[str] | None = None,
-    start_s: float | None = None,
-    end_s: float | None = None,
-    buckets: int | None = None,
-) -> pd.DataFrame:
-    """Return machine-state values in a time range, raw or min/mean/max per bucket."""
-    day = campaign_day(conn, campaign_id)
-    cols = list(columns or CONDITION_VALUE_COLUMNS)
-    for c in cols:
-        if c not in CONDITION_VALUE_COLUMNS:
-            raise ValidationError(f"unknown condition {c!r}: expected some of {', '.join(CONDITION_VALUE_COLUMNS)}")
-    return _history(
-        conn,
-        "condition_samples",
-        "campaign_id = :c AND campaign_start_day = :day",
-        {"c": campaign_id, "day": day},
-        cols,
-        start_s,
-        end_s,
-        buckets,
-    )
-
-
 class ReadingRepository(Repository):
     """The readings of the campaigns: drift across campaigns, histories, pages and the latest scan."""
 
@@ -490,7 +425,26 @@ class ReadingRepository(Repository):
         t0 + k (t1 - t0) / buckets.
         """
         with self.read() as conn:
-            return _temperature_history(conn, campaign_id, channel, start_s, end_s, buckets, rollups)
+            channel_id, day = _channel_id(conn, campaign_id, channel)
+            where = "campaign_id = :c AND channel_id = :ch AND campaign_start_day = :day"
+            params = {"c": campaign_id, "ch": channel_id, "day": day}
+            if buckets and rollups:
+                if buckets < 1:
+                    raise ValidationError("buckets must be at least 1")
+                complete = conn.execute(
+                    select(sc.Campaign.rollups_complete).where(sc.Campaign.id == campaign_id)
+                ).scalar()
+                span = _range(conn, "temperature_samples", where, params) if complete else None
+                if span is not None:
+                    t0 = span[0] if start_s is None else float(start_s)
+                    t1 = span[1] if end_s is None else float(end_s)
+                    if t1 < t0:
+                        raise ValidationError(f"time range ends ({t1}) before it starts ({t0})")
+                    if t1 > t0:
+                        frame = _rollup_history(conn, campaign_id, channel_id, t0, t1, buckets)
+                        if frame is not None:
+                            return frame
+            return _history(conn, "temperature_samples", where, params, ["value"], start_s, end_s, buckets)
 
     def condition_history(
         self,
@@ -502,7 +456,14 @@ class ReadingRepository(Repository):
     ) -> pd.DataFrame:
         """Return machine-state values, raw or min/mean/max per bucket computed in SQL."""
         with self.read() as conn:
-            return _condition_history(conn, campaign_id, columns, start_s, end_s, buckets)
+            params = {"c": campaign_id, "day": campaign_day(conn, campaign_id)}
+            cols = list(columns or CONDITION_VALUE_COLUMNS)
+            for c in cols:
+                if c not in CONDITION_VALUE_COLUMNS:
+                    known = ", ".join(CONDITION_VALUE_COLUMNS)
+                    raise ValidationError(f"unknown condition {c!r}: expected some of {known}")
+            where = "campaign_id = :c AND campaign_start_day = :day"
+            return _history(conn, "condition_samples", where, params, cols, start_s, end_s, buckets)
 
     def temperature_page(self, campaign_id: int, channel: str, page: HistoryPage) -> list[tuple[float, float | None]]:
         """Return up to ``page.limit`` (time_s, value) readings of a channel in time order, after ``page.after``."""

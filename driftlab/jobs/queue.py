@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import signal
 import socket
 import threading
 import time
@@ -25,10 +26,12 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from procrastinate import App, JobContext, PsycopgConnector
-from procrastinate.exceptions import AlreadyEnqueued
+from procrastinate.exceptions import AlreadyEnqueued, ProcrastinateException
 from procrastinate.worker import Worker
+from psycopg import AsyncConnection
+from psycopg import Error as PsycopgError
 
-from driftlab.errors import ValidationError
+from driftlab.errors import ServiceError, ValidationError
 from driftlab.jobs import policy
 from driftlab.jobs.tasks import DIAGNOSE, FIT, OnModel, OnStage, execute, one_line
 
@@ -365,96 +368,101 @@ def run_worker(
     """
     if concurrency < 1:
         raise ValidationError(f"concurrency must be at least 1, got {concurrency}")
-    from procrastinate.exceptions import ProcrastinateException
-    from psycopg import Error as PsycopgError
+    run = _ForegroundRun(store, WorkerOptions(concurrency, wait, name, on_stage=on_stage))
+    pulse = Pulse(pulse_file, name or default_worker_name(), run.health) if pulse_file else None
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, run.on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
+    if pulse is not None:
+        pulse.start()
+    try:
+        run.reconnecting(reconnect_s)
+    finally:
+        if pulse is not None:
+            pulse.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
-    from driftlab.errors import ServiceError
 
-    stop = threading.Event()  # a stop asked for (signal): never reconnect after it
-    current: dict[str, Any] = {}
-    health: dict[str, Any] = {"worker": None, "lost_since": None}  # what the pulse reports
-    pulse = Pulse(pulse_file, name or default_worker_name(), health) if pulse_file else None
+class _ForegroundRun:
+    """One foreground worker's life (``run_worker``): its connections, its stop and its health."""
 
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-        loop, worker, task = current.get("loop"), current.get("worker"), current.get("task")
+    def __init__(self, store: Store, options: WorkerOptions) -> None:
+        self.store = store
+        self.options = options
+        self.stop = threading.Event()  # a stop asked for (signal): never reconnect after it
+        self.current: dict[str, Any] = {}
+        self.health: dict[str, Any] = {"worker": None, "lost_since": None}  # what the pulse reports
+
+    def on_signal(self, signum: int, frame: Any) -> None:
+        """Stop: once the running jobs end, or at once while still connecting."""
+        self.stop.set()
+        loop, worker, task = self.current.get("loop"), self.current.get("worker"), self.current.get("task")
         if loop is not None and worker is not None:
             loop.call_soon_threadsafe(worker.stop)  # running jobs end first
         elif loop is not None and task is not None:
             loop.call_soon_threadsafe(task.cancel)  # still connecting: nothing to finish
 
-    async def once() -> None:
-        current.update(loop=asyncio.get_running_loop(), task=asyncio.current_task())
+    async def once(self) -> None:
+        """Open the queue and run the worker until it stops (asked to, or the connection lost)."""
+        self.current.update(loop=asyncio.get_running_loop(), task=asyncio.current_task())
         # one plain connection first: a server that is down refuses it at once, where the queue's pool
         # would keep trying for 30 s
-        from psycopg import AsyncConnection
-
-        probe = await AsyncConnection.connect(conninfo(store_url(store)), connect_timeout=10)
+        probe = await AsyncConnection.connect(conninfo(store_url(self.store)), connect_timeout=10)
         await probe.close()
-        app = build_app(store_url(store), pool_size=concurrency + 3)
+        app = build_app(store_url(self.store), pool_size=self.options.concurrency + 3)
         async with app.open_async():
             requeued = await _retry_stalled(app)
             if requeued:
                 log.warning("worker: %d job(s) of lost workers queued again", requeued)
-            worker = _worker(app, store, WorkerOptions(concurrency, wait, name, on_stage=on_stage))
-            current.update(worker=worker)
-            health.update(worker=worker, lost_since=None)
+            worker = _worker(app, self.store, self.options)
+            self.current.update(worker=worker)
+            self.health.update(worker=worker, lost_since=None)
             try:
-                if not stop.is_set():
-                    current["connected"] = True
+                if not self.stop.is_set():
+                    self.current["connected"] = True
                     await worker.run()
             finally:
-                current.pop("worker", None)
-                health["worker"] = None
+                self.current.pop("worker", None)
+                self.health["worker"] = None
 
-    import signal
-
-    in_main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
-    if pulse is not None:
-        pulse.start()
-    try:
+    def reconnecting(self, reconnect_s: float) -> None:
+        """Run ``once`` again after each lost connection, 1 .. 15 s apart; ServiceError after ``reconnect_s``."""
         lost_since: float | None = None
         delay = 1.0
         while True:
             began = time.monotonic()
             connected = False
             try:
-                asyncio.run(once())
-                if stop.is_set() or not wait:
+                asyncio.run(self.once())
+                if self.stop.is_set() or not self.options.wait:
                     return
                 reason = "the queue's connection was lost"
             except asyncio.CancelledError:
-                if stop.is_set():
+                if self.stop.is_set():
                     return
                 raise
             except (PsycopgError, ProcrastinateException, OSError) as exc:
-                if stop.is_set():
+                if self.stop.is_set():
                     return
                 reason = one_line(exc)
             finally:
-                connected = bool(current.get("connected"))
-                current.clear()
+                connected = bool(self.current.get("connected"))
+                self.current.clear()
             now = time.monotonic()
             if connected and now - began > 2 * RECONNECT_MAX_DELAY_S:  # it worked a while: a new outage
                 lost_since, delay = None, 1.0
             if lost_since is None:
                 lost_since = now
-                health["lost_since"] = time.time()
+                self.health["lost_since"] = time.time()
             if now - lost_since >= reconnect_s:
                 raise ServiceError(
                     f"worker: no database for {now - lost_since:.0f} s ({reason}); exiting so that its "
                     "supervisor restarts it"
                 )
             log.warning("worker: %s; connecting again in %g s", reason, delay)
-            if stop.wait(delay):
+            if self.stop.wait(delay):
                 return
             delay = min(2 * delay, RECONNECT_MAX_DELAY_S)
-    finally:
-        if pulse is not None:
-            pulse.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 def run_until_ended(store: Store, job_id: int, *, on_stage: OnStage | None = None, poll_s: float = 1.0) -> JobInfo:
@@ -498,9 +506,6 @@ class QueueWorker(threading.Thread):
 
     def run(self) -> None:
         """Run the worker until stopped; when the database goes away, open the queue again (1 .. 15 s apart)."""
-        from procrastinate.exceptions import ProcrastinateException
-        from psycopg import Error as PsycopgError
-
         delay = 1.0
         try:
             while True:

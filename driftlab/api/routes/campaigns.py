@@ -43,7 +43,7 @@ def list_campaigns(
 ) -> CampaignList:
     """Return a page of campaigns (optionally of one machine), oldest first, with their sizes."""
     rows = store.campaigns.summaries(machine_id)[offset : offset + limit]
-    return CampaignList(items=[CampaignOut(**r.__dict__) for r in rows], limit=limit, offset=offset)
+    return CampaignList(items=[CampaignOut(**dict(r)) for r in rows], limit=limit, offset=offset)
 
 
 @router.get("/campaigns/{campaign_id}", response_model=CampaignDetail, summary="Get a campaign")
@@ -54,7 +54,7 @@ def get_campaign(campaign_id: CampaignId, store: Annotated[Store, Depends(get_st
     if summary is None:  # deleted between the two reads
         raise NotFoundError(f"no campaign {campaign_id}")
     return CampaignDetail(
-        **summary.__dict__,
+        **dict(summary),
         stage_list=[_stage(s) for s in detail.stages],
         channel_list=[_channel(c) for c in detail.channels],
         meta=detail.row.meta,

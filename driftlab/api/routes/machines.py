@@ -17,16 +17,8 @@ MachineId = Annotated[str, Path(pattern=ID_PATTERN, description="machine id (the
 
 
 def _out(m: MachineInfo) -> MachineOut:
-    """Return the response model of a machine."""
-    return MachineOut(
-        id=m.id,
-        name=m.name,
-        resolution_mm=m.resolution_mm,
-        resolution_deg=m.resolution_deg,
-        created_at=m.created_at,
-        campaigns=m.campaigns,
-        current_model_version=m.current_model_version,
-    )
+    """Return the response model of a machine (the same fields as the store's MachineInfo)."""
+    return MachineOut(**m.__dict__)
 
 
 @router.get("/machines", response_model=MachineList, summary="List machines")

@@ -25,7 +25,7 @@ from driftlab.api.schemas import (
     ModelVersionOut,
 )
 from driftlab.campaigns.repository import Page
-from driftlab.campaigns.store import Store
+from driftlab.campaigns.store import ModelVersionInfo, Store
 from driftlab.errors import ValidationError
 from driftlab.jsonsafe import check_json
 
@@ -182,27 +182,25 @@ def register(
     return model_out(row)
 
 
+def _changed(state: ApiState, row: ModelVersionInfo) -> Any:
+    """Return a registry row just changed through this API (its machine's cached current model dropped)."""
+    state.models.invalidate(row.machine_id)
+    return model_out(row)
+
+
+#: what the promote and retire routes share: they answer with the version, and need the write token
+_VERSION_WRITE: dict[str, Any] = {"response_model": ModelVersionOut, "dependencies": [Depends(require_token)]}
+
+
 @router.post(
-    "/machines/{machine_id}/models/{version}/promote",
-    response_model=ModelVersionOut,
-    dependencies=[Depends(require_token)],
-    summary="Make a version the current one",
+    "/machines/{machine_id}/models/{version}/promote", summary="Make a version the current one", **_VERSION_WRITE
 )
 def promote(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
     """Make a version current (retiring the previous current one); compensators see a new ETag."""
-    row = state.store.models.promote(machine_id, version)
-    state.models.invalidate(machine_id)
-    return model_out(row)
+    return _changed(state, state.store.models.promote(machine_id, version))
 
 
-@router.post(
-    "/machines/{machine_id}/models/{version}/retire",
-    response_model=ModelVersionOut,
-    dependencies=[Depends(require_token)],
-    summary="Retire a version",
-)
+@router.post("/machines/{machine_id}/models/{version}/retire", summary="Retire a version", **_VERSION_WRITE)
 def retire(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
     """Retire a version; if it was current the machine has no current model until one is promoted."""
-    row = state.store.models.retire(machine_id, version)
-    state.models.invalidate(machine_id)
-    return model_out(row)
+    return _changed(state, state.store.models.retire(machine_id, version))
