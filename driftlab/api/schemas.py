@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
-from driftlab.campaigns.campaign_repo import CampaignSummary
+from driftlab.campaigns.campaign_repo import CampaignSummary, MachineInfo
 
 Condition = Literal["spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b"]
 JobKind = Literal["fit", "diagnose"]
@@ -37,16 +37,8 @@ class _In(BaseModel):
 # ----------------------------------------------------------------------------- machines
 
 
-class MachineOut(_Out):
+class MachineOut(_Out, MachineInfo):
     """A machine tool with the size of its history and its current model version."""
-
-    id: str
-    name: str
-    resolution_mm: float | None
-    resolution_deg: float | None
-    created_at: datetime
-    campaigns: int
-    current_model_version: int | None
 
 
 class MachineList(_Out):

@@ -56,9 +56,8 @@ class CampaignDetail:
     channels: list[Any]
 
 
-@dataclass(frozen=True)
-class MachineInfo:
-    """A machine with the size of its history and its current model version."""
+class MachineInfo(BaseModel):
+    """A machine tool with the size of its history and its current model version."""
 
     id: str
     name: str
@@ -300,7 +299,18 @@ def _machines(conn: Connection, machine_id: str | None, page: Page) -> list[Mach
     if machine_id is not None:
         q = q.where(sc.Machine.id == machine_id)
     rows = conn.execute(page.apply(q)).all()
-    return [MachineInfo(r.id, r.name, r.resolution_mm, r.resolution_deg, r.created_at, int(r.n), r.cur) for r in rows]
+    return [
+        MachineInfo(
+            id=r.id,
+            name=r.name,
+            resolution_mm=r.resolution_mm,
+            resolution_deg=r.resolution_deg,
+            created_at=r.created_at,
+            campaigns=int(r.n),
+            current_model_version=r.cur,
+        )
+        for r in rows
+    ]
 
 
 # ----------------------------------------------------------------------------- export

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from psycopg.copy import QueuedLibpqWriter
 from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
@@ -86,17 +87,31 @@ def sweep_numbers(errors: pd.DataFrame) -> np.ndarray:
 
 
 def _copy_rows(
-    conn: Connection, table: str, columns: Sequence[str], types: Sequence[str], rows: Iterable[Sequence[Any]]
+    conn: Connection,
+    table: str,
+    columns: Sequence[str],
+    types: Sequence[str],
+    rows: Iterable[Sequence[Any]],
+    queued: bool = False,
 ) -> None:
-    """Stream rows into a PostgreSQL table with binary COPY inside the current transaction."""
+    """Stream rows into a PostgreSQL table with binary COPY inside the current transaction (``queued``: see
+    ``copy_writer``)."""
     raw = conn.connection.driver_connection
     cols = ", ".join(columns)
     with raw.cursor() as cur:  # type: ignore[union-attr]
-        with cur.copy(f"COPY {table} ({cols}) FROM STDIN (FORMAT BINARY)") as copy:
+        with cur.copy(f"COPY {table} ({cols}) FROM STDIN (FORMAT BINARY)", writer=copy_writer(cur, queued)) as copy:
             copy.set_types(list(types))
             write = copy.write_row
             for row in rows:
                 write(row)
+
+
+def copy_writer(cur: Any, queued: bool) -> QueuedLibpqWriter | None:
+    """Return the writer of a COPY: with ``queued`` psycopg's QueuedLibpqWriter (psycopg 3 docs, "COPY
+    from and to", writer objects), whose thread sends the data while this one encodes the next rows, so
+    the server is not left waiting on the encoding (an import: millions of rows); else None, psycopg's
+    default writer, which sends in this thread (a daemon's batch: a thread each would cost more)."""
+    return QueuedLibpqWriter(cur) if queued else None
 
 
 def bulk_insert(
@@ -106,13 +121,16 @@ def bulk_insert(
     pg_types: Sequence[str],
     rows: Iterable[Sequence[Any]],
     into: str | None = None,
+    *,
+    queued: bool = False,
 ) -> None:
     """Insert many rows fast in the connection's transaction: binary COPY or sqlite3 executemany.
 
-    ``into`` names the partition of ``table`` every row belongs to, when known (PostgreSQL).
+    ``into`` names the partition of ``table`` every row belongs to, when known (PostgreSQL);
+    ``queued``: see ``copy_writer``.
     """
     if conn.dialect.name == "postgresql":
-        _copy_rows(conn, into or table, columns, pg_types, rows)
+        _copy_rows(conn, into or table, columns, pg_types, rows, queued)
         return
     raw = conn.connection.driver_connection
     marks = ", ".join("?" for _ in columns)
@@ -235,19 +253,23 @@ def copy_temperatures_pg(
     temperatures: pd.DataFrame | ColumnTable,
     start_day: int,
     chunk_rows: int = 200_000,
+    *,
+    queued: bool = False,
 ) -> None:
     """Stream a wide temperature table into temperature_samples with binary COPY, in key order.
 
     ``start_day`` is the campaign's partition key (``partitions.start_day``); its partition must exist.
     The rows go straight into that partition (every row of a campaign has the same key): no routing
-    per row, and PostgreSQL still checks each against the partition's bounds.
+    per row, and PostgreSQL still checks each against the partition's bounds. With ``queued`` the
+    rows are sent from a thread of their own while the next chunk is encoded (``copy_writer``).
     """
     target = _into(conn, "temperature_samples", start_day)
     raw = conn.connection.driver_connection
     table = as_table(temperatures)
     names = [c for c in table.columns if c != "time_s"]
     with raw.cursor() as cur:  # type: ignore[union-attr]
-        with cur.copy(f"COPY {target} ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)") as cp:
+        sql = f"COPY {target} ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)"
+        with cur.copy(sql, writer=copy_writer(cur, queued)) as cp:
             cp.write(_PG_HEADER)
             for channel_id, name in zip(channel_ids, names, strict=True):
                 for t_all, v_all in zip(table.column("time_s"), table.column(name), strict=True):
@@ -391,7 +413,7 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     channel_ids = _insert_channels(conn, campaign_id, bundle)
 
     if postgres:
-        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
+        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day, queued=True)
     else:
         insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
 
@@ -402,6 +424,7 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
             ROLLUP_COLUMNS,
             ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
             rollup_rows(campaign_id, channel_ids, temperatures),
+            queued=True,
         )
 
     if bundle.conditions is not None:
@@ -414,6 +437,7 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
                 ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
                 condition_rows(campaign_id, conditions, postgres, day),
                 into=_into(conn, "condition_samples", day),
+                queued=True,
             )
 
     err_names: tuple[str, ...] = ERROR_COLUMNS
@@ -428,6 +452,7 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
         types,
         error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
         into=_into(conn, "error_samples", day),
+        queued=True,
     )
     return int(campaign_id)
 

@@ -18,7 +18,7 @@ MachineId = Annotated[str, Path(pattern=ID_PATTERN, description="machine id (the
 
 def _out(m: MachineInfo) -> MachineOut:
     """Return the response model of a machine (the same fields as the store's MachineInfo)."""
-    return MachineOut(**m.__dict__)
+    return MachineOut(**dict(m))
 
 
 @router.get("/machines", response_model=MachineList, summary="List machines")
