@@ -12,20 +12,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel
-from sqlalchemy import Connection, delete, func, insert, select, update
+from sqlalchemy import Connection, Row, delete, func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import ingest, partitions
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import Bundle, CampaignMeta
 from driftlab.campaigns.repository import Page, Repository, analyze, campaign_row, machine_exists
-from driftlab.campaigns.staging import StagedBundle
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
+
+if TYPE_CHECKING:
+    from driftlab.campaigns.staging import StagedBundle
 
 
 class CampaignSummary(BaseModel):
@@ -51,9 +53,9 @@ class CampaignSummary(BaseModel):
 class CampaignDetail:
     """A campaign's row with its stages (plan order) and channels (card order)."""
 
-    row: Any
-    stages: list[Any]
-    channels: list[Any]
+    row: Row[Any]
+    stages: list[Row[Any]]
+    channels: list[Row[Any]]
 
 
 class MachineInfo(BaseModel):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
 from itertools import repeat
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -20,6 +20,9 @@ from sqlalchemy import Connection, insert, select, text
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, FrameTable, as_table
 from driftlab.campaigns.partitions import start_day
+
+if TYPE_CHECKING:
+    from psycopg import Cursor
 
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
 TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value", "campaign_start_day")
@@ -106,7 +109,7 @@ def _copy_rows(
                 write(row)
 
 
-def copy_writer(cur: Any, queued: bool) -> QueuedLibpqWriter | None:
+def copy_writer(cur: Cursor[Any], queued: bool) -> QueuedLibpqWriter | None:
     """Return the writer of a COPY: with ``queued`` psycopg's QueuedLibpqWriter (psycopg 3 docs, "COPY
     from and to", writer objects), whose thread sends the data while this one encodes the next rows, so
     the server is not left waiting on the encoding (an import: millions of rows); else None, psycopg's

@@ -7,14 +7,16 @@ job is in procrastinate's queue its reported state is the queue's (``jobs_select
 from __future__ import annotations
 
 from dataclasses import dataclass
-from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Select, Text, case, cast, column, delete, insert, null, select, table, update
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.repository import Page, Repository
 from driftlab.errors import NotFoundError, ValidationError
+
+if TYPE_CHECKING:
+    from datetime import datetime
 
 
 @dataclass(frozen=True)

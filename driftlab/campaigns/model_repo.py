@@ -8,14 +8,16 @@ serialised by its row lock (``repository.lock_machine``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Connection, func, insert, select, update
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.repository import Page, Repository, lock_machine, machine_exists
 from driftlab.errors import ConflictError, NotFoundError
+
+if TYPE_CHECKING:
+    from datetime import datetime
 
 
 @dataclass(frozen=True)

@@ -12,10 +12,8 @@ whatever its offset in the history.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -27,6 +25,10 @@ from driftlab.campaigns.partitions import start_day
 from driftlab.campaigns.repository import Repository, campaign_day, campaign_row, machine_exists, time_window
 from driftlab.errors import BadRequestError, NotFoundError, ValidationError
 from driftlab.vocabulary import AXES, TERMS
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from datetime import datetime
 
 
 @dataclass(frozen=True)

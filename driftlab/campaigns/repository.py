@@ -14,19 +14,22 @@ liveness and writability probes.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from sqlalchemy import Connection, Engine, Select, func, select, text
+from sqlalchemy import Connection, Engine, Row, Select, func, select, text
 from sqlalchemy.exc import DBAPIError
-from sqlalchemy.orm import InstrumentedAttribute
-from sqlalchemy.sql.elements import ColumnElement
 
 from driftlab.campaigns import db, partitions
 from driftlab.campaigns import schema as sc
 from driftlab.errors import NotFoundError
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
+    from sqlalchemy.orm import InstrumentedAttribute
+    from sqlalchemy.sql.elements import ColumnElement
 
 S = TypeVar("S", bound=Select)
 
@@ -111,7 +114,7 @@ def lock_machine(conn: Connection, machine_id: str) -> None:
         raise NotFoundError(f"no machine {machine_id!r}")
 
 
-def campaign_row(conn: Connection, campaign_id: int) -> Any:
+def campaign_row(conn: Connection, campaign_id: int) -> Row[Any]:
     """Return a campaign's row; NotFoundError when there is no such campaign."""
     row = conn.execute(select(sc.Campaign.__table__).where(sc.Campaign.id == campaign_id)).first()
     if row is None:

@@ -19,10 +19,7 @@ methods, bound once in ``Store.__init__``; new code calls the repositories.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any
-
-from sqlalchemy import Engine
+from typing import TYPE_CHECKING, Any
 
 from driftlab.campaigns import db, repository
 from driftlab.campaigns.campaign_repo import CampaignRepository, CampaignSummary, MachineInfo, ProgressInfo
@@ -31,6 +28,11 @@ from driftlab.campaigns.model_repo import ModelRepository, ModelRow, ModelVersio
 from driftlab.campaigns.online_repo import OnlineStateInfo, OnlineStateRepository, OnlineUpdate, StaleOnlineState
 from driftlab.campaigns.readings_repo import ReadingRepository
 from driftlab.config import Settings
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from sqlalchemy import Engine
 
 __all__ = [
     "QUEUE_STATES",
