@@ -270,6 +270,8 @@ def run_backend(label: str, url: str, bundle_dir: Path, readings: int, n_scans: 
         f"{label}_raw_baseline_rows_per_s": round(raw_rate),
         f"{label}_raw_baseline_runs_rows_per_s": [round(raw_before), round(raw_after)],
         f"{label}_ratio_to_raw": round(rate / raw_rate, 3),
+        # the write alone (no CSV parse, validation nor hash): what the store's bulk path costs
+        f"{label}_write_ratio_to_raw": round(readings / write / raw_rate, 3),
         f"{label}_drift_query_median_ms": drift_ms,
         f"{label}_drift_interpolated_median_ms": interp_ms,
         f"{label}_drift_window_median_ms": window_ms,
