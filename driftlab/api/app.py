@@ -5,16 +5,17 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import partial
 from typing import Annotated, Any
 
-from fastapi import Depends, FastAPI
+from fastapi import APIRouter, Depends, FastAPI
+from fastapi.openapi.utils import get_openapi
 
 from driftlab import __version__
 from driftlab.api import guard, live, pages, problems
 from driftlab.api.deps import ApiState, ModelCache, get_state
 from driftlab.api.routes import campaigns, drift, histories, jobs, machines, models, online
 from driftlab.api.schemas import Health
-from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import Store, connect
 from driftlab.jobs import Jobs
 
@@ -25,6 +26,35 @@ DESCRIPTION = """Campaigns, drift and models of driftlab's campaign store.
 Reads are open; every write needs `Authorization: Bearer <DRIFTLAB_API_TOKEN>` (writes are refused
 when no token is configured). Errors are RFC 9457 `application/problem+json`.
 """
+
+
+health_router = APIRouter()
+
+
+@health_router.get("/health", response_model=Health, tags=["health"], summary="Liveness and database reachability")
+def health(st: Annotated[ApiState, Depends(get_state)]) -> Health:
+    """Return ok when the database answers."""
+    st.store.ping()
+    return Health(status="ok", database=st.store.dialect)
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """Return the OpenAPI document with the problem+json responses declared on every operation."""
+    if app.openapi_schema is None:
+        schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+        schema = problems.declare_problems(schema)
+        # the bearer scheme the front door checks: /docs shows an Authorize button, and writes say they need it
+        schema.setdefault("components", {}).setdefault("securitySchemes", {})["bearer"] = {
+            "type": "http",
+            "scheme": "bearer",
+            "description": "the API token (DRIFTLAB_API_TOKEN); reads need none, every write needs it",
+        }
+        for item in schema.get("paths", {}).values():
+            for method, op in item.items():
+                if isinstance(op, dict) and method in problems.WRITE_METHODS:
+                    op["security"] = [{"bearer": []}]
+        app.openapi_schema = schema
+    return app.openapi_schema
 
 
 def create_app(
@@ -86,31 +116,6 @@ def create_app(
     app.include_router(live.router)
     pages.install(app)
 
-    @app.get("/health", response_model=Health, tags=["health"], summary="Liveness and database reachability")
-    def health(st: Annotated[ApiState, Depends(get_state)]) -> Health:
-        """Return ok when the database answers."""
-        api_queries.ping(st.store)
-        return Health(status="ok", database=st.store.dialect)
-
-    def openapi() -> dict[str, Any]:
-        """Return the OpenAPI document with the problem+json responses declared on every operation."""
-        if app.openapi_schema is None:
-            from fastapi.openapi.utils import get_openapi
-
-            schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
-            schema = problems.declare_problems(schema)
-            # the bearer scheme the front door checks: /docs shows an Authorize button, and writes say they need it
-            schema.setdefault("components", {}).setdefault("securitySchemes", {})["bearer"] = {
-                "type": "http",
-                "scheme": "bearer",
-                "description": "the API token (DRIFTLAB_API_TOKEN); reads need none, every write needs it",
-            }
-            for item in schema.get("paths", {}).values():
-                for method, op in item.items():
-                    if isinstance(op, dict) and method in problems.WRITE_METHODS:
-                        op["security"] = [{"bearer": []}]
-            app.openapi_schema = schema
-        return app.openapi_schema
-
-    app.openapi = openapi  # type: ignore[method-assign]
+    app.include_router(health_router)
+    app.openapi = partial(_openapi, app)  # type: ignore[method-assign]
     return app

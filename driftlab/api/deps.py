@@ -14,8 +14,7 @@ from typing import Any
 from fastapi import Request
 from starlette.exceptions import HTTPException
 
-from driftlab.campaigns import api_queries
-from driftlab.campaigns.store import Store
+from driftlab.campaigns.store import ModelVersionInfo, Store
 from driftlab.jobs import Jobs
 
 log = logging.getLogger(__name__)
@@ -26,7 +25,7 @@ def iso(dt: Any) -> str | None:
     return None if dt is None else dt.isoformat().replace("+00:00", "Z")
 
 
-def model_out(row: api_queries.ModelRow, with_document: bool = True) -> dict[str, Any]:
+def model_out(row: ModelVersionInfo, with_document: bool = True) -> dict[str, Any]:
     """Return the JSON form of a registry row (ModelVersionOut, or ModelSummary without the document)."""
     out: dict[str, Any] = {
         "machine_id": row.machine_id,
@@ -43,7 +42,7 @@ def model_out(row: api_queries.ModelRow, with_document: bool = True) -> dict[str
     return out
 
 
-def model_etag(row: api_queries.ModelRow) -> str:
+def model_etag(row: ModelVersionInfo) -> str:
     """Return the strong ETag of a model version: a hash of its row id and canonical document."""
     h = hashlib.sha256(f"{row.id}\n".encode())
     h.update(json.dumps(row.document, sort_keys=True, separators=(",", ":")).encode())
@@ -57,7 +56,7 @@ class CachedModel:
     etag: str
     body: bytes
     version: int
-    row: api_queries.ModelRow
+    row: ModelVersionInfo
 
 
 class ModelCache:
@@ -115,7 +114,7 @@ class ModelCache:
     def load(self, machine_id: str) -> CachedModel | None:
         """Read the machine's current model from the store, cache it and return it (None: no current model)."""
         generation = self._generation
-        row = api_queries.current_model(self.store, machine_id)
+        row = self.store.models.current(machine_id)
         cached = None
         if row is not None:
             body = json.dumps(model_out(row), allow_nan=False, separators=(",", ":")).encode()

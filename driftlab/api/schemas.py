@@ -7,6 +7,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
+from driftlab.campaigns.campaign_repo import CampaignSummary, MachineInfo
+
 Condition = Literal["spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b"]
 JobKind = Literal["fit", "diagnose"]
 JobState = Literal["queued", "running", "done", "failed"]
@@ -35,16 +37,8 @@ class _In(BaseModel):
 # ----------------------------------------------------------------------------- machines
 
 
-class MachineOut(_Out):
+class MachineOut(_Out, MachineInfo):
     """A machine tool with the size of its history and its current model version."""
-
-    id: str
-    name: str
-    resolution_mm: float | None
-    resolution_deg: float | None
-    created_at: datetime
-    campaigns: int
-    current_model_version: int | None
 
 
 class MachineList(_Out):
@@ -58,19 +52,8 @@ class MachineList(_Out):
 # ----------------------------------------------------------------------------- campaigns
 
 
-class CampaignOut(_Out):
+class CampaignOut(_Out, CampaignSummary):
     """One line of the campaign list."""
-
-    id: int
-    machine_id: str
-    name: str
-    started_at: datetime
-    status: str
-    source: str
-    channels: int
-    scans: int
-    error_samples: int
-    stages: int
 
 
 class CampaignList(_Out):

@@ -12,13 +12,28 @@ import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from datetime import datetime
 from itertools import chain, repeat
 from typing import Any, Protocol
 
 import numpy as np
+import pandas as pd
+from sqlalchemy import Connection, select
+from sqlalchemy.exc import DBAPIError, IntegrityError
 
+from driftlab.campaigns import schema as sc
 from driftlab.campaigns.db import write_transaction
+from driftlab.campaigns.ingest import (
+    TEMPERATURE_COLUMNS,
+    TEMPERATURE_TYPES,
+    bulk_insert,
+    copy_temperatures_pg,
+    insert_ignoring_duplicates,
+    insert_scan_readings_sqlite,
+)
+from driftlab.campaigns.partitions import ensure_partitions, start_day
 from driftlab.campaigns.plan import Cursor, Plan, SweepPoint
+from driftlab.campaigns.status import beat
 from driftlab.errors import ConflictError, DriftlabError, ValidationError
 from driftlab.physics.geometry import Geometry
 from driftlab.readings import Reading, ScanBlock, TemperatureScan
@@ -116,169 +131,179 @@ def open_campaign(
     to resume one whose plan timeline has changed since it started. On PostgreSQL the partition of
     the campaign's start is made (if missing) before the handle is returned: before any reading.
     """
-    from driftlab.campaigns.partitions import ensure_partitions
-
-    handle = _open_campaign(engine, plan, channels, room_channels, resume=resume, origin=origin, extra_meta=extra_meta)
+    fp = plan.fingerprint()
+    with write_transaction(engine) as conn:
+        handle = _resumable(conn, plan, fp, resume)
+        if handle is None:
+            if resume:
+                log.info("no unfinished campaign %s: starting it", plan.name)
+            started = sc.utcnow()
+            meta = _campaign_document(plan, channels, room_channels, started, extra_meta)
+            handle = _create_campaign(conn, plan, meta, started, origin, fp)
+    if not handle.resumed:
+        log.info("campaign %s created (id %d)", plan.name, handle.campaign_id)
     ensure_partitions(engine, [handle.start_day])
     return handle
 
 
-def _open_campaign(
-    engine: Any,
+def _create_campaign(
+    conn: Connection, plan: Plan, meta: dict[str, Any], started: datetime, origin: Mapping[str, Any], fp: str
+) -> CampaignHandle:
+    """Insert a new daemon campaign (its machine when new, stages, channels, first cursor); return its handle."""
+    if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
+        conn.execute(
+            insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(
+                id=plan.machine.id, name=plan.machine.name or str(meta["machine"].get("name") or "")
+            )
+        )
+    cid = _insert_campaign(conn, plan, meta, started)
+    room = set(meta["room_channels"])
+    conn.execute(
+        sc.Channel.__table__.insert(),
+        [
+            {
+                "campaign_id": cid,
+                "ordinal": i,
+                "name": name,
+                "location": info.get("location", ""),
+                "structure": info.get("structure", ""),
+                "is_room": name in room,
+            }
+            for i, (name, info) in enumerate(meta["channels"].items())
+        ],
+    )
+    cursor = {
+        "next_scan": 0,
+        "next_point": 0,
+        "n_scans": plan.n_scans,
+        "n_points": len(plan.sweep_points()),
+        "total_s": plan.total_s,
+        "fingerprint": fp,
+        "plan": plan.name,
+        "origin": dict(origin),
+        "faults": 0,
+        "recent_faults": [],
+    }
+    conn.execute(
+        sc.AcquisitionProgress.__table__.insert().values(
+            campaign_id=cid, stage_ordinal=0, sweep=0, last_sample_time_s=None, cursor=cursor, updated_at=sc.utcnow()
+        )
+    )
+    ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
+    return CampaignHandle(cid, Cursor(), ids, False, cursor, start_day(started))
+
+
+def _resumable(conn: Connection, plan: Plan, fp: str, resume: bool) -> CampaignHandle | None:
+    """Return the handle of the plan's latest campaign to continue (None: a new one is to be made).
+
+    A running campaign is continued only with ``resume`` (ConflictError without) and only from the
+    same plan timeline; with ``resume`` a complete one is returned with its final cursor.
+    """
+    row = conn.execute(
+        select(sc.Campaign.id, sc.Campaign.status, sc.AcquisitionProgress.cursor, sc.Campaign.started_at)
+        .join(sc.AcquisitionProgress, sc.AcquisitionProgress.campaign_id == sc.Campaign.id)
+        .where(sc.Campaign.name == plan.name, sc.Campaign.source == "daemon")
+        .order_by(sc.Campaign.id.desc())
+    ).first()
+    if row is None or not (row.status == "running" or (resume and row.status == "done")):
+        return None
+    cid, cur = row.id, dict(row.cursor or {})
+    if not resume:
+        raise ConflictError(f"campaign {plan.name!r} (id {cid}) is unfinished: continue it with --resume")
+    if cur.get("fingerprint") != fp:
+        raise ConflictError(
+            f"campaign {plan.name!r} (id {cid}) was started from a different plan timeline: "
+            "resume it with the plan it started with"
+        )
+    ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
+    if row.status == "done":
+        log.info("campaign %s (id %d) is already complete", plan.name, cid)
+    return CampaignHandle(
+        cid, Cursor(int(cur["next_scan"]), int(cur["next_point"])), ids, True, cur, start_day(row.started_at)
+    )
+
+
+def _campaign_document(
     plan: Plan,
     channels: Mapping[str, Mapping[str, str]],
     room_channels: list[str],
-    *,
-    resume: bool,
-    origin: Mapping[str, Any],
-    extra_meta: Mapping[str, Any] | None = None,
-) -> CampaignHandle:
-    """Create or find the campaign row (see open_campaign)."""
-    from sqlalchemy import select
-
-    from driftlab.campaigns import schema as sc
-    from driftlab.campaigns.partitions import start_day
-
-    fp = plan.fingerprint()
-    with write_transaction(engine) as conn:
-        row = conn.execute(
-            select(sc.Campaign.id, sc.Campaign.status, sc.AcquisitionProgress.cursor, sc.Campaign.started_at)
-            .join(sc.AcquisitionProgress, sc.AcquisitionProgress.campaign_id == sc.Campaign.id)
-            .where(sc.Campaign.name == plan.name, sc.Campaign.source == "daemon")
-            .order_by(sc.Campaign.id.desc())
-        ).first()
-        if row is not None and (row.status == "running" or (resume and row.status == "done")):
-            cid, cur = row.id, dict(row.cursor or {})
-            if not resume:
-                raise ConflictError(f"campaign {plan.name!r} (id {cid}) is unfinished: continue it with --resume")
-            if cur.get("fingerprint") != fp:
-                raise ConflictError(
-                    f"campaign {plan.name!r} (id {cid}) was started from a different plan timeline: "
-                    "resume it with the plan it started with"
-                )
-            ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
-            if row.status == "done":
-                log.info("campaign %s (id %d) is already complete", plan.name, cid)
-            return CampaignHandle(
-                cid, Cursor(int(cur["next_scan"]), int(cur["next_point"])), ids, True, cur, start_day(row.started_at)
+    started: datetime,
+    extra_meta: Mapping[str, Any] | None,
+) -> dict[str, Any]:
+    """Return the campaign.json (bundle v2) of a new daemon campaign, with the scenario's ``extra_meta``
+    merged in (its machine entries complete the plan's; ValidationError when both state a geometry)."""
+    machine: dict[str, Any] = {
+        "id": plan.machine.id,
+        "name": plan.machine.name,
+        **({"geometry": plan.machine.geometry.document()} if plan.machine.geometry else {}),
+        # the plan's travel goes with the campaign, so a model fitted on it carries its machine's limits
+        **(
+            {"travel": {a: [float(lo), float(hi)] for a, (lo, hi) in plan.machine.travel.items()}}
+            if plan.machine.travel
+            else {}
+        ),
+    }
+    meta: dict[str, Any] = {  # campaign.json of the bundle
+        # bundle v2: every reading is stored with its commanded pose and the setup that made it
+        "format": "driftlab-bundle/2",
+        "setups": {k: v.bundle_entry() for k, v in plan.used_setups().items()},
+        "machine": machine,
+        "started_at": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "channels": {k: dict(v) for k, v in channels.items()},
+        "room_channels": list(room_channels),
+        "stages": plan.bundle_stages(),
+    }
+    for key, value in (extra_meta or {}).items():
+        if (
+            key == "machine"
+            and "geometry" in value
+            and "geometry" in machine
+            and Geometry.model_validate(value["geometry"]) != plan.machine.geometry
+        ):
+            raise ValidationError(
+                f"plan {plan.name!r} and the scenario state different geometries of machine "
+                f"{plan.machine.id!r}: state it once"
             )
-        if resume:
-            log.info("no unfinished campaign %s: starting it", plan.name)
-        if conn.execute(select(sc.Machine.id).where(sc.Machine.id == plan.machine.id)).first() is None:
-            from driftlab.campaigns.ingest import insert_ignoring_duplicates
-
-            conn.execute(
-                insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(
-                    id=plan.machine.id,
-                    name=plan.machine.name or str((extra_meta or {}).get("machine", {}).get("name", "")),
-                )
-            )
-        started = sc.utcnow()
-        machine: dict[str, Any] = {
-            "id": plan.machine.id,
-            "name": plan.machine.name,
-            **({"geometry": plan.machine.geometry.document()} if plan.machine.geometry else {}),
-            # the plan's travel goes with the campaign, so a model fitted on it carries its machine's limits
-            **(
-                {"travel": {a: [float(lo), float(hi)] for a, (lo, hi) in plan.machine.travel.items()}}
-                if plan.machine.travel
-                else {}
-            ),
-        }
-        meta: dict[str, Any] = {  # campaign.json of the bundle
-            # bundle v2: every reading is stored with its commanded pose and the setup that made it
-            "format": "driftlab-bundle/2",
-            "setups": {k: v.bundle_entry() for k, v in plan.used_setups().items()},
-            "machine": machine,
-            "started_at": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
-            "channels": {k: dict(v) for k, v in channels.items()},
-            "room_channels": list(room_channels),
-            "stages": plan.bundle_stages(),
-        }
-        for key, value in (extra_meta or {}).items():
-            if (
-                key == "machine"
-                and "geometry" in value
-                and "geometry" in machine
-                and Geometry.model_validate(value["geometry"]) != plan.machine.geometry
-            ):
-                raise ValidationError(
-                    f"plan {plan.name!r} and the scenario state different geometries of machine "
-                    f"{plan.machine.id!r}: state it once"
-                )
-            meta.setdefault(key, value) if key != "machine" else machine.update(
-                {k: v for k, v in value.items() if k != "id" and (k != "name" or not plan.machine.name)}
-            )
-        inserted = conn.execute(
-            sc.Campaign.__table__.insert().values(
-                machine_id=plan.machine.id,
-                name=plan.name,
-                started_at=started,
-                status="running",
-                source="daemon",
-                meta=meta,
-                conditions_columns=["time_s", *STATE_KEYS],
-            )
-        ).inserted_primary_key
-        assert inserted is not None  # a single-row insert of a table with a primary key
-        cid = inserted[0]
-        conn.execute(
-            sc.Stage.__table__.insert(),
-            [
-                {
-                    "campaign_id": cid,
-                    "ordinal": i,
-                    "name": r["name"],
-                    "heat_source": r["heat_source"],
-                    "axis": r["axis"],
-                    "spindle_rpm": r["spindle_rpm"],
-                    "feed_mm_min": r["feed_mm_min"],
-                    "start_s": r["start_s"],
-                    "end_s": r["end_s"],
-                    "status": "planned",
-                }
-                for i, r in enumerate(plan.bundle_stages())
-            ],
+        meta.setdefault(key, value) if key != "machine" else machine.update(
+            {k: v for k, v in value.items() if k != "id" and (k != "name" or not plan.machine.name)}
         )
-        conn.execute(
-            sc.Channel.__table__.insert(),
-            [
-                {
-                    "campaign_id": cid,
-                    "ordinal": i,
-                    "name": name,
-                    "location": info.get("location", ""),
-                    "structure": info.get("structure", ""),
-                    "is_room": name in room_channels,
-                }
-                for i, (name, info) in enumerate(channels.items())
-            ],
+    return meta
+
+
+def _insert_campaign(conn: Connection, plan: Plan, meta: dict[str, Any], started: datetime) -> int:
+    """Insert a running daemon campaign and its planned stages; return its id."""
+    inserted = conn.execute(
+        sc.Campaign.__table__.insert().values(
+            machine_id=plan.machine.id,
+            name=plan.name,
+            started_at=started,
+            status="running",
+            source="daemon",
+            meta=meta,
+            conditions_columns=["time_s", *STATE_KEYS],
         )
-        cursor = {
-            "next_scan": 0,
-            "next_point": 0,
-            "n_scans": plan.n_scans,
-            "n_points": len(plan.sweep_points()),
-            "total_s": plan.total_s,
-            "fingerprint": fp,
-            "plan": plan.name,
-            "origin": dict(origin),
-            "faults": 0,
-            "recent_faults": [],
-        }
-        conn.execute(
-            sc.AcquisitionProgress.__table__.insert().values(
-                campaign_id=cid,
-                stage_ordinal=0,
-                sweep=0,
-                last_sample_time_s=None,
-                cursor=cursor,
-                updated_at=sc.utcnow(),
-            )
-        )
-        ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == cid)).all())
-    log.info("campaign %s created (id %d)", plan.name, cid)
-    return CampaignHandle(cid, Cursor(), ids, False, cursor, start_day(started))
+    ).inserted_primary_key
+    assert inserted is not None  # a single-row insert of a table with a primary key
+    cid = inserted[0]
+    conn.execute(
+        sc.Stage.__table__.insert(),
+        [
+            {
+                "campaign_id": cid,
+                "ordinal": i,
+                "name": r["name"],
+                "heat_source": r["heat_source"],
+                "axis": r["axis"],
+                "spindle_rpm": r["spindle_rpm"],
+                "feed_mm_min": r["feed_mm_min"],
+                "start_s": r["start_s"],
+                "end_s": r["end_s"],
+                "status": "planned",
+            }
+            for i, r in enumerate(plan.bundle_stages())
+        ],
+    )
+    return int(cid)
 
 
 class StoreUnavailable(DriftlabError):
@@ -291,8 +316,6 @@ class StoreSink:
     """Commits a batch of readings and the campaign's cursor in one database transaction."""
 
     def __init__(self, engine: Any, plan: Plan, handle: CampaignHandle) -> None:
-        from driftlab.campaigns import schema as sc
-
         self.engine = engine
         self.plan = plan
         self.cid = handle.campaign_id
@@ -338,12 +361,8 @@ class StoreSink:
 
     def _insert_blocks(self, conn: Any, arrays: tuple[list[int], list[str], np.ndarray, np.ndarray]) -> None:
         """Insert block readings with the store's bulk path, channel by channel (key order); NaN stored as NULL."""
-        from driftlab.campaigns.ingest import copy_temperatures_pg, insert_scan_readings_sqlite
-
         ids, names, times, values = arrays
         if conn.dialect.name == "postgresql":
-            import pandas as pd
-
             frame = pd.DataFrame(values, columns=names)
             frame.insert(0, "time_s", times)
             copy_temperatures_pg(conn, self.cid, ids, frame, self.day)  # numpy-encoded binary COPY
@@ -380,8 +399,6 @@ class StoreSink:
 
     def beat(self) -> None:
         """Write the daemon's heartbeat of this campaign (``campaigns.status.beat``)."""
-        from driftlab.campaigns.status import beat
-
         beat(self.engine, self.cid)
 
     def commit(self, batch: Batch) -> None:
@@ -390,8 +407,6 @@ class StoreSink:
         Raises ConflictError when a reading of the batch is already stored (never a second copy) and
         StoreUnavailable when the database could not be reached; either way nothing was stored.
         """
-        from sqlalchemy.exc import DBAPIError, IntegrityError
-
         dbapi = self.engine.dialect.dbapi
         try:
             self._commit(batch)
@@ -408,8 +423,6 @@ class StoreSink:
 
     def _commit(self, batch: Batch) -> None:
         """Write the batch (see commit)."""
-        from driftlab.campaigns.ingest import TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, bulk_insert
-
         temps = self._temperature_rows(batch)
         wide = self._block_arrays(batch)
         errs = self._error_rows(batch)
@@ -423,7 +436,6 @@ class StoreSink:
             for term, r in values.items()
             if not r.ok
         ]
-        faults = [*batch.faults, *missing]
         finished = batch.cursor.next_scan >= self.plan.n_scans and batch.cursor.next_point >= self.n_points
         with write_transaction(self.engine) as conn:
             if temps:
@@ -434,68 +446,72 @@ class StoreSink:
                 conn.execute(self._t_cond.insert(), conds)
             if errs:
                 conn.execute(self._t_err.insert(), errs)
-            prog = dict(self._prog)  # this sink is the campaign's only writer: no read-back needed
-            prog["next_scan"], prog["next_point"] = batch.cursor.next_scan, batch.cursor.next_point
-            if faults:
-                prog["faults"] = int(prog.get("faults", 0)) + len(faults)
-                recent = list(prog.get("recent_faults", [])) + [
-                    {"t_s": f.t_s, "step": f.step, "instrument": f.instrument, "message": f.message} for f in faults
-                ]
-                prog["recent_faults"] = recent[-20:]
-            if batch.datum is not None:
-                prog["datum"] = batch.datum
-            last = _last_scan(batch)
-            if last is not None:
-                prog["last_scan"] = {
-                    "t_s": last.t_s,
-                    "values": {
-                        k: (v if k not in last.flags and math.isfinite(v) else None) for k, v in last.values.items()
-                    },
-                }
-            if batch.points:
-                p, t, values = batch.points[-1]
-                prog["last_point"] = {
-                    "t_s": t,
-                    "axis": p.axis,
-                    "position": p.position,
-                    "direction": p.direction,
-                    "values": {k: (r.value if r.ok else None) for k, r in values.items()},
-                }
-                prog["sweep"] = self.sweeps[(p.stage, p.sweep)]
-            progress = {
-                "cursor": prog,
-                "stage_ordinal": batch.stage,
-                "sweep": int(prog.get("sweep", 0)),
-                "updated_at": _utcnow(),
-            }
-            t_read = last_reading_s(batch)
-            if t_read is not None:  # a batch of moves and faults alone stores no sample: the time stays
-                progress["last_sample_time_s"] = t_read
+            prog, progress = self._progress(batch, [*batch.faults, *missing])
             conn.execute(self._t_prog.update().where(self._t_prog.c.campaign_id == self.cid).values(**progress))
-            if batch.stage != self._stage:
-                conn.execute(
-                    self._t_stage.update()
-                    .where(
-                        self._t_stage.c.campaign_id == self.cid,
-                        self._t_stage.c.ordinal < batch.stage,
-                        self._t_stage.c.status.in_(("planned", "running")),
-                    )
-                    .values(status="done")
-                )
-                conn.execute(
-                    self._t_stage.update()
-                    .where(self._t_stage.c.campaign_id == self.cid, self._t_stage.c.ordinal == batch.stage)
-                    .values(status="running")
-                )
-                self._stage = batch.stage
-            if finished:
-                conn.execute(
-                    self._t_stage.update()
-                    .where(self._t_stage.c.campaign_id == self.cid, self._t_stage.c.status.in_(("planned", "running")))
-                    .values(status="done")
-                )
-                conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
+            self._advance_stages(conn, batch.stage, finished)
         self._prog = prog  # only once committed: a failed batch leaves the in-memory cursor where the store's is
+
+    def _progress(self, batch: Batch, faults: list[Fault]) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Return the campaign's cursor document after the batch and its acquisition_progress values."""
+        prog = dict(self._prog)  # this sink is the campaign's only writer: no read-back needed
+        prog["next_scan"], prog["next_point"] = batch.cursor.next_scan, batch.cursor.next_point
+        if faults:
+            prog["faults"] = int(prog.get("faults", 0)) + len(faults)
+            recent = list(prog.get("recent_faults", [])) + [
+                {"t_s": f.t_s, "step": f.step, "instrument": f.instrument, "message": f.message} for f in faults
+            ]
+            prog["recent_faults"] = recent[-20:]
+        if batch.datum is not None:
+            prog["datum"] = batch.datum
+        last = _last_scan(batch)
+        if last is not None:
+            prog["last_scan"] = {
+                "t_s": last.t_s,
+                "values": {
+                    k: (v if k not in last.flags and math.isfinite(v) else None) for k, v in last.values.items()
+                },
+            }
+        if batch.points:
+            p, t, values = batch.points[-1]
+            prog["last_point"] = {
+                "t_s": t,
+                "axis": p.axis,
+                "position": p.position,
+                "direction": p.direction,
+                "values": {k: (r.value if r.ok else None) for k, r in values.items()},
+            }
+            prog["sweep"] = self.sweeps[(p.stage, p.sweep)]
+        progress = {
+            "cursor": prog,
+            "stage_ordinal": batch.stage,
+            "sweep": int(prog.get("sweep", 0)),
+            "updated_at": _utcnow(),
+        }
+        t_read = last_reading_s(batch)
+        if t_read is not None:  # a batch of moves and faults alone stores no sample: the time stays
+            progress["last_sample_time_s"] = t_read
+        return prog, progress
+
+    def _advance_stages(self, conn: Connection, stage: int, finished: bool) -> None:
+        """Mark the stages before ``stage`` done and it running (once per stage); all done when ``finished``."""
+        st = self._t_stage
+        if stage != self._stage:
+            conn.execute(
+                st.update()
+                .where(st.c.campaign_id == self.cid, st.c.ordinal < stage, st.c.status.in_(("planned", "running")))
+                .values(status="done")
+            )
+            conn.execute(
+                st.update().where(st.c.campaign_id == self.cid, st.c.ordinal == stage).values(status="running")
+            )
+            self._stage = stage
+        if finished:
+            conn.execute(
+                st.update()
+                .where(st.c.campaign_id == self.cid, st.c.status.in_(("planned", "running")))
+                .values(status="done")
+            )
+            conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
 
 
 def last_reading_s(batch: Batch) -> float | None:
@@ -527,8 +543,6 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(orig).__name__
 
 
-def _utcnow() -> Any:
+def _utcnow() -> datetime:
     """Return the current UTC time (the store's timestamp convention)."""
-    from driftlab.campaigns.schema import utcnow
-
-    return utcnow()
+    return sc.utcnow()

@@ -383,23 +383,34 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
                 "channel names start with a letter or digit, then hold only "
                 f"letters, digits, '_', '.', '-' (at most {MAX_NAME_CHARS}), and may not be time_s",
             )
-    seen: set[str] = set()
-    for k, name in enumerate(meta.room_channels):
-        if name not in meta.channels:
-            raise _json_fail(file, lines, ("room_channels", k), f"room channel {_short(name)} is not in channels")
-        if name in seen:
-            raise _json_fail(file, lines, ("room_channels", k), f"room channel {_short(name)} listed twice")
-        seen.add(name)
+    _check_listed(meta.room_channels, meta.channels, file, lines, ("room_channels",), "room channel")
     for axis, names in (meta.model_channels or {}).items():
-        seen = set()
-        for k, name in enumerate(names):
-            if name not in meta.channels:
-                raise _json_fail(
-                    file, lines, ("model_channels", axis, k), f"model channel {_short(name)} is not in channels"
-                )
-            if name in seen:
-                raise _json_fail(file, lines, ("model_channels", axis, k), f"model channel {_short(name)} listed twice")
-            seen.add(name)
+        _check_listed(names, meta.channels, file, lines, ("model_channels", axis), "model channel")
+    _check_setups(meta, file, lines)
+    _check_stages(meta, file, lines)
+    return meta
+
+
+def _check_listed(
+    names: Sequence[str],
+    channels: Mapping[str, Any],
+    file: str,
+    lines: Mapping[tuple[Any, ...], int],
+    at: tuple[Any, ...],
+    what: str,
+) -> None:
+    """Refuse a list of channel names (at ``at`` in the document) naming one not in channels, or one twice."""
+    seen: set[str] = set()
+    for k, name in enumerate(names):
+        if name not in channels:
+            raise _json_fail(file, lines, (*at, k), f"{what} {_short(name)} is not in channels")
+        if name in seen:
+            raise _json_fail(file, lines, (*at, k), f"{what} {_short(name)} listed twice")
+        seen.add(name)
+
+
+def _check_setups(meta: CampaignMeta, file: str, lines: Mapping[tuple[Any, ...], int]) -> None:
+    """Refuse setups outside a bundle v2, a v2 without them, a bad setup id, or terms of another axis."""
     if meta.setups is not None and not meta.v2:
         raise _json_fail(file, lines, ("setups",), f"setups belong to {FORMAT_V2!r} bundles")
     if meta.v2 and not meta.setups:
@@ -421,6 +432,10 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
                 ("setups", sid, "terms"),
                 f"setup {_short(sid)} measures the {entry.axis} axis but lists terms of another",
             )
+
+
+def _check_stages(meta: CampaignMeta, file: str, lines: Mapping[tuple[Any, ...], int]) -> None:
+    """Refuse a stage that ends before it starts, overlaps the previous one, or repeats a name."""
     names_seen: set[str] = set()
     previous_end = -math.inf
     for k, stage in enumerate(meta.stages):
@@ -443,7 +458,6 @@ def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) ->
             raise _json_fail(file, lines, ("stages", k, "name"), f"stage name {_short(stage.name)} used twice")
         names_seen.add(stage.name)
         previous_end = stage.end_s
-    return meta
 
 
 # ----------------------------------------------------------------------------- CSV files

@@ -10,15 +10,19 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
 from itertools import repeat
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
+from psycopg.copy import QueuedLibpqWriter
 from sqlalchemy import Connection, insert, select, text
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, FrameTable, as_table
 from driftlab.campaigns.partitions import start_day
+
+if TYPE_CHECKING:
+    from psycopg import Cursor
 
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
 TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value", "campaign_start_day")
@@ -86,17 +90,31 @@ def sweep_numbers(errors: pd.DataFrame) -> np.ndarray:
 
 
 def _copy_rows(
-    conn: Connection, table: str, columns: Sequence[str], types: Sequence[str], rows: Iterable[Sequence[Any]]
+    conn: Connection,
+    table: str,
+    columns: Sequence[str],
+    types: Sequence[str],
+    rows: Iterable[Sequence[Any]],
+    queued: bool = False,
 ) -> None:
-    """Stream rows into a PostgreSQL table with binary COPY inside the current transaction."""
+    """Stream rows into a PostgreSQL table with binary COPY inside the current transaction (``queued``: see
+    ``copy_writer``)."""
     raw = conn.connection.driver_connection
     cols = ", ".join(columns)
     with raw.cursor() as cur:  # type: ignore[union-attr]
-        with cur.copy(f"COPY {table} ({cols}) FROM STDIN (FORMAT BINARY)") as copy:
+        with cur.copy(f"COPY {table} ({cols}) FROM STDIN (FORMAT BINARY)", writer=copy_writer(cur, queued)) as copy:
             copy.set_types(list(types))
             write = copy.write_row
             for row in rows:
                 write(row)
+
+
+def copy_writer(cur: Cursor[Any], queued: bool) -> QueuedLibpqWriter | None:
+    """Return the writer of a COPY: with ``queued`` psycopg's QueuedLibpqWriter (psycopg 3 docs, "COPY
+    from and to", writer objects), whose thread sends the data while this one encodes the next rows, so
+    the server is not left waiting on the encoding (an import: millions of rows); else None, psycopg's
+    default writer, which sends in this thread (a daemon's batch: a thread each would cost more)."""
+    return QueuedLibpqWriter(cur) if queued else None
 
 
 def bulk_insert(
@@ -106,13 +124,16 @@ def bulk_insert(
     pg_types: Sequence[str],
     rows: Iterable[Sequence[Any]],
     into: str | None = None,
+    *,
+    queued: bool = False,
 ) -> None:
     """Insert many rows fast in the connection's transaction: binary COPY or sqlite3 executemany.
 
-    ``into`` names the partition of ``table`` every row belongs to, when known (PostgreSQL).
+    ``into`` names the partition of ``table`` every row belongs to, when known (PostgreSQL);
+    ``queued``: see ``copy_writer``.
     """
     if conn.dialect.name == "postgresql":
-        _copy_rows(conn, into or table, columns, pg_types, rows)
+        _copy_rows(conn, into or table, columns, pg_types, rows, queued)
         return
     raw = conn.connection.driver_connection
     marks = ", ".join("?" for _ in columns)
@@ -198,35 +219,22 @@ def insert_scan_readings_sqlite(
 # file header, then per row a field count and (length, big-endian value) per field, NULL as length -1.
 _PG_HEADER = b"PGCOPY\n\xff\r\n\x00" + (0).to_bytes(4, "big") + (0).to_bytes(4, "big")
 _PG_TRAILER = (-1).to_bytes(2, "big", signed=True)
-_ROW = np.dtype(
-    [
-        ("n", ">i2"),
-        ("l1", ">i4"),
-        ("c", ">i4"),
-        ("l2", ">i4"),
-        ("ch", ">i4"),
-        ("l3", ">i4"),
-        ("t", ">f8"),
-        ("l4", ">i4"),
-        ("v", ">f8"),
-        ("l5", ">i4"),
-        ("d", ">i4"),
-    ]
-)
-_ROW_NULL = np.dtype(
-    [
-        ("n", ">i2"),
-        ("l1", ">i4"),
-        ("c", ">i4"),
-        ("l2", ">i4"),
-        ("ch", ">i4"),
-        ("l3", ">i4"),
-        ("t", ">f8"),
-        ("l4", ">i4"),
-        ("l5", ">i4"),
-        ("d", ">i4"),
-    ]
-)
+_ROW_FIELDS = [
+    ("n", ">i2"),
+    ("l1", ">i4"),
+    ("c", ">i4"),
+    ("l2", ">i4"),
+    ("ch", ">i4"),
+    ("l3", ">i4"),
+    ("t", ">f8"),
+    ("l4", ">i4"),
+    ("v", ">f8"),
+    ("l5", ">i4"),
+    ("d", ">i4"),
+]
+_ROW = np.dtype(_ROW_FIELDS)
+#: the same without the value (every value NULL: its length -1 and no bytes)
+_ROW_NULL = np.dtype([f for f in _ROW_FIELDS if f[0] != "v"])
 
 
 def _encode_rows(campaign_id: int, channel_id: int, t: np.ndarray, v: np.ndarray | None, start_day: int) -> bytes:
@@ -248,19 +256,23 @@ def copy_temperatures_pg(
     temperatures: pd.DataFrame | ColumnTable,
     start_day: int,
     chunk_rows: int = 200_000,
+    *,
+    queued: bool = False,
 ) -> None:
     """Stream a wide temperature table into temperature_samples with binary COPY, in key order.
 
     ``start_day`` is the campaign's partition key (``partitions.start_day``); its partition must exist.
     The rows go straight into that partition (every row of a campaign has the same key): no routing
-    per row, and PostgreSQL still checks each against the partition's bounds.
+    per row, and PostgreSQL still checks each against the partition's bounds. With ``queued`` the
+    rows are sent from a thread of their own while the next chunk is encoded (``copy_writer``).
     """
     target = _into(conn, "temperature_samples", start_day)
     raw = conn.connection.driver_connection
     table = as_table(temperatures)
     names = [c for c in table.columns if c != "time_s"]
     with raw.cursor() as cur:  # type: ignore[union-attr]
-        with cur.copy(f"COPY {target} ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)") as cp:
+        sql = f"COPY {target} ({', '.join(TEMPERATURE_COLUMNS)}) FROM STDIN (FORMAT BINARY)"
+        with cur.copy(sql, writer=copy_writer(cur, queued)) as cp:
             cp.write(_PG_HEADER)
             for channel_id, name in zip(channel_ids, names, strict=True):
                 for t_all, v_all in zip(table.column("time_s"), table.column(name), strict=True):
@@ -385,6 +397,10 @@ def _into(conn: Connection, table: str, day: int) -> str:
     return leaf(conn, table, day) or table
 
 
+#: the PostgreSQL types of ERROR_COLUMNS (binary COPY)
+ERROR_TYPES = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4", "int4")
+
+
 def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> int:
     """Write a validated bundle (in memory, or staged) in the caller's transaction; return the new campaign id.
 
@@ -393,6 +409,59 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     meta = bundle.meta
     postgres = conn.dialect.name == "postgresql"
     day = start_day(meta.started_at)
+    _ensure_machine(conn, meta)
+    temperatures = as_table(bundle.temperatures)
+    rollups = rollups_pay_chunks(temperatures.column("time_s"))
+    campaign_id = _insert_campaign(conn, bundle, content_hash, rollups)
+    channel_ids = _insert_channels(conn, campaign_id, bundle)
+
+    if postgres:
+        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day, queued=True)
+    else:
+        insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
+
+    if rollups:
+        bulk_insert(
+            conn,
+            "temperature_rollups",
+            ROLLUP_COLUMNS,
+            ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
+            rollup_rows(campaign_id, channel_ids, temperatures),
+            queued=True,
+        )
+
+    if bundle.conditions is not None:
+        conditions = as_table(bundle.conditions)
+        if conditions.n_rows:
+            bulk_insert(
+                conn,
+                "condition_samples",
+                ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
+                ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
+                condition_rows(campaign_id, conditions, postgres, day),
+                into=_into(conn, "condition_samples", day),
+                queued=True,
+            )
+
+    err_names: tuple[str, ...] = ERROR_COLUMNS
+    types: tuple[str, ...] = ERROR_TYPES
+    if meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
+        err_names += (*POSE_COLUMNS, "setup")
+        types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
+    bulk_insert(
+        conn,
+        "error_samples",
+        err_names,
+        types,
+        error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
+        into=_into(conn, "error_samples", day),
+        queued=True,
+    )
+    return int(campaign_id)
+
+
+def _ensure_machine(conn: Connection, meta: Any) -> None:
+    """Insert the bundle's machine unless it is stored already."""
     machine = conn.execute(select(sc.Machine.id).where(sc.Machine.id == meta.machine.id)).first()
     if machine is None:
         # ON CONFLICT DO NOTHING: two imports of a new machine at once both see no row; the second
@@ -405,9 +474,12 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
             created_at=sc.utcnow(),
         )
         conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(**values))
+
+
+def _insert_campaign(conn: Connection, bundle: Bundle | Any, content_hash: str, rollups: bool) -> int:
+    """Insert the imported campaign's row and its stages; return its id."""
+    meta = bundle.meta
     cond_cols = None if bundle.conditions is None else list(bundle.conditions.columns)
-    temperatures = as_table(bundle.temperatures)
-    rollups = rollups_pay_chunks(temperatures.column("time_s"))
     campaign_id = conn.execute(
         insert(sc.Campaign)
         .values(
@@ -443,6 +515,12 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
                 for k, s in enumerate(meta.stages)
             ],
         )
+    return int(campaign_id)
+
+
+def _insert_channels(conn: Connection, campaign_id: int, bundle: Bundle | Any) -> list[int]:
+    """Insert the bundle's channels (card order) and return their ids in that order."""
+    meta = bundle.meta
     names = bundle.channels
     room = set(meta.room_channels)
     conn.execute(
@@ -462,60 +540,7 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
         ],
     )
     ids = dict(conn.execute(select(sc.Channel.name, sc.Channel.id).where(sc.Channel.campaign_id == campaign_id)).all())
-    channel_ids = [ids[name] for name in names]
-
-    if postgres:
-        copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day)
-    else:
-        insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
-
-    if rollups:
-        bulk_insert(
-            conn,
-            "temperature_rollups",
-            ROLLUP_COLUMNS,
-            ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
-            rollup_rows(campaign_id, channel_ids, temperatures),
-        )
-
-    if bundle.conditions is not None:
-        conditions = as_table(bundle.conditions)
-        if conditions.n_rows:
-            bulk_insert(
-                conn,
-                "condition_samples",
-                ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
-                ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
-                condition_rows(campaign_id, conditions, postgres, day),
-                into=_into(conn, "condition_samples", day),
-            )
-
-    err_names: tuple[str, ...] = tuple(ERROR_COLUMNS)
-    types: tuple[str, ...] = (
-        "int4",
-        "int4",
-        "float8",
-        "varchar",
-        "varchar",
-        "float8",
-        "int2",
-        "float8",
-        "int4",
-        "int4",
-        "int4",
-    )
-    if meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
-        err_names += (*POSE_COLUMNS, "setup")
-        types += ("float8",) * len(POSE_COLUMNS) + ("varchar",)
-    bulk_insert(
-        conn,
-        "error_samples",
-        err_names,
-        types,
-        error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
-        into=_into(conn, "error_samples", day),
-    )
-    return int(campaign_id)
+    return [ids[name] for name in names]
 
 
 def condition_rows(campaign_id: int, conditions: ColumnTable, postgres: bool, day: int) -> Iterator[tuple[Any, ...]]:

@@ -117,23 +117,7 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
     n_scans, n_points = int(cur.get("n_scans", 0)), int(cur.get("n_points", 0))
     scans, points = int(cur.get("next_scan", 0)), int(cur.get("next_point", 0))
     total_s = cur.get("total_s") or (max((st.end_s or 0.0) for st in stages) if stages else None)
-    stage_rows: list[dict[str, Any]] = []
-    for st in stages:
-        extra = meta_stages[st.ordinal] if st.ordinal < len(meta_stages) else {}
-        stage_rows.append(
-            {
-                "ordinal": st.ordinal,
-                "name": st.name,
-                "heat_source": st.heat_source,
-                "axis": st.axis,
-                "spindle_rpm": st.spindle_rpm,
-                "feed_mm_min": st.feed_mm_min,
-                "start_s": st.start_s,
-                "end_s": st.end_s,
-                "status": st.status,
-                "setup": _setup(extra.get("setup"), setups),
-            }
-        )
+    stage_rows = [_stage_row(st, meta_stages, setups) for st in stages]
     current = next((r for r in stage_rows if r["ordinal"] == prog.stage_ordinal), None)
     # simulated campaigns run at `speed` campaign seconds per wall second; real ones at 1
     speed = origin.get("speed") if origin.get("mode") == "sim" else 1.0
@@ -180,18 +164,37 @@ def _header(camp: sc.Campaign, prog: sc.AcquisitionProgress, stages: list[sc.Sta
             "stage_left_wall_s": None if stage_left is None or not speed else stage_left / speed,
             "total_left_wall_s": None if total_left is None or not speed else total_left / speed,
         },
-        "latest": None
-        if not last_scan
-        else {
-            "time_s": last_scan.get("t_s"),
-            "values": dict(last_scan.get("values") or {}),
-            "at": _iso(started + timedelta(seconds=float(last_scan["t_s"])))
-            if started and last_scan.get("t_s") is not None
-            else None,
-        },
+        "latest": _latest(started, last_scan),
         "last_point": cur.get("last_point"),
         "health": _health(cur, last_scan),
     }
+
+
+def _stage_row(st: sc.Stage, meta_stages: list[Any], setups: dict[str, Any]) -> dict[str, Any]:
+    """Return a stage of the header: its row, with the setup its campaign.json entry names."""
+    extra = meta_stages[st.ordinal] if st.ordinal < len(meta_stages) else {}
+    return {
+        "ordinal": st.ordinal,
+        "name": st.name,
+        "heat_source": st.heat_source,
+        "axis": st.axis,
+        "spindle_rpm": st.spindle_rpm,
+        "feed_mm_min": st.feed_mm_min,
+        "start_s": st.start_s,
+        "end_s": st.end_s,
+        "status": st.status,
+        "setup": _setup(extra.get("setup"), setups),
+    }
+
+
+def _latest(started: datetime | None, last_scan: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Return the header's latest scan (its campaign time, values and wall-clock time), None before one."""
+    if not last_scan:
+        return None
+    at = None
+    if started and last_scan.get("t_s") is not None:
+        at = _iso(started + timedelta(seconds=float(last_scan["t_s"])))
+    return {"time_s": last_scan.get("t_s"), "values": dict(last_scan.get("values") or {}), "at": at}
 
 
 def _latest_time(prog: sc.AcquisitionProgress, last_scan: dict[str, Any] | None) -> float | None:

@@ -131,7 +131,7 @@ class Jobs:
             )
         from driftlab.jobs.local import LocalRunner
 
-        job_id = self.store.record_job(kind, params, machine_id=machine_id, campaign_id=campaign_id)
+        job_id = self.store.jobs.record(kind, params, machine_id=machine_id, campaign_id=campaign_id)
         if isinstance(self.runner, LocalRunner):
             self.runner.submit(job_id)
         return job_id
@@ -173,7 +173,7 @@ def submit_fit(
     ids = [int(c) for c in campaign_ids]
     if not ids:
         raise ValidationError("give at least one campaign")
-    machine = store.campaign_machine(ids[0])
+    machine = store.campaigns.machine_of(ids[0])
     params: dict[str, Any] = {"campaigns": ids, "network": bool(network)}
     if findings is not None:
         params["findings"] = findings.to_dict()

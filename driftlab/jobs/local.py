@@ -56,7 +56,7 @@ def run_here(store: Store, job_id: int, *, on_stage: OnStage | None = None, work
     while True:
         ran, wait = _attempt(store, job_id, name, on_stage, None)
         if not ran or wait is None:
-            return store.get_job(job_id)
+            return store.jobs.get(job_id)
         time.sleep(wait)
 
 
@@ -104,9 +104,9 @@ class LocalRunner(threading.Thread):
     def run(self) -> None:
         """Take up what an earlier process left, then run jobs until stopped."""
         try:
-            for left in self.store.jobs_in_state("running", list(KINDS)):
-                self.store.fail_job(left, INTERRUPTED)
-            for left in self.store.jobs_in_state("queued", list(KINDS)):
+            for left in self.store.jobs.in_state("running", list(KINDS)):
+                self.store.jobs.fail(left, INTERRUPTED)
+            for left in self.store.jobs.in_state("queued", list(KINDS)):
                 self.submit(left)
         except Exception:
             log.exception("job runner: cannot read the jobs left by an earlier process")

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from driftlab.campaigns.store import StaleOnlineState
+from driftlab.campaigns.online_repo import OnlineUpdate, StaleOnlineState
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
 from driftlab.models.document import validate_document
 from driftlab.models.online import (
@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 
 def _legacy_states(store: Store, machine: str, model_version: int | None) -> dict[str, RLSState]:
     """Return the states kept before the ``online_states`` table: the last finished ``online`` job's result."""
-    result = store.last_job_result(ONLINE_JOB, machine)
+    result = store.jobs.last_result(ONLINE_JOB, machine)
     if not result or result.get("model_version") != model_version:
         return {}
     return {k: RLSState.from_dict(v) for k, v in result.get("states", {}).items()}
@@ -57,7 +57,7 @@ def read_online_states(store: Store, machine: str, model_version: int | None) ->
     ``online_states``, a state kept the old way (as an ``online`` job's result) is read once; the
     next update writes it to the table.
     """
-    row = store.online_state(machine)
+    row = store.online.get(machine)
     if row is None:
         return _legacy_states(store, machine, model_version), None
     if row.model_version != model_version:
@@ -104,7 +104,7 @@ def store_update(
         raise ValidationError("two probe measurements at the same time")
     chans = [c for c in probe.columns if c not in PROBE_COLUMNS]
     for attempt in range(1, max_attempts + 1):
-        info = store.current_model(machine)
+        info = store.models.current(machine)
         if info is None:
             raise NotFoundError(f"machine {machine!r} has no current model: run `driftlab fit` first")
         doc = validate_document(info.document).model_copy(update={"version": info.version})
@@ -140,17 +140,15 @@ def store_update(
             )
         first = report.states[PROBE_TERMS[0]]
         try:
-            _, ids = store.save_online_state(
-                machine,
-                seen,
+            new = OnlineUpdate(
                 model_version_id=info.id,
                 model_version=int(doc.version or 0),
                 lam=first.lam,
                 n_updates=first.n_updates,
                 theta={k: v.theta.tolist() for k, v in report.states.items()},
                 p={k: v.P.tolist() for k, v in report.states.items()},
-                probes=rows,
             )
+            _, ids = store.online.save(machine, seen, new, rows)
         except StaleOnlineState:
             continue
         return StoredUpdate(report, prior, residual, ids, attempt)
@@ -165,20 +163,12 @@ def reset_online_state(store: Store, machine: str) -> bool:
     """
 
     for _ in range(50):
-        row = store.online_state(machine)
+        row = store.online.get(machine)
         if row is None or not row.theta:
             return False
         try:
-            store.save_online_state(
-                machine,
-                row.version,
-                model_version_id=row.model_version_id,
-                model_version=row.model_version,
-                lam=row.lam,
-                n_updates=0,
-                theta={},
-                p={},
-            )
+            fresh = OnlineUpdate(row.model_version_id, row.model_version, row.lam, n_updates=0, theta={}, p={})
+            store.online.save(machine, row.version, fresh)
             return True
         except StaleOnlineState:
             continue

@@ -18,16 +18,20 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import signal
 import socket
 import threading
 import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from procrastinate import App, JobContext, PsycopgConnector
-from procrastinate.exceptions import AlreadyEnqueued
+from procrastinate.exceptions import AlreadyEnqueued, ProcrastinateException
 from procrastinate.worker import Worker
+from psycopg import AsyncConnection
+from psycopg import Error as PsycopgError
 
-from driftlab.errors import ValidationError
+from driftlab.errors import ServiceError, ValidationError
 from driftlab.jobs import policy
 from driftlab.jobs.tasks import DIAGNOSE, FIT, OnModel, OnStage, execute, one_line
 
@@ -252,7 +256,7 @@ def defer(
     queue_id = app.configure_task(
         TASKS[kind], allow_unknown=False, lock=lock, priority=priority, queueing_lock=queueing_lock
     ).defer(job_id=job_id)
-    store.link_queue_job(job_id, queue_id)
+    store.jobs.link_queue_job(job_id, queue_id)
     return int(queue_id)
 
 
@@ -272,14 +276,14 @@ def submit_to_queue(
     AlreadyEnqueued (a job with the same queueing lock waits already) removes the record and is
     re-raised; any other failure to queue leaves the record failed with the reason.
     """
-    job_id = store.record_job(kind, params, machine_id=machine_id, campaign_id=campaign_id)
+    job_id = store.jobs.record(kind, params, machine_id=machine_id, campaign_id=campaign_id)
     try:
         defer(app, store, job_id, kind, machine_id, priority=priority, queueing_lock=queueing_lock)
     except AlreadyEnqueued:
-        store.delete_job(job_id)
+        store.jobs.delete(job_id)
         raise
     except Exception as exc:
-        store.fail_job(job_id, f"could not be queued: {one_line(exc)}")
+        store.jobs.fail(job_id, f"could not be queued: {one_line(exc)}")
         raise
     return job_id
 
@@ -291,7 +295,7 @@ def submit_refits(store: Store, app: App) -> list[int]:
     model's campaigns plus the newer ones; at most one refit per machine waits in the queue.
     """
     ids = []
-    for cand in store.refit_candidates():
+    for cand in store.models.refit_candidates():
         kept = {k: v for k, v in cand.params.items() if k in ("network", "findings", "force_findings")}
         params = {"network": False, **kept, "campaigns": cand.campaign_ids, "refit_of": cand.model_version}
         try:
@@ -315,27 +319,31 @@ def submit_refits(store: Store, app: App) -> list[int]:
 # ----------------------------------------------------------------------------- workers
 
 
-def _worker(
-    app: App,
-    store: Store,
-    *,
-    concurrency: int,
-    wait: bool,
-    name: str | None,
-    signals: bool,
-    on_model: OnModel | None = None,
-    on_stage: OnStage | None = None,
-    polling_s: float = 5.0,
-) -> Worker:
+@dataclass(frozen=True)
+class WorkerOptions:
+    """How a procrastinate worker of driftlab runs: its job concurrency, whether it waits for jobs
+    (or ends once nothing is runnable), its name, whether it installs signal handlers, the callbacks
+    its tasks report to, and how often it polls the queue besides listening."""
+
+    concurrency: int = 1
+    wait: bool = True
+    name: str | None = None
+    signals: bool = False
+    on_model: OnModel | None = None
+    on_stage: OnStage | None = None
+    polling_s: float = 5.0
+
+
+def _worker(app: App, store: Store, options: WorkerOptions) -> Worker:
     return Worker(
         app=app,
         queues=[policy.QUEUE],
-        name=name or default_worker_name(),
-        concurrency=concurrency,
-        wait=wait,
-        install_signal_handlers=signals,
-        fetch_job_polling_interval=polling_s,
-        additional_context={"store": store, "on_model": on_model, "on_stage": on_stage},
+        name=options.name or default_worker_name(),
+        concurrency=options.concurrency,
+        wait=options.wait,
+        install_signal_handlers=options.signals,
+        fetch_job_polling_interval=options.polling_s,
+        additional_context={"store": store, "on_model": options.on_model, "on_stage": options.on_stage},
     )
 
 
@@ -360,93 +368,14 @@ def run_worker(
     """
     if concurrency < 1:
         raise ValidationError(f"concurrency must be at least 1, got {concurrency}")
-    from procrastinate.exceptions import ProcrastinateException
-    from psycopg import Error as PsycopgError
-
-    from driftlab.errors import ServiceError
-
-    stop = threading.Event()  # a stop asked for (signal): never reconnect after it
-    current: dict[str, Any] = {}
-    health: dict[str, Any] = {"worker": None, "lost_since": None}  # what the pulse reports
-    pulse = Pulse(pulse_file, name or default_worker_name(), health) if pulse_file else None
-
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-        loop, worker, task = current.get("loop"), current.get("worker"), current.get("task")
-        if loop is not None and worker is not None:
-            loop.call_soon_threadsafe(worker.stop)  # running jobs end first
-        elif loop is not None and task is not None:
-            loop.call_soon_threadsafe(task.cancel)  # still connecting: nothing to finish
-
-    async def once() -> None:
-        current.update(loop=asyncio.get_running_loop(), task=asyncio.current_task())
-        # one plain connection first: a server that is down refuses it at once, where the queue's pool
-        # would keep trying for 30 s
-        from psycopg import AsyncConnection
-
-        probe = await AsyncConnection.connect(conninfo(store_url(store)), connect_timeout=10)
-        await probe.close()
-        app = build_app(store_url(store), pool_size=concurrency + 3)
-        async with app.open_async():
-            requeued = await _retry_stalled(app)
-            if requeued:
-                log.warning("worker: %d job(s) of lost workers queued again", requeued)
-            worker = _worker(
-                app, store, concurrency=concurrency, wait=wait, name=name, signals=False, on_stage=on_stage
-            )
-            current.update(worker=worker)
-            health.update(worker=worker, lost_since=None)
-            try:
-                if not stop.is_set():
-                    current["connected"] = True
-                    await worker.run()
-            finally:
-                current.pop("worker", None)
-                health["worker"] = None
-
-    import signal
-
+    run = _ForegroundRun(store, WorkerOptions(concurrency, wait, name, on_stage=on_stage))
+    pulse = Pulse(pulse_file, name or default_worker_name(), run.health) if pulse_file else None
     in_main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
+    previous = {s: signal.signal(s, run.on_signal) for s in (signal.SIGINT, signal.SIGTERM)} if in_main else {}
     if pulse is not None:
         pulse.start()
     try:
-        lost_since: float | None = None
-        delay = 1.0
-        while True:
-            began = time.monotonic()
-            connected = False
-            try:
-                asyncio.run(once())
-                if stop.is_set() or not wait:
-                    return
-                reason = "the queue's connection was lost"
-            except asyncio.CancelledError:
-                if stop.is_set():
-                    return
-                raise
-            except (PsycopgError, ProcrastinateException, OSError) as exc:
-                if stop.is_set():
-                    return
-                reason = one_line(exc)
-            finally:
-                connected = bool(current.get("connected"))
-                current.clear()
-            now = time.monotonic()
-            if connected and now - began > 2 * RECONNECT_MAX_DELAY_S:  # it worked a while: a new outage
-                lost_since, delay = None, 1.0
-            if lost_since is None:
-                lost_since = now
-                health["lost_since"] = time.time()
-            if now - lost_since >= reconnect_s:
-                raise ServiceError(
-                    f"worker: no database for {now - lost_since:.0f} s ({reason}); exiting so that its "
-                    "supervisor restarts it"
-                )
-            log.warning("worker: %s; connecting again in %g s", reason, delay)
-            if stop.wait(delay):
-                return
-            delay = min(2 * delay, RECONNECT_MAX_DELAY_S)
+        run.reconnecting(reconnect_s)
     finally:
         if pulse is not None:
             pulse.stop()
@@ -454,15 +383,97 @@ def run_worker(
             signal.signal(sig, handler)
 
 
+class _ForegroundRun:
+    """One foreground worker's life (``run_worker``): its connections, its stop and its health."""
+
+    def __init__(self, store: Store, options: WorkerOptions) -> None:
+        self.store = store
+        self.options = options
+        self.stop = threading.Event()  # a stop asked for (signal): never reconnect after it
+        self.current: dict[str, Any] = {}
+        self.health: dict[str, Any] = {"worker": None, "lost_since": None}  # what the pulse reports
+
+    def on_signal(self, signum: int, frame: Any) -> None:
+        """Stop: once the running jobs end, or at once while still connecting."""
+        self.stop.set()
+        loop, worker, task = self.current.get("loop"), self.current.get("worker"), self.current.get("task")
+        if loop is not None and worker is not None:
+            loop.call_soon_threadsafe(worker.stop)  # running jobs end first
+        elif loop is not None and task is not None:
+            loop.call_soon_threadsafe(task.cancel)  # still connecting: nothing to finish
+
+    async def once(self) -> None:
+        """Open the queue and run the worker until it stops (asked to, or the connection lost)."""
+        self.current.update(loop=asyncio.get_running_loop(), task=asyncio.current_task())
+        # one plain connection first: a server that is down refuses it at once, where the queue's pool
+        # would keep trying for 30 s
+        probe = await AsyncConnection.connect(conninfo(store_url(self.store)), connect_timeout=10)
+        await probe.close()
+        app = build_app(store_url(self.store), pool_size=self.options.concurrency + 3)
+        async with app.open_async():
+            requeued = await _retry_stalled(app)
+            if requeued:
+                log.warning("worker: %d job(s) of lost workers queued again", requeued)
+            worker = _worker(app, self.store, self.options)
+            self.current.update(worker=worker)
+            self.health.update(worker=worker, lost_since=None)
+            try:
+                if not self.stop.is_set():
+                    self.current["connected"] = True
+                    await worker.run()
+            finally:
+                self.current.pop("worker", None)
+                self.health["worker"] = None
+
+    def reconnecting(self, reconnect_s: float) -> None:
+        """Run ``once`` again after each lost connection, 1 .. 15 s apart; ServiceError after ``reconnect_s``."""
+        lost_since: float | None = None
+        delay = 1.0
+        while True:
+            began = time.monotonic()
+            connected = False
+            try:
+                asyncio.run(self.once())
+                if self.stop.is_set() or not self.options.wait:
+                    return
+                reason = "the queue's connection was lost"
+            except asyncio.CancelledError:
+                if self.stop.is_set():
+                    return
+                raise
+            except (PsycopgError, ProcrastinateException, OSError) as exc:
+                if self.stop.is_set():
+                    return
+                reason = one_line(exc)
+            finally:
+                connected = bool(self.current.get("connected"))
+                self.current.clear()
+            now = time.monotonic()
+            if connected and now - began > 2 * RECONNECT_MAX_DELAY_S:  # it worked a while: a new outage
+                lost_since, delay = None, 1.0
+            if lost_since is None:
+                lost_since = now
+                self.health["lost_since"] = time.time()
+            if now - lost_since >= reconnect_s:
+                raise ServiceError(
+                    f"worker: no database for {now - lost_since:.0f} s ({reason}); exiting so that its "
+                    "supervisor restarts it"
+                )
+            log.warning("worker: %s; connecting again in %g s", reason, delay)
+            if self.stop.wait(delay):
+                return
+            delay = min(2 * delay, RECONNECT_MAX_DELAY_S)
+
+
 def run_until_ended(store: Store, job_id: int, *, on_stage: OnStage | None = None, poll_s: float = 1.0) -> JobInfo:
     """Run queued jobs in this process until job ``job_id`` has ended (another worker may run it); return it."""
     while True:
-        job = store.get_job(job_id)
+        job = store.jobs.get(job_id)
         if job.state in ("done", "failed"):
             return job
         if job.state == "queued":
             run_worker(store, wait=False, on_stage=on_stage)
-            job = store.get_job(job_id)
+            job = store.jobs.get(job_id)
             if job.state in ("done", "failed"):
                 return job
         time.sleep(poll_s)  # running elsewhere, held by its machine's lock, or waiting for its retry
@@ -495,9 +506,6 @@ class QueueWorker(threading.Thread):
 
     def run(self) -> None:
         """Run the worker until stopped; when the database goes away, open the queue again (1 .. 15 s apart)."""
-        from procrastinate.exceptions import ProcrastinateException
-        from psycopg import Error as PsycopgError
-
         delay = 1.0
         try:
             while True:
@@ -524,16 +532,10 @@ class QueueWorker(threading.Thread):
     async def _main(self) -> None:
         app = build_app(store_url(self.store), pool_size=self.concurrency + 3)
         async with app.open_async():
-            worker = _worker(
-                app,
-                self.store,
-                concurrency=self.concurrency,
-                wait=True,
-                name=self.worker_name,
-                signals=False,
-                on_model=self.on_model,
-                polling_s=self.polling_s,
+            options = WorkerOptions(
+                self.concurrency, name=self.worker_name, on_model=self.on_model, polling_s=self.polling_s
             )
+            worker = _worker(app, self.store, options)
             with self._lock:
                 if self._stopping:
                     return

@@ -24,7 +24,7 @@ def register_model(
     doc = validate_document(document)
     stored = document_json(doc.model_copy(update={"version": None}))
     try:
-        info = store.register_model(doc.machine, stored, [int(c) for c in source_campaigns])
+        info = store.models.register(doc.machine, stored, [int(c) for c in source_campaigns])
     except NotFoundError:
         raise NotFoundError(f"no machine {doc.machine!r} in the store: import one of its campaigns first") from None
     return document_of(info)
@@ -40,8 +40,8 @@ def document_of(info: ModelVersionInfo) -> ModelDocument:
 
 def list_models(store: Store, machine: str | None = None) -> list[dict[str, Any]]:
     """Return one summary row per stored version (machine, version, status, created, campaigns, size)."""
-    machines = [machine] if machine else store.machine_ids()
-    rows = [r for m in machines for r in store.model_versions(m)]
+    machines = [machine] if machine else store.models.machine_ids()
+    rows = [r for m in machines for r in store.models.versions(m)]
     return [
         {
             "machine": r.machine_id,
@@ -59,7 +59,7 @@ def list_models(store: Store, machine: str | None = None) -> list[dict[str, Any]
 def get_model(store: Store, machine: str, version: int | str = "current") -> ModelDocument:
     """Return a stored document: a version number or ``current``; NotFoundError when there is none."""
     if str(version) == "current":
-        info = store.current_model(machine)
+        info = store.models.current(machine)
         if info is None:
             raise NotFoundError(f"machine {machine} has no current model: run `driftlab fit` first")
         return document_of(info)
@@ -67,7 +67,7 @@ def get_model(store: Store, machine: str, version: int | str = "current") -> Mod
         v = int(version)
     except ValueError:
         raise ValidationError(f"model version must be a number or 'current', got {version!r}") from None
-    for info in store.model_versions(machine):
+    for info in store.models.versions(machine):
         if info.version == v:
             return document_of(info)
     raise NotFoundError(f"no model version {v} for machine {machine}")

@@ -62,7 +62,7 @@ def fit_campaigns(
     ids = [int(c) for c in campaign_ids]
     if not ids:
         raise ValidationError("give at least one campaign")
-    bundles = [store.load_campaign(c) for c in ids]
+    bundles = [store.campaigns.load(c) for c in ids]
     result = fit_bundles(bundles, options, source_campaigns=ids, progress=progress)
     document = result.document
     if envelope is not None:  # a machine file's keys win over the campaigns' travel, axis by axis
@@ -112,7 +112,7 @@ def diagnose_job(
     ids = [int(c) for c in params.get("campaigns", [])]
     if len(ids) != 1:
         raise ValidationError("a diagnosis is of exactly one campaign")
-    result = diagnose_bundle(store.load_campaign(ids[0]), holdout_fraction=float(params.get("holdout_fraction", 0.25)))
+    result = diagnose_bundle(store.campaigns.load(ids[0]), holdout_fraction=float(params.get("holdout_fraction", 0.25)))
     return {"campaign_id": ids[0], "report": diagnosis_json(result)}
 
 
@@ -138,7 +138,7 @@ def execute(
     A failure is recorded (failed, or queued again when ``will_retry(exc, job)``, ``job`` as started:
     ``job.attempts`` counts this run) and then re-raised, so that the queue sees it too.
     """
-    job: JobInfo | None = store.start_job(job_id, worker, only_if_queued=only_if_queued)
+    job: JobInfo | None = store.jobs.start(job_id, worker, only_if_queued=only_if_queued)
     if job is None:
         return None
     try:
@@ -158,7 +158,7 @@ def execute(
             one_line(exc),
             exc_info=not isinstance(exc, DriftlabError),
         )
-        store.fail_job(job_id, one_line(exc), retry=retry)
+        store.jobs.fail(job_id, one_line(exc), retry=retry)
         raise
-    store.finish_job(job_id, result)
+    store.jobs.finish(job_id, result)
     return result

@@ -27,6 +27,7 @@ from driftlab.campaigns import db, partitions
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import Bundle, load_bundle
 from driftlab.campaigns.partitions import start_day
+from driftlab.campaigns.readings_repo import nearest_sql
 from driftlab.campaigns.store import Store, connect
 from driftlab.testing.pgcluster import PgCluster
 
@@ -304,8 +305,6 @@ def test_drift_statements_read_one_partition_each(pg: Store, bundle_factory) -> 
 def test_a_prepared_drift_statement_prunes_at_run_time(pg: Store, bundle_factory) -> None:
     """psycopg prepares a statement after a few executions; PostgreSQL may then run a generic plan,
     which must still read one partition (run-time pruning: the others are 'Subplans Removed')."""
-    from driftlab.campaigns.queries import nearest_sql
-
     ids = _import_months(pg, bundle_factory)
     names = ["c", "day", "axis", "term", "t0", "t1", "p"]
     sql = re.sub(r":(\w+)", lambda m: f"${names.index(m.group(1)) + 1}", nearest_sql([1]))

@@ -19,6 +19,8 @@ from typing import Any
 import psycopg
 import pytest
 
+from driftlab.campaigns.job_repo import JobFilter
+from driftlab.campaigns.repository import Page
 from driftlab.campaigns.store import Store
 from driftlab.cli import main
 from driftlab.errors import ValidationError
@@ -293,10 +295,8 @@ def test_states_follow_the_queue_until_the_record_ends(pg_store: Store) -> None:
     assert pg_store.get_job(job_id).state == "queued"
     _set_queue_status(pg_store, qid, "doing")  # a worker took it
     assert pg_store.get_job(job_id).state == "running"
-    from driftlab.campaigns import api_queries
-
-    assert [j.id for j in api_queries.list_jobs(pg_store, "running", None, None, 10, 0)] == [job_id]
-    assert api_queries.list_jobs(pg_store, "queued", None, None, 10, 0) == []
+    assert [j.id for j in pg_store.jobs.find(JobFilter(state="running"), Page(10))] == [job_id]
+    assert pg_store.jobs.find(JobFilter(state="queued"), Page(10)) == []
     _set_queue_status(pg_store, qid, "cancelled")  # with procrastinate's own tools
     job = pg_store.get_job(job_id)
     assert job.state == "failed" and "cancelled" in job.error

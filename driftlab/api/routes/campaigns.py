@@ -16,7 +16,6 @@ from driftlab.api.schemas import (
     ChannelOut,
     StageOut,
 )
-from driftlab.campaigns import api_queries
 from driftlab.campaigns.store import Store
 from driftlab.errors import NotFoundError
 
@@ -43,30 +42,29 @@ def list_campaigns(
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ) -> CampaignList:
     """Return a page of campaigns (optionally of one machine), oldest first, with their sizes."""
-    rows = store.list_campaigns(machine_id)[offset : offset + limit]
-    return CampaignList(items=[CampaignOut(**r.__dict__) for r in rows], limit=limit, offset=offset)
+    rows = store.campaigns.summaries(machine_id)[offset : offset + limit]
+    return CampaignList(items=[CampaignOut(**dict(r)) for r in rows], limit=limit, offset=offset)
 
 
 @router.get("/campaigns/{campaign_id}", response_model=CampaignDetail, summary="Get a campaign")
 def get_campaign(campaign_id: CampaignId, store: Annotated[Store, Depends(get_store)]) -> CampaignDetail:
     """Return a campaign with its stages, channels and campaign.json document."""
-    row, stages, channels = api_queries.campaign_detail(store, campaign_id)
-    summary = next((s for s in store.list_campaigns(row.machine_id) if s.id == campaign_id), None)
+    detail = store.campaigns.detail(campaign_id)
+    summary = next((s for s in store.campaigns.summaries(detail.row.machine_id) if s.id == campaign_id), None)
     if summary is None:  # deleted between the two reads
         raise NotFoundError(f"no campaign {campaign_id}")
     return CampaignDetail(
-        **summary.__dict__,
-        stage_list=[_stage(s) for s in stages],
-        channel_list=[_channel(c) for c in channels],
-        meta=row.meta,
+        **dict(summary),
+        stage_list=[_stage(s) for s in detail.stages],
+        channel_list=[_channel(c) for c in detail.channels],
+        meta=detail.row.meta,
     )
 
 
 @router.get("/campaigns/{campaign_id}/stages", response_model=list[StageOut], summary="List a campaign's stages")
 def get_stages(campaign_id: CampaignId, store: Annotated[Store, Depends(get_store)]) -> list[StageOut]:
     """Return the stages of a campaign in plan order."""
-    _, stages, _ = api_queries.campaign_detail(store, campaign_id)
-    return [_stage(s) for s in stages]
+    return [_stage(s) for s in store.campaigns.detail(campaign_id).stages]
 
 
 @router.get(
@@ -76,8 +74,7 @@ def get_stages(campaign_id: CampaignId, store: Annotated[Store, Depends(get_stor
 )
 def get_channels(campaign_id: CampaignId, store: Annotated[Store, Depends(get_store)]) -> list[ChannelOut]:
     """Return the channels of a campaign in card order."""
-    _, _, channels = api_queries.campaign_detail(store, campaign_id)
-    return [_channel(c) for c in channels]
+    return [_channel(c) for c in store.campaigns.detail(campaign_id).channels]
 
 
 @router.delete(
@@ -89,5 +86,5 @@ def get_channels(campaign_id: CampaignId, store: Annotated[Store, Depends(get_st
 )
 def delete_campaign(campaign_id: CampaignId, store: Annotated[Store, Depends(get_store)]) -> Response:
     """Delete a campaign with its samples, stages and channels in one transaction."""
-    store.delete_campaign(campaign_id)
+    store.campaigns.delete(campaign_id)
     return Response(status_code=204)

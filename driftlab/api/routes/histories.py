@@ -10,9 +10,10 @@ from __future__ import annotations
 import base64
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
+from operator import attrgetter, itemgetter
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query
@@ -33,8 +34,8 @@ from driftlab.api.schemas import (
     TemperatureHistory,
     TemperaturePoint,
 )
-from driftlab.campaigns import api_queries
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
+from driftlab.campaigns.readings_repo import ErrorFilter, HistoryPage
 from driftlab.campaigns.store import Store
 from driftlab.errors import BadRequestError, NotFoundError
 from driftlab.jsonsafe import finite_or_none
@@ -88,9 +89,9 @@ class Window:
     offset: int
     cursor: str | None
 
-    def after(self, kind: str) -> Any:
-        """Return the position this page starts after (decoded cursor), or None."""
-        return decode_cursor(self.cursor, kind)
+    def page(self, kind: str) -> HistoryPage:
+        """Return the store's page of this window for a ``kind`` of history (its cursor decoded)."""
+        return HistoryPage(self.start_s, self.end_s, decode_cursor(self.cursor, kind), self.offset, self.limit)
 
 
 def window(
@@ -118,8 +119,9 @@ def _bucket(time_s: float, t_end_s: float, n: Any, lo: Any, mean: Any, hi: Any) 
     )
 
 
-def _next(kind: str, rows: Sequence[Any], page: Window, last: Any) -> str | None:
-    return encode_cursor(kind, last) if rows and len(rows) == page.limit else None
+def _next(kind: str, rows: Sequence[Any], page: Window, key: Callable[[Any], float | int]) -> str | None:
+    """Return the cursor of the page after a full one (its last row's ``key``), None after the last page."""
+    return encode_cursor(kind, key(rows[-1])) if rows and len(rows) == page.limit else None
 
 
 @router.get(
@@ -137,17 +139,15 @@ def temperatures(
 ) -> TemperatureHistory:
     """Return a channel's readings in a time range (paged), or min/mean/max per time bucket."""
     if buckets:
-        frame = store.temperature_history(campaign_id, channel, page.start_s, page.end_s, buckets)
+        frame = store.readings.temperature_history(campaign_id, channel, page.start_s, page.end_s, buckets)
         out = [
             _bucket(r.time_s, r.t_end_s, r.n, r.value_min, r.value_mean, r.value_max)
             for r in frame.itertuples(index=False)
         ]
         return TemperatureHistory(campaign_id=campaign_id, channel=channel, buckets=out)
-    rows = api_queries.temperature_page(
-        store, campaign_id, channel, page.start_s, page.end_s, page.after("temperature"), page.offset, page.limit
-    )
+    rows = store.readings.temperature_page(campaign_id, channel, page.page("temperature"))
     points = [TemperaturePoint(time_s=t, value=finite_or_none(v)) for t, v in rows]
-    nxt = _next("temperature", rows, page, rows[-1][0] if rows else None)
+    nxt = _next("temperature", rows, page, itemgetter(0))
     return TemperatureHistory(campaign_id=campaign_id, channel=channel, points=points, next_cursor=nxt)
 
 
@@ -167,18 +167,16 @@ def conditions(
     """Return spindle, feed and axis positions over a time range (paged), or min/mean/max per bucket."""
     cols: list[str] = list(dict.fromkeys(column)) if column else list(CONDITION_VALUE_COLUMNS)
     if buckets:
-        frame = store.condition_history(campaign_id, cols, page.start_s, page.end_s, buckets)
+        frame = store.readings.condition_history(campaign_id, cols, page.start_s, page.end_s, buckets)
         out = []
         for r in frame.to_dict("records"):
             span = (r["time_s"], r["t_end_s"], r["n"])
             values = {c: _bucket(*span, r[f"{c}_min"], r[f"{c}_mean"], r[f"{c}_max"]) for c in cols}
             out.append(ConditionBucket(time_s=r["time_s"], t_end_s=r["t_end_s"], n=int(r["n"]), values=values))
         return ConditionHistory(campaign_id=campaign_id, columns=cols, buckets=out)
-    rows = api_queries.condition_page(
-        store, campaign_id, cols, page.start_s, page.end_s, page.after("condition"), page.offset, page.limit
-    )
+    rows = store.readings.condition_page(campaign_id, cols, page.page("condition"))
     points = [ConditionRow(time_s=r[0], **{c: finite_or_none(v) for c, v in zip(cols, r[1:])}) for r in rows]
-    nxt = _next("condition", rows, page, rows[-1][0] if rows else None)
+    nxt = _next("condition", rows, page, itemgetter(0))
     return ConditionHistory(campaign_id=campaign_id, columns=cols, points=points, next_cursor=nxt)
 
 
@@ -199,10 +197,7 @@ def errors(
     """Return a page of error samples in measurement order, filtered by axis, term, direction and time."""
     if direction == 0:
         raise BadRequestError("direction must be +1 or -1")
-    rows = api_queries.error_page(
-        store, campaign_id, axis, term, direction, page.start_s, page.end_s, page.after("error"), page.offset,
-        page.limit,
-    )  # fmt: skip
+    rows = store.readings.error_page(campaign_id, ErrorFilter(axis, term, direction), page.page("error"))
     items = [
         ErrorSampleOut(
             seq=r.seq,
@@ -217,7 +212,7 @@ def errors(
         )
         for r in rows
     ]
-    nxt = _next("error", rows, page, rows[-1].seq if rows else None)
+    nxt = _next("error", rows, page, attrgetter("seq"))
     return ErrorHistory(campaign_id=campaign_id, items=items, next_cursor=nxt)
 
 
@@ -228,14 +223,13 @@ def errors(
 )
 def latest_temperatures(machine_id: MachineId, store: Annotated[Store, Depends(get_store)]) -> LatestTemperatures:
     """Return the last scan of the machine's latest campaign with readings (degC per channel)."""
-    found = api_queries.latest_scan(store, machine_id)
+    found = store.readings.latest_scan(machine_id)
     if found is None:
         raise NotFoundError(f"machine {machine_id!r} has no temperature readings")
-    campaign_id, started, time_s, values = found
     return LatestTemperatures(
         machine_id=machine_id,
-        campaign_id=campaign_id,
-        time_s=time_s,
-        time=started + timedelta(seconds=time_s),
-        temperatures={c: finite_or_none(v) for c, v in values.items()},
+        campaign_id=found.campaign_id,
+        time_s=found.time_s,
+        time=found.started_at + timedelta(seconds=found.time_s),
+        temperatures={c: finite_or_none(v) for c, v in found.values.items()},
     )

@@ -14,7 +14,8 @@ from fastapi import APIRouter, Depends, Path, Query, Response
 
 from driftlab.api.deps import ApiState, get_state, get_store, require_token
 from driftlab.api.schemas import ID_PATTERN, MAX_ID, JobKind, JobList, JobOut, JobState, JobSubmit
-from driftlab.campaigns import api_queries
+from driftlab.campaigns.job_repo import JobFilter
+from driftlab.campaigns.repository import Page
 from driftlab.campaigns.store import JobInfo, Store
 from driftlab.errors import ValidationError
 from driftlab.jobs import DIAGNOSE, FIT, KINDS
@@ -55,7 +56,7 @@ def submit(body: JobSubmit, state: Annotated[ApiState, Depends(get_state)], resp
         raise ValidationError("a diagnosis is of exactly one campaign: give one campaign id")
     if body.kind == FIT and body.machine_id is None and not ids:
         raise ValidationError("a fit needs a machine id or campaign ids")
-    ids = api_queries.check_job_targets(state.store, body.machine_id, ids)
+    ids = state.store.campaigns.job_targets(body.machine_id, ids)
     if body.kind == FIT and not ids:
         raise ValidationError(f"machine {body.machine_id!r} has no campaigns to fit")
     params: dict[str, Any] = {"campaigns": ids}  # a driftlab.jobs fit or diagnosis job's parameters
@@ -63,10 +64,10 @@ def submit(body: JobSubmit, state: Annotated[ApiState, Depends(get_state)], resp
         params["holdout_fraction"] = body.holdout_fraction
     machine = body.machine_id
     if machine is None and ids:
-        machine = api_queries.campaign_detail(state.store, ids[0])[0].machine_id
+        machine = state.store.campaigns.detail(ids[0]).row.machine_id
     job_id = state.jobs.submit(body.kind, params, machine_id=machine, campaign_id=ids[0] if len(ids) == 1 else None)
     response.headers["Location"] = f"/jobs/{job_id}"
-    return job_out(state.store.get_job(job_id))
+    return job_out(state.store.jobs.get(job_id))
 
 
 @router.get("/jobs", response_model=JobList, summary="List jobs")
@@ -79,11 +80,11 @@ def list_jobs(
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ) -> JobList:
     """Return a page of fit and diagnosis jobs, newest first."""
-    rows = api_queries.list_jobs(store, state, kind, machine_id, limit, offset, kinds=KINDS)
+    rows = store.jobs.find(JobFilter(state, kind, machine_id, kinds=KINDS), Page(limit, offset))
     return JobList(items=[job_out(r) for r in rows], limit=limit, offset=offset)
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, summary="Poll a job")
 def get_job(job_id: Annotated[int, Path(ge=1, le=MAX_ID)], store: Annotated[Store, Depends(get_store)]) -> JobOut:
     """Return a job's state and, when done, its result."""
-    return job_out(store.get_job(job_id))
+    return job_out(store.jobs.get(job_id))

@@ -8,25 +8,17 @@ from fastapi import APIRouter, Depends, Path, Query
 
 from driftlab.api.deps import get_store
 from driftlab.api.schemas import ID_PATTERN, MachineList, MachineOut
-from driftlab.campaigns import api_queries
-from driftlab.campaigns.store import Store
+from driftlab.campaigns.repository import Page
+from driftlab.campaigns.store import MachineInfo, Store
 
 router = APIRouter(tags=["machines"])
 
 MachineId = Annotated[str, Path(pattern=ID_PATTERN, description="machine id (the bundle's machine.id)")]
 
 
-def _out(m: api_queries.MachineInfo) -> MachineOut:
-    """Return the response model of a machine."""
-    return MachineOut(
-        id=m.id,
-        name=m.name,
-        resolution_mm=m.resolution_mm,
-        resolution_deg=m.resolution_deg,
-        created_at=m.created_at,
-        campaigns=m.campaigns,
-        current_model_version=m.current_model_version,
-    )
+def _out(m: MachineInfo) -> MachineOut:
+    """Return the response model of a machine (the same fields as the store's MachineInfo)."""
+    return MachineOut(**dict(m))
 
 
 @router.get("/machines", response_model=MachineList, summary="List machines")
@@ -37,11 +29,11 @@ def list_machines(
 ) -> MachineList:
     """Return a page of machines ordered by id."""
     return MachineList(
-        items=[_out(m) for m in api_queries.list_machines(store, limit, offset)], limit=limit, offset=offset
+        items=[_out(m) for m in store.campaigns.machines(Page(limit, offset))], limit=limit, offset=offset
     )
 
 
 @router.get("/machines/{machine_id}", response_model=MachineOut, summary="Get a machine")
 def get_machine(machine_id: MachineId, store: Annotated[Store, Depends(get_store)]) -> MachineOut:
     """Return one machine."""
-    return _out(api_queries.get_machine(store, machine_id))
+    return _out(store.campaigns.machine(machine_id))

@@ -24,8 +24,8 @@ from driftlab.api.schemas import (
     ModelStatus,
     ModelVersionOut,
 )
-from driftlab.campaigns import api_queries
-from driftlab.campaigns.store import Store
+from driftlab.campaigns.repository import Page
+from driftlab.campaigns.store import ModelVersionInfo, Store
 from driftlab.errors import ValidationError
 from driftlab.jsonsafe import check_json
 
@@ -94,8 +94,7 @@ def list_models(
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ) -> Any:
     """Return a page of model versions (without documents), by machine then version."""
-    rows = api_queries.model_versions(store, machine_id, status, limit, offset)
-    return {"items": [model_out(r, with_document=False) for r in rows], "limit": limit, "offset": offset}
+    return _model_list(store, machine_id, status, Page(limit, offset))
 
 
 @router.get("/machines/{machine_id}/models", response_model=ModelList, summary="List a machine's model versions")
@@ -107,8 +106,13 @@ def machine_models(
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ) -> Any:
     """Return a page of a machine's model versions, oldest first."""
-    rows = api_queries.model_versions(store, machine_id, status, limit, offset)
-    return {"items": [model_out(r, with_document=False) for r in rows], "limit": limit, "offset": offset}
+    return _model_list(store, machine_id, status, Page(limit, offset))
+
+
+def _model_list(store: Store, machine_id: str | None, status: str | None, page: Page) -> dict[str, Any]:
+    """Return a page of model versions as ModelList's JSON (an unknown machine is a 404)."""
+    rows = store.models.versions(machine_id, status, page, known_machine=True)
+    return {"items": [model_out(r, with_document=False) for r in rows], "limit": page.limit, "offset": page.offset}
 
 
 @router.get(
@@ -147,7 +151,7 @@ def get_version(
     machine_id: MachineId, version: Version, store: Annotated[Store, Depends(get_store)], response: Response
 ) -> Any:
     """Return one model version of a machine with its document."""
-    row = api_queries.model_version(store, machine_id, version)
+    row = store.models.version(machine_id, version)
     response.headers["ETag"] = model_etag(row)
     return model_out(row)
 
@@ -170,35 +174,33 @@ def register(
     doc = documents.validate_document(body.document)
     if doc.machine != machine_id:
         raise ValidationError(f"the document is of machine {doc.machine!r}, not {machine_id!r}")
-    api_queries.get_machine(state.store, machine_id)  # 404 for an unknown machine (registry would create it)
+    state.store.campaigns.machine(machine_id)  # 404 for an unknown machine (registry would create it)
     final = model_registry.register_model(state.store, doc, source_campaigns=body.source_campaigns)
     state.models.invalidate(machine_id)
-    row = api_queries.model_version(state.store, machine_id, int(final.version or 0))
+    row = state.store.models.version(machine_id, int(final.version or 0))
     response.headers["Location"] = f"/machines/{machine_id}/models/{row.version}"
     return model_out(row)
 
 
+def _changed(state: ApiState, row: ModelVersionInfo) -> Any:
+    """Return a registry row just changed through this API (its machine's cached current model dropped)."""
+    state.models.invalidate(row.machine_id)
+    return model_out(row)
+
+
+#: what the promote and retire routes share: they answer with the version, and need the write token
+_VERSION_WRITE: dict[str, Any] = {"response_model": ModelVersionOut, "dependencies": [Depends(require_token)]}
+
+
 @router.post(
-    "/machines/{machine_id}/models/{version}/promote",
-    response_model=ModelVersionOut,
-    dependencies=[Depends(require_token)],
-    summary="Make a version the current one",
+    "/machines/{machine_id}/models/{version}/promote", summary="Make a version the current one", **_VERSION_WRITE
 )
 def promote(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
     """Make a version current (retiring the previous current one); compensators see a new ETag."""
-    row = api_queries.promote_model(state.store, machine_id, version)
-    state.models.invalidate(machine_id)
-    return model_out(row)
+    return _changed(state, state.store.models.promote(machine_id, version))
 
 
-@router.post(
-    "/machines/{machine_id}/models/{version}/retire",
-    response_model=ModelVersionOut,
-    dependencies=[Depends(require_token)],
-    summary="Retire a version",
-)
+@router.post("/machines/{machine_id}/models/{version}/retire", summary="Retire a version", **_VERSION_WRITE)
 def retire(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
     """Retire a version; if it was current the machine has no current model until one is promoted."""
-    row = api_queries.retire_model(state.store, machine_id, version)
-    state.models.invalidate(machine_id)
-    return model_out(row)
+    return _changed(state, state.store.models.retire(machine_id, version))

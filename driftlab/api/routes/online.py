@@ -21,7 +21,7 @@ from fastapi import APIRouter, Depends, Response
 from driftlab.api.deps import ApiState, get_state, require_token
 from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import OnlineOut, ProbeIn, Vector3
-from driftlab.campaigns import api_queries
+from driftlab.campaigns.store import ModelVersionInfo
 from driftlab.errors import NotFoundError, ValidationError
 from driftlab.jobs import online
 
@@ -50,11 +50,11 @@ def _measured_at(value: datetime | None) -> datetime:
     return value.astimezone(UTC)
 
 
-def _current(state: ApiState, machine_id: str) -> api_queries.ModelRow:
+def _current(state: ApiState, machine_id: str) -> ModelVersionInfo:
     """Return the machine's current model row, read from the store (not the cache)."""
-    row = api_queries.current_model(state.store, machine_id)
+    row = state.store.models.current(machine_id)
     if row is None:
-        api_queries.get_machine(state.store, machine_id)
+        state.store.campaigns.machine(machine_id)
         raise NotFoundError(f"machine {machine_id!r} has no current model")
     return row
 
