@@ -59,14 +59,13 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from driftlab.daq.laser import LASER_TERMS, Environment, LaserMeasures
+from driftlab.daq.laser import LASER_TERMS, Environment, LaserMeasures, SettleOptions
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, Reading
 from driftlab.daq.retry import GarbledReply, TransientError
 from driftlab.daq.transport import RawPort, SerialPort, close_quietly
@@ -122,28 +121,21 @@ class AttocubeIDS(LaserMeasures):
         self,
         connect: Callable[[], RawPort],
         optics: IDSOptics = IDSOptics(),
+        settle: SettleOptions = SettleOptions(),
+        *,
         api_namespace: str = "sen",
-        readings_per_point: int = 10,
         min_contrast_permille: float = 250.0,
-        settle_tolerance_mm: float = 0.0005,
-        settle_tolerance_rad: float = 5e-7,
-        settle_poll_s: float = 0.5,
-        max_settle_polls: int = 120,
         start_measurement: bool = True,
         start_polls: int = 120,
-        sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         if api_namespace not in NAMESPACES:
             raise ValidationError(f"IDS3010 api_namespace {api_namespace!r}: one of {', '.join(NAMESPACES)}")
         self._connect = connect
         self.optics = optics
         self.ns = NAMESPACES[api_namespace]
-        self.readings_per_point = readings_per_point
+        self._settle_with(settle)
         self.min_contrast_permille = min_contrast_permille
-        self.settle_tolerance_mm, self.settle_tolerance_rad = settle_tolerance_mm, settle_tolerance_rad
-        self.settle_poll_s, self.max_settle_polls = settle_poll_s, max_settle_polls
         self.start_measurement, self.start_polls = start_measurement, start_polls
-        self.sleep = sleep
         self.mode: str | None = None
         self.axis: str | None = None
         self.term: str | None = None
@@ -156,10 +148,29 @@ class AttocubeIDS(LaserMeasures):
         self._id = 0
 
     @classmethod
-    def open(cls, resource: str, timeout_s: float = 5.0, **options: Any) -> AttocubeIDS:
+    def open(
+        cls,
+        resource: str,
+        timeout_s: float = 5.0,
+        optics: IDSOptics = IDSOptics(),
+        settle: SettleOptions = SettleOptions(),
+        *,
+        api_namespace: str = "sen",
+        min_contrast_permille: float = 250.0,
+        start_measurement: bool = True,
+        start_polls: int = 120,
+    ) -> AttocubeIDS:
         """Return a driver on ``host[:port]`` with the head measuring (started from "system idle" if allowed)."""
         url = ids_url(resource)
-        ids = cls(lambda: SerialPort.open(url, timeout_s=timeout_s), **options)
+        ids = cls(
+            lambda: SerialPort.open(url, timeout_s=timeout_s),
+            optics,
+            settle,
+            api_namespace=api_namespace,
+            min_contrast_permille=min_contrast_permille,
+            start_measurement=start_measurement,
+            start_polls=start_polls,
+        )
         try:
             ids.session()
         except TransientError as exc:

@@ -194,7 +194,7 @@ def test_channel_maps_from_scenario_or_plan() -> None:
 
 def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -> None:
     """A card that keeps garbling and a broken laser beam become faults; every other reading is stored."""
-    from driftlab.daemon.loop import Scheduler
+    from driftlab.daemon.loop import Scheduler, SchedulerOptions
     from driftlab.daemon.run import sim_clock
     from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
@@ -225,7 +225,9 @@ def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -
     rig.servers["thermocouple"].inject("garble", "garble", "garble", on="READ?")  # every attempt of the first scan
     rig.servers["laser"].break_beam()
     try:
-        stats = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, max_batch=1).run()  # scan by scan
+        stats = Scheduler(
+            plan, rig, StoreSink(engine, plan, handle), clock, options=SchedulerOptions(max_batch=1)
+        ).run()  # scan by scan
     finally:
         rig.close()
     assert stats.finished
@@ -350,7 +352,7 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
     """PostgreSQL drops the daemon's connections mid-run: the same batch is committed again, once."""
     from sqlalchemy import create_engine, text
 
-    from driftlab.daemon.loop import Scheduler
+    from driftlab.daemon.loop import Scheduler, SchedulerOptions
     from driftlab.daemon.run import sim_clock
     from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
@@ -396,7 +398,12 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
     )
     try:
         stats = Scheduler(
-            plan, rig, StoreSink(engine, plan, handle), clock, handle.cursor, on_commit=drop_connections
+            plan,
+            rig,
+            StoreSink(engine, plan, handle),
+            clock,
+            handle.cursor,
+            SchedulerOptions(on_commit=drop_connections),
         ).run()
     finally:
         rig.close()
@@ -409,7 +416,7 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
 
 def test_block_reads_store_the_rows_of_scan_by_scan_reads(tmp_path: Path) -> None:
     """Buffered block reads and one scan per exchange store the same readings (and the same states)."""
-    from driftlab.daemon.loop import Scheduler
+    from driftlab.daemon.loop import Scheduler, SchedulerOptions
     from driftlab.daemon.run import sim_clock
     from driftlab.daemon.simrig import build_sim_rig, scenario_meta
     from driftlab.daq.sim.scenario import load_scenario
@@ -441,7 +448,9 @@ def test_block_reads_store_the_rows_of_scan_by_scan_reads(tmp_path: Path) -> Non
             plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
         )
         try:
-            sched = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, max_batch=max_batch)
+            sched = Scheduler(
+                plan, rig, StoreSink(engine, plan, handle), clock, options=SchedulerOptions(max_batch=max_batch)
+            )
             assert sched.block_scans() == max_batch
             stats = sched.run()
         finally:
