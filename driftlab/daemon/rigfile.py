@@ -30,7 +30,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic import ValidationError as PydanticError
 
-from driftlab.daq.attocube_ids import AttocubeIDS
+from driftlab.daq.attocube_ids import AttocubeIDS, IDSSession
 from driftlab.daq.export_follower import ExportFollower
 from driftlab.daq.heidenhain import HeidenhainLink
 from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts
@@ -396,9 +396,11 @@ def _open_attocube(o: _Opening) -> Opened:
         o.spec.timeout_s,
         ids_optics(o.role, opts),
         o.settle(),
-        api_namespace=str(opts.get("api_namespace", "sen")),
-        min_contrast_permille=float(opts.get("min_contrast_permille", 250.0)),
-        start_measurement=bool(opts.get("start_measurement", True)),
+        IDSSession(
+            api_namespace=str(opts.get("api_namespace", "sen")),
+            min_contrast_permille=float(opts.get("min_contrast_permille", 250.0)),
+            start_measurement=bool(opts.get("start_measurement", True)),
+        ),
     )
     return ids, ids.close
 
@@ -504,15 +506,12 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
                 if spec.driver == "attocube-ids3010":
                     from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource
 
-                    optics = ids_optics(role, spec.options)
                     head = SimIDS3010(
                         world,
                         clock,
                         stage,
                         api_namespace=str(spec.options.get("api_namespace", "sen")),
-                        displacement_axis=optics.displacement_axis,
-                        angle_axes=optics.angle_axes,
-                        angle_spacing_mm=optics.angle_spacing_mm,
+                        optics=ids_optics(role, spec.options),
                     )
                     servers[role] = head.start()
                     specs[role] = spec.model_copy(update={"resource": ids_resource(head)})

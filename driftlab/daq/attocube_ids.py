@@ -114,6 +114,18 @@ class IDSOptics:
             raise ValidationError("IDS3010 optics: angle_spacing_mm must be positive")
 
 
+@dataclass(frozen=True)
+class IDSSession:
+    """How the driver talks to the head: the JSON-RPC namespace of its firmware (``sen`` or ``ids``),
+    the least signal contrast (per mille) it trusts, and whether it may start the measurement from
+    "system idle" (polling the mode at most ``start_polls`` times)."""
+
+    api_namespace: str = "sen"
+    min_contrast_permille: float = 250.0
+    start_measurement: bool = True
+    start_polls: int = 120
+
+
 class AttocubeIDS(LaserMeasures):
     """An attocube IDS3010 on the network: an ErrorMeter of table 5.3's laser terms (rig driver attocube-ids3010)."""
 
@@ -122,20 +134,16 @@ class AttocubeIDS(LaserMeasures):
         connect: Callable[[], RawPort],
         optics: IDSOptics = IDSOptics(),
         settle: SettleOptions = SettleOptions(),
-        *,
-        api_namespace: str = "sen",
-        min_contrast_permille: float = 250.0,
-        start_measurement: bool = True,
-        start_polls: int = 120,
+        session: IDSSession = IDSSession(),
     ) -> None:
-        if api_namespace not in NAMESPACES:
-            raise ValidationError(f"IDS3010 api_namespace {api_namespace!r}: one of {', '.join(NAMESPACES)}")
+        if session.api_namespace not in NAMESPACES:
+            raise ValidationError(f"IDS3010 api_namespace {session.api_namespace!r}: one of {', '.join(NAMESPACES)}")
         self._connect = connect
         self.optics = optics
-        self.ns = NAMESPACES[api_namespace]
+        self.ns = NAMESPACES[session.api_namespace]
         self._settle_with(settle)
-        self.min_contrast_permille = min_contrast_permille
-        self.start_measurement, self.start_polls = start_measurement, start_polls
+        self.min_contrast_permille = session.min_contrast_permille
+        self.start_measurement, self.start_polls = session.start_measurement, session.start_polls
         self.mode: str | None = None
         self.axis: str | None = None
         self.term: str | None = None
@@ -154,23 +162,11 @@ class AttocubeIDS(LaserMeasures):
         timeout_s: float = 5.0,
         optics: IDSOptics = IDSOptics(),
         settle: SettleOptions = SettleOptions(),
-        *,
-        api_namespace: str = "sen",
-        min_contrast_permille: float = 250.0,
-        start_measurement: bool = True,
-        start_polls: int = 120,
+        session: IDSSession = IDSSession(),
     ) -> AttocubeIDS:
         """Return a driver on ``host[:port]`` with the head measuring (started from "system idle" if allowed)."""
         url = ids_url(resource)
-        ids = cls(
-            lambda: SerialPort.open(url, timeout_s=timeout_s),
-            optics,
-            settle,
-            api_namespace=api_namespace,
-            min_contrast_permille=min_contrast_permille,
-            start_measurement=start_measurement,
-            start_polls=start_polls,
-        )
+        ids = cls(lambda: SerialPort.open(url, timeout_s=timeout_s), optics, settle, session)
         try:
             ids.session()
         except TransientError as exc:

@@ -17,7 +17,7 @@ import socket
 import numpy as np
 import pytest
 
-from driftlab.daq.attocube_ids import AttocubeIDS, IDSOptics, ids_url, request_line
+from driftlab.daq.attocube_ids import AttocubeIDS, IDSOptics, IDSSession, ids_url, request_line
 from driftlab.daq.laser import SettleOptions
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, ErrorMeter
 from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource
@@ -308,7 +308,7 @@ def test_unknown_term_and_namespace_are_refused():
     with pytest.raises(ValidationError, match="table 5.3"):
         ids.configure("X", "alpha")
     with pytest.raises(ValidationError, match="api_namespace"):
-        AttocubeIDS(lambda: None, api_namespace="foo")  # type: ignore[arg-type,return-value]
+        AttocubeIDS(lambda: None, session=IDSSession(api_namespace="foo"))  # type: ignore[arg-type,return-value]
 
 
 # ------------------------------------------------------------------ the simulator through a real socket

@@ -1,0 +1,204 @@
+"""The daemon loop's run states (a transition table; an illegal transition refused) and its narrowed clock."""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+
+import pytest
+
+from driftlab.campaigns import schema as sc
+from driftlab.campaigns.acquisition import Batch, StoreSink, open_campaign
+from driftlab.campaigns.clock import SimClock, WallClock
+from driftlab.campaigns.db import store_engine
+from driftlab.campaigns.plan import Cursor, parse_plan
+from driftlab.daemon.clocks import LoopClock, PacedClock, check_supports, narrow_clock
+from driftlab.daemon.loop import RunStats, Scheduler, SchedulerOptions
+from driftlab.daemon.run import sim_clock
+from driftlab.daemon.runstate import TRANSITIONS, IllegalTransition, RunState, RunStateMachine
+from driftlab.daemon.simrig import build_sim_rig, scenario_meta
+from driftlab.daq.sim.scenario import load_scenario
+from driftlab.errors import ConflictError
+
+ROOT = Path(__file__).resolve().parents[2]
+S = RunState
+
+
+def test_the_table_names_every_state_and_final_states_go_nowhere() -> None:
+    """Every state has a row; finished, stopped, aborted and failed are final; any live state may fail."""
+    assert set(TRANSITIONS) == set(RunState)
+    assert [s for s, to in TRANSITIONS.items() if not to] == [S.FINISHED, S.STOPPED, S.ABORTED, S.FAILED]
+    for state, allowed in TRANSITIONS.items():
+        if allowed and state is not S.IDLE:
+            assert S.FAILED in allowed, state
+
+
+@pytest.mark.parametrize(
+    ("path", "illegal"),
+    [
+        ([], S.FINISHED),  # idle cannot finish without running
+        ([S.RUNNING, S.FINISHED], S.RUNNING),  # a finished run does not run again
+        ([S.RUNNING, S.STOPPING], S.PACED),  # a stopping run reads no more blocks
+        ([S.RUNNING, S.PACED], S.RUNNING),  # the pacer is not stopped again
+        ([S.RUNNING, S.ABORTING], S.FINISHED),  # an aborting run cannot finish
+    ],
+)
+def test_an_illegal_transition_is_refused_and_changes_nothing(path: list[RunState], illegal: RunState) -> None:
+    """Asking for a transition the table does not list raises IllegalTransition; the state stays where it was."""
+    m = RunStateMachine()
+    for state in path:
+        m.to(state)
+    before = m.state
+    with pytest.raises(IllegalTransition, match=f"{before.value} -> {illegal.value}"):
+        m.to(illegal)
+    assert m.state is before
+
+
+def test_a_failure_keeps_its_error_and_surfaces_at_the_next_transition() -> None:
+    """The writer's failure stops committing; the acquiring thread gets that error (the first one) when it moves on."""
+    m = RunStateMachine()
+    m.to(S.RUNNING)
+    assert m.committing and not m.paced
+    first, second = ConflictError("already holds a reading"), OSError("disk gone")
+    m.fail(first)
+    m.fail(second)
+    assert m.state is S.FAILED and m.error is first and not m.committing
+    with pytest.raises(ConflictError, match="already holds"):
+        m.to(S.PACED)
+    m.abort()
+    m.settle()
+    assert m.state is S.FAILED
+
+
+@pytest.mark.parametrize(
+    ("path", "ended"),
+    [
+        ([S.RUNNING], S.FINISHED),
+        ([S.RUNNING, S.PACED], S.FINISHED),
+        ([S.RUNNING, S.PACED, S.STOPPING], S.STOPPED),
+        ([S.RUNNING, S.ABORTING], S.ABORTED),
+    ],
+)
+def test_settle_ends_each_passing_state(path: list[RunState], ended: RunState) -> None:
+    """The end of a run: still stepping -> finished, stopping -> stopped, aborting -> aborted."""
+    m = RunStateMachine()
+    for state in path:
+        m.to(state)
+    m.settle()
+    assert m.state is ended
+
+
+class _NoPace:
+    """A simulated clock that cannot say where the wall clock's pace is (no pace_s, no anchor)."""
+
+    simulated = True
+    speed = math.inf
+
+    def now(self) -> float:
+        return 0.0
+
+    def wait_until(self, t_s: float) -> float:
+        return t_s
+
+    def lag_s(self) -> float:
+        return 0.0
+
+    def set(self, t_s: float) -> None:
+        """Nothing."""
+
+    def max_lag_s(self) -> float:
+        return 0.0
+
+
+def test_the_clock_is_narrowed_once_and_an_incomplete_one_refused() -> None:
+    """SimClock is a PacedClock, WallClock a LoopClock only; a simulated clock without pace_s/anchor is refused."""
+    sim = SimClock(speed=10.0)
+    assert narrow_clock(sim) == (sim, sim)
+    wall = WallClock()
+    assert narrow_clock(wall) == (wall, None)
+    check_supports(wall, LoopClock)
+    with pytest.raises(TypeError, match="WallClock is not a PacedClock: it lacks speed, pace_s, anchor"):
+        check_supports(wall, PacedClock)
+    with pytest.raises(TypeError, match="_NoPace is not a PacedClock: it lacks pace_s, anchor"):
+        narrow_clock(_NoPace())
+
+
+def _small_run(tmp_path: Path, name: str):
+    """Return (plan, rig, sink, clock, engine) of a 10-scan-a-stage idle plan on the virtual machine, flat out."""
+    plan = parse_plan(
+        {
+            "name": name,
+            "machine": {"id": "vmc-5ax-01"},
+            "scan_interval_s": 10,
+            "stages": [{"name": "idle", "axis": "Z", "duration_s": 600}],
+        }
+    )
+    engine = store_engine(f"sqlite:///{tmp_path / (name + '.sqlite')}")
+    meta = scenario_meta(None)
+    handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
+    clock = sim_clock(plan, handle.cursor, math.inf)
+    rig = build_sim_rig(
+        plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
+    )
+    return plan, rig, StoreSink(engine, plan, handle), clock, handle
+
+
+def test_runs_end_finished_or_stopped_and_do_not_run_twice(tmp_path: Path) -> None:
+    """A run to the end is finished (block mode went through paced); one stopped mid-way is stopped, cursor kept."""
+    plan, rig, sink, clock, _ = _small_run(tmp_path, "whole")
+    try:
+        sched = Scheduler(plan, rig, sink, clock, options=SchedulerOptions(max_batch=20))
+        stats = sched.run()
+        assert stats.finished and sched.state.state is S.FINISHED and stats.scans == plan.n_scans
+        with pytest.raises(IllegalTransition, match="finished -> running"):
+            sched.run()
+    finally:
+        rig.close()
+    plan, rig, sink, clock, handle = _small_run(tmp_path, "part")
+    stop = threading.Event()
+
+    def stop_after_two(batch: Batch, stats: RunStats) -> None:
+        if stats.commits == 2:
+            stop.set()
+
+    try:
+        sched = Scheduler(
+            plan,
+            rig,
+            sink,
+            clock,
+            options=SchedulerOptions(max_batch=5, flush_s=0.0, on_commit=stop_after_two, stop=stop),
+        )
+        stats = sched.run()
+    finally:
+        rig.close()
+    assert not stats.finished and sched.state.state is S.STOPPED
+    assert 0 < stats.scans < plan.n_scans and sched.cursor == Cursor(stats.scans, 0)
+    resumed = open_campaign(sink.engine, plan, scenario_meta(None)["channels"], [], resume=True, origin={})
+    assert resumed.cursor == sched.cursor  # the stored cursor is where the stopped run left off
+
+
+def test_a_failed_commit_fails_the_run_and_nothing_after_it_is_committed(tmp_path: Path) -> None:
+    """A reading already stored makes the third batch conflict: the run fails with that error, commits stop there."""
+    plan, rig, sink, clock, handle = _small_run(tmp_path, "fails")
+    with sink.engine.begin() as conn:  # scan 10 (t = 100 s) is already in the store: batches of 5 scans hit it third
+        conn.execute(
+            sc.TemperatureSample.__table__.insert().values(
+                campaign_id=handle.campaign_id,
+                channel_id=handle.channel_ids["T7"],
+                time_s=100.0,
+                value=1.0,
+                campaign_start_day=handle.start_day,
+            )
+        )
+    try:
+        sched = Scheduler(plan, rig, sink, clock, options=SchedulerOptions(max_batch=5, flush_s=0.0))
+        with pytest.raises(ConflictError, match="already holds a reading"):
+            sched.run()
+    finally:
+        rig.close()
+    assert sched.state.state is S.FAILED and not sched.stats.finished
+    assert sched.stats.commits == 2 and sched.stats.scans == 10
+    resumed = open_campaign(sink.engine, plan, scenario_meta(None)["channels"], [], resume=True, origin={})
+    assert resumed.cursor == Cursor(10, 0)
