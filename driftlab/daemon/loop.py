@@ -16,11 +16,18 @@ transaction of at most ``max_batch`` scans or ``flush_s`` seconds of work, which
 keeps transactions small while letting it catch up; a sweep is committed as soon
 as its last point is measured.
 
-Block mode (a card with a pacer and a scan buffer, on a fast simulated clock): a run
-of consecutive scans is read as one buffered block (``FETC?``: one exchange and one
-vectorised conversion for up to ``max_batch`` scans), and a writer thread commits each
-batch while the next blocks are read; batches commit in order and, after a failed
-one, nothing more is committed, so the stored cursor never skips a reading.
+Block mode (a card with a pacer and a scan buffer, on a fast simulated clock): the scans are
+read from the card's buffer as blocks (``FETC?``/``DATA:REMove?``: one exchange and one
+vectorised conversion for up to ``max_batch`` scans). The steps between scans (moves, sweep
+points, stage starts, each scan's machine state) are still done in order at their own times;
+the scans themselves wait in the card's buffer and are read together when the batch is
+committed, so a sweep's interleaved moves and points do not cut them into small exchanges. A
+writer thread commits each batch while the next blocks are read; batches commit in order and,
+after a failed one, nothing more is committed, so the stored cursor never skips a reading.
+
+The run's states (idle, running, paced, stopping, finished, stopped, aborting, aborted, failed)
+and the transitions allowed between them are `driftlab.daemon.runstate`'s; the clock is narrowed
+once, when the scheduler is built, to the complete protocols of `driftlab.daemon.clocks`.
 
 Interrupts (the lost/duplicated-rows reports of other acquisition tools after a
 Ctrl-C): every write is one transaction (``db.write_transaction``: one BEGIN, a
@@ -163,7 +170,9 @@ class SchedulerOptions:
     """How the scheduler batches, pipelines and reports (the defaults are the daemon's).
 
     ``max_batch`` scans or ``flush_s`` seconds of work at most per transaction; ``pipeline``: commit
-    in a writer thread while the next blocks are read (block mode); ``on_commit(batch, stats)``
+    in a writer thread while the next blocks are read (block mode), at most ``pipeline_depth``
+    batches waiting for it (back-pressure beyond: a sweep's slow stretch of acquisition and a fast
+    stretch of commits even out within that depth); ``on_commit(batch, stats)``
     after each commit; ``stop`` ends the run between steps; ``heartbeat`` (default: the sink's
     ``beat``) is called every ``heartbeat_s`` while the run lasts.
     """
@@ -173,6 +182,7 @@ class SchedulerOptions:
     on_commit: Callable[[Batch, RunStats], None] | None = None
     stop: threading.Event | None = None
     pipeline: bool = True
+    pipeline_depth: int = 8
     heartbeat: Callable[[], None] | None = None
     heartbeat_s: float = HEARTBEAT_S
 
@@ -204,12 +214,15 @@ class Scheduler:
         self.on_commit = options.on_commit
         self.stop = options.stop or threading.Event()
         self.pipeline = options.pipeline
+        self.pipeline_depth = options.pipeline_depth
         self.points = plan.sweep_points()
         self.stats = RunStats()
         self.state = RunStateMachine()
         scanner = rig.scanner
         self._block_scanner = scanner if isinstance(scanner, BlockScanner) else None
         self._queue: queue.Queue[Batch | None] | None = None  # batches waiting for the writer thread
+        self._pending: list[Scan] = []  # scans taken by the card's pacer, their block not read yet
+        self._block = 1  # scans per block (block_scans(), fixed when the run starts)
         self._stage = plan.stage_at(0.0)
         # the daemon's sign of life while it runs, waiting or not (``campaigns.status``): the sink's by default
         self.heartbeat = options.heartbeat if options.heartbeat is not None else getattr(sink, "beat", None)
@@ -219,11 +232,12 @@ class Scheduler:
 
     def _flush(self, batch: Batch) -> Batch:
         """Commit `batch` (readings + cursor), or hand it to the writer thread, and return a fresh one."""
+        self._read_pending(batch)
         if batch.empty():
             return batch
         if self._queue is not None:
             self.state.raise_failure()
-            self._queue.put(batch)  # blocks while the writer is two batches behind: back-pressure
+            self._queue.put(batch)  # blocks while the writer is pipeline_depth batches behind: back-pressure
         else:
             self._store(batch)
         return Batch(cursor=batch.cursor, stage=batch.stage, t_s=batch.t_s)
@@ -340,14 +354,14 @@ class Scheduler:
         """Start the writer thread in block mode (acquisition and database writes overlap); None otherwise."""
         if not (self.block_scans() > 1 and self.pipeline):
             return None
-        self._queue = queue.Queue(maxsize=2)
+        self._queue = queue.Queue(maxsize=self.pipeline_depth)
         writer = threading.Thread(target=self._writer, name="scheduler-writer", daemon=True)
         writer.start()
         return writer
 
     def _steps(self, batch: Batch, span: _SimSpan) -> Batch:
         """Perform the steps from the cursor on (until stopped), committing as they go; return the last batch."""
-        block = self.block_scans()
+        block = self._block = self.block_scans()
         it = _Lookahead(steps(self.plan, self.cursor, self.points))
         for step in it:
             if self.stop.is_set():
@@ -375,7 +389,7 @@ class Scheduler:
                 self._do(step, t, batch)
             batch.t_s = t
             if (
-                batch.n_scans() >= self.max_batch
+                batch.n_scans() + len(self._pending) >= self.max_batch
                 or self._sweep_ended(batch)
                 or time.monotonic() - batch.first_wall >= self.flush_s
             ):
@@ -429,7 +443,13 @@ class Scheduler:
         return int(max(1, min(self.max_batch, per_flush)))
 
     def _do_block(self, run: list[Scan], t_last: float, batch: Batch) -> None:
-        """Read a run of consecutive scans as one buffered block (states at each scan's own time) into the batch."""
+        """Take a run of consecutive scans from the card's buffer (states at each scan's own time) into the batch.
+
+        The scans themselves are read later, with the next runs, in one block exchange (``FETC?``/
+        ``DATA:REMove?``): when the batch is committed or a block's worth is waiting. The card holds
+        them meanwhile, and what it returns for a scan does not depend on when it is read; the steps
+        between (moves, sweep points, stage starts) go on in order, at their own times.
+        """
         clock = self.clock  # blocks are only formed on a simulated clock, which the loop sets
         for step in run:
             if step.log_state:
@@ -439,26 +459,44 @@ class Scheduler:
                 except InstrumentError as exc:
                     batch.faults.append(Fault(step.t_s, f"state {step.index}", "machine_link", exc.one_line()))
         clock.set(t_last)
-        first, n = run[0].index, len(run)
+        batch.cursor = Cursor(run[-1].index + 1, batch.cursor.next_point)
+        if not self.state.paced:
+            try:
+                self._start_pacer(run[0].t_s, t_last)
+            except InstrumentError as exc:
+                batch.faults.append(Fault(run[0].t_s, _scans_what(run), "thermocouple", exc.one_line()))
+                return
+        self._pending.extend(run)
+        if len(self._pending) >= self._block:
+            self._read_pending(batch)
+
+    def _start_pacer(self, t_first: float, t_last: float) -> None:
+        """Start the card's pacer with the first scan it is to take (a timer scan's sweep 0 is taken at INIT)."""
         scanner = self._block_scanner
         if scanner is None:  # block_scans() forms no block then
             raise RuntimeError("buffered scan blocks need a BlockScanner")
+        self.clock.set(t_first)
         try:
-            if not self.state.paced:
-                # the pacer starts with the first scan it is to take (a timer scan's sweep 0 is taken at INIT)
-                clock.set(run[0].t_s)
-                try:
-                    scanner.pace(self.plan.scan_interval_s)
-                finally:
-                    clock.set(t_last)
-                self.state.to(RunState.PACED)
+            scanner.pace(self.plan.scan_interval_s)
+        finally:
+            self.clock.set(t_last)
+        self.state.to(RunState.PACED)
+
+    def _read_pending(self, batch: Batch) -> None:
+        """Read the scans waiting in the card's buffer as one block into the batch (a failure is their fault)."""
+        run, self._pending = self._pending, []
+        if not run:
+            return
+        scanner = self._block_scanner
+        assert scanner is not None  # scans are only pending once the pacer of a BlockScanner started
+        first, n = run[0].index, len(run)
+        try:
             blk = scanner.scan_block(first, n)
-            times = np.array([s.t_s for s in run])
-            batch.blocks.append(ScanBlock(first, times, blk.channels, blk.values, blk.open))
         except InstrumentError as exc:
-            what = f"scan {first}" if n == 1 else f"scans {first}-{first + n - 1}"
-            batch.faults.append(Fault(run[0].t_s, what, "thermocouple", exc.one_line()))
-        batch.cursor = Cursor(first + n, batch.cursor.next_point)
+            batch.faults.append(Fault(run[0].t_s, _scans_what(run), "thermocouple", exc.one_line()))
+            return
+        times = np.array([s.t_s for s in run])
+        batch.blocks.append(ScanBlock(first, times, blk.channels, blk.values, blk.open))
 
     def _do(self, step: StageStart | Scan | SweepPoint | Move, t: float, batch: Batch) -> None:
         """Perform one step and add its readings (or its fault) to the batch, advancing the cursor."""
@@ -542,6 +580,12 @@ class _Lookahead:
             except StopIteration:
                 return None
         return self._next
+
+
+def _scans_what(run: list[Scan]) -> str:
+    """Return how a fault names a run of scans (``scan 7``, ``scans 7-26``)."""
+    first, n = run[0].index, len(run)
+    return f"scan {first}" if n == 1 else f"scans {first}-{first + n - 1}"
 
 
 def _at(scan: TemperatureScan, t_s: float) -> TemperatureScan:

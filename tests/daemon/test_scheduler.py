@@ -453,8 +453,13 @@ def test_block_reads_store_the_rows_of_scan_by_scan_reads(tmp_path: Path) -> Non
             )
             assert sched.block_scans() == max_batch
             stats = sched.run()
+            received = list(rig.servers["thermocouple"].received)
         finally:
             rig.close()
+        if mode == "blocks":
+            # the scans between a sweep's moves and points wait in the card's buffer: one block read per commit
+            removes = [c for c in received if c.startswith("DATA:REM?")]
+            assert 0 < len(removes) <= stats.commits
         assert stats.finished and stats.faults == 0 and stats.scans == plan.n_scans
         with engine.connect() as conn:
             rows[mode] = (
