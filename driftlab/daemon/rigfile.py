@@ -33,7 +33,7 @@ from pydantic import ValidationError as PydanticError
 from driftlab.daq.attocube_ids import AttocubeIDS, IDSSession
 from driftlab.daq.export_follower import ExportFollower
 from driftlab.daq.heidenhain import HeidenhainLink
-from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts
+from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts, identified
 from driftlab.daq.laser import LaserInterferometer, SettleOptions
 from driftlab.daq.linuxcnc import LinuxCNCLink
 from driftlab.daq.machine_link import SerialMachineLink
@@ -270,23 +270,12 @@ def _no_sleep(_s: float) -> None:
     """Do not wait (a simulated instrument answers for simulated time)."""
 
 
-def _identified(driver: Any) -> Opened:
-    """Identify and configure a SCPI driver, closing it if either fails; return (driver, close)."""
-    try:
-        driver.identify()
-        driver.configure()
-    except BaseException:
-        driver.close()
-        raise
-    return driver, driver.close
-
-
 def _open_keysight(o: _Opening) -> Opened:
     opts = o.options
     _unknown(
         o.role, opts, {"channels", "tc_type", "reference_junction", "fixed_junction_c", "open_check", "calibrations"}
     )
-    return _identified(
+    card = identified(
         Keysight34970A(
             o.channel("34970A"),
             _channel_map(o.role, opts),
@@ -298,6 +287,7 @@ def _open_keysight(o: _Opening) -> Opened:
             clock=o.clock,
         )
     )
+    return card, card.close
 
 
 def _open_keysight_dcv(o: _Opening) -> Opened:
@@ -306,7 +296,8 @@ def _open_keysight_dcv(o: _Opening) -> Opened:
     chans = opts.get("channels")
     if not isinstance(chans, list) or not chans:
         raise ValidationError(f"instruments.{o.role}.options.channels: a list of channel numbers")
-    return _identified(Keysight34970AVolts(o.channel("34970A volts"), chans, float(opts.get("range_v", 10.0))))
+    adc = identified(Keysight34970AVolts(o.channel("34970A volts"), chans, float(opts.get("range_v", 10.0))))
+    return adc, adc.close
 
 
 def _open_nidaqmx(o: _Opening) -> Opened:
