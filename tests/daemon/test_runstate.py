@@ -8,18 +8,15 @@ from pathlib import Path
 
 import pytest
 
-from driftlab.campaigns import schema as sc
-from driftlab.campaigns.acquisition import Batch, StoreSink, open_campaign
+from driftlab.campaigns.acquisition import Batch, open_campaign
 from driftlab.campaigns.clock import SimClock, WallClock
-from driftlab.campaigns.db import store_engine
-from driftlab.campaigns.plan import Cursor, parse_plan
+from driftlab.campaigns.plan import Cursor, Plan, parse_plan
 from driftlab.daemon.clocks import LoopClock, PacedClock, check_supports, narrow_clock
 from driftlab.daemon.loop import RunStats, Scheduler, SchedulerOptions
-from driftlab.daemon.run import sim_clock
 from driftlab.daemon.runstate import TRANSITIONS, IllegalTransition, RunState, RunStateMachine
-from driftlab.daemon.simrig import build_sim_rig, scenario_meta
-from driftlab.daq.sim.scenario import load_scenario
+from driftlab.daemon.simrig import scenario_meta
 from driftlab.errors import ConflictError
+from tests.daemon.sim_helpers import SimRun, plant_reading, sim_run
 
 ROOT = Path(__file__).resolve().parents[2]
 S = RunState
@@ -124,8 +121,8 @@ def test_the_clock_is_narrowed_once_and_an_incomplete_one_refused() -> None:
         narrow_clock(_NoPace())
 
 
-def _small_run(tmp_path: Path, name: str):
-    """Return (plan, rig, sink, clock, engine) of a 10-scan-a-stage idle plan on the virtual machine, flat out."""
+def _small_run(tmp_path: Path, name: str) -> tuple[Plan, SimRun]:
+    """Return a plan of 60 scans (10 s apart, one idle stage) and its new campaign on the virtual machine, flat out."""
     plan = parse_plan(
         {
             "name": name,
@@ -134,28 +131,21 @@ def _small_run(tmp_path: Path, name: str):
             "stages": [{"name": "idle", "axis": "Z", "duration_s": 600}],
         }
     )
-    engine = store_engine(f"sqlite:///{tmp_path / (name + '.sqlite')}")
-    meta = scenario_meta(None)
-    handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
-    clock = sim_clock(plan, handle.cursor, math.inf)
-    rig = build_sim_rig(
-        plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
-    )
-    return plan, rig, StoreSink(engine, plan, handle), clock, handle
+    return plan, sim_run(plan, f"sqlite:///{tmp_path / (name + '.sqlite')}")
 
 
 def test_runs_end_finished_or_stopped_and_do_not_run_twice(tmp_path: Path) -> None:
     """A run to the end is finished (block mode went through paced); one stopped mid-way is stopped, cursor kept."""
-    plan, rig, sink, clock, _ = _small_run(tmp_path, "whole")
+    plan, run = _small_run(tmp_path, "whole")
     try:
-        sched = Scheduler(plan, rig, sink, clock, options=SchedulerOptions(max_batch=20))
+        sched = Scheduler(plan, run.rig, run.sink, run.clock, options=SchedulerOptions(max_batch=20))
         stats = sched.run()
         assert stats.finished and sched.state.state is S.FINISHED and stats.scans == plan.n_scans
         with pytest.raises(IllegalTransition, match="finished -> running"):
             sched.run()
     finally:
-        rig.close()
-    plan, rig, sink, clock, handle = _small_run(tmp_path, "part")
+        run.rig.close()
+    plan, run = _small_run(tmp_path, "part")
     stop = threading.Event()
 
     def stop_after_two(batch: Batch, stats: RunStats) -> None:
@@ -163,42 +153,28 @@ def test_runs_end_finished_or_stopped_and_do_not_run_twice(tmp_path: Path) -> No
             stop.set()
 
     try:
-        sched = Scheduler(
-            plan,
-            rig,
-            sink,
-            clock,
-            options=SchedulerOptions(max_batch=5, flush_s=0.0, on_commit=stop_after_two, stop=stop),
-        )
+        options = SchedulerOptions(max_batch=5, flush_s=0.0, on_commit=stop_after_two, stop=stop)
+        sched = Scheduler(plan, run.rig, run.sink, run.clock, options=options)
         stats = sched.run()
     finally:
-        rig.close()
+        run.rig.close()
     assert not stats.finished and sched.state.state is S.STOPPED
     assert 0 < stats.scans < plan.n_scans and sched.cursor == Cursor(stats.scans, 0)
-    resumed = open_campaign(sink.engine, plan, scenario_meta(None)["channels"], [], resume=True, origin={})
+    resumed = open_campaign(run.engine, plan, scenario_meta(None)["channels"], [], resume=True, origin={})
     assert resumed.cursor == sched.cursor  # the stored cursor is where the stopped run left off
 
 
 def test_a_failed_commit_fails_the_run_and_nothing_after_it_is_committed(tmp_path: Path) -> None:
     """A reading already stored makes the third batch conflict: the run fails with that error, commits stop there."""
-    plan, rig, sink, clock, handle = _small_run(tmp_path, "fails")
-    with sink.engine.begin() as conn:  # scan 10 (t = 100 s) is already in the store: batches of 5 scans hit it third
-        conn.execute(
-            sc.TemperatureSample.__table__.insert().values(
-                campaign_id=handle.campaign_id,
-                channel_id=handle.channel_ids["T7"],
-                time_s=100.0,
-                value=1.0,
-                campaign_start_day=handle.start_day,
-            )
-        )
+    plan, run = _small_run(tmp_path, "fails")
+    plant_reading(run, 100.0)  # scan 10 (t = 100 s) is already in the store: batches of 5 scans hit it third
     try:
-        sched = Scheduler(plan, rig, sink, clock, options=SchedulerOptions(max_batch=5, flush_s=0.0))
+        sched = Scheduler(plan, run.rig, run.sink, run.clock, options=SchedulerOptions(max_batch=5, flush_s=0.0))
         with pytest.raises(ConflictError, match="already holds a reading"):
             sched.run()
     finally:
-        rig.close()
+        run.rig.close()
     assert sched.state.state is S.FAILED and not sched.stats.finished
     assert sched.stats.commits == 2 and sched.stats.scans == 10
-    resumed = open_campaign(sink.engine, plan, scenario_meta(None)["channels"], [], resume=True, origin={})
+    resumed = open_campaign(run.engine, plan, scenario_meta(None)["channels"], [], resume=True, origin={})
     assert resumed.cursor == Cursor(10, 0)
