@@ -22,15 +22,17 @@ machine's simulated instrument for that driver, speaking the same command set.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic import ValidationError as PydanticError
 
-from driftlab.daq.attocube_ids import AttocubeIDS, IDSSession
+from driftlab.daq.attocube_ids import AttocubeIDS, IDSOptics, IDSSession
 from driftlab.daq.export_follower import ExportFollower
 from driftlab.daq.heidenhain import HeidenhainLink
 from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts, identified
@@ -40,9 +42,10 @@ from driftlab.daq.machine_link import SerialMachineLink
 from driftlab.daq.nidaq import NIDaqVolts
 from driftlab.daq.proximity import ADCard
 from driftlab.daq.retry import RetryPolicy
-from driftlab.daq.thermocouple import ThermocoupleCard
-from driftlab.daq.transport import LineChannel, VisaPort, open_port
+from driftlab.daq.thermocouple import ChannelCalibration, ThermocoupleCard
+from driftlab.daq.transport import LineChannel, VisaPort, open_port, visa_resource_manager
 from driftlab.errors import DriftlabError, ValidationError
+from driftlab.jsonsafe import finite_or_none
 
 ROLES = ("thermocouples", "proximity", "laser", "machine")
 
@@ -127,8 +130,6 @@ def parse_rig(doc: Any, where: str = "rig", base: Path | None = None) -> RigSpec
 
 def load_rig(path: Path | str) -> RigSpec:
     """Return the rig of a YAML file; ValidationError (one line) for a missing or malformed file."""
-    import yaml
-
     p = Path(path)
     try:
         doc = yaml.safe_load(p.read_text())
@@ -153,8 +154,6 @@ def _channel_map(role: str, options: Mapping[str, Any]) -> dict[int, str]:
 
 
 def _calibrations(role: str, options: Mapping[str, Any]) -> dict[str, Any]:
-    from driftlab.daq.thermocouple import ChannelCalibration
-
     out = {}
     for name, cal in (options.get("calibrations") or {}).items():
         try:
@@ -184,8 +183,6 @@ IDS_OPTIONS = {
 
 def ids_optics(role: str, options: Mapping[str, Any]) -> Any:
     """Return the IDS3010's beam layout from a rig's options (beams 0..2, the angle set-up's spacing)."""
-    from driftlab.daq.attocube_ids import IDSOptics
-
     try:
         axes = options.get("angle_axes", [0, 1])
         return IDSOptics(
@@ -454,6 +451,8 @@ def open_instrument(
 
 def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> tuple[RigSpec, dict[str, Any]]:
     """Start the virtual machine's instrument for each of ``roles`` and return the rig pointing at them."""
+    # the virtual machine's modules are imported here, not at the top: they bring in scipy.signal,
+    # measured at 1.1-3.4 s of start-up, which `driftlab rig check` on real instruments does not pay
     from driftlab.daq.sim.instruments import SimADCard, SimLaser, SimThermocoupleCard, serial_url, visa_address
     from driftlab.daq.sim.keysight34970a import Sim34970A
     from driftlab.daq.sim.linuxcnc import SimLinuxCNC
@@ -536,8 +535,6 @@ def open_rig(
     readers: Mapping[str, Callable[..., Any]] | None = None,
 ) -> OpenRig:
     """Open the rig's instruments (``roles``, default all), starting simulated ones where asked or named ``sim``."""
-    from driftlab.daq.transport import visa_resource_manager
-
     wanted = [r for r in ROLES if r in rig.instruments and (roles is None or r in roles)]
     sim_roles = [r for r in wanted if simulate_all or rig.instruments[r].resource == SIM]
     opened = OpenRig()
@@ -586,8 +583,6 @@ class RoleCheck:
 
     def as_json(self) -> dict[str, Any]:
         """Return the check as the ``rig check --json`` entry (NaN readings as null)."""
-        from driftlab.jsonsafe import finite_or_none
-
         out: dict[str, Any] = {
             "role": self.role,
             "driver": self.driver,
@@ -645,8 +640,6 @@ def check_rig(
     readers: Mapping[str, Callable[..., Any]] | None = None,
 ) -> list[RoleCheck]:
     """Return, for every role of the rig, what connecting, identifying and one reading gave (errors included)."""
-    import time
-
     results: list[RoleCheck] = []
     for role in [r for r in ROLES if r in rig.instruments]:
         spec = rig.instruments[role]
