@@ -261,8 +261,8 @@ class Scheduler:
                 continue
             try:
                 self._store(batch)
-            except BaseException:  # noqa: BLE001 - kept by the failed state, raised in the acquiring thread
-                pass
+            except BaseException as exc:  # noqa: BLE001 - kept by the failed state, raised in the acquiring thread
+                self.state.fail(exc)  # a commit's own failure is already kept; this keeps an on_commit error too
 
     def _store(self, batch: Batch) -> None:
         """Commit `batch` (with retries on an unreachable store) and account for it; a failure fails the run."""

@@ -178,3 +178,22 @@ def test_a_failed_commit_fails_the_run_and_nothing_after_it_is_committed(tmp_pat
     assert sched.stats.commits == 2 and sched.stats.scans == 10
     resumed = open_campaign(run.engine, plan, scenario_meta(None)["channels"], [], resume=True, origin={})
     assert resumed.cursor == Cursor(10, 0)
+
+
+def test_an_error_in_on_commit_in_the_writer_thread_fails_the_run(tmp_path: Path) -> None:
+    """The writer thread's on_commit raising is not lost: the run fails with that error, nothing more committed."""
+    plan, run = _small_run(tmp_path, "hook")
+
+    def refuse_second(batch: Batch, stats: RunStats) -> None:
+        if stats.commits == 2:
+            raise RuntimeError("progress display gone")
+
+    try:
+        options = SchedulerOptions(max_batch=5, flush_s=0.0, on_commit=refuse_second)
+        sched = Scheduler(plan, run.rig, run.sink, run.clock, options=options)
+        assert sched.block_scans() > 1  # block mode: commits in the writer thread
+        with pytest.raises(RuntimeError, match="progress display gone"):
+            sched.run()
+    finally:
+        run.rig.close()
+    assert sched.state.state is S.FAILED and sched.stats.commits == 2
