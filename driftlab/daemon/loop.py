@@ -350,7 +350,9 @@ class Scheduler:
                 self._queue.put(None)
                 writer.join()
                 self._queue = None
-                sys.setswitchinterval(switch)
+                ours = self.switch_interval_s
+                if ours is not None and math.isclose(sys.getswitchinterval(), ours):  # unless changed since
+                    sys.setswitchinterval(switch)
             self.state.settle()
             self.stats.finished = self.state.state is RunState.FINISHED
             self.stats.wall_s = time.monotonic() - wall0

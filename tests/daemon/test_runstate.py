@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 import threading
 from pathlib import Path
 
@@ -137,10 +138,12 @@ def _small_run(tmp_path: Path, name: str) -> tuple[Plan, SimRun]:
 def test_runs_end_finished_or_stopped_and_do_not_run_twice(tmp_path: Path) -> None:
     """A run to the end is finished (block mode went through paced); one stopped mid-way is stopped, cursor kept."""
     plan, run = _small_run(tmp_path, "whole")
+    switch = sys.getswitchinterval()
     try:
         sched = Scheduler(plan, run.rig, run.sink, run.clock, options=SchedulerOptions(max_batch=20))
         stats = sched.run()
         assert stats.finished and sched.state.state is S.FINISHED and stats.scans == plan.n_scans
+        assert sys.getswitchinterval() == switch != sched.switch_interval_s  # the writer's interval is undone
         with pytest.raises(IllegalTransition, match="finished -> running"):
             sched.run()
     finally:
