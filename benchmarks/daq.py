@@ -21,6 +21,11 @@ does; the figures are then taken apart so they say where the time goes:
   a table with the same key and WAL settings; psycopg binary COPY (numpy-encoded) on PostgreSQL.
 ``reachable`` says which database can hold 36,000 scans/s at all (its raw ceiling), and whether
 the daemon did.
+
+``DAQ_PARTS=flat`` runs only the daemon flat out on SQLite against its raw scan ceiling,
+``DAQ_FLAT_ROUNDS`` (default 5) alternating rounds of each on the same rows: on a shared machine one
+pair says little, so it prints every round's ratio with their median, min and max
+(``flat_rounds_vs_raw``, ``sqlite_flat_out_vs_raw_median``).
 """
 
 from __future__ import annotations
@@ -289,6 +294,26 @@ def raw_baseline_pg(url: str, blocks: list[ScanBlock]) -> dict:
     }
 
 
+def flat_rounds(tmp: Path, blocks: list[ScanBlock], rounds: int) -> dict:
+    """Return the daemon flat out beside the raw scan ceiling in alternating rounds: each ratio and their spread."""
+    ratios, daemon, raw = [], [], []
+    for k in range(rounds):
+        got = daemon_run(f"sqlite:///{tmp / f'flat-{k}.sqlite'}", "r", math.inf)
+        ceiling = raw_baseline_sqlite(Path(tempfile.mkdtemp(dir=tmp)), blocks)["baseline_raw_sqlite_scans_per_s"]
+        daemon.append(got["r_scans_per_s"])
+        raw.append(ceiling)
+        ratios.append(round(got["r_scans_per_s"] / ceiling, 3))
+    return {
+        "flat_rounds": rounds,
+        "flat_rounds_daemon_scans_per_s": daemon,
+        "flat_rounds_raw_scans_per_s": raw,
+        "flat_rounds_vs_raw": ratios,
+        "sqlite_flat_out_vs_raw_median": float(np.median(ratios)),
+        "sqlite_flat_out_vs_raw_min": min(ratios),
+        "sqlite_flat_out_vs_raw_max": max(ratios),
+    }
+
+
 def main() -> None:
     """Run every part and print one JSON line."""
     required = SPEED / SCAN_S
@@ -311,6 +336,12 @@ def main() -> None:
         emit(figures)
         return
     channels, blocks = blocks_from_vm(12000, 200)
+    if os.environ.get("DAQ_PARTS") == "flat":  # only the daemon flat out against its raw ceiling, in rounds
+        with tempfile.TemporaryDirectory() as d:
+            figures.update(flat_rounds(Path(d), blocks, int(os.environ.get("DAQ_FLAT_ROUNDS", 5))))
+        figures["load_avg_1m_after"] = load_average()
+        emit(figures)
+        return
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         figures.update(laser_paths(tmp))

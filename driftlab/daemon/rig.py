@@ -7,13 +7,21 @@ The same drivers talk to real hardware (``build_real_rig``: the resources named 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
-from driftlab.campaigns.clock import Clock
+from driftlab.campaigns.clock import Clock, WallClock
 from driftlab.campaigns.plan import Plan, Stage, SweepPoint
 from driftlab.campaigns.setups import Setup
+from driftlab.daemon.loop import term_means
+from driftlab.daemon.rigfile import RigSpec, open_rig, thermocouple_channels
+from driftlab.daq.laser import LaserInterferometer
+from driftlab.daq.machine_link import SerialMachineLink
 from driftlab.daq.protocols import Reading, TemperatureScanner
+from driftlab.daq.proximity import ProximitySensor, ReferenceSurfaceMeter, RollPair, a_axis_array, b_axis_array
+from driftlab.daq.thermocouple import ThermocoupleCard
+from driftlab.daq.transport import LineChannel, open_port
 from driftlab.errors import InstrumentError, ValidationError
 
 #: proximity pair on two parallel reference lines (fig. 5.11): per linear axis, the gap term the two
@@ -49,8 +57,6 @@ def proximity_meter(card: Any, setup: Setup) -> Any:
     a rotary axis' run-outs and tilts from the five-sensor arrays on its reference arcs or cylinder
     (figs. 5.12-5.13, appendix C tables C.1/C.2, channels 0-4).
     """
-    from driftlab.daq.proximity import ProximitySensor, ReferenceSurfaceMeter, RollPair, a_axis_array, b_axis_array
-
     if setup.fixture == "reference_edge":
         (c_a, s_a), (c_b, s_b) = ROLL_CALIBRATION
         return RollPair(ProximitySensor(card, 0, c_a, s_a), ProximitySensor(card, 1, c_b, s_b), ROLL_SEPARATION_MM)
@@ -58,6 +64,22 @@ def proximity_meter(card: Any, setup: Setup) -> Any:
         array = a_axis_array() if setup.axis == "A" else b_axis_array()
         return ReferenceSurfaceMeter(card, list(range(len(array.calibration.sensors))), array)
     raise ValidationError(f"no proximity driver for a {setup.fixture} on the {setup.axis} axis")
+
+
+@dataclass(frozen=True)
+class RigOptions:
+    """What an `InstrumentRig` needs besides its drivers: the campaign clock (the datum's time), a
+    resumed head's saved datum, the simulated laser server that restores it, how to close the
+    instruments, the simulated servers by role (fault injection in tests), the A/D card of the
+    proximity sensors and who mounts a setup (``mount``: the simulated rig's, else nobody)."""
+
+    clock: Clock
+    datum: Mapping[str, Any] | None = None
+    laser_server: Any | None = None
+    closers: Sequence[Callable[[], None]] = ()
+    servers: Mapping[str, Any] = field(default_factory=dict)
+    adcard: Any | None = None
+    mount: Callable[[Setup | None], None] | None = None
 
 
 class InstrumentRig:
@@ -75,35 +97,23 @@ class InstrumentRig:
     """
 
     def __init__(
-        self,
-        plan: Plan,
-        scanner: TemperatureScanner,
-        laser: Any | None,
-        link: Any | None,
-        *,
-        clock: Clock,
-        datum: Mapping[str, Any] | None = None,
-        laser_server: Any | None = None,
-        closers: list[Callable[[], None]] | None = None,
-        servers: Mapping[str, Any] | None = None,
-        adcard: Any | None = None,
-        mount: Callable[[Setup | None], None] | None = None,
+        self, plan: Plan, scanner: TemperatureScanner, laser: Any | None, link: Any | None, options: RigOptions
     ) -> None:
         self.plan = plan
-        self.adcard = adcard
-        self._mount = mount
+        self.adcard = options.adcard
+        self._mount = options.mount
         self._setups = plan.used_setups()
         self._mounted: str | None = None
         self._meter: Any | None = None
-        self.servers = dict(servers or {})  # simulated instrument servers by role (fault injection in tests)
+        self.servers = dict(options.servers)  # simulated instrument servers by role (fault injection in tests)
         self.scanner = scanner
         self.laser = laser
         self.link = link
-        self.clock = clock
-        self.laser_server = laser_server
-        self._saved = dict(datum) if datum else None
+        self.clock = options.clock
+        self.laser_server = options.laser_server
+        self._saved = dict(options.datum) if options.datum else None
         self._new_datum: dict[str, Any] | None = None
-        self._closers = list(closers or [])
+        self._closers = list(options.closers)
         self._stage: Stage | None = None
         # Axis positions read while the controller was known to be at rest: every block sent so far
         # executed, no heat cycle of the stage moving an axis. Nothing can move them until the rig
@@ -221,8 +231,6 @@ class InstrumentRig:
 
     def _read_proximity(self, setup: Setup, samples: int) -> dict[str, Reading]:
         """Return the setup's terms from the proximity sensors, each the mean of ``samples`` readings."""
-        from driftlab.daemon.loop import term_means
-
         meter = self._meter
         if meter is None:
             raise InstrumentError(f"{setup.instrument} setup on {setup.axis}: no proximity sensors mounted")
@@ -249,14 +257,8 @@ class InstrumentRig:
                 log.debug("error while closing an instrument", exc_info=True)
 
 
-def build_real_rig(plan: Plan, channels: list[str], clock: Any) -> InstrumentRig:
+def build_real_rig(plan: Plan, channels: list[str], clock: WallClock) -> InstrumentRig:
     """Return a rig on the instruments named in the plan's `instruments:` section."""
-    from driftlab.daq.laser import LaserInterferometer
-    from driftlab.daq.machine_link import SerialMachineLink
-    from driftlab.daq.thermocouple import ThermocoupleCard
-    from driftlab.daq.transport import LineChannel, open_port
-    from driftlab.errors import ValidationError
-
     inst = plan.instruments
     if not inst.thermocouple:
         raise ValidationError(f"plan {plan.name}: instruments.thermocouple is required without --sim")
@@ -274,15 +276,17 @@ def build_real_rig(plan: Plan, channels: list[str], clock: Any) -> InstrumentRig
         closers.append(link.close)
     if any(s.sweep is not None for s in plan.stages) and laser is None:
         raise ValidationError(f"plan {plan.name}: sweeps need instruments.laser without --sim")
-    return InstrumentRig(plan, scanner, laser, link, clock=clock, closers=closers)
+    return InstrumentRig(plan, scanner, laser, link, RigOptions(clock=clock, closers=closers))
 
 
 def build_file_rig(
-    plan: Plan, rig: Any, channels: list[str], clock: Any, readers: Mapping[str, Callable[..., Any]] | None = None
+    plan: Plan,
+    rig: RigSpec,
+    channels: list[str],
+    clock: WallClock,
+    readers: Mapping[str, Callable[..., Any]] | None = None,
 ) -> InstrumentRig:
     """Return a rig on the instruments of a rig file (``driftlab daemon --rig``), scanning the plan's channels."""
-    from driftlab.daemon.rigfile import open_rig, thermocouple_channels
-
     spec = rig.role("thermocouples")
     if spec is None:
         raise ValidationError(f"rig {rig.name}: a campaign needs a thermocouples role")
@@ -318,7 +322,5 @@ def build_file_rig(
         inst["thermocouples"],
         inst.get("laser"),
         inst.get("machine"),
-        clock=clock,
-        closers=[opened.close],
-        adcard=inst.get("proximity"),
+        RigOptions(clock=clock, closers=[opened.close], adcard=inst.get("proximity")),
     )

@@ -22,15 +22,30 @@ machine's simulated instrument for that driver, speaking the same command set.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic import ValidationError as PydanticError
 
+from driftlab.daq.attocube_ids import AttocubeIDS, IDSOptics, IDSSession
+from driftlab.daq.export_follower import ExportFollower
+from driftlab.daq.heidenhain import HeidenhainLink
+from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts, identified
+from driftlab.daq.laser import LaserInterferometer, SettleOptions
+from driftlab.daq.linuxcnc import LinuxCNCLink
+from driftlab.daq.machine_link import SerialMachineLink
+from driftlab.daq.nidaq import NIDaqVolts
+from driftlab.daq.proximity import ADCard
+from driftlab.daq.retry import RetryPolicy
+from driftlab.daq.thermocouple import ChannelCalibration, ThermocoupleCard
+from driftlab.daq.transport import LineChannel, VisaPort, open_port, visa_resource_manager
 from driftlab.errors import DriftlabError, ValidationError
+from driftlab.jsonsafe import finite_or_none
 
 ROLES = ("thermocouples", "proximity", "laser", "machine")
 
@@ -115,8 +130,6 @@ def parse_rig(doc: Any, where: str = "rig", base: Path | None = None) -> RigSpec
 
 def load_rig(path: Path | str) -> RigSpec:
     """Return the rig of a YAML file; ValidationError (one line) for a missing or malformed file."""
-    import yaml
-
     p = Path(path)
     try:
         doc = yaml.safe_load(p.read_text())
@@ -141,8 +154,6 @@ def _channel_map(role: str, options: Mapping[str, Any]) -> dict[int, str]:
 
 
 def _calibrations(role: str, options: Mapping[str, Any]) -> dict[str, Any]:
-    from driftlab.daq.thermocouple import ChannelCalibration
-
     out = {}
     for name, cal in (options.get("calibrations") or {}).items():
         try:
@@ -172,8 +183,6 @@ IDS_OPTIONS = {
 
 def ids_optics(role: str, options: Mapping[str, Any]) -> Any:
     """Return the IDS3010's beam layout from a rig's options (beams 0..2, the angle set-up's spacing)."""
-    from driftlab.daq.attocube_ids import IDSOptics
-
     try:
         axes = options.get("angle_axes", [0, 1])
         return IDSOptics(
@@ -219,6 +228,207 @@ class OpenRig:
         self.closers.clear()
 
 
+@dataclass(frozen=True)
+class _Opening:
+    """One role's instrument as its opener sees it: the spec, its options, and how to reach and pace it."""
+
+    role: str
+    spec: InstrumentSpec
+    rm_factory: Callable[[], Any]
+    clock: Callable[[], float]
+    fast: bool
+    readers: Mapping[str, Callable[..., Any]]
+
+    @property
+    def options(self) -> dict[str, Any]:
+        """Return the spec's driver options."""
+        return dict(self.spec.options)
+
+    def channel(self, name: str) -> LineChannel:
+        """Return a line channel on the spec's resource (VISA when it names one, else serial/TCP)."""
+        spec = self.spec
+        if "::" in spec.resource:
+            port: Any = VisaPort.open(spec.resource, timeout_s=spec.timeout_s, resource_manager=self.rm_factory())
+        else:
+            port = open_port(spec.resource, spec.timeout_s)
+        if self.fast:  # a simulated instrument: no back-off between retries, no waiting
+            return LineChannel(port, name, RetryPolicy(attempts=3, base_delay_s=0.0), sleep=_no_sleep)
+        return LineChannel(port, name, None)
+
+    def settle(self) -> SettleOptions:
+        """Return a laser's point-reading settings (a simulated head settles at once: no waiting, 20 polls)."""
+        return SettleOptions(sleep=_no_sleep, max_settle_polls=20) if self.fast else SettleOptions()
+
+
+Opened = tuple[Any, Callable[[], None]]
+
+
+def _no_sleep(_s: float) -> None:
+    """Do not wait (a simulated instrument answers for simulated time)."""
+
+
+def _open_keysight(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(
+        o.role, opts, {"channels", "tc_type", "reference_junction", "fixed_junction_c", "open_check", "calibrations"}
+    )
+    card = identified(
+        Keysight34970A(
+            o.channel("34970A"),
+            _channel_map(o.role, opts),
+            tc_type=str(opts.get("tc_type", "E")),
+            reference_junction=str(opts.get("reference_junction", "INT")),
+            fixed_junction_c=opts.get("fixed_junction_c"),
+            open_check=bool(opts.get("open_check", True)),
+            calibrations=_calibrations(o.role, opts),
+            clock=o.clock,
+        )
+    )
+    return card, card.close
+
+
+def _open_keysight_dcv(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(o.role, opts, {"channels", "range_v"})
+    chans = opts.get("channels")
+    if not isinstance(chans, list) or not chans:
+        raise ValidationError(f"instruments.{o.role}.options.channels: a list of channel numbers")
+    adc = identified(Keysight34970AVolts(o.channel("34970A volts"), chans, float(opts.get("range_v", 10.0))))
+    return adc, adc.close
+
+
+def _open_nidaqmx(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(o.role, opts, {"min_v", "max_v", "terminal", "samples", "rate_hz"})
+    daq = NIDaqVolts(
+        o.spec.resource,
+        min_v=float(opts.get("min_v", 0.0)),
+        max_v=float(opts.get("max_v", 10.0)),
+        terminal=str(opts.get("terminal", "DEFAULT")),
+        samples=int(opts.get("samples", 1)),
+        rate_hz=float(opts.get("rate_hz", 1000.0)),
+    ).open()
+    return daq, daq.close
+
+
+def _open_linuxcnc(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(o.role, opts, {"password", "enable_password", "client", "poll_s"})
+    link = LinuxCNCLink.open(
+        o.spec.resource,
+        timeout_s=o.spec.timeout_s,
+        password=str(opts.get("password", "EMC")),
+        enable_password=str(opts.get("enable_password", "EMCTOO")),
+        client=str(opts.get("client", "driftlab")),
+        poll_s=float(opts.get("poll_s", 0.2)),
+        **({"sleep": _no_sleep, "max_idle_polls": 2} if o.fast else {}),
+    )
+    return link, link.close
+
+
+def _open_heidenhain(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(o.role, opts, {"axes"})
+    axes = opts.get("axes")
+    if axes is not None and not isinstance(axes, dict):
+        raise ValidationError(f"instruments.{o.role}.options.axes: a mapping of X Y Z A B to the control's axis names")
+    tnc = HeidenhainLink.open(
+        o.spec.resource,
+        timeout_s=o.spec.timeout_s,
+        axes={str(k): str(v) for k, v in axes.items()} if axes else None,
+    )
+    return tnc, tnc.close
+
+
+def _open_thesis_tc_card(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(o.role, opts, {"channels", "tc_type", "calibrations"})
+    tc = ThermocoupleCard(
+        o.channel("thermocouple card"),
+        _channel_map(o.role, opts),
+        _calibrations(o.role, opts),
+        clock=o.clock,
+        tc_type=str(opts.get("tc_type", "E")),
+    )
+    return tc, tc.close
+
+
+def _open_laser_export(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(o.role, opts, {"format", "axis", "poll_s", "timeout_s", "position_tol"})
+    fmt = str(opts.get("format", "renishaw-csv"))
+    known = dict(o.readers)
+    if fmt not in known:
+        raise ValidationError(
+            f"instruments.{o.role}.options.format {fmt!r}: one of {', '.join(known) or '(none available here)'}"
+        )
+    axis = opts.get("axis")
+    reader = known[fmt]
+    follower = ExportFollower(
+        o.spec.resource,
+        lambda path: reader(path, axis),
+        fmt=fmt,
+        poll_s=float(opts.get("poll_s", 1.0)),
+        timeout_s=float(opts.get("timeout_s", 600.0)),
+        position_tol=float(opts.get("position_tol", 1e-3)),
+    )
+    follower.rows()  # the file must exist when the rig is opened (the capture software has started)
+    return follower, follower.close
+
+
+def _open_attocube(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(o.role, opts, IDS_OPTIONS)
+    ids = AttocubeIDS.open(
+        o.spec.resource,
+        o.spec.timeout_s,
+        ids_optics(o.role, opts),
+        o.settle(),
+        IDSSession(
+            api_namespace=str(opts.get("api_namespace", "sen")),
+            min_contrast_permille=float(opts.get("min_contrast_permille", 250.0)),
+            start_measurement=bool(opts.get("start_measurement", True)),
+        ),
+    )
+    return ids, ids.close
+
+
+def _open_thesis_laser(o: _Opening) -> Opened:
+    _unknown(o.role, o.options, set())
+    laser = LaserInterferometer(o.channel("laser"), settle=o.settle(), burst=o.fast)
+    return laser, laser.close
+
+
+def _open_thesis_ad_card(o: _Opening) -> Opened:
+    opts = o.options
+    _unknown(o.role, opts, {"n_channels"})
+    ad = ADCard(o.channel("A/D card"), int(opts.get("n_channels", 16)))
+    return ad, ad.close
+
+
+def _open_thesis_rs232(o: _Opening) -> Opened:
+    _unknown(o.role, o.options, set())
+    fast: dict[str, Any] = {"sleep": _no_sleep, "max_idle_polls": 2} if o.fast else {}
+    link = SerialMachineLink.open(o.spec.resource, timeout_s=o.spec.timeout_s, **fast)
+    return link, link.close
+
+
+#: driver name -> its opener (every name of DRIVERS has one)
+_OPENERS: dict[str, Callable[[_Opening], Opened]] = {
+    "keysight-34970a": _open_keysight,
+    "keysight-34970a-dcv": _open_keysight_dcv,
+    "nidaqmx": _open_nidaqmx,
+    "linuxcnc": _open_linuxcnc,
+    "heidenhain-lsv2": _open_heidenhain,
+    "thesis-tc-card": _open_thesis_tc_card,
+    "laser-export": _open_laser_export,
+    "attocube-ids3010": _open_attocube,
+    "thesis-laser": _open_thesis_laser,
+    "thesis-ad-card": _open_thesis_ad_card,
+    "thesis-rs232": _open_thesis_rs232,
+}
+
+
 def open_instrument(
     role: str,
     spec: InstrumentSpec,
@@ -226,183 +436,23 @@ def open_instrument(
     clock: Callable[[], float],
     fast: bool = False,
     readers: Mapping[str, Callable[..., Any]] | None = None,
-) -> tuple[Any, Callable[[], None]]:
+) -> Opened:
     """Return (driver, close) of one role's instrument, identified and configured; InstrumentError if unreachable.
 
-    ``readers`` are the export-file formats a ``laser-export`` follower can read (format -> reader of
-    a file's rows), supplied by the commands from the importers.
+    ``fast``: a simulated instrument (no waiting between polls and retries). ``readers`` are the
+    export-file formats a ``laser-export`` follower can read (format -> reader of a file's rows),
+    supplied by the commands from the importers.
     """
-    from driftlab.daq.retry import RetryPolicy
-    from driftlab.daq.transport import LineChannel, VisaPort, open_port
-
-    o = dict(spec.options)
-    policy = RetryPolicy(attempts=3, base_delay_s=0.0) if fast else None
-    nowait: dict[str, Any] = {"sleep": lambda _s: None} if fast else {}
-
-    def port() -> Any:
-        if "::" in spec.resource:
-            return VisaPort.open(spec.resource, timeout_s=spec.timeout_s, resource_manager=rm_factory())
-        return open_port(spec.resource, spec.timeout_s)
-
-    if spec.driver == "keysight-34970a":
-        from driftlab.daq.keysight34970a import Keysight34970A
-
-        _unknown(
-            role, o, {"channels", "tc_type", "reference_junction", "fixed_junction_c", "open_check", "calibrations"}
-        )
-        card = Keysight34970A(
-            LineChannel(port(), "34970A", policy, **nowait),
-            _channel_map(role, o),
-            tc_type=str(o.get("tc_type", "E")),
-            reference_junction=str(o.get("reference_junction", "INT")),
-            fixed_junction_c=o.get("fixed_junction_c"),
-            open_check=bool(o.get("open_check", True)),
-            calibrations=_calibrations(role, o),
-            clock=clock,
-        )
-        try:
-            card.identify()
-            card.configure()
-        except BaseException:
-            card.close()
-            raise
-        return card, card.close
-    if spec.driver == "keysight-34970a-dcv":
-        from driftlab.daq.keysight34970a import Keysight34970AVolts
-
-        _unknown(role, o, {"channels", "range_v"})
-        chans = o.get("channels")
-        if not isinstance(chans, list) or not chans:
-            raise ValidationError(f"instruments.{role}.options.channels: a list of channel numbers")
-        adc = Keysight34970AVolts(
-            LineChannel(port(), "34970A volts", policy, **nowait), chans, float(o.get("range_v", 10.0))
-        )
-        try:
-            adc.identify()
-            adc.configure()
-        except BaseException:
-            adc.close()
-            raise
-        return adc, adc.close
-    if spec.driver == "nidaqmx":
-        from driftlab.daq.nidaq import NIDaqVolts
-
-        _unknown(role, o, {"min_v", "max_v", "terminal", "samples", "rate_hz"})
-        daq = NIDaqVolts(
-            spec.resource,
-            min_v=float(o.get("min_v", 0.0)),
-            max_v=float(o.get("max_v", 10.0)),
-            terminal=str(o.get("terminal", "DEFAULT")),
-            samples=int(o.get("samples", 1)),
-            rate_hz=float(o.get("rate_hz", 1000.0)),
-        ).open()
-        return daq, daq.close
-    if spec.driver == "linuxcnc":
-        from driftlab.daq.linuxcnc import LinuxCNCLink
-
-        _unknown(role, o, {"password", "enable_password", "client", "poll_s"})
-        link = LinuxCNCLink.open(
-            spec.resource,
-            timeout_s=spec.timeout_s,
-            password=str(o.get("password", "EMC")),
-            enable_password=str(o.get("enable_password", "EMCTOO")),
-            client=str(o.get("client", "driftlab")),
-            poll_s=float(o.get("poll_s", 0.2)),
-            **({"sleep": lambda _s: None, "max_idle_polls": 2} if fast else {}),
-        )
-        return link, link.close
-    if spec.driver == "heidenhain-lsv2":
-        from driftlab.daq.heidenhain import HeidenhainLink
-
-        _unknown(role, o, {"axes"})
-        axes = o.get("axes")
-        if axes is not None and not isinstance(axes, dict):
-            raise ValidationError(
-                f"instruments.{role}.options.axes: a mapping of X Y Z A B to the control's axis names"
-            )
-        tnc = HeidenhainLink.open(
-            spec.resource,
-            timeout_s=spec.timeout_s,
-            axes={str(k): str(v) for k, v in axes.items()} if axes else None,
-        )
-        return tnc, tnc.close
-    if spec.driver == "thesis-tc-card":
-        from driftlab.daq.thermocouple import ThermocoupleCard
-
-        _unknown(role, o, {"channels", "tc_type", "calibrations"})
-        io = LineChannel(port(), "thermocouple card", policy, **nowait)
-        tc = ThermocoupleCard(
-            io, _channel_map(role, o), _calibrations(role, o), clock=clock, tc_type=str(o.get("tc_type", "E"))
-        )
-        return tc, tc.close
-    if spec.driver == "laser-export":
-        from driftlab.daq.export_follower import ExportFollower
-
-        _unknown(role, o, {"format", "axis", "poll_s", "timeout_s", "position_tol"})
-        fmt = str(o.get("format", "renishaw-csv"))
-        known = dict(readers or {})
-        if fmt not in known:
-            raise ValidationError(
-                f"instruments.{role}.options.format {fmt!r}: one of {', '.join(known) or '(none available here)'}"
-            )
-        axis = o.get("axis")
-        reader = known[fmt]
-        follower = ExportFollower(
-            spec.resource,
-            lambda path: reader(path, axis),
-            fmt=fmt,
-            poll_s=float(o.get("poll_s", 1.0)),
-            timeout_s=float(o.get("timeout_s", 600.0)),
-            position_tol=float(o.get("position_tol", 1e-3)),
-        )
-        follower.rows()  # the file must exist when the rig is opened (the capture software has started)
-        return follower, follower.close
-    if spec.driver == "attocube-ids3010":
-        from driftlab.daq.attocube_ids import AttocubeIDS
-
-        _unknown(role, o, IDS_OPTIONS)
-        ids = AttocubeIDS.open(
-            spec.resource,
-            timeout_s=spec.timeout_s,
-            optics=ids_optics(role, o),
-            api_namespace=str(o.get("api_namespace", "sen")),
-            min_contrast_permille=float(o.get("min_contrast_permille", 250.0)),
-            start_measurement=bool(o.get("start_measurement", True)),
-            **({"sleep": lambda _s: None, "max_settle_polls": 20} if fast else {}),
-        )
-        return ids, ids.close
-    if spec.driver == "thesis-laser":
-        from driftlab.daq.laser import LaserInterferometer
-
-        _unknown(role, o, set())
-        io = LineChannel(port(), "laser", policy, **nowait)
-        laser = (
-            LaserInterferometer(io, sleep=lambda _s: None, max_settle_polls=20, burst=True)
-            if fast
-            else LaserInterferometer(io)
-        )
-        return laser, laser.close
-    if spec.driver == "thesis-ad-card":
-        from driftlab.daq.proximity import ADCard
-
-        _unknown(role, o, {"n_channels"})
-        ad = ADCard(LineChannel(port(), "A/D card", policy, **nowait), int(o.get("n_channels", 16)))
-        return ad, ad.close
-    if spec.driver == "thesis-rs232":
-        from driftlab.daq.machine_link import SerialMachineLink
-
-        _unknown(role, o, set())
-        link2 = (
-            SerialMachineLink.open(spec.resource, timeout_s=spec.timeout_s, sleep=lambda _s: None, max_idle_polls=2)
-            if fast
-            else SerialMachineLink.open(spec.resource, timeout_s=spec.timeout_s)
-        )
-        return link2, link2.close
-    raise ValidationError(f"driver {spec.driver!r} has no opener")  # pragma: no cover - parse_rig refuses it
+    opener = _OPENERS.get(spec.driver)
+    if opener is None:  # pragma: no cover - parse_rig refuses an unknown driver
+        raise ValidationError(f"driver {spec.driver!r} has no opener")
+    return opener(_Opening(role, spec, rm_factory, clock, fast, readers or {}))
 
 
 def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> tuple[RigSpec, dict[str, Any]]:
     """Start the virtual machine's instrument for each of ``roles`` and return the rig pointing at them."""
+    # the virtual machine's modules are imported here, not at the top: they bring in scipy.signal,
+    # measured at 1.1-3.4 s of start-up, which `driftlab rig check` on real instruments does not pay
     from driftlab.daq.sim.instruments import SimADCard, SimLaser, SimThermocoupleCard, serial_url, visa_address
     from driftlab.daq.sim.keysight34970a import Sim34970A
     from driftlab.daq.sim.linuxcnc import SimLinuxCNC
@@ -446,15 +496,12 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
                 if spec.driver == "attocube-ids3010":
                     from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource
 
-                    optics = ids_optics(role, spec.options)
                     head = SimIDS3010(
                         world,
                         clock,
                         stage,
                         api_namespace=str(spec.options.get("api_namespace", "sen")),
-                        displacement_axis=optics.displacement_axis,
-                        angle_axes=optics.angle_axes,
-                        angle_spacing_mm=optics.angle_spacing_mm,
+                        optics=ids_optics(role, spec.options),
                     )
                     servers[role] = head.start()
                     specs[role] = spec.model_copy(update={"resource": ids_resource(head)})
@@ -488,8 +535,6 @@ def open_rig(
     readers: Mapping[str, Callable[..., Any]] | None = None,
 ) -> OpenRig:
     """Open the rig's instruments (``roles``, default all), starting simulated ones where asked or named ``sim``."""
-    from driftlab.daq.transport import visa_resource_manager
-
     wanted = [r for r in ROLES if r in rig.instruments and (roles is None or r in roles)]
     sim_roles = [r for r in wanted if simulate_all or rig.instruments[r].resource == SIM]
     opened = OpenRig()
@@ -512,7 +557,7 @@ def open_rig(
     try:
         for role in wanted:
             driver, close = open_instrument(
-                role, rig.instruments[role], rm_factory, clock, fast=fast or role in sim_roles
+                role, rig.instruments[role], rm_factory, clock, fast=fast or role in sim_roles, readers=readers
             )
             opened.instruments[role] = driver
             opened.closers.append(close)
@@ -538,8 +583,6 @@ class RoleCheck:
 
     def as_json(self) -> dict[str, Any]:
         """Return the check as the ``rig check --json`` entry (NaN readings as null)."""
-        from driftlab.jsonsafe import finite_or_none
-
         out: dict[str, Any] = {
             "role": self.role,
             "driver": self.driver,
@@ -597,8 +640,6 @@ def check_rig(
     readers: Mapping[str, Callable[..., Any]] | None = None,
 ) -> list[RoleCheck]:
     """Return, for every role of the rig, what connecting, identifying and one reading gave (errors included)."""
-    import time
-
     results: list[RoleCheck] = []
     for role in [r for r in ROLES if r in rig.instruments]:
         spec = rig.instruments[role]

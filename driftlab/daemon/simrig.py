@@ -8,10 +8,32 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from typing import Any
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import TYPE_CHECKING, Any
 
 from driftlab.campaigns.plan import Cursor, Plan
-from driftlab.daemon.rig import InstrumentRig
+from driftlab.daemon.rig import ROLL_CALIBRATION, ROLL_GAP, ROLL_SEPARATION_MM, InstrumentRig, RigOptions
+from driftlab.daq.attocube_ids import AttocubeIDS, ids_url
+from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts
+from driftlab.daq.laser import LASER_TERMS, LaserInterferometer, SettleOptions
+from driftlab.daq.linuxcnc import LinuxCNCLink
+from driftlab.daq.proximity import a_axis_array, b_axis_array
+from driftlab.daq.retry import RetryPolicy
+from driftlab.daq.transport import LineChannel, SerialPort, VisaPort, visa_resource_manager
+from driftlab.errors import ValidationError
+
+if TYPE_CHECKING:
+    from driftlab.campaigns.clock import SimClock
+    from driftlab.daq.sim.attocube_ids import SimIDS3010
+    from driftlab.daq.sim.instruments import SimLaser
+    from driftlab.daq.sim.keysight34970a import Sim34970A
+    from driftlab.daq.sim.linuxcnc import SimLinuxCNC
+    from driftlab.daq.sim.scenario import Scenario
+
+# The virtual machine's modules (driftlab.daq.sim.*) are imported inside the functions that use them:
+# they bring in scipy.signal, measured at 1.1-3.4 s of start-up on this machine, which a daemon on
+# real instruments (run.py imports this module) does not pay.
 
 
 class MemoWorld:
@@ -22,8 +44,6 @@ class MemoWorld:
     """
 
     def __init__(self, world: Any, size: int = 64) -> None:
-        from functools import lru_cache
-
         self.world = world
         self._temps = lru_cache(maxsize=size)(world.temperatures)
         self._errors = lru_cache(maxsize=size)(world.measure_error)
@@ -48,10 +68,36 @@ def _no_wait(_dt: float) -> None:
     """Do not wait: on a simulated clock time only moves between steps."""
 
 
+@dataclass
+class _SimServers:
+    """The simulated instruments of the virtual machine, started, and how to stop them (and the drivers)."""
+
+    card: Sim34970A
+    ctrl: SimLinuxCNC
+    head: SimIDS3010 | SimLaser
+    ad: Sim34970A
+    closers: list[Callable[[], None]] = field(default_factory=list)
+
+    def close(self) -> None:
+        """Close every driver opened so far, then the servers (last opened first)."""
+        for c in reversed(self.closers):
+            c()
+
+
+@dataclass
+class _SimDrivers:
+    """The real drivers connected to the simulated instruments."""
+
+    scanner: Keysight34970A
+    meter: AttocubeIDS | LaserInterferometer
+    link: LinuxCNCLink
+    adcard: Keysight34970AVolts
+
+
 def build_sim_rig(
     plan: Plan,
-    scenario: Any,
-    clock: Any,
+    scenario: Scenario,
+    clock: SimClock,
     channels: list[str],
     datum: Mapping[str, Any] | None = None,
     world: Any | None = None,
@@ -70,85 +116,105 @@ def build_sim_rig(
     ``laser="thesis-laser"`` puts the thesis' legacy HP-IB processor (driftlab's own protocol, with
     bursts) in the IDS3010's place: the benchmark's same-run baseline of the laser path.
     """
-    import pyvisa
-
-    from driftlab.daq.attocube_ids import AttocubeIDS, ids_url
-    from driftlab.daq.keysight34970a import Keysight34970A, Keysight34970AVolts
-    from driftlab.daq.laser import LaserInterferometer
-    from driftlab.daq.linuxcnc import LinuxCNCLink
-    from driftlab.daq.retry import RetryPolicy
-    from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource
-    from driftlab.daq.sim.instruments import SimLaser, serial_url, visa_address
-    from driftlab.daq.sim.keysight34970a import Sim34970A, sim_channel_map
-    from driftlab.daq.sim.linuxcnc import SimLinuxCNC
-    from driftlab.daq.transport import LineChannel, SerialPort, VisaPort
-
     if laser not in ("attocube-ids3010", "thesis-laser"):
         raise ValueError(f"simulated laser {laser!r}: attocube-ids3010 or thesis-laser")
     if world is None:
-        from driftlab.daq.sim.machine import VirtualMachine
+        from driftlab.daq.sim.machine import VirtualMachine  # the virtual machine: lazy (module note)
 
         world = MemoWorld(VirtualMachine(plan_scenario(plan, scenario)))
+    from driftlab.daq.sim.keysight34970a import sim_channel_map  # the virtual machine: lazy (module note)
+
     card_map = sim_channel_map(channels)  # 34901A channels 101.., 201.., 301.. -> the plan's names
+    servers = _start_servers(plan, world, clock, card_map, cursor, laser)
+    try:
+        drivers = _open_drivers(servers, clock, card_map)
+    except Exception:
+        servers.close()
+        raise
+    return InstrumentRig(
+        plan,
+        drivers.scanner,
+        drivers.meter,
+        drivers.link,
+        RigOptions(
+            clock=clock,
+            datum=datum,
+            laser_server=servers.head,
+            closers=servers.closers,
+            servers={
+                "thermocouple": servers.card,
+                "laser": servers.head,
+                "controller": servers.ctrl,
+                "ad-card": servers.ad,
+            },
+            adcard=drivers.adcard,
+            mount=sim_mounter(world, servers.ctrl, servers.head, servers.ad),
+        ),
+    )
+
+
+def _start_servers(
+    plan: Plan, world: Any, clock: SimClock, card_map: Mapping[int, str], cursor: Cursor, laser: str
+) -> _SimServers:
+    """Start the simulated card, controller (each axis where the cursor left it), laser head and A/D mainframe."""
+    from driftlab.daq.sim.attocube_ids import SimIDS3010  # the virtual machine: lazy (module note)
+    from driftlab.daq.sim.instruments import SimLaser
+    from driftlab.daq.sim.keysight34970a import Sim34970A
+    from driftlab.daq.sim.linuxcnc import SimLinuxCNC
+
     card = Sim34970A(world, clock, card_map).start()
     ctrl = SimLinuxCNC(world, clock)
     for axis, (pos, direction) in axis_positions(plan, cursor).items():
         ctrl.pos[axis], ctrl.direction[axis] = pos, direction
     ctrl.start()
-    head: Any = (
+    head: SimIDS3010 | SimLaser = (
         SimIDS3010(world, clock, ctrl) if laser == "attocube-ids3010" else SimLaser(world, clock, ctrl)
     ).start()
     ad = Sim34970A(world, clock).start()  # a second mainframe: its DC-volt channels read the proximity sensors
-    closers: list[Callable[[], None]] = [card.close, ctrl.close, head.close, ad.close]
-    try:
-        rm = pyvisa.ResourceManager("@py")
-        closers.append(rm.close)
-        policy = RetryPolicy(attempts=3, base_delay_s=0.0)
-        card_io = LineChannel(VisaPort.open(visa_address(card), resource_manager=rm), "34970A", policy, sleep=_no_wait)
-        closers.append(card_io.close)
-        scanner = Keysight34970A(card_io, card_map, tc_type="E", reference_junction="INT", clock=clock.now)
-        scanner.identify()
-        scanner.configure()
-        meter: Any
-        if isinstance(head, SimIDS3010):
-            head_url = ids_url(ids_resource(head))
-            meter = AttocubeIDS(lambda: SerialPort.open(head_url), sleep=_no_wait, max_settle_polls=20)
-            closers.append(meter.close)
-            meter.session()
-        else:
-            laser_io = LineChannel(
-                VisaPort.open(visa_address(head), resource_manager=rm), "laser", policy, sleep=_no_wait
-            )
-            closers.append(laser_io.close)
-            meter = LaserInterferometer(laser_io, sleep=_no_wait, max_settle_polls=20, burst=True)
-        url = serial_url(ctrl)
-        link = LinuxCNCLink(lambda: SerialPort.open(url), sleep=_no_wait, max_idle_polls=2)
-        link.session()
-        closers.append(link.close)
-        ad_io = LineChannel(
-            VisaPort.open(visa_address(ad), resource_manager=rm), "34970A volts", policy, sleep=_no_wait
-        )
-        closers.append(ad_io.close)
-        adcard = Keysight34970AVolts(ad_io, AD_CHANNELS)
-        adcard.identify()
-        adcard.configure()
-    except Exception:
-        for c in reversed(closers):
-            c()
-        raise
-    return InstrumentRig(
-        plan,
-        scanner,
-        meter,
-        link,
-        clock=clock,
-        datum=datum,
-        laser_server=head,
-        closers=closers,
-        servers={"thermocouple": card, "laser": head, "controller": ctrl, "ad-card": ad},
-        adcard=adcard,
-        mount=sim_mounter(world, ctrl, head, ad),
+    return _SimServers(card, ctrl, head, ad, [card.close, ctrl.close, head.close, ad.close])
+
+
+def _open_drivers(servers: _SimServers, clock: SimClock, card_map: Mapping[int, str]) -> _SimDrivers:
+    """Connect the real drivers to the simulated instruments (their closers join ``servers.closers``)."""
+    from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource  # the virtual machine: lazy (module note)
+    from driftlab.daq.sim.instruments import serial_url, visa_address
+
+    closers = servers.closers
+    rm = visa_resource_manager("@py")
+    closers.append(rm.close)
+    policy = RetryPolicy(attempts=3, base_delay_s=0.0)
+
+    def visa(server: Any, name: str) -> LineChannel:
+        """Return a line channel to a simulated VISA instrument, closed with the rig."""
+        io = LineChannel(VisaPort.open(visa_address(server), resource_manager=rm), name, policy, sleep=_no_wait)
+        closers.append(io.close)
+        return io
+
+    scanner = Keysight34970A(
+        visa(servers.card, "34970A"), card_map, tc_type="E", reference_junction="INT", clock=clock.now
     )
+    scanner.identify()
+    scanner.configure()
+    meter: AttocubeIDS | LaserInterferometer
+    if isinstance(servers.head, SimIDS3010):
+        head_url = ids_url(ids_resource(servers.head))
+        meter = AttocubeIDS(
+            lambda: SerialPort.open(head_url), settle=SettleOptions(sleep=_no_wait, max_settle_polls=20)
+        )
+        closers.append(meter.close)
+        meter.session()
+    else:
+        meter = LaserInterferometer(
+            visa(servers.head, "laser"), settle=SettleOptions(sleep=_no_wait, max_settle_polls=20), burst=True
+        )
+    url = serial_url(servers.ctrl)
+    link = LinuxCNCLink(lambda: SerialPort.open(url), sleep=_no_wait, max_idle_polls=2)
+    link.session()
+    closers.append(link.close)
+    adcard = Keysight34970AVolts(visa(servers.ad, "34970A volts"), AD_CHANNELS)
+    adcard.identify()
+    adcard.configure()
+    return _SimDrivers(scanner, meter, link, adcard)
 
 
 #: the proximity mainframe's DC-volt channels: A/D index i is channel AD_CHANNELS[i]
@@ -162,11 +228,7 @@ def sim_mounter(world: Any, stage: Any, head: Any, ad: Any) -> Callable[[Any], N
     axis and term within their range (fig. 5.9), the proximity sensors for the reference surface they
     face, reading the virtual machine's errors of the setup's axis at the controller's position.
     """
-    from driftlab.daemon.rig import ROLL_CALIBRATION, ROLL_GAP, ROLL_SEPARATION_MM
-    from driftlab.daq.laser import LASER_TERMS
-    from driftlab.daq.proximity import a_axis_array, b_axis_array
-    from driftlab.daq.sim.instruments import reference_surface_source, roll_pair_source
-    from driftlab.errors import ValidationError
+    from driftlab.daq.sim.instruments import reference_surface_source, roll_pair_source  # lazy (module note)
 
     def mount(setup: Any) -> None:
         """Mount one setup (None: take everything off)."""
@@ -207,8 +269,6 @@ def axis_positions(plan: Plan, cursor: Cursor) -> dict[str, tuple[float, int]]:
 
 def scenario_stages(plan: Plan) -> list[dict[str, Any]]:
     """Return the plan's stages as virtual-machine scenario stages (the heat sources the world runs)."""
-    from driftlab.errors import ValidationError
-
     out = []
     for stage, (start, end) in zip(plan.stages, plan.stage_bounds()):
         kinds = sorted(h.kind for h in stage.heat)
@@ -239,8 +299,7 @@ def scenario_stages(plan: Plan) -> list[dict[str, Any]]:
 
 def check_travel(plan: Plan) -> None:
     """Refuse sweep positions or oscillations outside the virtual machine's travel (Tables A.3, A.4)."""
-    from driftlab.daq.sim.truth import AXIS_RANGE
-    from driftlab.errors import ValidationError
+    from driftlab.daq.sim.truth import AXIS_RANGE  # the virtual machine: lazy (module note)
 
     for i, what, axis, values, lo, hi in plan.travel_violations(AXIS_RANGE):
         if what == "sweep":

@@ -59,14 +59,13 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from driftlab.daq.laser import LASER_TERMS, Environment, LaserMeasures
+from driftlab.daq.laser import LASER_TERMS, Environment, LaserMeasures, SettleOptions
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, Reading
 from driftlab.daq.retry import GarbledReply, TransientError
 from driftlab.daq.transport import RawPort, SerialPort, close_quietly
@@ -115,6 +114,18 @@ class IDSOptics:
             raise ValidationError("IDS3010 optics: angle_spacing_mm must be positive")
 
 
+@dataclass(frozen=True)
+class IDSSession:
+    """How the driver talks to the head: the JSON-RPC namespace of its firmware (``sen`` or ``ids``),
+    the least signal contrast (per mille) it trusts, and whether it may start the measurement from
+    "system idle" (polling the mode at most ``start_polls`` times)."""
+
+    api_namespace: str = "sen"
+    min_contrast_permille: float = 250.0
+    start_measurement: bool = True
+    start_polls: int = 120
+
+
 class AttocubeIDS(LaserMeasures):
     """An attocube IDS3010 on the network: an ErrorMeter of table 5.3's laser terms (rig driver attocube-ids3010)."""
 
@@ -122,28 +133,17 @@ class AttocubeIDS(LaserMeasures):
         self,
         connect: Callable[[], RawPort],
         optics: IDSOptics = IDSOptics(),
-        api_namespace: str = "sen",
-        readings_per_point: int = 10,
-        min_contrast_permille: float = 250.0,
-        settle_tolerance_mm: float = 0.0005,
-        settle_tolerance_rad: float = 5e-7,
-        settle_poll_s: float = 0.5,
-        max_settle_polls: int = 120,
-        start_measurement: bool = True,
-        start_polls: int = 120,
-        sleep: Callable[[float], None] = time.sleep,
+        settle: SettleOptions = SettleOptions(),
+        session: IDSSession = IDSSession(),
     ) -> None:
-        if api_namespace not in NAMESPACES:
-            raise ValidationError(f"IDS3010 api_namespace {api_namespace!r}: one of {', '.join(NAMESPACES)}")
+        if session.api_namespace not in NAMESPACES:
+            raise ValidationError(f"IDS3010 api_namespace {session.api_namespace!r}: one of {', '.join(NAMESPACES)}")
         self._connect = connect
         self.optics = optics
-        self.ns = NAMESPACES[api_namespace]
-        self.readings_per_point = readings_per_point
-        self.min_contrast_permille = min_contrast_permille
-        self.settle_tolerance_mm, self.settle_tolerance_rad = settle_tolerance_mm, settle_tolerance_rad
-        self.settle_poll_s, self.max_settle_polls = settle_poll_s, max_settle_polls
-        self.start_measurement, self.start_polls = start_measurement, start_polls
-        self.sleep = sleep
+        self.ns = NAMESPACES[session.api_namespace]
+        self._settle_with(settle)
+        self.min_contrast_permille = session.min_contrast_permille
+        self.start_measurement, self.start_polls = session.start_measurement, session.start_polls
         self.mode: str | None = None
         self.axis: str | None = None
         self.term: str | None = None
@@ -156,10 +156,17 @@ class AttocubeIDS(LaserMeasures):
         self._id = 0
 
     @classmethod
-    def open(cls, resource: str, timeout_s: float = 5.0, **options: Any) -> AttocubeIDS:
+    def open(
+        cls,
+        resource: str,
+        timeout_s: float = 5.0,
+        optics: IDSOptics = IDSOptics(),
+        settle: SettleOptions = SettleOptions(),
+        session: IDSSession = IDSSession(),
+    ) -> AttocubeIDS:
         """Return a driver on ``host[:port]`` with the head measuring (started from "system idle" if allowed)."""
         url = ids_url(resource)
-        ids = cls(lambda: SerialPort.open(url, timeout_s=timeout_s), **options)
+        ids = cls(lambda: SerialPort.open(url, timeout_s=timeout_s), optics, settle, session)
         try:
             ids.session()
         except TransientError as exc:

@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -175,6 +176,30 @@ class ScpiInstrument:
         self._io.close()
 
 
+class _Mainframe(Protocol):
+    """A driver of a 34970A family mainframe: identified, configured and closed."""
+
+    def identify(self) -> str: ...
+
+    def configure(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+_M = TypeVar("_M", bound=_Mainframe)
+
+
+def identified(card: _M) -> _M:
+    """Return the card identified (``*IDN?``) and configured; closed again if either fails."""
+    try:
+        card.identify()
+        card.configure()
+    except BaseException:
+        card.close()
+        raise
+    return card
+
+
 class Keysight34970A(ScpiInstrument):
     """Thermocouple channels of a 34970A/34972A/DAQ970A: a TemperatureScanner and BlockScanner.
 
@@ -238,14 +263,7 @@ class Keysight34970A(ScpiInstrument):
         **options: object,
     ) -> Keysight34970A:
         """Return the scanner on a VISA resource (``GPIB0::9::INSTR``, ``TCPIP0::host::inst0::INSTR``, ...)."""
-        card = cls(LineChannel(open_port(address, timeout_s), "34970A", policy), channel_map, **options)  # type: ignore[arg-type]
-        try:
-            card.identify()
-            card.configure()
-        except BaseException:
-            card.close()
-            raise
-        return card
+        return identified(cls(LineChannel(open_port(address, timeout_s), "34970A", policy), channel_map, **options))  # type: ignore[arg-type]
 
     @property
     def channels(self) -> Sequence[str]:
@@ -406,14 +424,7 @@ class Keysight34970AVolts(ScpiInstrument):
         cls, address: str, channels: Sequence[int], range_v: float = 10.0, timeout_s: float = 5.0
     ) -> Keysight34970AVolts:
         """Return the DC-volt reader on a VISA resource, identified and configured."""
-        card = cls(LineChannel(open_port(address, timeout_s), "34970A volts"), channels, range_v)
-        try:
-            card.identify()
-            card.configure()
-        except BaseException:
-            card.close()
-            raise
-        return card
+        return identified(cls(LineChannel(open_port(address, timeout_s), "34970A volts"), channels, range_v))
 
     def configure(self) -> None:
         """Configure DC volts on the channels (fixed range), the scan list and single sweeps; check each."""

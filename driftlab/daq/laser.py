@@ -188,6 +188,20 @@ def _parse_env(text: str) -> Environment:
     return env
 
 
+@dataclass(frozen=True)
+class SettleOptions:
+    """How a laser driver reads one point: after the axis settles (consecutive readings within the
+    tolerance, polled every ``settle_poll_s`` at most ``max_settle_polls`` times), the mean of
+    ``readings_per_point`` readings (ch. 5.5: ten readings averaged); ``sleep`` waits between polls."""
+
+    readings_per_point: int = 10
+    settle_tolerance_mm: float = 0.0005
+    settle_tolerance_rad: float = 5e-7
+    settle_poll_s: float = 0.5
+    max_settle_polls: int = 120
+    sleep: Callable[[float], None] = time.sleep
+
+
 class LaserMeasures:
     """What every laser driver offers on top of its own ``configure``, ``read`` and datum (table 5.3).
 
@@ -198,6 +212,15 @@ class LaserMeasures:
 
     mode: str | None
     reference_position: float
+
+    def _settle_with(self, settle: SettleOptions) -> None:
+        """Take the point-reading settings (kept as attributes: the rig sets ``readings_per_point`` per point)."""
+        self.readings_per_point = settle.readings_per_point
+        self.settle_tolerance_mm = settle.settle_tolerance_mm
+        self.settle_tolerance_rad = settle.settle_tolerance_rad
+        self.settle_poll_s = settle.settle_poll_s
+        self.max_settle_polls = settle.max_settle_polls
+        self.sleep = settle.sleep
 
     def configure(self, axis: str, term: str) -> str:
         """Set up the optics for (axis, term); return the mode."""
@@ -236,26 +259,17 @@ class LaserInterferometer(LaserMeasures):
         self,
         channel: LineChannel,
         optics: Optics = Optics(),
-        readings_per_point: int = 10,
+        settle: SettleOptions = SettleOptions(),
+        *,
         min_signal_percent: float = 25.0,
-        settle_tolerance_mm: float = 0.0005,
-        settle_tolerance_rad: float = 5e-7,
-        settle_poll_s: float = 0.5,
-        max_settle_polls: int = 120,
         environment: Environment | None = None,
-        sleep: Callable[[float], None] = time.sleep,
         burst: bool = False,
     ) -> None:
         self._io = channel
         self.optics = optics
-        self.readings_per_point = readings_per_point
+        self._settle_with(settle)
         self.min_signal_percent = min_signal_percent
-        self.settle_tolerance_mm = settle_tolerance_mm
-        self.settle_tolerance_rad = settle_tolerance_rad
-        self.settle_poll_s = settle_poll_s
-        self.max_settle_polls = max_settle_polls
         self.manual_environment = environment
-        self.sleep = sleep
         self.burst = burst
         self.mode: str | None = None
         self.axis: str | None = None

@@ -415,18 +415,8 @@ def card_emf_to_temperature(
     tc_type: str = "E",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return (degC, open mask) for card EMFs in volts: cold-junction compensated, calibrated; NaN where open."""
-    forward, inverse = _conversions(tc_type)
-    v = np.asarray(volts, dtype=float)
-    over = ~np.isfinite(v) | (np.abs(v) >= OVER_RANGE_V)
-    # cold-junction compensation: E(t_hot) = E_measured + E(t_cj) (NIST Monograph 175, section 2)
-    total_mv = np.where(over, np.nan, v * 1e3) + float(forward(cold_junction_c))
-    t_raw = inverse(total_mv)
-    open_mask = over | ~np.isfinite(t_raw)
-    if calibrations is not None:
-        slopes = np.array([c.slope for c in calibrations])
-        offsets = np.array([c.offset_c for c in calibrations])
-        t_raw = slopes * t_raw + offsets
-    return np.where(open_mask, np.nan, t_raw), open_mask
+    forward, _ = _conversions(tc_type)
+    return _compensated(volts, float(forward(cold_junction_c)), calibrations, tc_type)
 
 
 def card_block_to_temperature(
@@ -436,11 +426,22 @@ def card_block_to_temperature(
     tc_type: str = "E",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return (degC, open mask) for a block of scans: volts (n, c), one cold junction (degC) per scan."""
-    forward, inverse = _conversions(tc_type)
+    forward, _ = _conversions(tc_type)
+    return _compensated(volts, forward(np.asarray(cold_junction_c, dtype=float))[:, None], calibrations, tc_type)
+
+
+def _compensated(
+    volts: np.ndarray,
+    e_cj_mv: float | np.ndarray,
+    calibrations: Sequence[ChannelCalibration] | None,
+    tc_type: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return (degC, open mask) of EMFs (V) whose cold junction's EMF is `e_cj_mv`: calibrated, NaN where open."""
+    _, inverse = _conversions(tc_type)
     v = np.asarray(volts, dtype=float)
     over = ~np.isfinite(v) | (np.abs(v) >= OVER_RANGE_V)
-    e_cj = forward(np.asarray(cold_junction_c, dtype=float))[:, None]
-    total_mv = np.where(over, np.nan, v * 1e3) + e_cj
+    # cold-junction compensation: E(t_hot) = E_measured + E(t_cj) (NIST Monograph 175, section 2)
+    total_mv = np.where(over, np.nan, v * 1e3) + e_cj_mv
     t_raw = inverse(total_mv)
     open_mask = over | ~np.isfinite(t_raw)
     if calibrations is not None:

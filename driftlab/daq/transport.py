@@ -7,6 +7,7 @@ helper implements the same two calls, so a driver test asserts the exact bytes o
 
 from __future__ import annotations
 
+import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -110,6 +111,26 @@ class SerialPort:
         self._ser.close()
 
 
+def _socket_nodelay(resource: Any) -> None:
+    """Turn Nagle's algorithm off on a ``TCPIP::...::SOCKET`` session, as VISA does by default.
+
+    VPP-4.3 (The VISA Library, VI_ATTR_TCPIP_NODELAY) makes VI_TRUE the default: a raw socket
+    carries short SCPI commands, and a command followed at once by a query (a setting and its
+    ``SYST:ERR?``) would otherwise wait for the instrument's delayed ACK (about 40 ms on Linux)
+    before the query leaves. pyvisa-py 0.8 opens SOCKET sessions with the algorithm on and does
+    not wire that attribute's setter (``set_visa_attribute`` raises its UnknownAttribute), so
+    the option is set on the session's socket where the backend exposes one; other backends
+    (NI-VISA, Keysight IO) already follow the default.
+    """
+    if not str(getattr(resource, "resource_name", "")).upper().endswith("::SOCKET"):
+        return
+    sessions = getattr(getattr(resource, "visalib", None), "sessions", None)
+    session = sessions.get(resource.session) if isinstance(sessions, dict) else None
+    sock = getattr(session, "interface", None)
+    if isinstance(sock, socket.socket):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
 class VisaPort:
     """RawPort over a pyvisa message-based resource (GPIB, or TCPIP SOCKET for the simulator)."""
 
@@ -117,6 +138,7 @@ class VisaPort:
         self._res = resource
         self._res.read_termination = TERMINATOR.decode()
         self._res.write_termination = ""
+        _socket_nodelay(resource)
 
     @classmethod
     def open(

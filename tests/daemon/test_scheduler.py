@@ -13,10 +13,12 @@ from driftlab.campaigns.acquisition import Batch, Fault, StoreSink, open_campaig
 from driftlab.campaigns.db import store_engine
 from driftlab.campaigns.plan import Cursor, load_plan, parse_plan
 from driftlab.campaigns.status import campaign_status, format_status
+from driftlab.daemon.loop import Scheduler, SchedulerOptions
 from driftlab.daemon.run import skip_missed
-from driftlab.daemon.simrig import plan_scenario, scenario_stages
+from driftlab.daemon.simrig import plan_scenario, scenario_meta, scenario_stages
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_OPEN, Reading, TemperatureScan
 from driftlab.errors import ConflictError, ValidationError
+from tests.daemon.sim_helpers import plant_reading, sim_run
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "examples" / "plans" / "z-axis-demo.yaml"
@@ -194,11 +196,6 @@ def test_channel_maps_from_scenario_or_plan() -> None:
 
 def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -> None:
     """A card that keeps garbling and a broken laser beam become faults; every other reading is stored."""
-    from driftlab.daemon.loop import Scheduler
-    from driftlab.daemon.run import sim_clock
-    from driftlab.daemon.simrig import build_sim_rig, scenario_meta
-    from driftlab.daq.sim.scenario import load_scenario
-
     plan = parse_plan(
         {
             "name": "faulty",
@@ -215,17 +212,12 @@ def test_instrument_faults_are_logged_and_the_campaign_goes_on(tmp_path: Path) -
             ],
         }
     )
-    engine = store_engine(f"sqlite:///{tmp_path / 'f.sqlite'}")
-    meta = scenario_meta(None)
-    handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
-    clock = sim_clock(plan, handle.cursor, math.inf)
-    rig = build_sim_rig(
-        plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
-    )
+    run = sim_run(plan, f"sqlite:///{tmp_path / 'f.sqlite'}")
+    engine, handle, rig = run.engine, run.handle, run.rig
     rig.servers["thermocouple"].inject("garble", "garble", "garble", on="READ?")  # every attempt of the first scan
     rig.servers["laser"].break_beam()
     try:
-        stats = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, max_batch=1).run()  # scan by scan
+        stats = Scheduler(plan, rig, run.sink, run.clock, options=SchedulerOptions(max_batch=1)).run()  # scan by scan
     finally:
         rig.close()
     assert stats.finished
@@ -306,11 +298,6 @@ def test_real_mode_opens_the_instruments_named_in_the_plan(tmp_path: Path) -> No
 
 def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) -> None:
     """If the store already holds a reading the cursor says is still to do, the run stops: never a double row."""
-    from driftlab.daemon.loop import Scheduler
-    from driftlab.daemon.run import sim_clock
-    from driftlab.daemon.simrig import build_sim_rig, scenario_meta
-    from driftlab.daq.sim.scenario import load_scenario
-
     plan = parse_plan(
         {
             "name": "dup",
@@ -319,41 +306,23 @@ def test_a_reading_already_stored_stops_the_run_with_a_conflict(tmp_path: Path) 
             "stages": [{"name": "idle", "axis": "Z", "duration_s": 300}],
         }
     )
-    engine = store_engine(f"sqlite:///{tmp_path / 'dup.sqlite'}")
-    meta = scenario_meta(None)
-    handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
-    with engine.begin() as conn:
-        conn.execute(
-            sc.TemperatureSample.__table__.insert().values(
-                campaign_id=handle.campaign_id,
-                channel_id=handle.channel_ids["T7"],
-                time_s=0.0,
-                value=1.0,
-                campaign_start_day=handle.start_day,
-            )
-        )
-    clock = sim_clock(plan, handle.cursor, math.inf)
-    rig = build_sim_rig(
-        plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
-    )
+    run = sim_run(plan, f"sqlite:///{tmp_path / 'dup.sqlite'}")
+    engine = run.engine
+    plant_reading(run, 0.0)
     try:
         with pytest.raises(ConflictError, match="already holds a reading"):
-            Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, handle.cursor).run()
+            Scheduler(plan, run.rig, run.sink, run.clock, run.handle.cursor).run()
     finally:
-        rig.close()
+        run.rig.close()
     assert _count(engine, sc.TemperatureSample.__table__) == 1
-    assert open_campaign(engine, plan, meta["channels"], [], resume=True, origin={}).cursor == Cursor()
+    channels = scenario_meta(None)["channels"]
+    assert open_campaign(engine, plan, channels, [], resume=True, origin={}).cursor == Cursor()
 
 
 @pytest.mark.postgres
 def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(pg_cluster) -> None:
     """PostgreSQL drops the daemon's connections mid-run: the same batch is committed again, once."""
     from sqlalchemy import create_engine, text
-
-    from driftlab.daemon.loop import Scheduler
-    from driftlab.daemon.run import sim_clock
-    from driftlab.daemon.simrig import build_sim_rig, scenario_meta
-    from driftlab.daq.sim.scenario import load_scenario
 
     url = pg_cluster.create_database()
     plan = parse_plan(
@@ -371,9 +340,8 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
             ],
         }
     )
-    engine = store_engine(url)
-    meta = scenario_meta(None)
-    handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
+    run = sim_run(plan, url)
+    engine, rig = run.engine, run.rig
     admin = create_engine(url.rsplit("/", 1)[0] + "/postgres", isolation_level="AUTOCOMMIT")
     dbname = url.rsplit("/", 1)[1]
     dropped = []
@@ -390,13 +358,9 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
                 ).scalar_one()
             dropped.append(n)
 
-    clock = sim_clock(plan, handle.cursor, math.inf)
-    rig = build_sim_rig(
-        plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
-    )
     try:
         stats = Scheduler(
-            plan, rig, StoreSink(engine, plan, handle), clock, handle.cursor, on_commit=drop_connections
+            plan, rig, run.sink, run.clock, run.handle.cursor, SchedulerOptions(on_commit=drop_connections)
         ).run()
     finally:
         rig.close()
@@ -409,10 +373,6 @@ def test_a_lost_database_connection_is_retried_without_losing_or_doubling_rows(p
 
 def test_block_reads_store_the_rows_of_scan_by_scan_reads(tmp_path: Path) -> None:
     """Buffered block reads and one scan per exchange store the same readings (and the same states)."""
-    from driftlab.daemon.loop import Scheduler
-    from driftlab.daemon.run import sim_clock
-    from driftlab.daemon.simrig import build_sim_rig, scenario_meta
-    from driftlab.daq.sim.scenario import load_scenario
 
     plan = parse_plan(
         {
@@ -431,21 +391,21 @@ def test_block_reads_store_the_rows_of_scan_by_scan_reads(tmp_path: Path) -> Non
             ],
         }
     )
-    meta = scenario_meta(None)
     rows = {}
     for mode, max_batch in (("single", 1), ("blocks", 40)):
-        engine = store_engine(f"sqlite:///{tmp_path / (mode + '.sqlite')}")
-        handle = open_campaign(engine, plan, meta["channels"], meta["room_channels"], resume=False, origin={})
-        clock = sim_clock(plan, handle.cursor, math.inf)
-        rig = build_sim_rig(
-            plan, load_scenario(ROOT / "examples" / "scenarios" / "clean.yaml"), clock, list(meta["channels"])
-        )
+        run = sim_run(plan, f"sqlite:///{tmp_path / (mode + '.sqlite')}")
+        engine, rig = run.engine, run.rig
         try:
-            sched = Scheduler(plan, rig, StoreSink(engine, plan, handle), clock, max_batch=max_batch)
+            sched = Scheduler(plan, rig, run.sink, run.clock, options=SchedulerOptions(max_batch=max_batch))
             assert sched.block_scans() == max_batch
             stats = sched.run()
+            received = list(rig.servers["thermocouple"].received)
         finally:
             rig.close()
+        if mode == "blocks":
+            # the scans between a sweep's moves and points wait in the card's buffer: one block read per commit
+            removes = [c for c in received if c.startswith("DATA:REM?")]
+            assert 0 < len(removes) <= stats.commits
         assert stats.finished and stats.faults == 0 and stats.scans == plan.n_scans
         with engine.connect() as conn:
             rows[mode] = (

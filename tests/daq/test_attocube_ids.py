@@ -17,7 +17,8 @@ import socket
 import numpy as np
 import pytest
 
-from driftlab.daq.attocube_ids import AttocubeIDS, IDSOptics, ids_url, request_line
+from driftlab.daq.attocube_ids import AttocubeIDS, IDSOptics, IDSSession, ids_url, request_line
+from driftlab.daq.laser import SettleOptions
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_REFERENCE_LOST, ErrorMeter
 from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource
 from driftlab.daq.sim.instruments import FixedStage, ManualClock
@@ -62,7 +63,9 @@ def running(c: Conversation) -> Conversation:
     return c(f"{SEN}.system.getCurrentMode", [], [0, "measurement running"])
 
 
-def ids_on(*conversations: Conversation, **kw) -> tuple[AttocubeIDS, list[ProtocolPort]]:
+def ids_on(
+    *conversations: Conversation, settle_tolerance_mm: float = 0.0005, **kw
+) -> tuple[AttocubeIDS, list[ProtocolPort]]:
     ports = [ProtocolPort(c.pairs) for c in conversations]
     queue = list(ports)
 
@@ -71,7 +74,8 @@ def ids_on(*conversations: Conversation, **kw) -> tuple[AttocubeIDS, list[Protoc
             raise InstrumentError("cannot open serial port: connection refused")
         return queue.pop(0)
 
-    return AttocubeIDS(connect, sleep=lambda _s: None, **kw), ports
+    settle = SettleOptions(settle_tolerance_mm=settle_tolerance_mm, sleep=lambda _s: None)
+    return AttocubeIDS(connect, settle=settle, **kw), ports
 
 
 def all_used(ports: list[ProtocolPort]) -> None:
@@ -304,7 +308,7 @@ def test_unknown_term_and_namespace_are_refused():
     with pytest.raises(ValidationError, match="table 5.3"):
         ids.configure("X", "alpha")
     with pytest.raises(ValidationError, match="api_namespace"):
-        AttocubeIDS(lambda: None, api_namespace="foo")  # type: ignore[arg-type,return-value]
+        AttocubeIDS(lambda: None, session=IDSSession(api_namespace="foo"))  # type: ignore[arg-type,return-value]
 
 
 # ------------------------------------------------------------------ the simulator through a real socket
@@ -344,7 +348,7 @@ def test_driver_on_the_simulator_follows_the_world_and_survives_a_drop_and_a_tim
     world, clock, stage = TinyWorld(channels=2), ManualClock(), FixedStage()
     with SimIDS3010(world, clock, stage) as sim:
         sim.mount("LIN", "X", "dx")
-        ids = AttocubeIDS.open(ids_resource(sim), timeout_s=0.5, sleep=clock.sleep)
+        ids = AttocubeIDS.open(ids_resource(sim), timeout_s=0.5, settle=SettleOptions(sleep=clock.sleep))
         try:
             assert ids.identify().startswith("attocube IDS3010")
             ids.configure("X", "dx")

@@ -10,6 +10,7 @@ import pytest
 from driftlab.daq.laser import (
     Environment,
     LaserInterferometer,
+    SettleOptions,
     air_refractive_index,
     fringes_to_value,
     remove_linear_trend,
@@ -71,8 +72,8 @@ def _setup_pairs(mode, axis, term):
             (f"TERM {term}\n".encode(), b"OK\n"), (b"REF\n", b"OK\n")]  # fmt: skip
 
 
-def _laser(ch, **kw):
-    return LaserInterferometer(ch, sleep=lambda s: None, **kw)
+def _laser(ch, max_settle_polls: int = 120, **kw):
+    return LaserInterferometer(ch, settle=SettleOptions(max_settle_polls=max_settle_polls, sleep=lambda s: None), **kw)
 
 
 def test_linear_point_exact_bytes_and_mean_of_ten():
@@ -103,7 +104,9 @@ def test_waits_for_axis_to_settle():
     pairs = _setup_pairs("STR", "X", "dy") + [(b"ENV?\n", ENV)]
     pairs += [(b"MEAS?\n", _meas("STR", v)) for v in (0.05, 0.02, 0.008, 0.0051, 0.0050)]
     pairs += [(b"MEAS?\n", _meas("STR", 0.005))] * 10
-    with expected_protocol(lambda ch: LaserInterferometer(ch, sleep=sleeps.append, settle_poll_s=0.25), pairs) as laser:
+    with expected_protocol(
+        lambda ch: LaserInterferometer(ch, settle=SettleOptions(sleep=sleeps.append, settle_poll_s=0.25)), pairs
+    ) as laser:
         laser.configure("X", "dy")
         laser.reference()
         assert laser.read_displacement().value == pytest.approx(0.005, abs=1e-9)
@@ -198,7 +201,9 @@ def test_burst_that_shows_motion_falls_back_to_polling_and_a_weak_burst_breaks_t
     pairs += [(b"MEAS?\n", _meas("LIN", 50.0)), (b"MEAS?\n", _meas("LIN", 50.0))]
     pairs += [(b"MEAS?\n", _meas("LIN", v)) for v in values]
     sleeps: list[float] = []
-    with expected_protocol(lambda ch: LaserInterferometer(ch, sleep=sleeps.append, burst=True), pairs) as laser:
+    with expected_protocol(
+        lambda ch: LaserInterferometer(ch, settle=SettleOptions(sleep=sleeps.append), burst=True), pairs
+    ) as laser:
         laser.configure("Y", "dy")
         laser.reference(0.0)
         assert laser.measure_error("Y", "dy", 50.0, 1).value == pytest.approx(0.0, abs=1e-8)

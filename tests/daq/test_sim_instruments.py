@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from driftlab.daq.laser import LaserInterferometer, air_refractive_index, fringes_to_value
+from driftlab.daq.laser import LaserInterferometer, SettleOptions, air_refractive_index, fringes_to_value
 from driftlab.daq.machine_link import SerialMachineLink
 from driftlab.daq.probe import LobingMap, SpindleBarMeter, TouchProbe
 from driftlab.daq.protocols import FLAG_BEAM_BREAK, FLAG_OPEN, FLAG_REFERENCE_LOST
@@ -132,7 +132,7 @@ def test_laser_end_to_end_over_pyvisa(rm, world, clock):
     clock.advance_to(900.0)
     with SimLaser(world, clock, stage) as sim:
         ch = _visa_channel(rm, sim)
-        laser = LaserInterferometer(ch, sleep=clock.sleep)
+        laser = LaserInterferometer(ch, settle=SettleOptions(sleep=clock.sleep))
         try:
             assert laser.identify().startswith("DRIFTLAB,SIM-LASER")
             laser.configure("X", "dx")
@@ -214,7 +214,7 @@ def test_controller_streams_executes_and_reports_positions(world, clock):
 def test_laser_waits_for_the_moving_axis(rm, world, clock):
     with SimController(world, clock) as ctl, SimLaser(world, clock, ctl) as sim:
         link = SerialMachineLink(_serial_channel(ctl), poll_s=0.5, sleep=clock.sleep)
-        laser = LaserInterferometer(_visa_channel(rm, sim), sleep=clock.sleep, settle_poll_s=0.5)
+        laser = LaserInterferometer(_visa_channel(rm, sim), settle=SettleOptions(sleep=clock.sleep, settle_poll_s=0.5))
         try:
             laser.configure("X", "dx")
             laser.reference(0.0)
@@ -313,14 +313,14 @@ def test_laser_datum_survives_a_pc_restart(rm, world, clock):
     with SimLaser(world, clock, stage) as sim:
         ch = _visa_channel(rm, sim)
         try:
-            laser = LaserInterferometer(ch, sleep=clock.sleep)
+            laser = LaserInterferometer(ch, settle=SettleOptions(sleep=clock.sleep))
             laser.configure("Y", "dy")
             assert sim.datum() is None
             laser.reference(0.0)
             saved = sim.datum()
             assert saved == {"t_s": 600.0, "position": 0.0, "error": world.measure_error(600.0, "Y", 0.0, 1)["dy"]}
             # a new PC session re-sends the set-up, which clears the head; the saved datum is put back
-            again = LaserInterferometer(ch, sleep=clock.sleep)
+            again = LaserInterferometer(ch, settle=SettleOptions(sleep=clock.sleep))
             again.configure("Y", "dy")
             sim.restore_datum(**saved)
             stage.move("Y", 100.0, 1)

@@ -148,3 +148,22 @@ def test_visa_library_default_and_a_vendor_library_that_does_not_load(tmp_path, 
     fake.write_bytes(b"not a shared library")
     with pytest.raises(InstrumentError, match="cannot load VISA library"):
         visa_resource_manager(str(fake))
+
+
+def test_a_visa_socket_session_sends_a_query_right_after_a_command():
+    """A command then a query on a TCPIP SOCKET session: the query leaves at once (Nagle off, as VISA's default).
+
+    With Nagle's algorithm on, the query waits for the ACK of the command, which a listener with
+    nothing to answer delays; the test looks at the socket option itself, not at a time.
+    """
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    rm = visa_resource_manager("@py")
+    try:
+        vp = VisaPort.open(f"TCPIP0::127.0.0.1::{port}::SOCKET", resource_manager=rm)
+        session = rm.visalib.sessions[vp._res.session]
+        assert session.interface.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) == 1
+        vp.close()
+    finally:
+        rm.close()
+        listener.close()

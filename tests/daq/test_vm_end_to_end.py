@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import pyvisa
 
-from driftlab.daq.laser import LaserInterferometer
+from driftlab.daq.laser import LaserInterferometer, SettleOptions
 from driftlab.daq.machine_link import SerialMachineLink
 from driftlab.daq.probe import TouchProbe
 from driftlab.daq.protocols import FLAG_OPEN
@@ -92,8 +92,8 @@ def test_laser_reads_the_vm_errors(rm, vm, axis, term):
     clock = ManualClock(3000.0)
     stage = FixedStage()
     with SimLaser(vm, clock, stage) as sim:
-        laser = LaserInterferometer(_visa(rm, sim), sleep=clock.sleep, settle_tolerance_mm=0.005,
-                                    settle_tolerance_rad=5e-6)  # fmt: skip
+        settle = SettleOptions(sleep=clock.sleep, settle_tolerance_mm=0.005, settle_tolerance_rad=5e-6)
+        laser = LaserInterferometer(_visa(rm, sim), settle=settle)
         try:
             laser.configure(axis, term)
             stage.move(axis, 0.0, 1)

@@ -33,6 +33,7 @@ import json
 import math
 from typing import Any
 
+from driftlab.daq.attocube_ids import IDSOptics
 from driftlab.daq.laser import air_refractive_index
 from driftlab.daq.sim.instruments import Clock, SimHead, Stage, World
 
@@ -60,9 +61,7 @@ class SimIDS3010(SimHead):
         clock: Clock,
         stage: Stage,
         api_namespace: str = "sen",
-        displacement_axis: int = 0,
-        angle_axes: tuple[int, int] = (0, 1),
-        angle_spacing_mm: float = 32.0,
+        optics: IDSOptics = IDSOptics(),
         contrast_permille: float = 880.0,
         measuring: bool = True,
         **kwargs: Any,
@@ -70,9 +69,9 @@ class SimIDS3010(SimHead):
         super().__init__(world, clock, stage, **kwargs)
         self.ns = {"sen": "com.attocube.sen", "ids": "com.attocube.ids"}[api_namespace]
         self.displacement_axis, self.angle_axes, self.angle_spacing_mm = (
-            displacement_axis,
-            angle_axes,
-            angle_spacing_mm,
+            optics.displacement_axis,
+            optics.angle_axes,
+            optics.angle_spacing_mm,
         )
         self.contrast_permille = contrast_permille
         self.state = "measurement running" if measuring else "system idle"

@@ -29,6 +29,7 @@ import math
 import re
 from collections import deque
 from collections.abc import Callable, Mapping
+from typing import ClassVar
 
 import numpy as np
 
@@ -283,7 +284,15 @@ class Sim34970A(LineServer):
         return ";".join(replies) if replies else None
 
     def _command(self, head: str, arg: str) -> str | None:
+        """Answer one command (header without its parameters, and its parameter string)."""
         params, chans = split_params(arg)
+        handler = self._HANDLERS.get(head)
+        if handler is None:
+            raise ScpiError(-113, "Undefined header")
+        return handler(self, head, params, chans)
+
+    def _session(self, head: str, params: list[str], chans: list[int] | None) -> str | None:
+        """Answer a command of the session: identification, reset, the error queue."""
         if head == "*IDN?":
             return f"Agilent Technologies,{self.model},0,13-2-2"
         if head in ("*RST", "*CLS"):
@@ -294,6 +303,10 @@ class Sim34970A(LineServer):
         if head == "SYST:ERR?":
             code, msg = self.errors.popleft() if self.errors else (0, "No error")
             return f'{code:+d},"{msg}"'
+        raise ScpiError(-113, "Undefined header")
+
+    def _configure(self, head: str, params: list[str], chans: list[int] | None) -> str | None:
+        """Answer a channel configuration command: function (thermocouple, DC volts), unit, junction, check."""
         if head == "CONF:TEMP":
             if len(params) < 2 or params[0].upper() not in ("TC", "TCOUPLE") or not chans:
                 if len(params) < 2:
@@ -354,6 +367,10 @@ class Sim34970A(LineServer):
                     self.rjun_c[c] = t
             self._clear_memory()
             return None
+        raise ScpiError(-113, "Undefined header")
+
+    def _scan(self, head: str, params: list[str], chans: list[int] | None) -> str | None:
+        """Answer a command of the scan list and the trigger system (immediate or timer scan)."""
         if head == "ROUT:SCAN":
             if chans is None:
                 raise ScpiError(-109, "Missing parameter")
@@ -407,6 +424,10 @@ class Sim34970A(LineServer):
             if self._t0 is not None:
                 self._frozen = self._taken(self.clock.now())
             return None
+        raise ScpiError(-113, "Undefined header")
+
+    def _data(self, head: str, params: list[str], chans: list[int] | None) -> str | None:
+        """Answer a command of readings: a triggered READ?, and the timer scan's reading memory."""
         if head == "READ?":
             if not self.scan_list:
                 raise ScpiError(-221, "Settings conflict")
@@ -433,6 +454,31 @@ class Sim34970A(LineServer):
             self._removed = first + n
             return self._format(self._readings(first, first + n))
         raise ScpiError(-113, "Undefined header")
+
+    #: command header -> the method that answers it
+    _HANDLERS: ClassVar[dict[str, Callable[[Sim34970A, str, list[str], list[int] | None], str | None]]] = {
+        "*IDN?": _session,
+        "*RST": _session,
+        "*CLS": _session,
+        "SYST:ERR?": _session,
+        "CONF:TEMP": _configure,
+        "CONF:VOLT:DC": _configure,
+        "UNIT:TEMP": _configure,
+        "TEMP:TRAN:TC:RJUN:TYPE": _configure,
+        "TEMP:TRAN:TC:RJUN": _configure,
+        "TEMP:TRAN:TC:CHEC": _configure,
+        "ROUT:SCAN": _scan,
+        "ROUT:SCAN?": _scan,
+        "TRIG:SOUR": _scan,
+        "TRIG:TIM": _scan,
+        "TRIG:COUN": _scan,
+        "INIT": _scan,
+        "ABOR": _scan,
+        "READ?": _data,
+        "FETC?": _data,
+        "DATA:POIN?": _data,
+        "DATA:REM?": _data,
+    }
 
 
 def mainframe_channels(n: int) -> list[int]:
