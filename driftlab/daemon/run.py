@@ -236,7 +236,14 @@ def _run(
             sink,
             opened.clock,
             cursor,
-            SchedulerOptions(max_batch=opts.max_batch, flush_s=opts.flush_s, on_commit=on_commit, stop=stop),
+            SchedulerOptions(
+                max_batch=opts.max_batch,
+                flush_s=opts.flush_s,
+                on_commit=on_commit,
+                stop=stop,
+                # stopping after a count of commits stops there: no batches read ahead of the writer
+                pipeline_depth=1 if opts.stop_after_commits is not None else SchedulerOptions.pipeline_depth,
+            ),
         )
         stats = sched.run()
     return stats, sched.cursor
