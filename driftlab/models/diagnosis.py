@@ -1226,17 +1226,22 @@ def extras_earn_place(
 ) -> tuple[bool, str]:
     """Return whether ``extra`` columns earn their place beside a nested law (``X_sub`` holds it), and how.
 
-    Training rows only: a partial test robust to autocorrelation (``robust_pvalue`` of the extra columns
-    given ``X_sub``, below ``cfg.alpha_each``) and the out-of-sample check of any candidate
-    (``validation_check``: fit on the earlier training blocks, predict the later ones).
+    Training rows only, two conditions: a partial test robust to autocorrelation (``robust_pvalue`` of the
+    extra columns given ``X_sub``) below ``cfg.alpha_each``, and a better prediction of the later training
+    blocks with them than without, in both readings of ``validation_check`` (their own coefficients from
+    the earlier blocks against the later residual; both models refitted on the earlier blocks). No effect
+    size is asked here: the whole candidate was already held to it; the question is only which of two
+    laws, as for the two powers of a column and the sibling lags (``_other_power``, ``_better_sibling_lag``).
     """
     X_ext = np.column_stack([X_sub, extra])
     idx = list(range(X_sub.shape[1], X_ext.shape[1]))
     p = robust_pvalue(X_ext, td.y, td, idx)
     if p >= cfg.alpha_each:
         return False, f"partial robust p {p:.3g} (need < {cfg.alpha_each:.3g})"
-    ok, how, _ = validation_check(X_sub, extra, td.y, td.train, folds, *cfg.validation_rule)
-    return ok, f"partial robust p {p:.3g}; {how}"
+    ob, oa = validation_gain(X_sub, extra, td.y, td.train, folds)
+    rb, ra = validation_rmse(X_sub, td.y, folds), validation_rmse(X_ext, td.y, folds)
+    how = f"partial robust p {p:.3g}; later blocks own coefficients {ob:.4g} -> {oa:.4g}, refitted {rb:.4g} -> {ra:.4g}"
+    return bool(oa < ob and ra < rb), how
 
 
 def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
