@@ -1227,21 +1227,22 @@ def extras_earn_place(
     """Return whether ``extra`` columns earn their place beside a nested law (``X_sub`` holds it), and how.
 
     Training rows only, two conditions: a partial test robust to autocorrelation (``robust_pvalue`` of the
-    extra columns given ``X_sub``) below ``cfg.alpha_each``, and a better prediction of the later training
-    blocks with them than without, in both readings of ``validation_check`` (their own coefficients from
-    the earlier blocks against the later residual; both models refitted on the earlier blocks). No effect
+    extra columns given ``X_sub``) below the family level ``cfg.alpha`` (one question asked of a candidate that
+    already passed the Bonferroni level ``alpha_each``: which of its two laws), and a better prediction of the later training
+    blocks with them than without, in either reading of ``validation_check`` as for any candidate (their own
+    coefficients from the earlier blocks against the later residual; both models refitted there). No effect
     size is asked here: the whole candidate was already held to it; the question is only which of two
     laws, as for the two powers of a column and the sibling lags (``_other_power``, ``_better_sibling_lag``).
     """
     X_ext = np.column_stack([X_sub, extra])
     idx = list(range(X_sub.shape[1], X_ext.shape[1]))
     p = robust_pvalue(X_ext, td.y, td, idx)
-    if p >= cfg.alpha_each:
-        return False, f"partial robust p {p:.3g} (need < {cfg.alpha_each:.3g})"
+    if p >= cfg.alpha:
+        return False, f"partial robust p {p:.3g} (need < {cfg.alpha:.3g})"
     ob, oa = validation_gain(X_sub, extra, td.y, td.train, folds)
     rb, ra = validation_rmse(X_sub, td.y, folds), validation_rmse(X_ext, td.y, folds)
     how = f"partial robust p {p:.3g}; later blocks own coefficients {ob:.4g} -> {oa:.4g}, refitted {rb:.4g} -> {ra:.4g}"
-    return bool(oa < ob and ra < rb), how
+    return bool(oa < ob or ra < rb), how
 
 
 def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
@@ -1319,7 +1320,8 @@ class SearchConfig:
     ``alpha_each``: the per-candidate level (Bonferroni over every hypothesis of the bundle);
     ``min_gain``: the relative gain the time-ordered validation inside the training part must show,
     explaining ``min_explained`` x ``noise`` there and ``min_explained_train`` x ``noise`` on the
-    training rows; at most ``max_effects`` effects, ``top_k`` candidates tried a round.
+    training rows; at most ``max_effects`` effects, ``top_k`` candidates tried a round; ``alpha``: the
+    family level, for the one question asked of a candidate that passed ``alpha_each`` (which of two nested laws).
     """
 
     alpha_each: float
@@ -1329,6 +1331,7 @@ class SearchConfig:
     min_explained: float = 1.0
     min_explained_train: float = 0.5
     top_k: int = 6
+    alpha: float = 0.01
 
     @property
     def validation_rule(self) -> tuple[float, float, float]:
@@ -1941,7 +1944,7 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
         p_here = max((f.p_value for f in here), default=1.0)
         fed |= {f.channel for f in here}
-        cfg = SearchConfig(alpha_each, min_gain, max_effects, nz)
+        cfg = SearchConfig(alpha_each, min_gain, max_effects, nz, alpha=alpha)
         effects, state = _search_term(ctx, std, cfg, dview, TermFaults(here, p_here, broken))
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
         in_model = [n[3:] for n in state.names if n.startswith("dT_")]
