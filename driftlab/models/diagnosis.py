@@ -1227,12 +1227,13 @@ def extras_earn_place(
     """Return whether ``extra`` columns earn their place beside a nested law (``X_sub`` holds it), and how.
 
     Training rows only, two conditions: a partial test robust to autocorrelation (``robust_pvalue`` of the
-    extra columns given ``X_sub``) below the family level ``cfg.alpha`` (one question asked of a candidate that
-    already passed the Bonferroni level ``alpha_each``: which of its two laws), and a better prediction of the later training
-    blocks with them than without, in either reading of ``validation_check`` as for any candidate (their own
-    coefficients from the earlier blocks against the later residual; both models refitted there). No effect
-    size is asked here: the whole candidate was already held to it; the question is only which of two
-    laws, as for the two powers of a column and the sibling lags (``_other_power``, ``_better_sibling_lag``).
+    extra columns given ``X_sub``) below the family level ``cfg.alpha`` (one question asked of a candidate
+    that already passed the Bonferroni level ``alpha_each``: which of its two laws), and a better prediction
+    of the later training blocks with them than without, in either reading of ``validation_check`` as for
+    any candidate (their own coefficients from the earlier blocks against the later residual; both models
+    refitted there). No effect size is asked here: the whole candidate was already held to it; the
+    question is only which of two laws, as for the two powers of a column and the sibling lags
+    (``_other_power``, ``_better_sibling_lag``).
     """
     X_ext = np.column_stack([X_sub, extra])
     idx = list(range(X_sub.shape[1], X_ext.shape[1]))
