@@ -1203,6 +1203,49 @@ VIF_UNSENSED = 10.0
 SIBLING_LAGS = True
 
 
+#: a candidate whose columns contain another candidate's is taken only when its extra columns earn their place
+#: on the later training blocks (``_TermSearch._nested_law``); False restores the choice by the in-sample F alone
+NESTED_LAWS = True
+
+
+def nested_extra(big: np.ndarray, small: np.ndarray) -> list[int] | None:
+    """Return the columns of ``big`` beyond ``small`` when every column of ``small`` is one of ``big``'s, else None."""
+    if small.shape[1] >= big.shape[1] or small.shape[0] != big.shape[0]:
+        return None
+    hit: list[int] = []
+    for k in range(small.shape[1]):
+        j = next((j for j in range(big.shape[1]) if j not in hit and np.array_equal(big[:, j], small[:, k])), None)
+        if j is None:
+            return None
+        hit.append(j)
+    return [j for j in range(big.shape[1]) if j not in hit]
+
+
+def extras_earn_place(
+    X_sub: np.ndarray, extra: np.ndarray, td: TermData, folds: list[tuple[np.ndarray, np.ndarray]], cfg: SearchConfig
+) -> tuple[bool, str]:
+    """Return whether ``extra`` columns earn their place beside a nested law (``X_sub`` holds it), and how.
+
+    Training rows only, two conditions: a partial test robust to autocorrelation (``robust_pvalue`` of the
+    extra columns given ``X_sub``) below the family level ``cfg.alpha`` (one question asked of a candidate
+    that already passed the Bonferroni level ``alpha_each``: which of its two laws), and a better prediction
+    of the later training blocks with them than without, in either reading of ``validation_check`` as for
+    any candidate (their own coefficients from the earlier blocks against the later residual; both models
+    refitted there). No effect size is asked here: the whole candidate was already held to it; the
+    question is only which of two laws, as for the two powers of a column and the sibling lags
+    (``_other_power``, ``_better_sibling_lag``).
+    """
+    X_ext = np.column_stack([X_sub, extra])
+    idx = list(range(X_sub.shape[1], X_ext.shape[1]))
+    p = robust_pvalue(X_ext, td.y, td, idx)
+    if p >= cfg.alpha:
+        return False, f"partial robust p {p:.3g} (need < {cfg.alpha:.3g})"
+    ob, oa = validation_gain(X_sub, extra, td.y, td.train, folds)
+    rb, ra = validation_rmse(X_sub, td.y, folds), validation_rmse(X_ext, td.y, folds)
+    how = f"partial robust p {p:.3g}; later blocks own coefficients {ob:.4g} -> {oa:.4g}, refitted {rb:.4g} -> {ra:.4g}"
+    return bool(oa < ob or ra < rb), how
+
+
 def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
     """Return (VIF, condition number) of adding ``col`` to the design ``X`` on ``rows``.
 
@@ -1278,7 +1321,8 @@ class SearchConfig:
     ``alpha_each``: the per-candidate level (Bonferroni over every hypothesis of the bundle);
     ``min_gain``: the relative gain the time-ordered validation inside the training part must show,
     explaining ``min_explained`` x ``noise`` there and ``min_explained_train`` x ``noise`` on the
-    training rows; at most ``max_effects`` effects, ``top_k`` candidates tried a round.
+    training rows; at most ``max_effects`` effects, ``top_k`` candidates tried a round; ``alpha``: the
+    family level, for the one question asked of a candidate that passed ``alpha_each`` (which of two nested laws).
     """
 
     alpha_each: float
@@ -1288,6 +1332,7 @@ class SearchConfig:
     min_explained: float = 1.0
     min_explained_train: float = 0.5
     top_k: int = 6
+    alpha: float = 0.01
 
     @property
     def validation_rule(self) -> tuple[float, float, float]:
@@ -1332,6 +1377,7 @@ class _Round:
 
     scored: list[Scored]
     best_of_kind: dict[str, float] = field(default_factory=dict)  # refitted validation RMSE per kind
+    built: list[Scored] = field(default_factory=list)  # every candidate of the round, significant or not
     denoised_validates: bool | None = None  # whether the denoised view may judge by validation (once a round)
 
 
@@ -1416,8 +1462,8 @@ class _TermSearch:
     def _round(self) -> tuple[Effect, _Trial, np.ndarray | None] | None:
         """Return the first candidate of this round that passes every rule (None: the search ends)."""
         ctx, td, state, cfg = self.ctx, self.td, self.state, self.cfg
-        scored = screen(state.X, td.y, td.train, build_candidates(ctx))
-        scored = [s for s in scored if s.p_value < cfg.alpha_each and s.cand.key not in ctx.taken]
+        built = screen(state.X, td.y, td.train, build_candidates(ctx))
+        scored = [s for s in built if s.p_value < cfg.alpha_each and s.cand.key not in ctx.taken]
         scored.sort(key=lambda s: (s.p_value, -np.nan_to_num(s.F)))
         # try the best candidate of every kind first: one kind's many near-identical channels must
         # not crowd out another kind
@@ -1427,7 +1473,7 @@ class _TermSearch:
         heads = list(firsts_by_kind.values())
         rest = [sc for sc in scored if all(sc is not h for h in heads)]
         trials = heads + rest[: max(0, cfg.top_k - len(heads))]
-        rnd = _Round(scored)
+        rnd = _Round(scored, built=built)
         for sc in trials:
             accepted = self._try(sc, rnd)
             if accepted is not None:
@@ -1514,8 +1560,44 @@ class _TermSearch:
         out.valid, out.how, out.after = a_valid, a_how, a_after
         return out
 
+    def _nested_law(self, tr: _Trial, rnd: _Round) -> _Trial | None:
+        """Return the trial to go on with after comparing it with the candidates its columns nest (None: refused).
+
+        A law whose columns contain another candidate's (direction x dT with the plain direction against
+        the reversal; a screw or a lag of a channel outside the model with its dT against the unmapped
+        channel) always fits the training rows at least as well: the in-sample F of the whole cannot choose.
+        Its extra columns must earn their place beside the nested candidate (``extras_earn_place``: robust
+        partial test and the later training blocks); otherwise the nested law is the law and takes the
+        validated candidate's place (its own p, then the denoised view, the last-block gate and the robust
+        test still decide). Refused when the nested law is not itself significant or cannot be posed.
+        """
+        if not (tr.valid and NESTED_LAWS):
+            return tr
+        for o in rnd.built:
+            extra = nested_extra(tr.cols, o.cand.cols)
+            if extra is None or o.cand.key == tr.cand.key or o.cand.key in self.ctx.taken:
+                continue
+            X_sub = np.column_stack([self.state.X, o.cand.cols])
+            earns, how = extras_earn_place(X_sub, tr.cols[:, extra], self.td, self.folds, self.cfg)
+            log.debug("   %s's extra columns beside the nested %s: %s, %s", tr.cand.kind, o.cand.kind, earns, how)
+            if earns:
+                continue
+            cand, cols, hint = _materialise(o, self.ctx, self.state)
+            if o.p_value >= self.cfg.alpha_each or not self._admissible(cand, cols, hint):
+                return None
+            sub = self._trial(o, cand, cols, hint)
+            sub.valid, sub.after = True, validation_rmse(np.column_stack([self.state.X, cols]), self.td.y, self.folds)
+            sub.how = f"nested in {tr.cand.kind} {tr.cand.channels} ({tr.how}); its extra columns: {how}"
+            return sub
+        return tr
+
     def _compare_laws(self, tr: _Trial, rnd: _Round) -> _Trial | None:
-        """Return the trial after the non-nested comparisons (operating powers, sibling lags); None: refused."""
+        """Return the trial after the comparisons of laws (nested, operating powers, sibling lags); None: refused."""
+        nested = self._nested_law(tr, rnd)
+        if nested is None:
+            return None
+        if nested is not tr:
+            return nested  # the nested law replaces the candidate (a plain reversal, an unmapped channel)
         if tr.valid and tr.cand.kind == "operating_condition":
             return self._other_power(tr, rnd)
         if tr.valid and tr.cand.kind == "thermal_lag" and SIBLING_LAGS:
@@ -1863,7 +1945,7 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
         p_here = max((f.p_value for f in here), default=1.0)
         fed |= {f.channel for f in here}
-        cfg = SearchConfig(alpha_each, min_gain, max_effects, nz)
+        cfg = SearchConfig(alpha_each, min_gain, max_effects, nz, alpha=alpha)
         effects, state = _search_term(ctx, std, cfg, dview, TermFaults(here, p_here, broken))
         terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
         in_model = [n[3:] for n in state.names if n.startswith("dT_")]

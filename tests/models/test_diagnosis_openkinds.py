@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle
+from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle, nested_extra
 from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 from driftlab.models.sensor_drift import scan_sensor_drifts
 from driftlab.models.standard_model import prepare_bundle
@@ -198,3 +198,32 @@ def test_the_fit_reads_a_report_with_the_new_kinds_and_says_what_it_does_not_fol
     plan = plan_findings(parse_findings(doc), [case.bundle])
     assert sorted(plan.skipped) == [0, 1, 2, 3]
     assert all("reported only" in note for note in plan.skipped.values())
+
+
+def test_a_constant_reversal_is_named_reversal_not_the_direction_thermal_that_nests_it():
+    # a plain reversal of 1 um on X/dx; direction x dT_T3 with the plain direction nests it and fits the training
+    # rows a little better (its extra column picks up the rows' scatter along a warming channel). Chosen by the
+    # in-sample F alone, direction_thermal T3 was named (0.96 um); its extra column must earn its place
+    p = P("reversal", "X", "dx", "phi_x", "dx", [], {"magnitude": 1e-3})
+    case = openworld_case([p], OpenWorld(seed=705, hours=24, keep=[("X", "dx")]))
+    res = diagnose_bundle(case.bundle)
+    assert [e.kind for e in res.effects] == ["reversal"]
+    assert res.effects[0].params["magnitude_mm"] == pytest.approx(case.expected[0]["magnitude_mm"], rel=0.25)
+
+
+def test_a_planted_direction_thermal_still_earns_its_extra_column():
+    # a reversal that opens as the nut warms: the direction x dT column earns its place beside the plain
+    # direction (robust partial test and the later training blocks), so the law that nests it is kept
+    p = P("direction_thermal", "X", "dx", "phi_x", "dx", ["T7"], {"coef_per_degC": 1.5e-3})
+    case = openworld_case([p], OpenWorld(seed=900, hours=30, keep=[("X", "dx")]))
+    res = diagnose_bundle(case.bundle)
+    assert [(e.kind, e.channels) for e in res.effects] == [("direction_thermal", ["T7"])]
+    assert res.effects[0].params["coef_per_degC"] == pytest.approx(case.expected[0]["coef_per_degC"], rel=0.3)
+
+
+def test_nested_extra_finds_the_columns_beyond_a_nested_candidate():
+    d = np.array([1.0, -1.0, 1.0, -1.0])
+    dt = np.array([0.0, 0.5, 1.0, 1.5])
+    assert nested_extra(np.column_stack([d * dt, d]), d[:, None]) == [0]
+    assert nested_extra(np.column_stack([d * dt, dt]), d[:, None]) is None  # not nested
+    assert nested_extra(d[:, None], d[:, None]) is None  # the same columns: nothing extra
