@@ -878,178 +878,314 @@ def _strip_sessions(models: Mapping[tuple[str, str], ElementModel]) -> int:
     return removed
 
 
-def joint_adjust(
-    sample: Sample,
-    models: dict[tuple[str, str], ElementModel],
-    dims: Mapping[str, Any] = TABLE_A1,
-    noise: Mapping[str, float] | None = None,
-    ridge: float = 1e-9,
-    result: dict[str, Any] | None = None,
-    priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
-) -> dict[str, Any]:
-    """Re-estimate every coefficient of the allocated models together, on all training points.
+@dataclass(frozen=True)
+class JointDesign:
+    """The joint adjustment's linearised chain at every sample (eq. 4.12 to first order) and what it reads."""
 
-    With ``result`` (a dict), the estimates with their covariance (``uncertainty.JointFit``, key
-    ``joint``) and how well each element model was pinned (``pinning``) are put there.
+    #: training rows, datum rows (``datum_rows``), the measured terms (N, 6) and which are measured
+    train: np.ndarray
+    D: np.ndarray
+    W: np.ndarray
+    mask: np.ndarray
+    #: each work-space component's weight: 1 / its noise
+    w: np.ndarray
+    #: per element model its design matrix, in ``keys`` order; the solve's columns (model, feature index)
+    blocks: list[tuple[tuple[str, str], np.ndarray]]
+    cols: list[tuple[tuple[str, str], int]]
+    #: d W / d p_(e,k) at every pose, per (element, parameter index)
+    jac: dict[tuple[str, int], np.ndarray]
+    #: each sample's campaign and the (campaign, term) offsets kept apart (a later campaign's absolute readings)
+    camp: np.ndarray
+    nuis: list[tuple[int, int]]
 
-    The terms and the elements they belong to stay as the staged allocation chose them; their
-    coefficients are refined by one weighted least-squares solve through the linearised chain
-    (W = sum_e Ad_e(q) p_e, eq. 4.12 to first order), each measured term weighted by its noise.
-    Returns a summary (number of coefficients, weighted rms before and after).
-    """
-    train = (sample.frame["role"] == "train").to_numpy()
-    # a zeroed reading is the model less the model at its datum: no free offset per session
-    D = datum_rows(sample)
-    offsets = _strip_sessions(models)
-    keys = [k for k, m in models.items() if m.features]
-    if not keys:
-        return {"coefficients": 0}
-    # every row is evaluated (a datum may precede the training rows of its session); the solve reads the training rows
-    sub = sample
-    n = len(sub.frame)
-    W = sub.frame[list(PARAMS)].to_numpy(float)
-    mask = np.isfinite(W)
+    @property
+    def n_coefficients(self) -> int:
+        """Return P, the number of model coefficients (the nuisances follow them)."""
+        return len(self.cols)
+
+
+def _noise_weights(noise: Mapping[str, float] | None) -> np.ndarray:
+    """Return (6,) weights 1 / noise of the work-space components (angles, then lengths)."""
     sig = {"len": 0.0005, "ang": 5e-7, **(noise or {})}
-    w = np.array([1 / sig["ang"]] * 3 + [1 / sig["len"]] * 3)
-    d = _directions(sub)
+    return np.array([1 / sig["ang"]] * 3 + [1 / sig["len"]] * 3)
+
+
+def _chain_jacobians(
+    sample: Sample, keys: Sequence[tuple[str, str]], dims: Mapping[str, Any]
+) -> dict[tuple[str, int], np.ndarray]:
+    """Return d W / d p_(e,k) at every pose (first order, around zero error), per modelled (element, param)."""
+    n = len(sample.frame)
     eps = 1e-6
-    # d W / d p_(e,k) at every pose (first order, around zero error)
     jac: dict[tuple[str, int], np.ndarray] = {}
     for e in sorted({k[0] for k in keys}):
         for k in sorted({PARAMS.index(kk[1]) for kk in keys if kk[0] == e}):
             unit = np.zeros((n, 6))
             unit[:, k] = eps
-            jac[(e, k)] = workspace_error(sub.q, {e: unit}, dims) / eps
-    cols: list[tuple[tuple[str, str], int]] = []
-    blocks = []
-    for key in keys:
-        m = models[key]
-        F = design_matrix(m.features, sub.inputs, sub.q, d).to_numpy(float)
-        blocks.append((key, F))
-        cols += [(key, i) for i in range(F.shape[1])]
-    P = len(cols)
-    # several campaigns of one machine (seasons apart): each campaign's absolute readings get an offset
-    # of their own per term (its artefact re-mounted, its own datum), a nuisance kept apart and reported
-    camp = sample.frame["campaign"].to_numpy()
+            jac[(e, k)] = workspace_error(sample.q, {e: unit}, dims) / eps
+    return jac
+
+
+def _campaign_nuisances(camp: np.ndarray, train: np.ndarray, mask: np.ndarray, D: np.ndarray) -> list[tuple[int, int]]:
+    """Return the (campaign, term) offsets of every campaign after the first with absolute training readings.
+
+    Several campaigns of one machine (seasons apart): each campaign's absolute readings get an offset of
+    their own per term (its artefact re-mounted, its own datum), a nuisance kept apart and reported.
+    """
     nuis: list[tuple[int, int]] = []
     for t in range(6):
         absolute = train & mask[:, t] & (D[:, t] < 0)
         nuis += [(int(ci), t) for ci in sorted(set(camp[absolute].tolist()))[1:]]
-    Q = len(nuis)
+    return nuis
+
+
+def joint_design(
+    sample: Sample,
+    models: Mapping[tuple[str, str], ElementModel],
+    keys: Sequence[tuple[str, str]],
+    dims: Mapping[str, Any],
+    noise: Mapping[str, float] | None,
+    D: np.ndarray,
+) -> JointDesign:
+    """Return the linearised chain of the joint adjustment over every row (a datum may precede its training rows)."""
+    train = (sample.frame["role"] == "train").to_numpy()
+    W = sample.frame[list(PARAMS)].to_numpy(float)
+    mask = np.isfinite(W)
+    d = _directions(sample)
+    jac = _chain_jacobians(sample, keys, dims)
+    cols: list[tuple[tuple[str, str], int]] = []
+    blocks = []
+    for key in keys:
+        F = design_matrix(models[key].features, sample.inputs, sample.q, d).to_numpy(float)
+        blocks.append((key, F))
+        cols += [(key, i) for i in range(F.shape[1])]
+    camp = sample.frame["campaign"].to_numpy()
+    nuis = _campaign_nuisances(camp, train, mask, D)
+    return JointDesign(train, D, W, mask, _noise_weights(noise), blocks, cols, jac, camp, nuis)
+
+
+@dataclass(frozen=True)
+class NormalEquations:
+    """The weighted normal equations of the joint adjustment and each work-space component's system."""
+
+    AtA: np.ndarray
+    Atb: np.ndarray
+    #: (component, weighted design, weighted target), built once
+    systems: list[tuple[int, np.ndarray, np.ndarray]]
+    #: the weighted sum of squares at the staged coefficients
+    before: float
+
+
+def normal_equations(design: JointDesign, models: Mapping[tuple[str, str], ElementModel]) -> NormalEquations:
+    """Return the normal equations: zeroed readings less the model at their datum, campaigns' offsets apart."""
+    P, Q = design.n_coefficients, len(design.nuis)
     AtA = np.zeros((P + Q, P + Q))
     Atb = np.zeros(P + Q)
-    c0 = np.concatenate([np.asarray(models[key].coef, float) for key, _ in blocks] + [np.zeros(Q)])
+    c0 = np.concatenate([np.asarray(models[key].coef, float) for key, _ in design.blocks] + [np.zeros(Q)])
     before = 0.0
-    systems = []  # the weighted design and target of each work-space component, built once
+    systems = []
+    D, w, camp = design.D, design.w, design.camp
     for t in range(6):
-        ok = mask[:, t] & train
+        ok = design.mask[:, t] & design.train
         if not ok.any():
             continue
-        A_all = np.concatenate([jac[(key[0], PARAMS.index(key[1]))][:, t][:, None] * F for key, F in blocks], axis=1)
+        A_all = np.concatenate(
+            [design.jac[(key[0], PARAMS.index(key[1]))][:, t][:, None] * F for key, F in design.blocks], axis=1
+        )
         A = A_all[ok]
         dz = D[ok, t]
         A[dz >= 0] -= A_all[dz[dz >= 0]]
         N = np.zeros((A.shape[0], Q))
-        for j, (ci, tt) in enumerate(nuis):
+        for j, (ci, tt) in enumerate(design.nuis):
             if tt == t:
                 N[:, j] = (camp[ok] == ci) & (dz < 0)
         A = np.concatenate([A, N], axis=1) * w[t]
-        b = W[ok, t] * w[t]
+        b = design.W[ok, t] * w[t]
         systems.append((t, A, b))
         AtA += A.T @ A
         Atb += A.T @ b
         before += float(np.sum((b - A @ c0) ** 2))
-    # A machine constant that only zeroed sessions see is not identified: the sessions' offsets absorb
-    # any value of it. A weak prior (CONSTANT_PRIOR, far wider than any constant the data pin) sends
-    # such constants to zero instead of to an arbitrary split between elements that cancels at the
-    # measured poses and not at others.
-    # The thermal model is relative to the cold start (eq. 3.1: dT from the first readings): a constant
-    # is a geometric error, which only an absolute reading taken cold can tell from the slow structures
-    # (column growth, base lag, arm gradient are nearly constant through a warm stage). Where no such
-    # reading exists for a work-space component, its constants are held at zero (COLD_PRIOR) and the
-    # fit says so, rather than registering a constant that trades off with those structures.
-    cold = _cold_absolute(sub, D, train)
+    return NormalEquations(AtA, Atb, systems, before)
+
+
+def _constant_priors(
+    sample: Sample, design: JointDesign, models: Mapping[tuple[str, str], ElementModel], AtA: np.ndarray
+) -> list[str]:
+    """Add the constants' priors to ``AtA`` (in place); return the constants held at zero.
+
+    A machine constant that only zeroed sessions see is not identified: the sessions' offsets absorb
+    any value of it. A weak prior (CONSTANT_PRIOR, far wider than any constant the data pin) sends
+    such constants to zero instead of to an arbitrary split between elements that cancels at the
+    measured poses and not at others.
+    The thermal model is relative to the cold start (eq. 3.1: dT from the first readings): a constant
+    is a geometric error, which only an absolute reading taken cold can tell from the slow structures
+    (column growth, base lag, arm gradient are nearly constant through a warm stage). Where no such
+    reading exists for a work-space component, its constants are held at zero (COLD_PRIOR) and the
+    fit says so, rather than registering a constant that trades off with those structures.
+    """
+    cold = _cold_absolute(sample, design.D, design.train)
     held: list[str] = []
-    for i, (key, j) in enumerate(cols):
+    for i, (key, j) in enumerate(design.cols):
         if models[key].features[j].kind == "intercept":  # the prior's row: coefficient / spread (noise units above)
             k = PARAMS.index(key[1])
-            free = bool(cold[k]) or not mask[train, k].any()
+            free = bool(cold[k]) or not design.mask[design.train, k].any()
             spread = CONSTANT_PRIOR[key[1].startswith("d")] * (1.0 if free else COLD_PRIOR)
             if not free:
                 held.append(f"{key[0]}.{key[1]}")
             AtA[i, i] += spread**-2
-    # physics-informed priors (``_physical_terms``): a' c ~ N(physical value, spread^2), in the noise-weighted
-    # units of the rows above; a picks the term and the single sites of its structure (``PhysicalPrior``)
+    return held
+
+
+def _physical_priors(
+    design: JointDesign,
+    models: Mapping[tuple[str, str], ElementModel],
+    priors: Mapping[tuple[str, str, Feature], PhysicalPrior],
+    normal: NormalEquations,
+) -> None:
+    """Add the physics-informed priors (``_physical_terms``) to the normal equations (in place).
+
+    a' c ~ N(physical value, spread^2), in the noise-weighted units of the rows; a picks the term and
+    the single sites of its structure (``PhysicalPrior``).
+    """
+    cols = design.cols
     for i, (key, j) in enumerate(cols):
-        prior = (priors or {}).get((key[0], key[1], models[key].features[j]))
+        prior = priors.get((key[0], key[1], models[key].features[j]))
         if prior is None or prior.spread <= 0:
             continue
-        a = np.zeros(P + Q)
+        a = np.zeros(normal.AtA.shape[0])
         for i2, (key2, j2) in enumerate(cols):
             g = models[key2].features[j2]
             if i2 == i or (key2 == key and g.kind in ("dT", "lag") and g.channels[0] in prior.sites):
                 a[i2] = 1.0
-        AtA += np.outer(a, a) / prior.spread**2
-        Atb += a * prior.value / prior.spread**2
+        normal.AtA[...] += np.outer(a, a) / prior.spread**2
+        normal.Atb[...] += a * prior.value / prior.spread**2
+
+
+@dataclass(frozen=True)
+class JointSolution:
+    """The joint adjustment's estimates: coefficients (models, then nuisances), covariance and residuals."""
+
+    c: np.ndarray
+    cov: np.ndarray
+    residual_variance: dict[str, float]
+    rho: dict[str, float]
+    inflation: float
+    m_obs: int
+    after: float
+
+
+def _solve(normal: NormalEquations, w: np.ndarray, P: int, ridge: float) -> JointSolution:
+    """Solve the scaled normal equations; a second pass gives the residuals and the covariance."""
+    AtA, Atb = normal.AtA, normal.Atb
     scale = np.sqrt(np.maximum(np.diag(AtA), 1e-300))
-    M = AtA / np.outer(scale, scale) + ridge * np.eye(P + Q)
+    M = AtA / np.outer(scale, scale) + ridge * np.eye(AtA.shape[0])
     c = np.linalg.solve(M, Atb / scale) / scale
-    # second pass for the after-figure and the standard errors
     sse, m_obs = 0.0, 0
     residual_variance: dict[str, float] = {}
     rho: dict[str, float] = {}
     inflation_sum = 0.0
-    for t, A, b in systems:
+    for t, A, b in normal.systems:
         r = b - A @ c
         sse += float(r @ r)
         m_obs += len(b)
         residual_variance[PARAMS[t]] = float(np.mean(r * r)) / w[t] ** 2
         rho[PARAMS[t]], infl = ar1_inflation(r)
         inflation_sum += infl * len(b)
-    after = sse
     s2 = sse / max(m_obs - P, 1)
     # serial correlation of the laser residuals (AR(1): the HAC long-run variance, module uncertainty)
     inflation = inflation_sum / max(m_obs, 1)
     cov = np.linalg.inv(M) / np.outer(scale, scale) * s2 * inflation
     cov = 0.5 * (cov + cov.T)
-    cov_diag = np.diag(cov)
+    return JointSolution(c, cov, residual_variance, rho, inflation, m_obs, sse)
+
+
+def _store_estimates(
+    models: Mapping[tuple[str, str], ElementModel], design: JointDesign, sol: JointSolution
+) -> list[tuple[str, str, Feature]]:
+    """Write the joint estimates into the element models (in place); return the solve's columns."""
+    cov_diag = np.diag(sol.cov)
     i = 0
     columns: list[tuple[str, str, Feature]] = []
-    for key, F in blocks:
+    for key, F in design.blocks:
         k = F.shape[1]
-        models[key].coef = [float(v) for v in c[i : i + k]]
+        models[key].coef = [float(v) for v in sol.c[i : i + k]]
         models[key].std_errors = [float(np.sqrt(max(v, 0.0))) for v in cov_diag[i : i + k]]
-        models[key].cov = cov[i : i + k, i : i + k]
-        models[key].residual_variance = residual_variance.get(key[1])
+        models[key].cov = sol.cov[i : i + k, i : i + k]
+        models[key].residual_variance = sol.residual_variance.get(key[1])
         columns += [(key[0], key[1], f) for f in models[key].features]
         i += k
-    columns += [("campaign", PARAMS[t], Feature("session", label=f"campaign {ci}")) for ci, t in nuis]
-    campaign_offsets = [
+    columns += [("campaign", PARAMS[t], Feature("session", label=f"campaign {ci}")) for ci, t in design.nuis]
+    return columns
+
+
+def _campaign_offsets(design: JointDesign, sol: JointSolution) -> list[dict[str, Any]]:
+    """Return each later campaign's offset per term with its standard error."""
+    P, cov_diag = design.n_coefficients, np.diag(sol.cov)
+    return [
         {
             "campaign": ci,
             "term": PARAMS[t],
-            "offset": float(c[P + j]),
+            "offset": float(sol.c[P + j]),
             "std_error": float(np.sqrt(max(cov_diag[P + j], 0))),
         }
-        for j, (ci, t) in enumerate(nuis)
+        for j, (ci, t) in enumerate(design.nuis)
     ]
+
+
+@dataclass(frozen=True)
+class JointOutcome:
+    """What the joint adjustment produced: its summary (the document's ``joint_adjustment``) and estimates."""
+
+    summary: dict[str, Any]
+    campaign_offsets: list[dict[str, Any]] = field(default_factory=list)
+    #: the estimates with their covariance (None when there was nothing to adjust)
+    joint: JointFit | None = None
+    #: how well each element model was pinned
+    pinning: list[Pinning] = field(default_factory=list)
+
+
+def adjust_jointly(
+    sample: Sample,
+    models: dict[tuple[str, str], ElementModel],
+    dims: Mapping[str, Any] = TABLE_A1,
+    noise: Mapping[str, float] | None = None,
+    ridge: float = 1e-9,
+    priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
+) -> JointOutcome:
+    """Re-estimate every coefficient of the allocated models together, on all training points (in place).
+
+    The terms and the elements they belong to stay as the staged allocation chose them; their
+    coefficients are refined by one weighted least-squares solve through the linearised chain
+    (W = sum_e Ad_e(q) p_e, eq. 4.12 to first order), each measured term weighted by its noise.
+    """
+    # a zeroed reading is the model less the model at its datum: no free offset per session
+    D = datum_rows(sample)
+    offsets = _strip_sessions(models)
+    keys = [k for k, m in models.items() if m.features]
+    if not keys:
+        return JointOutcome({"coefficients": 0})
+    design = joint_design(sample, models, keys, dims, noise, D)
+    normal = normal_equations(design, models)
+    held = _constant_priors(sample, design, models, normal.AtA)
+    _physical_priors(design, models, priors or {}, normal)
+    P = design.n_coefficients
+    sol = _solve(normal, design.w, P, ridge)
+    columns = _store_estimates(models, design, sol)
+    campaign_offsets = _campaign_offsets(design, sol)
+    systems = normal.systems
     joint = JointFit(
         columns,
-        c,
-        cov,
-        residual_variance,
-        rho,
-        float(inflation),
-        m_obs,
+        sol.c,
+        sol.cov,
+        sol.residual_variance,
+        sol.rho,
+        float(sol.inflation),
+        sol.m_obs,
         design={PARAMS[t]: A for t, A, _ in systems},
-        weights={PARAMS[t]: float(w[t]) for t, _, _ in systems},
+        weights={PARAMS[t]: float(design.w[t]) for t, _, _ in systems},
     )
-    designs = {key: F[train] for key, F in blocks}
-    if result is not None:
-        result["campaign_offsets"] = campaign_offsets
-        result["joint"] = joint
-        result["pinning"] = joint.pinning(designs)
-    return {
+    pinning = joint.pinning({key: F[design.train] for key, F in design.blocks})
+    m_obs = sol.m_obs
+    summary = {
         "coefficients": P,
         "session_offsets_replaced_by_datums": offsets,
         "campaign_offsets": campaign_offsets,
@@ -1060,9 +1196,34 @@ def joint_adjust(
             else ""
         ),
         "points": m_obs,
-        "weighted_rms_before": float(np.sqrt(before / max(m_obs, 1))),
-        "weighted_rms_after": float(np.sqrt(after / max(m_obs, 1))),
+        "weighted_rms_before": float(np.sqrt(normal.before / max(m_obs, 1))),
+        "weighted_rms_after": float(np.sqrt(sol.after / max(m_obs, 1))),
     }
+    return JointOutcome(summary, campaign_offsets, joint, pinning)
+
+
+def joint_adjust(
+    sample: Sample,
+    models: dict[tuple[str, str], ElementModel],
+    dims: Mapping[str, Any] = TABLE_A1,
+    noise: Mapping[str, float] | None = None,
+    ridge: float = 1e-9,
+    result: dict[str, Any] | None = None,
+    priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
+) -> dict[str, Any]:
+    """Re-estimate every coefficient of the allocated models together (``adjust_jointly``); return its summary.
+
+    With ``result`` (a dict), the estimates with their covariance (``uncertainty.JointFit``, key
+    ``joint``), how well each element model was pinned (``pinning``) and the campaigns' offsets
+    (``campaign_offsets``) are put there. Returns a summary (number of coefficients, weighted rms
+    before and after).
+    """
+    out = adjust_jointly(sample, models, dims, noise, ridge, priors)
+    if result is not None and out.joint is not None:
+        result["campaign_offsets"] = out.campaign_offsets
+        result["joint"] = out.joint
+        result["pinning"] = out.pinning
+    return out.summary
 
 
 # ----------------------------------------------------------------------------- validation tables
