@@ -49,7 +49,7 @@ from driftlab.models.lines import (
 )
 from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import machine_geometry, physical_check, stated_geometries
-from driftlab.models.regression import TermFit, r_squared, stepwise
+from driftlab.models.regression import StepwiseOptions, TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
 from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT, STRUCTURE_SPANS
 from driftlab.models.uncertainty import JointFit, Pinning, ar1_inflation
@@ -549,6 +549,124 @@ class Candidates:
         )
 
 
+@dataclass(frozen=True)
+class StageData:
+    """The rows one stage of the staged allocation fits on, and their design (ch. 4.3)."""
+
+    #: the rows of the element's tests and of every test before it in chain order
+    sub: Sample
+    train: np.ndarray
+    hold: np.ndarray
+    #: the axes those rows move; the channels the user allowed (None: the screened ones)
+    axes: list[str]
+    allowed: list[str] | None
+    #: the candidate terms and the design matrix (intercept, session offsets, candidates, findings' terms)
+    feats: list[Feature]
+    X: pd.DataFrame
+
+
+def _design(sample: Sample, cands: Candidates, axes: Sequence[str], feats: Sequence[Feature]) -> pd.DataFrame:
+    """Return the design of a stage: intercept, the sessions' offsets, ``feats`` and the findings' terms."""
+    offsets = session_terms(sample.inputs.session, np.ones(len(sample.frame), bool))
+    return design_matrix(
+        [INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q, _directions(sample)
+    )
+
+
+def _stage_data(sub: Sample, element: str, cands: Candidates, model_channels: Mapping[str, Sequence[str]]) -> StageData:
+    """Return the stage of ``element``: its rows' roles, axes, allowed channels, candidates and design."""
+    train = (sub.frame["role"] == "train").to_numpy()
+    hold = (sub.frame["role"] == "holdout").to_numpy()
+    axes = [a for a in AXES if (sub.frame["axis"] == a).any()]
+    allowed = None
+    own_axis = JOINT_OF.get(element)
+    if own_axis is not None and own_axis in model_channels:
+        allowed = list(model_channels[own_axis])
+    elif model_channels and all(a in model_channels for a in axes):
+        allowed = sorted({c for a in axes for c in model_channels[a]})
+    feats = cands.for_axes(axes, allowed)
+    return StageData(sub, train, hold, axes, allowed, feats, _design(sub, cands, axes, feats))
+
+
+@dataclass(frozen=True)
+class _Admission:
+    """Whether a stage fit may choose a term: not one the models already hold for the parameter, nor one
+    belonging to an element already solved (a known relationship is not learnt again: refitting it on the
+    residual would only fit the sensor noise it was evaluated with, errors in variables)."""
+
+    used: frozenset[Feature]
+    structures: Mapping[str, str]
+    element: str
+    solved: tuple[str, ...]
+
+    def __call__(self, f: Feature) -> bool:
+        return f not in self.used and feature_element(f, self.structures, self.element) not in self.solved
+
+
+def _allocated(
+    sub: Sample, models: Mapping[tuple[str, str], ElementModel], element: str, dims: Mapping[str, Any]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the errors allocated to ``element`` less its own model so far (eq. 4.20), and the measured mask."""
+    known = predict_models(models, sub)
+    own = known.pop(element, None)
+    W, mask = _measured_w(sub, {**known, **({element: own} if own is not None else {})}, dims)
+    E = allocate(W, sub.q, known, element, dims)  # eq. 4.20
+    if own is not None:
+        E = E - own
+    return E, mask
+
+
+def _give_to_owners(
+    models: dict[tuple[str, str], ElementModel], fit: TermFit, structures: Mapping[str, str], default: str
+) -> None:
+    """Add each chosen term of ``fit`` to the element where it physically arises (``feature_element``)."""
+    owners: dict[str, list[Feature]] = {}
+    for f in fit.result.features:
+        owners.setdefault(feature_element(f, structures, default), []).append(f)
+    for owner, fs in owners.items():
+        models.setdefault((owner, fit.param), ElementModel(owner, fit.param)).add(fit, fs)
+
+
+def _fit_stage(
+    stage: StageData,
+    element: str,
+    models: dict[tuple[str, str], ElementModel],
+    cands: Candidates,
+    solved: Sequence[str],
+    options: FitOptions,
+    dims: Mapping[str, Any],
+) -> None:
+    """Fit every parameter of ``element`` on its stage by stepwise regression; add the terms to ``models``."""
+    sub = stage.sub
+    E = mask = None
+    for k, param in enumerate(PARAMS):
+        if k in (0, 3):
+            # angles first, then lengths re-allocated once the angles sit in their elements:
+            # an angle acts through a different lever from each element (eq. 4.20)
+            E, mask = _allocated(sub, models, element, dims)
+        assert E is not None and mask is not None
+        m_train = stage.train & mask[:, k]
+        if m_train.sum() < 12:
+            continue
+        y = E[:, k]
+        used = frozenset(f for (e, pp), m in models.items() if pp == param for f in m.features)
+        admit = _Admission(used, cands.structures, element, tuple(solved))
+        forced, pool = cands.split_pool([f for f in stage.feats if admit(f)], stage.axes, param, admit)
+        res = stepwise(
+            stage.X[m_train].reset_index(drop=True),
+            y[m_train],
+            pool,
+            forced=[INTERCEPT, *session_terms(sub.inputs.session, m_train), *forced],
+            options=StepwiseOptions.of(options),
+        )
+        fit = TermFit(element, param, res)
+        m_hold = stage.hold & mask[:, k]
+        if m_hold.any():
+            fit.rmse_holdout = rmse(y[m_hold] - res.predict(stage.X[m_hold]))
+            fit.n_holdout = int(m_hold.sum())
+        _give_to_owners(models, fit, cands.structures, element)
+
+
 def fit_elements(
     sample: Sample,
     cands: Candidates,
@@ -575,77 +693,18 @@ def fit_elements(
         for key in [k for k in models if k[0] not in solved]:
             del models[key]
         rows = sample.frame["element"].isin(elements[: gi + 1]).to_numpy()
-        sub = sample.take(rows)
-        train = (sub.frame["role"] == "train").to_numpy()
-        hold = (sub.frame["role"] == "holdout").to_numpy()
-        axes = [a for a in AXES if (sub.frame["axis"] == a).any()]
-        allowed = None
-        own_axis = JOINT_OF.get(element)
-        if own_axis is not None and own_axis in model_channels:
-            allowed = list(model_channels[own_axis])
-        elif model_channels and all(a in model_channels for a in axes):
-            allowed = sorted({c for a in axes for c in model_channels[a]})
-        feats = cands.for_axes(axes, allowed)
-        offsets = session_terms(sub.inputs.session, np.ones(len(sub.frame), bool))
-        X = design_matrix(
-            [INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sub.inputs, sub.q, _directions(sub)
-        )
-        E = mask = None
-        for k, param in enumerate(PARAMS):
-            if k in (0, 3):
-                # angles first, then lengths re-allocated once the angles sit in their elements:
-                # an angle acts through a different lever from each element (eq. 4.20)
-                known = predict_models(models, sub)
-                own = known.pop(element, None)
-                W, mask = _measured_w(sub, {**known, **({element: own} if own is not None else {})}, dims)
-                E = allocate(W, sub.q, known, element, dims)  # eq. 4.20
-                if own is not None:
-                    E = E - own
-            assert E is not None and mask is not None
-            m_train = train & mask[:, k]
-            if m_train.sum() < 12:
-                continue
-            y = E[:, k]
-            # a known relationship is not learnt again: refitting it on the residual would only
-            # fit the sensor noise it was evaluated with (errors in variables)
-            used = {f for (e, pp), m in models.items() if pp == param for f in m.features}
-
-            def admit(f: Feature, used: set[Feature] = used, element: str = element) -> bool:
-                return f not in used and feature_element(f, cands.structures, element) not in solved
-
-            forced, pool = cands.split_pool([f for f in feats if admit(f)], axes, param, admit)
-            res = stepwise(
-                X[m_train].reset_index(drop=True),
-                y[m_train],
-                pool,
-                forced=[INTERCEPT, *session_terms(sub.inputs.session, m_train), *forced],
-                p_enter=options.p_enter,
-                p_remove=options.p_remove,
-                min_gain=options.min_gain,
-                max_terms=options.max_terms,
-                vif_max=options.vif_max,
-                tiered=options.tiered,
-            )
-            fit = TermFit(element, param, res)
-            m_hold = hold & mask[:, k]
-            if m_hold.any():
-                fit.rmse_holdout = rmse(y[m_hold] - res.predict(X[m_hold]))
-                fit.n_holdout = int(m_hold.sum())
-            owners: dict[str, list[Feature]] = {}
-            for f in res.features:
-                owners.setdefault(feature_element(f, cands.structures, element), []).append(f)
-            for owner, fs in owners.items():
-                models.setdefault((owner, param), ElementModel(owner, param)).add(fit, fs)
+        stage = _stage_data(sample.take(rows), element, cands, model_channels)
+        _fit_stage(stage, element, models, cands, solved, options, dims)
         solved.append(element)
         log_rows.append(
             {
                 "element": element,
-                "axes": axes,
+                "axes": stage.axes,
                 "n": int((sample.frame["element"] == element).sum()),
                 "n_cumulative": int(rows.sum()),
-                "n_train": int(train.sum()),
-                "stages": sorted({int(s) for s in sub.frame["stage"]}),
-                "channels": "model_channels" if allowed is not None else "screened",
+                "n_train": int(stage.train.sum()),
+                "stages": sorted({int(s) for s in stage.sub.frame["stage"]}),
+                "channels": "model_channels" if stage.allowed is not None else "screened",
             }
         )
         if on_element is not None:
@@ -691,10 +750,8 @@ def _global_lengths(
             return axis is None or axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
 
         feats = [f for f in feats if honoured(f)]
-    offsets = session_terms(sample.inputs.session, np.ones(len(sample.frame), bool))
-    X = design_matrix(
-        [INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q, _directions(sample)
-    )
+    X = _design(sample, cands, axes, feats)
+    rules = StepwiseOptions.of(options, min_gain=options.min_gain / 4, max_terms=2 * options.max_terms)
     chosen = 0
     for k, param in ((3, "dx"), (4, "dy"), (5, "dz")):
         m = train & mask[:, k]
@@ -706,19 +763,9 @@ def _global_lengths(
             E[m, k],
             pool,
             forced=[INTERCEPT, *session_terms(sample.inputs.session, m), *forced],
-            p_enter=options.p_enter,
-            p_remove=options.p_remove,
-            min_gain=options.min_gain / 4,
-            max_terms=2 * options.max_terms,
-            vif_max=options.vif_max,
-            tiered=options.tiered,
+            options=rules,
         )
-        fit = TermFit("T1", param, res)
-        owners: dict[str, list[Feature]] = {}
-        for f in res.features:
-            owners.setdefault(feature_element(f, cands.structures, "T1"), []).append(f)
-        for owner, fs in owners.items():
-            models.setdefault((owner, param), ElementModel(owner, param)).add(fit, fs)
+        _give_to_owners(models, TermFit("T1", param, res), cands.structures, "T1")
         chosen += len(res.features)
     return {"element": "lengths, all tests", "terms": chosen, "n_train": int(train.sum())}
 
