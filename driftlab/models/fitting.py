@@ -11,13 +11,15 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
+from threadpoolctl import threadpool_limits
 
 from driftlab.errors import ValidationError
 from driftlab.jsonsafe import strict_json
+from driftlab.labels import display_unit
 from driftlab.metrics import rmse
 from driftlab.models.document import (
     MODEL_FORMAT,
@@ -37,6 +39,7 @@ from driftlab.models.features import (
     fill_gaps,
     session_terms,
 )
+from driftlab.models.findings import plan_findings
 from driftlab.models.lines import (
     LINE_ELEMENT,
     Composed,
@@ -59,6 +62,11 @@ from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, wo
 from driftlab.physics.thermal import ALPHA_C
 from driftlab.vocabulary import AXES, term_unit
 from driftlab.vocabulary import ROTATIONS as ANGLES
+
+if TYPE_CHECKING:
+    from driftlab.models.findings import Findings, FindingsPlan
+    from driftlab.models.physical_check import PhysicalCheck
+    from driftlab.models.standard_model import BundleLike
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +117,7 @@ class FitOptions:
     #: eqs. 3.1/3.3) enter the joint adjustment even where the staged selection chose a surrogate
     physical_terms: bool = True
     #: diagnosis findings to fold in (``driftlab.models.findings.Findings``); forced in, or candidates
-    findings: Any = None
+    findings: Findings | None = None
     force_findings: bool = False
 
 
@@ -186,6 +194,80 @@ class FitResult:
         if self.neural:
             out["neural_comparison"] = [c.to_dict() for c in self.neural]
         return strict_json(out)
+
+    @classmethod
+    def of(cls, steps: FitSteps, document: ModelDocument, timings_s: dict[str, float]) -> FitResult:
+        """Return the result of a pipeline's steps and the document built from them."""
+        check = steps.checked.check
+        return cls(
+            document,
+            steps.screened.screening,
+            steps.allocation.models,
+            steps.checked.validation,
+            check.table,
+            steps.neural,
+            timings_s,
+            check.to_dict(),
+            steps.joint.joint,
+            list(steps.joint.pinning),
+        )
+
+    def to_document(self) -> ModelDocument:
+        """Return the model document (validated; ``document_json`` gives it as strict JSON)."""
+        return self.document
+
+    def summary(self) -> str:
+        """Return the fit as text: tables 6.1-6.3 with units (um, urad), the joint adjustment, the comparison."""
+        rep = self.report()
+        kept = rep["kept_channels"]
+        out = [
+            f"machine {rep['machine']}: model version {rep['model_version']}; "
+            f"{len(kept)} thermocouples kept: {' '.join(kept)}",
+            "Per-link models (tables 6.1-6.2): RMSE of the work-space error",
+            f"{'axis':4} {'term':6} {'measurement':16} {'link':28} {'form':14} {'unit':4} "
+            f"{'train':>9} {'held out':>9} {'R2':>7} {'F':>10}",
+        ]
+        for r in rep["terms"]:
+            k, unit = display_unit(r["term"])
+            out.append(
+                f"{r['axis']:4} {r['term']:6} {r['measurement']:16} {r['link']:28} {r['form']:14} {unit:4} "
+                f"{_num(r['rmse_train'], '9.2f', k)} {_num(r['rmse_holdout'], '9.2f', k)} "
+                f"{_num(r['r2'], '7.3f')} {_num(r['f'], '10.4g')}"
+            )
+        check = rep["physical_check"] or {}
+        if check.get("status") != "compared":
+            out.append(f"Physical coefficients (table 6.3): {check.get('status')}: {check.get('note', '')}")
+        else:
+            out.append("Regression against physical coefficients (table 6.3)")
+            for p in rep["physical"]:
+                out.append(
+                    f"  {p['term']}: regression {_num(p.get('regression'), '.4g')}, physical "
+                    f"{_num(p.get('physical'), '.4g')}, ratio {_num(p.get('ratio'), '.2f')} {p.get('unit', '')}"
+                )
+        if "serial_correlation_inflation" in rep:
+            out.append(f"Joint adjustment: serial correlation inflation {rep['serial_correlation_inflation']:.3g}")
+        for p in rep.get("pinning", []):
+            weak = ", ".join(dict.fromkeys(p["poorly_pinned"]))
+            out.append(f"  poorly pinned: {p['element']}.{p['param']} {weak} (condition {p['condition_number']:.3g})")
+        for c in rep.get("neural_comparison", []):
+            for d in c.get("directions", []):
+                k, unit = display_unit(str(c["target"]).partition("/")[2])
+                out.append(
+                    f"Neural comparison {c['target']} ({d['direction']}): regression test "
+                    f"{_num(d['regression_test'], '.2f', k)} {unit}, "
+                    f"network test {_num(d['network_test'], '.2f', k)} {unit}"
+                )
+            if c.get("status") != "compared":
+                out.append(f"Neural comparison {c['target']}: {c.get('status')}: {c.get('note', '')}")
+        return "\n".join(out)
+
+
+def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
+    """Return a figure formatted (scaled to the display unit), or "-" where it is missing or not finite."""
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v):
+        return format(v * scale, fmt)
+    width = fmt.split(".")[0]
+    return format("-", f">{width}") if width else "-"
 
 
 # ----------------------------------------------------------------------------- stages -> elements
@@ -341,7 +423,7 @@ def _keep_gradient_corners(
 
 
 def build_samples(
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     channels: Sequence[str],
     reference: Mapping[str, float] | None,
     lags: Sequence[tuple[str, float]],
@@ -847,7 +929,7 @@ class PhysicalPrior:
 def _physical_terms(
     models: dict[tuple[str, str], ElementModel],
     cands: Candidates,
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     priors: dict[tuple[str, str, Feature], PhysicalPrior] | None = None,
 ) -> list[str]:
     """Add the recast terms the machine's stated geometry says act; return their names (in place).
@@ -1383,7 +1465,7 @@ def validation_table(
 # ----------------------------------------------------------------------------- the pipeline
 
 
-def _reference(bundles: Sequence[Any], channels: Sequence[str]) -> dict[str, float]:
+def _reference(bundles: Sequence[BundleLike], channels: Sequence[str]) -> dict[str, float]:
     """Return the reference temperatures: each channel's first reading of the first campaign (eq. 3.1)."""
     ref = {}
     for c in channels:
@@ -1397,7 +1479,7 @@ def _reference(bundles: Sequence[Any], channels: Sequence[str]) -> dict[str, flo
     return ref
 
 
-def campaign_travel(bundles: Sequence[Any]) -> dict[str, list[float]]:
+def campaign_travel(bundles: Sequence[BundleLike]) -> dict[str, list[float]]:
     """Return the axis travel the campaigns state (``machine.travel``, from their plans), per axis.
 
     Campaigns of one machine state one travel; where they differ the narrowest holds (the
@@ -1415,30 +1497,54 @@ def campaign_travel(bundles: Sequence[Any]) -> dict[str, list[float]]:
 
 
 def fit_bundles(
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     options: FitOptions | None = None,
     *,
-    source_campaigns: Sequence[Any] = (),
+    source_campaigns: Sequence[int | str] = (),
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Return the fitted model of one machine from one or more campaign bundles."""
-    from threadpoolctl import threadpool_limits
-
     # the products here are tall and thin: one BLAS thread does them as fast, and on a shared
     # 2-core machine several threads per process only queue behind each other
     with threadpool_limits(limits=1):
-        return _fit_bundles(bundles, options, source_campaigns=source_campaigns, progress=progress)
+        return _fit_bundles(bundles, options or FitOptions(), Timer(progress), source_campaigns)
 
 
-def _fit_bundles(
-    bundles: Sequence[Any],
-    options: FitOptions | None = None,
-    *,
-    source_campaigns: Sequence[Any] = (),
-    progress: Callable[[str], None] | None = None,
-) -> FitResult:
-    """Return the fitted model (the pipeline itself; see ``fit_bundles``)."""
-    opts = options or FitOptions()
+class Timer:
+    """The pipeline's stage timings: each lap's seconds since the last one, reported to ``progress``."""
+
+    def __init__(self, progress: Callable[[str], None] | None = None) -> None:
+        self.timings: dict[str, float] = {}
+        self._tick = time.perf_counter()
+        self._progress = progress
+
+    def restart(self) -> None:
+        """Start the next lap now (what came before is not timed)."""
+        self._tick = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        """Record the seconds since the last lap under ``name`` and report the stage done."""
+        now = time.perf_counter()
+        self.timings[name] = round(now - self._tick, 3)
+        self._tick = now
+        if self._progress is not None:
+            self._progress(name)
+
+
+@dataclass(frozen=True)
+class Campaigns:
+    """The campaigns of one machine to fit, with the findings' substitutions applied (``plan_findings``)."""
+
+    machine: str
+    bundles: list[BundleLike]
+    #: the diagnosis findings folded in (None without findings)
+    plan: FindingsPlan | None
+    #: the earliest campaign start: time zero of the drift terms
+    origin: datetime
+
+
+def prepare_campaigns(bundles: Sequence[BundleLike], opts: FitOptions) -> Campaigns:
+    """Return the campaigns to fit; refuse none and campaigns of different machines."""
     if not bundles:
         raise ValidationError("no campaigns to fit")
     machines = {b.meta.machine.id for b in bundles}
@@ -1447,23 +1553,36 @@ def _fit_bundles(
     machine = machines.pop()
     plan = None
     if opts.findings is not None and opts.findings.effects:
-        from driftlab.models.findings import plan_findings
-
         # faulty channels are replaced by their virtual-sensor estimates before anything reads them
         plan = plan_findings(opts.findings, bundles, force=opts.force_findings)
         bundles = plan.bundles
     origin = min(b.meta.started_at for b in bundles)
-    timings: dict[str, float] = {}
-    tick = time.perf_counter()
+    return Campaigns(machine, list(bundles), plan, origin)
 
-    def lap(name: str) -> None:
-        nonlocal tick
-        now = time.perf_counter()
-        timings[name] = round(now - tick, 3)
-        tick = now
-        if progress is not None:
-            progress(name)
 
+@dataclass(frozen=True)
+class ChannelMeta:
+    """What the campaigns say of their thermocouples: where each sits, the room's, the user's selections."""
+
+    #: per channel its location and structure (the first campaign stating it wins)
+    chan_meta: dict[str, dict[str, str]]
+    room: list[str]
+    #: per axis the channels the user chose for its model (bundle ``model_channels``)
+    model_channels: dict[str, list[str]]
+
+    @property
+    def structures(self) -> dict[str, str]:
+        """Return the structure of each channel."""
+        return {c: m["structure"] for c, m in self.chan_meta.items()}
+
+    @property
+    def locations(self) -> dict[str, str]:
+        """Return the location of each channel."""
+        return {c: m["location"] for c, m in self.chan_meta.items()}
+
+
+def channel_metadata(bundles: Sequence[BundleLike]) -> ChannelMeta:
+    """Return the campaigns' channel metadata merged (first statement of a channel wins, lists united)."""
     chan_meta: dict[str, dict[str, str]] = {}
     room: list[str] = []
     model_channels: dict[str, list[str]] = {}
@@ -1474,235 +1593,409 @@ def _fit_bundles(
         for ax, cs in (b.meta.model_channels or {}).items():
             model_channels.setdefault(ax, [])
             model_channels[ax] += [c for c in cs if c not in model_channels[ax]]
-    structures = {c: m["structure"] for c, m in chan_meta.items()}
-    locations = {c: m["location"] for c, m in chan_meta.items()}
+    return ChannelMeta(chan_meta, room, model_channels)
 
-    # every campaign trains the model: the neural comparison below is an experiment beside it
-    train_bundles = list(bundles)
 
-    # 1. screening (ch. 5.4)
-    common = [
-        c for c in channel_columns(train_bundles[0].temperatures) if all(c in b.temperatures for b in train_bundles)
-    ]
-    temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in train_bundles], ignore_index=True)
+@dataclass(frozen=True)
+class Screened:
+    """The screening of ch. 5.4 and the temperatures it read."""
+
+    #: the channels every campaign reads, and their readings (gaps filled) over all campaigns
+    common: list[str]
+    temps: pd.DataFrame
+    screening: ScreeningResult
+
+    @property
+    def kept(self) -> list[str]:
+        """Return the channels the screening kept."""
+        return self.screening.kept
+
+
+def screen(bundles: Sequence[BundleLike], meta: ChannelMeta, holdout_fraction: float) -> Screened:
+    """Return the screening (ch. 5.4): every campaign trains the model (the neural comparison is beside it)."""
+    common = [c for c in channel_columns(bundles[0].temperatures) if all(c in b.temperatures for b in bundles)]
+    temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in bundles], ignore_index=True)
     # the training errors choose among near-duplicate sites (held-out points never steer the choice)
-    errs = [_training_errors(b.errors, b.meta.stages, opts.holdout_fraction) for b in train_bundles]
-    screening = screen_channels(temps, chan_meta, room, errors=errs)
-    _keep_gradient_corners(screening, screen_channels(temps, chan_meta, room), chan_meta)
-    kept = screening.kept
-    lap("screening")
+    errs = [_training_errors(b.errors, b.meta.stages, holdout_fraction) for b in bundles]
+    screening = screen_channels(temps, meta.chan_meta, meta.room, errors=errs)
+    _keep_gradient_corners(screening, screen_channels(temps, meta.chan_meta, meta.room), meta.chan_meta)
+    return Screened(common, temps, screening)
 
-    # 2. samples at the error points, with dT and lags of every channel a model may read
+
+def candidates(meta: ChannelMeta, screened: Screened, plan: FindingsPlan | None, opts: FitOptions) -> Candidates:
+    """Return what the stage fits may choose from: kept channels, structure members, screws, findings' terms."""
+    kept, structures, room = screened.kept, meta.structures, meta.room
     # a structure's mean (eq. 3.3) is over all its sites that read, kept or not
     members: dict[str, list[str]] = {}
-    dead = {c for c, why in screening.dropped.items() if why == "no readings" or why.startswith("constant")}
-    for c in common:
+    dropped = screened.screening.dropped
+    dead = {c for c, why in dropped.items() if why == "no readings" or why.startswith("constant")}
+    for c in screened.common:
         st = structures.get(c, "")
         if st and st != "unspecified" and c not in room and c not in dead:
             members.setdefault(st, []).append(c)
     members = {st: cs for st, cs in members.items() if len(cs) >= 2 and any(c in kept for c in cs)}
     screws = {ax: [c for c in kept if structures.get(c, "") in SCREW_STRUCTURES.get(AXIS_JOINT[ax], ())] for ax in AXES}
-    cands = Candidates(
-        list(kept),
-        structures,
-        locations,
-        members,
-        screws,
-        list(room),
-        tuple(opts.lag_taus_s),
-        list(plan.extras) if plan else [],
+    extras = list(plan.extras) if plan else []
+    return Candidates(
+        list(kept), structures, meta.locations, members, screws, list(room), tuple(opts.lag_taus_s), extras
     )
-    chosen = [c for cs in model_channels.values() for c in cs if c in common]
+
+
+@dataclass(frozen=True)
+class Samples:
+    """The error points with dT and lags of every channel a model may read, and the candidates."""
+
+    cands: Candidates
+    #: the channels read, with their reference temperatures (eq. 3.1)
+    channels: list[str]
+    reference: dict[str, float]
+    sample: Sample
+
+
+def build_fit_samples(campaigns: Campaigns, meta: ChannelMeta, screened: Screened, opts: FitOptions) -> Samples:
+    """Return the samples at the error points with the candidates' channels and lags."""
+    plan, kept = campaigns.plan, screened.kept
+    cands = candidates(meta, screened, plan, opts)
+    chosen = [c for cs in meta.model_channels.values() for c in cs if c in screened.common]
     extra_chans = list(plan.channels) if plan else []
-    channels = list(dict.fromkeys([*kept, *chosen, *(c for cs in members.values() for c in cs), *extra_chans]))
-    reference = _reference(bundles, channels)
-    lag_chans = [c for c in dict.fromkeys([*kept, *chosen]) if c not in room]
+    members = (c for cs in cands.members.values() for c in cs)
+    channels = list(dict.fromkeys([*kept, *chosen, *members, *extra_chans]))
+    reference = _reference(campaigns.bundles, channels)
+    lag_chans = [c for c in dict.fromkeys([*kept, *chosen]) if c not in meta.room]
     lags = [(c, t) for t in opts.lag_taus_s for c in lag_chans]
     lags += [lag for lag in (plan.lags if plan else []) if lag not in lags]
-    sample = build_samples(train_bundles, channels, None, lags, opts.holdout_fraction, origin)
-    lap("samples")
+    sample = build_samples(campaigns.bundles, channels, None, lags, opts.holdout_fraction, campaigns.origin)
+    return Samples(cands, channels, reference, sample)
 
-    # 3-4. allocation through the chain and per-link stepwise models
-    # the chain's fixed links (eq. 4.13): the lengths the machine's campaigns state, else Table A.1's
+
+@dataclass(frozen=True)
+class Allocation:
+    """The per-link models of the staged allocation through the chain (eq. 4.20), and its log."""
+
+    #: the chain's fixed links (eq. 4.13): the lengths the campaigns state, else Table A.1's
+    dims: dict[str, tuple[float, float, float]]
+    models: dict[tuple[str, str], ElementModel]
+    #: the document's ``allocation``: one row per stage, the physical terms, the joint adjustment
+    log: list[dict[str, Any]]
+
+
+def allocate_models(bundles: Sequence[BundleLike], samples: Samples, meta: ChannelMeta, opts: FitOptions) -> Allocation:
+    """Return the per-link stepwise models, allocated stage by stage (``fit_elements``)."""
     dims = chain_dims(bundles)
-    models, alloc = fit_elements(sample, cands, model_channels, opts, dims)
+    models, log = fit_elements(samples.sample, samples.cands, meta.model_channels, opts, dims)
     if not models:
         raise ValidationError("no error term had enough training samples to fit")
-    lap("allocation_and_regression")
-    adjustment: dict[str, Any] = {}
-    joint_out: dict[str, Any] = {}
+    return Allocation(dims, models, log)
+
+
+def _noise(bundles: Sequence[BundleLike]) -> dict[str, float]:
+    """Return the first campaign's stated noise ("len" mm, "ang" rad), where it states it."""
+    noise_meta = bundles[0].meta.noise
+    noise = {}
+    if noise_meta is not None and noise_meta.length_mm:
+        noise["len"] = float(noise_meta.length_mm)
+    if noise_meta is not None and noise_meta.angle_rad:
+        noise["ang"] = float(noise_meta.angle_rad)
+    return noise
+
+
+def physical_and_joint(
+    bundles: Sequence[BundleLike], samples: Samples, allocation: Allocation, opts: FitOptions
+) -> JointOutcome:
+    """Add the physical terms and re-estimate every coefficient together (in place on the models and log)."""
     priors: dict[tuple[str, str, Feature], PhysicalPrior] = {}
-    physics_terms = _physical_terms(models, cands, bundles, priors) if opts.joint_adjust and opts.physical_terms else []
+    models = allocation.models
+    physics_terms = (
+        _physical_terms(models, samples.cands, bundles, priors) if opts.joint_adjust and opts.physical_terms else []
+    )
     if physics_terms:
-        alloc.append({"physical_terms": physics_terms})
-    if opts.joint_adjust:
-        noise_meta = bundles[0].meta.noise
-        noise = {}
-        if noise_meta is not None and noise_meta.length_mm:
-            noise["len"] = float(noise_meta.length_mm)
-        if noise_meta is not None and noise_meta.angle_rad:
-            noise["ang"] = float(noise_meta.angle_rad)
-        adjustment = joint_adjust(sample, models, dims, noise, result=joint_out, priors=priors)
-        lap("joint_adjustment")
+        allocation.log.append({"physical_terms": physics_terms})
+    if not opts.joint_adjust:
+        return JointOutcome({})
+    return adjust_jointly(samples.sample, models, allocation.dims, _noise(bundles), priors=priors)
 
-    # 4b. what the link models leave along each measured line (the standard form), kept by validation
-    lines: list[LineFit] = []
-    composed = Composed({}, {})
-    if opts.lines:
-        D_rows = datum_rows(sample)
-        W_link = at_datum(workspace_error(sample.q, predict_models(models, sample), dims), D_rows)
-        for o in joint_out.get("campaign_offsets", []):
-            k = PARAMS.index(str(o["term"]))
-            W_link[(sample.frame["campaign"].to_numpy() == o["campaign"]) & (D_rows[:, k] < 0), k] += o["offset"]
 
-        # a link shared by several axes reads the channels of all of them: a line must be able to
-        # undo what the links put on it, so its pool holds those channels as well as its own
-        link_read = [c for m in models.values() for f in m.features for c in f.channels]
-        link_lags = [f for m in models.values() for f in m.features if f.kind == "lag"]
+@dataclass(frozen=True)
+class LinePools:
+    """The terms each measured line's correction may read (``models.lines``).
 
-        def line_channels(axis: str) -> list[str]:
-            # the user's selection of the line's channels is honoured (bundle model_channels), with the links'
-            have = sample.inputs.dT.columns
-            own = [c for c in (model_channels.get(axis) or kept) if c in have]
-            return list(dict.fromkeys([*own, *(c for c in link_read if c in have)]))
+    A link shared by several axes reads the channels of all of them: a line must be able to undo what
+    the links put on it, so its pool holds those channels as well as its own. The user's selection of
+    the line's channels is honoured (bundle ``model_channels``), with the links'.
+    """
 
-        def pool_of(axis: str) -> list[Feature]:
-            return line_pool(axis, line_channels(axis), [*cands.for_axes([axis], model_channels.get(axis)), *link_lags])
+    sample: Sample
+    models: Mapping[tuple[str, str], ElementModel]
+    cands: Candidates
+    model_channels: Mapping[str, Sequence[str]]
+    kept: Sequence[str]
 
-        def full_of(axis: str) -> list[Feature]:
-            # the standard model (spec section 2) plus what the links put on the line: their
-            # channels, position x dT of them (an angle acting through the line's lever) and lags
-            out = line_pool(axis, line_channels(axis), ())
-            out += list(dict.fromkeys(link_lags))
-            if any(f.kind == "direction" and f.label == axis for m in models.values() for f in m.features):
-                out.append(Feature("direction", label=axis))
-            return out
+    def _link_read(self) -> list[str]:
+        return [c for m in self.models.values() for f in m.features for c in f.channels]
 
-        def standard_of(axis: str) -> list[Feature]:
-            # the standard model of the bundle spec (section 2): position^1..3 and dT of the line's
-            # model_channels (the screened channels where the bundle names none), nothing else
-            have = sample.inputs.dT.columns
-            chans = [c for c in (model_channels.get(axis) or kept) if c in have]
-            return [Feature("position", power=p, label=axis) for p in (1, 2, 3)] + [Feature("dT", (c,)) for c in chans]
+    def _link_lags(self) -> list[Feature]:
+        return [f for m in self.models.values() for f in m.features if f.kind == "lag"]
 
-        lines = fit_lines(
-            sample.frame,
-            sample.q,
-            _directions(sample),
-            sample.inputs,
-            sample.frame[list(PARAMS)].to_numpy(float),
-            W_link,
-            pool_of,
-            opts,
-            full_of=full_of,
-            standard_of=standard_of,
-        )
-        composed = compose(lines, dims)
-        lap("lines")
+    def channels(self, axis: str) -> list[str]:
+        """Return the line's channels: its own (the user's selection, else the kept ones) and the links'."""
+        have = self.sample.inputs.dT.columns
+        own = [c for c in (self.model_channels.get(axis) or self.kept) if c in have]
+        return list(dict.fromkeys([*own, *(c for c in self._link_read() if c in have)]))
 
-    # 5. validation tables
-    offsets = list(joint_out.get("campaign_offsets", []))
-    validation, W_hat = validation_table(sample, models, dims, composed, offsets)
-    # table 6.3 with the lengths the machine's campaigns state, or an explicit "no geometry"
-    check = physical_check(models, structures, bundles, locations=locations, room=room)
-    physical = check.table
-    lap("validation")
+    def pool(self, axis: str) -> list[Feature]:
+        """Return the line's candidate terms."""
+        extra = [*self.cands.for_axes([axis], self.model_channels.get(axis)), *self._link_lags()]
+        return line_pool(axis, self.channels(axis), extra)
 
-    # 6. neural comparison (ch. 6.6): the same inputs to both models, the targets fixed in advance
-    # (options), both extrapolation directions, absolute readings only (models/neural.py)
+    def full(self, axis: str) -> list[Feature]:
+        """Return the standard model (spec section 2) plus what the links put on the line: their
+        channels, position x dT of them (an angle acting through the line's lever) and lags."""
+        out = line_pool(axis, self.channels(axis), ())
+        out += list(dict.fromkeys(self._link_lags()))
+        if any(f.kind == "direction" and f.label == axis for m in self.models.values() for f in m.features):
+            out.append(Feature("direction", label=axis))
+        return out
+
+    def standard(self, axis: str) -> list[Feature]:
+        """Return the standard model of the bundle spec (section 2): position^1..3 and dT of the line's
+        model_channels (the screened channels where the bundle names none), nothing else."""
+        have = self.sample.inputs.dT.columns
+        chans = [c for c in (self.model_channels.get(axis) or self.kept) if c in have]
+        return [Feature("position", power=p, label=axis) for p in (1, 2, 3)] + [Feature("dT", (c,)) for c in chans]
+
+
+@dataclass(frozen=True)
+class LineCorrections:
+    """What the link models leave along each measured line, kept by validation, and the composed corrections."""
+
+    lines: list[LineFit] = field(default_factory=list)
+    composed: Composed = field(default_factory=lambda: Composed({}, {}))
+
+
+def link_prediction(
+    sample: Sample, allocation: Allocation, campaign_offsets: Sequence[Mapping[str, Any]]
+) -> np.ndarray:
+    """Return the work space error the link models predict as the instruments read it (datums, campaigns' offsets)."""
+    D_rows = datum_rows(sample)
+    W_link = at_datum(workspace_error(sample.q, predict_models(allocation.models, sample), allocation.dims), D_rows)
+    for o in campaign_offsets:
+        k = PARAMS.index(str(o["term"]))
+        W_link[(sample.frame["campaign"].to_numpy() == o["campaign"]) & (D_rows[:, k] < 0), k] += o["offset"]
+    return W_link
+
+
+def line_corrections(
+    samples: Samples,
+    allocation: Allocation,
+    joint: JointOutcome,
+    meta: ChannelMeta,
+    screened: Screened,
+    opts: FitOptions,
+) -> LineCorrections:
+    """Return each measured line's correction over the standard terms (the standard form), kept by validation."""
+    if not opts.lines:
+        return LineCorrections()
+    sample = samples.sample
+    W_link = link_prediction(sample, allocation, joint.campaign_offsets)
+    pools = LinePools(sample, allocation.models, samples.cands, meta.model_channels, screened.kept)
+    lines = fit_lines(
+        sample.frame,
+        sample.q,
+        _directions(sample),
+        sample.inputs,
+        sample.frame[list(PARAMS)].to_numpy(float),
+        W_link,
+        pools.pool,
+        opts,
+        full_of=pools.full,
+        standard_of=pools.standard,
+    )
+    return LineCorrections(lines, compose(lines, allocation.dims))
+
+
+@dataclass(frozen=True)
+class Checked:
+    """Tables 6.1/6.2 (validation) and 6.3 (the physical check) of the fit."""
+
+    validation: pd.DataFrame
+    W_hat: np.ndarray
+    check: PhysicalCheck
+
+
+def validate(
+    bundles: Sequence[BundleLike],
+    samples: Samples,
+    allocation: Allocation,
+    joint: JointOutcome,
+    corrections: LineCorrections,
+    meta: ChannelMeta,
+) -> Checked:
+    """Return the validation tables, and table 6.3 with the lengths the campaigns state (or "no geometry")."""
+    offsets = list(joint.campaign_offsets)
+    validation, W_hat = validation_table(
+        samples.sample, allocation.models, allocation.dims, corrections.composed, offsets
+    )
+    check = physical_check(allocation.models, meta.structures, bundles, locations=meta.locations, room=meta.room)
+    return Checked(validation, W_hat, check)
+
+
+def compare_neural(
+    bundles: Sequence[BundleLike], meta: ChannelMeta, screened: Screened, opts: FitOptions
+) -> list[NeuralComparison]:
+    """Return the neural comparison (ch. 6.6): the same inputs to both models, the targets fixed in advance
+    (options), both extrapolation directions, absolute readings only (models/neural.py)."""
     neural: list[NeuralComparison] = []
-    if opts.network:
-        targets = list(opts.network_targets)
-        if targets == ["all"]:
-            seen = pd.concat([b.errors[["axis", "term"]] for b in bundles]).drop_duplicates()
-            targets = [f"{a}/{t}" for a, t in sorted(map(tuple, seen.to_numpy().tolist()))]
-        for target in targets:
-            # the user's sensor selection for the axis, else the screening's: the same for both models
-            net_channels = [c for c in model_channels.get(str(target).partition("/")[0], []) if c in common] or kept
-            neural += neural_comparisons(
-                bundles,
-                [target],
-                net_channels,
-                split=opts.network_split,
-                hidden=opts.network_hidden,
-                max_samples=opts.network_max_samples,
-                max_iter=opts.network_max_iter,
-                seed=opts.seed,
-            )
-        lap("network")
+    targets = list(opts.network_targets)
+    if targets == ["all"]:
+        seen = pd.concat([b.errors[["axis", "term"]] for b in bundles]).drop_duplicates()
+        targets = [f"{a}/{t}" for a, t in sorted(map(tuple, seen.to_numpy().tolist()))]
+    for target in targets:
+        # the user's sensor selection for the axis, else the screening's: the same for both models
+        chosen = meta.model_channels.get(str(target).partition("/")[0], [])
+        net_channels = [c for c in chosen if c in screened.common] or screened.kept
+        neural += neural_comparisons(
+            bundles,
+            [target],
+            net_channels,
+            split=opts.network_split,
+            hidden=opts.network_hidden,
+            max_samples=opts.network_max_samples,
+            max_iter=opts.network_max_iter,
+            seed=opts.seed,
+        )
+    return neural
 
-    # 7. virtual sensors (ch. 6.6, fig. 6.9)
-    vs = []
-    if opts.virtual_sensors and len(kept) >= 2:
-        train_t = temps[["time_s", *kept]]
-        vs = [s.to_dict() for s in fit_virtual_sensors(train_t, kept).values()]
-    lap("virtual_sensors")
 
-    # 8. the document
-    lo = temps[channels].min()
-    hi = temps[channels].max()
-    terms: list[dict[str, Any]] = []  # the document's "terms" (registry.TermDoc)
-    for (element, param), m in models.items():
-        term = _term_doc(element, param, m, int(adjustment.get("points", 0)))
+def virtual_sensors(screened: Screened, opts: FitOptions) -> list[dict[str, Any]]:
+    """Return the virtual sensors of the kept channels (ch. 6.6, fig. 6.9), as the document holds them."""
+    kept = screened.kept
+    if not (opts.virtual_sensors and len(kept) >= 2):
+        return []
+    return [s.to_dict() for s in fit_virtual_sensors(screened.temps[["time_s", *kept]], kept).values()]
+
+
+@dataclass(frozen=True)
+class FitSteps:
+    """The results of every step of the pipeline, in order (what the document is built from)."""
+
+    campaigns: Campaigns
+    meta: ChannelMeta
+    screened: Screened
+    samples: Samples
+    allocation: Allocation
+    joint: JointOutcome
+    corrections: LineCorrections
+    checked: Checked
+    neural: list[NeuralComparison]
+    virtual_sensors: list[dict[str, Any]]
+
+
+def _document_terms(steps: FitSteps) -> list[dict[str, Any]]:
+    """Return the document's ``terms`` (``registry.TermDoc``): the link models, then the lines' corrections."""
+    terms: list[dict[str, Any]] = []
+    points = int(steps.joint.summary.get("points", 0))
+    for (element, param), m in steps.allocation.models.items():
+        term = _term_doc(element, param, m, points)
         if term is not None:
             terms.append(term)
-    _merge_lines(terms, composed, validation)
+    _merge_lines(terms, steps.corrections.composed, steps.checked.validation)
+    return terms
+
+
+def _document_inputs(steps: FitSteps, terms: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float]]:
+    """Return the document's ``inputs``: each channel read with its reference and the range seen in training."""
+    channels, kept, plan = steps.samples.channels, steps.screened.kept, steps.campaigns.plan
+    temps = steps.screened.temps
+    lo = temps[channels].min()
+    hi = temps[channels].max()
     used = sorted({c for t in terms for f in t["features"] for c in f.get("channels", [])})
     substituted = {c for sub in (plan.substitutions if plan else []) for c in (sub.channel, *sub.neighbours)}
-    inputs = {
+    reference = steps.samples.reference
+    return {
         c: {"reference": reference[c], "min": float(lo[c]), "max": float(hi[c])}
         for c in channels
         if c in used or c in kept or c in substituted
     }
-    findings: list[dict[str, Any]] = []
-    if plan is not None:
-        entered: dict[str, list[str]] = {}
-        for (element, param), m in models.items():
-            for f in m.features:
-                entered.setdefault(f.name, []).append(f"{element}.{param}")
-        findings = plan.records(entered)
-    doc = {
+
+
+def _findings_records(
+    plan: FindingsPlan | None, models: Mapping[tuple[str, str], ElementModel]
+) -> list[dict[str, Any]]:
+    """Return the document's ``findings``: each finding folded in and the models its terms entered."""
+    if plan is None:
+        return []
+    entered: dict[str, list[str]] = {}
+    for (element, param), m in models.items():
+        for f in m.features:
+            entered.setdefault(f.name, []).append(f"{element}.{param}")
+    return plan.records(entered)
+
+
+def build_document(steps: FitSteps, source_campaigns: Sequence[int | str] = ()) -> ModelDocument:
+    """Return the model document of a fit, validated (``document.validate_document``)."""
+    camp, alloc, checked, plan = steps.campaigns, steps.allocation, steps.checked, steps.campaigns.plan
+    terms = _document_terms(steps)
+    adjustment = steps.joint.summary
+    doc: dict[str, Any] = {
         "format": MODEL_FORMAT,
-        "machine": machine,
+        "machine": camp.machine,
         "created_at": now_iso(),
-        "source_campaigns": list(source_campaigns) or [b.name for b in bundles],
-        "kept_channels": list(kept),
-        "inputs": inputs,
-        "dims": {k: list(v) for k, v in dims.items()},
+        "source_campaigns": list(source_campaigns) or [b.name for b in camp.bundles],
+        "kept_channels": list(steps.screened.kept),
+        "inputs": _document_inputs(steps, terms),
+        "dims": {k: list(v) for k, v in alloc.dims.items()},
         "alpha_c_per_degC": ALPHA_C,
         "terms": terms,
-        "screening": screening.to_dict(),
-        "validation": validation.to_dict("records"),
-        "physical": physical.to_dict("records"),
-        "physical_check": check.to_dict(),
-        "virtual_sensors": vs,
-        "neural_comparison": [c.to_dict() for c in neural] or None,
-        "allocation": alloc + ([{"joint_adjustment": adjustment}] if adjustment else []),
-        "time_origin": origin.isoformat(),
+        "screening": steps.screened.screening.to_dict(),
+        "validation": checked.validation.to_dict("records"),
+        "physical": checked.check.table.to_dict("records"),
+        "physical_check": checked.check.to_dict(),
+        "virtual_sensors": steps.virtual_sensors,
+        "neural_comparison": [c.to_dict() for c in steps.neural] or None,
+        "allocation": alloc.log + ([{"joint_adjustment": adjustment}] if adjustment else []),
+        "time_origin": camp.origin.isoformat(),
         "substitutions": [sub.to_dict() for sub in (plan.substitutions if plan else [])],
-        "findings": findings,
-        "lines": [_line_record(fit, composed) for fit in lines],
+        "findings": _findings_records(plan, alloc.models),
+        "lines": [_line_record(fit, steps.corrections.composed) for fit in steps.corrections.lines],
     }
-    joint = joint_out.get("joint")
-    if joint is not None:  # the coefficients' covariance across terms, for the prediction interval (issue 21.4)
-        doc["joint_covariance"] = _joint_covariance(joint, terms)
-    travel = campaign_travel(bundles)
+    if steps.joint.joint is not None:  # the coefficients' covariance across terms, for the prediction interval
+        doc["joint_covariance"] = _joint_covariance(steps.joint.joint, terms)  # (issue 21.4)
+    travel = campaign_travel(camp.bundles)
     if travel:  # the machine's travel the campaigns state: the compensator's envelope (docs/compensate.md)
         doc["envelope"] = {"travel": travel, "source": "campaigns"}
-    document = validate_document(strict_json(doc))
-    lap("document")
-    return FitResult(
-        document,
-        screening,
-        models,
-        validation,
-        physical,
-        neural,
-        timings,
-        check.to_dict(),
-        joint_out.get("joint"),
-        list(joint_out.get("pinning", [])),
-    )
+    return validate_document(strict_json(doc))
+
+
+def _fit_bundles(
+    bundles: Sequence[BundleLike], opts: FitOptions, timer: Timer, sources: Sequence[int | str]
+) -> FitResult:
+    """Return the fitted model (the pipeline itself; see ``fit_bundles``): each step a typed result."""
+    campaigns = prepare_campaigns(bundles, opts)
+    timer.restart()
+    meta = channel_metadata(campaigns.bundles)
+    screened = screen(campaigns.bundles, meta, opts.holdout_fraction)
+    timer.lap("screening")
+    samples = build_fit_samples(campaigns, meta, screened, opts)
+    timer.lap("samples")
+    allocation = allocate_models(campaigns.bundles, samples, meta, opts)
+    timer.lap("allocation_and_regression")
+    joint = physical_and_joint(campaigns.bundles, samples, allocation, opts)
+    if opts.joint_adjust:
+        timer.lap("joint_adjustment")
+    corrections = line_corrections(samples, allocation, joint, meta, screened, opts)
+    if opts.lines:
+        timer.lap("lines")
+    checked = validate(campaigns.bundles, samples, allocation, joint, corrections, meta)
+    timer.lap("validation")
+    neural = compare_neural(campaigns.bundles, meta, screened, opts) if opts.network else []
+    if opts.network:
+        timer.lap("network")
+    sensors = virtual_sensors(screened, opts)
+    timer.lap("virtual_sensors")
+    steps = FitSteps(campaigns, meta, screened, samples, allocation, joint, corrections, checked, neural, sensors)
+    document = build_document(steps, sources)
+    timer.lap("document")
+    return FitResult.of(steps, document, timer.timings)
 
 
 def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd.DataFrame) -> None:
@@ -1781,12 +2074,11 @@ def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:
     return out
 
 
-def chain_dims(bundles: Sequence[Any]) -> dict[str, tuple[float, float, float]]:
+def chain_dims(bundles: Sequence[BundleLike]) -> dict[str, tuple[float, float, float]]:
     """Return the fixed link lengths (a, b, c) of the chain: Table A.1 with the machine's stated links over it.
 
     Campaigns that disagree on the links are refused (one machine has one geometry).
     """
-    from driftlab.physics.geometry import GEOMETRY_LINKS
 
     def xyz(v: Any) -> tuple[float, float, float]:
         x, y, z = v  # a link is (a, b, c): Table A.1, Geometry.links_mm
