@@ -64,7 +64,7 @@ from driftlab.vocabulary import AXES, term_unit
 from driftlab.vocabulary import ROTATIONS as ANGLES
 
 if TYPE_CHECKING:
-    from driftlab.models.findings import Findings, FindingsPlan
+    from driftlab.models.findings import Extra, Findings, FindingsPlan
     from driftlab.models.physical_check import PhysicalCheck
     from driftlab.models.standard_model import BundleLike
 
@@ -84,6 +84,8 @@ SEED_KINDS = frozenset({"position", "direction", "pos_dT"})
 #: the element that carries terms of the room air alone: the frame (column on the base, eq. 3.3);
 #: it has no test of its own, so its terms are re-estimated on every test
 ROOM_ELEMENT = "T2"
+#: the chain's fixed link lengths (a, b, c) per element (Table A.1, eq. 4.13; ``chain_dims``)
+Dims = Mapping[str, tuple[float, float, float]]
 
 
 @dataclass
@@ -548,9 +550,7 @@ def predict_models(models: Mapping[tuple[str, str], ElementModel], sample: Sampl
     return out
 
 
-def _measured_w(
-    sample: Sample, known: Mapping[str, np.ndarray], dims: Mapping[str, Any]
-) -> tuple[np.ndarray, np.ndarray]:
+def _measured_w(sample: Sample, known: Mapping[str, np.ndarray], dims: Dims) -> tuple[np.ndarray, np.ndarray]:
     """Return W (N, 6) with unmeasured terms filled by the known model, and the measured mask."""
     W = sample.frame[list(PARAMS)].to_numpy(float)
     mask = np.isfinite(W)
@@ -572,7 +572,7 @@ class Candidates:
     room: list[str]
     lag_taus_s: tuple[float, ...]
     #: terms from diagnosis findings (``findings.Extra``): per (axis, term), forced or candidates
-    extras: list[Any] = field(default_factory=list)
+    extras: list[Extra] = field(default_factory=list)
 
     def extra_features(self, axes: Sequence[str], have: Sequence[Feature] = ()) -> list[Feature]:
         """Return the findings' terms for rows moving ``axes`` that ``have`` does not hold (by name)."""
@@ -686,7 +686,7 @@ class _Admission:
 
 
 def _allocated(
-    sub: Sample, models: Mapping[tuple[str, str], ElementModel], element: str, dims: Mapping[str, Any]
+    sub: Sample, models: Mapping[tuple[str, str], ElementModel], element: str, dims: Dims
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return the errors allocated to ``element`` less its own model so far (eq. 4.20), and the measured mask."""
     known = predict_models(models, sub)
@@ -716,7 +716,7 @@ def _fit_stage(
     cands: Candidates,
     solved: Sequence[str],
     options: FitOptions,
-    dims: Mapping[str, Any],
+    dims: Dims,
 ) -> None:
     """Fit every parameter of ``element`` on its stage by stepwise regression; add the terms to ``models``."""
     sub = stage.sub
@@ -754,7 +754,7 @@ def fit_elements(
     cands: Candidates,
     model_channels: Mapping[str, Sequence[str]],
     options: FitOptions,
-    dims: Mapping[str, Any] = TABLE_A1,
+    dims: Dims = TABLE_A1,
     on_element: Callable[[str], None] | None = None,
 ) -> tuple[dict[tuple[str, str], ElementModel], list[dict[str, Any]]]:
     """Return the model of every link and joint parameter, allocating stage by stage in chain order (eq. 4.20).
@@ -802,7 +802,7 @@ def _global_lengths(
     cands: Candidates,
     model_channels: Mapping[str, Sequence[str]],
     options: FitOptions,
-    dims: Mapping[str, Any],
+    dims: Dims,
 ) -> dict[str, Any]:
     """Re-select the length terms on all tests together, once the angles are allocated (returns a log row).
 
@@ -1039,9 +1039,7 @@ def _noise_weights(noise: Mapping[str, float] | None) -> np.ndarray:
     return np.array([1 / sig["ang"]] * 3 + [1 / sig["len"]] * 3)
 
 
-def _chain_jacobians(
-    sample: Sample, keys: Sequence[tuple[str, str]], dims: Mapping[str, Any]
-) -> dict[tuple[str, int], np.ndarray]:
+def _chain_jacobians(sample: Sample, keys: Sequence[tuple[str, str]], dims: Dims) -> dict[tuple[str, int], np.ndarray]:
     """Return d W / d p_(e,k) at every pose (first order, around zero error), per modelled (element, param)."""
     n = len(sample.frame)
     eps = 1e-6
@@ -1071,7 +1069,7 @@ def joint_design(
     sample: Sample,
     models: Mapping[tuple[str, str], ElementModel],
     keys: Sequence[tuple[str, str]],
-    dims: Mapping[str, Any],
+    dims: Dims,
     noise: Mapping[str, float] | None,
     D: np.ndarray,
 ) -> JointDesign:
@@ -1275,7 +1273,7 @@ class JointOutcome:
 def adjust_jointly(
     sample: Sample,
     models: dict[tuple[str, str], ElementModel],
-    dims: Mapping[str, Any] = TABLE_A1,
+    dims: Dims = TABLE_A1,
     noise: Mapping[str, float] | None = None,
     ridge: float = 1e-9,
     priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
@@ -1334,7 +1332,7 @@ def adjust_jointly(
 def joint_adjust(
     sample: Sample,
     models: dict[tuple[str, str], ElementModel],
-    dims: Mapping[str, Any] = TABLE_A1,
+    dims: Dims = TABLE_A1,
     noise: Mapping[str, float] | None = None,
     ridge: float = 1e-9,
     result: dict[str, Any] | None = None,
@@ -1387,7 +1385,7 @@ def composed_errors(composed: Composed, sample: Sample) -> np.ndarray:
 def validation_table(
     sample: Sample,
     models: Mapping[tuple[str, str], ElementModel],
-    dims: Mapping[str, Any],
+    dims: Dims,
     composed: Composed | None = None,
     campaign_offsets: Sequence[Mapping[str, Any]] = (),
 ) -> tuple[pd.DataFrame, np.ndarray]:
