@@ -11,13 +11,15 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
+from threadpoolctl import threadpool_limits
 
 from driftlab.errors import ValidationError
 from driftlab.jsonsafe import strict_json
+from driftlab.labels import display_unit
 from driftlab.metrics import rmse
 from driftlab.models.document import (
     MODEL_FORMAT,
@@ -37,6 +39,7 @@ from driftlab.models.features import (
     fill_gaps,
     session_terms,
 )
+from driftlab.models.findings import plan_findings
 from driftlab.models.lines import (
     LINE_ELEMENT,
     Composed,
@@ -49,7 +52,7 @@ from driftlab.models.lines import (
 )
 from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import machine_geometry, physical_check, stated_geometries
-from driftlab.models.regression import TermFit, r_squared, stepwise
+from driftlab.models.regression import StepwiseOptions, TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
 from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT, STRUCTURE_SPANS
 from driftlab.models.uncertainty import JointFit, Pinning, ar1_inflation
@@ -59,6 +62,11 @@ from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, wo
 from driftlab.physics.thermal import ALPHA_C
 from driftlab.vocabulary import AXES, term_unit
 from driftlab.vocabulary import ROTATIONS as ANGLES
+
+if TYPE_CHECKING:
+    from driftlab.models.findings import Extra, Findings, FindingsPlan
+    from driftlab.models.physical_check import PhysicalCheck
+    from driftlab.models.standard_model import BundleLike
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +84,8 @@ SEED_KINDS = frozenset({"position", "direction", "pos_dT"})
 #: the element that carries terms of the room air alone: the frame (column on the base, eq. 3.3);
 #: it has no test of its own, so its terms are re-estimated on every test
 ROOM_ELEMENT = "T2"
+#: the chain's fixed link lengths (a, b, c) per element (Table A.1, eq. 4.13; ``chain_dims``)
+Dims = Mapping[str, tuple[float, float, float]]
 
 
 @dataclass
@@ -109,7 +119,7 @@ class FitOptions:
     #: eqs. 3.1/3.3) enter the joint adjustment even where the staged selection chose a surrogate
     physical_terms: bool = True
     #: diagnosis findings to fold in (``driftlab.models.findings.Findings``); forced in, or candidates
-    findings: Any = None
+    findings: Findings | None = None
     force_findings: bool = False
 
 
@@ -186,6 +196,80 @@ class FitResult:
         if self.neural:
             out["neural_comparison"] = [c.to_dict() for c in self.neural]
         return strict_json(out)
+
+    @classmethod
+    def of(cls, steps: FitSteps, document: ModelDocument, timings_s: dict[str, float]) -> FitResult:
+        """Return the result of a pipeline's steps and the document built from them."""
+        check = steps.checked.check
+        return cls(
+            document,
+            steps.screened.screening,
+            steps.allocation.models,
+            steps.checked.validation,
+            check.table,
+            steps.neural,
+            timings_s,
+            check.to_dict(),
+            steps.joint.joint,
+            list(steps.joint.pinning),
+        )
+
+    def to_document(self) -> ModelDocument:
+        """Return the model document (validated; ``document_json`` gives it as strict JSON)."""
+        return self.document
+
+    def summary(self) -> str:
+        """Return the fit as text: tables 6.1-6.3 with units (um, urad), the joint adjustment, the comparison."""
+        rep = self.report()
+        kept = rep["kept_channels"]
+        out = [
+            f"machine {rep['machine']}: model version {rep['model_version']}; "
+            f"{len(kept)} thermocouples kept: {' '.join(kept)}",
+            "Per-link models (tables 6.1-6.2): RMSE of the work-space error",
+            f"{'axis':4} {'term':6} {'measurement':16} {'link':28} {'form':14} {'unit':4} "
+            f"{'train':>9} {'held out':>9} {'R2':>7} {'F':>10}",
+        ]
+        for r in rep["terms"]:
+            k, unit = display_unit(r["term"])
+            out.append(
+                f"{r['axis']:4} {r['term']:6} {r['measurement']:16} {r['link']:28} {r['form']:14} {unit:4} "
+                f"{_num(r['rmse_train'], '9.2f', k)} {_num(r['rmse_holdout'], '9.2f', k)} "
+                f"{_num(r['r2'], '7.3f')} {_num(r['f'], '10.4g')}"
+            )
+        check = rep["physical_check"] or {}
+        if check.get("status") != "compared":
+            out.append(f"Physical coefficients (table 6.3): {check.get('status')}: {check.get('note', '')}")
+        else:
+            out.append("Regression against physical coefficients (table 6.3)")
+            for p in rep["physical"]:
+                out.append(
+                    f"  {p['term']}: regression {_num(p.get('regression'), '.4g')}, physical "
+                    f"{_num(p.get('physical'), '.4g')}, ratio {_num(p.get('ratio'), '.2f')} {p.get('unit', '')}"
+                )
+        if "serial_correlation_inflation" in rep:
+            out.append(f"Joint adjustment: serial correlation inflation {rep['serial_correlation_inflation']:.3g}")
+        for p in rep.get("pinning", []):
+            weak = ", ".join(dict.fromkeys(p["poorly_pinned"]))
+            out.append(f"  poorly pinned: {p['element']}.{p['param']} {weak} (condition {p['condition_number']:.3g})")
+        for c in rep.get("neural_comparison", []):
+            for d in c.get("directions", []):
+                k, unit = display_unit(str(c["target"]).partition("/")[2])
+                out.append(
+                    f"Neural comparison {c['target']} ({d['direction']}): regression test "
+                    f"{_num(d['regression_test'], '.2f', k)} {unit}, "
+                    f"network test {_num(d['network_test'], '.2f', k)} {unit}"
+                )
+            if c.get("status") != "compared":
+                out.append(f"Neural comparison {c['target']}: {c.get('status')}: {c.get('note', '')}")
+        return "\n".join(out)
+
+
+def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
+    """Return a figure formatted (scaled to the display unit), or "-" where it is missing or not finite."""
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v):
+        return format(v * scale, fmt)
+    width = fmt.split(".")[0]
+    return format("-", f">{width}") if width else "-"
 
 
 # ----------------------------------------------------------------------------- stages -> elements
@@ -341,7 +425,7 @@ def _keep_gradient_corners(
 
 
 def build_samples(
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     channels: Sequence[str],
     reference: Mapping[str, float] | None,
     lags: Sequence[tuple[str, float]],
@@ -466,9 +550,7 @@ def predict_models(models: Mapping[tuple[str, str], ElementModel], sample: Sampl
     return out
 
 
-def _measured_w(
-    sample: Sample, known: Mapping[str, np.ndarray], dims: Mapping[str, Any]
-) -> tuple[np.ndarray, np.ndarray]:
+def _measured_w(sample: Sample, known: Mapping[str, np.ndarray], dims: Dims) -> tuple[np.ndarray, np.ndarray]:
     """Return W (N, 6) with unmeasured terms filled by the known model, and the measured mask."""
     W = sample.frame[list(PARAMS)].to_numpy(float)
     mask = np.isfinite(W)
@@ -490,7 +572,7 @@ class Candidates:
     room: list[str]
     lag_taus_s: tuple[float, ...]
     #: terms from diagnosis findings (``findings.Extra``): per (axis, term), forced or candidates
-    extras: list[Any] = field(default_factory=list)
+    extras: list[Extra] = field(default_factory=list)
 
     def extra_features(self, axes: Sequence[str], have: Sequence[Feature] = ()) -> list[Feature]:
         """Return the findings' terms for rows moving ``axes`` that ``have`` does not hold (by name)."""
@@ -549,12 +631,130 @@ class Candidates:
         )
 
 
+@dataclass(frozen=True)
+class StageData:
+    """The rows one stage of the staged allocation fits on, and their design (ch. 4.3)."""
+
+    #: the rows of the element's tests and of every test before it in chain order
+    sub: Sample
+    train: np.ndarray
+    hold: np.ndarray
+    #: the axes those rows move; the channels the user allowed (None: the screened ones)
+    axes: list[str]
+    allowed: list[str] | None
+    #: the candidate terms and the design matrix (intercept, session offsets, candidates, findings' terms)
+    feats: list[Feature]
+    X: pd.DataFrame
+
+
+def _design(sample: Sample, cands: Candidates, axes: Sequence[str], feats: Sequence[Feature]) -> pd.DataFrame:
+    """Return the design of a stage: intercept, the sessions' offsets, ``feats`` and the findings' terms."""
+    offsets = session_terms(sample.inputs.session, np.ones(len(sample.frame), bool))
+    return design_matrix(
+        [INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q, _directions(sample)
+    )
+
+
+def _stage_data(sub: Sample, element: str, cands: Candidates, model_channels: Mapping[str, Sequence[str]]) -> StageData:
+    """Return the stage of ``element``: its rows' roles, axes, allowed channels, candidates and design."""
+    train = (sub.frame["role"] == "train").to_numpy()
+    hold = (sub.frame["role"] == "holdout").to_numpy()
+    axes = [a for a in AXES if (sub.frame["axis"] == a).any()]
+    allowed = None
+    own_axis = JOINT_OF.get(element)
+    if own_axis is not None and own_axis in model_channels:
+        allowed = list(model_channels[own_axis])
+    elif model_channels and all(a in model_channels for a in axes):
+        allowed = sorted({c for a in axes for c in model_channels[a]})
+    feats = cands.for_axes(axes, allowed)
+    return StageData(sub, train, hold, axes, allowed, feats, _design(sub, cands, axes, feats))
+
+
+@dataclass(frozen=True)
+class _Admission:
+    """Whether a stage fit may choose a term: not one the models already hold for the parameter, nor one
+    belonging to an element already solved (a known relationship is not learnt again: refitting it on the
+    residual would only fit the sensor noise it was evaluated with, errors in variables)."""
+
+    used: frozenset[Feature]
+    structures: Mapping[str, str]
+    element: str
+    solved: tuple[str, ...]
+
+    def __call__(self, f: Feature) -> bool:
+        return f not in self.used and feature_element(f, self.structures, self.element) not in self.solved
+
+
+def _allocated(
+    sub: Sample, models: Mapping[tuple[str, str], ElementModel], element: str, dims: Dims
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the errors allocated to ``element`` less its own model so far (eq. 4.20), and the measured mask."""
+    known = predict_models(models, sub)
+    own = known.pop(element, None)
+    W, mask = _measured_w(sub, {**known, **({element: own} if own is not None else {})}, dims)
+    E = allocate(W, sub.q, known, element, dims)  # eq. 4.20
+    if own is not None:
+        E = E - own
+    return E, mask
+
+
+def _give_to_owners(
+    models: dict[tuple[str, str], ElementModel], fit: TermFit, structures: Mapping[str, str], default: str
+) -> None:
+    """Add each chosen term of ``fit`` to the element where it physically arises (``feature_element``)."""
+    owners: dict[str, list[Feature]] = {}
+    for f in fit.result.features:
+        owners.setdefault(feature_element(f, structures, default), []).append(f)
+    for owner, fs in owners.items():
+        models.setdefault((owner, fit.param), ElementModel(owner, fit.param)).add(fit, fs)
+
+
+def _fit_stage(
+    stage: StageData,
+    element: str,
+    models: dict[tuple[str, str], ElementModel],
+    cands: Candidates,
+    solved: Sequence[str],
+    options: FitOptions,
+    dims: Dims,
+) -> None:
+    """Fit every parameter of ``element`` on its stage by stepwise regression; add the terms to ``models``."""
+    sub = stage.sub
+    E = mask = None
+    for k, param in enumerate(PARAMS):
+        if k in (0, 3):
+            # angles first, then lengths re-allocated once the angles sit in their elements:
+            # an angle acts through a different lever from each element (eq. 4.20)
+            E, mask = _allocated(sub, models, element, dims)
+        assert E is not None and mask is not None
+        m_train = stage.train & mask[:, k]
+        if m_train.sum() < 12:
+            continue
+        y = E[:, k]
+        used = frozenset(f for (e, pp), m in models.items() if pp == param for f in m.features)
+        admit = _Admission(used, cands.structures, element, tuple(solved))
+        forced, pool = cands.split_pool([f for f in stage.feats if admit(f)], stage.axes, param, admit)
+        res = stepwise(
+            stage.X[m_train].reset_index(drop=True),
+            y[m_train],
+            pool,
+            forced=[INTERCEPT, *session_terms(sub.inputs.session, m_train), *forced],
+            options=StepwiseOptions.of(options),
+        )
+        fit = TermFit(element, param, res)
+        m_hold = stage.hold & mask[:, k]
+        if m_hold.any():
+            fit.rmse_holdout = rmse(y[m_hold] - res.predict(stage.X[m_hold]))
+            fit.n_holdout = int(m_hold.sum())
+        _give_to_owners(models, fit, cands.structures, element)
+
+
 def fit_elements(
     sample: Sample,
     cands: Candidates,
     model_channels: Mapping[str, Sequence[str]],
     options: FitOptions,
-    dims: Mapping[str, Any] = TABLE_A1,
+    dims: Dims = TABLE_A1,
     on_element: Callable[[str], None] | None = None,
 ) -> tuple[dict[tuple[str, str], ElementModel], list[dict[str, Any]]]:
     """Return the model of every link and joint parameter, allocating stage by stage in chain order (eq. 4.20).
@@ -575,77 +775,18 @@ def fit_elements(
         for key in [k for k in models if k[0] not in solved]:
             del models[key]
         rows = sample.frame["element"].isin(elements[: gi + 1]).to_numpy()
-        sub = sample.take(rows)
-        train = (sub.frame["role"] == "train").to_numpy()
-        hold = (sub.frame["role"] == "holdout").to_numpy()
-        axes = [a for a in AXES if (sub.frame["axis"] == a).any()]
-        allowed = None
-        own_axis = JOINT_OF.get(element)
-        if own_axis is not None and own_axis in model_channels:
-            allowed = list(model_channels[own_axis])
-        elif model_channels and all(a in model_channels for a in axes):
-            allowed = sorted({c for a in axes for c in model_channels[a]})
-        feats = cands.for_axes(axes, allowed)
-        offsets = session_terms(sub.inputs.session, np.ones(len(sub.frame), bool))
-        X = design_matrix(
-            [INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sub.inputs, sub.q, _directions(sub)
-        )
-        E = mask = None
-        for k, param in enumerate(PARAMS):
-            if k in (0, 3):
-                # angles first, then lengths re-allocated once the angles sit in their elements:
-                # an angle acts through a different lever from each element (eq. 4.20)
-                known = predict_models(models, sub)
-                own = known.pop(element, None)
-                W, mask = _measured_w(sub, {**known, **({element: own} if own is not None else {})}, dims)
-                E = allocate(W, sub.q, known, element, dims)  # eq. 4.20
-                if own is not None:
-                    E = E - own
-            assert E is not None and mask is not None
-            m_train = train & mask[:, k]
-            if m_train.sum() < 12:
-                continue
-            y = E[:, k]
-            # a known relationship is not learnt again: refitting it on the residual would only
-            # fit the sensor noise it was evaluated with (errors in variables)
-            used = {f for (e, pp), m in models.items() if pp == param for f in m.features}
-
-            def admit(f: Feature, used: set[Feature] = used, element: str = element) -> bool:
-                return f not in used and feature_element(f, cands.structures, element) not in solved
-
-            forced, pool = cands.split_pool([f for f in feats if admit(f)], axes, param, admit)
-            res = stepwise(
-                X[m_train].reset_index(drop=True),
-                y[m_train],
-                pool,
-                forced=[INTERCEPT, *session_terms(sub.inputs.session, m_train), *forced],
-                p_enter=options.p_enter,
-                p_remove=options.p_remove,
-                min_gain=options.min_gain,
-                max_terms=options.max_terms,
-                vif_max=options.vif_max,
-                tiered=options.tiered,
-            )
-            fit = TermFit(element, param, res)
-            m_hold = hold & mask[:, k]
-            if m_hold.any():
-                fit.rmse_holdout = rmse(y[m_hold] - res.predict(X[m_hold]))
-                fit.n_holdout = int(m_hold.sum())
-            owners: dict[str, list[Feature]] = {}
-            for f in res.features:
-                owners.setdefault(feature_element(f, cands.structures, element), []).append(f)
-            for owner, fs in owners.items():
-                models.setdefault((owner, param), ElementModel(owner, param)).add(fit, fs)
+        stage = _stage_data(sample.take(rows), element, cands, model_channels)
+        _fit_stage(stage, element, models, cands, solved, options, dims)
         solved.append(element)
         log_rows.append(
             {
                 "element": element,
-                "axes": axes,
+                "axes": stage.axes,
                 "n": int((sample.frame["element"] == element).sum()),
                 "n_cumulative": int(rows.sum()),
-                "n_train": int(train.sum()),
-                "stages": sorted({int(s) for s in sub.frame["stage"]}),
-                "channels": "model_channels" if allowed is not None else "screened",
+                "n_train": int(stage.train.sum()),
+                "stages": sorted({int(s) for s in stage.sub.frame["stage"]}),
+                "channels": "model_channels" if stage.allowed is not None else "screened",
             }
         )
         if on_element is not None:
@@ -661,7 +802,7 @@ def _global_lengths(
     cands: Candidates,
     model_channels: Mapping[str, Sequence[str]],
     options: FitOptions,
-    dims: Mapping[str, Any],
+    dims: Dims,
 ) -> dict[str, Any]:
     """Re-select the length terms on all tests together, once the angles are allocated (returns a log row).
 
@@ -691,10 +832,8 @@ def _global_lengths(
             return axis is None or axis not in model_channels or all(c in model_channels[axis] for c in f.channels)
 
         feats = [f for f in feats if honoured(f)]
-    offsets = session_terms(sample.inputs.session, np.ones(len(sample.frame), bool))
-    X = design_matrix(
-        [INTERCEPT, *offsets, *feats, *cands.extra_features(axes, feats)], sample.inputs, sample.q, _directions(sample)
-    )
+    X = _design(sample, cands, axes, feats)
+    rules = StepwiseOptions.of(options, min_gain=options.min_gain / 4, max_terms=2 * options.max_terms)
     chosen = 0
     for k, param in ((3, "dx"), (4, "dy"), (5, "dz")):
         m = train & mask[:, k]
@@ -706,19 +845,9 @@ def _global_lengths(
             E[m, k],
             pool,
             forced=[INTERCEPT, *session_terms(sample.inputs.session, m), *forced],
-            p_enter=options.p_enter,
-            p_remove=options.p_remove,
-            min_gain=options.min_gain / 4,
-            max_terms=2 * options.max_terms,
-            vif_max=options.vif_max,
-            tiered=options.tiered,
+            options=rules,
         )
-        fit = TermFit("T1", param, res)
-        owners: dict[str, list[Feature]] = {}
-        for f in res.features:
-            owners.setdefault(feature_element(f, cands.structures, "T1"), []).append(f)
-        for owner, fs in owners.items():
-            models.setdefault((owner, param), ElementModel(owner, param)).add(fit, fs)
+        _give_to_owners(models, TermFit("T1", param, res), cands.structures, "T1")
         chosen += len(res.features)
     return {"element": "lengths, all tests", "terms": chosen, "n_train": int(train.sum())}
 
@@ -800,7 +929,7 @@ class PhysicalPrior:
 def _physical_terms(
     models: dict[tuple[str, str], ElementModel],
     cands: Candidates,
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     priors: dict[tuple[str, str, Feature], PhysicalPrior] | None = None,
 ) -> list[str]:
     """Add the recast terms the machine's stated geometry says act; return their names (in place).
@@ -878,178 +1007,312 @@ def _strip_sessions(models: Mapping[tuple[str, str], ElementModel]) -> int:
     return removed
 
 
-def joint_adjust(
-    sample: Sample,
-    models: dict[tuple[str, str], ElementModel],
-    dims: Mapping[str, Any] = TABLE_A1,
-    noise: Mapping[str, float] | None = None,
-    ridge: float = 1e-9,
-    result: dict[str, Any] | None = None,
-    priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
-) -> dict[str, Any]:
-    """Re-estimate every coefficient of the allocated models together, on all training points.
+@dataclass(frozen=True)
+class JointDesign:
+    """The joint adjustment's linearised chain at every sample (eq. 4.12 to first order) and what it reads."""
 
-    With ``result`` (a dict), the estimates with their covariance (``uncertainty.JointFit``, key
-    ``joint``) and how well each element model was pinned (``pinning``) are put there.
+    #: training rows, datum rows (``datum_rows``), the measured terms (N, 6) and which are measured
+    train: np.ndarray
+    D: np.ndarray
+    W: np.ndarray
+    mask: np.ndarray
+    #: each work-space component's weight: 1 / its noise
+    w: np.ndarray
+    #: per element model its design matrix, in ``keys`` order; the solve's columns (model, feature index)
+    blocks: list[tuple[tuple[str, str], np.ndarray]]
+    cols: list[tuple[tuple[str, str], int]]
+    #: d W / d p_(e,k) at every pose, per (element, parameter index)
+    jac: dict[tuple[str, int], np.ndarray]
+    #: each sample's campaign and the (campaign, term) offsets kept apart (a later campaign's absolute readings)
+    camp: np.ndarray
+    nuis: list[tuple[int, int]]
 
-    The terms and the elements they belong to stay as the staged allocation chose them; their
-    coefficients are refined by one weighted least-squares solve through the linearised chain
-    (W = sum_e Ad_e(q) p_e, eq. 4.12 to first order), each measured term weighted by its noise.
-    Returns a summary (number of coefficients, weighted rms before and after).
-    """
-    train = (sample.frame["role"] == "train").to_numpy()
-    # a zeroed reading is the model less the model at its datum: no free offset per session
-    D = datum_rows(sample)
-    offsets = _strip_sessions(models)
-    keys = [k for k, m in models.items() if m.features]
-    if not keys:
-        return {"coefficients": 0}
-    # every row is evaluated (a datum may precede the training rows of its session); the solve reads the training rows
-    sub = sample
-    n = len(sub.frame)
-    W = sub.frame[list(PARAMS)].to_numpy(float)
-    mask = np.isfinite(W)
+    @property
+    def n_coefficients(self) -> int:
+        """Return P, the number of model coefficients (the nuisances follow them)."""
+        return len(self.cols)
+
+
+def _noise_weights(noise: Mapping[str, float] | None) -> np.ndarray:
+    """Return (6,) weights 1 / noise of the work-space components (angles, then lengths)."""
     sig = {"len": 0.0005, "ang": 5e-7, **(noise or {})}
-    w = np.array([1 / sig["ang"]] * 3 + [1 / sig["len"]] * 3)
-    d = _directions(sub)
+    return np.array([1 / sig["ang"]] * 3 + [1 / sig["len"]] * 3)
+
+
+def _chain_jacobians(sample: Sample, keys: Sequence[tuple[str, str]], dims: Dims) -> dict[tuple[str, int], np.ndarray]:
+    """Return d W / d p_(e,k) at every pose (first order, around zero error), per modelled (element, param)."""
+    n = len(sample.frame)
     eps = 1e-6
-    # d W / d p_(e,k) at every pose (first order, around zero error)
     jac: dict[tuple[str, int], np.ndarray] = {}
     for e in sorted({k[0] for k in keys}):
         for k in sorted({PARAMS.index(kk[1]) for kk in keys if kk[0] == e}):
             unit = np.zeros((n, 6))
             unit[:, k] = eps
-            jac[(e, k)] = workspace_error(sub.q, {e: unit}, dims) / eps
-    cols: list[tuple[tuple[str, str], int]] = []
-    blocks = []
-    for key in keys:
-        m = models[key]
-        F = design_matrix(m.features, sub.inputs, sub.q, d).to_numpy(float)
-        blocks.append((key, F))
-        cols += [(key, i) for i in range(F.shape[1])]
-    P = len(cols)
-    # several campaigns of one machine (seasons apart): each campaign's absolute readings get an offset
-    # of their own per term (its artefact re-mounted, its own datum), a nuisance kept apart and reported
-    camp = sample.frame["campaign"].to_numpy()
+            jac[(e, k)] = workspace_error(sample.q, {e: unit}, dims) / eps
+    return jac
+
+
+def _campaign_nuisances(camp: np.ndarray, train: np.ndarray, mask: np.ndarray, D: np.ndarray) -> list[tuple[int, int]]:
+    """Return the (campaign, term) offsets of every campaign after the first with absolute training readings.
+
+    Several campaigns of one machine (seasons apart): each campaign's absolute readings get an offset of
+    their own per term (its artefact re-mounted, its own datum), a nuisance kept apart and reported.
+    """
     nuis: list[tuple[int, int]] = []
     for t in range(6):
         absolute = train & mask[:, t] & (D[:, t] < 0)
         nuis += [(int(ci), t) for ci in sorted(set(camp[absolute].tolist()))[1:]]
-    Q = len(nuis)
+    return nuis
+
+
+def joint_design(
+    sample: Sample,
+    models: Mapping[tuple[str, str], ElementModel],
+    keys: Sequence[tuple[str, str]],
+    dims: Dims,
+    noise: Mapping[str, float] | None,
+    D: np.ndarray,
+) -> JointDesign:
+    """Return the linearised chain of the joint adjustment over every row (a datum may precede its training rows)."""
+    train = (sample.frame["role"] == "train").to_numpy()
+    W = sample.frame[list(PARAMS)].to_numpy(float)
+    mask = np.isfinite(W)
+    d = _directions(sample)
+    jac = _chain_jacobians(sample, keys, dims)
+    cols: list[tuple[tuple[str, str], int]] = []
+    blocks = []
+    for key in keys:
+        F = design_matrix(models[key].features, sample.inputs, sample.q, d).to_numpy(float)
+        blocks.append((key, F))
+        cols += [(key, i) for i in range(F.shape[1])]
+    camp = sample.frame["campaign"].to_numpy()
+    nuis = _campaign_nuisances(camp, train, mask, D)
+    return JointDesign(train, D, W, mask, _noise_weights(noise), blocks, cols, jac, camp, nuis)
+
+
+@dataclass(frozen=True)
+class NormalEquations:
+    """The weighted normal equations of the joint adjustment and each work-space component's system."""
+
+    AtA: np.ndarray
+    Atb: np.ndarray
+    #: (component, weighted design, weighted target), built once
+    systems: list[tuple[int, np.ndarray, np.ndarray]]
+    #: the weighted sum of squares at the staged coefficients
+    before: float
+
+
+def normal_equations(design: JointDesign, models: Mapping[tuple[str, str], ElementModel]) -> NormalEquations:
+    """Return the normal equations: zeroed readings less the model at their datum, campaigns' offsets apart."""
+    P, Q = design.n_coefficients, len(design.nuis)
     AtA = np.zeros((P + Q, P + Q))
     Atb = np.zeros(P + Q)
-    c0 = np.concatenate([np.asarray(models[key].coef, float) for key, _ in blocks] + [np.zeros(Q)])
+    c0 = np.concatenate([np.asarray(models[key].coef, float) for key, _ in design.blocks] + [np.zeros(Q)])
     before = 0.0
-    systems = []  # the weighted design and target of each work-space component, built once
+    systems = []
+    D, w, camp = design.D, design.w, design.camp
     for t in range(6):
-        ok = mask[:, t] & train
+        ok = design.mask[:, t] & design.train
         if not ok.any():
             continue
-        A_all = np.concatenate([jac[(key[0], PARAMS.index(key[1]))][:, t][:, None] * F for key, F in blocks], axis=1)
+        A_all = np.concatenate(
+            [design.jac[(key[0], PARAMS.index(key[1]))][:, t][:, None] * F for key, F in design.blocks], axis=1
+        )
         A = A_all[ok]
         dz = D[ok, t]
         A[dz >= 0] -= A_all[dz[dz >= 0]]
         N = np.zeros((A.shape[0], Q))
-        for j, (ci, tt) in enumerate(nuis):
+        for j, (ci, tt) in enumerate(design.nuis):
             if tt == t:
                 N[:, j] = (camp[ok] == ci) & (dz < 0)
         A = np.concatenate([A, N], axis=1) * w[t]
-        b = W[ok, t] * w[t]
+        b = design.W[ok, t] * w[t]
         systems.append((t, A, b))
         AtA += A.T @ A
         Atb += A.T @ b
         before += float(np.sum((b - A @ c0) ** 2))
-    # A machine constant that only zeroed sessions see is not identified: the sessions' offsets absorb
-    # any value of it. A weak prior (CONSTANT_PRIOR, far wider than any constant the data pin) sends
-    # such constants to zero instead of to an arbitrary split between elements that cancels at the
-    # measured poses and not at others.
-    # The thermal model is relative to the cold start (eq. 3.1: dT from the first readings): a constant
-    # is a geometric error, which only an absolute reading taken cold can tell from the slow structures
-    # (column growth, base lag, arm gradient are nearly constant through a warm stage). Where no such
-    # reading exists for a work-space component, its constants are held at zero (COLD_PRIOR) and the
-    # fit says so, rather than registering a constant that trades off with those structures.
-    cold = _cold_absolute(sub, D, train)
+    return NormalEquations(AtA, Atb, systems, before)
+
+
+def _constant_priors(
+    sample: Sample, design: JointDesign, models: Mapping[tuple[str, str], ElementModel], AtA: np.ndarray
+) -> list[str]:
+    """Add the constants' priors to ``AtA`` (in place); return the constants held at zero.
+
+    A machine constant that only zeroed sessions see is not identified: the sessions' offsets absorb
+    any value of it. A weak prior (CONSTANT_PRIOR, far wider than any constant the data pin) sends
+    such constants to zero instead of to an arbitrary split between elements that cancels at the
+    measured poses and not at others.
+    The thermal model is relative to the cold start (eq. 3.1: dT from the first readings): a constant
+    is a geometric error, which only an absolute reading taken cold can tell from the slow structures
+    (column growth, base lag, arm gradient are nearly constant through a warm stage). Where no such
+    reading exists for a work-space component, its constants are held at zero (COLD_PRIOR) and the
+    fit says so, rather than registering a constant that trades off with those structures.
+    """
+    cold = _cold_absolute(sample, design.D, design.train)
     held: list[str] = []
-    for i, (key, j) in enumerate(cols):
+    for i, (key, j) in enumerate(design.cols):
         if models[key].features[j].kind == "intercept":  # the prior's row: coefficient / spread (noise units above)
             k = PARAMS.index(key[1])
-            free = bool(cold[k]) or not mask[train, k].any()
+            free = bool(cold[k]) or not design.mask[design.train, k].any()
             spread = CONSTANT_PRIOR[key[1].startswith("d")] * (1.0 if free else COLD_PRIOR)
             if not free:
                 held.append(f"{key[0]}.{key[1]}")
             AtA[i, i] += spread**-2
-    # physics-informed priors (``_physical_terms``): a' c ~ N(physical value, spread^2), in the noise-weighted
-    # units of the rows above; a picks the term and the single sites of its structure (``PhysicalPrior``)
+    return held
+
+
+def _physical_priors(
+    design: JointDesign,
+    models: Mapping[tuple[str, str], ElementModel],
+    priors: Mapping[tuple[str, str, Feature], PhysicalPrior],
+    normal: NormalEquations,
+) -> None:
+    """Add the physics-informed priors (``_physical_terms``) to the normal equations (in place).
+
+    a' c ~ N(physical value, spread^2), in the noise-weighted units of the rows; a picks the term and
+    the single sites of its structure (``PhysicalPrior``).
+    """
+    cols = design.cols
     for i, (key, j) in enumerate(cols):
-        prior = (priors or {}).get((key[0], key[1], models[key].features[j]))
+        prior = priors.get((key[0], key[1], models[key].features[j]))
         if prior is None or prior.spread <= 0:
             continue
-        a = np.zeros(P + Q)
+        a = np.zeros(normal.AtA.shape[0])
         for i2, (key2, j2) in enumerate(cols):
             g = models[key2].features[j2]
             if i2 == i or (key2 == key and g.kind in ("dT", "lag") and g.channels[0] in prior.sites):
                 a[i2] = 1.0
-        AtA += np.outer(a, a) / prior.spread**2
-        Atb += a * prior.value / prior.spread**2
+        normal.AtA[...] += np.outer(a, a) / prior.spread**2
+        normal.Atb[...] += a * prior.value / prior.spread**2
+
+
+@dataclass(frozen=True)
+class JointSolution:
+    """The joint adjustment's estimates: coefficients (models, then nuisances), covariance and residuals."""
+
+    c: np.ndarray
+    cov: np.ndarray
+    residual_variance: dict[str, float]
+    rho: dict[str, float]
+    inflation: float
+    m_obs: int
+    after: float
+
+
+def _solve(normal: NormalEquations, w: np.ndarray, P: int, ridge: float) -> JointSolution:
+    """Solve the scaled normal equations; a second pass gives the residuals and the covariance."""
+    AtA, Atb = normal.AtA, normal.Atb
     scale = np.sqrt(np.maximum(np.diag(AtA), 1e-300))
-    M = AtA / np.outer(scale, scale) + ridge * np.eye(P + Q)
+    M = AtA / np.outer(scale, scale) + ridge * np.eye(AtA.shape[0])
     c = np.linalg.solve(M, Atb / scale) / scale
-    # second pass for the after-figure and the standard errors
     sse, m_obs = 0.0, 0
     residual_variance: dict[str, float] = {}
     rho: dict[str, float] = {}
     inflation_sum = 0.0
-    for t, A, b in systems:
+    for t, A, b in normal.systems:
         r = b - A @ c
         sse += float(r @ r)
         m_obs += len(b)
         residual_variance[PARAMS[t]] = float(np.mean(r * r)) / w[t] ** 2
         rho[PARAMS[t]], infl = ar1_inflation(r)
         inflation_sum += infl * len(b)
-    after = sse
     s2 = sse / max(m_obs - P, 1)
     # serial correlation of the laser residuals (AR(1): the HAC long-run variance, module uncertainty)
     inflation = inflation_sum / max(m_obs, 1)
     cov = np.linalg.inv(M) / np.outer(scale, scale) * s2 * inflation
     cov = 0.5 * (cov + cov.T)
-    cov_diag = np.diag(cov)
+    return JointSolution(c, cov, residual_variance, rho, inflation, m_obs, sse)
+
+
+def _store_estimates(
+    models: Mapping[tuple[str, str], ElementModel], design: JointDesign, sol: JointSolution
+) -> list[tuple[str, str, Feature]]:
+    """Write the joint estimates into the element models (in place); return the solve's columns."""
+    cov_diag = np.diag(sol.cov)
     i = 0
     columns: list[tuple[str, str, Feature]] = []
-    for key, F in blocks:
+    for key, F in design.blocks:
         k = F.shape[1]
-        models[key].coef = [float(v) for v in c[i : i + k]]
+        models[key].coef = [float(v) for v in sol.c[i : i + k]]
         models[key].std_errors = [float(np.sqrt(max(v, 0.0))) for v in cov_diag[i : i + k]]
-        models[key].cov = cov[i : i + k, i : i + k]
-        models[key].residual_variance = residual_variance.get(key[1])
+        models[key].cov = sol.cov[i : i + k, i : i + k]
+        models[key].residual_variance = sol.residual_variance.get(key[1])
         columns += [(key[0], key[1], f) for f in models[key].features]
         i += k
-    columns += [("campaign", PARAMS[t], Feature("session", label=f"campaign {ci}")) for ci, t in nuis]
-    campaign_offsets = [
+    columns += [("campaign", PARAMS[t], Feature("session", label=f"campaign {ci}")) for ci, t in design.nuis]
+    return columns
+
+
+def _campaign_offsets(design: JointDesign, sol: JointSolution) -> list[dict[str, Any]]:
+    """Return each later campaign's offset per term with its standard error."""
+    P, cov_diag = design.n_coefficients, np.diag(sol.cov)
+    return [
         {
             "campaign": ci,
             "term": PARAMS[t],
-            "offset": float(c[P + j]),
+            "offset": float(sol.c[P + j]),
             "std_error": float(np.sqrt(max(cov_diag[P + j], 0))),
         }
-        for j, (ci, t) in enumerate(nuis)
+        for j, (ci, t) in enumerate(design.nuis)
     ]
+
+
+@dataclass(frozen=True)
+class JointOutcome:
+    """What the joint adjustment produced: its summary (the document's ``joint_adjustment``) and estimates."""
+
+    summary: dict[str, Any]
+    campaign_offsets: list[dict[str, Any]] = field(default_factory=list)
+    #: the estimates with their covariance (None when there was nothing to adjust)
+    joint: JointFit | None = None
+    #: how well each element model was pinned
+    pinning: list[Pinning] = field(default_factory=list)
+
+
+def adjust_jointly(
+    sample: Sample,
+    models: dict[tuple[str, str], ElementModel],
+    dims: Dims = TABLE_A1,
+    noise: Mapping[str, float] | None = None,
+    ridge: float = 1e-9,
+    priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
+) -> JointOutcome:
+    """Re-estimate every coefficient of the allocated models together, on all training points (in place).
+
+    The terms and the elements they belong to stay as the staged allocation chose them; their
+    coefficients are refined by one weighted least-squares solve through the linearised chain
+    (W = sum_e Ad_e(q) p_e, eq. 4.12 to first order), each measured term weighted by its noise.
+    """
+    # a zeroed reading is the model less the model at its datum: no free offset per session
+    D = datum_rows(sample)
+    offsets = _strip_sessions(models)
+    keys = [k for k, m in models.items() if m.features]
+    if not keys:
+        return JointOutcome({"coefficients": 0})
+    design = joint_design(sample, models, keys, dims, noise, D)
+    normal = normal_equations(design, models)
+    held = _constant_priors(sample, design, models, normal.AtA)
+    _physical_priors(design, models, priors or {}, normal)
+    P = design.n_coefficients
+    sol = _solve(normal, design.w, P, ridge)
+    columns = _store_estimates(models, design, sol)
+    campaign_offsets = _campaign_offsets(design, sol)
+    systems = normal.systems
     joint = JointFit(
         columns,
-        c,
-        cov,
-        residual_variance,
-        rho,
-        float(inflation),
-        m_obs,
+        sol.c,
+        sol.cov,
+        sol.residual_variance,
+        sol.rho,
+        float(sol.inflation),
+        sol.m_obs,
         design={PARAMS[t]: A for t, A, _ in systems},
-        weights={PARAMS[t]: float(w[t]) for t, _, _ in systems},
+        weights={PARAMS[t]: float(design.w[t]) for t, _, _ in systems},
     )
-    designs = {key: F[train] for key, F in blocks}
-    if result is not None:
-        result["campaign_offsets"] = campaign_offsets
-        result["joint"] = joint
-        result["pinning"] = joint.pinning(designs)
-    return {
+    pinning = joint.pinning({key: F[design.train] for key, F in design.blocks})
+    m_obs = sol.m_obs
+    summary = {
         "coefficients": P,
         "session_offsets_replaced_by_datums": offsets,
         "campaign_offsets": campaign_offsets,
@@ -1060,9 +1323,34 @@ def joint_adjust(
             else ""
         ),
         "points": m_obs,
-        "weighted_rms_before": float(np.sqrt(before / max(m_obs, 1))),
-        "weighted_rms_after": float(np.sqrt(after / max(m_obs, 1))),
+        "weighted_rms_before": float(np.sqrt(normal.before / max(m_obs, 1))),
+        "weighted_rms_after": float(np.sqrt(sol.after / max(m_obs, 1))),
     }
+    return JointOutcome(summary, campaign_offsets, joint, pinning)
+
+
+def joint_adjust(
+    sample: Sample,
+    models: dict[tuple[str, str], ElementModel],
+    dims: Dims = TABLE_A1,
+    noise: Mapping[str, float] | None = None,
+    ridge: float = 1e-9,
+    result: dict[str, Any] | None = None,
+    priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
+) -> dict[str, Any]:
+    """Re-estimate every coefficient of the allocated models together (``adjust_jointly``); return its summary.
+
+    With ``result`` (a dict), the estimates with their covariance (``uncertainty.JointFit``, key
+    ``joint``), how well each element model was pinned (``pinning``) and the campaigns' offsets
+    (``campaign_offsets``) are put there. Returns a summary (number of coefficients, weighted rms
+    before and after).
+    """
+    out = adjust_jointly(sample, models, dims, noise, ridge, priors)
+    if result is not None and out.joint is not None:
+        result["campaign_offsets"] = out.campaign_offsets
+        result["joint"] = out.joint
+        result["pinning"] = out.pinning
+    return out.summary
 
 
 # ----------------------------------------------------------------------------- validation tables
@@ -1097,7 +1385,7 @@ def composed_errors(composed: Composed, sample: Sample) -> np.ndarray:
 def validation_table(
     sample: Sample,
     models: Mapping[tuple[str, str], ElementModel],
-    dims: Mapping[str, Any],
+    dims: Dims,
     composed: Composed | None = None,
     campaign_offsets: Sequence[Mapping[str, Any]] = (),
 ) -> tuple[pd.DataFrame, np.ndarray]:
@@ -1175,7 +1463,7 @@ def validation_table(
 # ----------------------------------------------------------------------------- the pipeline
 
 
-def _reference(bundles: Sequence[Any], channels: Sequence[str]) -> dict[str, float]:
+def _reference(bundles: Sequence[BundleLike], channels: Sequence[str]) -> dict[str, float]:
     """Return the reference temperatures: each channel's first reading of the first campaign (eq. 3.1)."""
     ref = {}
     for c in channels:
@@ -1189,7 +1477,7 @@ def _reference(bundles: Sequence[Any], channels: Sequence[str]) -> dict[str, flo
     return ref
 
 
-def campaign_travel(bundles: Sequence[Any]) -> dict[str, list[float]]:
+def campaign_travel(bundles: Sequence[BundleLike]) -> dict[str, list[float]]:
     """Return the axis travel the campaigns state (``machine.travel``, from their plans), per axis.
 
     Campaigns of one machine state one travel; where they differ the narrowest holds (the
@@ -1207,30 +1495,54 @@ def campaign_travel(bundles: Sequence[Any]) -> dict[str, list[float]]:
 
 
 def fit_bundles(
-    bundles: Sequence[Any],
+    bundles: Sequence[BundleLike],
     options: FitOptions | None = None,
     *,
-    source_campaigns: Sequence[Any] = (),
+    source_campaigns: Sequence[int | str] = (),
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Return the fitted model of one machine from one or more campaign bundles."""
-    from threadpoolctl import threadpool_limits
-
     # the products here are tall and thin: one BLAS thread does them as fast, and on a shared
     # 2-core machine several threads per process only queue behind each other
     with threadpool_limits(limits=1):
-        return _fit_bundles(bundles, options, source_campaigns=source_campaigns, progress=progress)
+        return _fit_bundles(bundles, options or FitOptions(), Timer(progress), source_campaigns)
 
 
-def _fit_bundles(
-    bundles: Sequence[Any],
-    options: FitOptions | None = None,
-    *,
-    source_campaigns: Sequence[Any] = (),
-    progress: Callable[[str], None] | None = None,
-) -> FitResult:
-    """Return the fitted model (the pipeline itself; see ``fit_bundles``)."""
-    opts = options or FitOptions()
+class Timer:
+    """The pipeline's stage timings: each lap's seconds since the last one, reported to ``progress``."""
+
+    def __init__(self, progress: Callable[[str], None] | None = None) -> None:
+        self.timings: dict[str, float] = {}
+        self._tick = time.perf_counter()
+        self._progress = progress
+
+    def restart(self) -> None:
+        """Start the next lap now (what came before is not timed)."""
+        self._tick = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        """Record the seconds since the last lap under ``name`` and report the stage done."""
+        now = time.perf_counter()
+        self.timings[name] = round(now - self._tick, 3)
+        self._tick = now
+        if self._progress is not None:
+            self._progress(name)
+
+
+@dataclass(frozen=True)
+class Campaigns:
+    """The campaigns of one machine to fit, with the findings' substitutions applied (``plan_findings``)."""
+
+    machine: str
+    bundles: list[BundleLike]
+    #: the diagnosis findings folded in (None without findings)
+    plan: FindingsPlan | None
+    #: the earliest campaign start: time zero of the drift terms
+    origin: datetime
+
+
+def prepare_campaigns(bundles: Sequence[BundleLike], opts: FitOptions) -> Campaigns:
+    """Return the campaigns to fit; refuse none and campaigns of different machines."""
     if not bundles:
         raise ValidationError("no campaigns to fit")
     machines = {b.meta.machine.id for b in bundles}
@@ -1239,23 +1551,36 @@ def _fit_bundles(
     machine = machines.pop()
     plan = None
     if opts.findings is not None and opts.findings.effects:
-        from driftlab.models.findings import plan_findings
-
         # faulty channels are replaced by their virtual-sensor estimates before anything reads them
         plan = plan_findings(opts.findings, bundles, force=opts.force_findings)
         bundles = plan.bundles
     origin = min(b.meta.started_at for b in bundles)
-    timings: dict[str, float] = {}
-    tick = time.perf_counter()
+    return Campaigns(machine, list(bundles), plan, origin)
 
-    def lap(name: str) -> None:
-        nonlocal tick
-        now = time.perf_counter()
-        timings[name] = round(now - tick, 3)
-        tick = now
-        if progress is not None:
-            progress(name)
 
+@dataclass(frozen=True)
+class ChannelMeta:
+    """What the campaigns say of their thermocouples: where each sits, the room's, the user's selections."""
+
+    #: per channel its location and structure (the first campaign stating it wins)
+    chan_meta: dict[str, dict[str, str]]
+    room: list[str]
+    #: per axis the channels the user chose for its model (bundle ``model_channels``)
+    model_channels: dict[str, list[str]]
+
+    @property
+    def structures(self) -> dict[str, str]:
+        """Return the structure of each channel."""
+        return {c: m["structure"] for c, m in self.chan_meta.items()}
+
+    @property
+    def locations(self) -> dict[str, str]:
+        """Return the location of each channel."""
+        return {c: m["location"] for c, m in self.chan_meta.items()}
+
+
+def channel_metadata(bundles: Sequence[BundleLike]) -> ChannelMeta:
+    """Return the campaigns' channel metadata merged (first statement of a channel wins, lists united)."""
     chan_meta: dict[str, dict[str, str]] = {}
     room: list[str] = []
     model_channels: dict[str, list[str]] = {}
@@ -1266,235 +1591,409 @@ def _fit_bundles(
         for ax, cs in (b.meta.model_channels or {}).items():
             model_channels.setdefault(ax, [])
             model_channels[ax] += [c for c in cs if c not in model_channels[ax]]
-    structures = {c: m["structure"] for c, m in chan_meta.items()}
-    locations = {c: m["location"] for c, m in chan_meta.items()}
+    return ChannelMeta(chan_meta, room, model_channels)
 
-    # every campaign trains the model: the neural comparison below is an experiment beside it
-    train_bundles = list(bundles)
 
-    # 1. screening (ch. 5.4)
-    common = [
-        c for c in channel_columns(train_bundles[0].temperatures) if all(c in b.temperatures for b in train_bundles)
-    ]
-    temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in train_bundles], ignore_index=True)
+@dataclass(frozen=True)
+class Screened:
+    """The screening of ch. 5.4 and the temperatures it read."""
+
+    #: the channels every campaign reads, and their readings (gaps filled) over all campaigns
+    common: list[str]
+    temps: pd.DataFrame
+    screening: ScreeningResult
+
+    @property
+    def kept(self) -> list[str]:
+        """Return the channels the screening kept."""
+        return self.screening.kept
+
+
+def screen(bundles: Sequence[BundleLike], meta: ChannelMeta, holdout_fraction: float) -> Screened:
+    """Return the screening (ch. 5.4): every campaign trains the model (the neural comparison is beside it)."""
+    common = [c for c in channel_columns(bundles[0].temperatures) if all(c in b.temperatures for b in bundles)]
+    temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in bundles], ignore_index=True)
     # the training errors choose among near-duplicate sites (held-out points never steer the choice)
-    errs = [_training_errors(b.errors, b.meta.stages, opts.holdout_fraction) for b in train_bundles]
-    screening = screen_channels(temps, chan_meta, room, errors=errs)
-    _keep_gradient_corners(screening, screen_channels(temps, chan_meta, room), chan_meta)
-    kept = screening.kept
-    lap("screening")
+    errs = [_training_errors(b.errors, b.meta.stages, holdout_fraction) for b in bundles]
+    screening = screen_channels(temps, meta.chan_meta, meta.room, errors=errs)
+    _keep_gradient_corners(screening, screen_channels(temps, meta.chan_meta, meta.room), meta.chan_meta)
+    return Screened(common, temps, screening)
 
-    # 2. samples at the error points, with dT and lags of every channel a model may read
+
+def candidates(meta: ChannelMeta, screened: Screened, plan: FindingsPlan | None, opts: FitOptions) -> Candidates:
+    """Return what the stage fits may choose from: kept channels, structure members, screws, findings' terms."""
+    kept, structures, room = screened.kept, meta.structures, meta.room
     # a structure's mean (eq. 3.3) is over all its sites that read, kept or not
     members: dict[str, list[str]] = {}
-    dead = {c for c, why in screening.dropped.items() if why == "no readings" or why.startswith("constant")}
-    for c in common:
+    dropped = screened.screening.dropped
+    dead = {c for c, why in dropped.items() if why == "no readings" or why.startswith("constant")}
+    for c in screened.common:
         st = structures.get(c, "")
         if st and st != "unspecified" and c not in room and c not in dead:
             members.setdefault(st, []).append(c)
     members = {st: cs for st, cs in members.items() if len(cs) >= 2 and any(c in kept for c in cs)}
     screws = {ax: [c for c in kept if structures.get(c, "") in SCREW_STRUCTURES.get(AXIS_JOINT[ax], ())] for ax in AXES}
-    cands = Candidates(
-        list(kept),
-        structures,
-        locations,
-        members,
-        screws,
-        list(room),
-        tuple(opts.lag_taus_s),
-        list(plan.extras) if plan else [],
+    extras = list(plan.extras) if plan else []
+    return Candidates(
+        list(kept), structures, meta.locations, members, screws, list(room), tuple(opts.lag_taus_s), extras
     )
-    chosen = [c for cs in model_channels.values() for c in cs if c in common]
+
+
+@dataclass(frozen=True)
+class Samples:
+    """The error points with dT and lags of every channel a model may read, and the candidates."""
+
+    cands: Candidates
+    #: the channels read, with their reference temperatures (eq. 3.1)
+    channels: list[str]
+    reference: dict[str, float]
+    sample: Sample
+
+
+def build_fit_samples(campaigns: Campaigns, meta: ChannelMeta, screened: Screened, opts: FitOptions) -> Samples:
+    """Return the samples at the error points with the candidates' channels and lags."""
+    plan, kept = campaigns.plan, screened.kept
+    cands = candidates(meta, screened, plan, opts)
+    chosen = [c for cs in meta.model_channels.values() for c in cs if c in screened.common]
     extra_chans = list(plan.channels) if plan else []
-    channels = list(dict.fromkeys([*kept, *chosen, *(c for cs in members.values() for c in cs), *extra_chans]))
-    reference = _reference(bundles, channels)
-    lag_chans = [c for c in dict.fromkeys([*kept, *chosen]) if c not in room]
+    members = (c for cs in cands.members.values() for c in cs)
+    channels = list(dict.fromkeys([*kept, *chosen, *members, *extra_chans]))
+    reference = _reference(campaigns.bundles, channels)
+    lag_chans = [c for c in dict.fromkeys([*kept, *chosen]) if c not in meta.room]
     lags = [(c, t) for t in opts.lag_taus_s for c in lag_chans]
     lags += [lag for lag in (plan.lags if plan else []) if lag not in lags]
-    sample = build_samples(train_bundles, channels, None, lags, opts.holdout_fraction, origin)
-    lap("samples")
+    sample = build_samples(campaigns.bundles, channels, None, lags, opts.holdout_fraction, campaigns.origin)
+    return Samples(cands, channels, reference, sample)
 
-    # 3-4. allocation through the chain and per-link stepwise models
-    # the chain's fixed links (eq. 4.13): the lengths the machine's campaigns state, else Table A.1's
+
+@dataclass(frozen=True)
+class Allocation:
+    """The per-link models of the staged allocation through the chain (eq. 4.20), and its log."""
+
+    #: the chain's fixed links (eq. 4.13): the lengths the campaigns state, else Table A.1's
+    dims: dict[str, tuple[float, float, float]]
+    models: dict[tuple[str, str], ElementModel]
+    #: the document's ``allocation``: one row per stage, the physical terms, the joint adjustment
+    log: list[dict[str, Any]]
+
+
+def allocate_models(bundles: Sequence[BundleLike], samples: Samples, meta: ChannelMeta, opts: FitOptions) -> Allocation:
+    """Return the per-link stepwise models, allocated stage by stage (``fit_elements``)."""
     dims = chain_dims(bundles)
-    models, alloc = fit_elements(sample, cands, model_channels, opts, dims)
+    models, log = fit_elements(samples.sample, samples.cands, meta.model_channels, opts, dims)
     if not models:
         raise ValidationError("no error term had enough training samples to fit")
-    lap("allocation_and_regression")
-    adjustment: dict[str, Any] = {}
-    joint_out: dict[str, Any] = {}
+    return Allocation(dims, models, log)
+
+
+def _noise(bundles: Sequence[BundleLike]) -> dict[str, float]:
+    """Return the first campaign's stated noise ("len" mm, "ang" rad), where it states it."""
+    noise_meta = bundles[0].meta.noise
+    noise = {}
+    if noise_meta is not None and noise_meta.length_mm:
+        noise["len"] = float(noise_meta.length_mm)
+    if noise_meta is not None and noise_meta.angle_rad:
+        noise["ang"] = float(noise_meta.angle_rad)
+    return noise
+
+
+def physical_and_joint(
+    bundles: Sequence[BundleLike], samples: Samples, allocation: Allocation, opts: FitOptions
+) -> JointOutcome:
+    """Add the physical terms and re-estimate every coefficient together (in place on the models and log)."""
     priors: dict[tuple[str, str, Feature], PhysicalPrior] = {}
-    physics_terms = _physical_terms(models, cands, bundles, priors) if opts.joint_adjust and opts.physical_terms else []
+    models = allocation.models
+    physics_terms = (
+        _physical_terms(models, samples.cands, bundles, priors) if opts.joint_adjust and opts.physical_terms else []
+    )
     if physics_terms:
-        alloc.append({"physical_terms": physics_terms})
-    if opts.joint_adjust:
-        noise_meta = bundles[0].meta.noise
-        noise = {}
-        if noise_meta is not None and noise_meta.length_mm:
-            noise["len"] = float(noise_meta.length_mm)
-        if noise_meta is not None and noise_meta.angle_rad:
-            noise["ang"] = float(noise_meta.angle_rad)
-        adjustment = joint_adjust(sample, models, dims, noise, result=joint_out, priors=priors)
-        lap("joint_adjustment")
+        allocation.log.append({"physical_terms": physics_terms})
+    if not opts.joint_adjust:
+        return JointOutcome({})
+    return adjust_jointly(samples.sample, models, allocation.dims, _noise(bundles), priors=priors)
 
-    # 4b. what the link models leave along each measured line (the standard form), kept by validation
-    lines: list[LineFit] = []
-    composed = Composed({}, {})
-    if opts.lines:
-        D_rows = datum_rows(sample)
-        W_link = at_datum(workspace_error(sample.q, predict_models(models, sample), dims), D_rows)
-        for o in joint_out.get("campaign_offsets", []):
-            k = PARAMS.index(str(o["term"]))
-            W_link[(sample.frame["campaign"].to_numpy() == o["campaign"]) & (D_rows[:, k] < 0), k] += o["offset"]
 
-        # a link shared by several axes reads the channels of all of them: a line must be able to
-        # undo what the links put on it, so its pool holds those channels as well as its own
-        link_read = [c for m in models.values() for f in m.features for c in f.channels]
-        link_lags = [f for m in models.values() for f in m.features if f.kind == "lag"]
+@dataclass(frozen=True)
+class LinePools:
+    """The terms each measured line's correction may read (``models.lines``).
 
-        def line_channels(axis: str) -> list[str]:
-            # the user's selection of the line's channels is honoured (bundle model_channels), with the links'
-            have = sample.inputs.dT.columns
-            own = [c for c in (model_channels.get(axis) or kept) if c in have]
-            return list(dict.fromkeys([*own, *(c for c in link_read if c in have)]))
+    A link shared by several axes reads the channels of all of them: a line must be able to undo what
+    the links put on it, so its pool holds those channels as well as its own. The user's selection of
+    the line's channels is honoured (bundle ``model_channels``), with the links'.
+    """
 
-        def pool_of(axis: str) -> list[Feature]:
-            return line_pool(axis, line_channels(axis), [*cands.for_axes([axis], model_channels.get(axis)), *link_lags])
+    sample: Sample
+    models: Mapping[tuple[str, str], ElementModel]
+    cands: Candidates
+    model_channels: Mapping[str, Sequence[str]]
+    kept: Sequence[str]
 
-        def full_of(axis: str) -> list[Feature]:
-            # the standard model (spec section 2) plus what the links put on the line: their
-            # channels, position x dT of them (an angle acting through the line's lever) and lags
-            out = line_pool(axis, line_channels(axis), ())
-            out += list(dict.fromkeys(link_lags))
-            if any(f.kind == "direction" and f.label == axis for m in models.values() for f in m.features):
-                out.append(Feature("direction", label=axis))
-            return out
+    def _link_read(self) -> list[str]:
+        return [c for m in self.models.values() for f in m.features for c in f.channels]
 
-        def standard_of(axis: str) -> list[Feature]:
-            # the standard model of the bundle spec (section 2): position^1..3 and dT of the line's
-            # model_channels (the screened channels where the bundle names none), nothing else
-            have = sample.inputs.dT.columns
-            chans = [c for c in (model_channels.get(axis) or kept) if c in have]
-            return [Feature("position", power=p, label=axis) for p in (1, 2, 3)] + [Feature("dT", (c,)) for c in chans]
+    def _link_lags(self) -> list[Feature]:
+        return [f for m in self.models.values() for f in m.features if f.kind == "lag"]
 
-        lines = fit_lines(
-            sample.frame,
-            sample.q,
-            _directions(sample),
-            sample.inputs,
-            sample.frame[list(PARAMS)].to_numpy(float),
-            W_link,
-            pool_of,
-            opts,
-            full_of=full_of,
-            standard_of=standard_of,
-        )
-        composed = compose(lines, dims)
-        lap("lines")
+    def channels(self, axis: str) -> list[str]:
+        """Return the line's channels: its own (the user's selection, else the kept ones) and the links'."""
+        have = self.sample.inputs.dT.columns
+        own = [c for c in (self.model_channels.get(axis) or self.kept) if c in have]
+        return list(dict.fromkeys([*own, *(c for c in self._link_read() if c in have)]))
 
-    # 5. validation tables
-    offsets = list(joint_out.get("campaign_offsets", []))
-    validation, W_hat = validation_table(sample, models, dims, composed, offsets)
-    # table 6.3 with the lengths the machine's campaigns state, or an explicit "no geometry"
-    check = physical_check(models, structures, bundles, locations=locations, room=room)
-    physical = check.table
-    lap("validation")
+    def pool(self, axis: str) -> list[Feature]:
+        """Return the line's candidate terms."""
+        extra = [*self.cands.for_axes([axis], self.model_channels.get(axis)), *self._link_lags()]
+        return line_pool(axis, self.channels(axis), extra)
 
-    # 6. neural comparison (ch. 6.6): the same inputs to both models, the targets fixed in advance
-    # (options), both extrapolation directions, absolute readings only (models/neural.py)
+    def full(self, axis: str) -> list[Feature]:
+        """Return the standard model (spec section 2) plus what the links put on the line: their
+        channels, position x dT of them (an angle acting through the line's lever) and lags."""
+        out = line_pool(axis, self.channels(axis), ())
+        out += list(dict.fromkeys(self._link_lags()))
+        if any(f.kind == "direction" and f.label == axis for m in self.models.values() for f in m.features):
+            out.append(Feature("direction", label=axis))
+        return out
+
+    def standard(self, axis: str) -> list[Feature]:
+        """Return the standard model of the bundle spec (section 2): position^1..3 and dT of the line's
+        model_channels (the screened channels where the bundle names none), nothing else."""
+        have = self.sample.inputs.dT.columns
+        chans = [c for c in (self.model_channels.get(axis) or self.kept) if c in have]
+        return [Feature("position", power=p, label=axis) for p in (1, 2, 3)] + [Feature("dT", (c,)) for c in chans]
+
+
+@dataclass(frozen=True)
+class LineCorrections:
+    """What the link models leave along each measured line, kept by validation, and the composed corrections."""
+
+    lines: list[LineFit] = field(default_factory=list)
+    composed: Composed = field(default_factory=lambda: Composed({}, {}))
+
+
+def link_prediction(
+    sample: Sample, allocation: Allocation, campaign_offsets: Sequence[Mapping[str, Any]]
+) -> np.ndarray:
+    """Return the work space error the link models predict as the instruments read it (datums, campaigns' offsets)."""
+    D_rows = datum_rows(sample)
+    W_link = at_datum(workspace_error(sample.q, predict_models(allocation.models, sample), allocation.dims), D_rows)
+    for o in campaign_offsets:
+        k = PARAMS.index(str(o["term"]))
+        W_link[(sample.frame["campaign"].to_numpy() == o["campaign"]) & (D_rows[:, k] < 0), k] += o["offset"]
+    return W_link
+
+
+def line_corrections(
+    samples: Samples,
+    allocation: Allocation,
+    joint: JointOutcome,
+    meta: ChannelMeta,
+    screened: Screened,
+    opts: FitOptions,
+) -> LineCorrections:
+    """Return each measured line's correction over the standard terms (the standard form), kept by validation."""
+    if not opts.lines:
+        return LineCorrections()
+    sample = samples.sample
+    W_link = link_prediction(sample, allocation, joint.campaign_offsets)
+    pools = LinePools(sample, allocation.models, samples.cands, meta.model_channels, screened.kept)
+    lines = fit_lines(
+        sample.frame,
+        sample.q,
+        _directions(sample),
+        sample.inputs,
+        sample.frame[list(PARAMS)].to_numpy(float),
+        W_link,
+        pools.pool,
+        opts,
+        full_of=pools.full,
+        standard_of=pools.standard,
+    )
+    return LineCorrections(lines, compose(lines, allocation.dims))
+
+
+@dataclass(frozen=True)
+class Checked:
+    """Tables 6.1/6.2 (validation) and 6.3 (the physical check) of the fit."""
+
+    validation: pd.DataFrame
+    W_hat: np.ndarray
+    check: PhysicalCheck
+
+
+def validate(
+    bundles: Sequence[BundleLike],
+    samples: Samples,
+    allocation: Allocation,
+    joint: JointOutcome,
+    corrections: LineCorrections,
+    meta: ChannelMeta,
+) -> Checked:
+    """Return the validation tables, and table 6.3 with the lengths the campaigns state (or "no geometry")."""
+    offsets = list(joint.campaign_offsets)
+    validation, W_hat = validation_table(
+        samples.sample, allocation.models, allocation.dims, corrections.composed, offsets
+    )
+    check = physical_check(allocation.models, meta.structures, bundles, locations=meta.locations, room=meta.room)
+    return Checked(validation, W_hat, check)
+
+
+def compare_neural(
+    bundles: Sequence[BundleLike], meta: ChannelMeta, screened: Screened, opts: FitOptions
+) -> list[NeuralComparison]:
+    """Return the neural comparison (ch. 6.6): the same inputs to both models, the targets fixed in advance
+    (options), both extrapolation directions, absolute readings only (models/neural.py)."""
     neural: list[NeuralComparison] = []
-    if opts.network:
-        targets = list(opts.network_targets)
-        if targets == ["all"]:
-            seen = pd.concat([b.errors[["axis", "term"]] for b in bundles]).drop_duplicates()
-            targets = [f"{a}/{t}" for a, t in sorted(map(tuple, seen.to_numpy().tolist()))]
-        for target in targets:
-            # the user's sensor selection for the axis, else the screening's: the same for both models
-            net_channels = [c for c in model_channels.get(str(target).partition("/")[0], []) if c in common] or kept
-            neural += neural_comparisons(
-                bundles,
-                [target],
-                net_channels,
-                split=opts.network_split,
-                hidden=opts.network_hidden,
-                max_samples=opts.network_max_samples,
-                max_iter=opts.network_max_iter,
-                seed=opts.seed,
-            )
-        lap("network")
+    targets = list(opts.network_targets)
+    if targets == ["all"]:
+        seen = pd.concat([b.errors[["axis", "term"]] for b in bundles]).drop_duplicates()
+        targets = [f"{a}/{t}" for a, t in sorted(map(tuple, seen.to_numpy().tolist()))]
+    for target in targets:
+        # the user's sensor selection for the axis, else the screening's: the same for both models
+        chosen = meta.model_channels.get(str(target).partition("/")[0], [])
+        net_channels = [c for c in chosen if c in screened.common] or screened.kept
+        neural += neural_comparisons(
+            bundles,
+            [target],
+            net_channels,
+            split=opts.network_split,
+            hidden=opts.network_hidden,
+            max_samples=opts.network_max_samples,
+            max_iter=opts.network_max_iter,
+            seed=opts.seed,
+        )
+    return neural
 
-    # 7. virtual sensors (ch. 6.6, fig. 6.9)
-    vs = []
-    if opts.virtual_sensors and len(kept) >= 2:
-        train_t = temps[["time_s", *kept]]
-        vs = [s.to_dict() for s in fit_virtual_sensors(train_t, kept).values()]
-    lap("virtual_sensors")
 
-    # 8. the document
-    lo = temps[channels].min()
-    hi = temps[channels].max()
-    terms: list[dict[str, Any]] = []  # the document's "terms" (registry.TermDoc)
-    for (element, param), m in models.items():
-        term = _term_doc(element, param, m, int(adjustment.get("points", 0)))
+def virtual_sensors(screened: Screened, opts: FitOptions) -> list[dict[str, Any]]:
+    """Return the virtual sensors of the kept channels (ch. 6.6, fig. 6.9), as the document holds them."""
+    kept = screened.kept
+    if not (opts.virtual_sensors and len(kept) >= 2):
+        return []
+    return [s.to_dict() for s in fit_virtual_sensors(screened.temps[["time_s", *kept]], kept).values()]
+
+
+@dataclass(frozen=True)
+class FitSteps:
+    """The results of every step of the pipeline, in order (what the document is built from)."""
+
+    campaigns: Campaigns
+    meta: ChannelMeta
+    screened: Screened
+    samples: Samples
+    allocation: Allocation
+    joint: JointOutcome
+    corrections: LineCorrections
+    checked: Checked
+    neural: list[NeuralComparison]
+    virtual_sensors: list[dict[str, Any]]
+
+
+def _document_terms(steps: FitSteps) -> list[dict[str, Any]]:
+    """Return the document's ``terms`` (``registry.TermDoc``): the link models, then the lines' corrections."""
+    terms: list[dict[str, Any]] = []
+    points = int(steps.joint.summary.get("points", 0))
+    for (element, param), m in steps.allocation.models.items():
+        term = _term_doc(element, param, m, points)
         if term is not None:
             terms.append(term)
-    _merge_lines(terms, composed, validation)
+    _merge_lines(terms, steps.corrections.composed, steps.checked.validation)
+    return terms
+
+
+def _document_inputs(steps: FitSteps, terms: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float]]:
+    """Return the document's ``inputs``: each channel read with its reference and the range seen in training."""
+    channels, kept, plan = steps.samples.channels, steps.screened.kept, steps.campaigns.plan
+    temps = steps.screened.temps
+    lo = temps[channels].min()
+    hi = temps[channels].max()
     used = sorted({c for t in terms for f in t["features"] for c in f.get("channels", [])})
     substituted = {c for sub in (plan.substitutions if plan else []) for c in (sub.channel, *sub.neighbours)}
-    inputs = {
+    reference = steps.samples.reference
+    return {
         c: {"reference": reference[c], "min": float(lo[c]), "max": float(hi[c])}
         for c in channels
         if c in used or c in kept or c in substituted
     }
-    findings: list[dict[str, Any]] = []
-    if plan is not None:
-        entered: dict[str, list[str]] = {}
-        for (element, param), m in models.items():
-            for f in m.features:
-                entered.setdefault(f.name, []).append(f"{element}.{param}")
-        findings = plan.records(entered)
-    doc = {
+
+
+def _findings_records(
+    plan: FindingsPlan | None, models: Mapping[tuple[str, str], ElementModel]
+) -> list[dict[str, Any]]:
+    """Return the document's ``findings``: each finding folded in and the models its terms entered."""
+    if plan is None:
+        return []
+    entered: dict[str, list[str]] = {}
+    for (element, param), m in models.items():
+        for f in m.features:
+            entered.setdefault(f.name, []).append(f"{element}.{param}")
+    return plan.records(entered)
+
+
+def build_document(steps: FitSteps, source_campaigns: Sequence[int | str] = ()) -> ModelDocument:
+    """Return the model document of a fit, validated (``document.validate_document``)."""
+    camp, alloc, checked, plan = steps.campaigns, steps.allocation, steps.checked, steps.campaigns.plan
+    terms = _document_terms(steps)
+    adjustment = steps.joint.summary
+    doc: dict[str, Any] = {
         "format": MODEL_FORMAT,
-        "machine": machine,
+        "machine": camp.machine,
         "created_at": now_iso(),
-        "source_campaigns": list(source_campaigns) or [b.name for b in bundles],
-        "kept_channels": list(kept),
-        "inputs": inputs,
-        "dims": {k: list(v) for k, v in dims.items()},
+        "source_campaigns": list(source_campaigns) or [b.name for b in camp.bundles],
+        "kept_channels": list(steps.screened.kept),
+        "inputs": _document_inputs(steps, terms),
+        "dims": {k: list(v) for k, v in alloc.dims.items()},
         "alpha_c_per_degC": ALPHA_C,
         "terms": terms,
-        "screening": screening.to_dict(),
-        "validation": validation.to_dict("records"),
-        "physical": physical.to_dict("records"),
-        "physical_check": check.to_dict(),
-        "virtual_sensors": vs,
-        "neural_comparison": [c.to_dict() for c in neural] or None,
-        "allocation": alloc + ([{"joint_adjustment": adjustment}] if adjustment else []),
-        "time_origin": origin.isoformat(),
+        "screening": steps.screened.screening.to_dict(),
+        "validation": checked.validation.to_dict("records"),
+        "physical": checked.check.table.to_dict("records"),
+        "physical_check": checked.check.to_dict(),
+        "virtual_sensors": steps.virtual_sensors,
+        "neural_comparison": [c.to_dict() for c in steps.neural] or None,
+        "allocation": alloc.log + ([{"joint_adjustment": adjustment}] if adjustment else []),
+        "time_origin": camp.origin.isoformat(),
         "substitutions": [sub.to_dict() for sub in (plan.substitutions if plan else [])],
-        "findings": findings,
-        "lines": [_line_record(fit, composed) for fit in lines],
+        "findings": _findings_records(plan, alloc.models),
+        "lines": [_line_record(fit, steps.corrections.composed) for fit in steps.corrections.lines],
     }
-    joint = joint_out.get("joint")
-    if joint is not None:  # the coefficients' covariance across terms, for the prediction interval (issue 21.4)
-        doc["joint_covariance"] = _joint_covariance(joint, terms)
-    travel = campaign_travel(bundles)
+    if steps.joint.joint is not None:  # the coefficients' covariance across terms, for the prediction interval
+        doc["joint_covariance"] = _joint_covariance(steps.joint.joint, terms)  # (issue 21.4)
+    travel = campaign_travel(camp.bundles)
     if travel:  # the machine's travel the campaigns state: the compensator's envelope (docs/compensate.md)
         doc["envelope"] = {"travel": travel, "source": "campaigns"}
-    document = validate_document(strict_json(doc))
-    lap("document")
-    return FitResult(
-        document,
-        screening,
-        models,
-        validation,
-        physical,
-        neural,
-        timings,
-        check.to_dict(),
-        joint_out.get("joint"),
-        list(joint_out.get("pinning", [])),
-    )
+    return validate_document(strict_json(doc))
+
+
+def _fit_bundles(
+    bundles: Sequence[BundleLike], opts: FitOptions, timer: Timer, sources: Sequence[int | str]
+) -> FitResult:
+    """Return the fitted model (the pipeline itself; see ``fit_bundles``): each step a typed result."""
+    campaigns = prepare_campaigns(bundles, opts)
+    timer.restart()
+    meta = channel_metadata(campaigns.bundles)
+    screened = screen(campaigns.bundles, meta, opts.holdout_fraction)
+    timer.lap("screening")
+    samples = build_fit_samples(campaigns, meta, screened, opts)
+    timer.lap("samples")
+    allocation = allocate_models(campaigns.bundles, samples, meta, opts)
+    timer.lap("allocation_and_regression")
+    joint = physical_and_joint(campaigns.bundles, samples, allocation, opts)
+    if opts.joint_adjust:
+        timer.lap("joint_adjustment")
+    corrections = line_corrections(samples, allocation, joint, meta, screened, opts)
+    if opts.lines:
+        timer.lap("lines")
+    checked = validate(campaigns.bundles, samples, allocation, joint, corrections, meta)
+    timer.lap("validation")
+    neural = compare_neural(campaigns.bundles, meta, screened, opts) if opts.network else []
+    if opts.network:
+        timer.lap("network")
+    sensors = virtual_sensors(screened, opts)
+    timer.lap("virtual_sensors")
+    steps = FitSteps(campaigns, meta, screened, samples, allocation, joint, corrections, checked, neural, sensors)
+    document = build_document(steps, sources)
+    timer.lap("document")
+    return FitResult.of(steps, document, timer.timings)
 
 
 def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd.DataFrame) -> None:
@@ -1573,12 +2072,11 @@ def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:
     return out
 
 
-def chain_dims(bundles: Sequence[Any]) -> dict[str, tuple[float, float, float]]:
+def chain_dims(bundles: Sequence[BundleLike]) -> dict[str, tuple[float, float, float]]:
     """Return the fixed link lengths (a, b, c) of the chain: Table A.1 with the machine's stated links over it.
 
     Campaigns that disagree on the links are refused (one machine has one geometry).
     """
-    from driftlab.physics.geometry import GEOMETRY_LINKS
 
     def xyz(v: Any) -> tuple[float, float, float]:
         x, y, z = v  # a link is (a, b, c): Table A.1, Geometry.links_mm
