@@ -242,41 +242,15 @@ def make_program(
         q0 = inverse_kinematics(c, n, dims)
         target = np.array([127.0, 127.0, -127.0])
         part_origin = (q0[:, :3].min(axis=0) + q0[:, :3].max(axis=0)) / 2 - target
-    # the reference pass up the centre (ch. 7.3), its CMM points at the 99 stations along v
-    ru, rv = np.full(CMM_ALONG, s.width_mm / 2), np.linspace(0.0, s.length_mm, CMM_ALONG)
-    rn = s.normal(ru, rv)
-    rc = s.point(ru, rv) + (s.tool_radius_mm - REFERENCE_DEPTH_MM) * rn
-    # between the passes: up 10 mm along the normal, up to a clearance plane 10 mm above the part's highest
-    # point, across (in steps of at most HOP_STEP_MM, the tool turning on the way) to above the raster's
-    # first point, down to 10 mm above it along its normal
-    clear = float(s.h1_mm + s.h2_mm + s.tool_radius_mm + 10.0)
-    up = rc[-1] + 10.0 * rn[-1]
-    a, b = np.array([up[0], up[1], clear]), np.array([c[0, 0], c[0, 1], clear])
-    k = max(1, int(np.ceil(np.linalg.norm(b - a) / HOP_STEP_MM)))
-    w = np.linspace(0.0, 1.0, k + 1)[:, None]
-    across_n = (1 - w) * rn[-1] + w * n[0]
-    hop_c = np.vstack([up, a + w * (b - a), c[0] + 10.0 * n[0]])
-    hop_n = np.vstack([rn[-1], across_n / np.linalg.norm(across_n, axis=1, keepdims=True), n[0]])
-    hop_uv = np.vstack([[ru[-1], rv[-1]], (1 - w) * [ru[-1], rv[-1]] + w * [uf[0], vf[0]], [uf[0], vf[0]]])
     # block 0: the rapid to 10 mm above the reference pass' first point; then the reference pass, the hop
     # and the raster, point by point
-    c = np.vstack([rc[:1] + 10.0 * rn[:1], rc, hop_c, c]) + np.asarray(part_origin, float)
-    n = np.vstack([rn[:1], rn, hop_n, n])
-    uf = np.r_[ru[0], ru, hop_uv[:, 0], uf]
-    vf = np.r_[rv[0], rv, hop_uv[:, 1], vf]
-    first = 1 + CMM_ALONG + len(hop_c)  # block index of the raster's first point
-    q = inverse_kinematics(c, n, dims)
-    pose = q.copy()
-    pose[:, 3:] = np.rad2deg(pose[:, 3:])
-    pose[:, :3] = np.round(pose[:, :3], 4)
-    pose[:, 3:] = np.round(pose[:, 3:], 3)
-    lin = np.r_[0.0, np.linalg.norm(np.diff(pose[:, :3], axis=0), axis=1)]
-    rot = np.r_[0.0, np.linalg.norm(np.diff(pose[:, 3:], axis=0), axis=1)]
-    t_min = np.maximum(lin / FEED_MM_MIN, rot / ROTARY_FEED_DEG_MIN)  # minutes per block
-    feed = np.where(lin > 0, lin / np.where(t_min > 0, t_min, 1.0), FEED_MM_MIN)
-    feed = np.clip(np.floor(feed * 10) / 10, 1.0, FEED_MM_MIN)
-    block_s = np.where(lin > 0, 60.0 * lin / feed, 60.0 * rot / ROTARY_FEED_DEG_MIN)
-    block_s[0] = 0.0
+    head = _reference_and_hop(s, c[0], n[0], (uf[0], vf[0]))
+    c = np.vstack([head.centre, c]) + np.asarray(part_origin, float)
+    n = np.vstack([head.normal, n])
+    uf, vf = np.r_[head.uv[:, 0], uf], np.r_[head.uv[:, 1], vf]
+    first = len(head.centre)  # block index of the raster's first point
+    pose = _written_poses(inverse_kinematics(c, n, dims))
+    feed, block_s = _feeds(pose)
     lines = [
         "%",
         "(driftlab cutting test, thesis ch. 7.3: freeform surface, ball nose r3)",
@@ -313,6 +287,61 @@ def make_program(
         s,
         passes,
     )
+
+
+@dataclass(frozen=True)
+class _Head:
+    """The program's blocks before the raster: the rapid, the reference pass and the hop (part frame)."""
+
+    centre: np.ndarray  # (B, 3) tool centres, before the part's origin is added
+    normal: np.ndarray  # (B, 3) tool axes
+    uv: np.ndarray  # (B, 2) surface parameters
+
+
+def _reference_and_hop(s: MouldSurface, c0: np.ndarray, n0: np.ndarray, uv0: tuple[float, float]) -> _Head:
+    """Return the rapid, the reference pass up the centre (ch. 7.3) and the hop to above the raster's start.
+
+    The reference pass has its CMM points at the 99 stations along ``v``, ``REFERENCE_DEPTH_MM`` below
+    the surface. The hop: up 10 mm along the normal, up to a clearance plane 10 mm above the part's
+    highest point, across (in steps of at most HOP_STEP_MM, the tool turning on the way) to above the
+    raster's first point ``c0`` (normal ``n0``), down to 10 mm above it along its normal.
+    """
+    ru, rv = np.full(CMM_ALONG, s.width_mm / 2), np.linspace(0.0, s.length_mm, CMM_ALONG)
+    rn = s.normal(ru, rv)
+    rc = s.point(ru, rv) + (s.tool_radius_mm - REFERENCE_DEPTH_MM) * rn
+    clear = float(s.h1_mm + s.h2_mm + s.tool_radius_mm + 10.0)
+    up = rc[-1] + 10.0 * rn[-1]
+    a, b = np.array([up[0], up[1], clear]), np.array([c0[0], c0[1], clear])
+    k = max(1, int(np.ceil(np.linalg.norm(b - a) / HOP_STEP_MM)))
+    w = np.linspace(0.0, 1.0, k + 1)[:, None]
+    across_n = (1 - w) * rn[-1] + w * n0
+    end = [ru[-1], rv[-1]]
+    return _Head(
+        np.vstack([rc[:1] + 10.0 * rn[:1], rc, up, a + w * (b - a), c0 + 10.0 * n0]),
+        np.vstack([rn[:1], rn, rn[-1], across_n / np.linalg.norm(across_n, axis=1, keepdims=True), n0]),
+        np.vstack([[ru[0], rv[0]], np.column_stack([ru, rv]), end, (1 - w) * end + w * list(uv0), list(uv0)]),
+    )
+
+
+def _written_poses(q: np.ndarray) -> np.ndarray:
+    """Return the (B, 5) block targets as written: mm to 4 decimals, degrees to 3."""
+    pose = q.copy()
+    pose[:, 3:] = np.rad2deg(pose[:, 3:])
+    pose[:, :3] = np.round(pose[:, :3], 4)
+    pose[:, 3:] = np.round(pose[:, 3:], 3)
+    return pose
+
+
+def _feeds(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return each block's F (mm/min) and duration (s): the slower of 2000 mm/min and 300 deg/min (ch. 7.3)."""
+    lin = np.r_[0.0, np.linalg.norm(np.diff(pose[:, :3], axis=0), axis=1)]
+    rot = np.r_[0.0, np.linalg.norm(np.diff(pose[:, 3:], axis=0), axis=1)]
+    t_min = np.maximum(lin / FEED_MM_MIN, rot / ROTARY_FEED_DEG_MIN)  # minutes per block
+    feed = np.where(lin > 0, lin / np.where(t_min > 0, t_min, 1.0), FEED_MM_MIN)
+    feed = np.clip(np.floor(feed * 10) / 10, 1.0, FEED_MM_MIN)
+    block_s = np.where(lin > 0, 60.0 * lin / feed, 60.0 * rot / ROTARY_FEED_DEG_MIN)
+    block_s[0] = 0.0
+    return feed, block_s
 
 
 def _words(p: np.ndarray) -> str:
