@@ -58,7 +58,7 @@ class _Server:
         if self.close:
             conn.close()
         else:
-            time.sleep(1.0)
+            time.sleep(5.0)  # open well past any read's timeout here
             conn.close()
 
 
