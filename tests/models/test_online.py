@@ -178,7 +178,7 @@ def test_two_concurrent_updates_both_land(store_url):
                         }
                     ]
                 )
-                read = s.online_state
+                read = s.online.get  # what store_update reads the state through (the on-line repository)
                 first = [True]
 
                 def read_then_meet(machine):  # both threads read the same state before either writes
@@ -188,7 +188,7 @@ def test_two_concurrent_updates_both_land(store_url):
                         barrier.wait(timeout=30)
                     return row
 
-                s.online_state = read_then_meet
+                s.online.get = read_then_meet  # type: ignore[method-assign]
                 attempts.append(store_update(s, MACHINE, probe, [t0 + timedelta(minutes=k)]).attempts)
         except BaseException as exc:  # reported below
             errors_seen.append(exc)
