@@ -515,10 +515,14 @@ class CmmPoints:
 
 def cmm_points(program: CuttingProgram, log_: Sequence[ExecutedBlock]) -> CmmPoints:
     """Return the CMM points of a run from the controller's log (one executed block per program block)."""
+    return _block_points(program, log_, program.cmm_block.ravel())
+
+
+def _block_points(program: CuttingProgram, log_: Sequence[ExecutedBlock], idx: np.ndarray) -> CmmPoints:
+    """Return where and when the blocks ``idx`` ended, from the controller's log, with their design normals."""
     n_prog = program.pose_written.shape[0]
     if len(log_) != n_prog:
         raise ValidationError(f"the controller executed {len(log_)} blocks, the program has {n_prog}")
-    idx = program.cmm_block.ravel()
     all_target = np.array([b.target for b in log_])
     all_start = np.array([b.start for b in log_])
     q = all_target[idx].copy()
@@ -528,21 +532,11 @@ def cmm_points(program: CuttingProgram, log_: Sequence[ExecutedBlock]) -> CmmPoi
 
 
 def _normal_deviations(
-    vm: MachiningMachine,
-    program: CuttingProgram,
-    log_: Sequence[ExecutedBlock],
-    idx: np.ndarray,
-    dims: Mapping[str, Any],
+    vm: MachiningMachine, program: CuttingProgram, pts: CmmPoints, idx: np.ndarray, dims: Mapping[str, Any]
 ) -> np.ndarray:
-    """Return the normal deviations (mm) of the cut at the ends of blocks ``idx`` (controller's log)."""
-    all_start = np.array([b.start for b in log_])
-    all_target = np.array([b.target for b in log_])
-    q = all_target[idx].copy()
-    q[:, 3:] = np.deg2rad(q[:, 3:])
-    t_end = np.array([log_[i].t_end_s for i in idx])
-    direction = approach_directions(all_start, all_target)[idx]
-    real = tool_centre(q, true_errors(vm, t_end, q, direction), dims)
-    return np.einsum("ij,ij->i", real - program.centre[idx], program.normal[idx])
+    """Return the normal deviations (mm) of the cut at the ends of blocks ``idx`` (``pts``: where and when)."""
+    real = tool_centre(pts.q, true_errors(vm, pts.t_s, pts.q, pts.direction), dims)
+    return np.einsum("ij,ij->i", real - program.centre[idx], pts.normal)
 
 
 def align_on_reference(deviation: np.ndarray, reference: np.ndarray, surface: MouldSurface) -> np.ndarray:
@@ -575,15 +569,20 @@ def measure_surface(
     ``aligned`` (the CMM of ch. 7.3), the deviations are relative to the reference pass
     (``align_on_reference``); else they are from the design surface in the machine's own frame.
     """
-    if len(log_) != program.pose_written.shape[0]:
-        raise ValidationError(
-            f"the controller executed {len(log_)} blocks, the program has {program.pose_written.shape[0]}"
-        )
-    dev = _normal_deviations(vm, program, log_, program.cmm_block.ravel(), dims).reshape(program.cmm_block.shape)
-    if not aligned:
-        return dev
-    ref = _normal_deviations(vm, program, log_, program.reference_block, dims)
-    return align_on_reference(dev, ref, program.surface)
+    absolute, aligned_dev, _ = _surface(vm, program, log_, dims)
+    return aligned_dev if aligned else absolute
+
+
+def _surface(
+    vm: MachiningMachine, program: CuttingProgram, log_: Sequence[ExecutedBlock], dims: Mapping[str, Any]
+) -> tuple[np.ndarray, np.ndarray, CmmPoints]:
+    """Return the (99, 15) deviations before and after the alignment on the reference pass, and the CMM points."""
+    pts = cmm_points(program, log_)
+    idx = program.cmm_block.ravel()
+    absolute = _normal_deviations(vm, program, pts, idx, dims).reshape(program.cmm_block.shape)
+    ref_idx = program.reference_block
+    ref = _normal_deviations(vm, program, _block_points(program, log_, ref_idx), ref_idx, dims)
+    return absolute, align_on_reference(absolute, ref, program.surface), pts
 
 
 def approach_directions(start: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -765,10 +764,7 @@ def bench_guard(source: Any) -> Any:
 def _result(name: str, bench: CuttingBench, t0: float) -> RunResult:
     """Return the run's CMM figures from the controller's log."""
     log_ = bench.ctrl.log[bench.first_block :]
-    absolute = measure_surface(bench.vm, bench.program, log_, aligned=False)
-    ref = _normal_deviations(bench.vm, bench.program, log_, bench.program.reference_block, kin.TABLE_A1)
-    dev = align_on_reference(absolute, ref, bench.program.surface)
-    pts = cmm_points(bench.program, log_)
+    absolute, dev, pts = _surface(bench.vm, bench.program, log_, kin.TABLE_A1)
     # the thermocouple card's readings at each CMM point (what the compensator read then)
     scans = bench.vm.readings_array(pts.t_s)
     readings = {c: scans[:, k] for k, c in enumerate(machining.CHANNELS)}

@@ -50,7 +50,7 @@ from driftlab.models.document import ModelDocument
 from driftlab.models.features import Feature, Inputs, candidate_features, channel_columns, evaluate
 from driftlab.models.fitting import CONSTANT_PRIOR, build_samples, chain_dims
 from driftlab.models.structures import STRUCTURE_ELEMENT
-from driftlab.physics.kinematics import ELEMENTS, LINKS, PARAMS, workspace_error
+from driftlab.physics.kinematics import ELEMENTS, LINKS, PARAMS, parameter_jacobian
 from driftlab.physics.lag import first_order_lag
 from driftlab.vocabulary import AXES
 
@@ -285,13 +285,7 @@ def jacobians(
     q: np.ndarray, keys: Sequence[tuple[str, str]], dims: Mapping[str, tuple[float, float, float]]
 ) -> dict[tuple[str, str], np.ndarray]:
     """Return dW/dp (N, 6) of every (element, parameter) at poses ``q`` (eq. 4.12 to first order)."""
-    eps = 1e-6
-    out = {}
-    for e, p in keys:
-        unit = np.zeros((q.shape[0], 6))
-        unit[:, PARAMS.index(p)] = eps
-        out[(e, p)] = workspace_error(q, {e: unit}, dims) / eps
-    return out
+    return {(e, p): parameter_jacobian(q, e, PARAMS.index(p), dims) for e, p in keys}
 
 
 class RowBuilder:

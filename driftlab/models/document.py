@@ -17,7 +17,7 @@ from driftlab.errors import ValidationError
 from driftlab.jsonsafe import strict_json
 from driftlab.models.envelope import Envelope
 from driftlab.models.features import Feature, Inputs, design_matrix, required_lags
-from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, workspace_error
+from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, ElementErrors, parameter_jacobian, workspace_error
 from driftlab.physics.lag import first_order_lag
 from driftlab.physics.thermal import ALPHA_C
 
@@ -467,7 +467,7 @@ def predict_workspace_sd(
         if t.residual_variance is not None:
             resid[k] = max(resid[k], float(t.residual_variance))
         X = design_matrix([f.feature() for f in t.features], inp, q, d).to_numpy(float)
-        J = _element_jacobian(q, t.element, k, dims)
+        J = parameter_jacobian(q, t.element, k, dims)
         cols = [where.get((t.element, t.param, f.name)) for f in t.features]
         for j, c in enumerate(cols):
             if c is not None:
@@ -489,11 +489,3 @@ def predict_workspace_sd(
     if residual:
         var += resid[None, :]
     return np.sqrt(var)
-
-
-def _element_jacobian(q: np.ndarray, element: str, k: int, dims: Mapping[str, Any]) -> np.ndarray:
-    """Return (N, 6) dW / dp: the work-space error per unit of one parameter of one element (eq. 4.12, first order)."""
-    eps = 1e-6
-    unit = np.zeros((q.shape[0], 6))
-    unit[:, k] = eps
-    return workspace_error(q, {element: unit}, dims) / eps

@@ -58,7 +58,7 @@ from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT, STRU
 from driftlab.models.uncertainty import JointFit, Pinning, ar1_inflation
 from driftlab.models.virtual_sensor import fit_virtual_sensors
 from driftlab.physics.geometry import GEOMETRY_LINKS
-from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, workspace_error
+from driftlab.physics.kinematics import ELEMENTS, PARAMS, TABLE_A1, allocate, parameter_jacobian, workspace_error
 from driftlab.physics.thermal import ALPHA_C
 from driftlab.vocabulary import AXES, term_unit
 from driftlab.vocabulary import ROTATIONS as ANGLES
@@ -1041,15 +1041,11 @@ def _noise_weights(noise: Mapping[str, float] | None) -> np.ndarray:
 
 def _chain_jacobians(sample: Sample, keys: Sequence[tuple[str, str]], dims: Dims) -> dict[tuple[str, int], np.ndarray]:
     """Return d W / d p_(e,k) at every pose (first order, around zero error), per modelled (element, param)."""
-    n = len(sample.frame)
-    eps = 1e-6
-    jac: dict[tuple[str, int], np.ndarray] = {}
-    for e in sorted({k[0] for k in keys}):
-        for k in sorted({PARAMS.index(kk[1]) for kk in keys if kk[0] == e}):
-            unit = np.zeros((n, 6))
-            unit[:, k] = eps
-            jac[(e, k)] = workspace_error(sample.q, {e: unit}, dims) / eps
-    return jac
+    return {
+        (e, k): parameter_jacobian(sample.q, e, k, dims)
+        for e in sorted({k[0] for k in keys})
+        for k in sorted({PARAMS.index(kk[1]) for kk in keys if kk[0] == e})
+    }
 
 
 def _campaign_nuisances(camp: np.ndarray, train: np.ndarray, mask: np.ndarray, D: np.ndarray) -> list[tuple[int, int]]:

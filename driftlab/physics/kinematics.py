@@ -528,6 +528,17 @@ def workspace_error(q: np.ndarray, errors: ElementErrors | None, dims: Mapping[s
     return htm_to_params(workspace_error_htm(q, errors, dims))
 
 
+def parameter_jacobian(q: np.ndarray, element: str, k: int, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray:
+    """Return (N, 6) dW/dp at poses ``q``: the work-space error per unit of parameter ``k`` of ``element``.
+
+    Eq. 4.12 to first order around zero error, by a step of 1e-6 (rad or mm) in that one parameter.
+    """
+    eps = 1e-6
+    unit = np.zeros((np.atleast_2d(q).shape[0], 6))
+    unit[:, k] = eps
+    return workspace_error(q, {element: unit}, dims) / eps
+
+
 def _chain_product(
     q: np.ndarray, errs: dict[str, np.ndarray], dims: Mapping[str, Any], names: tuple[str, ...]
 ) -> np.ndarray:
