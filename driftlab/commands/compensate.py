@@ -41,6 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--resolution-mm", type=float, default=0.0025, help="linear positioning resolution (0.0025)")
     p.add_argument("--resolution-deg", type=float, default=0.001, help="rotary positioning resolution (0.001)")
+    p.add_argument(
+        "--hysteresis-steps",
+        type=float,
+        default=0.1,
+        help="send a correction step once it is 0.5 + this many steps away from what was sent (0.1; 0 rounds)",
+    )
     p.add_argument("--max-segment-mm", type=float, default=5.0, help="split G1 moves longer than this (5 mm)")
     p.add_argument("--max-segment-deg", type=float, default=5.0, help="split G1 rotations larger than this (5 deg)")
     p.add_argument("--low-water", type=int, default=4, help="refill the controller's buffer at this many blocks")
@@ -153,6 +159,8 @@ def _run(args: argparse.Namespace) -> int:
     start = _start(args.start)
     token = get_settings().api_token or None
     decimals = decimals_for(args.resolution_mm, args.resolution_deg)
+    if not 0.0 <= args.hysteresis_steps < 0.5:
+        raise ValidationError(f"--hysteresis-steps must be in [0, 0.5) steps, got {args.hysteresis_steps}")
 
     if args.port is None:
         if args.out is None:
@@ -184,6 +192,7 @@ def _run(args: argparse.Namespace) -> int:
             start=start,
             resolution_mm=args.resolution_mm,
             resolution_deg=args.resolution_deg,
+            hysteresis_steps=args.hysteresis_steps,
             max_segment_mm=args.max_segment_mm,
             max_segment_deg=args.max_segment_deg,
             guard=guard,
@@ -270,6 +279,7 @@ def _stream(
             temps,
             resolution_mm=args.resolution_mm,
             resolution_deg=args.resolution_deg,
+            hysteresis_steps=args.hysteresis_steps,
             max_segment_mm=args.max_segment_mm,
             max_segment_deg=args.max_segment_deg,
             max_age_s=args.max_age_s,

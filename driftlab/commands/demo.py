@@ -382,7 +382,7 @@ def _demo(args: argparse.Namespace) -> int:
     console.print(f"diagnosis names: [bold]{named}[/]")
     console.print(
         f"ordering uncompensated > off-line > on-line: "
-        f"{'[green]holds[/]' if report['ordering_holds'] else '[red]does not hold[/]'}"
+        f"{'[green]holds[/]' if report['ordering_holds'] else report['ordering']}"
     )
     console.print(f"report: {out / 'demo-report.html'} and {out / 'demo-report.json'} ({wall:.0f} s)")
     return 0

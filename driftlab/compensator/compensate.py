@@ -4,7 +4,9 @@ For every point of the program (block targets, and points inside long segments) 
 predicts the errors of the links and joints, ``physics.kinematics.compensate`` solves the axis
 commands that cancel them (angles first, then translations: eqs. 4.23-4.26), and the correction
 is quantised to the machine's resolution with the remainder carried over (ch. 7.2: small
-corrections are accumulated until they reach the positioning resolution instead of being sent).
+corrections are accumulated until they reach a level near the positioning resolution instead of
+being sent): a step goes out once the correction is more than half a step and a small hysteresis
+away from what was sent (``quantise_carry``).
 Angles come first (eq. 4.25): their corrections go onto the angular grid with the remainder carried
 over; the translations (eq. 4.26) then also take up what the angles on their grid leave at the
 tool (``rotary_lever``), and go onto the linear grid the same way.
@@ -64,6 +66,11 @@ _Options = TypeVar("_Options", bound="DataclassInstance")
 #: positioning resolution of the thesis machine (ch. 7.2; bundle v1 ``machine.resolution_*``)
 RESOLUTION_MM = 0.0025
 RESOLUTION_DEG = 0.001
+#: the quantiser's hysteresis beyond half a step, in steps (``quantise_carry``): a correction moves a
+#: whole step once it is 0.6 of a step from what was sent. Ch. 4 puts the strategy's limit at the
+#: resolution; waiting for a full step (hysteresis 0.5) lets a drifting correction lag by up to a step,
+#: half a step on average against the drift (1.25 um at 0.0025 mm), which the cutting test showed.
+QUANTISER_HYSTERESIS = 0.1
 
 #: one reading per channel (degC), or a frame of N rows aligned with the poses (with ``time_s``)
 Temperatures: TypeAlias = Mapping[str, float] | pd.DataFrame
@@ -320,26 +327,33 @@ def decimals_for(resolution_mm: float, resolution_deg: float) -> tuple[int, int]
     return max(4, dec(resolution_mm)), max(3, dec(resolution_deg))
 
 
-def quantise_carry(units: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
+def quantise_carry(
+    units: np.ndarray, state: np.ndarray | None = None, hysteresis: float = QUANTISER_HYSTERESIS
+) -> np.ndarray:
     """Return the whole steps (P, 5) sent for desired corrections ``units`` (P, 5) in resolution steps.
 
-    A step is sent only once the correction has moved a full resolution step away from what was
-    sent before; the remainder carries over (ch. 7.2). Per point: ``s = s_prev + trunc(u - s_prev)``,
-    i.e. ``s = clip(s_prev, floor(u), ceil(u))``, so ``|u - s| < 1`` always and a correction that
-    creeps up by less than a step sends nothing until it has accumulated one. ``state`` is the
-    step count sent before the first point (default 0).
+    A step is sent only once the correction has moved more than ``0.5 + hysteresis`` steps away from
+    what was sent before, and then as far as it takes to come back within that band; the remainder
+    carries over (ch. 7.2). Per point: ``s = clip(s_prev, ceil(u - b), floor(u + b))`` with
+    ``b = 0.5 + hysteresis``, so ``|u - s| <= b`` always: hysteresis 0 is rounding to the nearest
+    step, and noise in the correction smaller than the hysteresis never toggles a step. ``state`` is
+    the step count sent before the first point (default 0). ``hysteresis`` must be in [0, 0.5).
 
-    Vectorised: the window ``[floor u, ceil u]`` is at most one step wide, so ``s`` keeps its
-    previous value only while the window stays the same; whenever the window changes, ``s`` is
-    forced to its lower end (window moved up) or upper end (moved down), whatever came before.
+    Vectorised: the window ``[ceil(u - b), floor(u + b)]`` holds one or two whole steps (its width is
+    under 2), so ``s`` keeps its previous value only while the window stays the same; whenever the
+    window changes, ``s`` is forced to its lower end (window moved up) or upper end (moved down),
+    whatever came before.
     """
+    if not 0.0 <= hysteresis < 0.5:
+        raise ValueError(f"the quantiser's hysteresis must be in [0, 0.5) steps, got {hysteresis}")
     u = np.asarray(units, dtype=float)
     n = u.shape[0]
     s0 = np.zeros(u.shape[1], dtype=np.int64) if state is None else np.asarray(state, dtype=np.int64)
     if n == 0:
         return np.empty(u.shape, dtype=np.int64)
-    lo = np.floor(u).astype(np.int64)
-    hi = np.ceil(u).astype(np.int64)
+    band = 0.5 + hysteresis
+    lo = np.ceil(u - band).astype(np.int64)
+    hi = np.floor(u + band).astype(np.int64)
     forced_value = np.where(lo[1:] >= hi[:-1], lo[1:], hi[1:])
     same = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1]) & (hi[1:] > lo[1:])
     values = np.vstack([np.clip(s0, lo[0], hi[0])[None, :], forced_value])
@@ -420,6 +434,8 @@ class Grid:
     resolution_deg: float = RESOLUTION_DEG
     max_segment_mm: float = 5.0
     max_segment_deg: float = 5.0
+    #: ``quantise_carry``'s hysteresis beyond half a step (steps)
+    hysteresis_steps: float = QUANTISER_HYSTERESIS
 
     @classmethod
     def of(cls, options: Mapping[str, object]) -> Grid:
@@ -463,6 +479,7 @@ class CorrectKeywords(TypedDict, total=False):
 
     resolution_mm: float
     resolution_deg: float
+    hysteresis_steps: float
     state: np.ndarray | None
     prev_nominal: np.ndarray | None
     prev_direction: np.ndarray | None
@@ -527,12 +544,12 @@ def correct(
     # angles first (eq. 4.25): whole steps, the remainder carried over
     ang = desired[:, 3:] / step_rad
     whole = np.rint(ang)
-    ang_steps = quantise_carry(np.where(np.abs(ang - whole) < 1e-6, whole, ang), s0[3:])
+    ang_steps = quantise_carry(np.where(np.abs(ang - whole) < 1e-6, whole, ang), s0[3:], grid.hysteresis_steps)
     # then translations (eq. 4.26), taking up what the angles on their grid leave at the tool
     xyz = desired[:, :3] + rotary_lever(q_cmd, model.dims, ang_steps * step_rad - desired[:, 3:])
     lin = xyz / grid.resolution_mm
     whole = np.rint(lin)
-    xyz_steps = quantise_carry(np.where(np.abs(lin - whole) < 1e-6, whole, lin), s0[:3])
+    xyz_steps = quantise_carry(np.where(np.abs(lin - whole) < 1e-6, whole, lin), s0[:3], grid.hysteresis_steps)
     steps = np.hstack([xyz_steps, ang_steps])
     step_int = resolution_units(program, grid.resolution_mm, grid.resolution_deg)
     sent = points.nominal_int + steps * step_int
@@ -1338,6 +1355,7 @@ class StreamOptions(TypedDict, total=False):
     start: tuple[float, ...] | None
     resolution_mm: float
     resolution_deg: float
+    hysteresis_steps: float
     max_segment_mm: float
     max_segment_deg: float
     chunk_bytes: int

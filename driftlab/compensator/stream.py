@@ -355,6 +355,7 @@ class StreamerKeywords(TypedDict, total=False):
 
     resolution_mm: float
     resolution_deg: float
+    hysteresis_steps: float
     max_segment_mm: float
     max_segment_deg: float
     max_age_s: float

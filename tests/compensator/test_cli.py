@@ -92,6 +92,7 @@ def test_bad_block_is_one_line_error_and_nothing_is_written(files, tmp_path):
     [
         (["--machine", "other"], "model of machine m1, not other"),
         (["--start", "1,2"], "--start must be five numbers"),
+        (["--hysteresis-steps", "0.5"], "--hysteresis-steps must be in [0, 0.5)"),
         ([], "needs -o"),
     ],
 )
