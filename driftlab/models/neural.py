@@ -5,7 +5,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Protocol, TypedDict, Unpack
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict, Unpack, cast
 
 import numpy as np
 import pandas as pd
@@ -85,6 +85,17 @@ def fit_network(
     return NeuralModel(list(X.columns), lo, hi, y_mean, y_scale, net)
 
 
+class ExtrapolationRecord(TypedDict):
+    """The JSON form of an :class:`ExtrapolationResult` (the report's ``extrapolation``, fields in order)."""
+
+    regression_mm: float
+    network_mm: float
+    regression_in_range_mm: float
+    network_in_range_mm: float
+    shift_degC: float
+    n: int
+
+
 @dataclass
 class ExtrapolationResult:
     """The ch. 6.6 experiment: both models scored on data beyond the training range."""
@@ -96,9 +107,9 @@ class ExtrapolationResult:
     shift_degC: float
     n: int
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> ExtrapolationRecord:
         """Return the JSON form of the report's ``extrapolation`` field (the fields, in order)."""
-        return asdict(self)
+        return cast("ExtrapolationRecord", asdict(self))
 
 
 def extrapolation_errors(
@@ -245,6 +256,39 @@ def comparison_data(bundles: Sequence[BundleLike], target: str, channels: Sequen
     )
 
 
+class DirectionRecord(TypedDict):
+    """The JSON form of a :class:`DirectionResult` (its fields, in order)."""
+
+    direction: str
+    train: str
+    test: str
+    n_train: int
+    n_test: int
+    inputs: list[str]
+    regression_train: float
+    network_train: float
+    regression_test: float
+    network_test: float
+    beyond_range: float
+    max_excess_degC: float
+
+
+class NeuralComparisonRecord(TypedDict):
+    """The JSON form of a :class:`NeuralComparison`: one entry of the report's ``neural_comparison``."""
+
+    target: str
+    status: str
+    unit: str
+    split: str
+    channels: list[str]
+    campaigns: list[str]
+    excluded: dict[str, str]
+    offsets: list[str]
+    network_hidden: list[int]
+    note: str
+    directions: list[DirectionRecord]  # last: the fields above in order, then the directions
+
+
 @dataclass
 class DirectionResult:
     """One extrapolation direction: both models trained on one side, scored on the other."""
@@ -263,9 +307,9 @@ class DirectionResult:
     beyond_range: float
     max_excess_degC: float
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> DirectionRecord:
         """Return the JSON form."""
-        return dict(self.__dict__)
+        return cast("DirectionRecord", dict(self.__dict__))
 
 
 @dataclass
@@ -286,11 +330,11 @@ class NeuralComparison:
     network_hidden: list[int] = field(default_factory=list)
     note: str = ""
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> NeuralComparisonRecord:
         """Return the JSON form of one entry of the report's ``neural_comparison``."""
         out = {k: v for k, v in self.__dict__.items() if k != "directions"}
         out["directions"] = [d.to_dict() for d in self.directions]
-        return out
+        return cast("NeuralComparisonRecord", out)
 
 
 Direction = tuple[str, np.ndarray, np.ndarray, str, str]
