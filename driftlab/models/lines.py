@@ -34,12 +34,13 @@ import pandas as pd
 import statsmodels.api as sm
 from scipy.linalg import qr
 
-from driftlab.models.features import INTERCEPT, Feature, FeatureRecord, Inputs, design_matrix, session_terms
+from driftlab.models.features import INTERCEPT, Feature, Inputs, design_matrix, session_terms
 from driftlab.models.regression import StepwiseOptions, stepwise
 from driftlab.physics.kinematics import PARAMS, TABLE_A1, allocate
 from driftlab.vocabulary import AXES
 
 if TYPE_CHECKING:
+    from driftlab.models.features import FeatureRecord
     from driftlab.models.regression import StepwiseKnobs, StepwiseResult
 
 #: the element that carries the lines' corrections (its error reaches the tool through a fixed transform)
