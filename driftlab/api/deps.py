@@ -9,7 +9,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NotRequired, TypedDict
 
 from fastapi import Request
 from starlette.exceptions import HTTPException
@@ -25,9 +25,22 @@ def iso(dt: Any) -> str | None:
     return None if dt is None else dt.isoformat().replace("+00:00", "Z")
 
 
-def model_out(row: ModelVersionInfo, with_document: bool = True) -> dict[str, Any]:
+class ModelVersionJson(TypedDict):
+    """The JSON form of a registry row: ``schemas.ModelVersionOut``, or ``ModelSummary`` without the document."""
+
+    machine_id: str
+    version: int
+    status: str
+    created_at: str | None  # ISO 8601 UTC with a Z
+    retired_at: str | None
+    source_campaigns: list[int]
+    terms: int  # how many error-parameter models the document holds
+    document: NotRequired[dict[str, object]]  # the model document, its version filled in
+
+
+def model_out(row: ModelVersionInfo, with_document: bool = True) -> ModelVersionJson:
     """Return the JSON form of a registry row (ModelVersionOut, or ModelSummary without the document)."""
-    out: dict[str, Any] = {
+    out: ModelVersionJson = {
         "machine_id": row.machine_id,
         "version": row.version,
         "status": row.status,

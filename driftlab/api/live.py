@@ -25,13 +25,16 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from importlib import resources
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from driftlab.campaigns import live as q
+
+if TYPE_CHECKING:
+    from driftlab.campaigns.live import ChannelRow
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +56,7 @@ class _Tracked:
 
     status: str
     updated_at: str | None
-    channels: list[dict[str, Any]]
+    channels: list[ChannelRow]
     after_s: float | None
     after_seq: int
     #: the daemon stopped beating (kill -9): pages are told once, when it happens

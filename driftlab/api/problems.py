@@ -34,7 +34,7 @@ def problem_type(status: int) -> str:
     return f"urn:driftlab:problem:{slug}"
 
 
-def problem_body(status: int, detail: str, instance: str, **extra: Any) -> dict[str, Any]:
+def problem_body(status: int, detail: str, instance: str, **extra: object) -> dict[str, object]:
     """Return a problem document (type, title, status, detail, instance, plus extensions)."""
     try:
         title = HTTPStatus(status).phrase

@@ -16,14 +16,31 @@ import sys
 import tarfile
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 STATIC = Path(__file__).resolve().parent / "static"
 VENDOR = STATIC / "vendor"
 MANIFEST = VENDOR / "VENDOR.json"
 
 
-def manifest() -> dict[str, Any]:
+class VendoredPackage(TypedDict):
+    """One vendored npm package in VENDOR.json: version, licence, folder, tarball integrity, files' sha256."""
+
+    version: str
+    license: str
+    dir: str
+    integrity: str  # the registry's "sha512-<base64>" of the tarball
+    files: dict[str, str]  # path in the package -> hex sha256 of the copy
+
+
+class VendorManifest(TypedDict):
+    """VENDOR.json: what it is, and the vendored packages by name."""
+
+    about: str
+    packages: dict[str, VendoredPackage]
+
+
+def manifest() -> VendorManifest:
     """Return the vendoring manifest (package -> version, integrity, files with their sha256)."""
     return json.loads(MANIFEST.read_text(encoding="utf-8"))
 

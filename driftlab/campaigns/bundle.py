@@ -31,7 +31,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Literal, Protocol, TypeVar
+from typing import Any, Literal, Protocol, TypedDict, TypeVar, cast
 
 import numpy as np
 import pandas as pd
@@ -178,6 +178,20 @@ class SetupEntry(_Strict):
         return value
 
 
+class CampaignJson(TypedDict, total=False):
+    """campaign.json as plain JSON (:meth:`CampaignMeta.document`; docs/bundle.md): absent optional parts left out."""
+
+    format: str  # always there
+    machine: dict[str, object]
+    started_at: str  # ISO 8601 with its zone
+    channels: dict[str, dict[str, object]]
+    room_channels: list[str]
+    model_channels: dict[str, list[str]]
+    stages: list[dict[str, object]]
+    noise: dict[str, float]
+    setups: dict[str, dict[str, object]]
+
+
 class CampaignMeta(_Strict):
     """campaign.json of bundle v1 or v2: machine, channel map, room/model channels, stages, noise (v2: setups)."""
 
@@ -207,9 +221,9 @@ class CampaignMeta(_Strict):
             raise ValueError(f"started_at {value.isoformat()} is outside {lo.year}..{hi.year - 1}")
         return value
 
-    def document(self) -> dict[str, Any]:
+    def document(self) -> CampaignJson:
         """Return campaign.json as a JSON-ready dict (absent optional fields left out)."""
-        return self.model_dump(mode="json", exclude_none=True)
+        return cast("CampaignJson", self.model_dump(mode="json", exclude_none=True))
 
 
 def _locate_json(text: str) -> dict[tuple[Any, ...], int]:

@@ -9,13 +9,16 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Connection, Engine, create_engine, event, text
 from sqlalchemy.engine import make_url
 
 from driftlab.errors import DriftlabError, ValidationError
 from driftlab.resources import migrations_dir
+
+if TYPE_CHECKING:
+    from alembic.config import Config
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +138,7 @@ def include_name(name: str | None, type_: str, parent_names: Any) -> bool:
     return not ((name or "").startswith(QUEUE_TABLE_PREFIX) or is_partition_name(name))
 
 
-def alembic_config(connection: Connection | None = None) -> Any:
+def alembic_config(connection: Connection | None = None) -> Config:
     """Return an Alembic Config pointing at the absolute migrations folder (no alembic.ini needed)."""
     from alembic.config import Config
 
@@ -181,7 +184,7 @@ def upgrade(engine: Engine, revision: str = "head") -> str:
     return reached or ""
 
 
-def store_engine(db_url: str | None) -> Any:
+def store_engine(db_url: str | None) -> Engine:
     """Return the SQLAlchemy engine of the campaign store at db_url (schema brought up to date)."""
     from sqlalchemy.exc import OperationalError
 

@@ -19,8 +19,9 @@ Error rows carry ``seq``: a reader skips any it already has. Both make overlappi
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
-from typing import Any
+from typing import Any, TypedDict, cast
 
 from sqlalchemy import Engine, and_, func, or_, select
 from sqlalchemy.orm import Session
@@ -39,7 +40,48 @@ def bucket_width(window_s: float = WINDOW_S, max_points: int = MAX_POINTS) -> fl
     return float(max(1, math.ceil(window_s / max_points)))
 
 
-def live_marks(engine: Engine, recent_done: bool = True) -> dict[int, dict[str, Any]]:
+class LiveMark(TypedDict):
+    """A daemon campaign on show: its status, last commit and staleness (what the live hub compares)."""
+
+    status: str
+    updated_at: str | None
+    time_s: float | None
+    stale: bool
+
+
+class ChannelRow(TypedDict):
+    """A campaign's thermocouple as the live page lists it."""
+
+    id: int
+    name: str
+    location: str
+    structure: str  # "unspecified" when the campaign names none
+    room: bool
+
+
+class TemperatureBuckets(TypedDict):
+    """Mean temperatures per bucket of ``width_s``: bucket numbers, latest scan times, per channel values."""
+
+    width_s: float
+    b: list[int]
+    t: list[float]
+    values: dict[str, list[float | None]]  # None where every reading was missing
+
+
+class ErrorColumns(TypedDict):
+    """Error readings column by column, in ``seq`` order (mm or rad; positions deg for A, B)."""
+
+    seq: list[int]
+    t: list[float]
+    axis: list[str]
+    term: list[str]
+    position: list[float]
+    direction: list[int]
+    value: list[float]
+    sweep: list[int]
+
+
+def live_marks(engine: Engine, recent_done: bool = True) -> dict[int, LiveMark]:
     """Return, per daemon campaign on show, its status, last commit and staleness (change detection).
 
     On show: every running campaign and, with ``recent_done``, the latest daemon campaign whatever
@@ -239,7 +281,7 @@ def _health(cur: dict[str, Any], last_scan: dict[str, Any] | None) -> dict[str, 
     }
 
 
-def channels(engine: Engine, campaign_id: int) -> list[dict[str, Any]]:
+def channels(engine: Engine, campaign_id: int) -> list[ChannelRow]:
     """Return the campaign's thermocouples in scan order: name, location, structure, room flag, id."""
     with Session(engine) as s:
         rows = (
@@ -260,15 +302,15 @@ def channels(engine: Engine, campaign_id: int) -> list[dict[str, Any]]:
 
 
 def temperature_buckets(
-    engine: Engine, campaign_id: int, chans: list[dict[str, Any]], after_s: float | None, width_s: float
-) -> dict[str, Any]:
+    engine: Engine, campaign_id: int, chans: Sequence[ChannelRow], after_s: float | None, width_s: float
+) -> TemperatureBuckets:
     """Return the mean temperature of each channel per bucket of ``width_s`` after ``after_s`` (None: all).
 
     ``{"width_s", "b": [...], "t": [...], "values": {channel: [...]}}`` with buckets in time order;
     ``t`` is the latest scan in the bucket; a value is None where every reading was missing.
     """
     ids = {c["id"]: c["name"] for c in chans}
-    out: dict[str, Any] = {"width_s": width_s, "b": [], "t": [], "values": {c["name"]: [] for c in chans}}
+    out: TemperatureBuckets = {"width_s": width_s, "b": [], "t": [], "values": {c["name"]: [] for c in chans}}
     if not ids:
         return out
     ts = sc.TemperatureSample
@@ -301,7 +343,7 @@ def error_readings(
     after_seq: int | None = None,
     since_s: float | None = None,
     limit: int = MAX_ERRORS,
-) -> dict[str, list[Any]]:
+) -> ErrorColumns:
     """Return the error readings after ``after_seq`` (or from campaign time ``since_s``), at most ``limit``,
     latest kept.
 
@@ -319,7 +361,7 @@ def error_readings(
     with Session(engine) as s:
         rows = s.execute(q).all()[::-1]
     keys = ("seq", "t", "axis", "term", "position", "direction", "value", "sweep")
-    return {k: [r[i] for r in rows] for i, k in enumerate(keys)}
+    return cast("ErrorColumns", {k: [r[i] for r in rows] for i, k in enumerate(keys)})
 
 
 def latest_seq(engine: Engine, campaign_id: int) -> int:
@@ -354,7 +396,7 @@ def snapshot(
 
 
 def update(
-    engine: Engine, campaign_id: int, chans: list[dict[str, Any]], after_s: float | None, after_seq: int, width_s: float
+    engine: Engine, campaign_id: int, chans: Sequence[ChannelRow], after_s: float | None, after_seq: int, width_s: float
 ) -> dict[str, Any] | None:
     """Return a campaign's header with the temperature buckets from the one holding ``after_s`` and errors
     after ``after_seq``."""

@@ -11,7 +11,7 @@ rather than overwrite each other.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 from sqlalchemy import Connection, insert, select, update
 
@@ -22,6 +22,18 @@ from driftlab.errors import ConflictError
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
     from datetime import datetime
+
+
+class OnlineStateValues(TypedDict):
+    """The on-line state row's values (without machine and version)."""
+
+    model_version_id: int | None
+    model_version: int
+    lam: float
+    n_updates: int
+    theta: dict[str, list[float]]  # per probed term
+    p: dict[str, list[list[float]]]
+    updated_at: datetime
 
 
 @dataclass(frozen=True)
@@ -36,7 +48,7 @@ class OnlineUpdate:
     theta: dict[str, Any]
     p: dict[str, Any]
 
-    def values(self, now: datetime) -> dict[str, Any]:
+    def values(self, now: datetime) -> OnlineStateValues:
         """Return the row's values (without machine and version) as of ``now``."""
         return {
             "model_version_id": self.model_version_id,
@@ -110,7 +122,7 @@ class OnlineStateRepository(Repository):
             return _online(row), ids
 
 
-def _write_state(conn: Connection, machine_id: str, seen_version: int | None, values: dict[str, Any]) -> None:
+def _write_state(conn: Connection, machine_id: str, seen_version: int | None, values: OnlineStateValues) -> None:
     """Insert or update the state row from ``seen_version`` (StaleOnlineState when it moved on)."""
     st = sc.OnlineState
     current = conn.execute(select(st.version).where(st.machine_id == machine_id)).scalar()

@@ -36,7 +36,7 @@ import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import UTC, date, datetime, timedelta
-from typing import Any
+from typing import TypedDict
 
 from sqlalchemy import Connection, Engine, text
 
@@ -239,9 +239,16 @@ def leaf(conn: Connection, table: str, day: int) -> str | None:
     return next((p.name for p in partitions(conn, table) if p.covers(day)), None)
 
 
-def describe(conn: Connection) -> list[dict[str, Any]]:
+#: one partition of a reading table: its range of campaign-start dates (None: unbounded, the default
+#: partition) and its size (the functional form, since ``from`` is a keyword)
+PartitionRow = TypedDict(
+    "PartitionRow", {"table": str, "partition": str, "from": str | None, "to": str | None, "bytes": int}
+)
+
+
+def describe(conn: Connection) -> list[PartitionRow]:
     """Return every partition of the reading tables with its range of campaign-start dates and its size."""
-    out = []
+    out: list[PartitionRow] = []
     for table in PARTITIONED_TABLES:
         for p in partitions(conn, table):
             size = conn.execute(text("SELECT pg_total_relation_size(to_regclass(:n))"), {"n": p.name}).scalar()

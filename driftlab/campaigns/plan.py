@@ -38,7 +38,7 @@ import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Final, Literal
+from typing import Annotated, Any, Final, Literal, TypedDict
 
 import pydantic
 import yaml
@@ -145,6 +145,18 @@ class Sweep(_Strict):
     def length_s(self) -> float:
         """Return how long one sweep takes."""
         return len(self.points()) * self.point_s
+
+
+class BundleStage(TypedDict):
+    """A plan's stage as a bundle v1 campaign.json record (the stage table's row)."""
+
+    name: str
+    start_s: float
+    end_s: float
+    heat_source: str
+    axis: str
+    spindle_rpm: float
+    feed_mm_min: float
 
 
 class Stage(_Strict):
@@ -473,7 +485,7 @@ class Plan(_Strict):
                 m += 1
         return out
 
-    def bundle_stages(self) -> list[dict[str, Any]]:
+    def bundle_stages(self) -> list[BundleStage]:
         """Return the stages as bundle v1 campaign.json records."""
         return [
             {

@@ -10,10 +10,14 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from datetime import UTC, datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 from driftlab.labels import display_unit
+
+if TYPE_CHECKING:
+    from sqlalchemy import Engine
 
 #: how often a running daemon writes its heartbeat (s)
 HEARTBEAT_S = 10.0
@@ -63,7 +67,82 @@ def _iso(t: datetime | None) -> str | None:
     return None if t is None else t.astimezone(UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
-def campaign_status(engine: Any, campaign: str | int | None = None) -> list[dict[str, Any]]:
+class StageStatus(TypedDict):
+    """The stage a daemon campaign is in."""
+
+    ordinal: int
+    name: str
+    heat_source: str
+    start_s: float
+    end_s: float | None
+    status: str
+
+
+class AcquisitionCount(TypedDict):
+    """How far a daemon campaign got: scans and sweep points stored of those planned, campaign time."""
+
+    scans: int
+    n_scans: int
+    points: int
+    n_points: int
+    fraction: float
+    time_s: float | None
+    total_s: float | None
+
+
+class LastScan(TypedDict):
+    """The latest thermocouple scan a campaign stored (None where a channel was open or flagged)."""
+
+    t_s: float
+    values: dict[str, float | None]
+
+
+class LastPoint(TypedDict):
+    """The latest error sweep point a campaign stored, per term (None where the reading failed)."""
+
+    t_s: float
+    axis: str
+    position: float
+    direction: int
+    values: dict[str, float | None]
+
+
+class Fault(TypedDict):
+    """An instrument fault the daemon recorded."""
+
+    t_s: float
+    step: str
+    instrument: str
+    message: str
+
+
+class Faults(TypedDict):
+    """How many faults a campaign had, and the last few."""
+
+    count: int
+    recent: list[Fault]
+
+
+class CampaignStatus(TypedDict):
+    """The status of one daemon campaign (``driftlab daemon status``)."""
+
+    campaign_id: int
+    name: str
+    machine: str
+    status: str
+    mode: str | None  # "sim" or "instruments"
+    stage: StageStatus | None
+    stages: int
+    progress: AcquisitionCount
+    last_scan: LastScan | None
+    last_point: LastPoint | None
+    faults: Faults
+    updated_at: str | None
+    heartbeat_at: str | None
+    stale_since: str | None
+
+
+def campaign_status(engine: Engine, campaign: str | int | None = None) -> list[CampaignStatus]:
     """Return the status of daemon campaigns (all, or one by id or name): stage, progress, last readings, faults."""
     from sqlalchemy import select
 
@@ -80,7 +159,7 @@ def campaign_status(engine: Any, campaign: str | int | None = None) -> list[dict
         q = q.where(sc.Campaign.name == campaign)
     from sqlalchemy.orm import Session
 
-    out = []
+    out: list[CampaignStatus] = []
     with Session(engine) as conn:
         rows = conn.execute(q).all()
         for camp, prog in rows:
@@ -139,14 +218,14 @@ def campaign_status(engine: Any, campaign: str | int | None = None) -> list[dict
     return out
 
 
-def format_status(rows: list[dict[str, Any]]) -> str:
+def format_status(rows: Sequence[CampaignStatus]) -> str:
     """Return the status rows as a few human-readable lines per campaign."""
     if not rows:
         return "no daemon campaigns in the store"
     lines = []
     for r in rows:
         p = r["progress"]
-        st = r["stage"] or {}
+        st = r["stage"]
         state = r["status"] if not r.get("stale_since") else f"running, stale since {r['stale_since']}: no daemon"
         lines.append(
             f"{r['campaign_id']:>4}  {r['name']}  [{state}]  machine {r['machine']}  "

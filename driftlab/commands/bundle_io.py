@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 from driftlab.commands.db import add_db_option
+
+if TYPE_CHECKING:
+    from driftlab.campaigns.bundle import Bundle
+    from driftlab.campaigns.staging import StagedBundle
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -48,7 +52,26 @@ def _import(args: argparse.Namespace) -> int:
     return 0
 
 
-def import_summary(campaign_id: int, bundle: Any) -> dict[str, Any]:
+class ImportSummary(TypedDict):
+    """What an import stored (``driftlab import --json``)."""
+
+    campaign_id: int
+    name: str
+    machine: str
+    started_at: str
+    channels: int
+    room_channels: int
+    scans: int
+    temperature_readings: int
+    missing_readings: int
+    condition_rows: int
+    error_readings: int
+    error_terms: list[str]
+    stages: int
+    span_s: float
+
+
+def import_summary(campaign_id: int, bundle: Bundle | StagedBundle) -> ImportSummary:
     """Return what an import stored: machine, channels, readings, time span, stages, error terms.
 
     ``bundle`` is a Bundle or a StagedBundle: its tables are read a chunk at a time.
@@ -89,7 +112,7 @@ def import_summary(campaign_id: int, bundle: Any) -> dict[str, Any]:
     }
 
 
-def _print_import(s: dict[str, Any]) -> None:
+def _print_import(s: ImportSummary) -> None:
     """Print an import's summary as a short table."""
     from rich.table import Table
 

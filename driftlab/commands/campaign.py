@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from driftlab.commands.db import add_db_option
 from driftlab.labels import display_unit
 from driftlab.vocabulary import heat_source
+
+if TYPE_CHECKING:
+    from driftlab.campaigns.live import ChannelRow, ErrorColumns
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -125,7 +129,7 @@ def _bar(fraction: float, width: int = 30) -> Any:
     return Text.assemble(("\u2588" * n, "green"), ("\u2591" * (width - n), "dim"))
 
 
-def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, list[Any]]) -> Any:
+def render(head: dict[str, Any], chans: Sequence[ChannelRow], errs: ErrorColumns) -> Any:
     """Return the rich renderable of one campaign: stage and progress, temperatures by structure, errors, health."""
     from rich.console import Group
     from rich.table import Table
@@ -195,7 +199,7 @@ def render(head: dict[str, Any], chans: list[dict[str, Any]], errs: dict[str, li
     temps.add_column("range", justify="right")
     temps.add_column("thermocouples")
     values = latest.get("values") or {}
-    groups: dict[str, list[dict[str, Any]]] = {}
+    groups: dict[str, list[ChannelRow]] = {}
     for c in chans:
         groups.setdefault("room" if c["room"] else c["structure"], []).append(c)
     for g in sorted(groups):

@@ -5,11 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from driftlab.errors import ValidationError
 from driftlab.vocabulary import AXES
+
+if TYPE_CHECKING:
+    from driftlab.models.envelope import Envelope
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +105,7 @@ def _model_file(path: Path, machine: str | None) -> Any:
     return model
 
 
-def machine_file_envelope(path: Path | None) -> Any:
+def machine_file_envelope(path: Path | None) -> Envelope | None:
     """Return the envelope of a machine file (JSON, or YAML), or None without one."""
     if path is None:
         return None
@@ -212,7 +216,7 @@ def _run(args: argparse.Namespace) -> int:
     return _stream(args, start, decimals, token)
 
 
-def _report_extrapolation(extrapolated: dict[str, Any]) -> None:
+def _report_extrapolation(extrapolated: Mapping[str, Mapping[str, float]]) -> None:
     """Print one line per channel read beyond its fitted range (extrapolation allowed)."""
     for channel, d in extrapolated.items():
         print(

@@ -26,10 +26,13 @@ import sys
 import time
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from driftlab.errors import DriftlabError, InstrumentError, ValidationError
 from driftlab.resources import examples_dir
+
+if TYPE_CHECKING:
+    from driftlab.daq.sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -388,7 +391,7 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def with_wear(scenario: Any, um_per_day: float) -> Any:
+def with_wear(scenario: Scenario, um_per_day: float) -> Scenario:
     """Return ``scenario`` with its Z slideways wearing (catalogue ``drift`` on Z/dz, ch. 6.4.3), nothing else
     changed."""
     from driftlab.daq.sim.scenario import HiddenEffect

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import numpy as np
+    from matplotlib.figure import Figure
 
 RUN_NAMES = {"uncompensated": "without compensation", "offline": "off-line model", "online": "off-line + on-line model"}
 #: thesis ch. 7.3, mm
@@ -108,7 +109,7 @@ def surface_figure(deviations: dict[str, np.ndarray]) -> str:
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def surface_axes(deviations: dict[str, np.ndarray]) -> Any:
+def surface_axes(deviations: dict[str, np.ndarray]) -> Figure:
     """Return the matplotlib figure of the surface maps: one symmetric colour scale and one colour bar for all.
 
     The maps are comparable only on one scale: the compensated runs look as flat as they are, and each map's

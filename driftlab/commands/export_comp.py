@@ -184,12 +184,13 @@ def _run(args: argparse.Namespace) -> int:
         tmp.replace(path)
         written.append(str(path))
     notes = [*grid.notes, *export.notes]
+    described = describe(table)
     summary = {
         "out": str(args.out),
         "files": written,
         "controller": ctl.name,
         "format": ctl.name,
-        **describe(table),
+        **described,
         "travel": [t_lo, t_hi],
         "settings": export.settings,
         "notes": notes,
@@ -202,7 +203,7 @@ def _run(args: argparse.Namespace) -> int:
         print(
             f"wrote {', '.join(written)}: {ctl.title} of {axis}, {table.positions.size} points "
             f"{table.positions[0]:g}..{table.positions[-1]:g} {table.unit}, model {table.model}; "
-            f"largest correction {length_text(max(summary['max_forward'], summary['max_reverse']), table.unit)}"
+            f"largest correction {length_text(max(described['max_forward'], described['max_reverse']), table.unit)}"
         )
         for note in notes:
             print(f"  note: {note}")

@@ -11,7 +11,7 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypedDict
 
 if TYPE_CHECKING:  # the plan machinery (pydantic, the physics) loads only when a plan is checked
     from driftlab.campaigns.plan import Plan
@@ -63,7 +63,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     adv.set_defaults(func=_advise)
 
 
-def plan_report(plan: Plan) -> dict[str, Any]:
+class PlanReport(TypedDict):
+    """The check report of a valid plan (``driftlab plan check --json``)."""
+
+    plan: str
+    stages: int
+    duration_s: float
+    sweep_points: int
+    setups: dict[str, dict[str, object]]  # campaign.json's ``setups`` entries (bundle v2)
+    coverage: dict[str, list[str]]  # per motion-error term, the stages that measure it
+    measured: list[str]
+    missing: list[str]
+
+
+def plan_report(plan: Plan) -> PlanReport:
     """Return the check report of a valid plan: setups, coverage per term, missing terms, duration."""
     from driftlab.campaigns.setups import all_cells
 
@@ -80,7 +93,7 @@ def plan_report(plan: Plan) -> dict[str, Any]:
     }
 
 
-def format_report(report: dict[str, Any]) -> str:
+def format_report(report: PlanReport) -> str:
     """Return the report as a coverage table (axis x term: the first stage measuring it) and a summary."""
     from driftlab.campaigns.setups import TERMS, coverage_table
 

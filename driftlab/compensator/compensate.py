@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, fields, replace
 from decimal import Decimal
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO, TypeAlias, TypedDict, TypeVar
+from typing import TYPE_CHECKING, Any, BinaryIO, NotRequired, TypeAlias, TypedDict, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -664,6 +664,18 @@ class TemperatureTable:
 # ----------------------------------------------------------------------------- offline
 
 
+class OfflineSummary(TypedDict):
+    """The JSON summary of an :class:`OfflineResult`."""
+
+    blocks: int
+    points: int
+    max_correction: dict[str, float]
+    singular_points: int
+    model: str
+    temperatures: str
+    extrapolated: NotRequired[dict[str, dict[str, float]]]  # only when something was
+
+
 @dataclass(frozen=True)
 class OfflineResult:
     """A compensated program and what was done to it."""
@@ -678,9 +690,9 @@ class OfflineResult:
     #: channels read beyond their fitted range by more than the margin (extrapolation allowed): see ``guard``
     extrapolated: dict[str, dict[str, float]] = field(default_factory=dict)
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> OfflineSummary:
         """Return a JSON-ready summary (``extrapolated`` only when something was)."""
-        out = {
+        out: OfflineSummary = {
             "blocks": self.blocks,
             "points": self.points,
             "max_correction": self.max_correction,

@@ -48,7 +48,7 @@ import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, NotRequired, Protocol, TypedDict
 
 import httpx
 import numpy as np
@@ -58,6 +58,10 @@ from driftlab.compensator.compensate import ErrorModel
 from driftlab.compensator.gcode import parse_program
 from driftlab.compensator.guard import Guard
 from driftlab.compensator.stream import Streamer
+
+if TYPE_CHECKING:
+    from driftlab.compensator.stream import ModelSource
+    from driftlab.models.document import ModelDocument
 from driftlab.daemon import machining
 from driftlab.daemon.machining import ExecutedBlock, MachiningMachine, Scenario, SimSphere, true_errors
 from driftlab.daq.machine_link import SerialMachineLink
@@ -453,6 +457,35 @@ class OnlineModelSource:
 # ----------------------------------------------------------------------------- a run
 
 
+class ProbeCycleRecord(TypedDict):
+    """One probing cycle of the on-line run: when, and each sphere's measured drift (dx, dy, dz mm)."""
+
+    t_s: float
+    spheres: dict[str, list[float]]
+
+
+class RunSummary(TypedDict):
+    """The JSON-ready figures of one cutting run (a row of the ch. 7.3 table)."""
+
+    rmse_mm: float
+    max_mm: float
+    duration_min: float
+    blocks: int
+    probe_cycles: int
+    unaligned_rmse_mm: NotRequired[float]  # before the alignment on the reference pass, when known
+    stream: NotRequired[dict[str, int]]  # a streamed run: blocks_sent, recomputed, model_reloads
+
+
+class OfflineInterval(TypedDict):
+    """The off-line model's predicted interval of the cut beside what the CMM measured (mm)."""
+
+    z: float
+    predicted_rmse_mm: float
+    mean_half_width_mm: float
+    measured_rmse_mm: float
+    inside: float  # the share of CMM points inside their interval
+
+
 @dataclass
 class RunResult:
     """One cutting run: the CMM deviations and what the streaming did."""
@@ -461,8 +494,8 @@ class RunResult:
     deviation_mm: np.ndarray  # (CMM_ALONG, CMM_ACROSS) normal deviation from the design surface
     duration_s: float
     blocks: int
-    probes: list[dict[str, Any]] = field(default_factory=list)
-    stream: dict[str, Any] = field(default_factory=dict)
+    probes: list[ProbeCycleRecord] = field(default_factory=list)
+    stream: dict[str, int] = field(default_factory=dict)  # blocks_sent, recomputed, model_reloads
     #: where and when the CMM points were cut, and the card's readings then (channel -> (N,) degC)
     cmm: CmmPoints | None = None
     readings: dict[str, np.ndarray] = field(default_factory=dict)
@@ -479,17 +512,20 @@ class RunResult:
         """Return the largest absolute normal deviation."""
         return float(np.max(np.abs(self.deviation_mm)))
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> RunSummary:
         """Return the JSON-ready figures of the run."""
-        return {
+        out: RunSummary = {
             "rmse_mm": round(self.rmse_mm, 6),
             "max_mm": round(self.max_mm, 6),
             "duration_min": round(self.duration_s / 60.0, 2),
             "blocks": self.blocks,
             "probe_cycles": len(self.probes),
-            **({} if self.absolute_mm is None else {"unaligned_rmse_mm": round(rmse(self.absolute_mm), 6)}),
-            **({"stream": self.stream} if self.stream else {}),
         }
+        if self.absolute_mm is not None:
+            out["unaligned_rmse_mm"] = round(rmse(self.absolute_mm), 6)
+        if self.stream:
+            out["stream"] = self.stream
+        return out
 
 
 class CardTemperatures:
@@ -654,13 +690,13 @@ class CuttingBench:
         self.link.send_program([ln for ln in lines if ln.startswith("G0")], wait=True)
         self.clock.advance_to(self.lead_s)
 
-    def probe_cycle(self, online: OnlineUpdater, temps: Mapping[str, float]) -> dict[str, Any]:
+    def probe_cycle(self, online: OnlineUpdater, temps: Mapping[str, float]) -> ProbeCycleRecord:
         """Probe every sphere, feed the on-line model, return what was measured (ch. 6.4.3)."""
         # daq.probe loads scipy (+0.84 s of start-up, python -X importtime): only the on-line run probes
         from driftlab.daq.probe import TouchProbe
 
         probe = TouchProbe.on_link(self.link, stylus_radius_mm=self.ctrl.stylus_radius_mm, lobing=self.ctrl.lobing)
-        out: dict[str, Any] = {"t_s": self.clock.now(), "spheres": {}}
+        out: ProbeCycleRecord = {"t_s": self.clock.now(), "spheres": {}}
         for name, sph in self.ctrl.spheres.items():
             m = probe.probe_sphere(name, sph.centre, sph.radius_mm)
             measured = np.asarray(m.centre) - np.asarray(sph.centre)
@@ -717,7 +753,7 @@ def run_compensated(
     source = OnlineModelSource(models, online) if online is not None else models
     guard = bench_guard(source)  # the envelope checks of `driftlab compensate`: nothing leaves unchecked
     t0 = bench.clock.now()
-    probes: list[dict[str, Any]] = []
+    probes: list[ProbeCycleRecord] = []
     stream: dict[str, Any] = {"blocks_sent": 0, "recomputed": 0, "model_reloads": 0}
     pose = bench.program.start_pose
     # the lags of the readings (ch. 5.3) for the model's lagged terms, kept over the whole run
@@ -743,8 +779,9 @@ def run_compensated(
             guard=guard,
         )
         res = streamer.run(bench.link, low_water=4)
+        done: Mapping[str, object] = res.summary()
         for k in stream:
-            stream[k] += res.summary()[k]
+            stream[k] += done[k]
         pose = tuple(float(v) for v in bench.program.pose_written[e - 1])
     out = _result(name or ("off-line + on-line" if online is not None else "off-line"), bench, t0)
     out.probes = probes
@@ -752,7 +789,7 @@ def run_compensated(
     return out
 
 
-def bench_guard(source: Any) -> Any:
+def bench_guard(source: ModelSource) -> Guard:
     """Return the envelope guard of a model source on the bench: the model's envelope and fitted ranges,
     the virtual machine's travel (Tables A.3, A.4) taking precedence."""
     source.refresh()
@@ -773,8 +810,8 @@ def _result(name: str, bench: CuttingBench, t0: float) -> RunResult:
 
 
 def offline_interval(
-    document: Mapping[str, Any], run: RunResult, *, epoch_s: float | None = None, z: float = 1.96
-) -> dict[str, Any] | None:
+    document: ModelDocument | Mapping[str, object], run: RunResult, *, epoch_s: float | None = None, z: float = 1.96
+) -> OfflineInterval | None:
     """Return the off-line model's predicted interval of the cut beside what the CMM measured, or None.
 
     The document's term covariances and residual variances (``models.document.predict_workspace_sd``,
@@ -817,9 +854,9 @@ class CuttingTest:
     runs: dict[str, RunResult]
     program: CuttingProgram
     #: the off-line model's predicted interval beside the measured cut (``offline_interval``), when known
-    offline_predicted: dict[str, Any] | None = None
+    offline_predicted: OfflineInterval | None = None
 
-    def table(self) -> dict[str, dict[str, Any]]:
+    def table(self) -> dict[str, RunSummary]:
         """Return {run: {rmse_mm, max_mm, ...}} for uncompensated, offline and online."""
         return {k: r.summary() for k, r in self.runs.items()}
 

@@ -160,7 +160,7 @@ class Guard:
             if seen is None or worst > seen["beyond_degC"]:
                 self.extrapolated[channel] = {"value_degC": value, "beyond_degC": worst, "min": lo, "max": hi}
 
-    def report(self) -> dict[str, Any]:
+    def report(self) -> dict[str, dict[str, float]]:
         """Return what the run extrapolated (empty when nothing was)."""
         return {c: {k: round(v, 6) for k, v in d.items()} for c, d in self.extrapolated.items()}
 

@@ -23,7 +23,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, TypedDict
+from typing import TYPE_CHECKING, Any, NotRequired, Protocol, TypedDict
 
 import httpx
 import numpy as np
@@ -244,6 +244,19 @@ class _Ready:
 LATENCY_SAMPLE = 100_000
 
 
+class StreamSummary(TypedDict):
+    """The JSON summary of a :class:`StreamResult`: blocks, recomputations, reloads and latency (ms)."""
+
+    blocks_sent: int
+    recomputed: int
+    model_reloads: int
+    latency_ms_p50: float
+    latency_ms_p99: float
+    latency_ms_max: float
+    #: added by ``driftlab compensate --stream``: the channels read beyond their fitted range (``Guard.report``)
+    extrapolated: NotRequired[dict[str, dict[str, float]]]
+
+
 @dataclass
 class StreamResult:
     """What a streaming run did (in memory that does not grow with the program's length)."""
@@ -278,7 +291,7 @@ class StreamResult:
             return self.latency_max_s * 1e3
         return float(np.percentile(self.latency_s, pct) * 1e3)
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> StreamSummary:
         """Return a JSON-ready summary."""
         return {
             "blocks_sent": self.blocks_sent,

@@ -33,7 +33,7 @@ import math
 import re
 import time
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -42,6 +42,9 @@ from driftlab.daq.retry import GarbledReply, TransientError
 from driftlab.daq.transport import RawPort, SerialPort, close_quietly
 from driftlab.errors import InstrumentError, ValidationError
 from driftlab.vocabulary import AXES
+
+if TYPE_CHECKING:
+    from driftlab.daq.probe import SphereMeasurement
 
 DEFAULT_PORT = 5007
 PROTOCOL_VERSION = "1.1"
@@ -320,7 +323,7 @@ class LinuxCNCProbe:
         self.link.send_program([f"G0 X{start[0]:.4f} Y{start[1]:.4f} Z{start[2]:.4f}"])
         return hit
 
-    def probe_sphere(self, name: str, nominal_centre: Sequence[float], radius_mm: float) -> Any:
+    def probe_sphere(self, name: str, nominal_centre: Sequence[float], radius_mm: float) -> SphereMeasurement:
         """Return the sphere's centre from five G38.2 points (ch. 5.6), moving round it at a safe height."""
         self._top = float(nominal_centre[2]) + radius_mm + self._probe.stylus_radius_mm + self.safe_z_mm
         try:

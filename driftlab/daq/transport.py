@@ -11,10 +11,13 @@ import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol, TypeVar, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 from driftlab.daq.retry import GarbledReply, RetryPolicy, TransportTimeout, call_with_retry
 from driftlab.errors import InstrumentError, ValidationError
+
+if TYPE_CHECKING:
+    from pyvisa import ResourceManager
 
 T = TypeVar("T")
 
@@ -227,7 +230,7 @@ def visa_library_spec(library: str | None = None) -> str:
     return spec
 
 
-def visa_resource_manager(library: str | None = None) -> Any:
+def visa_resource_manager(library: str | None = None) -> ResourceManager:
     """Return a pyvisa ResourceManager on the configured backend (pyvisa-py, pyvisa-sim, or a vendor VISA)."""
     import pyvisa
 

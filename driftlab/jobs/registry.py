@@ -8,7 +8,7 @@ one, which stays readable.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 from driftlab.errors import NotFoundError, ValidationError
 from driftlab.models.document import ModelDocument, document_json, validate_document
@@ -38,7 +38,19 @@ def document_of(info: ModelVersionInfo) -> ModelDocument:
     )
 
 
-def list_models(store: Store, machine: str | None = None) -> list[dict[str, Any]]:
+class ModelRow(TypedDict):
+    """One stored model version as ``driftlab models list`` shows it."""
+
+    machine: str
+    version: int
+    status: str
+    created_at: str | None
+    source_campaigns: list[int]
+    terms: int
+    kept_channels: int
+
+
+def list_models(store: Store, machine: str | None = None) -> list[ModelRow]:
     """Return one summary row per stored version (machine, version, status, created, campaigns, size)."""
     machines = [machine] if machine else store.models.machine_ids()
     rows = [r for m in machines for r in store.models.versions(m)]

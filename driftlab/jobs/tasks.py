@@ -11,8 +11,8 @@ travelled.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, TypeAlias, TypedDict
 
 from driftlab.errors import DriftlabError, ValidationError
 from driftlab.jsonsafe import strict_json
@@ -20,7 +20,7 @@ from driftlab.jsonsafe import strict_json
 if TYPE_CHECKING:
     from driftlab.campaigns.store import JobInfo, Store
     from driftlab.models.document import ModelDocument
-    from driftlab.models.fitting import FitOptions, FitResult
+    from driftlab.models.fitting import FitOptions, FitReport, FitResult
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +43,17 @@ def one_line(exc: BaseException) -> str:
 
 
 # ----------------------------------------------------------------------------- bodies
+
+
+class DiagnoseJobResult(TypedDict):
+    """A diagnosis job's result: the campaign and its diagnosis report v1 (``diagnosis_report.to_json_dict``)."""
+
+    campaign_id: int
+    report: Mapping[str, object]
+
+
+#: a job's JSON result: a fit's report (with the registered ``model_version``) or a diagnosis
+JobResult: TypeAlias = "FitReport | DiagnoseJobResult"
 
 
 def fit_campaigns(
@@ -90,7 +101,7 @@ def fit_options(params: dict[str, Any], source: str = "fit job") -> FitOptions:
 
 def fit_job(
     store: Store, params: dict[str, Any], on_stage: OnStage | None = None, on_model: OnModel | None = None
-) -> dict[str, Any]:
+) -> FitReport:
     """Fit and register a model; return the fit report with the registered ``model_version``."""
     result, doc = fit_campaigns(
         store, params.get("campaigns", []), fit_options(params), progress=on_stage, envelope=params.get("envelope")
@@ -104,7 +115,7 @@ def fit_job(
 
 def diagnose_job(
     store: Store, params: dict[str, Any], on_stage: OnStage | None = None, on_model: OnModel | None = None
-) -> dict[str, Any]:
+) -> DiagnoseJobResult:
     """Diagnose one stored campaign; return ``{"campaign_id", "report"}`` (diagnosis report v1)."""
     from driftlab.models.diagnosis import diagnose_bundle
     from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
@@ -116,7 +127,7 @@ def diagnose_job(
     return {"campaign_id": ids[0], "report": diagnosis_json(result)}
 
 
-BODIES: dict[str, Callable[..., dict[str, Any]]] = {FIT: fit_job, DIAGNOSE: diagnose_job}
+BODIES: dict[str, Callable[..., JobResult]] = {FIT: fit_job, DIAGNOSE: diagnose_job}
 
 
 # ----------------------------------------------------------------------------- one recorded job
@@ -131,7 +142,7 @@ def execute(
     only_if_queued: bool = False,
     on_stage: OnStage | None = None,
     on_model: OnModel | None = None,
-) -> dict[str, Any] | None:
+) -> JobResult | None:
     """Run a recorded job to its end and record how it ended; return its result.
 
     Returns None when ``only_if_queued`` and the record was not queued (another process has it).

@@ -14,12 +14,15 @@ rotations are in rad; :func:`from_bundle_errors` converts.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 import pandas as pd
 
 from driftlab.errors import ValidationError
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 #: the axis figures of ISO 230-2:2014, in the order the report lists them
 FIGURES = ("A", "A_up", "A_down", "B", "B_mean", "E", "E_up", "E_down", "M", "R", "R_up", "R_down")
@@ -35,6 +38,21 @@ _TARGET_DECIMALS = 6  # targets equal to 1e-6 mm (deg) are the same target
 
 class PositioningRunError(ValidationError):
     """Readings that do not form ISO 230-2 bidirectional runs (unpaired runs, a target missing from a run)."""
+
+
+class TargetRow(TypedDict):
+    """One target of the ISO 230-2 report: the mean deviations, spreads, reversal and ranges there."""
+
+    position: float
+    xbar_up: float
+    xbar_down: float
+    s_up: float
+    s_down: float
+    B: float
+    xbar: float
+    R_up: float
+    R_down: float
+    R: float
 
 
 @dataclass(frozen=True)
@@ -82,9 +100,9 @@ class Iso230_2Result:
             "(--stage, --per-stage or --window)"
         )
 
-    def to_json_dict(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, float | list[TargetRow]]:
         """Return the report document: exactly the axis figures plus ``targets`` (one row per target)."""
-        rows = [
+        rows: list[TargetRow] = [
             {
                 "position": float(p),
                 "xbar_up": float(self.xbar_up[j]),
@@ -303,7 +321,7 @@ def display(value: float, unit: str) -> tuple[str, str]:
     return ("0.00" if text in ("-0.00", "-0.0") else text), u
 
 
-def plot(result: Iso230_2Result) -> Any:
+def plot(result: Iso230_2Result) -> Figure:
     """Return the standard's plot (matplotlib Figure): each run's deviations, the means and the mean +- 2s
     per direction, the figures beneath; the legend beside the plot, clear of the data."""
     import matplotlib

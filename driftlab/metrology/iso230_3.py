@@ -20,13 +20,16 @@ Translations in mm, rotations reported in arcsec (a bundle's rad converted), tim
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 import pandas as pd
 
 from driftlab.errors import ValidationError
 from driftlab.vocabulary import LINEAR_AXES, ROTATIONS, heat_source
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 ARCSEC_PER_RAD = 180.0 / np.pi * 3600.0
 POSITIONING_TERM = {"X": "dx", "Y": "dy", "Z": "dz"}
@@ -54,6 +57,12 @@ class DriftSeries:
         return float(self.drift.max() - self.drift.min()) if self.drift.size else 0.0
 
 
+#: the JSON form of a :class:`StageTest` (no series): stage, start_s, end_s, duration_h, figures, units,
+#: room_range_degC when known, then the test's own keys (``spindle_rpm``, ``end_drift``; ``axis``,
+#: ``feed_mm_min``, ``P1``, ``P2``)
+StageTestRecord: TypeAlias = dict[str, object]
+
+
 @dataclass(frozen=True)
 class StageTest:
     """One ISO 230-3 test over one stage: the figures per term and the series behind them."""
@@ -68,9 +77,9 @@ class StageTest:
     room_range_degC: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
-    def to_json_dict(self) -> dict[str, Any]:
+    def to_json_dict(self) -> StageTestRecord:
         """Return the test as a JSON-ready dict (no series)."""
-        out: dict[str, Any] = {
+        out: StageTestRecord = {
             "stage": self.stage,
             "start_s": self.start_s,
             "end_s": self.end_s,
@@ -92,7 +101,7 @@ class Iso230_3Result:
     spindle: list[StageTest]
     linear: list[StageTest]
 
-    def to_json_dict(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, list[StageTestRecord]]:
         """Return ``{"etve": [...], "spindle": [...], "linear": [...]}`` (one entry per stage)."""
         return {k: [t.to_json_dict() for t in getattr(self, k)] for k in ("etve", "spindle", "linear")}
 
@@ -247,7 +256,7 @@ def evaluate_bundle(bundle: Any) -> Iso230_3Result:
     return Iso230_3Result(etve, spindle, linear)
 
 
-def plot(test: StageTest) -> Any:
+def plot(test: StageTest) -> Figure:
     """Return the test's plot (matplotlib Figure): drift against time per term (ETVE, spindle) or per target
     (linear); lengths in µm and angles in arcsec on panels of their own, one unit per axis."""
     import matplotlib

@@ -21,11 +21,33 @@ squares to both directions together (small errors, first order in R):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
 from driftlab.errors import ValidationError
+
+
+class CircleFinding(TypedDict):
+    """An error diagnosed from the circular path's shape: which, how large (mm), in words."""
+
+    kind: str  # "squareness", "scale_mismatch", "backlash_1" or "backlash_2"
+    amplitude_mm: float
+    text: str
+
+
+class Iso230_4Record(TypedDict):
+    """The JSON form of an :class:`Iso230_4Result` (lengths in mm, angles in rad)."""
+
+    radius_mm: float
+    G_mm: dict[str, float]
+    H_mm: float
+    centre_mm: list[float]
+    squareness_rad: float
+    scale_mismatch: float
+    backlash_mm: list[float]
+    residual_mm: float
+    findings: list[CircleFinding]
 
 
 @dataclass(frozen=True)
@@ -40,9 +62,9 @@ class Iso230_4Result:
     scale_mismatch: float
     backlash_mm: tuple[float, float]
     residual_mm: float  # what the shapes leave unexplained (RMS)
-    findings: list[dict[str, Any]] = field(default_factory=list)
+    findings: list[CircleFinding] = field(default_factory=list)
 
-    def to_json_dict(self) -> dict[str, Any]:
+    def to_json_dict(self) -> Iso230_4Record:
         """Return the figures and findings as a JSON-ready dict (lengths in mm, angles in rad)."""
         return {
             "radius_mm": self.radius_mm,
@@ -118,7 +140,7 @@ def _with_findings(r: Iso230_4Result, noise_mm: float) -> Iso230_4Result:
     """Return the result with a finding for each shape larger than three times the unexplained RMS."""
     from driftlab.labels import UM
 
-    out = []
+    out: list[CircleFinding] = []
     floor = 3.0 * noise_mm
     size = {
         "squareness": abs(r.squareness_rad) * r.radius_mm / 2.0,

@@ -434,6 +434,78 @@ class AdvisedStage:
         return float(np.sqrt(self.variance_after_um2))
 
 
+class PlanSweepRecord(TypedDict):
+    """A stage's sweep in a ``driftlab-plan/1`` document."""
+
+    positions: list[float]
+    interval_s: float
+    point_s: float
+
+
+class PlanStageRecord(TypedDict):
+    """One stage of a ``driftlab-plan/1`` document written by the advisor (heat, or its cool-down)."""
+
+    name: str
+    heat: list[dict[str, object]]  # the plan's heat entries (none in a cool-down)
+    axis: str
+    setup: str
+    duration_s: float
+    sweep: PlanSweepRecord
+
+
+class PlanRecord(TypedDict):
+    """The ``driftlab-plan/1`` document of the advised stages (docs/plans.md)."""
+
+    format: str
+    name: str
+    description: str
+    machine: dict[str, str]
+    scan_interval_s: float
+    setups: dict[str, dict[str, object]]  # the plan's setups, as the campaign states them
+    stages: list[PlanStageRecord]
+
+
+class AdvisedStageRecord(TypedDict):
+    """One row of :meth:`Advice.table`: an advised stage and what it buys."""
+
+    stage: str
+    setup: str
+    source: str
+    heat_h: float
+    cool_h: float
+    hours: float
+    variance_before_um2: float
+    variance_after_um2: float
+    reduction_um2: float
+    rms_before_um: float
+    rms_after_um: float
+
+
+class AdviceDetails(TypedDict, total=False):
+    """The advisor's options echoed in the advice's JSON."""
+
+    operating_h: float
+    grid_poses: int
+    durations_h: list[float]
+
+
+class AdviceRecord(AdviceDetails):
+    """The JSON form of an :class:`Advice`."""
+
+    campaign: str
+    machine: str
+    hours_budget: float
+    hours_used: float
+    variance_before_um2: float
+    variance_after_um2: float
+    rms_before_um: float
+    rms_after_um: float
+    parameters: int
+    candidates: int
+    response_rmse_degC: float
+    stages: list[AdvisedStageRecord]
+
+
 @dataclass
 class Advice:
     """The advisor's answer: the stages, what each buys, and the plan that runs them."""
@@ -451,7 +523,7 @@ class Advice:
     sweep_interval_s: float
     heat: dict[str, dict[str, Any]]  # source -> plan heat entry
     response_rmse_degC: float
-    details: dict[str, Any] = field(default_factory=dict)
+    details: AdviceDetails = field(default_factory=AdviceDetails)
     #: the campaign's information and the target (for checks; not part of the JSON)
     design: Design | None = field(default=None, repr=False)
 
@@ -470,13 +542,13 @@ class Advice:
             for i, s in enumerate(self.stages)
         ]
 
-    def plan(self, name: str | None = None, prefix: str = "advice") -> dict[str, Any]:
+    def plan(self, name: str | None = None, prefix: str = "advice") -> PlanRecord:
         """Return the advised stages as a ``driftlab-plan/1`` document (each: heat, then cool-down)."""
-        stages: list[dict[str, Any]] = []
+        stages: list[PlanStageRecord] = []
         for s, (hot, cool) in zip(self.stages, self.stage_names(prefix)):
             c = s.candidate
             st = self.setups[c.setup]
-            sweep = {
+            sweep: PlanSweepRecord = {
                 "positions": list(st.positions),
                 "interval_s": self.sweep_interval_s,
                 "point_s": _point_s(self.sweep_interval_s, len(st.positions)),
@@ -507,7 +579,7 @@ class Advice:
             "stages": stages or [],
         }
 
-    def table(self) -> list[dict[str, Any]]:
+    def table(self) -> list[AdvisedStageRecord]:
         """Return one row per advised stage: setup, source, hours, variance and RMS before/after."""
         return [
             {
@@ -526,7 +598,7 @@ class Advice:
             for s, (hot, _) in zip(self.stages, self.stage_names())
         ]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> AdviceRecord:
         """Return the advice as JSON-ready data."""
         return {
             "campaign": self.campaign,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal, TypedDict, Unpack, get_args
+from typing import Any, Literal, NotRequired, TypedDict, Unpack, get_args
 
 import numpy as np
 import pandas as pd
@@ -21,6 +21,17 @@ KINDS: tuple[str, ...] = get_args(Kind)
 #: kinds that read a joint coordinate or approach direction; their ``label`` names the axis
 AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT"})
 #: columns of a (N, 5) joint array
+
+
+class FeatureRecord(TypedDict):
+    """The JSON form of a :class:`Feature` stored in a model document."""
+
+    kind: str
+    name: str
+    channels: NotRequired[list[str]]
+    power: NotRequired[int]
+    tau_s: NotRequired[float]
+    label: NotRequired[str]
 
 
 @dataclass(frozen=True)
@@ -76,9 +87,9 @@ class Feature:
             return f"grad[{c[0]}-{c[1]}]" if len(c) == 2 else f"grad[{self.label or '+'.join(c)}]"
         return f"mean[{self.label or '+'.join(c)}]"
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> FeatureRecord:
         """Return the JSON form stored in a model document."""
-        out: dict[str, Any] = {"kind": self.kind, "name": self.name}
+        out: FeatureRecord = {"kind": self.kind, "name": self.name}
         if self.channels:
             out["channels"] = list(self.channels)
         if self.kind == "position" or (self.kind == "gradient" and len(self.channels) > 2):

@@ -26,7 +26,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timedelta
 from pathlib import Path
-from typing import Any
+from typing import Any, NotRequired, TypedDict
 
 import numpy as np
 import pandas as pd
@@ -64,6 +64,36 @@ NEEDED_PARAMS: Mapping[str, tuple[str, ...]] = {"thermal_lag": ("tau_s",), "sens
 N_NEIGHBOURS = 4
 
 
+class FindingRecord(TypedDict):
+    """The JSON form of a :class:`Finding`: the report's effect entry, reduced to what the fit uses."""
+
+    kind: str
+    axis: str | None
+    term: str | None
+    channels: list[str]
+    #: the effect's figures as the report states them (``tau_s``, ``start_s``, ``mode``, per-channel maps...)
+    params: dict[str, object]
+
+
+class FindingsRecord(TypedDict):
+    """The JSON form of :class:`Findings` kept in a fit job's parameters (re-read by ``parse_findings``)."""
+
+    format: str
+    bundle: str
+    effects: list[FindingRecord]
+
+
+class FindingOutcomeRecord(FindingRecord):
+    """One entry of the model document's ``findings``: the finding and what became of it."""
+
+    folded: bool
+    note: NotRequired[str]  # why it was not folded in
+    substituted: NotRequired[list[str]]  # a sensor fault: the channels replaced by their estimates
+    terms: NotRequired[list[str]]  # the terms it added
+    forced: NotRequired[bool]
+    entered: NotRequired[dict[str, list[str]]]  # feature name -> the element.param models that kept it
+
+
 @dataclass(frozen=True)
 class Finding:
     """One accepted effect of a diagnosis report: kind, (axis, term), channels and catalogue parameters."""
@@ -74,7 +104,7 @@ class Finding:
     channels: tuple[str, ...] = ()
     params: Mapping[str, Any] = field(default_factory=dict)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> FindingRecord:
         """Return the JSON form (the report's effect entry, reduced to what the fit uses)."""
         return {
             "kind": self.kind,
@@ -97,7 +127,7 @@ class Findings:
     bundle: str
     effects: tuple[Finding, ...]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> FindingsRecord:
         """Return the JSON form kept in a fit job's parameters (re-read by ``parse_findings``)."""
         return {"format": REPORT_FORMAT, "bundle": self.bundle, "effects": [e.to_dict() for e in self.effects]}
 
@@ -185,6 +215,17 @@ def finding_features(f: Finding) -> tuple[list[Feature], list[Feature]]:
 # ----------------------------------------------------------------------------- substitutions
 
 
+class SubstitutionRecord(TypedDict):
+    """The JSON form of a :class:`Substitution` kept in a model document (``substitutions``)."""
+
+    channel: str
+    neighbours: list[str]
+    coef: list[float]
+    since: str  # ISO 8601
+    start_s: float
+    mode: str
+
+
 @dataclass(frozen=True)
 class Substitution:
     """A faulty channel replaced from ``since`` by a linear estimate from its neighbours (ch. 6.6)."""
@@ -203,7 +244,7 @@ class Substitution:
             out = out + float(k) * np.asarray(readings[c], float)
         return out
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> SubstitutionRecord:
         """Return the JSON form kept in a model document (``substitutions``)."""
         return {
             "channel": self.channel,
@@ -301,23 +342,20 @@ class FindingsPlan:
     substitutions: list[Substitution]
     skipped: dict[int, str] = field(default_factory=dict)  # finding index -> why it was not folded in
 
-    def records(self, entered: Mapping[str, list[str]]) -> list[dict[str, Any]]:
+    def records(self, entered: Mapping[str, list[str]]) -> list[FindingOutcomeRecord]:
         """Return the document's ``findings``: each finding, the terms it added and the models they entered.
 
         ``entered`` maps a feature name to the ``element.param`` models that kept it.
         """
         out = []
         for i, f in enumerate(self.findings.effects):
-            rec: dict[str, Any] = {**f.to_dict()}
+            rec: FindingOutcomeRecord = {**f.to_dict(), "folded": i not in self.skipped}
             if i in self.skipped:
-                rec["folded"] = False
                 rec["note"] = self.skipped[i]
             elif f.kind == "sensor_fault":
-                rec["folded"] = True
                 rec["substituted"] = [s.channel for s in self.substitutions if s.channel in f.channels]
             else:
                 mine = [e for e in self.extras if e.finding == i]
-                rec["folded"] = True
                 rec["terms"] = [e.feature.name for e in mine if not _support(e, mine)]
                 rec["forced"] = bool(mine and mine[0].forced)
                 rec["entered"] = {e.feature.name: entered.get(e.feature.name, []) for e in mine}

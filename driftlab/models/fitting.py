@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -64,11 +64,18 @@ from driftlab.vocabulary import AXES, term_unit
 from driftlab.vocabulary import ROTATIONS as ANGLES
 
 if TYPE_CHECKING:
-    from driftlab.models.findings import Extra, Findings, FindingsPlan
+    from driftlab.models.findings import Extra, FindingOutcomeRecord, Findings, FindingsPlan
+    from driftlab.models.lines import LineRecord
+    from driftlab.models.neural import NeuralComparisonRecord
     from driftlab.models.physical_check import PhysicalCheck
     from driftlab.models.standard_model import BundleLike
+    from driftlab.models.uncertainty import PinningRecord
+    from driftlab.models.virtual_sensor import VirtualSensorRecord
 
 log = logging.getLogger(__name__)
+
+#: a plan's stage as any reader holds it (read by its ``heat_source`` and ``axis``), handed back as given
+StageT = TypeVar("StageT")
 
 ROTARY = ("A", "B")
 #: the joint each axis drives
@@ -138,6 +145,48 @@ class Sample:
         return Sample(self.frame[mask].reset_index(drop=True), self.q[mask], self.inputs.take(mask), raw)
 
 
+class FitTermRow(TypedDict):
+    """One row of the fit report's ``terms``: a measured term's RMSE (tables 6.1/6.2) and the form that won."""
+
+    axis: str
+    term: str
+    measurement: str
+    link: str
+    rmse_train: float | None
+    rmse_holdout: float | None
+    r2: float | None
+    f: float | None
+    form: str  # "link", "link+line" or "standard"
+    form_why: str
+
+
+class CampaignOffsetReport(TypedDict):
+    """A later campaign's offset of one term in the fit report (the campaign by its name where known)."""
+
+    campaign: str | int
+    term: str
+    offset: float
+    std_error: float
+
+
+class FitReport(TypedDict):
+    """The JSON report of ``driftlab fit --json`` (and of a fit job, with the registered ``model_version``)."""
+
+    model_version: int | None
+    machine: str
+    kept_channels: list[str]
+    dropped_channels: dict[str, str]
+    terms: list[FitTermRow]
+    physical: list[dict[str, object]]  # table 6.3's rows (physical_check.COLUMNS)
+    physical_check: Mapping[str, object]  # PhysicalCheckRecord; empty when there was no check
+    timings_s: dict[str, float]
+    pinning: NotRequired[list[PinningRecord]]  # only the poorly pinned
+    serial_correlation_inflation: NotRequired[float]
+    campaign_offsets: NotRequired[list[CampaignOffsetReport]]
+    findings: NotRequired[list[FindingOutcomeRecord]]
+    neural_comparison: NotRequired[list[NeuralComparisonRecord]]
+
+
 @dataclass
 class FitResult:
     """Everything a fit produced: the document plus the tables a metrologist reads."""
@@ -149,13 +198,15 @@ class FitResult:
     physical: pd.DataFrame  # table 6.3 layout
     neural: list[NeuralComparison]  # ch. 6.6: one per target fixed in advance, both directions each
     timings_s: dict[str, float] = field(default_factory=dict)
-    physical_check: dict[str, Any] = field(default_factory=dict)  # table 6.3's status: compared / no geometry
+    physical_check: Mapping[str, object] = field(
+        default_factory=dict
+    )  # table 6.3 (PhysicalCheckRecord)'s status: compared / no geometry
     #: the joint adjustment's estimates and covariance (None without it): ``joint.cov_params()``, ``regressors``
     joint: JointFit | None = None
     #: per element model: VIF, condition number, the coefficients it trades off with
     pinning: list[Pinning] = field(default_factory=list)
 
-    def report(self) -> dict[str, Any]:
+    def report(self) -> FitReport:
         """Return the JSON report of ``driftlab fit --json``."""
         rows = []
         forms = {(ln["axis"], ln["term"]): ln for ln in self.document.lines}
@@ -248,9 +299,11 @@ class FitResult:
                 )
         if "serial_correlation_inflation" in rep:
             out.append(f"Joint adjustment: serial correlation inflation {rep['serial_correlation_inflation']:.3g}")
-        for p in rep.get("pinning", []):
-            weak = ", ".join(dict.fromkeys(p["poorly_pinned"]))
-            out.append(f"  poorly pinned: {p['element']}.{p['param']} {weak} (condition {p['condition_number']:.3g})")
+        for pin in rep.get("pinning", []):
+            weak = ", ".join(dict.fromkeys(pin["poorly_pinned"]))
+            out.append(
+                f"  poorly pinned: {pin['element']}.{pin['param']} {weak} (condition {pin['condition_number']:.3g})"
+            )
         for c in rep.get("neural_comparison", []):
             for d in c.get("directions", []):
                 k, unit = display_unit(str(c["target"]).partition("/")[2])
@@ -275,14 +328,14 @@ def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
 # ----------------------------------------------------------------------------- stages -> elements
 
 
-def stage_elements(stages: Sequence[Any]) -> list[tuple[Any, str | None, str]]:
+def stage_elements(stages: Sequence[StageT]) -> list[tuple[StageT, str | None, str]]:
     """Return (stage, element, role) in plan order: the element the stage's errors are allocated to (ch. 4.3).
 
     A single heat source names the element: the spindle its support structure (T1), an axis feed
     or motor hold that axis' joint. Cool-downs and power-off belong to the stage before them (a
     leading baseline to the first heat source); combined sources are kept for validation.
     """
-    out: list[tuple[Any, str | None, str]] = []
+    out: list[tuple[StageT, str | None, str]] = []
     last: tuple[str | None, str] | None = None
     for st in stages:
         hs = str(getattr(st, "heat_source", "")).lower()
@@ -756,7 +809,7 @@ def fit_elements(
     options: FitOptions,
     dims: Dims = TABLE_A1,
     on_element: Callable[[str], None] | None = None,
-) -> tuple[dict[tuple[str, str], ElementModel], list[dict[str, Any]]]:
+) -> tuple[dict[tuple[str, str], ElementModel], list[AllocationRecord]]:
     """Return the model of every link and joint parameter, allocating stage by stage in chain order (eq. 4.20).
 
     For each heat source in turn (spindle structure first, then Z, Y, X, A, B), the errors of its
@@ -765,7 +818,7 @@ def fit_elements(
     where it physically arises (a joint for its axis' shape, else where its thermocouples sit).
     """
     models: dict[tuple[str, str], ElementModel] = {}
-    log_rows: list[dict[str, Any]] = []
+    log_rows: list[AllocationRecord] = []
     elements = [e for e in ELEMENTS if (sample.frame["element"] == e).any()]
     solved: list[str] = []
     for gi, element in enumerate(elements):
@@ -803,7 +856,7 @@ def _global_lengths(
     model_channels: Mapping[str, Sequence[str]],
     options: FitOptions,
     dims: Dims,
-) -> dict[str, Any]:
+) -> AllocationRecord:
     """Re-select the length terms on all tests together, once the angles are allocated (returns a log row).
 
     A length error does not depend on where along the chain it arises (no lever), so after the
@@ -1240,7 +1293,7 @@ def _store_estimates(
     return columns
 
 
-def _campaign_offsets(design: JointDesign, sol: JointSolution) -> list[dict[str, Any]]:
+def _campaign_offsets(design: JointDesign, sol: JointSolution) -> list[CampaignOffsetRecord]:
     """Return each later campaign's offset per term with its standard error."""
     P, cov_diag = design.n_coefficients, np.diag(sol.cov)
     return [
@@ -1254,12 +1307,58 @@ def _campaign_offsets(design: JointDesign, sol: JointSolution) -> list[dict[str,
     ]
 
 
+class CampaignOffsetRecord(TypedDict):
+    """A later campaign's offset of one term, with its standard error (the campaign by its index)."""
+
+    campaign: int
+    term: str
+    offset: float
+    std_error: float
+
+
+class JointSummary(TypedDict, total=False):
+    """The joint adjustment's summary (the document's ``joint_adjustment``); empty when it did not run."""
+
+    coefficients: int
+    session_offsets_replaced_by_datums: int
+    campaign_offsets: list[CampaignOffsetRecord]
+    constants_held_at_zero: list[str]
+    constants_held_why: str
+    points: int
+    weighted_rms_before: float
+    weighted_rms_after: float
+
+
+class JointResult(TypedDict, total=False):
+    """What :func:`joint_adjust` puts in its ``result``: the offsets, the estimates, the pinning."""
+
+    campaign_offsets: list[CampaignOffsetRecord]
+    joint: JointFit
+    pinning: list[Pinning]
+
+
+class AllocationRecord(TypedDict, total=False):
+    """One entry of the document's ``allocation`` log: a stage's element, the lengths' re-selection,
+    the physical terms added, or the joint adjustment."""
+
+    element: str
+    axes: list[str]
+    n: int
+    n_cumulative: int
+    n_train: int
+    stages: list[int]
+    channels: str  # "model_channels" or "screened"
+    terms: int  # the lengths' re-selection: how many terms it chose
+    physical_terms: list[str]
+    joint_adjustment: JointSummary
+
+
 @dataclass(frozen=True)
 class JointOutcome:
     """What the joint adjustment produced: its summary (the document's ``joint_adjustment``) and estimates."""
 
-    summary: dict[str, Any]
-    campaign_offsets: list[dict[str, Any]] = field(default_factory=list)
+    summary: JointSummary
+    campaign_offsets: list[CampaignOffsetRecord] = field(default_factory=list)
     #: the estimates with their covariance (None when there was nothing to adjust)
     joint: JointFit | None = None
     #: how well each element model was pinned
@@ -1308,7 +1407,7 @@ def adjust_jointly(
     )
     pinning = joint.pinning({key: F[design.train] for key, F in design.blocks})
     m_obs = sol.m_obs
-    summary = {
+    summary: JointSummary = {
         "coefficients": P,
         "session_offsets_replaced_by_datums": offsets,
         "campaign_offsets": campaign_offsets,
@@ -1331,9 +1430,9 @@ def joint_adjust(
     dims: Dims = TABLE_A1,
     noise: Mapping[str, float] | None = None,
     ridge: float = 1e-9,
-    result: dict[str, Any] | None = None,
+    result: JointResult | None = None,
     priors: Mapping[tuple[str, str, Feature], PhysicalPrior] | None = None,
-) -> dict[str, Any]:
+) -> JointSummary:
     """Re-estimate every coefficient of the allocated models together (``adjust_jointly``); return its summary.
 
     With ``result`` (a dict), the estimates with their covariance (``uncertainty.JointFit``, key
@@ -1670,7 +1769,7 @@ class Allocation:
     dims: dict[str, tuple[float, float, float]]
     models: dict[tuple[str, str], ElementModel]
     #: the document's ``allocation``: one row per stage, the physical terms, the joint adjustment
-    log: list[dict[str, Any]]
+    log: list[AllocationRecord]
 
 
 def allocate_models(bundles: Sequence[BundleLike], samples: Samples, meta: ChannelMeta, opts: FitOptions) -> Allocation:
@@ -1860,7 +1959,7 @@ def compare_neural(
     return neural
 
 
-def virtual_sensors(screened: Screened, opts: FitOptions) -> list[dict[str, Any]]:
+def virtual_sensors(screened: Screened, opts: FitOptions) -> list[VirtualSensorRecord]:
     """Return the virtual sensors of the kept channels (ch. 6.6, fig. 6.9), as the document holds them."""
     kept = screened.kept
     if not (opts.virtual_sensors and len(kept) >= 2):
@@ -1881,7 +1980,7 @@ class FitSteps:
     corrections: LineCorrections
     checked: Checked
     neural: list[NeuralComparison]
-    virtual_sensors: list[dict[str, Any]]
+    virtual_sensors: list[VirtualSensorRecord]
 
 
 def _document_terms(steps: FitSteps) -> list[dict[str, Any]]:
@@ -1914,7 +2013,7 @@ def _document_inputs(steps: FitSteps, terms: Sequence[Mapping[str, Any]]) -> dic
 
 def _findings_records(
     plan: FindingsPlan | None, models: Mapping[tuple[str, str], ElementModel]
-) -> list[dict[str, Any]]:
+) -> list[FindingOutcomeRecord]:
     """Return the document's ``findings``: each finding folded in and the models its terms entered."""
     if plan is None:
         return []
@@ -2058,7 +2157,7 @@ def _joint_covariance(joint: JointFit, terms: Sequence[Mapping[str, Any]]) -> di
     }
 
 
-def _line_record(fit: LineFit, composed: Composed) -> dict[str, Any]:
+def _line_record(fit: LineFit, composed: Composed) -> LineRecord:
     """Return a line's entry of the document: which form won, why, and its home deviation."""
     out = fit.to_dict()
     dev = composed.home_deviation.get((fit.axis, fit.term))

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, TypedDict, Unpack
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, Unpack
 
 import numpy as np
 import pandas as pd
@@ -40,6 +40,7 @@ from driftlab.physics.kinematics import PARAMS, TABLE_A1, allocate
 from driftlab.vocabulary import AXES
 
 if TYPE_CHECKING:
+    from driftlab.models.features import FeatureRecord
     from driftlab.models.regression import StepwiseKnobs, StepwiseResult
 
 #: the element that carries the lines' corrections (its error reaches the tool through a fixed transform)
@@ -52,6 +53,31 @@ ALONG = frozenset({"position", "pos_dT", "direction"})
 FOLDS: tuple[tuple[float, float], ...] = ((0.5, 0.75), (0.75, 1.0))
 #: the last fold is the final training block of the gate against the standard model
 FINAL_BLOCK = FOLDS[-1]
+
+
+class LineRecord(TypedDict):
+    """The JSON form of a :class:`LineFit` kept in the model document (``lines``)."""
+
+    axis: str
+    term: str
+    form: str
+    why: str
+    checked_rmse: dict[str, float]
+    n_fit: int
+    n_checked: int
+    #: the final-block gate: block_rows, chosen, chosen_rmse, standard_rmse, standard_plain_rmse, verdict
+    gate: dict[str, float | int | str]
+    features: list[FeatureRecord]
+    coefficients: list[float]
+    #: added by the fit's document: the line's deviation at the home position (None: none)
+    home_deviation: NotRequired[HomeDeviationRecord | None]
+
+
+class HomeDeviationRecord(TypedDict):
+    """A line's deviation at the home position in the model document: its features and coefficients."""
+
+    features: list[FeatureRecord]
+    coefficients: list[float]
 
 
 @dataclass
@@ -82,7 +108,7 @@ class LineFit:
         """Return the indices of the position-dependent terms (the rest is the line's home part)."""
         return [i for i, f in enumerate(self.features) if f.kind in ALONG]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> LineRecord:
         """Return the JSON form kept in the model document (``lines``)."""
         return {
             "axis": self.axis,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Protocol, TypedDict, Unpack
+from typing import TYPE_CHECKING, Any, Protocol, TypeAlias, TypedDict, Unpack, cast
 
 import numpy as np
 import pandas as pd
@@ -96,7 +96,7 @@ class ExtrapolationResult:
     shift_degC: float
     n: int
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, float]:
         """Return the JSON form of the report's ``extrapolation`` field (the fields, in order)."""
         return asdict(self)
 
@@ -245,6 +245,26 @@ def comparison_data(bundles: Sequence[BundleLike], target: str, channels: Sequen
     )
 
 
+#: the JSON form of a :class:`DirectionResult`: its fields, in order (text, counts, figures, the inputs' names)
+DirectionRecord: TypeAlias = dict[str, str | float | list[str]]
+
+
+class NeuralComparisonRecord(TypedDict):
+    """The JSON form of a :class:`NeuralComparison`: one entry of the report's ``neural_comparison``."""
+
+    target: str
+    status: str
+    unit: str
+    split: str
+    channels: list[str]
+    campaigns: list[str]
+    excluded: dict[str, str]
+    offsets: list[str]
+    network_hidden: list[int]
+    note: str
+    directions: list[DirectionRecord]  # last: the fields above in order, then the directions
+
+
 @dataclass
 class DirectionResult:
     """One extrapolation direction: both models trained on one side, scored on the other."""
@@ -263,7 +283,7 @@ class DirectionResult:
     beyond_range: float
     max_excess_degC: float
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> DirectionRecord:
         """Return the JSON form."""
         return dict(self.__dict__)
 
@@ -286,11 +306,11 @@ class NeuralComparison:
     network_hidden: list[int] = field(default_factory=list)
     note: str = ""
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> NeuralComparisonRecord:
         """Return the JSON form of one entry of the report's ``neural_comparison``."""
         out = {k: v for k, v in self.__dict__.items() if k != "directions"}
         out["directions"] = [d.to_dict() for d in self.directions]
-        return out
+        return cast("NeuralComparisonRecord", out)
 
 
 Direction = tuple[str, np.ndarray, np.ndarray, str, str]

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 import pandas as pd
@@ -25,6 +25,15 @@ if TYPE_CHECKING:
     from driftlab.models.document import ModelDocument
 
 
+class RLSStateRecord(TypedDict):
+    """The JSON form of an :class:`RLSState`: theta, the matrix P (rows), lambda, the update count."""
+
+    theta: list[float]
+    P: list[list[float]]
+    lam: float
+    n_updates: int
+
+
 @dataclass
 class RLSState:
     """The only memory the recursion carries: the coefficients theta and the matrix P."""
@@ -34,7 +43,7 @@ class RLSState:
     lam: float
     n_updates: int = 0
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> RLSStateRecord:
         """Return the JSON form."""
         return {"theta": self.theta.tolist(), "P": self.P.tolist(), "lam": self.lam, "n_updates": self.n_updates}
 
@@ -139,6 +148,16 @@ def read_probe_csv(path: str | os.PathLike[str]) -> pd.DataFrame:
     return df.sort_values("time_s", kind="stable").reset_index(drop=True)
 
 
+class OnlineReportRecord(TypedDict):
+    """The JSON form of an :class:`OnlineReport` (also what the store keeps as the on-line state)."""
+
+    machine: str
+    model_version: int | None
+    n: int
+    terms: dict[str, dict[str, float]]
+    states: dict[str, RLSStateRecord]
+
+
 @dataclass
 class OnlineReport:
     """What an on-line update did: per term the off-line residual before and after the on-line model."""
@@ -149,7 +168,7 @@ class OnlineReport:
     terms: dict[str, dict[str, float]]
     states: dict[str, RLSState]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> OnlineReportRecord:
         """Return the JSON form (also what the store keeps as the on-line state)."""
         return {
             "machine": self.machine,

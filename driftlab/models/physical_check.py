@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict, cast
 
 import numpy as np
 import pandas as pd
@@ -34,7 +34,7 @@ from driftlab.vocabulary import TRANSLATIONS
 if TYPE_CHECKING:
     from driftlab.models.features import Feature
     from driftlab.models.standard_model import BundleLike
-    from driftlab.physics.geometry import Geometry
+    from driftlab.physics.geometry import Geometry, GeometryRecord
 
 STATUS_COMPARED = "compared"
 STATUS_NO_GEOMETRY = "no geometry"
@@ -59,16 +59,26 @@ COLUMNS = [
 ]
 
 
+class PhysicalCheckRecord(TypedDict):
+    """The JSON form of a :class:`PhysicalCheck`: table 6.3's status beside the table (report and document)."""
+
+    status: str
+    note: str
+    geometry: GeometryRecord | None
+    rows: int
+    compared: int
+
+
 @dataclass
 class PhysicalCheck:
     """Table 6.3 and whether it could be made: ``compared``, ``no geometry`` or ``conflicting geometry``."""
 
     status: str
     table: pd.DataFrame
-    geometry: dict[str, Any] | None = None
+    geometry: GeometryRecord | None = None
     note: str = ""
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> PhysicalCheckRecord:
         """Return the JSON summary kept beside the table (report and model document ``physical_check``)."""
         compared = int((self.table["status"] == STATUS_COMPARED).sum()) if len(self.table) else 0
         return {
@@ -80,22 +90,22 @@ class PhysicalCheck:
         }
 
 
-def _plain(geometry: Geometry | Mapping[str, Any] | None) -> dict[str, Any] | None:
+def _plain(geometry: Geometry | Mapping[str, Any] | None) -> GeometryRecord | None:
     """Return a stated geometry as a plain JSON dict (pydantic model or mapping), None when absent."""
     if geometry is None:
         return None
     if hasattr(geometry, "model_dump"):
-        return geometry.model_dump(mode="json")
+        return cast("GeometryRecord", geometry.model_dump(mode="json"))
     return json.loads(json.dumps(dict(geometry)))
 
 
-def stated_geometries(bundles: Sequence[BundleLike]) -> dict[str, tuple[dict[str, Any], list[str]]]:
+def stated_geometries(bundles: Sequence[BundleLike]) -> dict[str, tuple[GeometryRecord, list[str]]]:
     """Return every distinct geometry the campaigns state (``machine.geometry``), keyed by its JSON.
 
     Each value is (the geometry as plain JSON, the names of the campaigns that state it). This is
     the one reader of stated geometry: the physical check and the fit's chain lengths both use it.
     """
-    stated: dict[str, tuple[dict[str, Any], list[str]]] = {}
+    stated: dict[str, tuple[GeometryRecord, list[str]]] = {}
     for b in bundles:
         g = _plain(getattr(b.meta.machine, "geometry", None))
         if g is not None:
@@ -104,7 +114,7 @@ def stated_geometries(bundles: Sequence[BundleLike]) -> dict[str, tuple[dict[str
     return stated
 
 
-def machine_geometry(bundles: Sequence[BundleLike]) -> tuple[str, dict[str, Any] | None, str]:
+def machine_geometry(bundles: Sequence[BundleLike]) -> tuple[str, GeometryRecord | None, str]:
     """Return (status, geometry, note): the one geometry the campaigns of a machine state.
 
     Campaigns that state none are fine beside one that does; two different stated geometries are

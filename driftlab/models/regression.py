@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, Protocol
+from typing import Any, Protocol, TypedDict
 
 import numpy as np
 import pandas as pd
@@ -16,6 +16,15 @@ from driftlab.metrics import rmse
 from driftlab.models.features import Feature, Inputs, design_matrix
 
 
+class StepRecord(TypedDict):
+    """The JSON form of a :class:`Step`."""
+
+    action: str
+    term: str
+    statistic: float
+    p_value: float
+
+
 @dataclass
 class Step:
     """One stepwise move: a term entered (with its partial F) or left (with its p-value)."""
@@ -25,7 +34,7 @@ class Step:
     statistic: float
     p_value: float
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> StepRecord:
         """Return the JSON form."""
         return {"action": self.action, "term": self.term, "statistic": self.statistic, "p_value": self.p_value}
 

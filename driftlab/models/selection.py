@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 import pandas as pd
@@ -30,6 +30,16 @@ from driftlab.models.features import channel_columns, fill_gaps
 
 #: words in a channel's location that mark it as sitting on a heat source (ch. 5.4)
 HEAT_SOURCE_WORDS: tuple[str, ...] = ("motor", "nut", "gear", "z axis ballscrew")
+
+
+class ScreeningRecord(TypedDict):
+    """The JSON form of a :class:`ScreeningResult` (kept and dropped channels with reasons)."""
+
+    kept: list[str]
+    kept_reason: dict[str, str]
+    dropped: dict[str, str]
+    #: per kept channel, its correlation with each kept channel (None where undefined)
+    correlation_kept: dict[str, list[float | None]]
 
 
 @dataclass
@@ -46,7 +56,7 @@ class ScreeningResult:
         chans = list(channels) if channels is not None else self.kept
         return self.matrix.loc[chans, chans].round(2)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> ScreeningRecord:
         """Return the JSON form (kept with reasons, dropped with reasons)."""
         tab = self.table()
         return {

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from types import MappingProxyType
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 
@@ -207,7 +207,41 @@ def _quantise(q: np.ndarray) -> np.ndarray:
     return np.round(q / step) * step
 
 
-def _figures(w: np.ndarray) -> dict[str, Any]:
+class MaxAbsFigures(TypedDict):
+    """The largest absolute work-space error of each component over the run."""
+
+    dx_mm: float
+    dy_mm: float
+    dz_mm: float
+    alpha_deg: float
+    beta_deg: float
+
+
+class WorkspaceFigures(TypedDict):
+    """The ch. 4.5 figures of one run: maximum and RMS position, angle and roll errors."""
+
+    max_mm: float
+    rms_mm: float
+    max_deg: float
+    rms_deg: float
+    max_roll_deg: float
+    rms_roll_deg: float
+    max_abs: MaxAbsFigures
+
+
+class ThesisStudy(TypedDict):
+    """The JSON of :func:`thesis_study`: the figures without and with compensation, and the run's settings."""
+
+    uncompensated: WorkspaceFigures
+    compensated: WorkspaceFigures
+    resolution: dict[str, float]  # mm, deg
+    hours: float
+    samples: int
+    singular_poses: int
+    backlash: dict[str, float]  # mm, deg
+
+
+def _figures(w: np.ndarray) -> WorkspaceFigures:
     pos = np.linalg.norm(w[:, 3:], axis=1)
     ang = np.rad2deg(np.linalg.norm(w[:, :2], axis=1))  # the reachable rotations alpha, beta
     roll = np.rad2deg(np.abs(w[:, 2]))
@@ -235,7 +269,7 @@ def _workspace(q_nominal: np.ndarray, q_cmd: np.ndarray, errors: ElementErrors) 
     return kin.htm_to_params(t_real @ kin.htm_inverse(kin.ideal_chain(q_nominal)))
 
 
-def thesis_study(hours: float = 8.0, dt_s: float = 10.0, seed: int = 0) -> dict[str, Any]:
+def thesis_study(hours: float = 8.0, dt_s: float = 10.0, seed: int = 0) -> ThesisStudy:
     """Return the ch. 4.5 figures (work-space error without and with compensation) as a JSON dict.
 
     The program is ``sinusoidal_program``; errors follow ``appendix_a_errors``. Position figures

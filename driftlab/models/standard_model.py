@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any, Protocol, TypedDict
 
 import numpy as np
 import pandas as pd
@@ -63,6 +63,16 @@ def _as_plain(obj: Any) -> Any:
     return obj
 
 
+class OutlierFlagsRecord(TypedDict):
+    """The JSON form of :class:`OutlierFlags`."""
+
+    series: str
+    spikes: int
+    out_of_range: int
+    held_scans: int
+    first_times_s: list[float]
+
+
 @dataclass(frozen=True)
 class OutlierFlags:
     """What the cleaning did to one series (a channel or an (axis, term))."""
@@ -73,7 +83,7 @@ class OutlierFlags:
     held_scans: int = 0
     first_times_s: tuple[float, ...] = ()
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> OutlierFlagsRecord:
         """Return the JSON form of the flags."""
         return {
             "series": self.series,

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 import pandas as pd
@@ -68,6 +68,22 @@ def vif(F: np.ndarray) -> np.ndarray:
     return out
 
 
+#: one pair of estimates that trade off: this term, the other ``element.param`` term, their correlation
+#: (the functional form, since ``with`` is a keyword)
+TradeOffRecord = TypedDict("TradeOffRecord", {"term": str, "with": str, "correlation": float})
+
+
+class PinningRecord(TypedDict):
+    """The JSON form of a :class:`Pinning` (fit report, ``pinning``)."""
+
+    element: str
+    param: str
+    condition_number: float
+    vif: dict[str, float | None]
+    poorly_pinned: list[str]
+    trade_offs: list[TradeOffRecord]
+
+
 @dataclass
 class Pinning:
     """How well one element model (link or joint parameter) was pinned by the campaign."""
@@ -87,7 +103,7 @@ class Pinning:
         out += [a for a, _, _ in self.trade_offs if a not in out]
         return out
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> PinningRecord:
         """Return the JSON form (fit report, ``pinning``)."""
         return {
             "element": self.element,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 import pandas as pd
@@ -14,6 +14,16 @@ from driftlab.models.features import fill_gaps
 
 #: readings outside this range are the board's error signal for a broken lead (ch. 6.6)
 PLAUSIBLE_DEGC: tuple[float, float] = (-40.0, 150.0)
+
+
+class VirtualSensorRecord(TypedDict):
+    """The JSON form of a :class:`VirtualSensor` stored in a model document."""
+
+    channel: str
+    neighbours: list[str]
+    coef: list[float]  # intercept first
+    sigma: float
+    band: float
 
 
 @dataclass
@@ -34,7 +44,7 @@ class VirtualSensor:
             X = temperatures[self.neighbours].to_numpy(float)
         return self.coef[0] + X @ self.coef[1:]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> VirtualSensorRecord:
         """Return the JSON form stored in a model document."""
         return {
             "channel": self.channel,
@@ -104,6 +114,16 @@ def _greedy_neighbours(T: np.ndarray, j: int, n: int) -> list[int]:
     return chosen
 
 
+class SensorFaultRecord(TypedDict):
+    """The JSON form of a :class:`SensorFault`."""
+
+    channel: str
+    since_s: float
+    max_deviation_degC: float
+    mode: str
+    message: str
+
+
 @dataclass
 class SensorFault:
     """A channel that left its band: which one, since when, how far; its estimate is used from then on."""
@@ -121,7 +141,7 @@ class SensorFault:
             f"its virtual estimate is used meanwhile"
         )
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> SensorFaultRecord:
         """Return the JSON form."""
         return {
             "channel": self.channel,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Literal, TypedDict, cast
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -33,6 +33,29 @@ BENDING_SIDES = ("upper-lower", "top-bottom", "front-back", "left-right")
 MAX_GEOMETRY_MM = 1e5
 _MAX_TEXT = 200
 _CONTROL = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")
+
+
+class BendingRecord(TypedDict):
+    """The JSON form of a :class:`Bending`."""
+
+    length_mm: float
+    height_mm: float
+    across: str
+    angle: Rotation | None
+    deflection: Translation | None
+
+
+class GeometryRecord(TypedDict, total=False):
+    """The JSON form of a :class:`Geometry` (campaign.json's ``machine.geometry``, the model document's).
+
+    Not total: a geometry given as a plain mapping is read as it stands.
+    """
+
+    source: str
+    alpha_c_per_degC: float
+    links_mm: dict[str, list[float]]  # (a, b, c) per link name
+    screw_fixed_mm: dict[str, float]
+    bending: dict[str, BendingRecord]
 
 
 class _Strict(BaseModel):
@@ -103,6 +126,6 @@ class Geometry(_Strict):
             raise ValueError("a geometry states at least one of links_mm, screw_fixed_mm, bending")
         return self
 
-    def document(self) -> dict[str, Any]:
+    def document(self) -> GeometryRecord:
         """Return the JSON form (as campaign.json and the model document hold it)."""
-        return self.model_dump(mode="json")
+        return cast("GeometryRecord", self.model_dump(mode="json"))

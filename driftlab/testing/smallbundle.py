@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
+
+if TYPE_CHECKING:
+    from driftlab.campaigns.bundle import CampaignJson
 
 SCAN_S = 30.0  # one thermocouple scan every 30 s
 
@@ -17,11 +20,11 @@ def small_meta(
     name: str = "test VMC",
     scans: int = 40,
     noise: bool = True,
-) -> dict[str, Any]:
+) -> CampaignJson:
     """Return a campaign.json with four channels (two room) and two Z-axis stages splitting ``scans`` in half."""
     half = int(scans * SCAN_S) // 2
     stage = {"axis": "Z", "feed_mm_min": 0}
-    meta: dict[str, Any] = {
+    meta: CampaignJson = {
         "format": "driftlab-bundle/1",
         "machine": {"id": machine, "name": name, "resolution_mm": 0.0025, "resolution_deg": 0.001},
         "started_at": started_at,

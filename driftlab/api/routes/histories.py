@@ -57,7 +57,7 @@ def encode_cursor(kind: str, last: float | int) -> str:
     return base64.urlsafe_b64encode(raw).decode().rstrip("=")
 
 
-def decode_cursor(cursor: str | None, kind: str) -> Any:
+def decode_cursor(cursor: str | None, kind: str) -> float | int | None:
     """Return the position a cursor names; BadRequestError (400) when it is not one of ours."""
     if cursor is None:
         return None

@@ -7,7 +7,7 @@ in-process cache (serialised bytes and ETag) and touches the database at most on
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, TypedDict
 
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
@@ -28,6 +28,9 @@ from driftlab.campaigns.repository import Page
 from driftlab.campaigns.store import ModelVersionInfo, Store
 from driftlab.errors import ValidationError
 from driftlab.jsonsafe import check_json
+
+if TYPE_CHECKING:
+    from driftlab.api.deps import ModelVersionJson
 
 router = APIRouter(tags=["models"])
 
@@ -92,7 +95,7 @@ def list_models(
     status: ModelStatus | None = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
-) -> Any:
+) -> ModelListJson:
     """Return a page of model versions (without documents), by machine then version."""
     return _model_list(store, machine_id, status, Page(limit, offset))
 
@@ -104,12 +107,20 @@ def machine_models(
     status: ModelStatus | None = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
-) -> Any:
+) -> ModelListJson:
     """Return a page of a machine's model versions, oldest first."""
     return _model_list(store, machine_id, status, Page(limit, offset))
 
 
-def _model_list(store: Store, machine_id: str | None, status: str | None, page: Page) -> dict[str, Any]:
+class ModelListJson(TypedDict):
+    """A page of model versions as ``schemas.ModelList``'s JSON."""
+
+    items: list[ModelVersionJson]  # without their documents
+    limit: int | None
+    offset: int
+
+
+def _model_list(store: Store, machine_id: str | None, status: str | None, page: Page) -> ModelListJson:
     """Return a page of model versions as ModelList's JSON (an unknown machine is a 404)."""
     rows = store.models.versions(machine_id, status, page, known_machine=True)
     return {"items": [model_out(r, with_document=False) for r in rows], "limit": page.limit, "offset": page.offset}
@@ -149,7 +160,7 @@ async def current_model(
 )
 def get_version(
     machine_id: MachineId, version: Version, store: Annotated[Store, Depends(get_store)], response: Response
-) -> Any:
+) -> ModelVersionJson:
     """Return one model version of a machine with its document."""
     row = store.models.version(machine_id, version)
     response.headers["ETag"] = model_etag(row)
@@ -165,7 +176,7 @@ def get_version(
 )
 def register(
     machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiState, Depends(get_state)], response: Response
-) -> Any:
+) -> ModelVersionJson:
     """Validate and store a model document as the machine's next version, current from now on."""
     from driftlab.jobs import registry as model_registry
     from driftlab.models import document as documents
@@ -182,7 +193,7 @@ def register(
     return model_out(row)
 
 
-def _changed(state: ApiState, row: ModelVersionInfo) -> Any:
+def _changed(state: ApiState, row: ModelVersionInfo) -> ModelVersionJson:
     """Return a registry row just changed through this API (its machine's cached current model dropped)."""
     state.models.invalidate(row.machine_id)
     return model_out(row)
@@ -195,12 +206,14 @@ _VERSION_WRITE: dict[str, Any] = {"response_model": ModelVersionOut, "dependenci
 @router.post(
     "/machines/{machine_id}/models/{version}/promote", summary="Make a version the current one", **_VERSION_WRITE
 )
-def promote(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
+def promote(
+    machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]
+) -> ModelVersionJson:
     """Make a version current (retiring the previous current one); compensators see a new ETag."""
     return _changed(state, state.store.models.promote(machine_id, version))
 
 
 @router.post("/machines/{machine_id}/models/{version}/retire", summary="Retire a version", **_VERSION_WRITE)
-def retire(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> Any:
+def retire(machine_id: MachineId, version: Version, state: Annotated[ApiState, Depends(get_state)]) -> ModelVersionJson:
     """Retire a version; if it was current the machine has no current model until one is promoted."""
     return _changed(state, state.store.models.retire(machine_id, version))

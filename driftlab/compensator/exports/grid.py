@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 
@@ -204,7 +204,24 @@ def correction_table(
     return AxisTable(axis, pos, fwd, rev, model.label, tuple(float(v) for v in pose), temps)
 
 
-def describe(table: AxisTable) -> dict[str, Any]:
+#: the JSON summary of an axis table (``from`` is a keyword: the functional form)
+TableSummary = TypedDict(
+    "TableSummary",
+    {
+        "axis": str,
+        "unit": str,
+        "points": int,
+        "step": float,
+        "from": float,
+        "to": float,
+        "model": str,
+        "max_forward": float,
+        "max_reverse": float,
+    },
+)
+
+
+def describe(table: AxisTable) -> TableSummary:
     """Return a JSON-ready summary of a table (grid, largest corrections)."""
     return {
         "axis": table.axis,

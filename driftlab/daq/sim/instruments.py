@@ -28,7 +28,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol, Self, runtime_checkable
+from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -51,7 +51,7 @@ class World(Protocol):
     def temperatures(self, t_s: float) -> Mapping[str, float]:
         """Return degC per thermocouple channel at ``t_s`` (NaN where the junction is open)."""
 
-    def state(self, t_s: float) -> Any:
+    def state(self, t_s: float) -> Mapping[str, float | str | None]:
         """Return the machine state at ``t_s`` (spindle rpm, feed, positions)."""
 
     def measure_error(self, t_s: float, axis: str, position: float, direction: int) -> Mapping[str, float]:
