@@ -15,7 +15,9 @@
    sweeps), and accepted only with a gain in rolling-origin validation inside the training part
    and an effect size above the repeatability; the best accepted effect is added, the model
    refitted and the search repeated;
-5. the extended model, and the held-out part scored once, after the effects are final.
+5. once the effects are final, every lag whose tau the training rows do not pin enters as the mean
+   of its lags over the taus they do not tell apart (``lag_pinning``);
+6. the extended model, and the held-out part scored once, after the effects are final.
 """
 
 from __future__ import annotations
