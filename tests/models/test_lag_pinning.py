@@ -2,7 +2,8 @@
 
 The generated terms are not shaped like the fit's own model: the body follows a *distributed* lag of
 its site (the mean of four first-order lags, 5 min to 5.3 h: a body with several thermal masses),
-under random heating stages and AR(1) noise with rho 0.8; the fit has one first-order lag.
+under random heating stages and AR(1) noise with rho 0.8; the fit has one first-order lag. The last test runs
+the whole search on a closed-world bundle whose body follows four lags of one channel.
 """
 
 from __future__ import annotations
@@ -10,9 +11,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from driftlab.models import diagnosis
+from driftlab.models.diagnosis import diagnose_bundle
 from driftlab.models.lag_pinning import FLAT_SPAN, averaged_lag, profile_tau
 from driftlab.models.standard_model import OutlierFlags, TermData, lstsq
 from driftlab.physics.lag import first_order_lag_even
+from tests import effects_generator as gen
 
 DT = 60.0
 NOISE = 5e-4
@@ -96,3 +100,37 @@ def test_a_distributed_lag_is_not_pinned_and_its_mean_over_the_flat_set_predicts
         # the fit at the point tau extrapolates worse to the rows after the training part than the mean
         assert _held_out(td, X, averaged_lag(column, prof)) < _held_out(td, X, column(tau))
     assert unpinned >= 3
+
+
+def _held_out_garbage(bundle):
+    """Return the bundle with every held-out error value (last 25 % of each term's rows) replaced by noise."""
+    errs = bundle.errors.copy()
+    rng = np.random.default_rng(0)
+    for _, g in errs.groupby(["axis", "term"]):
+        ts = np.sort(g["time_s"].to_numpy())
+        idx = g.index[g["time_s"].to_numpy() >= ts[int(np.floor(0.75 * ts.size))]]
+        errs.loc[idx, "value"] = rng.normal(0.0, 0.05, idx.size)
+    return type(bundle)(
+        name=bundle.name, meta=bundle.meta, temperatures=bundle.temperatures, conditions=bundle.conditions, errors=errs
+    )
+
+
+def test_the_search_averages_an_unpinned_lag_on_the_training_rows_alone(monkeypatch):
+    # a closed-world term whose body follows four lags of T3 (10 min to 4.5 h): the search takes T3's lag and then
+    # a lag of T1 for what is left; in the final model T1's tau is flat over more than two octaves and enters as
+    # the mean of its lags there. Decided on the training rows: garbage in the held-out values changes nothing
+    pl = [gen.Planted("thermal_lag", "X", "dx", ["T3"], {"tau_s": t}) for t in (600.0, 1800.0, 5400.0, 16200.0)]
+    case = gen.make_case(pl, seed=1, model_channels={"X": ["T1", "T2", "T3", "T9"]})
+    res = diagnose_bundle(case.bundle)
+    averaged = [e for e in res.effects if "tau_range_s" in e.params]
+    assert [(e.kind, e.channels) for e in averaged] == [("thermal_lag", ["T1"])]
+    lo, hi = averaged[0].params["tau_range_s"]
+    assert lo <= averaged[0].params["tau_s"] <= hi and hi / lo >= 4.0 * (1 - 1e-9)
+    term = res.terms[0]
+    assert term.effects[-1].rmse_holdout_after == pytest.approx(term.extended.rmse_holdout)
+    again = diagnose_bundle(_held_out_garbage(case.bundle))
+    assert [(e.kind, e.channels, e.params) for e in again.effects] == [
+        (e.kind, e.channels, e.params) for e in res.effects
+    ]
+    monkeypatch.setattr(diagnosis, "AVERAGE_UNPINNED_LAGS", False)
+    assert not any("tau_range_s" in e.params for e in diagnose_bundle(case.bundle).effects)
