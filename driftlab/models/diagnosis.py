@@ -15,7 +15,9 @@
    sweeps), and accepted only with a gain in rolling-origin validation inside the training part
    and an effect size above the repeatability; the best accepted effect is added, the model
    refitted and the search repeated;
-5. the extended model, and the held-out part scored once, after the effects are final.
+5. once the effects are final, every lag whose tau the training rows do not pin enters as the mean
+   of its lags over the taus they do not tell apart (``lag_pinning``);
+6. the extended model, and the held-out part scored once, after the effects are final.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import pandas as pd
 import statsmodels.api as sm
 from scipy import optimize
 
+from driftlab.labels import duration
 from driftlab.metrics import rmse
 from driftlab.models.effects import (
     N_TAU,
@@ -45,6 +48,7 @@ from driftlab.models.effects import (
     build_context,
     columns_like,
     lag_bank_for,
+    lag_columns,
     refine_source_tau,
     refine_tau,
     scan_sensor_faults,
@@ -52,6 +56,7 @@ from driftlab.models.effects import (
     step_bank,
     tau_bounds,
 )
+from driftlab.models.lag_pinning import averaged_lag, profile_tau
 from driftlab.models.sensor_drift import scan_sensor_drifts
 from driftlab.models.standard_model import (
     LinearFit,
@@ -1203,9 +1208,20 @@ VIF_UNSENSED = 10.0
 SIBLING_LAGS = True
 
 
+#: once the effects are final, a lag whose tau the training rows do not pin takes the mean of its responses over the
+#: taus they do not tell apart (``lag_pinning``; ``_TermSearch._average_unpinned_lags``); False keeps the point tau
+AVERAGE_UNPINNED_LAGS = True
+
+
 #: a candidate whose columns contain another candidate's is taken only when its extra columns earn their place
 #: on the later training blocks (``_TermSearch._nested_law``); False restores the choice by the in-sample F alone
 NESTED_LAWS = True
+
+
+#: extra columns of a nesting law significant at the family level but not at the Bonferroni level must not make
+#: either reading of the later blocks worse by more than the noise (``GATE_NOISE`` x noise, in quadrature);
+#: False: one reading's gain suffices at the family level (for comparisons)
+NESTED_NO_LOSS = True
 
 
 def nested_extra(big: np.ndarray, small: np.ndarray) -> list[int] | None:
@@ -1231,7 +1247,10 @@ def extras_earn_place(
     that already passed the Bonferroni level ``alpha_each``: which of its two laws), and a better prediction
     of the later training blocks with them than without, in either reading of ``validation_check`` as for
     any candidate (their own coefficients from the earlier blocks against the later residual; both models
-    refitted there). No effect size is asked here: the whole candidate was already held to it; the
+    refitted there). Extra columns whose partial test does not also pass the Bonferroni level ``alpha_each``
+    must in addition lose no more than the noise in the other reading (``NESTED_NO_LOSS``: after^2 <=
+    before^2 + (``GATE_NOISE`` x noise)^2, the tolerance of the last-block gate): weaker evidence, and one
+    reading against it. No effect size is asked here: the whole candidate was already held to it; the
     question is only which of two laws, as for the two powers of a column and the sibling lags
     (``_other_power``, ``_better_sibling_lag``).
     """
@@ -1243,7 +1262,11 @@ def extras_earn_place(
     ob, oa = validation_gain(X_sub, extra, td.y, td.train, folds)
     rb, ra = validation_rmse(X_sub, td.y, folds), validation_rmse(X_ext, td.y, folds)
     how = f"partial robust p {p:.3g}; later blocks own coefficients {ob:.4g} -> {oa:.4g}, refitted {rb:.4g} -> {ra:.4g}"
-    return bool(oa < ob or ra < rb), how
+    # below the family level only, neither reading may lose by more than the noise (the last-block gate's
+    # tolerance, in quadrature); columns significant at the Bonferroni level need only one reading's gain
+    tol2 = (GATE_NOISE * cfg.noise) ** 2 if NESTED_NO_LOSS and p >= cfg.alpha_each else np.inf
+    no_loss = oa * oa <= ob * ob + tol2 and ra * ra <= rb * rb + tol2
+    return bool((oa < ob or ra < rb) and no_loss), how
 
 
 def collinearity(col: np.ndarray, X: np.ndarray, rows: np.ndarray) -> tuple[float, float]:
@@ -1422,6 +1445,7 @@ class _TermSearch:
         self.folds = validation_folds(self.td)
         self.history: list[tuple[Effect, LinearFit, LinearFit]] = []
         self.fault_start = self._repair(faults)
+        self.designs: list[np.ndarray] = [self.state.X]  # the design before the first effect and after each
 
     def _repair(self, faults: TermFaults) -> float | None:
         """Repair the term's broken model channels; return the earliest break that costs rows (None: none)."""
@@ -1456,8 +1480,82 @@ class _TermSearch:
             if accepted is None:
                 break
             self._accept(*accepted)
+        if AVERAGE_UNPINNED_LAGS:
+            self._average_unpinned_lags()
         _score_holdout_once(self.history)
         return self.state.effects, self.state
+
+    def _average_unpinned_lags(self) -> None:
+        """Stand the mean of its lag responses over its flat set in for every poorly pinned lag of the final model.
+
+        Once the set of effects is final, each accepted ``thermal_lag`` (in order of acceptance) is profiled over
+        tau with every other column of the final model fixed (``lag_pinning.profile_tau``); when the training
+        rows do not pin its tau (its flat set spans ``FLAT_SPAN`` or more), its two columns become their mean
+        over the flat set (``averaged_lag``). Training rows only; the effects' fits are redone with the
+        averaged columns, so their held-out figures (scored after this) are those of the model reported.
+        """
+        X, names, td = self.state.X.copy(), self.state.names, self.td
+        swaps: dict[int, np.ndarray] = {}
+        for eff in self.state.effects:
+            ch = eff.channels[0] if eff.kind == "thermal_lag" and eff.channels else ""
+            if ch not in self.ctx.lag_cache or f"lag_{ch}" not in names:
+                continue
+            idx = [names.index(f"lag_{ch}"), names.index(f"lag_{ch}_initial")]
+            taus = self.ctx.lag_cache[ch][0]
+            rest = [i for i in range(X.shape[1]) if i not in idx]
+
+            def column(tau: float, ch: str = ch) -> np.ndarray:
+                return lag_columns(self.ctx, ch, tau)
+
+            prof = profile_tau(td, X[:, rest], column, float(eff.params["tau_s"]), (taus[0], taus[-1]), self.cfg.noise)
+            log.debug(
+                "%s/%s lag %s in the final model: tau %.4g s, flat over %.4g-%.4g s (x%.3g)",
+                td.axis,
+                td.term,
+                ch,
+                prof.tau,
+                *prof.flat_range,
+                prof.span,
+            )
+            if prof.pinned:
+                continue
+            cols = averaged_lag(column, prof)
+            X[:, idx] = cols
+            swaps.update({k: cols[:, i] for i, k in enumerate(idx)})
+            eff.params["tau_range_s"] = list(prof.flat_range)  # present only on a lag the training rows do not pin
+            lo, hi = (duration(v) for v in prof.flat_range)
+            eff.cause += (
+                f" The training rows do not pin its time constant ({lo} to {hi} fit them alike):"
+                " the model uses the mean of the lags over that range."
+            )
+        if swaps:
+            self._refit_with(swaps)
+
+    def _refit_with(self, swaps: dict[int, np.ndarray]) -> None:
+        """Redo the fits of every accepted effect (and the final model) with the columns ``swaps`` replaced."""
+        td = self.td
+
+        def design(k: int) -> np.ndarray:
+            X = self.designs[k].copy()
+            for j, col in swaps.items():
+                if j < X.shape[1]:
+                    X[:, j] = col
+            return X
+
+        history = []
+        for k, (eff, before, after) in enumerate(self.history):
+            Xb, Xa = design(k), design(k + 1)
+            fb = fit_columns(Xb, td.y, td.train, before.names)
+            fa = fit_columns(Xa, td.y, td.train, after.names)
+            new_idx = [after.names.index(n) for n in eff.names if n in after.names]
+            if eff.kind == "thermal_lag" and new_idx:
+                eff.params["coef_per_degC"] = float(fa.coef[new_idx[0]])
+            eff.columns = Xa[:, new_idx] if new_idx else eff.columns
+            eff.residual_before, eff.contribution = fb.residual, fb.residual - fa.residual
+            history.append((eff, fb, fa))
+        self.history = history
+        X = design(len(self.history))
+        self.state = _State(X, self.state.names, fit_columns(X, td.y, td.train, self.state.names), self.state.effects)
 
     def _round(self) -> tuple[Effect, _Trial, np.ndarray | None] | None:
         """Return the first candidate of this round that passes every rule (None: the search ends)."""
@@ -1720,6 +1818,7 @@ class _TermSearch:
         """Extend the current models (readings and denoised) by the accepted effect."""
         cand = tr.cand
         self.history.append((eff, self.state.fit, tr.fit))
+        self.designs.append(tr.X_new)
         self.state = _State(tr.X_new, tr.names_new, tr.fit, self.state.effects + [eff])
         if self.dstate is not None and self.dctx is not None:
             self.dstate = _carry_denoised(self.dstate, self.dctx, cand, dcols)

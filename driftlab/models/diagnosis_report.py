@@ -218,6 +218,9 @@ def _params_text(eff: Effect) -> str:
     for key, value in eff.params.items():
         if key == "tau_s" and isinstance(value, (int, float)):
             out.append(f"time constant {duration(float(value))}")
+        elif key == "tau_range_s" and isinstance(value, list) and len(value) == 2:
+            lo, hi = (duration(float(v)) for v in value)
+            out.append(f"not pinned by the training rows: the mean of the lags over {lo} to {hi}")
         elif key == "start_s" and isinstance(value, (int, float)):
             out.append(f"from {duration(float(value))} into the campaign")
         elif isinstance(value, (int, float)) and not isinstance(value, bool):
