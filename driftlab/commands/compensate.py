@@ -7,7 +7,7 @@ import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 from driftlab.errors import ValidationError
 from driftlab.vocabulary import AXES
@@ -194,11 +194,7 @@ def _run(args: argparse.Namespace) -> int:
             temps,
             args.out,
             start=start,
-            resolution_mm=args.resolution_mm,
-            resolution_deg=args.resolution_deg,
-            hysteresis_steps=args.hysteresis_steps,
-            max_segment_mm=args.max_segment_mm,
-            max_segment_deg=args.max_segment_deg,
+            **_grid(args),
             guard=guard,
         )
         summary = {"out": str(args.out), **result.summary()}
@@ -214,6 +210,28 @@ def _run(args: argparse.Namespace) -> int:
             _report_extrapolation(result.extrapolated)
         return 0
     return _stream(args, start, decimals, token)
+
+
+class _Grid(TypedDict):
+    """The output resolution, step hysteresis and segment lengths of the corrected program, as the compensator
+    takes them."""
+
+    resolution_mm: float
+    resolution_deg: float
+    hysteresis_steps: float
+    max_segment_mm: float
+    max_segment_deg: float
+
+
+def _grid(args: argparse.Namespace) -> _Grid:
+    """Return the options' output grid (offline and streamed compensation take the same)."""
+    return _Grid(
+        resolution_mm=args.resolution_mm,
+        resolution_deg=args.resolution_deg,
+        hysteresis_steps=args.hysteresis_steps,
+        max_segment_mm=args.max_segment_mm,
+        max_segment_deg=args.max_segment_deg,
+    )
 
 
 def _report_extrapolation(extrapolated: Mapping[str, Mapping[str, float]]) -> None:
@@ -281,11 +299,7 @@ def _stream(
             pieces,
             models,
             temps,
-            resolution_mm=args.resolution_mm,
-            resolution_deg=args.resolution_deg,
-            hysteresis_steps=args.hysteresis_steps,
-            max_segment_mm=args.max_segment_mm,
-            max_segment_deg=args.max_segment_deg,
+            **_grid(args),
             max_age_s=args.max_age_s,
             refresh_s=min(args.refresh_s, args.max_age_s),
             guard=guard,
