@@ -6,7 +6,11 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.table import Table
 
 STAGES = (
     "screening",
@@ -198,11 +202,39 @@ def verdict(rmse: float | None, term: str, ref: dict[str, Any]) -> tuple[str, st
     return text, "above the noise: run driftlab diagnose" if basis == "noise" else "above the resolution", "red"
 
 
+_TERM_COLUMNS = (
+    ("axis", "left"),
+    ("term", "left"),
+    ("measurement", "left"),
+    ("link", "left"),
+    ("form", "left"),
+    ("unit", "left"),
+    ("RMSE train", "right"),
+    ("RMSE held out", "right"),
+    ("R2", "right"),
+    ("F", "right"),
+    ("held out vs", "right"),
+    ("verdict", "left"),
+)
+
+
+def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
+    """Return a number scaled and formatted, or "-" when there is none."""
+    return format(v * scale, fmt) if isinstance(v, (int, float)) else "-"
+
+
+def _finite_num(v: Any, fmt: str) -> str:
+    """Return a finite number formatted, or "-" when there is none (or it is not finite)."""
+    return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
+
+def _scaled(v: Any, k: float) -> str:
+    """Return a finite number times ``k`` with two decimals, or "-"."""
+    return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
+
 def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) -> None:
     """Print the fit as tables 6.1-6.3 do, with units (um, urad) and a verdict per row."""
-    from rich.table import Table
-
-    from driftlab.labels import display_unit, effect_label, feature_label
     from driftlab.progress import stdout_console
 
     ref = ref or {"noise_mm": None, "noise_rad": None, "resolution_mm": 0.0025, "resolution_rad": 1.7453e-05}
@@ -212,6 +244,19 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         f"machine {report.get('machine')}: model version {report.get('model_version')} registered; "
         f"{len(kept)} thermocouples kept: {' '.join(kept)}"
     )
+    con.print(_terms_table(report, ref))
+    _print_physical(con, report)
+    _print_findings(con, report)
+    for c in report.get("neural_comparison") or []:
+        _print_neural(con, c)
+
+
+def _terms_table(report: dict[str, Any], ref: dict[str, Any]) -> Table:
+    """Return the per-link models' table (thesis tables 6.1-6.2), each held-out RMSE judged against ``ref``."""
+    from rich.table import Table
+
+    from driftlab.labels import display_unit
+
     stated = []
     if ref.get("noise_mm"):
         stated.append(f"{ref['noise_mm'] * 1e3:.2g} um")
@@ -226,28 +271,11 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         ),
         title_justify="left",
     )
-    for col, just in (
-        ("axis", "left"),
-        ("term", "left"),
-        ("measurement", "left"),
-        ("link", "left"),
-        ("form", "left"),
-        ("unit", "left"),
-        ("RMSE train", "right"),
-        ("RMSE held out", "right"),
-        ("R2", "right"),
-        ("F", "right"),
-        ("held out vs", "right"),
-        ("verdict", "left"),
-    ):
+    for col, just in _TERM_COLUMNS:
         t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
     for r in report.get("terms", []):
         k, unit = display_unit(r["term"])
         ratio, word, style = verdict(r.get("rmse_holdout"), r["term"], ref)
-
-        def num(v: Any, fmt: str, scale: float = 1.0) -> str:
-            return format(v * scale, fmt) if isinstance(v, (int, float)) else "-"
-
         t.add_row(
             r["axis"],
             r["term"],
@@ -255,14 +283,22 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             str(r["link"]),
             str(r.get("form", "link")),
             unit,
-            num(r.get("rmse_train"), ".2f", k),
-            num(r.get("rmse_holdout"), ".2f", k),
-            num(r.get("r2"), ".3f"),
-            num(r.get("f"), ".4g"),
+            _num(r.get("rmse_train"), ".2f", k),
+            _num(r.get("rmse_holdout"), ".2f", k),
+            _num(r.get("r2"), ".3f"),
+            _num(r.get("f"), ".4g"),
             ratio,
             f"[{style}]{word}[/]",
         )
-    con.print(t)
+    return t
+
+
+def _print_physical(con: Console, report: dict[str, Any]) -> None:
+    """Print the regression against physical coefficients (thesis table 6.3), or why there is none."""
+    from rich.table import Table
+
+    from driftlab.labels import feature_label
+
     phys = report.get("physical", [])
     check = report.get("physical_check") or {}
     if check and check.get("status") != "compared":
@@ -271,30 +307,34 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             f"Regression against physical coefficients (thesis table 6.3): {check.get('status')}: "
             f"{check.get('note', '')}"
         )
-    elif phys:
-        pt = Table(
-            title="Regression against physical coefficients (thesis table 6.3)"
-            + (f"; {check['note']}" if check.get("note") else ""),
-            title_justify="left",
+        return
+    if not phys:
+        return
+    pt = Table(
+        title="Regression against physical coefficients (thesis table 6.3)"
+        + (f"; {check['note']}" if check.get("note") else ""),
+        title_justify="left",
+    )
+    for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
+        pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
+    for p in phys:
+        elem, _, feat = str(p["term"]).partition(" ")
+        status = str(p.get("status", "compared"))
+        pt.add_row(
+            f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
+            _finite_num(p.get("regression"), ".4g"),
+            _finite_num(p.get("physical"), ".4g"),
+            _finite_num(p.get("ratio"), ".2f"),
+            str(p.get("unit", "")),
+            str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"),
         )
-        for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
-            pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
+    con.print(pt)
 
-        def finite_num(v: Any, fmt: str) -> str:
-            return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
 
-        for p in phys:
-            elem, _, feat = str(p["term"]).partition(" ")
-            status = str(p.get("status", "compared"))
-            pt.add_row(
-                f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
-                finite_num(p.get("regression"), ".4g"),
-                finite_num(p.get("physical"), ".4g"),
-                finite_num(p.get("ratio"), ".2f"),
-                str(p.get("unit", "")),
-                str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"),
-            )
-        con.print(pt)
+def _print_findings(con: Console, report: dict[str, Any]) -> None:
+    """Print one line per diagnosis finding: folded in (with the terms it entered), substituted, or not."""
+    from driftlab.labels import effect_label, feature_label
+
     for f in report.get("findings", []):
         what = f"{effect_label(f)} on {f.get('axis')}/{f.get('term')}"
         if not f.get("folded"):
@@ -306,46 +346,49 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             con.print(
                 f"finding {what}: {'; '.join(kept_terms) or 'no term entered'}{' (forced)' if f.get('forced') else ''}"
             )
-    for c in report.get("neural_comparison") or []:
-        # ch. 6.6: least squares and the network on the same inputs, each extrapolation direction
-        if c.get("status") != "compared":
-            con.print(f"neural comparison on {c['target']} (ch. 6.6): {c.get('status')}: {c.get('note', '')}")
-            continue
-        k, unit = display_unit(c["target"].partition("/")[2])
-        nt = Table(
-            title=f"Neural network against least squares on the same inputs, {c['target']} (ch. 6.6; split by "
-            f"{c['split']}; {len(c.get('channels', []))} channels)",
-            title_justify="left",
+
+
+def _print_neural(con: Console, c: dict[str, Any]) -> None:
+    """Print one target's comparison of least squares and the network on the same inputs (ch. 6.6)."""
+    from rich.table import Table
+
+    from driftlab.labels import display_unit
+
+    # ch. 6.6: least squares and the network on the same inputs, each extrapolation direction
+    if c.get("status") != "compared":
+        con.print(f"neural comparison on {c['target']} (ch. 6.6): {c.get('status')}: {c.get('note', '')}")
+        return
+    k, unit = display_unit(c["target"].partition("/")[2])
+    nt = Table(
+        title=f"Neural network against least squares on the same inputs, {c['target']} (ch. 6.6; split by "
+        f"{c['split']}; {len(c.get('channels', []))} channels)",
+        title_justify="left",
+    )
+    for col in (
+        "direction",
+        "train",
+        "test",
+        f"regression test ({unit})",
+        f"network test ({unit})",
+        f"regression train ({unit})",
+        f"network train ({unit})",
+        "test beyond range",
+    ):
+        nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
+    for d in c.get("directions", []):
+        nt.add_row(
+            d["direction"],
+            d["train"],
+            d["test"],
+            _scaled(d["regression_test"], k),
+            _scaled(d["network_test"], k),
+            _scaled(d["regression_train"], k),
+            _scaled(d["network_train"], k),
+            f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC",
         )
-        for col in (
-            "direction",
-            "train",
-            "test",
-            f"regression test ({unit})",
-            f"network test ({unit})",
-            f"regression train ({unit})",
-            f"network train ({unit})",
-            "test beyond range",
-        ):
-            nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
-
-        def val(v: Any, k: float = k) -> str:
-            return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
-
-        for d in c.get("directions", []):
-            nt.add_row(
-                d["direction"],
-                d["train"],
-                d["test"],
-                val(d["regression_test"]),
-                val(d["network_test"]),
-                val(d["regression_train"]),
-                val(d["network_train"]),
-                f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC",
-            )
-        con.print(nt)
-        for what, why in (c.get("excluded") or {}).items():
-            con.print(f"  not a target: {what}: {why}")
+    con.print(nt)
+    for what, why in (c.get("excluded") or {}).items():
+        con.print(f"  not a target: {what}: {why}")
 
 
 def _list(args: argparse.Namespace) -> int:
