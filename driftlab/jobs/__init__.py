@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict, Unpack
 
 from psycopg_pool import NullConnectionPool
 
@@ -129,19 +129,19 @@ class Jobs:
         return job_id
 
 
-def submit(
-    store: Store,
-    kind: str,
-    params: dict[str, Any],
-    *,
-    machine_id: str | None = None,
-    campaign_id: int | None = None,
-    priority: int = PRIORITY_INTERACTIVE,
-) -> int:
+class JobKeywords(TypedDict, total=False):
+    """The keywords of ``Jobs.submit``, which ``submit`` passes on: the job's machine, campaign and priority."""
+
+    machine_id: str | None
+    campaign_id: int | None
+    priority: int
+
+
+def submit(store: Store, kind: str, params: dict[str, Any], **keywords: Unpack[JobKeywords]) -> int:
     """Record and queue one job (nothing runs it here); return its id."""
     jobs = Jobs(store, run_here=False)
     try:
-        return jobs.submit(kind, params, machine_id=machine_id, campaign_id=campaign_id, priority=priority)
+        return jobs.submit(kind, params, **keywords)
     finally:
         jobs.stop()
 

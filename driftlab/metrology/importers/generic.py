@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import yaml
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic import ValidationError as PydanticValidationError
 
@@ -37,6 +36,7 @@ from driftlab.metrology.importers.common import (
     value_factor,
 )
 from driftlab.vocabulary import AXES, TERMS
+from driftlab.yamlfile import read_yaml
 
 FIELDS = ("time_s", "axis", "term", "position", "direction", "value")
 TIME_UNITS = {"s": 1.0, "min": 60.0, "h": 3600.0, "ms": 1e-3}
@@ -62,15 +62,12 @@ class Mapping(BaseModel):
 def load_mapping(path: str | Path) -> Mapping:
     """Return the validated mapping of a YAML/JSON file; one-line InstrumentFileError naming the field otherwise."""
     path = Path(path)
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InstrumentFileError(f"{path.name}: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        line = getattr(getattr(exc, "problem_mark", None), "line", None)
-        raise InstrumentFileError(
-            f"{path.name}:{(line or 0) + 1}: not YAML/JSON ({getattr(exc, 'problem', exc)})"
-        ) from None
+    got = read_yaml(path, encoding="utf-8")
+    if got.unreadable is not None:
+        raise InstrumentFileError(f"{path.name}: {got.unreadable.strerror or got.unreadable}")
+    if got.problem is not None:
+        raise InstrumentFileError(f"{path.name}:{got.line or 1}: not YAML/JSON ({got.problem})")
+    raw = got.doc
     try:
         m = Mapping.model_validate(raw if raw is not None else {})
     except PydanticValidationError as exc:
