@@ -190,8 +190,8 @@ def _planted_text(p: dict[str, Any]) -> str:
     return effect_label(p) + where
 
 
-def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
-    """Return the demo's HTML page: the cutting-test table (µm), the diagnosis findings in words, the steps."""
+def _cutting_rows(cases: list[dict[str, Any]]) -> list[str]:
+    """Return the cutting tests' table rows (header first): each case's runs beside the thesis' figures (µm)."""
     e = html.escape
     head = [
         "case",
@@ -204,13 +204,6 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
         "verdict",
     ]
     rows = [_row(head, "th")]
-    cases = report.get("cutting_tests") or [
-        {
-            "case": "",
-            **{f"{k}_mm": report[k]["rmse_mm"] for k in RUN_NAMES},
-            **{f"{k}_max_mm": report[k]["max_mm"] for k in RUN_NAMES},
-        }
-    ]
     for c in cases:
         for k, name in RUN_NAMES.items():
             t = THESIS[k]
@@ -228,8 +221,13 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
                     ]
                 )
             )
-    diag = report.get("diagnosis", {})
-    findings = (
+    return rows
+
+
+def _findings_html(diag: dict[str, Any]) -> str:
+    """Return the diagnosis' accepted effects as list items: effect, where, cause and held-out gain (µm)."""
+    e = html.escape
+    return (
         "".join(
             f"<li><b>{e(effect_label(f))}</b> on {e(str(f.get('axis')))}/{e(str(f.get('term')))}: "
             f"{e(str(f.get('cause') or ''))} (held-out RMSE {1e3 * (f.get('rmse_holdout_before') or 0):.2f} &rarr; "
@@ -238,6 +236,20 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
         )
         or "<li>no effect accepted</li>"
     )
+
+
+def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
+    """Return the demo's HTML page: the cutting-test table (µm), the diagnosis findings in words, the steps."""
+    e = html.escape
+    cases = report.get("cutting_tests") or [
+        {
+            "case": "",
+            **{f"{k}_mm": report[k]["rmse_mm"] for k in RUN_NAMES},
+            **{f"{k}_max_mm": report[k]["max_mm"] for k in RUN_NAMES},
+        }
+    ]
+    rows = _cutting_rows(cases)
+    findings = _findings_html(report.get("diagnosis", {}))
     steps = "".join(
         _row([e(s["name"]), f"<code>{e(s.get('command', ''))}</code>", e(duration(s["wall_s"]))])
         for s in report.get("steps", [])

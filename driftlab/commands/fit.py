@@ -43,6 +43,13 @@ def _db(parser: argparse.ArgumentParser) -> None:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `fit`, `models` and `online`."""
+    _register_fit(sub)
+    _register_models(sub)
+    _register_online(sub)
+
+
+def _register_fit(sub: argparse._SubParsersAction) -> None:
+    """Register `fit --campaign ID ... [--json REPORT] [--findings REPORT] [--enqueue]`."""
     fit = sub.add_parser("fit", help="fit a model from stored campaigns and register it as a new version")
     fit.add_argument(
         "--campaign",
@@ -82,6 +89,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     fit.set_defaults(func=_fit)
 
+
+def _register_models(sub: argparse._SubParsersAction) -> None:
+    """Register `models list` and `models show VERSION`."""
     models = sub.add_parser("models", help="list or show registered model versions")
     msub = models.add_subparsers(dest="models_command", metavar="MODELSCOMMAND", required=True)
     ls = msub.add_parser("list", help="list model versions")
@@ -96,6 +106,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     _db(show)
     show.set_defaults(func=_show)
 
+
+def _register_online(sub: argparse._SubParsersAction) -> None:
+    """Register `online --machine ID --probe FILE.csv`."""
     online = sub.add_parser("online", help="update the on-line model (RLS, eqs. 6.10-6.13) with probe measurements")
     online.add_argument("--machine", required=True)
     online.add_argument(
