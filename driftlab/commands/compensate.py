@@ -7,7 +7,7 @@ import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypedDict
+from typing import TYPE_CHECKING, Any, TypedDict, cast
 
 from driftlab.errors import ValidationError
 from driftlab.vocabulary import AXES
@@ -232,13 +232,7 @@ class _Grid(TypedDict):
 
 def _grid(args: argparse.Namespace) -> _Grid:
     """Return the options' output grid (offline and streamed compensation take the same)."""
-    return _Grid(
-        resolution_mm=args.resolution_mm,
-        resolution_deg=args.resolution_deg,
-        hysteresis_steps=args.hysteresis_steps,
-        max_segment_mm=args.max_segment_mm,
-        max_segment_deg=args.max_segment_deg,
-    )
+    return cast(_Grid, {name: getattr(args, name) for name in _Grid.__required_keys__})  # the options of those names
 
 
 def _report_extrapolation(extrapolated: Mapping[str, Mapping[str, float]]) -> None:
