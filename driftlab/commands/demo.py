@@ -37,6 +37,7 @@ from driftlab.resources import examples_dir
 if TYPE_CHECKING:
     from rich.table import Table
 
+    from driftlab.campaigns.plan import Plan
     from driftlab.daq.sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -310,7 +311,7 @@ def _run_diagnosis(steps: _Steps, campaign_id: int) -> dict[str, Any]:
 
 
 def _serve_and_cut(
-    args: argparse.Namespace, steps: _Steps, scenario: Any, machine: str
+    args: argparse.Namespace, steps: _Steps, scenario: Scenario, machine: str
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Steps 4 and 5: serve the model over the API and run both cutting tests; return them and what was served."""
     console = steps.console
@@ -347,8 +348,8 @@ class _DemoFacts:
 
     args: argparse.Namespace
     campaign_id: int
-    plan: Any
-    scenario: Any
+    plan: Plan
+    scenario: Scenario
     fit_report: dict[str, Any]
     model_info: dict[str, Any]
     wall_s: float
