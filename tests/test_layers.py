@@ -71,6 +71,7 @@ BASE = {
     "driftlab.jsonsafe",
     "driftlab.metrics",
     "driftlab.errors",
+    "driftlab.yamlfile",  # a YAML file read for a one-line error: PyYAML and the file, nothing of driftlab
 }
 
 

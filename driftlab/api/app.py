@@ -17,6 +17,7 @@ from driftlab.api.deps import ApiState, ModelCache, get_state
 from driftlab.api.routes import campaigns, drift, histories, jobs, machines, models, online
 from driftlab.api.schemas import Health
 from driftlab.campaigns.store import Store, connect
+from driftlab.config import Settings
 from driftlab.jobs import Jobs
 
 log = logging.getLogger(__name__)
@@ -76,8 +77,6 @@ def create_app(
     over ``max_body_bytes`` (default DRIFTLAB_API_MAX_BODY_BYTES, 8 MiB) is refused with 413; a write's
     token is checked before its body is read.
     """
-    from driftlab.config import Settings
-
     settings = Settings()
     the_store = store if store is not None else connect(db_url or settings.resolved_db_url())
     models_cache = ModelCache(the_store, ttl_s=model_cache_ttl_s)

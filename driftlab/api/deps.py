@@ -14,6 +14,7 @@ from typing import Any, NotRequired, TypedDict
 from fastapi import Request
 from starlette.exceptions import HTTPException
 
+from driftlab.api.guard import token_problem
 from driftlab.campaigns.store import ModelVersionInfo, Store
 from driftlab.jobs import Jobs
 
@@ -180,8 +181,6 @@ def require_token(request: Request) -> None:
     The front door (api.guard) has already checked this before the body was read; this dependency
     keeps every write route safe on its own and declares the requirement in the OpenAPI document.
     """
-    from driftlab.api.guard import token_problem
-
     refused = token_problem(get_state(request).token, request.headers.get("authorization"))
     if refused is not None:
         raise HTTPException(refused[0], refused[1], headers=refused[2] or None)

@@ -10,6 +10,7 @@ limit. Both answers are RFC 9457 problem documents like every other error of the
 from __future__ import annotations
 
 import hmac
+import json
 from typing import Any
 
 from starlette.exceptions import HTTPException
@@ -39,8 +40,6 @@ def token_problem(expected: str, authorization: str | None) -> tuple[int, str, d
 
 
 async def _answer(send: Send, status: int, detail: str, path: str, headers: dict[str, str] | None = None) -> None:
-    import json
-
     body = json.dumps(problem_body(status, detail, path)).encode()
     raw = [
         (b"content-type", PROBLEM_MEDIA_TYPE.encode()),

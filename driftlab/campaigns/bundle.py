@@ -1042,6 +1042,18 @@ def _error_chunks(
         raise _fail(file, 2, "no error samples (the file has only a header)")
 
 
+def _finite_column(place: _Rows, table: pa.Table, name: str, missing: str = "missing value") -> np.ndarray:
+    """Return a numeric column of a chunk; its first empty or non-finite cell fails with the row."""
+    v = table.column(name).to_numpy(zero_copy_only=False)
+    k = place.first(table.column(name).is_null().to_numpy(zero_copy_only=False))
+    if k is not None:
+        raise place.fail(k, f"column {name}: {missing}")
+    k = place.first(~np.isfinite(v))
+    if k is not None:
+        raise place.fail(k, f"column {name}: {float(v[k])!r} is not a finite number")
+    return v
+
+
 def _error_frame(table: pa.Table, place: _Rows, t: np.ndarray) -> pd.DataFrame:
     """Return the v1 columns of a chunk of errors.csv, each checked: vocabulary, direction, finite, plausible."""
     axis = np.asarray(table.column("axis").to_pylist(), dtype=object)
@@ -1059,15 +1071,8 @@ def _error_frame(table: pa.Table, place: _Rows, t: np.ndarray) -> pd.DataFrame:
         what = "missing" if cell is None else f"{_short(cell)} is not +1 or -1"
         raise place.fail(k, f"column direction: {what}")
     direction = np.fromiter((_DIRECTIONS[d] for d in direction_text), dtype=np.int64, count=len(direction_text))
-    position = table.column("position").to_numpy(zero_copy_only=False)
-    value = table.column("value").to_numpy(zero_copy_only=False)
-    for name, v in (("position", position), ("value", value)):
-        k = place.first(table.column(name).is_null().to_numpy(zero_copy_only=False))
-        if k is not None:
-            raise place.fail(k, f"column {name}: missing value")
-        k = place.first(~np.isfinite(v))
-        if k is not None:
-            raise place.fail(k, f"column {name}: {float(v[k])!r} is not a finite number")
+    position = _finite_column(place, table, "position")
+    value = _finite_column(place, table, "value")
     is_rot_axis = np.isin(axis, np.asarray(ROTARY_AXES, dtype=object))
     k = place.first(is_rot_axis & (np.abs(position) > MAX_ROTARY_POSITION_DEG))
     if k is not None:
@@ -1121,13 +1126,7 @@ def _check_duplicates(place: _Rows, frame: pd.DataFrame, tail: pd.DataFrame | No
 def _load_pose_and_setup(place: _Rows, table: pa.Table, frame: pd.DataFrame, meta: CampaignMeta) -> None:
     """Add and check v2's pose and setup columns: finite pose, position = the moved axis' pose, known setup."""
     for name in POSE_COLUMNS:
-        v = table.column(name).to_numpy(zero_copy_only=False)
-        k = place.first(table.column(name).is_null().to_numpy(zero_copy_only=False))
-        if k is not None:
-            raise place.fail(k, f"column {name}: missing value (a bundle v2 gives the full pose)")
-        k = place.first(~np.isfinite(v))
-        if k is not None:
-            raise place.fail(k, f"column {name}: {float(v[k])!r} is not a finite number")
+        v = _finite_column(place, table, name, "missing value (a bundle v2 gives the full pose)")
         bound = MAX_ROTARY_POSITION_DEG if name in ("a", "b") else MAX_LINEAR_POSITION_MM
         k = place.first(np.abs(v) > bound)
         if k is not None:

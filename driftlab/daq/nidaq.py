@@ -79,6 +79,7 @@ class NIDaqVolts:
     def open(self) -> NIDaqVolts:
         """Create the task and its channels; InstrumentError (one line) without nidaqmx, the runtime or the device."""
         try:
+            # optional extra (driftlab[nidaq]): imported where the task opens, so the rest runs without it
             import nidaqmx
             from nidaqmx.constants import AcquisitionType, TerminalConfiguration
         except ImportError:
@@ -122,6 +123,7 @@ class NIDaqVolts:
             raise ValidationError(f"A/D channel indices must be 0..{self.n_channels - 1}")
         if self._task is None:
             self.open()
+        # optional extra (driftlab[nidaq]): imported where the task opens, so the rest runs without it
         import nidaqmx
 
         try:

@@ -458,6 +458,15 @@ def _parse_float(text: str) -> float:
     return value
 
 
+def block_interval(who: str, interval_s: float | None, n: int) -> float:
+    """Return the pacing interval of a block read of ``n`` scans; ValidationError before ``pace`` or for n < 1."""
+    if interval_s is None:
+        raise ValidationError(f"{who}: call pace(interval_s) before reading blocks")
+    if n < 1:
+        raise ValidationError("a block holds at least one scan")
+    return interval_s
+
+
 class ThermocoupleCard:
     """The thesis' DAS-TC card (legacy protocol; type E by default, J, K, T too): a TemperatureScanner."""
 
@@ -574,11 +583,7 @@ class ThermocoupleCard:
 
     def scan_block(self, first_index: int, n: int) -> ScanBlock:
         """Return buffered scans first_index..first_index + n - 1: calibrated degC, open junctions NaN."""
-        interval = self._interval_s
-        if interval is None:
-            raise ValidationError("thermocouple card: call pace(interval_s) before reading blocks")
-        if n < 1:
-            raise ValidationError("a block holds at least one scan")
+        interval = block_interval("thermocouple card", self._interval_s, n)
         cj, volts = self.read_block(first_index, n)
         idx = np.array(list(self._map)) - self._first
         names = tuple(self._map.values())

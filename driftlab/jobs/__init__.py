@@ -16,18 +16,21 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict, Unpack
 
+from psycopg_pool import NullConnectionPool
+
+from driftlab.errors import ValidationError
+from driftlab.jobs import local, queue
+from driftlab.jobs.local import LocalRunner
 from driftlab.jobs.policy import PRIORITY_INTERACTIVE
+from driftlab.jobs.queue import QueueWorker, build_app, conninfo, store_url, submit_to_queue
 from driftlab.jobs.tasks import DIAGNOSE, FIT, KINDS, OnModel, OnStage
 
 if TYPE_CHECKING:
     from procrastinate import App
-    from psycopg_pool import NullConnectionPool
 
     from driftlab.campaigns.store import JobInfo, Store
-    from driftlab.jobs.local import LocalRunner
-    from driftlab.jobs.queue import QueueWorker
 
 __all__ = ["DIAGNOSE", "FIT", "KINDS", "Jobs", "run_until_ended", "submit", "submit_fit"]
 
@@ -65,12 +68,8 @@ class Jobs:
         if not self.run_here or self.runner is not None:
             return
         if _queued(self.store):
-            from driftlab.jobs.queue import QueueWorker
-
             self.runner = QueueWorker(self.store, concurrency=self.concurrency, on_model=self.on_model)
         else:
-            from driftlab.jobs.local import LocalRunner
-
             self.runner = LocalRunner(self.store, on_model=self.on_model)
         self.runner.start()
 
@@ -95,10 +94,6 @@ class Jobs:
         """
         with self._lock:
             if self._app is None:
-                from psycopg_pool import NullConnectionPool
-
-                from driftlab.jobs.queue import build_app, conninfo, store_url
-
                 url = store_url(self.store)
                 self._pool = NullConnectionPool(conninfo(url), max_size=4, num_workers=1, open=False)
                 self._pool.open()
@@ -118,8 +113,6 @@ class Jobs:
     ) -> int:
         """Record a job and queue it (PostgreSQL) or hand it to this process's runner (SQLite); return its id."""
         if _queued(self.store):
-            from driftlab.jobs.queue import submit_to_queue
-
             return submit_to_queue(
                 self._deferrer(),
                 self.store,
@@ -129,7 +122,6 @@ class Jobs:
                 campaign_id=campaign_id,
                 priority=priority,
             )
-        from driftlab.jobs.local import LocalRunner
 
         job_id = self.store.jobs.record(kind, params, machine_id=machine_id, campaign_id=campaign_id)
         if isinstance(self.runner, LocalRunner):
@@ -137,19 +129,19 @@ class Jobs:
         return job_id
 
 
-def submit(
-    store: Store,
-    kind: str,
-    params: dict[str, Any],
-    *,
-    machine_id: str | None = None,
-    campaign_id: int | None = None,
-    priority: int = PRIORITY_INTERACTIVE,
-) -> int:
+class JobKeywords(TypedDict, total=False):
+    """The keywords of ``Jobs.submit``, which ``submit`` passes on: the job's machine, campaign and priority."""
+
+    machine_id: str | None
+    campaign_id: int | None
+    priority: int
+
+
+def submit(store: Store, kind: str, params: dict[str, Any], **keywords: Unpack[JobKeywords]) -> int:
     """Record and queue one job (nothing runs it here); return its id."""
     jobs = Jobs(store, run_here=False)
     try:
-        return jobs.submit(kind, params, machine_id=machine_id, campaign_id=campaign_id, priority=priority)
+        return jobs.submit(kind, params, **keywords)
     finally:
         jobs.stop()
 
@@ -168,8 +160,6 @@ def submit_fit(
     ``findings`` (``models.findings.Findings``) are kept in the job's parameters and folded in by the fit;
     ``envelope`` (``models.envelope.Envelope``) is written into the model document.
     """
-    from driftlab.errors import ValidationError
-
     ids = [int(c) for c in campaign_ids]
     if not ids:
         raise ValidationError("give at least one campaign")
@@ -187,9 +177,6 @@ def run_until_ended(store: Store, job_id: int, *, on_stage: OnStage | None = Non
     """Run a queued job in this process (PostgreSQL: a worker that also takes what is queued before it,
     unless another worker has the job first); return the job as it ended."""
     if _queued(store):
-        from driftlab.jobs import queue
-
         return queue.run_until_ended(store, job_id, on_stage=on_stage)
-    from driftlab.jobs import local
 
     return local.run_here(store, job_id, on_stage=on_stage)

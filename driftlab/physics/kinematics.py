@@ -467,24 +467,32 @@ def ideal_chain(q: np.ndarray, dims: Mapping[str, Any] = TABLE_A1) -> np.ndarray
     return out
 
 
-def htm_inverse(T: np.ndarray) -> np.ndarray:
-    """Return the inverse of rigid HTMs by eqs. 4.21-4.22: [O^T, -O^T P; 0, 1]."""
+def _htm_stack(T: np.ndarray) -> np.ndarray:
+    """Return ``T`` as a float array of (..., 4, 4) HTMs; KinematicsError for any other shape."""
     T = np.asarray(T, dtype=float)
     if T.shape[-2:] != (4, 4):
         raise KinematicsError(f"HTMs must be (..., 4, 4), got shape {T.shape}")
+    return T
+
+
+def _with_inverse_block(T: np.ndarray, inv: np.ndarray) -> np.ndarray:
+    """Return [inv, -inv P; 0, 1] for the positions P of ``T`` and a 3x3 block ``inv`` (eq. 4.22)."""
     out = np.zeros_like(T)
-    ot = np.swapaxes(T[..., :3, :3], -1, -2)
-    out[..., :3, :3] = ot  # eq. 4.22
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", ot, T[..., :3, 3])
+    out[..., :3, :3] = inv
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", inv, T[..., :3, 3])
     out[..., 3, 3] = 1.0
     return out
 
 
+def htm_inverse(T: np.ndarray) -> np.ndarray:
+    """Return the inverse of rigid HTMs by eqs. 4.21-4.22: [O^T, -O^T P; 0, 1]."""
+    T = _htm_stack(T)
+    return _with_inverse_block(T, np.swapaxes(T[..., :3, :3], -1, -2))  # eq. 4.22: O^T
+
+
 def affine_inverse(T: np.ndarray) -> np.ndarray:
     """Return the exact inverse of affine HTMs whose 3x3 block need not be orthonormal."""
-    T = np.asarray(T, dtype=float)
-    if T.shape[-2:] != (4, 4):
-        raise KinematicsError(f"HTMs must be (..., 4, 4), got shape {T.shape}")
+    T = _htm_stack(T)
     m = T[..., :3, :3]
     # adjugate / determinant: exact for the eq. 4.8 products, which are only orthonormal to first order
     adj = np.empty_like(m)
@@ -496,19 +504,12 @@ def affine_inverse(T: np.ndarray) -> np.ndarray:
     det = np.einsum("...j,...j->...", m[..., 0, :], adj[..., :, 0])
     if np.any(np.abs(det) < 1e-12):
         raise KinematicsError("HTM rotation block is singular and cannot be inverted")
-    inv = adj / det[..., None, None]
-    out = np.zeros_like(T)
-    out[..., :3, :3] = inv
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", inv, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
+    return _with_inverse_block(T, adj / det[..., None, None])
 
 
 def htm_to_params(T: np.ndarray) -> np.ndarray:
     """Return the (..., 6) small-angle parameters of HTMs (exact for eq. 4.8 matrices)."""
-    T = np.asarray(T, dtype=float)
-    if T.shape[-2:] != (4, 4):
-        raise KinematicsError(f"HTMs must be (..., 4, 4), got shape {T.shape}")
+    T = _htm_stack(T)
     out = np.empty(T.shape[:-2] + (6,))
     # eq. 4.8: the antisymmetric part of the rotation block holds alpha, beta, gamma
     out[..., 0] = 0.5 * (T[..., 2, 1] - T[..., 1, 2])

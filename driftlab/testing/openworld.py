@@ -120,6 +120,7 @@ def _ar1(n: int, rho: float, sigma: float, rng: np.random.Generator) -> np.ndarr
     """Return AR(1) noise with marginal standard deviation ``sigma`` and lag-1 correlation ``rho``."""
     e = rng.normal(0.0, sigma * np.sqrt(1.0 - rho * rho), n)
     e[0] = rng.normal(0.0, sigma)
+    # lazy: scipy.signal adds 1.3 s to `import driftlab.testing.openworld` (measured)
     from scipy.signal import lfilter
 
     zi = np.array([rho * e[0]])

@@ -27,7 +27,9 @@ from driftlab.api.schemas import (
 from driftlab.campaigns.repository import Page
 from driftlab.campaigns.store import ModelVersionInfo, Store
 from driftlab.errors import ValidationError
+from driftlab.jobs import registry as model_registry
 from driftlab.jsonsafe import check_json
+from driftlab.models import document as documents
 
 if TYPE_CHECKING:
     from driftlab.api.deps import ModelVersionJson
@@ -178,9 +180,6 @@ def register(
     machine_id: MachineId, body: ModelRegisterIn, state: Annotated[ApiState, Depends(get_state)], response: Response
 ) -> ModelVersionJson:
     """Validate and store a model document as the machine's next version, current from now on."""
-    from driftlab.jobs import registry as model_registry
-    from driftlab.models import document as documents
-
     check_json(body.document)
     doc = documents.validate_document(body.document)
     if doc.machine != machine_id:

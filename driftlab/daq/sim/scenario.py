@@ -13,7 +13,6 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic import ValidationError as PydanticValidationError
 
@@ -21,6 +20,7 @@ from driftlab.daq.sim.sites import MODEL_CHANNELS, SITE_INDEX
 from driftlab.errors import ValidationError
 from driftlab.physics.geometry import Geometry
 from driftlab.vocabulary import EFFECT_KINDS, ROTATIONS, Axis, Term
+from driftlab.yamlfile import read_yaml
 
 HeatSource = Literal["spindle", "feed", "combined", "idle", "off"]
 
@@ -355,16 +355,12 @@ def scenario_from_dict(data: Any, source: str = "scenario") -> Scenario:
 def load_scenario(path: str | Path) -> Scenario:
     """Return the Scenario in a YAML file, or raise ValidationError with a one-line message."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ValidationError(f"scenario {p}: cannot read ({exc.strerror or exc})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise ValidationError(f"scenario {p}:{where}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    got = read_yaml(p, encoding="utf-8")
+    if got.unreadable is not None:
+        raise ValidationError(f"scenario {p}: cannot read ({got.unreadable.strerror or got.unreadable})")
+    if got.problem is not None:
+        raise ValidationError(f"scenario {p}:{got.at(' line {}')}: not valid YAML ({got.problem})")
+    data = got.doc
     if data is None:
         data = {}
     if isinstance(data, dict) and "name" not in data:

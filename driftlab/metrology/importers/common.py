@@ -192,17 +192,7 @@ def write_readings(
     when = started_at or readings.started_at
     if when is None:
         raise InstrumentFileError(f"{src}: the file carries no date: give --started-at ISO_TIME")
-    if readings.temperature_frame is not None:
-        temps = readings.temperature_frame
-    else:
-        values = dict(readings.temperatures)
-        if air_temp_degC is not None:
-            values["air"] = float(air_temp_degC)
-        if not values:
-            raise InstrumentFileError(
-                f"{src}: the file records no temperature: give --air-temp DEGC (the room during the test)"
-            )
-        temps = pd.DataFrame({"time_s": [0.0], **{k: [v] for k, v in values.items()}})
+    temps = _temperatures(readings, air_temp_degC)
     channels = [c for c in temps.columns if c != "time_s"]
     meta: dict[str, Any] = {
         "format": "driftlab-bundle/1",
@@ -216,24 +206,53 @@ def write_readings(
     order = np.argsort(errors["time_s"].to_numpy(float), kind="stable")
     frame = errors.iloc[order].reset_index(drop=True)[list(ERROR_COLUMNS)]
     if readings.instrument is not None:
-        # bundle v2: the instrument's record travels in campaign.json as its setup's reference
-        info = dict(readings.instrument)
-        kind = str(info.pop("instrument", "laser"))
-        axes = sorted(set(frame["axis"]))
-        meta["format"] = "driftlab-bundle/2"
-        meta["setups"] = {
-            "instrument": {
-                "instrument": kind,
-                "axis": axes[0] if len(axes) == 1 else None,
-                "terms": sorted({f"{a}/{t}" for a, t in zip(frame["axis"], frame["term"])}),
-                "reference": {k: v for k, v in info.items() if v not in (None, "")},
-            }
+        frame = _as_v2(meta, frame, readings.instrument)
+    _write_checked(out, src, readings.source_rows[order], meta, temps, frame)
+    return out
+
+
+def _temperatures(readings: Readings, air_temp_degC: float | None) -> pd.DataFrame:
+    """Return the bundle's temperatures: the file's own, else one scan of its stated ones (and ``air_temp_degC``)."""
+    if readings.temperature_frame is not None:
+        return readings.temperature_frame
+    values = dict(readings.temperatures)
+    if air_temp_degC is not None:
+        values["air"] = float(air_temp_degC)
+    if not values:
+        raise InstrumentFileError(
+            f"{readings.source}: the file records no temperature: give --air-temp DEGC (the room during the test)"
+        )
+    return pd.DataFrame({"time_s": [0.0], **{k: [v] for k, v in values.items()}})
+
+
+def _as_v2(meta: dict[str, Any], frame: pd.DataFrame, instrument: dict[str, Any]) -> pd.DataFrame:
+    """Make ``meta`` a bundle v2's, with the instrument's record as its setup; return ``frame`` with pose and setup."""
+    # bundle v2: the instrument's record travels in campaign.json as its setup's reference
+    info = dict(instrument)
+    kind = str(info.pop("instrument", "laser"))
+    axes = sorted(set(frame["axis"]))
+    meta["format"] = "driftlab-bundle/2"
+    meta["setups"] = {
+        "instrument": {
+            "instrument": kind,
+            "axis": axes[0] if len(axes) == 1 else None,
+            "terms": sorted({f"{a}/{t}" for a, t in zip(frame["axis"], frame["term"])}),
+            "reference": {k: v for k, v in info.items() if v not in (None, "")},
         }
-        for name in POSE_COLUMNS:
-            frame[name] = np.where(frame["axis"] == name.upper(), frame["position"], 0.0)
-        frame["setup"] = "instrument"
-        frame = frame[list(ERROR_COLUMNS_V2)]
-    rows = readings.source_rows[order]
+    }
+    for name in POSE_COLUMNS:
+        frame[name] = np.where(frame["axis"] == name.upper(), frame["position"], 0.0)
+    frame["setup"] = "instrument"
+    return frame[list(ERROR_COLUMNS_V2)]
+
+
+def _write_checked(
+    out: Path, src: str, rows: np.ndarray, meta: dict[str, Any], temps: pd.DataFrame, frame: pd.DataFrame
+) -> None:
+    """Write the bundle beside ``out``, load it back in full, then move it to ``out``; a bad row names the file's.
+
+    ``rows`` is the instrument file's line of each row of ``frame``.
+    """
     tmp = out.with_name(out.name + ".part")
     if tmp.exists():
         shutil.rmtree(tmp)
@@ -254,7 +273,6 @@ def write_readings(
     if out.exists():
         out.rmdir()
     tmp.replace(out)
-    return out
 
 
 def check_axis(axis: str, where: str) -> str:

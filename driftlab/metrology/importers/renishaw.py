@@ -60,6 +60,51 @@ def read_rtx(
     """Return the readings of a ``.rtx`` capture: the samples averaged per ``interval_s``, at one position."""
     path = Path(path)
     src = path.name
+    header, samples = _rtx_parts(path)
+    rate = _rtx_rate(src, header)
+    bad = np.flatnonzero(~np.isfinite(samples))
+    if bad.size:
+        raise InstrumentFileError(f"{src}: sample {int(bad[0])} is not a finite number")
+    ax = check_axis(axis or header.get("Axis") or "", f"{src}: axis (header 'Axis' or --axis)")
+    tm = term or POSITIONING_TERM[ax]
+    assumptions: list[str] = []
+    if unit is None:
+        unit = "um" if tm not in ("alpha", "beta", "gamma") else "arcsec"
+        shown = "µm" if unit == "um" else unit
+        assumptions.append(f"the header states no unit: the samples are read as {shown} (give --unit)")
+    scale = value_factor(unit, tm, f"{src}: --unit")
+    t, means = _averaged(src, samples, rate, interval_s)
+    means = means * scale
+    n = len(t)
+    errors = pd.DataFrame(
+        {"time_s": t, "axis": ax, "term": tm, "position": float(position), "direction": 1, "value": means}
+    )
+    started = None
+    if header.get("Date"):
+        started, assumed = parse_date(header["Date"], f"{src}: header 'Date'", date_order)
+        assumptions += [assumed] if assumed else []
+    record: dict[str, Any] = {
+        "instrument": "laser",
+        "source": f"Renishaw .rtx capture {src}",
+        **{_key(k): v for k, v in header.items() if v},
+        "unit": unit,
+        "unit_stated": "--unit" if not assumptions or "no unit" not in assumptions[0] else "assumed",
+        "date_order": date_order or "dmy (assumed)",
+    }
+    return Readings(
+        src,
+        errors,
+        np.zeros(n, dtype=np.int64),
+        machine=header.get("Machine", ""),
+        started_at=started,
+        instrument=record,
+        assumptions=assumptions,
+    )
+
+
+def _rtx_parts(path: Path) -> tuple[dict[str, str], np.ndarray]:
+    """Return the header (key -> value) and the float64 samples of a ``.rtx`` file, each part checked."""
+    src = path.name
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -90,6 +135,11 @@ def read_rtx(
     samples = np.frombuffer(body, dtype="<f8")
     if samples.size == 0:
         raise InstrumentFileError(f"{src}: the capture holds no samples")
+    return header, samples
+
+
+def _rtx_rate(src: str, header: dict[str, str]) -> float:
+    """Return the capture's sample rate (Hz) from its header: the actual rate, else the set one."""
     rate_text = header.get("Actual sample rate") or header.get("Sample rate")
     try:
         rate = float(rate_text) if rate_text is not None else float("nan")
@@ -99,49 +149,19 @@ def read_rtx(
         raise InstrumentFileError(
             f"{src}: header 'Actual sample rate' is missing or not a positive number ({rate_text!r})"
         )
-    bad = np.flatnonzero(~np.isfinite(samples))
-    if bad.size:
-        raise InstrumentFileError(f"{src}: sample {int(bad[0])} is not a finite number")
-    ax = check_axis(axis or header.get("Axis") or "", f"{src}: axis (header 'Axis' or --axis)")
-    tm = term or POSITIONING_TERM[ax]
-    assumptions: list[str] = []
-    if unit is None:
-        unit = "um" if tm not in ("alpha", "beta", "gamma") else "arcsec"
-        shown = "µm" if unit == "um" else unit
-        assumptions.append(f"the header states no unit: the samples are read as {shown} (give --unit)")
-    scale = value_factor(unit, tm, f"{src}: --unit")
+    return rate
+
+
+def _averaged(src: str, samples: np.ndarray, rate: float, interval_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return the middle time (s) and the mean of each whole ``interval_s`` of the samples taken at ``rate``."""
     if not (np.isfinite(interval_s) and interval_s > 0):
         raise InstrumentFileError(f"{src}: the averaging interval must be positive, got {interval_s!r}")
     per = max(1, int(round(interval_s * rate)))
     n = samples.size // per
     if n == 0:
         raise InstrumentFileError(f"{src}: {samples.size} samples are fewer than one {interval_s:g} s interval")
-    means = samples[: n * per].reshape(n, per).mean(axis=1) * scale
-    t = (np.arange(n) * per + (per - 1) / 2.0) / rate  # the middle of each averaging interval
-    errors = pd.DataFrame(
-        {"time_s": t, "axis": ax, "term": tm, "position": float(position), "direction": 1, "value": means}
-    )
-    started = None
-    if header.get("Date"):
-        started, assumed = parse_date(header["Date"], f"{src}: header 'Date'", date_order)
-        assumptions += [assumed] if assumed else []
-    record: dict[str, Any] = {
-        "instrument": "laser",
-        "source": f"Renishaw .rtx capture {src}",
-        **{_key(k): v for k, v in header.items() if v},
-        "unit": unit,
-        "unit_stated": "--unit" if not assumptions or "no unit" not in assumptions[0] else "assumed",
-        "date_order": date_order or "dmy (assumed)",
-    }
-    return Readings(
-        src,
-        errors,
-        np.zeros(n, dtype=np.int64),
-        machine=header.get("Machine", ""),
-        started_at=started,
-        instrument=record,
-        assumptions=assumptions,
-    )
+    means = samples[: n * per].reshape(n, per).mean(axis=1)
+    return (np.arange(n) * per + (per - 1) / 2.0) / rate, means  # the middle of each averaging interval
 
 
 def _key(name: str) -> str:
@@ -160,6 +180,50 @@ def _split_unit(name: str) -> tuple[str, str | None]:
 def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
     """Return the readings of a Renishaw linear/angular CSV export (preamble + Run/Direction/Target/Error table)."""
     path = Path(path)
+    src = path.name
+    lines, meta, head, table = _csv_table(path)
+    cols: dict[str, tuple[str, str | None]] = {}
+    for c in table.columns:
+        name, unit = _split_unit(str(c))
+        cols[name] = (str(c), unit)
+    test = meta.get("test", "linear").strip().lower()
+    if test not in ("linear", "angular"):
+        raise InstrumentFileError(f"{src}: 'Test' is {meta.get('test')!r}, expected linear or angular")
+    ax = check_axis(axis or meta.get("axis", ""), f"{src}: axis (preamble 'Axis' or --axis)")
+    term = POSITIONING_TERM[ax]
+    if test == "angular" and ax in ("X", "Y", "Z"):
+        raise InstrumentFileError(
+            f"{src}: an angular test of linear axis {ax}: import it with the generic mapping "
+            "(which names the term, e.g. pitch or yaw)"
+        )
+    t_unit = cols["target"][1] or ("deg" if ax in ("A", "B") else "mm")
+    e_unit = cols["error"][1] or ("arcsec" if term in ("alpha", "beta") else "um")
+    p_scale = position_factor(t_unit, ax, f"{src}:{head + 1}: column {cols['target'][0]}")
+    v_scale = value_factor(e_unit, term, f"{src}:{head + 1}: column {cols['error'][0]}")
+    rows_out: list[tuple[float, str, str, float, int, float, int]] = []
+    lines_out = []
+    for k, row in table.iterrows():
+        lineno = head + 2 + int(k)  # the table's header is line head + 1
+        cell = {name: str(row[orig]).strip() for name, (orig, _) in cols.items()}
+        d, run, numbers = _csv_row(src, lineno, cell, cols)
+        t = numbers[2] if "time" in cols else float(len(rows_out))  # measuring order, one second apart
+        rows_out.append((t, ax, term, numbers[0] * p_scale, d, numbers[1] * v_scale, run))
+        lines_out.append(lineno)
+    if not rows_out:
+        raise InstrumentFileError(f"{src}: the data table has no rows")
+    errors = pd.DataFrame(
+        [r[:6] for r in rows_out], columns=["time_s", "axis", "term", "position", "direction", "value"]
+    )
+    temps = _preamble_temperatures(src, meta, lines)
+    started = parse_time(meta["date"], f"{src}: 'Date'") if meta.get("date") else None
+    return Readings(
+        src, errors, np.array(lines_out), machine=meta.get("machine", ""), started_at=started, temperatures=temps
+    )
+
+
+def _csv_table(path: Path) -> tuple[list[str], dict[str, str], int, pd.DataFrame]:
+    """Return the export's lines, its preamble (lower-case key -> value), the table's header line (0-based)
+    and the table's cells as text."""
     src = path.name
     try:
         text = path.read_text(encoding="utf-8-sig")
@@ -188,58 +252,38 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
         )
     except (pd.errors.ParserError, ValueError) as exc:
         raise InstrumentFileError(f"{src}: cannot parse the data table ({' '.join(str(exc).split())})") from None
-    cols: dict[str, tuple[str, str | None]] = {}
-    for c in table.columns:
-        name, unit = _split_unit(str(c))
-        cols[name] = (str(c), unit)
-    test = meta.get("test", "linear").strip().lower()
-    if test not in ("linear", "angular"):
-        raise InstrumentFileError(f"{src}: 'Test' is {meta.get('test')!r}, expected linear or angular")
-    ax = check_axis(axis or meta.get("axis", ""), f"{src}: axis (preamble 'Axis' or --axis)")
-    term = POSITIONING_TERM[ax]
-    if test == "angular" and ax in ("X", "Y", "Z"):
+    return lines, meta, head, table
+
+
+def _csv_row(
+    src: str, lineno: int, cell: dict[str, str], cols: dict[str, tuple[str, str | None]]
+) -> tuple[int, int, list[float]]:
+    """Return a table row's direction (+1/-1), run number, and target, error (and time) as finite numbers."""
+    if not any(cell.values()):
+        raise InstrumentFileError(f"{src}:{lineno}: empty line inside the data table")
+    d = parse_direction(cell["direction"])
+    if d is None:
         raise InstrumentFileError(
-            f"{src}: an angular test of linear axis {ax}: import it with the generic mapping "
-            "(which names the term, e.g. pitch or yaw)"
+            f"{src}:{lineno}: column Direction: {cell['direction']!r} is not + or - (or forward/backward, up/down)"
         )
-    t_unit = cols["target"][1] or ("deg" if ax in ("A", "B") else "mm")
-    e_unit = cols["error"][1] or ("arcsec" if term in ("alpha", "beta") else "um")
-    p_scale = position_factor(t_unit, ax, f"{src}:{head + 1}: column {cols['target'][0]}")
-    v_scale = value_factor(e_unit, term, f"{src}:{head + 1}: column {cols['error'][0]}")
-    has_time = "time" in cols
-    rows_out: list[tuple[float, str, str, float, int, float, int]] = []
-    lines_out = []
-    for k, row in table.iterrows():
-        lineno = head + 2 + int(k)  # the table's header is line head + 1
-        cell = {name: str(row[orig]).strip() for name, (orig, _) in cols.items()}
-        if not any(cell.values()):
-            raise InstrumentFileError(f"{src}:{lineno}: empty line inside the data table")
-        d = parse_direction(cell["direction"])
-        if d is None:
-            raise InstrumentFileError(
-                f"{src}:{lineno}: column Direction: {cell['direction']!r} is not + or - (or forward/backward, up/down)"
-            )
+    try:
+        run = int(cell["run"])
+    except ValueError:
+        raise InstrumentFileError(f"{src}:{lineno}: column Run: {cell['run']!r} is not a run number") from None
+    numbers = []
+    for name in ("target", "error", *(("time",) if "time" in cols else ())):
         try:
-            run = int(cell["run"])
+            v = float(cell[name])
         except ValueError:
-            raise InstrumentFileError(f"{src}:{lineno}: column Run: {cell['run']!r} is not a run number") from None
-        numbers = []
-        for name in ("target", "error", *(("time",) if has_time else ())):
-            try:
-                v = float(cell[name])
-            except ValueError:
-                v = float("nan")
-            if not np.isfinite(v):
-                raise InstrumentFileError(f"{src}:{lineno}: column {cols[name][0]}: {cell[name]!r} is not a number")
-            numbers.append(v)
-        t = numbers[2] if has_time else float(len(rows_out))  # measuring order, one second apart
-        rows_out.append((t, ax, term, numbers[0] * p_scale, d, numbers[1] * v_scale, run))
-        lines_out.append(lineno)
-    if not rows_out:
-        raise InstrumentFileError(f"{src}: the data table has no rows")
-    errors = pd.DataFrame(
-        [r[:6] for r in rows_out], columns=["time_s", "axis", "term", "position", "direction", "value"]
-    )
+            v = float("nan")
+        if not np.isfinite(v):
+            raise InstrumentFileError(f"{src}:{lineno}: column {cols[name][0]}: {cell[name]!r} is not a number")
+        numbers.append(v)
+    return d, run, numbers
+
+
+def _preamble_temperatures(src: str, meta: dict[str, str], lines: list[str]) -> dict[str, float]:
+    """Return the preamble's air and material temperatures (degC) as channels, where it states them."""
     temps: dict[str, float] = {}
     for key in ("air temperature", "material temperature"):
         if key in meta and meta[key] != "":
@@ -248,7 +292,4 @@ def read_renishaw_csv(path: str | Path, *, axis: str | None = None) -> Readings:
             except ValueError:
                 row = next(i for i, ln in enumerate(lines) if ln.lower().startswith(key)) + 1
                 raise InstrumentFileError(f"{src}:{row}: {key} {meta[key]!r} is not a number (degC)") from None
-    started = parse_time(meta["date"], f"{src}: 'Date'") if meta.get("date") else None
-    return Readings(
-        src, errors, np.array(lines_out), machine=meta.get("machine", ""), started_at=started, temperatures=temps
-    )
+    return temps
