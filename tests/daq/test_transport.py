@@ -36,7 +36,12 @@ def test_serial_port_uses_no_private_pyserial_attribute():
 
 
 class _Server:
-    """A local TCP peer that sends scripted byte chunks with pauses, then optionally closes."""
+    """A local TCP peer that sends scripted byte chunks with pauses, then optionally closes.
+
+    It waits for one byte from the client first (``_open`` sends it once the port is open): pyserial's
+    ``socket://`` open drops whatever input has already arrived (``reset_input_buffer``), so bytes sent
+    at the accept could be lost on a loaded host before the test reads them.
+    """
 
     def __init__(self, chunks: list[tuple[float, bytes]], close: bool = False) -> None:
         self.sock = socket.socket()
@@ -51,6 +56,7 @@ class _Server:
 
     def _run(self) -> None:
         conn, _ = self.sock.accept()
+        conn.recv(1)  # the client's port is open
         for pause, data in self.chunks:
             time.sleep(pause)
             conn.sendall(data)
@@ -62,9 +68,16 @@ class _Server:
             conn.close()
 
 
+def _open(server: _Server) -> SerialPort:
+    """Return a port on ``server`` that has told the server it is open (see ``_Server``)."""
+    port = SerialPort.open(f"socket://127.0.0.1:{server.port}", timeout_s=1.0)
+    port.write(b"?")
+    return port
+
+
 def test_serial_lines_arrive_whole_from_pieces_and_batches():
     server = _Server([(0.0, b"ab"), (0.05, b"c\nde"), (0.05, b"f\ng\nh"), (0.0, b"\n")])
-    port = SerialPort.open(f"socket://127.0.0.1:{server.port}", timeout_s=1.0)
+    port = _open(server)
     try:
         assert [port.read_line() for _ in range(4)] == [b"abc\n", b"def\n", b"g\n", b"h\n"]
         assert port._ser.timeout == 1.0  # the port's own timeout is restored after each line
@@ -75,13 +88,13 @@ def test_serial_lines_arrive_whole_from_pieces_and_batches():
 def test_serial_timeout_names_the_partial_line_and_a_closed_peer_is_reported():
     server = _Server([(0.0, b"12.5,")])
     # a second to wait for the rest: on a loaded host the loopback may hand over the sent bytes late
-    port = SerialPort.open(f"socket://127.0.0.1:{server.port}", timeout_s=1.0)
+    port = _open(server)
     assert server.sent.wait(10.0)  # the partial line is sent before the wait starts, however loaded the host
     with pytest.raises(TransportTimeout, match=r"timeout waiting for reply \(partial b'12.5,'\)"):
         port.read_line()
     port.close()
     server = _Server([(0.0, b"x")], close=True)
-    port = SerialPort.open(f"socket://127.0.0.1:{server.port}", timeout_s=1.0)
+    port = _open(server)
     with pytest.raises(TransportTimeout, match="connection closed by the instrument"):
         port.read_line()
     port.close()
