@@ -33,7 +33,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import statsmodels.api as sm
-from scipy import optimize
+from scipy import optimize, stats
+from threadpoolctl import threadpool_limits
 
 from driftlab.labels import duration
 from driftlab.metrics import rmse
@@ -1166,7 +1167,6 @@ def _passes_denoised(
     dof = fit.n_train - X.shape[1]
     if dof <= 0 or rss1 <= 0:
         return False, cols
-    from scipy import stats
 
     p = float(stats.f.sf(((rss0 - rss1) / k) / (rss1 / dof), k, dof))
     return p < cfg.alpha_each, cols
@@ -1925,12 +1925,7 @@ def diagnose_bundle(
 
 @contextmanager
 def _single_blas_thread() -> Iterator[None]:
-    """Limit BLAS to one thread while the context is open (no-op without threadpoolctl)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        yield
-        return
+    """Limit BLAS to one thread while the context is open (threadpoolctl comes with scikit-learn)."""
     with threadpool_limits(limits=1, user_api="blas"):
         yield
 
