@@ -73,7 +73,7 @@ from driftlab.metrics import rmse
 from driftlab.models import document as documents
 from driftlab.models.document import predict_workspace_sd
 from driftlab.models.envelope import Envelope
-from driftlab.models.online import rls_init, rls_update
+from driftlab.models.online import ONLINE_P0, rls_init, rls_update
 from driftlab.physics import kinematics as kin
 from driftlab.physics.lag import LaggedReadings, LagState
 from driftlab.vocabulary import AXES
@@ -378,7 +378,9 @@ class OnlineUpdater(Protocol):
 class LocalRLS:
     """The on-line RLS of eqs. 6.10-6.13 in process: one fit per translation on phi = [1, dT_k ...]."""
 
-    def __init__(self, document: Any, channels: Sequence[str] = (), forgetting: float = 0.9, p0: float = 1.0) -> None:
+    def __init__(
+        self, document: Any, channels: Sequence[str] = (), forgetting: float = 0.9, p0: float = ONLINE_P0
+    ) -> None:
         self.doc = documents.validate_document(document)
         self.channels = list(channels)
         self.refs: dict[str, float] | None = None

@@ -57,7 +57,16 @@ class RLSState:
         return cls(theta=theta, P=P, lam=float(d["lam"]), n_updates=int(d.get("n_updates", 0)))
 
 
-def rls_init(n: int, lam: float = 0.98, p0: float = 1e3, theta0: Sequence[float] | None = None) -> RLSState:
+#: P(0) of a fresh on-line model, in observations' inverse weight: 1e3 makes the start diffuse (the first
+#: probe cycle's residuals set theta; Ljung 1987, whom ch. 6.4.3 follows). The thesis set P(0) "equal to a
+#: small constant" and then ran the cutting test once "to allow the on-line parameters a chance to establish
+#: themselves" (ch. 7.3); a diffuse start establishes them at the first cycle instead of that extra run.
+#: With P(0) = 1 (as before 2026-11-27) theta0 = 0 weighed as one probe: the first cycle took half of a
+#: 30 um wear (lambda 0.98), and a cut on a worn machine carried the rest for several cycles.
+ONLINE_P0 = 1e3
+
+
+def rls_init(n: int, lam: float = 0.98, p0: float = ONLINE_P0, theta0: Sequence[float] | None = None) -> RLSState:
     """Return a fresh state: theta0 (zeros by default) and P(0) = p0 I (ch. 6.4.3)."""
     if not 0.0 < lam <= 1.0:
         raise ValidationError(f"forgetting factor must be in (0, 1], got {lam}")
@@ -208,7 +217,7 @@ def online_update_residuals(
     terms: dict[str, dict[str, float]] = {}
     preds: dict[str, np.ndarray] = {}
     for k, term in enumerate(PROBE_TERMS):
-        st = (states or {}).get(term) or rls_init(1, lam=lam, p0=1.0)
+        st = (states or {}).get(term) or rls_init(1, lam=lam, p0=ONLINE_P0)
         run = rls_run(st, online_regressors(len(resid)), resid[:, k])
         out_states[term] = run.state
         preds[term] = run.prior_prediction

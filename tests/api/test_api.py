@@ -9,6 +9,7 @@ import math
 import httpx
 import pytest
 
+from driftlab.models.online import ONLINE_P0
 from tests.api.helpers import AUTH, MACHINE, TOKEN, Seeded, model_document
 
 pytestmark = pytest.mark.anyio
@@ -340,11 +341,12 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
         last = r.json()
         assert last["n_updates"] == k + 1 and last["forgetting"] == 0.95
     assert last is not None
-    # intercept-only RLS from P(0) = 1 on a constant residual r: theta_n = r S / (lambda^n + S), S = sum lambda^i
+    # intercept-only RLS from P(0) = p0 on a constant residual r: theta_n = r S / (lambda^n / p0 + S),
+    # S = sum lambda^i (theta0 = 0 weighs 1 / p0 of one probe, forgotten like the probes)
     lam, n = 0.95, 30
     s = sum(lam**i for i in range(n))
     for c in ("dx", "dy", "dz"):
-        assert math.isclose(last["online_prediction"][c], offset[c] * s / (lam**n + s), rel_tol=1e-9)
+        assert math.isclose(last["online_prediction"][c], offset[c] * s / (lam**n / ONLINE_P0 + s), rel_tol=1e-9)
         assert abs(last["prior_error"][c]) < 0.02 * abs(offset[c])
         assert math.isclose(last["correction"][c], -(last["offline_prediction"][c] + last["online_prediction"][c]))
     state = (await client.get(f"/machines/{MACHINE}/online")).json()
@@ -379,9 +381,10 @@ async def test_online_probe_updates_persist_and_converge(client: httpx.AsyncClie
         url, json={**body, "measured_at": "2026-03-05T00:00:00Z", "forgetting": 0.9}, headers=AUTH
     )
     assert fresh.status_code == 200 and fresh.json()["n_updates"] == 1 and fresh.json()["forgetting"] == 0.9
-    # from P(0) = 1: theta_1 = r / (lambda + 1) of the first residual alone
+    # from P(0) = p0: theta_1 = r p0 / (lambda + p0) of the first residual alone
     for c in ("dx", "dy", "dz"):
-        assert math.isclose(fresh.json()["online_prediction"][c], offset[c] / 1.9, rel_tol=1e-6)
+        want = offset[c] * ONLINE_P0 / (0.9 + ONLINE_P0)
+        assert math.isclose(fresh.json()["online_prediction"][c], want, rel_tol=1e-6)
     # a new current model starts a new on-line state
     await client.post(f"/machines/{MACHINE}/models", json={"document": model_document()}, headers=AUTH)
     assert_problem(await client.get(f"/machines/{MACHINE}/online"), 404)

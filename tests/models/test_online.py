@@ -277,3 +277,13 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
         assert rep.states["dx"].n_updates == 8 and rep.states["dx"].lam == 0.95
         assert store.online_state(MACHINE).n_updates == 8
         assert store.table_counts()["probe_measurements"] == 1
+
+
+def test_a_fresh_on_line_model_takes_the_first_cycle_whole():
+    """A diffuse P(0) (``ONLINE_P0``): a 30 um residual seen by the first probe cycle's four spheres is
+    the correction after that cycle; with P(0) = 1 (theta0 = 0 weighing as one probe) it was 80% of it."""
+    r = np.full(4, 0.030)
+    diffuse = rls_run(rls_init(1, lam=0.98), online_regressors(4), r).state.theta[0]
+    assert abs(diffuse - 0.030) < 1e-5
+    small = rls_run(rls_init(1, lam=0.98, p0=1.0), online_regressors(4), r).state.theta[0]
+    assert 0.75 * 0.030 < small < 0.85 * 0.030
