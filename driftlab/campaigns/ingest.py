@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import sqlite3
 from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from itertools import chain, islice, repeat
 from typing import TYPE_CHECKING, Any
 
@@ -374,6 +375,35 @@ def rollup_rows(
     Scans are in time order, so a minute is a run of consecutive rows; a run cut by the end of a
     chunk is finished with the next chunk's rows (the same sums, in the same order, as in one go).
     """
+    for channel_id, r in rollup_arrays(channel_ids, temperatures):
+        yield from zip(
+            repeat(campaign_id),
+            repeat(channel_id),
+            r.minute.tolist(),
+            r.n.tolist(),
+            r.n_values.tolist(),
+            _nullable(r.vmin, True),
+            _nullable(r.vsum, True),
+            _nullable(r.vmax, True),
+        )
+
+
+@dataclass(frozen=True)
+class Rollups:
+    """Per-minute rollups of whole minutes of one channel, a column each (vmin, vsum, vmax NaN: no value)."""
+
+    minute: np.ndarray
+    n: np.ndarray
+    n_values: np.ndarray
+    vmin: np.ndarray
+    vsum: np.ndarray
+    vmax: np.ndarray
+
+
+def rollup_arrays(
+    channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable
+) -> Iterator[tuple[int, Rollups]]:
+    """Yield (channel id, rollups) of a wide table, per channel in order and a piece of minutes at a time."""
     table = as_table(temperatures)
     names = [c for c in table.columns if c != "time_s"]
     for channel_id, name in zip(channel_ids, names, strict=True):
@@ -386,15 +416,15 @@ def rollup_rows(
             minute = np.floor(t / ROLLUP_S).astype(np.int64)
             other = np.flatnonzero(minute != minute[-1])
             cut = int(other[-1]) + 1 if other.size else 0  # the last run of a minute may go on in the next chunk
-            yield from _rollups(campaign_id, channel_id, minute[:cut], v[:cut])
+            if cut:
+                yield channel_id, _rollups(minute[:cut], v[:cut])
             rest_t, rest_v = t[cut:], v[cut:]
-        yield from _rollups(campaign_id, channel_id, np.floor(rest_t / ROLLUP_S).astype(np.int64), rest_v)
+        if len(rest_t):
+            yield channel_id, _rollups(np.floor(rest_t / ROLLUP_S).astype(np.int64), rest_v)
 
 
-def _rollups(campaign_id: int, channel_id: int, minute: np.ndarray, v: np.ndarray) -> Iterator[tuple[Any, ...]]:
-    """Yield the rollup rows of whole minutes of one channel."""
-    if not len(minute):
-        return
+def _rollups(minute: np.ndarray, v: np.ndarray) -> Rollups:
+    """Return the rollups of whole minutes of one channel (at least one reading)."""
     starts = np.r_[0, np.flatnonzero(np.diff(minute)) + 1]
     n = np.diff(np.r_[starts, len(minute)])
     present = ~np.isnan(v)
@@ -404,16 +434,46 @@ def _rollups(campaign_id: int, channel_id: int, minute: np.ndarray, v: np.ndarra
         vmax = np.fmax.reduceat(v, starts)
     vsum = np.add.reduceat(np.where(present, v, 0.0), starts)
     vsum[n_values == 0] = np.nan
-    yield from zip(
-        repeat(campaign_id),
-        repeat(channel_id),
-        minute[starts].tolist(),
-        n.tolist(),
-        n_values.tolist(),
-        _nullable(vmin, True),
-        _nullable(vsum, True),
-        _nullable(vmax, True),
-    )
+    return Rollups(minute[starts], n, n_values, vmin, vsum, vmax)
+
+
+#: binary COPY tuples of temperature_rollups (ROLLUP_COLUMNS): five int4, then vmin, vsum, vmax as
+#: float8 or, for a minute without a value, all three NULL (length -1, no bytes)
+_ROLLUP_INTS = [("n", ">i2"), *[f for k in range(5) for f in ((f"l{k}", ">i4"), (f"i{k}", ">i4"))]]
+_ROLLUP = np.dtype(_ROLLUP_INTS + [f for k in range(3) for f in ((f"lf{k}", ">i4"), (f"f{k}", ">f8"))])
+_ROLLUP_NULL = np.dtype(_ROLLUP_INTS + [(f"lf{k}", ">i4") for k in range(3)])
+
+
+def _encode_rollups(campaign_id: int, channel_id: int, r: Rollups, a: int, b: int, present: bool) -> bytes:
+    """Return binary COPY tuples of rows a..b of one channel's rollups, all with values or all without."""
+    arr = np.empty(b - a, dtype=_ROLLUP if present else _ROLLUP_NULL)
+    arr["n"] = len(ROLLUP_COLUMNS)
+    ints = (campaign_id, channel_id, r.minute[a:b], r.n[a:b], r.n_values[a:b])
+    for k, value in enumerate(ints):
+        arr[f"l{k}"], arr[f"i{k}"] = 4, value
+    for k, value in enumerate((r.vmin, r.vsum, r.vmax)):
+        arr[f"lf{k}"] = 8 if present else -1
+        if present:
+            arr[f"f{k}"] = value[a:b]
+    return arr.tobytes()
+
+
+def copy_rollups_pg(
+    conn: Connection, campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable
+) -> None:
+    """Write the rollups of a wide table into temperature_rollups with binary COPY encoded by numpy (no
+    Python object a row), in the order ``rollup_rows`` gives them; sent from psycopg's queued writer."""
+    raw = conn.connection.driver_connection
+    with raw.cursor() as cur:  # type: ignore[union-attr]
+        sql = f"COPY temperature_rollups ({', '.join(ROLLUP_COLUMNS)}) FROM STDIN (FORMAT BINARY)"
+        with cur.copy(sql, writer=copy_writer(cur, True)) as cp:
+            cp.write(_PG_HEADER)
+            for channel_id, r in rollup_arrays(channel_ids, temperatures):
+                empty = r.n_values == 0
+                edges = np.flatnonzero(np.diff(empty.astype(np.int8))) + 1  # runs with and without values, in order
+                for a, b in zip(np.r_[0, edges], np.r_[edges, len(empty)], strict=True):
+                    cp.write(_encode_rollups(campaign_id, channel_id, r, int(a), int(b), not empty[a]))
+            cp.write(_PG_TRAILER)
 
 
 def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) -> Any:
@@ -460,14 +520,11 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     else:
         insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
 
-    if rollups:
+    if rollups and postgres:
+        copy_rollups_pg(conn, campaign_id, channel_ids, temperatures)
+    elif rollups:
         bulk_insert(
-            conn,
-            "temperature_rollups",
-            ROLLUP_COLUMNS,
-            ("int4", "int4", "int4", "int4", "int4", "float8", "float8", "float8"),
-            rollup_rows(campaign_id, channel_ids, temperatures),
-            queued=True,
+            conn, "temperature_rollups", ROLLUP_COLUMNS, (), rollup_rows(campaign_id, channel_ids, temperatures)
         )
 
     if bundle.conditions is not None:
