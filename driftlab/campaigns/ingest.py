@@ -159,14 +159,19 @@ SQLITE_ROWS_PER_STATEMENT = 128
 SQLITE_CHUNK_ROWS = 64 * SQLITE_ROWS_PER_STATEMENT
 
 
-def insert_flat_sqlite(cur: sqlite3.Cursor, head: str, row: str, width: int, flat: Sequence[Any]) -> None:
+#: a value bound to an SQLite statement
+SqlValue = int | float | str | None
+
+
+def insert_flat_sqlite(cur: sqlite3.Cursor, head: str, row: str, width: int, flat: Sequence[SqlValue]) -> None:
     """Insert rows given as one flat run of parameters (``width`` a row, row after row) in their order.
 
     ``head`` is ``INSERT INTO t (cols) VALUES `` and ``row`` one row's ``(...)`` with ``width`` marks;
     the rows go in statements of SQLITE_ROWS_PER_STATEMENT rows (one prepared statement over
-    ``executemany``), the rest in statements of powers of two rows (its binary digits: 64, 32, ..., 1): a few statement
-    texts in all, each prepared once and kept by sqlite3's statement cache. The rows per statement are
-    bounded by the connection's limit of bound parameters (999 in SQLite before 3.32).
+    ``executemany``), the rest in statements of powers of two rows (the rest's binary digits: 64, 32,
+    ..., 1): a few statement texts in all, each prepared once and kept by sqlite3's statement cache.
+    The rows per statement are bounded by the connection's limit of bound parameters (999 in SQLite
+    before 3.32).
     """
     per = max(1, min(SQLITE_ROWS_PER_STATEMENT, cur.connection.getlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER) // width))
     step = per * width
@@ -207,7 +212,7 @@ def insert_temperatures_sqlite(
         for channel_id, pieces in channels:
             row = f"({int(campaign_id)}, {int(channel_id)}, ?, ?, {int(day)})"
             for times, values in pieces:
-                flat: list[Any] = [None] * (2 * len(times))
+                flat: list[SqlValue] = [None] * (2 * len(times))
                 flat[0::2], flat[1::2] = times, values
                 insert_flat_sqlite(cur, head, row, 2, flat)
     finally:
