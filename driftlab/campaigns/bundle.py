@@ -859,6 +859,8 @@ class _Rows:
 
 def _check_empty_lines(table: pa.Table, place: _Rows) -> None:
     """Reject empty lines (pyarrow reads them as rows whose every cell is null)."""
+    if any(col.null_count == 0 for col in table.columns):
+        return  # a column without a null: no row is null throughout
     mask = None
     for col in table.columns:
         nulls = col.is_null().to_numpy(zero_copy_only=False)
@@ -924,7 +926,6 @@ def _temperature_chunks(path: Path, meta: CampaignMeta, block_bytes: int = CSV_B
     """Yield temperatures.csv as validated frames of consecutive rows (time order holds across them)."""
     file = path.name
     header = _temperature_header(path, meta)
-    lo, hi = TEMP_RANGE_DEGC
     last: float | None = None
     for place, table in _read_chunks(path, file, header, {}, block_bytes):
         if table.num_rows == 0:
@@ -933,19 +934,36 @@ def _temperature_chunks(path: Path, meta: CampaignMeta, block_bytes: int = CSV_B
         frame = table.to_pandas()
         t = frame["time_s"].to_numpy()
         _check_time(place, t, strict=True, before=last)
-        for name in header[1:]:
-            v = frame[name].to_numpy(dtype="f8")
-            _check_finite_nan_is_missing(table, place, name)
-            with np.errstate(invalid="ignore"):
-                k = place.first((v < lo) | (v > hi))
-            if k is not None:
-                raise place.fail(
-                    k, f"column {name}: {float(v[k])!r} degC is outside {lo}..{hi}: temperatures must be in degC"
-                )
+        _check_temperature_values(table, frame, place, header[1:])
         last = float(t[-1])
         yield frame
     if last is None:
         raise _fail(file, 2, "no readings (the file has only a header)")
+
+
+def _check_temperature_values(table: pa.Table, frame: pd.DataFrame, place: _Rows, names: list[str]) -> None:
+    """Check a chunk's readings: finite where present (``_check_finite_nan_is_missing``) and in degC.
+
+    The problem named is the one a column-by-column check meets first (the first column with one;
+    in it a written NaN/inf before a value out of range), found with one pass over the chunk's
+    values as a (rows, channels) array instead of a pass per channel and check.
+    """
+    lo, hi = TEMP_RANGE_DEGC
+    v = frame.to_numpy(dtype="f8")[:, 1:]  # time_s first (checked by the header), a null read as NaN
+    nonfinite = np.count_nonzero(~np.isfinite(v), axis=0)
+    with np.errstate(invalid="ignore"):
+        outside = (v < lo) | (v > hi)
+    # more non-finite values than nulls in a column: a NaN or inf was written in a cell
+    written = nonfinite != np.array([table.column(name).null_count for name in names])
+    for j in np.flatnonzero(written | outside.any(axis=0)):
+        name = names[j]
+        if written[j]:
+            _check_finite_nan_is_missing(table, place, name)
+        k = place.first(outside[:, j])
+        if k is not None:
+            raise place.fail(
+                k, f"column {name}: {float(v[k, j])!r} degC is outside {lo}..{hi}: temperatures must be in degC"
+            )
 
 
 def _conditions_header(path: Path) -> list[str]:

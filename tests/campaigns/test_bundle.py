@@ -143,3 +143,27 @@ def test_campaign_meta_document_round_trips(bundle_dir: Path) -> None:
     again = CampaignMeta.model_validate(b.meta.document())
     assert again == b.meta
     assert b.meta.document()["started_at"] == "2026-03-02T08:00:00Z"
+
+
+@pytest.mark.parametrize(
+    ("edits", "expected"),
+    [
+        # two columns wrong: the first column's problem is named, whatever the rows
+        ([(9, "T49", "NaN"), (20, "T1", "295.4")], "temperatures.csv:20: column T1: 295.4 degC is outside"),
+        ([(20, "T2", "inf"), (9, "T49", "-80")], "temperatures.csv:20: column T2: inf is not a finite number"),
+        # one column wrong twice: a written NaN is named before an earlier value out of range
+        ([(20, "T2", "295.4"), (25, "T2", "nan")], "temperatures.csv:25: column T2: nan is not a finite number"),
+        # the first of two values out of range, beside a missing reading (an empty cell) in the column
+        ([(30, "T2", "-61"), (12, "T2", "251"), (13, "T2", "")], "temperatures.csv:12: column T2: 251.0 degC"),
+    ],
+    ids=["first-column", "first-column-nonfinite", "nonfinite-before-range", "first-row"],
+)
+def test_the_first_temperature_problem_is_named(bundle_dir: Path, edits, expected: str) -> None:
+    """Checked a chunk at a time in one pass, a temperature file still names the problem a check column by
+    column, each column's non-finite cells before its range, meets first."""
+    from tests.campaigns.conftest import _edit_cell
+
+    for line, column, value in edits:
+        _edit_cell(bundle_dir / "temperatures.csv", line, column, value)
+    with pytest.raises(BundleError, match="^" + expected.replace(".", r"\.")):
+        load_bundle(bundle_dir)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sqlite3
 from pathlib import Path
 
 import numpy as np
@@ -154,6 +155,30 @@ def test_unique_keys_refuse_a_reinserted_reading(store: Store, bundle_dir: Path)
     ]:
         with pytest.raises(IntegrityError), store.engine.begin() as conn:
             conn.execute(insert(table), row)
+
+
+@pytest.mark.parametrize("limit", [None, 20], ids=["default-limit", "20-parameters"])
+@pytest.mark.parametrize("n", [0, 1, 5, 6, 127, 128, 129, 255, 300, 1000])
+def test_multi_row_inserts_store_every_row_in_order(n: int, limit: int | None) -> None:
+    """SQLite's multi-row INSERTs (full statements, then the rest in powers of two) store exactly the rows
+    given, in their order, whatever their count and the connection's limit of bound parameters (20:
+    6 rows a statement, not a power of two)."""
+    con = sqlite3.connect(":memory:")
+    if limit is not None:
+        con.setlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER, limit)
+    con.execute("CREATE TABLE t (k INTEGER PRIMARY KEY, a REAL, b TEXT)")
+    rows = [(k, k / 7 if k % 5 else float("nan"), f"r{k}" if k % 3 else None) for k in range(n)]
+    flat = [v for row in rows for v in row]
+    ingest.insert_flat_sqlite(con.cursor(), "INSERT INTO t (k, a, b) VALUES ", "(?, ?, ?)", 3, flat)
+    got = con.execute("SELECT k, a, b FROM t ORDER BY rowid").fetchall()
+    assert got == [(k, None if a != a else a, b) for k, a, b in rows]  # a bound NaN is stored as NULL
+
+
+def test_multi_row_insert_refuses_a_repeated_key_within_one_statement() -> None:
+    con = sqlite3.connect(":memory:")
+    con.execute("CREATE TABLE t (k INTEGER PRIMARY KEY)")
+    with pytest.raises(sqlite3.IntegrityError):
+        ingest.insert_flat_sqlite(con.cursor(), "INSERT INTO t (k) VALUES ", "(?)", 1, [*range(200), 100])
 
 
 @pytest.fixture(scope="module", params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])

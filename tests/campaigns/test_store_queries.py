@@ -13,7 +13,7 @@ from sqlalchemy import insert, select, update
 from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import load_bundle
+from driftlab.campaigns.bundle import load_bundle, write_bundle
 from driftlab.campaigns.store import Store, connect
 from driftlab.cli import main
 from driftlab.errors import NotFoundError, ValidationError
@@ -216,6 +216,16 @@ def test_temperature_history_buckets_match_numpy(store: Store, bundle_dir: Path)
         store.temperature_history(cid, "T9")
 
 
+def _rollups(store: Store) -> list:
+    """Return the stored rollup rows in channel and minute order."""
+    with store.engine.connect() as conn:
+        return conn.execute(
+            select(sc.TemperatureRollup.__table__).order_by(
+                sc.TemperatureRollup.channel_id, sc.TemperatureRollup.minute
+            )
+        ).all()
+
+
 def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path) -> None:
     b = load_bundle(bundle_dir)
     cid = store.import_bundle(b)
@@ -234,18 +244,10 @@ def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path)
     assert narrow.equals(store.temperature_history(cid, "T2", buckets=20, rollups=False))
 
     # recomputing the rollups in SQL gives the rows the import wrote
-    def rollups() -> list:
-        with store.engine.connect() as conn:
-            return conn.execute(
-                select(sc.TemperatureRollup.__table__).order_by(
-                    sc.TemperatureRollup.channel_id, sc.TemperatureRollup.minute
-                )
-            ).all()
-
-    written = rollups()
+    written = _rollups(store)
     assert len(written) == 4 * 20
     assert store.refresh_rollups(cid) == len(written)
-    again = rollups()
+    again = _rollups(store)
     assert [r[:5] for r in again] == [r[:5] for r in written]
     for a, w in zip(again, written, strict=True):
         assert a[5] == w[5] and a[7] == w[7] and a[6] == pytest.approx(w[6], rel=1e-12)
@@ -257,6 +259,25 @@ def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path)
     )
     with pytest.raises(NotFoundError):
         store.refresh_rollups(99)
+
+
+def test_rollups_of_minutes_without_a_reading_are_null(store: Store, bundle_dir: Path, tmp_path: Path) -> None:
+    """A minute whose readings of a channel are all missing is written as a rollup with a count and no
+    value (NULL min, sum, max), between minutes with values, exactly as SQL's aggregates make it."""
+    b = load_bundle(bundle_dir)
+    temps = b.temperatures.copy()
+    t = temps["time_s"].to_numpy()
+    temps.loc[(t >= 120) & (t < 300), "T2"] = np.nan  # minutes 2, 3 and 4 of T2: no reading
+    temps.loc[t < 60, "T49"] = np.nan  # T49's first minute
+    cid = store.import_bundle(load_bundle(write_bundle(tmp_path / "gaps", b.meta, temps, b.conditions, b.errors)))
+
+    written = _rollups(store)
+    empty = [(r.minute, r.n, r.n_values, r.vmin, r.vsum, r.vmax) for r in written if r.n_values == 0]  # T2, then T49
+    assert [e[0] for e in empty] == [2, 3, 4, 0] and all(e[1] > 0 and e[3:] == (None, None, None) for e in empty)
+    store.refresh_rollups(cid)
+    again = _rollups(store)
+    assert [r[:6] for r in again] == [r[:6] for r in written] and [r[7] for r in again] == [r[7] for r in written]
+    assert all((a[6] is None) == (w[6] is None) for a, w in zip(again, written, strict=True))
 
 
 def test_condition_history(store: Store, bundle_dir: Path) -> None:
