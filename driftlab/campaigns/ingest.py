@@ -18,10 +18,12 @@ import numpy as np
 import pandas as pd
 from psycopg.copy import QueuedLibpqWriter
 from sqlalchemy import Connection, insert, select, text
+from sqlalchemy.dialects.postgresql import insert as pg_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, FrameTable, as_table
-from driftlab.campaigns.partitions import start_day
+from driftlab.campaigns.partitions import leaf, start_day
 
 if TYPE_CHECKING:
     from psycopg import Cursor
@@ -484,11 +486,7 @@ def copy_rollups_pg(
 def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) -> Any:
     """Return an INSERT of ``table`` that skips a row whose ``keys`` already exist (both dialects)."""
     if conn.dialect.name == "postgresql":
-        from sqlalchemy.dialects.postgresql import insert as pg_insert
-
         return pg_insert(table).on_conflict_do_nothing(index_elements=keys)
-    from sqlalchemy.dialects.sqlite import insert as sqlite_insert
-
     return sqlite_insert(table).on_conflict_do_nothing(index_elements=keys)
 
 
@@ -497,8 +495,6 @@ def _into(conn: Connection, table: str, day: int) -> str:
     routing per row), else the table."""
     if conn.dialect.name != "postgresql":
         return table
-    from driftlab.campaigns.partitions import leaf
-
     return leaf(conn, table, day) or table
 
 

@@ -461,6 +461,7 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
     specs = dict(rig.instruments)
     try:
         if "machine" in roles and specs["machine"].driver == "heidenhain-lsv2":
+            # lazy, as above: the simulators cost start-up that a real rig does not pay (measured)
             from driftlab.daq.sim.heidenhain import SimLSV2, lsv2_resource
             from driftlab.vocabulary import AXES
 
@@ -490,10 +491,12 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
                     raise ValidationError("the virtual machine has no capture software: simulate attocube-ids3010")
                 stage = servers.get("machine")
                 if stage is None:
+                    # lazy, as above: the simulators cost start-up that a real rig does not pay (measured)
                     from driftlab.daq.sim.instruments import FixedStage
 
                     stage = FixedStage()
                 if spec.driver == "attocube-ids3010":
+                    # lazy, as above: the simulators cost start-up that a real rig does not pay (measured)
                     from driftlab.daq.sim.attocube_ids import SimIDS3010, ids_resource
 
                     head = SimIDS3010(
@@ -519,6 +522,8 @@ def start_simulated(rig: RigSpec, world: Any, clock: Any, roles: list[str]) -> t
 
 
 def _sim_controller(world: Any, clock: Any) -> Any:
+    """Return the simulated machine controller on the virtual machine's world."""
+    # lazy, as above: the simulators cost start-up that a real rig does not pay (measured)
     from driftlab.daq.sim.instruments import SimController
 
     return SimController(world, clock)

@@ -317,6 +317,7 @@ def check_travel(plan: Plan) -> None:
 
 def plan_scenario(plan: Plan, scenario: Any) -> Any:
     """Return the scenario with the plan's stages and length (the daemon's plan drives the world)."""
+    # lazy: driftlab.daq.sim adds 0.9 s to the daemon on real instruments, which never simulates (measured)
     from driftlab.daq.sim.scenario import Scenario
 
     check_travel(plan)
@@ -329,6 +330,7 @@ def plan_scenario(plan: Plan, scenario: Any) -> Any:
 
 def scenario_meta(scenario: Any) -> dict[str, Any]:
     """Return the virtual machine's channel map and room channels (Table 5.1 sites)."""
+    # lazy: driftlab.daq.sim adds 0.9 s to the daemon on real instruments, which never simulates (measured)
     from driftlab.daq.sim.sites import ROOM_CHANNELS, channel_map
 
     return {"channels": channel_map(), "room_channels": list(ROOM_CHANNELS)}
@@ -336,6 +338,7 @@ def scenario_meta(scenario: Any) -> dict[str, Any]:
 
 def sim_meta(plan: Plan, scenario: Any) -> dict[str, Any]:
     """Return what the virtual machine adds to campaign.json: machine details, model channels, noise."""
+    # lazy: driftlab.daq.sim adds 0.9 s to the daemon on real instruments, which never simulates (measured)
     from driftlab.daq.sim.campaign import campaign_meta
 
     meta = campaign_meta(plan_scenario(plan, scenario))
