@@ -48,8 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--hysteresis-steps",
         type=float,
-        default=0.1,
-        help="send a correction step once it is 0.5 + this many steps away from what was sent (0.1; 0 rounds)",
+        default=0.0,
+        help="send a correction step once it is 0.5 + this many steps from what was sent (0: the nearest step)",
     )
     p.add_argument("--max-segment-mm", type=float, default=5.0, help="split G1 moves longer than this (5 mm)")
     p.add_argument("--max-segment-deg", type=float, default=5.0, help="split G1 rotations larger than this (5 deg)")

@@ -91,22 +91,22 @@ def test_sub_resolution_corrections_accumulate_and_then_step():
     text = "\n".join(lines) + "\n"
     p = parse_program(text)
     out = compensate_program(p, ErrorModel(predict), {}).text.decode().splitlines()
-    # nothing sent while the accumulated correction is under 0.6 of the 0.0025 mm step (the default
-    # hysteresis: half a step and 0.1) ...
-    assert out[:15] == lines[:15]
+    # nothing sent while the accumulated correction is under half of the 0.0025 mm step (the default:
+    # the nearest step) ...
+    assert out[:13] == lines[:13]
     # ... then whole steps, the remainder carried over
-    assert out[16] == "X15.9975"
-    assert out[39] == "X38.9975"
-    assert out[41] == "X40.995"
+    assert out[13] == "X12.9975"
+    assert out[37] == "X36.9975"
+    assert out[38] == "X37.995"
     back = parse_program("\n".join(out) + "\n")
     sent = back.target_int[:, 0] * back.scale[0]
     desired = -1e-4 * np.arange(61)
-    assert np.all(np.abs(sent - np.arange(61) - desired) <= 0.6 * RES_MM + 1e-12)
+    assert np.all(np.abs(sent - np.arange(61) - desired) <= 0.5 * RES_MM + 1e-12)
 
 
 def test_hysteresis_is_an_option_of_the_grid():
-    # a creeping X correction, -0.036 steps per 1 mm block: rounding (hysteresis 0) sends the first
-    # step once it passes half a step (X14), the default once it passes 0.6 (X17)
+    # a creeping X correction, -0.036 steps per 1 mm block: the default (rounding) sends the first
+    # step once it passes half a step (X14), a hysteresis of 0.1 once it passes 0.6 (X17)
     def predict(q, temps, direction):
         e = np.zeros((q.shape[0], 6))
         e[:, 3] = 0.9e-4 * q[:, 0]
@@ -116,7 +116,7 @@ def test_hysteresis_is_an_option_of_the_grid():
     pts = subdivide(p, 5.0, 5.0)
     first = [
         int(np.argmax(correct_points(p, pts, ErrorModel(predict), {}, **kw).steps[:, 0] != 0))
-        for kw in ({"hysteresis_steps": 0.0}, {})
+        for kw in ({}, {"hysteresis_steps": 0.1})
     ]
     assert first == [14, 17]
 
@@ -165,8 +165,10 @@ def test_quantiser_follows_a_drift_within_its_band_not_a_step_behind():
     step, and on average lags by the hysteresis only. The full-step rule (send once a whole step has
     accumulated) lagged by half a step on average: 1.25 um at 0.0025 mm, the cutting test's floor."""
     u = np.linspace(0.0, 40.0, 4001)[:, None] * np.ones((1, 5))
-    s = quantise_carry(u)
-    lag = u - s
+    lag = u - quantise_carry(u)  # the default: the nearest step
+    assert np.all(np.abs(lag) <= 0.5 + 1e-12)
+    assert abs(float(lag.mean())) < 0.02
+    lag = u - quantise_carry(u, None, 0.1)
     assert np.all(np.abs(lag) <= 0.6 + 1e-12)
     assert abs(float(lag.mean()) - 0.1) < 0.02
     full_step = _reference_carry(u, np.zeros(5, dtype=np.int64), 0.4999)  # about the old rule
@@ -176,13 +178,13 @@ def test_quantiser_follows_a_drift_within_its_band_not_a_step_behind():
 
 
 def test_quantiser_hysteresis_keeps_noise_from_toggling_a_step():
-    """A correction sitting on a step's half-way point with noise of 0.03 steps sends one step change at
-    most with the default hysteresis; rounding (hysteresis 0) toggles on every other point."""
+    """A correction sitting on a step's half-way point with noise of 0.03 steps: rounding (the default)
+    toggles on every other point, a hysteresis of 0.1 step (``--hysteresis-steps 0.1``) sends one step
+    change at most."""
     rng = np.random.default_rng(3)
     u = (0.5 + 0.03 * rng.standard_normal(500))[:, None]
-    changes = int(np.count_nonzero(np.diff(quantise_carry(u)[:, 0])))
-    assert changes <= 1
-    assert int(np.count_nonzero(np.diff(quantise_carry(u, None, 0.0)[:, 0]))) > 100
+    assert int(np.count_nonzero(np.diff(quantise_carry(u, None, 0.1)[:, 0]))) <= 1
+    assert int(np.count_nonzero(np.diff(quantise_carry(u)[:, 0]))) > 100
 
 
 def test_streaming_in_pieces_equals_one_go():
@@ -422,9 +424,9 @@ def test_sub_resolution_angle_corrections_accumulate_and_the_tool_point_holds():
     desired = np.rad2deg(correct_points(p, subdivide(p, 1000, 5), ErrorModel(predict), {}).desired[:, 3])
     assert np.all(np.abs(desired[a_nom < 4.9]) < RES_DEG) and desired[-1] < -2 * RES_DEG
     steps = np.round((a_sent - a_nom) / RES_DEG).astype(int)
-    small = np.abs(desired) < 0.6 * RES_DEG - 1e-9
-    assert small.sum() >= 5 and np.all(steps[small] == 0)  # under 0.6 of a step: nothing sent on A yet
-    assert steps[-1] <= -2 and np.all(np.abs(a_sent - a_nom - desired) <= 0.6 * RES_DEG + 1e-9)
+    small = np.abs(desired) < 0.5 * RES_DEG - 1e-9
+    assert small.sum() >= 5 and np.all(steps[small] == 0)  # under half a step: nothing sent on A yet
+    assert steps[-1] <= -2 and np.all(np.abs(a_sent - a_nom - desired) <= 0.5 * RES_DEG + 1e-9)
     # the unsent remainder of A is taken up by Y, Z: the tool point stays within the linear resolution
     q_cmd = back.to_q(back.target_int)
     q_nom = p.to_q(p.target_int)
