@@ -23,7 +23,9 @@ THESIS = {
     "offline": {"rmse_mm": 0.005, "max_mm": 0.015},
     "online": {"rmse_mm": 0.003, "max_mm": 0.012},
 }
-#: the machine's linear positioning step (ch. 4: the strategy's limit is the resolution, 0.0025 mm)
+#: the machine's linear positioning step (ch. 4: the strategy's limit is the resolution, 0.0025 mm); the
+#: compensator's ``RESOLUTION_MM``, not imported from it: numpy and pandas would load with `driftlab --help`
+#: (tests/test_reports_html.py holds the two equal)
 RESOLUTION_MM = 0.0025
 
 
