@@ -523,21 +523,26 @@ class StoreSink:
 def _insert_rows(conn: Connection, insert: Insert, rows: list[dict[str, Any]]) -> None:
     """Insert rows sharing their keys with ``insert`` (executemany); on SQLite in multi-row INSERTs instead.
 
-    On SQLite the values go to sqlite3 as they are, as SQLAlchemy's executemany passes them (the
-    condition and error columns, numbers and strings, have no bind processor there), in one statement
-    step for the batch's rows instead of one a row: the daemon's writer thread gives up the interpreter
-    lock once, not once a row, and waits for it back once (measured: docs in the commit message).
+    On SQLite each value goes through its column type's bind processor, as in SQLAlchemy's
+    executemany (so the same values reach sqlite3), but the batch's rows go in a few multi-row
+    statements (``insert_flat_sqlite``) instead of one step a row: the daemon's writer thread gives up
+    the interpreter lock, and waits to get it back from the acquiring thread, a few times, not once a row.
     """
     if not rows:
         return
     if conn.dialect.name != "sqlite":
         conn.execute(insert, rows)
         return
-    cols = list(rows[0])
+    cols, dialect = list(rows[0]), conn.dialect
+    table = insert.table
+    procs = [(c, table.c[c].type.dialect_impl(dialect).bind_processor(dialect)) for c in cols]
+    flat: list[Any] = []
+    for r in rows:
+        flat.extend(r[c] if p is None else p(r[c]) for c, p in procs)
     cur = conn.connection.driver_connection.cursor()  # type: ignore[union-attr]
     try:
-        head = f"INSERT INTO {insert.table.name} ({', '.join(cols)}) VALUES "
-        insert_flat_sqlite(cur, head, f"({', '.join('?' * len(cols))})", len(cols), [r[c] for r in rows for c in cols])
+        head = f"INSERT INTO {table.name} ({', '.join(cols)}) VALUES "
+        insert_flat_sqlite(cur, head, f"({', '.join('?' * len(cols))})", len(cols), flat)
     finally:
         cur.close()
 
