@@ -14,11 +14,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from itertools import chain, repeat
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import pandas as pd
-from sqlalchemy import Connection, select
+from sqlalchemy import Connection, bindparam, select
 from sqlalchemy.exc import DBAPIError, IntegrityError
 
 from driftlab.campaigns import schema as sc
@@ -28,6 +28,7 @@ from driftlab.campaigns.ingest import (
     TEMPERATURE_TYPES,
     bulk_insert,
     copy_temperatures_pg,
+    insert_flat_sqlite,
     insert_ignoring_duplicates,
     insert_scan_readings_sqlite,
 )
@@ -38,6 +39,9 @@ from driftlab.errors import ConflictError, DriftlabError, ValidationError
 from driftlab.physics.geometry import Geometry
 from driftlab.readings import Reading, ScanBlock, TemperatureScan
 from driftlab.vocabulary import TERMS
+
+if TYPE_CHECKING:
+    from sqlalchemy import Insert
 
 log = logging.getLogger(__name__)
 
@@ -330,6 +334,10 @@ class StoreSink:
         self._t_prog = sc.AcquisitionProgress.__table__
         self._t_stage = sc.Stage.__table__
         self._t_camp = sc.Campaign.__table__
+        # built once, not per batch: a statement built per commit cost its construction and cache key each time
+        self._ins_cond = self._t_cond.insert()
+        self._ins_err = self._t_err.insert()
+        self._upd_prog = self._t_prog.update().where(self._t_prog.c.campaign_id == bindparam("_campaign_id"))
         self._stage = -1
         self._setups = plan.used_setups()  # bundle v2: every reading is stored with its pose and setup
 
@@ -442,12 +450,10 @@ class StoreSink:
                 bulk_insert(conn, "temperature_samples", TEMPERATURE_COLUMNS, TEMPERATURE_TYPES, temps)
             if wide is not None:
                 self._insert_blocks(conn, wide)
-            if conds:
-                conn.execute(self._t_cond.insert(), conds)
-            if errs:
-                conn.execute(self._t_err.insert(), errs)
+            _insert_rows(conn, self._ins_cond, conds)
+            _insert_rows(conn, self._ins_err, errs)
             prog, progress = self._progress(batch, [*batch.faults, *missing])
-            conn.execute(self._t_prog.update().where(self._t_prog.c.campaign_id == self.cid).values(**progress))
+            conn.execute(self._upd_prog, {"_campaign_id": self.cid, **progress})
             self._advance_stages(conn, batch.stage, finished)
         self._prog = prog  # only once committed: a failed batch leaves the in-memory cursor where the store's is
 
@@ -512,6 +518,33 @@ class StoreSink:
                 .values(status="done")
             )
             conn.execute(self._t_camp.update().where(self._t_camp.c.id == self.cid).values(status="done"))
+
+
+def _insert_rows(conn: Connection, insert: Insert, rows: list[dict[str, Any]]) -> None:
+    """Insert rows sharing their keys with ``insert`` (executemany); on SQLite in multi-row INSERTs instead.
+
+    On SQLite each value goes through its column type's bind processor, as in SQLAlchemy's
+    executemany (so the same values reach sqlite3), but the batch's rows go in a few multi-row
+    statements (``insert_flat_sqlite``) instead of one step a row: the daemon's writer thread gives up
+    the interpreter lock, and waits to get it back from the acquiring thread, a few times, not once a row.
+    """
+    if not rows:
+        return
+    if conn.dialect.name != "sqlite":
+        conn.execute(insert, rows)
+        return
+    cols, dialect = list(rows[0]), conn.dialect
+    table = insert.table
+    procs = [(c, table.c[c].type.dialect_impl(dialect).bind_processor(dialect)) for c in cols]
+    flat: list[Any] = []
+    for r in rows:
+        flat.extend(r[c] if p is None else p(r[c]) for c, p in procs)
+    cur = conn.connection.driver_connection.cursor()  # type: ignore[union-attr]
+    try:
+        head = f"INSERT INTO {table.name} ({', '.join(cols)}) VALUES "
+        insert_flat_sqlite(cur, head, f"({', '.join('?' * len(cols))})", len(cols), flat)
+    finally:
+        cur.close()
 
 
 def last_reading_s(batch: Batch) -> float | None:
