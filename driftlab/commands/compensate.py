@@ -249,7 +249,7 @@ def _stream(
 ) -> int:
     """Stream the corrected program to the controller, reading it again a piece at a time (constant memory)."""
     # lazy: this function's imports would add 2.3 s to `driftlab --help` (measured)
-    from driftlab.compensator.compensate import ErrorModel, FirstPass, parse_pieces, program_pieces, scan_program
+    from driftlab.compensator.compensate import ErrorModel, FirstPass, Grid, parse_pieces, program_pieces, scan_program
     from driftlab.compensator.stream import ApiModel, ApiTemperatures, CsvTemperatures, StaticModel, Streamer
     from driftlab.daq.machine_link import SerialMachineLink
 
@@ -285,7 +285,7 @@ def _stream(
             start=start,
             max_segment_mm=args.max_segment_mm,
             max_segment_deg=args.max_segment_deg,
-            check=FirstPass(guard, models.model, temps.read()),
+            check=FirstPass(guard, models.model, temps.read(), grid=Grid.of(_grid(args))),
         )
         # the second pass of the offline path: pieces parsed with the state the lines before them leave
         pieces = parse_pieces(

@@ -1007,10 +1007,20 @@ class FirstPass:
     """
 
     def __init__(
-        self, guard: Guard, model: ErrorModel, temperatures: TemperatureTable | Temperatures, *, keep: bool = False
+        self,
+        guard: Guard,
+        model: ErrorModel,
+        temperatures: TemperatureTable | Temperatures,
+        *,
+        keep: bool = False,
+        grid: Grid = Grid(),
     ) -> None:
         self.guard = guard
         self.model = model
+        # the quantiser sends each point within 0.5 + hysteresis steps of its correction (quantise_carry):
+        # a corrected target that close to the travel's ends is refused here, before the first byte
+        band = 0.5 + grid.hysteresis_steps
+        self.slack = band * np.where(ROTARY, grid.resolution_deg, grid.resolution_mm)
         self.table = temperatures if isinstance(temperatures, TemperatureTable) else None
         self.fixed: Temperatures = (
             self.table.latest(model.channels, model.lag_taus) if self.table is not None else temperatures
@@ -1123,7 +1133,7 @@ class FirstPass:
             line = piece.line_number(block[bad])
             raise ValidationError(f"{piece.name}:{line}: the model predicts non-finite errors; program not accepted")
         self.guard.check_corrections(piece, block, correction)
-        self.guard.check_positions(piece, block, pose_int * piece.scale + correction, "corrected target")
+        self.guard.check_positions(piece, block, pose_int * piece.scale + correction, "corrected target", self.slack)
 
 
 def parse_pieces(
@@ -1388,7 +1398,7 @@ def _first_pass(
     """Return the first pass over a program file (``scan_program``, with the guard's envelope checks when given)."""
     guard = options.get("guard")
     grid = Grid.of(options)
-    check = None if guard is None else FirstPass(guard, model, temperatures, keep=True)
+    check = None if guard is None else FirstPass(guard, model, temperatures, keep=True, grid=grid)
     scanner = Scanner(str(program_path), grid.decimals, options.get("start"), grid.segment, check, ParsedPieces())
     return scanner.scan(program_path, options.get("chunk_bytes", STREAM_CHUNK_BYTES))
 

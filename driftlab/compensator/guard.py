@@ -96,8 +96,14 @@ class Guard:
 
     # -- positions and corrections
 
-    def check_positions(self, program: Program, block: np.ndarray, pose: np.ndarray, what: str) -> None:
-        """Refuse the first pose (N, 5) in mm / deg outside the travel; ``block`` (N,) names its line."""
+    def check_positions(
+        self, program: Program, block: np.ndarray, pose: np.ndarray, what: str, slack: np.ndarray | None = None
+    ) -> None:
+        """Refuse the first pose (N, 5) in mm / deg outside the travel; ``block`` (N,) names its line.
+
+        ``slack`` (5,): how far the pose sent may still move from ``pose`` (the quantiser's band, when
+        ``pose`` is a correction before quantisation): a pose that close to the travel's ends is refused too.
+        """
         if not self.limits_travel or pose.shape[0] == 0:
             return
         _refuse_first(
@@ -107,6 +113,18 @@ class Guard:
             lambda i, k: (
                 f"{what} {AXES[k]} {_g(pose[i, k])} {_unit(k)} is outside the travel "
                 f"{_g(self.lo[k])}..{_g(self.hi[k])} {_unit(k)}"
+            ),
+        )
+        if slack is None:
+            return
+        _refuse_first(
+            program,
+            block,
+            (pose - slack < self.lo - 1e-9) | (pose + slack > self.hi + 1e-9),
+            lambda i, k: (
+                f"{what} {AXES[k]} {_g(pose[i, k])} {_unit(k)} is within the positioning step "
+                f"({_g(slack[k])} {_unit(k)}) of the travel {_g(self.lo[k])}..{_g(self.hi[k])} {_unit(k)}: "
+                f"the step sent could leave it"
             ),
         )
 

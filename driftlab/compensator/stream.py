@@ -564,7 +564,7 @@ class Streamer:
         self.refresh(due_s=0.0)
         if self.guard is not None and self._whole is not None:
             assert self.models.model is not None and self._temps is not None
-            check = FirstPass(self.guard, self.models.model, self._temps)
+            check = FirstPass(self.guard, self.models.model, self._temps, grid=self.grid)
             check.targets(self._whole)
             count_points(self._whole, *self.segment)
             check.corrections(self._whole)

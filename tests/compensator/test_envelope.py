@@ -180,6 +180,19 @@ def test_a_corrected_target_beyond_the_travel_is_refused(tmp_path, setup, capsys
     assert code == 2 and "p.nc:2: corrected target Z -264.06 mm is outside the travel -264..10 mm" in err
 
 
+def test_a_corrected_target_within_half_a_step_of_the_travel_is_refused_first(tmp_path, setup, capsys):
+    """The quantiser sends each point within half a step (1.25 um) of its correction: a corrected target
+    1 um inside the travel could be sent 0.25 um outside it, so the first pass refuses it before the
+    output is opened (streamed, it would have stopped mid-part); 2 um inside is written."""
+    code, _, _ = _offline(tmp_path, setup, "G90\nG1 X1 Z-263.939 F100\n")
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "p.nc:2: corrected target Z -263.999 mm is within the positioning step" in err, err
+    assert "of the travel -264..10 mm: the step sent could leave it" in err
+    assert list(setup[3].iterdir()) == []
+    code, _, _ = _offline(tmp_path, setup, "G90\nG1 X1 Z-263.938 F100\n")
+    assert code == 0, capsys.readouterr().err
+
+
 def test_extrapolation_is_refused_unless_allowed(tmp_path, setup, capsys, caplog):
     """60 degC above anything in the campaign: refused; with --allow-extrapolation logged and reported."""
     temps = setup[2]
