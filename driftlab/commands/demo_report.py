@@ -29,15 +29,20 @@ THESIS = {
 RESOLUTION_MM = 0.0025
 
 
+def ordering_holds(table: dict[str, dict[str, Any]]) -> bool:
+    """Return whether the thesis' ordering (uncompensated > off-line > on-line in RMSE, ch. 7.3) holds."""
+    return bool(table["uncompensated"]["rmse_mm"] > table["offline"]["rmse_mm"] > table["online"]["rmse_mm"])
+
+
 def ordering_text(table: dict[str, dict[str, Any]]) -> str:
-    """Return whether the thesis' ordering (uncompensated > off-line > on-line, ch. 7.3) holds, in words.
+    """Return whether the thesis' ordering (``ordering_holds``) holds, in words.
 
     When both compensated cuts are within the machine's step, the order between them is below what the
     machine can position and is said so rather than only "does not hold".
     """
-    u, off, on = (float(table[k]["rmse_mm"]) for k in ("uncompensated", "offline", "online"))
-    if u > off > on:
+    if ordering_holds(table):
         return "holds"
+    u, off, on = (float(table[k]["rmse_mm"]) for k in ("uncompensated", "offline", "online"))
     if u > max(off, on) and max(off, on) <= RESOLUTION_MM:
         return (
             f"does not hold between the compensated cuts: off-line {off * 1e3:.1f} um and on-line {on * 1e3:.1f} um "
@@ -86,9 +91,7 @@ def build_report(
     out.update(table)
     out["diagnosis"] = diagnosis
     out["thesis"] = THESIS
-    out["ordering_holds"] = bool(
-        table["uncompensated"]["rmse_mm"] > table["offline"]["rmse_mm"] > table["online"]["rmse_mm"]
-    )
+    out["ordering_holds"] = ordering_holds(table)
     out["ordering"] = ordering_text(table)
     out["steps"] = steps
     out.update(extra)
