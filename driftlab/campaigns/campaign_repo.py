@@ -20,13 +20,16 @@ from pydantic import BaseModel
 from sqlalchemy import Connection, Row, delete, func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 
-from driftlab.campaigns import ingest, partitions
+from driftlab.campaigns import import_pipeline, ingest, partitions
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import Bundle, CampaignMeta
+from driftlab.campaigns.bundle import CSV_BLOCK_BYTES, Bundle, CampaignMeta
 from driftlab.campaigns.repository import Page, Repository, analyze, campaign_row, machine_exists
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
+    from driftlab.campaigns.import_pipeline import ImportedBundle
     from driftlab.campaigns.staging import StagedBundle
 
 
@@ -112,6 +115,17 @@ class CampaignRepository(Repository):
             raise
         analyze(self.engine, day)
         return campaign_id
+
+    def import_directory(
+        self, path: str | Path, block_bytes: int = CSV_BLOCK_BYTES, directory: str | None = None
+    ) -> ImportedBundle:
+        """Validate and store the bundle in directory ``path`` in one transaction (``import_pipeline``).
+
+        Returns the campaign id with the staged bundle (close it, or use it in a ``with``). On
+        PostgreSQL the files are read while the server writes; on SQLite the bundle is staged first.
+        BundleError for a bad bundle, ConflictError for one already stored: either way nothing stored.
+        """
+        return import_pipeline.import_directory(self, path, self.import_bundle, block_bytes, directory)
 
     def load(self, campaign_id: int) -> Bundle:
         """Return a stored campaign as a Bundle with exactly the values stored."""

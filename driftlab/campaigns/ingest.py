@@ -9,7 +9,7 @@ driver as it is made, so memory holds a chunk whatever the bundle's size. What s
 from __future__ import annotations
 
 import sqlite3
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from itertools import chain, islice, repeat
 from typing import TYPE_CHECKING, Any
@@ -22,7 +22,7 @@ from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, ColumnTable, FrameTable, as_table
+from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, CampaignMeta, ColumnTable, FrameTable, as_table
 from driftlab.campaigns.partitions import leaf, start_day
 
 if TYPE_CHECKING:
@@ -306,6 +306,7 @@ def copy_temperatures_pg(
     chunk_rows: int = 200_000,
     *,
     queued: bool = False,
+    between: Callable[[], None] | None = None,
 ) -> None:
     """Stream a wide temperature table into temperature_samples with binary COPY, in key order.
 
@@ -313,6 +314,8 @@ def copy_temperatures_pg(
     The rows go straight into that partition (every row of a campaign has the same key): no routing
     per row, and PostgreSQL still checks each against the partition's bounds. With ``queued`` the
     rows are sent from a thread of their own while the next chunk is encoded (``copy_writer``).
+    ``between`` is called before each channel: what it raises ends the COPY with that error
+    (psycopg sends CopyFail; the transaction is then the caller's to roll back).
     """
     target = _into(conn, "temperature_samples", start_day)
     raw = conn.connection.driver_connection
@@ -323,6 +326,8 @@ def copy_temperatures_pg(
         with cur.copy(sql, writer=copy_writer(cur, queued)) as cp:
             cp.write(_PG_HEADER)
             for channel_id, name in zip(channel_ids, names, strict=True):
+                if between is not None:
+                    between()
                 for t_all, v_all in zip(table.column("time_s"), table.column(name), strict=True):
                     t_all, v_all = np.asarray(t_all, dtype="f8"), np.asarray(v_all, dtype="f8")
                     for lo in range(0, len(t_all), chunk_rows):
@@ -510,37 +515,53 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
     meta = bundle.meta
     postgres = conn.dialect.name == "postgresql"
     day = start_day(meta.started_at)
-    _ensure_machine(conn, meta)
+    ensure_machine(conn, meta)
     temperatures = as_table(bundle.temperatures)
     rollups = rollups_pay_chunks(temperatures.column("time_s"))
-    campaign_id = _insert_campaign(conn, bundle, content_hash, rollups)
-    channel_ids = _insert_channels(conn, campaign_id, bundle)
+    conditions = None if bundle.conditions is None else as_table(bundle.conditions)
+    campaign_id = insert_campaign(conn, meta, bundle.name, conditions, content_hash, rollups)
+    channel_ids = insert_channels(conn, campaign_id, meta, bundle.channels)
 
     if postgres:
         copy_temperatures_pg(conn, campaign_id, channel_ids, temperatures, day, queued=True)
     else:
         insert_temperatures_sqlite(conn, campaign_id, day, _channel_pieces(channel_ids, temperatures))
 
-    if rollups and postgres:
+    if rollups:
+        write_rollups(conn, campaign_id, channel_ids, temperatures)
+    write_conditions(conn, campaign_id, conditions, day)
+    write_errors(conn, campaign_id, as_table(bundle.errors), meta, day)
+    return int(campaign_id)
+
+
+def write_rollups(conn: Connection, campaign_id: int, channel_ids: Sequence[int], temperatures: ColumnTable) -> None:
+    """Write the per-minute rollups of a campaign's temperatures (binary COPY on PostgreSQL)."""
+    if conn.dialect.name == "postgresql":
         copy_rollups_pg(conn, campaign_id, channel_ids, temperatures)
-    elif rollups:
+    else:
         bulk_insert(
             conn, "temperature_rollups", ROLLUP_COLUMNS, (), rollup_rows(campaign_id, channel_ids, temperatures)
         )
 
-    if bundle.conditions is not None:
-        conditions = as_table(bundle.conditions)
-        if conditions.n_rows:
-            bulk_insert(
-                conn,
-                "condition_samples",
-                ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
-                ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
-                condition_rows(campaign_id, conditions, postgres, day),
-                into=_into(conn, "condition_samples", day),
-                queued=True,
-            )
 
+def write_conditions(conn: Connection, campaign_id: int, conditions: ColumnTable | None, day: int) -> None:
+    """Write a campaign's machine-state log (nothing when the bundle has none, or it is empty)."""
+    if conditions is None or not conditions.n_rows:
+        return
+    postgres = conn.dialect.name == "postgresql"
+    bulk_insert(
+        conn,
+        "condition_samples",
+        ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
+        ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
+        condition_rows(campaign_id, conditions, postgres, day),
+        into=_into(conn, "condition_samples", day),
+        queued=True,
+    )
+
+
+def write_errors(conn: Connection, campaign_id: int, errors: ColumnTable, meta: CampaignMeta, day: int) -> None:
+    """Write a campaign's error readings in file order (bundle v2: with the pose and setup of each)."""
     err_names: tuple[str, ...] = ERROR_COLUMNS
     types: tuple[str, ...] = ERROR_TYPES
     if meta.v2:  # bundle v2: the full commanded pose and the setup of each reading
@@ -551,14 +572,13 @@ def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> 
         "error_samples",
         err_names,
         types,
-        error_rows(campaign_id, as_table(bundle.errors), meta.v2, day),
+        error_rows(campaign_id, errors, meta.v2, day),
         into=_into(conn, "error_samples", day),
         queued=True,
     )
-    return int(campaign_id)
 
 
-def _ensure_machine(conn: Connection, meta: Any) -> None:
+def ensure_machine(conn: Connection, meta: CampaignMeta) -> None:
     """Insert the bundle's machine unless it is stored already."""
     machine = conn.execute(select(sc.Machine.id).where(sc.Machine.id == meta.machine.id)).first()
     if machine is None:
@@ -574,21 +594,29 @@ def _ensure_machine(conn: Connection, meta: Any) -> None:
         conn.execute(insert_ignoring_duplicates(conn, sc.Machine.__table__, ["id"]).values(**values))
 
 
-def _insert_campaign(conn: Connection, bundle: Bundle | Any, content_hash: str, rollups: bool) -> int:
-    """Insert the imported campaign's row and its stages; return its id."""
-    meta = bundle.meta
-    cond_cols = None if bundle.conditions is None else list(bundle.conditions.columns)
+def insert_campaign(
+    conn: Connection,
+    meta: CampaignMeta,
+    name: str,
+    conditions: ColumnTable | None,
+    content_hash: str | None,
+    rollups: bool,
+) -> int:
+    """Insert the imported campaign's row and its stages; return its id.
+
+    ``content_hash`` None: set before the commit (``import_pipeline``, which hashes while it writes).
+    """
     campaign_id = conn.execute(
         insert(sc.Campaign)
         .values(
             machine_id=meta.machine.id,
-            name=bundle.name,
+            name=name,
             started_at=meta.started_at,
             status="done",
             source="import",
             content_hash=content_hash,
             meta=meta.document(),
-            conditions_columns=cond_cols,
+            conditions_columns=None if conditions is None else list(conditions.columns),
             rollups_complete=rollups,
             created_at=sc.utcnow(),
         )
@@ -616,10 +644,8 @@ def _insert_campaign(conn: Connection, bundle: Bundle | Any, content_hash: str, 
     return int(campaign_id)
 
 
-def _insert_channels(conn: Connection, campaign_id: int, bundle: Bundle | Any) -> list[int]:
-    """Insert the bundle's channels (card order) and return their ids in that order."""
-    meta = bundle.meta
-    names = bundle.channels
+def insert_channels(conn: Connection, campaign_id: int, meta: CampaignMeta, names: Sequence[str]) -> list[int]:
+    """Insert the bundle's channels (``names``: temperatures.csv order) and return their ids in that order."""
     room = set(meta.room_channels)
     conn.execute(
         insert(sc.Channel),

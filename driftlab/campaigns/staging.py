@@ -17,6 +17,7 @@ the process ends, however it ends. They take about 8 bytes per value, in ``TMPDI
 
 from __future__ import annotations
 
+import os
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -26,7 +27,14 @@ from typing import Any, BinaryIO
 import numpy as np
 import pandas as pd
 
-from driftlab.campaigns.bundle import CSV_BLOCK_BYTES, POSE_COLUMNS, CampaignMeta, open_bundle, table_hash
+from driftlab.campaigns.bundle import (
+    CSV_BLOCK_BYTES,
+    POSE_COLUMNS,
+    BundleFiles,
+    CampaignMeta,
+    open_bundle,
+    table_hash,
+)
 from driftlab.vocabulary import AXES, TERMS
 
 
@@ -80,14 +88,22 @@ class StagedTable:
             offsets[name] = self._end
             self._file.write(raw)
             self._end += len(raw)
+        self._file.flush()  # read back with os.pread, which does not see the file object's buffer
         self._chunks.append(_Chunk(offsets, n))
         self.n_rows += n
 
     def _read(self, chunk: _Chunk, name: str) -> np.ndarray:
-        """Return one column of one chunk (decoded when it is a text column)."""
+        """Return one column of one chunk (decoded when it is a text column).
+
+        Read with ``os.pread`` (no shared file position): once appended, a table is read by the
+        import and by the content hash at the same time (``import_pipeline``).
+        """
         dtype = self._dtypes[name]
-        self._file.seek(chunk.offsets[name])
-        values = np.frombuffer(self._file.read(chunk.rows * dtype.itemsize), dtype=dtype)
+        size = chunk.rows * dtype.itemsize
+        data = os.pread(self._file.fileno(), size, chunk.offsets[name])
+        if len(data) != size:  # the temporary file is ours alone: a short read is the disk failing
+            raise OSError(f"staged column {name}: read {len(data)} of {size} bytes")
+        values = np.frombuffer(data, dtype=dtype)
         return self._vocab[name][values] if name in self._vocab else values
 
     def column(self, name: str) -> Iterator[np.ndarray]:
@@ -138,6 +154,15 @@ class StagedBundle:
         self.close()
 
 
+def stage_errors(files: BundleFiles, tables: list[StagedTable], directory: str | None) -> StagedTable:
+    """Return errors.csv validated and staged (the table put in ``tables`` first, to be closed on failure)."""
+    errors = _error_table(files.meta, directory)
+    tables.append(errors)
+    for frame in files.errors():
+        errors.append(frame)
+    return errors
+
+
 def _error_table(meta: CampaignMeta, directory: str | None) -> StagedTable:
     """Return an empty table for errors.csv: names stored as codes into their fixed vocabularies."""
     columns = ["time_s", "axis", "term", "position", "direction", "value"]
@@ -148,7 +173,7 @@ def _error_table(meta: CampaignMeta, directory: str | None) -> StagedTable:
     return StagedTable(columns, {"direction": "i1"}, vocab, directory)
 
 
-def _stage_frames(
+def stage_frames(
     frames: Iterable[pd.DataFrame], tables: list[StagedTable], directory: str | None
 ) -> StagedTable | None:
     """Return a table of the chunks ``frames``, made at the first (and put in ``tables``); None when there are none."""
@@ -166,12 +191,9 @@ def stage_bundle(path: str | Path, block_bytes: int = CSV_BLOCK_BYTES, directory
     files = open_bundle(path, block_bytes)
     tables: list[StagedTable] = []
     try:
-        temperatures = _stage_frames(files.temperatures(), tables, directory)
-        conditions = _stage_frames(files.conditions(), tables, directory)
-        errors = _error_table(files.meta, directory)
-        tables.append(errors)
-        for frame in files.errors():
-            errors.append(frame)
+        temperatures = stage_frames(files.temperatures(), tables, directory)
+        conditions = stage_frames(files.conditions(), tables, directory)
+        errors = stage_errors(files, tables, directory)
         assert temperatures is not None  # temperatures() yields at least one chunk or raises
         staged = StagedBundle(files.name, files.meta, temperatures, conditions, errors)
         staged.hash = table_hash(files.meta, temperatures, conditions, errors)

@@ -68,6 +68,7 @@ class Store:
         # the names callers used before the repositories: the repositories' methods themselves
         # (bound, not restated), so that their signatures live in one place
         self.import_bundle = self.campaigns.import_bundle
+        self.import_directory = self.campaigns.import_directory
         self.load_campaign = self.campaigns.load
         self.campaign_machine = self.campaigns.machine_of
         self.list_campaigns = self.campaigns.summaries

@@ -1,0 +1,183 @@
+"""`Store.import_directory`: on PostgreSQL the files are read while the server writes (``import_pipeline``).
+
+The same rows as an import from memory, whatever the order of the writing; nothing stored when anything
+fails on either side of the overlap; a duplicate refused, also one imported at the same moment.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from driftlab.campaigns import import_pipeline, ingest
+from driftlab.campaigns.bundle import load_bundle
+from driftlab.campaigns.store import connect
+from driftlab.errors import ConflictError
+
+from .conftest import make_bundle
+from .test_bundle_v2 import _v2
+
+SMALL = 512  # bytes of CSV text per chunk: every file spans many chunks
+
+#: each stored table of a campaign, with the key that orders it
+TABLES = (
+    ("temperature_samples", "channel_id, time_s"),
+    ("temperature_rollups", "channel_id, minute"),
+    ("condition_samples", "time_s"),
+    ("error_samples", "seq"),
+    ("channels", "ordinal"),
+    ("stages", "ordinal"),
+)
+
+
+def _rows(engine, table: str, key: str, campaign_id: int) -> pd.DataFrame:
+    frame = pd.read_sql(f"SELECT * FROM {table} WHERE campaign_id = {campaign_id} ORDER BY {key}", engine)
+    return frame.drop(columns=["campaign_id", "channel_id", "id"], errors="ignore")
+
+
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_a_directory_import_stores_exactly_what_an_import_from_memory_stores(
+    store_url: str, tmp_path: Path, version: str
+) -> None:
+    path = make_bundle(tmp_path / "v1", scans=300, sweeps=9) if version == "v1" else _v2(tmp_path)
+    whole = load_bundle(path)
+    other = connect(f"sqlite:///{tmp_path / 'memory.sqlite'}")
+    store = connect(store_url)
+    try:
+        with store.import_directory(path, block_bytes=SMALL) as imported:
+            cid = imported.campaign_id
+            assert imported.bundle.content_hash() == whole.content_hash()
+        reference = other.import_bundle(whole)
+        for table, key in TABLES:
+            got, want = _rows(store.engine, table, key, cid), _rows(other.engine, table, key, reference)
+            assert len(got) > 0, table
+            pd.testing.assert_frame_equal(got, want, check_exact=True, check_dtype=False)
+        campaign = pd.read_sql(f"SELECT * FROM campaigns WHERE id = {cid}", store.engine).iloc[0]
+        assert campaign["content_hash"] == whole.content_hash()
+        assert bool(campaign["rollups_complete"])
+        assert store.load_campaign(cid).content_hash() == whole.content_hash()
+    finally:
+        store.close()
+        other.close()
+
+
+def test_a_bundle_already_stored_is_refused_and_nothing_is_added(store_url: str, tmp_path: Path) -> None:
+    path = make_bundle(tmp_path / "b", scans=300, sweeps=9)
+    store = connect(store_url)
+    try:
+        with store.import_directory(path) as first:
+            cid = first.campaign_id
+        before = store.table_counts()
+        with pytest.raises(ConflictError, match=f"already stored as campaign {cid} .*nothing imported"):
+            store.import_directory(path)
+        assert store.table_counts() == before
+    finally:
+        store.close()
+
+
+@pytest.mark.postgres
+def test_a_duplicate_is_refused_while_the_temperatures_are_written(pg_url: str, tmp_path: Path, monkeypatch) -> None:
+    """The hash is known before the temperatures' COPY ends: the COPY is cut there, not run to its end."""
+    store = connect(pg_url)
+    try:
+        path = make_bundle(tmp_path / "b", scans=300, sweeps=9)
+        store.import_directory(path).close()
+        before = store.table_counts()
+        hashed = threading.Event()
+        real_hash, real_copy = import_pipeline._hash_unless_stored, ingest.copy_temperatures_pg
+        cut: list[str] = []
+
+        def hash_then_signal(engine, bundle):
+            try:
+                return real_hash(engine, bundle)
+            finally:
+                hashed.set()
+
+        def copy_after_the_hash(*args, between, **kwargs):
+            def wait_then_check() -> None:
+                assert hashed.wait(60)
+                between()
+
+            try:
+                real_copy(*args, between=wait_then_check, **kwargs)
+            except ConflictError as exc:
+                cut.append(str(exc))
+                raise
+
+        monkeypatch.setattr(import_pipeline, "_hash_unless_stored", hash_then_signal)
+        monkeypatch.setattr(ingest, "copy_temperatures_pg", copy_after_the_hash)
+        with pytest.raises(ConflictError, match="already stored"):
+            store.import_directory(path)
+        assert len(cut) == 1 and "already stored" in cut[0]
+        assert store.table_counts() == before
+    finally:
+        store.close()
+
+
+@pytest.mark.postgres
+def test_two_imports_of_one_bundle_at_once_store_it_once(pg_url: str, tmp_path: Path) -> None:
+    path = make_bundle(tmp_path / "b", scans=2000, sweeps=9)
+    store = connect(pg_url)
+    outcomes: list[object] = []
+    start = threading.Barrier(2)
+
+    def run() -> None:
+        start.wait()
+        try:
+            with store.import_directory(path) as imported:
+                outcomes.append(imported.campaign_id)
+        except ConflictError as exc:
+            outcomes.append(exc)
+
+    try:
+        before = store.table_counts()
+        threads = [threading.Thread(target=run) for _ in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+        stored = [o for o in outcomes if isinstance(o, int)]
+        refused = [o for o in outcomes if isinstance(o, ConflictError)]
+        assert len(stored) == 1 and len(refused) == 1, outcomes
+        after = store.table_counts()
+        assert after["campaigns"] == before["campaigns"] + 1
+        whole = load_bundle(path)
+        readings = len(whole.temperatures) * len(whole.channels)
+        assert after["temperature_samples"] - before["temperature_samples"] == readings
+        assert store.load_campaign(stored[0]).content_hash() == whole.content_hash()
+    finally:
+        store.close()
+
+
+@pytest.mark.parametrize("boom", [RuntimeError("disk on fire"), KeyboardInterrupt()], ids=["error", "ctrl-c"])
+def test_a_failure_writing_the_errors_beside_the_parse_rolls_all_back(
+    store_url: str, tmp_path: Path, monkeypatch, boom
+) -> None:
+    store = connect(store_url)
+    try:
+        store.import_directory(make_bundle(tmp_path / "first")).close()
+        before = store.table_counts()
+        real = ingest.error_rows
+        written: list[int] = []
+
+        def failing(campaign_id, errors, v2, day):
+            for k, row in enumerate(real(campaign_id, errors, v2, day)):
+                if k == 100:
+                    written.append(k)
+                    raise boom
+                yield row
+
+        monkeypatch.setattr(ingest, "error_rows", failing)
+        path = make_bundle(tmp_path / "second", seed=2, scans=300, sweeps=9)
+        with pytest.raises(type(boom)):
+            store.import_directory(path, block_bytes=SMALL)
+        assert written == [100]
+        assert store.table_counts() == before
+        monkeypatch.setattr(ingest, "error_rows", real)
+        store.import_directory(path, block_bytes=SMALL).close()  # nothing left behind blocks a clean retry
+        assert store.table_counts()["campaigns"] == before["campaigns"] + 1
+    finally:
+        store.close()
