@@ -15,9 +15,15 @@ rolls back:
 3. the channels are inserted and the temperatures COPYed in key order (campaign, channel, time: in
    scan order the server took 1.5x as long, its primary key appended at 50 places instead of one),
    while a thread hashes the staged tables and asks, on a connection of its own, whether a stored
-   campaign has that hash: a duplicate is refused a fraction into the write, not after it;
-4. the rollups are COPYed, the campaign's hash and rollups flag set (the hash is unique: an import of
-   the same content committed meanwhile is refused there), and the transaction committed.
+   campaign has that hash (a duplicate is refused a fraction into the write, not after it), and
+   another computes the per-minute rollups into a temporary file;
+4. the rollups are COPYed from that file, the campaign's hash and rollups flag set (the hash is
+   unique: an import of the same content committed meanwhile is refused there), and the transaction
+   committed.
+
+The CSVs are read 4 MiB at a time (``IMPORT_BLOCK_BYTES``; 1 MiB elsewhere): staging a 70 h, 50-channel
+temperatures.csv took 0.88 s in 1 MiB blocks and 0.63 s in 4 MiB (pyarrow parses a block on both
+cores), still a chunk's memory, not the file's.
 
 A bad row, a duplicate, a server error, an interrupt: the transaction is rolled back, nothing stored.
 The rows stored are those ``Store.import_bundle`` stores for the same bundle (tests hash both).
@@ -25,20 +31,26 @@ The rows stored are those ``Store.import_bundle`` stores for the same bundle (te
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
+from typing import BinaryIO
 
 from sqlalchemy import Connection, Engine, select, update
 from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import ingest, partitions
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import CSV_BLOCK_BYTES, BundleFiles, open_bundle, table_hash
+from driftlab.campaigns.bundle import BundleFiles, open_bundle, table_hash
 from driftlab.campaigns.repository import Repository, analyze
 from driftlab.campaigns.staging import StagedBundle, StagedTable, stage_bundle, stage_errors, stage_frames
 from driftlab.errors import ConflictError
+
+#: CSV text read and parsed at a time by an import (see the module docstring)
+IMPORT_BLOCK_BYTES = 4 << 20
 
 
 @dataclass
@@ -63,7 +75,7 @@ def import_directory(
     repo: Repository,
     path: str | Path,
     store_bundle: Callable[[StagedBundle], int],
-    block_bytes: int = CSV_BLOCK_BYTES,
+    block_bytes: int = IMPORT_BLOCK_BYTES,
     directory: str | None = None,
 ) -> ImportedBundle:
     """Validate and store the bundle in directory ``path``; return its campaign id with the staged bundle.
@@ -127,18 +139,27 @@ def _write_overlapped(conn: Connection, pool: ThreadPoolExecutor, files: BundleF
     engine = conn.engine
     hashing = pool.submit(_hash_unless_stored, engine, bundle)
     channel_ids = ingest.insert_channels(conn, campaign_id, meta, bundle.channels)
+    rolling = pool.submit(_spool_rollups, campaign_id, channel_ids, temperatures, s.directory)
 
     def refuse_a_duplicate() -> None:
         if hashing.done():
             _refuse_if_stored(bundle.name, hashing)
 
-    ingest.copy_temperatures_pg(
-        conn, campaign_id, channel_ids, temperatures, s.day, queued=True, between=refuse_a_duplicate
-    )
-    bundle.hash = _refuse_if_stored(bundle.name, hashing)
-    rollups = ingest.rollups_pay_chunks(temperatures.column("time_s"))
-    if rollups:
-        ingest.write_rollups(conn, campaign_id, channel_ids, temperatures)
+    try:
+        ingest.copy_temperatures_pg(
+            conn, campaign_id, channel_ids, temperatures, s.day, queued=True, between=refuse_a_duplicate
+        )
+        bundle.hash = _refuse_if_stored(bundle.name, hashing)
+    except BaseException:
+        rolling.add_done_callback(_close_spool)
+        raise
+    spooled = rolling.result()
+    rollups = spooled is not None
+    if spooled is not None:
+        with spooled:
+            ingest.copy_rollups_pg(
+                conn, campaign_id, channel_ids, temperatures, iter(partial(spooled.read, 1 << 20), b"")
+            )
     conn.execute(
         update(sc.Campaign)
         .where(sc.Campaign.id == campaign_id)
@@ -154,6 +175,29 @@ def _write_head(conn: Connection, files: BundleFiles, s: _Staged) -> int:
     ingest.write_conditions(conn, campaign_id, s.conditions, s.day)
     ingest.write_errors(conn, campaign_id, s.errors, files.meta, s.day)
     return campaign_id
+
+
+def _spool_rollups(
+    campaign_id: int, channel_ids: list[int], temperatures: StagedTable, directory: str | None
+) -> BinaryIO | None:
+    """Return the rollups' COPY tuples in a temporary file read from its start (None: they do not pay)."""
+    if not ingest.rollups_pay_chunks(temperatures.column("time_s")):
+        return None
+    spool = tempfile.TemporaryFile(prefix="driftlab-rollups-", dir=directory)
+    try:
+        for piece in ingest.encode_rollups_pg(campaign_id, channel_ids, temperatures):
+            spool.write(piece)
+        spool.seek(0)
+    except BaseException:
+        spool.close()
+        raise
+    return spool
+
+
+def _close_spool(future: Future[BinaryIO | None]) -> None:
+    """Close the rollups' temporary file of an import that failed before reading it."""
+    if future.exception() is None and (spool := future.result()) is not None:
+        spool.close()
 
 
 def _hash_unless_stored(engine: Engine, bundle: StagedBundle) -> tuple[str, int | None]:

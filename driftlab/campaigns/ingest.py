@@ -471,21 +471,37 @@ def _encode_rollups(campaign_id: int, channel_id: int, r: Rollups, a: int, b: in
 
 
 def copy_rollups_pg(
-    conn: Connection, campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable
+    conn: Connection,
+    campaign_id: int,
+    channel_ids: Sequence[int],
+    temperatures: pd.DataFrame | ColumnTable,
+    encoded: Iterable[bytes] | None = None,
 ) -> None:
     """Write the rollups of a wide table into temperature_rollups with binary COPY encoded by numpy (no
-    Python object a row), in the order ``rollup_rows`` gives them; sent from psycopg's queued writer."""
+    Python object a row), in the order ``rollup_rows`` gives them; sent from psycopg's queued writer.
+
+    ``encoded``: the COPY tuples already made by ``encode_rollups_pg`` (then ``temperatures`` is not read).
+    """
     raw = conn.connection.driver_connection
+    pieces = encode_rollups_pg(campaign_id, channel_ids, temperatures) if encoded is None else encoded
     with raw.cursor() as cur:  # type: ignore[union-attr]
         sql = f"COPY temperature_rollups ({', '.join(ROLLUP_COLUMNS)}) FROM STDIN (FORMAT BINARY)"
         with cur.copy(sql, writer=copy_writer(cur, True)) as cp:
             cp.write(_PG_HEADER)
-            for channel_id, r in rollup_arrays(channel_ids, temperatures):
-                empty = r.n_values == 0
-                edges = np.flatnonzero(np.diff(empty.astype(np.int8))) + 1  # runs with and without values, in order
-                for a, b in zip(np.r_[0, edges], np.r_[edges, len(empty)], strict=True):
-                    cp.write(_encode_rollups(campaign_id, channel_id, r, int(a), int(b), not empty[a]))
+            for piece in pieces:
+                cp.write(piece)
             cp.write(_PG_TRAILER)
+
+
+def encode_rollups_pg(
+    campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable
+) -> Iterator[bytes]:
+    """Yield the binary COPY tuples of a wide table's rollups, per channel and run of minutes with or without values."""
+    for channel_id, r in rollup_arrays(channel_ids, temperatures):
+        empty = r.n_values == 0
+        edges = np.flatnonzero(np.diff(empty.astype(np.int8))) + 1  # runs with and without values, in order
+        for a, b in zip(np.r_[0, edges], np.r_[edges, len(empty)], strict=True):
+            yield _encode_rollups(campaign_id, channel_id, r, int(a), int(b), not empty[a])
 
 
 def insert_ignoring_duplicates(conn: Connection, table: Any, keys: list[str]) -> Any:
