@@ -79,9 +79,9 @@ def test_a_bundle_already_stored_is_refused_and_nothing_is_added(store_url: str,
 
 
 @pytest.mark.postgres
-def test_a_duplicate_is_refused_while_the_temperatures_are_written(pg_url: str, tmp_path: Path, monkeypatch) -> None:
+def test_a_duplicate_is_refused_while_the_temperatures_are_written(pg_cluster, tmp_path: Path, monkeypatch) -> None:
     """The hash is known before the temperatures' COPY ends: the COPY is cut there, not run to its end."""
-    store = connect(pg_url)
+    store = connect(pg_cluster.create_database())
     try:
         path = make_bundle(tmp_path / "b", scans=300, sweeps=9)
         store.import_directory(path).close()
@@ -118,9 +118,9 @@ def test_a_duplicate_is_refused_while_the_temperatures_are_written(pg_url: str, 
 
 
 @pytest.mark.postgres
-def test_two_imports_of_one_bundle_at_once_store_it_once(pg_url: str, tmp_path: Path) -> None:
+def test_two_imports_of_one_bundle_at_once_store_it_once(pg_cluster, tmp_path: Path) -> None:
     path = make_bundle(tmp_path / "b", scans=2000, sweeps=9)
-    store = connect(pg_url)
+    store = connect(pg_cluster.create_database())
     outcomes: list[object] = []
     start = threading.Barrier(2)
 
