@@ -18,13 +18,12 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel
 from sqlalchemy import Connection, Row, delete, func, insert, select, update
-from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import import_pipeline, ingest, partitions
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import Bundle, CampaignMeta
 from driftlab.campaigns.repository import Page, Repository, analyze, campaign_row, machine_exists
-from driftlab.errors import ConflictError, NotFoundError, ValidationError
+from driftlab.errors import NotFoundError, ValidationError
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -99,20 +98,11 @@ class CampaignRepository(Repository):
         day = partitions.start_day(bundle.meta.started_at)
         # the month's partition, made (in a transaction of its own) before the import writes into it
         partitions.ensure_partitions(self.engine, [day])
-        try:
-            with self.write() as conn:
-                existing = conn.execute(select(sc.Campaign.id).where(sc.Campaign.content_hash == content_hash)).scalar()
-                if existing is not None:
-                    raise ConflictError(
-                        f"bundle {bundle.name!r} is already stored as campaign {existing} (same content hash "
-                        f"{content_hash[:12]}); nothing imported"
-                    )
-                campaign_id = ingest.import_bundle(conn, bundle, content_hash)
-        except IntegrityError as exc:
-            # A concurrent import of the same content committed first.
-            if "content_hash" in str(exc.orig):
-                raise ConflictError(f"bundle {bundle.name!r} was imported concurrently; nothing imported") from None
-            raise
+        with ingest.concurrent_duplicate_refused(bundle.name), self.write() as conn:
+            existing = conn.execute(select(sc.Campaign.id).where(sc.Campaign.content_hash == content_hash)).scalar()
+            if existing is not None:
+                raise ingest.already_stored(bundle.name, existing, content_hash)
+            campaign_id = ingest.import_bundle(conn, bundle, content_hash)
         analyze(self.engine, day)
         return campaign_id
 

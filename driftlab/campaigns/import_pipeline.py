@@ -40,14 +40,12 @@ from pathlib import Path
 from typing import BinaryIO
 
 from sqlalchemy import Connection, Engine, select, update
-from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import ingest, partitions
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import BundleFiles, open_bundle, table_hash
 from driftlab.campaigns.repository import Repository, analyze
 from driftlab.campaigns.staging import StagedBundle, StagedTable, stage_bundle, stage_errors, stage_frames
-from driftlab.errors import ConflictError
 
 #: CSV text read and parsed at a time by an import (see the module docstring)
 IMPORT_BLOCK_BYTES = 4 << 20
@@ -98,14 +96,12 @@ def import_directory(
         day = partitions.start_day(files.meta.started_at)
         repo.gate.ensure()
         partitions.ensure_partitions(repo.engine, [day])
-        try:
-            with repo.write() as conn, ThreadPoolExecutor(2, thread_name_prefix="driftlab-import") as pool:
-                imported = _write_overlapped(conn, pool, files, _Staged(tables, conditions, errors, directory, day))
-        except IntegrityError as exc:
-            # an import of the same content committed first (the campaign's unique hash)
-            if "content_hash" in str(exc.orig):
-                raise ConflictError(f"bundle {files.name!r} was imported concurrently; nothing imported") from None
-            raise
+        with (
+            ingest.concurrent_duplicate_refused(files.name),
+            repo.write() as conn,
+            ThreadPoolExecutor(2, thread_name_prefix="driftlab-import") as pool,
+        ):
+            imported = _write_overlapped(conn, pool, files, _Staged(tables, conditions, errors, directory, day))
     except BaseException:
         for table in tables:
             table.close()
@@ -212,8 +208,5 @@ def _refuse_if_stored(name: str, hashing: Future[tuple[str, int | None]]) -> str
     """Return the content hash; ConflictError when a stored campaign has it (the same words as an import of it)."""
     content_hash, existing = hashing.result()
     if existing is not None:
-        raise ConflictError(
-            f"bundle {name!r} is already stored as campaign {existing} (same content hash "
-            f"{content_hash[:12]}); nothing imported"
-        )
+        raise ingest.already_stored(name, existing, content_hash)
     return content_hash

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import sqlite3
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from itertools import chain, islice, repeat
 from typing import TYPE_CHECKING, Any
@@ -20,10 +21,12 @@ from psycopg.copy import QueuedLibpqWriter
 from sqlalchemy import Connection, insert, select, text
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
+from sqlalchemy.exc import IntegrityError
 
 from driftlab.campaigns import schema as sc
 from driftlab.campaigns.bundle import POSE_COLUMNS, Bundle, CampaignMeta, ColumnTable, FrameTable, as_table
 from driftlab.campaigns.partitions import leaf, start_day
+from driftlab.errors import ConflictError
 
 if TYPE_CHECKING:
     from psycopg import Cursor
@@ -521,6 +524,26 @@ def _into(conn: Connection, table: str, day: int) -> str:
 
 #: the PostgreSQL types of ERROR_COLUMNS (binary COPY)
 ERROR_TYPES = ("int4", "int4", "float8", "varchar", "varchar", "float8", "int2", "float8", "int4", "int4", "int4")
+
+
+def already_stored(name: str, campaign_id: int, content_hash: str) -> ConflictError:
+    """Return the refusal of a bundle whose content is stored already, as campaign ``campaign_id``."""
+    return ConflictError(
+        f"bundle {name!r} is already stored as campaign {campaign_id} (same content hash "
+        f"{content_hash[:12]}); nothing imported"
+    )
+
+
+@contextmanager
+def concurrent_duplicate_refused(name: str) -> Iterator[None]:
+    """Turn the campaigns' unique content hash refusing a row into a ConflictError (an import of the
+    same content committed first); any other IntegrityError goes on as it is."""
+    try:
+        yield
+    except IntegrityError as exc:
+        if "content_hash" in str(exc.orig):
+            raise ConflictError(f"bundle {name!r} was imported concurrently; nothing imported") from None
+        raise
 
 
 def import_bundle(conn: Connection, bundle: Bundle | Any, content_hash: str) -> int:
