@@ -21,7 +21,7 @@ from sqlalchemy import Connection, Row, delete, func, insert, select, update
 
 from driftlab.campaigns import import_pipeline, ingest, partitions
 from driftlab.campaigns import schema as sc
-from driftlab.campaigns.bundle import Bundle, CampaignMeta
+from driftlab.campaigns.bundle import CSV_BLOCK_BYTES, Bundle, CampaignMeta
 from driftlab.campaigns.repository import Page, Repository, analyze, campaign_row, machine_exists
 from driftlab.errors import NotFoundError, ValidationError
 
@@ -107,7 +107,7 @@ class CampaignRepository(Repository):
         return campaign_id
 
     def import_directory(
-        self, path: str | Path, block_bytes: int = import_pipeline.IMPORT_BLOCK_BYTES, directory: str | None = None
+        self, path: str | Path, block_bytes: int = CSV_BLOCK_BYTES, directory: str | None = None
     ) -> ImportedBundle:
         """Validate and store the bundle in directory ``path`` in one transaction (``import_pipeline``).
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from driftlab.campaigns import ingest
 from driftlab.campaigns.bundle import write_bundle
 from driftlab.testing.smallbundle import small_frames, small_meta
 
@@ -24,6 +25,20 @@ def make_bundle(
     """Write a small valid bundle to ``path`` and return it."""
     temps, cond, errors = small_frames(seed, scans, sweeps)
     return write_bundle(path, small_meta(machine, started_at), temps, cond, errors)
+
+
+def error_rows_failing_at(row: int, boom: BaseException, written: list[int]):
+    """Return ``ingest.error_rows`` that raises ``boom`` at its ``row``-th row (noting it in ``written``)."""
+    real = ingest.error_rows
+
+    def failing(campaign_id, errors, v2, day):
+        for k, values in enumerate(real(campaign_id, errors, v2, day)):
+            if k == row:
+                written.append(k)
+                raise boom
+            yield values
+
+    return failing
 
 
 @pytest.fixture

@@ -18,7 +18,7 @@ from driftlab.campaigns.staging import stage_bundle
 from driftlab.campaigns.store import connect
 from driftlab.cli import main
 
-from .conftest import make_bundle, small_frames, small_meta
+from .conftest import error_rows_failing_at, make_bundle, small_frames, small_meta
 from .test_bundle_v2 import _v2
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -152,33 +152,37 @@ def test_a_bad_last_row_of_a_big_file_leaves_the_store_untouched(store_url: str,
         store.close()
 
 
+def _import(store, path: Path, how: str) -> None:
+    """Import the bundle in ``path`` staged (``Store.import_bundle``) or from its directory (``import_directory``)."""
+    if how == "directory":
+        store.import_directory(path, block_bytes=SMALL).close()
+        return
+    with stage_bundle(path, block_bytes=SMALL) as staged:
+        store.import_bundle(staged)
+
+
+@pytest.mark.parametrize("how", ["staged", "directory"])
 @pytest.mark.parametrize("boom", [RuntimeError("disk on fire"), KeyboardInterrupt()], ids=["error", "ctrl-c"])
 def test_a_failure_after_many_chunks_are_written_rolls_all_back(
-    store_url: str, tmp_path: Path, monkeypatch, boom
+    store_url: str, tmp_path: Path, monkeypatch, boom, how: str
 ) -> None:
+    """From a staged bundle the errors come last; from a directory on PostgreSQL, first, beside the parse."""
     store = connect(store_url)
     try:
         store.import_bundle(load_bundle(make_bundle(tmp_path / "first")))
         before = store.table_counts()
         real = ingest.error_rows
         written: list[int] = []
-
-        def failing(campaign_id, errors, v2, day):
-            for k, row in enumerate(real(campaign_id, errors, v2, day)):
-                if k == 100:  # the temperatures, rollups, conditions and 100 readings are written by now
-                    written.append(k)
-                    raise boom
-                yield row
-
-        monkeypatch.setattr(ingest, "error_rows", failing)
-        with stage_bundle(make_bundle(tmp_path / "second", seed=2, scans=300, sweeps=9), block_bytes=SMALL) as b:
-            assert len(list(b.errors.chunks())) > 10
-            with pytest.raises(type(boom)):
-                store.import_bundle(b)
-            assert written == [100]
-            assert store.table_counts() == before
-            monkeypatch.setattr(ingest, "error_rows", real)
-            store.import_bundle(b)  # nothing was left behind that would block a clean retry
+        path = make_bundle(tmp_path / "second", seed=2, scans=300, sweeps=9)
+        with stage_bundle(path, block_bytes=SMALL) as staged:
+            assert len(list(staged.errors.chunks())) > 10
+        monkeypatch.setattr(ingest, "error_rows", error_rows_failing_at(100, boom, written))
+        with pytest.raises(type(boom)):
+            _import(store, path, how)
+        assert written == [100]
+        assert store.table_counts() == before
+        monkeypatch.setattr(ingest, "error_rows", real)
+        _import(store, path, how)  # nothing was left behind that would block a clean retry
         assert store.table_counts()["campaigns"] == before["campaigns"] + 1
     finally:
         store.close()
