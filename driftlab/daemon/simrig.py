@@ -121,7 +121,13 @@ def build_sim_rig(
     if world is None:
         from driftlab.daq.sim.machine import VirtualMachine  # the virtual machine: lazy (module note)
 
-        world = MemoWorld(VirtualMachine(plan_scenario(plan, scenario)))
+        vm = VirtualMachine(plan_scenario(plan, scenario))
+        # The machine exists before the daemon starts: its thermal network is solved here (over the
+        # scenario, which plan_scenario makes as long as the plan: the same grid as solved on the
+        # first read), not by the first instrument read of the run, which held the interpreter lock
+        # for 55-65 ms while the writer thread waited for the first batch (measured).
+        vm.advance_to(0.0)
+        world = MemoWorld(vm)
     from driftlab.daq.sim.keysight34970a import sim_channel_map  # the virtual machine: lazy (module note)
 
     card_map = sim_channel_map(channels)  # 34901A channels 101.., 201.., 301.. -> the plan's names

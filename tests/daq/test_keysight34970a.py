@@ -253,6 +253,44 @@ def test_driver_against_the_simulated_mainframe_timer_scan_and_reference_junctio
             rm.close()
 
 
+@pytest.mark.parametrize("unit", ["C", "F", "K"])
+def test_the_simulated_mainframe_converts_each_channel_as_if_it_were_scanned_alone(unit: str) -> None:
+    """The scan list is converted at once (types, junctions, open check, unit per channel): each column is what
+    a mainframe configured with that channel alone reports (guide ch. 4, Temperature Measurement Configuration)."""
+    from driftlab.daq.sim.instruments import ManualClock
+    from driftlab.daq.sim.keysight34970a import Sim34970A
+    from driftlab.testing.tinyworld import TinyWorld
+
+    world = TinyWorld(channels=6, open_channels={"T2": 0.0, "T5": 0.0})
+    wiring = {101 + k: f"T{k + 1}" for k in range(6)}
+    # channel -> thermocouple type, junction, fixed junction degC, open check
+    setup = {101: ("E", "INT", None, True), 102: ("K", "FIX", 12.5, True), 103: ("J", "FIX", None, False),
+             104: ("T", "EXT", None, True), 105: ("E", "FIX", 3.0, False), 106: ("K", "INT", None, False)}  # fmt: skip
+
+    def commands(chans: list[int]) -> list[str]:
+        out = []
+        for c in chans:
+            tc, rj, fixed, check = setup[c]
+            out += [f"CONF:TEMP TC,{tc},(@{c})", f"TEMP:TRAN:TC:RJUN:TYPE {rj},(@{c})"]
+            out += [f"TEMP:TRAN:TC:RJUN {fixed},(@{c})"] if fixed is not None else []
+            out += [f"TEMP:TRAN:TC:CHEC {'ON' if check else 'OFF'},(@{c})"]
+        return [*out, f"UNIT:TEMP {unit}", f"ROUT:SCAN {channel_list(chans)}", "TRIG:SOUR IMM", "TRIG:COUN 1"]
+
+    def read(chans: list[int]) -> list[str]:
+        card = Sim34970A(world, ManualClock(600.0), wiring, terminal_c=26.0)
+        for command in commands(chans):
+            card.handle(command)
+        assert not card.errors, card.errors
+        reply = card.handle("READ?")
+        assert reply is not None
+        return reply.split(",")
+
+    alone = [read([c])[0] for c in setup]
+    assert read(list(setup)) == alone
+    assert alone[1] == "+9.90000000E+37" and alone[3] == "+9.90000000E+37"  # open with check on; EXT: no reference
+    assert alone[4] != "+9.90000000E+37"  # open, check off: the terminal's temperature, as the mainframe reads it
+
+
 def test_block_readings_decode_exactly_as_float_does_and_the_simulator_formats_as_the_mainframe():
     from driftlab.daq.keysight34970a import parse_readings
     from driftlab.daq.sim.keysight34970a import format_readings

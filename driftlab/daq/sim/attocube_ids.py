@@ -112,6 +112,8 @@ class SimIDS3010(SimHead):
 
     def _take_fault(self, text: str) -> str | None:
         """Match injected faults against the request's method name (``on`` is a method prefix)."""
+        if not self._faults:  # none injected (the daemon's run): no second JSON parse of every request
+            return None
         try:
             method = str(json.loads(text).get("method", ""))
         except (ValueError, AttributeError):

