@@ -380,7 +380,7 @@ class StoreSink:
         # the rows (channel, time, value) of each channel laid into one flat run of parameters by slice
         # assignment, in key order (sqlite stores a bound NaN as NULL): no tuple a row to build and flatten
         # again in the writer thread, which holds the interpreter lock meanwhile (0.9 -> 0.35 ms a block
-        # of 200 scans x 50 channels); the rows and their order are those of insert_scan_readings_sqlite
+        # of 200 scans x 50 channels); the rows and their order as before, channel by channel in key order
         n, t = len(times), times.tolist()
         width = 3 * n
         flat: list[SqlValue] = [None] * (width * len(ids))

@@ -245,27 +245,6 @@ def _channel_pieces(
     return ((channel_id, pieces(name)) for channel_id, name in zip(channel_ids, names, strict=True))
 
 
-def insert_scan_readings_sqlite(
-    conn: Connection, campaign_id: int, day: int, rows: Iterable[tuple[int, float, float | None]]
-) -> None:
-    """Insert (channel, time, value) readings of one campaign into temperature_samples on SQLite in multi-row
-    INSERTs (``insert_flat_sqlite``; a daemon's batch: few scans of many channels, so the channel is
-    bound rather than one statement per channel); the campaign and start day are integer literals of
-    the statement, three values bound a row."""
-    raw = conn.connection.driver_connection
-    cur = raw.cursor()  # type: ignore[union-attr]
-    try:
-        insert_flat_sqlite(
-            cur,
-            f"INSERT INTO temperature_samples ({', '.join(TEMPERATURE_COLUMNS)}) VALUES ",
-            f"({int(campaign_id)}, ?, ?, ?, {int(day)})",
-            3,
-            list(chain.from_iterable(rows)),
-        )
-    finally:
-        cur.close()
-
-
 # PostgreSQL binary COPY of temperature rows, encoded by numpy (no Python object per row): the
 # file header, then per row a field count and (length, big-endian value) per field, NULL as length -1.
 _PG_HEADER = b"PGCOPY\n\xff\r\n\x00" + (0).to_bytes(4, "big") + (0).to_bytes(4, "big")
