@@ -146,9 +146,8 @@ def _write_overlapped(conn: Connection, pool: ThreadPoolExecutor, files: BundleF
     rollups = spooled is not None
     if spooled is not None:
         with spooled:
-            ingest.copy_rollups_pg(
-                conn, campaign_id, channel_ids, temperatures, iter(partial(spooled.read, 1 << 20), b"")
-            )
+            tuples = iter(partial(spooled.read, 1 << 20), b"")
+            ingest.copy_encoded_pg(conn, "temperature_rollups", ingest.ROLLUP_COLUMNS, tuples)
     conn.execute(
         update(sc.Campaign)
         .where(sc.Campaign.id == campaign_id)

@@ -453,24 +453,24 @@ def _encode_rollups(campaign_id: int, channel_id: int, r: Rollups, a: int, b: in
 
 
 def copy_rollups_pg(
-    conn: Connection,
-    campaign_id: int,
-    channel_ids: Sequence[int],
-    temperatures: pd.DataFrame | ColumnTable,
-    encoded: Iterable[bytes] | None = None,
+    conn: Connection, campaign_id: int, channel_ids: Sequence[int], temperatures: pd.DataFrame | ColumnTable
 ) -> None:
     """Write the rollups of a wide table into temperature_rollups with binary COPY encoded by numpy (no
-    Python object a row), in the order ``rollup_rows`` gives them; sent from psycopg's queued writer.
+    Python object a row), in the order ``rollup_rows`` gives them; sent from psycopg's queued writer."""
+    copy_encoded_pg(
+        conn, "temperature_rollups", ROLLUP_COLUMNS, encode_rollups_pg(campaign_id, channel_ids, temperatures)
+    )
 
-    ``encoded``: the COPY tuples already made by ``encode_rollups_pg`` (then ``temperatures`` is not read).
-    """
+
+def copy_encoded_pg(conn: Connection, table: str, columns: Sequence[str], tuples: Iterable[bytes]) -> None:
+    """COPY binary tuples already encoded (the file header and trailer are added here) into ``table``,
+    sent from psycopg's queued writer."""
     raw = conn.connection.driver_connection
-    pieces = encode_rollups_pg(campaign_id, channel_ids, temperatures) if encoded is None else encoded
     with raw.cursor() as cur:  # type: ignore[union-attr]
-        sql = f"COPY temperature_rollups ({', '.join(ROLLUP_COLUMNS)}) FROM STDIN (FORMAT BINARY)"
+        sql = f"COPY {table} ({', '.join(columns)}) FROM STDIN (FORMAT BINARY)"
         with cur.copy(sql, writer=copy_writer(cur, True)) as cp:
             cp.write(_PG_HEADER)
-            for piece in pieces:
+            for piece in tuples:
                 cp.write(piece)
             cp.write(_PG_TRAILER)
 
