@@ -9,11 +9,13 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
+import psycopg
 import pytest
 
 from driftlab.campaigns import import_pipeline, ingest
 from driftlab.campaigns.bundle import load_bundle
 from driftlab.campaigns.store import connect
+from driftlab.cli import main
 from driftlab.errors import ConflictError
 
 from .conftest import make_bundle
@@ -105,5 +107,45 @@ def test_two_imports_of_one_bundle_at_once_store_it_once(pg_cluster, tmp_path: P
         readings = len(whole.temperatures) * len(whole.channels)
         assert after["temperature_samples"] - before["temperature_samples"] == readings
         assert store.load_campaign(stored[0]).content_hash() == whole.content_hash()
+    finally:
+        store.close()
+
+
+@pytest.mark.postgres
+def test_a_server_connection_killed_during_the_write_leaves_nothing_and_a_retry_lands(
+    pg_cluster, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """The import's backend terminated in the middle of the temperatures' COPY (as a server restart would)."""
+    url = pg_cluster.create_database()
+    store = connect(url)
+    try:
+        store.import_directory(make_bundle(tmp_path / "first")).close()
+        before = store.table_counts()
+        real_copy = ingest.copy_temperatures_pg
+        killed: list[int] = []
+
+        def copy_then_kill(conn, *args, between, **kwargs):
+            pid = conn.connection.driver_connection.info.backend_pid
+
+            def kill_once() -> None:
+                if not killed:
+                    with psycopg.connect(url.replace("postgresql+psycopg://", "postgresql://"), autocommit=True) as c:
+                        c.execute("SELECT pg_terminate_backend(%s)", (pid,))
+                    killed.append(pid)
+                between()
+
+            real_copy(conn, *args, between=kill_once, **kwargs)
+
+        monkeypatch.setattr(ingest, "copy_temperatures_pg", copy_then_kill)
+        path = make_bundle(tmp_path / "second", seed=3, scans=300, sweeps=9)
+        capsys.readouterr()
+        assert main(["import", str(path), "--db", url]) != 0
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("driftlab: error: database: "), err
+        assert len(killed) == 1
+        assert store.table_counts() == before
+        monkeypatch.setattr(ingest, "copy_temperatures_pg", real_copy)
+        with store.import_directory(path) as imported:
+            assert store.load_campaign(imported.campaign_id).content_hash() == load_bundle(path).content_hash()
     finally:
         store.close()
