@@ -181,11 +181,7 @@ def raw_rows(bundle_dir: Path, n_scans: int, channels: int, postgres: bool) -> R
 RAW_TABLES = {
     "temperatures": ("temperature_samples", ingest.TEMPERATURE_COLUMNS, ingest.TEMPERATURE_TYPES),
     "errors": ("error_samples", ingest.ERROR_COLUMNS, ingest.ERROR_TYPES),
-    "conditions": (
-        "condition_samples",
-        ("campaign_id", "time_s", *ingest.CONDITION_VALUE_COLUMNS, "campaign_start_day"),
-        ("int4", "float8", *["float8"] * len(ingest.CONDITION_VALUE_COLUMNS), "int4"),
-    ),
+    "conditions": ("condition_samples", ingest.CONDITION_ROW_COLUMNS, ingest.CONDITION_ROW_TYPES),
 }
 
 

@@ -34,6 +34,9 @@ if TYPE_CHECKING:
 CONDITION_VALUE_COLUMNS = ("spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
 TEMPERATURE_COLUMNS = ("campaign_id", "channel_id", "time_s", "value", "campaign_start_day")
 TEMPERATURE_TYPES = ("int4", "int4", "float8", "float8", "int4")
+#: condition_samples as ``condition_rows`` gives them, and their PostgreSQL types (binary COPY)
+CONDITION_ROW_COLUMNS = ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day")
+CONDITION_ROW_TYPES = ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4")
 ERROR_COLUMNS = (
     "campaign_id",
     "seq",
@@ -570,8 +573,8 @@ def write_conditions(conn: Connection, campaign_id: int, conditions: ColumnTable
     bulk_insert(
         conn,
         "condition_samples",
-        ("campaign_id", "time_s", *CONDITION_VALUE_COLUMNS, "campaign_start_day"),
-        ("int4", "float8", *["float8"] * len(CONDITION_VALUE_COLUMNS), "int4"),
+        CONDITION_ROW_COLUMNS,
+        CONDITION_ROW_TYPES,
         condition_rows(campaign_id, conditions, postgres, day),
         into=_into(conn, "condition_samples", day),
         queued=True,
