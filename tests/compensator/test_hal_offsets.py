@@ -167,3 +167,25 @@ def test_the_command_drives_the_pins_through_the_stand_in(tmp_path, capsys, monk
     comp = hal.components["driftlab-hal"]
     assert comp.closed  # exit() on the way out
     assert comp.values["z.counts"] != 0 and comp.values["z.enable"] and comp.values["z.scale"] == 1e-4
+
+
+def test_the_documented_hal_nets_name_real_pins():
+    """docs/instruments.md's HAL example: every driftlab-hal pin exists, every motion pin is a documented one."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "instruments.md").read_text()
+    nets = re.findall(r"^net \S+\s+(\S+)\s+=>\s+(\S+)", text, re.MULTILINE)
+    assert len(nets) >= 5
+    comp, _ = component(axes="xyzab")
+    ours = {f"driftlab-hal.{name}" for name in comp.comp.pins}
+    documented = {
+        f"axis.{a}.{p}" for a in "xyzabcuvw" for p in ("pos-cmd", "eoffset-counts", "eoffset-scale", "eoffset-enable")
+    }
+    documented.add("halui.machine.is-on")
+    for src, dst in nets:
+        for pin in (src, dst):
+            if pin.startswith("driftlab-hal."):
+                assert pin in ours, pin
+            elif pin != "...":
+                assert pin in documented, pin
