@@ -27,7 +27,7 @@ lines a shop meets (read at tag v2.9.10 and on master at 5c41560ebb, 2026-08):
 
   (master between 2023-12 and 2026-02 had ``wait_mode`` with a ``set_wait`` alias and six values;
   the link tells the lines apart by what they answer, not by a version number, so it reads that
-  one too.) Both print positions with ``%f`` (1 µm in mm). ``REL_ACT_POS`` is the actual
+  one too.) Both print positions with ``%f``: six decimals of a mm, 1 nm. ``REL_ACT_POS`` is the actual
   position less the G5x and G92 offsets (``actualPosition - g5x_offset - g92_offset`` in both
   lines' ``getRelActPos``); it does not take off the tool length offset, which ``get tool_offset``
   gives (``toolOffset.tran.z``), nor a G5x rotation (G10 L2 R);

@@ -2,10 +2,11 @@
 
 The counterparts (tests/daq/linuxcncrsh_counterpart.py) are re-implementations of each server
 from emcrsh.cc at its tag, not from driftlab's code. Against them: the link identifies the line,
-reads positions in the frame its MDI moves use (a G54 offset and a tool length offset in place,
-within 1 µm), refuses E-stop in one line, moves nothing in a check, probes a sphere where the
-machine has it; `driftlab rig check` and `driftlab compensate --link linuxcnc` on both; and the
-virtual controller (driftlab.daq.sim.linuxcnc) answers each line byte for byte as its counterpart.
+reads positions in the frame its MDI moves use (a G54 offset and a tool length offset in place;
+within 1 nm, the %f resolution, the target was 1 µm), refuses E-stop in one line, moves nothing
+in a check, probes a sphere where the machine has it; `driftlab rig check` and `driftlab
+compensate --link linuxcnc` on both; and the virtual controller (driftlab.daq.sim.linuxcnc)
+answers each line byte for byte as its counterpart.
 """
 
 from __future__ import annotations
@@ -107,7 +108,7 @@ def test_the_probe_cycle_finds_the_sphere_in_the_work_frame(line):
             got = LinuxCNCProbe(link, stylus_radius_mm=1.0).probe_sphere("s1", tuple(nominal), 12.7)
         finally:
             link.close()
-    np.testing.assert_allclose(got.centre, nominal, atol=1e-6)  # %f parameters: 1 µm
+    np.testing.assert_allclose(got.centre, nominal, atol=1e-6)  # %f parameters: 1 nm
     assert got.radius_mm == pytest.approx(12.7, abs=1e-6)
     assert sum(1 for c in m.mdi_log if c.startswith("G38.2")) == 5
 
