@@ -39,6 +39,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--out", type=Path, help="write the corrected program here (offline)")
     p.add_argument("--port", help="stream to the controller on this serial device or pyserial URL (socket://...)")
     p.add_argument(
+        "--link",
+        choices=("thesis", "linuxcnc"),
+        default="thesis",
+        help="the controller's protocol: thesis (the STAT?/BLK exchange of the virtual controller) or linuxcnc "
+        "(linuxcncrsh, 2.9 or master: --port host[:port], each block an MDI command)",
+    )
+    p.add_argument(
         "--start",
         help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or "
         "the controller's position when streaming)",
@@ -244,6 +251,18 @@ def _report_extrapolation(extrapolated: Mapping[str, Mapping[str, float]]) -> No
         )
 
 
+def _open_link(args: argparse.Namespace) -> Any:
+    """Return the machine link ``--link`` names, connected to ``--port`` (a MachineLink)."""
+    if args.link == "linuxcnc":
+        # lazy: the links' imports stay off the offline path
+        from driftlab.daq.linuxcnc import LinuxCNCLink
+
+        return LinuxCNCLink.open(args.port)
+    from driftlab.daq.machine_link import SerialMachineLink
+
+    return SerialMachineLink.open(args.port)
+
+
 def _stream(
     args: argparse.Namespace, start: tuple[float, ...] | None, decimals: tuple[int, int], token: str | None
 ) -> int:
@@ -251,7 +270,6 @@ def _stream(
     # lazy: this function's imports would add 2.3 s to `driftlab --help` (measured)
     from driftlab.compensator.compensate import ErrorModel, FirstPass, Grid, parse_pieces, program_pieces, scan_program
     from driftlab.compensator.stream import ApiModel, ApiTemperatures, CsvTemperatures, StaticModel, Streamer
-    from driftlab.daq.machine_link import SerialMachineLink
 
     if args.out is not None:
         raise ValidationError("-o is for offline compensation; with --port the program is streamed")
@@ -267,7 +285,7 @@ def _stream(
         temps = ApiTemperatures(args.api, args.machine, token=token)
     else:
         raise ValidationError("streaming needs --temps CSV or --api for the temperatures")
-    link = SerialMachineLink.open(args.port)
+    link = _open_link(args)
     try:
         if start is None:
             pos = link.position()
