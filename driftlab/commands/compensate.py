@@ -144,8 +144,9 @@ def _guard(model: Any, args: argparse.Namespace) -> Any:
     )
     if guard.envelope is None or not guard.envelope.travel:
         raise ValidationError(
-            f"model {model.label} carries no machine travel (documents fitted before the envelope have none): "
-            "give --machine-file FILE with the axes' travel (docs/compensate.md)"
+            f"model {model.label} carries no machine travel (its campaigns state no machine.travel and it was "
+            "fitted without --machine-file): give --machine-file FILE with the axes' travel "
+            "(examples/machines/virtual-machine.yaml for the virtual machine; docs/compensate.md)"
         )
     return guard
 
