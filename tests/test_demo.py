@@ -33,13 +33,16 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Return the --target directory driftlab's wheel was installed into."""
     wheels = tmp_path_factory.mktemp("wheels")
     build = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-q", "-w", str(wheels)],
+        [sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-v", "-w", str(wheels)],
         capture_output=True,
         text=True,
         cwd=wheels,
     )
     if build.returncode != 0:
         pytest.fail(f"pip wheel failed: {build.stderr[-2000:]}")
+    # a quiet build (issue 35.10): every shipped data folder is a listed package (setup.py)
+    ignored = [ln.strip() for ln in (build.stdout + build.stderr).splitlines() if "would be ignored" in ln]
+    assert not ignored, ignored
     [wheel] = wheels.glob("driftlab-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
     for expected in (
