@@ -45,8 +45,8 @@ def ordering_text(table: dict[str, dict[str, Any]]) -> str:
     u, off, on = (float(table[k]["rmse_mm"]) for k in ("uncompensated", "offline", "online"))
     if u > max(off, on) and max(off, on) <= RESOLUTION_MM:
         return (
-            f"does not hold between the compensated cuts: off-line {off * 1e3:.1f} um and on-line {on * 1e3:.1f} um "
-            f"are both within the machine's {RESOLUTION_MM * 1e3:.1f} um step (ch. 4: the limit of compensation)"
+            f"does not hold between the compensated cuts: off-line {off * 1e3:.1f} µm and on-line {on * 1e3:.1f} µm "
+            f"are both within the machine's {RESOLUTION_MM * 1e3:.1f} µm step (ch. 4: the limit of compensation)"
         )
     return "does not hold"
 

@@ -67,8 +67,8 @@ def _png(fig: Any, alt: str = "plot") -> str:
 
 
 def _scale(unit: str) -> tuple[float, str]:
-    """Return the display factor and unit (um for mm, urad for rad)."""
-    return (1e6, "urad") if unit == "rad" else (1e3, "um")
+    """Return the display factor and unit (µm for mm, µrad for rad)."""
+    return (1e6, "µrad") if unit == "rad" else (1e3, "µm")
 
 
 def _thin(n: int, most: int = 4000) -> slice:
@@ -77,7 +77,7 @@ def _thin(n: int, most: int = 4000) -> slice:
 
 
 def _effect_plot(eff: Effect, unit: str) -> str:
-    """Return the residual plot that shows one finding (axes in words and um/urad)."""
+    """Return the residual plot that shows one finding (axes in words and µm/µrad)."""
     # lazy: matplotlib adds 0.39 s to this module, and only the HTML report's figures need it (measured)
     import matplotlib
 
@@ -122,9 +122,9 @@ def _effect_plot(eff: Effect, unit: str) -> str:
 def _feature_unit(name: str) -> str:
     """Return the unit suffix of a regressor on an axis label."""
     if name.startswith(("lag", "dT", "fault")):
-        return " (degC\u00b2)" if name.endswith("^2") else " (degC)"
+        return " (°C²)" if name.endswith("^2") else " (°C)"
     if name.startswith("position*"):
-        return " (mm degC)"
+        return " (mm °C)"
     return ""
 
 
@@ -194,7 +194,7 @@ def _overview(bundle: Any) -> str:
     for i, (g, chans) in enumerate(sorted(groups.items())):
         mean = temps[chans].mean(axis=1).to_numpy()
         ax.plot(th, mean, lw=1, color=f"C{i % 10}", label=g.replace("_", " "))
-    ax.set_ylabel("mean temperature\nper structure (degC)", fontsize=8)
+    ax.set_ylabel("mean temperature\nper structure (°C)", fontsize=8)
     ax.legend(fontsize=6, ncol=6, loc="upper left")
     for ax, (axis, term) in zip(axes[2:], keys):
         k, lab = _scale("rad" if term in ("alpha", "beta", "gamma") else "mm")
