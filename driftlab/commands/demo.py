@@ -453,11 +453,21 @@ def _cutting_table(tests: dict[str, Any]) -> Table:
         title="Cutting tests, ch. 7.3 (normal deviation of the machined surface, µm; the CMM aligns the part on its "
         "reference pass, 'unaligned' is before that)"
     )
-    for col in ("case", "run", "RMSE", "max", "unaligned RMSE", "thesis RMSE", "thesis max"):
-        t.add_column(col, justify="left" if col in ("case", "run") else "right")
+    for col in ("case", "run", "RMSE", "max", "unaligned RMSE", "thesis RMSE", "thesis max", "verdict"):
+        t.add_column(col, justify="left" if col in ("case", "run", "verdict") else "right")
     for case, ct in tests.items():
         tab = ct.table()
+        figures = {"uncompensated_mm": tab["uncompensated"]["rmse_mm"]}
+        if "unaligned_rmse_mm" in tab["uncompensated"]:
+            figures["uncompensated_unaligned_mm"] = tab["uncompensated"]["unaligned_rmse_mm"]
+        for k in rep.RUN_NAMES:
+            figures[f"{k}_mm"] = tab[k]["rmse_mm"]
+            if "unaligned_rmse_mm" in tab[k]:
+                figures[f"{k}_unaligned_mm"] = tab[k]["unaligned_rmse_mm"]
+        if ct.offline_predicted:
+            figures["offline_predicted"] = {"inside": ct.offline_predicted.get("inside")}
         for k, name in rep.RUN_NAMES.items():
+            words, worse = rep.judge(k, figures)
             t.add_row(
                 case if k == "uncompensated" else "",
                 name,
@@ -466,6 +476,7 @@ def _cutting_table(tests: dict[str, Any]) -> Table:
                 f"{tab[k]['unaligned_rmse_mm'] * 1e3:.1f}" if "unaligned_rmse_mm" in tab[k] else "",
                 f"{rep.THESIS[k]['rmse_mm'] * 1e3:.0f}",
                 f"{rep.THESIS[k]['max_mm'] * 1e3:.0f}",
+                f"[red]{words}[/]" if worse else words,
             )
     return t
 
