@@ -10,7 +10,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from driftlab.labels import UM, duration, effect_label
+from driftlab.labels import UM, duration, effect_label, si_text
 
 if TYPE_CHECKING:
     import numpy as np
@@ -27,6 +27,11 @@ THESIS = {
 #: compensator's ``RESOLUTION_MM``, not imported from it: numpy and pandas would load with `driftlab --help`
 #: (tests/test_reports_html.py holds the two equal)
 RESOLUTION_MM = 0.0025
+
+
+def _text(value: object) -> str:
+    """Return text for the page: SI unit symbols (µm, µrad, °C) for the ASCII ones, HTML-escaped."""
+    return html.escape(si_text(str(value)))
 
 
 def ordering_holds(table: dict[str, dict[str, Any]]) -> bool:
@@ -231,7 +236,7 @@ def _planted_text(p: dict[str, Any]) -> str:
 
 def _cutting_rows(cases: list[dict[str, Any]]) -> list[str]:
     """Return the cutting tests' table rows (header first): each case's runs beside the thesis' figures (µm)."""
-    e = html.escape
+    e = _text
     head = [
         "case",
         "run",
@@ -265,7 +270,7 @@ def _cutting_rows(cases: list[dict[str, Any]]) -> list[str]:
 
 def _findings_html(diag: dict[str, Any]) -> str:
     """Return the diagnosis' accepted effects as list items: effect, where, cause and held-out gain (µm)."""
-    e = html.escape
+    e = _text
     return (
         "".join(
             f"<li><b>{e(effect_label(f))}</b> on {e(str(f.get('axis')))}/{e(str(f.get('term')))}: "
@@ -279,7 +284,7 @@ def _findings_html(diag: dict[str, Any]) -> str:
 
 def to_html(report: dict[str, Any], figure_png: str | None = None) -> str:
     """Return the demo's HTML page: the cutting-test table (µm), the diagnosis findings in words, the steps."""
-    e = html.escape
+    e = _text
     cases = report.get("cutting_tests") or [
         {
             "case": "",

@@ -9,12 +9,17 @@ import math
 from typing import TYPE_CHECKING, Any
 
 from driftlab.jsonsafe import strict_json
-from driftlab.labels import duration, effect_label, feature_label
+from driftlab.labels import duration, effect_label, feature_label, si_text
 
 if TYPE_CHECKING:
     from driftlab.models.diagnosis import DiagnosisResult, Effect, TermDiagnosis
 
 FORMAT = "driftlab-diagnosis/1"
+
+
+def _text(value: object) -> str:
+    """Return text for the page: SI unit symbols (µm, µrad, °C) for the ASCII ones, HTML-escaped."""
+    return html.escape(si_text(str(value)))
 
 
 def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
@@ -236,7 +241,7 @@ def _params_text(eff: Effect) -> str:
 
 def _html_head(res: DiagnosisResult) -> list[str]:
     """Return the page's head, title and the paragraph on how the findings were decided."""
-    e = html.escape
+    e = _text
     return [
         f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
         f"<title>driftlab diagnosis: {e(res.bundle)}</title>",
@@ -258,7 +263,7 @@ def _html_head(res: DiagnosisResult) -> list[str]:
 
 def _html_campaign(bundle: Any) -> list[str]:
     """Return the campaign's stages and overview (the bundle itself, when the page is given it)."""
-    e = html.escape
+    e = _text
     stages = [
         [
             e(st.name),
@@ -280,7 +285,7 @@ def _html_campaign(bundle: Any) -> list[str]:
 
 def _html_finding(i: int, eff: Effect) -> str:
     """Return one finding: its kind and place, cause, parameters, held-out gain or loss (in red) and its plot."""
-    e = html.escape
+    e = _text
     unit = "rad" if eff.term in ("alpha", "beta", "gamma") else "mm"
     k, lab = _scale(unit)
     where = f"{e(eff.axis)}/{e(eff.term or '')}" if eff.axis else "the temperatures (no model uses this channel)"
@@ -304,7 +309,7 @@ def _html_finding(i: int, eff: Effect) -> str:
 
 def _html_models(res: DiagnosisResult) -> list[str]:
     """Return the table of the standard model and the model with the findings, per term (worse in red)."""
-    e = html.escape
+    e = _text
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
@@ -334,7 +339,7 @@ def _html_models(res: DiagnosisResult) -> list[str]:
 
 def _html_unexplained(res: DiagnosisResult) -> list[str]:
     """Return the unexplained terms with their hints (or that every term is explained to its noise)."""
-    e = html.escape
+    e = _text
     out = [f"<h2>Unexplained ({len(res.unexplained)})</h2>"]
     if not res.unexplained:
         out.append("<p>Every term is explained to its measurement noise (training residual at most 1.5 x noise).</p>")
@@ -362,7 +367,7 @@ def _html_unexplained(res: DiagnosisResult) -> list[str]:
 
 def _html_simulation(res: DiagnosisResult) -> list[str]:
     """Return the calibrated simulation laws against the data, per term, with their plots."""
-    e = html.escape
+    e = _text
     out = ["<h2>Simulation (Appendix A time-driven laws, calibrated) against the data</h2>"]
     rows = []
     for t in res.terms:
@@ -384,7 +389,7 @@ def _html_simulation(res: DiagnosisResult) -> list[str]:
 
 def _html_flags(res: DiagnosisResult) -> list[str]:
     """Return the table of flagged data (spikes, out-of-range readings, held scans)."""
-    e = html.escape
+    e = _text
     if not res.flags:
         return ["<h2>Flagged data</h2>", "<p>No spikes, out-of-range readings or long gaps.</p>"]
     rows = [
