@@ -145,7 +145,7 @@ def test_demo_report_has_the_table_and_the_ordering(demo_out: Path) -> None:
     assert max(rep["offline"]["rmse_mm"], rep["online"]["rmse_mm"]) <= 0.0025
     strict = rep["uncompensated"]["rmse_mm"] > rep["offline"]["rmse_mm"] > rep["online"]["rmse_mm"]
     assert rep["ordering_holds"] is strict
-    assert rep["ordering"] == "holds" if strict else "within the machine's 2.5 um step" in rep["ordering"]
+    assert rep["ordering"] == "holds" if strict else "within the machine's 2.5 µm step" in rep["ordering"]
     # the demo's plan measures all thirty terms, and the fitted model holds every one
     cells = {f"{a}/{t}" for a in "XYZAB" for t in ("dx", "dy", "dz", "alpha", "beta", "gamma")}
     assert set(rep["coverage"]["measured"]) == cells and set(rep["coverage"]["modelled"]) == cells
