@@ -151,10 +151,34 @@ def _guard(model: Any, args: argparse.Namespace) -> Any:
     )
     if guard.envelope is None or not guard.envelope.travel:
         raise ValidationError(
-            f"model {model.label} carries no machine travel (documents fitted before the envelope have none): "
-            "give --machine-file FILE with the axes' travel (docs/compensate.md)"
+            f"model {model.label} carries no machine travel (its campaigns state no machine.travel and it was "
+            "fitted without --machine-file): give --machine-file FILE with the axes' travel "
+            "(examples/machines/virtual-machine.yaml for the virtual machine; docs/compensate.md)"
         )
     return guard
+
+
+def _header(model: Any, document: Mapping[str, Any], tag: str, temps: Any) -> list[str]:
+    """Return the header comment of the corrected program: model, temperatures used, driftlab, date."""
+    # lazy: this function's imports would add to `driftlab --help`
+    import driftlab
+    from driftlab.compensator.compensate import TemperatureTable
+    from driftlab.compensator.header import program_header, temperature_lines
+
+    channels = list(model.channels)
+    if isinstance(temps, TemperatureTable):
+        cols = [c for c in channels if c in temps.values.columns]
+        lines = temperature_lines({c: temps.values[c].to_numpy(float) for c in cols}, temps.time_s, "CSV ")
+    else:
+        lines = temperature_lines({c: temps[c] for c in channels if c in temps}, None, "latest API ")
+    version = document.get("version")
+    return program_header(
+        str(document.get("machine") or model.machine),
+        None if version is None else int(version),
+        tag,
+        lines,
+        driftlab.__version__,
+    )
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -183,6 +207,12 @@ def _run(args: argparse.Namespace) -> int:
             raise ValidationError("offline compensation needs -o OUT.nc (or --port to stream)")
         if args.model:
             model = _model_file(args.model, args.machine)
+            # lazy, as above: kept off the `driftlab --help` path
+            from driftlab.compensator.header import document_digest
+
+            body = json.loads(args.model.read_text())
+            document = body.get("document", body) if isinstance(body, dict) else {}
+            tag = f"document sha256 {document_digest(document)}"
         else:
             # lazy, as above: kept off the `driftlab --help` path
             from driftlab.compensator.stream import ApiModel
@@ -190,6 +220,7 @@ def _run(args: argparse.Namespace) -> int:
             source = ApiModel(args.api, args.machine, token=token)
             source.refresh()
             model = source.model
+            document, tag = dict(source.document or {}), f"ETag {source.etag or '-'}"
         if args.temps:
             temps: Any = TemperatureTable.read_csv(args.temps)
         elif args.api:
@@ -200,6 +231,7 @@ def _run(args: argparse.Namespace) -> int:
         else:
             raise ValidationError("offline compensation needs --temps CSV (or --api for the latest scan)")
         guard = _guard(model, args)
+        header = _header(model, document, tag, temps)
         # the whole program is checked (syntax, envelope, corrections, temperatures) before any output
         # is opened, a piece at a time (constant memory whatever its length)
         result = compensate_file(
@@ -210,6 +242,7 @@ def _run(args: argparse.Namespace) -> int:
             start=start,
             **_grid(args),
             guard=guard,
+            header=header,
         )
         summary = {"out": str(args.out), **result.summary()}
         if args.json:

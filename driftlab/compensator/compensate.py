@@ -21,7 +21,7 @@ import os
 import stat
 import tempfile
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from decimal import Decimal
 from pathlib import Path
@@ -44,6 +44,7 @@ from driftlab.compensator.gcode import (
     parse_program,
     subdivide,
 )
+from driftlab.compensator.header import HeaderedOut
 from driftlab.compensator.parsed import KeptPiece, ParsedPieces, usable
 from driftlab.errors import ValidationError
 from driftlab.models import document as documents
@@ -1387,6 +1388,8 @@ class StreamOptions(TypedDict, total=False):
     chunk_points: int
     scan: ProgramScan | None
     guard: Guard | None
+    #: compensate_file only: comment lines written first (``compensator.header``), after a tape start
+    header: Sequence[str]
 
 
 def _first_pass(
@@ -1470,8 +1473,11 @@ def compensate_file(
     if options.get("scan") is None:  # the first pass, before the output is even opened
         options["scan"] = _first_pass(program_path, model, temperatures, options)
     try:
+        header = options.pop("header", ())
         with tmp.open("wb") as fh:
-            result = compensate_stream(program_path, model, temperatures, fh, **options)
+            out = HeaderedOut(fh, header)
+            result = compensate_stream(program_path, model, temperatures, out, **options)  # type: ignore[arg-type]
+            out.close()
         tmp.replace(out_path)
     except BaseException:
         tmp.unlink(missing_ok=True)
