@@ -99,7 +99,7 @@ def print_findings(doc: dict, as_csv: bool = False) -> None:
         for line in causes:
             con.print(line, markup=False)
     else:
-        con.print("No effect of the catalogue is supported by the data: the standard model stands.")
+        con.print("No effect of the catalogue is supported by the data: the baseline model stands.")
     base = doc.get("baseline", [])
     if base:
         con.print(_baseline_table(doc, base))
@@ -186,13 +186,14 @@ def _findings_table(doc: dict, effects: list[dict]) -> tuple[Table, list[str]]:
 
 
 def _baseline_table(doc: dict, base: list[dict]) -> Table:
-    """Return the standard model's held-out RMSE per term, before and after the findings."""
+    """Return the baseline's held-out RMSE per term (fitted or per-term model), before and after the findings."""
     # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
     from rich.table import Table
 
-    t = Table(title="Standard model per term: held-out RMSE before and after the findings", title_justify="left")
+    t = Table(title="Baseline per term: held-out RMSE before and after the findings", title_justify="left")
     for col, just in (
         ("axis/term", "left"),
+        ("baseline", "left"),
         ("model thermocouples", "left"),
         ("train", "right"),
         ("held out", "right"),
@@ -209,6 +210,7 @@ def _baseline_table(doc: dict, base: list[dict]) -> Table:
             ext_txt = f"[red]{ext_txt} worse[/]"
         t.add_row(
             f"{r.get('axis')}/{r.get('term')}",
+            "fitted model" if r.get("model") == "fitted" else "per-term model",
             " ".join(r.get("channels") or []),
             fmt(r.get("rmse_train")),
             fmt(r.get("rmse_holdout")),
@@ -222,13 +224,20 @@ def _unexplained_table(left: list[dict]) -> Table:
     # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
     from rich.table import Table
 
-    t = Table(title="Unexplained: training residual above 1.5 x the noise after the findings", title_justify="left")
-    for col, just in (("axis/term", "left"), ("residual / noise", "right"), ("hints", "left")):
+    t = Table(
+        title="Unexplained: residual above the noise after the findings (1.5 x in training, 2 x held out)",
+        title_justify="left",
+    )
+    cols = (("axis/term", "left"), ("shown by", "left"), ("train / noise", "right"), ("held out / noise", "right"))
+    for col, just in (*cols, ("hints", "left")):
         t.add_column(col, justify=just)  # type: ignore[arg-type]
     for u in left:
+        ho = u.get("holdout_over_noise")
         t.add_row(
             f"{u.get('axis')}/{u.get('term')}",
-            f"[red]{float(u.get('residual_over_noise', float('nan'))):.1f} x[/]",
+            str(u.get("part", "training")),
+            f"{float(u.get('residual_over_noise', float('nan'))):.1f} x",
+            f"[red]{float(ho):.1f} x[/]" if isinstance(ho, (int, float)) else "-",
             "; ".join(u.get("hints") or []),
         )
     return t

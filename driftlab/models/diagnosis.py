@@ -57,6 +57,7 @@ from driftlab.models.effects import (
     step_bank,
     tau_bounds,
 )
+from driftlab.models.findings import REPORT_FORMAT, parse_findings
 from driftlab.models.fitted_baseline import FittedBaseline, fit_baseline
 from driftlab.models.lag_pinning import averaged_lag, profile_tau
 from driftlab.models.sensor_drift import scan_sensor_drifts
@@ -360,8 +361,9 @@ class Effect:
         }
 
 
-#: the baseline of a term: the model ``driftlab fit`` registers (fitted on the training part), or the per-term model
-FITTED, PER_TERM = "fitted", "per_term"
+#: the baseline of a term: the model ``driftlab fit`` registers (fitted on the training part), or the per-term model;
+#: and the extended model of a fitted term: that fit with the bundle's findings folded in
+FITTED, PER_TERM, FITTED_WITH_FINDINGS = "fitted", "per_term", "fitted+findings"
 
 
 @dataclass(frozen=True)
@@ -386,6 +388,8 @@ class TermDiagnosis:
     extended_X: np.ndarray
     #: the model the term is judged against (the fitted model where it covers the term)
     baseline: Baseline | None = None
+    #: the fitted model refitted with the bundle's findings folded in (the document ``fit --findings`` makes)
+    document: Baseline | None = None
 
     @property
     def base(self) -> Baseline:
@@ -409,9 +413,23 @@ class TermDiagnosis:
             "channel_source": self.standard.selection.source,
         }
 
+    @property
+    def ext(self) -> Baseline:
+        """Return the extended model's figures: the model the compensator would load with the findings.
+
+        Judged against the fitted model, that is the fit with the bundle's findings folded in
+        (``fit --findings``: ``document``), or the fitted model unchanged when there are none; a
+        per-term model's extension is the search's own.
+        """
+        if self.document is not None:
+            return self.document
+        if self.baseline is not None and self.baseline.model == FITTED:
+            return self.baseline
+        return Baseline(PER_TERM, self.extended.rmse_train, self.extended.rmse_holdout)
+
     def extended_dict(self) -> dict[str, Any]:
         """Return the spec's ``extended[]`` entry (``holdout_verdict`` against the baseline as an extra)."""
-        f = self.extended
+        f = self.ext
         b = self.base.rmse_holdout
         verdict = None
         if np.isfinite(b) and np.isfinite(f.rmse_holdout) and self.effects:
@@ -422,6 +440,7 @@ class TermDiagnosis:
             "rmse_train": f.rmse_train,
             "rmse_holdout": f.rmse_holdout,
             "unit": self.td.unit,
+            "model": f.model,
             "holdout_verdict": verdict,
         }
 
@@ -2051,6 +2070,31 @@ def _broken_channels(
 OFFSET = ["intercept"]
 
 
+def _fold_findings(
+    bundle: Any, holdout_fraction: float, measured: PreparedBundle, terms: list[TermDiagnosis], fitted: FittedBaseline
+) -> None:
+    """Set each fitted term's ``document``: the fit with the new findings folded in, scored on its rows.
+
+    The findings are what ``driftlab fit --findings REPORT.json`` reads (the effects the fitted model
+    does not carry yet), fitted on the same training rows; its held-out figure is the gain of the
+    model the compensator would load. Kinds the fit does not fold in are reported, not modelled.
+    """
+    new = [e.to_dict() for t in terms if t.base.model == FITTED for e in t.effects if not e.in_model]
+    if not fitted.available or not new:
+        return
+    findings = parse_findings({"format": REPORT_FORMAT, "bundle": measured.name, "effects": new})
+    refit = fit_baseline(bundle, holdout_fraction, measured, findings=findings)
+    if not refit.available:
+        return
+    for t, td in zip(terms, measured.terms):
+        if t.base.model != FITTED:
+            continue
+        pred = refit.predict(td)
+        if pred is not None:
+            r = td.y - pred
+            t.document = Baseline(FITTED_WITH_FINDINGS, rmse(r[td.train]), rmse(r[~td.train]))
+
+
 def _carried_effects(
     td: TermData,
     carried: list[int],
@@ -2216,6 +2260,7 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
         left = unexplained_term(ctx.td, state.fit.residual, prep, in_model, nz)
         if left is not None:
             unexplained.append(left)
+    _fold_findings(bundle, holdout_fraction, measured, terms, fitted)
     # a broken channel that feeds no model is still a finding about the temperatures (no error gain)
     loose = [_unfed_fault(prep, f) for ch, f in sorted(broken.items(), key=lambda kv: kv[1].start_s) if ch not in fed]
     timings["search"] = time.perf_counter() - t1

@@ -22,6 +22,7 @@ import pandas as pd
 
 from driftlab.errors import DriftlabError
 from driftlab.models.features import Feature
+from driftlab.models.findings import Findings
 from driftlab.models.fitting import FitOptions, FitResult, fit_bundles, predict_without
 from driftlab.models.split import TIME_SPLIT
 from driftlab.models.standard_model import BundleLike, PreparedBundle, TermData
@@ -122,8 +123,10 @@ def chain_fittable(prep: PreparedBundle) -> str:
     return ""
 
 
-def fit_baseline(bundle: BundleLike, holdout_fraction: float, prep: PreparedBundle | None = None) -> FittedBaseline:
-    """Return the fitted baseline of a bundle: the fit's pipeline on the diagnosis' training rows."""
+def fit_baseline(
+    bundle: BundleLike, holdout_fraction: float, prep: PreparedBundle | None = None, findings: Findings | None = None
+) -> FittedBaseline:
+    """Return the fitted baseline of a bundle: the fit's pipeline on the diagnosis' training rows, with ``findings``."""
     why = chain_fittable(prep) if prep is not None else ""
     if why:
         return FittedBaseline(None, why)
@@ -132,6 +135,7 @@ def fit_baseline(bundle: BundleLike, holdout_fraction: float, prep: PreparedBund
         split=TIME_SPLIT,
         network=False,  # the neural comparison is a table of the fit's report, not part of the model
         virtual_sensors=False,  # the document's virtual sensors are for the compensator, not the prediction
+        findings=findings,  # offered as candidates, as `driftlab fit --findings` does by default
     )
     try:
         result = fit_bundles([bundle], opts)
