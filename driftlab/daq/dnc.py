@@ -44,6 +44,7 @@ corrects each block as late as the line allows, and the link's waits (``sleep``,
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -128,6 +129,16 @@ def char_bits(line: str) -> int:
     """Return the bits one character takes on the line: start, data, parity, stop."""
     data, parity, stop = line_settings(line)
     return 1 + data + (0 if parity == serial.PARITY_NONE else 1) + int(stop)
+
+
+_COMMENTS = re.compile(r"\([^)]*\)")
+
+
+def carries_code(text: str) -> bool:
+    """Return True for a program line a control must get: code left once comments are taken out (not blank,
+    a comment alone, or a ``%`` mark)."""
+    code = _COMMENTS.sub("", text).split(";", 1)[0].strip()
+    return bool(code) and code != "%"
 
 
 def unsendable(text: bytes) -> str | None:
@@ -384,7 +395,7 @@ class DncLink:
             if text is None:
                 break
             text = text.strip()
-            if not text or text == "%" or text.startswith(("(", ";")):
+            if not carries_code(text):
                 continue
             self._put(encode_block(text, prof.eob))
             sent += 1
