@@ -109,6 +109,8 @@ class ErrorModel:
         """
         doc = documents.validate_document(document)
         name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
+        if not doc.terms:
+            raise ValidationError(f"model {name} has no terms (terms: []): it would correct nothing; refused")
         return cls(
             predict=_checked_predict(doc),
             dims=documents.document_dims(doc),
