@@ -437,3 +437,40 @@ def test_model_documents_that_switch_a_guard_off_are_one_line(tmp_path, capsys, 
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and expected in err[0], err
     assert not out.exists()
+
+
+def test_o_writes_only_a_regular_file(tmp_path, capsys):
+    import os
+
+    from tests.compensator.test_stream import doc
+
+    model = tmp_path / "m.json"
+    model.write_text(json.dumps(doc(0.01, 3)))
+    prog = tmp_path / "p.nc"
+    prog.write_text("G90 G1 X1 F100\n")
+    temps = tmp_path / "t.csv"
+    temps.write_text("time_s,T1\n0,25\n")
+    target = tmp_path / "precious.nc"
+    target.write_text("keep me\n")
+    link = tmp_path / "link.nc"
+    link.symlink_to(target)
+    fifo = tmp_path / "fifo.nc"
+    os.mkfifo(fifo)
+    part_link = tmp_path / "out2.nc.part"
+    part_link.symlink_to(target)
+    base = ["compensate", str(prog), "--model", str(model), "--temps", str(temps), "-o"]
+    for out, needle in (
+        ("/dev/full", "is a device"),
+        ("/dev/null", "is a device"),
+        (str(fifo), "is a FIFO"),
+        (str(link), "is a symbolic link"),
+        (str(tmp_path), "is a directory"),
+        (str(tmp_path / "out2.nc"), "is a symbolic link"),  # its .part is a link
+    ):
+        assert main(base + [out]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0] and "nothing written" in err[0], err
+    assert target.read_text() == "keep me\n" and link.is_symlink() and fifo.exists()
+    good = tmp_path / "good.nc"
+    assert main(base + [str(good)]) == 0 and good.is_file() and not (tmp_path / "good.nc.part").exists()
+    assert main(base + [str(good)]) == 0  # a regular file is replaced, as before
