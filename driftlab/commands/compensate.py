@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 #: the links ``--port`` can stream over
-LINKS = ("thesis", "dnc")
+LINKS = ("thesis", "linuxcnc", "dnc")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,7 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=LINKS,
         default="thesis",
         help="how --port talks to the control: dnc (a drip feed with the DC1/DC3 handshake, what shops' "
-        "controls read), thesis (driftlab's own STAT?/BLK/POS? protocol of the virtual controller); default thesis",
+        "controls read), linuxcnc (linuxcncrsh, 2.9 or master: --port host[:port], each block an MDI command), "
+        "thesis (driftlab's own STAT?/BLK/POS? protocol of the virtual controller); default thesis",
     )
     p.add_argument("--baud", type=int, default=9600, help="DNC line speed (default 9600)")
     p.add_argument("--line", help="DNC character format 8N1, 7E1 or 7E2 (default: the profile's)")
@@ -161,10 +162,34 @@ def _guard(model: Any, args: argparse.Namespace) -> Any:
     )
     if guard.envelope is None or not guard.envelope.travel:
         raise ValidationError(
-            f"model {model.label} carries no machine travel (documents fitted before the envelope have none): "
-            "give --machine-file FILE with the axes' travel (docs/compensate.md)"
+            f"model {model.label} carries no machine travel (its campaigns state no machine.travel and it was "
+            "fitted without --machine-file): give --machine-file FILE with the axes' travel "
+            "(examples/machines/virtual-machine.yaml for the virtual machine; docs/compensate.md)"
         )
     return guard
+
+
+def _header(model: Any, document: Mapping[str, Any], tag: str, temps: Any) -> list[str]:
+    """Return the header comment of the corrected program: model, temperatures used, driftlab, date."""
+    # lazy: this function's imports would add to `driftlab --help`
+    import driftlab
+    from driftlab.compensator.compensate import TemperatureTable
+    from driftlab.compensator.header import program_header, temperature_lines
+
+    channels = list(model.channels)
+    if isinstance(temps, TemperatureTable):
+        cols = [c for c in channels if c in temps.values.columns]
+        lines = temperature_lines({c: temps.values[c].to_numpy(float) for c in cols}, temps.time_s, "CSV ")
+    else:
+        lines = temperature_lines({c: temps[c] for c in channels if c in temps}, None, "latest API ")
+    version = document.get("version")
+    return program_header(
+        str(document.get("machine") or model.machine),
+        None if version is None else int(version),
+        tag,
+        lines,
+        driftlab.__version__,
+    )
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -193,6 +218,12 @@ def _run(args: argparse.Namespace) -> int:
             raise ValidationError("offline compensation needs -o OUT.nc (or --port to stream)")
         if args.model:
             model = _model_file(args.model, args.machine)
+            # lazy, as above: kept off the `driftlab --help` path
+            from driftlab.compensator.header import document_digest
+
+            body = json.loads(args.model.read_text())
+            document = body.get("document", body) if isinstance(body, dict) else {}
+            tag = f"document sha256 {document_digest(document)}"
         else:
             # lazy, as above: kept off the `driftlab --help` path
             from driftlab.compensator.stream import ApiModel
@@ -200,6 +231,7 @@ def _run(args: argparse.Namespace) -> int:
             source = ApiModel(args.api, args.machine, token=token)
             source.refresh()
             model = source.model
+            document, tag = dict(source.document or {}), f"ETag {source.etag or '-'}"
         if args.temps:
             temps: Any = TemperatureTable.read_csv(args.temps)
         elif args.api:
@@ -210,6 +242,7 @@ def _run(args: argparse.Namespace) -> int:
         else:
             raise ValidationError("offline compensation needs --temps CSV (or --api for the latest scan)")
         guard = _guard(model, args)
+        header = _header(model, document, tag, temps)
         # the whole program is checked (syntax, envelope, corrections, temperatures) before any output
         # is opened, a piece at a time (constant memory whatever its length)
         result = compensate_file(
@@ -220,6 +253,7 @@ def _run(args: argparse.Namespace) -> int:
             start=start,
             **_grid(args),
             guard=guard,
+            header=header,
         )
         summary = {"out": str(args.out), **result.summary()}
         if args.json:
@@ -262,7 +296,7 @@ def _report_extrapolation(extrapolated: Mapping[str, Mapping[str, float]]) -> No
 
 
 def _open_link(args: argparse.Namespace) -> Any:
-    """Return the link ``--link`` names on ``--port`` (a DNC drip feed with its profile and line settings)."""
+    """Return the machine link ``--link`` names on ``--port`` (a DNC drip feed with its profile and line settings)."""
     if args.link == "dnc":
         # lazy: kept off the `driftlab --help` path
         from driftlab.daq.dnc import DncLink, line_settings, profile
@@ -275,7 +309,11 @@ def _open_link(args: argparse.Namespace) -> Any:
         return DncLink.open(args.port, prof, args.baud, line)
     if args.line is not None or args.profile != "generic" or args.baud != 9600:
         raise ValidationError("--baud, --line and --profile are for --link dnc")
-    # lazy: kept off the `driftlab --help` path
+    if args.link == "linuxcnc":
+        # lazy: the links' imports stay off the offline path
+        from driftlab.daq.linuxcnc import LinuxCNCLink
+
+        return LinuxCNCLink.open(args.port)
     from driftlab.daq.machine_link import SerialMachineLink
 
     return SerialMachineLink.open(args.port)
@@ -313,9 +351,9 @@ def _stream(
     # every byte that will go down the line, before the line is even opened: one Latin-1 comment must not
     # stop a part in the middle (a tape line carries printable 7-bit ASCII)
     check_sendable(program_pieces(args.program), str(args.program))
-    # the thesis protocol reads the controller's pose; a drip feed has no read-back (``--start`` or home), and
-    # its port is opened only once the whole program has passed the first pass
-    link = _open_link(args) if args.link == "thesis" else None
+    # the thesis and linuxcnc links read the controller's pose; a drip feed has no read-back (``--start`` or
+    # home), and its port is opened only once the whole program has passed the first pass
+    link = _open_link(args) if args.link != "dnc" else None
     try:
         if start is None and link is not None:
             pos = link.position()

@@ -21,7 +21,7 @@ import os
 import stat
 import tempfile
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from decimal import Decimal
 from pathlib import Path
@@ -44,6 +44,7 @@ from driftlab.compensator.gcode import (
     parse_program,
     subdivide,
 )
+from driftlab.compensator.header import HeaderedOut
 from driftlab.compensator.parsed import KeptPiece, ParsedPieces, usable
 from driftlab.errors import ValidationError
 from driftlab.models import document as documents
@@ -1389,6 +1390,8 @@ class StreamOptions(TypedDict, total=False):
     chunk_points: int
     scan: ProgramScan | None
     guard: Guard | None
+    #: compensate_file only: comment lines written first (``compensator.header``), after a tape start
+    header: Sequence[str]
 
 
 def _first_pass(
@@ -1489,13 +1492,16 @@ def compensate_file(
     if options.get("scan") is None:  # the first pass, before the output is even opened
         options["scan"] = _first_pass(program_path, model, temperatures, options)
     try:
+        header = options.pop("header", ())
         # O_NOFOLLOW | O_NONBLOCK: a symlink or FIFO put there since the check is refused, never followed or waited on
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_NONBLOCK, 0o666)
         if not stat.S_ISREG(os.fstat(fd).st_mode):
             os.close(fd)
             raise ValidationError(f"{tmp}: not a regular file; nothing written")
         with os.fdopen(fd, "wb") as fh:
-            result = compensate_stream(program_path, model, temperatures, fh, **options)
+            out = HeaderedOut(fh, header)
+            result = compensate_stream(program_path, model, temperatures, out, **options)  # type: ignore[arg-type]
+            out.close()
         tmp.replace(out_path)
     except OSError as exc:
         if tmp.is_file() and not tmp.is_symlink():

@@ -113,3 +113,24 @@ def test_serve_reports_an_unreachable_database_in_one_line() -> None:
     )
     assert r.returncode == 2
     assert r.stderr.startswith("driftlab: error:") and r.stderr.count("\n") == 1, r.stderr
+
+
+def test_serve_on_a_busy_port_is_one_line_and_nothing_else() -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        r = subprocess.run(
+            [sys.executable, "-m", "driftlab.cli", "serve", "--host", "127.0.0.1", "--port", str(port)],
+            cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": str(ROOT), "DRIFTLAB_API_TOKEN": TOKEN, "DRIFTLAB_DB_URL": "sqlite://"},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    assert r.returncode == 2
+    assert (
+        r.stderr == f"driftlab: error: cannot serve on 127.0.0.1:{port}: the port is already in use "
+        "(another server is listening there; give another --port)\n"
+    ), r.stderr
+    assert r.stdout == ""
