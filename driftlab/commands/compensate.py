@@ -17,6 +17,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: the links ``--port`` can stream over
+LINKS = ("thesis", "linuxcnc", "dnc")
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `compensate`."""
@@ -40,15 +43,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", help="stream to the controller on this serial device or pyserial URL (socket://...)")
     p.add_argument(
         "--link",
-        choices=("thesis", "linuxcnc"),
+        choices=LINKS,
         default="thesis",
-        help="the controller's protocol: thesis (the STAT?/BLK exchange of the virtual controller) or linuxcnc "
-        "(linuxcncrsh, 2.9 or master: --port host[:port], each block an MDI command)",
+        help="how --port talks to the control: dnc (a drip feed with the DC1/DC3 handshake, what shops' "
+        "controls read), linuxcnc (linuxcncrsh, 2.9 or master: --port host[:port], each block an MDI command), "
+        "thesis (driftlab's own STAT?/BLK/POS? protocol of the virtual controller); default thesis",
+    )
+    p.add_argument("--baud", type=int, default=9600, help="DNC line speed (default 9600)")
+    p.add_argument("--line", help="DNC character format 8N1, 7E1 or 7E2 (default: the profile's)")
+    p.add_argument(
+        "--profile",
+        default="generic",
+        help="DNC control family: haas, haas-dc (Setting 14 DC CODES), fanuc, heidenhain, generic (default)",
     )
     p.add_argument(
         "--start",
-        help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or "
-        "the controller's position when streaming)",
+        help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or the controller's "
+        "position when streaming with --link thesis; a DNC drip feed has no read-back: home unless given)",
     )
     p.add_argument("--resolution-mm", type=float, default=0.0025, help="linear positioning resolution (0.0025)")
     p.add_argument("--resolution-deg", type=float, default=0.001, help="rotary positioning resolution (0.001)")
@@ -285,7 +296,19 @@ def _report_extrapolation(extrapolated: Mapping[str, Mapping[str, float]]) -> No
 
 
 def _open_link(args: argparse.Namespace) -> Any:
-    """Return the machine link ``--link`` names, connected to ``--port`` (a MachineLink)."""
+    """Return the machine link ``--link`` names on ``--port`` (a DNC drip feed with its profile and line settings)."""
+    if args.link == "dnc":
+        # lazy: kept off the `driftlab --help` path
+        from driftlab.daq.dnc import DncLink, line_settings, profile
+
+        prof = profile(args.profile)
+        line = args.line or prof.line
+        line_settings(line)
+        if not 50 <= args.baud <= 4_000_000:
+            raise ValidationError(f"--baud must be between 50 and 4000000, got {args.baud}")
+        return DncLink.open(args.port, prof, args.baud, line)
+    if args.line is not None or args.profile != "generic" or args.baud != 9600:
+        raise ValidationError("--baud, --line and --profile are for --link dnc")
     if args.link == "linuxcnc":
         # lazy: the links' imports stay off the offline path
         from driftlab.daq.linuxcnc import LinuxCNCLink
@@ -302,7 +325,14 @@ def _stream(
     """Stream the corrected program to the controller, reading it again a piece at a time (constant memory)."""
     # lazy: this function's imports would add 2.3 s to `driftlab --help` (measured)
     from driftlab.compensator.compensate import ErrorModel, FirstPass, Grid, parse_pieces, program_pieces, scan_program
-    from driftlab.compensator.stream import ApiModel, ApiTemperatures, CsvTemperatures, StaticModel, Streamer
+    from driftlab.compensator.stream import (
+        ApiModel,
+        ApiTemperatures,
+        CsvTemperatures,
+        StaticModel,
+        Streamer,
+        check_sendable,
+    )
 
     if args.out is not None:
         raise ValidationError("-o is for offline compensation; with --port the program is streamed")
@@ -318,9 +348,14 @@ def _stream(
         temps = ApiTemperatures(args.api, args.machine, token=token)
     else:
         raise ValidationError("streaming needs --temps CSV or --api for the temperatures")
-    link = _open_link(args)
+    # every byte that will go down the line, before the line is even opened: one Latin-1 comment must not
+    # stop a part in the middle (a tape line carries printable 7-bit ASCII)
+    check_sendable(program_pieces(args.program), str(args.program))
+    # the thesis and linuxcnc links read the controller's pose; a drip feed has no read-back (``--start`` or
+    # home), and its port is opened only once the whole program has passed the first pass
+    link = _open_link(args) if args.link != "dnc" else None
     try:
-        if start is None:
+        if start is None and link is not None:
             pos = link.position()
             start = tuple(pos[a] for a in AXES)
         # the first pass, before any block is sent: the whole program from the controller's pose,
@@ -357,10 +392,21 @@ def _stream(
             refresh_s=min(args.refresh_s, args.max_age_s),
             guard=guard,
         )
+        if link is None:
+            link = _open_link(args)
         result = streamer.run(link, low_water=args.low_water, high_water=args.high_water)
     finally:
-        link.close()
+        if link is not None:
+            link.close()
     summary = result.summary()
+    dnc = getattr(link, "report", None)
+    if dnc is not None:
+        summary["dnc"] = {
+            "chars": dnc.chars,
+            "dc3": dnc.dc3,
+            "held_s": round(dnc.held_s, 3),
+            "longest_hold_s": round(dnc.longest_hold_s, 3),
+        }
     if guard.extrapolated:
         summary["extrapolated"] = guard.report()
     if args.json:
