@@ -50,8 +50,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     from driftlab.models.diagnosis import diagnose_bundle
     from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 
-    if not 0.0 < args.holdout_fraction < 0.9:
-        raise ValidationError(f"--holdout-fraction must be in (0, 0.9), got {args.holdout_fraction}")
+    # the API's bounds (api.schemas.HOLDOUT_FRACTION): below 1 % a campaign's last rows round to none held out
+    if not 0.01 <= args.holdout_fraction < 0.9:
+        raise ValidationError(f"--holdout-fraction must be in [0.01, 0.9), got {args.holdout_fraction}")
     if (args.bundle is None) == (args.campaign is None):
         raise ValidationError("give either a BUNDLE_DIR or --campaign ID, not both or neither")
     if args.campaign is not None:

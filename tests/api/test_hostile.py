@@ -268,6 +268,98 @@ CASES: list[tuple[str, str, str, dict[str, Any], int, str]] = [
         "query.column.0: Input should be",
     ),
     ("put-not-allowed", "PUT", "/campaigns/{cid}", {"content": BAD_JSON}, 405, "Method Not Allowed"),
+    # strict inputs (issue 36): no coercion of text to numbers or of true to 1, no key given twice
+    (
+        "jobs-holdout-as-text",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": [1], "holdout_fraction": "0.5"}, "headers": AUTH},
+        422,
+        "holdout_fraction: Input should be a valid number",
+    ),
+    (
+        "jobs-campaign-true",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": [True]}, "headers": AUTH},
+        422,
+        "campaign_ids.0: Input should be a valid integer",
+    ),
+    (
+        "jobs-campaign-as-text",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": ["1"]}, "headers": AUTH},
+        422,
+        "campaign_ids.0",
+    ),
+    (
+        "jobs-duplicate-key",
+        "POST",
+        "/jobs",
+        {"content": b'{"kind": "diagnose", "kind": "fit", "campaign_ids": [1]}', "headers": {**AUTH, **JSON}},
+        422,
+        "the key 'kind' is given twice",
+    ),
+    (
+        "jobs-nested-duplicate-key",
+        "POST",
+        "/machines/{m}/models",
+        {"content": b'{"document": {"machine": "a", "machine": "b"}}', "headers": {**AUTH, **JSON}},
+        422,
+        "the key 'machine' is given twice",
+    ),
+    (
+        "jobs-nan-literal",
+        "POST",
+        "/jobs",
+        {"content": b'{"kind": "diagnose", "campaign_ids": [1], "holdout_fraction": NaN}', "headers": {**AUTH, **JSON}},
+        422,
+        "NaN is not a JSON number",
+    ),
+    (
+        "jobs-holdout-denormal",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": [1], "holdout_fraction": 1e-320}, "headers": AUTH},
+        422,
+        "holdout_fraction: Input should be greater than or equal to 0.01",
+    ),
+    (
+        "models-source-true",
+        "POST",
+        "/machines/{m}/models",
+        {"json": {"document": {}, "source_campaigns": [True]}, "headers": AUTH},
+        422,
+        "source_campaigns.0",
+    ),
+    (
+        "probe-number-as-text",
+        "POST",
+        "/machines/{m}/online/probe",
+        {"json": {"x": "1", "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0}, "headers": AUTH},
+        422,
+        "body.x: Input should be a valid number",
+    ),
+    (
+        "probe-time-as-number",
+        "POST",
+        "/machines/{m}/online/probe",
+        {"json": {"x": 1, "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0, "measured_at": 1.7e9}, "headers": AUTH},
+        422,
+        "measured_at: Value error, must be an ISO 8601 date-time string",
+    ),
+    *[
+        (f"{what}-id-{name}", "GET", template.format(id=text), {}, 400, "must be plain decimal digits")
+        for name, text in (("point", "1.0"), ("plus", "+1"), ("space", "%201"), ("underscore", "1_0"), ("zero", "01"))
+        for what, template in (
+            ("campaign", "/campaigns/{id}"),
+            ("version", "/machines/{{m}}/models/{id}"),
+            ("job", "/jobs/{id}"),
+        )
+    ],
+    ("limit-point", "GET", "/campaigns", {"params": {"limit": "1.0"}}, 400, "query.limit: Value error"),
+    ("buckets-underscore", "GET", "/campaigns/{cid}/temperatures/T1", {"params": {"buckets": "1_0"}}, 400, "buckets"),
 ]
 
 
