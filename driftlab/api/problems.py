@@ -13,6 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
 from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from driftlab.errors import DriftlabError
@@ -149,6 +150,10 @@ class CatchAllMiddleware:
 
         try:
             await self.app(scope, receive, _send)
+        except ClientDisconnect:
+            # the client went away (or was closed for a body that did not arrive in time,
+            # api.connections) before its request was read: nobody to answer, nothing to trace
+            log.info("client disconnected during %s %s", scope.get("method"), scope.get("path"))
         except Exception:
             log.exception("unhandled error on %s %s", scope.get("method"), scope.get("path"))
             if started:

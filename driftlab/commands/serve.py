@@ -39,6 +39,7 @@ def _serve(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import SQLAlchemyError
 
     from driftlab.api.app import create_app
+    from driftlab.api.connections import ConnectionLimits, server_config
     from driftlab.campaigns.db import StoreError
     from driftlab.config import Settings
 
@@ -57,5 +58,6 @@ def _serve(args: argparse.Namespace) -> int:
     except SQLAlchemyError as exc:
         cause = getattr(exc, "orig", None) or exc  # DBAPIError carries the driver's own message
         raise StoreError(f"cannot open the database: {' '.join(str(cause).split())[:200]}") from None
-    uvicorn.run(app, host=host, port=port, log_level=args.log_level, workers=1, access_log=False)
+    limits = ConnectionLimits(settings.api_header_timeout_s, settings.api_body_timeout_s, settings.api_keep_alive_s)
+    uvicorn.Server(server_config(app, host, port, args.log_level, limits)).run()
     return 0
