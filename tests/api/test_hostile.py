@@ -562,3 +562,39 @@ async def test_body_limit_from_the_environment(seeded: Seeded, monkeypatch) -> N
             assert r.status_code == 413 and "100 bytes" in r.json()["detail"]
             r = await c.post("/jobs", json={"kind": "sing"}, headers=AUTH)
             assert r.status_code == 422
+
+
+async def test_a_read_only_store_refuses_writes_in_one_clear_line(db_url: str, tmp_path: Path) -> None:
+    """A store the server may read but not write (SQLite opened mode=ro, a PostgreSQL database whose
+    transactions are read-only): reads answer, every write is 403 naming the read-only store (not 503
+    "try again later", not a 500), and nothing changes."""
+    seeded = seed(db_url, tmp_path)
+    if db_url.startswith("sqlite"):
+        url = f"sqlite:///file:{db_url.removeprefix('sqlite:///')}?mode=ro&uri=true"  # read-only even for root
+    else:
+        import psycopg
+
+        with psycopg.connect(db_url.replace("postgresql+psycopg://", "postgresql://"), autocommit=True) as conn:
+            conn.execute(f'ALTER DATABASE "{db_url.rsplit("/", 1)[1]}" SET default_transaction_read_only = on')
+        url = db_url
+    with connect(url) as store:
+        before = store.table_counts()
+    probe = {"x": 1.0, "y": 0.0, "z": 0.0, "dx": 0.0, "dy": 0.0, "dz": 0.0, "temperatures": {"T1": 22.0, "T2": 22.0}}
+    writes = [
+        ("POST", f"/machines/{MACHINE}/online/probe", {"json": probe}),
+        ("DELETE", f"/campaigns/{seeded.campaign_id}", {}),
+        ("POST", f"/machines/{MACHINE}/models/{seeded.model_version}/retire", {}),
+        ("POST", "/jobs", {"json": {"kind": "fit", "machine_id": MACHINE}}),
+    ]
+    app = create_app(url, TOKEN, run_jobs=False)
+    async with app.router.lifespan_context(app):
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://test") as client:
+            assert (await client.get("/campaigns")).status_code == 200
+            for method, path, kwargs in writes:
+                r = await client.request(method, path, headers=AUTH, **kwargs)
+                assert r.status_code == 403, (path, r.text)
+                detail = r.json()["detail"]
+                assert detail.startswith("writes are refused: the store is read-only (") and "\n" not in detail
+                assert "read-only transaction" in detail or "readonly database" in detail, detail
+    with connect(url) as store:
+        assert store.table_counts() == before
