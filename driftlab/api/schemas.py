@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
@@ -36,9 +37,12 @@ RowId = Annotated[int, Field(ge=1, le=MAX_ID), BeforeValidator(_json_integer)]
 HOLDOUT_FRACTION = (0.01, 0.9)
 
 
+_ISO_DATE = re.compile(r"[0-9]{4}-[0-9]{2}-[0-9]{2}")
+
+
 def _iso_text(value: object) -> object:
-    """Refuse a date-time that is not ISO 8601 text (pydantic would read a number as a Unix time)."""
-    if value is not None and not isinstance(value, str):
+    """Refuse a date-time that is not ISO 8601 text (pydantic would read a number, or digits, as a Unix time)."""
+    if value is not None and not (isinstance(value, str) and _ISO_DATE.match(value)):
         raise ValueError("must be an ISO 8601 date-time string")
     return value
 

@@ -349,6 +349,14 @@ CASES: list[tuple[str, str, str, dict[str, Any], int, str]] = [
         422,
         "measured_at: Value error, must be an ISO 8601 date-time string",
     ),
+    (
+        "probe-time-as-digits",
+        "POST",
+        "/machines/{m}/online/probe",
+        {"json": {"x": 1, "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0, "measured_at": "1700000000"}, "headers": AUTH},
+        422,
+        "measured_at: Value error, must be an ISO 8601 date-time string",
+    ),
     *[
         (f"{what}-id-{name}", "GET", template.format(id=text), {}, 400, "must be plain decimal digits")
         for name, text in (("point", "1.0"), ("plus", "+1"), ("space", "%201"), ("underscore", "1_0"), ("zero", "01"))
