@@ -59,7 +59,7 @@ def _diagnose(args: argparse.Namespace) -> int:
         # lazy, as above: kept off the `driftlab --help` path
         from driftlab.campaigns.store import connect
 
-        bundle = connect(args.db).load_campaign(args.campaign)  # NotFoundError for an unknown id
+        bundle = connect(args.db).campaigns.load(args.campaign)  # NotFoundError for an unknown id
     else:
         bundle = load_bundle(args.bundle)  # BundleError: one line FILE:ROW: problem
     # lazy, as above: kept off the `driftlab --help` path

@@ -488,7 +488,7 @@ async def test_every_importable_machine_id_is_addressable(
         path = write_bundle(
             tmp_path / f"b{k}", small_meta(machine, f"2026-03-{k + 2:02d}T08:00:00Z"), temps, cond, errors
         )
-        store.import_bundle(load_bundle(path))
+        store.campaigns.import_bundle(load_bundle(path))
         r = await small_client.get(f"/machines/{quote(machine, safe='')}")
         assert r.status_code == 200 and r.json()["id"] == machine, (machine, r.text)
         r = await small_client.get("/campaigns", params={"machine_id": machine})
@@ -531,10 +531,10 @@ def test_concurrent_imports_of_a_new_machine(store: Store, tmp_path: Path) -> No
             )
             for i in range(4)
         ]
-        results = _race(4, lambda i, bundles=bundles: store.import_bundle(bundles[i]))
+        results = _race(4, lambda i, bundles=bundles: store.campaigns.import_bundle(bundles[i]))
         assert all(isinstance(r, int) for r in results), results
         assert len(set(results)) == 4
-        assert [c.machine_id for c in store.list_campaigns(machine)] == [machine] * 4
+        assert [c.machine_id for c in store.campaigns.summaries(machine)] == [machine] * 4
 
 
 def test_concurrent_imports_of_one_bundle(store: Store, tmp_path: Path) -> None:
@@ -542,7 +542,7 @@ def test_concurrent_imports_of_one_bundle(store: Store, tmp_path: Path) -> None:
     temps, cond, errors = small_frames(scans=8, sweeps=1)
     bundle = load_bundle(write_bundle(tmp_path / "same", small_meta("race-same"), temps, cond, errors))
     before = store.table_counts()
-    results = _race(4, lambda i: store.import_bundle(bundle))
+    results = _race(4, lambda i: store.campaigns.import_bundle(bundle))
     assert sum(isinstance(r, int) for r in results) == 1, results
     assert all(isinstance(r, ConflictError) for r in results if not isinstance(r, int)), results
     assert store.table_counts()["campaigns"] == before["campaigns"] + 1

@@ -104,7 +104,7 @@ def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, c
     )
     url = f"sqlite:///{tmp_path / 'online.sqlite'}"
     store = connect(url)
-    cid = store.import_bundle(
+    cid = store.campaigns.import_bundle(
         Bundle("clean", CampaignMeta.model_validate(clean.meta), clean.temperatures, clean.conditions, clean.errors)
     )
     _, doc = fit_campaigns(store, [cid], FitOptions(network=False, virtual_sensors=False))
@@ -154,7 +154,7 @@ def test_concurrent_updates_queue_for_the_machine_lock(store_url):
 
     with tempfile.TemporaryDirectory() as tmp, connect(store_url) as store:
         temps, cond, errors = small_frames()
-        store.import_bundle(load_bundle(write_bundle(f"{tmp}/b", small_meta(), temps, cond, errors)))
+        store.campaigns.import_bundle(load_bundle(write_bundle(f"{tmp}/b", small_meta(), temps, cond, errors)))
         doc = model_registry.register_model(store, model_document())
     t0 = datetime(2026, 3, 3, 8, tzinfo=UTC)
     n = 4
@@ -204,23 +204,20 @@ def test_concurrent_updates_queue_for_the_machine_lock(store_url):
     with connect(store_url) as store:
         states = latest_online_states(store, MACHINE, doc.version)
         assert states["dx"].n_updates == n and states["dz"].n_updates == n
-        row = store.online_state(MACHINE)
+        row = store.online.get(MACHINE)
         assert row.version == n and row.n_updates == n
         assert store.table_counts()["probe_measurements"] == n
         # a stale writer is refused and writes nothing
-        from driftlab.campaigns.store import StaleOnlineState
+        from driftlab.campaigns.store import OnlineUpdate, StaleOnlineState
 
         with pytest.raises(StaleOnlineState):
-            store.save_online_state(
+            store.online.save(
                 MACHINE,
                 1,
-                model_version_id=None,
-                model_version=doc.version,
-                lam=0.98,
-                n_updates=9,
-                theta=row.theta,
-                p=row.p,
-                probes=[
+                OnlineUpdate(
+                    model_version_id=None, model_version=doc.version, lam=0.98, n_updates=9, theta=row.theta, p=row.p
+                ),
+                [
                     {
                         "measured_at": t0 + timedelta(hours=5),
                         "x": 0,
@@ -251,12 +248,12 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
 
     with connect(f"sqlite:///{tmp_path / 's.sqlite'}") as store:
         temps, cond, errors = small_frames()
-        store.import_bundle(load_bundle(write_bundle(tmp_path / "b", small_meta(), temps, cond, errors)))
+        store.campaigns.import_bundle(load_bundle(write_bundle(tmp_path / "b", small_meta(), temps, cond, errors)))
         doc = model_registry.register_model(store, model_document())
         old = {t: RLSState(np.array([0.001]), np.array([[0.5]]), 0.95, 7).to_dict() for t in ("dx", "dy", "dz")}
-        job = store.record_job(ONLINE_JOB, {}, machine_id=MACHINE)
-        store.start_job(job, "w")
-        store.finish_job(job, {"model_version": doc.version, "states": old})
+        job = store.jobs.record(ONLINE_JOB, {}, machine_id=MACHINE)
+        store.jobs.start(job, "w")
+        store.jobs.finish(job, {"model_version": doc.version, "states": old})
         probe = pd.DataFrame(
             [
                 {
@@ -276,7 +273,7 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
         )
         rep = online_update(store, MACHINE, probe, start=datetime(2026, 3, 3, tzinfo=UTC))
         assert rep.states["dx"].n_updates == 8 and rep.states["dx"].lam == 0.95
-        assert store.online_state(MACHINE).n_updates == 8
+        assert store.online.get(MACHINE).n_updates == 8
         assert store.table_counts()["probe_measurements"] == 1
 
 
