@@ -39,6 +39,30 @@ ARCSEC = "arcsec"
 ARCSEC_PER_DEG = 3600.0
 
 
+#: ASCII spellings of units inside the code and the modelling core's messages, and the SI symbols people read
+_ASCII_UNITS = [
+    (re.compile(r"(?<![A-Za-z_.])um(?:2|\^2)(?![A-Za-z_0-9])"), "µm²"),
+    (re.compile(r"(?<![A-Za-z_.])um(?![A-Za-z_0-9])"), "µm"),
+    (re.compile(r"(?<![A-Za-z_.])urad(?![A-Za-z_0-9])"), "µrad"),
+    (re.compile(r"(?<![A-Za-z_.])degC(?:2|\^2)(?![A-Za-z_0-9])"), "°C²"),
+    (re.compile(r"(?<![A-Za-z_.])degC(?![A-Za-z_0-9])"), "°C"),
+]
+
+
+def si_text(text: str) -> str:
+    """Return ``text`` with the ASCII unit spellings (um, urad, degC, um2) as SI symbols (µm, µrad, °C, µm²).
+
+    Only whole words are replaced: identifiers such as ``value_degC`` or ``drift_um`` stay as they are
+    (``_`` before or after), so a message that names a JSON field still names it. For text a person
+    reads (console lines, table cells, page text), never for JSON or data URIs.
+    """
+    if not text or ("um" not in text and "rad" not in text and "degC" not in text):
+        return text
+    for rx, symbol in _ASCII_UNITS:
+        text = rx.sub(symbol, text)
+    return text
+
+
 def length_text(value: float, unit: str = "mm", digits: int = 2) -> str:
     """Return a small length (mm) as "12.34 µm", or a small angle (deg) as "1.23 arcsec", never in e-notation."""
     if unit == "deg":

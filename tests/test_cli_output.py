@@ -205,3 +205,24 @@ def test_piped_tables_take_their_width_from_columns(monkeypatch) -> None:
     assert stdout_console().width == 120
     monkeypatch.setenv("COLUMNS", "not a number")
     assert stdout_console().width == 120
+
+
+def test_the_demo_verdict_says_worse_when_the_figures_say_so() -> None:
+    """Issue 35.2: a cut whose error before the CMM's alignment stays is not "as much as in the thesis"."""
+    from driftlab.commands.demo_report import judge
+
+    wear = {
+        "uncompensated_mm": 0.0241,
+        "offline_mm": 0.0012,
+        "uncompensated_unaligned_mm": 0.0564,
+        "offline_unaligned_mm": 0.0318,
+        "offline_predicted": {"inside": 0.0},
+    }
+    words, worse = judge("offline", wear)
+    assert worse and "worse than in the thesis" in words and "as much as" not in words
+    assert "44% before the alignment" in words and "only 0% of the CMM points" in words
+    clean = {**wear, "offline_unaligned_mm": 0.0012, "offline_predicted": {"inside": 1.0}}
+    words, worse = judge("offline", clean)
+    assert not worse and "as much as in the thesis" in words
+    words, worse = judge("online", {"uncompensated_mm": 0.01, "online_mm": 0.02})
+    assert worse and "worse than without compensation" in words

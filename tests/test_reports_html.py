@@ -127,7 +127,7 @@ def test_the_demo_report_judges_the_order_at_the_compensators_resolution():
 
     assert demo_report.RESOLUTION_MM == RESOLUTION_MM
     runs = {"uncompensated": {"rmse_mm": 0.005}, "offline": {"rmse_mm": 0.0009}, "online": {"rmse_mm": 0.0019}}
-    assert "within the machine's 2.5 um step" in demo_report.ordering_text(runs)
+    assert "within the machine's 2.5 µm step" in demo_report.ordering_text(runs)
     runs["online"]["rmse_mm"] = 0.0004
     assert demo_report.ordering_text(runs) == "holds"
     runs["online"]["rmse_mm"] = 0.003  # beyond the step: no excuse given

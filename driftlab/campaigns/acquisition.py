@@ -268,8 +268,14 @@ def _campaign_document(
                 f"plan {plan.name!r} and the scenario state different geometries of machine "
                 f"{plan.machine.id!r}: state it once"
             )
+        # the plan's own name and travel win over the scenario's (the virtual machine's travel fills in
+        # only when the plan states none, so a simulated campaign always carries one)
         meta.setdefault(key, value) if key != "machine" else machine.update(
-            {k: v for k, v in value.items() if k != "id" and (k != "name" or not plan.machine.name)}
+            {
+                k: v
+                for k, v in value.items()
+                if k != "id" and (k != "name" or not plan.machine.name) and (k != "travel" or not plan.machine.travel)
+            }
         )
     return meta
 

@@ -237,7 +237,7 @@ def _temperatures_table(values: dict[str, float | None], chans: Sequence[Channel
     from rich.table import Table
     from rich.text import Text
 
-    temps = Table(title="Latest temperatures (degC) by structure", title_justify="left", expand=False)
+    temps = Table(title="Latest temperatures (°C) by structure", title_justify="left", expand=False)
     temps.add_column("structure")
     temps.add_column("range", justify="right")
     temps.add_column("thermocouples")

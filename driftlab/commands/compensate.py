@@ -17,6 +17,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: the links ``--port`` can stream over
+LINKS = ("thesis", "linuxcnc", "dnc")
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Register `compensate`."""
@@ -39,9 +42,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--out", type=Path, help="write the corrected program here (offline)")
     p.add_argument("--port", help="stream to the controller on this serial device or pyserial URL (socket://...)")
     p.add_argument(
+        "--link",
+        choices=LINKS,
+        default="thesis",
+        help="how --port talks to the control: dnc (a drip feed with the DC1/DC3 handshake, what shops' "
+        "controls read), linuxcnc (linuxcncrsh, 2.9 or master: --port host[:port], each block an MDI command), "
+        "thesis (driftlab's own STAT?/BLK/POS? protocol of the virtual controller); default thesis",
+    )
+    p.add_argument("--baud", type=int, default=9600, help="DNC line speed (default 9600)")
+    p.add_argument("--line", help="DNC character format 8N1, 7E1 or 7E2 (default: the profile's)")
+    p.add_argument(
+        "--profile",
+        default="generic",
+        help="DNC control family: haas, haas-dc (Setting 14 DC CODES), fanuc, heidenhain, generic (default)",
+    )
+    p.add_argument(
         "--start",
-        help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or "
-        "the controller's position when streaming)",
+        help="machine pose before the program: X,Y,Z,A,B (mm, deg; default home, or the controller's "
+        "position when streaming with --link thesis; a DNC drip feed has no read-back: home unless given)",
     )
     p.add_argument("--resolution-mm", type=float, default=0.0025, help="linear positioning resolution (0.0025)")
     p.add_argument("--resolution-deg", type=float, default=0.001, help="rotary positioning resolution (0.001)")
@@ -144,10 +162,34 @@ def _guard(model: Any, args: argparse.Namespace) -> Any:
     )
     if guard.envelope is None or not guard.envelope.travel:
         raise ValidationError(
-            f"model {model.label} carries no machine travel (documents fitted before the envelope have none): "
-            "give --machine-file FILE with the axes' travel (docs/compensate.md)"
+            f"model {model.label} carries no machine travel (its campaigns state no machine.travel and it was "
+            "fitted without --machine-file): give --machine-file FILE with the axes' travel "
+            "(examples/machines/virtual-machine.yaml for the virtual machine; docs/compensate.md)"
         )
     return guard
+
+
+def _header(model: Any, document: Mapping[str, Any], tag: str, temps: Any) -> list[str]:
+    """Return the header comment of the corrected program: model, temperatures used, driftlab, date."""
+    # lazy: this function's imports would add to `driftlab --help`
+    import driftlab
+    from driftlab.compensator.compensate import TemperatureTable
+    from driftlab.compensator.header import program_header, temperature_lines
+
+    channels = list(model.channels)
+    if isinstance(temps, TemperatureTable):
+        cols = [c for c in channels if c in temps.values.columns]
+        lines = temperature_lines({c: temps.values[c].to_numpy(float) for c in cols}, temps.time_s, "CSV ")
+    else:
+        lines = temperature_lines({c: temps[c] for c in channels if c in temps}, None, "latest API ")
+    version = document.get("version")
+    return program_header(
+        str(document.get("machine") or model.machine),
+        None if version is None else int(version),
+        tag,
+        lines,
+        driftlab.__version__,
+    )
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -176,6 +218,12 @@ def _run(args: argparse.Namespace) -> int:
             raise ValidationError("offline compensation needs -o OUT.nc (or --port to stream)")
         if args.model:
             model = _model_file(args.model, args.machine)
+            # lazy, as above: kept off the `driftlab --help` path
+            from driftlab.compensator.header import document_digest
+
+            body = json.loads(args.model.read_text())
+            document = body.get("document", body) if isinstance(body, dict) else {}
+            tag = f"document sha256 {document_digest(document)}"
         else:
             # lazy, as above: kept off the `driftlab --help` path
             from driftlab.compensator.stream import ApiModel
@@ -183,6 +231,7 @@ def _run(args: argparse.Namespace) -> int:
             source = ApiModel(args.api, args.machine, token=token)
             source.refresh()
             model = source.model
+            document, tag = dict(source.document or {}), f"ETag {source.etag or '-'}"
         if args.temps:
             temps: Any = TemperatureTable.read_csv(args.temps)
         elif args.api:
@@ -193,6 +242,7 @@ def _run(args: argparse.Namespace) -> int:
         else:
             raise ValidationError("offline compensation needs --temps CSV (or --api for the latest scan)")
         guard = _guard(model, args)
+        header = _header(model, document, tag, temps)
         # the whole program is checked (syntax, envelope, corrections, temperatures) before any output
         # is opened, a piece at a time (constant memory whatever its length)
         result = compensate_file(
@@ -203,6 +253,7 @@ def _run(args: argparse.Namespace) -> int:
             start=start,
             **_grid(args),
             guard=guard,
+            header=header,
         )
         summary = {"out": str(args.out), **result.summary()}
         if args.json:
@@ -244,14 +295,44 @@ def _report_extrapolation(extrapolated: Mapping[str, Mapping[str, float]]) -> No
         )
 
 
+def _open_link(args: argparse.Namespace) -> Any:
+    """Return the machine link ``--link`` names on ``--port`` (a DNC drip feed with its profile and line settings)."""
+    if args.link == "dnc":
+        # lazy: kept off the `driftlab --help` path
+        from driftlab.daq.dnc import DncLink, line_settings, profile
+
+        prof = profile(args.profile)
+        line = args.line or prof.line
+        line_settings(line)
+        if not 50 <= args.baud <= 4_000_000:
+            raise ValidationError(f"--baud must be between 50 and 4000000, got {args.baud}")
+        return DncLink.open(args.port, prof, args.baud, line)
+    if args.line is not None or args.profile != "generic" or args.baud != 9600:
+        raise ValidationError("--baud, --line and --profile are for --link dnc")
+    if args.link == "linuxcnc":
+        # lazy: the links' imports stay off the offline path
+        from driftlab.daq.linuxcnc import LinuxCNCLink
+
+        return LinuxCNCLink.open(args.port)
+    from driftlab.daq.machine_link import SerialMachineLink
+
+    return SerialMachineLink.open(args.port)
+
+
 def _stream(
     args: argparse.Namespace, start: tuple[float, ...] | None, decimals: tuple[int, int], token: str | None
 ) -> int:
     """Stream the corrected program to the controller, reading it again a piece at a time (constant memory)."""
     # lazy: this function's imports would add 2.3 s to `driftlab --help` (measured)
     from driftlab.compensator.compensate import ErrorModel, FirstPass, Grid, parse_pieces, program_pieces, scan_program
-    from driftlab.compensator.stream import ApiModel, ApiTemperatures, CsvTemperatures, StaticModel, Streamer
-    from driftlab.daq.machine_link import SerialMachineLink
+    from driftlab.compensator.stream import (
+        ApiModel,
+        ApiTemperatures,
+        CsvTemperatures,
+        StaticModel,
+        Streamer,
+        check_sendable,
+    )
 
     if args.out is not None:
         raise ValidationError("-o is for offline compensation; with --port the program is streamed")
@@ -267,9 +348,14 @@ def _stream(
         temps = ApiTemperatures(args.api, args.machine, token=token)
     else:
         raise ValidationError("streaming needs --temps CSV or --api for the temperatures")
-    link = SerialMachineLink.open(args.port)
+    # every byte that will go down the line, before the line is even opened: one Latin-1 comment must not
+    # stop a part in the middle (a tape line carries printable 7-bit ASCII)
+    check_sendable(program_pieces(args.program), str(args.program))
+    # the thesis and linuxcnc links read the controller's pose; a drip feed has no read-back (``--start`` or
+    # home), and its port is opened only once the whole program has passed the first pass
+    link = _open_link(args) if args.link != "dnc" else None
     try:
-        if start is None:
+        if start is None and link is not None:
             pos = link.position()
             start = tuple(pos[a] for a in AXES)
         # the first pass, before any block is sent: the whole program from the controller's pose,
@@ -306,10 +392,21 @@ def _stream(
             refresh_s=min(args.refresh_s, args.max_age_s),
             guard=guard,
         )
+        if link is None:
+            link = _open_link(args)
         result = streamer.run(link, low_water=args.low_water, high_water=args.high_water)
     finally:
-        link.close()
+        if link is not None:
+            link.close()
     summary = result.summary()
+    dnc = getattr(link, "report", None)
+    if dnc is not None:
+        summary["dnc"] = {
+            "chars": dnc.chars,
+            "dc3": dnc.dc3,
+            "held_s": round(dnc.held_s, 3),
+            "longest_hold_s": round(dnc.longest_hold_s, 3),
+        }
     if guard.extrapolated:
         summary["extrapolated"] = guard.report()
     if args.json:

@@ -31,7 +31,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from driftlab.commands import demo_report as rep
+from driftlab.commands.tables import print_table
 from driftlab.errors import DriftlabError, InstrumentError, ValidationError
+from driftlab.labels import si_text
 from driftlab.resources import examples_dir
 
 if TYPE_CHECKING:
@@ -92,7 +94,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--wear-um-per-day",
         type=float,
         default=30.0,
-        help="wear of the Z slideways in the thermal+wear cutting test, um per day since the campaign "
+        help="wear of the Z slideways in the thermal+wear cutting test, µm per day since the campaign "
         "started (default 30; catalogue: drift)",
     )
     p.set_defaults(func=_demo)
@@ -113,10 +115,10 @@ class _Steps:
         shown = "driftlab " + " ".join(args)
         self.console.print(f"[bold cyan]>[/] {shown}")
         t0 = time.perf_counter()
-        # the step's tables are drawn for this terminal's width (COLUMNS), then shown whole
-        proc = subprocess.run(
-            cmd, capture_output=True, text=True, env=env or _env(COLUMNS=str(self.console.width)), check=False
-        )
+        # the step's tables are drawn for this terminal's width (COLUMNS), then shown whole; piped, at
+        # their natural width (commands.tables), one row a line
+        width = {"COLUMNS": str(self.console.width)} if self.console.is_terminal else {}
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env or _env(**width), check=False)
         wall = time.perf_counter() - t0
         (self.logs / f"{name}.log").write_text(f"$ {shown}\n{proc.stdout}\n--- stderr ---\n{proc.stderr}")
         if proc.returncode != 0:
@@ -126,7 +128,7 @@ class _Steps:
             )
         self.done.append({"name": name, "command": shown, "wall_s": round(wall, 2)})
         for line in proc.stdout.rstrip().splitlines():
-            self.console.print(f"  {line}", markup=False, highlight=False, crop=False, soft_wrap=True)
+            self.console.print(f"  {si_text(line)}", markup=False, highlight=False, crop=False, soft_wrap=True)
         return proc.stdout
 
     def record(self, name: str, command: str, wall_s: float) -> None:
@@ -429,7 +431,7 @@ def _print_closing(
     wall: float,
 ) -> None:
     """Print the cutting tests' table, the predicted spreads, what the diagnosis named and the ordering."""
-    console.print(_cutting_table(tests))
+    print_table(_cutting_table(tests), console)
     for case, ct in tests.items():
         if ct.offline_predicted:
             console.print(f"  {case}: {rep.interval_text(ct.offline_predicted)}")
@@ -451,11 +453,21 @@ def _cutting_table(tests: dict[str, Any]) -> Table:
         title="Cutting tests, ch. 7.3 (normal deviation of the machined surface, µm; the CMM aligns the part on its "
         "reference pass, 'unaligned' is before that)"
     )
-    for col in ("case", "run", "RMSE", "max", "unaligned RMSE", "thesis RMSE", "thesis max"):
-        t.add_column(col, justify="left" if col in ("case", "run") else "right")
+    for col in ("case", "run", "RMSE", "max", "unaligned RMSE", "thesis RMSE", "thesis max", "verdict"):
+        t.add_column(col, justify="left" if col in ("case", "run", "verdict") else "right")
     for case, ct in tests.items():
         tab = ct.table()
+        figures = {"uncompensated_mm": tab["uncompensated"]["rmse_mm"]}
+        if "unaligned_rmse_mm" in tab["uncompensated"]:
+            figures["uncompensated_unaligned_mm"] = tab["uncompensated"]["unaligned_rmse_mm"]
+        for k in rep.RUN_NAMES:
+            figures[f"{k}_mm"] = tab[k]["rmse_mm"]
+            if "unaligned_rmse_mm" in tab[k]:
+                figures[f"{k}_unaligned_mm"] = tab[k]["unaligned_rmse_mm"]
+        if ct.offline_predicted:
+            figures["offline_predicted"] = {"inside": ct.offline_predicted.get("inside")}
         for k, name in rep.RUN_NAMES.items():
+            words, worse = rep.judge(k, figures)
             t.add_row(
                 case if k == "uncompensated" else "",
                 name,
@@ -464,6 +476,7 @@ def _cutting_table(tests: dict[str, Any]) -> Table:
                 f"{tab[k]['unaligned_rmse_mm'] * 1e3:.1f}" if "unaligned_rmse_mm" in tab[k] else "",
                 f"{rep.THESIS[k]['rmse_mm'] * 1e3:.0f}",
                 f"{rep.THESIS[k]['max_mm'] * 1e3:.0f}",
+                f"[red]{words}[/]" if worse else words,
             )
     return t
 

@@ -8,6 +8,7 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from driftlab.commands.tables import add_csv_option
 from driftlab.errors import ValidationError
 from driftlab.labels import display_unit, effect_label
 
@@ -33,6 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--db", default=None, metavar="URL", help="store URL (default: DRIFTLAB_DB_URL or the SQLite default)"
     )
     p.add_argument("--json", type=Path, required=True, metavar="REPORT.json", help="write the report v1 here")
+    add_csv_option(p)
     p.add_argument("--html", type=Path, default=None, metavar="REPORT.html", help="also write an HTML page")
     p.add_argument(
         "--holdout-fraction",
@@ -76,7 +78,7 @@ def _diagnose(args: argparse.Namespace) -> int:
         from driftlab.models.diagnosis_report import to_html
 
         args.html.write_text(to_html(result, bundle), encoding="utf-8")  # with the campaign overview
-    print_findings(doc)
+    print_findings(doc, as_csv=args.csv)
     n = len(result.effects)
     print(
         f"diagnosed {bundle.name}: {n} effect{'s' if n != 1 else ''} accepted; report {args.json}"
@@ -85,28 +87,54 @@ def _diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
-def print_findings(doc: dict) -> None:
-    """Print a diagnosis report's findings (effect, cause, held-out gain in um/urad) and the baseline per term."""
-    # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
-    from driftlab.progress import stdout_console
+def print_findings(doc: dict, as_csv: bool = False) -> None:
+    """Print a diagnosis report's findings (effect, cause, held-out gain in µm/µrad) and the baseline per term."""
+    # lazy: rich adds to `driftlab --help` (the tables module imports it where it prints)
+    from driftlab.commands.tables import Output
 
-    con = stdout_console()
+    con = Output()
     effects = doc.get("effects", [])
     if effects:
-        t, causes = _findings_table(doc, effects, con.width)
+        t, causes = _findings_table(doc, effects)
         con.print(t)
         for line in causes:
             con.print(line, markup=False)
     else:
-        con.print("No effect of the catalogue is supported by the data: the standard model stands.")
+        con.print("No effect of the catalogue is supported by the data: the baseline model stands.")
     base = doc.get("baseline", [])
     if base:
         con.print(_baseline_table(doc, base))
     left = doc.get("unexplained", [])
     if left:
         con.print(_unexplained_table(left))
-    elif doc.get("baseline"):
-        con.print("Every term is explained to its measurement noise (no unexplained residual).")
+    elif base:
+        con.print(explained_text(doc))
+    con.emit(as_csv)
+
+
+def explained_text(doc: dict) -> str:
+    """Return whether every term is explained, as the figures say: to the noise in training, and held out too.
+
+    "Explained" only when no term's training residual is above 1.5 x its noise (``unexplained`` empty)
+    and no term's held-out RMSE (with the findings where they were folded in) is above 1.5 x its
+    training RMSE; otherwise the worst held-out term is named, in red.
+    """
+    ext = {(x.get("axis"), x.get("term")): x for x in doc.get("extended", [])}
+    worse = []
+    for r in doc.get("baseline", []):
+        train = r.get("rmse_train")
+        held = ext.get((r.get("axis"), r.get("term")), {}).get("rmse_holdout", r.get("rmse_holdout"))
+        if isinstance(train, (int, float)) and isinstance(held, (int, float)) and train > 0 and held > 1.5 * train:
+            worse.append((held / train, r, held))
+    if not worse:
+        return "Every term is explained to its measurement noise, in training and held out (no unexplained residual)."
+    ratio, r, held = max(worse, key=lambda w: w[0])
+    k, unit = display_unit(str(r.get("term")))
+    return (
+        f"[red]Not explained held out[/]: no training residual is above 1.5 x the noise, but {len(worse)} "
+        f"term(s) are worse held out than in training by more than 1.5 x; the worst, {r.get('axis')}/{r.get('term')}, "
+        f"{held * k:.2f} {unit} held out against {r['rmse_train'] * k:.2f} {unit} in training ({ratio:.1f} x)."
+    )
 
 
 def _gain_text(b: float | None, a: float | None) -> str:
@@ -116,8 +144,8 @@ def _gain_text(b: float | None, a: float | None) -> str:
     return f"[green]{100 * (1 - a / b):.0f} % better[/]" if a <= b else f"[red]{100 * (a / b - 1):.0f} % worse[/]"
 
 
-def _findings_table(doc: dict, effects: list[dict], width: int) -> tuple[Table, list[str]]:
-    """Return the findings' table for a terminal ``width`` columns wide, and each finding's numbered cause."""
+def _findings_table(doc: dict, effects: list[dict]) -> tuple[Table, list[str]]:
+    """Return the findings' table and each finding's numbered cause."""
     # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
     from rich.table import Table
 
@@ -125,10 +153,8 @@ def _findings_table(doc: dict, effects: list[dict], width: int) -> tuple[Table, 
         title=f"Findings: what the standard model misses ({doc.get('holdout', {}).get('method', 'held out')} held out)",
         title_justify="left",
     )
-    # the effect's name on one line where the terminal is wide enough, wrapped on a narrow one
-    effect_width = min(max(len(effect_label(e)) for e in effects), 30) if width >= 100 else 16
-    # narrow enough for an 80-column terminal: the effect wraps, the figures and the verdict
-    # ("12 % worse") never do; each finding's cause follows the table as a numbered line
+    # the figures and the verdict ("12 % worse") never wrap; the effect wraps between words on a
+    # narrow terminal (commands.tables); each finding's cause follows the table as a numbered line
     for col, just in (
         ("#", "right"),
         ("effect", "left"),
@@ -140,9 +166,7 @@ def _findings_table(doc: dict, effects: list[dict], width: int) -> tuple[Table, 
         t.add_column(
             col,
             justify=just,  # type: ignore[arg-type]  # rich types it as a Literal; ours are its values
-            overflow="fold",
             no_wrap=col in ("gain", "held out before", "after"),
-            min_width=len("100 % better") if col == "gain" else effect_width if col == "effect" else None,
         )
     causes = []
     for i, e in enumerate(effects, 1):
@@ -163,19 +187,20 @@ def _findings_table(doc: dict, effects: list[dict], width: int) -> tuple[Table, 
 
 
 def _baseline_table(doc: dict, base: list[dict]) -> Table:
-    """Return the standard model's held-out RMSE per term, before and after the findings."""
+    """Return the baseline's held-out RMSE per term (fitted or per-term model), before and after the findings."""
     # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
     from rich.table import Table
 
-    t = Table(title="Standard model per term: held-out RMSE before and after the findings", title_justify="left")
+    t = Table(title="Baseline per term: held-out RMSE before and after the findings", title_justify="left")
     for col, just in (
         ("axis/term", "left"),
+        ("baseline", "left"),
         ("model thermocouples", "left"),
         ("train", "right"),
         ("held out", "right"),
         ("with findings", "right"),
     ):
-        t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+        t.add_column(col, justify=just)  # type: ignore[arg-type]
     ext = {(x.get("axis"), x.get("term")): x for x in doc.get("extended", [])}
     for r in base:
         k, unit = display_unit(str(r.get("term")))
@@ -186,6 +211,7 @@ def _baseline_table(doc: dict, base: list[dict]) -> Table:
             ext_txt = f"[red]{ext_txt} worse[/]"
         t.add_row(
             f"{r.get('axis')}/{r.get('term')}",
+            "fitted model" if r.get("model") == "fitted" else "per-term model",
             " ".join(r.get("channels") or []),
             fmt(r.get("rmse_train")),
             fmt(r.get("rmse_holdout")),
@@ -199,13 +225,20 @@ def _unexplained_table(left: list[dict]) -> Table:
     # lazy: this function's imports would add 63 ms to `driftlab --help` (measured)
     from rich.table import Table
 
-    t = Table(title="Unexplained: training residual above 1.5 x the noise after the findings", title_justify="left")
-    for col, just in (("axis/term", "left"), ("residual / noise", "right"), ("hints", "left")):
-        t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+    t = Table(
+        title="Unexplained: residual above the noise after the findings (1.5 x in training, 2 x held out)",
+        title_justify="left",
+    )
+    cols = (("axis/term", "left"), ("shown by", "left"), ("train / noise", "right"), ("held out / noise", "right"))
+    for col, just in (*cols, ("hints", "left")):
+        t.add_column(col, justify=just)  # type: ignore[arg-type]
     for u in left:
+        ho = u.get("holdout_over_noise")
         t.add_row(
             f"{u.get('axis')}/{u.get('term')}",
-            f"[red]{float(u.get('residual_over_noise', float('nan'))):.1f} x[/]",
+            str(u.get("part", "training")),
+            f"{float(u.get('residual_over_noise', float('nan'))):.1f} x",
+            f"[red]{float(ho):.1f} x[/]" if isinstance(ho, (int, float)) else "-",
             "; ".join(u.get("hints") or []),
         )
     return t

@@ -10,12 +10,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from driftlab.commands.compensate import machine_file_envelope
+from driftlab.commands.tables import add_csv_option
 from driftlab.errors import ValidationError
 from driftlab.labels import ANGLES, coefficient_text, display_unit, effect_label, feature_label
 
 if TYPE_CHECKING:
-    from rich.console import Console
     from rich.table import Table
+
+    from driftlab.commands.tables import Output
 
 STAGES = (
     "screening",
@@ -61,6 +63,7 @@ def _register_fit(sub: argparse._SubParsersAction) -> None:
     )
     _db(fit)
     fit.add_argument("--json", type=Path, default=None, metavar="REPORT.json", help="write the fit report here")
+    add_csv_option(fit)
     fit.add_argument("--no-network", action="store_true", help="skip the neural-network comparison (ch. 6.6)")
     fit.add_argument(
         "--machine-file",
@@ -80,6 +83,14 @@ def _register_fit(sub: argparse._SubParsersAction) -> None:
         "--force-findings",
         action="store_true",
         help="with --findings: force the findings' terms in (default: offer them as candidates)",
+    )
+    fit.add_argument(
+        "--split",
+        choices=("stage", "time"),
+        default=None,
+        help="which points are held out of the fit and scored: 'stage' (default: the last quarter of every "
+        "training stage) or 'time' (the last quarter of every measured line: the split of driftlab diagnose, "
+        "whose baseline then states the same held-out figures)",
     )
     fit.add_argument(
         "--enqueue",
@@ -163,6 +174,7 @@ def _fit(args: argparse.Namespace) -> int:
             findings=findings,
             force_findings=args.force_findings,
             envelope=machine_file_envelope(args.machine_file),
+            split=args.split,
         )
         if args.enqueue:
             print(json.dumps({"job": job_id, "state": "queued"}))
@@ -177,7 +189,7 @@ def _fit(args: argparse.Namespace) -> int:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text + "\n")
-    _print_summary(report, ref)
+    _print_summary(report, ref, as_csv=args.csv)
     return 0
 
 
@@ -249,13 +261,13 @@ def _scaled(v: Any, k: float) -> str:
     return f"{v * k:.2f}" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
 
 
-def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) -> None:
-    """Print the fit as tables 6.1-6.3 do, with units (um, urad) and a verdict per row."""
-    # lazy: this function's imports would add 51 ms to `driftlab --help` (measured)
-    from driftlab.progress import stdout_console
+def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None, as_csv: bool = False) -> None:
+    """Print the fit as tables 6.1-6.3 do, with units (µm, µrad) and a verdict per row (or its tables as CSV)."""
+    # lazy: rich adds to `driftlab --help` (the tables module imports it where it prints)
+    from driftlab.commands.tables import Output
 
     ref = ref or {"noise_mm": None, "noise_rad": None, "resolution_mm": 0.0025, "resolution_rad": 1.7453e-05}
-    con = stdout_console()
+    con = Output()
     kept = report.get("kept_channels", [])
     con.print(
         f"machine {report.get('machine')}: model version {report.get('model_version')} registered; "
@@ -266,6 +278,7 @@ def _print_summary(report: dict[str, Any], ref: dict[str, Any] | None = None) ->
     _print_findings(con, report)
     for c in report.get("neural_comparison") or []:
         _print_neural(con, c)
+    con.emit(as_csv)
 
 
 def _terms_table(report: dict[str, Any], ref: dict[str, Any]) -> Table:
@@ -275,9 +288,9 @@ def _terms_table(report: dict[str, Any], ref: dict[str, Any]) -> Table:
 
     stated = []
     if ref.get("noise_mm"):
-        stated.append(f"{ref['noise_mm'] * 1e3:.2g} um")
+        stated.append(f"{ref['noise_mm'] * 1e3:.2g} µm")
     if ref.get("noise_rad"):
-        stated.append(f"{ref['noise_rad'] * 1e6:.2g} urad")
+        stated.append(f"{ref['noise_rad'] * 1e6:.2g} µrad")
     t = Table(
         title="Per-link models (thesis tables 6.1-6.2): RMSE of the work-space error"
         + (
@@ -288,7 +301,7 @@ def _terms_table(report: dict[str, Any], ref: dict[str, Any]) -> Table:
         title_justify="left",
     )
     for col, just in _TERM_COLUMNS:
-        t.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
+        t.add_column(col, justify=just)  # type: ignore[arg-type]
     for r in report.get("terms", []):
         k, unit = display_unit(r["term"])
         ratio, word, style = verdict(r.get("rmse_holdout"), r["term"], ref)
@@ -296,8 +309,8 @@ def _terms_table(report: dict[str, Any], ref: dict[str, Any]) -> Table:
             r["axis"],
             r["term"],
             str(r.get("measurement", "")),
-            str(r["link"]),
-            str(r.get("form", "link")),
+            " + ".join(str(r["link"]).split("+")),  # spaced: the cell wraps between links, never inside one
+            " + ".join(str(r.get("form", "link")).split("+")),
             unit,
             _num(r.get("rmse_train"), ".2f", k),
             _num(r.get("rmse_holdout"), ".2f", k),
@@ -309,7 +322,7 @@ def _terms_table(report: dict[str, Any], ref: dict[str, Any]) -> Table:
     return t
 
 
-def _print_physical(con: Console, report: dict[str, Any]) -> None:
+def _print_physical(con: Output, report: dict[str, Any]) -> None:
     """Print the regression against physical coefficients (thesis table 6.3), or why there is none."""
     # lazy: this function's imports would add 31 ms to `driftlab --help` (measured)
     from rich.table import Table
@@ -346,7 +359,7 @@ def _print_physical(con: Console, report: dict[str, Any]) -> None:
     con.print(pt)
 
 
-def _print_findings(con: Console, report: dict[str, Any]) -> None:
+def _print_findings(con: Output, report: dict[str, Any]) -> None:
     """Print one line per diagnosis finding: folded in (with the terms it entered), substituted, or not."""
     for f in report.get("findings", []):
         what = f"{effect_label(f)} on {f.get('axis')}/{f.get('term')}"
@@ -361,7 +374,7 @@ def _print_findings(con: Console, report: dict[str, Any]) -> None:
             )
 
 
-def _print_neural(con: Console, c: dict[str, Any]) -> None:
+def _print_neural(con: Output, c: dict[str, Any]) -> None:
     """Print one target's comparison of least squares and the network on the same inputs (ch. 6.6)."""
     # lazy: this function's imports would add 31 ms to `driftlab --help` (measured)
     from rich.table import Table
@@ -386,7 +399,7 @@ def _print_neural(con: Console, c: dict[str, Any]) -> None:
         f"network train ({unit})",
         "test beyond range",
     ):
-        nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right", overflow="fold")
+        nt.add_column(col, justify="left" if col in ("direction", "train", "test") else "right")
     for d in c.get("directions", []):
         nt.add_row(
             d["direction"],
@@ -396,7 +409,7 @@ def _print_neural(con: Console, c: dict[str, Any]) -> None:
             _scaled(d["network_test"], k),
             _scaled(d["regression_train"], k),
             _scaled(d["network_train"], k),
-            f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} degC",
+            f"{d['beyond_range']:.0%}, up to {d['max_excess_degC']:.1f} °C",
         )
     con.print(nt)
     for what, why in (c.get("excluded") or {}).items():

@@ -61,10 +61,26 @@ def _drivers(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fmt(value: object) -> str:
+#: the unit of a reading named with it (``air_c``, ``pressure_pa``, ``ch0_v``), as a person reads it
+_SUFFIX_UNITS = {"_c": "°C", "_degc": "°C", "_pa": "Pa", "_percent": "%", "_v": "V", "_mm": "mm", "_deg": "deg"}
+_ROLE_UNITS = {"thermocouples": "°C"}
+_AXIS_UNITS = {"X": "mm", "Y": "mm", "Z": "mm", "A": "deg", "B": "deg"}
+
+
+def reading_text(role: str, key: str, value: object) -> str:
+    """Return one reading with its unit, e.g. "T1 20.0249 °C", "air 20.3770 °C", "A 0.0000 deg"."""
+    name, unit = key, _ROLE_UNITS.get(role, "")
+    for suffix, u in _SUFFIX_UNITS.items():
+        if key.lower().endswith(suffix) and len(key) > len(suffix):
+            name, unit = key[: -len(suffix)], u
+            break
+    else:
+        if role == "machine" and key in _AXIS_UNITS:
+            unit = _AXIS_UNITS[key]
     if isinstance(value, float):
-        return "open" if value != value else f"{value:.4f}"
-    return str(value)
+        text = "open" if value != value else f"{value:.4f}"
+        return f"{name} {text}" + (f" {unit}" if unit and text != "open" else "")
+    return f"{name} {value}"
 
 
 def _check(args: argparse.Namespace) -> int:
@@ -86,7 +102,7 @@ def _check(args: argparse.Namespace) -> int:
     results = check_rig(rig, world=world, sim_clock=clock, simulate_all=args.sim is not None, readers=export_readers())
     rows = [("role", "driver", "resource", "identification", "reading")]
     for r in results:
-        reading = ", ".join(f"{k}={_fmt(v)}" for k, v in list(r.reading.items())[:6])
+        reading = ", ".join(reading_text(r.role, k, v) for k, v in list(r.reading.items())[:6])
         if len(r.reading) > 6:
             reading += f", ... ({len(r.reading)} values)"
         rows.append((r.role, r.driver, r.resource, r.idn or "-", reading or "-"))

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
+import socket
 
 from driftlab.commands.db import add_db_option
 from driftlab.errors import ValidationError
@@ -52,12 +54,46 @@ def _serve(args: argparse.Namespace) -> int:
         log.warning("DRIFTLAB_API_TOKEN is not set: the API is read-only (every write is refused)")
     if host not in ("127.0.0.1", "localhost", "::1"):
         log.warning("serving on %s: reads are open to anyone who can reach this address", host)
+    sock = bind(host, port)  # a busy port fails here, in one line, before the app or the database is opened
     app = create_app(args.db, run_jobs=not args.no_jobs)
     try:
         app.state.driftlab.store.ensure_schema()  # an unreachable database fails here, in one line
     except SQLAlchemyError as exc:
+        sock.close()
         cause = getattr(exc, "orig", None) or exc  # DBAPIError carries the driver's own message
         raise StoreError(f"cannot open the database: {' '.join(str(cause).split())[:200]}") from None
     limits = ConnectionLimits(settings.api_header_timeout_s, settings.api_body_timeout_s, settings.api_keep_alive_s)
-    uvicorn.Server(server_config(app, host, port, args.log_level, limits)).run()
+    try:
+        uvicorn.Server(server_config(app, host, port, args.log_level, limits)).run(sockets=[sock])
+    finally:
+        sock.close()
     return 0
+
+
+def bind(host: str, port: int) -> socket.socket:
+    """Return a listening-ready TCP socket bound to ``host:port``; ValidationError in one line when it cannot be.
+
+    Bound here rather than by uvicorn, whose failure is five log lines and an exit status of 1: the
+    socket is then handed to uvicorn (``Server.run(sockets=...)``), so there is no gap between the
+    check and the server's bind. SO_REUSEADDR as uvicorn sets it (a restart does not wait out TIME_WAIT).
+    """
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise ValidationError(f"cannot serve on {host}:{port}: unknown host ({exc.strerror})") from None
+    family, kind, proto, _, address = infos[0]
+    sock = socket.socket(family, kind, proto)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind(address)
+    except OSError as exc:
+        sock.close()
+        if exc.errno == errno.EADDRINUSE:
+            reason = "the port is already in use (another server is listening there; give another --port)"
+        elif exc.errno == errno.EACCES:
+            reason = "permission denied (ports below 1024 need privileges; give another --port)"
+        else:
+            reason = exc.strerror or type(exc).__name__
+        raise ValidationError(f"cannot serve on {host}:{port}: {reason}") from None
+    sock.set_inheritable(True)
+    return sock

@@ -21,7 +21,7 @@ import os
 import stat
 import tempfile
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from decimal import Decimal
 from pathlib import Path
@@ -44,6 +44,7 @@ from driftlab.compensator.gcode import (
     parse_program,
     subdivide,
 )
+from driftlab.compensator.header import HeaderedOut
 from driftlab.compensator.parsed import KeptPiece, ParsedPieces, usable
 from driftlab.errors import ValidationError
 from driftlab.models import document as documents
@@ -109,6 +110,8 @@ class ErrorModel:
         """
         doc = documents.validate_document(document)
         name = label or f"{doc.machine} v{doc.version if doc.version is not None else '?'}"
+        if not doc.terms:
+            raise ValidationError(f"model {name} has no terms (terms: []): it would correct nothing; refused")
         return cls(
             predict=_checked_predict(doc),
             dims=documents.document_dims(doc),
@@ -1387,6 +1390,8 @@ class StreamOptions(TypedDict, total=False):
     chunk_points: int
     scan: ProgramScan | None
     guard: Guard | None
+    #: compensate_file only: comment lines written first (``compensator.header``), after a tape start
+    header: Sequence[str]
 
 
 def _first_pass(
@@ -1452,6 +1457,21 @@ def compensate_stream(
     return corrector.finish()
 
 
+def _regular_or_absent(path: Path) -> None:
+    """Refuse an output path that exists and is not a regular file (a device, a FIFO, a symlink, a directory)."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ValidationError(f"{path}: cannot write: {exc.strerror or exc}") from None
+    if stat.S_ISLNK(st.st_mode):
+        raise ValidationError(f"{path}: is a symbolic link; -o writes only a regular file (nothing written)")
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a directory" if stat.S_ISDIR(st.st_mode) else "a FIFO" if stat.S_ISFIFO(st.st_mode) else "a device"
+        raise ValidationError(f"{path}: is {kind}; -o writes only a regular file (nothing written)")
+
+
 def compensate_file(
     program_path: str | Path,
     model: ErrorModel,
@@ -1467,14 +1487,29 @@ def compensate_file(
     """
     out_path = Path(out_path)
     tmp = out_path.with_name(out_path.name + ".part")
+    for path in (out_path, tmp):
+        _regular_or_absent(path)  # before any work: -o never replaces a device, a FIFO or a symlink
     if options.get("scan") is None:  # the first pass, before the output is even opened
         options["scan"] = _first_pass(program_path, model, temperatures, options)
     try:
-        with tmp.open("wb") as fh:
-            result = compensate_stream(program_path, model, temperatures, fh, **options)
+        header = options.pop("header", ())
+        # O_NOFOLLOW | O_NONBLOCK: a symlink or FIFO put there since the check is refused, never followed or waited on
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_NONBLOCK, 0o666)
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise ValidationError(f"{tmp}: not a regular file; nothing written")
+        with os.fdopen(fd, "wb") as fh:
+            out = HeaderedOut(fh, header)
+            result = compensate_stream(program_path, model, temperatures, out, **options)  # type: ignore[arg-type]
+            out.close()
         tmp.replace(out_path)
+    except OSError as exc:
+        if tmp.is_file() and not tmp.is_symlink():
+            tmp.unlink(missing_ok=True)
+        raise ValidationError(f"{out_path}: cannot write: {exc.strerror or exc}; nothing written") from None
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        if tmp.is_file() and not tmp.is_symlink():
+            tmp.unlink(missing_ok=True)
         raise
     finally:
         scan = options["scan"]

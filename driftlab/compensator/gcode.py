@@ -4,12 +4,14 @@ Accepted language (one block per line, ISO 6983 style, as the thesis' controller
 
 * words ``X Y Z`` (mm) and ``A B`` (deg) on ``G0``/``G1`` (modal), ``G90``/``G91`` (modal,
   absolute by default), ``G21``; ``G4`` dwell (with ``P``); harmless modal codes
-  ``G17 G18 G19 G40 G43 G49 G54 G61 G64 G80 G94`` pass through;
+  ``G17 G18 G19 G40 G49 G54 G61 G64 G80 G94`` pass through;
 * pass-through words ``N`` (line number), ``M``, ``F``, ``S``, ``T``, ``P``, ``O``, ``H``, ``D``;
 * comments ``( ... )`` and ``; ...``, a ``%`` line as program start/end; a comment ``(T=123.0)``
   stamps the block with a time (s) used to pick its temperatures.
 
-Refused with a one-line ``PROGRAM:LINE: problem``: ``G20`` (inch), ``G2``/``G3`` arcs (and their
+Refused with a one-line ``PROGRAM:LINE: problem``: tool length offsets ``G43``/``G44``, ``G10``, macro and
+subprogram calls ``G65``/``G66``/``M97``/``M98``/``M99`` (their effect on the axes is not in the program's
+coordinates: issue 34), ``G20`` (inch), ``G2``/``G3`` arcs (and their
 ``I J K R`` words), other G-codes, axes the machine does not have, malformed numbers, feeds ``F``
 that are not positive.
 
@@ -61,7 +63,21 @@ for _w in "CUVW":
 # G codes times ten
 _G_MOTION = {0: 0, 10: 1}
 _G_DIST = {900: 0, 910: 1}
-_G_OK = {40, 170, 180, 190, 210, 400, 430, 490, 540, 610, 640, 800, 940}
+_G_OK = {40, 170, 180, 190, 210, 400, 490, 540, 610, 640, 800, 940}
+#: codes whose effect on the axes the compensator cannot see (issue 34): tool length offsets shift Z by a
+#: length the envelope does not know, subprogram calls run moves that are neither checked nor corrected
+_G_UNSEEN = {
+    430: "G43 applies a tool length offset",
+    440: "G44 applies a tool length offset",
+    100: "G10 sets offsets",
+    650: "G65 calls a macro",
+    660: "G66 calls a macro",
+}
+_M_UNSEEN = {
+    97: "M97 calls a local subprogram",
+    98: "M98 calls a subprogram",
+    99: "M99 returns from or loops a subprogram",
+}
 
 
 @dataclass(frozen=True)
@@ -395,6 +411,15 @@ def _word_errors(w: _Words, buf: np.ndarray, cls: np.ndarray, lines: _Lines, err
         else:
             msg = f"unsupported word '{ltr}'"
         errors.append((int(w.lid[i]), msg))
+    # subprogram calls: the moves they run are neither checked against the envelope nor corrected
+    mi = np.flatnonzero((w.letter == ord("M")) & w.valid)
+    for j in mi[np.isin(w.value[mi], list(_M_UNSEEN))][:1000].tolist():
+        errors.append(
+            (
+                int(w.lid[j]),
+                f"{_M_UNSEEN[int(w.value[j])]} the compensator cannot see: refused (expand it into the program)",
+            )
+        )
     # feeds: F0 stalls the controller and a negative feed is no feed; both are refused here, not mid-run
     fi = np.flatnonzero((w.letter == ord("F")) & w.valid)
     for j in fi[~(w.value[fi] > 0)][:1000].tolist():
@@ -422,7 +447,9 @@ def _modes(w: _Words, n_lines: int, errors: list[tuple[int, str]]) -> tuple[np.n
     known = np.isin(g10, list(_G_MOTION) + list(_G_DIST) + list(_G_OK)) & g_exact
     for j in np.flatnonzero(~known)[:1000].tolist():
         text = f"G{w.value[gi[j]]:g}"
-        if g_exact[j] and g10[j] in (20, 30):
+        if g_exact[j] and int(g10[j]) in _G_UNSEEN:
+            msg = f"{_G_UNSEEN[int(g10[j])]} the envelope cannot account for: refused (apply it in the program)"
+        elif g_exact[j] and g10[j] in (20, 30):
             msg = f"{text}: circular interpolation is not supported (linearise arcs into G1 first)"
         elif g_exact[j] and g10[j] == 200:
             msg = "G20: inch units are not supported (the program must be in mm, G21)"

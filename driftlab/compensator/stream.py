@@ -41,6 +41,7 @@ from driftlab.compensator.compensate import (
 )
 from driftlab.compensator.gcode import Points, Program, count_points, emit, subdivide
 from driftlab.compensator.guard import Guard
+from driftlab.daq.dnc import carries_code, unsendable
 from driftlab.errors import InstrumentError, NotFoundError, ValidationError
 from driftlab.physics.lag import LaggedReadings, LagState
 
@@ -255,6 +256,8 @@ class StreamSummary(TypedDict):
     latency_ms_max: float
     #: added by ``driftlab compensate --stream``: the channels read beyond their fitted range (``Guard.report``)
     extrapolated: NotRequired[dict[str, dict[str, float]]]
+    #: added by ``driftlab compensate --link dnc``: characters sent, DC3s seen, time held (s)
+    dnc: NotRequired[dict[str, float]]
 
 
 @dataclass
@@ -312,9 +315,40 @@ def _rows(text: bytes) -> list[bytes]:
 
 
 def _sendable(text: str) -> bool:
-    """Return True for a line that is a block for the controller (not blank, a comment or ``%``)."""
-    s = text.strip()
-    return bool(s) and s != "%" and not s.startswith(("(", ";"))
+    """Return True for a line that is a block for the controller: code once comments are out (``dnc.carries_code``;
+    a line ``(note) G1 X1`` is a block, not a comment)."""
+    return carries_code(text)
+
+
+#: bytes a block may carry down a controller's line: printable 7-bit ASCII, tab, and the line ends
+_LINE_OK = np.zeros(256, dtype=bool)
+_LINE_OK[0x20:0x7F] = True
+_LINE_OK[[0x09, 0x0A, 0x0D]] = True
+
+
+def check_sendable(pieces: Iterable[tuple[int, bytes]], name: str) -> None:
+    """Refuse, before the first byte is sent, a program with a block the line cannot carry (``dnc.unsendable``).
+
+    ``pieces``: (lines before, text) of the program (``compensate.program_pieces``). Every line that
+    will be sent (not blank, a comment line or ``%``) must be printable 7-bit ASCII without a ``%``: a
+    Latin-1 comment, a control character (a DC3 in a comment would stop the line) or a ``%`` in a block
+    is one line ``PROGRAM:LINE: ...; program not accepted``, never a failure in the middle of the part.
+    """
+    for before, text in pieces:
+        buf = np.frombuffer(text, dtype=np.uint8)
+        odd = np.flatnonzero(~_LINE_OK[buf] | (buf == 0x25))
+        if odd.shape[0] == 0:
+            continue
+        nl = np.flatnonzero(buf == 10)
+        for li in np.unique(np.searchsorted(nl, odd)).tolist():
+            a = int(nl[li - 1]) + 1 if li > 0 else 0
+            b = int(nl[li]) if li < nl.shape[0] else len(text)
+            row = text[a:b].rstrip(b"\r")
+            if not carries_code(row.decode("latin-1")):
+                continue  # not sent
+            why = unsendable(row)
+            if why is not None:
+                raise ValidationError(f"{name}:{before + li + 1}: {why}; program not accepted")
 
 
 @dataclass(frozen=True)

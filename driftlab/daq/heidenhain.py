@@ -123,7 +123,9 @@ class HeidenhainLink:
     def _read(self, what: str, fn: Callable[[Any], Any]) -> Any:
         """Return ``fn(client)``; after a transient fault reconnect and read once more, then InstrumentError."""
         lib = _library()
-        faults = _TRANSIENT + (lib.LSV2ProtocolException, lib.LSV2StateException, ValueError)
+        # LSV2DataException: pyLSV2 could not parse a reply's data (``misc.decode_axis_location``: "error while
+        # parsing axis data"): read once more on a new connection, then one line, never the library's exception
+        faults = _TRANSIENT + (lib.LSV2ProtocolException, lib.LSV2StateException, lib.LSV2DataException, ValueError)
         for attempt in (1, 2):
             try:
                 client = self._client if self._client is not None else self._session()

@@ -30,6 +30,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
+from driftlab.daq.dnc import carries_code
 from driftlab.daq.protocols import StreamReport
 from driftlab.daq.retry import RetryPolicy
 from driftlab.daq.transport import LineChannel, SerialPort
@@ -150,7 +151,7 @@ class SerialMachineLink:
             raise ValidationError("low_water must be >= 0")
         blocks = (ln.strip() for ln in lines)
         pending = next(blocks, None)
-        while pending is not None and (not pending or pending.startswith(("(", ";"))):
+        while pending is not None and not carries_code(pending):
             pending = next(blocks, None)
         sent = polls = starved = 0
         min_free: int | None = None
@@ -178,7 +179,7 @@ class SerialMachineLink:
                 sent += 1
                 queued += 1
                 pending = next(blocks, None)
-                while pending is not None and (not pending or pending.startswith(("(", ";"))):
+                while pending is not None and not carries_code(pending):
                     pending = next(blocks, None)
         if wait:
             self.wait_done()

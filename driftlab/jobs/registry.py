@@ -22,6 +22,8 @@ def register_model(
 ) -> ModelDocument:
     """Store a document as its machine's new current version (the old one retired, still readable); return it."""
     doc = validate_document(document)
+    if not doc.terms:  # made current it would compensate nothing while the shop believes it compensates
+        raise ValidationError(f"model document of machine {doc.machine!r} has no terms (terms: []): not registered")
     stored = document_json(doc.model_copy(update={"version": None}))
     try:
         info = store.models.register(doc.machine, stored, [int(c) for c in source_campaigns])

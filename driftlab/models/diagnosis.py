@@ -57,9 +57,12 @@ from driftlab.models.effects import (
     step_bank,
     tau_bounds,
 )
+from driftlab.models.findings import REPORT_FORMAT, parse_findings
+from driftlab.models.fitted_baseline import FittedBaseline, fit_baseline
 from driftlab.models.lag_pinning import averaged_lag, profile_tau
 from driftlab.models.sensor_drift import scan_sensor_drifts
 from driftlab.models.standard_model import (
+    ChannelSelection,
     LinearFit,
     OutlierFlags,
     PreparedBundle,
@@ -317,6 +320,8 @@ class Effect:
     direction: np.ndarray
     train: np.ndarray
     replaces: str | None = None  # sensor_fault: the dT column it replaces
+    #: the fitted model already carries this effect (its figures: the model without it, then with it)
+    in_model: bool = False
 
     @property
     def gain(self) -> float:
@@ -352,7 +357,22 @@ class Effect:
             "rmse_holdout_after": self.rmse_holdout_after,
             "holdout_verdict": self.verdict,
             "physical": self.kind not in NON_PHYSICAL_KINDS,
+            "in_model": self.in_model,
         }
+
+
+#: the baseline of a term: the model ``driftlab fit`` registers (fitted on the training part), or the per-term model;
+#: and the extended model of a fitted term: that fit with the bundle's findings folded in
+FITTED, PER_TERM, FITTED_WITH_FINDINGS = "fitted", "per_term", "fitted+findings"
+
+
+@dataclass(frozen=True)
+class Baseline:
+    """What a term is judged against: which model, and its RMSE on the training and held-out rows."""
+
+    model: str
+    rmse_train: float
+    rmse_holdout: float
 
 
 @dataclass
@@ -366,24 +386,51 @@ class TermDiagnosis:
     extended: LinearFit
     extended_names: list[str]
     extended_X: np.ndarray
+    #: the model the term is judged against (the fitted model where it covers the term)
+    baseline: Baseline | None = None
+    #: the fitted model refitted with the bundle's findings folded in (the document ``fit --findings`` makes)
+    document: Baseline | None = None
+
+    @property
+    def base(self) -> Baseline:
+        """Return the baseline's figures (the per-term model's where no fitted model covers the term)."""
+        if self.baseline is not None:
+            return self.baseline
+        f = self.standard.fit
+        return Baseline(PER_TERM, f.rmse_train, f.rmse_holdout)
 
     def baseline_dict(self) -> dict[str, Any]:
-        """Return the spec's ``baseline[]`` entry."""
-        f = self.standard.fit
+        """Return the spec's ``baseline[]`` entry (``model``: which model it is, ``fitted`` or ``per_term``)."""
+        b = self.base
         return {
             "axis": self.td.axis,
             "term": self.td.term,
-            "rmse_train": f.rmse_train,
-            "rmse_holdout": f.rmse_holdout,
+            "rmse_train": b.rmse_train,
+            "rmse_holdout": b.rmse_holdout,
             "unit": self.td.unit,
+            "model": b.model,
             "channels": self.standard.channels,
             "channel_source": self.standard.selection.source,
         }
 
+    @property
+    def ext(self) -> Baseline:
+        """Return the extended model's figures: the model the compensator would load with the findings.
+
+        Judged against the fitted model, that is the fit with the bundle's findings folded in
+        (``fit --findings``: ``document``), or the fitted model unchanged when there are none; a
+        per-term model's extension is the search's own.
+        """
+        if self.document is not None:
+            return self.document
+        if self.baseline is not None and self.baseline.model == FITTED:
+            return self.baseline
+        return Baseline(PER_TERM, self.extended.rmse_train, self.extended.rmse_holdout)
+
     def extended_dict(self) -> dict[str, Any]:
         """Return the spec's ``extended[]`` entry (``holdout_verdict`` against the baseline as an extra)."""
-        f = self.extended
-        b = self.standard.fit.rmse_holdout
+        f = self.ext
+        b = self.base.rmse_holdout
         verdict = None
         if np.isfinite(b) and np.isfinite(f.rmse_holdout) and self.effects:
             verdict = "worse" if f.rmse_holdout > b else ("better" if f.rmse_holdout < b else "same")
@@ -393,6 +440,7 @@ class TermDiagnosis:
             "rmse_train": f.rmse_train,
             "rmse_holdout": f.rmse_holdout,
             "unit": self.td.unit,
+            "model": f.model,
             "holdout_verdict": verdict,
         }
 
@@ -1356,6 +1404,10 @@ class SearchConfig:
     min_explained_train: float = 0.5
     top_k: int = 6
     alpha: float = 0.01
+    #: the catalogue kinds this search may accept (None: every kind)
+    kinds: frozenset[str] | None = None
+    #: at most one effect of each kind (the effects a fitted model carries: one reversal, one screw)
+    one_per_kind: bool = False
 
     @property
     def validation_rule(self) -> tuple[float, float, float]:
@@ -1560,7 +1612,11 @@ class _TermSearch:
     def _round(self) -> tuple[Effect, _Trial, np.ndarray | None] | None:
         """Return the first candidate of this round that passes every rule (None: the search ends)."""
         ctx, td, state, cfg = self.ctx, self.td, self.state, self.cfg
-        built = screen(state.X, td.y, td.train, build_candidates(ctx))
+        cands = build_candidates(ctx)
+        if cfg.kinds is not None or cfg.one_per_kind:
+            have = {e.kind for e in state.effects} if cfg.one_per_kind else set()
+            cands = [c for c in cands if (cfg.kinds is None or c.kind in cfg.kinds) and c.kind not in have]
+        built = screen(state.X, td.y, td.train, cands)
         scored = [s for s in built if s.p_value < cfg.alpha_each and s.cand.key not in ctx.taken]
         scored.sort(key=lambda s: (s.p_value, -np.nan_to_num(s.F)))
         # try the best candidate of every kind first: one kind's many near-identical channels must
@@ -1959,27 +2015,35 @@ def _features(prep: PreparedBundle) -> _Features:
 
 
 def _contexts(
-    prep: PreparedBundle, standards: list[StandardModel], feat: _Features
+    prep: PreparedBundle,
+    standards: list[StandardModel],
+    feat: _Features,
+    kinds: frozenset[str] | None = None,
+    index: list[int] | None = None,
 ) -> tuple[list[TermContext], list[tuple[TermContext, StandardModel]], int]:
     """Return every term's context, its denoised view, and the size of the family of hypotheses.
 
-    The family: every candidate of every kind, channel, tau grid point and term, and every channel
-    scanned for a fault (the temperature evidence is one hypothesis per channel).
+    The family: every candidate of every kind (of ``kinds``), channel, tau grid point and term, and
+    every channel scanned for a fault (the temperature evidence is one hypothesis per channel).
+    ``index``: the bundle's term number of each of ``prep.terms`` (default: the same order).
     """
     taus = feat.taus
     contexts: list[TermContext] = []
     dviews: list[tuple[TermContext, StandardModel]] = []
     n_hyp = len(feat.faults) + len(feat.drifts)
-    for i, (td, std) in enumerate(zip(prep.terms, standards)):
+    for k, (td, std) in enumerate(zip(prep.terms, standards)):
+        i = index[k] if index is not None else k
         lo, hi = tau_bounds(prep, td)
         keep = np.flatnonzero((taus >= lo * 0.999) & (taus <= hi * 1.001))
         sel = slice(int(keep[0]), int(keep[-1]) + 1) if keep.size else slice(0, 0)
         sub_bank = {c: b[:, sel] for c, b in feat.bank.items()}  # views, no copies
         ctx = build_context(prep, td, std.channels, feat.faults, sub_bank, taus[sel])
-        n_hyp += sum(c.family_size for c in build_candidates(ctx))
+        n_hyp += sum(c.family_size for c in build_candidates(ctx) if kinds is None or c.kind in kinds)
         contexts.append(ctx)
-        td_d = feat.prep_d.terms[i]
-        dstd = refit_standard(td_d, feat.prep_d, std.selection)
+        td_d = replace(feat.prep_d.terms[i], y=td.y)  # the denoised readings, the errors this search explains
+        dstd = (
+            offset_model(td_d, std.selection) if _is_offset(std) else refit_standard(td_d, feat.prep_d, std.selection)
+        )
         # no lag bank: a lag is only ever rebuilt there at the tau found on the readings (columns_like)
         dctx = build_context(feat.prep_d, td_d, std.channels, feat.faults, None, None)
         dviews.append((dctx, dstd))
@@ -2003,6 +2067,137 @@ def _broken_channels(
     return broken
 
 
+OFFSET = ["intercept"]
+
+
+def _fold_findings(
+    bundle: Any, holdout_fraction: float, measured: PreparedBundle, terms: list[TermDiagnosis], fitted: FittedBaseline
+) -> None:
+    """Set each fitted term's ``document``: the fit with the new findings folded in, scored on its rows.
+
+    The findings are what ``driftlab fit --findings REPORT.json`` reads (the effects the fitted model
+    does not carry yet), fitted on the same training rows; its held-out figure is the gain of the
+    model the compensator would load. Kinds the fit does not fold in are reported, not modelled.
+    """
+    new = [e.to_dict() for t in terms if t.base.model == FITTED for e in t.effects if not e.in_model]
+    if not fitted.available or not new:
+        return
+    findings = parse_findings({"format": REPORT_FORMAT, "bundle": measured.name, "effects": new})
+    refit = fit_baseline(bundle, holdout_fraction, measured, findings=findings)
+    if not refit.available:
+        return
+    for t, td in zip(terms, measured.terms):
+        if t.base.model != FITTED:
+            continue
+        pred = refit.predict(td)
+        if pred is not None:
+            r = td.y - pred
+            t.document = Baseline(FITTED_WITH_FINDINGS, rmse(r[td.train]), rmse(r[~td.train]))
+
+
+def _carried_effects(
+    td: TermData,
+    carried: list[int],
+    contexts: list[TermContext],
+    standards: list[StandardModel],
+    dviews: list[tuple[TermContext, StandardModel]],
+    cfg: SearchConfig,
+) -> list[Effect]:
+    """Return the catalogue effects the fitted model carries on a term, earned again from the data.
+
+    The search runs on the fitted model's residual without its terms of those kinds (reversal,
+    screw expansion along the moving axis), one effect of each kind at most, under every rule of the
+    main search: what it accepts is named (on the channel the residual follows) and its held-out
+    gain is that of the model without it against with it. The model is not changed by this.
+    """
+    for k, i in enumerate(carried):
+        ctx = contexts[k]
+        if (ctx.td.axis, ctx.td.term) != (td.axis, td.term):
+            continue
+        effects, _ = _search_term(ctx, standards[i], replace(cfg, one_per_kind=True), dviews[k], TermFaults())
+        for e in effects:
+            e.in_model = True
+            e.cause += (
+                " The fitted model already carries it: the held-out figures are that model without it and with it."
+            )
+        return effects
+    return []
+
+
+def offset_model(td: TermData, sel: ChannelSelection) -> StandardModel:
+    """Return the search's base for a term judged against the fitted model: an intercept on its residual."""
+    X = np.ones((td.n, 1))
+    return StandardModel(td, sel, X, list(OFFSET), fit_columns(X, td.y, td.train, list(OFFSET)))
+
+
+def _is_offset(std: StandardModel) -> bool:
+    """Return whether a term's base is the fitted model's residual (``offset_model``)."""
+    return std.names == OFFSET
+
+
+#: the catalogue kinds a fitted model may already carry along an axis (``fitted_baseline.carried_on``)
+CARRIED_KINDS = frozenset({"reversal", "screw_expansion"})
+#: the share of the family alpha spent on them: few hypotheses (the terms where the model carries one),
+#: each a term the fit already chose, so a small share keeps their test's power
+CARRIED_SHARE = 0.05
+
+
+@dataclass(frozen=True)
+class Judged:
+    """The bundle's terms as the search sees them, once the fitted model is the baseline (issue 33).
+
+    ``prep``/``standards``: what the main search explains (the fitted model's residual, or the per-term
+    model's errors); ``carried``/``carried_standards``: for the terms whose fitted model carries a
+    catalogue effect, the residual of that model without it (None elsewhere), searched first for those
+    kinds alone so that the diagnosis names them and states their gain.
+    """
+
+    prep: PreparedBundle
+    standards: list[StandardModel]
+    baselines: list[Baseline | None]
+    carried: PreparedBundle
+    carried_standards: list[StandardModel | None]
+
+
+def on_fitted_baseline(prep: PreparedBundle, standards: list[StandardModel], fitted: FittedBaseline) -> Judged:
+    """Return the bundle with every term the fitted model covers judged against it (issue 33).
+
+    Such a term's errors become the fitted model's residual (what the model the compensator loads
+    gets wrong) and the search starts from an intercept on it; its baseline figures are the fitted
+    model's own (no intercept). A term the fitted model does not cover keeps its per-term model.
+    """
+    terms: list[TermData] = []
+    carried: list[TermData] = []
+    stds: list[StandardModel] = []
+    carried_stds: list[StandardModel | None] = []
+    bases: list[Baseline | None] = []
+    for td, std in zip(prep.terms, standards):
+        pred = fitted.predict(td) if fitted.available else None
+        without = fitted.predict_without_carried(td) if pred is not None else None
+        if pred is None or without is None:
+            terms.append(td)
+            carried.append(td)
+            stds.append(std)
+            carried_stds.append(None)
+            bases.append(None)
+            continue
+        r = td.y - pred
+        tr = td.train
+        td_r = replace(td, y=r)
+        terms.append(td_r)
+        stds.append(offset_model(td_r, std.selection))
+        bases.append(Baseline(FITTED, rmse(r[tr]), rmse(r[~tr])))
+        # the carried effects' contribution: what the model predicts with them less without them
+        if np.ptp(pred - without) > 0:
+            td_c = replace(td, y=td.y - without)
+            carried.append(td_c)
+            carried_stds.append(offset_model(td_c, std.selection))
+        else:
+            carried.append(td_r)
+            carried_stds.append(None)
+    return Judged(replace(prep, terms=terms), stds, bases, replace(prep, terms=carried), carried_stds)
+
+
 def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: float, max_effects: int) -> DiagnosisResult:
     """Run the diagnosis phases and time them (see :func:`diagnose_bundle`)."""
     timings: dict[str, float] = {}
@@ -2011,12 +2206,20 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     timings["prepare"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
+    fitted = fit_baseline(bundle, holdout_fraction, prep)
+    timings["fitted_model"] = time.perf_counter() - t1
+
+    t1 = time.perf_counter()
     standards = [fit_standard_model(td, prep) for td in prep.terms]
     timings["standard_model"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
+    measured = prep
+    judged = on_fitted_baseline(prep, standards, fitted)
+    prep, standards, baselines = judged.prep, judged.standards, judged.baselines
     noises = [_noise_level(prep, td, std) for td, std in zip(prep.terms, standards)]
-    sims = [compare_simulation(td, prep, nz) for td, nz in zip(prep.terms, noises)]
+    # the time-driven laws are compared with the measured errors, not with what a model leaves of them
+    sims = [compare_simulation(td, measured, nz) for td, nz in zip(measured.terms, noises)]
     timings["simulation"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()
@@ -2025,27 +2228,39 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
 
     t1 = time.perf_counter()
     contexts, dviews, n_hyp = _contexts(prep, standards, feat)
-    # Bonferroni over the union of two families that share the family alpha: the error candidates
-    # (alpha / 2 over them) and the channels scanned for a fault on the temperatures (alpha / 2 over those)
+    carried = [i for i, c in enumerate(judged.carried_standards) if c is not None]
+    c_std = [judged.carried_standards[i] or standards[i] for i in range(len(standards))]
+    sub = replace(judged.carried, terms=[judged.carried.terms[i] for i in carried])
+    c_ctx, c_dviews, n_c = _contexts(sub, [c_std[i] for i in carried], feat, kinds=CARRIED_KINDS, index=carried)
+    # Bonferroni over the union of the families that share the family alpha: the error candidates
+    # (alpha / 2 over them; of which CARRIED_SHARE x alpha over the candidates of the effects a fitted
+    # model carries, tested on its residual without them) and the channels scanned for a fault on the
+    # temperatures (alpha / 2 over those)
     n_ch = len(feat.faults) + len(feat.drifts)
-    alpha_each = 0.5 * alpha / max(n_hyp - n_ch, 1)
+    n_c -= n_ch
+    share = CARRIED_SHARE if carried and n_c > 0 else 0.0
+    alpha_each = (0.5 - share) * alpha / max(n_hyp - n_ch, 1)
+    alpha_carried = share * alpha / max(n_c, 1)
     alpha_fault = 0.5 * alpha / max(n_ch, 1)
     # sensor faults are decided on the temperatures alone, before any error is looked at
     broken = _broken_channels(feat, alpha_fault, prep, contexts, standards)
     terms: list[TermDiagnosis] = []
     unexplained: list[Unexplained] = []
     fed: set[str] = set()
-    for ctx, std, sim, nz, dview in zip(contexts, standards, sims, noises, dviews):
+    for ctx, std, sim, nz, dview, base in zip(contexts, standards, sims, noises, dviews, baselines):
         here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
         p_here = max((f.p_value for f in here), default=1.0)
         fed |= {f.channel for f in here}
         cfg = SearchConfig(alpha_each, min_gain, max_effects, nz, alpha=alpha)
+        c_cfg = replace(cfg, alpha_each=alpha_carried, kinds=CARRIED_KINDS)
+        named = _carried_effects(ctx.td, carried, c_ctx, c_std, c_dviews, c_cfg)
         effects, state = _search_term(ctx, std, cfg, dview, TermFaults(here, p_here, broken))
-        terms.append(TermDiagnosis(ctx.td, std, sim, effects, state.fit, state.names, state.X))
+        terms.append(TermDiagnosis(ctx.td, std, sim, named + effects, state.fit, state.names, state.X, base))
         in_model = [n[3:] for n in state.names if n.startswith("dT_")]
         left = unexplained_term(ctx.td, state.fit.residual, prep, in_model, nz)
         if left is not None:
             unexplained.append(left)
+    _fold_findings(bundle, holdout_fraction, measured, terms, fitted)
     # a broken channel that feeds no model is still a finding about the temperatures (no error gain)
     loose = [_unfed_fault(prep, f) for ch, f in sorted(broken.items(), key=lambda kv: kv[1].start_s) if ch not in fed]
     timings["search"] = time.perf_counter() - t1

@@ -9,12 +9,17 @@ import math
 from typing import TYPE_CHECKING, Any
 
 from driftlab.jsonsafe import strict_json
-from driftlab.labels import duration, effect_label, feature_label
+from driftlab.labels import duration, effect_label, feature_label, si_text
 
 if TYPE_CHECKING:
     from driftlab.models.diagnosis import DiagnosisResult, Effect, TermDiagnosis
 
 FORMAT = "driftlab-diagnosis/1"
+
+
+def _text(value: object) -> str:
+    """Return text for the page: SI unit symbols (µm, µrad, °C) for the ASCII ones, HTML-escaped."""
+    return html.escape(si_text(str(value)))
 
 
 def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
@@ -44,6 +49,7 @@ def to_json_dict(res: DiagnosisResult) -> dict[str, Any]:
             "sensor_drift": "temperature evidence alone (a ramp of the virtual-sensor departure, peer test)",
             "datum_shift": "a sharp, lasting step of the sweep means (not validated forward: an artefact)",
             "unexplained_ratio": 1.5,
+            "unexplained_holdout_ratio": 2.0,
         },
         "flags": [f.to_dict() for f in res.flags],
         "timings_s": res.timings_s,
@@ -67,8 +73,8 @@ def _png(fig: Any, alt: str = "plot") -> str:
 
 
 def _scale(unit: str) -> tuple[float, str]:
-    """Return the display factor and unit (um for mm, urad for rad)."""
-    return (1e6, "urad") if unit == "rad" else (1e3, "um")
+    """Return the display factor and unit (µm for mm, µrad for rad)."""
+    return (1e6, "µrad") if unit == "rad" else (1e3, "µm")
 
 
 def _thin(n: int, most: int = 4000) -> slice:
@@ -77,7 +83,7 @@ def _thin(n: int, most: int = 4000) -> slice:
 
 
 def _effect_plot(eff: Effect, unit: str) -> str:
-    """Return the residual plot that shows one finding (axes in words and um/urad)."""
+    """Return the residual plot that shows one finding (axes in words and µm/µrad)."""
     # lazy: matplotlib adds 0.39 s to this module, and only the HTML report's figures need it (measured)
     import matplotlib
 
@@ -122,9 +128,9 @@ def _effect_plot(eff: Effect, unit: str) -> str:
 def _feature_unit(name: str) -> str:
     """Return the unit suffix of a regressor on an axis label."""
     if name.startswith(("lag", "dT", "fault")):
-        return " (degC\u00b2)" if name.endswith("^2") else " (degC)"
+        return " (°C²)" if name.endswith("^2") else " (°C)"
     if name.startswith("position*"):
-        return " (mm degC)"
+        return " (mm °C)"
     return ""
 
 
@@ -194,7 +200,7 @@ def _overview(bundle: Any) -> str:
     for i, (g, chans) in enumerate(sorted(groups.items())):
         mean = temps[chans].mean(axis=1).to_numpy()
         ax.plot(th, mean, lw=1, color=f"C{i % 10}", label=g.replace("_", " "))
-    ax.set_ylabel("mean temperature\nper structure (degC)", fontsize=8)
+    ax.set_ylabel("mean temperature\nper structure (°C)", fontsize=8)
     ax.legend(fontsize=6, ncol=6, loc="upper left")
     for ax, (axis, term) in zip(axes[2:], keys):
         k, lab = _scale("rad" if term in ("alpha", "beta", "gamma") else "mm")
@@ -236,7 +242,7 @@ def _params_text(eff: Effect) -> str:
 
 def _html_head(res: DiagnosisResult) -> list[str]:
     """Return the page's head, title and the paragraph on how the findings were decided."""
-    e = html.escape
+    e = _text
     return [
         f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
         f"<title>driftlab diagnosis: {e(res.bundle)}</title>",
@@ -258,7 +264,7 @@ def _html_head(res: DiagnosisResult) -> list[str]:
 
 def _html_campaign(bundle: Any) -> list[str]:
     """Return the campaign's stages and overview (the bundle itself, when the page is given it)."""
-    e = html.escape
+    e = _text
     stages = [
         [
             e(st.name),
@@ -280,7 +286,7 @@ def _html_campaign(bundle: Any) -> list[str]:
 
 def _html_finding(i: int, eff: Effect) -> str:
     """Return one finding: its kind and place, cause, parameters, held-out gain or loss (in red) and its plot."""
-    e = html.escape
+    e = _text
     unit = "rad" if eff.term in ("alpha", "beta", "gamma") else "mm"
     k, lab = _scale(unit)
     where = f"{e(eff.axis)}/{e(eff.term or '')}" if eff.axis else "the temperatures (no model uses this channel)"
@@ -304,16 +310,17 @@ def _html_finding(i: int, eff: Effect) -> str:
 
 def _html_models(res: DiagnosisResult) -> list[str]:
     """Return the table of the standard model and the model with the findings, per term (worse in red)."""
-    e = html.escape
+    e = _text
     rows = []
     for t in res.terms:
         k, lab = _scale(t.td.unit)
-        b, x = t.standard.fit, t.extended
+        b, x = t.base, t.ext
         rows.append(
             [
                 e(t.td.axis),
                 e(t.td.term),
                 lab,
+                e("fitted model" if b.model == "fitted" else "per-term model"),
                 e(", ".join(t.standard.channels)),
                 e(t.standard.selection.source),
                 f"{b.rmse_train * k:.2f}",
@@ -327,42 +334,53 @@ def _html_models(res: DiagnosisResult) -> list[str]:
                 str(len(t.effects)),
             ]
         )
-    head = ["axis", "term", "unit", "model thermocouples", "thermocouples chosen by", "baseline train RMSE"]
+    head = ["axis", "term", "unit", "baseline", "model thermocouples", "thermocouples chosen by", "baseline train RMSE"]
     head += ["baseline held-out RMSE", "with findings, train", "with findings, held out", "findings"]
-    return ["<h2>Standard model (baseline) and the model with the findings</h2>", _table(rows, head)]
+    return [
+        "<h2>Baseline (the fitted model, or the per-term model) and the model with the findings</h2>",
+        _table(rows, head),
+    ]
 
 
 def _html_unexplained(res: DiagnosisResult) -> list[str]:
     """Return the unexplained terms with their hints (or that every term is explained to its noise)."""
-    e = html.escape
+    e = _text
     out = [f"<h2>Unexplained ({len(res.unexplained)})</h2>"]
     if not res.unexplained:
-        out.append("<p>Every term is explained to its measurement noise (training residual at most 1.5 x noise).</p>")
+        out.append(
+            "<p>Every term is explained to its measurement noise (training residual at most 1.5 x noise, "
+            "held-out residual at most 2 x noise).</p>"
+        )
         return out
     out.append(
-        "<p>Terms whose training residual, after the findings above, stays above 1.5 x the measurement noise: "
-        "the model does not explain them to their noise. The hints name the residual's signature.</p>"
+        "<p>Terms whose residual, after the findings above, stays above the measurement noise: 1.5 x in "
+        "training, or 2 x on the held-out part (held out shows what training did not; scored after every "
+        "decision, it changed none). The hints name the training residual's signature.</p>"
     )
     urows = []
     for u in res.unexplained:
         k, lab = _scale("rad" if u.term in ("alpha", "beta", "gamma") else "mm")
+        ho = f"{u.rmse_holdout * k:.2f} {lab}" if math.isfinite(u.rmse_holdout) else "-"
         urows.append(
             [
                 e(u.axis),
                 e(u.term),
+                e(u.part),
                 f"<span class='worse'>{u.residual_over_noise:.1f} x</span>",
                 f"{u.rmse_train * k:.2f} {lab}",
+                f"<span class='worse'>{ho}</span>" if u.part == "held out" else ho,
                 f"{u.noise * k:.2f} {lab}",
                 e("; ".join(u.hints)),
             ]
         )
-    out.append(_table(urows, ["axis", "term", "residual / noise", "training residual", "noise", "hints"]))
+    head = ["axis", "term", "shown by", "training residual / noise", "training residual", "held-out residual"]
+    out.append(_table(urows, [*head, "noise", "hints"]))
     return out
 
 
 def _html_simulation(res: DiagnosisResult) -> list[str]:
     """Return the calibrated simulation laws against the data, per term, with their plots."""
-    e = html.escape
+    e = _text
     out = ["<h2>Simulation (Appendix A time-driven laws, calibrated) against the data</h2>"]
     rows = []
     for t in res.terms:
@@ -384,7 +402,7 @@ def _html_simulation(res: DiagnosisResult) -> list[str]:
 
 def _html_flags(res: DiagnosisResult) -> list[str]:
     """Return the table of flagged data (spikes, out-of-range readings, held scans)."""
-    e = html.escape
+    e = _text
     if not res.flags:
         return ["<h2>Flagged data</h2>", "<p>No spikes, out-of-range readings or long gaps.</p>"]
     rows = [
@@ -410,7 +428,7 @@ def to_html(res: DiagnosisResult, bundle: Any = None) -> str:
     effects = res.effects
     out.append(f"<h2>Findings ({len(effects)})</h2>")
     if not effects:
-        out.append("<p>No effect of the catalogue is supported by the data: the standard model stands.</p>")
+        out.append("<p>No effect of the catalogue is supported by the data: the baseline model stands.</p>")
     out += [_html_finding(i, eff) for i, eff in enumerate(effects, 1)]
     out += _html_models(res)
     out += _html_unexplained(res)

@@ -5,6 +5,7 @@ Pure: storing and listing versions is ``driftlab.jobs.registry``, which joins do
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
 from typing import Any, Final, Literal, TypeAlias
@@ -36,6 +37,15 @@ class InputRange(_Doc):
     reference: float
     min: float
     max: float
+
+    @model_validator(mode="after")
+    def _ordered(self) -> InputRange:
+        """Require finite numbers and min <= max (the compensator's extrapolation guard reads them)."""
+        if not all(math.isfinite(v) for v in (self.reference, self.min, self.max)):
+            raise ValueError("input reference, min and max must be finite")
+        if self.min > self.max:
+            raise ValueError(f"input range min {self.min:g} is above max {self.max:g}")
+        return self
 
 
 class FeatureDoc(_Doc):

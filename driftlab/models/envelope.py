@@ -27,6 +27,11 @@ from driftlab.vocabulary import AXES, Axis
 DEFAULT_MAX_CORRECTION: Final[Mapping[Axis, float]] = {"X": 1.0, "Y": 1.0, "Z": 1.0, "A": 0.1, "B": 0.1}
 #: how far (degC) a reading may leave the range its channel was fitted on before it is refused
 DEFAULT_EXTRAPOLATION_MARGIN_DEGC: Final = 5.0
+#: the most an envelope may allow (issue 34): a thermal error is tens of micrometres (ch. 1), so a stated
+#: largest correction above a few millimetres (or a degree) or a margin of more than tens of degC is a
+#: typo or a guard switched off, not a machine: such documents and machine files are refused
+MAX_CORRECTION_BOUND: Final[Mapping[str, float]] = {"X": 5.0, "Y": 5.0, "Z": 5.0, "A": 1.0, "B": 1.0}
+MAX_MARGIN_DEGC: Final = 30.0
 
 
 class Envelope(BaseModel):
@@ -38,7 +43,9 @@ class Envelope(BaseModel):
     travel: dict[Axis, tuple[StrictFloat, StrictFloat]] = Field(default_factory=dict)
     #: per axis (mm for X Y Z, degrees for A B)
     max_correction: dict[Axis, StrictFloat] = Field(default_factory=lambda: dict(DEFAULT_MAX_CORRECTION))
-    extrapolation_margin_degC: StrictFloat = Field(default=DEFAULT_EXTRAPOLATION_MARGIN_DEGC, ge=0, allow_inf_nan=False)
+    extrapolation_margin_degC: StrictFloat = Field(
+        default=DEFAULT_EXTRAPOLATION_MARGIN_DEGC, ge=0, le=MAX_MARGIN_DEGC, allow_inf_nan=False
+    )
     #: where the envelope came from (a machine file, a plan), for messages
     source: str = Field(default="", max_length=200)
 
@@ -54,10 +61,16 @@ class Envelope(BaseModel):
     @field_validator("max_correction")
     @classmethod
     def _max_correction(cls, value: dict[str, float]) -> dict[str, float]:
-        """Require positive finite limits."""
+        """Require positive finite limits no larger than MAX_CORRECTION_BOUND."""
         for axis, v in value.items():
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"max_correction of {axis} must be a positive finite number (got {v})")
+            bound = MAX_CORRECTION_BOUND[axis]
+            if v > bound:
+                unit = "deg" if axis in "AB" else "mm"
+                raise ValueError(
+                    f"max_correction of {axis} {v:g} {unit} is above {bound:g} {unit}: no thermal error is that large"
+                )
         return value
 
     def limits(self) -> tuple[list[float], list[float], list[float]]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, TypeVar
 
@@ -54,6 +54,7 @@ from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import machine_geometry, physical_check, stated_geometries
 from driftlab.models.regression import StepwiseOptions, TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
+from driftlab.models.split import SPLITS, STAGE_SPLIT, TIME_SPLIT, held_out_rows
 from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT, STRUCTURE_SPANS
 from driftlab.models.uncertainty import JointFit, Pinning, ar1_inflation
 from driftlab.models.virtual_sensor import fit_virtual_sensors
@@ -100,6 +101,10 @@ class FitOptions:
     """Knobs of the pipeline (defaults follow the thesis' practice)."""
 
     holdout_fraction: float = 0.25
+    #: which points are held out (``models.split``): "time", the last ``holdout_fraction`` of every measured
+    #: line's rows (the diagnosis' split: the figures both state are the same), or "stage", the last part of
+    #: every training stage
+    split: str = STAGE_SPLIT
     lag_taus_s: tuple[float, ...] = (3600.0,)
     p_enter: float = 1e-4
     p_remove: float = 1e-3
@@ -128,6 +133,11 @@ class FitOptions:
     #: diagnosis findings to fold in (``driftlab.models.findings.Findings``); forced in, or candidates
     findings: Findings | None = None
     force_findings: bool = False
+
+    def __post_init__(self) -> None:
+        """Check the split's name (one line for a wrong one)."""
+        if self.split not in SPLITS:
+            raise ValidationError(f"split must be one of {', '.join(SPLITS)}, got {self.split!r}")
 
 
 @dataclass
@@ -176,6 +186,8 @@ class FitReport(TypedDict):
     machine: str
     kept_channels: list[str]
     dropped_channels: dict[str, str]
+    #: which points were held out and scored (``models.split``: "stage" or "time")
+    split: str
     terms: list[FitTermRow]
     physical: list[dict[str, object]]  # table 6.3's rows (physical_check.COLUMNS)
     physical_check: Mapping[str, object]  # PhysicalCheckRecord; empty when there was no check
@@ -205,6 +217,12 @@ class FitResult:
     joint: JointFit | None = None
     #: per element model: VIF, condition number, the coefficients it trades off with
     pinning: list[Pinning] = field(default_factory=list)
+    #: every reading with the document's prediction of it as the instrument reads it (``prediction_frame``)
+    predictions: pd.DataFrame | None = None
+    #: the pipeline's steps (what ``predict_without`` re-evaluates the model from)
+    steps: FitSteps | None = field(default=None, repr=False, compare=False)
+    #: which points were held out of the fit and scored (``models.split``)
+    split: str = STAGE_SPLIT
 
     def report(self) -> FitReport:
         """Return the JSON report of ``driftlab fit --json``."""
@@ -222,6 +240,7 @@ class FitResult:
             "machine": self.document.machine,
             "kept_channels": list(self.document.kept_channels),
             "dropped_channels": dict(self.screening.dropped),
+            "split": self.split,
             "terms": rows,
             "physical": self.physical.to_dict("records"),
             "physical_check": self.physical_check,
@@ -263,6 +282,8 @@ class FitResult:
             check.to_dict(),
             steps.joint.joint,
             list(steps.joint.pinning),
+            prediction_frame(steps.samples.sample, steps.checked.W_hat),
+            steps,
         )
 
     def to_document(self) -> ModelDocument:
@@ -367,10 +388,24 @@ def _points(errors: pd.DataFrame) -> pd.DataFrame:
         index=["time_s", "axis", "position", "direction", *pose], columns="term", values="value", aggfunc="mean"
     ).reset_index()
     wide.columns.name = None
-    for p in PARAMS:
+    for p in (*PARAMS, *HELD):
         if p not in wide.columns:
             wide[p] = np.nan
     return wide
+
+
+#: the columns of a sample's frame holding the values the time split holds out (the fit never reads them)
+HELD = tuple(f"held_{p}" for p in PARAMS)
+
+
+def _mark_held(errors: pd.DataFrame, holdout_fraction: float) -> pd.DataFrame:
+    """Return the errors frame with the time split's held-out rows renamed to their ``held_`` term."""
+    held = held_out_rows(errors, holdout_fraction)
+    if not held.any():
+        return errors
+    out = errors.copy()
+    out.loc[held, "term"] = "held_" + out.loc[held, "term"].astype(str)
+    return out
 
 
 POSE = ("x", "y", "z", "a", "b")
@@ -446,10 +481,15 @@ def _assign_roles(pts: pd.DataFrame, stages: Sequence[Any], holdout_fraction: fl
         pts["role"] = np.where(t >= cut, "holdout", "train")
 
 
-def _training_errors(errors: pd.DataFrame, stages: Sequence[Any], holdout_fraction: float) -> pd.DataFrame:
+def _training_errors(
+    errors: pd.DataFrame, stages: Sequence[Any], holdout_fraction: float, split: str = STAGE_SPLIT
+) -> pd.DataFrame:
     """Return the rows of a campaign's errors frame that the fit trains on (held-out points never steer it)."""
     if errors.empty:
         return errors
+    if split == TIME_SPLIT:
+        errors = errors[~held_out_rows(errors, holdout_fraction)]
+        holdout_fraction = 0.0
     pts = pd.DataFrame({"time_s": np.unique(errors["time_s"].to_numpy(float))})
     pts["axis"] = ""
     _assign_roles(pts, stages, holdout_fraction)
@@ -484,22 +524,27 @@ def build_samples(
     lags: Sequence[tuple[str, float]],
     holdout_fraction: float,
     origin: datetime | None = None,
+    split: str = STAGE_SPLIT,
 ) -> Sample:
     """Return the error points of all campaigns with their stage, element, role and inputs.
 
     dT is taken from ``reference`` when given, else from each campaign's own first readings (the
     laser is zeroed at the start of each campaign: spec section 2, eq. 3.1). ``inputs.days`` is the
-    time since ``origin`` (default: the earliest campaign start) in days, for drift terms.
+    time since ``origin`` (default: the earliest campaign start) in days, for drift terms. With the
+    time split (``models.split``) the held-out values sit in the ``held_`` columns, never in the terms'.
     """
     frames, qs, dts, lagged, raws, days, sessions = [], [], [], [], [], [], []
     origin = origin or min(b.meta.started_at for b in bundles)
+    by_time = split == TIME_SPLIT
     for ci, b in enumerate(bundles):
-        pts = _points(b.errors)
+        pts = _points(_mark_held(b.errors, holdout_fraction) if by_time else b.errors)
         if pts.empty:
             continue
         pts.insert(0, "campaign", ci)
         t = pts["time_s"].to_numpy(float)
-        _assign_roles(pts, b.meta.stages, holdout_fraction)
+        _assign_roles(pts, b.meta.stages, 0.0 if by_time else holdout_fraction)
+        if by_time:  # the time split trains on every reading before it, the combined stages' too
+            pts.loc[pts["role"] == "validation", "role"] = "train"
         ref = dict(reference) if reference is not None else _reference([b], channels)
         inp = build_inputs(b.temperatures, t, ref, channels, lags)
         days.append(((b.meta.started_at - origin).total_seconds() + t) / 86400.0)
@@ -938,7 +983,7 @@ def datum_rows(sample: Sample) -> np.ndarray:
     if sess is None:
         return D
     s = np.asarray(sess, dtype=object)
-    W = sample.frame[list(PARAMS)].to_numpy(float)
+    W = measured_values(sample.frame)
     t = sample.frame["time_s"].to_numpy(float)
     for label in dict.fromkeys(s.tolist()):
         if not label:
@@ -949,6 +994,15 @@ def datum_rows(sample: Sample) -> np.ndarray:
             if r.size:
                 D[r, k] = r[np.argmin(t[r])]
     return D
+
+
+def measured_values(frame: pd.DataFrame) -> np.ndarray:
+    """Return (N, 6) every reading of the frame, the held-out ones included (the datum is a session's first)."""
+    W = frame[list(PARAMS)].to_numpy(float)
+    if all(h in frame.columns for h in HELD):
+        H = frame[list(HELD)].to_numpy(float)
+        W = np.where(np.isfinite(W), W, H)
+    return W
 
 
 def at_datum(W_hat: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -1511,6 +1565,7 @@ def validation_table(
     if composed is not None and composed.home_deviation:
         W_hat = W_hat + home_deviation(composed, sample.frame, sample.inputs, sample.q, _directions(sample))
     W = sample.frame[list(PARAMS)].to_numpy(float)
+    H = sample.frame[list(HELD)].to_numpy(float) if all(h in sample.frame.columns for h in HELD) else None
     role = sample.frame["role"].to_numpy(object)
     axis_col = sample.frame["axis"].to_numpy(str)
     rows = []
@@ -1522,6 +1577,9 @@ def validation_table(
             col = W[:, k]
             ok = on & np.isfinite(col)
             tr, ho, va = ok & (role == "train"), ok & (role == "holdout"), ok & (role == "validation")
+            if H is not None and np.isfinite(H[:, k]).any():  # the time split: the held-out values apart
+                ho = on & np.isfinite(H[:, k])
+                col = np.where(ho, H[:, k], col)
             if tr.sum() < 3:
                 continue
             contrib = {e: float(np.std(v[tr, k])) for e, v in el.items()}
@@ -1553,6 +1611,64 @@ def validation_table(
                 }
             )
     return pd.DataFrame(rows), W_hat
+
+
+def predict_without(steps: FitSteps, drop: Callable[[Feature], bool]) -> pd.DataFrame:
+    """Return ``prediction_frame`` of the fitted model with the terms ``drop`` selects left out (not refitted).
+
+    Every other coefficient stays as fitted: the difference to the whole model's prediction is what
+    those terms contribute to each reading (diagnosis: the effects the fitted model carries).
+    """
+    models = {
+        k: replace(m, coef=[0.0 if drop(f) else c for f, c in zip(m.features, m.coef)])
+        for k, m in steps.allocation.models.items()
+    }
+    comp = steps.corrections.composed
+    composed = Composed(
+        {t: [(f, 0.0 if drop(f) else c, se, p) for f, c, se, p in rows] for t, rows in comp.terms.items()},
+        comp.home_deviation,
+    )
+    sample = steps.samples.sample
+    _, W_hat = validation_table(sample, models, steps.allocation.dims, composed, steps.joint.campaign_offsets)
+    return prediction_frame(sample, W_hat)
+
+
+def prediction_frame(sample: Sample, W_hat: np.ndarray) -> pd.DataFrame:
+    """Return one row per reading: where and when, its value, the model's prediction of it and its part.
+
+    ``part`` is ``train`` for a reading the fit trained on, ``holdout`` for one it held out (never
+    read before the scoring), ``validation``/``skip`` for the rows of stages it does not train on.
+    The prediction is what the instrument reads (zeroed sessions less their datum), as tables 6.1/6.2
+    score it: the figures diagnosis, the demo and the API state are computed from this frame.
+    """
+    f = sample.frame
+    W = f[list(PARAMS)].to_numpy(float)
+    H = f[list(HELD)].to_numpy(float) if all(h in f.columns for h in HELD) else np.full_like(W, np.nan)
+    role = f["role"].to_numpy(object)
+    out = []
+    for k, term in enumerate(PARAMS):
+        tr, ho = np.isfinite(W[:, k]), np.isfinite(H[:, k])
+        on = tr | ho
+        if not on.any():
+            continue
+        part = np.where(ho[on], "holdout", role[on])
+        out.append(
+            pd.DataFrame(
+                {
+                    "campaign": f["campaign"].to_numpy()[on],
+                    "time_s": f["time_s"].to_numpy(float)[on],
+                    "axis": f["axis"].to_numpy(str)[on],
+                    "term": term,
+                    "position": f["position"].to_numpy(float)[on],
+                    "direction": f["direction"].to_numpy(float)[on],
+                    "value": np.where(ho, H[:, k], W[:, k])[on],
+                    "predicted": W_hat[on, k],
+                    "part": part,
+                }
+            )
+        )
+    cols = ["campaign", "time_s", "axis", "term", "position", "direction", "value", "predicted", "part"]
+    return pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=cols)
 
 
 # ----------------------------------------------------------------------------- the pipeline
@@ -1704,12 +1820,14 @@ class Screened:
         return self.screening.kept
 
 
-def screen(bundles: Sequence[BundleLike], meta: ChannelMeta, holdout_fraction: float) -> Screened:
+def screen(
+    bundles: Sequence[BundleLike], meta: ChannelMeta, holdout_fraction: float, split: str = STAGE_SPLIT
+) -> Screened:
     """Return the screening (ch. 5.4): every campaign trains the model (the neural comparison is beside it)."""
     common = [c for c in channel_columns(bundles[0].temperatures) if all(c in b.temperatures for b in bundles)]
     temps = pd.concat([fill_gaps(b.temperatures[["time_s", *common]]) for b in bundles], ignore_index=True)
     # the training errors choose among near-duplicate sites (held-out points never steer the choice)
-    errs = [_training_errors(b.errors, b.meta.stages, holdout_fraction) for b in bundles]
+    errs = [_training_errors(b.errors, b.meta.stages, holdout_fraction, split) for b in bundles]
     screening = screen_channels(temps, meta.chan_meta, meta.room, errors=errs)
     _keep_gradient_corners(screening, screen_channels(temps, meta.chan_meta, meta.room), meta.chan_meta)
     return Screened(common, temps, screening)
@@ -1754,10 +1872,14 @@ def build_fit_samples(campaigns: Campaigns, meta: ChannelMeta, screened: Screene
     members = (c for cs in cands.members.values() for c in cs)
     channels = list(dict.fromkeys([*kept, *chosen, *members, *extra_chans]))
     reference = _reference(campaigns.bundles, channels)
-    lag_chans = [c for c in dict.fromkeys([*kept, *chosen]) if c not in meta.room]
+    # a channel that never read anything has no reference (eq. 3.1): no term can read it
+    channels = [c for c in channels if c in reference]
+    lag_chans = [c for c in dict.fromkeys([*kept, *chosen]) if c not in meta.room and c in reference]
     lags = [(c, t) for t in opts.lag_taus_s for c in lag_chans]
     lags += [lag for lag in (plan.lags if plan else []) if lag not in lags]
-    sample = build_samples(campaigns.bundles, channels, None, lags, opts.holdout_fraction, campaigns.origin)
+    sample = build_samples(
+        campaigns.bundles, channels, None, lags, opts.holdout_fraction, campaigns.origin, split=opts.split
+    )
     return Samples(cands, channels, reference, sample)
 
 
@@ -2066,7 +2188,7 @@ def _fit_bundles(
     campaigns = prepare_campaigns(bundles, opts)
     timer.restart()
     meta = channel_metadata(campaigns.bundles)
-    screened = screen(campaigns.bundles, meta, opts.holdout_fraction)
+    screened = screen(campaigns.bundles, meta, opts.holdout_fraction, opts.split)
     timer.lap("screening")
     samples = build_fit_samples(campaigns, meta, screened, opts)
     timer.lap("samples")
@@ -2088,7 +2210,7 @@ def _fit_bundles(
     steps = FitSteps(campaigns, meta, screened, samples, allocation, joint, corrections, checked, neural, sensors)
     document = build_document(steps, sources)
     timer.lap("document")
-    return FitResult.of(steps, document, timer.timings)
+    return replace(FitResult.of(steps, document, timer.timings), split=opts.split)
 
 
 def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd.DataFrame) -> None:

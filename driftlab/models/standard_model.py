@@ -22,7 +22,6 @@ split depends on the rows' times only, never on their values), score = the rest.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol, TypedDict
@@ -34,6 +33,7 @@ from scipy.signal import savgol_filter
 
 from driftlab.errors import ValidationError
 from driftlab.metrics import rmse
+from driftlab.models.split import split_time
 from driftlab.vocabulary import term_unit
 
 #: physically possible thermocouple readings on a machine tool (degC); outside = card error value
@@ -408,7 +408,7 @@ def _term_data(axis: str, term: str, g: pd.DataFrame, ctx: _TermContext, flags: 
     grid = ctx.grid
     g = g.sort_values("time_s", kind="stable")
     t_all = g["time_s"].to_numpy(dtype=float)
-    hold_t = float(t_all[int(math.floor((1.0 - ctx.holdout_fraction) * t_all.size))]) if t_all.size else np.inf
+    hold_t = split_time(t_all, ctx.holdout_fraction)  # the one split of the fit and the diagnosis
     g = g[np.isfinite(g["value"].to_numpy(dtype=float))]
     sess_g = ctx.session.loc[g.index].to_numpy(dtype=object)
     y = g["value"].to_numpy(dtype=float)

@@ -29,6 +29,11 @@ from driftlab.physics.lag import first_order_lag_even
 
 #: a term is unexplained when its training residual RMS exceeds this multiple of the noise
 RATIO = 1.5
+#: ... or, once every decision is made, when its held-out residual RMS exceeds this multiple (issue 33.5:
+#: the held-out part shows what training did not; reported, it changes no decision)
+HOLDOUT_RATIO = 2.0
+#: the hint that says so
+HELD_OUT_HINT = "held out shows what training did not"
 #: correlations below this are not worth a hint
 MIN_R = 0.3
 #: lag time constants tried for the heat-source hint (s)
@@ -46,9 +51,18 @@ class Unexplained:
     noise: float
     hints: list[str] = field(default_factory=list)
     figures: dict[str, float] = field(default_factory=dict)
+    #: the held-out residual after the final model (scored once, after every decision)
+    rmse_holdout: float = float("nan")
+    #: which part shows the remainder: "training" (and maybe held out too) or "held out" alone
+    part: str = "training"
+
+    @property
+    def holdout_over_noise(self) -> float:
+        """Return the held-out residual RMS over the noise (NaN without held-out rows)."""
+        return self.rmse_holdout / self.noise if self.noise > 0 else float("nan")
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the spec's ``unexplained[]`` entry (with ``figures``, ``rmse_train`` and ``noise`` as extras)."""
+        """Return the spec's ``unexplained[]`` entry (with figures, RMSEs, noise and the part that shows it)."""
         return {
             "axis": self.axis,
             "term": self.term,
@@ -56,7 +70,10 @@ class Unexplained:
             "hints": list(self.hints),
             "figures": dict(self.figures),
             "rmse_train": self.rmse_train,
+            "rmse_holdout": self.rmse_holdout if np.isfinite(self.rmse_holdout) else None,
+            "holdout_over_noise": self.holdout_over_noise if np.isfinite(self.rmse_holdout) else None,
             "noise": self.noise,
+            "part": self.part,
         }
 
 
@@ -215,13 +232,28 @@ def describe_residual(
 def unexplained_term(
     td: TermData, r: np.ndarray, prep: PreparedBundle, model_channels: list[str], noise: float
 ) -> Unexplained | None:
-    """Return the :class:`Unexplained` entry of a term whose training residual exceeds ``RATIO`` x noise, else None."""
+    """Return the :class:`Unexplained` entry of a term whose residual stays above its noise, else None.
+
+    The training residual above ``RATIO`` x noise, or the held-out residual (of the final model,
+    after every decision) above ``HOLDOUT_RATIO`` x noise: the held-out part then shows what training
+    did not, and the entry says so. The hints read the training residual alone.
+    """
     tr = td.train
     if noise <= 0 or tr.sum() < 3:
         return None
     rms = float(np.sqrt(np.mean(r[tr] ** 2)))
+    ho = ~tr
+    rms_ho = float(np.sqrt(np.mean(r[ho] ** 2))) if ho.any() else float("nan")
     ratio = rms / noise
-    if ratio <= RATIO:
+    held = bool(np.isfinite(rms_ho) and rms_ho > HOLDOUT_RATIO * noise)
+    if ratio <= RATIO and not held:
         return None
     hints, fig = describe_residual(td, r, prep, model_channels, noise)
-    return Unexplained(td.axis, td.term, ratio, rms, noise, hints, fig)
+    part = "training" if ratio > RATIO else "held out"
+    if held:
+        hints.insert(
+            0 if part == "held out" else len(hints),
+            f"{HELD_OUT_HINT}: the held-out residual is {rms_ho / noise:.1f}x the noise ({_fmt(rms_ho, td.unit)})"
+            f" against {ratio:.1f}x in training",
+        )
+    return Unexplained(td.axis, td.term, ratio, rms, noise, hints, fig, rms_ho, part)

@@ -231,6 +231,42 @@ async def test_model_registration_is_validated(client: httpx.AsyncClient, store)
     assert store.table_counts() == before
 
 
+def _unsafe(kind: str) -> dict:
+    """Return a document whose envelope or ranges would switch a guard off (issue 34)."""
+    d = model_document()
+    if kind == "max_correction":
+        d["envelope"] = {"max_correction": {"Z": 1e9}}
+    elif kind == "margin":
+        d["envelope"] = {"extrapolation_margin_degC": 1e9}
+    elif kind == "rotary":
+        d["envelope"] = {"max_correction": {"A": 45.0}}
+    elif kind == "no-terms":
+        d["terms"] = []
+    elif kind == "min-above-max":
+        d["inputs"]["T1"] = {"reference": 20.0, "min": 30.0, "max": 19.0}
+    return d
+
+
+@pytest.mark.parametrize(
+    "kind,needle",
+    [
+        ("max_correction", "max_correction of Z 1e+09 mm is above 5 mm"),
+        ("margin", "extrapolation_margin_degC"),
+        ("rotary", "max_correction of A 45 deg is above 1 deg"),
+        ("no-terms", "has no terms"),
+        ("min-above-max", "min 30 is above max 19"),
+    ],
+)
+async def test_documents_that_would_switch_a_guard_off_are_refused(
+    client: httpx.AsyncClient, store, kind: str, needle: str
+) -> None:
+    before = store.table_counts()
+    reply = await client.post(f"/machines/{MACHINE}/models", json={"document": _unsafe(kind)}, headers=AUTH)
+    body = assert_problem(reply, 422)
+    assert needle in body["detail"]
+    assert store.table_counts() == before
+
+
 @pytest.mark.parametrize(
     "headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": f"Basic {TOKEN}"}, {"Authorization": TOKEN}]
 )

@@ -190,3 +190,24 @@ def test_slow_and_idle_connections_are_closed(short_server: str) -> None:
         got = _until_closed(sock)
         assert got.startswith(b"HTTP/1.1 200 ") and b'"status":"ok"' in got
     assert httpx.get(f"{short_server}/health", timeout=30.0).status_code == 200
+
+
+def test_serve_on_a_busy_port_is_one_line_and_nothing_else() -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        r = subprocess.run(
+            [sys.executable, "-m", "driftlab.cli", "serve", "--host", "127.0.0.1", "--port", str(port)],
+            cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": str(ROOT), "DRIFTLAB_API_TOKEN": TOKEN, "DRIFTLAB_DB_URL": "sqlite://"},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    assert r.returncode == 2
+    assert (
+        r.stderr == f"driftlab: error: cannot serve on 127.0.0.1:{port}: the port is already in use "
+        "(another server is listening there; give another --port)\n"
+    ), r.stderr
+    assert r.stdout == ""

@@ -135,6 +135,10 @@ def test_the_documents_envelope_is_used_and_the_machine_file_wins(tmp_path, setu
         ({"travel": {"X": [254, 0]}}, "travel of X must be two finite numbers, low < high"),
         ({"travel": {"C": [0, 1]}}, "travel.C.[key]"),
         ({"max_correction": {"Z": 0}}, "max_correction of Z must be a positive finite number"),
+        # issue 34: a guard switched off by data is refused, not obeyed
+        ({"max_correction": {"Z": 1e9}}, "max_correction of Z 1e+09 mm is above 5 mm: no thermal error is that large"),
+        ({"max_correction": {"B": 10}}, "max_correction of B 10 deg is above 1 deg"),
+        ({"extrapolation_margin_degC": 1e9}, "extrapolation_margin_degC: Input should be less than or equal to 30"),
         ({"travel": {}, "speed": 1}, "speed: Extra inputs are not permitted"),
         ([1, 2], "expected a mapping"),
     ],
@@ -406,3 +410,67 @@ def test_kept_commands_still_name_the_first_bad_block(tmp_path):
     prog.write_text("\n".join(ln for ln in lines if ln != "X210") + "\n")
     with pytest.raises(ValidationError, match=r"p.nc:200: target X 300 mm is outside the travel"):
         compensate_file(prog, model, {"T1": 26.0}, out, chunk_bytes=256, guard=guard)
+
+
+@pytest.mark.parametrize(
+    "change,expected",
+    [
+        (lambda d: d.update(terms=[]), "has no terms (terms: []): it would correct nothing; refused"),
+        (lambda d: d["inputs"]["T1"].update(min=41.0), "input range min 41 is above max 40"),
+        (lambda d: d.update(envelope={**d["envelope"], "max_correction": {"X": 1e9}}), "is above 5 mm"),
+        (lambda d: d.update(envelope={**d["envelope"], "extrapolation_margin_degC": 1e9}), "less than or equal to 30"),
+    ],
+)
+def test_model_documents_that_switch_a_guard_off_are_one_line(tmp_path, capsys, change, expected):
+    from tests.compensator.test_stream import doc
+
+    body = doc(0.01, 3)
+    change(body)
+    model = tmp_path / "m.json"
+    model.write_text(json.dumps(body))
+    prog = tmp_path / "p.nc"
+    prog.write_text("G90 G1 X1 F100\n")
+    temps = tmp_path / "t.csv"
+    temps.write_text("time_s,T1\n0,25\n")
+    out = tmp_path / "out.nc"
+    code = main(["compensate", str(prog), "--model", str(model), "--temps", str(temps), "-o", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and expected in err[0], err
+    assert not out.exists()
+
+
+def test_o_writes_only_a_regular_file(tmp_path, capsys):
+    import os
+
+    from tests.compensator.test_stream import doc
+
+    model = tmp_path / "m.json"
+    model.write_text(json.dumps(doc(0.01, 3)))
+    prog = tmp_path / "p.nc"
+    prog.write_text("G90 G1 X1 F100\n")
+    temps = tmp_path / "t.csv"
+    temps.write_text("time_s,T1\n0,25\n")
+    target = tmp_path / "precious.nc"
+    target.write_text("keep me\n")
+    link = tmp_path / "link.nc"
+    link.symlink_to(target)
+    fifo = tmp_path / "fifo.nc"
+    os.mkfifo(fifo)
+    part_link = tmp_path / "out2.nc.part"
+    part_link.symlink_to(target)
+    base = ["compensate", str(prog), "--model", str(model), "--temps", str(temps), "-o"]
+    for out, needle in (
+        ("/dev/full", "is a device"),
+        ("/dev/null", "is a device"),
+        (str(fifo), "is a FIFO"),
+        (str(link), "is a symbolic link"),
+        (str(tmp_path), "is a directory"),
+        (str(tmp_path / "out2.nc"), "is a symbolic link"),  # its .part is a link
+    ):
+        assert main(base + [out]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0] and "nothing written" in err[0], err
+    assert target.read_text() == "keep me\n" and link.is_symlink() and fifo.exists()
+    good = tmp_path / "good.nc"
+    assert main(base + [str(good)]) == 0 and good.is_file() and not (tmp_path / "good.nc.part").exists()
+    assert main(base + [str(good)]) == 0  # a regular file is replaced, as before

@@ -43,6 +43,22 @@ def test_a_campaign_carries_its_plans_travel(db_url: str, tmp_path: Path) -> Non
     assert load_bundle(path).meta.machine.travel == {"Z": (-260.0, 10.0)}
 
 
+def test_a_simulated_campaign_on_a_plan_without_travel_carries_the_virtual_machines(tmp_path: Path) -> None:
+    """`daemon --sim` on a plan stating no travel writes the virtual machine's (Tables A.3, A.4)."""
+    from driftlab.daq.sim.truth import AXIS_RANGE
+
+    db_url = f"sqlite:///{tmp_path / 's.sqlite'}"
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(PLAN)
+    scen = tmp_path / "scen.yaml"
+    scen.write_text(SCENARIO)
+    r = run_daemon(load_plan(plan), db_url=db_url, scenario_path=scen, speed=math.inf, stop_after_commits=2)
+    with connect(db_url) as store:
+        bundle = store.campaigns.load(r.campaign_id)
+    assert bundle.meta.machine.travel == dict(AXIS_RANGE)
+    assert bundle.meta.machine.travel["Z"] == (-254.0, 0.0)
+
+
 @pytest.mark.parametrize(
     "travel, expected",
     [

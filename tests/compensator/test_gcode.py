@@ -224,3 +224,22 @@ def test_programs_without_motion_or_with_leading_zero_codes(text):
     assert p.n_blocks == text.count(b"X") + text.count(b"Z")
     pts = subdivide(p)
     assert emit_program(p, pts, pts.nominal_int) == text
+
+
+@pytest.mark.parametrize(
+    "code,needle",
+    [
+        ("G43 H1 Z50", "G43 applies a tool length offset"),
+        ("G44 H1 Z50", "G44 applies a tool length offset"),
+        ("G10 L2 P1 X0", "G10 sets offsets"),
+        ("G65 P9000", "G65 calls a macro"),
+        ("M98 P1000", "M98 calls a subprogram"),
+        ("M97 P100", "M97 calls a local subprogram"),
+        ("M99", "M99 returns from or loops a subprogram"),
+    ],
+)
+def test_codes_whose_effect_on_the_axes_is_unseen_are_refused(code, needle):
+    with pytest.raises(ValidationError, match=r"^P:2: ") as err:
+        parse_program(f"G90 G1 X1 F100\n{code}\nX2\n".encode(), "P")
+    assert needle in str(err.value) and "\n" not in str(err.value)
+    parse_program(b"G90 G49 G1 X1 F100\nT1 M6\nM30\n", "P")  # a tool change and G49 (cancel) still pass

@@ -99,8 +99,9 @@ def test_bad_driver_options_and_missing_files_are_one_line_cli_errors(tmp_path, 
     assert "no such file" in capsys.readouterr().err
 
 
-def test_daemon_runs_a_plan_on_a_rig_file(tmp_path, capsys):
-    """`driftlab daemon --plan P --rig R`: the 34970A, the laser and LinuxCNC at the rig's addresses, wall clock."""
+@pytest.mark.parametrize("line", ["2.9", "master"])
+def test_daemon_runs_a_plan_on_a_rig_file(line, tmp_path, capsys):
+    """`driftlab daemon --plan P --rig R`: the 34970A, the laser and LinuxCNC (2.9 or master) at the rig's addresses."""
     from sqlalchemy import func, select
 
     from driftlab.campaigns import schema as sc
@@ -112,7 +113,7 @@ def test_daemon_runs_a_plan_on_a_rig_file(tmp_path, capsys):
 
     world, clock = TinyWorld(channels=4), WallClock(acceleration=1.0)
     card = Sim34970A(world, clock, {101: "T1", 102: "T2", 103: "T3", 104: "T4", 105: "T5"}).start()
-    cnc = SimLinuxCNC(world, clock).start()
+    cnc = SimLinuxCNC(world, clock, line=line).start()
     head = SimLaser(world, clock, cnc).start()
     rig = tmp_path / "rig.yaml"
     rig.write_text(

@@ -114,6 +114,20 @@ def test_dropped_connection_and_swallowed_reply_are_read_again_on_a_new_connecti
             link.close()
 
 
+def test_reply_data_pylsv2_cannot_parse_is_one_line_not_its_exception():
+    with SimLSV2(ManualClock()) as sim:
+        link = HeidenhainLink.open(lsv2_resource(sim), timeout_s=2.0)
+        try:
+            sim.axis_trailer = b"C\x00"  # a name too many: pyLSV2 "error while parsing axis data"
+            with pytest.raises(InstrumentError, match=r"LSV2 axes_location: .*parsing axis data.*gave up") as err:
+                link.position()
+            assert "\n" not in str(err.value) and not isinstance(err.value, pyLSV2.LSV2DataException)
+            sim.axis_trailer = b""
+            assert link.position()["X"] == 0.0  # the next read works again
+        finally:
+            link.close()
+
+
 def test_refused_dnc_login_is_one_line_with_the_controls_reason():
     with SimLSV2(ManualClock(), dnc_allowed=False) as sim:
         link = HeidenhainLink.open(lsv2_resource(sim), timeout_s=2.0)

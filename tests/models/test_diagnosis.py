@@ -270,6 +270,7 @@ def test_report_has_the_spec_keys_and_a_self_contained_page():
         "rmse_holdout_after",
         "holdout_verdict",  # extras (issue 22): better / worse / same / null, and physics or not
         "physical",
+        "in_model",  # extra (issue 33): the fitted model already carries it
     }
     assert eff["holdout_verdict"] in ("better", "worse", "same") and eff["physical"] is True
     assert isinstance(doc["unexplained"], list)

@@ -282,6 +282,30 @@ def store_with_campaign(tmp_path):
     store.close()
 
 
+def test_cli_fit_states_its_split_and_scores_the_diagnosis_split_when_told(store_with_campaign, tmp_path):
+    """`fit --split time` holds out the last quarter of every measured line, as the diagnosis does (issue 33)."""
+    from driftlab.cli import main
+
+    url, _, cid = store_with_campaign
+    reps = {}
+    for split in ("stage", "time"):
+        path = tmp_path / f"{split}.json"
+        assert (
+            main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--split", split, "--json", str(path)])
+            == 0
+        )
+        reps[split] = json.loads(path.read_text())
+    assert [reps[s]["split"] for s in ("stage", "time")] == ["stage", "time"]
+    # the same figures as the library's fit with that split: the job passed it through
+    lib = fit_bundles([synthetic_bundle(0)], FitOptions(network=False, split="time")).validation
+    want = {(r.axis, r.term): r.rmse_holdout for r in lib.itertuples()}
+    got = {(r["axis"], r["term"]): r["rmse_holdout"] for r in reps["time"]["terms"]}
+    assert got == pytest.approx(want, rel=1e-9)
+    assert got != pytest.approx({(r["axis"], r["term"]): r["rmse_holdout"] for r in reps["stage"]["terms"]})
+    with pytest.raises(ValidationError, match="split must be one of"):
+        FitOptions(split="random")
+
+
 def test_cli_fit_registers_versions_and_show_gives_the_document(store_with_campaign, tmp_path, capsys):
     from driftlab.cli import main
     from driftlab.jobs.registry import get_model

@@ -27,12 +27,19 @@ class SimulatedCampaign:
     truth: dict[str, Any] = field(default_factory=dict)
 
 
+def machine_travel() -> dict[str, list[float]]:
+    """Return the virtual machine's travel as campaign.json states it (mm for X Y Z, degrees for A B)."""
+    return {axis: [float(lo), float(hi)] for axis, (lo, hi) in truth.AXIS_RANGE.items()}
+
+
 def campaign_meta(scenario: Scenario, machine: VirtualMachine | None = None) -> dict[str, Any]:
     """Return the campaign.json document (bundle v1) of a scenario."""
     vm = machine or VirtualMachine(scenario)
     return {
         "format": "driftlab-bundle/1",
-        "machine": scenario.machine.model_dump(mode="json", exclude_none=True),
+        # the virtual machine's travel (Tables A.3, A.4) goes with the campaign, so a model fitted on it
+        # carries its machine's limits into the compensator's envelope (docs/compensate.md)
+        "machine": {**scenario.machine.model_dump(mode="json", exclude_none=True), "travel": machine_travel()},
         "started_at": scenario.started_at,
         "channels": channel_map(),
         "room_channels": list(ROOM_CHANNELS),

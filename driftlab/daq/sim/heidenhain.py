@@ -73,6 +73,8 @@ class SimLSV2(LineServer):
         self.axes = axes
         self.dnc_allowed = dnc_allowed
         self.pos: dict[str, float] = {a: 0.0 for a in axes}
+        #: bytes after the axis names (R_RI data pyLSV2 cannot parse, e.g. a name too many: its LSV2DataException)
+        self.axis_trailer = b""
         self.exec_state, self.pgm_state = EXEC_AUTOMATIC, PGM_IDLE
         self.telegrams: list[str] = []  # every command received, in order (what a client asked of the control)
         self.on_connect()
@@ -187,7 +189,7 @@ class SimLSV2(LineServer):
             out += f"{pos[a]:.4f}".encode("ascii") + b"\x00"
         for a in self.axes:
             out += a.encode("ascii") + b"\x00"
-        return bytes(out)
+        return bytes(out) + self.axis_trailer
 
 
 def lsv2_resource(server: SimLSV2) -> str:

@@ -171,6 +171,8 @@ class LineServer(ABC):
     """A threaded ``\\n``-line server on 127.0.0.1 (ephemeral port); subclasses implement handle()."""
 
     name = "instrument"
+    #: appended to every reply (a server whose replies carry their own line ends sets b"")
+    terminator = b"\n"
 
     def __init__(self) -> None:
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -261,7 +263,7 @@ class LineServer(ABC):
             return None
         if fault == "garble":
             return b"\xfe" + reply[::-1].encode("ascii")[:7] + b"#?\n"
-        return reply.encode("ascii") + b"\n"
+        return reply.encode("ascii") + self.terminator
 
     def _accept_loop(self) -> None:
         while not self._stop.is_set():
