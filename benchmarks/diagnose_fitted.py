@@ -67,7 +67,7 @@ def campaign(seed: int, coef: float | None, work: Path) -> tuple[str, int, objec
     path.write_text(yaml.safe_dump(doc))
     url = f"sqlite:///{work / f'seed-{seed}.sqlite'}"
     run = run_daemon(load_plan(PLAN), db_url=url, scenario_path=path, speed=math.inf)
-    return url, run.campaign_id, Store(store_engine(url)).load_campaign(run.campaign_id)
+    return url, run.campaign_id, Store(store_engine(url)).campaigns.load(run.campaign_id)
 
 
 def driftlab(*args: str, url: str) -> float:

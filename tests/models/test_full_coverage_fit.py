@@ -47,7 +47,7 @@ def full_fit(tmp_path_factory):
     db = tmp_path_factory.mktemp("full") / "full.sqlite"
     url = f"sqlite:///{db}"
     r = run_daemon(load_plan(DEMO_FULL), db_url=url, scenario_path=CLEAN, speed=math.inf)
-    bundle = Store(store_engine(url)).load_campaign(r.campaign_id)
+    bundle = Store(store_engine(url)).campaigns.load(r.campaign_id)
     result = fit_bundles([bundle], FitOptions(network=False, virtual_sensors=False))
     return bundle, result
 
