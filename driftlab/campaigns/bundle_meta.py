@@ -62,9 +62,10 @@ NONFINITE_TEXT = re.compile(r"^[+-]?(nan|inf|infinity)$", re.IGNORECASE)
 #: machine ids, channel names and setup ids: what the API accepts as a path segment (api.schemas.ID_PATTERN)
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
 _CONTROL = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")
-#: started_at as campaign.json gives it: ISO 8601 date and time (seconds and fraction optional) and a zone
+#: started_at as campaign.json gives it: ISO 8601 date and time (seconds and fraction optional) and a zone;
+#: the date and time separated by T or, as RFC 3339 section 5.6 allows (and Python's and pandas' str() write), a space
 _ISO_DATETIME = re.compile(
-    r"[0-9]{4}-[0-9]{2}-[0-9]{2}T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\.[0-9]{1,9})?)?(Z|[+-][0-9]{2}:?[0-9]{2})?"
+    r"[0-9]{4}-[0-9]{2}-[0-9]{2}[Tt ][0-9]{2}:[0-9]{2}(:[0-9]{2}(\.[0-9]{1,9})?)?(Z|[+-][0-9]{2}:?[0-9]{2})?"
 )
 
 
