@@ -121,7 +121,9 @@ class ErrorModel:
             ranges={c: (r.min, r.max) for c, r in doc.inputs.items()},
             envelope=doc.envelope,
             lag_taus=tuple(
-                sorted({float(f.tau_s) for t in doc.terms for f in t.features if f.kind == "lag" and f.tau_s})
+                sorted(
+                    {float(f.tau_s) for t in doc.terms for f in t.features if f.kind in ("lag", "lever") and f.tau_s}
+                )
             ),
         )
 
