@@ -107,7 +107,7 @@ def offline_um(db: str, scenario_path: Path) -> float:
 
     scenario = load_scenario(scenario_path)
     with connect(db) as store:
-        machine = store.campaign_machine(1)
+        machine = store.campaigns.machine_of(1)
         doc = document_json(get_model(store, machine))
     origin = doc.get("time_origin")
     epoch = (

@@ -176,7 +176,7 @@ def seed(url: str, workdir: Path) -> None:
         "terms": terms,
     }
     with connect(url) as store:
-        cid = store.import_bundle(load_bundle(path))
+        cid = store.campaigns.import_bundle(load_bundle(path))
         model_registry.register_model(store, doc, [cid])
 
 

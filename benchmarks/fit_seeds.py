@@ -57,7 +57,7 @@ def campaign(seed: int, work: Path):
     path.write_text(yaml.safe_dump(doc))
     url = f"sqlite:///{work / f'seed-{seed}.sqlite'}"
     run = run_daemon(load_plan(PLAN), db_url=url, scenario_path=path, speed=math.inf)
-    return Store(store_engine(url)).load_campaign(run.campaign_id), path
+    return Store(store_engine(url)).campaigns.load(run.campaign_id), path
 
 
 def one_seed(seed: int, passes: int, work: Path) -> dict[str, object]:

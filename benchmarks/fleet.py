@@ -7,7 +7,7 @@ sweep every 2 hours (what a fit needs) and its machine-state log. On a throwaway
 (fsync off, as the other benchmarks), at the store's head schema (reading tables partitioned by
 month of campaign start):
 
-- load: every campaign through ``Store.import_bundle`` (the bulk import path: numpy-encoded
+- load: every campaign through ``store.campaigns.import_bundle`` (the bulk import path: numpy-encoded
   binary COPY of the temperatures, COPY of the error log and conditions, one transaction each),
   interleaved campaign by campaign with the baseline, a raw psycopg binary COPY (``set_types``,
   ``write_row`` of prepared tuples, one transaction per campaign) of the same temperature rows into
@@ -16,7 +16,7 @@ month of campaign start):
   conditions, rollups, channels, statistics), the baseline's only the temperature rows.
 - drift: ``--queries`` drift queries of one machine-quarter (the last 90 days of a machine, machines
   in turn) through the REST API in process (``GET /machines/{id}/drift``, FastAPI over ASGI: the
-  route calls ``Store.drift``) and through ``Store.drift`` alone; median and p99. Also: how many
+  route calls ``store.readings.drift``) and through ``store.readings.drift`` alone; median and p99. Also: how many
   partitions one of the drift query's statements reads (EXPLAIN).
 - fits: ``--fit-jobs`` fit jobs (one per machine in turn, each over its latest ``--fit-campaigns``
   campaigns, network off) queued on procrastinate, then run by 1, 2, ... ``driftlab worker``
@@ -214,7 +214,7 @@ def load(store: Store, args: argparse.Namespace, figures: dict[str, Any]) -> dic
                 if k % 2:
                     raw_s += raw_copy(store, day, rows)
             t0 = time.perf_counter()
-            cid = store.import_bundle(bundle)
+            cid = store.campaigns.import_bundle(bundle)
             import_s += time.perf_counter() - t0
             if args.baseline and not k % 2:
                 raw_s += raw_copy(store, day, rows)
@@ -283,18 +283,20 @@ def drift_latency(store: Store, args: argparse.Namespace, figures: dict[str, Any
             points.append(len(r.json()["points"]))
     for machine, axis, term in queries:
         t0 = time.perf_counter()
-        store.drift(machine, axis, term, position=position, direction=1, start=start, end=end)
+        store.readings.drift(machine, axis, term, position=position, direction=1, start=start, end=end)
         store_s.append(time.perf_counter() - t0)
     interp_s = []
     for machine, axis, term in queries[: max(5, len(queries) // 5)]:
         t0 = time.perf_counter()
-        store.drift(machine, axis, term, position=position, direction=1, start=start, end=end, interpolate=True)
+        store.readings.drift(
+            machine, axis, term, position=position, direction=1, start=start, end=end, interpolate=True
+        )
         interp_s.append(time.perf_counter() - t0)
     figures.update(
         {
             "drift_queries": len(queries),
             "drift_window_days": (end - start).days,
-            "campaigns_per_machine": len(store.list_campaigns(machine_id(0))),
+            "campaigns_per_machine": len(store.campaigns.summaries(machine_id(0))),
             "drift_points_per_query_median": int(statistics.median(points)),
             "drift_api_median_ms": pct(api_s, 50),
             "drift_api_p99_ms": pct(api_s, 99),
@@ -368,7 +370,7 @@ def fit_throughput(store: Store, ids: dict[str, list[int]], args: argparse.Names
         ]
         for p in procs:
             p.wait()
-        done = [store.get_job(j) for j in jobs]
+        done = [store.jobs.get(j) for j in jobs]
         failed = [j for j in done if j.state != "done"]
         if failed:
             raise SystemExit(f"{len(failed)} fit job(s) did not end done: {failed[0].state} {failed[0].error}")

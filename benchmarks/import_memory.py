@@ -7,7 +7,7 @@ whose temperatures.csv is about 50 MB and 200 MB, and the wall time of that chil
 measured the same way in the same run into a fresh database:
 
 - ``in_memory_*``: the bundle read whole and imported from memory (``load_bundle`` then
-  ``Store.import_bundle`` of the frames): what `driftlab import` did before it staged bundles;
+  ``store.campaigns.import_bundle`` of the frames): what `driftlab import` did before it staged bundles;
 - ``baseline_import_mb``: a Python that builds the CLI and imports the store and bundle modules,
   and does nothing else;
 - ``baseline_readlines_*_mb``: a bare Python that reads temperatures.csv line by line.
@@ -53,7 +53,7 @@ from driftlab.campaigns.store import connect
 from driftlab.commands.bundle_io import import_summary
 bundle = load_bundle(sys.argv[1])
 with connect(sys.argv[2]) as store:
-    import_summary(store.import_bundle(bundle), bundle)
+    import_summary(store.campaigns.import_bundle(bundle), bundle)
 print(json.dumps({{"kb": {HWM}}}))
 """
 

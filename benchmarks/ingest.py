@@ -14,8 +14,9 @@ state before the baseline (SQLite ``VACUUM``, PostgreSQL ``VACUUM`` of each tabl
 the import would write among 12.6 million deleted rows (SQLite's free list, PostgreSQL's dead
 primary-key entries above the import's keys, which cost its appends the rightmost-page fast path),
 which an import into a store never meets, and measured 0.59-0.79 of the baseline for that alone.
-The import figures are end to end (parse + validate + stage + hash + write + commit): ``Store.import_directory``,
-as `driftlab import` (on PostgreSQL the files are read while the server writes: ``campaigns.import_pipeline``).
+The import figures are end to end (parse + validate + stage + hash + write + commit):
+``store.campaigns.import_directory``, as `driftlab import` (on PostgreSQL the files are read while the
+server writes: ``campaigns.import_pipeline``).
 The ratio is also given in CPU seconds (``*_cpu_ratio_to_raw``): on SQLite of this process, where the
 database works; on PostgreSQL of this process and the cluster's processes (read from /proc): on a
 shared machine the wall clock also counts waiting for a core.
@@ -283,7 +284,7 @@ def run_backend(label: str, url: str, bundle_dir: Path, readings: int, n_scans: 
     raw(store, rows)
     cpu0 = cpu_s()
     start = time.perf_counter()
-    with store.import_directory(bundle_dir) as imported:  # what `driftlab import` does
+    with store.campaigns.import_directory(bundle_dir) as imported:  # what `driftlab import` does
         campaign_id = imported.campaign_id
     done = time.perf_counter()
     import_cpu = cpu_s() - cpu0
@@ -296,15 +297,15 @@ def run_backend(label: str, url: str, bundle_dir: Path, readings: int, n_scans: 
     raw_temperatures = min(r[0] for r in LAST_RAW_S[-2:])
     mid = 250.0 + 7.0
     t0 = pd.Timestamp("2026-03-02T08:00:00Z")
-    drift_ms = median_ms(lambda: store.drift(MACHINE, "Z", "dz", position=mid, direction=1))
-    interp_ms = median_ms(lambda: store.drift(MACHINE, "Z", "dz", position=mid, direction=1, interpolate=True))
+    drift_ms = median_ms(lambda: store.readings.drift(MACHINE, "Z", "dz", position=mid, direction=1))
+    interp_ms = median_ms(lambda: store.readings.drift(MACHINE, "Z", "dz", position=mid, direction=1, interpolate=True))
     window_ms = median_ms(
-        lambda: store.drift(
+        lambda: store.readings.drift(
             MACHINE, "Z", "dz", position=mid, start=t0 + pd.Timedelta(hours=10), end=t0 + pd.Timedelta(hours=20)
         )
     )
-    hist_ms = median_ms(lambda: store.temperature_history(campaign_id, "T7", buckets=1000))
-    n_drift = len(store.drift(MACHINE, "Z", "dz", position=mid, direction=1))
+    hist_ms = median_ms(lambda: store.readings.temperature_history(campaign_id, "T7", buckets=1000))
+    n_drift = len(store.readings.drift(MACHINE, "Z", "dz", position=mid, direction=1))
     store.close()
     # the same comparison in CPU seconds (the better raw run, as above)
     raw_cpu = min(LAST_RAW_CPU_S[-2:])

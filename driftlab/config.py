@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from platformdirs import user_data_dir
+from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -28,6 +29,11 @@ class Settings(BaseSettings):
     visa_library: str = "@py"
     #: the largest request body the API accepts (413 beyond; a model document is tens of kilobytes)
     api_max_body_bytes: int = 8 << 20
+    #: seconds a client of `driftlab serve` has for a request's head, then for its body (closed beyond)
+    api_header_timeout_s: float = Field(default=10.0, gt=0.0, le=3600.0)
+    api_body_timeout_s: float = Field(default=30.0, gt=0.0, le=3600.0)
+    #: seconds an idle kept-alive connection stays open between requests
+    api_keep_alive_s: int = Field(default=5, ge=1, le=3600)
     #: seconds before a failed job's first retry (the n-th retry waits n times it); see driftlab.jobs.policy
     job_retry_wait_s: float = 30.0
     #: when the PostgreSQL workers look for machines with campaigns newer than their model (cron; "" = never)

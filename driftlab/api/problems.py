@@ -11,10 +11,12 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
-from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import DBAPIError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from driftlab.campaigns.db import read_only_cause
 from driftlab.errors import DriftlabError
 
 log = logging.getLogger(__name__)
@@ -113,11 +115,30 @@ async def _http_error(request: Request, exc: Exception) -> Response:
     return problem_response(exc.status_code, detail, _instance(request), headers=headers)
 
 
+def _read_only(request: Request, cause: str) -> Response:
+    """Answer a write the store refused because it is read-only: 403, like a server with no token (no retry helps)."""
+    log.warning("write refused by a read-only store: %s", cause)
+    detail = f"writes are refused: the store is read-only ({cause}); reads still work"
+    return problem_response(403, detail, _instance(request))
+
+
 async def _database_down(request: Request, exc: Exception) -> Response:
+    cause = read_only_cause(exc)
+    if cause is not None:
+        return _read_only(request, cause)
     log.warning("database unavailable: %s", " ".join(str(exc).split())[:300])
     return problem_response(
         503, "the database is unavailable; try again later", _instance(request), headers={"Retry-After": "5"}
     )
+
+
+async def _database_error(request: Request, exc: Exception) -> Response:
+    """A driver error other than an outage: a read-only store (PostgreSQL's 25006) or an unexpected 500."""
+    cause = read_only_cause(exc)
+    if cause is not None:
+        return _read_only(request, cause)
+    log.error("unhandled database error on %s %s", request.method, request.url.path, exc_info=exc)
+    return problem_response(500, "internal server error; the traceback is in the server log", _instance(request))
 
 
 def install_handlers(app: FastAPI) -> None:
@@ -126,6 +147,7 @@ def install_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(OperationalError, _database_down)
+    app.add_exception_handler(DBAPIError, _database_error)
 
 
 class CatchAllMiddleware:
@@ -149,6 +171,10 @@ class CatchAllMiddleware:
 
         try:
             await self.app(scope, receive, _send)
+        except ClientDisconnect:
+            # the client went away (or was closed for a body that did not arrive in time,
+            # api.connections) before its request was read: nobody to answer, nothing to trace
+            log.info("client disconnected during %s %s", scope.get("method"), scope.get("path"))
         except Exception:
             log.exception("unhandled error on %s %s", scope.get("method"), scope.get("path"))
             if started:

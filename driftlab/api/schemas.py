@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import re
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StringConstraints
 
+from driftlab.api.strict import MAX_ID
 from driftlab.campaigns.campaign_repo import CampaignSummary, MachineInfo
 
 Condition = Literal["spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b"]
@@ -16,10 +18,37 @@ ModelStatus = Literal["current", "retired"]
 
 #: identifiers in paths and queries (machine ids, channel names): no spaces, no control characters
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
-MAX_ID = 2**31 - 1
 ChannelName = Annotated[str, StringConstraints(pattern=ID_PATTERN)]
 TemperatureC = Annotated[float, Field(ge=-100.0, le=1000.0)]
-RowId = Annotated[int, Field(ge=1, le=MAX_ID)]
+
+
+def _json_integer(value: object) -> object:
+    """Read a JSON number without a fraction as the integer it is (JSON Schema's "integer": 3.0 is 3).
+
+    JSON has one number type; only text ("3") and booleans (true) stay refused by the strict models.
+    """
+    if isinstance(value, float) and value.is_integer() and abs(value) <= 2**53:
+        return int(value)
+    return value
+
+
+RowId = Annotated[int, Field(ge=1, le=MAX_ID), BeforeValidator(_json_integer)]
+#: the bounds of a diagnosis' held-out fraction (below 1 % a campaign's last rows round to none held out)
+HOLDOUT_FRACTION = (0.01, 0.9)
+
+
+_ISO_DATE = re.compile(r"[0-9]{4}-[0-9]{2}-[0-9]{2}")
+
+
+def _iso_text(value: object) -> object:
+    """Refuse a date-time that is not ISO 8601 text (pydantic would read a number, or digits, as a Unix time)."""
+    if value is not None and not (isinstance(value, str) and _ISO_DATE.match(value)):
+        raise ValueError("must be an ISO 8601 date-time string")
+    return value
+
+
+#: a date-time in a strict body: ISO 8601 text only (parsed by pydantic's lax rules, a number refused)
+IsoDateTime = Annotated[datetime, Field(strict=False), BeforeValidator(_iso_text)]
 
 
 class _Out(BaseModel):
@@ -29,9 +58,10 @@ class _Out(BaseModel):
 
 
 class _In(BaseModel):
-    """Base of request bodies: unknown keys and non-finite numbers are refused."""
+    """Base of request bodies: unknown keys, non-finite numbers and coercions ("0.5" as a number, true as 1)
+    are refused."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 # ----------------------------------------------------------------------------- machines
@@ -268,7 +298,10 @@ class JobSubmit(_In):
         description="fit: the campaigns (default every campaign of the machine); diagnose: exactly one",
     )
     holdout_fraction: float = Field(
-        default=0.25, gt=0.0, lt=0.9, description="diagnose: fraction of each (axis, term)'s rows held out"
+        default=0.25,
+        ge=HOLDOUT_FRACTION[0],
+        lt=HOLDOUT_FRACTION[1],
+        description="diagnose: fraction of each (axis, term)'s rows held out",
     )
 
 
@@ -303,7 +336,9 @@ class JobList(_Out):
 class ProbeIn(_In):
     """A touch-probe sphere-centre measurement: pose, temperatures and the measured deviation (mm)."""
 
-    measured_at: datetime | None = Field(default=None, description="between 1970 and 2200, UTC when naive; default now")
+    measured_at: IsoDateTime | None = Field(
+        default=None, description="ISO 8601, between 1970 and 2200, UTC when naive; default now"
+    )
     x: float = Field(ge=-1e4, le=1e4)
     y: float = Field(ge=-1e4, le=1e4)
     z: float = Field(ge=-1e4, le=1e4)

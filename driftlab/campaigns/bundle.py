@@ -23,455 +23,57 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
-import math
 import os
-import re
 import stat
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
-from datetime import UTC, datetime
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Protocol, TypedDict, TypeVar, cast
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, field_validator
-from pydantic import ValidationError as PydanticValidationError
 
-from driftlab.errors import ValidationError
-from driftlab.physics.geometry import Geometry
-from driftlab.vocabulary import AXES, CHANNEL_NAME, TERMS, Axis, valid_channel_name
+from driftlab.campaigns.bundle_meta import (
+    CAMPAIGN_FILE,
+    CONDITION_COLUMNS,
+    CONDITIONS_FILE,
+    CSV_BLOCK_BYTES,
+    DIRECTIONS,
+    ERROR_COLUMNS,
+    ERROR_COLUMNS_V2,
+    ERRORS_FILE,
+    MAX_CSV_BYTES,
+    MAX_FIELD_CHARS,
+    MAX_JSON_BYTES,
+    MAX_LINE_BYTES,
+    MAX_LINEAR_POSITION_MM,
+    MAX_NAME_CHARS,
+    MAX_ROTARY_POSITION_DEG,
+    MAX_ROTATION_RAD,
+    MAX_TIME_S,
+    MAX_TRANSLATION_MM,
+    NONFINITE_TEXT,
+    NUMBER_TEXT,
+    POSE_COLUMNS,
+    ROTARY_AXES,
+    TEMP_RANGE_DEGC,
+    TEMPERATURES_FILE,
+    BundleError,
+    CampaignMeta,
+    json_fail,
+    parse_meta,
+    parse_meta_located,
+    short,
+)
+from driftlab.campaigns.bundle_meta import ID_PATTERN as ID_PATTERN
+from driftlab.campaigns.bundle_meta import CampaignJson as CampaignJson  # re-exported: campaign.json's API here
+from driftlab.vocabulary import AXES, TERMS
 from driftlab.vocabulary import TRANSLATIONS as TRANSLATION_TERMS
 
-FORMAT = "driftlab-bundle/1"
-FORMAT_V2 = "driftlab-bundle/2"
-FORMATS = (FORMAT, FORMAT_V2)
-ROTARY_AXES = ("A", "B")
-ERROR_COLUMNS = ("time_s", "axis", "term", "position", "direction", "value")
-#: bundle v2 errors.csv: the full commanded pose (mm, degrees) after direction, then the setup id
-POSE_COLUMNS = ("x", "y", "z", "a", "b")
-ERROR_COLUMNS_V2 = ("time_s", "axis", "term", "position", "direction", *POSE_COLUMNS, "setup", "value")
-CONDITION_COLUMNS = ("time_s", "spindle_rpm", "feed_mm_min", "x", "y", "z", "a", "b")
-CAMPAIGN_FILE = "campaign.json"
-TEMPERATURES_FILE = "temperatures.csv"
-CONDITIONS_FILE = "conditions.csv"
-ERRORS_FILE = "errors.csv"
-
-# Plausibility limits that catch wrong units (kelvin, micrometres, degrees for radians).
-TEMP_RANGE_DEGC = (-60.0, 250.0)
-MAX_TRANSLATION_MM = 5.0
-MAX_ROTATION_RAD = 0.05
-MAX_ROTARY_POSITION_DEG = 720.0
-
-# Limits of what a bundle may hold (docs/bundle.md, "Limits"): each keeps memory and time bounded
-# or keeps a value inside what the store, pandas and the API can represent.
-MAX_JSON_BYTES = 1 << 20  # campaign.json: metadata, never bulk data
-MAX_JSON_DEPTH = 32  # the deepest valid document nests 5 levels (setups.*.reference.*)
-MAX_JSON_NUMBER_CHARS = 40  # longer literals carry no more binary64 precision (and >4300 digits crash int())
-MAX_CSV_BYTES = 512 << 20  # per CSV file (read a chunk at a time: staging.stage_bundle)
-MAX_LINE_BYTES = 1 << 20  # per CSV line (the scanner reads a line at a time)
-CSV_BLOCK_BYTES = 1 << 20  # CSV text read and parsed at a time, in whole lines (a chunk's working set)
-MAX_FIELD_CHARS = 256  # per CSV cell: numbers, axis/term/direction/setup names
-MAX_NAME_CHARS = 64  # machine id, channel names, setup ids (API path segments), stage names
-MAX_TEXT_CHARS = 200  # free text of campaign.json: machine name, channel location and structure
-MAX_TIME_S = 1e9  # time_s and stage times: about 31.7 years after started_at
-STARTED_AT_RANGE = (datetime(1970, 1, 1, tzinfo=UTC), datetime(2200, 1, 1, tzinfo=UTC))
-MAX_LINEAR_POSITION_MM = 1e5  # 100 m: positions and poses of X Y Z (a larger one is a units mistake)
-
-_DIRECTIONS = {"1": 1, "+1": 1, "1.0": 1, "+1.0": 1, "-1": -1, "-1.0": -1}
-# ASCII digits only: Python's \d and float() accept full-width and other Unicode digits, pyarrow does not
-_NUMBER = re.compile(r"^[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?$")
-_NONFINITE = re.compile(r"^[+-]?(nan|inf|infinity)$", re.IGNORECASE)
-#: machine ids, channel names and setup ids: what the API accepts as a path segment (api.schemas.ID_PATTERN)
-ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
-_CONTROL = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")
-
-
 _T = TypeVar("_T")
-
-
-class BundleError(ValidationError):
-    """A bundle that does not meet the v1 contract; the message is ``FILE:ROW: problem``."""
-
-
-# ----------------------------------------------------------------------------- campaign.json
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class Machine(_Strict):
-    """The machine a campaign was measured on."""
-
-    id: str = Field(min_length=1, max_length=64, pattern=ID_PATTERN)
-    name: str = Field(default="", max_length=MAX_TEXT_CHARS)
-    resolution_mm: StrictFloat | None = Field(default=None, gt=0, allow_inf_nan=False)
-    resolution_deg: StrictFloat | None = Field(default=None, gt=0, allow_inf_nan=False)
-    #: optional stated dimensions (table 6.3's physical check); absent = "no geometry"
-    geometry: Geometry | None = None
-    #: optional travel (soft limits) per axis, (low, high): mm for X Y Z, degrees for A B; a model fitted
-    #: on the campaign carries it into its envelope (``models.envelope``, docs/compensate.md)
-    travel: dict[Axis, tuple[StrictFloat, StrictFloat]] | None = None
-
-    @field_validator("travel")
-    @classmethod
-    def _travel(cls, value: dict[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]] | None:
-        """Require finite limits, low below high."""
-        for axis, (lo, hi) in (value or {}).items():
-            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-                raise ValueError(f"travel of {axis} must be two finite numbers, low < high (got {lo}, {hi})")
-        return value
-
-
-class Channel(_Strict):
-    """A thermocouple site: where it is and which structure it sits on."""
-
-    location: str = Field(default="", max_length=MAX_TEXT_CHARS)
-    structure: str = Field(default="", max_length=MAX_TEXT_CHARS)
-
-
-class Stage(_Strict):
-    """One stage of the staged single-heat-source plan, as it was run."""
-
-    name: str = Field(min_length=1, max_length=MAX_NAME_CHARS)
-    start_s: StrictFloat = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
-    end_s: StrictFloat = Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)
-    heat_source: str = Field(min_length=1, max_length=MAX_NAME_CHARS)
-    axis: Axis | None = None
-    spindle_rpm: StrictFloat = Field(default=0.0, ge=0, allow_inf_nan=False)
-    feed_mm_min: StrictFloat = Field(default=0.0, ge=0, allow_inf_nan=False)
-
-
-class Noise(_Strict):
-    """Stated repeatability of the error measurement."""
-
-    length_mm: StrictFloat | None = Field(default=None, ge=0, allow_inf_nan=False)
-    angle_rad: StrictFloat | None = Field(default=None, ge=0, allow_inf_nan=False)
-
-
-class SetupEntry(_Strict):
-    """Bundle v2: one instrument setup (what was mounted, the terms it delivers, how it was referenced)."""
-
-    instrument: Literal["laser", "proximity", "probe", "level", "other"]
-    optics: str | None = Field(default=None, min_length=1, max_length=64)
-    fixture: str | None = Field(default=None, min_length=1, max_length=64)
-    axis: Axis | None = None
-    terms: list[str] = Field(min_length=1)
-    datum: Literal["session", "absolute"] = "session"
-    counter_rotating: StrictBool = False
-    reference: dict[str, Any] = Field(default_factory=dict)
-
-    @field_validator("terms")
-    @classmethod
-    def _cells(cls, value: list[str]) -> list[str]:
-        """Require AXIS/term names of the thirty motion-error terms, each once."""
-        for c in value:
-            ax, _, term = c.partition("/")
-            if ax not in AXES or term not in TERMS:
-                raise ValueError(f"{c!r} is not AXIS/term (axis X Y Z A B, term dx dy dz alpha beta gamma)")
-        if len(set(value)) != len(value):
-            raise ValueError("a term is listed twice")
-        return value
-
-
-class CampaignJson(TypedDict, total=False):
-    """campaign.json as plain JSON (:meth:`CampaignMeta.document`; docs/bundle.md): absent optional parts left out."""
-
-    format: str  # always there
-    machine: dict[str, object]
-    started_at: str  # ISO 8601 with its zone
-    channels: dict[str, dict[str, object]]
-    room_channels: list[str]
-    model_channels: dict[str, list[str]]
-    stages: list[dict[str, object]]
-    noise: dict[str, float]
-    setups: dict[str, dict[str, object]]
-
-
-class CampaignMeta(_Strict):
-    """campaign.json of bundle v1 or v2: machine, channel map, room/model channels, stages, noise (v2: setups)."""
-
-    format: Literal["driftlab-bundle/1", "driftlab-bundle/2"]
-    machine: Machine
-    started_at: datetime
-    channels: dict[str, Channel] = Field(min_length=1)
-    room_channels: list[str] = Field(default_factory=list)
-    model_channels: dict[Axis, list[str]] | None = None
-    stages: list[Stage] = Field(default_factory=list)
-    noise: Noise | None = None
-    setups: dict[str, SetupEntry] | None = None
-
-    @property
-    def v2(self) -> bool:
-        """Return True for a bundle v2 (errors carry the full pose and the setup)."""
-        return self.format == FORMAT_V2
-
-    @field_validator("started_at")
-    @classmethod
-    def _aware(cls, value: datetime) -> datetime:
-        """Require a time zone on started_at (wall-clock times are computed from it)."""
-        if value.tzinfo is None:
-            raise ValueError("started_at needs a time zone, e.g. 2026-03-02T08:00:00Z")
-        lo, hi = STARTED_AT_RANGE
-        if not lo <= value < hi:
-            raise ValueError(f"started_at {value.isoformat()} is outside {lo.year}..{hi.year - 1}")
-        return value
-
-    def document(self) -> CampaignJson:
-        """Return campaign.json as a JSON-ready dict (absent optional fields left out)."""
-        return cast("CampaignJson", self.model_dump(mode="json", exclude_none=True))
-
-
-def _locate_json(text: str) -> dict[tuple[Any, ...], int]:
-    """Return the 1-based line of every value in a valid JSON text, keyed by its path."""
-    decoder = json.JSONDecoder()
-    ws = re.compile(r"[ \t\n\r]*")
-    found: dict[tuple[Any, ...], int] = {}
-
-    def line(i: int) -> int:
-        return text.count("\n", 0, i) + 1
-
-    def parse(i: int, path: tuple[Any, ...]) -> int:
-        i = ws.match(text, i).end()  # type: ignore[union-attr]
-        found[path] = line(i)
-        if text[i] == "{":
-            i = ws.match(text, i + 1).end()  # type: ignore[union-attr]
-            if text[i] == "}":
-                return i + 1
-            while True:
-                i = ws.match(text, i).end()  # type: ignore[union-attr]
-                key_line = line(i)
-                key, i = json.decoder.scanstring(text, i + 1)  # type: ignore[attr-defined]
-                i = ws.match(text, i).end() + 1  # type: ignore[union-attr]  # skip ':'
-                i = parse(i, path + (key,))
-                found.setdefault(path + (key,), key_line)
-                i = ws.match(text, i).end()  # type: ignore[union-attr]
-                if text[i] == "}":
-                    return i + 1
-                i += 1  # ','
-        if text[i] == "[":
-            i = ws.match(text, i + 1).end()  # type: ignore[union-attr]
-            if text[i] == "]":
-                return i + 1
-            k = 0
-            while True:
-                i = parse(i, path + (k,))
-                k += 1
-                i = ws.match(text, i).end()  # type: ignore[union-attr]
-                if text[i] == "]":
-                    return i + 1
-                i += 1
-        _, end = decoder.raw_decode(text, i)
-        return end
-
-    try:
-        parse(0, ())
-    except (ValueError, IndexError, AttributeError):  # pragma: no cover - text was valid JSON
-        pass
-    return found
-
-
-def _path_text(path: tuple[Any, ...]) -> str:
-    out = ""
-    for part in path:
-        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
-    return out or "(top level)"
-
-
-def _json_fail(file: str, lines: Mapping[tuple[Any, ...], int], path: tuple[Any, ...], problem: str) -> BundleError:
-    """Return a BundleError naming the line of the nearest located ancestor of ``path``."""
-    probe = tuple(path)
-    while probe and probe not in lines:
-        probe = probe[:-1]
-    return BundleError(f"{file}:{lines.get(probe, 1)}: {_path_text(path)}: {problem}")
-
-
-_JSON_TOKEN = re.compile(r'"(?:[^"\\\n]|\\.)*"|[\[\]{}]|-?Infinity|NaN|-?[0-9][0-9.eE+-]*|\n')
-
-
-def _prescan_json(text: str, file: str) -> None:
-    """Refuse, naming the line and column, what json.loads would crash on or silently accept.
-
-    Nesting deeper than MAX_JSON_DEPTH (RecursionError), number literals longer than
-    MAX_JSON_NUMBER_CHARS (int() refuses more than 4300 digits) and a key repeated in one object
-    (json.loads keeps the last one silently). Malformed JSON is left to json.loads to describe.
-    """
-    line, line_start = 1, 0
-    keys: list[set[str]] = []
-    depth = 0
-    for m in _JSON_TOKEN.finditer(text):
-        tok, at = m.group(), m.start()
-        if tok == "\n":
-            line, line_start = line + 1, at + 1
-            continue
-        where = f"{file}:{line}: column {at - line_start + 1}"
-        if tok in "[{":
-            depth += 1
-            if depth > MAX_JSON_DEPTH:
-                raise BundleError(f"{where}: nesting deeper than {MAX_JSON_DEPTH} levels")
-            keys.append(set())
-        elif tok in "]}":
-            depth = max(depth - 1, 0)
-            if keys:
-                keys.pop()
-        elif tok[0] == '"':
-            rest = text[m.end() : m.end() + 64].lstrip(" \t\r\n")
-            if rest.startswith(":") and keys:
-                try:
-                    key = json.loads(tok)
-                except ValueError:
-                    continue  # json.loads reports it
-                if key in keys[-1]:
-                    raise BundleError(f"{where}: key {_short(key)} appears twice in one object")
-                keys[-1].add(key)
-        elif tok[-1] in "yN":
-            raise BundleError(f"{where}: {tok} is not a finite number (numbers must be finite)")
-        elif len(tok) > MAX_JSON_NUMBER_CHARS:
-            raise BundleError(f"{where}: number of {len(tok)} characters (at most {MAX_JSON_NUMBER_CHARS})")
-
-
-def _short(value: object, limit: int = 40) -> str:
-    """Return repr(value) cut to ``limit`` characters (messages stay one readable line)."""
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _check_strings(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int], path: tuple[Any, ...] = ()) -> None:
-    """Refuse control characters and lone surrogates in any key or string (the store cannot keep them)."""
-    if isinstance(raw, dict):
-        for key, value in raw.items():
-            if _CONTROL.search(key):
-                raise _json_fail(file, lines, path + (key,), "control character or lone surrogate in a key")
-            _check_strings(value, file, lines, path + (key,))
-    elif isinstance(raw, list):
-        for k, value in enumerate(raw):
-            _check_strings(value, file, lines, path + (k,))
-    elif isinstance(raw, str) and _CONTROL.search(raw):
-        raise _json_fail(file, lines, path, "control character or lone surrogate in a string")
-
-
-def _no_constant(name: str) -> float:
-    raise ValueError(f"{name} is not a finite number")
-
-
-def parse_meta(text: str, file: str = CAMPAIGN_FILE) -> CampaignMeta:
-    """Return the validated CampaignMeta of a campaign.json text; raise BundleError naming the line."""
-    if len(text) > MAX_JSON_BYTES:
-        raise BundleError(f"{file}: {len(text)} characters, more than the limit of {MAX_JSON_BYTES}")
-    _prescan_json(text, file)
-    try:
-        raw = json.loads(text, parse_constant=_no_constant)
-    except json.JSONDecodeError as exc:
-        raise BundleError(f"{file}:{exc.lineno}: invalid JSON: {exc.msg} (column {exc.colno})") from None
-    except (ValueError, RecursionError) as exc:  # NaN/Infinity literals; anything the prescan let through
-        raise BundleError(f"{file}: invalid JSON: {' '.join(str(exc).split())[:200]}") from None
-    lines = _locate_json(text)
-    _check_strings(raw, file, lines)
-    return _validate_meta(raw, file, lines)
-
-
-def _validate_meta(raw: Any, file: str, lines: Mapping[tuple[Any, ...], int]) -> CampaignMeta:
-    """Validate a decoded campaign.json document, including references between its parts."""
-    if isinstance(raw, dict) and "format" in raw and raw["format"] not in FORMATS:
-        raise _json_fail(
-            file,
-            lines,
-            ("format",),
-            f"unsupported format {_short(raw['format'])}, expected {FORMAT!r} or {FORMAT_V2!r}",
-        )
-    try:
-        meta = CampaignMeta.model_validate(raw)
-    except PydanticValidationError as exc:
-        err = exc.errors()[0]
-        raise _json_fail(file, lines, tuple(err["loc"]), err["msg"]) from None
-    for name in meta.channels:
-        if not valid_channel_name(name):
-            raise _json_fail(
-                file,
-                lines,
-                ("channels", name),
-                "channel names start with a letter or digit, then hold only "
-                f"letters, digits, '_', '.', '-' (at most {MAX_NAME_CHARS}), and may not be time_s",
-            )
-    _check_listed(meta.room_channels, meta.channels, file, lines, ("room_channels",), "room channel")
-    for axis, names in (meta.model_channels or {}).items():
-        _check_listed(names, meta.channels, file, lines, ("model_channels", axis), "model channel")
-    _check_setups(meta, file, lines)
-    _check_stages(meta, file, lines)
-    return meta
-
-
-def _check_listed(
-    names: Sequence[str],
-    channels: Mapping[str, Any],
-    file: str,
-    lines: Mapping[tuple[Any, ...], int],
-    at: tuple[Any, ...],
-    what: str,
-) -> None:
-    """Refuse a list of channel names (at ``at`` in the document) naming one not in channels, or one twice."""
-    seen: set[str] = set()
-    for k, name in enumerate(names):
-        if name not in channels:
-            raise _json_fail(file, lines, (*at, k), f"{what} {_short(name)} is not in channels")
-        if name in seen:
-            raise _json_fail(file, lines, (*at, k), f"{what} {_short(name)} listed twice")
-        seen.add(name)
-
-
-def _check_setups(meta: CampaignMeta, file: str, lines: Mapping[tuple[Any, ...], int]) -> None:
-    """Refuse setups outside a bundle v2, a v2 without them, a bad setup id, or terms of another axis."""
-    if meta.setups is not None and not meta.v2:
-        raise _json_fail(file, lines, ("setups",), f"setups belong to {FORMAT_V2!r} bundles")
-    if meta.v2 and not meta.setups:
-        raise _json_fail(
-            file,
-            lines,
-            ("setups",) if meta.setups is not None else ("format",),
-            "a bundle v2 needs setups: the instrument setup of every error reading",
-        )
-    for sid, entry in (meta.setups or {}).items():
-        if not CHANNEL_NAME.match(sid):
-            raise _json_fail(
-                file, lines, ("setups", sid), "setup ids may hold only letters, digits, '_', '.', '-' (at most 64)"
-            )
-        if entry.axis is not None and any(not c.startswith(entry.axis + "/") for c in entry.terms):
-            raise _json_fail(
-                file,
-                lines,
-                ("setups", sid, "terms"),
-                f"setup {_short(sid)} measures the {entry.axis} axis but lists terms of another",
-            )
-
-
-def _check_stages(meta: CampaignMeta, file: str, lines: Mapping[tuple[Any, ...], int]) -> None:
-    """Refuse a stage that ends before it starts, overlaps the previous one, or repeats a name."""
-    names_seen: set[str] = set()
-    previous_end = -math.inf
-    for k, stage in enumerate(meta.stages):
-        if stage.end_s < stage.start_s:
-            raise _json_fail(
-                file,
-                lines,
-                ("stages", k, "end_s"),
-                f"stage {_short(stage.name)} ends ({stage.end_s}) before it starts ({stage.start_s})",
-            )
-        if stage.start_s < previous_end:
-            raise _json_fail(
-                file,
-                lines,
-                ("stages", k, "start_s"),
-                f"stage {_short(stage.name)} starts at {stage.start_s}, before the "
-                f"previous stage ends ({previous_end}): stages must be in order and not overlap",
-            )
-        if stage.name in names_seen:
-            raise _json_fail(file, lines, ("stages", k, "name"), f"stage name {_short(stage.name)} used twice")
-        names_seen.add(stage.name)
-        previous_end = stage.end_s
 
 
 # ----------------------------------------------------------------------------- CSV files
@@ -683,8 +285,8 @@ def _split(
     return cells
 
 
-def _read_header(path: Path, file: str) -> list[str]:
-    """Return the header fields of a CSV file, checked for emptiness, length and duplicates."""
+def _read_header(path: Path, file: str, time_first: bool = True) -> list[str]:
+    """Return the header fields of a CSV file, checked for emptiness, length, duplicates (and time_s first)."""
     with _open(path, file) as fh:
         raw = _read_line(fh, file, 1)
     if raw.startswith(b"\xef\xbb\xbf"):
@@ -700,10 +302,10 @@ def _read_header(path: Path, file: str) -> list[str]:
         if len(name) > MAX_NAME_CHARS:
             raise _fail(file, 1, f"column {k}: a column name of {len(name)} characters (at most {MAX_NAME_CHARS})")
         if name in seen:
-            raise _fail(file, 1, f"duplicate column {_short(name)}")
+            raise _fail(file, 1, f"duplicate column {short(name)}")
         seen.add(name)
-    if header[0] != "time_s":
-        raise _fail(file, 1, f"first column must be time_s, found {_short(header[0])}")
+    if time_first and header[0] != "time_s":
+        raise _fail(file, 1, f"first column must be time_s, found {short(header[0])}")
     return header
 
 
@@ -739,10 +341,10 @@ def _scan_for_problem(path: Path, file: str, header: list[str], kinds: Mapping[s
                 if kind == "float":
                     if cell == "":
                         continue
-                    if _NONFINITE.match(cell.strip()):
-                        return _fail(file, lineno, f"column {name}: {_short(cell)} is not a finite number")
-                    if not _NUMBER.match(cell):
-                        return _fail(file, lineno, f"column {name}: {_short(cell)} is not a number")
+                    if NONFINITE_TEXT.match(cell.strip()):
+                        return _fail(file, lineno, f"column {name}: {short(cell)} is not a finite number")
+                    if not NUMBER_TEXT.match(cell):
+                        return _fail(file, lineno, f"column {name}: {short(cell)} is not a number")
     except BundleError as exc:
         return exc
     return None
@@ -915,10 +517,10 @@ def _temperature_header(path: Path, meta: CampaignMeta) -> list[str]:
     header = _read_header(path, file)
     for name in header[1:]:
         if name not in meta.channels:
-            raise _fail(file, 1, f"column {_short(name)} is not a channel of campaign.json")
+            raise _fail(file, 1, f"column {short(name)} is not a channel of campaign.json")
     missing = [c for c in meta.channels if c not in header]
     if missing:
-        raise _fail(file, 1, f"channel {_short(missing[0])} of campaign.json has no column")
+        raise _fail(file, 1, f"channel {short(missing[0])} of campaign.json has no column")
     return header
 
 
@@ -972,7 +574,7 @@ def _conditions_header(path: Path) -> list[str]:
     header = _read_header(path, file)
     for name in header[1:]:
         if name not in CONDITION_COLUMNS:
-            raise _fail(file, 1, f"unknown column {_short(name)}: expected some of {','.join(CONDITION_COLUMNS)}")
+            raise _fail(file, 1, f"unknown column {short(name)}: expected some of {','.join(CONDITION_COLUMNS)}")
     return header
 
 
@@ -1016,13 +618,13 @@ def _check_condition(place: _Rows, name: str, v: np.ndarray) -> None:
 
 
 def _errors_header(path: Path, meta: CampaignMeta | None) -> list[str]:
-    """Return errors.csv's header: exactly the v1 (or, for a v2 bundle, v2) columns."""
+    """Return errors.csv's header: exactly the v1 (or, for a v2 bundle, v2) columns, in any order."""
     file = path.name
-    header = _read_header(path, file)
+    header = _read_header(path, file, time_first=False)
     columns = ERROR_COLUMNS_V2 if meta is not None and meta.v2 else ERROR_COLUMNS
     for name in header:
         if name not in columns:
-            raise _fail(file, 1, f"unknown column {_short(name)}: expected {','.join(columns)}")
+            raise _fail(file, 1, f"unknown column {short(name)}: expected {','.join(columns)}")
     for name in columns:
         if name not in header:
             raise _fail(file, 1, f"missing column {name!r}: expected {','.join(columns)}")
@@ -1081,14 +683,14 @@ def _error_frame(table: pa.Table, place: _Rows, t: np.ndarray) -> pd.DataFrame:
         k = place.first(~np.isin(values, np.asarray(vocab, dtype=object)))
         if k is not None:
             cell = values[k]
-            what = "missing" if cell is None else f"{_short(cell)} is not one of {' '.join(vocab)}"
+            what = "missing" if cell is None else f"{short(cell)} is not one of {' '.join(vocab)}"
             raise place.fail(k, f"column {name}: {what}")
-    k = place.first(~np.isin(direction_text, np.asarray(list(_DIRECTIONS), dtype=object)))
+    k = place.first(~np.isin(direction_text, np.asarray(list(DIRECTIONS), dtype=object)))
     if k is not None:
         cell = direction_text[k]
-        what = "missing" if cell is None else f"{_short(cell)} is not +1 or -1"
+        what = "missing" if cell is None else f"{short(cell)} is not +1 or -1"
         raise place.fail(k, f"column direction: {what}")
-    direction = np.fromiter((_DIRECTIONS[d] for d in direction_text), dtype=np.int64, count=len(direction_text))
+    direction = np.fromiter((DIRECTIONS[d] for d in direction_text), dtype=np.int64, count=len(direction_text))
     position = _finite_column(place, table, "position")
     value = _finite_column(place, table, "value")
     is_rot_axis = np.isin(axis, np.asarray(ROTARY_AXES, dtype=object))
@@ -1168,12 +770,12 @@ def _load_pose_and_setup(place: _Rows, table: pa.Table, frame: pd.DataFrame, met
     for k, (sid, ax, tm) in enumerate(zip(setup, axis, term)):
         entry = setups.get(sid) if sid is not None else None
         if entry is None:
-            what = "missing" if sid is None else f"{_short(sid)} is not among campaign.json setups"
+            what = "missing" if sid is None else f"{short(sid)} is not among campaign.json setups"
             raise place.fail(k, f"column setup: {what}")
         if f"{ax}/{tm}" not in entry.terms:
             raise place.fail(
                 k,
-                f"column setup: setup {_short(sid)} does not deliver {ax}/{tm} (it delivers {', '.join(entry.terms)})",
+                f"column setup: setup {short(sid)} does not deliver {ax}/{tm} (it delivers {', '.join(entry.terms)})",
             )
     frame["setup"] = pd.array(setup.tolist(), dtype="str")
 
@@ -1185,6 +787,69 @@ def _readable(chunks: Iterator[_T], file: str) -> Iterator[_T]:
     except OSError as exc:
         where = Path(exc.filename).name if exc.filename else file
         raise BundleError(f"{where}: cannot read: {exc.strerror or exc}") from None
+
+
+#: how far outside the temperature scans an error sample, and after the last scan a stage's end, may lie (s):
+#: the thermal model reads the temperatures at each error's time, and a stage is a part of the recorded run
+TIME_SLACK_S = 3600.0
+
+
+def _duration(seconds: float) -> str:
+    """Return a duration for people: seconds, hours or days."""
+    if seconds >= 2 * 86400:
+        return f"{seconds / 86400:.0f} days"
+    if seconds >= 2 * 3600:
+        return f"{seconds / 3600:.0f} h"
+    return f"{seconds:.0f} s"
+
+
+@dataclass(frozen=True)
+class Span:
+    """The first and last ``time_s`` of a CSV file (its rows are lines 2 .. rows + 1)."""
+
+    first: float
+    last: float
+    rows: int
+
+
+@dataclass
+class TimeSpans:
+    """The spans of temperatures.csv and errors.csv, noted as each is read to its end, checked against each other."""
+
+    temperatures: Span | None = None
+    errors: Span | None = None
+
+    def check(self, meta: CampaignMeta, lines: Mapping[tuple[Any, ...], int]) -> None:
+        """Refuse errors far outside the scans and stages ending far after the last scan (once both are known)."""
+        t = self.temperatures
+        if t is None:
+            return
+        for k, stage in enumerate(meta.stages):
+            if stage.end_s > t.last + TIME_SLACK_S:
+                raise json_fail(
+                    CAMPAIGN_FILE,
+                    lines,
+                    ("stages", k, "end_s"),
+                    f"{stage.end_s!r} s is {_duration(stage.end_s - t.last)} after the last temperature scan "
+                    f"(time_s {t.last!r}): a stage lies within the recorded data",
+                )
+        e = self.errors
+        if e is None:
+            return
+        if e.last > t.last + TIME_SLACK_S:
+            raise _fail(
+                ERRORS_FILE,
+                e.rows + 1,
+                f"time_s {e.last!r} is {_duration(e.last - t.last)} after the last temperature scan "
+                f"(time_s {t.last!r}): errors are measured while the temperatures are scanned",
+            )
+        if e.first < t.first - TIME_SLACK_S:
+            raise _fail(
+                ERRORS_FILE,
+                2,
+                f"time_s {e.first!r} is {_duration(t.first - e.first)} before the first temperature scan "
+                f"(time_s {t.first!r}): errors are measured while the temperatures are scanned",
+            )
 
 
 @dataclass(frozen=True)
@@ -1203,6 +868,8 @@ class BundleFiles:
     conditions_path: Path | None
     errors_path: Path
     block_bytes: int = CSV_BLOCK_BYTES
+    meta_lines: Mapping[tuple[Any, ...], int] = field(default_factory=dict)
+    spans: TimeSpans = field(default_factory=lambda: TimeSpans())
 
     @property
     def name(self) -> str:
@@ -1211,7 +878,9 @@ class BundleFiles:
 
     def temperatures(self) -> Iterator[pd.DataFrame]:
         """Yield temperatures.csv: ``time_s`` and one column per channel, in the file's column order."""
-        return _readable(_temperature_chunks(self.temperatures_path, self.meta, self.block_bytes), TEMPERATURES_FILE)
+        return _readable(
+            self._spanned(_temperature_chunks(self.temperatures_path, self.meta, self.block_bytes)), TEMPERATURES_FILE
+        )
 
     def conditions(self) -> Iterator[pd.DataFrame]:
         """Yield conditions.csv (nothing when the bundle has none)."""
@@ -1221,7 +890,30 @@ class BundleFiles:
 
     def errors(self) -> Iterator[pd.DataFrame]:
         """Yield errors.csv with ``direction`` as +1/-1 (and, for v2, the pose and setup columns)."""
-        return _readable(_error_chunks(self.errors_path, self.meta, self.block_bytes), ERRORS_FILE)
+        return _readable(
+            self._spanned(_error_chunks(self.errors_path, self.meta, self.block_bytes), errors=True), ERRORS_FILE
+        )
+
+    def _spanned(self, chunks: Iterator[pd.DataFrame], errors: bool = False) -> Iterator[pd.DataFrame]:
+        """Yield the chunks of temperatures.csv or errors.csv; at the file's end note its span and check the times."""
+        first: float | None = None
+        last = 0.0
+        rows = 0
+        for frame in chunks:
+            t = frame["time_s"]
+            if first is None:
+                first = float(t.iat[0])
+            last = float(t.iat[-1])
+            rows += len(frame)
+            yield frame
+        if first is None:  # pragma: no cover - an empty file is refused by the chunks themselves
+            return
+        span = Span(first, last, rows)
+        if errors:
+            self.spans.errors = span
+        else:
+            self.spans.temperatures = span
+        self.spans.check(self.meta, self.meta_lines)
 
 
 def open_bundle(path: str | Path, block_bytes: int = CSV_BLOCK_BYTES) -> BundleFiles:
@@ -1247,7 +939,8 @@ def open_bundle(path: str | Path, block_bytes: int = CSV_BLOCK_BYTES) -> BundleF
         line = data.count(b"\n", 0, exc.start) + 1
         column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
         raise BundleError(f"{CAMPAIGN_FILE}:{line}: column {column}: not UTF-8 text") from None
-    return BundleFiles(root, parse_meta(text), temp_path, cond_path, err_path, block_bytes)
+    meta, lines = parse_meta_located(text)
+    return BundleFiles(root, meta, temp_path, cond_path, err_path, block_bytes, lines)
 
 
 def _concat(chunks: Iterator[pd.DataFrame]) -> pd.DataFrame:

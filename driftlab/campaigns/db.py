@@ -31,6 +31,28 @@ class StoreError(DriftlabError):
     """The store cannot be opened or brought to the current schema."""
 
 
+#: SQLite's primary result code of a write to a read-only database (file, directory, mount, URI mode=ro)
+SQLITE_READONLY = 8
+#: PostgreSQL's SQLSTATE of a write in a read-only transaction (default_transaction_read_only, a hot standby)
+PG_READ_ONLY_SQL_TRANSACTION = "25006"
+
+
+def read_only_cause(exc: BaseException) -> str | None:
+    """Return the driver's first line if ``exc`` (or what it wraps) is a write refused by a read-only store."""
+    seen: BaseException | None = exc
+    for _ in range(8):  # the driver's error, possibly under SQLAlchemy's or a queue library's wrapper
+        if seen is None:
+            return None
+        orig = getattr(seen, "orig", None) or seen
+        code = getattr(orig, "sqlite_errorcode", None)
+        if (isinstance(code, int) and code & 0xFF == SQLITE_READONLY) or (
+            getattr(orig, "sqlstate", None) == PG_READ_ONLY_SQL_TRANSACTION
+        ):
+            return next((ln.strip() for ln in str(orig).splitlines() if ln.strip()), type(orig).__name__)[:300]
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
 def normalise_url(url: str) -> str:
     """Return the URL with PostgreSQL routed through psycopg 3; refuse unsupported databases."""
     try:

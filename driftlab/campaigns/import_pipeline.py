@@ -22,7 +22,7 @@ rolls back:
    committed.
 
 A bad row, a duplicate, a server error, an interrupt: the transaction is rolled back, nothing stored.
-The rows stored are those ``Store.import_bundle`` stores for the same bundle (tests hash both).
+The rows stored are those ``store.campaigns.import_bundle`` stores for the same bundle (tests hash both).
 """
 
 from __future__ import annotations

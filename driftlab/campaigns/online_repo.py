@@ -5,11 +5,15 @@ measurements that moved it are ``probe_measurements`` rows.
 
 A state row carries a version: an update names the version it was computed from and is refused
 (``StaleOnlineState``) when the row has moved on meanwhile, so concurrent updaters recompute
-rather than overwrite each other.
+rather than overwrite each other. A probe update instead holds the state (``hold``): it reads,
+computes and writes inside one transaction under the machine's lock, so concurrent probes of one
+machine queue for the lock and each is computed once (20 concurrent posts had needed 134 attempts).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypedDict
 
@@ -89,8 +93,44 @@ def _online(row: Any) -> OnlineStateInfo:
     )
 
 
+@dataclass(frozen=True)
+class HeldOnlineState:
+    """A machine's on-line state held for one update: read and written in one transaction under its lock."""
+
+    conn: Connection
+    machine_id: str
+
+    def current(self) -> OnlineStateInfo | None:
+        """Return the machine's on-line state row as it stands under the lock, or None."""
+        row = self.conn.execute(
+            select(sc.OnlineState.__table__).where(sc.OnlineState.machine_id == self.machine_id)
+        ).first()
+        return None if row is None else _online(row)
+
+    def save(
+        self, seen_version: int | None, update_: OnlineUpdate, probes: Sequence[Mapping[str, Any]] = ()
+    ) -> tuple[OnlineStateInfo, list[int]]:
+        """Write the new state (from ``seen_version``) and its probe rows; return the state and the probe ids."""
+        _write_state(self.conn, self.machine_id, seen_version, update_.values(sc.utcnow()))
+        ids = [_insert_probe(self.conn, self.machine_id, update_.model_version_id, pr) for pr in probes]
+        state = self.current()
+        assert state is not None  # just written, under the lock
+        return state, ids
+
+
 class OnlineStateRepository(Repository):
     """The machines' on-line states and their probe measurements."""
+
+    @contextmanager
+    def hold(self, machine_id: str) -> Iterator[HeldOnlineState]:
+        """Yield the machine's on-line state held for an update (NotFoundError for an unknown machine).
+
+        The machine's lock (PostgreSQL's row lock; SQLite's BEGIN IMMEDIATE) is taken first and kept
+        until the transaction ends: committed when the block ends, rolled back on any error.
+        """
+        with self.write() as conn:
+            lock_machine(conn, machine_id)
+            yield HeldOnlineState(conn, machine_id)
 
     def get(self, machine_id: str) -> OnlineStateInfo | None:
         """Return the machine's on-line state row (whatever model version it belongs to), or None."""
@@ -113,13 +153,8 @@ class OnlineStateRepository(Repository):
         (measured_at, x, y, z, a_deg, b_deg, dx, dy, dz, temperatures); a machine's second probing
         at the same time is refused (ConflictError) and nothing is written.
         """
-        values = update_.values(sc.utcnow())
-        with self.write() as conn:
-            lock_machine(conn, machine_id)  # serialises the state writers of one machine
-            _write_state(conn, machine_id, seen_version, values)
-            ids = [_insert_probe(conn, machine_id, update_.model_version_id, pr) for pr in probes]
-            row = conn.execute(select(sc.OnlineState.__table__).where(sc.OnlineState.machine_id == machine_id)).one()
-            return _online(row), ids
+        with self.hold(machine_id) as held:  # the lock serialises the state writers of one machine
+            return held.save(seen_version, update_, probes)
 
 
 def _write_state(conn: Connection, machine_id: str, seen_version: int | None, values: OnlineStateValues) -> None:

@@ -217,7 +217,7 @@ class TemperatureRollup(Base):
     Long histories (a 1,000-bucket view of 70 hours reads 252,000 readings per channel) are
     aggregated from these rows instead, 60 times fewer, with bucket edges snapped to whole
     minutes so that every figure stays exact. Written with the samples by an import (and by
-    ``Store.refresh_rollups`` for campaigns written live); ``campaigns.rollups_complete`` says
+    ``store.campaigns.refresh_rollups`` for campaigns written live); ``campaigns.rollups_complete`` says
     they cover every stored reading.
     """
 

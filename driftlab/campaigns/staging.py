@@ -6,7 +6,7 @@ read and validated exactly as ``load_bundle`` does, a chunk at a time (``bundle.
 and each validated chunk is appended to a temporary file, one per table, as contiguous binary
 columns (float64; small integer codes for the axis, term and setup names). Only once every file
 has been read to its end, and the content hash computed, does the import open its transaction:
-it then reads the columns back a chunk at a time (``Store.import_bundle`` of a ``StagedBundle``).
+it then reads the columns back a chunk at a time (``store.campaigns.import_bundle`` of a ``StagedBundle``).
 The store's write lock is held while rows are written, never while text is parsed.
 
 The content hash is computed column after column, as ``bundle.content_hash`` always has (the

@@ -12,14 +12,14 @@
 - ``store.online``: the machines' on-line (RLS) state and probe measurements (``online_repo``).
 
 Writes happen in one transaction each: an import either lands whole or leaves the database exactly
-as it was, whatever interrupts it. The names callers used before the repositories
-(``store.import_bundle``, ``store.drift``, ``store.get_job``, ...) are the repositories' own
-methods, bound once in ``Store.__init__``; new code calls the repositories.
+as it was, whatever interrupts it. The repositories are the store's one API (the names bound on
+``Store`` before them are gone, issue 36); ``Store`` itself keeps only what concerns the whole
+database (schema, row counts, ping, planner statistics).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from driftlab.campaigns import db, repository
 from driftlab.campaigns.campaign_repo import CampaignRepository, CampaignSummary, MachineInfo, ProgressInfo
@@ -30,8 +30,6 @@ from driftlab.campaigns.readings_repo import ReadingRepository
 from driftlab.config import Settings
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping, Sequence
-
     from sqlalchemy import Engine
 
 __all__ = [
@@ -65,34 +63,6 @@ class Store:
         self.models = ModelRepository(self.gate)
         self.jobs = JobRepository(self.gate)
         self.online = OnlineStateRepository(self.gate)
-        # the names callers used before the repositories: the repositories' methods themselves
-        # (bound, not restated), so that their signatures live in one place
-        self.import_bundle = self.campaigns.import_bundle
-        self.import_directory = self.campaigns.import_directory
-        self.load_campaign = self.campaigns.load
-        self.campaign_machine = self.campaigns.machine_of
-        self.list_campaigns = self.campaigns.summaries
-        self.delete_campaign = self.campaigns.delete
-        self.refresh_rollups = self.campaigns.refresh_rollups
-        self.save_progress = self.campaigns.save_progress
-        self.progress = self.campaigns.progress
-        self.drift = self.readings.drift
-        self.temperature_history = self.readings.temperature_history
-        self.condition_history = self.readings.condition_history
-        self.register_model = self.models.register
-        self.current_model = self.models.current
-        self.machine_ids = self.models.machine_ids
-        self.refit_candidates = self.models.refit_candidates
-        self.record_job = self.jobs.record
-        self.link_queue_job = self.jobs.link_queue_job
-        self.start_job = self.jobs.start
-        self.finish_job = self.jobs.finish
-        self.fail_job = self.jobs.fail
-        self.delete_job = self.jobs.delete
-        self.jobs_in_state = self.jobs.in_state
-        self.last_job_result = self.jobs.last_result
-        self.get_job = self.jobs.get
-        self.online_state = self.online.get
 
     @property
     def url(self) -> str:
@@ -144,22 +114,6 @@ class Store:
     def ping(self) -> bool:
         """Return True when the database answers."""
         return repository.ping(self.engine)
-
-    def model_versions(self, machine_id: str) -> list[ModelVersionInfo]:
-        """Return every model version of a machine, oldest first (``models.versions``)."""
-        return self.models.versions(machine_id)
-
-    def save_online_state(
-        self,
-        machine_id: str,
-        seen_version: int | None,
-        update: OnlineUpdate | None = None,
-        probes: Sequence[Mapping[str, Any]] = (),
-        **fields: Any,
-    ) -> tuple[OnlineStateInfo, list[int]]:
-        """Write a new on-line state (``online.save``); the fields of ``OnlineUpdate`` may be given by
-        keyword instead of ``update``, as before the repositories."""
-        return self.online.save(machine_id, seen_version, update or OnlineUpdate(**fields), probes)
 
 
 def connect(url: str | None = None, auto_upgrade: bool = True) -> Store:

@@ -41,7 +41,7 @@ def _import(args: argparse.Namespace) -> int:
     from driftlab.progress import progress
 
     with progress(f"importing {args.bundle}"):  # a spinner: reading and storing overlap, neither knows its length
-        with connect(args.db) as store, store.import_directory(args.bundle) as imported:
+        with connect(args.db) as store, store.campaigns.import_directory(args.bundle) as imported:
             summary = import_summary(imported.campaign_id, imported.bundle)
     if args.json:
         print(json.dumps(summary))
@@ -142,7 +142,7 @@ def _export(args: argparse.Namespace) -> int:
     from driftlab.campaigns.store import connect
 
     with connect(args.db) as store:
-        b = store.load_campaign(args.campaign)
+        b = store.campaigns.load(args.campaign)
     path = write_bundle(args.out, b.meta, b.temperatures, b.conditions, b.errors)
     print(f"wrote {path} ({len(b.temperatures)} scans, {len(b.errors)} error samples)")
     return 0

@@ -38,7 +38,7 @@ def _list(args: argparse.Namespace) -> int:
     from driftlab.campaigns.store import connect
 
     with connect(args.db) as store:
-        rows = [c.as_dict() for c in store.list_campaigns(args.machine)]
+        rows = [c.as_dict() for c in store.campaigns.summaries(args.machine)]
     if args.json:
         print(json.dumps(rows))
         return 0

@@ -52,15 +52,16 @@ def _diagnose(args: argparse.Namespace) -> int:
     from driftlab.models.diagnosis import diagnose_bundle
     from driftlab.models.diagnosis_report import to_json_dict as diagnosis_json
 
-    if not 0.0 < args.holdout_fraction < 0.9:
-        raise ValidationError(f"--holdout-fraction must be in (0, 0.9), got {args.holdout_fraction}")
+    # the API's bounds (api.schemas.HOLDOUT_FRACTION): below 1 % a campaign's last rows round to none held out
+    if not 0.01 <= args.holdout_fraction < 0.9:
+        raise ValidationError(f"--holdout-fraction must be in [0.01, 0.9), got {args.holdout_fraction}")
     if (args.bundle is None) == (args.campaign is None):
         raise ValidationError("give either a BUNDLE_DIR or --campaign ID, not both or neither")
     if args.campaign is not None:
         # lazy, as above: kept off the `driftlab --help` path
         from driftlab.campaigns.store import connect
 
-        bundle = connect(args.db).load_campaign(args.campaign)  # NotFoundError for an unknown id
+        bundle = connect(args.db).campaigns.load(args.campaign)  # NotFoundError for an unknown id
     else:
         bundle = load_bundle(args.bundle)  # BundleError: one line FILE:ROW: problem
     # lazy, as above: kept off the `driftlab --help` path

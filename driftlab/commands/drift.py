@@ -59,7 +59,7 @@ def _drift(args: argparse.Namespace) -> int:
     if args.start and args.end and args.end < args.start:
         raise ValidationError("--to is before --from")
     with connect(args.db) as store:
-        frame = store.drift(
+        frame = store.readings.drift(
             args.machine, args.axis, args.term, args.position, args.direction, args.start, args.end, args.interpolate
         )
     frame = frame.copy()

@@ -85,6 +85,14 @@ def _register_fit(sub: argparse._SubParsersAction) -> None:
         help="with --findings: force the findings' terms in (default: offer them as candidates)",
     )
     fit.add_argument(
+        "--split",
+        choices=("stage", "time"),
+        default=None,
+        help="which points are held out of the fit and scored: 'stage' (default: the last quarter of every "
+        "training stage) or 'time' (the last quarter of every measured line: the split of driftlab diagnose, "
+        "whose baseline then states the same held-out figures)",
+    )
+    fit.add_argument(
         "--enqueue",
         action="store_true",
         help="only queue the fit job and print its id (`driftlab worker` runs it on PostgreSQL, "
@@ -166,6 +174,7 @@ def _fit(args: argparse.Namespace) -> int:
             findings=findings,
             force_findings=args.force_findings,
             envelope=machine_file_envelope(args.machine_file),
+            split=args.split,
         )
         if args.enqueue:
             print(json.dumps({"job": job_id, "state": "queued"}))

@@ -55,7 +55,7 @@ def _load(args: argparse.Namespace) -> Any:
         # lazy: this function's imports would add 1.9 s to `driftlab --help` (measured)
         from driftlab.campaigns.store import connect
 
-        return connect(args.db).load_campaign(args.campaign)
+        return connect(args.db).campaigns.load(args.campaign)
     # lazy, as above: kept off the `driftlab --help` path
     from driftlab.campaigns.bundle import load_bundle
 

@@ -139,7 +139,7 @@ def _advise(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.hours) and args.hours > 0):
         raise ValidationError(f"--hours must be a positive number of hours, got {args.hours:g}")
     with connect(args.db) as store:
-        bundles = [store.load_campaign(c) for c in args.campaign]
+        bundles = [store.campaigns.load(c) for c in args.campaign]
         machines = {b.meta.machine.id for b in bundles}
         if len(machines) != 1:
             raise ValidationError(f"campaigns of different machines: {', '.join(sorted(machines))}")

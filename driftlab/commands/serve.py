@@ -41,6 +41,7 @@ def _serve(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import SQLAlchemyError
 
     from driftlab.api.app import create_app
+    from driftlab.api.connections import ConnectionLimits, server_config
     from driftlab.campaigns.db import StoreError
     from driftlab.config import Settings
 
@@ -61,9 +62,9 @@ def _serve(args: argparse.Namespace) -> int:
         sock.close()
         cause = getattr(exc, "orig", None) or exc  # DBAPIError carries the driver's own message
         raise StoreError(f"cannot open the database: {' '.join(str(cause).split())[:200]}") from None
-    config = uvicorn.Config(app, host=host, port=port, log_level=args.log_level, workers=1, access_log=False)
+    limits = ConnectionLimits(settings.api_header_timeout_s, settings.api_body_timeout_s, settings.api_keep_alive_s)
     try:
-        uvicorn.Server(config).run(sockets=[sock])
+        uvicorn.Server(server_config(app, host, port, args.log_level, limits)).run(sockets=[sock])
     finally:
         sock.close()
     return 0

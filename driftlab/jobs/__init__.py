@@ -154,8 +154,11 @@ def submit_fit(
     findings: Any = None,
     force_findings: bool = False,
     envelope: Any = None,
+    split: str | None = None,
 ) -> int:
     """Queue a fit of these campaigns (of one machine); return the job id.
+
+    ``split`` (``models.split``): which points the fit holds out (default: its own, ``stage``).
 
     ``findings`` (``models.findings.Findings``) are kept in the job's parameters and folded in by the fit;
     ``envelope`` (``models.envelope.Envelope``) is written into the model document.
@@ -170,6 +173,8 @@ def submit_fit(
         params["force_findings"] = bool(force_findings)
     if envelope is not None:
         params["envelope"] = envelope.model_dump(mode="json")
+    if split is not None:
+        params["split"] = str(split)
     return submit(store, FIT, params, machine_id=machine, campaign_id=ids[0])
 
 

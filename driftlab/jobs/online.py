@@ -1,8 +1,8 @@
-"""The on-line model's state in the store: read, update under optimistic concurrency, reset.
+"""The on-line model's state in the store: read, update under the machine's lock, reset.
 
 Joins ``models.online`` (the recursive least squares of ch. 6.4.3, pure) with the store's
 ``online_states`` and ``probe_measurements`` tables (``campaigns.store``): a probe update and the
-state it produced are written in one transaction, or recomputed when another update landed first.
+state it produced are written in one transaction that holds the machine's lock from the read on.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from driftlab.campaigns.online_repo import OnlineUpdate, StaleOnlineState
+from driftlab.campaigns.online_repo import HeldOnlineState, OnlineUpdate, StaleOnlineState
 from driftlab.errors import ConflictError, NotFoundError, ValidationError
 from driftlab.models.document import validate_document
 from driftlab.models.online import (
@@ -78,7 +78,40 @@ class StoredUpdate:
     prior: dict[str, np.ndarray]
     residual: np.ndarray  # (N, 3) measured minus off-line prediction
     probe_ids: list[int]
-    attempts: int
+
+
+def _probe_rows(
+    probe: Any, measured_at: Sequence[Any], temperatures: Sequence[Mapping[str, float]] | None
+) -> list[dict[str, Any]]:
+    """Return the ``probe_measurements`` rows of the probe frame (temperatures: given, or the frame's channels)."""
+    chans = [c for c in probe.columns if c not in PROBE_COLUMNS]
+    rows = []
+    columns = {"x": "x", "y": "y", "z": "z", "a_deg": "a", "b_deg": "b", "dx": "dx", "dy": "dy", "dz": "dz"}
+    for i, (_, r) in enumerate(probe.iterrows()):
+        temps = dict(temperatures[i]) if temperatures is not None else {c: float(r[c]) for c in chans}
+        values = {k: float(r[c]) for k, c in columns.items()}
+        rows.append({"measured_at": measured_at[i], **values, "temperatures": temps})
+    return rows
+
+
+def _states_under_lock(
+    store: Store, held: HeldOnlineState, machine: str, model_version: int | None
+) -> tuple[dict[str, RLSState], int | None]:
+    """Return (the on-line states of this model version, the row version) read under the machine's lock."""
+    row = held.current()
+    if row is None:
+        return _legacy_states(store, machine, model_version), None
+    if row.model_version != model_version:
+        return {}, row.version
+    return _states_of(row), row.version
+
+
+def _checked(report: OnlineReport) -> OnlineReport:
+    """Return the report, refusing a diverged (non-finite) state."""
+    for st in report.states.values():
+        if not (np.all(np.isfinite(st.theta)) and np.all(np.isfinite(st.P))):
+            raise ValidationError("the on-line update diverged (non-finite state); check the inputs")
+    return report
 
 
 def store_update(
@@ -88,71 +121,47 @@ def store_update(
     measured_at: Sequence[Any],
     lam: float | None = None,
     temperatures: Sequence[Mapping[str, float]] | None = None,
-    max_attempts: int = 50,
 ) -> StoredUpdate:
     """Update the machine's on-line state with probe measurements; store the state and the probes together.
 
-    Optimistic concurrency: the state is read with its version, the update computed, and both the
-    new state and the probe rows are written in one transaction only if the version is unchanged;
-    otherwise the update is recomputed from the state that landed first (so no update is lost).
-    ``lam`` is the forgetting factor of a new state (default 0.98); choosing another one for a
-    running state is refused. ``measured_at`` gives each probe row's time (aware datetimes).
+    The state is held (``store.online.hold``: the machine's lock) while it is read, the update
+    computed and both the new state and the probe rows written, in one transaction: concurrent
+    updates of one machine queue for the lock and each is computed once, from the state the one
+    before it left (none is lost). ``lam`` is the forgetting factor of a new state (default 0.98);
+    choosing another one for a running state is refused. ``measured_at`` gives each probe row's time
+    (aware datetimes).
     """
     if len(measured_at) != len(probe):
         raise ValidationError(f"{len(measured_at)} measurement times for {len(probe)} probe rows")
     if len(set(measured_at)) != len(measured_at):
         raise ValidationError("two probe measurements at the same time")
-    chans = [c for c in probe.columns if c not in PROBE_COLUMNS]
-    for attempt in range(1, max_attempts + 1):
-        info = store.models.current(machine)
-        if info is None:
-            raise NotFoundError(f"machine {machine!r} has no current model: run `driftlab fit` first")
-        doc = validate_document(info.document).model_copy(update={"version": info.version})
-        states, seen = read_online_states(store, machine, doc.version)
+    info = store.models.current(machine)
+    if info is None:
+        raise NotFoundError(f"machine {machine!r} has no current model: run `driftlab fit` first")
+    doc = validate_document(info.document).model_copy(update={"version": info.version})
+    _, residual = online_residuals(doc, probe)
+    rows = _probe_rows(probe, measured_at, temperatures)
+    with store.online.hold(machine) as held:
+        states, seen = _states_under_lock(store, held, machine, doc.version)
         if states and lam is not None and float(lam) != next(iter(states.values())).lam:
             raise ConflictError(
                 f"the on-line state of model version {doc.version} has forgetting factor "
                 f"{next(iter(states.values())).lam}; it can only be chosen when the state starts"
             )
-        _, residual = online_residuals(doc, probe)
         report, prior = online_update_residuals(
             doc.machine, doc.version, residual, states, DEFAULT_FORGETTING if lam is None else lam
         )
-        for st in report.states.values():
-            if not (np.all(np.isfinite(st.theta)) and np.all(np.isfinite(st.P))):
-                raise ValidationError("the on-line update diverged (non-finite state); check the inputs")
-        rows = []
-        for i, (_, r) in enumerate(probe.iterrows()):
-            temps = dict(temperatures[i]) if temperatures is not None else {c: float(r[c]) for c in chans}
-            rows.append(
-                {
-                    "measured_at": measured_at[i],
-                    "x": float(r["x"]),
-                    "y": float(r["y"]),
-                    "z": float(r["z"]),
-                    "a_deg": float(r["a"]),
-                    "b_deg": float(r["b"]),
-                    "dx": float(r["dx"]),
-                    "dy": float(r["dy"]),
-                    "dz": float(r["dz"]),
-                    "temperatures": temps,
-                }
-            )
-        first = report.states[PROBE_TERMS[0]]
-        try:
-            new = OnlineUpdate(
-                model_version_id=info.id,
-                model_version=int(doc.version or 0),
-                lam=first.lam,
-                n_updates=first.n_updates,
-                theta={k: v.theta.tolist() for k, v in report.states.items()},
-                p={k: v.P.tolist() for k, v in report.states.items()},
-            )
-            _, ids = store.online.save(machine, seen, new, rows)
-        except StaleOnlineState:
-            continue
-        return StoredUpdate(report, prior, residual, ids, attempt)
-    raise ConflictError(f"machine {machine!r}: the on-line state kept changing under {max_attempts} attempts; retry")
+        first = _checked(report).states[PROBE_TERMS[0]]
+        new = OnlineUpdate(
+            model_version_id=info.id,
+            model_version=int(doc.version or 0),
+            lam=first.lam,
+            n_updates=first.n_updates,
+            theta={k: v.theta.tolist() for k, v in report.states.items()},
+            p={k: v.P.tolist() for k, v in report.states.items()},
+        )
+        _, ids = held.save(seen, new, rows)
+    return StoredUpdate(report, prior, residual, ids)
 
 
 def reset_online_state(store: Store, machine: str) -> bool:

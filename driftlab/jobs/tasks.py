@@ -95,6 +95,8 @@ def fit_options(params: dict[str, Any], source: str = "fit job") -> FitOptions:
     from driftlab.models.fitting import FitOptions
 
     opts = FitOptions(network=bool(params.get("network", True)))
+    if params.get("split") is not None:
+        opts.split = str(params["split"])
     if params.get("findings"):
         # lazy: the fit adds 1.7 s to `import driftlab.jobs` (measured); the API imports it
         from driftlab.models.findings import parse_findings

@@ -2095,14 +2095,16 @@ def _fold_findings(
             t.document = Baseline(FITTED_WITH_FINDINGS, rmse(r[td.train]), rmse(r[~td.train]))
 
 
-def _carried_effects(
-    td: TermData,
-    carried: list[int],
-    contexts: list[TermContext],
-    standards: list[StandardModel],
-    dviews: list[tuple[TermContext, StandardModel]],
-    cfg: SearchConfig,
-) -> list[Effect]:
+@dataclass(frozen=True)
+class _CarriedSearch:
+    """One term's search for the catalogue effects its fitted model carries (see ``_carried_effects``)."""
+
+    ctx: TermContext
+    std: StandardModel
+    dview: tuple[TermContext, StandardModel]
+
+
+def _carried_effects(search: _CarriedSearch | None, cfg: SearchConfig) -> list[Effect]:
     """Return the catalogue effects the fitted model carries on a term, earned again from the data.
 
     The search runs on the fitted model's residual without its terms of those kinds (reversal,
@@ -2110,18 +2112,13 @@ def _carried_effects(
     main search: what it accepts is named (on the channel the residual follows) and its held-out
     gain is that of the model without it against with it. The model is not changed by this.
     """
-    for k, i in enumerate(carried):
-        ctx = contexts[k]
-        if (ctx.td.axis, ctx.td.term) != (td.axis, td.term):
-            continue
-        effects, _ = _search_term(ctx, standards[i], replace(cfg, one_per_kind=True), dviews[k], TermFaults())
-        for e in effects:
-            e.in_model = True
-            e.cause += (
-                " The fitted model already carries it: the held-out figures are that model without it and with it."
-            )
-        return effects
-    return []
+    if search is None:
+        return []
+    effects, _ = _search_term(search.ctx, search.std, replace(cfg, one_per_kind=True), search.dview, TermFaults())
+    for e in effects:
+        e.in_model = True
+        e.cause += " The fitted model already carries it: the held-out figures are that model without it and with it."
+    return effects
 
 
 def offset_model(td: TermData, sel: ChannelSelection) -> StandardModel:
@@ -2229,9 +2226,10 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     t1 = time.perf_counter()
     contexts, dviews, n_hyp = _contexts(prep, standards, feat)
     carried = [i for i, c in enumerate(judged.carried_standards) if c is not None]
-    c_std = [judged.carried_standards[i] or standards[i] for i in range(len(standards))]
+    c_std = [c for c in judged.carried_standards if c is not None]
     sub = replace(judged.carried, terms=[judged.carried.terms[i] for i in carried])
-    c_ctx, c_dviews, n_c = _contexts(sub, [c_std[i] for i in carried], feat, kinds=CARRIED_KINDS, index=carried)
+    c_ctx, c_dviews, n_c = _contexts(sub, c_std, feat, kinds=CARRIED_KINDS, index=carried)
+    searches = {i: _CarriedSearch(c, st, dv) for i, c, st, dv in zip(carried, c_ctx, c_std, c_dviews)}
     # Bonferroni over the union of the families that share the family alpha: the error candidates
     # (alpha / 2 over them; of which CARRIED_SHARE x alpha over the candidates of the effects a fitted
     # model carries, tested on its residual without them) and the channels scanned for a fault on the
@@ -2247,13 +2245,13 @@ def _diagnose(bundle: Any, holdout_fraction: float, alpha: float, min_gain: floa
     terms: list[TermDiagnosis] = []
     unexplained: list[Unexplained] = []
     fed: set[str] = set()
-    for ctx, std, sim, nz, dview, base in zip(contexts, standards, sims, noises, dviews, baselines):
+    for i, (ctx, std, sim, nz, dview, base) in enumerate(zip(contexts, standards, sims, noises, dviews, baselines)):
         here = [broken[ch] for ch in std.channels if ch in broken and ch in ctx.chan_cols]
         p_here = max((f.p_value for f in here), default=1.0)
         fed |= {f.channel for f in here}
         cfg = SearchConfig(alpha_each, min_gain, max_effects, nz, alpha=alpha)
         c_cfg = replace(cfg, alpha_each=alpha_carried, kinds=CARRIED_KINDS)
-        named = _carried_effects(ctx.td, carried, c_ctx, c_std, c_dviews, c_cfg)
+        named = _carried_effects(searches.get(i), c_cfg)
         effects, state = _search_term(ctx, std, cfg, dview, TermFaults(here, p_here, broken))
         terms.append(TermDiagnosis(ctx.td, std, sim, named + effects, state.fit, state.names, state.X, base))
         in_model = [n[3:] for n in state.names if n.startswith("dT_")]

@@ -55,7 +55,7 @@ from driftlab.models.neural import NeuralComparison, neural_comparisons
 from driftlab.models.physical_check import machine_geometry, physical_check, stated_geometries
 from driftlab.models.regression import StepwiseOptions, TermFit, r_squared, stepwise
 from driftlab.models.selection import ScreeningResult, screen_channels
-from driftlab.models.split import STAGE_SPLIT, TIME_SPLIT, held_out_rows
+from driftlab.models.split import SPLITS, STAGE_SPLIT, TIME_SPLIT, held_out_rows
 from driftlab.models.structures import SCREW_STRUCTURES, STRUCTURE_ELEMENT, STRUCTURE_SPANS
 from driftlab.models.uncertainty import JointFit, Pinning, ar1_inflation
 from driftlab.models.virtual_sensor import fit_virtual_sensors
@@ -135,6 +135,11 @@ class FitOptions:
     findings: Findings | None = None
     force_findings: bool = False
 
+    def __post_init__(self) -> None:
+        """Check the split's name (one line for a wrong one)."""
+        if self.split not in SPLITS:
+            raise ValidationError(f"split must be one of {', '.join(SPLITS)}, got {self.split!r}")
+
 
 @dataclass
 class Sample:
@@ -182,6 +187,8 @@ class FitReport(TypedDict):
     machine: str
     kept_channels: list[str]
     dropped_channels: dict[str, str]
+    #: which points were held out and scored (``models.split``: "stage" or "time")
+    split: str
     terms: list[FitTermRow]
     physical: list[dict[str, object]]  # table 6.3's rows (physical_check.COLUMNS)
     physical_check: Mapping[str, object]  # PhysicalCheckRecord; empty when there was no check
@@ -215,6 +222,8 @@ class FitResult:
     predictions: pd.DataFrame | None = None
     #: the pipeline's steps (what ``predict_without`` re-evaluates the model from)
     steps: FitSteps | None = field(default=None, repr=False, compare=False)
+    #: which points were held out of the fit and scored (``models.split``)
+    split: str = STAGE_SPLIT
 
     def report(self) -> FitReport:
         """Return the JSON report of ``driftlab fit --json``."""
@@ -232,6 +241,7 @@ class FitResult:
             "machine": self.document.machine,
             "kept_channels": list(self.document.kept_channels),
             "dropped_channels": dict(self.screening.dropped),
+            "split": self.split,
             "terms": rows,
             "physical": self.physical.to_dict("records"),
             "physical_check": self.physical_check,
@@ -2203,7 +2213,7 @@ def _fit_bundles(
     steps = FitSteps(campaigns, meta, screened, samples, allocation, joint, corrections, checked, neural, sensors)
     document = build_document(steps, sources)
     timer.lap("document")
-    return FitResult.of(steps, document, timer.timings)
+    return replace(FitResult.of(steps, document, timer.timings), split=opts.split)
 
 
 def _merge_lines(terms: list[dict[str, Any]], composed: Composed, validation: pd.DataFrame) -> None:

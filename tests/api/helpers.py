@@ -77,6 +77,6 @@ def seed(url: str, tmp_path: Path) -> Seeded:
     temps, cond, errors = small_frames()
     path = write_bundle(tmp_path / "bundle", small_meta(), temps, cond, errors)
     with connect(url) as store:
-        campaign_id = store.import_bundle(load_bundle(path))
+        campaign_id = store.campaigns.import_bundle(load_bundle(path))
         doc = model_registry.register_model(store, model_document(), source_campaigns=[campaign_id])
     return Seeded(url, campaign_id, int(doc.version or 0))

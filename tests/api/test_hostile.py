@@ -268,6 +268,106 @@ CASES: list[tuple[str, str, str, dict[str, Any], int, str]] = [
         "query.column.0: Input should be",
     ),
     ("put-not-allowed", "PUT", "/campaigns/{cid}", {"content": BAD_JSON}, 405, "Method Not Allowed"),
+    # strict inputs (issue 36): no coercion of text to numbers or of true to 1, no key given twice
+    (
+        "jobs-holdout-as-text",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": [1], "holdout_fraction": "0.5"}, "headers": AUTH},
+        422,
+        "holdout_fraction: Input should be a valid number",
+    ),
+    (
+        "jobs-campaign-true",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": [True]}, "headers": AUTH},
+        422,
+        "campaign_ids.0: Input should be a valid integer",
+    ),
+    (
+        "jobs-campaign-as-text",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": ["1"]}, "headers": AUTH},
+        422,
+        "campaign_ids.0",
+    ),
+    (
+        "jobs-duplicate-key",
+        "POST",
+        "/jobs",
+        {"content": b'{"kind": "diagnose", "kind": "fit", "campaign_ids": [1]}', "headers": {**AUTH, **JSON}},
+        422,
+        "the key 'kind' is given twice",
+    ),
+    (
+        "jobs-nested-duplicate-key",
+        "POST",
+        "/machines/{m}/models",
+        {"content": b'{"document": {"machine": "a", "machine": "b"}}', "headers": {**AUTH, **JSON}},
+        422,
+        "the key 'machine' is given twice",
+    ),
+    (
+        "jobs-nan-literal",
+        "POST",
+        "/jobs",
+        {"content": b'{"kind": "diagnose", "campaign_ids": [1], "holdout_fraction": NaN}', "headers": {**AUTH, **JSON}},
+        422,
+        "NaN is not a JSON number",
+    ),
+    (
+        "jobs-holdout-denormal",
+        "POST",
+        "/jobs",
+        {"json": {"kind": "diagnose", "campaign_ids": [1], "holdout_fraction": 1e-320}, "headers": AUTH},
+        422,
+        "holdout_fraction: Input should be greater than or equal to 0.01",
+    ),
+    (
+        "models-source-true",
+        "POST",
+        "/machines/{m}/models",
+        {"json": {"document": {}, "source_campaigns": [True]}, "headers": AUTH},
+        422,
+        "source_campaigns.0",
+    ),
+    (
+        "probe-number-as-text",
+        "POST",
+        "/machines/{m}/online/probe",
+        {"json": {"x": "1", "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0}, "headers": AUTH},
+        422,
+        "body.x: Input should be a valid number",
+    ),
+    (
+        "probe-time-as-number",
+        "POST",
+        "/machines/{m}/online/probe",
+        {"json": {"x": 1, "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0, "measured_at": 1.7e9}, "headers": AUTH},
+        422,
+        "measured_at: Value error, must be an ISO 8601 date-time string",
+    ),
+    (
+        "probe-time-as-digits",
+        "POST",
+        "/machines/{m}/online/probe",
+        {"json": {"x": 1, "y": 0, "z": 0, "dx": 0, "dy": 0, "dz": 0, "measured_at": "1700000000"}, "headers": AUTH},
+        422,
+        "measured_at: Value error, must be an ISO 8601 date-time string",
+    ),
+    *[
+        (f"{what}-id-{name}", "GET", template.format(id=text), {}, 400, "must be plain decimal digits")
+        for name, text in (("point", "1.0"), ("plus", "+1"), ("space", "%201"), ("underscore", "1_0"), ("zero", "01"))
+        for what, template in (
+            ("campaign", "/campaigns/{id}"),
+            ("version", "/machines/{{m}}/models/{id}"),
+            ("job", "/jobs/{id}"),
+        )
+    ],
+    ("limit-point", "GET", "/campaigns", {"params": {"limit": "1.0"}}, 400, "query.limit: Value error"),
+    ("buckets-underscore", "GET", "/campaigns/{cid}/temperatures/T1", {"params": {"buckets": "1_0"}}, 400, "buckets"),
 ]
 
 
@@ -388,7 +488,7 @@ async def test_every_importable_machine_id_is_addressable(
         path = write_bundle(
             tmp_path / f"b{k}", small_meta(machine, f"2026-03-{k + 2:02d}T08:00:00Z"), temps, cond, errors
         )
-        store.import_bundle(load_bundle(path))
+        store.campaigns.import_bundle(load_bundle(path))
         r = await small_client.get(f"/machines/{quote(machine, safe='')}")
         assert r.status_code == 200 and r.json()["id"] == machine, (machine, r.text)
         r = await small_client.get("/campaigns", params={"machine_id": machine})
@@ -431,10 +531,10 @@ def test_concurrent_imports_of_a_new_machine(store: Store, tmp_path: Path) -> No
             )
             for i in range(4)
         ]
-        results = _race(4, lambda i, bundles=bundles: store.import_bundle(bundles[i]))
+        results = _race(4, lambda i, bundles=bundles: store.campaigns.import_bundle(bundles[i]))
         assert all(isinstance(r, int) for r in results), results
         assert len(set(results)) == 4
-        assert [c.machine_id for c in store.list_campaigns(machine)] == [machine] * 4
+        assert [c.machine_id for c in store.campaigns.summaries(machine)] == [machine] * 4
 
 
 def test_concurrent_imports_of_one_bundle(store: Store, tmp_path: Path) -> None:
@@ -442,7 +542,7 @@ def test_concurrent_imports_of_one_bundle(store: Store, tmp_path: Path) -> None:
     temps, cond, errors = small_frames(scans=8, sweeps=1)
     bundle = load_bundle(write_bundle(tmp_path / "same", small_meta("race-same"), temps, cond, errors))
     before = store.table_counts()
-    results = _race(4, lambda i: store.import_bundle(bundle))
+    results = _race(4, lambda i: store.campaigns.import_bundle(bundle))
     assert sum(isinstance(r, int) for r in results) == 1, results
     assert all(isinstance(r, ConflictError) for r in results if not isinstance(r, int)), results
     assert store.table_counts()["campaigns"] == before["campaigns"] + 1
@@ -470,3 +570,39 @@ async def test_body_limit_from_the_environment(seeded: Seeded, monkeypatch) -> N
             assert r.status_code == 413 and "100 bytes" in r.json()["detail"]
             r = await c.post("/jobs", json={"kind": "sing"}, headers=AUTH)
             assert r.status_code == 422
+
+
+async def test_a_read_only_store_refuses_writes_in_one_clear_line(db_url: str, tmp_path: Path) -> None:
+    """A store the server may read but not write (SQLite opened mode=ro, a PostgreSQL database whose
+    transactions are read-only): reads answer, every write is 403 naming the read-only store (not 503
+    "try again later", not a 500), and nothing changes."""
+    seeded = seed(db_url, tmp_path)
+    if db_url.startswith("sqlite"):
+        url = f"sqlite:///file:{db_url.removeprefix('sqlite:///')}?mode=ro&uri=true"  # read-only even for root
+    else:
+        import psycopg
+
+        with psycopg.connect(db_url.replace("postgresql+psycopg://", "postgresql://"), autocommit=True) as conn:
+            conn.execute(f'ALTER DATABASE "{db_url.rsplit("/", 1)[1]}" SET default_transaction_read_only = on')
+        url = db_url
+    with connect(url) as store:
+        before = store.table_counts()
+    probe = {"x": 1.0, "y": 0.0, "z": 0.0, "dx": 0.0, "dy": 0.0, "dz": 0.0, "temperatures": {"T1": 22.0, "T2": 22.0}}
+    writes = [
+        ("POST", f"/machines/{MACHINE}/online/probe", {"json": probe}),
+        ("DELETE", f"/campaigns/{seeded.campaign_id}", {}),
+        ("POST", f"/machines/{MACHINE}/models/{seeded.model_version}/retire", {}),
+        ("POST", "/jobs", {"json": {"kind": "fit", "machine_id": MACHINE}}),
+    ]
+    app = create_app(url, TOKEN, run_jobs=False)
+    async with app.router.lifespan_context(app):
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://test") as client:
+            assert (await client.get("/campaigns")).status_code == 200
+            for method, path, kwargs in writes:
+                r = await client.request(method, path, headers=AUTH, **kwargs)
+                assert r.status_code == 403, (path, r.text)
+                detail = r.json()["detail"]
+                assert detail.startswith("writes are refused: the store is read-only (") and "\n" not in detail
+                assert "read-only transaction" in detail or "readonly database" in detail, detail
+    with connect(url) as store:
+        assert store.table_counts() == before

@@ -7,6 +7,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,8 +31,13 @@ def free_port() -> int:
 @pytest.fixture
 def server(seeded: Seeded, tmp_path: Path) -> Iterator[str]:
     """`driftlab serve` on a free loopback port over the seeded database; yields its base URL."""
+    yield from _serve(seeded, tmp_path, {})
+
+
+def _serve(seeded: Seeded, tmp_path: Path, extra_env: dict[str, str]) -> Iterator[str]:
+    """Run `driftlab serve` (environment plus ``extra_env``) until the generator is closed; yield its base URL."""
     port = free_port()
-    env = {**os.environ, "DRIFTLAB_API_TOKEN": TOKEN, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, "DRIFTLAB_API_TOKEN": TOKEN, "PYTHONPATH": str(ROOT), **extra_env}
     log = (tmp_path / "serve.log").open("wb")
     proc = subprocess.Popen(
         [
@@ -113,6 +119,77 @@ def test_serve_reports_an_unreachable_database_in_one_line() -> None:
     )
     assert r.returncode == 2
     assert r.stderr.startswith("driftlab: error:") and r.stderr.count("\n") == 1, r.stderr
+
+
+#: the connection limits of the slow-client test's server (s): short, so the test is quick
+SHORT_LIMITS = {
+    "DRIFTLAB_API_HEADER_TIMEOUT_S": "1",
+    "DRIFTLAB_API_BODY_TIMEOUT_S": "2",
+    "DRIFTLAB_API_KEEP_ALIVE_S": "1",
+}
+
+
+@pytest.fixture
+def short_server(seeded: Seeded, tmp_path: Path) -> Iterator[str]:
+    """`driftlab serve` with head, body and idle limits of 1, 2 and 1 s."""
+    yield from _serve(seeded, tmp_path, SHORT_LIMITS)
+
+
+def _until_closed(sock: socket.socket, trickle: bytes = b"", every_s: float = 0.2) -> bytes:
+    """Send ``trickle`` a byte every ``every_s`` while reading; return what the server sent before it closed.
+
+    The read waits up to 120 s (a loaded machine): a server that never closes fails the test there.
+    """
+    stop = threading.Event()
+
+    def feed() -> None:
+        for i in range(len(trickle)):
+            if stop.wait(every_s):
+                return
+            try:
+                sock.sendall(trickle[i : i + 1])
+            except OSError:
+                return
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    sock.settimeout(120.0)
+    got = b""
+    try:
+        while chunk := sock.recv(4096):
+            got += chunk
+    except ConnectionResetError:
+        pass
+    finally:
+        stop.set()
+        feeder.join(10)
+    return got
+
+
+def test_slow_and_idle_connections_are_closed(short_server: str) -> None:
+    """A silent connection, a head or a body trickled faster than any idle timer, and an idle kept-alive
+    connection are all closed by the server, each after its deadline; the server still answers."""
+    port = int(short_server.rsplit(":", 1)[1])
+    address = ("127.0.0.1", port)
+    # silent from the start: closed with nothing said
+    with socket.create_connection(address) as sock:
+        assert _until_closed(sock) == b""
+    # a head trickled a byte per 0.2 s (the head deadline is 1 s, bytes do not reset it): 408, closed
+    head = b"GET /health HTTP/1.1\r\nHost: x\r\nX-Slow: " + b"a" * 200
+    with socket.create_connection(address) as sock:
+        assert _until_closed(sock, head).startswith(b"HTTP/1.1 408 ")
+    # a body trickled: the head is in, the body's 2 s deadline closes the connection
+    post = b"POST /jobs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 500\r\n"
+    with socket.create_connection(address) as sock:
+        sock.sendall(post + f"Authorization: Bearer {TOKEN}\r\n\r\n".encode())
+        got = _until_closed(sock, b" " * 500)
+        assert b"202" not in got  # never a job from a body that did not arrive
+    # kept alive after an answer, then idle: closed after the idle limit
+    with socket.create_connection(address) as sock:
+        sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
+        got = _until_closed(sock)
+        assert got.startswith(b"HTTP/1.1 200 ") and b'"status":"ok"' in got
+    assert httpx.get(f"{short_server}/health", timeout=30.0).status_code == 200
 
 
 def test_serve_on_a_busy_port_is_one_line_and_nothing_else() -> None:

@@ -173,6 +173,38 @@ CORRUPTIONS = [
         lambda p: _edit_json(p, lambda d: d.update(started_at="2026-03-02T08:00:00")),
         "started_at: Value error, started_at needs a time zone",
     ),
+    # bundle time rules (issue 36): started_at as ISO 8601 text, errors and stages within the scans
+    (
+        "numeric-started-at",
+        "campaign.json",
+        lambda p: _edit_json(p, lambda d: d.update(started_at=1772438400)),
+        "started_at: Value error, must be an ISO 8601 date and time with its zone, e.g. 2026-03-02T08:00:00Z, "
+        "not 1772438400",
+    ),
+    (
+        "digits-started-at",
+        "campaign.json",
+        lambda p: _edit_json(p, lambda d: d.update(started_at="1772438400")),
+        "started_at: Value error, must be an ISO 8601 date and time with its zone",
+    ),
+    (
+        "date-only-started-at",
+        "campaign.json",
+        lambda p: _edit_json(p, lambda d: d.update(started_at="2026-03-02")),
+        "started_at: Value error, must be an ISO 8601 date and time with its zone",
+    ),
+    (
+        "errors-58-days-after-the-scans",
+        "errors.csv",
+        lambda p: _edit_cell(p, 121, "time_s", "5011200"),
+        "errors.csv:121: time_s 5011200.0 is 58 days after the last temperature scan (time_s 1170.0)",
+    ),
+    (
+        "stage-ends-years-after-the-scans",
+        "campaign.json",
+        lambda p: _edit_json(p, lambda d: d["stages"][1].update(end_s=94608000.0)),
+        "stages[1].end_s: 94608000.0 s is 1095 days after the last temperature scan (time_s 1170.0)",
+    ),
     (
         "room-channel-unknown",
         "campaign.json",

@@ -167,3 +167,52 @@ def test_the_first_temperature_problem_is_named(bundle_dir: Path, edits, expecte
         _edit_cell(bundle_dir / "temperatures.csv", line, column, value)
     with pytest.raises(BundleError, match="^" + expected.replace(".", r"\.")):
         load_bundle(bundle_dir)
+
+
+def _reorder_errors(path: Path, order: list[str]) -> None:
+    """Rewrite errors.csv with its columns in ``order`` (the cells' text unchanged)."""
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    rows = [dict(zip(header, line.split(","), strict=True)) for line in lines[1:]]
+    path.write_text("\n".join([",".join(order), *(",".join(r[c] for c in order) for r in rows)]) + "\n")
+
+
+def test_errors_columns_in_any_order(bundle_dir: Path, tmp_path: Path) -> None:
+    """docs/bundle.md: errors.csv holds exactly its columns in any order; the data and its identity are the same."""
+    canonical = load_bundle(bundle_dir)
+    _reorder_errors(bundle_dir / "errors.csv", ["value", "direction", "term", "axis", "position", "time_s"])
+    reordered = load_bundle(bundle_dir)
+    pd.testing.assert_frame_equal(reordered.errors, canonical.errors, check_exact=True)
+    assert reordered.content_hash() == canonical.content_hash()
+    # temperatures.csv and conditions.csv still start with time_s
+    _reorder_errors(bundle_dir / "errors.csv", ["value", "direction", "term", "axis", "position"])
+    with pytest.raises(BundleError, match="errors.csv:1: missing column 'time_s'"):
+        load_bundle(bundle_dir)
+
+
+def test_errors_long_before_the_first_scan_are_refused(tmp_path: Path, meta_factory, frames_factory) -> None:
+    """Scans that start 3 h into the campaign, errors from its start: refused in one line, at errors.csv:2."""
+    temps, cond, errors = frames_factory()
+    temps = temps.assign(time_s=temps["time_s"] + 3 * 3600.0)
+    meta = meta_factory()
+    meta["stages"] = []
+    path = write_bundle(tmp_path / "b", meta, temps, cond, errors)
+    with pytest.raises(BundleError) as info:
+        load_bundle(path)
+    assert str(info.value) == (
+        "errors.csv:2: time_s 0.0 is 3 h before the first temperature scan (time_s 10800.0): "
+        "errors are measured while the temperatures are scanned"
+    )
+
+
+def test_errors_and_stages_within_the_slack_load(tmp_path: Path, meta_factory, frames_factory) -> None:
+    """An error sample and a stage's end up to TIME_SLACK_S after the last scan are kept (a scan or two late)."""
+    from driftlab.campaigns.bundle import TIME_SLACK_S
+
+    temps, cond, errors = frames_factory()
+    last = float(temps["time_s"].iloc[-1])
+    errors.loc[errors.index[-1], "time_s"] = last + TIME_SLACK_S
+    meta = meta_factory()
+    meta["stages"][-1]["end_s"] = last + TIME_SLACK_S
+    b = load_bundle(write_bundle(tmp_path / "b", meta, temps, cond, errors))
+    assert b.errors["time_s"].iloc[-1] == last + TIME_SLACK_S

@@ -58,7 +58,7 @@ def test_v2_imports_and_exports_exactly_on_both_databases(store_url, tmp_path):
     original = load_bundle(_v2(tmp_path))
     store = connect(store_url)
     try:
-        stored = store.load_campaign(store.import_bundle(original))
+        stored = store.campaigns.load(store.campaigns.import_bundle(original))
     finally:
         store.close()
     pd.testing.assert_frame_equal(original.errors, stored.errors, check_exact=True)
@@ -70,7 +70,7 @@ def test_v1_bundles_still_import_and_keep_their_hash(store_url, tmp_path):
     assert not b.meta.v2 and list(b.errors.columns) == ["time_s", "axis", "term", "position", "direction", "value"]
     store = connect(store_url)
     try:
-        stored = store.load_campaign(store.import_bundle(b))
+        stored = store.campaigns.load(store.campaigns.import_bundle(b))
     finally:
         store.close()
     assert stored.content_hash() == b.content_hash() and not stored.meta.v2
@@ -163,7 +163,7 @@ def test_a_daemon_campaign_exports_as_v2_with_every_setup(tmp_path):
     res = run_daemon(plan, db_url=db, scenario_path=root / "examples" / "scenarios" / "clean.yaml", speed=math.inf)
     store = connect(db)
     try:
-        b = store.load_campaign(res.campaign_id)
+        b = store.campaigns.load(res.campaign_id)
     finally:
         store.close()
     out = load_bundle(write_bundle(tmp_path / "exp", b.meta, b.temperatures, b.conditions, b.errors))

@@ -1,4 +1,4 @@
-"""`Store.import_directory`: on PostgreSQL the files are read while the server writes (``import_pipeline``).
+"""`store.campaigns.import_directory`: on PostgreSQL the files are read while the server writes (``import_pipeline``).
 
 A duplicate refused, also one imported at the same moment. (The same rows as an import from memory, and
 a failure beside the parse rolling all back: ``test_staging``, for both ways of importing.)
@@ -27,11 +27,11 @@ def test_a_bundle_already_stored_is_refused_and_nothing_is_added(store_url: str,
     path = make_bundle(tmp_path / "b", scans=300, sweeps=9)
     store = connect(store_url)
     try:
-        with store.import_directory(path) as first:
+        with store.campaigns.import_directory(path) as first:
             cid = first.campaign_id
         before = store.table_counts()
         with pytest.raises(ConflictError, match=f"already stored as campaign {cid} .*nothing imported"):
-            store.import_directory(path)
+            store.campaigns.import_directory(path)
         assert store.table_counts() == before
     finally:
         store.close()
@@ -43,7 +43,7 @@ def test_a_duplicate_is_refused_while_the_temperatures_are_written(pg_cluster, t
     store = connect(pg_cluster.create_database())
     try:
         path = make_bundle(tmp_path / "b", scans=300, sweeps=9)
-        store.import_directory(path).close()
+        store.campaigns.import_directory(path).close()
         before = store.table_counts()
         hashed = threading.Event()
         real_hash, real_copy = import_pipeline._hash_unless_stored, ingest.copy_temperatures_pg
@@ -69,7 +69,7 @@ def test_a_duplicate_is_refused_while_the_temperatures_are_written(pg_cluster, t
         monkeypatch.setattr(import_pipeline, "_hash_unless_stored", hash_then_signal)
         monkeypatch.setattr(ingest, "copy_temperatures_pg", copy_after_the_hash)
         with pytest.raises(ConflictError, match="already stored"):
-            store.import_directory(path)
+            store.campaigns.import_directory(path)
         assert len(cut) == 1 and "already stored" in cut[0]
         assert store.table_counts() == before
     finally:
@@ -86,7 +86,7 @@ def test_two_imports_of_one_bundle_at_once_store_it_once(pg_cluster, tmp_path: P
     def run() -> None:
         start.wait()
         try:
-            with store.import_directory(path) as imported:
+            with store.campaigns.import_directory(path) as imported:
                 outcomes.append(imported.campaign_id)
         except ConflictError as exc:
             outcomes.append(exc)
@@ -106,7 +106,7 @@ def test_two_imports_of_one_bundle_at_once_store_it_once(pg_cluster, tmp_path: P
         whole = load_bundle(path)
         readings = len(whole.temperatures) * len(whole.channels)
         assert after["temperature_samples"] - before["temperature_samples"] == readings
-        assert store.load_campaign(stored[0]).content_hash() == whole.content_hash()
+        assert store.campaigns.load(stored[0]).content_hash() == whole.content_hash()
     finally:
         store.close()
 
@@ -119,7 +119,7 @@ def test_a_server_connection_killed_during_the_write_leaves_nothing_and_a_retry_
     url = pg_cluster.create_database()
     store = connect(url)
     try:
-        store.import_directory(make_bundle(tmp_path / "first")).close()
+        store.campaigns.import_directory(make_bundle(tmp_path / "first")).close()
         before = store.table_counts()
         real_copy = ingest.copy_temperatures_pg
         killed: list[int] = []
@@ -145,7 +145,7 @@ def test_a_server_connection_killed_during_the_write_leaves_nothing_and_a_retry_
         assert len(killed) == 1
         assert store.table_counts() == before
         monkeypatch.setattr(ingest, "copy_temperatures_pg", real_copy)
-        with store.import_directory(path) as imported:
-            assert store.load_campaign(imported.campaign_id).content_hash() == load_bundle(path).content_hash()
+        with store.campaigns.import_directory(path) as imported:
+            assert store.campaigns.load(imported.campaign_id).content_hash() == load_bundle(path).content_hash()
     finally:
         store.close()

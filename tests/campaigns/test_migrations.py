@@ -54,7 +54,7 @@ def db_downgrade(store) -> None:
 def test_store_upgrades_itself_on_first_use(db_url: str) -> None:
     store = connect(db_url)
     try:
-        assert store.list_campaigns() == []
+        assert store.campaigns.summaries() == []
         assert store.revision() == db.head_revision()
     finally:
         store.close()

@@ -60,7 +60,9 @@ def fresh_pg(pg_cluster: PgCluster) -> Iterator[Store]:
 
 
 def _import_months(store: Store, bundle_factory) -> list[int]:
-    return [store.import_bundle(load_bundle(bundle_factory(seed=k, started_at=s))) for k, s in enumerate(STARTS)]
+    return [
+        store.campaigns.import_bundle(load_bundle(bundle_factory(seed=k, started_at=s))) for k, s in enumerate(STARTS)
+    ]
 
 
 def _where(store: Store, table: str, campaign_id: int) -> set[str]:
@@ -190,7 +192,7 @@ def test_two_imports_into_a_new_month_at_once_both_land(fresh_pg: Store, bundle_
     def load(store: Store, bundle: Bundle) -> None:
         try:
             barrier.wait()
-            ids.append(store.import_bundle(bundle))
+            ids.append(store.campaigns.import_bundle(bundle))
         except BaseException as exc:
             errors.append(exc)
 
@@ -287,10 +289,10 @@ def _explain_drift_statements(store: Store, call: Any) -> list[str]:
 def test_drift_statements_read_one_partition_each(pg: Store, bundle_factory) -> None:
     ids = _import_months(pg, bundle_factory)
     cases = [
-        lambda: pg.drift(MACHINE, "Z", "dz", position=130.0, direction=1),
-        lambda: pg.drift(MACHINE, "Z", "dz", position=130.0),
-        lambda: pg.drift(MACHINE, "Z", "dx", position=130.0, interpolate=True),
-        lambda: pg.drift(
+        lambda: pg.readings.drift(MACHINE, "Z", "dz", position=130.0, direction=1),
+        lambda: pg.readings.drift(MACHINE, "Z", "dz", position=130.0),
+        lambda: pg.readings.drift(MACHINE, "Z", "dx", position=130.0, interpolate=True),
+        lambda: pg.readings.drift(
             MACHINE, "Z", "gamma", start=datetime(2026, 2, 1, tzinfo=UTC), end=datetime(2026, 4, 1, tzinfo=UTC)
         ),
     ]
@@ -333,7 +335,7 @@ def test_sqlite_and_postgresql_answer_the_same(pg: Store, tmp_path: Path, bundle
     lite = connect(f"sqlite:///{tmp_path / 'same.sqlite'}")
     try:
         bundles = [load_bundle(bundle_factory(seed=k, started_at=s)) for k, s in enumerate(STARTS)]
-        a, b = [pg.import_bundle(x) for x in bundles], [lite.import_bundle(x) for x in bundles]
+        a, b = [pg.campaigns.import_bundle(x) for x in bundles], [lite.campaigns.import_bundle(x) for x in bundles]
         assert a == b
         win = dict(start=datetime(2026, 2, 4, 1, 35, tzinfo=UTC), end=datetime(2026, 4, 1, 0, 5, tzinfo=UTC))
         for kwargs in [
@@ -346,24 +348,26 @@ def test_sqlite_and_postgresql_answer_the_same(pg: Store, tmp_path: Path, bundle
         ]:
             for term in ("dx", "dz", "gamma"):
                 pd.testing.assert_frame_equal(
-                    pg.drift(MACHINE, "Z", term, **kwargs), lite.drift(MACHINE, "Z", term, **kwargs)
+                    pg.readings.drift(MACHINE, "Z", term, **kwargs), lite.readings.drift(MACHINE, "Z", term, **kwargs)
                 )
         for cid in a:
             for kwargs in [{}, dict(start_s=60.0, end_s=600.0), dict(buckets=7), dict(buckets=3, rollups=False)]:
                 pd.testing.assert_frame_equal(
-                    pg.temperature_history(cid, "T2", **kwargs),
-                    lite.temperature_history(cid, "T2", **kwargs),
+                    pg.readings.temperature_history(cid, "T2", **kwargs),
+                    lite.readings.temperature_history(cid, "T2", **kwargs),
                     rtol=1e-12,
                 )
             for kwargs in [{}, dict(buckets=4), dict(columns=["spindle_rpm", "z"], start_s=30.0, end_s=900.0)]:
                 pd.testing.assert_frame_equal(
-                    pg.condition_history(cid, **kwargs), lite.condition_history(cid, **kwargs), rtol=1e-12
+                    pg.readings.condition_history(cid, **kwargs),
+                    lite.readings.condition_history(cid, **kwargs),
+                    rtol=1e-12,
                 )
-            x, y = pg.load_campaign(cid), lite.load_campaign(cid)
+            x, y = pg.campaigns.load(cid), lite.campaigns.load(cid)
             pd.testing.assert_frame_equal(x.temperatures, y.temperatures)
             pd.testing.assert_frame_equal(x.errors, y.errors)
             pd.testing.assert_frame_equal(x.conditions, y.conditions)
-        assert [s.as_dict() for s in pg.list_campaigns()] == [s.as_dict() for s in lite.list_campaigns()]
+        assert [s.as_dict() for s in pg.campaigns.summaries()] == [s.as_dict() for s in lite.campaigns.summaries()]
     finally:
         lite.close()
 
@@ -416,7 +420,7 @@ def test_revision_0008_converts_a_populated_store_and_back(db_url: str, tmp_path
     try:
         ids = _import_months(source, bundle_factory)
         want = _readings(source, with_key=True)
-        drift = source.drift(MACHINE, "Z", "dz", position=130.0)
+        drift = source.readings.drift(MACHINE, "Z", "dz", position=130.0)
         store = _at_0007(db_url, source)
     finally:
         source.close()
@@ -425,7 +429,7 @@ def test_revision_0008_converts_a_populated_store_and_back(db_url: str, tmp_path
         assert {k: len(v) for k, v in before.items()} == {k: len(v) for k, v in want.items()}
         assert store.upgrade() == db.head_revision()
         assert _readings(store, with_key=True) == want  # every row, with its campaign's day
-        pd.testing.assert_frame_equal(store.drift(MACHINE, "Z", "dz", position=130.0), drift)
+        pd.testing.assert_frame_equal(store.readings.drift(MACHINE, "Z", "dz", position=130.0), drift)
         if store.dialect == "postgresql":
             for cid, month in zip(ids, ("2026_01", "2026_02", "2026_03"), strict=True):
                 assert _where(store, "temperature_samples", cid) == {f"temperature_samples_p{month}"}
@@ -448,7 +452,7 @@ def test_revision_0008_converts_a_populated_store_and_back(db_url: str, tmp_path
 def test_revision_0008_stops_on_readings_of_no_campaign(db_url: str, tmp_path: Path, bundle_factory) -> None:
     source = connect(f"sqlite:///{tmp_path / 'source.sqlite'}")
     try:
-        source.import_bundle(load_bundle(bundle_factory(seed=1)))
+        source.campaigns.import_bundle(load_bundle(bundle_factory(seed=1)))
         store = _at_0007(db_url, source)
     finally:
         source.close()

@@ -1,8 +1,9 @@
-"""The store's repositories on SQLite and PostgreSQL: one engine and schema gate, the old names bound to
-them, keyset pages, registry listings, job filters and the on-line state's update record."""
+"""The store's repositories on SQLite and PostgreSQL: one engine and schema gate, no alias beside them, keyset
+pages, registry listings, job filters and the on-line state's update record."""
 
 from __future__ import annotations
 
+import dataclasses
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -39,17 +40,25 @@ def test_the_repositories_share_one_engine_and_one_schema_gate(tmp_path: Path) -
         store.close()
 
 
-def test_the_names_before_the_repositories_are_their_methods(store: Store) -> None:
-    assert store.drift == store.readings.drift
-    assert store.import_bundle == store.campaigns.import_bundle
-    assert store.list_campaigns == store.campaigns.summaries
-    assert store.get_job == store.jobs.get
-    assert store.register_model == store.models.register
-    assert store.online_state == store.online.get
+#: the names ``Store`` bound beside its repositories before issue 36
+OLD_NAMES = (
+    "import_bundle import_directory load_campaign campaign_machine list_campaigns delete_campaign refresh_rollups "
+    "save_progress progress drift temperature_history condition_history register_model current_model machine_ids "
+    "refit_candidates record_job link_queue_job start_job finish_job fail_job delete_job jobs_in_state "
+    "last_job_result get_job online_state model_versions save_online_state"
+).split()
+
+
+def test_the_store_has_one_api_its_repositories(store: Store) -> None:
+    """No legacy alias beside the repositories: every old name is gone from Store (instance and class)."""
+    left = [name for name in OLD_NAMES if hasattr(store, name) or hasattr(Store, name)]
+    assert left == []
+    public = sorted(n for n in vars(store) if not n.startswith("_"))
+    assert public == ["campaigns", "engine", "gate", "jobs", "models", "online", "readings"]
 
 
 def test_keyset_pages_of_a_history_add_up_to_the_whole(store: Store, bundle_factory) -> None:
-    cid = store.import_bundle(load_bundle(bundle_factory(scans=25)))
+    cid = store.campaigns.import_bundle(load_bundle(bundle_factory(scans=25)))
     everything = store.readings.temperature_page(cid, "T1", HistoryPage(limit=10_000))
     assert len(everything) == 25
     pages, after = [], None
@@ -69,7 +78,7 @@ def test_keyset_pages_of_a_history_add_up_to_the_whole(store: Store, bundle_fact
 
 
 def test_error_pages_filter_and_continue_after_a_seq(store: Store, bundle_factory) -> None:
-    cid = store.import_bundle(load_bundle(bundle_factory()))
+    cid = store.campaigns.import_bundle(load_bundle(bundle_factory()))
     dz_up = store.readings.error_page(cid, ErrorFilter("Z", "dz", 1), HistoryPage(limit=10_000))
     assert dz_up and all(r.term == "dz" and r.direction == 1 for r in dz_up)
     seqs = [r.seq for r in dz_up]
@@ -81,7 +90,7 @@ def test_error_pages_filter_and_continue_after_a_seq(store: Store, bundle_factor
 
 
 def test_a_drift_query_is_checked_before_it_reads(store: Store, bundle_factory) -> None:
-    store.import_bundle(load_bundle(bundle_factory()))
+    store.campaigns.import_bundle(load_bundle(bundle_factory()))
     with pytest.raises(ValidationError, match="unknown axis"):
         store.readings.query_drift(DriftQuery(MACHINE, "Q", "dz"))
     with pytest.raises(ValidationError, match="direction"):
@@ -89,11 +98,13 @@ def test_a_drift_query_is_checked_before_it_reads(store: Store, bundle_factory) 
     with pytest.raises(BadRequestError, match="needs a position"):
         store.readings.query_drift(DriftQuery(MACHINE, "Z", "dz", interpolate=True))
     asked = DriftQuery(MACHINE, "Z", "dz", position=130.0, direction=1)
-    assert store.readings.query_drift(asked).equals(store.drift(MACHINE, "Z", "dz", position=130.0, direction=1))
+    assert store.readings.query_drift(asked).equals(
+        store.readings.drift(MACHINE, "Z", "dz", position=130.0, direction=1)
+    )
 
 
 def test_registry_listing_pages_and_unknown_machines(store: Store, bundle_factory) -> None:
-    store.import_bundle(load_bundle(bundle_factory()))
+    store.campaigns.import_bundle(load_bundle(bundle_factory()))
     for k in range(3):
         store.models.register(MACHINE, {"k": k})
     assert [m.version for m in store.models.versions(MACHINE, page=Page(2, 1))] == [2, 3]
@@ -110,7 +121,7 @@ def test_registry_listing_pages_and_unknown_machines(store: Store, bundle_factor
 
 def test_job_listing_filters_by_state_kind_and_machine(store: Store, bundle_factory) -> None:
     for machine in ("m1", "m2"):
-        store.import_bundle(load_bundle(bundle_factory(machine=machine)))
+        store.campaigns.import_bundle(load_bundle(bundle_factory(machine=machine)))
     a = store.jobs.record("fit", {}, machine_id="m1")
     b = store.jobs.record("diagnose", {}, machine_id="m2")
     c = store.jobs.record("fit", {}, machine_id="m2")
@@ -123,7 +134,7 @@ def test_job_listing_filters_by_state_kind_and_machine(store: Store, bundle_fact
 
 
 def test_an_online_update_is_stored_and_read_back_as_its_state(store: Store, bundle_factory) -> None:
-    store.import_bundle(load_bundle(bundle_factory()))
+    store.campaigns.import_bundle(load_bundle(bundle_factory()))
     update = OnlineUpdate(None, 1, 0.98, 3, {"dx": [1.0]}, {"dx": [[2.0]]})
     probe = {"measured_at": datetime(2026, 3, 3, tzinfo=UTC), "x": 0, "y": 0, "z": 0, "dx": 1.0, "dy": 0, "dz": 0}
     state, ids = store.online.save(MACHINE, None, update, [probe])
@@ -132,7 +143,6 @@ def test_an_online_update_is_stored_and_read_back_as_its_state(store: Store, bun
     assert store.online.get(MACHINE) == state
     with pytest.raises(StaleOnlineState):  # computed from no state, but there is one now
         store.online.save(MACHINE, None, update)
-    # the keyword form callers used before OnlineUpdate still works
-    moved, _ = store.save_online_state(MACHINE, 1, **{**update.__dict__, "n_updates": 4})
+    moved, _ = store.online.save(MACHINE, 1, dataclasses.replace(update, n_updates=4))
     assert moved.version == 2 and moved.n_updates == 4
     assert store.table_counts()["probe_measurements"] == 1

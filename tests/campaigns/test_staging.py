@@ -109,8 +109,8 @@ def test_an_import_a_chunk_at_a_time_stores_exactly_what_an_import_in_memory_sto
     store = connect(store_url)
     try:
         cid = _import(store, path, how)
-        stored = store.load_campaign(cid)
-        reference = other.import_bundle(whole)
+        stored = store.campaigns.load(cid)
+        reference = other.campaigns.import_bundle(whole)
         for name in ("temperatures", "conditions", "errors"):
             pd.testing.assert_frame_equal(getattr(stored, name), getattr(whole, name), check_exact=True)
         assert stored.content_hash() == whole.content_hash()
@@ -128,14 +128,14 @@ def test_an_import_a_chunk_at_a_time_stores_exactly_what_an_import_in_memory_sto
 
 
 def _import(store, path: Path, how: str) -> int:
-    """Import the bundle in ``path`` staged (``Store.import_bundle``) or from its directory (``import_directory``)."""
+    """Import the bundle in ``path`` staged (``campaigns.import_bundle``) or from its directory."""
     if how == "directory":
-        with store.import_directory(path, block_bytes=SMALL) as imported:
+        with store.campaigns.import_directory(path, block_bytes=SMALL) as imported:
             assert imported.bundle.temperatures.n_rows == len(load_bundle(path).temperatures)
             return imported.campaign_id
     with stage_bundle(path, block_bytes=SMALL) as staged:
         assert staged.temperatures.n_rows == len(load_bundle(path).temperatures)
-        return store.import_bundle(staged)
+        return store.campaigns.import_bundle(staged)
 
 
 def _big_bundle(path: Path, scans: int, bad_last_row: bool = False) -> Path:
@@ -154,7 +154,7 @@ def _big_bundle(path: Path, scans: int, bad_last_row: bool = False) -> Path:
 def test_a_bad_last_row_of_a_big_file_leaves_the_store_untouched(store_url: str, tmp_path: Path, capsys) -> None:
     store = connect(store_url)
     try:
-        store.import_bundle(load_bundle(make_bundle(tmp_path / "first")))
+        store.campaigns.import_bundle(load_bundle(make_bundle(tmp_path / "first")))
         before = store.table_counts()
         bad = _big_bundle(tmp_path / "bad", 300_000, bad_last_row=True)
         assert (bad / "temperatures.csv").stat().st_size > 8 * CSV_BLOCK_BYTES  # several chunks of the default size
@@ -178,7 +178,7 @@ def test_a_failure_after_many_chunks_are_written_rolls_all_back(
     """From a staged bundle the errors come last; from a directory on PostgreSQL, first, beside the parse."""
     store = connect(store_url)
     try:
-        store.import_bundle(load_bundle(make_bundle(tmp_path / "first")))
+        store.campaigns.import_bundle(load_bundle(make_bundle(tmp_path / "first")))
         before = store.table_counts()
         real = ingest.error_rows
         written: list[int] = []

@@ -44,37 +44,37 @@ def test_import_export_import_round_trips_exactly(
     store: Store, bundle_dir: Path, tmp_path: Path, store_url: str
 ) -> None:
     original = load_bundle(bundle_dir)
-    cid = store.import_bundle(original)
-    stored = store.load_campaign(cid)
+    cid = store.campaigns.import_bundle(original)
+    stored = store.campaigns.load(cid)
     _assert_same_bundle(original, stored)
     out = write_bundle(tmp_path / "exported", stored.meta, stored.temperatures, stored.conditions, stored.errors)
     again = load_bundle(out)
     _assert_same_bundle(original, again)
     # the same content is the same campaign: re-importing the export is refused
     with pytest.raises(ConflictError, match=f"already stored as campaign {cid}"):
-        store.import_bundle(again)
+        store.campaigns.import_bundle(again)
     # into another database it lands and reads back identically
     other = connect(f"sqlite:///{tmp_path / 'other.sqlite'}")
     try:
-        _assert_same_bundle(original, other.load_campaign(other.import_bundle(again)))
+        _assert_same_bundle(original, other.campaigns.load(other.campaigns.import_bundle(again)))
     finally:
         other.close()
 
 
 def test_missing_cells_stay_missing(store: Store, bundle_dir: Path) -> None:
     b = load_bundle(bundle_dir)
-    stored = store.load_campaign(store.import_bundle(b))
+    stored = store.campaigns.load(store.campaigns.import_bundle(b))
     assert np.isnan(stored.temperatures.loc[3, "T2"])
     assert stored.conditions is not None and stored.conditions["z"].isna().all()
-    raw = store.temperature_history(1, "T2")
+    raw = store.readings.temperature_history(1, "T2")
     assert np.isnan(raw.loc[3, "value"]) and raw["value"].notna().sum() == len(raw) - 1
 
 
 def test_real_bundle_round_trips(store: Store, fl_thermal: Path) -> None:
     b = load_bundle(fl_thermal)
-    cid = store.import_bundle(b)
-    _assert_same_bundle(b, store.load_campaign(cid))
-    [summary] = store.list_campaigns()
+    cid = store.campaigns.import_bundle(b)
+    _assert_same_bundle(b, store.campaigns.load(cid))
+    [summary] = store.campaigns.summaries()
     assert (summary.id, summary.channels, summary.scans, summary.error_samples, summary.stages) == (
         cid,
         16,
@@ -89,17 +89,17 @@ def test_real_bundle_round_trips(store: Store, fl_thermal: Path) -> None:
 
 def test_duplicate_import_refused_and_changes_nothing(store: Store, bundle_dir: Path) -> None:
     b = load_bundle(bundle_dir)
-    store.import_bundle(b)
+    store.campaigns.import_bundle(b)
     before = store.table_counts()
     with pytest.raises(ConflictError) as info:
-        store.import_bundle(load_bundle(bundle_dir))
+        store.campaigns.import_bundle(load_bundle(bundle_dir))
     assert "\n" not in str(info.value)
     assert store.table_counts() == before
 
 
 @pytest.mark.parametrize("boom", [RuntimeError("disk on fire"), KeyboardInterrupt()], ids=["error", "ctrl-c"])
 def test_failure_mid_write_leaves_database_as_it_was(store: Store, bundle_factory, monkeypatch, boom) -> None:
-    store.import_bundle(load_bundle(bundle_factory(seed=1)))
+    store.campaigns.import_bundle(load_bundle(bundle_factory(seed=1)))
     before = store.table_counts()
     real = ingest.bulk_insert
     calls: list[str] = []
@@ -115,18 +115,18 @@ def test_failure_mid_write_leaves_database_as_it_was(store: Store, bundle_factor
     monkeypatch.setattr(ingest, "bulk_insert", failing)
     b = load_bundle(bundle_factory(seed=2))
     with pytest.raises(type(boom)):
-        store.import_bundle(b)
+        store.campaigns.import_bundle(b)
     assert calls[-2:] == ["condition_samples", "error_samples"]
     assert seen_inside[0] == before["temperature_samples"] + 40 * 4  # written, then rolled back
     assert store.table_counts() == before
     monkeypatch.setattr(ingest, "bulk_insert", real)
-    store.import_bundle(b)  # nothing was left behind that would block a clean retry
+    store.campaigns.import_bundle(b)  # nothing was left behind that would block a clean retry
     assert store.table_counts()["campaigns"] == before["campaigns"] + 1
 
 
 def test_unique_keys_refuse_a_reinserted_reading(store: Store, bundle_dir: Path) -> None:
     bundle = load_bundle(bundle_dir)
-    cid = store.import_bundle(bundle)
+    cid = store.campaigns.import_bundle(bundle)
     day = start_day(bundle.meta.started_at)  # the key the import wrote: the same row again, in its partition
     with store.engine.connect() as conn:
         ch = conn.execute(sc.Channel.__table__.select().where(sc.Channel.campaign_id == cid)).first()
@@ -191,7 +191,7 @@ def corpus_store_url(request: pytest.FixtureRequest, tmp_path_factory: pytest.Te
     else:
         url = request.getfixturevalue("pg_cluster").create_database()
     with connect(url) as store:
-        store.import_bundle(load_bundle(make_bundle(tmp / "stored", seed=5)))
+        store.campaigns.import_bundle(load_bundle(make_bundle(tmp / "stored", seed=5)))
     return url
 
 

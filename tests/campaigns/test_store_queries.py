@@ -30,14 +30,14 @@ def store(store_url: str):
 
 
 def _two_campaigns(store: Store, bundle_factory) -> tuple[int, int]:
-    a = store.import_bundle(load_bundle(bundle_factory(seed=1, started_at="2026-03-02T08:00:00Z")))
-    b = store.import_bundle(load_bundle(bundle_factory(seed=2, started_at="2026-03-05T09:30:00+01:00")))
+    a = store.campaigns.import_bundle(load_bundle(bundle_factory(seed=1, started_at="2026-03-02T08:00:00Z")))
+    b = store.campaigns.import_bundle(load_bundle(bundle_factory(seed=2, started_at="2026-03-05T09:30:00+01:00")))
     return a, b
 
 
 def test_drift_nearest_position_across_campaigns_in_wall_clock(store: Store, bundle_factory) -> None:
     a, b = _two_campaigns(store, bundle_factory)
-    d = store.drift("vmc-test-01", "Z", "dz", position=130.0, direction=1)
+    d = store.readings.drift("vmc-test-01", "Z", "dz", position=130.0, direction=1)
     # measured positions are 0, 100, 200, 300, 400: nearest to 130 is 100
     assert set(d["position"]) == {100.0}
     assert list(d["campaign_id"]) == [a] * 4 + [b] * 4
@@ -48,7 +48,7 @@ def test_drift_nearest_position_across_campaigns_in_wall_clock(store: Store, bun
     assert d["time"].iloc[0] == pd.Timestamp("2026-03-02T08:00:00Z") + pd.Timedelta(seconds=want["time_s"].iloc[0])
     assert d["time"].iloc[4] == pd.Timestamp("2026-03-05T08:30:00Z") + pd.Timedelta(seconds=want["time_s"].iloc[0])
     assert d["time"].is_monotonic_increasing
-    both = store.drift("vmc-test-01", "Z", "dz", position=100.0)
+    both = store.readings.drift("vmc-test-01", "Z", "dz", position=100.0)
     assert set(both["direction"]) == {1, -1} and len(both) == 16
 
 
@@ -56,13 +56,13 @@ def test_drift_time_window_and_all_positions(store: Store, bundle_factory) -> No
     a, b = _two_campaigns(store, bundle_factory)
     start = datetime(2026, 3, 2, 8, 5, tzinfo=UTC)
     end = datetime(2026, 3, 2, 8, 10, tzinfo=UTC)
-    d = store.drift("vmc-test-01", "Z", "dx", start=start, end=end)
+    d = store.readings.drift("vmc-test-01", "Z", "dx", start=start, end=end)
     assert set(d["campaign_id"]) == {a}
     assert d["time_s"].between(300.0, 600.0).all() and len(d) == 11  # sweep at 300 s (10 points) + 600 s start
     assert set(d["position"]) == {0.0, 100.0, 200.0, 300.0, 400.0}
-    late = store.drift("vmc-test-01", "Z", "dx", start=datetime(2026, 3, 4, tzinfo=UTC))
+    late = store.readings.drift("vmc-test-01", "Z", "dx", start=datetime(2026, 3, 4, tzinfo=UTC))
     assert set(late["campaign_id"]) == {b}
-    empty = store.drift("vmc-test-01", "Z", "dy")
+    empty = store.readings.drift("vmc-test-01", "Z", "dy")
     assert empty.empty and list(empty.columns) == [
         "campaign_id",
         "time",
@@ -75,9 +75,9 @@ def test_drift_time_window_and_all_positions(store: Store, bundle_factory) -> No
 
 
 def test_drift_interpolates_along_position_within_each_sweep(store: Store, bundle_factory) -> None:
-    cid = store.import_bundle(load_bundle(bundle_factory(seed=3)))
-    errors = store.load_campaign(cid).errors
-    d = store.drift("vmc-test-01", "Z", "dx", position=250.0, direction=-1, interpolate=True)
+    cid = store.campaigns.import_bundle(load_bundle(bundle_factory(seed=3)))
+    errors = store.campaigns.load(cid).errors
+    d = store.readings.drift("vmc-test-01", "Z", "dx", position=250.0, direction=-1, interpolate=True)
     assert len(d) == 4 and (d["position"] == 250.0).all()
     sel = errors[(errors.term == "dx") & (errors.direction == -1)]
     for k, (_, row) in enumerate(d.iterrows()):
@@ -85,22 +85,22 @@ def test_drift_interpolates_along_position_within_each_sweep(store: Store, bundl
         lo, hi = sweep[sweep.position == 200.0].iloc[0], sweep[sweep.position == 300.0].iloc[0]
         assert row["value"] == pytest.approx(lo.value + 0.5 * (hi.value - lo.value), rel=1e-12, abs=1e-18)
         assert row["time_s"] == pytest.approx(lo.time_s + 0.5 * (hi.time_s - lo.time_s))
-    exact = store.drift("vmc-test-01", "Z", "dx", position=400.0, direction=1, interpolate=True)
+    exact = store.readings.drift("vmc-test-01", "Z", "dx", position=400.0, direction=1, interpolate=True)
     want = errors[(errors.term == "dx") & (errors.direction == 1) & (errors.position == 400.0)]
     assert exact["value"].tolist() == want["value"].tolist()
-    assert store.drift("vmc-test-01", "Z", "dx", position=900.0, interpolate=True).empty
+    assert store.readings.drift("vmc-test-01", "Z", "dx", position=900.0, interpolate=True).empty
 
 
 def test_drift_refuses_bad_requests(store: Store, bundle_dir: Path) -> None:
-    store.import_bundle(load_bundle(bundle_dir))
+    store.campaigns.import_bundle(load_bundle(bundle_dir))
     with pytest.raises(ValidationError, match="unknown axis"):
-        store.drift("vmc-test-01", "W", "dz")
+        store.readings.drift("vmc-test-01", "W", "dz")
     with pytest.raises(ValidationError, match="unknown term"):
-        store.drift("vmc-test-01", "Z", "dw")
+        store.readings.drift("vmc-test-01", "Z", "dw")
     with pytest.raises(NotFoundError, match="no machine"):
-        store.drift("nope", "Z", "dz")
+        store.readings.drift("nope", "Z", "dz")
     with pytest.raises(ValidationError, match="needs a position"):
-        store.drift("vmc-test-01", "Z", "dz", interpolate=True)
+        store.readings.drift("vmc-test-01", "Z", "dz", interpolate=True)
 
 
 def test_drift_cli_csv_is_exact(store_url: str, bundle_dir: Path, capsys) -> None:
@@ -195,10 +195,10 @@ def test_drift_cli_csv_is_exact(store_url: str, bundle_dir: Path, capsys) -> Non
 
 def test_temperature_history_buckets_match_numpy(store: Store, bundle_dir: Path) -> None:
     b = load_bundle(bundle_dir)
-    cid = store.import_bundle(b)
+    cid = store.campaigns.import_bundle(b)
     t = b.temperatures["time_s"].to_numpy()
     v = b.temperatures["T2"].to_numpy()
-    h = store.temperature_history(cid, "T2", buckets=6, rollups=False)
+    h = store.readings.temperature_history(cid, "T2", buckets=6, rollups=False)
     edges = np.linspace(t[0], t[-1], 7)
     w = (t[-1] - t[0]) / 6
     idx = np.array([min(int(np.searchsorted(t[0] + w * np.arange(1, 6), x, side="right")), 5) for x in t])
@@ -210,10 +210,10 @@ def test_temperature_history_buckets_match_numpy(store: Store, bundle_dir: Path)
         assert h["value_mean"][k] == pytest.approx(sel.mean(), rel=1e-12)
         assert h["time_s"][k] == pytest.approx(edges[k])
     assert h["n"].sum() == len(t)
-    window = store.temperature_history(cid, "T2", start_s=300.0, end_s=600.0)
+    window = store.readings.temperature_history(cid, "T2", start_s=300.0, end_s=600.0)
     assert window["time_s"].tolist() == [float(x) for x in range(300, 601, 30)]
     with pytest.raises(NotFoundError, match="no channel 'T9'"):
-        store.temperature_history(cid, "T9")
+        store.readings.temperature_history(cid, "T9")
 
 
 def _rollups(store: Store) -> list:
@@ -228,10 +228,10 @@ def _rollups(store: Store) -> list:
 
 def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path) -> None:
     b = load_bundle(bundle_dir)
-    cid = store.import_bundle(b)
+    cid = store.campaigns.import_bundle(b)
     t = b.temperatures["time_s"].to_numpy()
     v = b.temperatures["T2"].to_numpy()
-    h = store.temperature_history(cid, "T2", buckets=3)  # 390 s wide: snapped out to 7 minutes
+    h = store.readings.temperature_history(cid, "T2", buckets=3)  # 390 s wide: snapped out to 7 minutes
     k = (np.floor(t / 60) // 7).astype(int)
     assert h["time_s"].tolist() == [0.0, 420.0, 840.0] and h["t_end_s"].tolist() == [420.0, 840.0, 1260.0]
     for j in range(3):
@@ -240,13 +240,13 @@ def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path)
         assert h["value_mean"][j] == pytest.approx(sel.mean(), rel=1e-12)
         assert h["n"][j] == (k == j).sum()
     # narrow buckets are never taken from rollups
-    narrow = store.temperature_history(cid, "T2", buckets=20)
-    assert narrow.equals(store.temperature_history(cid, "T2", buckets=20, rollups=False))
+    narrow = store.readings.temperature_history(cid, "T2", buckets=20)
+    assert narrow.equals(store.readings.temperature_history(cid, "T2", buckets=20, rollups=False))
 
     # recomputing the rollups in SQL gives the rows the import wrote
     written = _rollups(store)
     assert len(written) == 4 * 20
-    assert store.refresh_rollups(cid) == len(written)
+    assert store.campaigns.refresh_rollups(cid) == len(written)
     again = _rollups(store)
     assert [r[:5] for r in again] == [r[:5] for r in written]
     for a, w in zip(again, written, strict=True):
@@ -254,11 +254,11 @@ def test_temperature_history_from_minute_rollups(store: Store, bundle_dir: Path)
     # a campaign without complete rollups (written live) is aggregated from the readings
     with store.engine.begin() as conn:
         conn.execute(update(sc.Campaign).where(sc.Campaign.id == cid).values(rollups_complete=False))
-    assert store.temperature_history(cid, "T2", buckets=3).equals(
-        store.temperature_history(cid, "T2", buckets=3, rollups=False)
+    assert store.readings.temperature_history(cid, "T2", buckets=3).equals(
+        store.readings.temperature_history(cid, "T2", buckets=3, rollups=False)
     )
     with pytest.raises(NotFoundError):
-        store.refresh_rollups(99)
+        store.campaigns.refresh_rollups(99)
 
 
 def test_rollups_of_minutes_without_a_reading_are_null(store: Store, bundle_dir: Path, tmp_path: Path) -> None:
@@ -269,41 +269,43 @@ def test_rollups_of_minutes_without_a_reading_are_null(store: Store, bundle_dir:
     t = temps["time_s"].to_numpy()
     temps.loc[(t >= 120) & (t < 300), "T2"] = np.nan  # minutes 2, 3 and 4 of T2: no reading
     temps.loc[t < 60, "T49"] = np.nan  # T49's first minute
-    cid = store.import_bundle(load_bundle(write_bundle(tmp_path / "gaps", b.meta, temps, b.conditions, b.errors)))
+    cid = store.campaigns.import_bundle(
+        load_bundle(write_bundle(tmp_path / "gaps", b.meta, temps, b.conditions, b.errors))
+    )
 
     written = _rollups(store)
     empty = [(r.minute, r.n, r.n_values, r.vmin, r.vsum, r.vmax) for r in written if r.n_values == 0]  # T2, then T49
     assert [e[0] for e in empty] == [2, 3, 4, 0] and all(e[1] > 0 and e[3:] == (None, None, None) for e in empty)
-    store.refresh_rollups(cid)
+    store.campaigns.refresh_rollups(cid)
     again = _rollups(store)
     assert [r[:6] for r in again] == [r[:6] for r in written] and [r[7] for r in again] == [r[7] for r in written]
     assert all((a[6] is None) == (w[6] is None) for a, w in zip(again, written, strict=True))
 
 
 def test_condition_history(store: Store, bundle_dir: Path) -> None:
-    cid = store.import_bundle(load_bundle(bundle_dir))
-    h = store.condition_history(cid, ["spindle_rpm", "z"], buckets=2)
+    cid = store.campaigns.import_bundle(load_bundle(bundle_dir))
+    h = store.readings.condition_history(cid, ["spindle_rpm", "z"], buckets=2)
     assert h["spindle_rpm_max"].tolist() == [8000.0, 0.0]
     assert h["spindle_rpm_min"].tolist() == [8000.0, 0.0]
     assert h["z_mean"].isna().all()
-    raw = store.condition_history(cid, ["feed_mm_min"], end_s=60.0)
+    raw = store.readings.condition_history(cid, ["feed_mm_min"], end_s=60.0)
     assert raw.shape == (3, 2)
     with pytest.raises(ValidationError, match="unknown condition"):
-        store.condition_history(cid, ["torque"])
+        store.readings.condition_history(cid, ["torque"])
 
 
 # ----------------------------------------------------------------------------- registry, jobs, progress
 
 
 def test_model_registry_keeps_exactly_one_current(store: Store, bundle_dir: Path) -> None:
-    cid = store.import_bundle(load_bundle(bundle_dir))
-    assert store.current_model("vmc-test-01") is None
-    v1 = store.register_model("vmc-test-01", {"kind": "standard", "coef": [1.5, 2.0]}, [cid])
-    v2 = store.register_model("vmc-test-01", {"kind": "extended", "nested": {"a": [1, None]}}, [cid])
+    cid = store.campaigns.import_bundle(load_bundle(bundle_dir))
+    assert store.models.current("vmc-test-01") is None
+    v1 = store.models.register("vmc-test-01", {"kind": "standard", "coef": [1.5, 2.0]}, [cid])
+    v2 = store.models.register("vmc-test-01", {"kind": "extended", "nested": {"a": [1, None]}}, [cid])
     assert (v1.version, v2.version) == (1, 2)
-    current = store.current_model("vmc-test-01")
+    current = store.models.current("vmc-test-01")
     assert current is not None and current.version == 2 and current.document["nested"] == {"a": [1, None]}
-    assert [m.status for m in store.model_versions("vmc-test-01")] == ["retired", "current"]
+    assert [m.status for m in store.models.versions("vmc-test-01")] == ["retired", "current"]
     with pytest.raises(IntegrityError), store.engine.begin() as conn:
         conn.execute(
             insert(sc.ModelVersion),
@@ -317,44 +319,44 @@ def test_model_registry_keeps_exactly_one_current(store: Store, bundle_dir: Path
             },
         )
     with pytest.raises(NotFoundError):
-        store.register_model("nope", {})
+        store.models.register("nope", {})
 
 
 def test_job_records_lifecycle(store: Store) -> None:
     """A job record: queued, running (one attempt more each start), queued again for a retry, then done or failed."""
-    a = store.record_job("diagnose", {"campaigns": [1]})
-    b = store.record_job("fit", {"campaigns": [1]})
-    assert [store.get_job(j).state for j in (a, b)] == ["queued", "queued"]
-    assert store.jobs_in_state("queued") == [a, b] and store.jobs_in_state("queued", ["fit"]) == [b]
-    job = store.start_job(b, "w1", only_if_queued=True)
+    a = store.jobs.record("diagnose", {"campaigns": [1]})
+    b = store.jobs.record("fit", {"campaigns": [1]})
+    assert [store.jobs.get(j).state for j in (a, b)] == ["queued", "queued"]
+    assert store.jobs.in_state("queued") == [a, b] and store.jobs.in_state("queued", ["fit"]) == [b]
+    job = store.jobs.start(b, "w1", only_if_queued=True)
     assert job is not None and job.state == "running" and job.attempts == 1 and job.worker == "w1"
-    assert store.start_job(b, "w2", only_if_queued=True) is None  # another process has it
-    store.fail_job(b, "database\ngone away", retry=True)
-    job = store.get_job(b)
+    assert store.jobs.start(b, "w2", only_if_queued=True) is None  # another process has it
+    store.jobs.fail(b, "database\ngone away", retry=True)
+    job = store.jobs.get(b)
     assert job.state == "queued" and job.error == "database gone away" and job.finished_at is None
-    assert store.start_job(b, "w2").attempts == 2
-    store.finish_job(b, {"model_version": 3})
-    job = store.get_job(b)
+    assert store.jobs.start(b, "w2").attempts == 2
+    store.jobs.finish(b, {"model_version": 3})
+    job = store.jobs.get(b)
     assert job.state == "done" and job.result == {"model_version": 3} and job.error is None and job.finished_at
-    store.start_job(a, "w1")
-    store.fail_job(a, "singular\nmatrix")
-    assert store.get_job(a).state == "failed" and store.get_job(a).error == "singular matrix"
-    assert store.get_job(a).queue_status is None  # never queued on procrastinate
-    store.delete_job(a)
+    store.jobs.start(a, "w1")
+    store.jobs.fail(a, "singular\nmatrix")
+    assert store.jobs.get(a).state == "failed" and store.jobs.get(a).error == "singular matrix"
+    assert store.jobs.get(a).queue_status is None  # never queued on procrastinate
+    store.jobs.delete(a)
     with pytest.raises(NotFoundError):
-        store.get_job(a)
+        store.jobs.get(a)
     with pytest.raises(NotFoundError):
-        store.start_job(999, "w1")
+        store.jobs.start(999, "w1")
     with pytest.raises(ValidationError):
-        store.record_job("")
+        store.jobs.record("")
 
 
 def test_acquisition_progress_upsert(store: Store, bundle_dir: Path) -> None:
-    cid = store.import_bundle(load_bundle(bundle_dir))
-    assert store.progress(cid) is None
-    store.save_progress(cid, 0, 1, 30.0, {"next_scan": 2})
-    store.save_progress(cid, 1, 4, 90.0, {"next_scan": 4})
-    p = store.progress(cid)
+    cid = store.campaigns.import_bundle(load_bundle(bundle_dir))
+    assert store.campaigns.progress(cid) is None
+    store.campaigns.save_progress(cid, 0, 1, 30.0, {"next_scan": 2})
+    store.campaigns.save_progress(cid, 1, 4, 90.0, {"next_scan": 4})
+    p = store.campaigns.progress(cid)
     assert p is not None and (p.stage_ordinal, p.sweep, p.last_sample_time_s, p.cursor) == (
         1,
         4,
@@ -366,13 +368,13 @@ def test_acquisition_progress_upsert(store: Store, bundle_dir: Path) -> None:
 
 def test_delete_campaign_removes_everything(store: Store, bundle_factory) -> None:
     empty = store.table_counts()
-    cid = store.import_bundle(load_bundle(bundle_factory(seed=1)))
-    store.save_progress(cid, 0, 0, None)
-    store.delete_campaign(cid)
+    cid = store.campaigns.import_bundle(load_bundle(bundle_factory(seed=1)))
+    store.campaigns.save_progress(cid, 0, 0, None)
+    store.campaigns.delete(cid)
     after = store.table_counts()
     assert {k: v for k, v in after.items() if k != "machines"} == {k: v for k, v in empty.items() if k != "machines"}
     with pytest.raises(NotFoundError):
-        store.delete_campaign(cid)
+        store.campaigns.delete(cid)
 
 
 def test_default_url_comes_from_environment(tmp_path: Path, monkeypatch, bundle_dir: Path) -> None:
@@ -382,7 +384,7 @@ def test_default_url_comes_from_environment(tmp_path: Path, monkeypatch, bundle_
     assert path.exists()
     s = connect()
     try:
-        assert [c.id for c in s.list_campaigns()] == [1]
+        assert [c.id for c in s.campaigns.summaries()] == [1]
     finally:
         s.close()
 
@@ -393,7 +395,7 @@ def test_unsupported_url_is_a_user_error() -> None:
 
 
 def test_timestamps_are_utc_aware(store: Store, bundle_factory) -> None:
-    cid = store.import_bundle(load_bundle(bundle_factory(started_at="2026-03-05T09:30:00+01:00")))
-    [c] = store.list_campaigns()
+    cid = store.campaigns.import_bundle(load_bundle(bundle_factory(started_at="2026-03-05T09:30:00+01:00")))
+    [c] = store.campaigns.summaries()
     assert c.id == cid and c.started_at == datetime(2026, 3, 5, 8, 30, tzinfo=UTC)
     assert c.started_at.utcoffset() == timedelta(0)

@@ -368,7 +368,7 @@ def test_fit_writes_the_machine_files_envelope_into_the_document(tmp_path, capsy
 
     url = f"sqlite:///{tmp_path / 's.sqlite'}"
     with connect(url) as store:
-        cid = store.import_bundle(bundle())
+        cid = store.campaigns.import_bundle(bundle())
     machine = tmp_path / "machine.yaml"
     machine.write_text("travel:\n  X: [-10, 264]\n  Y: [-10, 264]\n  Z: [-264, 10]\nmax_correction:\n  Z: 0.5\n")
     assert main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--machine-file", str(machine)]) == 0

@@ -36,7 +36,7 @@ def test_a_campaign_carries_its_plans_travel(db_url: str, tmp_path: Path) -> Non
     scen.write_text(SCENARIO)
     r = run_daemon(load_plan(plan), db_url=db_url, scenario_path=scen, speed=math.inf, stop_after_commits=2)
     with connect(db_url) as store:
-        bundle = store.load_campaign(r.campaign_id)
+        bundle = store.campaigns.load(r.campaign_id)
     assert bundle.meta.machine.travel == {"Z": (-260.0, 10.0)}
     # and a bundle written from it keeps it (campaign.json machine.travel)
     path = write_bundle(tmp_path / "b", bundle.meta, bundle.temperatures, bundle.conditions, bundle.errors)
@@ -54,7 +54,7 @@ def test_a_simulated_campaign_on_a_plan_without_travel_carries_the_virtual_machi
     scen.write_text(SCENARIO)
     r = run_daemon(load_plan(plan), db_url=db_url, scenario_path=scen, speed=math.inf, stop_after_commits=2)
     with connect(db_url) as store:
-        bundle = store.load_campaign(r.campaign_id)
+        bundle = store.campaigns.load(r.campaign_id)
     assert bundle.meta.machine.travel == dict(AXIS_RANGE)
     assert bundle.meta.machine.travel["Z"] == (-254.0, 0.0)
 
@@ -89,8 +89,8 @@ def test_a_fitted_model_carries_the_campaigns_travel_and_the_compensator_holds_t
     narrower = {**TRAVEL, "X": [5.0, 250.0]}
     with connect(f"sqlite:///{tmp_path / 's.sqlite'}") as store:
         ids = [
-            store.import_bundle(_with_travel(synthetic_bundle(0), TRAVEL)),
-            store.import_bundle(_with_travel(synthetic_bundle(1), narrower)),
+            store.campaigns.import_bundle(_with_travel(synthetic_bundle(0), TRAVEL)),
+            store.campaigns.import_bundle(_with_travel(synthetic_bundle(1), narrower)),
         ]
         _, doc = fit_campaigns(store, ids, FitOptions(network=False), envelope={"travel": {"Z": [-100.0, 0.0]}})
     assert doc.envelope is not None

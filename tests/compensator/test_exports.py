@@ -288,7 +288,7 @@ def test_cli_export_comp_from_a_registered_version(fitted, tmp_path, capsys):
     model, temps, root = fitted
     url = f"sqlite:///{tmp_path / 's.sqlite'}"
     store = connect(url)
-    store.import_bundle(load_bundle(root / "bundle"))
+    store.campaigns.import_bundle(load_bundle(root / "bundle"))
     doc = register_model(store, json.loads((root / "model.json").read_text()))
     store.close()
     csv = root / "bundle" / "temperatures.csv"

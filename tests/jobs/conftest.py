@@ -33,7 +33,7 @@ def bundle(machine: str = MACHINE, seed: int = 0, started_at: str | None = None)
 def wait_ended(store: Store, job_ids: list[int], polls: int = 6000) -> list[JobInfo]:
     """Poll jobs until each is done or failed (a safety net of ``polls`` x 0.1 s, not a timing assertion)."""
     for _ in range(polls):
-        jobs = [store.get_job(j) for j in job_ids]
+        jobs = [store.jobs.get(j) for j in job_ids]
         if all(j.state in ("done", "failed") for j in jobs):
             return jobs
         time.sleep(0.1)

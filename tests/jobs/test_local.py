@@ -22,7 +22,7 @@ def _store_url(store: Store) -> str:
 
 
 def test_a_fit_submitted_to_the_server_runs_in_its_thread_into_the_registry(sqlite_store: Store) -> None:
-    cid = sqlite_store.import_bundle(bundle())
+    cid = sqlite_store.campaigns.import_bundle(bundle())
     seen: list[str] = []
     jobs = Jobs(sqlite_store, run_here=True, on_model=seen.append)
     jobs.start()
@@ -34,7 +34,7 @@ def test_a_fit_submitted_to_the_server_runs_in_its_thread_into_the_registry(sqli
     assert job.state == "done" and job.attempts == 1 and job.result["model_version"] == 1, job.error
     assert job.queue_job_id is None and job.queue_status is None  # no queue on SQLite
     assert seen == [MACHINE]
-    assert sqlite_store.current_model(MACHINE).source_campaigns == [cid]
+    assert sqlite_store.models.current(MACHINE).source_campaigns == [cid]
 
 
 def test_a_failing_job_is_retried_in_process_then_reported_failed(
@@ -47,25 +47,25 @@ def test_a_failing_job_is_retried_in_process_then_reported_failed(
         raise OSError("scratch disk unavailable")
 
     monkeypatch.setitem(tasks.BODIES, FIT, body)
-    cid = sqlite_store.import_bundle(bundle())
+    cid = sqlite_store.campaigns.import_bundle(bundle())
     job = run_until_ended(sqlite_store, submit(sqlite_store, FIT, {"campaigns": [cid]}, machine_id=MACHINE))
     assert len(runs) == policy.MAX_ATTEMPTS and job.attempts == policy.MAX_ATTEMPTS
     assert job.state == "failed" and job.error == "OSError: scratch disk unavailable"
 
 
 def test_bad_input_fails_at_once(sqlite_store: Store) -> None:
-    cid = sqlite_store.import_bundle(bundle())
+    cid = sqlite_store.campaigns.import_bundle(bundle())
     job = run_until_ended(sqlite_store, submit(sqlite_store, "diagnose", {"campaigns": [cid, cid]}))
     assert job.state == "failed" and job.attempts == 1 and job.error == "a diagnosis is of exactly one campaign"
 
 
 def test_enqueued_jobs_wait_for_the_next_server_and_interrupted_ones_are_failed(sqlite_store: Store, capsys) -> None:
-    cid = sqlite_store.import_bundle(bundle())
+    cid = sqlite_store.campaigns.import_bundle(bundle())
     url = _store_url(sqlite_store)
     assert main(["fit", "--campaign", str(cid), "--db", url, "--enqueue", "--no-network"]) == 0
     queued = json.loads(capsys.readouterr().out)["job"]
     left_running = submit_fit(sqlite_store, [cid], network=False)
-    sqlite_store.start_job(left_running, "a-process-that-died")
+    sqlite_store.jobs.start(left_running, "a-process-that-died")
     runner = LocalRunner(sqlite_store)
     runner.start()
     try:
@@ -74,14 +74,14 @@ def test_enqueued_jobs_wait_for_the_next_server_and_interrupted_ones_are_failed(
         runner.stop()
     assert done.state == "done" and done.worker == runner.worker, done.error
     assert interrupted.state == "failed" and interrupted.error == INTERRUPTED
-    assert [v.version for v in sqlite_store.model_versions(MACHINE)] == [1]
+    assert [v.version for v in sqlite_store.models.versions(MACHINE)] == [1]
 
 
 def test_a_record_is_run_once_even_with_two_runners(sqlite_store: Store) -> None:
     """Two processes' runners on one file (a server and a `driftlab fit`): the record is taken once."""
-    cid = sqlite_store.import_bundle(bundle())
+    cid = sqlite_store.campaigns.import_bundle(bundle())
     job_id = submit(sqlite_store, FIT, {"campaigns": [cid], "network": False}, machine_id=MACHINE)
-    sqlite_store.start_job(job_id, "the-other-process", only_if_queued=True)
+    sqlite_store.jobs.start(job_id, "the-other-process", only_if_queued=True)
     job = run_until_ended(sqlite_store, job_id)  # not queued any more: this process leaves it alone
     assert job.state == "running" and job.worker == "the-other-process" and job.attempts == 1
 

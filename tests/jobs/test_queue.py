@@ -83,15 +83,15 @@ def worker_thread(pg_store: Store):
 @pytest.mark.slow
 def test_driftlab_worker_process_runs_a_queued_fit_into_the_registry(pg_store: Store, capsys) -> None:
     url = store_url(pg_store)
-    cid = pg_store.import_bundle(bundle())
+    cid = pg_store.campaigns.import_bundle(bundle())
     assert main(["fit", "--campaign", str(cid), "--db", url, "--enqueue", "--no-network"]) == 0
     job_id = json.loads(capsys.readouterr().out)["job"]
-    job = pg_store.get_job(job_id)
+    job = pg_store.jobs.get(job_id)
     assert job.state == "queued" and job.queue_status == "todo" and job.queue_job_id
     row = _queue_row(pg_store, job.queue_job_id)
     assert row["lock"] == policy.machine_lock(MACHINE) and row["priority"] == policy.PRIORITY_INTERACTIVE
     assert row["task_name"] == "driftlab.fit"
-    assert pg_store.current_model(MACHINE) is None
+    assert pg_store.models.current(MACHINE) is None
 
     proc = subprocess.run(
         [sys.executable, "-m", "driftlab.cli", "worker", "--db", url, "--until-idle"],
@@ -100,12 +100,12 @@ def test_driftlab_worker_process_runs_a_queued_fit_into_the_registry(pg_store: S
         env=_worker_env(),
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    job = pg_store.get_job(job_id)
+    job = pg_store.jobs.get(job_id)
     assert job.state == "done", job.error
     assert job.attempts == 1 and job.worker and job.worker.split(":")[-1] != str(os.getpid())
     assert job.result["model_version"] == 1 and job.result["machine"] == MACHINE
     assert _queue_row(pg_store, job.queue_job_id)["status"] == "succeeded"
-    current = pg_store.current_model(MACHINE)
+    current = pg_store.models.current(MACHINE)
     assert current is not None and current.version == 1 and current.source_campaigns == [cid]
 
 
@@ -114,8 +114,8 @@ def test_two_worker_processes_share_the_queue_and_run_each_job_once(pg_store: St
     """Two fits of each of two machines, two `driftlab worker` processes: every job once, each machine in order."""
     url = store_url(pg_store)
     cids = {
-        MACHINE: pg_store.import_bundle(bundle(MACHINE, seed=0)),
-        OTHER: pg_store.import_bundle(bundle(OTHER, seed=1)),
+        MACHINE: pg_store.campaigns.import_bundle(bundle(MACHINE, seed=0)),
+        OTHER: pg_store.campaigns.import_bundle(bundle(OTHER, seed=1)),
     }
     jobs = [submit_fit(pg_store, [cids[m]], network=False) for m in (MACHINE, OTHER, MACHINE, OTHER)]
     cmd = [sys.executable, "-m", "driftlab.cli", "worker", "--db", url, "--until-idle"]
@@ -129,13 +129,13 @@ def test_two_worker_processes_share_the_queue_and_run_each_job_once(pg_store: St
     assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
     # --until-idle leaves when nothing is runnable; a worker holding a machine's lock fetches again
     # after its job, so nothing is left behind when both have left
-    infos = [pg_store.get_job(j) for j in jobs]
+    infos = [pg_store.jobs.get(j) for j in jobs]
     assert [(j.state, j.attempts) for j in infos] == [("done", 1)] * 4, [j.error for j in infos]
     assert {j.worker for j in infos} <= {"w0", "w1"}
     for machine in (MACHINE, OTHER):
         mine = [j for j in infos if j.machine_id == machine]
         assert mine[1].started_at >= mine[0].finished_at
-        assert [v.version for v in pg_store.model_versions(machine)] == [1, 2]
+        assert [v.version for v in pg_store.models.versions(machine)] == [1, 2]
 
 
 def test_driftlab_worker_refuses_the_sqlite_store(tmp_path, capsys) -> None:
@@ -148,11 +148,11 @@ def test_driftlab_worker_refuses_the_sqlite_store(tmp_path, capsys) -> None:
 
 @pytest.mark.slow
 def test_cli_fit_on_postgresql_runs_its_job_here_through_the_queue(pg_store: Store) -> None:
-    cid = pg_store.import_bundle(bundle())
+    cid = pg_store.campaigns.import_bundle(bundle())
     assert main(["fit", "--campaign", str(cid), "--db", store_url(pg_store), "--no-network"]) == 0
-    job = pg_store.get_job(1)
+    job = pg_store.jobs.get(1)
     assert job.state == "done" and job.queue_status == "succeeded" and job.result["model_version"] == 1
-    assert pg_store.current_model(MACHINE).version == 1
+    assert pg_store.models.current(MACHINE).version == 1
 
 
 # ----------------------------------------------------------------------------- the machine's lock
@@ -166,7 +166,7 @@ def _instrumented_fit(monkeypatch: pytest.MonkeyPatch, wait_for_other_s: float) 
     real = tasks.BODIES[FIT]
 
     def body(store: Store, params: dict, **kw: Any) -> dict:
-        machine = store.campaign_machine(params["campaigns"][0])
+        machine = store.campaigns.machine_of(params["campaigns"][0])
         with lock:
             first = not any(e == "start" for e, _, _ in events)
             events.append(("start", machine, time.monotonic()))
@@ -198,7 +198,7 @@ def _overlapped(events: list[tuple[str, str, float]]) -> bool:
 def test_two_fits_of_one_machine_never_run_at_once(pg_store: Store, worker_thread, monkeypatch) -> None:
     """Two workers' worth of concurrency, two fits of one machine: the lock runs them one after the other."""
     events = _instrumented_fit(monkeypatch, wait_for_other_s=5.0)
-    cid = pg_store.import_bundle(bundle())
+    cid = pg_store.campaigns.import_bundle(bundle())
     jobs = [submit(pg_store, FIT, {"campaigns": [cid], "network": False}, machine_id=MACHINE) for _ in range(2)]
     worker_thread(concurrency=2)
     infos = wait_ended(pg_store, jobs)
@@ -206,15 +206,15 @@ def test_two_fits_of_one_machine_never_run_at_once(pg_store: Store, worker_threa
     assert not _overlapped(events), events
     first, second = infos
     assert second.started_at >= first.finished_at  # in submission order
-    assert [v.version for v in pg_store.model_versions(MACHINE)] == [1, 2]
+    assert [v.version for v in pg_store.models.versions(MACHINE)] == [1, 2]
 
 
 @pytest.mark.slow
 def test_fits_of_two_machines_do_run_at_once(pg_store: Store, worker_thread, monkeypatch) -> None:
     """The control of the test above: with the same worker, fits of different machines overlap."""
     events = _instrumented_fit(monkeypatch, wait_for_other_s=600.0)
-    a = pg_store.import_bundle(bundle(MACHINE, seed=0))
-    b = pg_store.import_bundle(bundle(OTHER, seed=1))
+    a = pg_store.campaigns.import_bundle(bundle(MACHINE, seed=0))
+    b = pg_store.campaigns.import_bundle(bundle(OTHER, seed=1))
     jobs = [
         submit(pg_store, FIT, {"campaigns": [c], "network": False}, machine_id=m) for c, m in ((a, MACHINE), (b, OTHER))
     ]
@@ -222,7 +222,7 @@ def test_fits_of_two_machines_do_run_at_once(pg_store: Store, worker_thread, mon
     infos = wait_ended(pg_store, jobs)
     assert [j.state for j in infos] == ["done", "done"], [j.error for j in infos]
     assert _overlapped(events), events
-    assert pg_store.current_model(MACHINE).version == 1 and pg_store.current_model(OTHER).version == 1
+    assert pg_store.models.current(MACHINE).version == 1 and pg_store.models.current(OTHER).version == 1
 
 
 # ----------------------------------------------------------------------------- retries
@@ -247,7 +247,7 @@ def test_a_failing_job_is_retried_then_reported_failed(
     pg_store: Store, worker_thread, monkeypatch, no_retry_wait
 ) -> None:
     runs = _failing_fit(monkeypatch, [OSError("scratch disk unavailable")] * policy.MAX_ATTEMPTS)
-    cid = pg_store.import_bundle(bundle())
+    cid = pg_store.campaigns.import_bundle(bundle())
     job_id = submit(pg_store, FIT, {"campaigns": [cid], "network": False}, machine_id=MACHINE)
     worker_thread()
     [job] = wait_ended(pg_store, [job_id])
@@ -256,7 +256,7 @@ def test_a_failing_job_is_retried_then_reported_failed(
     assert job.error == "OSError: scratch disk unavailable" and job.finished_at is not None
     row = _queue_row(pg_store, job.queue_job_id)
     assert row["status"] == "failed" and row["attempts"] == policy.MAX_ATTEMPTS
-    assert pg_store.current_model(MACHINE) is None
+    assert pg_store.models.current(MACHINE) is None
 
 
 @pytest.mark.slow
@@ -266,17 +266,17 @@ def test_a_passing_failure_is_retried_and_the_job_ends_done(
     from sqlalchemy.exc import OperationalError
 
     runs = _failing_fit(monkeypatch, [OperationalError("SELECT 1", {}, Exception("server closed the connection"))])
-    cid = pg_store.import_bundle(bundle())
+    cid = pg_store.campaigns.import_bundle(bundle())
     job_id = submit(pg_store, FIT, {"campaigns": [cid], "network": False}, machine_id=MACHINE)
     worker_thread()
     [job] = wait_ended(pg_store, [job_id])
     assert len(runs) == 2 and job.state == "done" and job.attempts == 2 and job.error is None
-    assert pg_store.current_model(MACHINE).version == 1
+    assert pg_store.models.current(MACHINE).version == 1
 
 
 def test_bad_input_is_not_retried(pg_store: Store, worker_thread, monkeypatch, no_retry_wait) -> None:
     runs = _failing_fit(monkeypatch, [ValidationError("campaign 1 has no error readings")] * 3)
-    cid = pg_store.import_bundle(bundle())
+    cid = pg_store.campaigns.import_bundle(bundle())
     job_id = submit(pg_store, FIT, {"campaigns": [cid], "network": False}, machine_id=MACHINE)
     worker_thread()
     [job] = wait_ended(pg_store, [job_id])
@@ -289,26 +289,26 @@ def test_bad_input_is_not_retried(pg_store: Store, worker_thread, monkeypatch, n
 
 
 def test_states_follow_the_queue_until_the_record_ends(pg_store: Store) -> None:
-    cid = pg_store.import_bundle(bundle())
+    cid = pg_store.campaigns.import_bundle(bundle())
     job_id = submit(pg_store, FIT, {"campaigns": [cid]}, machine_id=MACHINE)
-    qid = pg_store.get_job(job_id).queue_job_id
-    assert pg_store.get_job(job_id).state == "queued"
+    qid = pg_store.jobs.get(job_id).queue_job_id
+    assert pg_store.jobs.get(job_id).state == "queued"
     _set_queue_status(pg_store, qid, "doing")  # a worker took it
-    assert pg_store.get_job(job_id).state == "running"
+    assert pg_store.jobs.get(job_id).state == "running"
     assert [j.id for j in pg_store.jobs.find(JobFilter(state="running"), Page(10))] == [job_id]
     assert pg_store.jobs.find(JobFilter(state="queued"), Page(10)) == []
     _set_queue_status(pg_store, qid, "cancelled")  # with procrastinate's own tools
-    job = pg_store.get_job(job_id)
+    job = pg_store.jobs.get(job_id)
     assert job.state == "failed" and "cancelled" in job.error
-    pg_store.start_job(job_id, "w")
-    pg_store.finish_job(job_id, {"model_version": 1})  # a record that ended is final
+    pg_store.jobs.start(job_id, "w")
+    pg_store.jobs.finish(job_id, {"model_version": 1})  # a record that ended is final
     _set_queue_status(pg_store, qid, "doing")
-    assert pg_store.get_job(job_id).state == "done"
+    assert pg_store.jobs.get(job_id).state == "done"
 
 
 @pytest.mark.slow
 def test_api_jobs_object_runs_a_diagnosis_on_its_worker_thread(pg_store: Store) -> None:
-    cid = pg_store.import_bundle(bundle())
+    cid = pg_store.campaigns.import_bundle(bundle())
     seen: list[str] = []
     jobs = Jobs(pg_store, run_here=True, on_model=seen.append)
     jobs.start()
@@ -328,18 +328,18 @@ def test_api_jobs_object_runs_a_diagnosis_on_its_worker_thread(pg_store: Store) 
 
 @pytest.mark.slow
 def test_refit_queues_one_fit_per_machine_with_newer_campaigns(pg_store: Store, worker_thread) -> None:
-    first = pg_store.import_bundle(bundle(started_at="2026-03-02T08:00:00Z"))
+    first = pg_store.campaigns.import_bundle(bundle(started_at="2026-03-02T08:00:00Z"))
     assert main(["fit", "--campaign", str(first), "--db", store_url(pg_store), "--no-network"]) == 0
     app = build_app(store_url(pg_store), pool_size=2)
     app.open()
     try:
         assert submit_refits(pg_store, app) == []  # nothing newer than the model
-        newer = pg_store.import_bundle(bundle(seed=1, started_at="2026-03-09T08:00:00Z"))
+        newer = pg_store.campaigns.import_bundle(bundle(seed=1, started_at="2026-03-09T08:00:00Z"))
         [job_id] = submit_refits(pg_store, app)
         assert submit_refits(pg_store, app) == []  # one refit per machine waits at most
     finally:
         app.close()
-    job = pg_store.get_job(job_id)
+    job = pg_store.jobs.get(job_id)
     assert job.params["campaigns"] == [first, newer] and job.params["refit_of"] == 1
     assert job.params["network"] is False  # as the fit that made the model
     row = _queue_row(pg_store, job.queue_job_id)
@@ -348,9 +348,9 @@ def test_refit_queues_one_fit_per_machine_with_newer_campaigns(pg_store: Store, 
     worker_thread()
     [job] = wait_ended(pg_store, [job_id])
     assert job.state == "done", job.error
-    current = pg_store.current_model(MACHINE)
+    current = pg_store.models.current(MACHINE)
     assert current.version == 2 and current.source_campaigns == [first, newer]
-    assert pg_store.refit_candidates() == []
+    assert pg_store.models.refit_candidates() == []
 
 
 def test_the_refit_is_a_periodic_task_of_every_worker() -> None:
@@ -365,7 +365,7 @@ def test_the_refit_is_a_periodic_task_of_every_worker() -> None:
 
 
 def test_submit_fit_records_the_campaigns_machine(pg_store: Store) -> None:
-    cid = pg_store.import_bundle(bundle(OTHER))
-    job = pg_store.get_job(submit_fit(pg_store, [cid], network=False))
+    cid = pg_store.campaigns.import_bundle(bundle(OTHER))
+    job = pg_store.jobs.get(submit_fit(pg_store, [cid], network=False))
     assert job.machine_id == OTHER and job.params == {"campaigns": [cid], "network": False}
     assert _queue_row(pg_store, job.queue_job_id)["lock"] == policy.machine_lock(OTHER)

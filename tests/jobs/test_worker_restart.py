@@ -84,7 +84,7 @@ def _done(url: str, job_id: int) -> None:
 def test_a_worker_survives_a_database_restart_and_runs_a_fit_queued_after_it(own_cluster, tmp_path) -> None:
     cluster, url = own_cluster
     with connect(url) as store:
-        cid = store.import_bundle(bundle())
+        cid = store.campaigns.import_bundle(bundle())
     log = tmp_path / "worker.log"
     proc = _worker(url, log)
     try:
@@ -95,8 +95,8 @@ def test_a_worker_survives_a_database_restart_and_runs_a_fit_queued_after_it(own
         _done(url, job_id)
         assert proc.poll() is None  # still the same worker
         with connect(url) as store:
-            assert store.get_job(job_id).worker == "w-restart"
-            assert [v.version for v in store.model_versions(MACHINE)] == [1, 2]
+            assert store.jobs.get(job_id).worker == "w-restart"
+            assert [v.version for v in store.models.versions(MACHINE)] == [1, 2]
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
@@ -140,9 +140,9 @@ def test_a_job_of_a_dead_worker_is_queued_again(pg_store, monkeypatch, capsys) -
     """A worker killed mid-job (kill -9) leaves its job `doing`; the next worker to start queues it again."""
     store = pg_store
     url = store_url(store)
-    cid = store.import_bundle(bundle())
+    cid = store.campaigns.import_bundle(bundle())
     job_id = submit_fit(store, [cid], network=False)
-    queue_id = store.get_job(job_id).queue_job_id
+    queue_id = store.jobs.get(job_id).queue_job_id
     dsn = url.replace("postgresql+psycopg://", "postgresql://")
     import psycopg
 

@@ -20,7 +20,7 @@ from test_advisor import campaign  # noqa: E402  (the small world whose answer i
 def db(tmp_path_factory) -> str:
     url = f"sqlite:///{tmp_path_factory.mktemp('advise') / 'store.sqlite'}"
     with connect(url) as store:
-        store.import_bundle(campaign())
+        store.campaigns.import_bundle(campaign())
     return url
 
 

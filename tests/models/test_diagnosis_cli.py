@@ -159,3 +159,12 @@ def test_real_data_simulation_says_what_the_time_law_misses(fl_result):
         assert t.simulation.rmse > t.standard.fit.rmse_train
     assert any("time-driven law" in t.simulation.gets_wrong for t in fl_result.terms)
     assert np.isfinite(fl_result.holdout_start_s)
+
+
+def test_holdout_fraction_too_small_is_one_line(lag_bundle, tmp_path, capsys):
+    """1e-320 rounds (1 - f) to 1: refused in one line before any work, nothing written."""
+    out = tmp_path / "r.json"
+    assert main(["diagnose", str(lag_bundle), "--json", str(out), "--holdout-fraction", "1e-320"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["driftlab: error: --holdout-fraction must be in [0.01, 0.9), got 1e-320"]
+    assert not out.exists()

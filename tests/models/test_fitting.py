@@ -277,9 +277,33 @@ def store_with_campaign(tmp_path):
 
     url = f"sqlite:///{tmp_path / 'fit.sqlite'}"
     store = connect(url)
-    cid = store.import_bundle(synthetic_bundle(0))
+    cid = store.campaigns.import_bundle(synthetic_bundle(0))
     yield url, store, cid
     store.close()
+
+
+def test_cli_fit_states_its_split_and_scores_the_diagnosis_split_when_told(store_with_campaign, tmp_path):
+    """`fit --split time` holds out the last quarter of every measured line, as the diagnosis does (issue 33)."""
+    from driftlab.cli import main
+
+    url, _, cid = store_with_campaign
+    reps = {}
+    for split in ("stage", "time"):
+        path = tmp_path / f"{split}.json"
+        assert (
+            main(["fit", "--campaign", str(cid), "--db", url, "--no-network", "--split", split, "--json", str(path)])
+            == 0
+        )
+        reps[split] = json.loads(path.read_text())
+    assert [reps[s]["split"] for s in ("stage", "time")] == ["stage", "time"]
+    # the same figures as the library's fit with that split: the job passed it through
+    lib = fit_bundles([synthetic_bundle(0)], FitOptions(network=False, split="time")).validation
+    want = {(r.axis, r.term): r.rmse_holdout for r in lib.itertuples()}
+    got = {(r["axis"], r["term"]): r["rmse_holdout"] for r in reps["time"]["terms"]}
+    assert got == pytest.approx(want, rel=1e-9)
+    assert got != pytest.approx({(r["axis"], r["term"]): r["rmse_holdout"] for r in reps["stage"]["terms"]})
+    with pytest.raises(ValidationError, match="split must be one of"):
+        FitOptions(split="random")
 
 
 def test_cli_fit_registers_versions_and_show_gives_the_document(store_with_campaign, tmp_path, capsys):
@@ -311,7 +335,7 @@ def test_cli_fit_registers_versions_and_show_gives_the_document(store_with_campa
     q[:, 0] = [0.0, 400.0]
     temps = synthetic_bundle(0).temperatures.iloc[780].to_dict()
     np.testing.assert_allclose(predict_workspace_errors(shown, temps, q), predict_workspace_errors(old, temps, q))
-    job = store.get_job(1)
+    job = store.jobs.get(1)
     assert job.kind == "fit" and job.state == "done" and job.result["model_version"] == 1
     assert main(["models", "show", "7", "--machine", "vmc-test", "--db", url]) != 0
 
@@ -523,8 +547,8 @@ def planted_vm(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("findings")
     url = f"sqlite:///{tmp / 'f.sqlite'}"
     with connect(url) as store:
-        cid = store.import_bundle(bundle)
-        report = diagnosis_json(diagnose_bundle(store.load_campaign(cid)))
+        cid = store.campaigns.import_bundle(bundle)
+        report = diagnosis_json(diagnose_bundle(store.campaigns.load(cid)))
     path = tmp / "report.json"
     path.write_text(json.dumps(report))
     return url, cid, path, report
@@ -566,7 +590,7 @@ def test_findings_fold_into_the_next_fit_and_lower_the_holdout_rmse(planted_vm, 
     assert rep["findings"][0]["entered"]["dT[T21]"]  # the term entered a link model
     with connect(url) as store:
         doc = get_model(store, "vmc-5ax-01", "current")
-        job = store.get_job(2)
+        job = store.jobs.get(2)
     assert job.params["findings"]["effects"][0]["kind"] == "unmapped_channel"
     assert "T21" in doc.inputs and doc.findings[0]["kind"] == "unmapped_channel"
     assert any(f.name == "dT[T21]" for t in doc.terms for f in t.features)

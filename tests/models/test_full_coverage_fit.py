@@ -19,6 +19,7 @@ from driftlab.campaigns.db import store_engine
 from driftlab.campaigns.plan import load_plan
 from driftlab.campaigns.store import Store
 from driftlab.daemon.run import run_daemon
+from driftlab.models.diagnosis import NON_PHYSICAL_KINDS, diagnose_bundle
 from driftlab.models.document import predict_workspace_errors
 from driftlab.models.features import Feature, session_terms
 from driftlab.models.fitting import FitOptions, fit_bundles
@@ -46,7 +47,7 @@ def full_fit(tmp_path_factory):
     db = tmp_path_factory.mktemp("full") / "full.sqlite"
     url = f"sqlite:///{db}"
     r = run_daemon(load_plan(DEMO_FULL), db_url=url, scenario_path=CLEAN, speed=math.inf)
-    bundle = Store(store_engine(url)).load_campaign(r.campaign_id)
+    bundle = Store(store_engine(url)).campaigns.load(r.campaign_id)
     result = fit_bundles([bundle], FitOptions(network=False, virtual_sensors=False))
     return bundle, result
 
@@ -120,3 +121,20 @@ def test_the_daemon_campaign_carries_the_stated_geometry_into_table_6_3(full_fit
     assert bundle.meta.machine.geometry == Geometry.model_validate(dict(STATED_GEOMETRY))
     assert result.physical_check["status"] == "compared" and len(result.physical) > 0
     assert result.document.physical_check["geometry"]["bending"]["spindle_arm"]["length_mm"] == 400.0
+
+
+@pytest.mark.slow
+def test_diagnosis_judges_the_fitted_model_and_states_its_held_out_figures(full_fit) -> None:
+    """One model (issue 33): the diagnosis' baseline is the fit on its training part, figure for figure."""
+    bundle, _ = full_fit
+    res = diagnose_bundle(bundle)
+    assert len(res.terms) == 30 and all(t.base.model == "fitted" for t in res.terms)
+    # the same pipeline with the diagnosis' split states the same held-out figure for every term
+    timed = fit_bundles([bundle], FitOptions(network=False, virtual_sensors=False, split="time"))
+    v = timed.validation.set_index(["axis", "term"])
+    for t in res.terms:
+        fit_ho = float(v.loc[(t.td.axis, t.td.term), "rmse_holdout"])
+        assert t.base.rmse_holdout == pytest.approx(fit_ho, rel=1e-6), (t.td.axis, t.td.term)
+    # nothing is hidden in this campaign: no physical finding, and the extended model is the fitted one
+    assert [e.to_dict() for e in res.effects if e.kind not in NON_PHYSICAL_KINDS] == []
+    assert all(t.extended_dict()["rmse_holdout"] == t.base.rmse_holdout for t in res.terms)

@@ -104,7 +104,7 @@ def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, c
     )
     url = f"sqlite:///{tmp_path / 'online.sqlite'}"
     store = connect(url)
-    cid = store.import_bundle(
+    cid = store.campaigns.import_bundle(
         Bundle("clean", CampaignMeta.model_validate(clean.meta), clean.temperatures, clean.conditions, clean.errors)
     )
     _, doc = fit_campaigns(store, [cid], FitOptions(network=False, virtual_sensors=False))
@@ -135,15 +135,18 @@ def test_virtual_machine_rls_tracks_a_drift_the_offline_model_misses(tmp_path, c
     store.close()
 
 
-def test_two_concurrent_updates_both_land(store_url):
-    """Two threads update one machine's on-line state at once: both updates and both probe rows are kept."""
+def test_concurrent_updates_queue_for_the_machine_lock(store_url):
+    """Four threads update one machine's on-line state at once: they hold the state one after the other
+    (never two inside the hold), each computed once, and all four updates and probe rows are kept."""
     import tempfile
     import threading
+    from contextlib import contextmanager
     from datetime import datetime, timedelta
 
     import pandas as pd
 
     from driftlab.campaigns.bundle import load_bundle, write_bundle
+    from driftlab.campaigns.online_repo import OnlineStateRepository
     from driftlab.campaigns.store import connect
     from driftlab.jobs import registry as model_registry
     from driftlab.jobs.online import latest_online_states, store_update
@@ -151,75 +154,70 @@ def test_two_concurrent_updates_both_land(store_url):
 
     with tempfile.TemporaryDirectory() as tmp, connect(store_url) as store:
         temps, cond, errors = small_frames()
-        store.import_bundle(load_bundle(write_bundle(f"{tmp}/b", small_meta(), temps, cond, errors)))
+        store.campaigns.import_bundle(load_bundle(write_bundle(f"{tmp}/b", small_meta(), temps, cond, errors)))
         doc = model_registry.register_model(store, model_document())
     t0 = datetime(2026, 3, 3, 8, tzinfo=UTC)
-    attempts: list[int] = []
+    n = 4
     errors_seen: list[BaseException] = []
-    barrier = threading.Barrier(2)
+    barrier = threading.Barrier(n)
+    count = threading.Lock()
+    inside = [0, 0]  # holders now, most holders at once
+    second_holder = threading.Event()
+    hold = OnlineStateRepository.hold
+
+    @contextmanager
+    def watched_hold(self, machine_id):
+        with hold(self, machine_id) as held:
+            with count:
+                inside[0] += 1
+                inside[1] = max(inside[1], inside[0])
+                if inside[0] > 1:
+                    second_holder.set()
+            second_holder.wait(1.0)  # a broken lock lets another thread in meanwhile
+            try:
+                yield held
+            finally:
+                with count:
+                    inside[0] -= 1
 
     def worker(k: int) -> None:
         try:
             with connect(store_url) as s:
-                probe = pd.DataFrame(
-                    [
-                        {
-                            "time_s": 0.0,
-                            "x": 0.0,
-                            "y": 0.0,
-                            "z": 0.0,
-                            "a": 0.0,
-                            "b": 0.0,
-                            "dx": 0.001 * (k + 1),
-                            "dy": 0.0,
-                            "dz": 0.0,
-                            "T1": 21.0,
-                            "T2": 22.0,
-                        }
-                    ]
-                )
-                read = s.online.get  # what store_update reads the state through (the on-line repository)
-                first = [True]
-
-                def read_then_meet(machine):  # both threads read the same state before either writes
-                    row = read(machine)
-                    if first[0]:
-                        first[0] = False
-                        barrier.wait(timeout=30)
-                    return row
-
-                s.online.get = read_then_meet  # type: ignore[method-assign]
-                attempts.append(store_update(s, MACHINE, probe, [t0 + timedelta(minutes=k)]).attempts)
+                row = {"time_s": 0.0, "x": 0.0, "y": 0.0, "z": 0.0, "a": 0.0, "b": 0.0, "dy": 0.0, "dz": 0.0}
+                probe = pd.DataFrame([{**row, "dx": 0.001 * (k + 1), "T1": 21.0, "T2": 22.0}])
+                barrier.wait(timeout=60)
+                store_update(s, MACHINE, probe, [t0 + timedelta(minutes=k)])
         except BaseException as exc:  # reported below
             errors_seen.append(exc)
 
-    threads = [threading.Thread(target=worker, args=(k,)) for k in range(2)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    OnlineStateRepository.hold = watched_hold  # type: ignore[method-assign]
+    try:
+        threads = [threading.Thread(target=worker, args=(k,)) for k in range(n)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        OnlineStateRepository.hold = hold  # type: ignore[method-assign]
     assert not errors_seen, errors_seen
-    assert sorted(attempts) == [1, 2]  # one computed from a stale state, was refused and recomputed
+    assert inside[1] == 1 and not second_holder.is_set()
     with connect(store_url) as store:
         states = latest_online_states(store, MACHINE, doc.version)
-        assert states["dx"].n_updates == 2 and states["dz"].n_updates == 2
-        row = store.online_state(MACHINE)
-        assert row.version == 2 and row.n_updates == 2
-        assert store.table_counts()["probe_measurements"] == 2
+        assert states["dx"].n_updates == n and states["dz"].n_updates == n
+        row = store.online.get(MACHINE)
+        assert row.version == n and row.n_updates == n
+        assert store.table_counts()["probe_measurements"] == n
         # a stale writer is refused and writes nothing
-        from driftlab.campaigns.store import StaleOnlineState
+        from driftlab.campaigns.store import OnlineUpdate, StaleOnlineState
 
         with pytest.raises(StaleOnlineState):
-            store.save_online_state(
+            store.online.save(
                 MACHINE,
                 1,
-                model_version_id=None,
-                model_version=doc.version,
-                lam=0.98,
-                n_updates=9,
-                theta=row.theta,
-                p=row.p,
-                probes=[
+                OnlineUpdate(
+                    model_version_id=None, model_version=doc.version, lam=0.98, n_updates=9, theta=row.theta, p=row.p
+                ),
+                [
                     {
                         "measured_at": t0 + timedelta(hours=5),
                         "x": 0,
@@ -233,7 +231,7 @@ def test_two_concurrent_updates_both_land(store_url):
                     }
                 ],
             )
-        assert store.table_counts()["probe_measurements"] == 2
+        assert store.table_counts()["probe_measurements"] == n
 
 
 def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
@@ -250,12 +248,12 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
 
     with connect(f"sqlite:///{tmp_path / 's.sqlite'}") as store:
         temps, cond, errors = small_frames()
-        store.import_bundle(load_bundle(write_bundle(tmp_path / "b", small_meta(), temps, cond, errors)))
+        store.campaigns.import_bundle(load_bundle(write_bundle(tmp_path / "b", small_meta(), temps, cond, errors)))
         doc = model_registry.register_model(store, model_document())
         old = {t: RLSState(np.array([0.001]), np.array([[0.5]]), 0.95, 7).to_dict() for t in ("dx", "dy", "dz")}
-        job = store.record_job(ONLINE_JOB, {}, machine_id=MACHINE)
-        store.start_job(job, "w")
-        store.finish_job(job, {"model_version": doc.version, "states": old})
+        job = store.jobs.record(ONLINE_JOB, {}, machine_id=MACHINE)
+        store.jobs.start(job, "w")
+        store.jobs.finish(job, {"model_version": doc.version, "states": old})
         probe = pd.DataFrame(
             [
                 {
@@ -275,7 +273,7 @@ def test_a_state_kept_the_old_way_is_continued_once_into_the_table(tmp_path):
         )
         rep = online_update(store, MACHINE, probe, start=datetime(2026, 3, 3, tzinfo=UTC))
         assert rep.states["dx"].n_updates == 8 and rep.states["dx"].lam == 0.95
-        assert store.online_state(MACHINE).n_updates == 8
+        assert store.online.get(MACHINE).n_updates == 8
         assert store.table_counts()["probe_measurements"] == 1
 
 

@@ -222,8 +222,8 @@ def test_geometry_round_trips_through_the_store(tmp_path):
     doc["machine"]["geometry"] = THESIS
     b = Bundle(b.name, CampaignMeta.model_validate(doc), b.temperatures, None, b.errors)
     store = connect(f"sqlite:///{tmp_path / 's.sqlite'}")
-    cid = store.import_bundle(b)
-    assert store.load_campaign(cid).meta.machine.geometry == Geometry.model_validate(THESIS)
+    cid = store.campaigns.import_bundle(b)
+    assert store.campaigns.load(cid).meta.machine.geometry == Geometry.model_validate(THESIS)
     store.close()
 
 

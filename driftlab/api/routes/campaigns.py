@@ -4,24 +4,22 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Query, Response
+from fastapi import APIRouter, Depends, Query, Response
 
 from driftlab.api.deps import get_store, require_token
 from driftlab.api.schemas import (
     ID_PATTERN,
-    MAX_ID,
     CampaignDetail,
     CampaignList,
     CampaignOut,
     ChannelOut,
     StageOut,
 )
+from driftlab.api.strict import CampaignId, Limit, Offset, StrictJsonRoute
 from driftlab.campaigns.store import Store
 from driftlab.errors import NotFoundError
 
-router = APIRouter(tags=["campaigns"])
-
-CampaignId = Annotated[int, Path(ge=1, le=MAX_ID, description="campaign id")]
+router = APIRouter(tags=["campaigns"], route_class=StrictJsonRoute)
 
 
 def _stage(s: object) -> StageOut:
@@ -38,8 +36,8 @@ def _channel(c: object) -> ChannelOut:
 def list_campaigns(
     store: Annotated[Store, Depends(get_store)],
     machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> CampaignList:
     """Return a page of campaigns (optionally of one machine), oldest first, with their sizes."""
     rows = store.campaigns.summaries(machine_id)[offset : offset + limit]

@@ -12,12 +12,13 @@ from fastapi import APIRouter, Depends, Query
 from driftlab.api.deps import get_store
 from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import DriftOut, DriftPoint
+from driftlab.api.strict import StrictJsonRoute
 from driftlab.campaigns.readings_repo import DriftQuery
 from driftlab.campaigns.store import Store
 from driftlab.errors import BadRequestError
 from driftlab.vocabulary import Axis, Term
 
-router = APIRouter(tags=["drift"])
+router = APIRouter(tags=["drift"], route_class=StrictJsonRoute)
 
 
 def _aware(dt: datetime | None) -> datetime | None:

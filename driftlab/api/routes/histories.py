@@ -19,7 +19,6 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Path, Query
 
 from driftlab.api.deps import get_store
-from driftlab.api.routes.campaigns import CampaignId
 from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import (
     ID_PATTERN,
@@ -34,6 +33,7 @@ from driftlab.api.schemas import (
     TemperatureHistory,
     TemperaturePoint,
 )
+from driftlab.api.strict import Buckets, CampaignId, RowLimit, RowOffset, StrictJsonRoute
 from driftlab.campaigns.ingest import CONDITION_VALUE_COLUMNS
 from driftlab.campaigns.readings_repo import ErrorFilter, HistoryPage
 from driftlab.campaigns.store import Store
@@ -41,14 +41,13 @@ from driftlab.errors import BadRequestError, NotFoundError
 from driftlab.jsonsafe import finite_or_none
 from driftlab.vocabulary import Axis, Term
 
-router = APIRouter(tags=["histories"])
+router = APIRouter(tags=["histories"], route_class=StrictJsonRoute)
 
-Limit = Annotated[int, Query(ge=1, le=10000, description="rows per page")]
-Offset = Annotated[int, Query(ge=0, le=10**9, description="rows to skip (or use cursor)")]
+Limit = RowLimit
+Offset = RowOffset
 Cursor = Annotated[str | None, Query(max_length=200, description="next_cursor of the previous page")]
 StartS = Annotated[float | None, Query(ge=-1e12, le=1e12, description="from this time (s since start)")]
 EndS = Annotated[float | None, Query(ge=-1e12, le=1e12, description="up to this time (s since start)")]
-Buckets = Annotated[int | None, Query(ge=1, le=10000, description="downsample to this many time buckets")]
 
 
 def encode_cursor(kind: str, last: float | int) -> str:

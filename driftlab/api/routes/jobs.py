@@ -10,10 +10,11 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Query, Response
+from fastapi import APIRouter, Depends, Query, Response
 
 from driftlab.api.deps import ApiState, get_state, get_store, require_token
-from driftlab.api.schemas import ID_PATTERN, MAX_ID, JobKind, JobList, JobOut, JobState, JobSubmit
+from driftlab.api.schemas import ID_PATTERN, JobKind, JobList, JobOut, JobState, JobSubmit
+from driftlab.api.strict import JobId, Limit, Offset, StrictJsonRoute
 from driftlab.campaigns.job_repo import JobFilter
 from driftlab.campaigns.repository import Page
 from driftlab.campaigns.store import JobInfo, Store
@@ -21,7 +22,7 @@ from driftlab.errors import ValidationError
 from driftlab.jobs import DIAGNOSE, FIT, KINDS
 from driftlab.jsonsafe import strict_json
 
-router = APIRouter(tags=["jobs"])
+router = APIRouter(tags=["jobs"], route_class=StrictJsonRoute)
 
 
 def job_out(j: JobInfo) -> JobOut:
@@ -76,8 +77,8 @@ def list_jobs(
     state: JobState | None = None,
     kind: JobKind | None = None,
     machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> JobList:
     """Return a page of fit and diagnosis jobs, newest first."""
     rows = store.jobs.find(JobFilter(state, kind, machine_id, kinds=KINDS), Page(limit, offset))
@@ -85,6 +86,6 @@ def list_jobs(
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, summary="Poll a job")
-def get_job(job_id: Annotated[int, Path(ge=1, le=MAX_ID)], store: Annotated[Store, Depends(get_store)]) -> JobOut:
+def get_job(job_id: JobId, store: Annotated[Store, Depends(get_store)]) -> JobOut:
     """Return a job's state and, when done, its result."""
     return job_out(store.jobs.get(job_id))

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Query
+from fastapi import APIRouter, Depends, Path
 
 from driftlab.api.deps import get_store
 from driftlab.api.schemas import ID_PATTERN, MachineList, MachineOut
+from driftlab.api.strict import Limit, Offset, StrictJsonRoute
 from driftlab.campaigns.repository import Page
 from driftlab.campaigns.store import MachineInfo, Store
 
-router = APIRouter(tags=["machines"])
+router = APIRouter(tags=["machines"], route_class=StrictJsonRoute)
 
 MachineId = Annotated[str, Path(pattern=ID_PATTERN, description="machine id (the bundle's machine.id)")]
 
@@ -24,8 +25,8 @@ def _out(m: MachineInfo) -> MachineOut:
 @router.get("/machines", response_model=MachineList, summary="List machines")
 def list_machines(
     store: Annotated[Store, Depends(get_store)],
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> MachineList:
     """Return a page of machines ordered by id."""
     return MachineList(

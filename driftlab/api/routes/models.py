@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from typing import TYPE_CHECKING, Annotated, Any, TypedDict
 
-from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.types import ASGIApp, Receive, Scope, Send
 
@@ -18,12 +18,12 @@ from driftlab.api.problems import problem_response
 from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import (
     ID_PATTERN,
-    MAX_ID,
     ModelList,
     ModelRegisterIn,
     ModelStatus,
     ModelVersionOut,
 )
+from driftlab.api.strict import Limit, Offset, StrictJsonRoute, VersionNumber
 from driftlab.campaigns.repository import Page
 from driftlab.campaigns.store import ModelVersionInfo, Store
 from driftlab.errors import ValidationError
@@ -34,9 +34,9 @@ from driftlab.models import document as documents
 if TYPE_CHECKING:
     from driftlab.api.deps import ModelVersionJson
 
-router = APIRouter(tags=["models"])
+router = APIRouter(tags=["models"], route_class=StrictJsonRoute)
 
-Version = Annotated[int, Path(ge=1, le=MAX_ID, description="model version number")]
+Version = VersionNumber
 ETAG_HEADERS = {"ETag": {"description": "hash of the version id and document", "schema": {"type": "string"}}}
 
 
@@ -95,8 +95,8 @@ def list_models(
     store: Annotated[Store, Depends(get_store)],
     machine_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
     status: ModelStatus | None = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> ModelListJson:
     """Return a page of model versions (without documents), by machine then version."""
     return _model_list(store, machine_id, status, Page(limit, offset))
@@ -107,8 +107,8 @@ def machine_models(
     machine_id: MachineId,
     store: Annotated[Store, Depends(get_store)],
     status: ModelStatus | None = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Limit = 100,
+    offset: Offset = 0,
 ) -> ModelListJson:
     """Return a page of a machine's model versions, oldest first."""
     return _model_list(store, machine_id, status, Page(limit, offset))

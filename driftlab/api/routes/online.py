@@ -21,11 +21,12 @@ from fastapi import APIRouter, Depends, Response
 from driftlab.api.deps import ApiState, get_state, require_token
 from driftlab.api.routes.machines import MachineId
 from driftlab.api.schemas import OnlineOut, ProbeIn, Vector3
+from driftlab.api.strict import StrictJsonRoute
 from driftlab.campaigns.store import ModelVersionInfo
 from driftlab.errors import NotFoundError, ValidationError
 from driftlab.jobs import online
 
-router = APIRouter(tags=["online"])
+router = APIRouter(tags=["online"], route_class=StrictJsonRoute)
 
 TERMS = online.PROBE_TERMS  # dx, dy, dz
 DEFAULT_FORGETTING = online.DEFAULT_FORGETTING
