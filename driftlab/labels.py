@@ -86,6 +86,7 @@ FEATURE_UNITS = {
     "mean": "°C",
     "gradient": "°C",
     "pos_dT": "mm °C",
+    "lever": "mm °C",
     "quad": "°C²",
     "time": "day",
 }
@@ -99,6 +100,8 @@ def coefficient_text(value: float, param: str, kind: str, power: int = 1, axis: 
     per = FEATURE_UNITS.get(kind, "")
     if kind == "position":
         per = ("rad" if axis in ("A", "B") else "mm") + ("" if power == 1 else "²" if power == 2 else f"^{power}")
+    if kind == "lever" and power > 1:  # position^power x dT
+        per = "mm" + ("²" if power == 2 else f"^{power}") + " °C"
     per = f"/({per})" if " " in per else (f"/{per}" if per else "")
     return f"{value * factor:.4g} {unit}{per}"
 

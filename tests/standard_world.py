@@ -68,15 +68,24 @@ def _lag(u: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
     return out
 
 
-def _plan(hours: float, axes: tuple[str, ...], rng: np.random.Generator) -> list[dict[str, object]]:
-    """Return a staged single-heat-source plan: each axis' feed, then the spindle, each with a cool-down."""
+def _plan(
+    hours: float, axes: tuple[str, ...], rng: np.random.Generator, order: tuple[str, ...] | None = None
+) -> list[dict[str, object]]:
+    """Return a staged single-heat-source plan: each axis' feed, then the spindle, each with a cool-down.
+
+    ``order`` names the heating stages in turn ("feed-X", "feed-Z", "spindle"), repeated from its
+    start when the campaign is longer: a plan that heats one source only late in the campaign.
+    """
     stages: list[dict[str, object]] = []
-    order = [("feed", a) for a in axes if a in ("X", "Z")] + [("spindle", axes[-1])]
+    if order is None:
+        order_ = [("feed", a) for a in axes if a in ("X", "Z")] + [("spindle", axes[-1])]
+    else:
+        order_ = [("spindle", axes[-1]) if o == "spindle" else ("feed", o.split("-")[1]) for o in order]
     t = 0.0
     span = hours * 3600.0
     k = 0
     while t < span - 3600:
-        kind, axis = order[k % len(order)]
+        kind, axis = order_[k % len(order_)]
         on = float(round(rng.uniform(4.0, 6.0) * 60) * 60)
         off = float(round(rng.uniform(2.0, 3.0) * 60) * 60)
         stages.append(
@@ -120,16 +129,17 @@ def standard_world(
     lines_everywhere: bool = False,
     with_model_channels: bool = True,
     coef_um_per_degC: tuple[float, float] = (0.5, 3.0),
+    order: tuple[str, ...] | None = None,
 ) -> World:
     """Return a bundle whose every (axis, term) is the spec's standard model plus white noise.
 
     An axis is swept in the stages whose ``axis`` names it (and in their cool-downs), unless
     ``lines_everywhere``. With ``zeroed`` the bundle is v2 and every stage's sweeps of an axis
     form one laser session whose readings are relative to its first sweep (the laser is zeroed
-    when it is mounted).
+    when it is mounted). ``order``: the heating stages in turn (``_plan``).
     """
     rng = np.random.default_rng(seed)
-    stages = _plan(hours, axes, rng)
+    stages = _plan(hours, axes, rng, order)
     n = int(hours * 3600 / scan_s) + 1
     t = np.arange(n) * scan_s
     power = np.zeros((n, len(SOURCES)))
@@ -233,12 +243,14 @@ def standard_world(
     return World(bundle, model_channels, noise_mm, noise_rad)
 
 
-def standard_holdout(world: World, holdout_fraction: float = 0.25) -> pd.DataFrame:
+def standard_holdout(world: World, holdout_fraction: float = 0.25, split: str = "stage") -> pd.DataFrame:
     """Return per (axis, term) the held-out RMSE of plain least squares on the standard model (spec section 2).
 
-    The split is the fit's: the last ``holdout_fraction`` of every training stage's points is held
-    out (a cool-down belongs to the stage before it). With zeroed sessions each session gets an
-    offset of its own (the intercept of its datum).
+    ``split="stage"`` is the fit's stage split: the last ``holdout_fraction`` of every training
+    stage's points is held out (a cool-down belongs to the stage before it). ``split="time"``: the
+    last ``holdout_fraction`` of every line's rows in time order (the row at floor((1 - f) n) of
+    its sorted times and every later one). With zeroed sessions each session gets an offset of its
+    own (the intercept of its datum).
     """
     b = world.bundle
     temps = b.temperatures
@@ -247,6 +259,12 @@ def standard_holdout(world: World, holdout_fraction: float = 0.25) -> pd.DataFra
     role = np.full(len(err), "skip", dtype=object)
     stages = b.meta.stages
     i = 0
+    if split == "time":
+        for _, g in err.groupby(["axis", "term"]):
+            ts = np.sort(g["time_s"].to_numpy(float))
+            cut = ts[min(int(np.floor((1 - holdout_fraction) * ts.size)), ts.size - 1)]
+            role[g.index.to_numpy()] = np.where(g["time_s"].to_numpy(float) >= cut, "holdout", "train")
+        i = len(stages)
     while i < len(stages):
         start = stages[i].start_s
         end = stages[i + 1].end_s if i + 1 < len(stages) and stages[i + 1].heat_source == "none" else stages[i].end_s

@@ -121,14 +121,16 @@ class ErrorModel:
             ranges={c: (r.min, r.max) for c, r in doc.inputs.items()},
             envelope=doc.envelope,
             lag_taus=tuple(
-                sorted({float(f.tau_s) for t in doc.terms for f in t.features if f.kind == "lag" and f.tau_s})
+                sorted(
+                    {float(f.tau_s) for t in doc.terms for f in t.features if f.kind in ("lag", "lever") and f.tau_s}
+                )
             ),
         )
 
 
 #: feature kinds ``fast_predict`` evaluates (the others go to the registry)
-_FAST_KINDS = ("intercept", "position", "direction", "dT", "lag", "pos_dT", "gradient", "mean")
-_AXIS_KINDS = ("position", "direction", "pos_dT")
+_FAST_KINDS = ("intercept", "position", "direction", "dT", "lag", "pos_dT", "gradient", "mean", "lever")
+_AXIS_KINDS = ("position", "direction", "pos_dT", "lever")
 
 
 @dataclass(frozen=True)
@@ -219,6 +221,13 @@ def _term_value(
         elif f.kind == "pos_dT":
             assert f.col is not None  # as above
             lin[f.col] = lin.get(f.col, 0.0) + c * dT[ch[0]]
+        elif f.kind == "lever":  # a link's term through the chain's lever arm: position^power x (lag or dT)
+            assert f.col is not None  # as above
+            if f.tau and (ch[0], f.tau) in history:
+                inner = np.asarray(history[(ch[0], f.tau)], dtype=float) - refs[ch[0]]
+            else:  # dT, or a snapshot's settled lag
+                inner = np.asarray(dT[ch[0]], dtype=float)
+            acc = acc + c * q[:, f.col] ** f.power * inner
         elif f.kind == "gradient":  # eqs. 3.4-3.5: mean of one side less mean of the other
             a, b = ch[: f.power], ch[f.power :]
             const = const + c * (sum(dT[x] for x in a) / len(a) - sum(dT[x] for x in b) / len(b))
@@ -240,7 +249,7 @@ def fast_predict(doc: ModelDocument) -> Predict:
     """
     refs = {c: r.reference for c, r in doc.inputs.items()}
     terms = _fast_terms(doc)
-    has_lag = any(f.kind == "lag" for _, _, feats, _ in terms for f in feats)
+    has_lag = any(f.kind == "lag" or (f.kind == "lever" and f.tau) for _, _, feats, _ in terms for f in feats)
 
     def predict(
         q: np.ndarray, temps: Temperatures, direction: np.ndarray | None, at: float | None = None

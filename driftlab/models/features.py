@@ -14,12 +14,23 @@ from driftlab.physics.lag import first_order_lag
 from driftlab.vocabulary import AXES
 
 Kind = Literal[
-    "intercept", "position", "direction", "dT", "lag", "mean", "gradient", "pos_dT", "quad", "time", "session"
+    "intercept",
+    "position",
+    "direction",
+    "dT",
+    "lag",
+    "mean",
+    "gradient",
+    "pos_dT",
+    "quad",
+    "time",
+    "session",
+    "lever",
 ]
 #: the kinds, in the order of ``Kind``
 KINDS: tuple[str, ...] = get_args(Kind)
 #: kinds that read a joint coordinate or approach direction; their ``label`` names the axis
-AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT"})
+AXIS_KINDS: frozenset[str] = frozenset({"position", "direction", "pos_dT", "lever"})
 #: columns of a (N, 5) joint array
 
 
@@ -48,7 +59,7 @@ class Feature:
         """Check the kind and the number of channels it needs."""
         if self.kind not in KINDS:
             raise ValidationError(f"unknown feature kind {self.kind!r}")
-        need = {"dT": 1, "lag": 1, "pos_dT": 1, "quad": 1, "time": 0, "session": 0}
+        need = {"dT": 1, "lag": 1, "pos_dT": 1, "quad": 1, "time": 0, "session": 0, "lever": 1}
         if self.kind == "gradient" and not (len(self.channels) >= 2 and 1 <= self.power < len(self.channels)):
             raise ValidationError(f"a gradient needs channels on both sides, got {self.channels} split at {self.power}")
         if self.kind in need and len(self.channels) != need[self.kind]:
@@ -59,6 +70,8 @@ class Feature:
             raise ValidationError("a lag feature needs tau_s > 0")
         if self.kind == "session" and not self.label:
             raise ValidationError("a session offset needs the session's label")
+        if self.kind == "lever" and not (self.label and (self.power >= 2 or (self.tau_s and self.tau_s > 0))):
+            raise ValidationError("a lever term needs its axis and a power of 2 or more, or a lag (else it is pos_dT)")
 
     @property
     def name(self) -> str:
@@ -77,6 +90,9 @@ class Feature:
             return f"lag{int(round(self.tau_s or 0))}[{c[0]}]"
         if self.kind == "pos_dT":
             return f"pos{ax}*dT[{c[0]}]"
+        if self.kind == "lever":
+            inner = f"lag{int(round(self.tau_s))}[{c[0]}]" if self.tau_s else f"dT[{c[0]}]"
+            return f"pos{ax}{'' if self.power == 1 else f'^{self.power}'}*{inner}"
         if self.kind == "quad":
             return f"dT[{c[0]}]^2"
         if self.kind == "time":
@@ -92,7 +108,7 @@ class Feature:
         out: FeatureRecord = {"kind": self.kind, "name": self.name}
         if self.channels:
             out["channels"] = list(self.channels)
-        if self.kind == "position" or (self.kind == "gradient" and len(self.channels) > 2):
+        if self.kind in ("position", "lever") or (self.kind == "gradient" and len(self.channels) > 2):
             out["power"] = self.power
         if self.tau_s is not None:
             out["tau_s"] = float(self.tau_s)
@@ -248,6 +264,10 @@ def evaluate(
         return inputs.lagged[key] if key in inputs.lagged else _dT(inputs, feature.channels[0])
     if k == "pos_dT":
         return _axis_column(feature, position, n) * _dT(inputs, feature.channels[0])  # eq. 3.2
+    if k == "lever":  # a link's thermal term seen through the chain's lever arm (eq. 4.12 to first order)
+        key = (feature.channels[0], float(feature.tau_s or 0))
+        inner = inputs.lagged[key] if feature.tau_s and key in inputs.lagged else _dT(inputs, feature.channels[0])
+        return _axis_column(feature, position, n) ** feature.power * inner
     if k == "quad":  # a nonlinear thermal response (ch. 6.4.2)
         return _dT(inputs, feature.channels[0]) ** 2
     if k == "time":  # a slow change not explained by temperature: wear, material instability (ch. 6.4.3)
@@ -289,7 +309,9 @@ def required_channels(features: Iterable[Feature]) -> list[str]:
 
 def required_lags(features: Iterable[Feature]) -> list[tuple[str, float]]:
     """Return the (channel, tau_s) lags a list of features needs."""
-    return [(f.channels[0], float(f.tau_s or 0)) for f in features if f.kind == "lag"]
+    return [
+        (f.channels[0], float(f.tau_s or 0)) for f in features if f.kind == "lag" or (f.kind == "lever" and f.tau_s)
+    ]
 
 
 #: opposite sides of a structure, recognised in the sites' locations (Table 5.1 wording)

@@ -48,6 +48,7 @@ from driftlab.models.lines import (
     distinct,
     fit_lines,
     home_deviation,
+    levered,
     line_pool,
 )
 from driftlab.models.neural import NeuralComparison, neural_comparisons
@@ -1967,6 +1968,8 @@ class LinePools:
         channels, position x dT of them (an angle acting through the line's lever) and lags."""
         out = line_pool(axis, self.channels(axis), ())
         out += list(dict.fromkeys(self._link_lags()))
+        # what the chain's lever arm makes of them along the line (eq. 4.12): position x lag, position^2 x dT
+        out += levered(axis, [f for m in self.models.values() for f in m.features])
         if any(f.kind == "direction" and f.label == axis for m in self.models.values() for f in m.features):
             out.append(Feature("direction", label=axis))
         return out

@@ -46,7 +46,7 @@ if TYPE_CHECKING:
 #: the element that carries the lines' corrections (its error reaches the tool through a fixed transform)
 LINE_ELEMENT = "T1"
 #: kinds that vary along a line (evaluated at the line axis' coordinate): the position-dependent part
-ALONG = frozenset({"position", "pos_dT", "direction"})
+ALONG = frozenset({"position", "pos_dT", "direction", "lever"})
 #: rolling-origin folds inside the training part, within each stage in time order: (fit on the rows
 #: before, check the rows up to) as fractions of the stage's training rows. The held-out part is the
 #: last quarter of each stage, so the folds check what it checks: the late part of every stage.
@@ -458,6 +458,28 @@ def fit_line(
     if best != "link":
         _keep(out, best, rows, terms, rules)
     return out
+
+
+def levered(axis: str, link_terms: Sequence[Feature]) -> list[Feature]:
+    """Return what the chain's lever arm makes of the links' thermal terms along a line of linear ``axis``.
+
+    To first order a link's error reaches the work space through the chain's Jacobian (eq. 4.12),
+    which along a linear axis, the other axes at home, is affine in the axis' position (an angle
+    acts through a lever arm that grows with it). So a link term f arrives on the line as f and as
+    position x f. The standard terms hold position x dT; for a lag and a screw's position x dT the
+    line needs position x lag and position^2 x dT, else what the links put on the line cannot be
+    undone there, and it is extrapolated wherever the training part left that channel still.
+    Terms that do not vary in time (position^4, position x direction) are left out.
+    """
+    if axis not in ("X", "Y", "Z"):
+        return []
+    out: list[Feature] = []
+    for f in link_terms:
+        if f.kind == "lag":
+            out.append(Feature("lever", f.channels, power=1, tau_s=f.tau_s, label=axis))
+        elif f.kind == "pos_dT" and f.label == axis:
+            out.append(Feature("lever", f.channels, power=2, label=axis))
+    return list(dict.fromkeys(out))
 
 
 def line_pool(axis: str, channels: Sequence[str], recast: Sequence[Feature]) -> list[Feature]:

@@ -165,6 +165,7 @@ TIER_OF: Mapping[str, int] = {
     "position": 0,
     "direction": 0,
     "pos_dT": 0,
+    "lever": 0,
     "mean": 0,
     "gradient": 0,
     "intercept": 0,

@@ -124,3 +124,25 @@ def test_candidates_from_a_spec_or_keywords_are_one_list():
     )
     assert "pos[X]^3" in {f.name for f in by_spec}
     assert "pos[X]^3" not in {f.name for f in candidate_features(chans, structs, spec, max_power=2)}
+
+
+def test_lever_terms_are_position_times_a_lag_or_position_squared_times_dt():
+    """What the chain's lever arm makes of a link's lag or screw term along a line (eq. 4.12, models.lines)."""
+    temps = _temps()
+    inp = build_inputs(temps, np.array([600.0, 7200.0]), {"A": 20.0, "B": 20.0, "C": 20.0}, lags=[("A", 3600.0)])
+    q = np.array([[100.0, 0, 0, 0, 0], [250.0, 0, 0, 0, 0]])
+    by_lag = Feature("lever", ("A",), power=1, tau_s=3600.0, label="X")
+    by_square = Feature("lever", ("B",), power=2, label="X")
+    X = design_matrix([by_lag, by_square], inp, q)
+    assert by_lag.name == "pos[X]*lag3600[A]" and by_square.name == "pos[X]^2*dT[B]"
+    assert np.allclose(X[by_lag.name], q[:, 0] * inp.lagged[("A", 3600.0)])
+    assert np.allclose(X[by_square.name], q[:, 0] ** 2 * inp.dT["B"].to_numpy())
+    # the lag differs from dT while A still warms: the lever term is not position x dT
+    assert not np.allclose(X[by_lag.name], q[:, 0] * inp.dT["A"].to_numpy())
+    assert required_lags([by_lag, by_square]) == [("A", 3600.0)]
+    for f in (by_lag, by_square):
+        assert Feature.from_dict(f.to_dict()) == f
+    with pytest.raises(ValidationError):  # position x dT is pos_dT, not a lever term
+        Feature("lever", ("A",), power=1, label="X")
+    with pytest.raises(ValidationError):
+        Feature("lever", ("A",), power=2)
