@@ -93,7 +93,8 @@ def test_rig_check_on_both_lines(line, tmp_path, capsys):
     out = capsys.readouterr().out
     assert f"linuxcncrsh mill-3 1.1 ({line} line)" in out
     x, y, z, *_ = m.machine_to_work(m.pos)
-    assert f"X={x:.4f}, Y={y:.4f}, Z={z:.4f}" in out
+    flat = " ".join(out.split())
+    assert f"X {x:.4f} mm" in flat and f"Y {y:.4f} mm" in flat and f"Z {z:.4f} mm" in flat, out
     assert m.moved == 0
 
 
